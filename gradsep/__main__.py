@@ -1,0 +1,5 @@
+import sys
+
+from gradsep.cli import main
+
+sys.exit(main())

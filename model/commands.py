@@ -1,0 +1,39 @@
+"""`gradsep reconstruct | evaluate`: argparse only; handlers import the solvers lazily."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def _reconstruct(args: argparse.Namespace) -> int:
+    from model.reconstruct import reconstruct_command
+
+    return reconstruct_command(args)
+
+
+def _evaluate(args: argparse.Namespace) -> int:
+    from model.evaluate import evaluate_command
+
+    return evaluate_command(args)
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("reconstruct", help="reconstruct a frame's illumination layers and write their sum")
+    p.add_argument("frame", help="input frame (.exr) per docs/frame-format.md")
+    p.add_argument("-o", "--output", required=True, help="output .exr (R G B, plus layers with --layers)")
+    p.add_argument("--method", choices=("network", "l1", "l2"), default=None,
+                   help="reconstruction method (default: network when models are present, else l1)")
+    p.add_argument("--alpha", type=float, default=0.2, help="screened Poisson data weight (l1/l2)")
+    p.add_argument("--half", action="store_true", help="write half floats instead of float32")
+    p.add_argument("--layers", action="store_true", help="also write each reconstructed layer (direct.R, ...)")
+    p.add_argument("--models", default=None, help="folder of exported models (default: $GRADSEP_MODELS or models/)")
+    p.add_argument("--nonfinite", choices=("reject", "zero"), default="reject",
+                   help="policy for NaN/Inf radiance or gradients (features are always zeroed)")
+    p.set_defaults(func=_reconstruct)
+
+    p = sub.add_parser("evaluate", help="error against run time for every method, with plots and tables")
+    p.add_argument("--scenes", nargs="*", default=None, help="XML paths or procedural:SEED")
+    p.add_argument("--spp", default="1,2,4,8,16,32,64", help="comma-separated sample counts")
+    p.add_argument("--quick", action="store_true", help="small CI-sized run (< 10 minutes)")
+    p.add_argument("-o", "--output", required=True, help="report folder")
+    p.set_defaults(func=_evaluate)
