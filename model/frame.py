@@ -1,0 +1,521 @@
+"""The frame contract: the one definition of what a gradsep frame is, how it is read and how it is written.
+
+A frame is a single-part scanline OpenEXR file (float32 or half, any compression OpenEXR reads) carrying
+
+* per illumination layer ``L`` in ``direct``, ``indirect`` (or ``color`` for a frame rendered without
+  separation): the base radiance ``L.R L.G L.B`` and its forward differences ``L.dx.{R,G,B}``, ``L.dy.{R,G,B}``;
+* features: ``albedo.{R,G,B}`` in [0, 1], ``normal.{X,Y,Z}`` unit camera-space normals, ``depth.Z`` distance in
+  scene units (0 where the camera ray missed).
+
+Gradients follow ``dx(x, y) = I(x+1, y) - I(x, y)`` and ``dy(x, y) = I(x, y+1) - I(x, y)`` with ``y`` growing
+downward (row order); the last column of dx and the last row of dy are 0. A frame carries only the layers its
+scene needs. ``docs/frame-format.md`` is the prose version of this module; this module is the source of truth.
+
+Reading is safe for untrusted bytes: the magic number and version flags are checked, the header is read without
+decoding, multi-part / tiled / deep files and anything over the pixel budget are rejected, OpenEXR's maximum
+image size is set, and only then are pixels decoded. Every problem raises a :class:`FrameError` subclass that
+says what is wrong and carries the HTTP status the service answers with.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import os
+import struct
+import sys
+import tempfile
+import threading
+from collections.abc import Iterable, Iterator, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, BinaryIO, Literal
+
+import numpy as np
+import OpenEXR
+
+# ---------------------------------------------------------------------------------------------------------------
+# Channel names: data, not code
+# ---------------------------------------------------------------------------------------------------------------
+
+ILLUMINATION_LAYERS: tuple[str, ...] = ("direct", "indirect", "color")
+SEPARATED_LAYERS: tuple[str, ...] = ("direct", "indirect")
+RGB: tuple[str, ...] = ("R", "G", "B")
+GRADIENTS: tuple[str, ...] = ("dx", "dy")
+FEATURE_GROUPS: dict[str, tuple[str, ...]] = {
+    "albedo": ("albedo.R", "albedo.G", "albedo.B"),
+    "normal": ("normal.X", "normal.Y", "normal.Z"),
+    "depth": ("depth.Z",),
+}
+FEATURE_CHANNELS: tuple[str, ...] = tuple(c for group in FEATURE_GROUPS.values() for c in group)
+# Prefixes this contract owns: a channel under one of them that is not a contract channel is a producer bug and
+# is rejected; channels outside them (an alpha "A", a renderer's extra AOVs) are ignored with a warning.
+OWNED_PREFIXES: tuple[str, ...] = (*ILLUMINATION_LAYERS, *FEATURE_GROUPS)
+
+NonFinitePolicy = Literal["reject", "zero"]
+NONFINITE_POLICIES: tuple[str, ...] = ("reject", "zero")
+
+_EXR_MAGIC = 20000630  # OpenEXR's magic number, little-endian int32 at offset 0
+_FLAG_TILED = 0x200  # version field bit 9: single-part tiled
+_FLAG_NON_IMAGE = 0x800  # bit 11: deep data
+_FLAG_MULTIPART = 0x1000  # bit 12
+
+
+def layer_channels(layer: str) -> tuple[str, ...]:
+    """The nine channel names of an illumination layer: base RGB, then dx RGB, then dy RGB."""
+    if layer not in ILLUMINATION_LAYERS:
+        raise ValueError(f"unknown illumination layer {layer!r}; expected one of {ILLUMINATION_LAYERS}")
+    return (*(f"{layer}.{c}" for c in RGB), *(f"{layer}.{g}.{c}" for g in GRADIENTS for c in RGB))
+
+
+def frame_channels(layers: Iterable[str], features: bool = True) -> tuple[str, ...]:
+    """Every channel a frame with these layers (and optionally the features) carries, in canonical order."""
+    names = [c for layer in layers for c in layer_channels(layer)]
+    return (*names, *(FEATURE_CHANNELS if features else ()))
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Errors: each knows the HTTP status and stable code the service answers with
+# ---------------------------------------------------------------------------------------------------------------
+
+
+class FrameError(ValueError):
+    """Base of every problem with an input frame. ``details`` names channels or limits where it can."""
+
+    status: int = 400
+    code: str = "bad_frame"
+
+    def __init__(self, message: str, details: Any = None) -> None:
+        super().__init__(message)
+        self.message = message
+        self.details = details
+
+
+class NotExrError(FrameError):
+    """Not an OpenEXR file, or a corrupt or truncated one."""
+
+    status, code = 400, "not_exr"
+
+
+class UnsupportedExrError(FrameError):
+    """A valid OpenEXR file of a kind the contract excludes: multi-part, tiled, deep, subsampled, integer."""
+
+    status, code = 400, "unsupported_exr"
+
+
+class FrameTooLargeError(FrameError):
+    """The header declares more pixels or values than the reader's budget; decided before decoding."""
+
+    status, code = 413, "too_large"
+
+
+class ChannelError(FrameError):
+    """Missing, unknown or inconsistent channels, or no illumination layer. ``details`` lists the channels."""
+
+    status, code = 422, "bad_channels"
+
+
+class NonFiniteError(FrameError):
+    """NaN or Inf in radiance or gradients under the ``reject`` policy. ``details`` maps channel to count."""
+
+    status, code = 422, "non_finite"
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# The in-memory frame
+# ---------------------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Layer:
+    """One illumination layer: float32 arrays of shape (H, W, 3)."""
+
+    base: np.ndarray  # primal radiance I
+    dx: np.ndarray  # I(x+1, y) - I(x, y); last column 0
+    dy: np.ndarray  # I(x, y+1) - I(x, y); last row 0
+
+    def __add__(self, other: Layer) -> Layer:
+        """Layers add channel-wise: gradients are linear, so direct + indirect is the unseparated layer."""
+        return Layer(self.base + other.base, self.dx + other.dx, self.dy + other.dy)
+
+
+@dataclass
+class Features:
+    """Auxiliary features at the first non-specular vertex, float32."""
+
+    albedo: np.ndarray  # (H, W, 3) in [0, 1]
+    normal: np.ndarray  # (H, W, 3) unit camera-space normals
+    depth: np.ndarray  # (H, W) distance in scene units, 0 where the camera ray missed
+
+
+@dataclass
+class Frame:
+    """A decoded, validated frame. ``layers`` holds only the layers present, in ILLUMINATION_LAYERS order."""
+
+    layers: dict[str, Layer]
+    features: Features | None = None
+    metadata: dict[str, str] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def height(self) -> int:
+        return int(next(iter(self.layers.values())).base.shape[0])
+
+    @property
+    def width(self) -> int:
+        return int(next(iter(self.layers.values())).base.shape[1])
+
+    def combined(self) -> Layer:
+        """All layers summed: the unseparated ("color") layer of this frame."""
+        layers = list(self.layers.values())
+        total = layers[0]
+        for layer in layers[1:]:
+            total = total + layer
+        return total
+
+    def to_channels(self) -> dict[str, np.ndarray]:
+        """Channel name -> (H, W) float32 array, in canonical order."""
+        out: dict[str, np.ndarray] = {}
+        for name, layer in self.layers.items():
+            out.update(rgb_channels(name, layer.base))
+            out.update(rgb_channels(f"{name}.dx", layer.dx))
+            out.update(rgb_channels(f"{name}.dy", layer.dy))
+        if self.features is not None:
+            f = self.features
+            out.update(zip(FEATURE_GROUPS["albedo"], np.moveaxis(f.albedo, -1, 0), strict=True))
+            out.update(zip(FEATURE_GROUPS["normal"], np.moveaxis(f.normal, -1, 0), strict=True))
+            out["depth.Z"] = f.depth
+        return {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in out.items()}
+
+
+def rgb_channels(prefix: str, image: np.ndarray) -> dict[str, np.ndarray]:
+    """Split an (H, W, 3) image into named channels: prefix "" gives R G B, "direct" gives direct.R ..."""
+    if image.ndim != 3 or image.shape[2] != 3:
+        raise ValueError(f"expected an (H, W, 3) image, got shape {image.shape}")
+    dot = f"{prefix}." if prefix else ""
+    return {f"{dot}{c}": image[..., i] for i, c in enumerate(RGB)}
+
+
+def forward_differences(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(dx, dy) of an (H, W[, C]) image per the contract: forward differences, zero in the last column/row."""
+    dx = np.zeros_like(image)
+    dy = np.zeros_like(image)
+    dx[:, :-1] = image[:, 1:] - image[:, :-1]
+    dy[:-1, :] = image[1:, :] - image[:-1, :]
+    return dx, dy
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Reading untrusted bytes
+# ---------------------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ReadLimits:
+    """Decoding budget, checked against the header before any pixel is decoded."""
+
+    max_pixels: int = 8192 * 8192
+    max_values: int = 8192 * 8192 * 24  # width * height * channels
+    max_side: int = 65536  # OpenEXR's process-wide maximum image width/height while decoding
+
+
+@dataclass(frozen=True)
+class HeaderInfo:
+    width: int
+    height: int
+    channels: tuple[str, ...]
+    compression: str
+    attributes: dict[str, str]
+
+
+Source = str | os.PathLike[str] | bytes | bytearray | memoryview | BinaryIO
+
+
+@contextlib.contextmanager
+def _native_output_captured(sink: list[str]) -> Iterator[None]:
+    """Capture what OpenEXR prints on fds 1 and 2 (it warns there on truncated files instead of raising).
+
+    Only on the main thread of a command-line run: redirecting file descriptors is process-wide, so in a threaded
+    server the library's warnings are left alone (they go to the server log) rather than swallowing other threads'
+    output.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(AttributeError, OSError, ValueError):
+            stream.flush()
+    with contextlib.ExitStack() as stack:
+        captures = []
+        for fd in (1, 2):
+            try:
+                saved = os.dup(fd)
+            except OSError:
+                continue
+            capture = stack.enter_context(tempfile.TemporaryFile())
+            os.dup2(capture.fileno(), fd)
+            captures.append((fd, saved, capture))
+        try:
+            yield
+        finally:
+            for fd, saved, capture in captures:
+                os.dup2(saved, fd)
+                os.close(saved)
+                capture.seek(0)
+                text = capture.read().decode(errors="replace")
+                sink.extend(line.strip() for line in text.splitlines() if line.strip())
+
+
+def _open(source: Source, header_only: bool) -> OpenEXR.File:
+    """Open with OpenEXR from a path or from bytes; any library failure becomes NotExrError."""
+    native: list[str] = []
+    with _native_output_captured(native):
+        exr = _open_quietly(source, header_only)
+    if not header_only and len(exr.parts) != 1:
+        # OpenEXR 3.5 does not raise on a truncated file: it returns a File with zero parts and warns on stderr.
+        reason = f": {native[-1]}" if native else ""
+        raise NotExrError(f"truncated or corrupt OpenEXR file (pixel data could not be decoded){reason}")
+    return exr
+
+
+def _open_quietly(source: Source, header_only: bool) -> OpenEXR.File:
+    try:
+        if isinstance(source, str | os.PathLike):
+            return OpenEXR.File(os.fspath(source), separate_channels=True, header_only=header_only)
+        stream = io.BytesIO(bytes(source)) if isinstance(source, bytes | bytearray | memoryview) else source
+        stream.seek(0)
+        return OpenEXR.File(stream, separate_channels=True, header_only=header_only)
+    except (RuntimeError, OSError, ValueError, TypeError) as exc:
+        raise NotExrError(f"not a readable OpenEXR file: {exc}") from exc
+
+
+def _prefix(source: Source, n: int) -> bytes:
+    if isinstance(source, str | os.PathLike):
+        try:
+            with open(source, "rb") as fh:
+                return fh.read(n)
+        except OSError as exc:
+            raise NotExrError(f"cannot read {os.fspath(source)!r}: {exc.strerror or exc}") from exc
+    if isinstance(source, bytes | bytearray | memoryview):
+        return bytes(source[:n])
+    pos = source.tell()
+    head = source.read(n)
+    source.seek(pos)
+    return head
+
+
+def _check_magic(source: Source) -> None:
+    """Reject non-EXR, multi-part, tiled and deep files from the 8-byte preamble, before OpenEXR parses anything."""
+    head = _prefix(source, 8)
+    if len(head) < 8 or struct.unpack("<i", head[:4])[0] != _EXR_MAGIC:
+        raise NotExrError("not an OpenEXR file (bad magic number)")
+    flags = struct.unpack("<I", head[4:8])[0]
+    if flags & _FLAG_MULTIPART:
+        raise UnsupportedExrError("multi-part OpenEXR files are not supported; write a single-part scanline file")
+    if flags & _FLAG_NON_IMAGE:
+        raise UnsupportedExrError("deep OpenEXR files are not supported; write a single-part scanline file")
+    if flags & _FLAG_TILED:
+        raise UnsupportedExrError("tiled OpenEXR files are not supported; write a single-part scanline file")
+
+
+def _string_attributes(header: Mapping[str, Any]) -> dict[str, str]:
+    return {k: v for k, v in header.items() if isinstance(v, str)}
+
+
+def read_header(source: Source, limits: ReadLimits = ReadLimits()) -> HeaderInfo:
+    """Read and check the header only: size, channel names, storage. Raises before any pixel is decoded."""
+    _check_magic(source)
+    exr = _open(source, header_only=True)
+    if len(exr.parts) != 1:
+        raise UnsupportedExrError(f"expected a single-part OpenEXR file, found {len(exr.parts)} parts")
+    header = exr.header()
+    storage = header.get("type", OpenEXR.scanlineimage)
+    if storage != OpenEXR.scanlineimage:
+        raise UnsupportedExrError(f"expected a scanline OpenEXR image, found {getattr(storage, 'name', storage)}")
+    try:
+        lo, hi = header["dataWindow"]
+        width, height = int(hi[0]) - int(lo[0]) + 1, int(hi[1]) - int(lo[1]) + 1
+    except (KeyError, TypeError, ValueError, IndexError) as exc:
+        raise NotExrError("OpenEXR header has no valid dataWindow") from exc
+    if width <= 0 or height <= 0:
+        raise NotExrError(f"OpenEXR dataWindow is empty ({width}x{height})")
+    channels = header.get("channels", [])
+    names = tuple(c.name for c in channels)
+    subsampled = [c.name for c in channels if (c.xSampling, c.ySampling) != (1, 1)]
+    if subsampled:
+        raise UnsupportedExrError(f"subsampled channels are not supported: {', '.join(subsampled)}", subsampled)
+    pixels, values = width * height, width * height * max(len(names), 1)
+    budget = {"width": width, "height": height, "channels": len(names),
+              "max_pixels": limits.max_pixels, "max_values": limits.max_values, "max_side": limits.max_side}
+    if max(width, height) > limits.max_side or pixels > limits.max_pixels:
+        raise FrameTooLargeError(
+            f"image of {width}x{height} pixels is over the limit of {limits.max_pixels} pixels "
+            f"(and {limits.max_side} per side)", budget)
+    if values > limits.max_values:
+        raise FrameTooLargeError(
+            f"image of {width}x{height} pixels x {len(names)} channels = {values} values is over the limit "
+            f"of {limits.max_values}", budget)
+    compression = header.get("compression")
+    return HeaderInfo(width, height, names, getattr(compression, "name", str(compression)),
+                      _string_attributes(header))
+
+
+def _classify(names: Iterable[str]) -> tuple[list[str], list[str], list[str]]:
+    """Split channel names into (layers present, unknown channels under our prefixes, foreign channels)."""
+    known = set(frame_channels(ILLUMINATION_LAYERS))
+    present_layers = [layer for layer in ILLUMINATION_LAYERS if any(n.startswith(f"{layer}.") for n in names)]
+    unknown, foreign = [], []
+    for n in names:
+        if n in known:
+            continue
+        if n.split(".", 1)[0] in OWNED_PREFIXES:
+            unknown.append(n)
+        else:
+            foreign.append(n)
+    return present_layers, unknown, foreign
+
+
+def validate_channels(names: Iterable[str]) -> tuple[list[str], bool, list[str]]:
+    """Check channel names against the contract; return (layers, has_features, warnings) or raise ChannelError.
+
+    Every problem is collected and reported together, naming the channels, so a producer fixes them in one go.
+    """
+    names = list(names)
+    present = set(names)
+    layers, unknown, foreign = _classify(names)
+    problems: list[str] = []
+    details: dict[str, list[str]] = {}
+    if unknown:
+        problems.append(f"unknown channels {', '.join(sorted(unknown))}")
+        details["unknown"] = sorted(unknown)
+    missing = [c for layer in layers for c in layer_channels(layer) if c not in present]
+    groups = [g for g, chans in FEATURE_GROUPS.items() if any(c in present for c in chans)]
+    if groups:  # features are all-or-nothing: a partial set means the producer dropped something
+        missing += [c for chans in FEATURE_GROUPS.values() for c in chans if c not in present]
+    if missing:
+        problems.append(f"missing channels {', '.join(missing)}")
+        details["missing"] = missing
+    if not layers:
+        problems.append("no illumination layer (expected direct.*, indirect.* or color.* channels)")
+        details["expected_layers"] = list(ILLUMINATION_LAYERS)
+    if "color" in layers and any(layer in layers for layer in SEPARATED_LAYERS):
+        problems.append("a frame carries either color.* (unseparated) or direct.*/indirect.* layers, not both")
+        details["conflicting_layers"] = layers
+    if problems:
+        raise ChannelError("; ".join(problems), details)
+    warnings = [f"ignored channels outside the frame contract: {', '.join(sorted(foreign))}"] if foreign else []
+    return layers, bool(groups), warnings
+
+
+def _sanitize(channels: dict[str, np.ndarray], names: Iterable[str], policy: NonFinitePolicy,
+              warnings: list[str]) -> None:
+    """Apply the non-finite policy to radiance/gradient channels in place."""
+    bad = {n: int(np.count_nonzero(~np.isfinite(channels[n]))) for n in names}
+    bad = {n: k for n, k in bad.items() if k}
+    if not bad:
+        return
+    listing = ", ".join(f"{n} ({k})" for n, k in bad.items())
+    if policy == "reject":
+        raise NonFiniteError(f"non-finite values (NaN/Inf) in {listing}", bad)
+    for n in bad:
+        np.nan_to_num(channels[n], copy=False, nan=0.0, posinf=0.0, neginf=0.0)
+    warnings.append(f"replaced non-finite values with 0 in {listing}")
+
+
+def read_frame(source: Source, *, limits: ReadLimits = ReadLimits(),
+               nonfinite: NonFinitePolicy = "reject") -> Frame:
+    """Read, check and decode a frame from a path, bytes or a binary stream.
+
+    Non-finite feature values become 0 (as the paper does). Non-finite radiance or gradients are rejected naming
+    the channel and count (``reject``), or replaced with 0 and reported in ``Frame.warnings`` (``zero``).
+    """
+    if nonfinite not in NONFINITE_POLICIES:
+        raise ValueError(f"nonfinite must be one of {NONFINITE_POLICIES}, got {nonfinite!r}")
+    info = read_header(source, limits)
+    layers, has_features, warnings = validate_channels(info.channels)
+
+    # OpenEXR's own guard, in case a header trick slips past the check above; process-wide but fixed per config.
+    OpenEXR.setMaxImageSize(limits.max_side, limits.max_side)
+    exr = _open(source, header_only=False)
+    decoded = exr.channels()
+    channels: dict[str, np.ndarray] = {}
+    for name in frame_channels(layers, has_features):
+        ch = decoded.get(name)
+        pixels = None if ch is None else ch.pixels
+        if pixels is None or getattr(pixels, "shape", None) != (info.height, info.width):
+            raise NotExrError(f"truncated or corrupt OpenEXR file (channel {name} could not be decoded)")
+        if pixels.dtype.kind != "f":
+            raise UnsupportedExrError(f"channel {name} has integer pixels; expected half or float", [name])
+        channels[name] = np.array(pixels, dtype=np.float32)  # own copy: writable, float32
+
+    radiance = [c for layer in layers for c in layer_channels(layer)]
+    _sanitize(channels, radiance, nonfinite, warnings)
+    for name in FEATURE_CHANNELS if has_features else ():
+        np.nan_to_num(channels[name], copy=False, nan=0.0, posinf=0.0, neginf=0.0)
+
+    def stack(names: Iterable[str]) -> np.ndarray:
+        return np.stack([channels[n] for n in names], axis=-1)
+
+    frame_layers = {}
+    for layer in layers:
+        names = layer_channels(layer)
+        frame_layers[layer] = Layer(stack(names[0:3]), stack(names[3:6]), stack(names[6:9]))
+    features = None
+    if has_features:
+        features = Features(stack(FEATURE_GROUPS["albedo"]), stack(FEATURE_GROUPS["normal"]), channels["depth.Z"])
+    return Frame(frame_layers, features, info.attributes, warnings)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Writing: always whole files, never half-written
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def _exr_file(channels: Mapping[str, np.ndarray], half: bool, metadata: Mapping[str, str] | None) -> OpenEXR.File:
+    dtype = np.float16 if half else np.float32
+    shapes = {np.shape(v) for v in channels.values()}
+    if len(shapes) != 1 or len(next(iter(shapes))) != 2:
+        raise ValueError(f"channels must be 2-D arrays of one shape, got {sorted(shapes)}")
+    pixels = {}
+    for name, value in channels.items():
+        arr = np.asarray(value)
+        if half:  # float32 -> half overflows to Inf above 65504: saturate instead, outputs stay finite
+            arr = np.clip(arr, -65504.0, 65504.0)
+        pixels[name] = np.ascontiguousarray(arr, dtype=dtype)
+    header: dict[str, Any] = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    header.update({k: str(v) for k, v in (metadata or {}).items()})
+    return OpenEXR.File(header, pixels)  # OpenEXR mutates both dicts: they are our own copies
+
+
+def encode_exr(channels: Mapping[str, np.ndarray], *, half: bool = False,
+               metadata: Mapping[str, str] | None = None) -> bytes:
+    """Encode channels as the bytes of a single-part scanline EXR (ZIP compression)."""
+    buffer = io.BytesIO()
+    _exr_file(channels, half, metadata).write(buffer)
+    return buffer.getvalue()
+
+
+def write_bytes_atomic(path: str | os.PathLike[str], data: bytes) -> None:
+    """Write ``data`` to a temporary file beside ``path`` and rename it into place (atomic on POSIX)."""
+    target = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent or ".")
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, target)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def write_exr(path: str | os.PathLike[str], channels: Mapping[str, np.ndarray], *, half: bool = False,
+              metadata: Mapping[str, str] | None = None) -> None:
+    """Write channels to ``path`` atomically: a killed run never leaves a half-written file."""
+    write_bytes_atomic(path, encode_exr(channels, half=half, metadata=metadata))
+
+
+def write_frame(path: str | os.PathLike[str], frame: Frame, *, half: bool = False) -> None:
+    """Write a frame per the contract, atomically."""
+    write_exr(path, frame.to_channels(), half=half, metadata=frame.metadata)
