@@ -304,18 +304,73 @@ def _prefix(source: Source, n: int) -> bytes:
     return head
 
 
-def _check_magic(source: Source) -> None:
-    """Reject non-EXR, multi-part, tiled and deep files from the 8-byte preamble, before OpenEXR parses anything."""
-    head = _prefix(source, 8)
-    if len(head) < 8 or struct.unpack("<i", head[:4])[0] != _EXR_MAGIC:
+_MAX_HEADER_BYTES = 16 << 20  # attributes beyond this are not a frame header we accept
+
+
+@dataclass(frozen=True)
+class _RawHeader:
+    width: int
+    height: int
+    channels: int
+
+
+def _scan_header(source: Source) -> _RawHeader:
+    """Check the preamble and walk the attribute list ourselves, before OpenEXR parses anything.
+
+    Rejects non-EXR, multi-part, tiled and deep files from the version flags, and finds the declared data window and
+    channel count, so an over-budget image is refused from its header alone: OpenEXR would otherwise refuse (or try
+    to allocate for) a forged 200000x200000 header in ways that do not say "too large".
+    """
+    head = _prefix(source, _MAX_HEADER_BYTES)
+    if len(head) < 8 or struct.unpack_from("<i", head)[0] != _EXR_MAGIC:
         raise NotExrError("not an OpenEXR file (bad magic number)")
-    flags = struct.unpack("<I", head[4:8])[0]
+    flags = struct.unpack_from("<I", head, 4)[0]
     if flags & _FLAG_MULTIPART:
         raise UnsupportedExrError("multi-part OpenEXR files are not supported; write a single-part scanline file")
     if flags & _FLAG_NON_IMAGE:
         raise UnsupportedExrError("deep OpenEXR files are not supported; write a single-part scanline file")
     if flags & _FLAG_TILED:
         raise UnsupportedExrError("tiled OpenEXR files are not supported; write a single-part scanline file")
+    pos, window, channels = 8, None, None
+    try:
+        while head[pos] != 0:  # attribute: name\0 type\0 int32 size, value
+            name_end = head.index(b"\0", pos)
+            type_end = head.index(b"\0", name_end + 1)
+            name, kind = head[pos:name_end], head[name_end + 1:type_end]
+            (size,) = struct.unpack_from("<i", head, type_end + 1)
+            value = type_end + 5
+            if size < 0 or value + size > len(head):
+                raise NotExrError("truncated or corrupt OpenEXR header")
+            if name == b"dataWindow" and kind == b"box2i" and size == 16:
+                x0, y0, x1, y1 = struct.unpack_from("<4i", head, value)
+                window = (x1 - x0 + 1, y1 - y0 + 1)
+            elif name == b"channels" and kind == b"chlist":
+                channels, cur = 0, value
+                while head[cur] != 0:  # entry: name\0 + 16 bytes
+                    cur = head.index(b"\0", cur) + 17
+                    channels += 1
+            pos = value + size
+    except (IndexError, ValueError, struct.error) as exc:
+        raise NotExrError("truncated or corrupt OpenEXR header") from exc
+    if window is None or channels is None:
+        raise NotExrError("OpenEXR header lacks a dataWindow or channel list")
+    return _RawHeader(window[0], window[1], channels)
+
+
+def _check_budget(width: int, height: int, channels: int, limits: ReadLimits) -> None:
+    if width <= 0 or height <= 0:
+        raise NotExrError(f"OpenEXR dataWindow is empty ({width}x{height})")
+    pixels, values = width * height, width * height * max(channels, 1)
+    budget = {"width": width, "height": height, "channels": channels,
+              "max_pixels": limits.max_pixels, "max_values": limits.max_values, "max_side": limits.max_side}
+    if max(width, height) > limits.max_side or pixels > limits.max_pixels:
+        raise FrameTooLargeError(
+            f"image of {width}x{height} pixels is over the limit of {limits.max_pixels} pixels "
+            f"(and {limits.max_side} per side)", budget)
+    if values > limits.max_values:
+        raise FrameTooLargeError(
+            f"image of {width}x{height} pixels x {channels} channels = {values} values is over the limit "
+            f"of {limits.max_values}", budget)
 
 
 def _string_attributes(header: Mapping[str, Any]) -> dict[str, str]:
@@ -324,7 +379,8 @@ def _string_attributes(header: Mapping[str, Any]) -> dict[str, str]:
 
 def read_header(source: Source, limits: ReadLimits = ReadLimits()) -> HeaderInfo:
     """Read and check the header only: size, channel names, storage. Raises before any pixel is decoded."""
-    _check_magic(source)
+    raw = _scan_header(source)
+    _check_budget(raw.width, raw.height, raw.channels, limits)
     exr = _open(source, header_only=True)
     if len(exr.parts) != 1:
         raise UnsupportedExrError(f"expected a single-part OpenEXR file, found {len(exr.parts)} parts")
@@ -337,24 +393,12 @@ def read_header(source: Source, limits: ReadLimits = ReadLimits()) -> HeaderInfo
         width, height = int(hi[0]) - int(lo[0]) + 1, int(hi[1]) - int(lo[1]) + 1
     except (KeyError, TypeError, ValueError, IndexError) as exc:
         raise NotExrError("OpenEXR header has no valid dataWindow") from exc
-    if width <= 0 or height <= 0:
-        raise NotExrError(f"OpenEXR dataWindow is empty ({width}x{height})")
     channels = header.get("channels", [])
     names = tuple(c.name for c in channels)
+    _check_budget(width, height, len(names), limits)  # what OpenEXR parsed must agree with our own scan
     subsampled = [c.name for c in channels if (c.xSampling, c.ySampling) != (1, 1)]
     if subsampled:
         raise UnsupportedExrError(f"subsampled channels are not supported: {', '.join(subsampled)}", subsampled)
-    pixels, values = width * height, width * height * max(len(names), 1)
-    budget = {"width": width, "height": height, "channels": len(names),
-              "max_pixels": limits.max_pixels, "max_values": limits.max_values, "max_side": limits.max_side}
-    if max(width, height) > limits.max_side or pixels > limits.max_pixels:
-        raise FrameTooLargeError(
-            f"image of {width}x{height} pixels is over the limit of {limits.max_pixels} pixels "
-            f"(and {limits.max_side} per side)", budget)
-    if values > limits.max_values:
-        raise FrameTooLargeError(
-            f"image of {width}x{height} pixels x {len(names)} channels = {values} values is over the limit "
-            f"of {limits.max_values}", budget)
     compression = header.get("compression")
     return HeaderInfo(width, height, names, getattr(compression, "name", str(compression)),
                       _string_attributes(header))

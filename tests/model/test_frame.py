@@ -1,0 +1,273 @@
+"""The frame contract: names, validation, safe reading of untrusted bytes, atomic writing."""
+
+from __future__ import annotations
+
+import struct
+
+import numpy as np
+import OpenEXR
+import pytest
+
+from model.frame import (
+    FEATURE_CHANNELS,
+    ChannelError,
+    Features,
+    Frame,
+    FrameTooLargeError,
+    Layer,
+    NonFiniteError,
+    NotExrError,
+    ReadLimits,
+    UnsupportedExrError,
+    encode_exr,
+    forward_differences,
+    frame_channels,
+    layer_channels,
+    read_frame,
+    read_header,
+    write_exr,
+    write_frame,
+)
+
+
+def make_frame(h: int = 6, w: int = 9, layers: tuple[str, ...] = ("direct", "indirect"), features: bool = True,
+               seed: int = 0) -> Frame:
+    rng = np.random.default_rng(seed)
+    out = {}
+    for name in layers:
+        base = rng.random((h, w, 3), dtype=np.float32) * 4
+        out[name] = Layer(base, *forward_differences(base))
+    feats = None
+    if features:
+        normal = rng.normal(size=(h, w, 3)).astype(np.float32)
+        normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+        feats = Features(rng.random((h, w, 3), dtype=np.float32), normal, rng.random((h, w), dtype=np.float32) * 10)
+    return Frame(out, feats, {"gradsep.spp": "16"})
+
+
+def patch_data_window(data: bytes, width: int, height: int) -> bytes:
+    """Rewrite the dataWindow attribute of an EXR header in place (a crafted header, as an attacker would)."""
+    key = b"dataWindow\x00box2i\x00"
+    at = data.index(key) + len(key)
+    assert struct.unpack("<i", data[at:at + 4])[0] == 16
+    box = struct.pack("<4i", 0, 0, width - 1, height - 1)
+    return data[:at + 4] + box + data[at + 20:]
+
+
+# -- names -------------------------------------------------------------------------------------------------------
+
+
+def test_layer_channels_are_nine_in_canonical_order() -> None:
+    assert layer_channels("direct") == (
+        "direct.R", "direct.G", "direct.B", "direct.dx.R", "direct.dx.G", "direct.dx.B",
+        "direct.dy.R", "direct.dy.G", "direct.dy.B")
+    with pytest.raises(ValueError):
+        layer_channels("specular")
+
+
+def test_forward_differences_follow_the_contract() -> None:
+    img = np.arange(12, dtype=np.float64).reshape(3, 4)
+    dx, dy = forward_differences(img)
+    assert np.all(dx[:, :-1] == 1) and np.all(dx[:, -1] == 0)
+    assert np.all(dy[:-1, :] == 4) and np.all(dy[-1, :] == 0)
+
+
+# -- round trip --------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("half", [False, True])
+@pytest.mark.parametrize("layers", [("direct", "indirect"), ("direct",), ("indirect",), ("color",)])
+def test_round_trip(tmp_path, half: bool, layers: tuple[str, ...]) -> None:
+    frame = make_frame(layers=layers)
+    path = tmp_path / "f.exr"
+    write_frame(path, frame, half=half)
+    back = read_frame(path)
+    assert list(back.layers) == list(layers)
+    tol = 2e-3 if half else 0
+    for name in layers:
+        np.testing.assert_allclose(back.layers[name].base, frame.layers[name].base, rtol=tol, atol=tol)
+        np.testing.assert_allclose(back.layers[name].dy, frame.layers[name].dy, rtol=tol, atol=tol)
+        assert back.layers[name].base.dtype == np.float32
+    np.testing.assert_allclose(back.features.depth, frame.features.depth, rtol=tol)
+    assert back.metadata["gradsep.spp"] == "16"
+    assert (back.width, back.height) == (9, 6)
+    assert read_frame(path.read_bytes()).layers.keys() == back.layers.keys()  # bytes source
+    with open(path, "rb") as fh:  # stream source
+        assert read_frame(fh).width == 9
+
+
+@pytest.mark.parametrize("compression", ["NO_COMPRESSION", "RLE_COMPRESSION", "PIZ_COMPRESSION", "ZSTD_COMPRESSION",
+                                         "DWAA_COMPRESSION", "PXR24_COMPRESSION"])
+def test_any_compression_openexr_reads(tmp_path, compression: str) -> None:
+    frame = make_frame(layers=("direct",), features=False)
+    header = {"compression": getattr(OpenEXR, compression), "type": OpenEXR.scanlineimage}
+    OpenEXR.File(header, dict(frame.to_channels())).write(str(tmp_path / "c.exr"))
+    back = read_frame(tmp_path / "c.exr")
+    lossy = compression in ("DWAA_COMPRESSION", "PXR24_COMPRESSION")
+    np.testing.assert_allclose(back.layers["direct"].base, frame.layers["direct"].base, rtol=5e-2 if lossy else 0)
+
+
+def test_features_are_optional_as_a_whole() -> None:
+    frame = read_frame(encode_exr(make_frame(features=False).to_channels()))
+    assert frame.features is None
+
+
+def test_foreign_channels_are_ignored_with_a_warning() -> None:
+    channels = make_frame().to_channels()
+    channels["A"] = np.ones_like(channels["depth.Z"])
+    frame = read_frame(encode_exr(channels))
+    assert any("A" in w for w in frame.warnings)
+
+
+# -- channel validation names every problem --------------------------------------------------------------------
+
+
+def test_missing_and_unknown_channels_are_all_named() -> None:
+    channels = make_frame().to_channels()
+    del channels["indirect.dy.B"], channels["normal.Y"]
+    channels["direct.dz.R"] = channels["depth.Z"]
+    with pytest.raises(ChannelError) as err:
+        read_frame(encode_exr(channels))
+    assert err.value.status == 422
+    assert err.value.details["missing"] == ["indirect.dy.B", "normal.Y"]
+    assert err.value.details["unknown"] == ["direct.dz.R"]
+    assert "indirect.dy.B" in str(err.value) and "direct.dz.R" in str(err.value)
+
+
+def test_no_illumination_layer() -> None:
+    channels = {c: np.zeros((2, 2), np.float32) for c in FEATURE_CHANNELS}
+    with pytest.raises(ChannelError, match="no illumination layer"):
+        read_frame(encode_exr(channels))
+
+
+def test_color_and_separated_layers_do_not_mix() -> None:
+    channels = make_frame(layers=("direct", "color")).to_channels()
+    with pytest.raises(ChannelError, match="not both"):
+        read_frame(encode_exr(channels))
+
+
+# -- untrusted bytes ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("data", [b"", b"\x00", b"GIF89a" + b"\x00" * 100, b"v/1\x01", bytes(range(256)) * 4])
+def test_garbage_is_not_exr(data: bytes) -> None:
+    with pytest.raises(NotExrError):
+        read_frame(data)
+
+
+def test_every_truncation_is_a_typed_error() -> None:
+    data = encode_exr(make_frame(h=20, w=17).to_channels())
+    for cut in range(0, len(data), max(1, len(data) // 97)):
+        with pytest.raises((NotExrError, ChannelError)):
+            read_frame(data[:cut])
+
+
+def test_huge_declared_size_is_rejected_from_the_header() -> None:
+    data = patch_data_window(encode_exr(make_frame(h=4, w=4).to_channels()), 200_000, 200_000)
+    with pytest.raises(FrameTooLargeError) as err:
+        read_header(data)
+    assert err.value.status == 413 and err.value.details["width"] == 200_000
+    with pytest.raises(FrameTooLargeError):
+        read_frame(data)
+
+
+def test_value_budget_counts_channels() -> None:
+    data = encode_exr(make_frame(h=10, w=10).to_channels())
+    limits = ReadLimits(max_pixels=100, max_values=100 * 20)  # 25 channels > 20
+    with pytest.raises(FrameTooLargeError, match="channels"):
+        read_frame(data, limits=limits)
+    assert read_frame(data, limits=ReadLimits(max_pixels=100, max_values=100 * 25)).width == 10
+
+
+def test_tiled_and_multipart_are_rejected(tmp_path) -> None:
+    tile = OpenEXR.TileDescription()
+    tile.xSize, tile.ySize, tile.mode = 16, 16, OpenEXR.ONE_LEVEL
+    channels = make_frame(layers=("direct",), features=False).to_channels()
+    OpenEXR.File({"type": OpenEXR.tiledimage, "tiles": tile}, dict(channels)).write(str(tmp_path / "t.exr"))
+    with pytest.raises(UnsupportedExrError, match="tiled"):
+        read_frame(tmp_path / "t.exr")
+    parts = [OpenEXR.Part({}, dict(channels), "a"), OpenEXR.Part({}, dict(channels), "b")]
+    OpenEXR.File(parts).write(str(tmp_path / "m.exr"))
+    with pytest.raises(UnsupportedExrError, match="multi-part"):
+        read_frame(tmp_path / "m.exr")
+
+
+def test_missing_file_is_a_typed_error(tmp_path) -> None:
+    with pytest.raises(NotExrError, match="cannot read"):
+        read_frame(tmp_path / "absent.exr")
+
+
+# -- non-finite policy -------------------------------------------------------------------------------------------
+
+
+def nonfinite_frame(half: bool) -> bytes:
+    channels = make_frame().to_channels()
+    channels["direct.R"][0, 0] = 1e6 if half else np.inf  # 1e6 overflows half to +Inf
+    channels["indirect.dx.G"][1, :3] = np.nan
+    channels["normal.X"][2, 2] = np.nan
+    channels["depth.Z"][0, 1] = np.inf
+    return encode_exr(channels, half=False) if not half else _encode_raw_half(channels)
+
+
+def _encode_raw_half(channels: dict[str, np.ndarray]) -> bytes:
+    """Half without saturation: what a renderer that overflowed would write."""
+    import io
+
+    buf = io.BytesIO()
+    with np.errstate(over="ignore"):
+        pixels = {k: v.astype(np.float16) for k, v in channels.items()}
+    OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}, pixels).write(buf)
+    return buf.getvalue()
+
+
+@pytest.mark.parametrize("half", [False, True])
+def test_nonfinite_radiance_is_rejected_naming_channel_and_count(half: bool) -> None:
+    with pytest.raises(NonFiniteError) as err:
+        read_frame(nonfinite_frame(half))
+    assert err.value.details == {"direct.R": 1, "indirect.dx.G": 3}
+    assert "direct.R (1)" in str(err.value)
+
+
+@pytest.mark.parametrize("half", [False, True])
+def test_nonfinite_zero_policy_sanitises_and_warns(half: bool) -> None:
+    frame = read_frame(nonfinite_frame(half), nonfinite="zero")
+    assert frame.layers["direct"].base[0, 0, 0] == 0
+    assert frame.features.normal[2, 2, 0] == 0 and frame.features.depth[0, 1] == 0
+    for arr in frame.to_channels().values():
+        assert np.isfinite(arr).all()
+    assert any("indirect.dx.G (3)" in w for w in frame.warnings)
+
+
+def test_features_are_always_zeroed_even_under_reject() -> None:
+    channels = make_frame().to_channels()
+    channels["albedo.G"][0, 0] = np.nan
+    frame = read_frame(encode_exr(channels))
+    assert frame.features.albedo[0, 0, 1] == 0
+
+
+# -- writing -----------------------------------------------------------------------------------------------------
+
+
+def test_half_output_saturates_instead_of_overflowing(tmp_path) -> None:
+    write_exr(tmp_path / "o.exr", {"R": np.full((2, 2), 1e6, np.float32)}, half=True)
+    pixels = OpenEXR.File(str(tmp_path / "o.exr"), separate_channels=True).channels()["R"].pixels
+    assert pixels.dtype == np.float16 and np.isfinite(pixels).all() and pixels.max() == 65504
+
+
+def test_write_is_atomic(tmp_path, monkeypatch) -> None:
+    target = tmp_path / "out.exr"
+    target.write_bytes(b"previous")
+
+    def boom(*args, **kwargs):
+        raise OSError("disk full")
+
+    monkeypatch.setattr("model.frame.os.replace", boom)
+    with pytest.raises(OSError):
+        write_exr(target, {"R": np.zeros((2, 2), np.float32)})
+    assert target.read_bytes() == b"previous"
+    assert [p.name for p in tmp_path.iterdir()] == ["out.exr"]
+
+
+def test_frame_channels_lists_layers_then_features() -> None:
+    names = frame_channels(["indirect"])
+    assert names[:9] == layer_channels("indirect") and names[9:] == FEATURE_CHANNELS
