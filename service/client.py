@@ -1,0 +1,194 @@
+"""`gradsep client FRAME.exr -o OUT.exr`: what a render-farm task runs to get a frame reconstructed.
+
+Behaviour a farm scheduler can rely on:
+
+* 503 (queue full, not ready) and connection-level failures are retried with exponential backoff and full
+  jitter; a 503's ``Retry-After`` is honoured (waited at least, plus up to 20 % jitter so a farm's tasks don't
+  return in lockstep). 4xx answers are never retried: the same bytes would be rejected again.
+* The output is written atomically (temporary file in the same folder, then rename): a killed task never leaves
+  a half-written OUT, and an existing OUT is only replaced by a complete new one.
+* Every request of one invocation carries the same ``X-Request-ID`` and every log line names it, so a farm log
+  line can be matched with the service's access log.
+
+Exit status: 0 written; 2 bad input or a 4xx answer (the frame or the request is wrong -- don't retry);
+75 (``EX_TEMPFAIL``) the service stayed unavailable through every retry, or a request timed out (retry the task
+later); 1 the service failed otherwise (a 5xx other than 503, or an answer that is not an EXR).
+"""
+
+from __future__ import annotations
+
+import argparse
+import email.utils
+import logging
+import os
+import random
+import sys
+import time
+import uuid
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import httpx
+
+DEFAULT_URL = "http://127.0.0.1:8000"
+EXIT_OK, EXIT_SERVER_ERROR, EXIT_UNAVAILABLE = 0, 1, 75
+EXR_MAGIC = b"\x76\x2f\x31\x01"
+# Connection-level failures: the request may not have reached the service, so retrying is safe.
+RETRYABLE_TRANSPORT = (httpx.ConnectError, httpx.ConnectTimeout, httpx.RemoteProtocolError, httpx.ReadError,
+                       httpx.WriteError, httpx.PoolTimeout)
+
+log = logging.getLogger("gradsep.client")
+
+
+class Unavailable(Exception):
+    """The service could not be reached or stayed overloaded through every retry (exit 75)."""
+
+
+class ServerFailure(Exception):
+    """The service answered, but with a failure retrying would not fix (exit 1)."""
+
+
+@dataclass(frozen=True)
+class RetryPolicy:
+    retries: int = 5  # retries after the first attempt
+    base_seconds: float = 0.5  # first backoff ceiling; doubles each attempt
+    max_seconds: float = 30.0  # backoff ceiling
+    max_retry_after: float = 300.0  # never sleep longer than this for one Retry-After
+
+
+def parse_retry_after(value: str | None, now: float | None = None) -> float | None:
+    """Seconds from a Retry-After header: delta-seconds or an HTTP date; None if absent or unparsable."""
+    if not value:
+        return None
+    value = value.strip()
+    if value.isdigit():
+        return float(value)
+    try:
+        when = email.utils.parsedate_to_datetime(value)
+    except (TypeError, ValueError):
+        return None
+    return max(0.0, when.timestamp() - (time.time() if now is None else now))
+
+
+def backoff_delay(attempt: int, policy: RetryPolicy, retry_after: float | None,
+                  rng: random.Random | None = None) -> float:
+    """Seconds to wait before retry ``attempt`` (0-based): Retry-After plus jitter, else full-jitter backoff."""
+    rng = rng or random.Random()
+    if retry_after is not None:
+        wait = min(retry_after, policy.max_retry_after)
+        return wait * rng.uniform(1.0, 1.2)
+    return rng.uniform(0.0, min(policy.max_seconds, policy.base_seconds * 2.0**attempt))
+
+
+def error_summary(response: httpx.Response) -> str:
+    """``413 body_too_large: request body is over ...`` from the service's JSON error, or the raw text."""
+    try:
+        err = response.json()["error"]
+        return f"{response.status_code} {err['code']}: {err['message']}"
+    except (ValueError, KeyError, TypeError):
+        text = " ".join(response.text.split())[:200]
+        return f"{response.status_code} {response.reason_phrase}{': ' + text if text else ''}"
+
+
+def post_frame(client: httpx.Client, url: str, data: bytes, params: dict[str, Any], request_id: str,
+               policy: RetryPolicy, sleep: Callable[[float], None] = time.sleep,
+               rng: random.Random | None = None) -> httpx.Response:
+    """POST the frame, retrying 503 and connection failures; return the 200 response or raise."""
+    from gradsep.cli import CommandError
+
+    endpoint = f"{url.rstrip('/')}/v1/reconstruct"
+    headers = {"Content-Type": "image/x-exr", "X-Request-ID": request_id}
+    attempts = policy.retries + 1
+    reason = "no attempt made"
+    for attempt in range(attempts):
+        retry_after = None
+        try:
+            response = client.post(endpoint, params=params, content=data, headers=headers)
+        except RETRYABLE_TRANSPORT as exc:
+            reason = f"cannot reach {url}: {type(exc).__name__}: {exc or 'connection failed'}"
+        except httpx.TimeoutException as exc:
+            raise Unavailable(f"request timed out ({type(exc).__name__}) at {url}") from exc
+        else:
+            if response.status_code == 200:
+                return response
+            if response.status_code != 503:
+                summary = error_summary(response)
+                if 400 <= response.status_code < 500:
+                    raise CommandError(f"service rejected the request: {summary} (request_id={request_id})")
+                raise ServerFailure(f"service failed: {summary}")
+            reason = f"service unavailable: {error_summary(response)}"
+            retry_after = parse_retry_after(response.headers.get("retry-after"))
+        if attempt + 1 < attempts:
+            delay = backoff_delay(attempt, policy, retry_after, rng)
+            log.warning("attempt %d/%d failed (%s); retrying in %.1f s request_id=%s",
+                        attempt + 1, attempts, reason, delay, request_id)
+            sleep(delay)
+    raise Unavailable(f"{reason} (gave up after {attempts} attempts)")
+
+
+def _resolve(args: argparse.Namespace) -> tuple[str, str | None]:
+    """URL and token: the flag, else GRADSEP_URL / GRADSEP_TOKEN, else the default URL and no token."""
+    url = args.url if args.url and args.url != DEFAULT_URL else os.environ.get("GRADSEP_URL") or DEFAULT_URL
+    token = args.token or os.environ.get("GRADSEP_TOKEN") or None
+    if not url.startswith(("http://", "https://")):
+        from gradsep.cli import CommandError
+
+        raise CommandError(f"--url must start with http:// or https://, got {url!r}")
+    return url, token
+
+
+def _setup_logging() -> None:
+    if not log.handlers:
+        handler = logging.StreamHandler(sys.stderr)
+        handler.setFormatter(logging.Formatter("gradsep client: %(message)s"))
+        log.addHandler(handler)
+        log.setLevel(logging.INFO)
+        log.propagate = False
+
+
+def client_command(args: argparse.Namespace, *, sleep: Callable[[float], None] = time.sleep) -> int:
+    """Post ``args.frame`` to the service and write the answer to ``args.output`` atomically."""
+    from gradsep.cli import CommandError
+    from model.frame import write_bytes_atomic
+
+    _setup_logging()
+    url, token = _resolve(args)
+    if args.retries < 0:
+        raise CommandError(f"--retries must be 0 or more, got {args.retries}")
+    if not args.timeout > 0:
+        raise CommandError(f"--timeout must be positive, got {args.timeout}")
+    frame, output = Path(args.frame), Path(args.output)
+    try:
+        data = frame.read_bytes()
+    except OSError as exc:
+        raise CommandError(f"cannot read {frame}: {exc.strerror or exc}") from None
+    if not output.parent.is_dir():
+        raise CommandError(f"output folder {output.parent} does not exist")
+    params = {k: v for k, v in (("method", args.method), ("alpha", args.alpha), ("format", args.format),
+                                ("layers", args.layers)) if v is not None}
+    request_id = uuid.uuid4().hex
+    auth = {"Authorization": f"Bearer {token}"} if token else {}
+    timeout = httpx.Timeout(args.timeout, connect=min(args.timeout, 10.0))
+    started = time.perf_counter()
+    try:
+        with httpx.Client(timeout=timeout, headers=auth) as client:
+            response = post_frame(client, url, data, params, request_id, RetryPolicy(retries=args.retries), sleep)
+        if not response.content.startswith(EXR_MAGIC):
+            raise ServerFailure(f"service answered 200 with a non-EXR body "
+                                f"({response.headers.get('content-type', 'no content type')})")
+    except Unavailable as exc:
+        print(f"gradsep client: error: {exc} (request_id={request_id})", file=sys.stderr)
+        return EXIT_UNAVAILABLE
+    except ServerFailure as exc:
+        print(f"gradsep client: error: {exc} (request_id={request_id})", file=sys.stderr)
+        return EXIT_SERVER_ERROR
+    try:
+        write_bytes_atomic(output, response.content)
+    except OSError as exc:
+        raise CommandError(f"cannot write {output}: {exc.strerror or exc}") from None
+    log.info("wrote %s (%d bytes, method %s, %.2f s; %s) request_id=%s", output, len(response.content),
+             response.headers.get("x-reconstruction-method", "?"), time.perf_counter() - started,
+             response.headers.get("server-timing", ""), request_id)
+    return EXIT_OK

@@ -1,0 +1,21 @@
+"""FastAPI dependencies shared by the routers."""
+
+from __future__ import annotations
+
+from fastapi import Request
+
+from service.inference import Engine
+from service.metrics import ServiceMetrics
+from service.settings import Settings
+
+
+def get_engine(request: Request) -> Engine:
+    return request.app.state.engine
+
+
+def get_metrics(request: Request) -> ServiceMetrics:
+    return request.app.state.metrics
+
+
+def get_settings(request: Request) -> Settings:
+    return request.app.state.settings

@@ -1,0 +1,41 @@
+"""The FastAPI application: ``create_app(settings)`` builds one independent, stateless service instance."""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
+import anyio
+from fastapi import FastAPI
+
+from gradsep import __version__
+from service.errors import install_error_handlers
+from service.inference import Engine
+from service.metrics import ServiceMetrics
+from service.middleware import install_middleware
+from service.openapi import install_openapi
+from service.routers import health, metrics, models, reconstruct
+from service.settings import Settings
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    """An app with its own settings, metrics registry and inference gate (tests build many side by side)."""
+    settings = settings or Settings()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        async with anyio.create_task_group() as task_group:  # closing it waits for in-flight inferences
+            app.state.engine.start(task_group)  # loads models and warms up in the background
+            yield
+
+    app = FastAPI(title="gradsep", version=__version__, lifespan=lifespan,
+                  description="Gradient-domain rendering reconstruction with direct/indirect separation.")
+    app.state.settings, app.state.metrics, app.state.engine = settings, ServiceMetrics(), Engine(settings)
+    app.state.metrics.bind_engine(app.state.engine)
+    install_error_handlers(app)
+    for module in (health, models, reconstruct, metrics):
+        app.include_router(module.router)
+    install_middleware(app, token=settings.token_value, max_body_bytes=settings.max_body_bytes,
+                       metrics=app.state.metrics)
+    install_openapi(app, secured=settings.token is not None)
+    return app

@@ -1,0 +1,39 @@
+"""``GET /v1/models``: what this replica can do, so clients and operators can check a deployment."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Depends
+from pydantic import BaseModel, Field
+
+from service.dependencies import get_engine
+from service.errors import ErrorResponse
+from service.inference import Engine
+
+router = APIRouter(tags=["models"])
+
+
+class Limits(BaseModel):
+    max_body_bytes: int
+    max_pixels: int
+    max_values: int
+
+
+class ModelsInfo(BaseModel):
+    state: str = Field(description="loading, ready or failed")
+    default_method: str = Field(description="the method used when a request names none")
+    methods: list[str] = Field(description="methods this replica serves: network (when models loaded), l1, l2")
+    models: list[dict[str, Any]] = Field(
+        description="loaded networks: name, layers, input channels, checksums and export metadata")
+    limits: Limits
+
+
+@router.get("/v1/models", response_model=ModelsInfo, summary="Loaded models, available methods and limits",
+            responses={401: {"model": ErrorResponse, "description": "bearer token missing or invalid"}})
+async def list_models(engine: Annotated[Engine, Depends(get_engine)]) -> ModelsInfo:
+    s = engine.settings
+    return ModelsInfo(state=engine.state, default_method=engine.default_method, methods=list(engine.methods),
+                      models=engine.describe_models(),
+                      limits=Limits(max_body_bytes=s.max_body_bytes, max_pixels=s.max_pixels,
+                                    max_values=s.max_values))

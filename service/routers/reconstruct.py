@@ -1,0 +1,170 @@
+"""``POST /v1/reconstruct``: an EXR frame in, the reconstructed EXR out.
+
+The body is read by hand (not through FastAPI body parameters) because one operation accepts two encodings --
+multipart with a ``frame`` file field, or the raw EXR -- and because every step must fail with the service's
+own status codes in a fixed order, cheapest first:
+
+  auth (middleware) -> query parameters 422 -> not ready 503 -> unknown method 422 -> content type 415
+  -> queue already full 503 (body drained, not buffered) -> body over the byte limit 413 (streaming count)
+  -> header: not an EXR 400, too large 413 (before any pixel is decoded) -> queue 503 / timeout 504
+  -> decode 400/422 -> reconstruction -> encode.
+"""
+
+from __future__ import annotations
+
+import time
+from functools import partial
+from typing import Annotated, Any, Literal
+
+import anyio
+from fastapi import APIRouter, Depends, Query, Request
+from starlette.datastructures import UploadFile
+from starlette.responses import Response
+
+from model.frame import NotExrError, Source, read_header
+from service.dependencies import get_engine, get_metrics
+from service.errors import ErrorResponse, ServiceError
+from service.inference import Engine, ReconstructParams, run_pipeline, server_timing
+from service.metrics import ServiceMetrics
+from service.middleware import request_id_of
+
+router = APIRouter(tags=["reconstruction"])
+
+RAW_TYPES = ("image/x-exr", "application/octet-stream")
+EXR_MEDIA_TYPE = "image/x-exr"
+_BINARY = {"type": "string", "format": "binary"}
+
+REQUEST_BODY = {
+    "required": True,
+    "description": "an OpenEXR frame per docs/frame-format.md: multipart field `frame`, or the raw file",
+    "content": {
+        "multipart/form-data": {"schema": {"type": "object", "required": ["frame"],
+                                           "properties": {"frame": {**_BINARY, "description": "the .exr"}}}},
+        "image/x-exr": {"schema": _BINARY},
+        "application/octet-stream": {"schema": _BINARY},
+    },
+}
+
+
+def _err(description: str, headers: dict[str, Any] | None = None) -> dict[str, Any]:
+    out: dict[str, Any] = {"model": ErrorResponse, "description": description}
+    if headers:
+        out["headers"] = headers
+    return out
+
+
+RESPONSES: dict[int | str, dict[str, Any]] = {
+    200: {"description": "the reconstruction as OpenEXR: R G B (plus direct.R ... with layers=all)",
+          "content": {EXR_MEDIA_TYPE: {"schema": _BINARY}},
+          "headers": {"X-Request-ID": {"schema": {"type": "string"}, "description": "echoed or generated"},
+                      "Server-Timing": {"schema": {"type": "string"},
+                                        "description": "queue, decode, per-layer and encode durations (ms)"},
+                      "X-Reconstruction-Method": {"schema": {"type": "string"}}}},
+    400: _err("not an OpenEXR file, corrupt or truncated; unsupported EXR kind; malformed multipart"),
+    401: _err("bearer token missing or invalid (only when the service has a token)"),
+    413: _err("body over the byte limit, or image over the pixel/value limit (decided from the header)"),
+    415: _err("content type is not multipart/form-data, image/x-exr or application/octet-stream"),
+    422: _err("invalid parameter; missing or inconsistent channels; no illumination layer; NaN/Inf values"),
+    503: _err("not ready yet, or the inference queue is full; retry after Retry-After seconds",
+              {"Retry-After": {"schema": {"type": "integer"}}}),
+    504: _err("the inference did not finish within the service's timeout"),
+}
+
+
+@router.post("/v1/reconstruct", response_class=Response, responses=RESPONSES,
+             openapi_extra={"requestBody": REQUEST_BODY},
+             summary="Reconstruct a frame's illumination layers and return their sum")
+async def reconstruct_frame(
+    request: Request,
+    engine: Annotated[Engine, Depends(get_engine)],
+    metrics: Annotated[ServiceMetrics, Depends(get_metrics)],
+    method: Annotated[Literal["network", "l1", "l2"] | None, Query(
+        description="reconstruction method; default network when models are loaded, else l1")] = None,
+    alpha: Annotated[float | None, Query(
+        gt=0, le=1000, allow_inf_nan=False, description="screened Poisson data weight (l1/l2)")] = None,
+    output_format: Annotated[Literal["half", "float"], Query(
+        alias="format", description="pixel type of the returned EXR")] = "float",
+    layers: Annotated[Literal["sum", "all"], Query(
+        description="sum: R G B only; all: also each reconstructed layer (direct.R, ...)")] = "sum",
+) -> Response:
+    t_start = time.perf_counter()
+    gate = _ready_gate(engine)
+    chosen = method or engine.default_method
+    if chosen not in engine.methods:
+        raise ServiceError(422, "method_unavailable", f"method {chosen!r} is not available on this replica "
+                           f"(no models loaded); available: {', '.join(engine.methods)}",
+                           {"available": list(engine.methods)})
+    media = _media_type(request)
+    if gate.full:  # shed load before buffering anything; drain so the client reads our answer cleanly
+        async for _ in request.stream():
+            pass
+        raise gate.queue_full_error()
+
+    source, close = await _read_body(request, media)
+    timings = {"read": time.perf_counter() - t_start}
+    timed_out = False
+    try:
+        await anyio.to_thread.run_sync(_check_header, source, engine)
+        params = ReconstructParams(chosen, alpha if alpha is not None else engine.settings.default_alpha,
+                                   output_format == "half", layers, request_id_of(request.scope))
+        job = partial(run_pipeline, source, params, engine.limits, engine.settings.nonfinite, engine.network)
+        try:
+            outcome, queued = await gate.run(job, engine.settings.inference_timeout)
+        except ServiceError as exc:
+            timed_out = exc.code == "timeout"
+            raise
+    finally:
+        if close is not None and not timed_out:  # a timed-out job may still read it; GC closes it later
+            await close()
+    metrics.inference.labels(method=outcome.method).observe(sum(outcome.timings.values()))
+    timings = {**timings, "queue": queued, **outcome.timings, "total": time.perf_counter() - t_start}
+    headers = {"Server-Timing": server_timing(timings), "X-Reconstruction-Method": outcome.method,
+               "Content-Disposition": 'attachment; filename="reconstruction.exr"'}
+    if outcome.warnings:
+        headers["X-Gradsep-Warnings"] = "; ".join(outcome.warnings).encode("ascii", "replace").decode()[:1000]
+    return Response(outcome.body, media_type=EXR_MEDIA_TYPE, headers=headers)
+
+
+def _ready_gate(engine: Engine) -> Any:
+    if engine.state != "ready" or engine.gate is None:
+        code = "models_failed" if engine.state == "failed" else "not_ready"
+        raise ServiceError(503, code, f"service is not ready ({engine.state}); see /readyz", None,
+                           {"Retry-After": "1" if engine.state == "loading" else "60"})
+    return engine.gate
+
+
+def _media_type(request: Request) -> str:
+    """The request's media type; 415 unless multipart or raw EXR. No Content-Type means raw bytes (RFC 9110)."""
+    header = request.headers.get("content-type")
+    media = (header or "application/octet-stream").split(";", 1)[0].strip().lower()
+    if media != "multipart/form-data" and media not in RAW_TYPES:
+        raise ServiceError(
+            415, "unsupported_media_type",
+            f"unsupported content type {media[:100]!r}: send multipart/form-data with a file field 'frame' "
+            "(curl -F frame=@f.exr) or the raw file as image/x-exr or application/octet-stream "
+            "(curl -H 'Content-Type: image/x-exr' --data-binary @f.exr)",
+            {"accepted": ["multipart/form-data", *RAW_TYPES]})
+    return media
+
+
+async def _read_body(request: Request, media: str) -> tuple[Source, Any]:
+    """The EXR as bytes (raw body) or a spooled temporary file (multipart), plus its async closer."""
+    if media != "multipart/form-data":
+        return await request.body(), None
+    form = await request.form(max_files=1, max_fields=16)
+    upload = form.get("frame")
+    if not isinstance(upload, UploadFile):
+        fields = list(form.keys())
+        await form.close()
+        raise ServiceError(400, "missing_frame", "multipart body has no file field 'frame' (curl -F frame=@f.exr)",
+                           {"fields": fields[:16]})
+    return upload.file, form.close
+
+
+def _check_header(source: Source, engine: Engine) -> None:
+    """Header only: 400 for non-EXR, 413 for a declared size over the budget, before any pixel is decoded."""
+    if isinstance(source, bytes) and not source:
+        raise NotExrError("empty request body; expected an OpenEXR file")
+    if hasattr(source, "seek"):
+        source.seek(0)
+    read_header(source, engine.limits)

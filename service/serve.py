@@ -1,0 +1,55 @@
+"""`gradsep serve`: run the service under uvicorn with settings validated up front."""
+
+from __future__ import annotations
+
+import argparse
+import copy
+from typing import Any
+
+from service.settings import Settings
+
+
+def _settings_or_error() -> Settings:
+    """Read GRADSEP_* once here so a typo fails the command with one line instead of crashing each worker."""
+    from pydantic import ValidationError
+
+    from gradsep.cli import CommandError
+
+    try:
+        return Settings()
+    except ValidationError as exc:
+        problems = "; ".join(f"GRADSEP_{'.'.join(str(p) for p in e['loc']).upper()}: {e['msg']}"
+                             for e in exc.errors())
+        raise CommandError(f"invalid service settings: {problems}") from None
+
+
+def log_config(level: str) -> dict[str, Any]:
+    """uvicorn's logging config plus our ``gradsep`` logger (access lines carry the request id)."""
+    from uvicorn.config import LOGGING_CONFIG
+
+    config = copy.deepcopy(LOGGING_CONFIG)
+    config["loggers"]["gradsep"] = {"handlers": ["default"], "level": level.upper(), "propagate": False}
+    return config
+
+
+def serve_command(args: argparse.Namespace) -> int:
+    """Start uvicorn with the app factory; each worker process builds its own app (stateless replicas)."""
+    import uvicorn
+
+    from gradsep.cli import CommandError
+
+    if not 0 <= args.port <= 65535:
+        raise CommandError(f"--port must be between 0 and 65535, got {args.port}")
+    if args.workers < 1:
+        raise CommandError(f"--workers must be at least 1, got {args.workers}")
+    settings = _settings_or_error()
+    uvicorn.run(
+        "service.main:create_app", factory=True, host=args.host, port=args.port, workers=args.workers,
+        log_level=settings.log_level, log_config=log_config(settings.log_level),
+        access_log=False,  # our own access line (service.middleware) has the request id
+        server_header=False,
+        # On SIGTERM uvicorn stops accepting, lets in-flight requests finish, then runs the lifespan shutdown
+        # (which waits for inference threads). Bound the wait by the longest a request may legitimately take.
+        timeout_graceful_shutdown=int(settings.inference_timeout) + 30,
+    )
+    return 0

@@ -1,0 +1,62 @@
+"""Service configuration: one pydantic-settings class, read from ``GRADSEP_*`` environment variables.
+
+Every limit the service enforces lives here so that an operator can tune a deployment without code changes
+(``GRADSEP_MAX_BODY_BYTES=1073741824 gradsep serve``) and so that tests can build apps with tiny limits.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+from pydantic import AliasChoices, Field, SecretStr, field_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+MiB = 1024 * 1024
+
+
+class Settings(BaseSettings):
+    """Limits, concurrency and security of one service process (each uvicorn worker reads its own copy)."""
+
+    model_config = SettingsConfigDict(env_prefix="GRADSEP_", extra="ignore", populate_by_name=True)
+
+    max_body_bytes: int = Field(
+        256 * MiB, ge=1024, description="largest request body accepted; bigger bodies get 413 while streaming")
+    max_pixels: int = Field(
+        8192 * 8192, ge=1, description="largest width*height decoded; decided from the EXR header (413)")
+    max_values: int = Field(
+        8192 * 8192 * 24, ge=1, description="largest width*height*channels decoded; from the header (413)")
+    concurrency: int = Field(
+        1, ge=1, le=64, description="inferences running at once (1-2 on a 2-core host; each uses its own thread)")
+    queue_size: int = Field(
+        8, ge=0, description="requests allowed to wait for an inference slot; beyond that 503 + Retry-After")
+    inference_timeout: float = Field(
+        300.0, gt=0, description="seconds a request waits for queueing + decode + reconstruction + encode (504)")
+    token: SecretStr | None = Field(
+        None, description="bearer token; when set every endpoint but /healthz and /readyz requires it (401)")
+    models_dir: Path = Field(
+        Path("models"), validation_alias=AliasChoices("GRADSEP_MODELS", "GRADSEP_MODELS_DIR"),
+        description="folder of exported ONNX models (env GRADSEP_MODELS); absent -> Poisson methods only")
+    nonfinite: Literal["reject", "zero"] = Field(
+        "reject", description="NaN/Inf in radiance or gradients: reject with 422, or replace with 0 and warn")
+    default_alpha: float = Field(
+        0.2, gt=0, le=1000, description="screened Poisson data weight used when a request gives no alpha")
+    warm_up: bool = Field(True, description="run one small inference per method before reporting ready")
+    log_level: Literal["critical", "error", "warning", "info", "debug"] = Field("info")
+
+    @field_validator("token", mode="before")
+    @classmethod
+    def _empty_token_is_none(cls, value: object) -> object:
+        """``GRADSEP_TOKEN=`` (set but empty) must not enable auth with an empty, guessable token."""
+        if value is None or (isinstance(value, str) and not value.strip()):
+            return None
+        return value
+
+    @field_validator("log_level", mode="before")
+    @classmethod
+    def _lower_level(cls, value: object) -> object:
+        return value.lower() if isinstance(value, str) else value
+
+    @property
+    def token_value(self) -> str | None:
+        return self.token.get_secret_value() if self.token is not None else None
