@@ -1,0 +1,558 @@
+"""The gradient-domain path tracer (G-PT, Kettunen et al. 2015) on Mitsuba 3 / Dr.Jit, with the direct/indirect
+illumination separation of Ma et al. 2024.
+
+One wavefront lane is one pixel sample. Each lane carries five paths through one symbolic Dr.Jit loop (one
+compiled kernel, one iteration per path vertex): the *base* path of its pixel and four *offset* paths whose
+primary rays go through the same sub-pixel position of the pixels to the right, left, below and above. How an
+offset path follows its base path is the *shift mapping*, kept out of this file (``renderer/shift.py``): every
+iteration the base path advances one vertex here, the shift advances each offset path given that vertex, and this
+file turns the two sets of contributions into the primal image and the gradients.
+
+Estimators (see docs/renderer.md for the derivation):
+
+* **Primal**: the base paths alone, i.e. an ordinary path tracer (next-event estimation + BSDF sampling combined
+  with the power heuristic, Russian roulette after ``rr_depth`` vertices). It is unbiased and its noise is
+  independent from pixel to pixel, which the unsupervised denoiser relies on; the MIS combination of all five
+  paths would lower the primal's variance but correlate neighbouring pixels.
+* **Gradients**: each contribution ("event": emission found at vertex d, next-event estimation at vertex d) of a
+  base path at pixel p gives ``w * (f_offset - f_base)``, an estimate of ``I(p + delta) - I(p)``. The same pixel
+  pair is also estimated from the base path at ``p + delta`` with the opposite shift; ``w`` is the MIS weight of
+  the pair between these two techniques and is supplied by the shift (1/2 for random replay when both paths
+  exist, 1 when only this technique can produce the pair). ``dx(p)`` therefore sums the ``+x`` estimate of the
+  samples of pixel p and the negated ``-x`` estimate of the samples of pixel p+1: both directions, no double
+  counting.
+* **Russian roulette** is decided on the base path and applied to the whole lane (the offsets are divided by the
+  base path's continuation probability too), so it cancels in the MIS weights.
+* **Separation**: events at the first camera-visible vertex (emission seen directly; next-event estimation from
+  that vertex; emission found by the BSDF sample leaving it) go to ``direct``, all later events to ``indirect``.
+  Offsets have the same length as their base path, so each gradient term lands in its base term's layer and
+  ``direct + indirect`` is exactly the unseparated estimate.
+* **Features** (base path only): at the first vertex that is not specular (delta lobes, and glossy samples with a
+  pdf above :data:`NEAR_SPECULAR_PDF`, are followed): albedo, camera-space normal, distance along the chain.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+# Pixel offsets of the four offset paths, (dx, dy) with y growing downward: right, left, down, up.
+SHIFT_OFFSETS: tuple[tuple[int, int], ...] = ((1, 0), (-1, 0), (0, 1), (0, -1))
+
+# A glossy lobe whose sampled direction has a solid-angle pdf above this is treated as a mirror when looking for
+# the feature vertex: a GGX lobe reaches ~100 sr^-1 near alpha 0.05, where reflections are still sharp images.
+NEAR_SPECULAR_PDF = 100.0
+
+# Lanes per pass: bounds the sampler state and the scatter traffic of one kernel launch (~16 B per lane).
+MAX_LANES_PER_PASS = 1 << 22
+
+# Mitsuba's convention for an unbounded path length.
+UNBOUNDED = 0xFFFFFFFF
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Path state and one path vertex: shared by the base path and by shifts that trace offsets the same way
+# ---------------------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class PathState:
+    """Loop state of one path (Dr.Jit traverses dataclasses, so this can be a loop variable)."""
+
+    ray: mi.Ray3f
+    throughput: mi.Spectrum  # product of BSDF sample weights (and 1/q of Russian roulette)
+    active: mi.Bool  # the path has a ray to trace in this iteration
+    eta: mi.Float  # relative IOR along the path, for Mitsuba's Russian roulette rule
+    prev: mi.Interaction3f  # previous vertex, for the MIS weight of emission hit by a BSDF sample
+    prev_pdf: mi.Float  # solid-angle pdf of the BSDF sample that produced ``ray``
+    prev_delta: mi.Bool  # that sample came from a delta lobe (no next-event estimation could have found it)
+
+    @staticmethod
+    def start(ray: mi.Ray3f, weight: mi.Spectrum, active: mi.Bool) -> PathState:
+        """A path at the camera: ``prev_delta`` makes emission at the first vertex count with MIS weight 1."""
+        return PathState(ray=mi.Ray3f(ray), throughput=mi.Spectrum(weight), active=mi.Bool(active),
+                         eta=mi.Float(1.0), prev=dr.zeros(mi.Interaction3f), prev_pdf=mi.Float(1.0),
+                         prev_delta=mi.Bool(True))
+
+
+@dataclass
+class VertexSamples:
+    """The random numbers one path vertex consumes; random replay hands the base path's to every offset."""
+
+    light: mi.Point2f  # emitter sample for next-event estimation
+    lobe: mi.Float  # BSDF lobe selection
+    direction: mi.Point2f  # BSDF direction sample
+
+    @staticmethod
+    def draw(sampler: mi.Sampler) -> VertexSamples:
+        """Draw unconditionally in every lane, so lanes of one pixel sample stay on one random stream."""
+        return VertexSamples(light=sampler.next_2d(), lobe=sampler.next_1d(), direction=sampler.next_2d())
+
+
+@dataclass
+class Vertex:
+    """What one path did at one vertex: its two contributions ("events") and the data later code needs."""
+
+    emitted: mi.Spectrum  # throughput * MIS * emission found by the ray (emitter hit or environment)
+    has_hit: mi.Bool  # the emission event exists: the path traced a ray in this iteration
+    nee: mi.Spectrum  # throughput * MIS * next-event estimate at this vertex
+    has_nee: mi.Bool  # the next-event event exists: a surface vertex below the depth limit
+    si: mi.SurfaceInteraction3f
+    bsdf: mi.BSDFPtr
+    sample: mi.BSDFSample3f  # the BSDF sample that continues the path
+    sample_weight: mi.Spectrum  # BSDF weight (value * cos / pdf) of that sample
+
+
+def mis_power(pdf_a: mi.Float, pdf_b: mi.Float) -> mi.Float:
+    """Power-heuristic weight of technique a (Mitsuba's ``path`` uses the same), 0 where undefined."""
+    a2, b2 = pdf_a * pdf_a, pdf_b * pdf_b
+    w = a2 / (a2 + b2)
+    return dr.select(dr.isfinite(w), w, 0.0)
+
+
+def trace_vertex(scene: mi.Scene, path: PathState, depth: mi.UInt32, max_depth: mi.UInt32,
+                 samples: VertexSamples) -> tuple[PathState, Vertex]:
+    """Advance one path by one vertex exactly as Mitsuba's ``path`` integrator does, minus Russian roulette.
+
+    Returns the updated path (ray towards the next vertex, throughput, liveness) and the vertex's events. Whether
+    a path continues is decided only by its own geometry and the depth limit; Russian roulette is the caller's,
+    because G-PT decides it on the base path for the whole lane.
+    """
+    ctx = mi.BSDFContext()
+    si = scene.ray_intersect(path.ray, ray_flags=mi.RayFlags.All, coherent=depth == 0, active=path.active)
+
+    # Emission found by the ray (area emitter or environment), MIS-weighted against next-event estimation from
+    # the previous vertex. At the camera prev_delta is set, so the emitter pdf is 0 and the weight is 1.
+    ds = mi.DirectionSample3f(scene, si=si, ref=path.prev)
+    em_pdf = scene.pdf_emitter_direction(path.prev, ds, path.active & ~path.prev_delta)
+    emitted = path.throughput * mis_power(path.prev_pdf, em_pdf) * ds.emitter.eval(si, path.active)
+    emitted = dr.select(path.active, emitted, 0.0)
+
+    # Next-event estimation at this vertex.
+    has_nee = path.active & si.is_valid() & (depth + 1 < max_depth)
+    bsdf = si.bsdf(path.ray)
+    active_em = has_nee & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+    ds_em, em_weight = scene.sample_emitter_direction(si, samples.light, True, active_em)
+    active_em &= ds_em.pdf != 0.0
+    bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, si.to_local(ds_em.d), active_em)
+    mis_em = dr.select(ds_em.delta, 1.0, mis_power(ds_em.pdf, bsdf_pdf))
+    nee = dr.select(active_em, path.throughput * mis_em * bsdf_val * em_weight, 0.0)
+
+    # BSDF sampling continues the path.
+    bs, bs_weight = bsdf.sample(ctx, si, samples.lobe, samples.direction, has_nee)
+    bs_weight = dr.select(has_nee, bs_weight, 0.0)
+    prev = dr.zeros(mi.Interaction3f)
+    prev.t, prev.time, prev.p, prev.n = si.t, si.time, si.p, si.n
+    throughput = path.throughput * bs_weight
+    nxt = PathState(
+        ray=si.spawn_ray(si.to_world(bs.wo)),
+        throughput=throughput,
+        active=has_nee & (dr.max(throughput) != 0.0),
+        eta=path.eta * bs.eta,
+        prev=prev,
+        prev_pdf=bs.pdf,
+        prev_delta=mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta),
+    )
+    vertex = Vertex(emitted=emitted, has_hit=mi.Bool(path.active), nee=nee, has_nee=has_nee, si=si, bsdf=bsdf,
+                    sample=bs, sample_weight=bs_weight)
+    return nxt, vertex
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# The shift interface (implementations in renderer/shift.py)
+# ---------------------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class OffsetEvents:
+    """An offset path's contributions for the base vertex's two events, with the MIS weights of the pair.
+
+    ``emitted``/``nee`` are the offset path's contributions already multiplied by the shift's Jacobian and
+    expressed per base-path sample (0 where the offset path does not produce the event). ``w_hit``/``w_nee`` are
+    the weights of this technique (base here, offset there) for the pixel pair; the mirrored technique from the
+    neighbour's base path must receive ``1 - w`` for the same pair.
+    """
+
+    emitted: mi.Spectrum
+    nee: mi.Spectrum
+    w_hit: mi.Float
+    w_nee: mi.Float
+
+
+class Shift(Protocol):
+    """A shift mapping: how an offset path is built from its base path, one base vertex at a time."""
+
+    name: str
+
+    def start(self, ray: mi.Ray3f, weight: mi.Spectrum, active: mi.Bool) -> Any:
+        """Offset loop state for the offset's primary ray (``active`` is False outside the image)."""
+
+    def step(self, scene: mi.Scene, offset: Any, base: Vertex, depth: mi.UInt32, max_depth: mi.UInt32,
+             samples: VertexSamples) -> tuple[Any, OffsetEvents]:
+        """Advance an offset path by the base path's vertex; returns the new state and its events."""
+
+    def scale(self, offset: Any, factor: mi.Float, active: mi.Bool) -> Any:
+        """Multiply the offset's throughput by ``factor`` where ``active`` (Russian roulette of the base)."""
+
+    def kill(self, offset: Any, dead: mi.Bool) -> Any:
+        """Stop the offset where ``dead`` (the base path was terminated by Russian roulette)."""
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Settings, per-lane accumulators, output
+# ---------------------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class GptSettings:
+    """What to render. ``max_depth`` follows Mitsuba (1 = emitters seen directly, 2 = direct light, -1 = no limit)."""
+
+    max_depth: int = 6
+    rr_depth: int = 5
+    direct: bool = True
+    indirect: bool = True
+
+    def effective_max_depth(self) -> int:
+        """The depth actually traced: a direct-only render stops after the first vertex's BSDF sample."""
+        depth = self.max_depth if self.max_depth >= 0 else -1
+        if not self.indirect:
+            depth = 2 if depth < 0 else min(depth, 2)
+        return depth
+
+    def validate(self) -> None:
+        """Reject settings that would render nothing or misbehave; the caller maps ValueError to a user error."""
+        if self.max_depth == 0 or self.max_depth < -1:
+            raise ValueError(f"max_depth must be -1 (unbounded) or >= 1, got {self.max_depth}")
+        if self.rr_depth < 1:
+            raise ValueError(f"rr_depth must be >= 1, got {self.rr_depth}")
+        if not (self.direct or self.indirect):
+            raise ValueError("no illumination layer requested")
+        if self.indirect and 0 < self.max_depth <= 2:
+            raise ValueError(f"max_depth {self.max_depth} leaves no indirect light; render the direct layer only")
+
+
+@dataclass
+class LayerSums:
+    """Per-lane sums of one illumination layer: base radiance and one gradient estimate per shift."""
+
+    base: mi.Spectrum
+    grads: list[mi.Spectrum]
+
+    @staticmethod
+    def zeros() -> LayerSums:
+        return LayerSums(base=mi.Spectrum(0.0), grads=[mi.Spectrum(0.0) for _ in SHIFT_OFFSETS])
+
+
+@dataclass
+class FeatureState:
+    """The feature vertex search along the base path (loop state)."""
+
+    pending: mi.Bool  # still following a specular chain
+    albedo: mi.Color3f
+    normal: mi.Vector3f  # camera space, facing the viewer
+    distance: mi.Float  # along the chain so far / to the feature vertex
+    hit: mi.Float  # 1 when the chain ended on a surface, 0 on a miss
+
+    @staticmethod
+    def start() -> FeatureState:
+        return FeatureState(pending=mi.Bool(True), albedo=mi.Color3f(0.0), normal=mi.Vector3f(0.0, 0.0, 1.0),
+                            distance=mi.Float(0.0), hit=mi.Float(0.0))
+
+
+# Output channel groups of one pass (each 3 wide except depth / hit / invalid), per-pixel sums over samples.
+def channel_layout(settings: GptSettings) -> dict[str, int]:
+    """Name -> width of every accumulated per-pixel buffer, in scatter order."""
+    layout: dict[str, int] = {}
+    for layer, wanted in (("direct", settings.direct), ("indirect", settings.indirect)):
+        if wanted:
+            layout[f"{layer}.base"] = 3
+            for i in range(len(SHIFT_OFFSETS)):
+                layout[f"{layer}.grad{i}"] = 3
+    layout.update({"albedo": 3, "normal": 3, "depth": 1, "hit": 1, "invalid": 1})
+    return layout
+
+
+@dataclass
+class GptResult:
+    """Per-pixel results as float32 numpy arrays (H, W, 3) / (H, W); gradients per the frame contract."""
+
+    layers: dict[str, dict[str, np.ndarray]]  # layer -> {"base", "dx", "dy"}
+    albedo: np.ndarray
+    normal: np.ndarray
+    depth: np.ndarray
+    spp: int
+    invalid_samples: int = 0
+    passes: int = 1
+    warnings: list[str] = field(default_factory=list)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# The algorithm
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def _camera_rays(sensor: mi.Sensor, sampler: mi.Sampler, px: mi.Int32, py: mi.Int32, size: mi.Vector2f,
+                 res: tuple[mi.Int32, mi.Int32]) -> tuple[list[tuple[mi.Ray3f, mi.Spectrum, mi.Bool]], mi.Bool]:
+    """Primary rays of the base pixel and of the four shifted pixels, all through the same sub-pixel sample.
+
+    The shifted pixel index is formed in integers first, so an offset ray and the base ray of the neighbouring
+    pixel it stands for are computed bit for bit alike.
+    """
+    sub_pixel = sampler.next_2d()
+    aperture = sampler.next_2d() if sensor.needs_aperture_sample() else mi.Point2f(0.5)
+    time = sensor.shutter_open()
+    if sensor.shutter_open_time() > 0:
+        time += sampler.next_1d() * sensor.shutter_open_time()
+    width, height = res
+    rays = []
+    for ox, oy in ((0, 0), *SHIFT_OFFSETS):
+        qx, qy = px + ox, py + oy
+        inside = (qx >= 0) & (qx < width) & (qy >= 0) & (qy < height)
+        pos = (mi.Point2f(mi.Float(qx), mi.Float(qy)) + sub_pixel) / size
+        ray, weight = sensor.sample_ray(time, 0.5, pos, aperture, inside)
+        rays.append((ray, mi.Spectrum(weight), inside))
+    return rays, rays[0][2]
+
+
+def _camera_normal(to_camera: mi.Transform4f, si: mi.SurfaceInteraction3f, ray_d: mi.Vector3f) -> mi.Vector3f:
+    """Shading normal turned towards the incoming ray, in camera space with x right, y up, z towards the viewer.
+
+    Mitsuba's camera frame looks along +z with +x to the left; flipping x and z gives the usual right-handed
+    view space in which surfaces facing the camera have z > 0.
+    """
+    n = si.sh_frame.n
+    n = dr.select(dr.dot(n, ray_d) > 0, -n, n)
+    local = to_camera @ n
+    return dr.normalize(mi.Vector3f(-local.x, local.y, -local.z))
+
+
+def _update_features(feat: FeatureState, base_active: mi.Bool, v: Vertex, ray_d: mi.Vector3f,
+                     to_camera: mi.Transform4f) -> FeatureState:
+    """Record features at this base vertex if the specular-chain search is still on; continue past mirrors."""
+    rec = feat.pending & base_active
+    valid = v.si.is_valid()
+    flags = v.bsdf.flags()
+    has_diffuse = mi.has_flag(flags, mi.BSDFFlags.Diffuse)
+    # Diffuse reflectance where the BSDF has a diffuse lobe; elsewhere the sampled weight, a one-sample estimate
+    # of the directional albedo that averages to the right colour over the pixel's samples (metals, glass).
+    diffuse = v.bsdf.eval_diffuse_reflectance(v.si, rec & valid & has_diffuse)
+    albedo = dr.clip(dr.select(has_diffuse, diffuse, v.sample_weight), 0.0, 1.0)
+    sampled = v.sample.sampled_type
+    specular = ~has_diffuse & (mi.has_flag(sampled, mi.BSDFFlags.Delta)
+                               | (mi.has_flag(sampled, mi.BSDFFlags.Glossy) & (v.sample.pdf > NEAR_SPECULAR_PDF)))
+    distance = feat.distance + dr.select(rec & valid, v.si.t, 0.0)
+    normal = _camera_normal(to_camera, v.si, ray_d)
+    stop = rec & (~valid | ~specular)
+    return FeatureState(
+        pending=feat.pending & ~stop,
+        albedo=dr.select(rec, dr.select(valid, albedo, 0.0), feat.albedo),
+        normal=dr.select(rec & valid, normal, dr.select(rec, mi.Vector3f(0.0, 0.0, 1.0), feat.normal)),
+        distance=dr.select(rec & ~valid, 0.0, distance),
+        hit=dr.select(rec, dr.select(valid, 1.0, 0.0), feat.hit),
+    )
+
+
+def _route(sums: dict[str, LayerSums], depth: mi.UInt32, settings: GptSettings, hit_value: mi.Spectrum,
+           nee_value: mi.Spectrum, hit_grads: list[mi.Spectrum], nee_grads: list[mi.Spectrum]) -> None:
+    """Add one vertex's events to their layer: emission at depth <= 1 and NEE at depth 0 are direct light."""
+    hit_direct = depth <= 1
+    nee_direct = depth == 0
+    for layer, sel_hit, sel_nee in (("direct", hit_direct, nee_direct), ("indirect", ~hit_direct, ~nee_direct)):
+        if layer not in sums:
+            continue
+        s = sums[layer]
+        s.base = s.base + dr.select(sel_hit, hit_value, 0.0) + dr.select(sel_nee, nee_value, 0.0)
+        for i in range(len(SHIFT_OFFSETS)):
+            s.grads[i] = s.grads[i] + dr.select(sel_hit, hit_grads[i], 0.0) + dr.select(sel_nee, nee_grads[i], 0.0)
+
+
+def _finite(x: Any) -> tuple[Any, mi.Bool]:
+    """Zero non-finite values (degenerate geometry); returns the cleaned value and a per-lane 'was bad' mask."""
+    ok = dr.isfinite(x)
+    bad = ~dr.all(ok) if dr.size_v(x) > 1 else ~ok
+    return dr.select(ok, x, 0.0), bad
+
+
+def render_pass(scene: mi.Scene, shift: Shift, settings: GptSettings, width: int, height: int, spp: int,
+                seed: int) -> dict[str, np.ndarray]:
+    """Trace ``width*height*spp`` lanes in one kernel; returns per-pixel *sums* (not means) per channel group.
+
+    Sizes, seed and depth limits enter the kernel as opaque values, so one compiled kernel serves every seed,
+    resolution and sample count of a scene.
+    """
+    sensor = scene.sensors()[0]
+    n_pixels = width * height
+    lanes = n_pixels * spp
+    if lanes >= 1 << 32:
+        raise ValueError(f"{lanes} samples in one pass exceed 2^32; use fewer samples per pass")
+    w_o = dr.opaque(mi.Int32, width)
+    h_o = dr.opaque(mi.Int32, height)
+    spp_o = dr.opaque(mi.UInt32, spp)
+    max_depth = settings.effective_max_depth()
+    max_depth_o = dr.opaque(mi.UInt32, UNBOUNDED if max_depth < 0 else max_depth)
+    rr_depth_o = dr.opaque(mi.UInt32, settings.rr_depth)
+
+    sampler = mi.load_dict({"type": "independent", "sample_count": spp})
+    sampler.seed(dr.opaque(mi.UInt32, seed & 0xFFFFFFFF), lanes)
+
+    idx = dr.arange(mi.UInt32, lanes)
+    pixel = idx // spp_o
+    py = mi.Int32(pixel // mi.UInt32(w_o))
+    px = mi.Int32(pixel) - py * w_o
+    size = mi.Vector2f(mi.Float(w_o), mi.Float(h_o))
+    rays, _ = _camera_rays(sensor, sampler, px, py, size, (w_o, h_o))
+    to_camera = sensor.world_transform().inverse()
+
+    base = PathState.start(*rays[0])
+    offsets = [shift.start(*r) for r in rays[1:]]
+    sums = {name: LayerSums.zeros() for name, on in (("direct", settings.direct), ("indirect", settings.indirect))
+            if on}
+    feat = FeatureState.start()
+    depth = mi.UInt32(0)
+    invalid = mi.Bool(False)
+
+    def cond(sampler, depth, base, offsets, sums, feat, invalid):
+        return base.active
+
+    def body(sampler, depth, base, offsets, sums, feat, invalid):
+        samples = VertexSamples.draw(sampler)
+        ray_d = mi.Vector3f(base.ray.d)
+        base_active = mi.Bool(base.active)
+        base, v = trace_vertex(scene, base, depth, max_depth_o, samples)
+        hit_grads, nee_grads = [], []
+        new_offsets = []
+        for off in offsets:
+            off, ev = shift.step(scene, off, v, depth, max_depth_o, samples)
+            # An event the base path does not have belongs to the mirrored technique alone (weight 1 there).
+            off_nee = dr.select(v.has_nee, ev.nee, 0.0)
+            hit_grads.append(ev.w_hit * (ev.emitted - v.emitted))
+            nee_grads.append(ev.w_nee * (off_nee - v.nee))
+            new_offsets.append(off)
+        hit_value, bad_h = _finite(v.emitted)
+        nee_value, bad_n = _finite(v.nee)
+        bad = bad_h | bad_n
+        clean_hit, clean_nee = [], []
+        for gh, gn in zip(hit_grads, nee_grads, strict=True):
+            gh, bh = _finite(gh)
+            gn, bn = _finite(gn)
+            bad |= bh | bn
+            clean_hit.append(gh)
+            clean_nee.append(gn)
+        _route(sums, depth, settings, hit_value, nee_value, clean_hit, clean_nee)
+        feat = _update_features(feat, base_active, v, ray_d, to_camera)
+
+        # Russian roulette on the base path, applied to the whole lane.
+        beta_max = dr.max(base.throughput)
+        q = dr.minimum(beta_max * base.eta * base.eta, 0.95)
+        rr_active = base.active & (depth >= rr_depth_o)  # Mitsuba's rule: after vertex rr_depth
+        survive = sampler.next_1d() < q
+        inv_q = dr.select(rr_active, dr.rcp(q), 1.0)
+        base.throughput = base.throughput * inv_q
+        dead = rr_active & ~survive
+        base.active = base.active & ~dead
+        new_offsets = [shift.kill(shift.scale(o, inv_q, rr_active), dead) for o in new_offsets]
+        return sampler, depth + 1, base, new_offsets, sums, feat, invalid | bad
+
+    sampler, depth, base, offsets, sums, feat, invalid = dr.while_loop(
+        state=(sampler, depth, base, offsets, sums, feat, invalid), cond=cond, body=body, label="gpt")
+
+    layout = channel_layout(settings)
+    values: dict[str, Sequence[mi.Float]] = {}
+    for layer, s in sums.items():
+        values[f"{layer}.base"] = [s.base.x, s.base.y, s.base.z]
+        for i, g in enumerate(s.grads):
+            values[f"{layer}.grad{i}"] = [g.x, g.y, g.z]
+    values["albedo"] = [feat.albedo.x * feat.hit, feat.albedo.y * feat.hit, feat.albedo.z * feat.hit]
+    values["normal"] = [feat.normal.x, feat.normal.y, feat.normal.z]
+    values["depth"] = [feat.distance * feat.hit]
+    values["hit"] = [feat.hit]
+    values["invalid"] = [dr.select(invalid, 1.0, 0.0)]
+    n_channels = sum(layout.values())
+    target = dr.zeros(mi.Float, n_channels * n_pixels)
+    channel = 0
+    for name, width_c in layout.items():
+        for comp in values[name][:width_c]:
+            dr.scatter_reduce(dr.ReduceOp.Add, target, comp, pixel + channel * n_pixels)
+            channel += 1
+    dr.eval(target)
+    flat = target.numpy().reshape(n_channels, height, width)
+    out: dict[str, np.ndarray] = {}
+    channel = 0
+    for name, width_c in layout.items():
+        out[name] = np.moveaxis(flat[channel:channel + width_c], 0, -1).astype(np.float64)
+        channel += width_c
+    return out
+
+
+def pass_plan(width: int, height: int, spp: int, max_lanes: int = MAX_LANES_PER_PASS) -> list[int]:
+    """Samples per pass: as many as fit in ``max_lanes`` lanes, at least one."""
+    per_pass = max(1, min(spp, max_lanes // max(1, width * height)))
+    plan = [per_pass] * (spp // per_pass)
+    if spp % per_pass:
+        plan.append(spp % per_pass)
+    return plan
+
+
+def pass_seed(seed: int, index: int) -> int:
+    """A 32-bit seed for pass ``index`` of a render seeded ``seed`` (splitmix-style mix: distinct streams)."""
+    z = (seed * 0x9E3779B97F4A7C15 + (index + 1) * 0xBF58476D1CE4E5B9) & 0xFFFFFFFFFFFFFFFF
+    z = ((z ^ (z >> 30)) * 0xBF58476D1CE4E5B9) & 0xFFFFFFFFFFFFFFFF
+    z = ((z ^ (z >> 27)) * 0x94D049BB133111EB) & 0xFFFFFFFFFFFFFFFF
+    return (z ^ (z >> 31)) & 0xFFFFFFFF
+
+
+def render_gpt(scene: mi.Scene, shift: Shift, settings: GptSettings, width: int, height: int, spp: int,
+               seed: int = 0, progress: Callable[[int, int], None] | None = None,
+               max_lanes: int = MAX_LANES_PER_PASS) -> GptResult:
+    """Render ``spp`` samples per pixel in passes and combine them into per-layer base/dx/dy images + features."""
+    settings.validate()
+    if spp < 1:
+        raise ValueError(f"spp must be >= 1, got {spp}")
+    plan = pass_plan(width, height, spp, max_lanes)
+    totals: dict[str, np.ndarray] | None = None
+    done = 0
+    for i, n in enumerate(plan):
+        sums = render_pass(scene, shift, settings, width, height, n, pass_seed(seed, i))
+        totals = sums if totals is None else {k: totals[k] + sums[k] for k in totals}
+        done += n
+        if progress is not None:
+            progress(done, spp)
+    assert totals is not None
+    return _finish(totals, settings, spp, len(plan))
+
+
+def _finish(t: dict[str, np.ndarray], settings: GptSettings, spp: int, passes: int) -> GptResult:
+    """Per-pixel sums -> means; the two one-sided gradient estimates -> dx, dy per the frame contract."""
+    layers: dict[str, dict[str, np.ndarray]] = {}
+    for layer in ("direct", "indirect"):
+        if f"{layer}.base" not in t:
+            continue
+        g = [t[f"{layer}.grad{i}"] for i in range(len(SHIFT_OFFSETS))]  # right, left, down, up
+        dx = g[0].copy()
+        dx[:, :-1] -= g[1][:, 1:]  # base at x+1 shifted left estimates I(x) - I(x+1) = -dx(x)
+        dx[:, -1] = 0.0
+        dy = g[2].copy()
+        dy[:-1, :] -= g[3][1:, :]
+        dy[-1, :] = 0.0
+        layers[layer] = {k: (v / spp).astype(np.float32) for k, v in
+                         (("base", t[f"{layer}.base"]), ("dx", dx), ("dy", dy))}
+    hits = t["hit"][..., 0]
+    safe = np.maximum(hits, 1.0)[..., None]
+    albedo = np.clip(t["albedo"] / safe, 0.0, 1.0)
+    normal = t["normal"]
+    norm = np.linalg.norm(normal, axis=-1, keepdims=True)
+    facing = np.broadcast_to(np.array([0.0, 0.0, 1.0]), normal.shape)
+    normal = np.where(norm > 1e-6, normal / np.maximum(norm, 1e-12), facing)
+    depth = np.where(hits > 0, t["depth"][..., 0] / np.maximum(hits, 1.0), 0.0)
+    invalid = int(round(float(t["invalid"].sum())))
+    warnings = []
+    if invalid:
+        warnings.append(f"{invalid} samples produced non-finite values; their contributions were set to 0")
+    return GptResult(layers=layers, albedo=albedo.astype(np.float32), normal=normal.astype(np.float32),
+                     depth=depth.astype(np.float32), spp=spp, invalid_samples=invalid, passes=passes,
+                     warnings=warnings)

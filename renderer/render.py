@@ -1,0 +1,141 @@
+"""Frame rendering front end: scene + settings -> a :class:`model.frame.Frame` (and `gradsep render`).
+
+Decides which illumination layers a render needs (a max depth of 2 or less leaves no indirect light, so that
+layer is neither traced nor written; ``--layers direct`` stops every path after its first vertex), runs the G-PT
+integrator (renderer/gpt.py) with the chosen shift (renderer/shift.py), and packs the result with the frame
+contract's metadata keys (``gradsep.*``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections.abc import Callable, Iterable, Mapping
+from pathlib import Path
+
+from gradsep import __version__
+from gradsep.cli import CommandError
+from model.frame import SEPARATED_LAYERS, Features, Frame, Layer, write_frame
+from renderer.scene import LoadedScene, load_scene, parse_defines
+
+DEFAULT_SHIFT = "replay"  # becomes "hybrid" once issue 4 lands
+
+
+def parse_layers(text: str | Iterable[str]) -> tuple[str, ...]:
+    """``"direct,indirect"`` -> ("direct", "indirect") in contract order; unknown names are a user error."""
+    items = [t.strip() for t in (text.split(",") if isinstance(text, str) else text)]
+    items = [t for t in items if t]
+    unknown = sorted(set(items) - set(SEPARATED_LAYERS))
+    if unknown:
+        raise CommandError(f"unknown layer(s) {', '.join(unknown)}; expected a comma-separated subset of "
+                           f"{','.join(SEPARATED_LAYERS)}")
+    if not items:
+        raise CommandError("--layers is empty; expected direct, indirect or both")
+    return tuple(layer for layer in SEPARATED_LAYERS if layer in items)
+
+
+def plan_layers(requested: tuple[str, ...], max_depth: int) -> tuple[tuple[str, ...], list[str]]:
+    """The layers to trace given the depth limit, plus notes about layers dropped because no light reaches them."""
+    notes = []
+    layers = requested
+    if "indirect" in requested and 0 < max_depth <= 2:
+        layers = tuple(layer for layer in requested if layer != "indirect")
+        notes.append(f"max_depth {max_depth} carries no indirect light: the indirect layer is not rendered")
+    if not layers:
+        raise CommandError(f"max_depth {max_depth} carries no indirect light; nothing to render for --layers indirect")
+    return layers, notes
+
+
+def render_frame(scene: LoadedScene | str, *, spp: int, seed: int = 0,
+                 layers: str | Iterable[str] = SEPARATED_LAYERS, shift: str | None = None,
+                 max_depth: int | None = None, width: int | None = None, height: int | None = None,
+                 defines: Mapping[str, str] | None = None,
+                 progress: Callable[[int, int], None] | None = None) -> Frame:
+    """Render one G-PT frame: per requested layer base + dx + dy, features at the first non-specular vertex.
+
+    ``scene`` is a loaded scene or a spec (XML path / ``procedural:SEED``) loaded with ``width``, ``height``,
+    ``max_depth`` and ``defines``. ``max_depth`` given here overrides the loaded scene's.
+    """
+    from renderer.gpt import GptSettings, render_gpt
+    from renderer.shift import make_shift
+
+    if spp < 1:
+        raise CommandError(f"--spp must be >= 1, got {spp}")
+    if not 0 <= seed < 2**32:
+        raise CommandError(f"--seed must be in [0, 2^32), got {seed}")
+    if isinstance(scene, str):
+        scene = load_scene(scene, width=width, height=height, max_depth=max_depth, defines=defines)
+    elif max_depth is not None:
+        if max_depth == 0 or max_depth < -1:
+            raise CommandError(f"--max-depth must be -1 (unbounded) or >= 1, got {max_depth}")
+        scene = LoadedScene(scene.scene, scene.spec, scene.width, scene.height, max_depth, scene.rr_depth,
+                            scene.defines)
+    wanted, notes = plan_layers(parse_layers(layers), scene.max_depth)
+    try:
+        shift_impl = make_shift(shift or DEFAULT_SHIFT)
+    except ValueError as exc:
+        raise CommandError(str(exc)) from None
+    settings = GptSettings(max_depth=scene.max_depth, rr_depth=scene.rr_depth, direct="direct" in wanted,
+                           indirect="indirect" in wanted)
+    start = time.perf_counter()
+    result = render_gpt(scene.scene, shift_impl, settings, scene.width, scene.height, spp, seed, progress)
+    seconds = time.perf_counter() - start
+
+    frame_layers = {name: Layer(base=v["base"], dx=v["dx"], dy=v["dy"]) for name, v in result.layers.items()}
+    features = Features(albedo=result.albedo, normal=result.normal, depth=result.depth)
+    metadata = render_metadata(scene, spp=spp, seed=seed, shift=shift_impl.name, layers=wanted, seconds=seconds,
+                               passes=result.passes)
+    return Frame(layers=frame_layers, features=features, metadata=metadata, warnings=notes + result.warnings)
+
+
+def render_metadata(scene: LoadedScene, *, spp: int, seed: int, shift: str, layers: tuple[str, ...],
+                    seconds: float, passes: int) -> dict[str, str]:
+    """The ``gradsep.*`` EXR header attributes of a rendered frame (all strings)."""
+    import mitsuba as mi
+
+    meta = {
+        "gradsep.version": __version__,
+        "gradsep.integrator": "gpt",
+        "gradsep.scene": scene.spec,
+        "gradsep.spp": str(spp),
+        "gradsep.seed": str(seed),
+        "gradsep.max_depth": str(scene.max_depth),
+        "gradsep.rr_depth": str(scene.rr_depth),
+        "gradsep.shift": shift,
+        "gradsep.layers": ",".join(layers),
+        "gradsep.render_seconds": f"{seconds:.3f}",
+        "gradsep.passes": str(passes),
+        "gradsep.mitsuba_variant": str(mi.variant()),
+        "gradsep.mitsuba_version": str(mi.__version__),
+    }
+    if scene.defines:
+        meta["gradsep.defines"] = ",".join(f"{k}={v}" for k, v in sorted(scene.defines.items()))
+    return meta
+
+
+def render_command(args: argparse.Namespace) -> int:
+    """`gradsep render`: render a frame and write it atomically to ``args.output``."""
+    output = Path(args.output)
+    if output.suffix.lower() != ".exr":
+        raise CommandError(f"output {args.output} must end in .exr")
+    if not output.parent.exists():
+        raise CommandError(f"output folder {output.parent} does not exist")
+    scene = load_scene(args.scene, width=args.width, height=args.height, max_depth=args.max_depth,
+                       defines=parse_defines(args.define))
+    show = sys.stderr.isatty()
+
+    def progress(done: int, total: int) -> None:
+        if show:
+            print(f"\rgradsep render: {done}/{total} spp", end="", file=sys.stderr, flush=True)
+
+    frame = render_frame(scene, spp=args.spp, seed=args.seed, layers=args.layers, shift=args.shift,
+                         progress=progress)
+    if show:
+        print(file=sys.stderr)
+    write_frame(output, frame)
+    for note in frame.warnings:
+        print(f"gradsep render: note: {note}", file=sys.stderr)
+    print(f"{output}: {frame.width}x{frame.height}, {args.spp} spp, layers {', '.join(frame.layers)}, "
+          f"{frame.metadata['gradsep.render_seconds']} s")
+    return 0

@@ -1,0 +1,350 @@
+"""Scene loading for the renderer: Mitsuba 3 XML files and ``procedural:SEED`` scenes, validated for G-PT.
+
+Every scene is loaded with the box reconstruction filter and the requested film size forced onto its first
+sensor: a wider filter would spread one sample over several pixels and correlate neighbouring pixels' noise and
+gradients, which both the gradient estimator's pixel pairing and the denoiser assume away. For XML files this is
+done by rewriting the sensor's ``<film>`` element with ``xml.etree`` before Mitsuba parses the text, with the
+file's folder on Mitsuba's file resolver so relative mesh and texture paths keep working; ``<default>``
+parameters can be overridden (``-D name=value``) exactly as ``mi.load_file(path, **params)`` does.
+
+Scenes the G-PT integrator cannot render correctly are refused with a :class:`SceneError` naming the problem
+(no emitter, participating media, a sensor other than a perspective or thin-lens camera) instead of rendering
+something wrong.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import threading
+import xml.etree.ElementTree as ET
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from gradsep.cli import CommandError
+
+SUPPORTED_SENSORS: tuple[str, ...] = ("PerspectiveCamera", "ThinLensCamera")
+DEFAULT_MAX_DEPTH = 6  # Mitsuba's own default for path tracers
+DEFAULT_RR_DEPTH = 5
+DEFAULT_PROCEDURAL_SIZE = 256
+MITSUBA_DEFAULT_FILM = (768, 576)  # hdrfilm's size when a scene gives none
+MAX_FILM_PIXELS = 8192 * 8192  # the frame contract's reading budget: larger frames could not be read back
+VARIANT_ENV = "GRADSEP_MI_VARIANT"
+CPU_VARIANT = "llvm_ad_rgb"
+GPU_VARIANT = "cuda_ad_rgb"
+PROCEDURAL_PREFIX = "procedural:"
+
+_variant_lock = threading.Lock()
+_resolver_lock = threading.Lock()
+
+
+class SceneError(CommandError):
+    """A scene that cannot be loaded or rendered by G-PT; the message says why. Printed as one line by the CLI."""
+
+
+@dataclass
+class LoadedScene:
+    """A loaded, validated Mitsuba scene plus the settings resolved for it."""
+
+    scene: Any  # mi.Scene
+    spec: str  # what the user asked for: an XML path or procedural:SEED
+    width: int
+    height: int
+    max_depth: int  # Mitsuba's convention: -1 unbounded, 1 emitters only, 2 direct light
+    rr_depth: int
+    defines: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def sensor(self) -> Any:
+        return self.scene.sensors()[0]
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Variant
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def select_variant() -> str:
+    """Set (once) and return the Mitsuba variant: $GRADSEP_MI_VARIANT, else CUDA when usable, else LLVM.
+
+    Only ``*_ad_rgb`` variants make sense here (the integrator is written for RGB with Dr.Jit JIT arrays); an
+    explicit request for anything else is refused rather than silently replaced.
+    """
+    import mitsuba as mi
+
+    with _variant_lock:
+        current = mi.variant()
+        if current is not None and current in (GPU_VARIANT, CPU_VARIANT) and VARIANT_ENV not in os.environ:
+            return current
+        wanted = os.environ.get(VARIANT_ENV)
+        if wanted:
+            if wanted not in (CPU_VARIANT, GPU_VARIANT):
+                raise SceneError(f"{VARIANT_ENV}={wanted!r}: the G-PT renderer needs {CPU_VARIANT} or {GPU_VARIANT}")
+            if wanted not in mi.variants():
+                raise SceneError(f"{VARIANT_ENV}={wanted!r}: this Mitsuba build has no such variant")
+            if current != wanted:
+                try:
+                    mi.set_variant(wanted)
+                except Exception as exc:  # e.g. no CUDA driver
+                    raise SceneError(f"{VARIANT_ENV}={wanted!r} cannot be used here: {exc}") from exc
+            return wanted
+        if current in (GPU_VARIANT, CPU_VARIANT):
+            return current
+        if GPU_VARIANT in mi.variants() and _cuda_available():
+            try:
+                mi.set_variant(GPU_VARIANT)
+                return GPU_VARIANT
+            except Exception:  # driver present but unusable: fall back to the CPU
+                pass
+        mi.set_variant(CPU_VARIANT)
+        return CPU_VARIANT
+
+
+def _cuda_available() -> bool:
+    """Whether Dr.Jit can reach a CUDA device (never raises)."""
+    try:
+        import drjit as dr
+
+        return bool(dr.has_backend(dr.JitBackend.CUDA))
+    except Exception:
+        return False
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Loading
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def parse_defines(pairs: list[str] | None) -> dict[str, str]:
+    """``["spp=16", "res=64"]`` -> dict; a malformed pair is a user error naming it."""
+    out: dict[str, str] = {}
+    for pair in pairs or []:
+        name, sep, value = pair.partition("=")
+        name = name.strip()
+        if not sep or not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", name):
+            raise SceneError(f"bad --define {pair!r}: expected NAME=VALUE with NAME a <default> parameter name")
+        out[name] = value.strip()
+    return out
+
+
+def load_scene(spec: str, *, width: int | None = None, height: int | None = None, max_depth: int | None = None,
+               defines: Mapping[str, str] | None = None) -> LoadedScene:
+    """Load and validate ``spec`` (XML path or ``procedural:SEED``) with a box filter and the requested film size.
+
+    ``max_depth`` defaults to the scene's own integrator setting (Mitsuba's ``direct`` integrator counts as 2).
+    """
+    import mitsuba as mi
+
+    select_variant()
+    defines = dict(defines or {})
+    for name, value in (("width", width), ("height", height)):
+        if value is not None and value < 1:
+            raise SceneError(f"--{name} must be >= 1, got {value}")
+    if max_depth is not None and (max_depth == 0 or max_depth < -1):
+        raise SceneError(f"--max-depth must be -1 (unbounded) or >= 1, got {max_depth}")
+
+    if spec.startswith(PROCEDURAL_PREFIX):
+        if defines:
+            raise SceneError("--define applies to XML scenes only; procedural scenes are named by their seed")
+        scene = _load_procedural(spec, width, height, max_depth)
+    else:
+        scene = _load_xml(spec, width, height, defines)
+    del mi
+
+    validate_scene(scene, spec)
+    film = scene.sensors()[0].film()
+    w, h = (int(v) for v in film.size())
+    if w * h > MAX_FILM_PIXELS:
+        raise SceneError(f"film {w}x{h} exceeds the frame budget of {MAX_FILM_PIXELS} pixels")
+    scene_depth, rr_depth = integrator_depths(scene)
+    return LoadedScene(scene=scene, spec=spec, width=w, height=h,
+                       max_depth=max_depth if max_depth is not None else scene_depth, rr_depth=rr_depth,
+                       defines=defines)
+
+
+def _load_procedural(spec: str, width: int | None, height: int | None, max_depth: int | None) -> Any:
+    import mitsuba as mi
+
+    text = spec[len(PROCEDURAL_PREFIX):]
+    try:
+        seed = int(text)
+    except ValueError:
+        raise SceneError(f"bad scene {spec!r}: expected procedural:SEED with an integer seed") from None
+    try:
+        from renderer.procedural import procedural_scene
+    except ImportError as exc:
+        raise SceneError(f"procedural scenes are not available: {exc}") from exc
+    w = width or (height or DEFAULT_PROCEDURAL_SIZE)
+    h = height or (width or DEFAULT_PROCEDURAL_SIZE)
+    scene_dict = procedural_scene(seed, w, h, max_depth)
+    force_film_dict(scene_dict, w, h)
+    try:
+        return mi.load_dict(scene_dict)
+    except Exception as exc:
+        raise SceneError(f"procedural scene {seed} failed to load: {_one_line(exc)}") from exc
+
+
+def force_film_dict(scene_dict: dict[str, Any], width: int, height: int) -> None:
+    """Force the box filter and ``width``x``height`` onto the first sensor of a ``mi.load_dict`` scene dict."""
+    for value in scene_dict.values():
+        if isinstance(value, dict) and value.get("type") in ("perspective", "thinlens", "orthographic"):
+            film = value.setdefault("film", {"type": "hdrfilm"})
+            film["width"], film["height"] = int(width), int(height)
+            film["rfilter"] = {"type": "box"}
+            for key in ("crop_offset_x", "crop_offset_y", "crop_width", "crop_height"):
+                film.pop(key, None)
+            return
+
+
+def _load_xml(spec: str, width: int | None, height: int | None, defines: dict[str, str]) -> Any:
+    import mitsuba as mi
+
+    path = Path(spec)
+    if not path.is_file():
+        raise SceneError(f"scene file not found: {spec}")
+    try:
+        tree = ET.parse(path)
+    except ET.ParseError as exc:
+        raise SceneError(f"{spec} is not valid XML: {exc}") from exc
+    root = tree.getroot()
+    if root.tag != "scene":
+        raise SceneError(f"{spec}: the root element is <{root.tag}>, expected a Mitsuba <scene>")
+    unknown = sorted(set(defines) - {d.get("name") for d in root.findall("default")})
+    if unknown:
+        raise SceneError(f"{spec} has no <default> parameter named {', '.join(unknown)}")
+    force_film_xml(root, width, height, _resolved_defaults(root, defines))
+    text = ET.tostring(root, encoding="unicode")
+    # A parameter that only sized the film is no longer referenced once --width/--height replaced it; Mitsuba
+    # refuses unused parameters, and the explicit size wins anyway.
+    used = {name: value for name, value in defines.items() if f"${name}" in text}
+    with _resolver_path(path.resolve().parent):
+        try:
+            return mi.load_string(text, **used)
+        except Exception as exc:
+            raise SceneError(f"{spec} failed to load: {_one_line(exc)}") from exc
+
+
+def _resolved_defaults(root: ET.Element, defines: Mapping[str, str]) -> dict[str, str]:
+    """The scene's ``<default>`` values with the overrides applied (for reading the original film size)."""
+    values = {d.get("name", ""): d.get("value", "") for d in root.findall("default")}
+    values.update(defines)
+    return values
+
+
+def _film_value(film: ET.Element | None, name: str, params: Mapping[str, str], fallback: int) -> int:
+    """An integer film property, with ``$param`` substitution; ``fallback`` where absent or unparseable."""
+    if film is None:
+        return fallback
+    for child in film.findall("integer"):
+        if child.get("name") == name:
+            raw = re.sub(r"\$(\w+)", lambda m: params.get(m.group(1), m.group(0)), child.get("value", ""))
+            try:
+                return int(raw)
+            except ValueError:
+                return fallback
+    return fallback
+
+
+def force_film_xml(root: ET.Element, width: int | None, height: int | None, params: Mapping[str, str]) -> None:
+    """Rewrite the first sensor's film in place: box filter, no crop window, the requested (or own) size.
+
+    Giving only one of width/height keeps the film's aspect ratio.
+    """
+    sensor = root.find("sensor")
+    if sensor is None:  # Mitsuba adds a default perspective sensor; give it a film we control
+        sensor = ET.SubElement(root, "sensor", {"type": "perspective"})
+    film = sensor.find("film")
+    w0 = _film_value(film, "width", params, MITSUBA_DEFAULT_FILM[0])
+    h0 = _film_value(film, "height", params, MITSUBA_DEFAULT_FILM[1])
+    if width is None and height is None:
+        width, height = w0, h0
+    elif width is None:
+        width = max(1, round(height * w0 / max(h0, 1)))
+    elif height is None:
+        height = max(1, round(width * h0 / max(w0, 1)))
+    if film is None:
+        film = ET.SubElement(sensor, "film", {"type": "hdrfilm"})
+    for child in list(film):
+        drop_names = ("width", "height", "crop_offset_x", "crop_offset_y", "crop_width", "crop_height")
+        if child.tag == "rfilter" or child.get("name") in drop_names:
+            film.remove(child)
+    ET.SubElement(film, "integer", {"name": "width", "value": str(int(width))})
+    ET.SubElement(film, "integer", {"name": "height", "value": str(int(height))})
+    ET.SubElement(film, "rfilter", {"type": "box"})
+
+
+@contextmanager
+def _resolver_path(folder: Path) -> Iterator[None]:
+    """Put ``folder`` first on Mitsuba's file resolver while loading, then restore the previous resolver."""
+    import mitsuba as mi
+
+    with _resolver_lock:
+        thread = mi.Thread.thread()
+        previous = thread.file_resolver()
+        resolver = mi.FileResolver(previous)
+        resolver.prepend(str(folder))
+        thread.set_file_resolver(resolver)
+        try:
+            yield
+        finally:
+            thread.set_file_resolver(previous)
+
+
+def _one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split())
+    return text if len(text) < 400 else text[:400] + " ..."
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Validation
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def validate_scene(scene: Any, spec: str) -> None:
+    """Refuse scenes G-PT cannot render: no emitter, participating media, unsupported sensor."""
+    sensors = scene.sensors()
+    if not sensors:
+        raise SceneError(f"{spec}: the scene has no sensor")
+    sensor = sensors[0]
+    kind = sensor.class_name()
+    if kind not in SUPPORTED_SENSORS:
+        raise SceneError(f"{spec}: unsupported sensor {kind}; G-PT needs a perspective or thinlens camera "
+                         "(pixel-shifted primary rays)")
+    if not scene.emitters():
+        raise SceneError(f"{spec}: the scene has no emitter, so every pixel would be black")
+    media = []
+    if sensor.get_medium() is not None:
+        media.append("the sensor")
+    for shape in scene.shapes():
+        if shape.interior_medium() is not None or shape.exterior_medium() is not None:
+            media.append(f"shape {shape.id() or '(unnamed)'}")
+    for emitter in scene.emitters():
+        if emitter.get_medium() is not None:
+            media.append(f"emitter {emitter.id() or '(unnamed)'}")
+    if media:
+        raise SceneError(f"{spec}: participating media are not supported by the G-PT renderer "
+                         f"(attached to {', '.join(media[:4])})")
+
+
+def integrator_depths(scene: Any) -> tuple[int, int]:
+    """(max_depth, rr_depth) of the scene's own integrator, Mitsuba's defaults where it has none.
+
+    Mitsuba exposes these only through the integrator's description, so they are read from it; the ``direct``
+    integrator renders exactly what ``max_depth = 2`` does.
+    """
+    integrator = scene.integrator()
+    if integrator is None:
+        return DEFAULT_MAX_DEPTH, DEFAULT_RR_DEPTH
+    if integrator.class_name() == "DirectIntegrator":
+        return 2, DEFAULT_RR_DEPTH
+    text = str(integrator)
+    depth_match = re.search(r"max_depth\s*=\s*(-?\d+)", text)
+    rr_match = re.search(r"rr_depth\s*=\s*(-?\d+)", text)
+    depth = int(depth_match.group(1)) if depth_match else DEFAULT_MAX_DEPTH
+    if depth < 0 or depth >= 0xFFFFFFFF:
+        depth = -1
+    rr = int(rr_match.group(1)) if rr_match else DEFAULT_RR_DEPTH
+    return depth, max(1, rr)
