@@ -1,0 +1,96 @@
+"""Fixtures: apps with chosen settings, served through TestClient or a real uvicorn on 127.0.0.1."""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+import warnings
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import httpx
+import pytest
+import uvicorn
+from fastapi import FastAPI
+
+from service.main import create_app
+from service.settings import Settings
+
+with warnings.catch_warnings():  # Starlette 1.x nags about httpx in its TestClient; it still works
+    warnings.simplefilter("ignore")
+    from fastapi.testclient import TestClient
+
+READY_TIMEOUT = 60.0
+
+
+def settings(tmp_path: Path | None = None, **overrides: object) -> Settings:
+    """Settings for a test app: no models (Poisson only) unless a test says otherwise, no env influence."""
+    values: dict[str, object] = {"models_dir": Path("/nonexistent/gradsep-models"), "token": None}
+    values.update(overrides)
+    return Settings(**values)  # type: ignore[arg-type]
+
+
+def wait_ready(client: httpx.Client, timeout: float = READY_TIMEOUT) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if client.get("/readyz").status_code == 200:
+            return
+        time.sleep(0.02)
+    raise AssertionError(f"service not ready after {timeout} s: {client.get('/readyz').text}")
+
+
+@contextmanager
+def in_process(app: FastAPI, ready: bool = True) -> Iterator[httpx.Client]:
+    with TestClient(app, raise_server_exceptions=False) as client:
+        if ready:
+            wait_ready(client)
+        yield client
+
+
+@contextmanager
+def uvicorn_server(app: FastAPI) -> Iterator[str]:
+    """Serve ``app`` with a real uvicorn in a thread on a free port; yield its base URL; stop gracefully."""
+    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    sock.bind(("127.0.0.1", 0))
+    port = sock.getsockname()[1]
+    server = uvicorn.Server(uvicorn.Config(app, log_level="warning", lifespan="on", timeout_graceful_shutdown=30))
+    thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + READY_TIMEOUT
+    while not server.started:
+        if not thread.is_alive() or time.monotonic() > deadline:
+            raise AssertionError("uvicorn did not start")
+        time.sleep(0.01)
+    try:
+        yield f"http://127.0.0.1:{port}"
+    finally:
+        server.should_exit = True
+        thread.join(timeout=60)
+        sock.close()
+
+
+@contextmanager
+def over_uvicorn(app: FastAPI, ready: bool = True) -> Iterator[httpx.Client]:
+    with uvicorn_server(app) as url, httpx.Client(base_url=url, timeout=60) as client:
+        if ready:
+            wait_ready(client)
+        yield client
+
+
+TRANSPORTS: dict[str, Callable[..., object]] = {"testclient": in_process, "uvicorn": over_uvicorn}
+
+
+@pytest.fixture(params=sorted(TRANSPORTS))
+def serve(request: pytest.FixtureRequest) -> Callable[..., object]:
+    """``with serve(app) as client:`` -- the same test through TestClient and through a real uvicorn."""
+    return TRANSPORTS[request.param]
+
+
+@pytest.fixture(scope="module")
+def poisson_api() -> Iterator[dict[str, httpx.Client]]:
+    """One default app per transport, shared by the read-only contract tests of a module (fast)."""
+    with in_process(create_app(settings())) as tc, over_uvicorn(create_app(settings())) as lc:
+        yield {"testclient": tc, "uvicorn": lc}

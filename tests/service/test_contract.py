@@ -1,0 +1,315 @@
+"""The HTTP contract of issue 6, status code by status code, through TestClient and a real uvicorn."""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+
+from service.main import create_app
+from tests.service.conftest import settings
+from tests.service.frames import (
+    channels_bytes,
+    decode,
+    expected_sum,
+    frame_bytes,
+    frame_channels,
+    huge_header,
+    rgb,
+    subsampled,
+)
+
+TRANSPORT = pytest.mark.parametrize("transport", ["testclient", "uvicorn"])
+
+
+def post(client, data: bytes, params: dict | None = None, content_type: str | None = "image/x-exr",
+         headers: dict | None = None):
+    headers = dict(headers or {})
+    if content_type is not None:
+        headers["Content-Type"] = content_type
+    return client.post("/v1/reconstruct", params=params or {}, content=data, headers=headers)
+
+
+def assert_error(response, status: int, code: str) -> dict:
+    assert response.status_code == status, response.text
+    assert response.headers["content-type"].startswith("application/json")
+    error = response.json()["error"]
+    assert error["code"] == code, error
+    assert error["message"]
+    return error
+
+
+# --------------------------------------------------------------------------------------------------------------
+# 200
+# --------------------------------------------------------------------------------------------------------------
+
+
+@TRANSPORT
+@pytest.mark.parametrize("half_input", [False, True], ids=["float", "half"])
+@pytest.mark.parametrize("layers", [("direct",), ("indirect",), ("color",), ("direct", "indirect")],
+                         ids=["direct-only", "indirect-only", "color", "direct+indirect"])
+def test_every_layer_set_reconstructs_to_the_sum_of_its_layers(poisson_api, transport, layers, half_input):
+    seed = len(layers) + 10 * half_input
+    response = post(poisson_api[transport], frame_bytes(layers, seed=seed, half=half_input), {"method": "l2"})
+    assert response.status_code == 200, response.text
+    assert response.headers["content-type"] == "image/x-exr"
+    channels, attributes = decode(response.content)
+    assert set(channels) == {"R", "G", "B"}
+    assert all(c.dtype == np.float32 for c in channels.values())
+    expected = expected_sum(layers, seed=seed)
+    tolerance = 2e-3 if half_input else 1e-4  # half input carries ~1e-3 relative rounding
+    np.testing.assert_allclose(rgb(channels), expected, rtol=tolerance, atol=tolerance)
+    assert attributes["gradsep.method"] == "l2"
+    assert attributes["gradsep.layers"] == ",".join(layers)
+
+
+@TRANSPORT
+@pytest.mark.parametrize("encoding", ["multipart", "image/x-exr", "application/octet-stream", "no-content-type"])
+def test_multipart_and_raw_bodies_are_both_accepted(poisson_api, transport, encoding):
+    data = frame_bytes(seed=3)
+    client = poisson_api[transport]
+    if encoding == "multipart":
+        response = client.post("/v1/reconstruct", files={"frame": ("f.exr", data, "image/x-exr")})
+    else:
+        response = post(client, data, content_type=None if encoding == "no-content-type" else encoding)
+    assert response.status_code == 200, response.text
+    assert response.headers["x-reconstruction-method"] == "l1"  # default without models
+    np.testing.assert_allclose(rgb(decode(response.content)[0]), expected_sum(seed=3), rtol=1e-3, atol=1e-3)
+
+
+@TRANSPORT
+def test_half_output_and_all_layers(poisson_api, transport):
+    response = post(poisson_api[transport], frame_bytes(seed=5),
+                    {"method": "l1", "alpha": 0.5, "format": "half", "layers": "all"})
+    assert response.status_code == 200, response.text
+    channels, attributes = decode(response.content)
+    assert set(channels) == {"R", "G", "B", "direct.R", "direct.G", "direct.B",
+                             "indirect.R", "indirect.G", "indirect.B"}
+    assert all(c.dtype == np.float16 for c in channels.values())
+    for layer in ("direct", "indirect"):
+        np.testing.assert_allclose(rgb(channels, layer), expected_sum((layer,), seed=5), rtol=5e-3, atol=5e-3)
+    assert attributes["gradsep.alpha"] == "0.5"
+
+
+@TRANSPORT
+def test_request_id_and_server_timing(poisson_api, transport):
+    client = poisson_api[transport]
+    response = post(client, frame_bytes(seed=7), headers={"X-Request-ID": "farm-job-42.frame-0007"})
+    assert response.status_code == 200
+    assert response.headers["x-request-id"] == "farm-job-42.frame-0007"
+    timing = response.headers["server-timing"]
+    for step in ("decode", "direct", "indirect", "encode"):
+        assert re.search(rf"\b{step};dur=\d+(\.\d+)?", timing), timing
+    assert decode(response.content)[1]["gradsep.request_id"] == "farm-job-42.frame-0007"
+
+    generated = client.get("/healthz").headers["x-request-id"]
+    assert re.fullmatch(r"[0-9a-f]{32}", generated)
+    hostile = client.get("/healthz", headers={"X-Request-ID": "x" * 500}).headers["x-request-id"]
+    assert re.fullmatch(r"[0-9a-f]{32}", hostile)  # not echoed: too long for logs
+
+
+@TRANSPORT
+def test_health_readiness_models_and_metrics(poisson_api, transport):
+    client = poisson_api[transport]
+    assert client.get("/healthz").json() == {"status": "ok"}
+    assert client.get("/readyz").json() == {"status": "ready", "methods": ["l1", "l2"], "default_method": "l1"}
+    models = client.get("/v1/models").json()
+    assert models["models"] == [] and models["default_method"] == "l1" and models["state"] == "ready"
+    assert models["limits"]["max_pixels"] == 8192 * 8192
+    post(client, b"definitely not an exr")
+    metrics = client.get("/metrics")
+    assert metrics.status_code == 200 and metrics.headers["content-type"].startswith("text/plain")
+    text = metrics.text
+    assert re.search(r'gradsep_http_requests_total\{method="GET",route="/healthz",status="200"\} [1-9]', text)
+    assert re.search(r'gradsep_rejections_total\{reason="not_exr"\} [1-9]', text)
+    assert "gradsep_http_request_duration_seconds_bucket" in text
+    assert re.search(r"gradsep_http_requests_in_flight 1\.0", text)  # this very request
+    assert re.search(r"gradsep_ready 1\.0", text)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# 400
+# --------------------------------------------------------------------------------------------------------------
+
+
+@TRANSPORT
+@pytest.mark.parametrize("case", ["garbage", "empty", "truncated-header", "truncated-pixels"])
+def test_not_an_exr_or_truncated_is_400(poisson_api, transport, case):
+    data = frame_bytes(seed=1)
+    body = {"garbage": b"P6\n32 24\n255\n" + bytes(100), "empty": b"", "truncated-header": data[:60],
+            "truncated-pixels": data[: len(data) - 200]}[case]
+    error = assert_error(post(poisson_api[transport], body), 400, "not_exr")
+    assert "exr" in error["message"].lower()
+
+
+@TRANSPORT
+def test_mismatched_channel_sizes_are_400_naming_the_channel(poisson_api, transport):
+    """Within one EXR a channel can only differ in size by subsampling; the contract refuses it."""
+    error = assert_error(post(poisson_api[transport], subsampled(frame_bytes(("color",)), "color.G")),
+                         400, "unsupported_exr")
+    assert error["details"] == ["color.G"]
+
+
+@TRANSPORT
+def test_multipart_without_frame_field_is_400(poisson_api, transport):
+    response = poisson_api[transport].post("/v1/reconstruct", files={"image": ("f.exr", frame_bytes())})
+    error = assert_error(response, 400, "missing_frame")
+    assert error["details"] == {"fields": ["image"]}
+
+
+# --------------------------------------------------------------------------------------------------------------
+# 413
+# --------------------------------------------------------------------------------------------------------------
+
+
+@TRANSPORT
+def test_huge_declared_image_is_413_from_the_header_without_decoding(poisson_api, transport, monkeypatch):
+    decoded = []
+    monkeypatch.setattr("service.inference.read_frame", lambda *a, **k: decoded.append(a) or 1 / 0)
+    data = huge_header(frame_bytes(("color",), height=4, width=4))
+    assert len(data) < 10_000  # a tiny body: the size can only come from the header
+    error = assert_error(post(poisson_api[transport], data), 413, "too_large")
+    assert error["details"]["width"] == 200_000 and error["details"]["height"] == 200_000
+    assert decoded == []
+
+
+@TRANSPORT
+def test_value_budget_from_settings_is_413(serve, transport):
+    data = frame_bytes(height=32, width=32)  # 18 channels x 1024 pixels
+    with serve(create_app(settings(max_values=18 * 1024 - 1))) as client:
+        error = assert_error(post(client, data), 413, "too_large")
+        assert error["details"]["max_values"] == 18 * 1024 - 1
+        assert post(client, frame_bytes(("color",), height=32, width=32)).status_code == 200
+
+
+@TRANSPORT
+def test_body_over_the_byte_limit_is_413_declared_or_streamed(serve, transport):
+    data = frame_bytes(height=64, width=64)
+    assert len(data) > 20_000
+    with serve(create_app(settings(max_body_bytes=20_000))) as client:
+        declared = assert_error(post(client, data), 413, "body_too_large")
+        assert declared["details"]["max_body_bytes"] == 20_000
+
+        def chunks():  # no Content-Length: chunked transfer, the limit is counted while streaming
+            for i in range(0, len(data), 4096):
+                yield data[i:i + 4096]
+
+        assert_error(client.post("/v1/reconstruct", content=chunks(), headers={"Content-Type": "image/x-exr"}),
+                     413, "body_too_large")
+        assert client.get("/healthz").status_code == 200
+        assert post(client, frame_bytes(height=16, width=16)).status_code == 200
+
+
+# --------------------------------------------------------------------------------------------------------------
+# 415, 404, 405
+# --------------------------------------------------------------------------------------------------------------
+
+
+@TRANSPORT
+@pytest.mark.parametrize("content_type", ["text/plain", "application/json", "application/x-www-form-urlencoded"])
+def test_wrong_content_type_is_415(poisson_api, transport, content_type):
+    error = assert_error(post(poisson_api[transport], frame_bytes(), content_type=content_type),
+                         415, "unsupported_media_type")
+    assert "image/x-exr" in error["details"]["accepted"]
+
+
+@TRANSPORT
+def test_unknown_route_and_wrong_verb_are_json(poisson_api, transport):
+    assert_error(poisson_api[transport].get("/v2/nothing"), 404, "not_found")
+    response = poisson_api[transport].get("/v1/reconstruct")
+    assert_error(response, 405, "method_not_allowed")
+    assert response.headers["allow"] == "POST"
+
+
+# --------------------------------------------------------------------------------------------------------------
+# 422
+# --------------------------------------------------------------------------------------------------------------
+
+
+@TRANSPORT
+def test_missing_and_unknown_channels_are_422_and_listed(poisson_api, transport):
+    channels = frame_channels(("direct",))
+    del channels["direct.dx.G"], channels["direct.dy.B"]
+    channels["direct.dz.R"] = channels["direct.R"]
+    error = assert_error(post(poisson_api[transport], channels_bytes(channels)), 422, "bad_channels")
+    assert error["details"]["missing"] == ["direct.dx.G", "direct.dy.B"]
+    assert error["details"]["unknown"] == ["direct.dz.R"]
+
+
+@TRANSPORT
+def test_no_illumination_layer_and_mixed_layers_are_422(poisson_api, transport):
+    features_only = {k: v for k, v in frame_channels(("color",), features=True).items()
+                     if not k.startswith("color")}
+    error = assert_error(post(poisson_api[transport], channels_bytes(features_only)), 422, "bad_channels")
+    assert "no illumination layer" in error["message"]
+    mixed = frame_channels(("color", "direct"))
+    error = assert_error(post(poisson_api[transport], channels_bytes(mixed)), 422, "bad_channels")
+    assert error["details"]["conflicting_layers"] == ["direct", "color"]
+
+
+@TRANSPORT
+@pytest.mark.parametrize("half", [False, True], ids=["float", "half"])
+def test_nan_and_inf_are_422_naming_channel_and_count(poisson_api, transport, half):
+    channels = frame_channels(("direct", "indirect"))
+    channels["direct.dx.G"][0, :3] = np.nan
+    channels["indirect.R"][5, 5] = np.inf
+    error = assert_error(post(poisson_api[transport], channels_bytes(channels, half=half)), 422, "non_finite")
+    assert error["details"] == {"direct.dx.G": 3, "indirect.R": 1}
+
+
+@TRANSPORT
+def test_zero_policy_answers_200_finite_with_a_warning(serve, transport):
+    channels = frame_channels(("color",))
+    channels["color.dy.B"][2, 2] = -np.inf
+    with serve(create_app(settings(nonfinite="zero"))) as client:
+        response = post(client, channels_bytes(channels))
+        assert response.status_code == 200, response.text
+        assert "color.dy.B (1)" in response.headers["x-gradsep-warnings"]
+        out, attributes = decode(response.content)
+        assert np.isfinite(rgb(out)).all()
+        assert "color.dy.B" in attributes["gradsep.warnings"]
+
+
+@TRANSPORT
+@pytest.mark.parametrize("params, parameter", [
+    ({"method": "bilateral"}, "method"), ({"alpha": "0"}, "alpha"), ({"alpha": "nan"}, "alpha"),
+    ({"alpha": "inf"}, "alpha"), ({"alpha": "abc"}, "alpha"), ({"format": "png"}, "format"),
+    ({"layers": "some"}, "layers")])
+def test_invalid_parameters_are_422_naming_the_parameter(poisson_api, transport, params, parameter):
+    error = assert_error(post(poisson_api[transport], frame_bytes(), params), 422, "invalid_parameter")
+    assert [d["parameter"] for d in error["details"]] == [parameter]
+
+
+@TRANSPORT
+def test_network_without_models_is_422_listing_available_methods(poisson_api, transport):
+    error = assert_error(post(poisson_api[transport], frame_bytes(), {"method": "network"}),
+                         422, "method_unavailable")
+    assert error["details"] == {"available": ["l1", "l2"]}
+
+
+# --------------------------------------------------------------------------------------------------------------
+# 401
+# --------------------------------------------------------------------------------------------------------------
+
+
+@TRANSPORT
+def test_bearer_token_guards_everything_but_health_and_readiness(serve, transport):
+    with serve(create_app(settings(token="s3cret-token"))) as client:
+        assert client.get("/healthz").status_code == 200
+        assert client.get("/readyz").status_code == 200
+        for path in ("/v1/models", "/metrics", "/openapi.json", "/docs", "/nothing"):
+            response = client.get(path)
+            assert_error(response, 401, "unauthorized")
+            assert response.headers["www-authenticate"].startswith("Bearer")
+        assert_error(post(client, b"garbage"), 401, "unauthorized")  # auth before the body is looked at
+        assert_error(client.get("/v1/models", headers={"Authorization": "Bearer wrong"}), 401, "unauthorized")
+        assert_error(client.get("/v1/models", headers={"Authorization": "Basic czNjcmV0LXRva2Vu"}),
+                     401, "unauthorized")
+        good = {"Authorization": "Bearer s3cret-token"}
+        assert client.get("/v1/models", headers=good).status_code == 200
+        assert post(client, frame_bytes(), headers=good).status_code == 200
+        schema = client.get("/openapi.json", headers=good).json()
+        assert schema["components"]["securitySchemes"]["bearer"]["scheme"] == "bearer"
+        assert schema["paths"]["/healthz"]["get"]["security"] == []
+        assert 'reason="unauthorized"' in client.get("/metrics", headers=good).text
