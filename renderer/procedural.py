@@ -737,12 +737,7 @@ def _to_mitsuba(node: Any, key: str = "") -> Any:
 
 
 def _ensure_variant() -> None:
-    """Pick the project's variant when no caller has yet (scene.py owns the choice when it is present)."""
-    try:
-        from renderer.scene import ensure_variant  # type: ignore[attr-defined]
-    except ImportError:
-        import mitsuba as mi
+    """Pick the project's variant when no caller has yet: renderer.scene owns that choice (CUDA or LLVM)."""
+    from renderer.scene import select_variant
 
-        mi.set_variant("llvm_ad_rgb")
-        return
-    ensure_variant()
+    select_variant()

@@ -1,0 +1,339 @@
+"""`gradsep reference`: converged references with Mitsuba's own ``path`` integrator, split into direct/indirect.
+
+A reference is what the evaluation compares reconstructions against, so it is rendered by an integrator that
+shares no code with ours (Mitsuba's C++ ``path``, box pixel filter) and is written as ``R G B`` (the total) plus
+``direct.{R,G,B}`` and, when the depth allows indirect light, ``indirect.{R,G,B}``.
+
+How the split is made exactly: for one seed, Mitsuba's ``path`` at max depth D and at max depth 2 draw the same
+random numbers up to and including the first camera-visible vertex (camera ray, light sample, BSDF sample), and a
+depth-2 path stops right after the emitter its BSDF sample finds. Its contribution is therefore, sample by
+sample, exactly the part of the depth-D sample that the frame contract calls ``direct`` (emission seen directly,
+next-event estimation and the MIS-weighted BSDF hit at the first vertex), and ``indirect = total - direct`` holds
+per sample: it carries no extra variance and is non-negative up to float rounding. Every pass checks this
+(:func:`_check_split`) and fails loudly if a future Mitsuba breaks the assumption, rather than writing a
+biased reference.
+
+Samples are rendered in passes of ``tile_spp`` samples with distinct seeds (derived from ``--seed`` and the pass
+index by a hash, so references rendered with neighbouring seeds share no pass) and averaged in float64, which
+bounds the wavefront (Mitsuba addresses at most 2^32 samples per launch: 4096 spp at 1280x720 is 3.8e9) and
+lets a progress bar advance.
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import math
+import os
+import time
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+# Samples per pass when --tile-spp is not given: about 16 M samples keeps a pass to seconds on a CPU, so the
+# progress bar moves, while a pass is still large enough to keep every core busy. Memory is not the limit on
+# LLVM (a symbolic loop keeps path state in registers): 1280x720 at 16 spp per pass peaks at ~230 MB.
+PASS_SAMPLE_BUDGET = 1 << 24
+MAX_WAVEFRONT = (1 << 32) - 1  # Mitsuba's limit on samples per launch (32-bit sample index)
+
+
+@dataclass
+class Reference:
+    """A rendered or loaded reference: float32 (H, W, 3) images and the EXR header's string metadata."""
+
+    total: np.ndarray
+    direct: np.ndarray
+    indirect: np.ndarray | None
+    metadata: dict[str, str] = field(default_factory=dict)
+
+    def channels(self) -> dict[str, np.ndarray]:
+        """Channel name -> (H, W) float32: ``R G B``, ``direct.*`` and, when present, ``indirect.*``."""
+        from model.frame import rgb_channels
+
+        out = dict(rgb_channels("", self.total))
+        out.update(rgb_channels("direct", self.direct))
+        if self.indirect is not None:
+            out.update(rgb_channels("indirect", self.indirect))
+        return {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in out.items()}
+
+    def layer(self, name: str) -> np.ndarray:
+        """``total``/``color`` (the unseparated image), ``direct`` or ``indirect``; a clear error if absent."""
+        if name in ("total", "color"):
+            return self.total
+        if name == "direct":
+            return self.direct
+        if name == "indirect" and self.indirect is not None:
+            return self.indirect
+        raise KeyError(f"reference has no {name!r} layer (max depth {self.metadata.get('gradsep.max_depth', '?')})")
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Passes and seeds
+# ----------------------------------------------------------------------------------------------------------
+
+def plan_passes(spp: int, tile_spp: int) -> list[int]:
+    """Samples per pass: ``tile_spp`` each, the last one takes the remainder (weighted accordingly)."""
+    if spp < 1 or tile_spp < 1:
+        raise ValueError(f"spp and tile_spp must be positive, got {spp} and {tile_spp}")
+    full, rest = divmod(spp, tile_spp)
+    return [tile_spp] * full + ([rest] if rest else [])
+
+
+def default_tile_spp(spp: int, width: int, height: int) -> int:
+    """Samples per pass so one pass holds about :data:`PASS_SAMPLE_BUDGET` samples (at least 1, at most spp)."""
+    return max(1, min(spp, PASS_SAMPLE_BUDGET // max(1, width * height)))
+
+
+def pass_seed(seed: int, index: int) -> int:
+    """The 32-bit sampler seed of pass ``index``: a hash of (seed, index), distinct across passes and seeds."""
+    return int(np.random.SeedSequence([int(seed), int(index)]).generate_state(1, dtype=np.uint32)[0])
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Scene loading
+# ----------------------------------------------------------------------------------------------------------
+
+@dataclass
+class _Loaded:
+    """What the reference needs from a loaded scene: the scene, a box-filtered sensor and the resolved depth."""
+
+    scene: Any            # mi.Scene
+    sensor: Any           # mi.Sensor with the requested film size and a box filter
+    max_depth: int
+    width: int
+    height: int
+    metadata: dict[str, str]
+
+
+def _load(spec: str, width: int | None, height: int | None, max_depth: int | None,
+          defines: Mapping[str, str]) -> _Loaded:
+    """Load ``spec`` with the project's loader, which forces the box filter and the film size, picks the
+    variant and refuses scenes that cannot be rendered (renderer.scene.SceneError)."""
+    from renderer.scene import load_scene
+
+    loaded = load_scene(spec, width=width, height=height, max_depth=max_depth, defines=dict(defines))
+    meta = {"gradsep.scene": spec}
+    if spec.startswith("procedural:"):
+        from renderer.procedural import GENERATOR_VERSION
+
+        meta["gradsep.procedural_version"] = str(GENERATOR_VERSION)
+    return _Loaded(loaded.scene, loaded.sensor, int(loaded.max_depth), int(loaded.width), int(loaded.height), meta)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Rendering
+# ----------------------------------------------------------------------------------------------------------
+
+def render_reference(spec: str, *, spp: int, width: int | None = None, height: int | None = None,
+                     max_depth: int | None = None, seed: int = 0, tile_spp: int | None = None,
+                     defines: Mapping[str, str] | None = None, progress: bool | None = False) -> Reference:
+    """Render a reference of ``spec`` with Mitsuba's ``path`` integrator, split into direct and indirect.
+
+    ``progress``: True shows a tqdm bar, None shows it only on a terminal, False hides it.
+    """
+    _check_positive("spp", spp)
+    if tile_spp is not None:
+        _check_positive("tile_spp", tile_spp)
+    if seed < 0:
+        raise ValueError(f"seed must be non-negative, got {seed}")
+    loaded = _load(spec, width, height, max_depth, defines or {})
+    return render_loaded(loaded, spp=spp, seed=seed, tile_spp=tile_spp, progress=progress)
+
+
+def render_loaded(loaded: _Loaded, *, spp: int, seed: int, tile_spp: int | None,
+                  progress: bool | None = False) -> Reference:
+    """The pass loop: per pass, ``path`` at the scene's depth and at depth 2 with one seed; float64 averages."""
+    import mitsuba as mi
+
+    depth = loaded.max_depth
+    tile = tile_spp or default_tile_spp(spp, loaded.width, loaded.height)
+    if loaded.width * loaded.height * tile > MAX_WAVEFRONT:
+        raise ValueError(f"--tile-spp {tile} at {loaded.width}x{loaded.height} exceeds Mitsuba's 2^32 samples "
+                         f"per pass; use at most {MAX_WAVEFRONT // (loaded.width * loaded.height)}")
+    split = depth == -1 or depth > 2      # max depth <= 2: nothing but direct light exists
+    total_it = mi.load_dict({"type": "path", "max_depth": depth})
+    direct_it = mi.load_dict({"type": "path", "max_depth": 2}) if split else None
+
+    def render(integrator: Any, k: int, s: int) -> np.ndarray:
+        img = np.asarray(mi.render(loaded.scene, sensor=loaded.sensor, integrator=integrator, spp=k, seed=s),
+                         dtype=np.float64)
+        # An XML film may ask for RGBA (alpha dropped) or luminance (replicated): the file is always R G B.
+        return img[..., :3] if img.shape[-1] >= 3 else np.repeat(img[..., :1], 3, axis=-1)
+
+    shape = (loaded.height, loaded.width, 3)
+    total_sum, direct_sum = np.zeros(shape), np.zeros(shape)
+    start = time.perf_counter()
+    with _progress_bar(spp, progress, loaded.metadata.get("gradsep.scene", "")) as advance:
+        for i, k in enumerate(plan_passes(spp, tile)):
+            s = pass_seed(seed, i)
+            total = render(total_it, k, s)
+            total_sum += k * total
+            if direct_it is not None:
+                direct = render(direct_it, k, s)
+                _check_split(total, direct, i)
+                direct_sum += k * direct
+            advance(k)
+    seconds = time.perf_counter() - start
+    total_mean = total_sum / spp
+    if direct_it is None:
+        direct_mean, indirect_mean = total_mean, None
+    else:
+        direct_mean = direct_sum / spp
+        # Per sample the difference is exact; what is left below zero is float rounding (checked per pass).
+        indirect_mean = np.maximum(total_mean - direct_mean, 0.0)
+    meta = dict(loaded.metadata)
+    meta.update({"gradsep.kind": "reference", "gradsep.integrator": "path", "gradsep.spp": str(spp),
+                 "gradsep.seed": str(seed), "gradsep.max_depth": str(depth), "gradsep.tile_spp": str(tile),
+                 "gradsep.render_seconds": f"{seconds:.3f}", "gradsep.variant": str(mi.variant())})
+    return Reference(_finite32(total_mean), _finite32(direct_mean),
+                     None if indirect_mean is None else _finite32(indirect_mean), meta)
+
+
+def _check_split(total: np.ndarray, direct: np.ndarray, index: int) -> None:
+    """Fail if depth-2 ``path`` exceeds depth-D ``path`` beyond float rounding: the exact split no longer holds."""
+    tolerance = 1e-4 * (np.abs(total) + np.abs(direct)) + 1e-6
+    bad = (direct - total) > tolerance
+    if bad.any():
+        worst = float((direct - total).max())
+        raise RuntimeError(
+            f"pass {index}: direct exceeds total in {int(bad.sum())} values (worst {worst:.3g});"
+            " Mitsuba's path integrator no longer draws the same random numbers at depth 2 and at full depth, so"
+            " the exact direct/indirect split this reference relies on is broken")
+
+
+def _finite32(image: np.ndarray) -> np.ndarray:
+    """float32 with non-finite values (a NaN from a degenerate BSDF sample) replaced by 0: outputs stay finite."""
+    return np.nan_to_num(image, nan=0.0, posinf=0.0, neginf=0.0).astype(np.float32)
+
+
+class _progress_bar:  # noqa: N801 -- used as a context manager, reads like a function
+    """tqdm over samples per pixel; a no-op when tqdm is missing or progress is off."""
+
+    def __init__(self, total: int, enabled: bool | None, label: str) -> None:
+        self.bar = None
+        if enabled is False:
+            return
+        try:
+            from tqdm import tqdm
+        except ImportError:
+            return
+        self.bar = tqdm(total=total, unit="spp", desc=f"reference {label}".strip(), disable=None if enabled is None
+                        else not enabled, dynamic_ncols=True)
+
+    def __enter__(self) -> Callable[[int], None]:
+        return (lambda n: self.bar.update(n)) if self.bar is not None else (lambda n: None)
+
+    def __exit__(self, *exc: object) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def _check_positive(name: str, value: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+        raise ValueError(f"{name} must be a positive integer, got {value!r}")
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Files
+# ----------------------------------------------------------------------------------------------------------
+
+def write_reference(path: str | Path, reference: Reference) -> None:
+    """Write ``R G B`` + layers (float32) with the metadata, atomically (model.frame.write_exr)."""
+    from model.frame import write_exr
+
+    write_exr(path, reference.channels(), metadata=reference.metadata)
+
+
+def load_reference(source: str | os.PathLike[str] | bytes) -> Reference:
+    """Read a reference EXR safely (header checked first by the frame contract's reader).
+
+    References are not frames (they carry no gradients), so ``read_frame`` does not apply; this reads the
+    ``R G B`` / ``direct.*`` / ``indirect.*`` channels and raises the contract's typed errors when one is missing.
+    """
+    import OpenEXR
+
+    from model.frame import RGB, ChannelError, NotExrError, read_header
+
+    info = read_header(source)
+    names = set(info.channels)
+    for group in ("", "direct"):
+        need = [f"{group}.{c}" if group else c for c in RGB]
+        missing = [n for n in need if n not in names]
+        if missing:
+            raise ChannelError(f"not a reference: missing channels {', '.join(missing)}", missing)
+    try:
+        if isinstance(source, (bytes, bytearray, memoryview)):
+            exr = OpenEXR.File(io.BytesIO(bytes(source)), separate_channels=True)
+        else:
+            exr = OpenEXR.File(os.fspath(source), separate_channels=True)
+    except (RuntimeError, OSError, ValueError, TypeError) as exc:
+        raise NotExrError(f"not a readable OpenEXR file: {exc}") from exc
+    if len(exr.parts) != 1:  # OpenEXR returns no parts for a truncated file instead of raising
+        raise NotExrError("truncated or corrupt OpenEXR file (pixel data could not be decoded)")
+    decoded = exr.channels()
+
+    def stack(prefix: str) -> np.ndarray:
+        dot = f"{prefix}." if prefix else ""
+        planes = [decoded[f"{dot}{c}"].pixels for c in RGB]
+        if any(p is None or p.shape != (info.height, info.width) for p in planes):
+            raise NotExrError(f"truncated or corrupt OpenEXR file (layer {prefix or 'RGB'} could not be decoded)")
+        return _finite32(np.stack(planes, axis=-1).astype(np.float64))
+
+    indirect = stack("indirect") if all(f"indirect.{c}" in names for c in RGB) else None
+    return Reference(stack(""), stack("direct"), indirect, dict(info.attributes))
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Command
+# ----------------------------------------------------------------------------------------------------------
+
+def parse_defines(items: Iterable[str]) -> dict[str, str]:
+    """``-D NAME=VALUE`` options -> dict; a clear error for a malformed one."""
+    from gradsep.cli import CommandError
+
+    out: dict[str, str] = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        if not sep or not name.strip():
+            raise CommandError(f"-D expects NAME=VALUE, got {item!r}")
+        out[name.strip()] = value
+    return out
+
+
+def reference_command(args: argparse.Namespace) -> int:
+    """Handler of `gradsep reference`: validate, render, write atomically, print a one-line summary."""
+    from gradsep.cli import CommandError
+
+    for name in ("spp", "tile_spp", "width", "height"):
+        value = getattr(args, name, None)
+        if value is not None and value < 1:
+            raise CommandError(f"--{name.replace('_', '-')} must be a positive integer, got {value}")
+    if args.max_depth is not None and (args.max_depth == 0 or args.max_depth < -1):
+        raise CommandError(f"--max-depth must be -1 (unbounded) or a positive integer, got {args.max_depth}")
+    if args.seed < 0:
+        raise CommandError(f"--seed must be non-negative, got {args.seed}")
+    out = Path(args.output)
+    if out.suffix.lower() != ".exr":
+        raise CommandError(f"output must be an .exr file, got {out}")
+    if not out.parent.exists():
+        raise CommandError(f"output folder {out.parent} does not exist")
+    try:
+        ref = render_reference(args.scene, spp=args.spp, width=args.width, height=args.height,
+                               max_depth=args.max_depth, seed=args.seed, tile_spp=args.tile_spp,
+                               defines=parse_defines(args.define), progress=None)
+    except (ValueError, FileNotFoundError) as exc:
+        raise CommandError(str(exc)) from exc
+    write_reference(out, ref)
+    layers = "direct, indirect" if ref.indirect is not None else "direct"
+    seconds = float(ref.metadata["gradsep.render_seconds"])
+    print(f"wrote {out}: {ref.total.shape[1]}x{ref.total.shape[0]}, {args.spp} spp, layers {layers}, "
+          f"{seconds:.1f} s ({_rate(args.spp, ref.total.shape, seconds)})")
+    return 0
+
+
+def _rate(spp: int, shape: tuple[int, ...], seconds: float) -> str:
+    samples = spp * shape[0] * shape[1]
+    return f"{samples / max(seconds, 1e-9) / 1e6:.1f} M samples/s" if math.isfinite(seconds) else ""
