@@ -174,8 +174,7 @@ def test_huge_declared_image_is_413_from_the_header_without_decoding(poisson_api
     assert decoded == []
 
 
-@TRANSPORT
-def test_value_budget_from_settings_is_413(serve, transport):
+def test_value_budget_from_settings_is_413(serve):
     data = frame_bytes(height=32, width=32)  # 18 channels x 1024 pixels
     with serve(create_app(settings(max_values=18 * 1024 - 1))) as client:
         error = assert_error(post(client, data), 413, "too_large")
@@ -183,8 +182,7 @@ def test_value_budget_from_settings_is_413(serve, transport):
         assert post(client, frame_bytes(("color",), height=32, width=32)).status_code == 200
 
 
-@TRANSPORT
-def test_body_over_the_byte_limit_is_413_declared_or_streamed(serve, transport):
+def test_body_over_the_byte_limit_is_413_declared_or_streamed(serve):
     data = frame_bytes(height=64, width=64)
     assert len(data) > 20_000
     with serve(create_app(settings(max_body_bytes=20_000))) as client:
@@ -258,8 +256,7 @@ def test_nan_and_inf_are_422_naming_channel_and_count(poisson_api, transport, ha
     assert error["details"] == {"direct.dx.G": 3, "indirect.R": 1}
 
 
-@TRANSPORT
-def test_zero_policy_answers_200_finite_with_a_warning(serve, transport):
+def test_zero_policy_answers_200_finite_with_a_warning(serve):
     channels = frame_channels(("color",))
     channels["color.dy.B"][2, 2] = -np.inf
     with serve(create_app(settings(nonfinite="zero"))) as client:
@@ -293,8 +290,7 @@ def test_network_without_models_is_422_listing_available_methods(poisson_api, tr
 # --------------------------------------------------------------------------------------------------------------
 
 
-@TRANSPORT
-def test_bearer_token_guards_everything_but_health_and_readiness(serve, transport):
+def test_bearer_token_guards_everything_but_health_and_readiness(serve):
     with serve(create_app(settings(token="s3cret-token"))) as client:
         assert client.get("/healthz").status_code == 200
         assert client.get("/readyz").status_code == 200
