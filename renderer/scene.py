@@ -278,19 +278,19 @@ def force_film_xml(root: ET.Element, width: int | None, height: int | None, para
 
 @contextmanager
 def _resolver_path(folder: Path) -> Iterator[None]:
-    """Put ``folder`` first on Mitsuba's file resolver while loading, then restore the previous resolver."""
+    """Put ``folder`` first on Mitsuba's (process-wide) file resolver while loading, then restore its paths."""
     import mitsuba as mi
 
     with _resolver_lock:
-        thread = mi.Thread.thread()
-        previous = thread.file_resolver()
-        resolver = mi.FileResolver(previous)
+        resolver = mi.file_resolver()
+        saved = [str(resolver[i]) for i in range(len(resolver))]
         resolver.prepend(str(folder))
-        thread.set_file_resolver(resolver)
         try:
             yield
         finally:
-            thread.set_file_resolver(previous)
+            resolver.clear()
+            for entry in saved:
+                resolver.append(entry)
 
 
 def _one_line(exc: BaseException) -> str:

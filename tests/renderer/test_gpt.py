@@ -1,0 +1,365 @@
+"""Correctness of the G-PT renderer against Mitsuba's own `path` integrator, on the two shared scenes.
+
+Tolerances come from the sample counts: every comparison estimates the standard error of both sides from
+independent seeds (G-PT) or independent reference chunks (Mitsuba) and allows a few standard errors. Small
+images and few samples keep the whole module to well under a minute on two cores; one loaded scene and one set
+of renders per scene is shared through module-scoped fixtures, so only a handful of kernels are compiled.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+mi = pytest.importorskip("mitsuba")
+
+from gradsep.cli import CommandError, main  # noqa: E402
+from model.frame import read_frame, write_frame  # noqa: E402
+from renderer.gpt import GptSettings, pass_plan, render_gpt  # noqa: E402
+from renderer.render import parse_layers, plan_layers, render_frame  # noqa: E402
+from renderer.scene import load_scene  # noqa: E402
+from renderer.shift import ReplayShift, make_shift  # noqa: E402
+
+pytestmark = pytest.mark.render
+
+CBOX = "/work/shared/scenes/cbox/cbox.xml"
+TEAPOT = "/work/shared/scenes/teapot/teapot.xml"
+SIZE = 24
+SEEDS = 16  # independent G-PT renders per scene
+SPP = 8  # per G-PT render
+REF_CHUNKS = 8  # independent Mitsuba `path` renders making the high-spp reference
+REF_SPP = 512  # per chunk (4096 in all: 32x the G-PT total per render)
+Z_MAX = 5.0  # per-pixel |z| above this counts as an outlier
+
+
+def fd_x(img: np.ndarray) -> np.ndarray:
+    """Forward differences along x per the frame contract (works on stacks: (..., H, W, C))."""
+    d = np.zeros_like(img)
+    d[..., :, :-1, :] = img[..., :, 1:, :] - img[..., :, :-1, :]
+    return d
+
+
+def fd_y(img: np.ndarray) -> np.ndarray:
+    d = np.zeros_like(img)
+    d[..., :-1, :, :] = img[..., 1:, :, :] - img[..., :-1, :, :]
+    return d
+
+
+@dataclass
+class Renders:
+    """G-PT renders of one scene over SEEDS seeds, plus Mitsuba `path` references."""
+
+    base: dict[str, np.ndarray]  # layer -> (SEEDS, H, W, 3)
+    dx: dict[str, np.ndarray]
+    dy: dict[str, np.ndarray]
+    features: list  # GptResult per seed
+    ref: dict[int, np.ndarray]  # max_depth -> (REF_CHUNKS, H, W, 3) chunks of the reference
+    low: dict[int, np.ndarray]  # max_depth -> (SEEDS, H, W, 3) `path` at the G-PT sample count
+
+    def total(self, key: str) -> np.ndarray:
+        return sum(getattr(self, key).values())
+
+
+def path_render(scene, spp: int, seed: int, max_depth: int) -> np.ndarray:
+    integrator = mi.load_dict({"type": "path", "max_depth": max_depth})
+    return np.array(mi.render(scene, integrator=integrator, spp=spp, seed=seed), dtype=np.float64)
+
+
+def make_renders(spec: str, max_depth: int) -> Renders:
+    loaded = load_scene(spec, width=SIZE, height=SIZE, max_depth=max_depth)
+    results = [render_gpt(loaded.scene, ReplayShift(), GptSettings(max_depth=max_depth), SIZE, SIZE, SPP, seed)
+               for seed in range(SEEDS)]
+    layers = list(results[0].layers)
+    stack = {k: {layer: np.stack([r.layers[layer][k] for r in results]).astype(np.float64) for layer in layers}
+             for k in ("base", "dx", "dy")}
+    ref = {d: np.stack([path_render(loaded.scene, REF_SPP, 10_000 + i, d) for i in range(REF_CHUNKS)])
+           for d in (max_depth, 2)}
+    low = {d: np.stack([path_render(loaded.scene, SPP, 20_000 + i, d) for i in range(SEEDS)]) for d in (max_depth, 2)}
+    return Renders(base=stack["base"], dx=stack["dx"], dy=stack["dy"], features=results, ref=ref, low=low)
+
+
+@pytest.fixture(scope="module")
+def cbox() -> Renders:
+    return make_renders(CBOX, 6)
+
+
+@pytest.fixture(scope="module")
+def teapot() -> Renders:
+    # The teapot file asks for direct light only; depth 4 adds the teapot's light on itself (a faint indirect
+    # layer) and keeps silhouettes against the black background, where offset paths leave the scene.
+    return make_renders(TEAPOT, 4)
+
+
+def two_sample_z(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """z of mean(a) - mean(b) over axis 0, standard errors from the spread of the independent repeats."""
+    se2 = a.var(0, ddof=1) / a.shape[0] + b.var(0, ddof=1) / b.shape[0]
+    return (a.mean(0) - b.mean(0)) / np.sqrt(se2 + 1e-30)
+
+
+def z_against_reference(est: np.ndarray, ref_chunks: np.ndarray, floor: float) -> np.ndarray:
+    """Per-pixel z of the mean of ``est`` (seeds) against the reference chunks' mean.
+
+    ``floor`` is an absolute standard-error floor: a pixel whose rare contributions (a silhouette hit by a few
+    samples in a thousand) never showed up in the G-PT seeds has a sample variance of 0, not a true one of 0.
+    """
+    se2 = est.var(0, ddof=1) / est.shape[0] + ref_chunks.var(0, ddof=1) / ref_chunks.shape[0]
+    return (est.mean(0) - ref_chunks.mean(0)) / np.sqrt(se2 + floor**2)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Primal: direct + indirect = Mitsuba's path
+# ---------------------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("scene", ["cbox", "teapot"])
+def test_total_mean_matches_path(scene, request):
+    r: Renders = request.getfixturevalue(scene)
+    depth = max(r.ref)
+    ours = r.total("base").mean(axis=(1, 2))  # per-seed image means (SEEDS, 3)
+    theirs = r.low[depth].mean(axis=(1, 2))
+    z = two_sample_z(ours, theirs)
+    assert np.all(np.abs(z) < 4.5), f"image mean differs from path: z={z}, ours={ours.mean(0)}, path={theirs.mean(0)}"
+
+
+@pytest.mark.parametrize("scene", ["cbox", "teapot"])
+def test_direct_layer_matches_path_depth_2(scene, request):
+    r: Renders = request.getfixturevalue(scene)
+    z = two_sample_z(r.base["direct"].mean(axis=(1, 2)), r.low[2].mean(axis=(1, 2)))
+    assert np.all(np.abs(z) < 4.5), f"direct layer mean differs from path max_depth=2: z={z}"
+    # and pixel by pixel against the high-spp reference
+    zp = z_against_reference(r.base["direct"], r.ref[2], floor=1e-3)
+    assert np.mean(np.abs(zp) > Z_MAX) < 0.01
+
+
+def test_indirect_layer_is_the_rest(cbox):
+    """indirect = path(max_depth 6) - path(max_depth 2) in expectation, and clearly nonzero in the cbox."""
+    ind = cbox.base["indirect"].mean(axis=(1, 2))
+    rest = (cbox.low[6] - cbox.low[2]).mean(axis=(1, 2))
+    assert np.all(np.abs(two_sample_z(ind, rest)) < 4.5)
+    assert ind.mean() > 0.02
+
+
+def test_pixels_match_high_spp_reference_teapot(teapot):
+    """Per pixel (teapot: no caustics, so per-pixel errors are close to Gaussian at this sample count)."""
+    z = z_against_reference(teapot.total("base"), teapot.ref[4], floor=1e-3)
+    assert np.mean(z**2) < 2.0
+    assert np.mean(np.abs(z) > Z_MAX) < 0.01
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Gradients: unbiased (converge to finite differences of the reference) and better than finite differences
+# ---------------------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("scene", ["cbox", "teapot"])
+@pytest.mark.parametrize("axis", ["dx", "dy"])
+def test_gradients_converge_to_reference_differences(scene, axis, request):
+    r: Renders = request.getfixturevalue(scene)
+    depth = max(r.ref)
+    fd = fd_x if axis == "dx" else fd_y
+    z = z_against_reference(r.total(axis), fd(r.ref[depth]), floor=2e-3)
+    assert np.mean(z**2) < 2.0, f"mean z^2 {np.mean(z**2):.2f}"
+    assert np.mean(np.abs(z) > Z_MAX) < 0.01, f"{np.mean(np.abs(z) > Z_MAX):.3%} of pixels beyond {Z_MAX} sigma"
+    # the aggregate over the image: a consistent half-size or sign error cannot hide in per-pixel noise
+    est = r.total(axis)
+    ref = fd(r.ref[depth])
+    signed = np.abs(ref.mean(0)) > 4 * np.sqrt(ref.var(0, ddof=1) / ref.shape[0] + est.var(0, ddof=1) / SEEDS)
+    if signed.sum() > 20:
+        slope = np.sum(est.mean(0)[signed] * ref.mean(0)[signed]) / np.sum(ref.mean(0)[signed] ** 2)
+        assert 0.9 < slope < 1.1, f"gradients scaled by {slope:.3f} against the reference's differences"
+
+
+@pytest.mark.parametrize("axis", ["dx", "dy"])
+def test_direct_gradients_converge_to_direct_reference(cbox, axis):
+    fd = fd_x if axis == "dx" else fd_y
+    z = z_against_reference(cbox.dx["direct"] if axis == "dx" else cbox.dy["direct"], fd(cbox.ref[2]), floor=2e-3)
+    assert np.mean(np.abs(z) > Z_MAX) < 0.01
+
+
+@pytest.mark.parametrize("axis", ["dx", "dy"])
+def test_gradients_beat_finite_differences_of_primal(cbox, axis):
+    """At equal spp (one render each), G-PT's gradient error is well below that of differencing its primal."""
+    fd = fd_x if axis == "dx" else fd_y
+    ref = fd(cbox.ref[6]).mean(0)
+    err_gpt = np.abs(cbox.total(axis) - ref)
+    err_fd = np.abs(fd(cbox.total("base")) - ref)
+    ratio = np.median(err_fd) / np.median(err_gpt)
+    assert ratio > 1.5, f"median error ratio FD/G-PT {ratio:.2f}"
+    assert err_gpt.mean() < err_fd.mean()
+
+
+def test_contract_borders_are_zero(cbox):
+    assert np.all(cbox.total("dx")[:, :, -1, :] == 0)
+    assert np.all(cbox.total("dy")[:, -1, :, :] == 0)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Features
+# ---------------------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("scene", ["cbox", "teapot"])
+def test_features_are_valid(scene, request):
+    for res in request.getfixturevalue(scene).features[:2]:
+        for arr in (res.albedo, res.normal, res.depth):
+            assert np.all(np.isfinite(arr))
+        assert res.albedo.min() >= 0 and res.albedo.max() <= 1
+        np.testing.assert_allclose(np.linalg.norm(res.normal, axis=-1), 1.0, atol=1e-4)
+        assert res.depth.min() >= 0
+
+
+def test_features_follow_the_cbox_geometry(cbox):
+    res = cbox.features[0]
+    c = SIZE // 2
+    # The centre pixel looks at the back wall (z = -1) from z = 4, head on.
+    assert abs(res.depth[c, c] - 5.0) < 0.05
+    np.testing.assert_allclose(res.normal[c, c], [0, 0, 1], atol=1e-3)
+    np.testing.assert_allclose(res.albedo[c, c], [0.885809, 0.698859, 0.666422], atol=1e-3)
+    # The mirror sphere (centre (-0.3, -0.5, 0.2), radius 0.5) faces the open front of the box: the chain
+    # through it leaves the scene, so its central pixels have no feature vertex (depth 0), not the sphere's depth.
+    # The glass sphere (centre (0.5, -0.75, -0.2), radius 0.25): the chain passes through to what lies behind.
+    focal = (SIZE / 2) / np.tan(np.radians(39.3077 / 2))
+
+    def pixel(x: float, y: float, z: float) -> tuple[int, int]:
+        dist = 4.0 - z
+        return int(SIZE / 2 + focal * x / dist), int(SIZE / 2 - focal * y / dist)
+
+    mx, my = pixel(-0.3, -0.5, 0.2)
+    assert res.depth[my, mx] == 0.0
+    gx, gy = pixel(0.5, -0.75, -0.2)
+    assert res.depth[gy, gx] > 4.2 + 0.25
+
+
+def test_teapot_background_has_no_depth(teapot):
+    res = teapot.features[0]
+    assert res.depth[0, 0] == 0 and np.all(res.albedo[0, 0] == 0)
+    hit = res.depth > 0
+    assert 0.05 < hit.mean() < 0.9
+    assert np.all((res.depth[hit] > 9) & (res.depth[hit] < 16))  # camera ~13 units from the teapot
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Layers, depth limits, frames, command
+# ---------------------------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def cbox_small():
+    return load_scene(CBOX, width=16, height=12)
+
+
+def test_direct_only_render_equals_full_direct_layer(cbox_small):
+    """--layers direct traces only to the first vertex and gives exactly the full render's direct layer."""
+    full = render_frame(cbox_small, spp=4, seed=3)
+    direct = render_frame(cbox_small, spp=4, seed=3, layers="direct")
+    assert list(direct.layers) == ["direct"]
+    assert list(full.layers) == ["direct", "indirect"]
+    for key in ("base", "dx", "dy"):
+        np.testing.assert_allclose(getattr(direct.layers["direct"], key), getattr(full.layers["direct"], key),
+                                   rtol=1e-5, atol=1e-6)
+
+
+def test_max_depth_2_has_no_indirect_layer(cbox_small):
+    frame = render_frame(cbox_small, spp=2, max_depth=2)
+    assert list(frame.layers) == ["direct"]
+    assert any("indirect" in w for w in frame.warnings)
+    with pytest.raises(CommandError):
+        render_frame(cbox_small, spp=2, max_depth=2, layers="indirect")
+
+
+def test_max_depth_1_is_emitters_seen_directly(cbox_small):
+    frame = render_frame(cbox_small, spp=2, max_depth=1)
+    base = frame.layers["direct"].base
+    lit = base.max(axis=-1) > 0
+    assert 0 < lit.mean() < 0.2  # only the light
+    # each pixel is the light's radiance times the fraction of its 2 samples that hit it: 0, 1/2 or 1
+    fraction = base[lit] / np.array([18.387, 13.9873, 6.75357], dtype=np.float32)
+    np.testing.assert_allclose(fraction, np.round(fraction * 2) / 2, atol=1e-4)
+
+
+def test_seeds_are_reproducible_and_distinct(cbox_small):
+    a = render_frame(cbox_small, spp=2, seed=5, layers="direct")
+    b = render_frame(cbox_small, spp=2, seed=5, layers="direct")
+    c = render_frame(cbox_small, spp=2, seed=6, layers="direct")
+    np.testing.assert_array_equal(a.layers["direct"].base, b.layers["direct"].base)
+    assert not np.array_equal(a.layers["direct"].base, c.layers["direct"].base)
+
+
+def test_passes_give_the_same_estimator(cbox_small):
+    """Splitting samples into passes (3 + 3 + 2 here) changes the random streams, not the expectation."""
+    settings = GptSettings(indirect=False)
+    one, many = [], []
+    for seed in range(8):
+        a = render_gpt(cbox_small.scene, ReplayShift(), settings, 16, 12, 8, seed=seed)
+        b = render_gpt(cbox_small.scene, ReplayShift(), settings, 16, 12, 8, seed=seed, max_lanes=16 * 12 * 3)
+        assert a.passes == 1 and b.passes == 3
+        one.append(a.layers["direct"]["base"].mean(axis=(0, 1)))
+        many.append(b.layers["direct"]["base"].mean(axis=(0, 1)))
+    assert np.all(np.abs(two_sample_z(np.array(one), np.array(many))) < 4.5)
+    assert pass_plan(10, 10, 7, max_lanes=300) == [3, 3, 1]
+    assert pass_plan(10, 10, 7, max_lanes=10) == [1] * 7
+
+
+def test_frame_round_trips_through_the_contract(cbox_small, tmp_path):
+    frame = render_frame(cbox_small, spp=2, seed=1)
+    path = tmp_path / "f.exr"
+    write_frame(path, frame)
+    back = read_frame(path)
+    assert list(back.layers) == ["direct", "indirect"]
+    for name, layer in frame.layers.items():
+        for key in ("base", "dx", "dy"):
+            np.testing.assert_array_equal(getattr(back.layers[name], key), getattr(layer, key))
+    np.testing.assert_array_equal(back.features.normal, frame.features.normal)
+    np.testing.assert_array_equal(back.features.depth, frame.features.depth)
+    for key in ("gradsep.spp", "gradsep.seed", "gradsep.scene", "gradsep.max_depth", "gradsep.shift",
+                "gradsep.version", "gradsep.render_seconds"):
+        assert key in back.metadata
+    assert back.metadata["gradsep.spp"] == "2" and back.metadata["gradsep.shift"] == "replay"
+    assert float(back.metadata["gradsep.render_seconds"]) > 0
+
+
+def test_layer_and_shift_arguments():
+    assert parse_layers("indirect, direct") == ("direct", "indirect")
+    with pytest.raises(CommandError, match="unknown layer"):
+        parse_layers("direct,glossy")
+    with pytest.raises(CommandError):
+        parse_layers(" , ")
+    assert plan_layers(("direct", "indirect"), -1) == (("direct", "indirect"), [])
+    assert plan_layers(("direct", "indirect"), 2)[0] == ("direct",)
+    assert make_shift(None).name == "replay"
+    with pytest.raises(ValueError, match="hybrid"):
+        make_shift("hybrid")
+
+
+def test_render_command_end_to_end(tmp_path, capsys):
+    out = tmp_path / "t.exr"
+    rc = main(["render", TEAPOT, "--spp", "2", "--width", "16", "--height", "12", "--seed", "4", "-o", str(out)])
+    assert rc == 0
+    frame = read_frame(out)
+    assert (frame.width, frame.height) == (16, 12)
+    assert list(frame.layers) == ["direct"]  # the teapot's own integrator is `direct`
+    assert frame.metadata["gradsep.seed"] == "4"
+    assert frame.metadata["gradsep.max_depth"] == "2"
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--spp", "0"], "spp"),
+    (["--layers", "glossy"], "unknown layer"),
+    (["--shift", "hybrid"], "hybrid"),
+    (["--max-depth", "0"], "max-depth"),
+    (["-D", "nosuch=1"], "nosuch"),
+])
+def test_render_command_errors(tmp_path, capsys, argv, message):
+    rc = main(["render", CBOX, "--width", "8", "--height", "8", "-o", str(tmp_path / "x.exr"),
+               *(["--spp", "1"] if "--spp" not in argv else []), *argv])
+    assert rc == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1
+    assert not (tmp_path / "x.exr").exists()
+
+
+def test_render_command_refuses_bad_output(tmp_path, capsys):
+    assert main(["render", CBOX, "--spp", "1", "-o", str(tmp_path / "x.png")]) == 2
+    assert main(["render", CBOX, "--spp", "1", "-o", str(tmp_path / "missing" / "x.exr")]) == 2
