@@ -1,0 +1,312 @@
+"""ONNX Runtime inference of the exported per-layer networks, with tiling for large frames.
+
+Runs with numpy + onnxruntime only (no torch): the serving host and `gradsep reconstruct` import this module.
+``NetworkReconstructor.load(models_dir)`` opens ``direct.onnx``, ``indirect.onnx`` and ``color.onnx`` when
+present, checks each file's ``gradsep.*`` metadata against this code (layer, channel order, preprocessing
+version), and ``reconstruct_layer`` runs one layer of a frame:
+
+    frame layer + features ─► model.preprocess (the same transform training used) ─► reflect-pad to the
+    alignment ─► ONNX Runtime ─► crop ─► inverse transform ─► (H, W, 3) float32, finite, ≥ 0
+
+Frames above ``TileSettings.max_untiled_pixels`` are processed in overlapping windows: each window carries
+``overlap`` pixels of context on its interior sides, and windows are blended with weights that ramp from 0 at
+a window's interior edge to 1 at its core, so seams from border effects are feathered away. Memory then
+depends on the window size, not the frame (a 4096×4096 layer peaks at well under 4 GB; see
+benchmarks/bench_network.py --memory). Channel attention pools over the window, so tiled output is close to,
+not bit-identical with, untiled output; windows are large (1 Mpx cores) to keep those statistics close.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from model.preprocess import (
+    DATA_INPUTS,
+    GRADIENT_INPUTS,
+    PREPROCESS_VERSION,
+    DepthRange,
+    Window,
+    crop_to,
+    feature_planes,
+    layer_planes,
+    network_inputs,
+    output_radiance,
+    pad_to_alignment,
+)
+
+if TYPE_CHECKING:
+    import onnxruntime
+
+    from model.frame import Features, Layer
+
+#: Model files looked for in the models folder, by layer name.
+MODEL_LAYERS: tuple[str, ...] = ("direct", "indirect", "color")
+OUTPUT_NAME = "radiance_log"
+_OPT_LEVELS = ("disable", "basic", "extended", "all")
+
+
+class ModelError(RuntimeError):
+    """A model file exists but cannot be served (corrupt, or exported for another layer or preprocessing)."""
+
+
+@dataclass(frozen=True)
+class SessionSettings:
+    """ONNX Runtime session options.
+
+    ``intra_op_threads`` 0 lets ORT use one thread per physical core, the fastest setting on the 2-core target;
+    a service running several inferences side by side may want fewer. Full graph optimisation (operator
+    fusion, NCHWc layouts) measured fastest in benchmarks/bench_network.py.
+    """
+
+    intra_op_threads: int = 0
+    optimization: str = "all"
+    allow_spinning: bool = True  # spinning threads cut latency; turn off to free the CPU between requests
+
+    def options(self) -> onnxruntime.SessionOptions:
+        import onnxruntime as ort
+
+        if self.optimization not in _OPT_LEVELS:
+            raise ValueError(f"optimization must be one of {_OPT_LEVELS}, got {self.optimization!r}")
+        so = ort.SessionOptions()
+        so.graph_optimization_level = {
+            "disable": ort.GraphOptimizationLevel.ORT_DISABLE_ALL,
+            "basic": ort.GraphOptimizationLevel.ORT_ENABLE_BASIC,
+            "extended": ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED,
+            "all": ort.GraphOptimizationLevel.ORT_ENABLE_ALL,
+        }[self.optimization]
+        so.intra_op_num_threads = max(0, int(self.intra_op_threads))
+        so.inter_op_num_threads = 1
+        so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+        so.add_session_config_entry("session.intra_op.allow_spinning", "1" if self.allow_spinning else "0")
+        so.log_severity_level = 3  # errors only: ORT's warnings about unused initialisers are noise here
+        return so
+
+
+@dataclass(frozen=True)
+class TileSettings:
+    """Tiling: frames up to ``max_untiled_pixels`` run in one piece (1280×720 does); larger ones in windows
+    of ``tile``² core pixels plus ``overlap`` pixels of context per interior side."""
+
+    tile: int = 1024
+    overlap: int = 64
+    max_untiled_pixels: int = 1152 * 1152
+
+    def __post_init__(self) -> None:
+        if self.tile < 1 or self.overlap < 0 or self.max_untiled_pixels < 1:
+            raise ValueError(f"invalid tile settings {self}")
+
+
+@dataclass(frozen=True)
+class TilePlan:
+    """One window: ``core`` is the part it owns, ``window`` = core + context, both (y0, y1, x0, x1)."""
+
+    core: Window
+    window: Window
+
+
+def plan_tiles(height: int, width: int, settings: TileSettings) -> list[TilePlan]:
+    """Windows covering the frame; a single window when the frame is small enough."""
+    if height * width <= settings.max_untiled_pixels:
+        return [TilePlan((0, height, 0, width), (0, height, 0, width))]
+    plans = []
+    for y0 in range(0, height, settings.tile):
+        y1 = min(height, y0 + settings.tile)
+        for x0 in range(0, width, settings.tile):
+            x1 = min(width, x0 + settings.tile)
+            o = settings.overlap
+            window = (max(0, y0 - o), min(height, y1 + o), max(0, x0 - o), min(width, x1 + o))
+            plans.append(TilePlan((y0, y1, x0, x1), window))
+    return plans
+
+
+def _ramp(lo: int, hi: int, size: int, overlap: int) -> np.ndarray:
+    """1-D blend weight over a window [lo, hi) of an axis of ``size``: ramps up over the context it carries
+    on interior sides, 1 elsewhere; ≥ 1 over its core, so the blend's denominator never vanishes."""
+    x = np.arange(lo, hi, dtype=np.float32)
+    w = np.ones(hi - lo, dtype=np.float32)
+    if overlap > 0:
+        if lo > 0:
+            w = np.minimum(w, (x - lo + 1) / (overlap + 1))
+        if hi < size:
+            w = np.minimum(w, (hi - x) / (overlap + 1))
+    return w
+
+
+@dataclass
+class LoadedModel:
+    """One ONNX model and what ``describe`` reports about it."""
+
+    name: str
+    path: Path
+    sha256: str
+    metadata: dict[str, str]
+    session: onnxruntime.InferenceSession
+    alignment: int
+
+    def run(self, data: np.ndarray, gradient: np.ndarray) -> np.ndarray:
+        """(C, h, w) aligned inputs → (3, h, w) log-domain output."""
+        out = self.session.run([OUTPUT_NAME], {"data": data[None], "gradient": gradient[None]})[0]
+        return out[0]
+
+    def describe(self) -> dict[str, Any]:
+        return {
+            "name": self.name,
+            "layer": self.metadata.get("gradsep.layer", self.name),
+            "file": self.path.name,
+            "inputs": {"data": list(DATA_INPUTS), "gradient": list(GRADIENT_INPUTS)},
+            "sha256": self.sha256,
+            "bytes": self.path.stat().st_size if self.path.exists() else None,
+            "attention": self.metadata.get("gradsep.attention") == "true",
+            "alignment": self.alignment,
+            "metadata": dict(self.metadata),
+        }
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _check_metadata(path: Path, name: str, meta: dict[str, str]) -> int:
+    """Refuse a model this code would feed wrongly; return its alignment."""
+    problems = []
+    if meta.get("gradsep.layer") != name:
+        problems.append(f"it was trained for layer {meta.get('gradsep.layer')!r}, not {name!r}")
+    try:
+        inputs = json.loads(meta.get("gradsep.inputs", "{}"))
+        preprocessing = json.loads(meta.get("gradsep.preprocessing", "{}"))
+        alignment = int(meta.get("gradsep.alignment", "0"))
+    except (ValueError, TypeError):
+        raise ModelError(f"{path}: unreadable gradsep metadata") from None
+    if inputs != {"data": list(DATA_INPUTS), "gradient": list(GRADIENT_INPUTS)}:
+        problems.append(f"its input channels {inputs} differ from this version's")
+    if preprocessing.get("version") != PREPROCESS_VERSION:
+        problems.append(f"preprocessing version {preprocessing.get('version')} != {PREPROCESS_VERSION}")
+    if alignment < 1:
+        problems.append("no valid gradsep.alignment")
+    if problems:
+        raise ModelError(f"{path}: cannot serve this model: " + "; ".join(problems) + " (re-export it)")
+    return alignment
+
+
+def load_model(path: str | os.PathLike[str], name: str, settings: SessionSettings = SessionSettings()) -> LoadedModel:
+    """Open one exported model for layer ``name``; ModelError when it is unusable."""
+    import onnxruntime as ort
+
+    path = Path(path)
+    try:
+        session = ort.InferenceSession(str(path), settings.options(), providers=["CPUExecutionProvider"])
+    except Exception as exc:  # ORT raises its own exception types for corrupt or unsupported files
+        raise ModelError(f"{path}: ONNX Runtime cannot load it ({exc})") from exc
+    meta = dict(session.get_modelmeta().custom_metadata_map)
+    alignment = _check_metadata(path, name, meta)
+    return LoadedModel(name, path, _sha256(path), meta, session, alignment)
+
+
+class NetworkReconstructor:
+    """The per-layer networks of a models folder; what model/reconstruct.py and the service call."""
+
+    def __init__(self, models: dict[str, LoadedModel], tiles: TileSettings = TileSettings()) -> None:
+        self.models = models
+        self.tiles = tiles
+
+    @classmethod
+    def load(cls, models_dir: str | os.PathLike[str], settings: SessionSettings = SessionSettings(),
+             tiles: TileSettings = TileSettings()) -> NetworkReconstructor | None:
+        """Load every ``{direct,indirect,color}.onnx`` present; None when there is none."""
+        folder = Path(models_dir)
+        models = {name: load_model(folder / f"{name}.onnx", name, settings)
+                  for name in MODEL_LAYERS if (folder / f"{name}.onnx").is_file()}
+        return cls(models, tiles) if models else None
+
+    @property
+    def layers(self) -> set[str]:
+        """Layer names this reconstructor can serve."""
+        return set(self.models)
+
+    def describe(self) -> list[dict[str, Any]]:
+        """One entry per loaded model (name, layer, input channels, sha256, metadata) for /v1/models."""
+        return [m.describe() for m in self.models.values()]
+
+    def warm_up(self, size: int = 64) -> float:
+        """Run every model once on a small frame so the first request does not pay for allocation; seconds."""
+        start = time.perf_counter()
+        for model in self.models.values():
+            a = model.alignment
+            side = -(-size // a) * a
+            model.run(np.zeros((len(DATA_INPUTS), side, side), np.float32),
+                      np.zeros((len(GRADIENT_INPUTS), side, side), np.float32))
+        return time.perf_counter() - start
+
+    def reconstruct_layer(self, name: str, layer: Layer, features: Features | None) -> np.ndarray:
+        """Reconstruct one illumination layer: (H, W, 3) float32, finite, ≥ 0."""
+        if name not in self.models:
+            raise KeyError(f"no model for layer {name!r}; loaded: {', '.join(sorted(self.models)) or 'none'}")
+        height, width = _check_inputs(layer, features)
+        assert features is not None  # _check_inputs raised otherwise
+        model = self.models[name]
+        plans = plan_tiles(height, width, self.tiles)
+        depth_range = DepthRange.of(features.depth)  # per frame, shared by every window
+        if len(plans) == 1:
+            return self._run_window(model, layer, features, depth_range, plans[0].window)
+        total = np.zeros((height, width, 3), dtype=np.float32)
+        weight = np.zeros((height, width, 1), dtype=np.float32)
+        for plan in plans:
+            y0, y1, x0, x1 = plan.window
+            out = self._run_window(model, layer, features, depth_range, plan.window)
+            w = np.outer(_ramp(y0, y1, height, self.tiles.overlap), _ramp(x0, x1, width, self.tiles.overlap))
+            total[y0:y1, x0:x1] += out * w[..., None]
+            weight[y0:y1, x0:x1] += w[..., None]
+        return total / weight
+
+    @staticmethod
+    def _run_window(model: LoadedModel, layer: Layer, features: Features, depth_range: DepthRange,
+                    window: Window) -> np.ndarray:
+        planes = layer_planes(layer, window)
+        data, gradient = network_inputs(planes, feature_planes(features, depth_range, window))
+        h, w = planes.shape[1:]
+        a = model.alignment
+        encoded = model.run(np.ascontiguousarray(pad_to_alignment(data, a)),
+                            np.ascontiguousarray(pad_to_alignment(gradient, a)))
+        base = planes[0:3].transpose(1, 2, 0)
+        return output_radiance(crop_to(encoded, h, w), fallback=base)
+
+
+def _check_inputs(layer: Layer, features: Features | None) -> tuple[int, int]:
+    """(H, W) of a consistent layer + features; ChannelError naming the channels otherwise."""
+    from model.frame import FEATURE_CHANNELS, ChannelError
+
+    if features is None:
+        raise ChannelError("the network needs the feature channels, which this frame lacks: "
+                           + ", ".join(FEATURE_CHANNELS), list(FEATURE_CHANNELS))
+    shape = np.shape(layer.base)
+    if len(shape) != 3 or shape[2] != 3 or shape[0] < 1 or shape[1] < 1:
+        raise ChannelError(f"layer base must be (H, W, 3) with H, W >= 1, got {shape}", ["R", "G", "B"])
+    h, w = shape[:2]
+    expected = {"dx": (layer.dx, (h, w, 3)), "dy": (layer.dy, (h, w, 3)),
+                "albedo": (features.albedo, (h, w, 3)), "normal": (features.normal, (h, w, 3)),
+                "depth": (features.depth, (h, w))}
+    bad = [f"{k} {np.shape(a)} != {s}" for k, (a, s) in expected.items() if np.shape(a) != s]
+    if bad:
+        raise ChannelError("inconsistent channel shapes: " + "; ".join(bad), [b.split()[0] for b in bad])
+    return int(h), int(w)
+
+
+def iter_model_files(models_dir: str | os.PathLike[str]) -> Iterator[Path]:
+    """The model files ``load`` would open, in order (for tools that only need to know what is there)."""
+    folder = Path(models_dir)
+    for name in MODEL_LAYERS:
+        if (folder / f"{name}.onnx").is_file():
+            yield folder / f"{name}.onnx"

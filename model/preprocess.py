@@ -1,0 +1,243 @@
+"""The network's input transform: the ONE definition shared by training and inference.
+
+Training (training/dataset.py, training/losses.py) and inference (model/infer.py) both call these functions, so
+the network sees exactly the same numbers in both. The math is written once against a tiny array namespace
+(numpy or torch: both provide ``log1p``, ``expm1``, ``sign``, ``abs``, ``clip``, ``concatenate``), so
+inference needs only numpy and the training loss differentiates the very same expressions in torch. This
+module never imports torch.
+
+What the network sees (channel order in model.network.DATA_INPUTS / GRADIENT_INPUTS):
+
+* base radiance, clamped to [0, RADIANCE_MAX], through C(I) = log(1 + μI) / log(1 + μ) with μ = 16 (GradNet's
+  transfer function: compresses HDR fireflies while keeping dark regions resolved);
+* gradients through the signed version sign(g)·C(|g|), |g| clamped at RADIANCE_MAX;
+* albedo as is (clipped to [0, 1], the contract's range), normal·0.5 + 0.5 (in [0, 1]), depth clamped to
+  [0, DEPTH_MAX] and min-max normalised per frame to [0, 1];
+* non-finite values anywhere → 0 (features always, as the paper does; radiance here too, so a caller that
+  bypassed model.frame's policy still gets finite output).
+
+The network predicts C(I) of the reconstruction; ``TRANSFER.inverse`` maps it back, clamped to
+[0, RADIANCE_MAX] so the output is always finite and ≥ 0.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from dataclasses import dataclass
+from types import ModuleType
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+if TYPE_CHECKING:  # only for hints; importing model.frame at run time is fine but not needed
+    from model.frame import Features, Layer
+
+#: Transfer-function steepness (GradNet's μ).
+MU = 16.0
+#: Radiance (and |gradient|) clamp: the largest finite half float, so anything a half EXR can hold passes
+#: unchanged while +Inf-like outliers stay bounded in the network's range (C(65504) ≈ 4.89).
+RADIANCE_MAX = 65504.0
+#: Depth clamp before per-frame normalisation (GradNet's 1e5): a far-away sky hit must not squash the rest.
+DEPTH_MAX = 1.0e5
+#: Number of linear planes per layer (base, dx, dy × RGB) and of normalised feature planes.
+LAYER_PLANES = 9
+FEATURE_PLANES = 7
+#: The network's input and output channels, in order: data, not code (exported as ONNX metadata and checked
+#: by model/infer.py against each model it loads).
+DATA_INPUTS: tuple[str, ...] = (
+    "base.R", "base.G", "base.B",
+    "albedo.R", "albedo.G", "albedo.B",
+    "normal.X", "normal.Y", "normal.Z",
+    "depth.Z",
+)
+GRADIENT_INPUTS: tuple[str, ...] = ("dx.R", "dx.G", "dx.B", "dy.R", "dy.G", "dy.B")
+OUTPUTS: tuple[str, ...] = ("R", "G", "B")
+#: The feature channels the first-order loss differentiates (the data input minus the base radiance).
+FEATURE_INPUTS: tuple[str, ...] = DATA_INPUTS[3:]
+#: Bumped whenever the numbers the network sees change; stored in checkpoints, caches and ONNX metadata.
+PREPROCESS_VERSION = 1
+
+Window = tuple[int, int, int, int]  # (y0, y1, x0, x1), half-open, in frame pixels
+
+
+def array_namespace(x: Any) -> ModuleType:
+    """numpy for numpy arrays and scalars, torch for torch tensors (without importing torch ourselves)."""
+    if type(x).__module__.startswith("torch"):
+        return sys.modules["torch"]
+    return np
+
+
+class LogTransfer:
+    """C(I) = log(1 + μI) / log(1 + μ) with its inverse and the signed variant for gradients.
+
+    A class with forward/inverse (like OIDN's transfer functions) so the constants travel together and the
+    ONNX metadata can state them.
+    """
+
+    def __init__(self, mu: float = MU, max_value: float = RADIANCE_MAX) -> None:
+        if not (mu > 0 and max_value > 0):
+            raise ValueError(f"LogTransfer needs mu > 0 and max_value > 0, got {mu}, {max_value}")
+        self.mu = float(mu)
+        self.max_value = float(max_value)
+        self._norm = math.log1p(self.mu)
+        self.max_encoded = math.log1p(self.mu * self.max_value) / self._norm
+
+    def forward(self, x: Any) -> Any:
+        """Radiance → network domain; negative radiance is clamped to 0 first."""
+        xp = array_namespace(x)
+        return xp.log1p(self.mu * xp.clip(x, 0.0, self.max_value)) / self._norm
+
+    def inverse(self, y: Any) -> Any:
+        """Network domain → radiance, clamped to [0, max_value] so the result is finite."""
+        xp = array_namespace(y)
+        return xp.expm1(xp.clip(y, 0.0, self.max_encoded) * self._norm) / self.mu
+
+    def forward_signed(self, g: Any) -> Any:
+        """sign(g)·C(|g|): the gradient transform (odd, so a sign flip of the image flips the input)."""
+        xp = array_namespace(g)
+        return xp.sign(g) * self.forward(xp.abs(g))
+
+    def inverse_signed(self, y: Any) -> Any:
+        xp = array_namespace(y)
+        return xp.sign(y) * self.inverse(xp.abs(y))
+
+    def constants(self) -> dict[str, float]:
+        return {"mu": self.mu, "max_value": self.max_value}
+
+
+TRANSFER = LogTransfer()
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Frame → linear planes (numpy): sanitised, clamped, channel-first, optionally a window of the frame
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def _crop(image: np.ndarray, window: Window | None) -> np.ndarray:
+    if window is None:
+        return image
+    y0, y1, x0, x1 = window
+    return image[y0:y1, x0:x1]
+
+
+def _finite(x: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """float32 copy with NaN → 0, ±Inf → the nearest bound, everything clipped to [lo, hi]."""
+    out = np.nan_to_num(np.asarray(x, dtype=np.float32), nan=0.0, posinf=hi, neginf=lo)
+    return np.clip(out, lo, hi, out=out)
+
+
+def layer_planes(layer: Layer, window: Window | None = None) -> np.ndarray:
+    """(9, h, w) float32: base R G B, dx R G B, dy R G B, linear, finite, base ≥ 0, all within ±RADIANCE_MAX."""
+    base = _finite(_crop(layer.base, window), 0.0, RADIANCE_MAX)
+    dx = _finite(_crop(layer.dx, window), -RADIANCE_MAX, RADIANCE_MAX)
+    dy = _finite(_crop(layer.dy, window), -RADIANCE_MAX, RADIANCE_MAX)
+    return np.ascontiguousarray(np.concatenate([base, dx, dy], axis=-1).transpose(2, 0, 1))
+
+
+@dataclass(frozen=True)
+class DepthRange:
+    """Per-frame depth normalisation: computed once over the whole frame so every tile or patch agrees."""
+
+    lo: float
+    hi: float
+
+    @classmethod
+    def of(cls, depth: np.ndarray) -> DepthRange:
+        d = _finite(depth, 0.0, DEPTH_MAX)
+        if d.size == 0:
+            return cls(0.0, 0.0)
+        return cls(float(d.min()), float(d.max()))
+
+    def normalise(self, depth: np.ndarray) -> np.ndarray:
+        d = _finite(depth, 0.0, DEPTH_MAX)
+        span = self.hi - self.lo
+        if span <= 0.0:  # a constant-depth frame (or all misses) carries no depth information
+            return np.zeros_like(d)
+        return np.clip((d - self.lo) / span, 0.0, 1.0)
+
+
+def feature_planes(features: Features, depth_range: DepthRange | None = None,
+                   window: Window | None = None) -> np.ndarray:
+    """(7, h, w) float32: albedo in [0,1], normal·0.5+0.5 in [0,1], depth normalised per frame to [0,1]."""
+    if depth_range is None:
+        depth_range = DepthRange.of(features.depth)
+    albedo = _finite(_crop(features.albedo, window), 0.0, 1.0)
+    normal = _finite(_crop(features.normal, window), -1.0, 1.0) * 0.5 + 0.5
+    depth = depth_range.normalise(_crop(features.depth, window))[..., None]
+    return np.ascontiguousarray(np.concatenate([albedo, normal, depth], axis=-1).transpose(2, 0, 1))
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Linear planes → network inputs (numpy or torch, any leading batch dims; channels on axis -3)
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def network_inputs(planes: Any, features: Any, transfer: LogTransfer = TRANSFER) -> tuple[Any, Any]:
+    """(data, gradient) for DualBranchNet from (…, 9, h, w) layer planes and (…, 7, h, w) feature planes."""
+    xp = array_namespace(planes)
+    base, dx, dy = planes[..., 0:3, :, :], planes[..., 3:6, :, :], planes[..., 6:9, :, :]
+    data = xp.concatenate([transfer.forward(base), features], axis=-3)
+    gradient = xp.concatenate([transfer.forward_signed(dx), transfer.forward_signed(dy)], axis=-3)
+    return data, gradient
+
+
+def output_radiance(encoded: np.ndarray, fallback: np.ndarray | None = None,
+                    transfer: LogTransfer = TRANSFER) -> np.ndarray:
+    """Network output (3, h, w) in the transfer domain → (h, w, 3) float32 radiance, finite and ≥ 0.
+
+    Non-finite network outputs (which a sane model never produces) fall back to the clamped input base
+    rather than to black, so a failure degrades to "no denoising" instead of holes.
+    """
+    y = np.asarray(encoded, dtype=np.float32)
+    bad = ~np.isfinite(y)
+    radiance = transfer.inverse(np.where(bad, 0.0, y)).astype(np.float32)
+    if bad.any() and fallback is not None:
+        radiance = np.where(bad, fallback, radiance)
+    return np.ascontiguousarray(radiance.transpose(1, 2, 0))
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Alignment: reflection padding to the network's multiple and cropping back
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def aligned_size(n: int, alignment: int) -> int:
+    return -(-n // alignment) * alignment
+
+
+def pad_to_alignment(x: np.ndarray, alignment: int) -> np.ndarray:
+    """Reflect-pad the last two axes (bottom and right) up to multiples of ``alignment``.
+
+    Reflection rather than zeros: a black border would read as a strong edge and leak dark values into the
+    image through the convolutions. numpy reflects repeatedly when the pad exceeds the size and repeats the
+    only pixel of a 1-pixel-wide axis.
+    """
+    if alignment < 1:
+        raise ValueError(f"alignment must be >= 1, got {alignment}")
+    h, w = x.shape[-2:]
+    ph, pw = aligned_size(h, alignment) - h, aligned_size(w, alignment) - w
+    if ph == 0 and pw == 0:
+        return x
+    pads = [(0, 0)] * (x.ndim - 2) + [(0, ph), (0, pw)]
+    return np.pad(x, pads, mode="reflect")
+
+
+def crop_to(x: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Undo ``pad_to_alignment`` on the last two axes."""
+    return x[..., :height, :width]
+
+
+def describe_preprocessing(transfer: LogTransfer = TRANSFER) -> dict[str, Any]:
+    """The constants that define the input transform, for ONNX metadata and config.json."""
+    return {
+        "version": PREPROCESS_VERSION,
+        "transfer": "log1p(mu*x)/log1p(mu); gradients sign(g)*C(|g|)",
+        **transfer.constants(),
+        "depth_max": DEPTH_MAX,
+        "albedo": "clip [0,1]",
+        "normal": "clip [-1,1] * 0.5 + 0.5",
+        "depth": "clip [0, depth_max], per-frame min-max to [0,1]",
+        "nonfinite": "0",
+        "padding": "reflect, bottom/right, to the network alignment",
+    }

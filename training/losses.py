@@ -1,0 +1,132 @@
+"""The unsupervised losses (paper §4.3, GradNet's loss_functions): L = α·L_data + L_grad + β·L_1st.
+
+No ground truth exists, so every term compares the prediction with the renderer's own noisy estimates, all in
+the log domain of model.preprocess.TRANSFER (GradNet's choice: L1 in that domain is robust to HDR fireflies):
+
+* ``data_loss``: |ŷ − C(I_b)|, the prediction stays close to the noisy base image (low frequencies);
+* ``gradient_loss``: the forward differences of the predicted *linear* image, compressed with sign·C, against
+  the compressed rendered gradients (high frequencies, which G-PT estimates with little noise);
+* ``first_order_loss``: the predicted log-domain differences should be explained by feature differences,
+  Δŷ ≈ Σₖ aₖ·ΔFₖ, with per-pixel coefficients aₖ from the G-branch, weighted by exp(−9·ΔI_b²) so it acts
+  only where the noisy image itself is flat (GradNet's edge-stopping weight). Each pixel pair is tested with
+  the coefficients of both pixels (forward with the left/top pixel's, backward with the right/bottom's).
+
+Shapes: predictions (N, 3, H, W) in the log domain; ``planes`` (N, 9, H, W) linear base/dx/dy from
+model.preprocess.layer_planes; ``features`` (N, 7, H, W); coefficients (N, 3·7, H, W).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from model.preprocess import TRANSFER, LogTransfer
+
+#: GradNet's edge-stopping sharpness in exp(−k·ΔI²).
+EDGE_SHARPNESS = 9.0
+
+
+def _dx(x: torch.Tensor) -> torch.Tensor:
+    """Forward difference along width, dropping the last column (where the contract's dx is 0)."""
+    return x[..., :, 1:] - x[..., :, :-1]
+
+
+def _dy(x: torch.Tensor) -> torch.Tensor:
+    return x[..., 1:, :] - x[..., :-1, :]
+
+
+def data_loss(pred: torch.Tensor, base: torch.Tensor, transfer: LogTransfer = TRANSFER) -> torch.Tensor:
+    """mean |ŷ − C(I_b)| over every pixel and colour."""
+    return torch.mean(torch.abs(pred - transfer.forward(base)))
+
+
+def gradient_loss(pred: torch.Tensor, dx: torch.Tensor, dy: torch.Tensor,
+                  transfer: LogTransfer = TRANSFER) -> torch.Tensor:
+    """mean |S(Δx C⁻¹(ŷ)) − S(dx)| + mean |S(Δy C⁻¹(ŷ)) − S(dy)| with S = sign·C.
+
+    Differences are taken in linear radiance (that is what the renderer's gradients are) and compared after
+    compression; the contract's zero last column/row of dx/dy is not a measurement and is excluded.
+    """
+    linear = transfer.inverse(pred)
+    loss_x = torch.mean(torch.abs(transfer.forward_signed(_dx(linear)) - transfer.forward_signed(dx[..., :, :-1])))
+    loss_y = torch.mean(torch.abs(transfer.forward_signed(_dy(linear)) - transfer.forward_signed(dy[..., :-1, :])))
+    return loss_x + loss_y
+
+
+def first_order_loss(pred: torch.Tensor, coeffs: torch.Tensor, features: torch.Tensor,
+                     base: torch.Tensor) -> torch.Tensor:
+    """GradNet's first-order feature loss; see the module docstring. ``base`` is the linear noisy image."""
+    n, c, h, w = pred.shape
+    a = coeffs.reshape(n, c, features.shape[1], h, w)          # (N, 3, 7, H, W)
+    f = features.unsqueeze(1)                                  # (N, 1, 7, H, W), shared by the colours
+    fdx, fdy = _dx(f), _dy(f)
+    est_x = torch.sum(a[..., :, :-1] * fdx, dim=2)             # predicted Δx from the left pixel's coefficients
+    est_y = torch.sum(a[..., :-1, :] * fdy, dim=2)
+    back_x = torch.sum(a[..., :, 1:] * -fdx, dim=2)            # predicted −Δx from the right pixel's
+    back_y = torch.sum(a[..., 1:, :] * -fdy, dim=2)
+    weight_x = torch.exp(-EDGE_SHARPNESS * _dx(base) ** 2)
+    weight_y = torch.exp(-EDGE_SHARPNESS * _dy(base) ** 2)
+    pdx, pdy = _dx(pred), _dy(pred)
+    return (torch.mean(torch.abs(pdx - est_x) * weight_x) + torch.mean(torch.abs(pdx + back_x) * weight_x)
+            + torch.mean(torch.abs(pdy - est_y) * weight_y) + torch.mean(torch.abs(pdy + back_y) * weight_y))
+
+
+@dataclass
+class LossTerms:
+    """The three terms of one batch; ``total`` applies the weights."""
+
+    data: torch.Tensor
+    grad: torch.Tensor
+    first: torch.Tensor
+
+    def total(self, alpha: float, beta: float) -> torch.Tensor:
+        return alpha * self.data + self.grad + beta * self.first
+
+    def as_floats(self) -> dict[str, float]:
+        return {"data": float(self.data.detach()), "grad": float(self.grad.detach()),
+                "first": float(self.first.detach())}
+
+
+def loss_terms(pred: torch.Tensor, coeffs: torch.Tensor, planes: torch.Tensor,
+               features: torch.Tensor) -> LossTerms:
+    """All three terms for the main network; the G-branch coefficients are treated as constants."""
+    base, dx, dy = planes[:, 0:3], planes[:, 3:6], planes[:, 6:9]
+    return LossTerms(
+        data=data_loss(pred, base),
+        grad=gradient_loss(pred, dx, dy),
+        first=first_order_loss(pred, coeffs.detach(), features, base),
+    )
+
+
+def gbranch_loss(coeffs: torch.Tensor, planes: torch.Tensor, features: torch.Tensor,
+                 transfer: LogTransfer = TRANSFER) -> torch.Tensor:
+    """The G-branch's own objective: explain the *noisy input's* log-domain differences (GradNet's active
+    choice in its training loop), so the coefficients describe how radiance follows the features, not how
+    the current network output does."""
+    base = planes[:, 0:3]
+    return first_order_loss(transfer.forward(base).detach(), coeffs, features, base)
+
+
+@dataclass(frozen=True)
+class BetaSchedule:
+    """β per epoch: 0 during warm-up (the G-branch starts untrained, its coefficients mean nothing yet), then
+    geometric growth from ``start`` by ``growth`` per epoch, capped at ``maximum`` (paper: "increases slowly
+    with the epoch and stabilises at 2"). GradNet grows ×1.1 after 5 epochs of its 71; our CPU runs have
+    tens of epochs, so the default grows ×1.25 after 2 and reaches 2 at epoch 16.
+    """
+
+    maximum: float = 2.0
+    warmup_epochs: int = 2
+    start: float = 0.1
+    growth: float = 1.25
+
+    def __call__(self, epoch: int) -> float:
+        if epoch < self.warmup_epochs:
+            return 0.0
+        k = epoch - self.warmup_epochs
+        # compare in log space so a long run cannot overflow growth**k
+        if math.log(self.maximum / self.start) <= k * math.log(self.growth):
+            return self.maximum
+        return self.start * self.growth ** k

@@ -1,0 +1,671 @@
+"""`gradsep train`: unsupervised training of one layer's network, resumable, CPU or `torchrun` DDP.
+
+One run folder (RUN_DIR) holds everything: ``config.json``, ``checkpoints/last.pt`` (the full state, written
+atomically at every epoch end, every few minutes and when the budget runs out), the last few
+``checkpoints/epoch_NNNN.pt`` weight snapshots, ``log.jsonl`` (a record every few steps and one per epoch),
+``losses.png`` and ``cache/`` (decoded frames; delete it to reclaim disk once the run is final).
+
+Re-running the same command continues where the last run stopped — after a kill, or with a larger
+``--minutes``/``--epochs`` — because patch positions and the shuffling order are pure functions of
+(seed, epoch, index) and the checkpoint records the epoch, the phase and the batch within it.
+
+Each epoch follows GradNet's training loop: (1) the main network is trained with the G-branch frozen, on
+L = α·L_data + L_grad + β(epoch)·L_1st; (2) the G-branch is trained for one pass on its own first-order loss
+with the main network untouched; (3) validation on fixed crops of the held-out frames; (4) both learning
+rates decay ×0.95 every other epoch.
+
+Distributed: under ``torchrun`` (WORLD_SIZE > 1) every process joins a torch.distributed group (gloo on CPU,
+NCCL on GPUs), wraps both networks in DistributedDataParallel and reads its share through a
+DistributedSampler; rank 0 writes the run folder and decides when to stop, and the decision is shared.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import dataclasses
+import json
+import os
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+import torch.distributed as dist
+from torch import nn
+from torch.nn.parallel import DistributedDataParallel
+from torch.utils.data import DataLoader, DistributedSampler, Sampler
+
+from model.network import DualBranchNet, GBranch, NetworkConfig, describe
+from model.preprocess import PREPROCESS_VERSION, describe_preprocessing, network_inputs
+from training.dataset import (
+    TRAINABLE_LAYERS,
+    DatasetError,
+    PatchDataset,
+    build_cache,
+    load_manifest,
+    split_frames,
+    usable,
+)
+from training.losses import BetaSchedule, gbranch_loss, loss_terms
+
+#: Paper §4.5: 151 epochs. Used when neither --epochs nor --minutes is given.
+DEFAULT_EPOCHS = 151
+CHECKPOINT = "last.pt"
+
+
+class TrainingError(RuntimeError):
+    """Training cannot continue; the message says why and what to do."""
+
+
+@dataclass
+class TrainConfig:
+    """Everything that defines a run; saved as RUN_DIR/config.json and embedded in the exported model."""
+
+    data: str
+    layer: str
+    output: str
+    network: NetworkConfig = field(default_factory=NetworkConfig)
+    patch: int = 128                  # CPU default; the paper used 256 on a GPU
+    batch: int = 16                   # CPU default; the paper used 32
+    patches_per_frame: int = 8        # random crops per training frame per epoch (defines an epoch)
+    val_patches_per_frame: int = 2    # fixed crops per validation frame
+    val_fraction: float = 0.1         # 90/10 split by frame
+    epochs: int | None = None
+    minutes: float | None = None
+    seed: int = 0
+    lr: float = 1e-4
+    adam_betas: tuple[float, float] = (0.5, 0.999)
+    lr_decay: float = 0.95
+    lr_decay_every: int = 2
+    alpha: float = 1.0
+    beta: BetaSchedule = field(default_factory=BetaSchedule)
+    checkpoint_minutes: float = 5.0
+    log_every: int = 10
+    keep_epoch_checkpoints: int = 3
+
+    # fields a resumed run may change: everything else must match the run folder's config.json
+    RESUMABLE_CHANGES = ("epochs", "minutes", "output", "data", "checkpoint_minutes", "log_every",
+                         "keep_epoch_checkpoints")
+
+    def __post_init__(self) -> None:
+        if self.layer not in TRAINABLE_LAYERS:
+            raise ValueError(f"layer must be one of {TRAINABLE_LAYERS}, got {self.layer!r}")
+        for name in ("patch", "batch", "patches_per_frame", "val_patches_per_frame", "lr_decay_every"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.patch % self.network.alignment:
+            raise ValueError(f"patch {self.patch} must be a multiple of the network alignment "
+                             f"{self.network.alignment}")
+        if self.epochs is not None and self.epochs < 1:
+            raise ValueError(f"epochs must be >= 1, got {self.epochs}")
+        if self.minutes is not None and not self.minutes > 0:
+            raise ValueError(f"minutes must be > 0, got {self.minutes}")
+
+    @property
+    def max_epochs(self) -> int:
+        if self.epochs is not None:
+            return self.epochs
+        return sys.maxsize if self.minutes is not None else DEFAULT_EPOCHS
+
+    def to_dict(self) -> dict[str, Any]:
+        d = dataclasses.asdict(self)
+        d["adam_betas"] = list(self.adam_betas)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> TrainConfig:
+        d = dict(d)
+        d["network"] = NetworkConfig.from_dict(d.get("network", {}))
+        d["beta"] = BetaSchedule(**d.get("beta", {}))
+        d["adam_betas"] = tuple(d.get("adam_betas", (0.5, 0.999)))
+        known = {f.name for f in dataclasses.fields(cls)}
+        return cls(**{k: v for k, v in d.items() if k in known})
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Distribution (torch.distributed; nothing home-made)
+# ---------------------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class DistContext:
+    rank: int = 0
+    world: int = 1
+    local_rank: int = 0
+    device: torch.device = field(default_factory=lambda: torch.device("cpu"))
+
+    @property
+    def main(self) -> bool:
+        return self.rank == 0
+
+    @property
+    def distributed(self) -> bool:
+        return self.world > 1
+
+    def barrier(self) -> None:
+        if self.distributed:
+            dist.barrier()
+
+    def sum(self, values: list[float]) -> list[float]:
+        """Element-wise sum over ranks (identity when not distributed)."""
+        if not self.distributed:
+            return values
+        t = torch.tensor(values, dtype=torch.float64, device=self.device)
+        dist.all_reduce(t, op=dist.ReduceOp.SUM)
+        return t.tolist()
+
+    def agree(self, flags: list[bool]) -> list[bool]:
+        """Rank 0's decisions, shared with every rank (so all stop or checkpoint at the same batch)."""
+        if not self.distributed:
+            return flags
+        t = torch.tensor([float(f) for f in flags], device=self.device)
+        dist.broadcast(t, src=0)
+        return [bool(v) for v in t.tolist()]
+
+
+def setup_distributed() -> DistContext:
+    """Join the torchrun process group when WORLD_SIZE > 1; pick the device."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    rank = int(os.environ.get("RANK", "0"))
+    local_rank = int(os.environ.get("LOCAL_RANK", "0"))
+    cuda = torch.cuda.is_available()
+    device = torch.device(f"cuda:{local_rank}") if cuda else torch.device("cpu")
+    if cuda:
+        torch.cuda.set_device(device)
+    if world > 1 and not dist.is_initialized():
+        dist.init_process_group(backend="nccl" if cuda else "gloo")
+    return DistContext(rank, world, local_rank, device)
+
+
+def teardown_distributed(ctx: DistContext) -> None:
+    if ctx.distributed and dist.is_initialized():
+        dist.destroy_process_group()
+
+
+class SkipSampler(Sampler[int]):
+    """The wrapped sampler's order minus its first ``skip`` items: resuming in the middle of an epoch."""
+
+    def __init__(self, inner: Sampler[int], skip: int) -> None:
+        self.inner = inner
+        self.skip = skip
+
+    def __iter__(self) -> Iterator[int]:
+        for i, index in enumerate(self.inner):
+            if i >= self.skip:
+                yield index
+
+    def __len__(self) -> int:
+        return max(0, len(self.inner) - self.skip)  # type: ignore[arg-type]
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Run folder: config, checkpoints, log, curves
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def code_version() -> str:
+    """gradsep version plus the git commit of this checkout when there is one (for metadata)."""
+    from gradsep import __version__
+
+    try:
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                                cwd=Path(__file__).resolve().parent, timeout=5, check=False).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        commit = ""
+    return f"{__version__}+{commit}" if commit else __version__
+
+
+def _atomic_torch_save(obj: Any, path: Path) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def _atomic_write_text(path: Path, text: str) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def prepare_run_dir(cfg: TrainConfig, manifest_sha256: str) -> dict[str, Any]:
+    """Create RUN_DIR with config.json, or check that an existing one describes the same run."""
+    run = Path(cfg.output)
+    (run / "checkpoints").mkdir(parents=True, exist_ok=True)
+    path = run / "config.json"
+    fresh = {"train": cfg.to_dict(), "preprocessing": describe_preprocessing(),
+             "dataset_manifest_sha256": manifest_sha256, "code_version": code_version(),
+             "torch": torch.__version__}
+    if path.is_file():
+        old = json.loads(path.read_text())
+        old_train = old.get("train", {})
+        new_train = fresh["train"]
+        changed = sorted(k for k in set(old_train) | set(new_train)
+                         if k not in TrainConfig.RESUMABLE_CHANGES and old_train.get(k) != new_train.get(k))
+        if old.get("dataset_manifest_sha256") != manifest_sha256:
+            changed.append("dataset (manifest.json differs)")
+        if old.get("preprocessing", {}).get("version") != PREPROCESS_VERSION:
+            changed.append("preprocessing version")
+        if changed:
+            raise TrainingError(f"{run} holds a different run ({', '.join(changed)} changed); "
+                                "use a new output folder or the original settings")
+        fresh["history_of_budgets"] = [*old.get("history_of_budgets", []),
+                                       {"epochs": cfg.epochs, "minutes": cfg.minutes}]
+    else:
+        fresh["history_of_budgets"] = [{"epochs": cfg.epochs, "minutes": cfg.minutes}]
+    _atomic_write_text(path, json.dumps(fresh, indent=2))
+    return fresh
+
+
+def append_log(run: Path, record: dict[str, Any]) -> None:
+    with open(run / "log.jsonl", "a", encoding="utf-8") as fh:
+        fh.write(json.dumps(record) + "\n")
+
+
+def read_log(run: Path) -> list[dict[str, Any]]:
+    path = run / "log.jsonl"
+    if not path.is_file():
+        return []
+    out = []
+    for line in path.read_text().splitlines():
+        with contextlib.suppress(json.JSONDecodeError):  # a kill may cut the last line
+            out.append(json.loads(line))
+    return out
+
+
+def plot_curves(run: Path) -> Path | None:
+    """RUN_DIR/losses.png: each loss term against the step, per-step training values and per-epoch means."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    records = read_log(run)
+    steps = {r["step"]: r for r in records if r.get("kind") == "step"}  # last write wins after a resume
+    epochs = {r["epoch"]: r for r in records if r.get("kind") == "epoch"}
+    if not steps and not epochs:
+        return None
+    fig, axes = plt.subplots(2, 2, figsize=(10, 7))
+    for ax, key, title in zip(axes.flat, ("data", "grad", "first", "gbranch"),
+                              ("L_data", "L_grad", "L_1st", "G-branch L_1st"), strict=True):
+        if key != "gbranch" and steps:
+            xs = sorted(steps)
+            ax.plot(xs, [steps[s][key] for s in xs], color="0.75", lw=0.8, label="train (step)")
+        ep = [epochs[e] for e in sorted(epochs)]
+        if key == "gbranch":
+            ax.plot([r["step"] for r in ep], [r["gbranch"] for r in ep], "o-", label="train (epoch)")
+        else:
+            ax.plot([r["step"] for r in ep], [r["train"][key] for r in ep], "o-", label="train (epoch)")
+            val = [(r["step"], r["val"][key]) for r in ep if r.get("val")]
+            if val:
+                ax.plot(*zip(*val, strict=True), "s--", label="validation")
+        ax.set_title(title)
+        ax.set_xlabel("step")
+        ax.set_yscale("log")
+        ax.legend(fontsize=8)
+    fig.suptitle(f"{run.name}: losses")
+    fig.tight_layout()
+    out = run / "losses.png"
+    tmp = run / "losses.tmp.png"
+    fig.savefig(tmp, dpi=90)
+    plt.close(fig)
+    os.replace(tmp, out)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# The trainer
+# ---------------------------------------------------------------------------------------------------------------
+
+TERMS = ("data", "grad", "first", "total")
+
+
+@dataclass
+class Progress:
+    """Where training stands; saved in every checkpoint."""
+
+    epoch: int = 0
+    phase: str = "main"        # "main" (network) or "gbranch"
+    batch: int = 0             # batches of the current phase done
+    step: int = 0              # main-network optimiser steps, all epochs
+    elapsed: float = 0.0       # training seconds, all sessions
+    sums: dict[str, float] = field(default_factory=dict)   # running sums of the current epoch
+    skipped_frames: list[str] = field(default_factory=list)
+
+
+def _unwrap(module: nn.Module) -> nn.Module:
+    return module.module if isinstance(module, DistributedDataParallel) else module
+
+
+class Trainer:
+    def __init__(self, cfg: TrainConfig, ctx: DistContext, quiet: bool = False) -> None:
+        self.cfg = cfg
+        self.ctx = ctx
+        self.quiet = quiet or not ctx.main
+        self.run = Path(cfg.output)
+        self.progress = Progress()
+        torch.manual_seed(cfg.seed)
+        self.model: nn.Module = DualBranchNet(cfg.network).to(ctx.device)
+        self.gbranch: nn.Module = GBranch(cfg.network).to(ctx.device)
+        self.opt = torch.optim.Adam(self.model.parameters(), lr=cfg.lr, betas=cfg.adam_betas)
+        self.opt_g = torch.optim.Adam(self.gbranch.parameters(), lr=cfg.lr, betas=cfg.adam_betas)
+        self.sched = torch.optim.lr_scheduler.StepLR(self.opt, cfg.lr_decay_every, cfg.lr_decay)
+        self.sched_g = torch.optim.lr_scheduler.StepLR(self.opt_g, cfg.lr_decay_every, cfg.lr_decay)
+        self.session_start = time.monotonic()
+        self.elapsed_at_start = 0.0
+        self.last_save = time.monotonic()
+
+    # -- setup -------------------------------------------------------------------------------------------------
+
+    def prepare_data(self) -> None:
+        cfg, ctx = self.cfg, self.ctx
+        manifest = load_manifest(cfg.data)
+        self.manifest_sha256 = manifest.sha256
+        if ctx.main:
+            prepare_run_dir(cfg, manifest.sha256)
+            self._say(f"dataset {cfg.data}: {len(manifest.frames)} frames; building the {cfg.layer} cache")
+            _, warnings = build_cache(manifest, cfg.layer, self.run / "cache")
+            for w in warnings:
+                self._say(f"warning: {w}")
+        ctx.barrier()
+        files, warnings = build_cache(manifest, cfg.layer, self.run / "cache")  # all valid now: no decoding
+        train_idx, val_idx = split_frames(len(files), cfg.seed, cfg.val_fraction)
+        train_files, notes = usable(files, train_idx, cfg.patch)
+        val_files, val_notes = usable(files, val_idx, cfg.patch)
+        if not train_files:
+            raise DatasetError(f"no usable training frames for layer {cfg.layer!r} at patch {cfg.patch}: "
+                               + "; ".join([*warnings, *notes, *val_notes][:5]))
+        self.train_set = PatchDataset(train_files, cfg.patch, cfg.patches_per_frame, cfg.seed)
+        self.val_set = (PatchDataset(val_files, cfg.patch, cfg.val_patches_per_frame, cfg.seed, fixed=True)
+                        if val_files else None)
+        self.train_sampler = DistributedSampler(self.train_set, num_replicas=ctx.world, rank=ctx.rank,
+                                                shuffle=True, seed=cfg.seed, drop_last=True)
+        self.steps_per_epoch = len(self.train_sampler) // cfg.batch
+        if self.steps_per_epoch < 1:
+            raise DatasetError(f"an epoch has {len(self.train_set)} patches, fewer than one batch of "
+                               f"{cfg.batch} per process; raise patches_per_frame or lower --batch")
+        self._say(f"{len(train_files)} training / {len(val_files)} validation frames, "
+                  f"{self.steps_per_epoch} steps per epoch (patch {cfg.patch}, batch {cfg.batch}, "
+                  f"{ctx.world} process(es))")
+        self._say(describe(cfg.network))
+
+    def wrap_distributed(self) -> None:
+        if self.ctx.distributed:
+            ids = [self.ctx.device.index] if self.ctx.device.type == "cuda" else None
+            self.model = DistributedDataParallel(self.model, device_ids=ids)
+            self.gbranch = DistributedDataParallel(self.gbranch, device_ids=ids)
+
+    # -- checkpoints -------------------------------------------------------------------------------------------
+
+    def state(self) -> dict[str, Any]:
+        return {
+            "format": 1,
+            "config": self.cfg.to_dict(),
+            "preprocess_version": PREPROCESS_VERSION,
+            "dataset_manifest_sha256": self.manifest_sha256,
+            "model": _unwrap(self.model).state_dict(),
+            "gbranch": _unwrap(self.gbranch).state_dict(),
+            "opt": self.opt.state_dict(), "opt_g": self.opt_g.state_dict(),
+            "sched": self.sched.state_dict(), "sched_g": self.sched_g.state_dict(),
+            "progress": dataclasses.asdict(self.progress) | {"elapsed": self.elapsed()},
+        }
+
+    def save(self) -> None:
+        if self.ctx.main:
+            _atomic_torch_save(self.state(), self.run / "checkpoints" / CHECKPOINT)
+        self.last_save = time.monotonic()
+
+    def try_resume(self) -> bool:
+        path = self.run / "checkpoints" / CHECKPOINT
+        if not path.is_file():
+            return False
+        state = torch.load(path, map_location=self.ctx.device, weights_only=True)
+        _unwrap(self.model).load_state_dict(state["model"])
+        _unwrap(self.gbranch).load_state_dict(state["gbranch"])
+        self.opt.load_state_dict(state["opt"])
+        self.opt_g.load_state_dict(state["opt_g"])
+        self.sched.load_state_dict(state["sched"])
+        self.sched_g.load_state_dict(state["sched_g"])
+        self.progress = Progress(**state["progress"])
+        self.elapsed_at_start = self.progress.elapsed
+        p = self.progress
+        self._say(f"resuming {self.run}: epoch {p.epoch + 1}, {p.phase} phase, batch {p.batch}, step {p.step}, "
+                  f"{p.elapsed / 60:.1f} min spent")
+        return True
+
+    def save_epoch_snapshot(self) -> None:
+        if not self.ctx.main:
+            return
+        folder = self.run / "checkpoints"
+        _atomic_torch_save({"config": self.cfg.to_dict(), "model": _unwrap(self.model).state_dict(),
+                            "epoch": self.progress.epoch, "step": self.progress.step},
+                           folder / f"epoch_{self.progress.epoch + 1:04d}.pt")
+        snapshots = sorted(folder.glob("epoch_*.pt"))
+        for old in snapshots[: max(0, len(snapshots) - self.cfg.keep_epoch_checkpoints)]:
+            old.unlink(missing_ok=True)
+
+    # -- time ---------------------------------------------------------------------------------------------------
+
+    def elapsed(self) -> float:
+        return self.elapsed_at_start + (time.monotonic() - self.session_start)
+
+    def _decide(self) -> tuple[bool, bool]:
+        """(stop, checkpoint) before the next batch, decided by rank 0 and shared."""
+        stop = self.cfg.minutes is not None and self.elapsed() >= self.cfg.minutes * 60
+        save = time.monotonic() - self.last_save >= self.cfg.checkpoint_minutes * 60
+        stop, save = self.ctx.agree([stop, save])
+        return stop, save
+
+    def _say(self, text: str) -> None:
+        if not self.quiet:
+            print(text, file=sys.stderr, flush=True)
+
+    # -- phases -------------------------------------------------------------------------------------------------
+
+    def _loader(self, dataset: PatchDataset, sampler: Sampler[int]) -> DataLoader:
+        return DataLoader(dataset, batch_size=self.cfg.batch, sampler=sampler, drop_last=True, num_workers=0)
+
+    def _bar(self, total: int, initial: int, desc: str) -> Any:
+        from tqdm import tqdm
+
+        return tqdm(total=total, initial=initial, desc=desc, disable=self.quiet, leave=False,
+                    dynamic_ncols=True, file=sys.stderr)
+
+    def _batches(self, phase: str) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
+        """The current epoch's batches of one phase, skipping those a previous session already did."""
+        self.train_set.set_epoch(self.progress.epoch)
+        self.train_sampler.set_epoch(self.progress.epoch)
+        skip = self.progress.batch * self.cfg.batch
+        for planes, feats in self._loader(self.train_set, SkipSampler(self.train_sampler, skip)):
+            yield planes.to(self.ctx.device), feats.to(self.ctx.device)
+
+    def main_phase(self) -> bool:
+        """Train the network for the rest of this epoch; False when the budget ran out first."""
+        cfg, p = self.cfg, self.progress
+        beta = cfg.beta(p.epoch)
+        self.model.train()
+        self.gbranch.eval()
+        bar = self._bar(self.steps_per_epoch, p.batch, f"epoch {p.epoch + 1} network")
+        try:
+            for planes, feats in self._batches("main"):
+                stop, save = self._decide()
+                if stop:
+                    return False
+                if save:
+                    self.save()
+                data, grad = network_inputs(planes, feats)
+                pred = self.model(data, grad)
+                with torch.no_grad():
+                    coeffs = self.gbranch(data, grad)
+                terms = loss_terms(pred, coeffs, planes, feats)
+                loss = terms.total(cfg.alpha, beta)
+                if not torch.isfinite(loss):
+                    raise TrainingError(f"the loss became non-finite at epoch {p.epoch + 1}, step {p.step}; "
+                                        f"terms {terms.as_floats()}")
+                self.opt.zero_grad(set_to_none=True)
+                loss.backward()
+                self.opt.step()
+                values = terms.as_floats() | {"total": float(loss.detach())}
+                for k in TERMS:
+                    p.sums[k] = p.sums.get(k, 0.0) + values[k]
+                p.sums["n"] = p.sums.get("n", 0.0) + 1
+                p.batch += 1
+                p.step += 1
+                if self.ctx.main and p.step % cfg.log_every == 0:
+                    append_log(self.run, {"kind": "step", "epoch": p.epoch + 1, "step": p.step, **values,
+                                          "beta": beta, "lr": self.opt.param_groups[0]["lr"],
+                                          "elapsed": round(self.elapsed(), 2)})
+                bar.update(1)
+                bar.set_postfix(data=f"{values['data']:.4f}", grad=f"{values['grad']:.4f}",
+                                first=f"{values['first']:.4f}", beta=f"{beta:.2f}")
+        finally:
+            bar.close()
+        p.phase, p.batch = "gbranch", 0
+        return True
+
+    def gbranch_phase(self) -> bool:
+        """One pass of the G-branch on its own loss, the main network frozen (GradNet's alternation)."""
+        p = self.progress
+        self.gbranch.train()
+        bar = self._bar(self.steps_per_epoch, p.batch, f"epoch {p.epoch + 1} G-branch")
+        try:
+            for planes, feats in self._batches("gbranch"):
+                stop, save = self._decide()
+                if stop:
+                    return False
+                if save:
+                    self.save()
+                data, grad = network_inputs(planes, feats)
+                loss = gbranch_loss(self.gbranch(data, grad), planes, feats)
+                self.opt_g.zero_grad(set_to_none=True)
+                loss.backward()
+                self.opt_g.step()
+                p.sums["gbranch"] = p.sums.get("gbranch", 0.0) + float(loss.detach())
+                p.sums["gn"] = p.sums.get("gn", 0.0) + 1
+                p.batch += 1
+                bar.update(1)
+                bar.set_postfix(first=f"{float(loss.detach()):.4f}")
+        finally:
+            bar.close()
+        p.phase, p.batch = "done", 0
+        return True
+
+    @torch.no_grad()
+    def validate(self, beta: float) -> dict[str, float] | None:
+        if self.val_set is None:
+            return None
+        self.model.eval()
+        self.gbranch.eval()
+        sampler = DistributedSampler(self.val_set, num_replicas=self.ctx.world, rank=self.ctx.rank,
+                                     shuffle=False)
+        sums = [0.0] * (len(TERMS) + 1)
+        loader = DataLoader(self.val_set, batch_size=self.cfg.batch, sampler=sampler, num_workers=0)
+        for planes, feats in loader:
+            planes, feats = planes.to(self.ctx.device), feats.to(self.ctx.device)
+            data, grad = network_inputs(planes, feats)
+            terms = loss_terms(_unwrap(self.model)(data, grad), _unwrap(self.gbranch)(data, grad), planes, feats)
+            values = terms.as_floats() | {"total": float(terms.total(self.cfg.alpha, beta))}
+            n = planes.shape[0]
+            for i, k in enumerate(TERMS):
+                sums[i] += values[k] * n
+            sums[-1] += n
+        sums = self.ctx.sum(sums)
+        return {k: sums[i] / max(sums[-1], 1.0) for i, k in enumerate(TERMS)}
+
+    def end_epoch(self, epoch_started: float) -> None:
+        cfg, p = self.cfg, self.progress
+        beta = cfg.beta(p.epoch)
+        sums = self.ctx.sum([p.sums.get(k, 0.0) for k in (*TERMS, "n", "gbranch", "gn")])
+        n, gn = max(sums[4], 1.0), max(sums[6], 1.0)
+        val = self.validate(beta)
+        seconds = time.monotonic() - epoch_started
+        record = {"kind": "epoch", "epoch": p.epoch + 1, "step": p.step,
+                  "train": {k: sums[i] / n for i, k in enumerate(TERMS)}, "val": val,
+                  "gbranch": sums[5] / gn, "beta": beta, "lr": self.opt.param_groups[0]["lr"],
+                  "elapsed": round(self.elapsed(), 2), "session_epoch_seconds": round(seconds, 2)}
+        self.sched.step()
+        self.sched_g.step()
+        if self.ctx.main:
+            append_log(self.run, record)
+            v = f", val total {val['total']:.4f}" if val else ""
+            self._say(f"epoch {p.epoch + 1}: train data {record['train']['data']:.4f} grad "
+                      f"{record['train']['grad']:.4f} 1st {record['train']['first']:.4f} (beta {beta:.2f}), "
+                      f"G {record['gbranch']:.4f}{v}; {p.step} steps, {self.elapsed() / 60:.1f} min")
+        self.save_epoch_snapshot()
+        p.epoch += 1
+        p.phase, p.batch, p.sums = "main", 0, {}
+        self.save()
+        if self.ctx.main:
+            plot_curves(self.run)
+
+    def fit(self) -> Progress:
+        """Train until the epoch count or the time budget is reached; returns the final progress."""
+        p = self.progress
+        session_steps = p.step
+        t0 = time.monotonic()
+        finished = False
+        while p.epoch < self.cfg.max_epochs:
+            epoch_started = time.monotonic()
+            if p.phase == "main" and not self.main_phase():
+                break
+            if p.phase == "gbranch" and not self.gbranch_phase():
+                break
+            self.end_epoch(epoch_started)
+        else:
+            finished = True
+        self.save()
+        p.elapsed = self.elapsed()
+        if self.ctx.main:
+            plot_curves(self.run)
+            rate = (p.step - session_steps) / max(time.monotonic() - t0, 1e-9)
+            where = (f"finished {p.epoch} epochs" if finished else
+                     f"time budget reached in epoch {p.epoch + 1} ({p.phase} phase)")
+            self._say(f"{where}: step {p.step}, {p.elapsed / 60:.1f} min in total; {rate:.2f} network steps/s "
+                      f"this session (G-branch passes and validation included); run folder {self.run}")
+        return p
+
+
+def train(cfg: TrainConfig, quiet: bool = False) -> Progress:
+    """Run (or resume) training described by ``cfg``; the library entry point behind `gradsep train`."""
+    ctx = setup_distributed()
+    try:
+        trainer = Trainer(cfg, ctx, quiet=quiet)
+        trainer.prepare_data()
+        trainer.try_resume()
+        trainer.wrap_distributed()
+        return trainer.fit()
+    finally:
+        teardown_distributed(ctx)
+
+
+def config_from_args(args: argparse.Namespace) -> TrainConfig:
+    network = NetworkConfig(use_attention=not args.no_attention)
+    extra: dict[str, Any] = {}
+    if args.patch is not None:
+        extra["patch"] = args.patch
+    if args.batch is not None:
+        extra["batch"] = args.batch
+    return TrainConfig(data=args.data, layer=args.layer, output=args.output, network=network,
+                       epochs=args.epochs, minutes=args.minutes, seed=args.seed, **extra)
+
+
+def train_command(args: argparse.Namespace) -> int:
+    """`gradsep train`: bad settings or data become a one-line CommandError."""
+    from gradsep.cli import CommandError
+
+    try:
+        cfg = config_from_args(args)
+        train(cfg)
+    except (ValueError, TrainingError) as exc:  # DatasetError is a ValueError
+        raise CommandError(str(exc)) from exc
+    return 0
+
+
+if __name__ == "__main__":  # `torchrun -m training.train ...` works as well as `torchrun -m gradsep train ...`
+    from gradsep.cli import main
+
+    sys.exit(main(["train", *sys.argv[1:]]))
