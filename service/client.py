@@ -42,6 +42,21 @@ RETRYABLE_TRANSPORT = (httpx.ConnectError, httpx.ConnectTimeout, httpx.RemotePro
 log = logging.getLogger("gradsep.client")
 
 
+class _StderrHandler(logging.StreamHandler):  # type: ignore[type-arg]
+    """Writes to whatever ``sys.stderr`` is at emit time (tests and embedders swap it)."""
+
+    @property  # type: ignore[override]
+    def stream(self) -> Any:
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, value: Any) -> None:
+        pass
+
+
+_STDERR_HANDLER = _StderrHandler()
+
+
 class Unavailable(Exception):
     """The service could not be reached or stayed overloaded through every retry (exit 75)."""
 
@@ -140,10 +155,10 @@ def _resolve(args: argparse.Namespace) -> tuple[str, str | None]:
 
 
 def _setup_logging() -> None:
-    if not log.handlers:
-        handler = logging.StreamHandler(sys.stderr)
-        handler.setFormatter(logging.Formatter("gradsep client: %(message)s"))
-        log.addHandler(handler)
+    """Attach our one stderr handler (once) so farm logs get attempt/result lines with the request id."""
+    if _STDERR_HANDLER not in log.handlers:
+        _STDERR_HANDLER.setFormatter(logging.Formatter("gradsep client: %(message)s"))
+        log.addHandler(_STDERR_HANDLER)
         log.setLevel(logging.INFO)
         log.propagate = False
 
