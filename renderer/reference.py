@@ -26,7 +26,7 @@ import io
 import math
 import os
 import time
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -290,22 +290,10 @@ def load_reference(source: str | os.PathLike[str] | bytes) -> Reference:
 # Command
 # ----------------------------------------------------------------------------------------------------------
 
-def parse_defines(items: Iterable[str]) -> dict[str, str]:
-    """``-D NAME=VALUE`` options -> dict; a clear error for a malformed one."""
-    from gradsep.cli import CommandError
-
-    out: dict[str, str] = {}
-    for item in items:
-        name, sep, value = item.partition("=")
-        if not sep or not name.strip():
-            raise CommandError(f"-D expects NAME=VALUE, got {item!r}")
-        out[name.strip()] = value
-    return out
-
-
 def reference_command(args: argparse.Namespace) -> int:
     """Handler of `gradsep reference`: validate, render, write atomically, print a one-line summary."""
     from gradsep.cli import CommandError
+    from renderer.scene import parse_defines
 
     for name in ("spp", "tile_spp", "width", "height"):
         value = getattr(args, name, None)

@@ -1,0 +1,476 @@
+"""`gradsep dataset`: procedural G-PT training frames plus a manifest; shardable across a farm, resumable.
+
+Layout of a dataset folder ``DIR`` (docs/dataset.md has the full description)::
+
+    DIR/frames/proc_001000.exr           one frame per seed (the frame contract, written atomically)
+    DIR/manifest.d/shard-0-of-4.json     what shard 0 of 4 has finished: written only by that shard
+    DIR/manifest.json                    all parts merged: what training reads
+
+Why it is built this way:
+
+* **Concurrent shards never clobber each other.** A shard writes only its own part file (atomically: temp file
+  plus rename) and holds an exclusive ``flock`` on ``shard-i-of-n.lock`` while it runs, so a second process
+  started on the same shard is refused. ``manifest.json`` is rebuilt from every part under a folder-wide merge
+  lock, after the part is written, so the last merge always sees every finished frame.
+* **Resume never redoes a finished frame and never trusts an unfinished one.** A frame counts as finished only
+  when its EXR was renamed into place *and* a part records it (with its size and SHA-256); a run skips exactly
+  those. An EXR without a record (killed between the two steps) is rendered again.
+* **The manifest hash names the data.** :func:`manifest_hash` covers the render settings and every frame's file
+  name, seed and SHA-256 (so any changed byte changes it), not timings, shard layout or completion times, so
+  re-merging or moving a dataset keeps it; the exporter records it next to a trained model. Re-rendering gives a
+  new hash: frame headers carry render times, and Mitsuba orders a scene's emitters differently from process to
+  process, so renders with one seed are equal in distribution, not bit for bit.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import datetime as _dt
+import fcntl
+import hashlib
+import json
+import os
+import re
+import tempfile
+import time
+from collections.abc import Iterator
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+from gradsep.cli import CommandError
+
+MANIFEST_VERSION = 1
+MANIFEST_NAME = "manifest.json"
+PARTS_DIR = "manifest.d"
+FRAMES_DIR = "frames"
+MERGE_LOCK = ".manifest.lock"
+MERGE_INTERVAL_S = 10.0  # re-merge manifest.json at most this often while rendering (and always at the end)
+MAX_SIDE = 8192  # the frame contract's reading budget is 8192 x 8192 pixels
+
+
+class DatasetError(CommandError):
+    """A bad dataset request or folder; printed as one line by the CLI (exit status 2)."""
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Records and the manifest
+# ----------------------------------------------------------------------------------------------------------
+
+@dataclass
+class FrameRecord:
+    """One finished frame, as stored in a manifest part and in manifest.json."""
+
+    file: str                  # relative to the dataset folder, e.g. "frames/proc_001000.exr"
+    seed: int                  # procedural scene seed (scene "procedural:<seed>")
+    spp: int
+    render_seconds: float
+    layers: list[str]          # illumination layers present, e.g. ["direct", "indirect"]
+    shard: str                 # "i/n" of the job that rendered it
+    sampler_seed: int = 0      # the G-PT sampler seed (the scene seed modulo 2^32)
+    bytes: int = 0             # file size, checked on resume
+    sha256: str = ""           # of the EXR file: part of the manifest hash
+    finished_at: str = ""      # UTC, ISO 8601
+
+    @classmethod
+    def from_json(cls, item: dict[str, Any], where: str) -> FrameRecord:
+        try:
+            return cls(file=str(item["file"]), seed=int(item["seed"]), spp=int(item["spp"]),
+                       render_seconds=float(item["render_seconds"]), layers=[str(x) for x in item["layers"]],
+                       shard=str(item.get("shard", "")), sampler_seed=int(item.get("sampler_seed", 0)),
+                       bytes=int(item.get("bytes", 0)), sha256=str(item.get("sha256", "")),
+                       finished_at=str(item.get("finished_at", "")))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise DatasetError(f"{where}: malformed frame record {item!r} ({exc})") from None
+
+
+@dataclass
+class Manifest:
+    """A dataset's manifest: render settings and the finished frames, sorted by seed."""
+
+    spp: int
+    size: tuple[int, int]                      # (width, height)
+    frames: list[FrameRecord]
+    count: int = 0                             # frames requested (the largest count any run asked for)
+    first_seed: int = 0
+    max_depth: int | None = None               # None: the procedural generator's default
+    generator_version: int = 0
+    version: int = MANIFEST_VERSION
+    root: Path | None = field(default=None, compare=False)  # the dataset folder (when loaded from disk)
+
+    def to_json(self) -> dict[str, Any]:
+        done = {f.seed for f in self.frames}
+        missing = [s for s in range(self.first_seed, self.first_seed + self.count) if s not in done]
+        return {"version": self.version, "spp": self.spp, "size": list(self.size), "count": self.count,
+                "first_seed": self.first_seed, "max_depth": self.max_depth,
+                "generator_version": self.generator_version, "complete": not missing,
+                "missing": len(missing), "hash": manifest_hash(self),
+                "frames": [asdict(f) for f in self.frames]}
+
+    def paths(self) -> list[Path]:
+        """Absolute paths of the frames (needs ``root``: a manifest loaded with :func:`load_manifest`)."""
+        if self.root is None:
+            raise DatasetError("this manifest was not loaded from a folder; its frame paths are unknown")
+        return [self.root / f.file for f in self.frames]
+
+    @property
+    def hash(self) -> str:
+        return manifest_hash(self)
+
+
+def manifest_hash(manifest: Manifest | str | os.PathLike[str]) -> str:
+    """SHA-256 of what defines the data: settings plus each frame's file, seed, spp, layers and file SHA-256.
+
+    Timings, shard layout and completion times are left out: re-rendering the same frames with another farm
+    layout gives the same hash, while any changed pixel changes it.
+    """
+    m = manifest if isinstance(manifest, Manifest) else load_manifest(manifest)
+    content = {"version": m.version, "spp": m.spp, "size": list(m.size), "max_depth": m.max_depth,
+               "generator_version": m.generator_version,
+               "frames": [[f.file, f.seed, f.spp, sorted(f.layers), f.sha256]
+                          for f in sorted(m.frames, key=lambda f: f.seed)]}
+    text = json.dumps(content, sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def load_manifest(folder: str | os.PathLike[str], *, check_files: bool = True) -> Manifest:
+    """The dataset in ``folder``: manifest.json, or the merge of manifest.d/ when manifest.json is absent.
+
+    ``check_files``: every listed frame must exist with its recorded size (a clear error names the first that
+    does not), so training fails before an epoch rather than in the middle of one.
+    """
+    root = Path(folder)
+    path = root / MANIFEST_NAME
+    if path.is_file():
+        data = _read_json(path)
+        manifest = _manifest_from_json(data, str(path))
+    elif (root / PARTS_DIR).is_dir():
+        manifest = _merge_parts(root)
+    else:
+        raise DatasetError(f"{root} is not a dataset folder (no {MANIFEST_NAME} and no {PARTS_DIR}/)")
+    manifest.root = root.resolve()
+    if check_files:
+        for rec in manifest.frames:
+            frame = root / rec.file
+            if not frame.is_file():
+                raise DatasetError(f"{root}: frame {rec.file} listed in the manifest is missing")
+            if rec.bytes and frame.stat().st_size != rec.bytes:
+                raise DatasetError(f"{root}: frame {rec.file} has {frame.stat().st_size} bytes, the manifest "
+                                   f"recorded {rec.bytes} (truncated or replaced)")
+    return manifest
+
+
+def _manifest_from_json(data: Any, where: str) -> Manifest:
+    if not isinstance(data, dict):
+        raise DatasetError(f"{where}: expected a JSON object")
+    version = data.get("version")
+    if version != MANIFEST_VERSION:
+        raise DatasetError(f"{where}: manifest version {version!r} is not supported (expected {MANIFEST_VERSION})")
+    try:
+        size = data["size"]
+        if not (isinstance(size, list) and len(size) == 2):
+            raise ValueError("size must be [width, height]")
+        frames = [FrameRecord.from_json(item, where) for item in data["frames"]]
+        return Manifest(spp=int(data["spp"]), size=(int(size[0]), int(size[1])),
+                        frames=sorted(frames, key=lambda f: f.seed), count=int(data.get("count", len(frames))),
+                        first_seed=int(data.get("first_seed", min((f.seed for f in frames), default=0))),
+                        max_depth=None if data.get("max_depth") is None else int(data["max_depth"]),
+                        generator_version=int(data.get("generator_version", 0)))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise DatasetError(f"{where}: malformed manifest ({exc})") from None
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Parts, locks and merging
+# ----------------------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Job:
+    """The settings of one `gradsep dataset` run (what must agree across the parts of a folder)."""
+
+    count: int
+    spp: int
+    width: int
+    height: int
+    first_seed: int
+    max_depth: int | None
+    shard: int
+    shards: int
+    generator_version: int
+
+    @property
+    def shard_name(self) -> str:
+        return f"{self.shard}/{self.shards}"
+
+    def params(self) -> dict[str, Any]:
+        return {"spp": self.spp, "size": [self.width, self.height], "first_seed": self.first_seed,
+                "max_depth": self.max_depth, "generator_version": self.generator_version}
+
+    def seeds(self) -> list[int]:
+        """This shard's frames: i, i+n, i+2n, ... of the whole dataset, as scene seeds."""
+        return [self.first_seed + i for i in range(self.shard, self.count, self.shards)]
+
+
+def part_path(root: Path, shard: int, shards: int) -> Path:
+    return root / PARTS_DIR / f"shard-{shard}-of-{shards}.json"
+
+
+def _read_parts(root: Path) -> list[tuple[Path, dict[str, Any]]]:
+    parts_dir = root / PARTS_DIR
+    if not parts_dir.is_dir():
+        return []
+    out = []
+    for path in sorted(parts_dir.glob("shard-*-of-*.json")):
+        data = _read_json(path)
+        if not isinstance(data, dict) or data.get("version") != MANIFEST_VERSION or "params" not in data:
+            raise DatasetError(f"{path}: not a manifest part of version {MANIFEST_VERSION}")
+        out.append((path, data))
+    return out
+
+
+def _merge_parts(root: Path) -> Manifest:
+    """All parts of ``root`` as one manifest; one record per seed (the latest finished, should two exist)."""
+    parts = _read_parts(root)
+    if not parts:
+        raise DatasetError(f"{root}: no manifest parts in {PARTS_DIR}/")
+    params = parts[0][1]["params"]
+    for path, data in parts[1:]:
+        if data["params"] != params:
+            raise DatasetError(f"{path}: settings {data['params']} differ from {parts[0][0].name}'s {params}")
+    by_seed: dict[int, FrameRecord] = {}
+    count = 0
+    for path, data in parts:
+        count = max(count, int(data.get("count", 0)))
+        for item in data.get("frames", []):
+            rec = FrameRecord.from_json(item, str(path))
+            old = by_seed.get(rec.seed)
+            if old is None or rec.finished_at > old.finished_at:
+                by_seed[rec.seed] = rec
+    return Manifest(spp=int(params["spp"]), size=(int(params["size"][0]), int(params["size"][1])),
+                    frames=[by_seed[s] for s in sorted(by_seed)], count=count,
+                    first_seed=int(params["first_seed"]), max_depth=params["max_depth"],
+                    generator_version=int(params["generator_version"]))
+
+
+def merge_manifest(root: str | os.PathLike[str]) -> Manifest:
+    """Rebuild ``manifest.json`` from every part present, under the folder's merge lock; returns it."""
+    root = Path(root)
+    with _flock(root / MERGE_LOCK, blocking=True):
+        manifest = _merge_parts(root)
+        _write_json_atomic(root / MANIFEST_NAME, manifest.to_json())
+    manifest.root = root.resolve()
+    return manifest
+
+
+@contextlib.contextmanager
+def _flock(path: Path, *, blocking: bool) -> Iterator[None]:
+    """An exclusive advisory lock on ``path`` (released by the kernel even if the process dies)."""
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | (0 if blocking else fcntl.LOCK_NB))
+        except BlockingIOError:
+            raise DatasetError(f"{path.name} is held by another running process "
+                               f"(this shard is already being rendered)") from None
+        yield
+    finally:
+        os.close(fd)
+
+
+def _read_json(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise DatasetError(f"cannot read {path}: {exc}") from None
+
+
+def _write_json_atomic(path: Path, data: Any) -> None:
+    """Temp file in the same folder, fsync, rename: readers see the old or the new file, never a partial one."""
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        os.fchmod(fd, _file_mode())  # mkstemp makes 0600; farm nodes and the trainer may be other users
+        with os.fdopen(fd, "w") as fh:
+            json.dump(data, fh, indent=1)
+            fh.write("\n")
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _file_mode() -> int:
+    """0666 minus the process umask: what ``open()`` would have created (umask read without changing it)."""
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("Umask:"):
+                    return 0o666 & ~int(line.split()[1], 8)
+    except OSError:
+        pass
+    return 0o644
+
+
+def _check_compatible(root: Path, job: Job) -> None:
+    """Refuse to mix settings in one folder: every part must have been rendered with this job's settings."""
+    for path, data in _read_parts(root):
+        if data["params"] != job.params():
+            theirs, ours = data["params"], job.params()
+            diff = ", ".join(f"{k} {theirs.get(k)!r} (this run: {ours[k]!r})" for k in ours if theirs.get(k) != ours[k])
+            raise DatasetError(f"{root} already holds frames rendered with other settings ({path.name}: {diff}); "
+                               "use a new folder or the same settings")
+
+
+def finished_frames(root: Path) -> dict[int, FrameRecord]:
+    """Frames recorded by any part whose EXR is in place with the recorded size: the ones a run may skip."""
+    done: dict[int, FrameRecord] = {}
+    for path, data in _read_parts(root):
+        for item in data.get("frames", []):
+            rec = FrameRecord.from_json(item, str(path))
+            frame = root / rec.file
+            if frame.is_file() and (not rec.bytes or frame.stat().st_size == rec.bytes):
+                done[rec.seed] = rec
+    return done
+
+
+# ----------------------------------------------------------------------------------------------------------
+# The job
+# ----------------------------------------------------------------------------------------------------------
+
+def frame_file(seed: int) -> str:
+    return f"{FRAMES_DIR}/proc_{seed:06d}.exr"
+
+
+def run_dataset(root: str | os.PathLike[str], job: Job, *, progress: bool | None = None) -> Manifest:
+    """Render this shard's unfinished frames into ``root``; returns the merged manifest afterwards."""
+    from model.frame import write_frame
+    from renderer.render import render_frame
+
+    root = Path(root)
+    (root / FRAMES_DIR).mkdir(parents=True, exist_ok=True)
+    (root / PARTS_DIR).mkdir(exist_ok=True)
+    with _flock(part_path(root, job.shard, job.shards).with_suffix(".lock"), blocking=False):
+        _check_compatible(root, job)
+        own_path = part_path(root, job.shard, job.shards)
+        own: list[dict[str, Any]] = []
+        if own_path.is_file():
+            own = list(_read_json(own_path).get("frames", []))
+        done = finished_frames(root)
+        todo = [s for s in job.seeds() if s not in done]
+        pending = set(todo)
+        own = [item for item in own if int(item["seed"]) not in pending]  # records whose file is gone or cut
+        _write_part(own_path, job, own)  # claims the settings in the folder even before the first frame
+        last_merge = 0.0
+        bar = _bar(len(todo), len(job.seeds()) - len(todo), job, progress)
+        try:
+            for seed in todo:
+                frame = render_frame(f"procedural:{seed}", spp=job.spp, seed=seed % 2**32, width=job.width,
+                                     height=job.height, max_depth=job.max_depth)
+                rel = frame_file(seed)
+                write_frame(root / rel, frame)  # atomic: temp file + rename
+                os.chmod(root / rel, _file_mode())
+                data = (root / rel).read_bytes()
+                own.append(asdict(FrameRecord(
+                    file=rel, seed=seed, spp=job.spp,
+                    render_seconds=float(frame.metadata.get("gradsep.render_seconds", "nan")),
+                    layers=list(frame.layers), shard=job.shard_name, sampler_seed=seed % 2**32, bytes=len(data),
+                    sha256=hashlib.sha256(data).hexdigest(),
+                    finished_at=_dt.datetime.now(_dt.UTC).isoformat(timespec="milliseconds"))))
+                _write_part(own_path, job, own)  # the frame is finished from here on
+                bar.update(1)
+                if time.monotonic() - last_merge > MERGE_INTERVAL_S:
+                    merge_manifest(root)
+                    last_merge = time.monotonic()
+        finally:
+            bar.close()
+            merge_manifest(root)
+    return load_manifest(root, check_files=False)
+
+
+def _write_part(path: Path, job: Job, frames: list[dict[str, Any]]) -> None:
+    _write_json_atomic(path, {"version": MANIFEST_VERSION, "shard": job.shard_name, "count": job.count,
+                              "params": job.params(), "frames": sorted(frames, key=lambda f: int(f["seed"]))})
+
+
+class _NoBar:
+    def update(self, n: int) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+def _bar(total: int, skipped: int, job: Job, progress: bool | None) -> Any:
+    """tqdm over this run's frames with ETA; frames finished by earlier runs are named in the label."""
+    if progress is False:
+        return _NoBar()
+    try:
+        from tqdm import tqdm
+    except ImportError:
+        return _NoBar()
+    label = f"dataset shard {job.shard_name}" + (f" ({skipped} done before)" if skipped else "")
+    return tqdm(total=total, unit="frame", desc=label, disable=None if progress is None else not progress,
+                dynamic_ncols=True)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Command
+# ----------------------------------------------------------------------------------------------------------
+
+def parse_size(text: str) -> tuple[int, int]:
+    """``"256x256"`` -> (256, 256); a clear error otherwise."""
+    m = re.fullmatch(r"\s*(\d+)\s*[xX×]\s*(\d+)\s*", text or "")
+    if not m:
+        raise DatasetError(f"--size must be WIDTHxHEIGHT (e.g. 256x256), got {text!r}")
+    w, h = int(m.group(1)), int(m.group(2))
+    if not (1 <= w <= MAX_SIDE and 1 <= h <= MAX_SIDE):
+        raise DatasetError(f"--size {w}x{h}: width and height must be between 1 and {MAX_SIDE}")
+    return w, h
+
+
+def parse_shard(text: str) -> tuple[int, int]:
+    """``"i/n"`` -> (i, n) with 0 <= i < n; a clear error otherwise."""
+    m = re.fullmatch(r"\s*(\d+)\s*/\s*(\d+)\s*", text or "")
+    if not m:
+        raise DatasetError(f"--shard must be i/n (e.g. 0/4 for the first of four shards), got {text!r}")
+    i, n = int(m.group(1)), int(m.group(2))
+    if n < 1 or i >= n:
+        raise DatasetError(f"--shard {i}/{n}: need n >= 1 and 0 <= i < n (shards are numbered from 0)")
+    return i, n
+
+
+def make_job(count: int, spp: int, size: str, shard: str, first_seed: int, max_depth: int | None) -> Job:
+    """Validate the command's options into a :class:`Job`."""
+    from renderer.procedural import GENERATOR_VERSION
+
+    if count < 1:
+        raise DatasetError(f"--count must be a positive integer, got {count}")
+    if spp < 1:
+        raise DatasetError(f"--spp must be a positive integer, got {spp}")
+    if first_seed < 0:
+        raise DatasetError(f"--first-seed must be non-negative, got {first_seed}")
+    if max_depth is not None and (max_depth == 0 or max_depth < -1):
+        raise DatasetError(f"--max-depth must be -1 (unbounded) or a positive integer, got {max_depth}")
+    w, h = parse_size(size)
+    i, n = parse_shard(shard)
+    return Job(count=count, spp=spp, width=w, height=h, first_seed=first_seed, max_depth=max_depth, shard=i,
+               shards=n, generator_version=GENERATOR_VERSION)
+
+
+def dataset_command(args: argparse.Namespace) -> int:
+    """Handler of `gradsep dataset`."""
+    job = make_job(args.count, args.spp, args.size, args.shard, args.first_seed, args.max_depth)
+    root = Path(args.output)
+    if root.exists() and not root.is_dir():
+        raise DatasetError(f"output {root} exists and is not a folder")
+    root.mkdir(parents=True, exist_ok=True)
+    before = len(finished_frames(root)) if (root / PARTS_DIR).is_dir() else 0
+    manifest = run_dataset(root, job, progress=None)
+    mine = set(job.seeds())
+    have = sum(1 for f in manifest.frames if f.seed in mine)
+    total = sum(1 for f in manifest.frames if job.first_seed <= f.seed < job.first_seed + job.count)
+    print(f"{root}: shard {job.shard_name} has {have}/{len(mine)} frames; dataset {total}/{job.count} "
+          f"({len(manifest.frames) - before:+d} this run); manifest {root / MANIFEST_NAME} hash {manifest.hash[:16]}")
+    return 0

@@ -1,0 +1,148 @@
+"""The procedural scene generator: deterministic per seed, varied, loadable and renderable by Mitsuba."""
+
+from __future__ import annotations
+
+from collections import Counter
+from typing import Any
+
+import numpy as np
+import pytest
+
+from renderer.procedural import GENERATOR_VERSION, describe, generate, procedural_scene, scene_summary
+
+DISTRIBUTION_SEEDS = range(300)  # plan generation only (no rendering): ~1 s
+
+
+def canonical(node: Any) -> Any:
+    """Plans and Mitsuba dicts as plain comparable values (numpy arrays, transforms, bitmaps -> lists)."""
+    if isinstance(node, dict):
+        return {k: canonical(v) for k, v in node.items()}
+    if isinstance(node, (list, tuple)):
+        return [canonical(v) for v in node]
+    if isinstance(node, np.ndarray):
+        return node.astype(np.float64).round(12).tolist()
+    if isinstance(node, (np.floating, np.integer)):
+        return node.item()
+    if hasattr(node, "matrix"):  # mi.ScalarTransform4f / 3f
+        return np.array(node.matrix, dtype=np.float64).round(6).tolist()
+    if type(node).__name__ == "Bitmap":
+        return np.array(node, dtype=np.float64).round(6).tolist()
+    return node
+
+
+def emitters_of(plan: dict) -> list[str]:
+    names = [k for k, v in plan.items() if isinstance(v, dict) and "emitter" in v]
+    names += [k for k, v in plan.items() if isinstance(v, dict) and v.get("type") in ("spot", "constant", "envmap")]
+    return names
+
+
+# -- determinism ---------------------------------------------------------------------------------------------
+
+def test_same_seed_same_plan_and_different_seeds_differ() -> None:
+    for seed in (0, 7, 123456):
+        assert canonical(generate(seed).plan) == canonical(generate(seed).plan)
+        assert describe(seed) == describe(seed)
+    plans = [canonical(generate(seed).plan) for seed in range(6)]
+    assert all(plans[i] != plans[j] for i in range(6) for j in range(i + 1, 6))
+
+
+@pytest.mark.render
+def test_mitsuba_dict_is_deterministic() -> None:
+    a, b = procedural_scene(42, 64, 48), procedural_scene(42, 64, 48)
+    assert canonical(a) == canonical(b)
+    assert canonical(a) != canonical(procedural_scene(43, 64, 48))
+
+
+def test_film_size_and_depth_do_not_change_the_scene() -> None:
+    small, large = generate(5, 32, 24).plan, generate(5, 640, 480, max_depth=3).plan
+    assert small["sensor"]["film"]["width"] == 32 and large["sensor"]["film"]["height"] == 480
+    assert small["integrator"] == {"type": "path", "max_depth": 8}
+    assert large["integrator"] == {"type": "path", "max_depth": 3}
+    strip = ("sensor", "integrator")
+    assert canonical({k: v for k, v in small.items() if k not in strip}) == \
+        canonical({k: v for k, v in large.items() if k not in strip})
+    assert np.array_equal(small["sensor"]["to_world"], large["sensor"]["to_world"])
+
+
+def test_sensor_is_perspective_with_box_filter() -> None:
+    sensor = generate(3, 80, 60).plan["sensor"]
+    assert sensor["type"] == "perspective"
+    assert sensor["film"]["rfilter"] == {"type": "box"}
+    assert (sensor["film"]["width"], sensor["film"]["height"]) == (80, 60)
+
+
+@pytest.mark.parametrize("kwargs", [{"seed": -1}, {"seed": 1.5}, {"seed": True}, {"seed": 0, "width": 0},
+                                    {"seed": 0, "height": -3}, {"seed": 0, "max_depth": 0},
+                                    {"seed": 0, "max_depth": -2}])
+def test_bad_arguments_are_clear_errors(kwargs: dict) -> None:
+    with pytest.raises(ValueError, match="seed|width|height|max_depth"):
+        generate(**kwargs)
+
+
+# -- distribution ------------------------------------------------------------------------------------------
+
+def test_every_seed_has_an_emitter_and_a_camera_inside_the_room() -> None:
+    for seed in DISTRIBUTION_SEEDS:
+        scene = generate(seed)
+        assert emitters_of(scene.plan), f"seed {seed} has no emitter"
+        origin = scene.plan["sensor"]["to_world"][:3, 3]
+        room = scene.summary["room"]
+        if room["kind"] == "room":
+            wx, h, wz = room["size"]
+            assert abs(origin[0]) < wx / 2 and abs(origin[2]) < wz / 2 and 0 < origin[1] < h, seed
+        assert np.isfinite(scene.plan["sensor"]["to_world"]).all()
+
+
+def test_distribution_covers_materials_lights_rooms_and_textures() -> None:
+    materials: Counter[str] = Counter()
+    lights: Counter[str] = Counter()
+    kinds: Counter[str] = Counter()
+    occluders: Counter[str] = Counter()
+    open_rooms = textured = checker = 0
+    for seed in DISTRIBUTION_SEEDS:
+        s = scene_summary(seed)
+        assert s["generator_version"] == GENERATOR_VERSION
+        materials.update({k.removesuffix("-textured"): v for k, v in s["materials"].items()})
+        lights.update(s["lights"])
+        kinds[s["room"]["kind"]] += 1
+        occluders.update(s["occluders"])
+        open_rooms += bool(s["room"]["open"])
+        text = repr(generate(seed).plan)
+        textured += "'bitmap'" in text
+        checker += "checkerboard" in text
+    n = len(DISTRIBUTION_SEEDS)
+    for material in ("diffuse", "plastic", "roughplastic", "conductor", "roughconductor", "dielectric",
+                     "roughdielectric", "thindielectric"):
+        assert materials[material] >= n // 50, (material, materials)
+    for light in ("ceiling", "wall_wash", "uplight", "sphere", "spot", "environment-constant", "environment-map"):
+        assert lights[light] >= n // 50, (light, lights)
+    assert set(occluders) == {"shelf", "partition", "pillar"}
+    assert 0.05 * n < kinds["outdoor"] < 0.25 * n
+    assert 0.2 * n < open_rooms < 0.8 * n
+    assert textured > 0.2 * n and checker > 0.2 * n
+
+
+def test_describe_names_the_seed_and_its_contents() -> None:
+    text = describe(11)
+    assert text.startswith("procedural:11 ")
+    assert "lights:" in text and "materials:" in text
+    summary = scene_summary(11)
+    assert all(light in text for light in summary["lights"])
+
+
+# -- Mitsuba -------------------------------------------------------------------------------------------------
+
+@pytest.mark.render
+@pytest.mark.parametrize("seed", [0, 3, 8, 1000])
+def test_loads_and_renders_finite_nonzero_images(seed: int) -> None:
+    import mitsuba as mi
+
+    from renderer.scene import select_variant
+
+    select_variant()
+    scene = mi.load_dict(procedural_scene(seed, 24, 16))
+    assert len(scene.emitters()) >= 1
+    image = np.array(mi.render(scene, spp=4, seed=1))
+    assert image.shape == (16, 24, 3)
+    assert np.isfinite(image).all()
+    assert image.mean() > 1e-4, f"seed {seed} rendered black"
