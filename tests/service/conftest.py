@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 import socket
 import threading
 import time
@@ -94,3 +95,64 @@ def poisson_api() -> Iterator[dict[str, httpx.Client]]:
     """One default app per transport, shared by the read-only contract tests of a module (fast)."""
     with in_process(create_app(settings())) as tc, over_uvicorn(create_app(settings())) as lc:
         yield {"testclient": tc, "uvicorn": lc}
+
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+@contextmanager
+def server_process(argv: list[str], env: dict[str, str], log_path: Path) -> Iterator[tuple[str, object]]:
+    """Run a service command (``[..., "--port", "{port}"]``) in a subprocess; yield (url, Popen) once ready.
+
+    Leaving the block sends SIGTERM (what an orchestrator does) and requires a clean exit: uvicorn shuts down
+    gracefully and then re-raises the signal, so the status is "terminated by SIGTERM" (or 0).
+    """
+    import os
+    import subprocess
+    import sys
+
+    port = free_port()
+    full_env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")])),
+                "GRADSEP_MODELS": "/nonexistent/gradsep-models", **env}
+    full_env.pop("GRADSEP_TOKEN", None)
+    with open(log_path, "wb") as log:
+        proc = subprocess.Popen([sys.executable, *[a.format(port=port) for a in argv]], cwd=REPO, env=full_env,
+                                stdout=log, stderr=subprocess.STDOUT)
+        url = f"http://127.0.0.1:{port}"
+        try:
+            with httpx.Client(base_url=url, timeout=5) as client:
+                deadline = time.monotonic() + READY_TIMEOUT
+                while True:
+                    assert proc.poll() is None, f"server exited: {log_path.read_text()[-2000:]}"
+                    assert time.monotonic() < deadline, f"server not ready: {log_path.read_text()[-2000:]}"
+                    try:
+                        if client.get("/readyz").status_code == 200:
+                            break
+                    except httpx.TransportError:
+                        pass
+                    time.sleep(0.05)
+            yield url, proc
+        finally:
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGTERM)
+            try:
+                code = proc.wait(timeout=60)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+                raise AssertionError("server did not stop within 60 s of SIGTERM") from None
+    assert code in (0, -signal.SIGTERM), f"server exit status {code}: {log_path.read_text()[-2000:]}"
+
+
+def rss_bytes(pid: int, field: str = "VmRSS") -> int:
+    """Resident memory of a process from /proc (Linux): VmRSS now, or VmHWM for the peak."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith(f"{field}:"):
+            return int(line.split()[1]) * 1024
+    raise AssertionError(f"{field} not in /proc/{pid}/status")
