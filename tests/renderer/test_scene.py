@@ -1,0 +1,162 @@
+"""Scene loading: XML and procedural scenes, forced box filter and film size, <default> overrides, refusals."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+mi = pytest.importorskip("mitsuba")
+
+from gradsep.cli import CommandError  # noqa: E402
+from renderer.scene import (  # noqa: E402
+    SceneError,
+    force_film_dict,
+    integrator_depths,
+    load_scene,
+    parse_defines,
+    select_variant,
+)
+
+pytestmark = pytest.mark.render
+
+SCENES = Path("/work/shared/scenes")
+CBOX = SCENES / "cbox" / "cbox.xml"
+TEAPOT = SCENES / "teapot" / "teapot.xml"
+
+
+def write_scene(folder: Path, body: str, sensor: str | None = None) -> Path:
+    """A small XML scene: a diffuse rectangle in front of a perspective camera plus ``body``."""
+    sensor = sensor or """
+        <sensor type="perspective">
+            <transform name="to_world"><lookat origin="0,0,3" target="0,0,0" up="0,1,0"/></transform>
+            <film type="hdrfilm"><integer name="width" value="20"/><integer name="height" value="10"/></film>
+        </sensor>"""
+    path = folder / "scene.xml"
+    path.write_text(f"""<scene version="3.0.0">
+        {sensor}
+        <shape type="rectangle"><bsdf type="diffuse"/></shape>
+        {body}
+    </scene>""")
+    return path
+
+
+def test_shared_scenes_load_with_box_filter_and_their_settings():
+    cbox = load_scene(str(CBOX))
+    assert (cbox.width, cbox.height) == (256, 256)  # the file's <default name="res">
+    assert cbox.max_depth == 6 and cbox.rr_depth == 5
+    assert cbox.sensor.film().rfilter().class_name() == "BoxFilter"  # the file asks for a tent filter
+    teapot = load_scene(str(TEAPOT), width=32, height=16)
+    assert (teapot.width, teapot.height) == (32, 16)
+    assert teapot.max_depth == 2  # its integrator is `direct`
+    assert teapot.sensor.film().rfilter().class_name() == "BoxFilter"
+
+
+def test_one_dimension_keeps_the_aspect_ratio(tmp_path):
+    path = write_scene(tmp_path, '<emitter type="constant"/>')
+    loaded = load_scene(str(path), width=40)
+    assert (loaded.width, loaded.height) == (40, 20)
+    loaded = load_scene(str(path), height=5)
+    assert (loaded.width, loaded.height) == (10, 5)
+
+
+def test_defaults_can_be_overridden():
+    loaded = load_scene(str(CBOX), defines={"max_depth": "3", "res": "16"})
+    assert (loaded.width, loaded.height) == (16, 16)
+    assert loaded.max_depth == 3
+    assert loaded.defines == {"max_depth": "3", "res": "16"}
+    # an explicit size wins over a define that only sized the film
+    loaded = load_scene(str(CBOX), width=8, height=8, defines={"res": "16"})
+    assert (loaded.width, loaded.height) == (8, 8)
+    # an explicit max_depth wins over the scene's
+    assert load_scene(str(CBOX), width=8, max_depth=-1).max_depth == -1
+
+
+def test_relative_paths_resolve_from_the_scene_folder(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # the meshes are relative to the XML, not to the working directory
+    loaded = load_scene(os.path.relpath(TEAPOT, tmp_path), width=8, height=8)
+    assert len(loaded.scene.shapes()) == 1
+    # and the resolver is left as it was
+    resolver = mi.file_resolver()
+    assert str(TEAPOT.parent) not in [str(resolver[i]) for i in range(len(resolver))]
+
+
+@pytest.mark.parametrize("body, sensor, message", [
+    ("", None, "no emitter"),
+    ('<emitter type="constant"/>', """<sensor type="orthographic"><film type="hdrfilm"/></sensor>""",
+     "unsupported sensor"),
+    ("""<emitter type="constant"/>
+        <shape type="sphere"><medium type="homogeneous" name="interior"/><bsdf type="null"/></shape>""", None,
+     "participating media"),
+    ('<emitter type="nosuchplugin"/>', None, "failed to load"),
+    ('<shape type="obj"><string name="filename" value="missing.obj"/></shape><emitter type="constant"/>', None,
+     "failed to load"),
+])
+def test_unrenderable_scenes_are_clear_errors(tmp_path, body, sensor, message):
+    path = write_scene(tmp_path, body, sensor)
+    with pytest.raises(SceneError, match=message) as info:
+        load_scene(str(path))
+    assert isinstance(info.value, CommandError)  # the CLI prints it as one line, exit status 2
+    assert "\n" not in str(info.value)
+
+
+def test_bad_files_and_arguments(tmp_path):
+    with pytest.raises(SceneError, match="not found"):
+        load_scene(str(tmp_path / "nope.xml"))
+    bad = tmp_path / "bad.xml"
+    bad.write_text("<scene><shape></scene>")
+    with pytest.raises(SceneError, match="not valid XML"):
+        load_scene(str(bad))
+    other = tmp_path / "other.xml"
+    other.write_text("<html/>")
+    with pytest.raises(SceneError, match="expected a Mitsuba <scene>"):
+        load_scene(str(other))
+    with pytest.raises(SceneError, match="no <default> parameter named nosuch"):
+        load_scene(str(CBOX), defines={"nosuch": "1"})
+    with pytest.raises(SceneError, match="width"):
+        load_scene(str(CBOX), width=0)
+    with pytest.raises(SceneError, match="max-depth"):
+        load_scene(str(CBOX), max_depth=0)
+    with pytest.raises(SceneError, match="exceeds"):
+        load_scene(str(CBOX), width=9000, height=9000)
+
+
+def test_parse_defines():
+    assert parse_defines(["spp=16", " res = 64 "]) == {"spp": "16", "res": "64"}
+    assert parse_defines(None) == {}
+    for bad in ("spp", "=3", "1x=2", "a b=1"):
+        with pytest.raises(SceneError, match="NAME=VALUE"):
+            parse_defines([bad])
+
+
+def test_integrator_depths():
+    select_variant()
+    for props, expected in (({"type": "path", "max_depth": 9, "rr_depth": 3}, (9, 3)),
+                            ({"type": "path", "max_depth": -1}, (-1, 5)),
+                            ({"type": "direct"}, (2, 5))):
+        scene = mi.load_dict({"type": "scene", "integrator": props,
+                              "light": {"type": "constant"}})
+        assert integrator_depths(scene) == expected
+
+
+def test_procedural_scenes_load_at_the_requested_size():
+    pytest.importorskip("renderer.procedural")
+    loaded = load_scene("procedural:3", width=24, height=16)
+    assert (loaded.width, loaded.height) == (24, 16)
+    assert loaded.sensor.film().rfilter().class_name() == "BoxFilter"
+    assert loaded.scene.emitters()
+    with pytest.raises(SceneError, match="integer seed"):
+        load_scene("procedural:abc")
+    with pytest.raises(SceneError, match="XML scenes only"):
+        load_scene("procedural:3", defines={"res": "8"})
+
+
+def test_force_film_dict_rewrites_the_first_sensor():
+    scene = {"type": "scene", "cam": {"type": "perspective",
+                                      "film": {"type": "hdrfilm", "width": 5, "rfilter": {"type": "gaussian"},
+                                               "crop_width": 2}}}
+    force_film_dict(scene, 7, 3)
+    film = scene["cam"]["film"]
+    assert (film["width"], film["height"], film["rfilter"]) == (7, 3, {"type": "box"})
+    assert "crop_width" not in film
