@@ -18,9 +18,13 @@ def _settings_or_error() -> Settings:
     try:
         return Settings()
     except ValidationError as exc:
-        problems = "; ".join(f"GRADSEP_{'.'.join(str(p) for p in e['loc']).upper()}: {e['msg']}"
-                             for e in exc.errors())
+        problems = "; ".join(f"{_variable(e['loc'])}: {e['msg']}" for e in exc.errors())
         raise CommandError(f"invalid service settings: {problems}") from None
+
+
+def _variable(loc: tuple[object, ...]) -> str:
+    name = ".".join(str(p) for p in loc).upper()
+    return name if name.startswith("GRADSEP_") else f"GRADSEP_{name}"
 
 
 def log_config(level: str) -> dict[str, Any]:

@@ -15,6 +15,9 @@ import subprocess
 import sys
 import tomllib
 
+import pytest
+
+from gradsep.cli import main
 from service.main import create_app
 from tests.service.conftest import REPO, free_port, settings, uvicorn_server
 
@@ -100,3 +103,17 @@ def test_dockerfile_healthcheck_passes_on_a_live_service_and_fails_on_a_dead_one
     assert alive.returncode == 0, alive.stderr
     dead = subprocess.run(healthcheck_argv(free_port()), capture_output=True, timeout=30)
     assert dead.returncode != 0
+
+
+@pytest.mark.parametrize("env, argv, needle", [
+    ({"GRADSEP_CONCURRENCY": "0"}, [], "GRADSEP_CONCURRENCY"),
+    ({"GRADSEP_NONFINITE": "ignore"}, [], "GRADSEP_NONFINITE"),
+    ({}, ["--port", "70000"], "--port"),
+    ({}, ["--workers", "0"], "--workers"),
+])
+def test_serve_refuses_bad_settings_with_one_line_and_exit_2(monkeypatch, capsys, env, argv, needle):
+    for key, value in env.items():
+        monkeypatch.setenv(key, value)
+    assert main(["serve", *argv]) == 2  # before uvicorn starts: nothing listens
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("gradsep serve: error:") and needle in err[0]
