@@ -100,14 +100,15 @@ def test_distribution_covers_materials_lights_rooms_and_textures() -> None:
     occluders: Counter[str] = Counter()
     open_rooms = textured = checker = 0
     for seed in DISTRIBUTION_SEEDS:
-        s = scene_summary(seed)
+        scene = generate(seed)
+        s = scene.summary
         assert s["generator_version"] == GENERATOR_VERSION
         materials.update({k.removesuffix("-textured"): v for k, v in s["materials"].items()})
         lights.update(s["lights"])
         kinds[s["room"]["kind"]] += 1
         occluders.update(s["occluders"])
         open_rooms += bool(s["room"]["open"])
-        text = repr(generate(seed).plan)
+        text = repr(scene.plan)
         textured += "'bitmap'" in text
         checker += "checkerboard" in text
     n = len(DISTRIBUTION_SEEDS)

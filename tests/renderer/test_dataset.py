@@ -1,0 +1,275 @@
+"""`gradsep dataset`: manifest content, resume, shards merging, locking, validation, manifest hash."""
+
+from __future__ import annotations
+
+import fcntl
+import json
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from renderer import dataset as ds
+from renderer.dataset import DatasetError, load_manifest, make_job, manifest_hash, run_dataset
+
+SIZE = "32x32"
+
+
+def job(shard: str = "0/1", count: int = 3, spp: int = 2, size: str = SIZE, first_seed: int = 1000,
+        max_depth: int | None = None) -> ds.Job:
+    return make_job(count, spp, size, shard, first_seed, max_depth)
+
+
+@pytest.fixture(scope="module")
+def rendered(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A real 3-frame dataset (32x32, 2 spp) rendered with the G-PT renderer, once per module."""
+    root = tmp_path_factory.mktemp("dataset") / "real"
+    run_dataset(root, job(), progress=False)
+    return root
+
+
+@pytest.fixture
+def counting_renderer(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """Replace the G-PT render with a cheap synthetic frame and record which seeds were rendered."""
+    from model.frame import Features, Frame, Layer
+
+    calls: list[int] = []
+
+    def fake(spec: str, *, spp: int, seed: int, width: int, height: int, max_depth: int | None) -> Frame:
+        scene_seed = int(spec.split(":")[1])
+        calls.append(scene_seed)
+        rng = np.random.default_rng(scene_seed)
+        zero = np.zeros((height, width, 3), np.float32)
+        base = rng.random((height, width, 3), dtype=np.float32)
+        layers = {"direct": Layer(base, zero, zero)}
+        if max_depth is None or max_depth > 2:
+            layers["indirect"] = Layer(base / 2, zero, zero)
+        feats = Features(base.clip(0, 1), np.dstack([zero[..., :2], zero[..., :1] + 1]), zero[..., 0])
+        return Frame(layers, feats, {"gradsep.render_seconds": "0.010", "gradsep.spp": str(spp)})
+
+    import renderer.render
+
+    monkeypatch.setattr(renderer.render, "render_frame", fake)
+    return calls
+
+
+# -- a real dataset ----------------------------------------------------------------------------------------
+
+@pytest.mark.render
+def test_manifest_content_of_a_real_dataset(rendered: Path) -> None:
+    from model.frame import read_frame
+
+    data = json.loads((rendered / "manifest.json").read_text())
+    assert data["version"] == 1 and data["spp"] == 2 and data["size"] == [32, 32]
+    assert data["count"] == 3 and data["complete"] is True and data["missing"] == 0
+    assert [f["seed"] for f in data["frames"]] == [1000, 1001, 1002]
+    for item in data["frames"]:
+        assert item["file"] == f"frames/proc_{item['seed']:06d}.exr"
+        assert item["spp"] == 2 and item["shard"] == "0/1" and item["render_seconds"] > 0
+        assert item["layers"] == ["direct", "indirect"]
+        frame = read_frame(rendered / item["file"])
+        assert (frame.width, frame.height) == (32, 32) and list(frame.layers) == ["direct", "indirect"]
+        assert frame.features is not None
+        assert frame.metadata["gradsep.scene"] == f"procedural:{item['seed']}"
+    manifest = load_manifest(rendered)
+    assert data["hash"] == manifest_hash(manifest) == manifest_hash(rendered) == manifest.hash
+    assert [p.name for p in manifest.paths()] == ["proc_001000.exr", "proc_001001.exr", "proc_001002.exr"]
+    assert not list(rendered.rglob("*.tmp")), "an atomic write left a temporary file"
+
+
+@pytest.mark.render
+def test_resume_skips_finished_frames_and_redoes_lost_ones(rendered: Path, tmp_path: Path,
+                                                          counting_renderer: list[int]) -> None:
+    root = tmp_path / "copy"
+    shutil.copytree(rendered, root)
+    before = {p.name: p.read_bytes() for p in (root / "frames").iterdir()}
+    run_dataset(root, job(), progress=False)
+    assert counting_renderer == [], "a finished frame was rendered again"
+    assert {p.name: p.read_bytes() for p in (root / "frames").iterdir()} == before
+
+    (root / "frames" / "proc_001001.exr").unlink()  # lost file: rendered again
+    run_dataset(root, job(), progress=False)
+    assert counting_renderer == [1001]
+    assert load_manifest(root).to_json()["complete"]
+
+
+# -- resume and records (synthetic frames) -------------------------------------------------------------------
+
+def test_exr_without_a_record_is_not_finished(tmp_path: Path, counting_renderer: list[int]) -> None:
+    """Killed between rename and record: the EXR exists but no part lists it, so it is rendered again."""
+    run_dataset(tmp_path, job(), progress=False)
+    part = tmp_path / "manifest.d" / "shard-0-of-1.json"
+    data = json.loads(part.read_text())
+    data["frames"] = [f for f in data["frames"] if f["seed"] != 1002]
+    part.write_text(json.dumps(data))
+    counting_renderer.clear()
+    run_dataset(tmp_path, job(), progress=False)
+    assert counting_renderer == [1002]
+
+
+def test_truncated_frame_is_rendered_again_and_refused_by_load_manifest(tmp_path: Path,
+                                                                       counting_renderer: list[int]) -> None:
+    run_dataset(tmp_path, job(), progress=False)
+    frame = tmp_path / "frames" / "proc_001000.exr"
+    frame.write_bytes(frame.read_bytes()[:100])
+    with pytest.raises(DatasetError, match="proc_001000.exr has 100 bytes"):
+        load_manifest(tmp_path)
+    counting_renderer.clear()
+    run_dataset(tmp_path, job(), progress=False)
+    assert counting_renderer == [1000]
+    load_manifest(tmp_path)
+
+
+def test_interrupted_run_keeps_finished_frames(tmp_path: Path, counting_renderer: list[int],
+                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    import renderer.render
+
+    fake = renderer.render.render_frame
+
+    def dies_on_third(spec: str, **kw: object) -> object:
+        if spec.endswith(":1002"):
+            raise KeyboardInterrupt
+        return fake(spec, **kw)
+
+    monkeypatch.setattr(renderer.render, "render_frame", dies_on_third)
+    with pytest.raises(KeyboardInterrupt):
+        run_dataset(tmp_path, job(count=4), progress=False)
+    data = json.loads((tmp_path / "manifest.json").read_text())  # merged on the way out
+    assert [f["seed"] for f in data["frames"]] == [1000, 1001] and data["missing"] == 2
+    monkeypatch.setattr(renderer.render, "render_frame", fake)
+    counting_renderer.clear()
+    run_dataset(tmp_path, job(count=4), progress=False)
+    assert counting_renderer == [1002, 1003]
+
+
+# -- shards ------------------------------------------------------------------------------------------------
+
+def test_two_shards_merge_into_the_full_set(tmp_path: Path, counting_renderer: list[int]) -> None:
+    first = run_dataset(tmp_path, job("0/2", count=5), progress=False)
+    assert counting_renderer == [1000, 1002, 1004]
+    assert [f.seed for f in first.frames] == [1000, 1002, 1004]
+    assert json.loads((tmp_path / "manifest.json").read_text())["complete"] is False
+    run_dataset(tmp_path, job("1/2", count=5), progress=False)
+    assert counting_renderer == [1000, 1002, 1004, 1001, 1003]
+    data = json.loads((tmp_path / "manifest.json").read_text())
+    assert data["complete"] is True and [f["seed"] for f in data["frames"]] == list(range(1000, 1005))
+    assert {f["seed"]: f["shard"] for f in data["frames"]} == {1000: "0/2", 1001: "1/2", 1002: "0/2",
+                                                               1003: "1/2", 1004: "0/2"}
+    assert sorted(p.name for p in (tmp_path / "manifest.d").glob("*.json")) == ["shard-0-of-2.json",
+                                                                               "shard-1-of-2.json"]
+    # A later single-shard run finds everything done, whoever rendered it.
+    counting_renderer.clear()
+    run_dataset(tmp_path, job("0/1", count=5), progress=False)
+    assert counting_renderer == []
+
+
+def test_a_running_shard_cannot_be_started_twice(tmp_path: Path, counting_renderer: list[int]) -> None:
+    (tmp_path / "manifest.d").mkdir(parents=True)
+    fd = os.open(tmp_path / "manifest.d" / "shard-1-of-2.lock", os.O_RDWR | os.O_CREAT)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)  # another process would hold this while rendering shard 1/2
+        with pytest.raises(DatasetError, match="already being rendered"):
+            run_dataset(tmp_path, job("1/2"), progress=False)
+        run_dataset(tmp_path, job("0/2"), progress=False)  # other shards are not blocked
+    finally:
+        os.close(fd)
+    assert counting_renderer == [1000, 1002]
+
+
+def test_settings_cannot_be_mixed_in_one_folder(tmp_path: Path, counting_renderer: list[int]) -> None:
+    run_dataset(tmp_path, job(count=1), progress=False)
+    with pytest.raises(DatasetError, match="spp 2 \\(this run: 4\\)"):
+        run_dataset(tmp_path, job(count=1, spp=4), progress=False)
+    with pytest.raises(DatasetError, match="size"):
+        run_dataset(tmp_path, job(count=1, size="16x16"), progress=False)
+    run_dataset(tmp_path, job(count=2), progress=False)  # a larger count extends the same dataset
+    assert counting_renderer == [1000, 1001]
+
+
+def test_max_depth_two_records_direct_only(tmp_path: Path, counting_renderer: list[int]) -> None:
+    manifest = run_dataset(tmp_path, job(count=1, max_depth=2), progress=False)
+    assert manifest.frames[0].layers == ["direct"] and manifest.max_depth == 2
+
+
+# -- hash and loading --------------------------------------------------------------------------------------
+
+def test_manifest_hash_follows_content_not_timing_or_layout(tmp_path: Path, counting_renderer: list[int]) -> None:
+    run_dataset(tmp_path, job(count=2), progress=False)
+    m = load_manifest(tmp_path)
+    h = manifest_hash(m)
+    m.frames[0].render_seconds = 99.0
+    m.frames[0].shard = "3/7"
+    m.frames[0].finished_at = "yesterday"
+    assert manifest_hash(m) == h
+    m.frames[0].sha256 = "0" * 64
+    assert manifest_hash(m) != h
+
+
+def test_load_manifest_from_parts_and_errors(tmp_path: Path, counting_renderer: list[int]) -> None:
+    with pytest.raises(DatasetError, match="not a dataset folder"):
+        load_manifest(tmp_path)
+    run_dataset(tmp_path, job(count=2), progress=False)
+    merged = load_manifest(tmp_path)
+    (tmp_path / "manifest.json").unlink()  # a copy without the merged file still loads from its parts
+    assert load_manifest(tmp_path).hash == merged.hash
+    (tmp_path / "manifest.json").write_text(json.dumps({"version": 99}))
+    with pytest.raises(DatasetError, match="version 99"):
+        load_manifest(tmp_path)
+    (tmp_path / "manifest.json").write_text("{not json")
+    with pytest.raises(DatasetError, match="cannot read"):
+        load_manifest(tmp_path)
+
+
+# -- command-line validation ------------------------------------------------------------------------------
+
+@pytest.mark.parametrize(("text", "expected"), [("32x32", (32, 32)), ("640X480", (640, 480)), (" 8x4 ", (8, 4))])
+def test_parse_size(text: str, expected: tuple[int, int]) -> None:
+    assert ds.parse_size(text) == expected
+
+
+@pytest.mark.parametrize(("text", "expected"), [("0/1", (0, 1)), ("3/4", (3, 4))])
+def test_parse_shard(text: str, expected: tuple[int, int]) -> None:
+    assert ds.parse_shard(text) == expected
+
+
+@pytest.mark.parametrize(("argv", "message"), [
+    (["--shard", "2/2"], "0 <= i < n"),
+    (["--shard", "1/0"], "n >= 1"),
+    (["--shard", "one/two"], "--shard must be i/n"),
+    (["--shard", "-1/2"], "--shard must be i/n"),
+    (["--size", "32"], "WIDTHxHEIGHT"),
+    (["--size", "0x32"], "between 1 and"),
+    (["--size", "32x99999"], "between 1 and"),
+    (["--count", "0"], "--count"),
+    (["--spp", "0"], "--spp"),
+    (["--first-seed", "-5"], "--first-seed"),
+    (["--max-depth", "0"], "--max-depth"),
+])
+def test_command_rejects_bad_options(argv: list[str], message: str, tmp_path: Path,
+                                     capsys: pytest.CaptureFixture[str]) -> None:
+    from gradsep.cli import main
+
+    options = {"--count": "2", "--spp": "2", "--size": "8x8"}
+    options.update(zip(argv[::2], argv[1::2], strict=True))
+    args = [f"{flag}={value}" for flag, value in options.items()]  # "=" lets "-1/2" be a value
+    assert main(["dataset", *args, "-o", str(tmp_path / "d")]) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.startswith("gradsep dataset: error:")
+    assert not (tmp_path / "d" / "frames").exists()
+
+
+def test_command_renders_and_reports(tmp_path: Path, counting_renderer: list[int],
+                                     capsys: pytest.CaptureFixture[str]) -> None:
+    from gradsep.cli import main
+
+    assert main(["dataset", "--count", "3", "--spp", "2", "--size", "8x6", "--first-seed", "50",
+                 "--shard", "1/2", "-o", str(tmp_path / "d")]) == 0
+    assert counting_renderer == [51]
+    out = capsys.readouterr().out
+    assert "shard 1/2 has 1/1 frames; dataset 1/3" in out
+    assert (tmp_path / "d" / "frames" / "proc_000051.exr").is_file()
+    (tmp_path / "f").write_text("")
+    assert main(["dataset", "--count", "1", "--spp", "1", "-o", str(tmp_path / "f")]) == 2
+    assert "not a folder" in capsys.readouterr().err
