@@ -355,13 +355,16 @@ def run_dataset(root: str | os.PathLike[str], job: Job, *, progress: bool | None
         _check_compatible(root, job)
         own_path = part_path(root, job.shard, job.shards)
         own: list[dict[str, Any]] = []
+        count = job.count
         if own_path.is_file():
-            own = list(_read_json(own_path).get("frames", []))
+            previous = _read_json(own_path)
+            own = list(previous.get("frames", []))
+            count = max(count, int(previous.get("count", 0)))  # a shorter rerun does not shrink the dataset
         done = finished_frames(root)
         todo = [s for s in job.seeds() if s not in done]
         pending = set(todo)
         own = [item for item in own if int(item["seed"]) not in pending]  # records whose file is gone or cut
-        _write_part(own_path, job, own)  # claims the settings in the folder even before the first frame
+        _write_part(own_path, job, own, count)  # claims the settings in the folder even before the first frame
         last_merge = 0.0
         bar = _bar(len(todo), len(job.seeds()) - len(todo), job, progress)
         try:
@@ -378,7 +381,7 @@ def run_dataset(root: str | os.PathLike[str], job: Job, *, progress: bool | None
                     layers=list(frame.layers), shard=job.shard_name, sampler_seed=seed % 2**32, bytes=len(data),
                     sha256=hashlib.sha256(data).hexdigest(),
                     finished_at=_dt.datetime.now(_dt.UTC).isoformat(timespec="milliseconds"))))
-                _write_part(own_path, job, own)  # the frame is finished from here on
+                _write_part(own_path, job, own, count)  # the frame is finished from here on
                 bar.update(1)
                 if time.monotonic() - last_merge > MERGE_INTERVAL_S:
                     merge_manifest(root)
@@ -389,8 +392,8 @@ def run_dataset(root: str | os.PathLike[str], job: Job, *, progress: bool | None
     return load_manifest(root, check_files=False)
 
 
-def _write_part(path: Path, job: Job, frames: list[dict[str, Any]]) -> None:
-    _write_json_atomic(path, {"version": MANIFEST_VERSION, "shard": job.shard_name, "count": job.count,
+def _write_part(path: Path, job: Job, frames: list[dict[str, Any]], count: int) -> None:
+    _write_json_atomic(path, {"version": MANIFEST_VERSION, "shard": job.shard_name, "count": count,
                               "params": job.params(), "frames": sorted(frames, key=lambda f: int(f["seed"]))})
 
 

@@ -166,7 +166,7 @@ def render_loaded(loaded: _Loaded, *, spp: int, seed: int, tile_spp: int | None,
     shape = (loaded.height, loaded.width, 3)
     total_sum, direct_sum = np.zeros(shape), np.zeros(shape)
     start = time.perf_counter()
-    with _progress_bar(spp, progress, loaded.metadata.get("gradsep.scene", "")) as advance:
+    with _ProgressBar(spp, progress, loaded.metadata.get("gradsep.scene", "")) as advance:
         for i, k in enumerate(plan_passes(spp, tile)):
             s = pass_seed(seed, i)
             total = render(total_it, k, s)
@@ -209,7 +209,7 @@ def _finite32(image: np.ndarray) -> np.ndarray:
     return np.nan_to_num(image, nan=0.0, posinf=0.0, neginf=0.0).astype(np.float32)
 
 
-class _progress_bar:  # noqa: N801 -- used as a context manager, reads like a function
+class _ProgressBar:
     """tqdm over samples per pixel; a no-op when tqdm is missing or progress is off."""
 
     def __init__(self, total: int, enabled: bool | None, label: str) -> None:

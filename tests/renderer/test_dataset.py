@@ -165,6 +165,42 @@ def test_two_shards_merge_into_the_full_set(tmp_path: Path, counting_renderer: l
     assert counting_renderer == []
 
 
+def test_concurrent_shards_on_one_folder(tmp_path: Path, counting_renderer: list[int],
+                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    """Four shards at once (threads: flock treats each open() as its own lock owner) leave a complete set."""
+    import threading
+    import time
+
+    import renderer.render
+
+    fake = renderer.render.render_frame
+
+    def slow(spec: str, **kw: object) -> object:
+        time.sleep(0.01)  # interleave the shards' renders, part writes and merges
+        return fake(spec, **kw)
+
+    monkeypatch.setattr(renderer.render, "render_frame", slow)
+    monkeypatch.setattr(ds, "MERGE_INTERVAL_S", 0.0)  # merge after every frame: maximal contention
+    errors: list[BaseException] = []
+
+    def shard(i: int) -> None:
+        try:
+            run_dataset(tmp_path, job(f"{i}/4", count=12), progress=False)
+        except BaseException as exc:  # surfaced below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=shard, args=(i,)) for i in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors
+    assert sorted(counting_renderer) == list(range(1000, 1012))  # each frame rendered exactly once
+    data = json.loads((tmp_path / "manifest.json").read_text())
+    assert data["complete"] is True and [f["seed"] for f in data["frames"]] == list(range(1000, 1012))
+    assert data["hash"] == load_manifest(tmp_path).hash
+
+
 def test_a_running_shard_cannot_be_started_twice(tmp_path: Path, counting_renderer: list[int]) -> None:
     (tmp_path / "manifest.d").mkdir(parents=True)
     fd = os.open(tmp_path / "manifest.d" / "shard-1-of-2.lock", os.O_RDWR | os.O_CREAT)
@@ -186,6 +222,8 @@ def test_settings_cannot_be_mixed_in_one_folder(tmp_path: Path, counting_rendere
         run_dataset(tmp_path, job(count=1, size="16x16"), progress=False)
     run_dataset(tmp_path, job(count=2), progress=False)  # a larger count extends the same dataset
     assert counting_renderer == [1000, 1001]
+    run_dataset(tmp_path, job(count=1), progress=False)  # a shorter rerun does not shrink it
+    assert load_manifest(tmp_path).count == 2 and counting_renderer == [1000, 1001]
 
 
 def test_max_depth_two_records_direct_only(tmp_path: Path, counting_renderer: list[int]) -> None:
