@@ -179,7 +179,7 @@ def run_pipeline(source: Source, params: ReconstructParams, limits: ReadLimits, 
     result = reconstruct(frame, params.method, params.alpha, network=network)
     for layer, seconds in dict(getattr(result, "timings", {}) or {}).items():
         timings[str(layer)] = float(seconds)
-    warnings = list(frame.warnings)
+    warnings = [*frame.warnings, *(str(w) for w in getattr(result, "warnings", None) or ())]
     image = _finite(np.asarray(result.image, dtype=np.float32), "sum", warnings)
     channels = dict(rgb_channels("", image))
     if params.layers == "all":
@@ -265,18 +265,13 @@ class Engine:
 def load_network(models_dir: Path) -> Any:
     """The network reconstructor, or None when there are no models (Poisson methods only).
 
-    A missing folder or a host without the inference module is not an error: the service then serves l1/l2.
-    A folder whose models fail to load is an error (raised): serving silently without them would be worse.
+    Delegates to ``model.reconstruct.load_network`` (one definition for CLI and service): a missing folder, an
+    empty one, or a host without the inference module gives None; models that fail to load raise, because
+    serving silently without the network an operator shipped would be worse than not becoming ready.
     """
-    if not Path(models_dir).is_dir():
-        log.info("models folder %s is absent; serving Poisson methods only", models_dir)
-        return None
-    try:
-        from model.infer import NetworkReconstructor
-    except ImportError as exc:
-        log.warning("network inference is unavailable (%s); serving Poisson methods only", exc)
-        return None
-    network = NetworkReconstructor.load(models_dir)
+    from model.reconstruct import load_network as load
+
+    network = load(models_dir)
     if network is None:
         log.info("no models in %s; serving Poisson methods only", models_dir)
     return network

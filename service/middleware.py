@@ -26,6 +26,7 @@ log = logging.getLogger("gradsep.service")
 # A client's id is echoed only when it is a harmless token (no header injection, bounded log lines).
 _REQUEST_ID = re.compile(r"^[A-Za-z0-9._:@/+=-]{1,128}$")
 OPEN_PATHS = frozenset({"/healthz", "/readyz"})
+QUIET_PATHS = OPEN_PATHS | {"/metrics"}  # probes and scrapes: access-logged at DEBUG unless they fail
 
 
 def request_id_of(scope: Scope) -> str:
@@ -72,7 +73,8 @@ class RequestContextMiddleware:
             self.metrics.requests.labels(route=route, method=scope["method"], status=str(status)).inc()
             self.metrics.latency.labels(route=route).observe(seconds)
             client = scope.get("client") or ("-", 0)
-            log.info("%s %s %s %d %.1fms request_id=%s", client[0], scope["method"], scope["path"], status,
+            level = logging.DEBUG if scope["path"] in QUIET_PATHS and status < 400 else logging.INFO
+            log.log(level, "%s %s %s %d %.1fms request_id=%s", client[0], scope["method"], scope["path"], status,
                      seconds * 1000, rid)
 
     def _route(self, scope: Scope) -> str:

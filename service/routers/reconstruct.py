@@ -121,8 +121,13 @@ async def reconstruct_frame(
     headers = {"Server-Timing": server_timing(timings), "X-Reconstruction-Method": outcome.method,
                "Content-Disposition": 'attachment; filename="reconstruction.exr"'}
     if outcome.warnings:
-        headers["X-Gradsep-Warnings"] = "; ".join(outcome.warnings).encode("ascii", "replace").decode()[:1000]
+        headers["X-Gradsep-Warnings"] = _header_safe("; ".join(outcome.warnings))
     return Response(outcome.body, media_type=EXR_MEDIA_TYPE, headers=headers)
+
+
+def _header_safe(text: str, limit: int = 1000) -> str:
+    """Printable ASCII only: warnings quote channel names from the (untrusted) file, e.g. with CR/LF in them."""
+    return "".join(c if " " <= c <= "~" else "?" for c in text[:limit])
 
 
 def _ready_gate(engine: Engine) -> Any:

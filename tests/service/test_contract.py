@@ -309,3 +309,14 @@ def test_bearer_token_guards_everything_but_health_and_readiness(serve):
         assert schema["components"]["securitySchemes"]["bearer"]["scheme"] == "bearer"
         assert schema["paths"]["/healthz"]["get"]["security"] == []
         assert 'reason="unauthorized"' in client.get("/metrics", headers=good).text
+
+
+@TRANSPORT
+def test_hostile_foreign_channel_names_cannot_inject_headers(poisson_api, transport):
+    channels = frame_channels(("color",))
+    channels["evil\r\nSet-Cookie: x=1\u00e9"] = channels["color.R"]
+    response = post(poisson_api[transport], channels_bytes(channels))
+    assert response.status_code == 200, response.text
+    assert "set-cookie" not in response.headers
+    warning = response.headers["x-gradsep-warnings"]
+    assert "ignored channels" in warning and "evil??Set-Cookie: x=1?" in warning
