@@ -392,8 +392,10 @@ def solve_l1(
     residual fell by ``cg_tolerance``. ``reg`` is in radiance units, as in the reference.
 
     The channels of an (H, W, C) input share weights (the norm is over channels), so pass a layer's RGB
-    together. Returns the image (float32 by default) and :class:`L1Stats`. Raises ValueError like
-    :func:`solve_l2` and for non-positive iteration counts.
+    together. ``preconditioner`` is ``"dct"`` (diagonally rescaled DCT solve, the default), ``"jacobi"`` or
+    ``"none"`` (the reference's plain CG). Iterates in float32, or float64 when α < FLOAT32_MIN_ALPHA.
+    Returns the image (float32 by default) and :class:`L1Stats`. Raises ValueError like :func:`solve_l2` and
+    for non-positive iteration counts or an unknown preconditioner.
     """
     if iterations < 1 or cg_iterations < 1:
         raise ValueError(f"iterations and cg_iterations must be >= 1 (got {iterations}, {cg_iterations})")
