@@ -539,11 +539,28 @@ def encode_exr(channels: Mapping[str, np.ndarray], *, half: bool = False,
     return buffer.getvalue()
 
 
+def _default_file_mode() -> int:
+    """0666 minus the process umask: what ``open()`` would create (read from /proc without changing the umask)."""
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("Umask:"):
+                    return 0o666 & ~int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    return 0o644
+
+
 def write_bytes_atomic(path: str | os.PathLike[str], data: bytes) -> None:
-    """Write ``data`` to a temporary file beside ``path`` and rename it into place (atomic on POSIX)."""
+    """Write ``data`` to a temporary file beside ``path`` and rename it into place (atomic on POSIX).
+
+    The file gets the permissions ``open()`` would give it (mkstemp's 0600 would hide frames from the other users
+    of a shared render-farm folder).
+    """
     target = Path(path)
     fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent or ".")
     try:
+        os.fchmod(fd, _default_file_mode())
         with os.fdopen(fd, "wb") as fh:
             fh.write(data)
             fh.flush()

@@ -32,7 +32,6 @@ import hashlib
 import json
 import os
 import re
-import tempfile
 import time
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
@@ -40,6 +39,7 @@ from pathlib import Path
 from typing import Any
 
 from gradsep.cli import CommandError
+from model.frame import write_bytes_atomic
 
 MANIFEST_VERSION = 1
 MANIFEST_NAME = "manifest.json"
@@ -286,31 +286,8 @@ def _read_json(path: Path) -> Any:
 
 
 def _write_json_atomic(path: Path, data: Any) -> None:
-    """Temp file in the same folder, fsync, rename: readers see the old or the new file, never a partial one."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        os.fchmod(fd, _file_mode())  # mkstemp makes 0600; farm nodes and the trainer may be other users
-        with os.fdopen(fd, "w") as fh:
-            json.dump(data, fh, indent=1)
-            fh.write("\n")
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-def _file_mode() -> int:
-    """0666 minus the process umask: what ``open()`` would have created (umask read without changing it)."""
-    try:
-        with open("/proc/self/status") as fh:
-            for line in fh:
-                if line.startswith("Umask:"):
-                    return 0o666 & ~int(line.split()[1], 8)
-    except OSError:
-        pass
-    return 0o644
+    """Readers see the old or the new file, never a partial one."""
+    write_bytes_atomic(path, (json.dumps(data, indent=1) + "\n").encode())
 
 
 def _check_compatible(root: Path, job: Job) -> None:
@@ -373,7 +350,6 @@ def run_dataset(root: str | os.PathLike[str], job: Job, *, progress: bool | None
                                      height=job.height, max_depth=job.max_depth)
                 rel = frame_file(seed)
                 write_frame(root / rel, frame)  # atomic: temp file + rename
-                os.chmod(root / rel, _file_mode())
                 data = (root / rel).read_bytes()
                 own.append(asdict(FrameRecord(
                     file=rel, seed=seed, spp=job.spp,
