@@ -1,0 +1,154 @@
+"""The evaluation's figures: RelMSE against wall time per scene, and the crop comparison of the paper's Fig. 6.
+
+matplotlib with the Agg backend (no display needed); every figure is rendered into memory and written
+atomically, so a killed run never leaves a truncated PNG behind.
+
+Crop comparison display: all panels share one exposure, chosen from the reference so that its 99th-percentile
+luminance maps to 1 (a frame dominated by a dark room still shows its detail; the light source may clip), then
+the display tonemap of model/metrics.py (clip to [0, 1], gamma 1/2.2). The crop is picked from the reference
+alone -- the square window with the most tonemapped gradient energy (edges, shadow boundaries, texture) -- so
+it is the same for every method and not chosen to favour any of them.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from model.frame import write_bytes_atomic
+from model.metrics import tonemap
+
+__all__ = ["METHOD_STYLES", "exposure_for", "plot_crops", "plot_error_vs_time", "select_crop"]
+
+_LUMINANCE = np.array([0.2126, 0.7152, 0.0722], dtype=np.float64)
+
+#: (colour, line style, marker) per method; ablation variants are thin grey-blue lines.
+METHOD_STYLES: dict[str, tuple[str, str, str]] = {
+    "gpt-primal": ("#7f7f7f", ":", "o"),
+    "l2": ("#bcbd22", "--", "v"),
+    "l1": ("#ff7f0e", "--", "^"),
+    "gradnet": ("#2ca02c", "-.", "s"),
+    "ablation/combined-noattn": ("#9ecae1", "-", "x"),
+    "ablation/separated-noattn": ("#6baed6", "-", "+"),
+    "ablation/combined-attn": ("#4292c6", "-", "1"),
+    "ablation/separated-attn": ("#2171b5", "-", "2"),
+    "ours": ("#d62728", "-", "D"),
+    "path": ("#8c564b", ":", "o"),
+    "path-oidn": ("#9467bd", "--", "P"),
+}
+
+
+def _figure(figsize: tuple[float, float]) -> Any:
+    from matplotlib.figure import Figure
+
+    return Figure(figsize=figsize, dpi=100)  # a bare Figure draws with Agg and touches no global pyplot state
+
+
+def _save(fig: Any, path: Path) -> Path:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    FigureCanvasAgg(fig)
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", bbox_inches="tight")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_bytes_atomic(path, buffer.getvalue())
+    return path
+
+
+def plot_error_vs_time(scene: str, rows: Sequence[Mapping[str, Any]], labels: Mapping[str, str], path: Path) -> Path:
+    """RelMSE against total seconds, log-log, one curve per method (points in spp order, labelled for ours)."""
+    fig = _figure((7.5, 5.0))
+    ax = fig.add_subplot(1, 1, 1)
+    by_method: dict[str, list[Mapping[str, Any]]] = {}
+    for row in rows:
+        by_method.setdefault(str(row["method"]), []).append(row)
+    for method, items in by_method.items():
+        items = sorted(items, key=lambda r: int(r["spp"]))
+        x = [max(float(r["total_seconds"]), 1e-4) for r in items]
+        y = [max(float(r["relmse"]), 1e-8) for r in items]
+        colour, style, marker = METHOD_STYLES.get(method, ("black", "-", "o"))
+        thin = method.startswith("ablation/")
+        ax.plot(x, y, linestyle=style, marker=marker, color=colour, linewidth=1.0 if thin else 1.8,
+                markersize=4 if thin else 6, label=labels.get(method, method))
+        if method == "ours":
+            for xi, yi, r in zip(x, y, items, strict=True):
+                ax.annotate(f"{r['spp']}", (xi, yi), textcoords="offset points", xytext=(4, 4), fontsize=7,
+                            color=colour)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("total wall time per frame [s] (render + reconstruction)")
+    ax.set_ylabel("RelMSE")
+    ax.set_title(f"{scene}: error against time (labels on ours: G-PT spp)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7, loc="best")
+    return _save(fig, path)
+
+
+def exposure_for(reference: np.ndarray) -> float:
+    """Scale that maps the reference's 99th-percentile luminance to 1 (1 for a black reference)."""
+    lum = np.asarray(reference, dtype=np.float64).reshape(-1, 3) @ _LUMINANCE
+    p = float(np.percentile(lum, 99)) if lum.size else 0.0
+    return 1.0 / p if p > 0 and math.isfinite(p) else 1.0
+
+
+def select_crop(reference: np.ndarray, size: int | None = None) -> tuple[int, int, int]:
+    """(y0, x0, size): the square window of the reference with the largest sum of tonemapped gradient magnitude.
+
+    The window side defaults to a third of the shorter image side (at least 8 pixels, at most the image).
+    """
+    h, w = reference.shape[:2]
+    side = size if size is not None else max(8, min(h, w) // 3)
+    side = max(1, min(side, h, w))
+    lum = tonemap(reference * exposure_for(reference)) @ _LUMINANCE
+    energy = np.zeros((h, w), dtype=np.float64)
+    energy[:, :-1] += np.abs(np.diff(lum, axis=1))
+    energy[:-1, :] += np.abs(np.diff(lum, axis=0))
+    integral = np.zeros((h + 1, w + 1), dtype=np.float64)
+    integral[1:, 1:] = energy.cumsum(0).cumsum(1)
+    sums = (integral[side:, side:] - integral[:-side, side:] - integral[side:, :-side] + integral[:-side, :-side])
+    y0, x0 = np.unravel_index(int(np.argmax(sums)), sums.shape)
+    return int(y0), int(x0), side
+
+
+def plot_crops(scene: str, reference: np.ndarray, images: Mapping[str, np.ndarray], panels: Sequence[str],
+               labels: Mapping[str, str], metrics: Mapping[str, float], spp: int, path: Path) -> Path:
+    """The Fig. 6 layout: the full frame (ours, else the reference) with the crop marked, then one crop per
+    method of ``panels`` (a grey "not evaluated" panel for a missing one) and the reference's crop last."""
+    y0, x0, side = select_crop(reference)
+    scale = exposure_for(reference)
+
+    def display(image: np.ndarray) -> np.ndarray:
+        return tonemap(np.asarray(image, dtype=np.float64) * scale)
+
+    full_name = "ours" if "ours" in images else "reference"
+    full = images.get("ours", reference)
+    columns = len(panels) + 2
+    fig = _figure((2.2 * columns, 2.9))
+    ax = fig.add_subplot(1, columns, 1)
+    ax.imshow(display(full), interpolation="nearest")
+    from matplotlib.patches import Rectangle
+
+    ax.add_patch(Rectangle((x0 - 0.5, y0 - 0.5), side, side, fill=False, edgecolor="yellow", linewidth=1.2))
+    ax.set_title(f"{labels.get(full_name, full_name)}\nfull frame", fontsize=8)
+    ax.axis("off")
+    for i, name in enumerate([*panels, "reference"], start=2):
+        ax = fig.add_subplot(1, columns, i)
+        source = reference if name == "reference" else images.get(name)
+        title = labels.get(name, name)
+        if source is None:
+            ax.imshow(np.full((side, side, 3), 0.5), interpolation="nearest")
+            title += "\n(not evaluated)"
+        else:
+            ax.imshow(display(source[y0:y0 + side, x0:x0 + side]), interpolation="nearest")
+            if name in metrics:
+                title += f"\nRelMSE {metrics[name]:.4g}"
+        ax.set_title(title, fontsize=8)
+        ax.axis("off")
+    fig.suptitle(f"{scene}, {spp} spp (G-PT; equal time for path + OIDN); exposure ×{scale:.3g}, "
+                 "clip + gamma 2.2; RelMSE over the full frame", fontsize=8)
+    return _save(fig, path)

@@ -1,0 +1,447 @@
+"""The evaluation's written outputs: results.csv / results.json, the plots, and report.md.
+
+report.md reads top to bottom as: how it was made (command, machine, software, settings, models, skipped
+methods), the paper's Table 1 (input, L1, GradNet-style, ours) and Fig. 7 ablation, the equal-time comparison
+with Mitsuba ``path`` and OIDN, where ours loses, and the full RelMSE-by-spp tables. Nothing in it is written by
+hand: every sentence that compares methods is computed from the rows, so a rerun with other models says what
+is true for those.
+"""
+
+from __future__ import annotations
+
+import csv
+import datetime
+import io
+import json
+import math
+import os
+import platform
+import shlex
+import sys
+from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from model.evaluate_cache import slug
+from model.evaluate_methods import ABLATION_VARIANTS, METHODS
+from model.evaluate_plots import plot_crops, plot_error_vs_time
+from model.frame import write_bytes_atomic
+
+if TYPE_CHECKING:
+    from model.evaluate import EvalConfig, Evaluation
+
+__all__ = ["CSV_COLUMNS", "losses_of_ours", "write_outputs"]
+
+CSV_COLUMNS: tuple[str, ...] = (
+    "scene", "method", "spp", "method_spp", "width", "height", "render_seconds", "reconstruct_seconds",
+    "total_seconds", "relmse", "ssim", "psnr", "flip", "relmse_direct", "relmse_indirect", "target_seconds",
+    "budget_method",
+)
+LABELS: dict[str, str] = {m.name: m.label for m in METHODS}
+TABLE1: tuple[tuple[str, str], ...] = (("gpt-primal", "Input"), ("l1", "L1"), ("gradnet", "GradNet-style"),
+                                       ("ours", "Ours"))
+#: (metric, header, higher is better)
+TABLE1_METRICS: tuple[tuple[str, str, bool], ...] = (("ssim", "SSIM ↑", True), ("relmse", "RelMSE ↓", False),
+                                                     ("flip", "FLIP ↓", False), ("psnr", "PSNR dB ↑", True))
+PAPER_FIG7 = {"combined-noattn": 0.0262, "separated-noattn": 0.0208, "combined-attn": 0.0235,
+              "separated-attn": 0.0177}
+
+
+# ------------------------------------------------------------------------------------------------- files
+
+
+def _cell(value: Any) -> str:
+    if value is None:
+        return ""
+    if isinstance(value, float):
+        return "inf" if math.isinf(value) else f"{value:.6g}"
+    return str(value)
+
+
+def write_csv(rows: Sequence[Mapping[str, Any]], path: Path) -> Path:
+    """One row per (scene, method, spp), the columns of :data:`CSV_COLUMNS`; empty cells where n/a."""
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow(CSV_COLUMNS)
+    for row in rows:
+        writer.writerow([_cell(row.get(c)) for c in CSV_COLUMNS])
+    write_bytes_atomic(path, buffer.getvalue().encode())
+    return path
+
+
+def write_outputs(evaluation: Evaluation) -> dict[str, Path]:
+    """Write results.csv, results.json, plots/, crops/ and report.md; return their paths."""
+    out = evaluation.config.output
+    paths: dict[str, Path] = {"csv": write_csv(evaluation.rows, out / "results.csv")}
+    for scene in evaluation.scenes:
+        name = scene.entry.name
+        scene_rows = [r for r in evaluation.rows if r["scene"] == name]
+        if scene_rows:
+            paths[f"plot:{name}"] = plot_error_vs_time(name, scene_rows, LABELS, out / "plots" / f"{slug(name)}.png")
+        table = _by_method(scene_rows, evaluation.config.crop_spp)
+        metrics = {m: float(r["relmse"]) for m, r in table.items()}
+        from model.evaluate import CROP_METHODS
+
+        paths[f"crop:{name}"] = plot_crops(name, scene.reference, scene.crop_images, CROP_METHODS, _crop_labels(),
+                                           metrics, evaluation.config.crop_spp, out / "crops" / f"{slug(name)}.png")
+    paths["json"] = out / "results.json"
+    write_bytes_atomic(paths["json"], json.dumps(_summary(evaluation), indent=1, default=str).encode())
+    paths["report"] = out / "report.md"
+    write_bytes_atomic(paths["report"], render_report(evaluation).encode())
+    return paths
+
+
+def _crop_labels() -> dict[str, str]:
+    return {"gpt-primal": "Input (G-PT)", "l1": "L1", "gradnet": "GradNet-style", "ours": "Ours",
+            "path-oidn": "path + OIDN", "reference": "Reference"}
+
+
+def _summary(evaluation: Evaluation) -> dict[str, Any]:
+    c = evaluation.config
+    return {
+        "command": invocation(), "reproduce": reproduce_command(c), "created": _now(), "machine": machine(),
+        "software": software(),
+        "config": {"scenes": [s.entry.spec for s in evaluation.scenes], "spp": list(c.spp), "size": [c.width, c.height],
+                   "ref_spp": c.ref_spp, "seed": c.seed, "max_depth": c.max_depth, "alpha": c.alpha,
+                   "table_spp": c.crop_spp, "methods": list(c.methods), "quick": c.quick,
+                   "models_dir": str(c.models_dir)},
+        "models": evaluation.models, "skipped": evaluation.skipped, "notes": evaluation.notes,
+        "rows": evaluation.rows,
+    }
+
+
+# ---------------------------------------------------------------------------------------- provenance
+
+
+def _now() -> str:
+    return datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
+
+
+def invocation() -> str:
+    """The command line as typed, when this process is `gradsep evaluate`; else the Python entry."""
+    args = sys.argv[1:]
+    if "evaluate" in args:
+        return shlex.join(["gradsep", *args[args.index("evaluate"):]])
+    return shlex.join([Path(sys.argv[0]).name, *args]) if sys.argv and sys.argv[0] else "(library call)"
+
+
+def reproduce_command(c: EvalConfig) -> str:
+    """A command that reproduces this run with every setting explicit (env vars for the options the parser
+    does not have yet)."""
+    env = {"GRADSEP_MODELS": str(c.models_dir), "GRADSEP_EVAL_SIZE": f"{c.width}x{c.height}",
+           "GRADSEP_EVAL_REF_SPP": str(c.ref_spp), "GRADSEP_EVAL_SEED": str(c.seed),
+           "GRADSEP_EVAL_METHODS": ",".join(c.methods)}
+    if c.max_depth is not None:
+        env["GRADSEP_EVAL_MAX_DEPTH"] = str(c.max_depth)
+    if c.alpha != 0.2:
+        env["GRADSEP_EVAL_ALPHA"] = f"{c.alpha:g}"
+    args = ["gradsep", "evaluate"]
+    if c.scenes:
+        args += ["--scenes", *c.scenes]
+    args += ["--spp", ",".join(str(s) for s in c.spp)]
+    if c.quick:
+        args.append("--quick")
+    args += ["-o", str(c.output)]
+    return " ".join(f"{k}={shlex.quote(v)}" for k, v in env.items()) + " " + shlex.join(args)
+
+
+def machine() -> str:
+    from model.evaluate import machine_summary
+
+    mem = ""
+    try:
+        pages, size = os.sysconf("SC_PHYS_PAGES"), os.sysconf("SC_PAGE_SIZE")
+        mem = f", {pages * size / 2**30:.0f} GiB RAM"
+    except (ValueError, OSError, AttributeError):
+        pass
+    return f"{machine_summary()}{mem}; {platform.system()} {platform.release()}"
+
+
+def software() -> dict[str, str]:
+    from importlib import metadata
+
+    out = {"python": platform.python_version()}
+    for package in ("mitsuba", "drjit", "numpy", "onnxruntime", "pyoidn", "flip-evaluator"):
+        try:
+            out[package] = metadata.version(package)
+        except metadata.PackageNotFoundError:
+            out[package] = "not installed"
+    try:
+        import mitsuba as mi
+
+        out["mitsuba variant"] = str(mi.variant())
+    except ImportError:
+        pass
+    return out
+
+
+# -------------------------------------------------------------------------------------------- analysis
+
+
+def _by_method(rows: Iterable[Mapping[str, Any]], spp: int) -> dict[str, Mapping[str, Any]]:
+    return {str(r["method"]): r for r in rows if int(r["spp"]) == spp}
+
+
+def _fmt(value: Any, digits: int = 4) -> str:
+    if value is None:
+        return "–"
+    value = float(value)
+    if math.isinf(value):
+        return "∞"
+    return f"{value:.{digits}g}"
+
+
+def losses_of_ours(rows: Sequence[Mapping[str, Any]]) -> list[str]:
+    """Every (scene, spp) where some other method has a lower RelMSE than ours, as sentences."""
+    out = []
+    scenes = sorted({str(r["scene"]) for r in rows}, key=lambda s: [str(r["scene"]) for r in rows].index(s))
+    for scene in scenes:
+        for spp in sorted({int(r["spp"]) for r in rows if r["scene"] == scene}):
+            table = _by_method((r for r in rows if r["scene"] == scene), spp)
+            if "ours" not in table:
+                continue
+            ours = float(table["ours"]["relmse"])
+            better = sorted(((float(r["relmse"]), m) for m, r in table.items()
+                             if m != "ours" and float(r["relmse"]) < ours))
+            if better:
+                who = ", ".join(f"{m} {v:.4g}" for v, m in better)
+                out.append(f"{scene}, {spp} spp: ours {ours:.4g}; lower: {who}")
+    return out
+
+
+def _bold_best(values: dict[str, float | None], higher: bool) -> dict[str, str]:
+    present = {k: v for k, v in values.items() if v is not None and not math.isnan(v)}
+    best = (max if higher else min)(present.values()) if present else None
+    return {k: ("–" if v is None else (f"**{_fmt(v)}**" if v == best else _fmt(v))) for k, v in values.items()}
+
+
+# --------------------------------------------------------------------------------------------- report
+
+
+def render_report(evaluation: Evaluation) -> str:
+    """The whole report.md as a string."""
+    c = evaluation.config
+    rows = evaluation.rows
+    spp = c.crop_spp
+    lines: list[str] = ["# gradsep evaluation", ""]
+    lines += _provenance(evaluation)
+    lines += _table1(evaluation, spp)
+    lines += _ablation(evaluation, spp)
+    lines += _equal_time(evaluation)
+    lines += ["## Error against time", "",
+              "RelMSE against total wall time per frame (render + reconstruction), log–log, one curve per method; "
+              "a curve further down-left is better at equal time. Each point is one spp of the list above; the "
+              "equal-time methods sit at the time of the G-PT point they are paired with.", ""]
+    for scene in evaluation.scenes:
+        lines.append(f"![{scene.entry.name}: RelMSE against time](plots/{slug(scene.entry.name)}.png)")
+    lines += ["", f"## Crop comparison ({spp} spp)", "",
+              "Input (G-PT primal), L1, GradNet-style, ours, Mitsuba path + OIDN at equal time, reference. All "
+              "panels share one exposure (the reference's 99th-percentile luminance maps to 1), then clip to "
+              "[0, 1] and gamma 2.2. The crop is the square window of the reference with the most gradient "
+              "energy (chosen from the reference alone, identical for every method).", ""]
+    for scene in evaluation.scenes:
+        lines.append(f"![{scene.entry.name}: crops](crops/{slug(scene.entry.name)}.png)")
+    lines += ["", "## Where ours loses", ""]
+    losses = losses_of_ours(rows)
+    if not any(r["method"] == "ours" for r in rows):
+        lines.append("Ours was not evaluated (see skipped methods).")
+    elif losses:
+        lines.append("Every (scene, spp) at which another method has a lower RelMSE than ours:")
+        lines.append("")
+        lines += [f"- {loss}" for loss in losses]
+    else:
+        lines.append("No evaluated method has a lower RelMSE than ours at any scene and spp.")
+    lines += ["", *_targets(rows)]
+    lines += _relmse_tables(evaluation)
+    lines += _notes(evaluation)
+    return "\n".join(lines) + "\n"
+
+
+def _provenance(evaluation: Evaluation) -> list[str]:
+    c = evaluation.config
+    sw = software()
+    lines = [f"Produced {_now()} by `{invocation()}`.", "",
+             "Reproduce with every setting explicit:", "", "```sh", reproduce_command(c), "```", "",
+             f"- Machine: {machine()}",
+             "- Software: " + ", ".join(f"{k} {v}" for k, v in sw.items()),
+             f"- Frames: {c.width}×{c.height}, G-PT at {', '.join(str(s) for s in c.spp)} spp, seed {c.seed}; "
+             f"references: Mitsuba `path`, {c.ref_spp} spp, box filter, same max depth"
+             + (" (--quick)" if c.quick else ""),
+             f"- Tables at {c.crop_spp} spp; Poisson α = {c.alpha:g}", "",
+             "| scene | spec | max depth | layers |", "|---|---|---|---|"]
+    for scene in evaluation.scenes:
+        lines.append(f"| {scene.entry.name} | `{scene.entry.spec}` | {scene.max_depth} | {', '.join(scene.layers)} |")
+    lines += ["", f"Models folder `{c.models_dir}`:", ""]
+    if evaluation.models:
+        lines += [f"- `{name}` sha256 `{sha[:16]}…`" for name, sha in evaluation.models.items()]
+    else:
+        lines.append("- no model files found")
+    lines += ["", "Skipped methods:", ""]
+    if evaluation.skipped:
+        for method, missing in evaluation.skipped.items():
+            lines.append(f"- **{method}** ({LABELS.get(method, method)}): not found: "
+                         + ", ".join(f"`{m}`" for m in missing))
+    else:
+        lines.append("- none")
+    return [*lines, ""]
+
+
+def _table1(evaluation: Evaluation, spp: int) -> list[str]:
+    lines = [f"## Table 1: reconstruction quality at {spp} spp", "",
+             "In the form of the paper's Table 1 (which reports SSIM and LPIPS; LPIPS is not computed here, "
+             "RelMSE, HDR-FLIP and PSNR are). Best of the four per scene in bold. SSIM and PSNR on the display "
+             "tonemap, RelMSE on linear radiance (model/metrics.py).", "",
+             "| Scene | Method | " + " | ".join(h for _, h, _ in TABLE1_METRICS) + " |",
+             "|---|---|" + "---:|" * len(TABLE1_METRICS)]
+    for scene in evaluation.scenes:
+        table = _by_method((r for r in evaluation.rows if r["scene"] == scene.entry.name), spp)
+        cells = {}
+        for metric, _, higher in TABLE1_METRICS:
+            values = {m: (float(table[m][metric]) if m in table else None) for m, _ in TABLE1}
+            cells[metric] = _bold_best(values, higher)
+        for i, (method, label) in enumerate(TABLE1):
+            name = scene.entry.name if i == 0 else ""
+            shown = label if method in table else f"{label} (skipped)"
+            lines.append(f"| {name} | {shown} | " + " | ".join(cells[m][method] for m, _, _ in TABLE1_METRICS) + " |")
+    return [*lines, ""]
+
+
+def _ablation(evaluation: Evaluation, spp: int) -> list[str]:
+    names = [f"ablation/{v}" for v, _, _ in ABLATION_VARIANTS]
+    headers = ["(a) no separation, no attention", "(b) separation, no attention", "(c) no separation, attention",
+               "(d) separation, attention"]
+    lines = [f"## Ablation (paper Fig. 7): RelMSE at {spp} spp", "",
+             "The four variants trained with one identical budget (models/ablation/<variant>/). Lowest per scene "
+             "in bold.", "", "| Scene | " + " | ".join(headers) + " |", "|---|" + "---:|" * 4]
+    per_variant: dict[str, list[float]] = {n: [] for n in names}
+    complete_scenes = 0
+    for scene in evaluation.scenes:
+        table = _by_method((r for r in evaluation.rows if r["scene"] == scene.entry.name), spp)
+        values = {n: (float(table[n]["relmse"]) if n in table else None) for n in names}
+        cells = _bold_best(values, higher=False)
+        lines.append(f"| {scene.entry.name} | " + " | ".join(cells[n] for n in names) + " |")
+        if all(v is not None for v in values.values()):
+            complete_scenes += 1
+            for n in names:
+                per_variant[n].append(float(values[n]))  # type: ignore[arg-type]
+    if complete_scenes:
+        means = {n: sum(v) / len(v) for n, v in per_variant.items()}
+        cells = _bold_best(means, higher=False)  # type: ignore[arg-type]
+        lines.append(f"| mean ({complete_scenes} scenes) | " + " | ".join(cells[n] for n in names) + " |")
+    lines.append("| paper (its scenes) | " + " | ".join(_fmt(PAPER_FIG7[v]) for v, _, _ in ABLATION_VARIANTS) + " |")
+    lines.append("")
+    lines += _ablation_verdicts(evaluation, spp)
+    return [*lines, ""]
+
+
+def _ablation_verdicts(evaluation: Evaluation, spp: int) -> list[str]:
+    """How often separation and attention each lowered RelMSE, over scenes and the two settings of the other."""
+    pairs = {"separation": [("combined-noattn", "separated-noattn"), ("combined-attn", "separated-attn")],
+             "attention": [("combined-noattn", "combined-attn"), ("separated-noattn", "separated-attn")]}
+    lines = []
+    for factor, comparisons in pairs.items():
+        wins = total = 0
+        for scene in evaluation.scenes:
+            table = _by_method((r for r in evaluation.rows if r["scene"] == scene.entry.name), spp)
+            for without, with_ in comparisons:
+                a, b = table.get(f"ablation/{without}"), table.get(f"ablation/{with_}")
+                if a is not None and b is not None:
+                    total += 1
+                    wins += float(b["relmse"]) < float(a["relmse"])
+        if total:
+            lines.append(f"- {factor.capitalize()} lowered RelMSE in {wins} of {total} comparisons.")
+    if not lines:
+        lines.append("- The ablation models were not evaluated (see skipped methods).")
+    return lines
+
+
+def _equal_time(evaluation: Evaluation) -> list[str]:
+    lines = ["## Equal time: G-PT + ours against Mitsuba path and path + OIDN", "",
+             "Mitsuba's spp is chosen so its render (plus denoising for OIDN) fits the time of the G-PT render + "
+             "the reconstruction by ours (by L1 when ours is unavailable; column *budget*); the times shown are "
+             "the measured ones. Lowest RelMSE per row in bold.", "",
+             "| Scene | G-PT spp | budget | budget s | ours RelMSE | path spp | path s | path RelMSE | "
+             "OIDN spp | OIDN s | path+OIDN RelMSE |", "|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    any_row = False
+    for scene in evaluation.scenes:
+        scene_rows = [r for r in evaluation.rows if r["scene"] == scene.entry.name]
+        for spp in sorted({int(r["spp"]) for r in scene_rows}):
+            table = _by_method(scene_rows, spp)
+            path, oidn, ours = table.get("path"), table.get("path-oidn"), table.get("ours")
+            if path is None and oidn is None:
+                continue
+            any_row = True
+            anchor = path or oidn
+            assert anchor is not None
+            values = {"ours": float(ours["relmse"]) if ours else None,
+                      "path": float(path["relmse"]) if path else None,
+                      "oidn": float(oidn["relmse"]) if oidn else None}
+            cells = _bold_best(values, higher=False)
+            lines.append(
+                f"| {scene.entry.name} | {spp} | {anchor.get('budget_method') or '–'} | "
+                f"{_fmt(anchor.get('target_seconds'), 3)} | {cells['ours']} | "
+                f"{path['method_spp'] if path else '–'} | {_fmt(path['total_seconds'], 3) if path else '–'} | "
+                f"{cells['path']} | {oidn['method_spp'] if oidn else '–'} | "
+                f"{_fmt(oidn['total_seconds'], 3) if oidn else '–'} | {cells['oidn']} |")
+    if not any_row:
+        lines.append("| (equal-time methods not evaluated) |" + " |" * 10)
+    return [*lines, ""]
+
+
+def _targets(rows: Sequence[Mapping[str, Any]]) -> list[str]:
+    """Issue 5's quality target at 16 and 64 spp: RelMSE(ours) < RelMSE(L1) < RelMSE(G-PT primal)."""
+    lines = ["Quality target of issue 5 (RelMSE ours < L1 < input, per scene):", ""]
+    found = False
+    for scene in dict.fromkeys(str(r["scene"]) for r in rows):
+        for spp in (16, 64):
+            table = _by_method((r for r in rows if r["scene"] == scene), spp)
+            if all(m in table for m in ("ours", "l1", "gpt-primal")):
+                found = True
+                o, l1, p = (float(table[m]["relmse"]) for m in ("ours", "l1", "gpt-primal"))
+                verdict = "met" if o < l1 < p else "**not met**"
+                lines.append(f"- {scene}, {spp} spp: ours {o:.4g}, L1 {l1:.4g}, input {p:.4g}: {verdict}")
+    if not found:
+        lines.append("- not checked (needs ours, L1 and the input at 16 or 64 spp)")
+    return [*lines, ""]
+
+
+def _relmse_tables(evaluation: Evaluation) -> list[str]:
+    lines = ["## RelMSE and time by spp, all methods", "",
+             "Cells: RelMSE / total seconds. Per-layer RelMSE (direct, indirect) is in results.csv.", ""]
+    for scene in evaluation.scenes:
+        scene_rows = [r for r in evaluation.rows if r["scene"] == scene.entry.name]
+        spps = sorted({int(r["spp"]) for r in scene_rows})
+        methods = [m.name for m in METHODS if any(r["method"] == m.name for r in scene_rows)]
+        lines += [f"### {scene.entry.name}", "", "| Method | " + " | ".join(f"{s} spp" for s in spps) + " |",
+                  "|---|" + "---:|" * len(spps)]
+        for method in methods:
+            cells = []
+            for s in spps:
+                r = next((r for r in scene_rows if r["method"] == method and int(r["spp"]) == s), None)
+                cells.append("–" if r is None else f"{_fmt(r['relmse'])} / {_fmt(r['total_seconds'], 3)} s")
+            lines.append(f"| {LABELS.get(method, method)} | " + " | ".join(cells) + " |")
+        lines.append("")
+    return lines
+
+
+def _notes(evaluation: Evaluation) -> list[str]:
+    c = evaluation.config
+    lines = ["## Notes", "",
+             "- Timings are wall-clock seconds on the machine above, single frames, one run each: noisy on a "
+             "shared machine. Rows taken from the cache keep the timings of the run that computed them "
+             "(results.json records the machine per row).",
+             "- One-time costs are excluded on both sides: ONNX Runtime's first run on a frame size and Mitsuba's "
+             "kernel compilation. The G-PT time is the renderer's own, including its per-frame tracing.",
+             "- The reference is itself a Monte Carlo estimate: RelMSE values near "
+             f"what {c.ref_spp} spp of `path` leaves behind are not resolved."]
+    machines = sorted({str(r.get("machine")) for r in evaluation.rows if r.get("machine")})
+    if len(machines) > 1:
+        lines.append("- Rows were computed on more than one machine: " + "; ".join(machines))
+    if c.ref_spp < 16 * max(c.spp):
+        lines.append(f"- The reference has {c.ref_spp} spp, less than 16× the largest evaluated spp "
+                     f"({max(c.spp)}): errors at high spp are dominated by the reference's own noise.")
+    lines += [f"- {note}" for note in evaluation.notes]
+    computed = evaluation.computed
+    lines.append(f"- This run computed {computed['frames']} frames, {computed['references']} references and "
+                 f"{computed['results']} results; the rest came from the cache ({c.cache_dir / 'evaluate'}).")
+    return [*lines, ""]

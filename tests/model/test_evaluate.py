@@ -1,0 +1,325 @@
+"""`gradsep evaluate`: options, the equal-time cost model, crop selection, the report's verdicts, and one tiny real
+run (procedural scene, 32×32, 1-2 spp, real Mitsuba/ONNX Runtime/OIDN) with its cache behaviour.
+
+The network methods run real ONNX Runtime sessions on small hand-built ONNX graphs (a 3×3 blur of the
+log-encoded base, with the gradsep metadata model/infer.py checks): trained models are not needed to test the
+plumbing, and a different graph is a different file, which is what the cache must notice.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import math
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gradsep.cli import CommandError, main
+from model.evaluate import (
+    QUICK,
+    EvalConfig,
+    config_from_args,
+    evaluate_command,
+    parse_methods,
+    parse_size,
+    parse_spp,
+    resolve_scenes,
+    run_evaluation,
+    table_spp_for,
+)
+from model.evaluate_methods import CostModel, split_aov
+from model.evaluate_plots import select_crop
+from model.evaluate_report import CSV_COLUMNS, losses_of_ours
+
+SCENE = "procedural:90001"
+SPP = (1, 2)
+METHODS = ("gpt-primal", "l1", "gradnet", "ablation/separated-attn", "ours", "path", "path-oidn")
+
+
+# --------------------------------------------------------------------------------------------- options
+
+
+def test_parse_spp_sorts_dedupes_and_rejects_bad_counts():
+    assert parse_spp("16, 1,4,4") == (1, 4, 16)
+    for bad in ("1,x", "0,2", "-1", "", " , "):
+        with pytest.raises(CommandError):
+            parse_spp(bad)
+
+
+def test_parse_size_and_methods():
+    assert parse_size("320x240") == (320, 240)
+    for bad in ("320", "0x5", "axb"):
+        with pytest.raises(CommandError):
+            parse_size(bad)
+    assert parse_methods("ours,l1") == ("l1", "ours")  # canonical order: ours runs before the equal-time methods
+    assert len(parse_methods("ablation")) == 4
+    with pytest.raises(CommandError, match="unknown method 'nope'"):
+        parse_methods("l1,nope")
+
+
+def test_table_spp_prefers_16_else_nearest_in_log2():
+    assert table_spp_for((1, 2, 4, 8, 16, 32, 64)) == 16
+    assert table_spp_for((1, 4)) == 4
+    assert table_spp_for((64, 256)) == 64
+    assert table_spp_for((8, 32)) == 32  # equally far: the larger
+
+
+def _args(**kw) -> argparse.Namespace:
+    base = {"scenes": None, "spp": "1,2,4,8,16,32,64", "quick": False, "output": "out"}
+    base.update(kw)
+    return argparse.Namespace(**base)
+
+
+def test_quick_replaces_the_default_spp_but_keeps_an_explicit_one(monkeypatch):
+    for name in ("GRADSEP_EVAL_SIZE", "GRADSEP_EVAL_REF_SPP", "GRADSEP_EVAL_METHODS", "GRADSEP_EVAL_TABLE_SPP"):
+        monkeypatch.delenv(name, raising=False)
+    quick = config_from_args(_args(quick=True))
+    assert quick.spp == QUICK.spp and (quick.width, quick.height) == (QUICK.width, QUICK.height)
+    assert quick.ref_spp == QUICK.ref_spp
+    assert config_from_args(_args(quick=True, spp="2,8")).spp == (2, 8)
+    monkeypatch.setenv("GRADSEP_EVAL_SIZE", "40x30")
+    monkeypatch.setenv("GRADSEP_EVAL_REF_SPP", "64")
+    config = config_from_args(_args(spp="1,4"))
+    assert (config.width, config.height, config.ref_spp) == (40, 30, 64)
+    monkeypatch.setenv("GRADSEP_EVAL_TABLE_SPP", "16")
+    with pytest.raises(CommandError, match="--table-spp 16 is not one of"):
+        config_from_args(_args(spp="1,4"))
+    monkeypatch.setenv("GRADSEP_EVAL_TABLE_SPP", "4")
+    monkeypatch.setenv("GRADSEP_EVAL_REF_SPP", "0")
+    with pytest.raises(CommandError, match="--ref-spp must be >= 1"):
+        config_from_args(_args(spp="1,4"))
+
+
+def test_scene_resolution(tmp_path):
+    entries, _ = resolve_scenes(["procedural:7", "procedural:7"])
+    assert [e.name for e in entries] == ["procedural:7"]  # repeats dropped
+    for bad in ("procedural:x", "procedural:-3", str(tmp_path / "missing.xml")):
+        with pytest.raises(CommandError):
+            resolve_scenes([bad])
+    for folder in ("a", "b"):
+        (tmp_path / folder).mkdir()
+        (tmp_path / folder / "scene.xml").write_text("<scene version='3.0.0'/>")
+    entries, _ = resolve_scenes([str(tmp_path / "a" / "scene.xml"), str(tmp_path / "b")])
+    assert [e.name for e in entries] == ["a/scene", "b/scene"]  # equal stems told apart by folder
+    defaults, _ = resolve_scenes([])
+    assert {"procedural:90001", "procedural:90002"} <= {e.name for e in defaults}
+
+
+def test_command_refuses_bad_input_before_rendering(tmp_path, capsys):
+    not_a_folder = tmp_path / "file"
+    not_a_folder.write_text("x")
+    with pytest.raises(CommandError, match="not a folder"):
+        evaluate_command(_args(output=str(not_a_folder), scenes=[SCENE]))
+    assert main(["evaluate", "--spp", "1,zero", "-o", str(tmp_path / "r")]) == 2
+    assert "is not an integer" in capsys.readouterr().err
+    assert main(["evaluate", "--scenes", str(tmp_path / "nope.xml"), "-o", str(tmp_path / "r")]) == 2
+    assert "not found" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------------------- equal time
+
+
+def test_cost_model_fits_the_line_and_picks_the_largest_spp_in_budget():
+    model = CostModel(max_spp=10_000)
+    for spp in (1, 8, 64):
+        model.add(spp, 0.5 + 0.01 * spp)
+    overhead, per_spp = model.fit()
+    assert overhead == pytest.approx(0.5) and per_spp == pytest.approx(0.01)
+    assert model.spp_for(1.5) == 100
+    assert model.spp_for(0.1) == 1  # never below 1
+    assert model.spp_for(1e6) == 10_000  # capped (Mitsuba's samples per launch)
+
+
+def test_cost_model_survives_noise_that_inverts_the_slope():
+    model = CostModel(max_spp=1000)
+    model.add(1, 0.3)
+    model.add(8, 0.2)  # the larger render measured faster
+    overhead, per_spp = model.fit()
+    assert per_spp > 0 and overhead >= 0
+    assert 1 <= model.spp_for(1.0) <= 1000
+
+
+def test_split_aov_takes_rgb_first_and_aovs_last():
+    image = np.arange(2 * 2 * 10, dtype=np.float32).reshape(2, 2, 10)  # R G B A + albedo + normal
+    color, albedo, normal = split_aov(image)
+    assert np.array_equal(color, image[..., :3]) and np.array_equal(albedo, image[..., 4:7])
+    assert np.array_equal(normal, image[..., 7:])
+    with pytest.raises(RuntimeError):
+        split_aov(image[..., :6])
+
+
+# ----------------------------------------------------------------------------------------- report logic
+
+
+def test_crop_selects_the_detailed_region():
+    reference = np.full((60, 80, 3), 0.3, np.float32)
+    yy, xx = np.mgrid[0:20, 0:20]
+    reference[35:55, 50:70] = (((yy + xx) % 2) * 0.8 + 0.1)[..., None]  # a checkerboard: all the detail
+    y0, x0, side = select_crop(reference)
+    assert side == 20
+    assert abs(y0 - 35) <= 1 and abs(x0 - 50) <= 1
+
+
+def test_losses_of_ours_lists_every_better_method():
+    rows = [{"scene": "s", "method": m, "spp": spp, "relmse": v}
+            for spp, values in ((1, {"ours": 0.1, "l1": 0.2, "path-oidn": 0.05}), (4, {"ours": 0.01, "l1": 0.02}))
+            for m, v in values.items()]
+    assert losses_of_ours(rows) == ["s, 1 spp: ours 0.1; lower: path-oidn 0.05"]
+
+
+# ------------------------------------------------------------------------------------------ a real run
+
+
+def _blur_model(path: Path, layer: str, kernel: int) -> None:
+    """An ONNX graph that averages the log-encoded base over kernel×kernel pixels, with gradsep metadata."""
+    import onnx
+    from onnx import TensorProto, helper
+
+    from model.preprocess import DATA_INPUTS, GRADIENT_INPUTS, describe_preprocessing
+
+    nodes = [
+        helper.make_node("Constant", [], ["starts"], value=helper.make_tensor("s", TensorProto.INT64, [1], [0])),
+        helper.make_node("Constant", [], ["ends"], value=helper.make_tensor("e", TensorProto.INT64, [1], [3])),
+        helper.make_node("Constant", [], ["axes"], value=helper.make_tensor("a", TensorProto.INT64, [1], [1])),
+        helper.make_node("Slice", ["data", "starts", "ends", "axes"], ["base"]),
+        helper.make_node("AveragePool", ["base"], ["radiance_log"], kernel_shape=[kernel, kernel],
+                         pads=[kernel // 2] * 4, count_include_pad=0),
+    ]
+    graph = helper.make_graph(
+        nodes, "blur",
+        [helper.make_tensor_value_info("data", TensorProto.FLOAT, ["n", len(DATA_INPUTS), "h", "w"]),
+         helper.make_tensor_value_info("gradient", TensorProto.FLOAT, ["n", len(GRADIENT_INPUTS), "h", "w"])],
+        [helper.make_tensor_value_info("radiance_log", TensorProto.FLOAT, ["n", 3, "h", "w"])])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)], ir_version=10)
+    import json
+
+    helper.set_model_props(model, {
+        "gradsep.layer": layer, "gradsep.alignment": "4",
+        "gradsep.inputs": json.dumps({"data": list(DATA_INPUTS), "gradient": list(GRADIENT_INPUTS)}),
+        "gradsep.preprocessing": json.dumps(describe_preprocessing()),
+    })
+    onnx.checker.check_model(model)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    onnx.save_model(model, str(path))
+
+
+def _config(root: Path, output: str = "report") -> EvalConfig:
+    return EvalConfig(scenes=(SCENE,), spp=SPP, width=32, height=32, ref_spp=16, output=root / output,
+                      cache_dir=root / "cache", models_dir=root / "models", methods=METHODS, seed=3)
+
+
+def _read_csv(path: Path) -> list[dict[str, str]]:
+    with open(path, newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+@pytest.fixture(scope="module")
+def first_run(tmp_path_factory):
+    root = tmp_path_factory.mktemp("evaluate")
+    models = root / "models"
+    for layer in ("direct", "indirect", "color"):
+        _blur_model(models / f"{layer}.onnx", layer, 3)
+    for layer in ("direct", "indirect"):
+        _blur_model(models / "ablation" / "separated-attn" / f"{layer}.onnx", layer, 5)
+    evaluation = run_evaluation(_config(root), progress=False, log=lambda message: None)
+    return root, evaluation
+
+
+def test_run_writes_every_output_with_finite_consistent_rows(first_run):
+    root, evaluation = first_run
+    report = root / "report"
+    rows = _read_csv(report / "results.csv")
+    assert list(rows[0]) == list(CSV_COLUMNS)
+    assert sorted((r["method"], int(r["spp"])) for r in rows) == sorted((m, s) for m in METHODS for s in SPP)
+    for r in rows:
+        values = [float(r[c]) for c in ("render_seconds", "reconstruct_seconds", "total_seconds", "relmse", "ssim",
+                                        "psnr", "flip")]
+        assert all(math.isfinite(v) for v in values), r
+        assert float(r["total_seconds"]) == pytest.approx(float(r["render_seconds"]) + float(r["reconstruct_seconds"]),
+                                                          rel=1e-4, abs=1e-5)
+        assert 0 <= float(r["ssim"]) <= 1 and 0 <= float(r["flip"]) <= 1
+    for name in ("results.json", "report.md", "plots/procedural-90001.png", "crops/procedural-90001.png"):
+        assert (report / name).is_file(), name
+    for png in ("plots/procedural-90001.png", "crops/procedural-90001.png"):
+        assert (report / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert evaluation.computed == {"frames": len(SPP), "references": 1, "results": len(METHODS) * len(SPP)}
+
+
+def test_primal_row_is_the_cached_frame_scored_against_the_cached_reference(first_run):
+    """The input's RelMSE recomputed from the files in the cache: the row scores what was rendered."""
+    from model.frame import read_frame
+    from model.metrics import relmse
+    from renderer.reference import load_reference
+
+    root, evaluation = first_run
+    frames = sorted((root / "cache" / "evaluate" / "frames").rglob("*spp2-*.exr"))
+    references = sorted((root / "cache" / "evaluate" / "references").rglob("*.exr"))
+    assert len(frames) == 1 and len(references) == 1
+    frame = read_frame(str(frames[0]))
+    reference = load_reference(str(references[0]))
+    primal = sum(layer.base for layer in frame.layers.values())
+    row = next(r for r in evaluation.rows if r["method"] == "gpt-primal" and r["spp"] == 2)
+    assert row["relmse"] == pytest.approx(relmse(primal, reference.total), rel=1e-6)
+    assert row["relmse_direct"] == pytest.approx(relmse(frame.layers["direct"].base, reference.direct), rel=1e-6)
+    assert row["render_seconds"] == pytest.approx(float(frame.metadata["gradsep.render_seconds"]))
+
+
+def test_equal_time_methods_use_ours_as_the_budget(first_run):
+    _, evaluation = first_run
+    by = {(r["method"], r["spp"]): r for r in evaluation.rows}
+    for spp in SPP:
+        ours = by[("ours", spp)]
+        for method in ("path", "path-oidn"):
+            row = by[(method, spp)]
+            assert row["budget_method"] == "ours"
+            assert row["target_seconds"] == pytest.approx(ours["total_seconds"])
+            assert row["method_spp"] >= 1
+        assert by[("path-oidn", spp)]["reconstruct_seconds"] > 0  # the denoiser's time is counted
+        assert by[("ours", spp)]["relmse_indirect"] is not None
+
+
+def test_missing_models_are_skipped_and_reported(first_run):
+    root, evaluation = first_run
+    # only the methods requested and absent are skipped: separated-attn has its models, the other variants
+    # were not requested
+    assert evaluation.skipped == {}
+    report = (root / "report" / "report.md").read_text()
+    for text in ("Table 1", "Ablation (paper Fig. 7)", "Equal time", "Where ours loses", "Skipped methods"):
+        assert text in report
+    config = _config(root, output="report-all")
+    config = EvalConfig(**{**config.__dict__, "methods": ("gpt-primal", "ablation/combined-attn"), "spp": (1,)})
+    evaluation = run_evaluation(config, progress=False, log=lambda message: None)
+    assert list(evaluation.skipped) == ["ablation/combined-attn"]
+    assert evaluation.skipped["ablation/combined-attn"][0].endswith("ablation/combined-attn/color.onnx")
+    assert "ablation/combined-attn/color.onnx" in (root / "report-all" / "report.md").read_text()
+    assert evaluation.computed["frames"] == 0  # the 1-spp frame came from the cache
+
+
+def test_rerun_computes_only_what_changed(first_run, monkeypatch):
+    root, first = first_run
+    csv_before = (root / "report" / "results.csv").read_bytes()
+
+    def no_rendering(*args, **kwargs):
+        raise AssertionError("a cached frame or reference was rendered again")
+
+    monkeypatch.setattr("renderer.render.render_frame", no_rendering)
+    monkeypatch.setattr("renderer.reference.render_reference", no_rendering)
+    again = run_evaluation(_config(root), progress=False, log=lambda message: None)
+    assert again.computed == {"frames": 0, "references": 0, "results": 0}
+    assert (root / "report" / "results.csv").read_bytes() == csv_before
+
+    # a new `ours` model: ours is recomputed, and so are the equal-time methods whose budget it sets
+    _blur_model(root / "models" / "direct.onnx", "direct", 5)
+    # and a damaged cache entry is recomputed rather than trusted
+    damaged = next(p for p in (root / "cache" / "evaluate" / "results").rglob("l1-*spp1-*.json"))
+    damaged.write_text("{ truncated")
+    changed = run_evaluation(_config(root), progress=False, log=lambda message: None)
+    assert changed.computed == {"frames": 0, "references": 0, "results": 3 * len(SPP) + 1}
+    old = {(r["method"], r["spp"]): r["relmse"] for r in first.rows}
+    new = {(r["method"], r["spp"]): r["relmse"] for r in changed.rows}
+    assert new[("gradnet", 1)] == old[("gradnet", 1)]
+    assert new[("ours", 1)] != old[("ours", 1)]
+    shutil.rmtree(root / "report-all", ignore_errors=True)
