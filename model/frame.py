@@ -298,10 +298,8 @@ def _prefix(source: Source, n: int) -> bytes:
             raise NotExrError(f"cannot read {os.fspath(source)!r}: {exc.strerror or exc}") from exc
     if isinstance(source, bytes | bytearray | memoryview):
         return bytes(source[:n])
-    pos = source.tell()
-    head = source.read(n)
-    source.seek(pos)
-    return head
+    source.seek(0)  # a stream source is the whole file, as for OpenEXR below
+    return source.read(n)
 
 
 _MAX_HEADER_BYTES = 16 << 20  # attributes beyond this are not a frame header we accept

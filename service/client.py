@@ -145,7 +145,7 @@ def post_frame(client: httpx.Client, url: str, data: bytes, params: dict[str, An
 
 def _resolve(args: argparse.Namespace) -> tuple[str, str | None]:
     """URL and token: the flag, else GRADSEP_URL / GRADSEP_TOKEN, else the default URL and no token."""
-    url = args.url if args.url and args.url != DEFAULT_URL else os.environ.get("GRADSEP_URL") or DEFAULT_URL
+    url = args.url or os.environ.get("GRADSEP_URL") or DEFAULT_URL
     token = args.token or os.environ.get("GRADSEP_TOKEN") or None
     if not url.startswith(("http://", "https://")):
         from gradsep.cli import CommandError

@@ -27,7 +27,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("client", help="post a frame to the service and write the reconstruction (render-farm task)")
     p.add_argument("frame", help="input frame (.exr)")
     p.add_argument("-o", "--output", required=True, help="output .exr, written atomically")
-    p.add_argument("--url", default="http://127.0.0.1:8000", help="service base URL (or $GRADSEP_URL)")
+    p.add_argument("--url", default=None, help="service base URL (default: $GRADSEP_URL or http://127.0.0.1:8000)")
     p.add_argument("--method", choices=("network", "l1", "l2"), default=None)
     p.add_argument("--alpha", type=float, default=None)
     p.add_argument("--format", choices=("half", "float"), default=None)
