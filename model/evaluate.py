@@ -427,7 +427,8 @@ class _Runner:
                 pass
             self.log(f"cache entry {path} unreadable; re-rendering the reference")
         ref = render_reference(entry.spec, spp=c.ref_spp, width=loaded.width, height=loaded.height,
-                               max_depth=loaded.max_depth, seed=seed, progress=False)
+                               max_depth=loaded.max_depth, seed=seed,
+                               progress=False if self.progress is False else None)
         ref.metadata["gradsep.eval_key"] = tag
         path.parent.mkdir(parents=True, exist_ok=True)
         write_reference(path, ref)
@@ -600,10 +601,12 @@ def run_evaluation(config: EvalConfig, *, progress: bool | None = None,
         raise _error(f"cache folder {str(runner.cache.root)!r} cannot be created: {exc.strerror or exc}") from exc
     rows: list[dict[str, Any]] = []
     scenes: list[SceneRun] = []
+    # every scene is loaded (and so validated) before anything renders: a typo in the last scene should not
+    # surface after an hour of work on the first ones
+    loaded_scenes = [load_scene(e.spec, width=config.width, height=config.height, max_depth=config.max_depth)
+                     for e in entries]
     try:
-        for entry in entries:
-            bar.step(f"{entry.name}: loading")
-            loaded = load_scene(entry.spec, width=config.width, height=config.height, max_depth=config.max_depth)
+        for entry, loaded in zip(entries, loaded_scenes, strict=True):
             layers, _ = plan_layers(SEPARATED_LAYERS, loaded.max_depth)
             bar.step(f"{entry.name}: reference {config.ref_spp} spp")
             reference, ref_tag = runner.reference(entry, loaded)

@@ -20,10 +20,12 @@ Every method produces (image, per-layer images where it has them, render seconds
 
 Equal time: the budget of a G-PT spp is the G-PT render time plus the reconstruction time of ``ours`` (of
 ``l1`` when ``ours`` is unavailable, which the report says). Mitsuba's cost on the scene is measured first as
-``seconds = overhead + per_spp · spp``, a line fitted to warm renders (1 and 8 spp after an untimed 1-spp render
-that pays the JIT compilation, which a user rendering a sequence pays once; every later render adds a point, and a
-prediction far beyond the measured range is first checked at a quarter of its spp). The spp is the largest that
-fits the budget (at least 1); for ``path-oidn`` the measured denoising time comes off the budget first. The time in
+``seconds = overhead + per_spp · spp``, a line fitted to warm renders (after an untimed 1-spp render that pays
+the JIT compilation, which a user rendering a sequence pays once: 1, 4, 16, ... spp, each the faster of two, until
+one takes a quarter second; every later render adds a point, and a prediction far beyond the measured range is
+first checked at a quarter of its spp). The spp is the largest that fits the budget (at least 1); for
+``path-oidn`` the measured denoising time comes off the budget first. A render that misses its budget by more
+than 25 % is redone once at the refitted spp. The time in
 the results is the time that render actually took, not the prediction, so the plot places every point where
 it really is.
 
@@ -209,9 +211,14 @@ class CostModel:
 class PathRenderer:
     """Mitsuba's ``path`` (raw) and ``aov`` + ``path`` (for OIDN) on one loaded scene, with their cost models."""
 
-    CALIBRATION_SPP = (1, 8)
+    #: Calibration renders grow ×4 from 1 spp until one takes this long: shorter ones are all noise and
+    #: overhead on a busy machine.
+    CALIBRATION_SECONDS = 0.25
     #: A prediction more than this many times the largest measured spp is probed at a quarter first.
     EXTRAPOLATION = 8
+    #: A render whose measured time misses the budget by more than this fraction is redone once at the spp the
+    #: refitted line gives (when that differs by more than the same fraction).
+    TOLERANCE = 0.25
 
     def __init__(self, loaded: Any) -> None:
         import mitsuba as mi
@@ -241,12 +248,21 @@ class PathRenderer:
         return array, seconds
 
     def cost(self, kind: str) -> CostModel:
-        """The cost model of ``kind``, measured once per scene after an untimed compile render."""
+        """The cost model of ``kind``, measured once per scene after an untimed compile render.
+
+        Each calibration spp is rendered twice and the faster time kept: on a shared machine noise only ever
+        adds time. At least two spp are measured, the last taking :data:`CALIBRATION_SECONDS` or more.
+        """
         if kind not in self._costs:
             self.render(kind, 1, 7)  # JIT compilation, not timed
             model = CostModel(self.max_spp)
-            for i, spp in enumerate(self.CALIBRATION_SPP):
-                model.add(spp, self.render(kind, spp, 11 + i)[1])
+            spp = 1
+            while True:
+                seconds = min(self.render(kind, spp, 11)[1], self.render(kind, spp, 13)[1])
+                model.add(spp, seconds)
+                if (seconds >= self.CALIBRATION_SECONDS and len(model.samples) >= 2) or spp >= self.max_spp:
+                    break
+                spp = min(self.max_spp, spp * 4)
             self._costs[kind] = model
         return self._costs[kind]
 
@@ -260,15 +276,33 @@ class PathRenderer:
             spp = model.spp_for(seconds)
         return spp
 
+    def render_within(self, kind: str, seconds: float, seed: int) -> tuple[np.ndarray, float, int]:
+        """Render ``kind`` at the spp that fits ``seconds``: (image, measured seconds, spp).
+
+        When the measured time misses the budget by more than :data:`TOLERANCE`, the line (now including this
+        render) is refitted and the render redone once if the spp it gives differs by more than that too.
+        """
+        spp = self.spp_for(kind, seconds)
+        image, took = self.render(kind, spp, seed)
+        if abs(took - seconds) > self.TOLERANCE * seconds:
+            again = self.cost(kind).spp_for(seconds)
+            if abs(again - spp) > self.TOLERANCE * spp:
+                spp = again
+                image, took = self.render(kind, spp, seed)
+        return image, took, spp
+
     def denoise_seconds(self) -> float:
         """OIDN's time on a frame of this size, measured on a warm device (its first call initialises it)."""
         if self._denoise_seconds is None:
             image, _ = self.render("oidn", 1, 17)
             color, albedo, normal = split_aov(image)
             denoise(color, albedo, normal)
-            start = time.perf_counter()
-            denoise(color, albedo, normal)
-            self._denoise_seconds = time.perf_counter() - start
+            timings = []
+            for _ in range(2):  # the faster of two: noise on a shared machine only adds time
+                start = time.perf_counter()
+                denoise(color, albedo, normal)
+                timings.append(time.perf_counter() - start)
+            self._denoise_seconds = min(timings)
         return self._denoise_seconds
 
 
@@ -373,8 +407,7 @@ def _budget(ctx: MethodContext) -> float:
 def _run_path(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
     renderer = ctx.path()
     target = _budget(ctx)
-    spp = renderer.spp_for("path", target)
-    image, seconds = renderer.render("path", spp, ctx.seed)
+    image, seconds, spp = renderer.render_within("path", target, ctx.seed)
     return MethodOutput(_sanitise(image[..., :3]), {}, seconds, 0.0, spp,
                         extra=_equal_time_extra(ctx, target, spp, renderer.max_spp))
 
@@ -382,8 +415,7 @@ def _run_path(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
 def _run_oidn(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
     renderer = ctx.path()
     target = _budget(ctx)
-    spp = renderer.spp_for("oidn", target - renderer.denoise_seconds())
-    raw, seconds = renderer.render("oidn", spp, ctx.seed)
+    raw, seconds, spp = renderer.render_within("oidn", target - renderer.denoise_seconds(), ctx.seed)
     color, albedo, normal = split_aov(raw)
     start = time.perf_counter()
     image = denoise(color, albedo, normal)

@@ -7,7 +7,8 @@ Crop comparison display: all panels share one exposure, chosen from the referenc
 luminance maps to 1 (a frame dominated by a dark room still shows its detail; the light source may clip), then
 the display tonemap of model/metrics.py (clip to [0, 1], gamma 1/2.2). The crop is picked from the reference
 alone -- the square window with the most tonemapped gradient energy (edges, shadow boundaries, texture) -- so
-it is the same for every method and not chosen to favour any of them.
+it is the same for every method and not chosen to favour any of them (the luminance is smoothed with a σ = 1
+pixel Gaussian first, so the reference's own residual noise does not count as detail).
 """
 
 from __future__ import annotations
@@ -97,14 +98,19 @@ def exposure_for(reference: np.ndarray) -> float:
 
 
 def select_crop(reference: np.ndarray, size: int | None = None) -> tuple[int, int, int]:
-    """(y0, x0, size): the square window of the reference with the largest sum of tonemapped gradient magnitude.
+    """(y0, x0, size): the square window of the reference with the largest sum of (smoothed) tonemapped gradient
+    magnitude.
 
     The window side defaults to a third of the shorter image side (at least 8 pixels, at most the image).
     """
     h, w = reference.shape[:2]
     side = size if size is not None else max(8, min(h, w) // 3)
     side = max(1, min(side, h, w))
-    lum = tonemap(reference * exposure_for(reference)) @ _LUMINANCE
+    from scipy.ndimage import gaussian_filter
+
+    # smoothed first: in a reference with a few hundred spp, isolated noisy pixels (caustic fireflies) would
+    # otherwise outweigh real edges
+    lum = gaussian_filter(tonemap(reference * exposure_for(reference)) @ _LUMINANCE, 1.0, mode="nearest")
     energy = np.zeros((h, w), dtype=np.float64)
     energy[:, :-1] += np.abs(np.diff(lum, axis=1))
     energy[:-1, :] += np.abs(np.diff(lum, axis=0))

@@ -237,8 +237,8 @@ def render_report(evaluation: Evaluation) -> str:
     lines += ["", f"## Crop comparison ({spp} spp)", "",
               "Input (G-PT primal), L1, GradNet-style, ours, Mitsuba path + OIDN at equal time, reference. All "
               "panels share one exposure (the reference's 99th-percentile luminance maps to 1), then clip to "
-              "[0, 1] and gamma 2.2. The crop is the square window of the reference with the most gradient "
-              "energy (chosen from the reference alone, identical for every method).", ""]
+              "[0, 1] and gamma 2.2. The crop is the square window of the reference with the most (smoothed) "
+              "gradient energy (chosen from the reference alone, identical for every method).", ""]
     for scene in evaluation.scenes:
         lines.append(f"![{scene.entry.name}: crops](crops/{slug(scene.entry.name)}.png)")
     lines += ["", "## Where ours loses", ""]

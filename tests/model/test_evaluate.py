@@ -323,3 +323,43 @@ def test_rerun_computes_only_what_changed(first_run, monkeypatch):
     assert new[("gradnet", 1)] == old[("gradnet", 1)]
     assert new[("ours", 1)] != old[("ours", 1)]
     shutil.rmtree(root / "report-all", ignore_errors=True)
+
+
+class _ClockedRenderer:
+    """PathRenderer's budgeting logic over a simulated clock: seconds = 0.05 + 0.002 · spp, times a factor
+    that the test can change to model a busy machine."""
+
+    def __init__(self) -> None:
+        from model.evaluate_methods import PathRenderer
+
+        self.renderer = PathRenderer.__new__(PathRenderer)  # no Mitsuba: only the budgeting is under test
+        self.renderer.max_spp = 100_000
+        self.renderer._costs = {}
+        self.renderer._denoise_seconds = None
+        self.factor = 1.0
+        self.calls: list[int] = []
+        self.renderer.render = self.render  # type: ignore[method-assign]
+
+    def render(self, kind: str, spp: int, seed: int):
+        seconds = (0.05 + 0.002 * spp) * self.factor
+        self.calls.append(spp)
+        if kind in self.renderer._costs:
+            self.renderer._costs[kind].add(spp, seconds)
+        return np.zeros((1, 1, 3), np.float32), seconds
+
+
+def test_equal_time_render_fits_the_budget():
+    clock = _ClockedRenderer()
+    image, seconds, spp = clock.renderer.render_within("path", 1.05, seed=0)
+    assert spp == 500 and seconds == pytest.approx(1.05)
+    # calibration grew ×4 from 1 spp until a render took a quarter second (each measured twice)
+    assert clock.calls[:1] == [1] and 256 in clock.calls and max(clock.calls[:-1]) < 500
+
+
+def test_equal_time_render_is_redone_once_when_the_machine_slowed_down():
+    clock = _ClockedRenderer()
+    clock.renderer.cost("path")
+    clock.factor = 2.0  # everything now takes twice as long: the first render misses the budget by 100 %
+    _, seconds, spp = clock.renderer.render_within("path", 1.05, seed=0)
+    assert clock.calls[-2] == 500 and spp < 500  # redone at the refitted spp
+    assert seconds < 2.0 * (0.05 + 0.002 * 500)
