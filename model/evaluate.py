@@ -589,8 +589,8 @@ def run_evaluation(config: EvalConfig, *, progress: bool | None = None,
     from renderer.render import plan_layers
     from renderer.scene import load_scene
 
-    _prepare_output(config.output)
     entries, notes = resolve_scenes(config.scenes)
+    _prepare_output(config.output)
     methods = [method_by_name(name) for name in config.methods]
     total = len(entries) * (1 + len(config.spp) * (1 + len(methods)))
     bar = _Progress(total, progress)

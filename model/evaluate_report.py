@@ -230,8 +230,9 @@ def render_report(evaluation: Evaluation) -> str:
     lines += _equal_time(evaluation)
     lines += ["## Error against time", "",
               "RelMSE against total wall time per frame (render + reconstruction), log–log, one curve per method; "
-              "a curve further down-left is better at equal time. Each point is one spp of the list above; the "
-              "equal-time methods sit at the time of the G-PT point they are paired with.", ""]
+              "a curve further down-left is better at equal time. Each point is one G-PT spp of the list above; "
+              "the equal-time methods' points are their measured times for the budget of that spp (labels on "
+              "ours give the spp).", ""]
     for scene in evaluation.scenes:
         lines.append(f"![{scene.entry.name}: RelMSE against time](plots/{slug(scene.entry.name)}.png)")
     lines += ["", f"## Crop comparison ({spp} spp)", "",
@@ -251,7 +252,7 @@ def render_report(evaluation: Evaluation) -> str:
         lines += [f"- {loss}" for loss in losses]
     else:
         lines.append("No evaluated method has a lower RelMSE than ours at any scene and spp.")
-    lines += ["", *_targets(rows)]
+    lines += ["", *_table1_losses(evaluation, spp), *_targets(rows)]
     lines += _relmse_tables(evaluation)
     lines += _notes(evaluation)
     return "\n".join(lines) + "\n"
@@ -351,7 +352,9 @@ def _ablation_verdicts(evaluation: Evaluation, spp: int) -> list[str]:
         if total:
             lines.append(f"- {factor.capitalize()} lowered RelMSE in {wins} of {total} comparisons.")
     if not lines:
-        lines.append("- The ablation models were not evaluated (see skipped methods).")
+        evaluated = any(str(r["method"]).startswith("ablation/") for r in evaluation.rows)
+        lines.append("- No with/without pair of ablation variants was evaluated, so neither factor can be judged"
+                     if evaluated else "- The ablation models were not evaluated (see skipped methods).")
     return lines
 
 
@@ -386,6 +389,26 @@ def _equal_time(evaluation: Evaluation) -> list[str]:
     if not any_row:
         lines.append("| (equal-time methods not evaluated) |" + " |" * 10)
     return [*lines, ""]
+
+
+def _table1_losses(evaluation: Evaluation, spp: int) -> list[str]:
+    """Per scene, the Table 1 metrics on which ours is not the best of the four Table 1 methods."""
+    lines = []
+    for scene in evaluation.scenes:
+        table = _by_method((r for r in evaluation.rows if r["scene"] == scene.entry.name), spp)
+        if "ours" not in table:
+            continue
+        for metric, header, higher in TABLE1_METRICS:
+            ours = float(table["ours"][metric])
+            better = [(label, float(table[m][metric])) for m, label in TABLE1 if m != "ours" and m in table
+                      and (float(table[m][metric]) > ours if higher else float(table[m][metric]) < ours)]
+            if better:
+                who = ", ".join(f"{label} {_fmt(v)}" for label, v in better)
+                lines.append(f"- Table 1, {scene.entry.name}: {header.split()[0]} of ours {_fmt(ours)}; better: {who}")
+    if lines:
+        lines = [f"Table 1 metrics ({spp} spp) on which ours is not the best of input, L1, GradNet-style, ours:", "",
+                 *lines, ""]
+    return lines
 
 
 def _targets(rows: Sequence[Mapping[str, Any]]) -> list[str]:

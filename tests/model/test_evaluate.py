@@ -93,6 +93,20 @@ def test_quick_replaces_the_default_spp_but_keeps_an_explicit_one(monkeypatch):
         config_from_args(_args(spp="1,4"))
 
 
+def test_command_line_flags_win_over_the_environment(monkeypatch):
+    """The flags model/commands.py will get (--size, --ref-spp, ...) are read first when the parser has them."""
+    monkeypatch.setenv("GRADSEP_EVAL_SIZE", "40x30")
+    monkeypatch.setenv("GRADSEP_EVAL_METHODS", "l2")
+    config = config_from_args(_args(spp=None, size="64x48", ref_spp=32, seed=0, methods="ours,l1", models="m",
+                                    cache="c", max_depth=3, alpha=0.5, table_spp=4))
+    assert (config.width, config.height, config.ref_spp, config.seed) == (64, 48, 32, 0)
+    assert config.methods == ("l1", "ours") and config.max_depth == 3 and config.alpha == 0.5
+    assert config.spp == (1, 2, 4, 8, 16, 32, 64) and config.crop_spp == 4  # --spp None: the preset's list
+    assert str(config.models_dir) == "m" and str(config.cache_dir) == "c"
+    with pytest.raises(CommandError, match="--alpha must be"):
+        config_from_args(_args(alpha=float("nan")))
+
+
 def test_scene_resolution(tmp_path):
     entries, _ = resolve_scenes(["procedural:7", "procedural:7"])
     assert [e.name for e in entries] == ["procedural:7"]  # repeats dropped
