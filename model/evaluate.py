@@ -482,7 +482,8 @@ class _Runner:
         if cached is not None and cached.get("key") == key and isinstance(cached.get("row"), dict):
             image = self.cache.load_arrays(image_path, ["image"]) if want_image else None
             if not want_image or image is not None:
-                return cached["row"], (image["image"] if image else None)
+                # the display name is not part of the content key: take this run's
+                return {**cached["row"], "scene": scene.entry.name}, (image["image"] if image else None)
         from model.metrics import all_metrics, relmse
 
         out = run_method(spec, ctx)
