@@ -186,6 +186,8 @@ def output_radiance(encoded: np.ndarray, fallback: np.ndarray | None = None,
                     transfer: LogTransfer = TRANSFER) -> np.ndarray:
     """Network output (3, h, w) in the transfer domain → (h, w, 3) float32 radiance, finite and ≥ 0.
 
+    ``fallback`` is (h, w, 3) linear radiance (the clamped input base).
+
     Non-finite network outputs (which a sane model never produces) fall back to the clamped input base
     rather than to black, so a failure degrades to "no denoising" instead of holes.
     """
@@ -193,7 +195,7 @@ def output_radiance(encoded: np.ndarray, fallback: np.ndarray | None = None,
     bad = ~np.isfinite(y)
     radiance = transfer.inverse(np.where(bad, 0.0, y)).astype(np.float32)
     if bad.any() and fallback is not None:
-        radiance = np.where(bad, fallback, radiance)
+        radiance = np.where(bad, np.asarray(fallback, np.float32).transpose(2, 0, 1), radiance)
     return np.ascontiguousarray(radiance.transpose(1, 2, 0))
 
 

@@ -47,17 +47,18 @@ def _noisy(rng: np.random.Generator, clean: np.ndarray, spp: int, scale: float) 
     return clean * factor
 
 
-def synthetic_frame(seed: int, width: int = 64, height: int = 48, spp: int = 4) -> tuple[Frame, np.ndarray]:
-    """One frame (direct + indirect + features) and its clean total radiance (H, W, 3)."""
+def synthetic_frame(seed: int, width: int = 64, height: int = 48,
+                    spp: int = 4) -> tuple[Frame, dict[str, np.ndarray]]:
+    """One frame (direct + indirect + features) and the clean radiance of each layer, (H, W, 3) each."""
     rng = np.random.default_rng(seed)
     albedo = _albedo(rng, height, width)
     direct_shading = _smooth_field(rng, height, width, 3) * 2.0
     indirect_shading = _smooth_field(rng, height, width, 2) * 0.5
     layers: dict[str, Layer] = {}
-    clean_total = np.zeros((height, width, 3), dtype=np.float32)
+    clean_layers: dict[str, np.ndarray] = {}
     for name, shading, noise in (("direct", direct_shading, 1.0), ("indirect", indirect_shading, 2.0)):
         clean = (albedo * shading[..., None]).astype(np.float32)
-        clean_total += clean
+        clean_layers[name] = clean
         dx, dy = forward_differences(clean)
         grad_noise = 0.1 * noise / np.sqrt(spp)
         dx = dx + rng.normal(0, grad_noise, dx.shape).astype(np.float32) * np.abs(dx)
@@ -70,7 +71,7 @@ def synthetic_frame(seed: int, width: int = 64, height: int = 48, spp: int = 4) 
     depth = (2.0 + _smooth_field(rng, height, width, 1)).astype(np.float32)
     features = Features(albedo=albedo, normal=normal, depth=depth)
     frame = Frame(layers=layers, features=features, metadata={"gradsep.spp": str(spp), "gradsep.synthetic": "1"})
-    return frame, clean_total
+    return frame, clean_layers
 
 
 def make_synthetic_dataset(root: str | os.PathLike[str], frames: int = 6, width: int = 64, height: int = 48,

@@ -85,11 +85,12 @@ class TrainConfig:
     alpha: float = 1.0
     beta: BetaSchedule = field(default_factory=BetaSchedule)
     checkpoint_minutes: float = 5.0
+    plot_minutes: float = 2.0          # redraw losses.png at an epoch end at most this often (and at the end)
     log_every: int = 10
     keep_epoch_checkpoints: int = 3
 
     # fields a resumed run may change: everything else must match the run folder's config.json
-    RESUMABLE_CHANGES = ("epochs", "minutes", "output", "data", "checkpoint_minutes", "log_every",
+    RESUMABLE_CHANGES = ("epochs", "minutes", "output", "data", "checkpoint_minutes", "plot_minutes", "log_every",
                          "keep_epoch_checkpoints")
 
     def __post_init__(self) -> None:
@@ -279,17 +280,15 @@ def read_log(run: Path) -> list[dict[str, Any]]:
 
 def plot_curves(run: Path) -> Path | None:
     """RUN_DIR/losses.png: each loss term against the step, per-step training values and per-epoch means."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure  # no pyplot: no global backend state, safe in any process
 
     records = read_log(run)
     steps = {r["step"]: r for r in records if r.get("kind") == "step"}  # last write wins after a resume
     epochs = {r["epoch"]: r for r in records if r.get("kind") == "epoch"}
     if not steps and not epochs:
         return None
-    fig, axes = plt.subplots(2, 2, figsize=(10, 7))
+    fig = Figure(figsize=(10, 7), layout="constrained")
+    axes = fig.subplots(2, 2)
     for ax, key, title in zip(axes.flat, ("data", "grad", "first", "gbranch"),
                               ("L_data", "L_grad", "L_1st", "G-branch L_1st"), strict=True):
         if key != "gbranch" and steps:
@@ -308,11 +307,9 @@ def plot_curves(run: Path) -> Path | None:
         ax.set_yscale("log")
         ax.legend(fontsize=8)
     fig.suptitle(f"{run.name}: losses")
-    fig.tight_layout()
     out = run / "losses.png"
     tmp = run / "losses.tmp.png"
     fig.savefig(tmp, dpi=90)
-    plt.close(fig)
     os.replace(tmp, out)
     return out
 
@@ -358,6 +355,7 @@ class Trainer:
         self.session_start = time.monotonic()
         self.elapsed_at_start = 0.0
         self.last_save = time.monotonic()
+        self.last_plot = time.monotonic()
 
     # -- setup -------------------------------------------------------------------------------------------------
 
@@ -599,8 +597,9 @@ class Trainer:
         p.epoch += 1
         p.phase, p.batch, p.sums = "main", 0, {}
         self.save()
-        if self.ctx.main:
+        if self.ctx.main and time.monotonic() - self.last_plot >= self.cfg.plot_minutes * 60:
             plot_curves(self.run)
+            self.last_plot = time.monotonic()
 
     def fit(self) -> Progress:
         """Train until the epoch count or the time budget is reached; returns the final progress."""

@@ -1,0 +1,194 @@
+"""model/preprocess.py: the transfer function, feature normalisation, alignment padding, numpy/torch agreement."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from model.frame import Features, Layer
+from model.preprocess import (
+    DATA_INPUTS,
+    DEPTH_MAX,
+    GRADIENT_INPUTS,
+    MU,
+    RADIANCE_MAX,
+    TRANSFER,
+    DepthRange,
+    LogTransfer,
+    aligned_size,
+    crop_to,
+    feature_planes,
+    layer_planes,
+    network_inputs,
+    output_radiance,
+    pad_to_alignment,
+)
+
+
+def _layer(h: int, w: int, value: float = 1.0) -> Layer:
+    base = np.full((h, w, 3), value, np.float32)
+    return Layer(base, np.zeros_like(base), np.zeros_like(base))
+
+
+def _features(h: int, w: int) -> Features:
+    rng = np.random.default_rng(0)
+    normal = rng.normal(size=(h, w, 3)).astype(np.float32)
+    normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+    return Features(rng.uniform(0, 1, (h, w, 3)).astype(np.float32), normal,
+                    rng.uniform(1, 5, (h, w)).astype(np.float32))
+
+
+class TestTransfer:
+    def test_hand_values(self) -> None:
+        # C(I) = log(1 + 16 I) / log(17): C(0) = 0, C(1) = 1, C(18) = log(289)/log(17) = 2
+        assert TRANSFER.forward(np.float32(0.0)) == 0.0
+        assert TRANSFER.forward(np.float32(1.0)) == pytest.approx(1.0, abs=1e-7)
+        assert TRANSFER.forward(np.float32(18.0)) == pytest.approx(2.0, abs=1e-6)
+        assert MU == 16.0
+
+    @pytest.mark.parametrize("value", [1e-8, 1e-6, 1e-3, 0.5, 1.0, 10.0, 1e3, 6e4])
+    def test_round_trip_across_range(self, value: float) -> None:
+        x = np.array([value], np.float64)
+        assert TRANSFER.inverse(TRANSFER.forward(x))[0] == pytest.approx(value, rel=1e-9, abs=1e-15)
+        x32 = np.array([value], np.float32)
+        assert TRANSFER.inverse(TRANSFER.forward(x32))[0] == pytest.approx(value, rel=2e-4, abs=1e-9)
+
+    def test_clamps_negative_and_huge(self) -> None:
+        x = np.array([-5.0, 1e6, 1e30, np.inf], np.float32)
+        y = TRANSFER.forward(x)
+        assert y[0] == 0.0
+        assert np.allclose(y[1:], TRANSFER.max_encoded)
+        back = TRANSFER.inverse(np.array([-1.0, 1e9, np.inf], np.float32))
+        assert back[0] == 0.0 and np.allclose(back[1:], RADIANCE_MAX, rtol=1e-4)
+        assert np.all(np.isfinite(back))
+
+    def test_signed_is_odd_and_round_trips(self) -> None:
+        g = np.array([-3.0, -1e-4, 0.0, 1e-4, 3.0])
+        y = TRANSFER.forward_signed(g)
+        assert np.allclose(y, -TRANSFER.forward_signed(-g))
+        assert y[2] == 0.0
+        assert np.allclose(TRANSFER.inverse_signed(y), g, rtol=1e-9)
+
+    def test_monotone(self) -> None:
+        x = np.logspace(-8, 6, 200)
+        assert np.all(np.diff(TRANSFER.forward(x)) >= 0)
+
+    def test_rejects_bad_constants(self) -> None:
+        with pytest.raises(ValueError, match="mu"):
+            LogTransfer(mu=0.0)
+
+    def test_torch_matches_numpy(self) -> None:
+        torch = pytest.importorskip("torch")
+        x = np.concatenate([np.logspace(-8, 6, 50), -np.logspace(-8, 6, 50)]).astype(np.float32)
+        for fn in ("forward", "forward_signed", "inverse_signed"):
+            a = getattr(TRANSFER, fn)(x)
+            b = getattr(TRANSFER, fn)(torch.from_numpy(x)).numpy()
+            assert np.allclose(a, b, rtol=1e-6, atol=1e-7), fn
+
+
+class TestPlanes:
+    def test_layer_planes_order_and_sanitising(self) -> None:
+        layer = _layer(2, 3, 2.0)
+        layer.base[0, 0, 0] = np.nan
+        layer.base[0, 1, 1] = -1.0
+        layer.dx[1, 1, 2] = -np.inf
+        layer.dy[1, 0, 0] = np.inf
+        p = layer_planes(layer)
+        assert p.shape == (9, 2, 3) and p.dtype == np.float32
+        assert p[0, 0, 0] == 0.0 and p[1, 0, 1] == 0.0          # NaN → 0, negative base → 0
+        assert p[5, 1, 1] == -RADIANCE_MAX and p[6, 1, 0] == RADIANCE_MAX
+        assert np.all(p[2] == 2.0) and np.all(np.isfinite(p))
+
+    def test_features_nonfinite_and_ranges(self) -> None:
+        f = _features(4, 5)
+        f.albedo[0, 0] = [np.nan, np.inf, -np.inf]
+        f.normal[1, 1] = [np.nan, 5.0, -5.0]
+        f.depth[2, 2] = np.nan
+        f.depth[3, 3] = np.inf
+        p = feature_planes(f)
+        assert p.shape == (7, 4, 5) and np.all(np.isfinite(p))
+        assert p.min() >= 0.0 and p.max() <= 1.0
+        assert list(p[0:3, 0, 0]) == [0.0, 1.0, 0.0]
+        assert list(p[3:6, 1, 1]) == [0.5, 1.0, 0.0]           # normal·0.5+0.5 after clipping to [-1, 1]
+        assert p[6, 3, 3] == 1.0                                # +Inf depth clamps to DEPTH_MAX, the frame max
+
+    def test_depth_normalised_per_frame_even_in_a_window(self) -> None:
+        f = _features(6, 6)
+        f.depth[:] = np.arange(36, dtype=np.float32).reshape(6, 6)
+        rng = DepthRange.of(f.depth)
+        assert (rng.lo, rng.hi) == (0.0, 35.0)
+        win = feature_planes(f, rng, window=(3, 6, 3, 6))
+        full = feature_planes(f, rng)
+        assert np.array_equal(win, full[:, 3:6, 3:6])
+        assert full[6].max() == 1.0 and full[6].min() == 0.0
+
+    def test_constant_and_huge_depth(self) -> None:
+        assert np.all(DepthRange.of(np.full((3, 3), 7.0)).normalise(np.full((3, 3), 7.0)) == 0)
+        d = np.array([[1.0, 1e9]], np.float32)
+        assert DepthRange.of(d).hi == DEPTH_MAX
+
+    def test_all_black_frame(self) -> None:
+        layer = _layer(5, 7, 0.0)
+        f = Features(np.zeros((5, 7, 3), np.float32), np.zeros((5, 7, 3), np.float32), np.zeros((5, 7), np.float32))
+        data, grad = network_inputs(layer_planes(layer), feature_planes(f))
+        assert data.shape == (len(DATA_INPUTS), 5, 7) and grad.shape == (len(GRADIENT_INPUTS), 5, 7)
+        assert np.all(data[0:3] == 0) and np.all(grad == 0) and np.all(data[3:6] == 0)
+        assert np.all(data[6:9] == 0.5) and np.all(data[9] == 0)
+
+    def test_network_inputs_channel_order(self) -> None:
+        layer = _layer(2, 2, 1.0)
+        layer.dx[:] = 18.0
+        layer.dy[:] = -18.0
+        f = _features(2, 2)
+        planes, feats = layer_planes(layer), feature_planes(f)
+        data, grad = network_inputs(planes, feats)
+        assert np.allclose(data[0:3], 1.0)                      # C(1) = 1
+        assert np.array_equal(data[3:], feats)
+        assert np.allclose(grad[0:3], 2.0) and np.allclose(grad[3:6], -2.0)
+
+    def test_network_inputs_batched_torch_equals_numpy(self) -> None:
+        torch = pytest.importorskip("torch")
+        layer, f = _layer(3, 4, 0.3), _features(3, 4)
+        layer.dx[:] = -0.2
+        planes, feats = layer_planes(layer), feature_planes(f)
+        d_np, g_np = network_inputs(planes, feats)
+        d_t, g_t = network_inputs(torch.from_numpy(planes)[None], torch.from_numpy(feats)[None])
+        assert np.allclose(d_t[0].numpy(), d_np, atol=1e-7) and np.allclose(g_t[0].numpy(), g_np, atol=1e-7)
+
+
+class TestOutput:
+    def test_output_radiance_finite_nonnegative_with_fallback(self) -> None:
+        y = np.zeros((3, 2, 2), np.float32)
+        y[0, 0, 0] = np.nan
+        y[1, 0, 1] = np.inf
+        y[2, 1, 1] = -4.0
+        y[0, 1, 0] = 1.0
+        fallback = np.full((2, 2, 3), 7.0, np.float32)
+        out = output_radiance(y, fallback=fallback)
+        assert out.shape == (2, 2, 3) and out.dtype == np.float32
+        assert np.all(np.isfinite(out)) and out.min() >= 0
+        assert out[0, 0, 0] == 7.0 and out[0, 1, 1] == 7.0    # non-finite → the input base
+        assert out[1, 1, 2] == 0.0 and out[1, 0, 0] == pytest.approx(1.0, rel=1e-6)
+
+
+class TestAlignment:
+    @pytest.mark.parametrize(("h", "w"), [(1, 1), (1, 9), (7, 3), (8, 8), (17, 30)])
+    def test_pad_and_crop(self, h: int, w: int) -> None:
+        x = np.random.default_rng(1).normal(size=(4, h, w)).astype(np.float32)
+        p = pad_to_alignment(x, 8)
+        assert p.shape == (4, aligned_size(h, 8), aligned_size(w, 8))
+        assert p.shape[1] % 8 == 0 and p.shape[2] % 8 == 0
+        assert np.array_equal(crop_to(p, h, w), x)
+
+    def test_reflection_not_zeros(self) -> None:
+        x = np.arange(1, 4, dtype=np.float32).reshape(1, 1, 3)   # [1 2 3]
+        p = pad_to_alignment(x, 8)
+        assert list(p[0, 0, :6]) == [1, 2, 3, 2, 1, 2]
+        assert np.all(p[0, 1:, :3] == x[0, 0])                  # a 1-row image repeats its row
+        assert pad_to_alignment(x, 1) is x
+
+    def test_aligned_size(self) -> None:
+        assert [aligned_size(n, 8) for n in (1, 8, 9, 720)] == [8, 8, 16, 720]
+        assert math.isclose(aligned_size(1280, 8), 1280)

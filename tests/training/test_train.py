@@ -1,0 +1,225 @@
+"""training/train.py + training/dataset.py: smoke training, the run folder, resume, budgets, errors, DDP."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from gradsep.cli import main as cli_main  # noqa: E402
+from model.frame import Features, Frame, Layer, write_frame  # noqa: E402
+from training.dataset import (  # noqa: E402
+    DatasetError,
+    PatchDataset,
+    build_cache,
+    load_manifest,
+    select_layer,
+    split_frames,
+)
+from training.train import Trainer, TrainingError, read_log, train  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _weights(run: Path) -> dict[str, torch.Tensor]:
+    return torch.load(run / "checkpoints" / "last.pt", weights_only=True)["model"]
+
+
+def _epochs(run: Path) -> list[dict]:
+    return [r for r in read_log(run) if r["kind"] == "epoch"]
+
+
+def test_smoke_training_lowers_the_loss(make_config) -> None:
+    cfg = make_config(epochs=6, lr=2e-3, log_every=1)
+    progress = train(cfg, quiet=True)
+    assert progress.epoch == 6 and progress.step == 30
+    epochs = _epochs(Path(cfg.output))
+    assert [e["epoch"] for e in epochs] == [1, 2, 3, 4, 5, 6]
+    first, last = epochs[0], epochs[-1]
+    # β is 0 in the first two epochs, so compare the β-free part of the objective
+    assert last["train"]["data"] + last["train"]["grad"] < 0.9 * (first["train"]["data"] + first["train"]["grad"])
+    assert last["val"]["data"] + last["val"]["grad"] < first["val"]["data"] + first["val"]["grad"]
+    assert last["beta"] > 0 and last["lr"] < cfg.lr                # β ramps, lr ×0.95 every other epoch
+    assert all(np.isfinite(e["gbranch"]) for e in epochs)
+
+
+def test_run_folder_contents(make_config) -> None:
+    cfg = make_config(epochs=4, keep_epoch_checkpoints=2, log_every=2)
+    train(cfg, quiet=True)
+    run = Path(cfg.output)
+    config = json.loads((run / "config.json").read_text())
+    assert config["train"]["layer"] == "direct" and config["train"]["network"]["width"] == 4
+    assert len(config["dataset_manifest_sha256"]) == 64 and config["preprocessing"]["mu"] == 16.0
+    assert (run / "losses.png").stat().st_size > 1000
+    assert sorted(p.name for p in (run / "checkpoints").glob("epoch_*.pt")) == ["epoch_0003.pt", "epoch_0004.pt"]
+    steps = [r for r in read_log(run) if r["kind"] == "step"]
+    assert [r["step"] for r in steps] == list(range(2, 21, 2))
+    assert {"data", "grad", "first", "total", "beta", "lr"} <= set(steps[0])
+
+
+def test_resume_with_a_larger_budget_equals_an_uninterrupted_run(make_config) -> None:
+    straight = make_config("straight", epochs=3)
+    train(straight, quiet=True)
+    resumed = make_config("resumed", epochs=1)
+    train(resumed, quiet=True)
+    train(make_config("resumed", epochs=3), quiet=True)
+    a, b = _weights(Path(straight.output)), _weights(Path(resumed.output))
+    assert all(torch.allclose(a[k], b[k], rtol=1e-5, atol=1e-7) for k in a)
+    assert [e["epoch"] for e in _epochs(Path(resumed.output))] == [1, 2, 3]
+
+
+@pytest.mark.parametrize("stop_phase", ["main", "gbranch"])
+def test_resume_in_the_middle_of_a_phase(make_config, monkeypatch: pytest.MonkeyPatch, stop_phase: str) -> None:
+    """A run stopped after the 3rd batch of a phase (as a kill after a periodic checkpoint would leave it)
+    continues from that batch and ends with exactly the uninterrupted run's weights."""
+    straight = make_config("straight")
+    train(straight, quiet=True)
+
+    calls = {"n": 0}
+    original = Trainer._decide
+
+    def stop_once(self: Trainer) -> tuple[bool, bool]:
+        p = self.progress
+        if p.epoch == 1 and p.phase == stop_phase and p.batch == 3 and calls["n"] == 0:
+            calls["n"] += 1
+            return True, False
+        return original(self)
+
+    monkeypatch.setattr(Trainer, "_decide", stop_once)
+    interrupted = make_config("interrupted")
+    progress = train(interrupted, quiet=True)
+    assert (progress.epoch, progress.phase, progress.batch) == (1, stop_phase, 3)
+    state = torch.load(Path(interrupted.output) / "checkpoints" / "last.pt", weights_only=True)
+    assert state["progress"]["batch"] == 3 and state["progress"]["phase"] == stop_phase
+    progress = train(interrupted, quiet=True)
+    assert progress.epoch == 2 and progress.step == 10
+    a, b = _weights(Path(straight.output)), _weights(Path(interrupted.output))
+    assert all(torch.allclose(a[k], b[k], rtol=1e-5, atol=1e-7) for k in a)
+    # the stopped epoch's averages include the batches done before the stop
+    assert _epochs(Path(interrupted.output))[-1]["train"] == pytest.approx(_epochs(Path(straight.output))[-1]["train"],
+                                                                          rel=1e-4)
+
+
+def test_time_budget_stops_and_a_spent_budget_does_nothing(make_config) -> None:
+    cfg = make_config(epochs=None, minutes=1e-6)
+    progress = train(cfg, quiet=True)
+    assert progress.step == 0 and (Path(cfg.output) / "checkpoints" / "last.pt").is_file()
+    again = train(cfg, quiet=True)
+    assert again.step == 0
+
+
+def test_a_different_run_in_the_same_folder_is_refused(make_config) -> None:
+    train(make_config(epochs=1), quiet=True)
+    with pytest.raises(TrainingError, match="seed"):
+        train(make_config(epochs=1, seed=7), quiet=True)
+
+
+def test_color_layer_and_training_config_validation(make_config) -> None:
+    progress = train(make_config(layer="color", epochs=1), quiet=True)
+    assert progress.epoch == 1
+    with pytest.raises(ValueError, match="multiple of the network alignment"):
+        make_config(patch=30)
+    with pytest.raises(ValueError, match="layer"):
+        make_config(layer="specular")
+
+
+# ------------------------------------------------------------------------------------------------ dataset
+
+
+def test_split_is_seeded_90_10_and_by_frame() -> None:
+    train_idx, val_idx = split_frames(20, seed=0)
+    assert len(val_idx) == 2 and sorted(train_idx + val_idx) == list(range(20))
+    assert split_frames(20, seed=0) == (train_idx, val_idx) and split_frames(20, seed=1) != (train_idx, val_idx)
+    assert split_frames(1, seed=0) == ([0], [])
+    assert len(split_frames(2, seed=0)[1]) == 1
+
+
+def test_select_layer_sums_for_color() -> None:
+    one = np.ones((2, 2, 3), np.float32)
+    layers = {"direct": Layer(one, one * 2, one * 3), "indirect": Layer(one * 10, one * 20, one * 30)}
+    color = select_layer(layers, "color")
+    assert color is not None and np.all(color.base == 11) and np.all(color.dx == 22) and np.all(color.dy == 33)
+    assert select_layer({"direct": layers["direct"]}, "indirect") is None
+
+
+def test_patches_are_deterministic_and_change_with_the_epoch(tiny_dataset: Path, tmp_path: Path) -> None:
+    files, warnings = build_cache(load_manifest(tiny_dataset), "direct", tmp_path / "cache")
+    assert not warnings and all(f is not None for f in files)
+    ds = PatchDataset([f for f in files if f], patch=16, patches_per_frame=3, seed=5)
+    planes, feats = ds[4]
+    assert planes.shape == (9, 16, 16) and feats.shape == (7, 16, 16)
+    again = PatchDataset([f for f in files if f], patch=16, patches_per_frame=3, seed=5)
+    assert torch.equal(again[4][0], planes)
+    origins = [ds.origin(i) for i in range(len(ds))]
+    ds.set_epoch(1)
+    assert [ds.origin(i) for i in range(len(ds))] != origins
+    # cached planes equal the preprocessing of the frame itself
+    cached = np.load(files[0])
+    assert cached.shape == (16, 48, 64) and cached[9:].min() >= 0 and cached[9:].max() <= 1
+
+
+def test_cache_is_reused_and_frames_without_the_layer_are_skipped(tmp_path: Path) -> None:
+    from training.synthetic import make_synthetic_dataset
+
+    root = make_synthetic_dataset(tmp_path / "ds", frames=2, width=16, height=16)
+    one = np.ones((16, 16, 3), np.float32)
+    write_frame(root / "frames" / "proc_001001.exr",
+                Frame({"direct": Layer(one, 0 * one, 0 * one)},
+                      Features(one * 0.5, one, np.ones((16, 16), np.float32))))
+    files, warnings = build_cache(load_manifest(root), "indirect", tmp_path / "cache")
+    assert files[0] is not None and files[1] is None
+    assert len(warnings) == 1 and "no indirect layer" in warnings[0]
+    stamp = files[0].stat().st_mtime_ns
+    build_cache(load_manifest(root), "indirect", tmp_path / "cache")
+    assert files[0].stat().st_mtime_ns == stamp
+
+
+@pytest.mark.parametrize(("manifest", "message"), [
+    (None, "no manifest.json"),
+    ("{not json", "not valid JSON"),
+    ('{"version": 2, "frames": []}', "version 1"),
+    ('{"version": 1, "frames": []}', "non-empty"),
+    ('{"version": 1, "frames": [{"file": "../outside.exr"}]}', "escapes"),
+    ('{"version": 1, "frames": [{"file": "frames/missing.exr"}]}', "does not exist"),
+])
+def test_manifest_errors(tmp_path: Path, manifest: str | None, message: str) -> None:
+    if manifest is not None:
+        (tmp_path / "manifest.json").write_text(manifest)
+    (tmp_path.parent / "outside.exr").write_bytes(b"x")
+    with pytest.raises(DatasetError, match=message):
+        load_manifest(tmp_path)
+
+
+def test_train_command_reports_bad_data_in_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    rc = cli_main(["train", "--data", str(tmp_path / "nope"), "--layer", "direct", "-o", str(tmp_path / "run")])
+    assert rc == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no manifest.json" in err[0]
+
+
+# ------------------------------------------------------------------------------------------------ torchrun
+
+
+@pytest.mark.slow
+def test_torchrun_two_process_gloo(tiny_dataset: Path, tmp_path: Path) -> None:
+    """`torchrun --nproc-per-node 2 -m gradsep train ...` on CPU: gloo DDP, a DistributedSampler, one folder."""
+    out = tmp_path / "ddp"
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
+           "-m", "gradsep", "train", "--data", str(tiny_dataset), "--layer", "direct", "--epochs", "1",
+           "--patch", "32", "--batch", "2", "-o", str(out)]
+    proc = subprocess.run(cmd, env=env, cwd=REPO, capture_output=True, text=True, timeout=240, check=False)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    epochs = _epochs(out)
+    # 5 training frames × 8 patches = 40 patches, 20 per process, 10 batches of 2 each
+    assert len(epochs) == 1 and epochs[0]["step"] == 10
+    assert "2 process(es)" in proc.stderr
+    state = torch.load(out / "checkpoints" / "last.pt", weights_only=True)
+    assert not any(k.startswith("module.") for k in state["model"])   # saved unwrapped: export can read it
