@@ -106,6 +106,10 @@ class Vertex:
     bsdf: mi.BSDFPtr
     sample: mi.BSDFSample3f  # the BSDF sample that continues the path
     sample_weight: mi.Spectrum  # BSDF weight (value * cos / pdf) of that sample
+    light: mi.DirectionSample3f  # the emitter sample of next-event estimation (valid where nee_sampled)
+    light_weight: mi.Spectrum  # emitted radiance / light pdf, 0 where occluded
+    light_visible: mi.Bool  # the emitter point is visible from this vertex
+    nee_sampled: mi.Bool  # an emitter sample was drawn and has a nonzero (unoccluded) pdf
 
 
 def mis_power(pdf_a: mi.Float, pdf_b: mi.Float) -> mi.Float:
@@ -116,12 +120,17 @@ def mis_power(pdf_a: mi.Float, pdf_b: mi.Float) -> mi.Float:
 
 
 def trace_vertex(scene: mi.Scene, path: PathState, depth: mi.UInt32, max_depth: mi.UInt32,
-                 samples: VertexSamples) -> tuple[PathState, Vertex]:
+                 samples: VertexSamples, strict_light_pdf: bool = False) -> tuple[PathState, Vertex]:
     """Advance one path by one vertex exactly as Mitsuba's ``path`` integrator does, minus Russian roulette.
 
     Returns the updated path (ray towards the next vertex, throughput, liveness) and the vertex's events. Whether
     a path continues is decided only by its own geometry and the depth limit; Russian roulette is the caller's,
     because G-PT decides it on the base path for the whole lane.
+
+    ``strict_light_pdf`` makes ``nee_sampled`` mean "emitter sampling has a nonzero density for this point as
+    ``pdf_emitter_direction`` reports it": behind a one-sided emitter Mitsuba's sampling still returns a point
+    with a nonzero pdf (and zero weight). A shift that reuses the light sample on another path needs the event
+    to exist by one definition on both paths.
     """
     ctx = mi.BSDFContext()
     si = scene.ray_intersect(path.ray, ray_flags=mi.RayFlags.All, coherent=depth == 0, active=path.active)
@@ -137,8 +146,15 @@ def trace_vertex(scene: mi.Scene, path: PathState, depth: mi.UInt32, max_depth: 
     has_nee = path.active & si.is_valid() & (depth + 1 < max_depth)
     bsdf = si.bsdf(path.ray)
     active_em = has_nee & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
-    ds_em, em_weight = scene.sample_emitter_direction(si, samples.light, True, active_em)
-    active_em &= ds_em.pdf != 0.0
+    # Visibility is tested separately so that ``ds_em.pdf`` stays the unoccluded density: a shift may reuse this
+    # light sample from another vertex, which can see the emitter point even where this vertex cannot.
+    ds_em, em_weight = scene.sample_emitter_direction(si, samples.light, False, active_em)
+    active_em &= (ds_em.pdf > 0.0) & dr.isfinite(ds_em.pdf)  # a vertex in the emitter's plane has no sample
+    if strict_light_pdf:
+        density = scene.pdf_emitter_direction(si, ds_em, active_em & ~ds_em.delta)
+        active_em &= ds_em.delta | (density > 0.0)
+    light_visible = ~scene.ray_test(si.spawn_ray_to(ds_em.p), active_em)
+    em_weight = dr.select(light_visible, em_weight, 0.0)
     bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, si.to_local(ds_em.d), active_em)
     mis_em = dr.select(ds_em.delta, 1.0, mis_power(ds_em.pdf, bsdf_pdf))
     nee = dr.select(active_em, path.throughput * mis_em * bsdf_val * em_weight, 0.0)
@@ -159,7 +175,8 @@ def trace_vertex(scene: mi.Scene, path: PathState, depth: mi.UInt32, max_depth: 
         prev_delta=mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta),
     )
     vertex = Vertex(emitted=emitted, has_hit=mi.Bool(path.active), nee=nee, has_nee=has_nee, si=si, bsdf=bsdf,
-                    sample=bs, sample_weight=bs_weight)
+                    sample=bs, sample_weight=bs_weight, light=ds_em, light_weight=em_weight,
+                    light_visible=light_visible, nee_sampled=active_em)
     return nxt, vertex
 
 
@@ -188,6 +205,7 @@ class Shift(Protocol):
     """A shift mapping: how an offset path is built from its base path, one base vertex at a time."""
 
     name: str
+    reuses_light_samples: bool  # offsets reconnect to the base path's emitter sample (see trace_vertex)
 
     def start(self, ray: mi.Ray3f, weight: mi.Spectrum, active: mi.Bool) -> Any:
         """Offset loop state for the offset's primary ray (``active`` is False outside the image)."""
@@ -423,7 +441,7 @@ def render_pass(scene: mi.Scene, shift: Shift, settings: GptSettings, width: int
         samples = VertexSamples.draw(sampler)
         ray_d = mi.Vector3f(base.ray.d)
         base_active = mi.Bool(base.active)
-        base, v = trace_vertex(scene, base, depth, max_depth_o, samples)
+        base, v = trace_vertex(scene, base, depth, max_depth_o, samples, shift.reuses_light_samples)
         hit_grads, nee_grads = [], []
         new_offsets = []
         for off in offsets:
