@@ -9,8 +9,8 @@ version), and ``reconstruct_layer`` runs one layer of a frame:
     alignment ─► ONNX Runtime ─► crop ─► inverse transform ─► (H, W, 3) float32, finite, ≥ 0
 
 Frames above ``TileSettings.max_untiled_pixels`` are processed in overlapping windows: each window carries
-``overlap`` pixels of context on its interior sides, and windows are blended with weights that ramp from 0 at
-a window's interior edge to 1 at its core, so seams from border effects are feathered away. Memory then
+``overlap`` pixels of context on its interior sides; the outer half of that context is discarded (it saw the
+window's border) and the inner half is blended with the neighbour by a linear ramp, so seams are feathered. Memory then
 depends on the window size, not the frame (a 4096×4096 layer peaks at well under 4 GB; see
 benchmarks/bench_network.py --memory). Channel attention pools over the window, so tiled output is close to,
 not bit-identical with, untiled output; windows are large (1 Mpx cores) to keep those statistics close.
@@ -35,6 +35,7 @@ from model.preprocess import (
     PREPROCESS_VERSION,
     DepthRange,
     Window,
+    aligned_size,
     crop_to,
     feature_planes,
     layer_planes,
@@ -70,6 +71,7 @@ class SessionSettings:
     intra_op_threads: int = 0
     optimization: str = "all"
     allow_spinning: bool = True  # spinning threads cut latency; turn off to free the CPU between requests
+    memory_arena: bool = True    # ORT's CPU arena: faster allocation, but it keeps its high-water mark
 
     def options(self) -> onnxruntime.SessionOptions:
         import onnxruntime as ort
@@ -86,6 +88,7 @@ class SessionSettings:
         so.intra_op_num_threads = max(0, int(self.intra_op_threads))
         so.inter_op_num_threads = 1
         so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+        so.enable_cpu_mem_arena = self.memory_arena
         so.add_session_config_entry("session.intra_op.allow_spinning", "1" if self.allow_spinning else "0")
         so.log_severity_level = 3  # errors only: ORT's warnings about unused initialisers are noise here
         return so
@@ -97,7 +100,7 @@ class TileSettings:
     of ``tile``² core pixels plus ``overlap`` pixels of context per interior side."""
 
     tile: int = 1024
-    overlap: int = 64
+    overlap: int = 96
     max_untiled_pixels: int = 1152 * 1152
 
     def __post_init__(self) -> None:
@@ -113,31 +116,44 @@ class TilePlan:
     window: Window
 
 
-def plan_tiles(height: int, width: int, settings: TileSettings) -> list[TilePlan]:
-    """Windows covering the frame; a single window when the frame is small enough."""
+def plan_tiles(height: int, width: int, settings: TileSettings, alignment: int = 1) -> list[TilePlan]:
+    """Windows covering the frame; a single window when the frame is small enough.
+
+    Tile and overlap are rounded up to multiples of the network's alignment so every window starts on the
+    same stride-2 sampling grid as the whole frame: the encoder's downsampling is not shift-invariant, and a
+    window offset by a few pixels would see a differently subsampled image.
+    """
     if height * width <= settings.max_untiled_pixels:
         return [TilePlan((0, height, 0, width), (0, height, 0, width))]
+    tile = aligned_size(settings.tile, alignment)
+    o = aligned_size(settings.overlap, alignment)
     plans = []
-    for y0 in range(0, height, settings.tile):
-        y1 = min(height, y0 + settings.tile)
-        for x0 in range(0, width, settings.tile):
-            x1 = min(width, x0 + settings.tile)
-            o = settings.overlap
+    for y0 in range(0, height, tile):
+        y1 = min(height, y0 + tile)
+        for x0 in range(0, width, tile):
+            x1 = min(width, x0 + tile)
             window = (max(0, y0 - o), min(height, y1 + o), max(0, x0 - o), min(width, x1 + o))
             plans.append(TilePlan((y0, y1, x0, x1), window))
     return plans
 
 
 def _ramp(lo: int, hi: int, size: int, overlap: int) -> np.ndarray:
-    """1-D blend weight over a window [lo, hi) of an axis of ``size``: ramps up over the context it carries
-    on interior sides, 1 elsewhere; ≥ 1 over its core, so the blend's denominator never vanishes."""
+    """1-D blend weight over a window [lo, hi) of an axis of ``size``.
+
+    On a side where the window carries ``overlap`` pixels of context, the outer half of that context gets
+    weight 0 (those pixels saw the window's zero-padded border through the convolutions) and the inner half
+    ramps linearly up to 1 at the core; a side on the frame's edge keeps weight 1. The weight is 1 over the
+    core, so every pixel has a positive total weight.
+    """
     x = np.arange(lo, hi, dtype=np.float32)
     w = np.ones(hi - lo, dtype=np.float32)
     if overlap > 0:
+        dead = overlap // 2
+        span = overlap - dead + 1
         if lo > 0:
-            w = np.minimum(w, (x - lo + 1) / (overlap + 1))
+            w = np.minimum(w, np.clip((x - lo - dead + 1) / span, 0.0, 1.0))
         if hi < size:
-            w = np.minimum(w, (hi - x) / (overlap + 1))
+            w = np.minimum(w, np.clip((hi - 1 - x - dead + 1) / span, 0.0, 1.0))
     return w
 
 
@@ -257,7 +273,8 @@ class NetworkReconstructor:
         height, width = _check_inputs(layer, features)
         assert features is not None  # _check_inputs raised otherwise
         model = self.models[name]
-        plans = plan_tiles(height, width, self.tiles)
+        plans = plan_tiles(height, width, self.tiles, model.alignment)
+        overlap = aligned_size(self.tiles.overlap, model.alignment)
         depth_range = DepthRange.of(features.depth)  # per frame, shared by every window
         if len(plans) == 1:
             return self._run_window(model, layer, features, depth_range, plans[0].window)
@@ -266,7 +283,7 @@ class NetworkReconstructor:
         for plan in plans:
             y0, y1, x0, x1 = plan.window
             out = self._run_window(model, layer, features, depth_range, plan.window)
-            w = np.outer(_ramp(y0, y1, height, self.tiles.overlap), _ramp(x0, x1, width, self.tiles.overlap))
+            w = np.outer(_ramp(y0, y1, height, overlap), _ramp(x0, x1, width, overlap))
             total[y0:y1, x0:x1] += out * w[..., None]
             weight[y0:y1, x0:x1] += w[..., None]
         return total / weight

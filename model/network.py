@@ -50,8 +50,6 @@ class NetworkConfig:
     use_attention: bool = True      # CBAM after each upsampling stage (False: the GradNet ablation)
     attention_reduction: int = 8    # CBAM channel-MLP reduction ratio (hidden = channels // ratio, ≥ 4)
     gbranch_width: int = 32         # G-branch hidden channels (GradNet: 64)
-    input_skip: bool = False        # add C(base) to the output (head zero-initialised): starts at the input
-    output_relu: bool = True        # GradNet's final ReLU; False leaves the clamp to the inverse transform
 
     def __post_init__(self) -> None:
         for name in ("width", "depth", "attention_reduction", "gbranch_width"):
@@ -202,8 +200,6 @@ class DualBranchNet(nn.Module):
         self.decoder = nn.ModuleList(ups)
         self.head = nn.Conv2d(widths[0], len(OUTPUTS), 3, padding=1)
         init_weights(self)
-        if config.input_skip:
-            nn.init.zeros_(self.head.weight)
 
     def forward(self, data: torch.Tensor, gradient: torch.Tensor) -> torch.Tensor:
         d_skips = self.data_encoder(data)
@@ -212,10 +208,8 @@ class DualBranchNet(nn.Module):
         # deepest first: each Up sees the stream plus both branches' skips at the stream's resolution
         for level, up in zip(reversed(range(self.config.depth)), self.decoder, strict=True):
             x = up(torch.cat([x, d_skips[level], g_skips[level]], dim=1))
-        out = self.head(x)
-        if self.config.input_skip:
-            out = out + data[:, : len(OUTPUTS)]
-        return F.relu(out) if self.config.output_relu else out
+        # ReLU: the log-domain radiance C(I) is ≥ 0 (GradNet's output activation)
+        return F.relu(self.head(x))
 
 
 class GBranch(nn.Module):

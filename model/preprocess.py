@@ -123,16 +123,30 @@ def _crop(image: np.ndarray, window: Window | None) -> np.ndarray:
 
 def _finite(x: np.ndarray, lo: float, hi: float) -> np.ndarray:
     """float32 copy with NaN → 0, ±Inf → the nearest bound, everything clipped to [lo, hi]."""
-    out = np.nan_to_num(np.asarray(x, dtype=np.float32), nan=0.0, posinf=hi, neginf=lo)
+    out = np.array(x, dtype=np.float32)  # always a copy: sanitised in place below
+    return _sanitise_inplace(out, lo, hi)
+
+
+def _sanitise_inplace(out: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    np.nan_to_num(out, copy=False, nan=0.0, posinf=hi, neginf=lo)
     return np.clip(out, lo, hi, out=out)
+
+
+def _channels_first(dst: np.ndarray, src: np.ndarray, lo: float, hi: float) -> None:
+    """Write an (h, w, c) image into a (c, h, w) slice of a preallocated array, sanitised: one strided copy
+    and two in-place passes instead of several temporaries (this runs on every inference)."""
+    np.copyto(dst, np.moveaxis(np.asarray(src), -1, 0), casting="unsafe")
+    _sanitise_inplace(dst, lo, hi)
 
 
 def layer_planes(layer: Layer, window: Window | None = None) -> np.ndarray:
     """(9, h, w) float32: base R G B, dx R G B, dy R G B, linear, finite, base ≥ 0, all within ±RADIANCE_MAX."""
-    base = _finite(_crop(layer.base, window), 0.0, RADIANCE_MAX)
-    dx = _finite(_crop(layer.dx, window), -RADIANCE_MAX, RADIANCE_MAX)
-    dy = _finite(_crop(layer.dy, window), -RADIANCE_MAX, RADIANCE_MAX)
-    return np.ascontiguousarray(np.concatenate([base, dx, dy], axis=-1).transpose(2, 0, 1))
+    base = _crop(layer.base, window)
+    out = np.empty((LAYER_PLANES, *base.shape[:2]), dtype=np.float32)
+    _channels_first(out[0:3], base, 0.0, RADIANCE_MAX)
+    _channels_first(out[3:6], _crop(layer.dx, window), -RADIANCE_MAX, RADIANCE_MAX)
+    _channels_first(out[6:9], _crop(layer.dy, window), -RADIANCE_MAX, RADIANCE_MAX)
+    return out
 
 
 @dataclass(frozen=True)
@@ -162,10 +176,14 @@ def feature_planes(features: Features, depth_range: DepthRange | None = None,
     """(7, h, w) float32: albedo in [0,1], normal·0.5+0.5 in [0,1], depth normalised per frame to [0,1]."""
     if depth_range is None:
         depth_range = DepthRange.of(features.depth)
-    albedo = _finite(_crop(features.albedo, window), 0.0, 1.0)
-    normal = _finite(_crop(features.normal, window), -1.0, 1.0) * 0.5 + 0.5
-    depth = depth_range.normalise(_crop(features.depth, window))[..., None]
-    return np.ascontiguousarray(np.concatenate([albedo, normal, depth], axis=-1).transpose(2, 0, 1))
+    albedo = _crop(features.albedo, window)
+    out = np.empty((FEATURE_PLANES, *albedo.shape[:2]), dtype=np.float32)
+    _channels_first(out[0:3], albedo, 0.0, 1.0)
+    _channels_first(out[3:6], _crop(features.normal, window), -1.0, 1.0)
+    out[3:6] *= 0.5
+    out[3:6] += 0.5
+    out[6] = depth_range.normalise(_crop(features.depth, window))
+    return out
 
 
 # ---------------------------------------------------------------------------------------------------------------

@@ -168,12 +168,6 @@ class TestInitAndConfig:
         cfg = NetworkConfig(width=8, use_attention=False)
         assert NetworkConfig.from_dict({**cfg.to_dict(), "unknown_future_key": 1}) == cfg
 
-    def test_input_skip_starts_at_the_input(self) -> None:
-        net = DualBranchNet(NetworkConfig(width=4, residual_blocks=1, input_skip=True)).eval()
-        data, grad = _inputs(1, 8, 8)
-        with torch.no_grad():
-            assert torch.allclose(net(data, grad), data[:, :3])
-
 
 def test_macs_per_pixel_matches_a_count_of_the_convolutions() -> None:
     """The MAC model in docs/network.md and the benchmark equals what the convolutions actually do."""
