@@ -2,9 +2,10 @@
 
     .venv/bin/python benchmarks/bench_render.py            # full run (a few minutes on 2 cores)
     .venv/bin/python benchmarks/bench_render.py --quick    # small sizes, for a smoke check
-    .venv/bin/python benchmarks/bench_render.py --shift replay --json out.json
+    .venv/bin/python benchmarks/bench_render.py --shift hybrid --scene procedural:3 --json out.json
 
-Reports (medians of repeats, each after a warm-up render that compiles the kernels):
+Reports, for each shift (default: replay and hybrid; medians of repeats, each after a warm-up render that
+compiles the kernels):
 
 1. cost per sample: G-PT seconds / Mitsuba `path` seconds at the same scene, resolution, spp and max depth
    (both with the box filter). G-PT traces five paths per sample plus their shadow rays.
@@ -118,8 +119,8 @@ def bench_gradients(spec: str, size: int, spp: int, ref_spp: int, seeds: int, sh
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--scene", default=DEFAULT_SCENE)
-    parser.add_argument("--shift", default="replay")
+    parser.add_argument("--scene", default=DEFAULT_SCENE, help="XML path or procedural:SEED")
+    parser.add_argument("--shift", default="replay,hybrid", help="comma-separated shifts to compare")
     parser.add_argument("--quick", action="store_true", help="small sizes and few repeats (smoke check)")
     parser.add_argument("--repeats", type=int, default=None)
     parser.add_argument("--skip-frame", action="store_true", help="skip the 1280x720 frame timing")
@@ -130,28 +131,35 @@ def main(argv: list[str] | None = None) -> int:
 
     variant = select_variant()
     repeats = args.repeats or (2 if args.quick else 5)
-    results: dict = {"variant": variant, "shift": args.shift, "quick": args.quick}
-
+    shifts = [name.strip() for name in args.shift.split(",") if name.strip()]
+    results: dict = {"variant": variant, "scene": args.scene, "quick": args.quick, "shifts": {}}
     size, spp = (64, 16) if args.quick else (256, 16)
-    cost = bench_cost(args.scene, size, spp, repeats, args.shift)
-    results["cost"] = cost
-    print(f"cost per sample ({cost['size']}^2, {spp} spp, max_depth {cost['max_depth']}): "
-          f"G-PT {cost['gpt_s']:.3f} s, path {cost['path_s']:.3f} s -> {cost['cost_ratio']:.2f}x")
-
-    if not args.skip_frame:
-        w, h = (320, 180) if args.quick else (1280, 720)
-        frame = bench_frame(args.scene, w, h, 16, max(1, repeats // 2), args.shift)
-        results["frame"] = frame
-        print(f"frame {w}x{h} at 16 spp: {frame['seconds']:.2f} s (median of {len(frame['all'])})")
-
     gsize, gref, gseeds = (48, 2048, 4) if args.quick else (128, 8192, 8)
-    grads = bench_gradients(args.scene, gsize, 16, gref, gseeds, args.shift)
-    results["gradients"] = grads
-    for axis in ("dx", "dy"):
-        print(f"{axis} error at 16 spp ({gsize}^2, reference {gref} spp, {gseeds} seeds): "
-              f"mean |G-PT - ref| {grads[f'{axis}_gpt_mean']:.5f}, mean |FD(primal) - ref| "
-              f"{grads[f'{axis}_fd_mean']:.5f} -> ratio {grads[f'{axis}_ratio_mean']:.2f} "
-              f"(medians: ratio {grads[f'{axis}_ratio_median']:.2f})")
+    for shift in shifts:
+        out: dict = {}
+        results["shifts"][shift] = out
+        cost = out["cost"] = bench_cost(args.scene, size, spp, repeats, shift)
+        print(f"[{shift}] cost per sample ({cost['size']}^2, {spp} spp, max_depth {cost['max_depth']}): "
+              f"G-PT {cost['gpt_s']:.3f} s, path {cost['path_s']:.3f} s -> {cost['cost_ratio']:.2f}x")
+        if not args.skip_frame:
+            w, h = (320, 180) if args.quick else (1280, 720)
+            frame = out["frame"] = bench_frame(args.scene, w, h, 16, max(1, repeats // 2), shift)
+            print(f"[{shift}] frame {w}x{h} at 16 spp: {frame['seconds']:.2f} s (median of {len(frame['all'])})")
+        grads = out["gradients"] = bench_gradients(args.scene, gsize, 16, gref, gseeds, shift)
+        for axis in ("dx", "dy"):
+            print(f"[{shift}] {axis} error at 16 spp ({gsize}^2, reference {gref} spp, {gseeds} seeds): "
+                  f"mean |G-PT - ref| {grads[f'{axis}_gpt_mean']:.5f}, mean |FD(primal) - ref| "
+                  f"{grads[f'{axis}_fd_mean']:.5f} -> ratio {grads[f'{axis}_ratio_mean']:.2f} "
+                  f"(medians: ratio {grads[f'{axis}_ratio_median']:.2f})")
+    if len(shifts) > 1 and "replay" in results["shifts"]:
+        base = results["shifts"]["replay"]["gradients"]
+        for shift in shifts:
+            if shift == "replay":
+                continue
+            other = results["shifts"][shift]["gradients"]
+            for axis in ("dx", "dy"):
+                gain = base[f"{axis}_gpt_mean"] / other[f"{axis}_gpt_mean"]
+                print(f"{shift} vs replay, {axis}: mean gradient error {gain:.2f}x lower")
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=2))
     return 0
