@@ -3,8 +3,8 @@
 A shift implements the small :class:`renderer.gpt.Shift` protocol: ``start`` makes the offset's loop state from
 its primary ray, ``step`` advances it by one base-path vertex and returns the offset's contributions for that
 vertex's two events together with the MIS weights of the pixel pair, ``scale``/``kill`` apply the base path's
-Russian roulette. The integrator never looks inside an offset state, so the hybrid shift (reconnection +
-half-vector copy, issue 4) replaces :class:`ReplayShift` without touching the integrator.
+Russian roulette. The integrator never looks inside an offset state: :class:`ReplayShift` and
+:class:`HybridShift` (reconnection at rough vertices, replay elsewhere; issue 4) are interchangeable.
 
 Random replay
 -------------

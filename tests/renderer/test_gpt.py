@@ -539,15 +539,18 @@ def test_layer_and_shift_arguments():
         make_shift("manifold")
 
 
-def test_render_command_end_to_end(tmp_path, capsys):
+@pytest.mark.parametrize("shift", [None, "hybrid"])
+def test_render_command_end_to_end(tmp_path, capsys, shift):
     out = tmp_path / "t.exr"
-    rc = main(["render", TEAPOT, "--spp", "2", "--width", "16", "--height", "12", "--seed", "4", "-o", str(out)])
+    rc = main(["render", TEAPOT, "--spp", "2", "--width", "16", "--height", "12", "--seed", "4", "-o", str(out),
+               *(["--shift", shift] if shift else [])])
     assert rc == 0
     frame = read_frame(out)
     assert (frame.width, frame.height) == (16, 12)
     assert list(frame.layers) == ["direct"]  # the teapot's own integrator is `direct`
     assert frame.metadata["gradsep.seed"] == "4"
     assert frame.metadata["gradsep.max_depth"] == "2"
+    assert frame.metadata["gradsep.shift"] == (shift or "replay")
 
 
 @pytest.mark.parametrize("argv, message", [
