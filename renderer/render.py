@@ -111,6 +111,10 @@ def render_metadata(scene: LoadedScene, *, spp: int, seed: int, shift: str, laye
     }
     if scene.defines:
         meta["gradsep.defines"] = ",".join(f"{k}={v}" for k, v in sorted(scene.defines.items()))
+    if scene.spec.startswith("procedural:"):
+        from renderer.procedural import GENERATOR_VERSION  # a seed names a scene only for one generator version
+
+        meta["gradsep.procedural_version"] = str(GENERATOR_VERSION)
     return meta
 
 

@@ -525,6 +525,15 @@ def test_frame_round_trips_through_the_contract(cbox_small, tmp_path):
     assert float(back.metadata["gradsep.render_seconds"]) > 0
 
 
+def test_procedural_frames_record_the_generator_version():
+    pytest.importorskip("renderer.procedural")
+    from renderer.procedural import GENERATOR_VERSION
+
+    frame = render_frame("procedural:5", spp=1, width=8, height=6, layers="direct")
+    assert frame.metadata["gradsep.procedural_version"] == str(GENERATOR_VERSION)
+    assert frame.metadata["gradsep.scene"] == "procedural:5"
+
+
 def test_layer_and_shift_arguments():
     assert parse_layers("indirect, direct") == ("direct", "indirect")
     with pytest.raises(CommandError, match="unknown layer"):
