@@ -86,7 +86,16 @@ def load_manifest(data_dir: str | os.PathLike[str]) -> Manifest:
         if not file.is_file():
             raise DatasetError(f"{path}: frames[{i}].file {rec['file']!r} does not exist")
         entries.append(FrameEntry(i, file, rec))
-    return Manifest(root, tuple(entries), hashlib.sha256(blob).hexdigest(), raw)
+    return Manifest(root, tuple(entries), _identity(raw, blob), raw)
+
+
+def _identity(raw: dict[str, Any], blob: bytes) -> str:
+    """The dataset's identity: the renderer's content hash ("hash": settings + every frame's SHA-256), which
+    survives re-merging manifest.json; the file's own SHA-256 for manifests without one."""
+    value = raw.get("hash")
+    if isinstance(value, str) and len(value) == 64 and all(c in "0123456789abcdef" for c in value):
+        return value
+    return hashlib.sha256(blob).hexdigest()
 
 
 def split_frames(n: int, seed: int, val_fraction: float = 0.1) -> tuple[list[int], list[int]]:

@@ -14,6 +14,7 @@ import argparse
 import contextlib
 import io
 import json
+import logging
 import os
 import warnings
 from pathlib import Path
@@ -73,12 +74,19 @@ def to_onnx(model: DualBranchNet, metadata: dict[str, str]) -> Any:
     data, gradient = _sample_inputs(model.config)
     n, h, w = torch.export.Dim("batch"), torch.export.Dim("height"), torch.export.Dim("width")
     shapes = {"data": {0: n, 2: h, 3: w}, "gradient": {0: n, 2: h, 3: w}}
-    # the exporter prints progress lines and renames axes with warnings; neither helps a user of this command
-    with warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()):
-        warnings.simplefilter("ignore")
-        program = torch.onnx.export(model, (data, gradient), None, input_names=list(INPUT_NAMES),
-                                    output_names=[OUTPUT_NAME], opset_version=OPSET, dynamo=True,
-                                    dynamic_shapes=shapes, verbose=False)
+    # the exporter prints progress lines, logs that torchvision's ops are unavailable and renames axes with
+    # warnings; none of it helps a user of this command (real failures still raise)
+    onnx_log = logging.getLogger("torch.onnx")
+    level = onnx_log.level
+    onnx_log.setLevel(logging.ERROR)
+    try:
+        with warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()):
+            warnings.simplefilter("ignore")
+            program = torch.onnx.export(model, (data, gradient), None, input_names=list(INPUT_NAMES),
+                                        output_names=[OUTPUT_NAME], opset_version=OPSET, dynamo=True,
+                                        dynamic_shapes=shapes, verbose=False)
+    finally:
+        onnx_log.setLevel(level)
     proto = program.model_proto
     onnx.helper.set_model_props(proto, metadata)
     proto.doc_string = "gradsep dual-branch CBAM reconstruction network; see metadata gradsep.*"

@@ -197,6 +197,20 @@ def test_manifest_errors(tmp_path: Path, manifest: str | None, message: str) -> 
         load_manifest(tmp_path)
 
 
+def test_manifest_identity_prefers_the_renderers_content_hash(tiny_dataset: Path, tmp_path: Path) -> None:
+    import hashlib
+    import shutil
+
+    blob = (tiny_dataset / "manifest.json").read_bytes()
+    assert load_manifest(tiny_dataset).sha256 == hashlib.sha256(blob).hexdigest()
+    copy = tmp_path / "ds"
+    shutil.copytree(tiny_dataset, copy)
+    raw = json.loads(blob)
+    raw["hash"] = "ab" * 32
+    (copy / "manifest.json").write_text(json.dumps(raw, indent=4))
+    assert load_manifest(copy).sha256 == "ab" * 32
+
+
 def test_train_command_reports_bad_data_in_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     rc = cli_main(["train", "--data", str(tmp_path / "nope"), "--layer", "direct", "-o", str(tmp_path / "run")])
     assert rc == 2
