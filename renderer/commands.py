@@ -34,7 +34,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0, help="sampler seed")
     p.add_argument("--layers", default="direct,indirect",
                    help="comma-separated illumination layers to render: direct, indirect (default both)")
-    p.add_argument("--shift", choices=("hybrid", "replay"), default=None, help="shift mapping")
+    p.add_argument("--shift", choices=("hybrid", "replay"), default=None,
+                   help="shift mapping: hybrid (reconnection + replay, the default) or replay")
     p.add_argument("-D", "--define", action="append", default=[], metavar="NAME=VALUE",
                    help="override a <default> parameter of the XML scene (repeatable)")
     p.add_argument("-o", "--output", required=True, help="output frame (.exr)")

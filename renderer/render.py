@@ -19,8 +19,6 @@ from gradsep.cli import CommandError
 from model.frame import SEPARATED_LAYERS, Features, Frame, Layer, write_frame
 from renderer.scene import LoadedScene, load_scene, parse_defines
 
-DEFAULT_SHIFT = "replay"  # becomes "hybrid" once issue 4 lands
-
 
 def parse_layers(text: str | Iterable[str]) -> tuple[str, ...]:
     """``"direct,indirect"`` -> ("direct", "indirect") in contract order; unknown names are a user error."""
@@ -58,7 +56,7 @@ def render_frame(scene: LoadedScene | str, *, spp: int, seed: int = 0,
     ``max_depth`` and ``defines``. ``max_depth`` given here overrides the loaded scene's.
     """
     from renderer.gpt import GptSettings, render_gpt
-    from renderer.shift import make_shift
+    from renderer.shift import make_shift  # imports Mitsuba
 
     if spp < 1:
         raise CommandError(f"--spp must be >= 1, got {spp}")
@@ -73,7 +71,7 @@ def render_frame(scene: LoadedScene | str, *, spp: int, seed: int = 0,
                             scene.defines)
     wanted, notes = plan_layers(parse_layers(layers), scene.max_depth)
     try:
-        shift_impl = make_shift(shift or DEFAULT_SHIFT)
+        shift_impl = make_shift(shift)
     except ValueError as exc:
         raise CommandError(str(exc)) from None
     settings = GptSettings(max_depth=scene.max_depth, rr_depth=scene.rr_depth, direct="direct" in wanted,

@@ -286,9 +286,12 @@ class HybridShift:
         return offset
 
 
+DEFAULT_SHIFT = "hybrid"
+
+
 def make_shift(name: str | None) -> Shift:
     """The shift called ``name`` (None = the default). Raises ValueError for a shift that is not available."""
-    name = name or "replay"
+    name = name or DEFAULT_SHIFT
     if name == "replay":
         return ReplayShift()
     if name == "hybrid":

@@ -536,7 +536,7 @@ def test_frame_round_trips_through_the_contract(cbox_small, tmp_path):
     for key in ("gradsep.spp", "gradsep.seed", "gradsep.scene", "gradsep.max_depth", "gradsep.shift",
                 "gradsep.version", "gradsep.render_seconds"):
         assert key in back.metadata
-    assert back.metadata["gradsep.spp"] == "2" and back.metadata["gradsep.shift"] == "replay"
+    assert back.metadata["gradsep.spp"] == "2" and back.metadata["gradsep.shift"] == "hybrid"
     assert float(back.metadata["gradsep.render_seconds"]) > 0
 
 
@@ -557,13 +557,13 @@ def test_layer_and_shift_arguments():
         parse_layers(" , ")
     assert plan_layers(("direct", "indirect"), -1) == (("direct", "indirect"), [])
     assert plan_layers(("direct", "indirect"), 2)[0] == ("direct",)
-    assert make_shift(None).name == "replay"
+    assert make_shift(None).name == "hybrid"
     assert isinstance(make_shift("hybrid"), HybridShift) and isinstance(make_shift("replay"), ReplayShift)
     with pytest.raises(ValueError, match="unknown shift"):
         make_shift("manifold")
 
 
-@pytest.mark.parametrize("shift", [None, "hybrid"])
+@pytest.mark.parametrize("shift", [None, "replay"])
 def test_render_command_end_to_end(tmp_path, capsys, shift):
     out = tmp_path / "t.exr"
     rc = main(["render", TEAPOT, "--spp", "2", "--width", "16", "--height", "12", "--seed", "4", "-o", str(out),
@@ -574,7 +574,7 @@ def test_render_command_end_to_end(tmp_path, capsys, shift):
     assert list(frame.layers) == ["direct"]  # the teapot's own integrator is `direct`
     assert frame.metadata["gradsep.seed"] == "4"
     assert frame.metadata["gradsep.max_depth"] == "2"
-    assert frame.metadata["gradsep.shift"] == (shift or "replay")
+    assert frame.metadata["gradsep.shift"] == (shift or "hybrid")
 
 
 @pytest.mark.parametrize("argv, message", [
