@@ -1,4 +1,5 @@
-"""Correctness of the G-PT renderer against Mitsuba's own `path` integrator, on the two shared scenes.
+"""Correctness of the G-PT renderer against Mitsuba's own `path` integrator on the Cornell box, the teapot (the
+shared third-party files, or their built-in stand-ins: tests/renderer/scenes.py) and scenes built in the tests.
 
 Tolerances come from the sample counts: every comparison estimates the standard error of both sides from
 independent seeds (G-PT) or independent reference chunks (Mitsuba) and allows a few standard errors. Small
@@ -8,9 +9,7 @@ of renders per scene is shared through module-scoped fixtures, so only a handful
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -23,24 +22,15 @@ from renderer.gpt import GptSettings, pass_plan, render_gpt  # noqa: E402
 from renderer.render import parse_layers, plan_layers, render_frame  # noqa: E402
 from renderer.scene import load_scene, select_variant  # noqa: E402
 from renderer.shift import HybridShift, ReplayShift, make_shift  # noqa: E402
+from tests.renderer.scenes import resolve  # noqa: E402
 
 pytestmark = pytest.mark.render
 
 
-def _shared_scenes() -> Path:
-    """The shared third-party scenes: $GRADSEP_SCENES, else ../shared/scenes beside the checkout, else /work."""
-    candidates = [Path(os.environ["GRADSEP_SCENES"])] if os.environ.get("GRADSEP_SCENES") else []
-    candidates += [Path(__file__).resolve().parents[3] / "shared" / "scenes", Path("/work/shared/scenes")]
-    for folder in candidates:
-        if (folder / "cbox" / "cbox.xml").is_file():
-            return folder
-    pytest.skip("the shared scenes (cbox, teapot) are not on this machine; set GRADSEP_SCENES",
-                allow_module_level=True)
-
-
-SCENES = _shared_scenes()
-CBOX = str(SCENES / "cbox" / "cbox.xml")
-TEAPOT = str(SCENES / "teapot" / "teapot.xml")
+# The shared third-party scenes when present, else built-in equivalents (tests/renderer/scenes.py): every test
+# here runs on whichever is available.
+CBOX = str(resolve("cbox"))
+TEAPOT = str(resolve("teapot"))
 SIZE = 24
 SEEDS = 16  # independent G-PT renders per scene
 SPP = 8  # per G-PT render

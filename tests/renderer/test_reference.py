@@ -18,10 +18,10 @@ from renderer.reference import (
     render_reference,
     write_reference,
 )
+from tests.renderer.scenes import resolve
 
-CBOX = Path(__file__).resolve().parents[3] / "shared" / "scenes" / "cbox" / "cbox.xml"
-if not CBOX.is_file():  # the checkout may live elsewhere; the shared scenes stay at /work/shared
-    CBOX = Path("/work/shared/scenes/cbox/cbox.xml")
+# The shared Cornell box when present, else its built-in equivalent (tests/renderer/scenes.py).
+CBOX = resolve("cbox").path
 
 pytestmark = pytest.mark.render
 
@@ -64,7 +64,7 @@ def test_split_check_fails_when_direct_exceeds_total() -> None:
 
 # -- rendering -------------------------------------------------------------------------------------------------
 
-@pytest.mark.parametrize("spec", ["procedural:4", str(CBOX)])
+@pytest.mark.parametrize("spec", ["procedural:4", str(CBOX)], ids=["procedural", "cbox"])
 def test_direct_plus_indirect_is_the_total(spec: str) -> None:
     ref = render_reference(spec, spp=8, width=24, height=20, tile_spp=4, seed=3)
     assert ref.total.shape == (20, 24, 3) and ref.total.dtype == np.float32

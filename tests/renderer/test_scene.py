@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 mi = pytest.importorskip("mitsuba")
@@ -18,24 +19,15 @@ from renderer.scene import (  # noqa: E402
     parse_defines,
     select_variant,
 )
+from tests.renderer import scenes  # noqa: E402
+from tests.renderer.scenes import resolve  # noqa: E402
 
 pytestmark = pytest.mark.render
 
 
-def _shared_scenes() -> Path:
-    """The shared third-party scenes: $GRADSEP_SCENES, else ../shared/scenes beside the checkout, else /work."""
-    candidates = [Path(os.environ["GRADSEP_SCENES"])] if os.environ.get("GRADSEP_SCENES") else []
-    candidates += [Path(__file__).resolve().parents[3] / "shared" / "scenes", Path("/work/shared/scenes")]
-    for folder in candidates:
-        if (folder / "cbox" / "cbox.xml").is_file():
-            return folder
-    pytest.skip("the shared scenes (cbox, teapot) are not on this machine; set GRADSEP_SCENES",
-                allow_module_level=True)
-
-
-SCENES = _shared_scenes()
-CBOX = SCENES / "cbox" / "cbox.xml"
-TEAPOT = SCENES / "teapot" / "teapot.xml"
+# The shared third-party scenes when present, else built-in equivalents (tests/renderer/scenes.py).
+CBOX = resolve("cbox").path
+TEAPOT = resolve("teapot").path
 
 
 def write_scene(folder: Path, body: str, sensor: str | None = None) -> Path:
@@ -54,7 +46,7 @@ def write_scene(folder: Path, body: str, sensor: str | None = None) -> Path:
     return path
 
 
-def test_shared_scenes_load_with_box_filter_and_their_settings():
+def test_test_scenes_load_with_box_filter_and_their_settings():
     cbox = load_scene(str(CBOX))
     assert (cbox.width, cbox.height) == (256, 256)  # the file's <default name="res">
     assert cbox.max_depth == 6 and cbox.rr_depth == 5
@@ -85,13 +77,37 @@ def test_defaults_can_be_overridden():
     assert load_scene(str(CBOX), width=8, max_depth=-1).max_depth == -1
 
 
+CUBE_OBJ = """v -1 -1 -1\nv 1 -1 -1\nv 1 1 -1\nv -1 1 -1\nv -1 -1 1\nv 1 -1 1\nv 1 1 1\nv -1 1 1
+f 1 4 3 2\nf 5 6 7 8\nf 1 2 6 5\nf 2 3 7 6\nf 3 4 8 7\nf 4 1 5 8
+"""
+
+
 def test_relative_paths_resolve_from_the_scene_folder(tmp_path, monkeypatch):
-    monkeypatch.chdir(tmp_path)  # the meshes are relative to the XML, not to the working directory
-    loaded = load_scene(os.path.relpath(TEAPOT, tmp_path), width=8, height=8)
+    """A mesh named relative to the XML (as the shared scenes' meshes are) loads from any working directory."""
+    folder = tmp_path / "scene"
+    (folder / "meshes").mkdir(parents=True)
+    (folder / "meshes" / "cube.obj").write_text(CUBE_OBJ)
+    xml = folder / "scene.xml"
+    xml.write_text("""<scene version="3.0.0">
+        <sensor type="perspective">
+            <transform name="to_world"><lookat origin="0,0,6" target="0,0,0" up="0,1,0"/></transform>
+        </sensor>
+        <shape type="obj"><string name="filename" value="meshes/cube.obj"/></shape>
+        <emitter type="constant"/>
+    </scene>""")
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)  # the mesh is relative to the XML, not to the working directory
+    loaded = load_scene(os.path.relpath(xml, elsewhere), width=8, height=8)
     assert len(loaded.scene.shapes()) == 1
+    assert loaded.scene.shapes()[0].face_count() == 12  # six quads, triangulated
     # and the resolver is left as it was
     resolver = mi.file_resolver()
-    assert str(TEAPOT.parent) not in [str(resolver[i]) for i in range(len(resolver))]
+    assert str(folder) not in [str(resolver[i]) for i in range(len(resolver))]
+    # the same file is not found without the scene's folder on the resolver
+    with pytest.raises(SceneError, match="failed to load"):
+        load_scene(str(write_scene(elsewhere, '<shape type="obj"><string name="filename" value="meshes/cube.obj"/>'
+                                              '</shape><emitter type="constant"/>')))
 
 
 @pytest.mark.parametrize("body, sensor, message", [
@@ -172,3 +188,38 @@ def test_force_film_dict_rewrites_the_first_sensor():
     film = scene["cam"]["film"]
     assert (film["width"], film["height"], film["rfilter"]) == (7, 3, {"type": "box"})
     assert "crop_width" not in film
+
+
+def test_scene_lookup_prefers_gradsep_scenes_and_falls_back_to_builtins(tmp_path, monkeypatch):
+    """$GRADSEP_SCENES is the only place looked at when set; without the scenes there, the built-ins are used."""
+    monkeypatch.setenv(scenes.SCENES_ENV, str(tmp_path))
+    for name in scenes.SCENE_NAMES:
+        found = scenes.find(name)
+        assert found.builtin and found.path.is_file() and found.path.name == f"{name}.xml"
+    (tmp_path / "cbox").mkdir()
+    (tmp_path / "cbox" / "cbox.xml").write_text("<scene version='3.0.0'/>")
+    assert scenes.find("cbox") == scenes.ResolvedScene("cbox", tmp_path / "cbox" / "cbox.xml", builtin=False)
+    assert scenes.find("teapot").builtin
+    with pytest.raises(KeyError, match="no test scene"):
+        scenes.find("sponza")
+
+
+def test_builtin_scenes_stand_in_for_the_shared_ones():
+    """The built-in scenes carry the settings the tests rely on, and the built-in Cornell box renders like the
+    shared one (same room from rectangles instead of OBJ quads) when that is available to compare with."""
+    cbox = load_scene(str(scenes.builtin_path("cbox")), width=16, height=16)
+    assert cbox.max_depth == 6 and cbox.rr_depth == 5
+    assert cbox.sensor.film().rfilter().class_name() == "BoxFilter"
+    assert len(cbox.scene.emitters()) == 1  # (Mitsuba merges the three white walls into one mesh)
+    assert load_scene(str(scenes.builtin_path("cbox")), defines={"res": "12"}).width == 12
+    teapot = load_scene(str(scenes.builtin_path("teapot")), width=16, height=16)
+    assert teapot.max_depth == 2 and len(teapot.scene.emitters()) == 2
+    assert all(e.is_environment() is False for e in teapot.scene.emitters())
+    shared = [folder / "cbox" / "cbox.xml" for folder in scenes.shared_candidates()
+              if (folder / "cbox" / "cbox.xml").is_file()]
+    if not shared:
+        return  # nothing to compare with; the settings above are what the other tests need
+    path = mi.load_dict({"type": "path", "max_depth": 6})
+    means = [np.array(mi.render(load_scene(str(p), width=16, height=16).scene, integrator=path, spp=256, seed=3),
+                      dtype=np.float64).mean(axis=(0, 1)) for p in (shared[0], scenes.builtin_path("cbox"))]
+    np.testing.assert_allclose(means[1], means[0], rtol=0.03)
