@@ -66,11 +66,107 @@ class ReplayShift:
 
 
 # ---------------------------------------------------------------------------------------------------------------
-# Hybrid shift: reconnection at rough vertices, random replay elsewhere
+# Hybrid shift: reconnection at rough vertices, half-vector copy at the others, replay after delta lobes
 # ---------------------------------------------------------------------------------------------------------------
 
 NOT_CONNECTED, RECENTLY_CONNECTED, CONNECTED = 0, 1, 2
-MIN_DISTANCE2 = 1e-12  # squared distances below this (coinciding points) are degenerate, not divided by
+
+# Float32-safe thresholds. Every threshold that decides whether a shift *exists* is applied to a quantity that is
+# symmetric in the pair (base path, offset path), so the shift from the neighbour's base path back to this one
+# makes the same decision and the two MIS weights of a pair still sum to 1 (an asymmetric cut-off would bias).
+MIN_DISTANCE2 = 1e-12  # squared distances below this (coinciding points) are clamped, not divided by
+MIN_HALF_COSINE = 1e-4  # half-vector copy fails where either path's direction grazes the microfacet: there the
+#                         Jacobian is a ratio of two float32 cosines that carry absolute errors of ~1e-7
+DEFAULT_FOOTPRINT = 0.0  # reconnect only where the segment to the shared vertex is this many times longer than
+#                          the distance between base and offset vertex (see HybridShift; 0 = no such condition)
+
+
+def _rough_vertex(bsdf: mi.BSDFPtr) -> mi.Bool:
+    """A vertex a reconnection may start or end at: its BSDF has a non-delta lobe (Mitsuba exposes no
+    roughness; delta lobes are the specular ones, every other lobe is treated as rough)."""
+    return mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+
+
+def _glossy_vertex(bsdf: mi.BSDFPtr) -> mi.Bool:
+    """A vertex whose non-delta lobes are all glossy (no diffuse lobe): where a shift that does not reconnect
+    copies the half-vector. Diffuse vertices replay instead: the same cosine-weighted random numbers give the
+    offset the same local direction, which follows a diffuse base path more closely than a mirrored one."""
+    flags = bsdf.flags()
+    return mi.has_flag(flags, mi.BSDFFlags.Glossy) & ~mi.has_flag(flags, mi.BSDFFlags.Diffuse)
+
+
+def _bsdf_id(bsdf: mi.BSDFPtr) -> mi.UInt32:
+    """The BSDF instance's registry id: equal ids mean the same material (and so the same index of refraction)."""
+    return dr.reinterpret_array(mi.UInt32, bsdf)
+
+
+def _interaction(si: mi.SurfaceInteraction3f) -> mi.Interaction3f:
+    it = dr.zeros(mi.Interaction3f)
+    it.t, it.time, it.p, it.n = si.t, si.time, si.p, si.n
+    return it
+
+
+def _balance(ratio: mi.Float) -> mi.Float:
+    """Weight 1 / (1 + p_other / p_this) of this technique; 0 where the ratio is not finite (p_this ~ 0)."""
+    w = dr.rcp(1.0 + ratio)
+    return dr.select(dr.isfinite(w) & dr.isfinite(ratio), w, 0.0)
+
+
+@dataclass
+class HalfVectorShift:
+    """Result of :func:`half_vector_shift`: the offset's outgoing direction (local frame), the solid-angle
+    Jacobian ``|d wo' / d wo|`` and whether the shift exists."""
+
+    wo: mi.Vector3f
+    jacobian: mi.Float
+    ok: mi.Bool
+
+
+def half_vector_shift(wi: mi.Vector3f, wo: mi.Vector3f, eta: mi.Float, wi_off: mi.Vector3f,
+                      eta_off: mi.Float) -> HalfVectorShift:
+    """Copy the base path's (generalized) half-vector to the offset vertex, in the local shading frames.
+
+    ``wi``/``wo``: the base path's directions at its vertex, ``eta`` the relative index of refraction of ``wo``'s
+    side over ``wi``'s (Mitsuba's ``BSDFSample3f.eta``; 1 for a reflection); ``wi_off`` the offset's incoming
+    direction and ``eta_off`` its relative index for a refraction. Reflection maps to reflection
+    (``wo' = reflect(wi', h)``, Jacobian ``|wo'.h| / |wo.h|``) and refraction to refraction about the same
+    microfacet normal (Jacobian ``(eta/eta')^2 |H'|^2 / |H|^2 * |wo.h| / |wo'.h|`` with ``H = wi + eta wo``, from
+    Walter et al. 2007, eq. 16). The shift does not exist where the offset would switch between reflection and
+    transmission (total internal reflection included), leave through the other side of the surface, or where a
+    direction of either path grazes the microfacet (:data:`MIN_HALF_COSINE`); each condition reads the same from
+    the other path, so the inverse shift fails in exactly the same cases.
+    """
+    refract = mi.Frame3f.cos_theta(wi) * mi.Frame3f.cos_theta(wo) < 0.0
+    eta = dr.select(refract, eta, 1.0)
+    eta_off = dr.select(refract, eta_off, 1.0)
+    big_h = wi + eta * wo
+    h2 = dr.squared_norm(big_h)
+    h = big_h * dr.rsqrt(dr.maximum(h2, 1e-30))
+    h = dr.select(dr.dot(h, wi) < 0.0, -h, h)
+    cos_i = dr.dot(wi_off, h)
+    # reflection about h
+    wo_reflect = 2.0 * cos_i * h - wi_off
+    # refraction through the microfacet h: tangential part scaled by 1/eta', Snell's law for the normal part
+    sin2_t = (1.0 - dr.square(cos_i)) / dr.square(eta_off)
+    cos_t = dr.safe_sqrt(1.0 - sin2_t)
+    wo_refract = -wi_off / eta_off + (cos_i / eta_off - cos_t) * h
+    wo_off = dr.normalize(dr.select(refract, wo_refract, wo_reflect))
+    same_side = mi.Frame3f.cos_theta(wi_off) * mi.Frame3f.cos_theta(wo_off) > 0.0
+    wo_h = dr.abs(dr.dot(wo, h))
+    wo_off_h = dr.abs(dr.dot(wo_off, h))
+    ok = (dr.minimum(dr.dot(wi, h), cos_i) > MIN_HALF_COSINE) & (dr.minimum(wo_h, wo_off_h) > MIN_HALF_COSINE)
+    ok &= dr.select(refract, (sin2_t < 1.0) & ~same_side, same_side)
+    h2_off = dr.squared_norm(wi_off + eta_off * wo_off)
+    jacobian_t = dr.square(eta / eta_off) * (h2_off / dr.maximum(h2, 1e-30)) * (wo_h / dr.maximum(wo_off_h, 1e-30))
+    jacobian = dr.select(refract, jacobian_t, wo_off_h / dr.maximum(wo_h, 1e-30))
+    return HalfVectorShift(wo=wo_off, jacobian=dr.select(ok, jacobian, 0.0), ok=ok)
+
+
+def offset_eta(wi: mi.Vector3f, eta: mi.Float, wi_off: mi.Vector3f) -> mi.Float:
+    """The offset's relative index of refraction at the same material: the base path's ``eta`` where both
+    arrive from the same side of the surface, its reciprocal where the offset arrives from the other side."""
+    same_side = mi.Frame3f.cos_theta(wi) * mi.Frame3f.cos_theta(wi_off) > 0.0
+    return dr.select(same_side, eta, dr.rcp(eta))
 
 
 @dataclass
@@ -88,66 +184,85 @@ class HybridState:
     ratio: mi.Float  # p(offset prefix as a base path) * Jacobians / p(base prefix); roulette excluded
     ray: mi.Ray3f  # primary ray (first iteration only)
     si: mi.SurfaceInteraction3f
-    lobe: mi.Float  # the base path's random numbers of the previous vertex, for replay at a specular vertex
+    lobe: mi.Float  # the base path's random numbers of the previous vertex, for replay after a delta lobe
     direction: mi.Point2f
     b_pdf: mi.Float  # base: pdf of the direction leaving its previous vertex
     b_weight: mi.Spectrum  # base: BSDF weight of that direction
     b_dir: mi.Vector3f  # base: that direction, world space
     b_delta: mi.Bool  # base: that direction came from a delta lobe
     b_rough_vertex: mi.Bool  # base: its previous vertex has a non-delta lobe
-
-
-def _rough_vertex(bsdf: mi.BSDFPtr) -> mi.Bool:
-    """A vertex a reconnection may start or end at: its BSDF has a non-delta lobe (Mitsuba exposes no
-    roughness; delta lobes are the specular ones, every other lobe is treated as rough)."""
-    return mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
-
-
-def _interaction(si: mi.SurfaceInteraction3f) -> mi.Interaction3f:
-    it = dr.zeros(mi.Interaction3f)
-    it.t, it.time, it.p, it.n = si.t, si.time, si.p, si.n
-    return it
-
-
-def _balance(ratio: mi.Float) -> mi.Float:
-    """Weight 1 / (1 + p_other / p_this) of this technique; 0 where the ratio is not finite (p_this ~ 0)."""
-    w = dr.rcp(1.0 + ratio)
-    return dr.select(dr.isfinite(w) & dr.isfinite(ratio), w, 0.0)
+    b_glossy: mi.Bool  # base: ... and no diffuse lobe
+    b_p: mi.Point3f  # base: its previous vertex
+    b_wi: mi.Vector3f  # base: incoming and outgoing direction there, in its local shading frame
+    b_wo: mi.Vector3f
+    b_eta: mi.Float  # base: relative index of refraction of that sample (1 for reflections)
+    b_bsdf: mi.UInt32  # base: the registry id of the BSDF there
 
 
 class HybridShift:
-    """Kettunen et al.'s hybrid shift, adapted to Mitsuba 3: reconnect where possible, replay elsewhere.
+    """Kettunen et al.'s hybrid shift, adapted to Mitsuba 3: reconnect where possible, otherwise copy the
+    half-vector, and replay the random numbers after a delta lobe.
 
-    The offset path starts from its own primary ray. Leaving each vertex, it *reconnects* to the base path's next
-    vertex when the base path sampled a non-delta lobe there, the offset vertex has a non-delta lobe and the base
-    path's next vertex has one too (or is the sky: reconnection at infinity); the Jacobian of moving the next
-    vertex is ``|cos' d^2| / |cos d'^2|`` (cosines at the shared vertex, squared distances to the previous
-    vertices) and occlusion of the new segment fails the shift. Otherwise the offset replays the base path's random
-    numbers at its own vertex -- for a smooth mirror or smooth glass that *is* the half-vector copy, and in
-    primary sample space its Jacobian is 1 -- and traces its own ray; if the reverse shift would have reconnected
-    there, the shift is not invertible and fails. Once reconnected, the offset shares every later vertex: one BSDF
-    evaluation at the reconnection vertex for its own incoming direction, afterwards the base path's own BSDF
-    weights, and no further rays. Next-event estimation on a not yet connected offset reuses the base path's
-    light sample (same point on the emitter; same direction for emitters at infinity) with the Jacobian of that
-    reconnection and its own shadow ray; on shared vertices it reuses the base path's visibility.
+    The offset path starts from its own primary ray. Leaving its vertex ``y_k`` (base path at ``x_k``):
+
+    * **Reconnection** to the base path's next vertex ``x_{k+1}`` when the base path sampled a non-delta lobe at
+      ``x_k``, both ``x_k`` and ``y_k`` have non-delta lobes, ``x_{k+1}`` has one too or is the sky
+      (reconnection at infinity), and both segments ``x_k x_{k+1}`` and ``y_k x_{k+1}`` are at least
+      ``footprint`` times longer than ``|x_k - y_k|`` (default 0: no length condition). The Jacobian of moving
+      ``x_{k+1}`` is ``|cos' d^2| / |cos d'^2|``; occlusion of the new segment fails the shift. A positive
+      ``footprint`` keeps reconnections out of corners, where ``x_{k+1}`` is so close that the Jacobian swings
+      wildly between neighbouring pixels (hybrid noisier than replay along the foot of walls); it is symmetric
+      in the pair, so the inverse shift makes the same choice. Measured, it removes that band but costs as much
+      elsewhere (docs/renderer.md), hence off by default.
+    * **Half-vector copy** otherwise, when the base path sampled a non-delta lobe and both vertices are glossy
+      (non-delta lobes, none of them diffuse): :func:`half_vector_shift` reflects or refracts the offset about
+      the base path's microfacet normal, copied in the local shading frame, and the offset traces its own ray. A
+      refraction needs the same material at both vertices (its index of refraction), else the shift fails.
+    * **Replay** everywhere else -- after a delta lobe of the base path, where ``y_k`` has only delta lobes, at
+      diffuse vertices that do not reconnect: the offset samples its own BSDF with the base path's random
+      numbers (for a smooth mirror or glass choosing the same lobe this is the half-vector copy; on a diffuse
+      lobe it is the same local direction; in primary sample space its Jacobian is 1) and traces its own ray.
+
+    Each strategy is invertible only if the shift from the offset back to the base path picks the same one, so the
+    offset fails where it would not: after a half-vector copy or a replay, if the reverse shift would reconnect (or,
+    after a replay that sampled a non-delta lobe between glossy vertices, copy the half-vector). Once reconnected,
+    the offset shares every later vertex: one BSDF evaluation at the reconnection vertex for its own incoming
+    direction, afterwards the base path's own BSDF weights, and no further rays. Next-event estimation on a not yet
+    connected offset reuses the base path's light sample (same point on the emitter; same direction for emitters at
+    infinity) with the Jacobian of that reconnection and its own shadow ray; on shared vertices it reuses the base
+    path's visibility.
 
     MIS between base and offset: the balance heuristic over path densities, ``w = 1 / (1 + R)`` with ``R`` the
     offset path's density (as a base path of its pixel) times the shift's Jacobian over the base path's density,
     tracked as a running ratio. Within each path, emitter sampling and BSDF sampling are combined with the power
     heuristic exactly as in the base path tracer; the shift maps light-sampled paths to light-sampled paths and
     BSDF-sampled to BSDF-sampled, so the two levels of weights compose. A failed shift sets the offset's
-    contribution and density to 0 (``w = 1`` for the base path), which keeps the estimator unbiased.
+    contribution and density to 0 (``w = 1`` for the base path), which keeps the estimator unbiased; so does an
+    offset whose BSDF value is 0 (its own base path would end there).
     """
 
     name = "hybrid"
     reuses_light_samples = True
+
+    def __init__(self, footprint: float = DEFAULT_FOOTPRINT, half_vector: bool = True) -> None:
+        if not footprint >= 0.0:
+            raise ValueError(f"footprint must be >= 0, got {footprint}")
+        self.footprint = float(footprint)
+        self.half_vector = bool(half_vector)  # False: replay wherever the shift does not reconnect (comparison)
 
     def start(self, ray: mi.Ray3f, weight: mi.Spectrum, active: mi.Bool) -> HybridState:
         return HybridState(
             active=mi.Bool(active), status=mi.UInt32(NOT_CONNECTED), throughput=mi.Spectrum(weight),
             ratio=mi.Float(1.0), ray=mi.Ray3f(ray), si=dr.zeros(mi.SurfaceInteraction3f), lobe=mi.Float(0.0),
             direction=mi.Point2f(0.0), b_pdf=mi.Float(1.0), b_weight=mi.Spectrum(1.0),
-            b_dir=mi.Vector3f(0.0, 0.0, 1.0), b_delta=mi.Bool(False), b_rough_vertex=mi.Bool(False))
+            b_dir=mi.Vector3f(0.0, 0.0, 1.0), b_delta=mi.Bool(False), b_rough_vertex=mi.Bool(False),
+            b_glossy=mi.Bool(False), b_p=mi.Point3f(0.0), b_wi=mi.Vector3f(0.0, 0.0, 1.0),
+            b_wo=mi.Vector3f(0.0, 0.0, 1.0), b_eta=mi.Float(1.0), b_bsdf=mi.UInt32(0))
+
+    def _far(self, a: mi.Point3f, b: mi.Point3f, target: mi.Point3f, at_infinity: mi.Bool) -> mi.Bool:
+        """Both segments a-target and b-target are ``footprint`` times longer than a-b (always, at infinity)."""
+        sep2 = dr.squared_norm(a - b) * (self.footprint * self.footprint)
+        return at_infinity | ((dr.squared_norm(target - a) > sep2) & (dr.squared_norm(target - b) > sep2))
 
     def step(self, scene: mi.Scene, off: HybridState, base: Vertex, depth: mi.UInt32, max_depth: mi.UInt32,
              samples: VertexSamples) -> tuple[HybridState, OffsetEvents]:
@@ -161,17 +276,22 @@ class HybridShift:
         prev_bsdf = prev_si.bsdf()
         base_valid = base.si.is_valid()
 
-        # ---- transition into this vertex ------------------------------------------------------------------
+        # ---- transition into this vertex: which strategy ---------------------------------------------------
         not_connected = active & (status == NOT_CONNECTED) & ~first
         recent = active & (status == RECENTLY_CONNECTED)
         connected = active & (status == CONNECTED)
-        reconnect = (not_connected & ~off.b_delta & _rough_vertex(prev_bsdf)
-                     & (~base_valid | _rough_vertex(base.bsdf)))
-        replay = not_connected & ~reconnect
+        off_rough = _rough_vertex(prev_bsdf)
+        reconnect = (not_connected & ~off.b_delta & off.b_rough_vertex & off_rough
+                     & (~base_valid | _rough_vertex(base.bsdf))
+                     & self._far(off.b_p, prev_si.p, base.si.p, ~base_valid))
+        copy = not_connected & ~reconnect & ~off.b_delta & off_rough & off.b_glossy & _glossy_vertex(prev_bsdf)
+        if not self.half_vector:
+            copy = mi.Bool(False)
+        replay = not_connected & ~reconnect & ~copy
 
-        # Reconnection to the base path's vertex (or to its direction, at infinity). Segments are measured from
-        # the rays' actual origins (the surface point pushed off by Mitsuba's ray epsilon), as the base path's
-        # ray was: for coinciding vertices the shift is then the identity to rounding, Jacobian 1.
+        # ---- reconnection to the base path's vertex (or to its direction, at infinity) ----------------------
+        # Segments are measured from the rays' actual origins (the surface point pushed off by Mitsuba's ray
+        # epsilon), as the base path's ray was: for coinciding vertices the shift is the identity to rounding.
         origin = prev_si.spawn_ray(base.si.p - prev_si.p).o
         to_base = base.si.p - origin
         dist2_off = dr.maximum(dr.squared_norm(to_base), MIN_DISTANCE2)
@@ -186,25 +306,46 @@ class HybridShift:
         area_ok = area_pdf_base > 0.0
         conv_rc = dr.select(base_valid, geometry_off / dr.select(area_ok, area_pdf_base, 1.0), dr.rcp(off.b_pdf))
 
-        # One BSDF evaluation at the offset's previous vertex serves both a new reconnection (towards the base
-        # path's vertex) and a reconnection made one vertex earlier (towards the base path's next direction).
-        eval_dir = dr.select(reconnect, wo_rc, off.b_dir)
-        val, pdf = prev_bsdf.eval_pdf(ctx, prev_si, prev_si.to_local(eval_dir), reconnect | recent)
-        conv = dr.select(reconnect, conv_rc, dr.rcp(off.b_pdf))  # = Jacobian / base pdf
-        step_f = dr.select(reconnect | recent, val * conv, 1.0)
-        step_r = dr.select(reconnect | recent, pdf * conv, 1.0)
-        fail = reconnect & (~visible | (base_valid & ~area_ok) | ~(off.b_pdf > 0.0))
-        fail |= recent & ~(off.b_pdf > 0.0)
-        fail |= recent & off.b_delta  # a delta direction of the base path is not one for the offset's own wi
+        # ---- half-vector copy at the offset's vertex ---------------------------------------------------------
+        # A refraction keeps the material's index of refraction: the base path's, inverted where the offset
+        # arrives from the other side of the surface.
+        hv = half_vector_shift(off.b_wi, off.b_wo, off.b_eta, prev_si.wi, offset_eta(off.b_wi, off.b_eta, prev_si.wi))
+        refracts = mi.Frame3f.cos_theta(off.b_wi) * mi.Frame3f.cos_theta(off.b_wo) < 0.0
+        hv_ok = hv.ok & (~refracts | (_bsdf_id(prev_bsdf) == off.b_bsdf))
+        wo_hv = prev_si.to_world(hv.wo)
 
-        # Replay at the offset's own vertex (also the primary ray in the first iteration).
+        # One BSDF evaluation at the offset's previous vertex serves a new reconnection (towards the base path's
+        # vertex), a reconnection made one vertex earlier (towards the base path's next direction) and the
+        # half-vector copy.
+        evaluated = reconnect | recent | copy
+        eval_dir = dr.select(reconnect, wo_rc, dr.select(copy, wo_hv, off.b_dir))
+        val, pdf = prev_bsdf.eval_pdf(ctx, prev_si, prev_si.to_local(eval_dir), evaluated)
+        # = Jacobian / base pdf, in solid angle at the offset's vertex
+        conv = dr.select(reconnect, conv_rc, dr.select(copy, hv.jacobian, 1.0) * dr.rcp(off.b_pdf))
+        step_f = dr.select(evaluated, val * conv, 1.0)
+        step_r = dr.select(evaluated, pdf * conv, 1.0)
+        fail = evaluated & ~(off.b_pdf > 0.0)
+        fail |= evaluated & ~(dr.max(val) > 0.0)  # the offset's own base path would end here: no such pair
+        fail |= reconnect & (~visible | (base_valid & ~area_ok))
+        fail |= recent & off.b_delta  # a delta direction of the base path is not one for the offset's own wi
+        fail |= copy & ~hv_ok
+
+        # ---- replay at the offset's own vertex, or the primary ray ---------------------------------------------
         bs, bs_weight = prev_bsdf.sample(ctx, prev_si, off.lobe, off.direction, replay)
-        own_ray = dr.select(first, off.ray, prev_si.spawn_ray(prev_si.to_world(bs.wo)))
-        traced = (first & active) | replay
+        own_dir = dr.select(copy, wo_hv, prev_si.to_world(bs.wo))
+        own_ray = dr.select(first, off.ray, prev_si.spawn_ray(own_dir))
+        traced = (first & active) | replay | copy
         si_own = scene.ray_intersect(own_ray, ray_flags=mi.RayFlags.All, coherent=first, active=traced)
-        reverse_reconnects = (~mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta) & off.b_rough_vertex
-                              & (~si_own.is_valid() | _rough_vertex(si_own.bsdf())))
-        fail |= replay & (reverse_reconnects | (dr.max(bs_weight) == 0.0))
+        # The reverse shift, from this offset as a base path back to the base path, must pick the same strategy.
+        # It reconnects where the offset left a vertex with a non-delta lobe towards a rough vertex far enough
+        # away; after a replay with a non-delta lobe between two glossy vertices, it would copy the half-vector.
+        own_nondelta = dr.select(copy, True, ~mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta))
+        both_rough = own_nondelta & off.b_rough_vertex & off_rough
+        reverse_reconnects = (both_rough & (~si_own.is_valid() | _rough_vertex(si_own.bsdf()))
+                              & self._far(prev_si.p, off.b_p, si_own.p, ~si_own.is_valid()))
+        reverse_copies = both_rough & off.b_glossy & _glossy_vertex(prev_bsdf) & self.half_vector
+        fail |= replay & (reverse_reconnects | reverse_copies | (dr.max(bs_weight) == 0.0))
+        fail |= copy & reverse_reconnects
         step_f = dr.select(replay, bs_weight, step_f)
         step_f = dr.select(connected, off.b_weight, step_f)
 
@@ -217,14 +358,14 @@ class HybridShift:
         # The offset's vertex here, and how it arrived (for its own emitter/BSDF MIS).
         si_base_wi = mi.SurfaceInteraction3f(base.si)
         si_base_wi.wi = dr.select(reconnect & base_valid, base.si.to_local(-wo_rc), base.si.wi)
-        own = (first & active) | replay
+        own = (first & active) | replay | copy
         si = dr.select(own, si_own, si_base_wi)
         shared = active & ~own  # this vertex is the base path's
         status = dr.select(reconnect, RECENTLY_CONNECTED, dr.select(recent, CONNECTED, status))
         prev_it = _interaction(prev_si)
-        prev_pdf = dr.select(replay, bs.pdf, dr.select(reconnect | recent, pdf, off.b_pdf))
+        prev_pdf = dr.select(replay, bs.pdf, dr.select(evaluated, pdf, off.b_pdf))
         prev_delta = dr.select(replay, mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta),
-                               dr.select(reconnect | recent, False, off.b_delta))
+                               dr.select(evaluated, False, off.b_delta))
         prev_delta |= first
 
         # ---- emission found at this vertex ------------------------------------------------------------------
@@ -274,7 +415,9 @@ class HybridShift:
             lobe=mi.Float(samples.lobe), direction=mi.Point2f(samples.direction), b_pdf=base.sample.pdf,
             b_weight=base.sample_weight, b_dir=base.si.to_world(base.sample.wo),
             b_delta=mi.has_flag(base.sample.sampled_type, mi.BSDFFlags.Delta),
-            b_rough_vertex=_rough_vertex(base.bsdf))
+            b_rough_vertex=_rough_vertex(base.bsdf), b_glossy=_glossy_vertex(base.bsdf),
+            b_p=mi.Point3f(base.si.p), b_wi=mi.Vector3f(base.si.wi),
+            b_wo=mi.Vector3f(base.sample.wo), b_eta=mi.Float(base.sample.eta), b_bsdf=_bsdf_id(base.bsdf))
         return new, OffsetEvents(emitted=emitted, nee=nee, w_hit=w_hit, w_nee=w_nee)
 
     def scale(self, offset: HybridState, factor: mi.Float, active: mi.Bool) -> HybridState:
