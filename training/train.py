@@ -644,10 +644,11 @@ def train(cfg: TrainConfig, quiet: bool = False) -> Progress:
 def config_from_args(args: argparse.Namespace) -> TrainConfig:
     network = NetworkConfig(use_attention=not args.no_attention)
     extra: dict[str, Any] = {}
-    if args.patch is not None:
-        extra["patch"] = args.patch
-    if args.batch is not None:
-        extra["batch"] = args.batch
+    # --patch/--batch exist today; --lr and --patches-per-frame are read when training/commands.py offers them
+    for name in ("patch", "batch", "lr", "patches_per_frame"):
+        value = getattr(args, name, None)
+        if value is not None:
+            extra[name] = value
     return TrainConfig(data=args.data, layer=args.layer, output=args.output, network=network,
                        epochs=args.epochs, minutes=args.minutes, seed=args.seed, **extra)
 
