@@ -440,7 +440,8 @@ class _Runner:
     def frame(self, entry: SceneEntry, loaded: Any, spp: int) -> tuple[Any, float, str]:
         """The G-PT frame at ``spp``, its render seconds and cache key hash (rendered when not cached)."""
         from model.frame import FrameError, read_frame, write_frame
-        from renderer.render import DEFAULT_SHIFT, render_frame
+        from renderer.render import render_frame
+        from renderer.shift import DEFAULT_SHIFT
 
         seed = _derived_seed(self.config.seed, 2, spp)
         key = {"kind": "gpt-frame", "scene": entry.identity, "size": [loaded.width, loaded.height],

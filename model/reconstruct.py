@@ -32,7 +32,7 @@ __all__ = [
     "METHODS",
     "NetworkLike",
     "Reconstruction",
-    "default_method",
+    "choose_method",
     "load_network",
     "models_dir_from",
     "reconstruct",
@@ -81,14 +81,25 @@ def _reconstruct_layer(name: str, layer: Layer, method: str, alpha: float, netwo
     return network.reconstruct_layer(name, layer, features)
 
 
-def reconstruct(frame: Frame, method: str = "l1", alpha: float = DEFAULT_ALPHA,
+def choose_method(frame: Frame, network: NetworkLike | None) -> str:
+    """The default method for this frame: the network when it can serve every layer present (a model for each
+    and the feature channels), else L1 -- so a frame the loaded models do not cover still gets an answer."""
+    if network is not None and frame.features is not None:
+        if set(frame.layers) <= set(getattr(network, "layers", frame.layers)):
+            return "network"
+    return "l1"
+
+
+def reconstruct(frame: Frame, method: str | None = None, alpha: float = DEFAULT_ALPHA,
                 network: NetworkLike | None = None) -> Reconstruction:
     """Reconstruct every illumination layer of ``frame`` with ``method`` and sum them.
 
+    ``method`` None picks :func:`choose_method` (the network when it serves the frame, else L1).
     ``alpha`` is the screened Poisson data weight (l1/l2 only). ``network`` is required for ``"network"``,
     which also needs the frame's feature channels. Raises ValueError for an unknown method, a bad alpha or a
     missing network, and :class:`model.frame.ChannelError` for a network run on a frame without features.
     """
+    method = method or choose_method(frame, network)
     if method not in METHODS:
         raise ValueError(f"unknown reconstruction method {method!r}; expected one of {', '.join(METHODS)}")
     if method in ("l1", "l2") and not (math.isfinite(alpha) and alpha > 0):
@@ -101,6 +112,14 @@ def reconstruct(frame: Frame, method: str = "l1", alpha: float = DEFAULT_ALPHA,
 
             raise ChannelError("the network method needs the feature channels, which this frame lacks: "
                                + ", ".join(FEATURE_CHANNELS), list(FEATURE_CHANNELS))
+        served = set(getattr(network, "layers", frame.layers))
+        unserved = [name for name in frame.layers if name not in served]
+        if unserved:
+            from model.frame import ChannelError
+
+            raise ChannelError(f"no network model for layer(s) {', '.join(unserved)} (models loaded for: "
+                               f"{', '.join(sorted(served)) or 'none'}); use method l1 or l2",
+                               {"unserved_layers": unserved, "model_layers": sorted(served)})
     shape = (frame.height, frame.width, 3)
     layers: dict[str, np.ndarray] = {}
     timings: dict[str, float] = {}
@@ -122,22 +141,6 @@ def reconstruct(frame: Frame, method: str = "l1", alpha: float = DEFAULT_ALPHA,
 def models_dir_from(value: str | os.PathLike[str] | None) -> Path:
     """The models folder: the explicit value, else $GRADSEP_MODELS, else ``models`` (relative to cwd)."""
     return Path(value or os.environ.get("GRADSEP_MODELS") or "models")
-
-
-def _network_available(models_dir: Path) -> bool:
-    """Exported models present and the ONNX inference module installed."""
-    has_models = models_dir.is_dir() and any(models_dir.glob("*.onnx"))
-    return has_models and importlib.util.find_spec("model.infer") is not None
-
-
-def default_method(models_dir: str | os.PathLike[str] | None) -> str:
-    """``"network"`` when exported models exist (and inference is installed), else ``"l1"``.
-
-    TODO(model issue 5): this is the hook that makes the network the default; it looks for ``*.onnx`` files
-    in the models folder. If ``model.infer`` gets a cheaper or stricter notion of "models present" (e.g. a
-    manifest), use it here.
-    """
-    return "network" if _network_available(models_dir_from(models_dir)) else "l1"
 
 
 def load_network(models_dir: str | os.PathLike[str] | None) -> Any:
@@ -170,14 +173,15 @@ def _check_output(path: Path) -> None:
         raise CommandError(f"output folder {str(folder)!r} is not writable")
 
 
-def _resolve_network(args: argparse.Namespace, method: str) -> Any:
+def _resolve_network(args: argparse.Namespace, method: str | None) -> Any:
+    """The network for ``--method network`` (required) or for the default (optional); None for l1/l2."""
     from gradsep.cli import CommandError
 
-    if method != "network":
+    if method not in (None, "network"):
         return None
     folder = models_dir_from(getattr(args, "models", None))
     network = load_network(folder)
-    if network is None:
+    if network is None and method == "network":
         raise CommandError(f"--method network needs exported models, but none were found in {str(folder)!r} "
                            "(set --models or $GRADSEP_MODELS, or use --method l1)")
     return network
@@ -197,9 +201,9 @@ def reconstruct_command(args: argparse.Namespace) -> int:
         raise CommandError(f"--alpha must be a finite number > 0, got {args.alpha}")
     _check_output(output)
     frame = read_frame(args.frame, nonfinite=args.nonfinite)
-    method = args.method or default_method(getattr(args, "models", None))
-    network = _resolve_network(args, method)
-    result = reconstruct(frame, method, alpha, network=network)
+    network = _resolve_network(args, args.method)
+    result = reconstruct(frame, args.method, alpha, network=network)
+    method = result.method
 
     channels = dict(rgb_channels("", result.image))
     if args.layers:

@@ -27,6 +27,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--epochs", type=int, default=None, help="stop after this many epochs")
     p.add_argument("--patch", type=int, default=None, help="training patch size")
     p.add_argument("--batch", type=int, default=None, help="mini-batch size")
+    p.add_argument("--lr", type=float, default=None, help="Adam learning rate (default 1e-4, as the paper)")
+    p.add_argument("--patches-per-frame", type=int, default=None,
+                   help="random crops per training frame per epoch (defines an epoch)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("-o", "--output", required=True, help="run folder (config, checkpoints, log, curves)")
     p.set_defaults(func=_train)

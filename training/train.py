@@ -644,9 +644,8 @@ def train(cfg: TrainConfig, quiet: bool = False) -> Progress:
 def config_from_args(args: argparse.Namespace) -> TrainConfig:
     network = NetworkConfig(use_attention=not args.no_attention)
     extra: dict[str, Any] = {}
-    # --patch/--batch exist today; --lr and --patches-per-frame are read when training/commands.py offers them
     for name in ("patch", "batch", "lr", "patches_per_frame"):
-        value = getattr(args, name, None)
+        value = getattr(args, name)
         if value is not None:
             extra[name] = value
     return TrainConfig(data=args.data, layer=args.layer, output=args.output, network=network,

@@ -24,9 +24,15 @@ from model.frame import (
     write_frame,
 )
 from model.poisson import solve_l1, solve_l2
-from model.reconstruct import METHODS, default_method, reconstruct
+from model.reconstruct import METHODS, choose_method, reconstruct
 
 REPO = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture(autouse=True)
+def _no_models(tmp_path: Path, monkeypatch) -> None:
+    """The CLI's default method depends on the models folder: keep these tests independent of models/."""
+    monkeypatch.setenv("GRADSEP_MODELS", str(tmp_path / "no-models"))
 
 
 def _layer(h: int, w: int, scale: float, seed: int, noise: float = 0.0) -> Layer:
@@ -115,9 +121,23 @@ def test_reconstruct_errors_are_clear() -> None:
     assert METHODS == ("network", "l1", "l2")
 
 
-def test_default_method_is_l1_without_models(tmp_path: Path) -> None:
-    assert default_method(tmp_path) == "l1"
-    assert default_method(tmp_path / "absent") == "l1"
+def test_network_refuses_layers_it_has_no_model_for() -> None:
+    only_direct = HalfBase()
+    only_direct.layers = {"direct"}
+    with pytest.raises(ChannelError, match="no network model for layer.*indirect") as err:
+        reconstruct(_frame(), "network", network=only_direct)
+    assert err.value.details["unserved_layers"] == ["indirect"] and only_direct.calls == []
+
+
+def test_default_method_is_the_network_only_when_it_serves_the_frame() -> None:
+    network = HalfBase()
+    network.layers = {"direct", "indirect"}
+    assert choose_method(_frame(), None) == "l1"
+    assert choose_method(_frame(), network) == "network"
+    assert choose_method(_frame(features=False), network) == "l1"
+    network.layers = {"direct"}
+    assert choose_method(_frame(), network) == "l1"
+    assert reconstruct(_frame(), network=network).method == "l1"
 
 
 # ---------------------------------------------------------------------------------------------- the CLI
