@@ -35,7 +35,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any, Protocol, runtime_checkable
 
 import drjit as dr
 import mitsuba as mi
@@ -99,17 +99,23 @@ class Vertex:
     """What one path did at one vertex: its two contributions ("events") and the data later code needs."""
 
     emitted: mi.Spectrum  # throughput * MIS * emission found by the ray (emitter hit or environment)
+    emitted_weight: mi.Spectrum  # the same without the throughput: MIS * emission
+    emission: mi.Spectrum  # the emission alone, and the emitter-sampling pdf it is MIS-weighted against
+    emitter_pdf: mi.Float
     has_hit: mi.Bool  # the emission event exists: the path traced a ray in this iteration
     nee: mi.Spectrum  # throughput * MIS * next-event estimate at this vertex
+    nee_weight: mi.Spectrum  # the same without the throughput
     has_nee: mi.Bool  # the next-event event exists: a surface vertex below the depth limit
     si: mi.SurfaceInteraction3f
     bsdf: mi.BSDFPtr
+    bsdf_flags: mi.UInt32  # of ``bsdf`` (0 where the ray left the scene)
     sample: mi.BSDFSample3f  # the BSDF sample that continues the path
     sample_weight: mi.Spectrum  # BSDF weight (value * cos / pdf) of that sample
     light: mi.DirectionSample3f  # the emitter sample of next-event estimation (valid where nee_sampled)
     light_weight: mi.Spectrum  # emitted radiance / light pdf, 0 where occluded
     light_visible: mi.Bool  # the emitter point is visible from this vertex
     nee_sampled: mi.Bool  # an emitter sample was drawn and has a nonzero (unoccluded) pdf
+    light_infinite: mi.Bool  # that emitter is infinitely distant (only computed with ``strict_light_pdf``)
 
 
 def mis_power(pdf_a: mi.Float, pdf_b: mi.Float) -> mi.Float:
@@ -139,28 +145,35 @@ def trace_vertex(scene: mi.Scene, path: PathState, depth: mi.UInt32, max_depth: 
     # the previous vertex. At the camera prev_delta is set, so the emitter pdf is 0 and the weight is 1.
     ds = mi.DirectionSample3f(scene, si=si, ref=path.prev)
     em_pdf = scene.pdf_emitter_direction(path.prev, ds, path.active & ~path.prev_delta)
-    emitted = path.throughput * mis_power(path.prev_pdf, em_pdf) * ds.emitter.eval(si, path.active)
-    emitted = dr.select(path.active, emitted, 0.0)
+    emission = dr.select(path.active, ds.emitter.eval(si, path.active), 0.0)
+    emitted_weight = mis_power(path.prev_pdf, em_pdf) * emission
+    emitted = path.throughput * emitted_weight
 
     # Next-event estimation at this vertex.
     has_nee = path.active & si.is_valid() & (depth + 1 < max_depth)
     bsdf = si.bsdf(path.ray)
-    active_em = has_nee & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+    bsdf_flags = dr.select(si.is_valid(), bsdf.flags(), 0)
+    active_em = has_nee & mi.has_flag(bsdf_flags, mi.BSDFFlags.Smooth)
     # Visibility is tested separately so that ``ds_em.pdf`` stays the unoccluded density: a shift may reuse this
     # light sample from another vertex, which can see the emitter point even where this vertex cannot.
     ds_em, em_weight = scene.sample_emitter_direction(si, samples.light, False, active_em)
     active_em &= (ds_em.pdf > 0.0) & dr.isfinite(ds_em.pdf)  # a vertex in the emitter's plane has no sample
+    light_infinite = mi.Bool(False)
     if strict_light_pdf:
         density = scene.pdf_emitter_direction(si, ds_em, active_em & ~ds_em.delta)
         active_em &= ds_em.delta | (density > 0.0)
+        light_infinite = mi.has_flag(ds_em.emitter.flags(), mi.EmitterFlags.Infinite)
     light_visible = ~scene.ray_test(si.spawn_ray_to(ds_em.p), active_em)
     em_weight = dr.select(light_visible, em_weight, 0.0)
-    bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, si.to_local(ds_em.d), active_em)
+    # One BSDF call evaluates the emitter direction and samples the continuation (as Mitsuba's `path` does):
+    # each BSDF call site in the kernel costs a dispatch over the BSDF instances.
+    bsdf_val, bsdf_pdf, bs, bs_weight = bsdf.eval_pdf_sample(ctx, si, si.to_local(ds_em.d), samples.lobe,
+                                                             samples.direction, has_nee)
     mis_em = dr.select(ds_em.delta, 1.0, mis_power(ds_em.pdf, bsdf_pdf))
-    nee = dr.select(active_em, path.throughput * mis_em * bsdf_val * em_weight, 0.0)
+    nee_weight = dr.select(active_em, mis_em * bsdf_val * em_weight, 0.0)
+    nee = path.throughput * nee_weight
 
     # BSDF sampling continues the path.
-    bs, bs_weight = bsdf.sample(ctx, si, samples.lobe, samples.direction, has_nee)
     bs_weight = dr.select(has_nee, bs_weight, 0.0)
     prev = dr.zeros(mi.Interaction3f)
     prev.t, prev.time, prev.p, prev.n = si.t, si.time, si.p, si.n
@@ -174,9 +187,11 @@ def trace_vertex(scene: mi.Scene, path: PathState, depth: mi.UInt32, max_depth: 
         prev_pdf=bs.pdf,
         prev_delta=mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta),
     )
-    vertex = Vertex(emitted=emitted, has_hit=mi.Bool(path.active), nee=nee, has_nee=has_nee, si=si, bsdf=bsdf,
-                    sample=bs, sample_weight=bs_weight, light=ds_em, light_weight=em_weight,
-                    light_visible=light_visible, nee_sampled=active_em)
+    vertex = Vertex(emitted=emitted, emitted_weight=emitted_weight, emission=emission, emitter_pdf=em_pdf,
+                    has_hit=mi.Bool(path.active), nee=nee,
+                    nee_weight=nee_weight, has_nee=has_nee, si=si, bsdf=bsdf, bsdf_flags=bsdf_flags, sample=bs,
+                    sample_weight=bs_weight, light=ds_em, light_weight=em_weight, light_visible=light_visible,
+                    nee_sampled=active_em, light_infinite=light_infinite)
     return nxt, vertex
 
 
@@ -219,6 +234,23 @@ class Shift(Protocol):
 
     def kill(self, offset: Any, dead: mi.Bool) -> Any:
         """Stop the offset where ``dead`` (the base path was terminated by Russian roulette)."""
+
+
+@runtime_checkable
+class ConnectingShift(Shift, Protocol):
+    """A shift whose offsets can end up sharing every later vertex of their base path ("connected"). From then
+    on an offset's events are the base path's scaled by its own throughput, so it needs no per-vertex work:
+    the integrator runs a second, cheap loop once every offset of a lane is connected or finished."""
+
+    def settled(self, offset: Any) -> mi.Bool:
+        """Per lane: the offset is finished or connected, so it can be summarised."""
+
+    def summarize(self, offset: Any) -> Any:
+        """The small loop state a settled offset continues with (it must support ``scale``/``kill``)."""
+
+    def step_connected(self, summary: Any, base: Vertex, depth: mi.UInt32,
+                       max_depth: mi.UInt32) -> tuple[Any, OffsetEvents]:
+        """:meth:`step` for a summarised offset: the same events as the full step gives a connected offset."""
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -354,7 +386,7 @@ def _update_features(feat: FeatureState, base_active: mi.Bool, v: Vertex, ray_d:
     """Record features at this base vertex if the specular-chain search is still on; continue past mirrors."""
     rec = feat.pending & base_active
     valid = v.si.is_valid()
-    flags = v.bsdf.flags()
+    flags = v.bsdf_flags
     has_diffuse = mi.has_flag(flags, mi.BSDFFlags.Diffuse)
     # Diffuse reflectance where the BSDF has a diffuse lobe; elsewhere the sampled weight, a one-sample estimate
     # of the directional albedo that averages to the right colour over the pixel's samples (metals, glass).
@@ -434,50 +466,74 @@ def render_pass(scene: mi.Scene, shift: Shift, settings: GptSettings, width: int
     depth = mi.UInt32(0)
     invalid = mi.Bool(False)
 
-    def cond(sampler, depth, base, offsets, sums, feat, invalid):
-        return base.active
+    def make_body(step_offset: Callable[[Any, Vertex, VertexSamples], tuple[Any, OffsetEvents]]) -> Callable:
+        def body(sampler, depth, base, offsets, sums, feat, invalid):
+            samples = VertexSamples.draw(sampler)
+            ray_d = mi.Vector3f(base.ray.d)
+            base_active = mi.Bool(base.active)
+            base, v = trace_vertex(scene, base, depth, max_depth_o, samples, shift.reuses_light_samples)
+            hit_grads, nee_grads = [], []
+            new_offsets = []
+            for off in offsets:
+                off, ev = step_offset(off, v, depth, samples)
+                # An event the base path does not have belongs to the mirrored technique alone (weight 1 there).
+                off_nee = dr.select(v.has_nee, ev.nee, 0.0)
+                hit_grads.append(ev.w_hit * (ev.emitted - v.emitted))
+                nee_grads.append(ev.w_nee * (off_nee - v.nee))
+                new_offsets.append(off)
+            hit_value, bad_h = _finite(v.emitted)
+            nee_value, bad_n = _finite(v.nee)
+            bad = bad_h | bad_n
+            clean_hit, clean_nee = [], []
+            for gh, gn in zip(hit_grads, nee_grads, strict=True):
+                gh, bh = _finite(gh)
+                gn, bn = _finite(gn)
+                bad |= bh | bn
+                clean_hit.append(gh)
+                clean_nee.append(gn)
+            _route(sums, depth, settings, hit_value, nee_value, clean_hit, clean_nee)
+            feat = _update_features(feat, base_active, v, ray_d, to_camera)
 
-    def body(sampler, depth, base, offsets, sums, feat, invalid):
-        samples = VertexSamples.draw(sampler)
-        ray_d = mi.Vector3f(base.ray.d)
-        base_active = mi.Bool(base.active)
-        base, v = trace_vertex(scene, base, depth, max_depth_o, samples, shift.reuses_light_samples)
-        hit_grads, nee_grads = [], []
-        new_offsets = []
-        for off in offsets:
-            off, ev = shift.step(scene, off, v, depth, max_depth_o, samples)
-            # An event the base path does not have belongs to the mirrored technique alone (weight 1 there).
-            off_nee = dr.select(v.has_nee, ev.nee, 0.0)
-            hit_grads.append(ev.w_hit * (ev.emitted - v.emitted))
-            nee_grads.append(ev.w_nee * (off_nee - v.nee))
-            new_offsets.append(off)
-        hit_value, bad_h = _finite(v.emitted)
-        nee_value, bad_n = _finite(v.nee)
-        bad = bad_h | bad_n
-        clean_hit, clean_nee = [], []
-        for gh, gn in zip(hit_grads, nee_grads, strict=True):
-            gh, bh = _finite(gh)
-            gn, bn = _finite(gn)
-            bad |= bh | bn
-            clean_hit.append(gh)
-            clean_nee.append(gn)
-        _route(sums, depth, settings, hit_value, nee_value, clean_hit, clean_nee)
-        feat = _update_features(feat, base_active, v, ray_d, to_camera)
+            # Russian roulette on the base path, applied to the whole lane.
+            beta_max = dr.max(base.throughput)
+            q = dr.minimum(beta_max * base.eta * base.eta, 0.95)
+            rr_active = base.active & (depth >= rr_depth_o)  # Mitsuba's rule: after vertex rr_depth
+            survive = sampler.next_1d() < q
+            inv_q = dr.select(rr_active, dr.rcp(q), 1.0)
+            base.throughput = base.throughput * inv_q
+            dead = rr_active & ~survive
+            base.active = base.active & ~dead
+            new_offsets = [shift.kill(shift.scale(o, inv_q, rr_active), dead) for o in new_offsets]
+            return sampler, depth + 1, base, new_offsets, sums, feat, invalid | bad
+        return body
 
-        # Russian roulette on the base path, applied to the whole lane.
-        beta_max = dr.max(base.throughput)
-        q = dr.minimum(beta_max * base.eta * base.eta, 0.95)
-        rr_active = base.active & (depth >= rr_depth_o)  # Mitsuba's rule: after vertex rr_depth
-        survive = sampler.next_1d() < q
-        inv_q = dr.select(rr_active, dr.rcp(q), 1.0)
-        base.throughput = base.throughput * inv_q
-        dead = rr_active & ~survive
-        base.active = base.active & ~dead
-        new_offsets = [shift.kill(shift.scale(o, inv_q, rr_active), dead) for o in new_offsets]
-        return sampler, depth + 1, base, new_offsets, sums, feat, invalid | bad
+    def full_step(off: Any, v: Vertex, depth: mi.UInt32, samples: VertexSamples) -> tuple[Any, OffsetEvents]:
+        return shift.step(scene, off, v, depth, max_depth_o, samples)
 
-    sampler, depth, base, offsets, sums, feat, invalid = dr.while_loop(
-        state=(sampler, depth, base, offsets, sums, feat, invalid), cond=cond, body=body, label="gpt")
+    state = (sampler, depth, base, offsets, sums, feat, invalid)
+    if isinstance(shift, ConnectingShift):
+        # Phase 1 while some offset of the lane still has its own vertices; phase 2 (base path + summaries).
+        def unsettled(sampler, depth, base, offsets, sums, feat, invalid):
+            settled = mi.Bool(True)
+            for off in offsets:
+                settled &= shift.settled(off)
+            return base.active & ~settled
+
+        state = dr.while_loop(state=state, cond=unsettled, body=make_body(full_step), label="gpt")
+        sampler, depth, base, offsets, sums, feat, invalid = state
+        summaries = [shift.summarize(off) for off in offsets]
+
+        def connected_step(off: Any, v: Vertex, depth: mi.UInt32,
+                           samples: VertexSamples) -> tuple[Any, OffsetEvents]:
+            return shift.step_connected(off, v, depth, max_depth_o)
+
+        state = (sampler, depth, base, summaries, sums, feat, invalid)
+        state = dr.while_loop(state=state, cond=lambda sampler, depth, base, *rest: base.active,
+                              body=make_body(connected_step), label="gpt_connected")
+    else:
+        state = dr.while_loop(state=state, cond=lambda sampler, depth, base, *rest: base.active,
+                              body=make_body(full_step), label="gpt")
+    sampler, depth, base, offsets, sums, feat, invalid = state
 
     layout = channel_layout(settings)
     values: dict[str, Sequence[mi.Float]] = {}

@@ -81,18 +81,39 @@ DEFAULT_FOOTPRINT = 0.0  # reconnect only where the segment to the shared vertex
 #                          the distance between base and offset vertex (see HybridShift; 0 = no such condition)
 
 
-def _rough_vertex(bsdf: mi.BSDFPtr) -> mi.Bool:
-    """A vertex a reconnection may start or end at: its BSDF has a non-delta lobe (Mitsuba exposes no
-    roughness; delta lobes are the specular ones, every other lobe is treated as rough)."""
-    return mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+def _rough(flags: mi.UInt32) -> mi.Bool:
+    """A vertex a reconnection may start or end at: its BSDF (``flags``) has a non-delta lobe. Mitsuba exposes
+    no roughness; delta lobes are the specular ones, every other lobe is treated as rough, as the issue's
+    classification by lobe type asks (the reference implementation's threshold, roughness 0.001, is nearly the
+    same line)."""
+    return mi.has_flag(flags, mi.BSDFFlags.Smooth)
 
 
-def _glossy_vertex(bsdf: mi.BSDFPtr) -> mi.Bool:
+def _glossy(flags: mi.UInt32) -> mi.Bool:
     """A vertex whose non-delta lobes are all glossy (no diffuse lobe): where a shift that does not reconnect
     copies the half-vector. Diffuse vertices replay instead: the same cosine-weighted random numbers give the
     offset the same local direction, which follows a diffuse base path more closely than a mirrored one."""
-    flags = bsdf.flags()
     return mi.has_flag(flags, mi.BSDFFlags.Glossy) & ~mi.has_flag(flags, mi.BSDFFlags.Diffuse)
+
+
+def _flags(si: mi.SurfaceInteraction3f) -> mi.UInt32:
+    """BSDF flags at ``si``, 0 where there is no surface (the ray left the scene)."""
+    return dr.select(si.is_valid(), si.bsdf().flags(), 0)
+
+
+def scene_has_glossy_vertices(scene: mi.Scene) -> bool:
+    """Whether any shape's BSDF is glossy in the sense of :func:`_glossy` (instances count as "maybe"): only
+    then does the kernel need the half-vector copy's code, which costs ~7% per sample even where unused."""
+    glossy = int(mi.BSDFFlags.Glossy)
+    diffuse = int(mi.BSDFFlags.Diffuse)
+    for shape in scene.shapes():
+        bsdf = shape.bsdf()
+        if bsdf is None or shape.class_name() == "Instance":
+            return True
+        flags = int(bsdf.flags())
+        if flags & glossy and not flags & diffuse:
+            return True
+    return False
 
 
 def _bsdf_id(bsdf: mi.BSDFPtr) -> mi.UInt32:
@@ -104,6 +125,17 @@ def _interaction(si: mi.SurfaceInteraction3f) -> mi.Interaction3f:
     it = dr.zeros(mi.Interaction3f)
     it.t, it.time, it.p, it.n = si.t, si.time, si.p, si.n
     return it
+
+
+def _emitter_hit(scene: mi.Scene, si: mi.SurfaceInteraction3f, ref: mi.Interaction3f,
+                 active: mi.Bool) -> mi.DirectionSample3f:
+    """``mi.DirectionSample3f(scene, si, ref)`` (the emitter found by a ray from ``ref``), looked up only where
+    ``active``: the constructor has no mask, and each lookup is a call on the shape."""
+    d = si.p - ref.p
+    dist = dr.norm(d)
+    d = dr.select(si.is_valid(), d / dist, -si.wi)  # a miss keeps its world-space wi, as in Mitsuba
+    return mi.DirectionSample3f(si.p, si.sh_frame.n, si.uv, si.time, mi.Float(0.0), mi.Bool(False), d, dist,
+                                si.emitter(scene, active))
 
 
 def _balance(ratio: mi.Float) -> mi.Float:
@@ -174,8 +206,9 @@ class HybridState:
     """Loop state of one hybrid offset path.
 
     ``si`` is the offset's vertex of the *previous* iteration, with the offset's own incoming direction (for a
-    recently connected offset: the base path's vertex seen from the offset's previous vertex); the ``b_*`` fields
-    stash what the transition into the next vertex needs from the base path's previous vertex.
+    recently connected offset: the base path's vertex seen from the offset's previous vertex), ``flags`` its
+    BSDF's flags; the ``b_*`` fields stash what the transition into the next vertex needs from the base path's
+    previous vertex.
     """
 
     active: mi.Bool
@@ -184,19 +217,30 @@ class HybridState:
     ratio: mi.Float  # p(offset prefix as a base path) * Jacobians / p(base prefix); roulette excluded
     ray: mi.Ray3f  # primary ray (first iteration only)
     si: mi.SurfaceInteraction3f
-    lobe: mi.Float  # the base path's random numbers of the previous vertex, for replay after a delta lobe
+    bsdf: mi.BSDFPtr  # of ``si``, and its flags
+    flags: mi.UInt32
+    lobe: mi.Float  # the base path's random numbers of the previous vertex, for replay
     direction: mi.Point2f
     b_pdf: mi.Float  # base: pdf of the direction leaving its previous vertex
     b_weight: mi.Spectrum  # base: BSDF weight of that direction
     b_dir: mi.Vector3f  # base: that direction, world space
     b_delta: mi.Bool  # base: that direction came from a delta lobe
-    b_rough_vertex: mi.Bool  # base: its previous vertex has a non-delta lobe
-    b_glossy: mi.Bool  # base: ... and no diffuse lobe
+    b_flags: mi.UInt32  # base: BSDF flags of its previous vertex
     b_p: mi.Point3f  # base: its previous vertex
     b_wi: mi.Vector3f  # base: incoming and outgoing direction there, in its local shading frame
     b_wo: mi.Vector3f
     b_eta: mi.Float  # base: relative index of refraction of that sample (1 for reflections)
     b_bsdf: mi.UInt32  # base: the registry id of the BSDF there
+
+
+@dataclass
+class ConnectedState:
+    """A connected hybrid offset, summarised: its events are the base path's times its throughput."""
+
+    active: mi.Bool
+    throughput: mi.Spectrum
+    ratio: mi.Float  # fixed once connected: the shared vertices have the same density in both paths
+    b_weight: mi.Spectrum  # base: BSDF weight of the direction leaving its previous vertex
 
 
 class HybridShift:
@@ -249,20 +293,30 @@ class HybridShift:
             raise ValueError(f"footprint must be >= 0, got {footprint}")
         self.footprint = float(footprint)
         self.half_vector = bool(half_vector)  # False: replay wherever the shift does not reconnect (comparison)
+        self._copy_scene: tuple[mi.Scene, bool] | None = None
 
     def start(self, ray: mi.Ray3f, weight: mi.Spectrum, active: mi.Bool) -> HybridState:
         return HybridState(
             active=mi.Bool(active), status=mi.UInt32(NOT_CONNECTED), throughput=mi.Spectrum(weight),
-            ratio=mi.Float(1.0), ray=mi.Ray3f(ray), si=dr.zeros(mi.SurfaceInteraction3f), lobe=mi.Float(0.0),
-            direction=mi.Point2f(0.0), b_pdf=mi.Float(1.0), b_weight=mi.Spectrum(1.0),
-            b_dir=mi.Vector3f(0.0, 0.0, 1.0), b_delta=mi.Bool(False), b_rough_vertex=mi.Bool(False),
-            b_glossy=mi.Bool(False), b_p=mi.Point3f(0.0), b_wi=mi.Vector3f(0.0, 0.0, 1.0),
-            b_wo=mi.Vector3f(0.0, 0.0, 1.0), b_eta=mi.Float(1.0), b_bsdf=mi.UInt32(0))
+            ratio=mi.Float(1.0), ray=mi.Ray3f(ray), si=dr.zeros(mi.SurfaceInteraction3f),
+            bsdf=dr.zeros(mi.BSDFPtr), flags=mi.UInt32(0),
+            lobe=mi.Float(0.0), direction=mi.Point2f(0.0), b_pdf=mi.Float(1.0), b_weight=mi.Spectrum(1.0),
+            b_dir=mi.Vector3f(0.0, 0.0, 1.0), b_delta=mi.Bool(False), b_flags=mi.UInt32(0), b_p=mi.Point3f(0.0),
+            b_wi=mi.Vector3f(0.0, 0.0, 1.0), b_wo=mi.Vector3f(0.0, 0.0, 1.0), b_eta=mi.Float(1.0),
+            b_bsdf=mi.UInt32(0))
 
     def _far(self, a: mi.Point3f, b: mi.Point3f, target: mi.Point3f, at_infinity: mi.Bool) -> mi.Bool:
         """Both segments a-target and b-target are ``footprint`` times longer than a-b (always, at infinity)."""
         sep2 = dr.squared_norm(a - b) * (self.footprint * self.footprint)
         return at_infinity | ((dr.squared_norm(target - a) > sep2) & (dr.squared_norm(target - b) > sep2))
+
+    def _uses_copy(self, scene: mi.Scene) -> bool:
+        """Compile the half-vector copy only for scenes that have glossy vertices (checked once per scene)."""
+        if not self.half_vector:
+            return False
+        if self._copy_scene is None or self._copy_scene[0] is not scene:
+            self._copy_scene = (scene, scene_has_glossy_vertices(scene))
+        return self._copy_scene[1]
 
     def step(self, scene: mi.Scene, off: HybridState, base: Vertex, depth: mi.UInt32, max_depth: mi.UInt32,
              samples: VertexSamples) -> tuple[HybridState, OffsetEvents]:
@@ -273,20 +327,25 @@ class HybridShift:
         ratio = mi.Float(off.ratio)
         status = mi.UInt32(off.status)
         prev_si = off.si
-        prev_bsdf = prev_si.bsdf()
+        prev_bsdf = off.bsdf
         base_valid = base.si.is_valid()
+        use_copy = self._uses_copy(scene)
+        use_far = self.footprint > 0.0
 
         # ---- transition into this vertex: which strategy ---------------------------------------------------
+        # Every condition below is a symmetric function of the pair (base vertex x_k, offset vertex y_k) and of
+        # the path being shifted, so the shift back from the offset's own base path chooses the same strategy.
         not_connected = active & (status == NOT_CONNECTED) & ~first
         recent = active & (status == RECENTLY_CONNECTED)
         connected = active & (status == CONNECTED)
-        off_rough = _rough_vertex(prev_bsdf)
-        reconnect = (not_connected & ~off.b_delta & off.b_rough_vertex & off_rough
-                     & (~base_valid | _rough_vertex(base.bsdf))
-                     & self._far(off.b_p, prev_si.p, base.si.p, ~base_valid))
-        copy = not_connected & ~reconnect & ~off.b_delta & off_rough & off.b_glossy & _glossy_vertex(prev_bsdf)
-        if not self.half_vector:
-            copy = mi.Bool(False)
+        off_rough = _rough(off.flags)
+        base_rough = _rough(off.b_flags)
+        reconnect = (not_connected & ~off.b_delta & base_rough & off_rough
+                     & (~base_valid | _rough(base.bsdf_flags)))
+        if use_far:
+            reconnect &= self._far(off.b_p, prev_si.p, base.si.p, ~base_valid)
+        glossy_pair = _glossy(off.b_flags) & _glossy(off.flags)
+        copy = not_connected & ~reconnect & ~off.b_delta & off_rough & glossy_pair if use_copy else mi.Bool(False)
         replay = not_connected & ~reconnect & ~copy
 
         # ---- reconnection to the base path's vertex (or to its direction, at infinity) ----------------------
@@ -307,45 +366,60 @@ class HybridShift:
         conv_rc = dr.select(base_valid, geometry_off / dr.select(area_ok, area_pdf_base, 1.0), dr.rcp(off.b_pdf))
 
         # ---- half-vector copy at the offset's vertex ---------------------------------------------------------
-        # A refraction keeps the material's index of refraction: the base path's, inverted where the offset
-        # arrives from the other side of the surface.
-        hv = half_vector_shift(off.b_wi, off.b_wo, off.b_eta, prev_si.wi, offset_eta(off.b_wi, off.b_eta, prev_si.wi))
-        refracts = mi.Frame3f.cos_theta(off.b_wi) * mi.Frame3f.cos_theta(off.b_wo) < 0.0
-        hv_ok = hv.ok & (~refracts | (_bsdf_id(prev_bsdf) == off.b_bsdf))
-        wo_hv = prev_si.to_world(hv.wo)
+        if use_copy:
+            # A refraction keeps the material's index of refraction (the base path's, or its reciprocal where the
+            # offset arrives from the other side): it needs the same BSDF at both vertices.
+            hv = half_vector_shift(off.b_wi, off.b_wo, off.b_eta, prev_si.wi,
+                                   offset_eta(off.b_wi, off.b_eta, prev_si.wi))
+            refracts = mi.Frame3f.cos_theta(off.b_wi) * mi.Frame3f.cos_theta(off.b_wo) < 0.0
+            hv_ok = hv.ok & (~refracts | (_bsdf_id(prev_bsdf) == off.b_bsdf))
+            wo_hv = prev_si.to_world(hv.wo)
+            eval_dir = dr.select(reconnect, wo_rc, dr.select(copy, wo_hv, off.b_dir))
+            conv = dr.select(reconnect, conv_rc, dr.select(copy, hv.jacobian, 1.0) * dr.rcp(off.b_pdf))
+        else:
+            eval_dir = dr.select(reconnect, wo_rc, off.b_dir)
+            conv = dr.select(reconnect, conv_rc, dr.rcp(off.b_pdf))
 
         # One BSDF evaluation at the offset's previous vertex serves a new reconnection (towards the base path's
         # vertex), a reconnection made one vertex earlier (towards the base path's next direction) and the
-        # half-vector copy.
+        # half-vector copy; ``conv`` is the Jacobian over the base path's pdf, in solid angle at that vertex.
         evaluated = reconnect | recent | copy
-        eval_dir = dr.select(reconnect, wo_rc, dr.select(copy, wo_hv, off.b_dir))
         val, pdf = prev_bsdf.eval_pdf(ctx, prev_si, prev_si.to_local(eval_dir), evaluated)
-        # = Jacobian / base pdf, in solid angle at the offset's vertex
-        conv = dr.select(reconnect, conv_rc, dr.select(copy, hv.jacobian, 1.0) * dr.rcp(off.b_pdf))
         step_f = dr.select(evaluated, val * conv, 1.0)
         step_r = dr.select(evaluated, pdf * conv, 1.0)
         fail = evaluated & ~(off.b_pdf > 0.0)
         fail |= evaluated & ~(dr.max(val) > 0.0)  # the offset's own base path would end here: no such pair
         fail |= reconnect & (~visible | (base_valid & ~area_ok))
         fail |= recent & off.b_delta  # a delta direction of the base path is not one for the offset's own wi
-        fail |= copy & ~hv_ok
+        if use_copy:
+            fail |= copy & ~hv_ok
 
         # ---- replay at the offset's own vertex, or the primary ray ---------------------------------------------
         bs, bs_weight = prev_bsdf.sample(ctx, prev_si, off.lobe, off.direction, replay)
-        own_dir = dr.select(copy, wo_hv, prev_si.to_world(bs.wo))
+        own_dir = prev_si.to_world(bs.wo)
+        if use_copy:
+            own_dir = dr.select(copy, wo_hv, own_dir)
         own_ray = dr.select(first, off.ray, prev_si.spawn_ray(own_dir))
         traced = (first & active) | replay | copy
         si_own = scene.ray_intersect(own_ray, ray_flags=mi.RayFlags.All, coherent=first, active=traced)
+        own_valid = si_own.is_valid()
+        own_bsdf = si_own.bsdf()
+        own_flags = dr.select(own_valid, own_bsdf.flags(), 0)
         # The reverse shift, from this offset as a base path back to the base path, must pick the same strategy.
-        # It reconnects where the offset left a vertex with a non-delta lobe towards a rough vertex far enough
-        # away; after a replay with a non-delta lobe between two glossy vertices, it would copy the half-vector.
-        own_nondelta = dr.select(copy, True, ~mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta))
-        both_rough = own_nondelta & off.b_rough_vertex & off_rough
-        reverse_reconnects = (both_rough & (~si_own.is_valid() | _rough_vertex(si_own.bsdf()))
-                              & self._far(prev_si.p, off.b_p, si_own.p, ~si_own.is_valid()))
-        reverse_copies = both_rough & off.b_glossy & _glossy_vertex(prev_bsdf) & self.half_vector
-        fail |= replay & (reverse_reconnects | reverse_copies | (dr.max(bs_weight) == 0.0))
-        fail |= copy & reverse_reconnects
+        # It reconnects where the offset left a vertex with a non-delta lobe towards a rough vertex; after a
+        # replay with a non-delta lobe between two glossy vertices, it would copy the half-vector.
+        own_nondelta = ~mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+        if use_copy:
+            own_nondelta |= copy
+        both_rough = own_nondelta & base_rough & off_rough
+        reverse_reconnects = both_rough & (~own_valid | _rough(own_flags))
+        if use_far:
+            reverse_reconnects &= self._far(prev_si.p, off.b_p, si_own.p, ~own_valid)
+        reverse_strategy_differs = reverse_reconnects
+        if use_copy:
+            reverse_strategy_differs |= both_rough & glossy_pair
+            fail |= copy & reverse_reconnects
+        fail |= replay & (reverse_strategy_differs | (dr.max(bs_weight) == 0.0))
         step_f = dr.select(replay, bs_weight, step_f)
         step_f = dr.select(connected, off.b_weight, step_f)
 
@@ -360,6 +434,8 @@ class HybridShift:
         si_base_wi.wi = dr.select(reconnect & base_valid, base.si.to_local(-wo_rc), base.si.wi)
         own = (first & active) | replay | copy
         si = dr.select(own, si_own, si_base_wi)
+        flags = dr.select(own, own_flags, base.bsdf_flags)
+        bsdf = dr.select(own, own_bsdf, base.bsdf)
         shared = active & ~own  # this vertex is the base path's
         status = dr.select(reconnect, RECENTLY_CONNECTED, dr.select(recent, CONNECTED, status))
         prev_it = _interaction(prev_si)
@@ -367,20 +443,27 @@ class HybridShift:
         prev_delta = dr.select(replay, mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta),
                                dr.select(evaluated, False, off.b_delta))
         prev_delta |= first
+        # An offset connected before this vertex arrived at the base path's vertex from the base path's previous
+        # vertex and in its direction: the emission found and its emitter-sampling pdf are the base path's (only
+        # the BSDF pdf of the MIS weight is the offset's own), and so is the next-event estimate per unit
+        # throughput, with a light-sample density ratio of 1. Nothing to evaluate there.
+        reuse = connected | recent
+        evaluate = active & ~reuse
 
         # ---- emission found at this vertex ------------------------------------------------------------------
-        ds = mi.DirectionSample3f(scene, si=si, ref=prev_it)
-        em_pdf = scene.pdf_emitter_direction(prev_it, ds, active & ~prev_delta)
-        emitted = dr.select(active, throughput * mis_power(prev_pdf, em_pdf) * ds.emitter.eval(si, active), 0.0)
+        ds = _emitter_hit(scene, si, prev_it, evaluate)
+        em_pdf = scene.pdf_emitter_direction(prev_it, ds, evaluate & ~prev_delta)
+        em_pdf = dr.select(reuse, base.emitter_pdf, em_pdf)
+        emission = dr.select(reuse, base.emission, ds.emitter.eval(si, evaluate))
+        emitted = dr.select(active, throughput * mis_power(prev_pdf, em_pdf) * emission, 0.0)
         w_hit = dr.select(active, _balance(ratio), 1.0)
 
         # ---- next-event estimation: the base path's light sample ------------------------------------------
         has_vertex = active & si.is_valid()
         light = base.light
         nee_on = has_vertex & base.nee_sampled & (depth + 1 < max_depth)
-        bsdf = si.bsdf()
-        can_nee = nee_on & _rough_vertex(bsdf)
-        infinite = mi.has_flag(light.emitter.flags(), mi.EmitterFlags.Infinite)
+        can_nee = nee_on & _rough(flags) & ~reuse
+        infinite = base.light_infinite
         to_light = light.p - si.p
         dist_off = dr.norm(to_light)
         # (spelled out: the one-argument constructor resolves to the PositionSample3f overload and drops emitter)
@@ -407,24 +490,53 @@ class HybridShift:
         nee = dr.select(can_nee & light_visible, nee, 0.0)
         r_light = dr.select(light.delta, 1.0, light_pdf * conv_l)
         w_nee = dr.select(can_nee, _balance(ratio * r_light), 1.0)
+        reused_nee = reuse & nee_on
+        nee = dr.select(reused_nee, throughput * base.nee_weight, nee)
+        w_nee = dr.select(reused_nee, _balance(ratio), w_nee)
 
         # ---- stash what the next transition needs --------------------------------------------------------
         continues = has_vertex & (depth + 1 < max_depth)
         new = HybridState(
-            active=continues, status=status, throughput=throughput, ratio=ratio, ray=off.ray, si=si,
+            active=continues, status=status, throughput=throughput, ratio=ratio, ray=off.ray, si=si, bsdf=bsdf,
+            flags=flags,
             lobe=mi.Float(samples.lobe), direction=mi.Point2f(samples.direction), b_pdf=base.sample.pdf,
             b_weight=base.sample_weight, b_dir=base.si.to_world(base.sample.wo),
-            b_delta=mi.has_flag(base.sample.sampled_type, mi.BSDFFlags.Delta),
-            b_rough_vertex=_rough_vertex(base.bsdf), b_glossy=_glossy_vertex(base.bsdf),
-            b_p=mi.Point3f(base.si.p), b_wi=mi.Vector3f(base.si.wi),
-            b_wo=mi.Vector3f(base.sample.wo), b_eta=mi.Float(base.sample.eta), b_bsdf=_bsdf_id(base.bsdf))
+            b_delta=mi.has_flag(base.sample.sampled_type, mi.BSDFFlags.Delta), b_flags=base.bsdf_flags,
+            b_p=mi.Point3f(base.si.p), b_wi=mi.Vector3f(base.si.wi), b_wo=mi.Vector3f(base.sample.wo),
+            b_eta=mi.Float(base.sample.eta), b_bsdf=_bsdf_id(base.bsdf))
         return new, OffsetEvents(emitted=emitted, nee=nee, w_hit=w_hit, w_nee=w_nee)
 
-    def scale(self, offset: HybridState, factor: mi.Float, active: mi.Bool) -> HybridState:
+    # ---- connected offsets (renderer.gpt.ConnectingShift) ----------------------------------------------------
+
+    def settled(self, offset: HybridState) -> mi.Bool:
+        return ~offset.active | (offset.status == CONNECTED)
+
+    def summarize(self, offset: HybridState) -> ConnectedState:
+        return ConnectedState(active=offset.active & (offset.status == CONNECTED), throughput=offset.throughput,
+                              ratio=offset.ratio, b_weight=offset.b_weight)
+
+    def step_connected(self, off: ConnectedState, base: Vertex, depth: mi.UInt32,
+                       max_depth: mi.UInt32) -> tuple[ConnectedState, OffsetEvents]:
+        """:meth:`step` of a ``CONNECTED`` offset, without its (masked-out) work: the base path's BSDF weight,
+        emission and next-event estimate per unit throughput, the density ratio unchanged."""
+        active = off.active
+        throughput = dr.select(active, off.throughput * off.b_weight, 0.0)
+        weight = _balance(off.ratio)
+        has_vertex = active & base.si.is_valid()
+        nee_on = has_vertex & base.nee_sampled & (depth + 1 < max_depth)
+        events = OffsetEvents(emitted=dr.select(active, throughput * base.emitted_weight, 0.0),
+                              nee=dr.select(nee_on, throughput * base.nee_weight, 0.0),
+                              w_hit=dr.select(active, weight, 1.0), w_nee=dr.select(nee_on, weight, 1.0))
+        new = ConnectedState(active=has_vertex & (depth + 1 < max_depth), throughput=throughput, ratio=off.ratio,
+                             b_weight=base.sample_weight)
+        return new, events
+
+    def scale(self, offset: HybridState | ConnectedState, factor: mi.Float,
+              active: mi.Bool) -> HybridState | ConnectedState:
         offset.throughput = dr.select(active, offset.throughput * factor, offset.throughput)
         return offset
 
-    def kill(self, offset: HybridState, dead: mi.Bool) -> HybridState:
+    def kill(self, offset: HybridState | ConnectedState, dead: mi.Bool) -> HybridState | ConnectedState:
         offset.active = offset.active & ~dead
         return offset
 
