@@ -144,7 +144,7 @@ class InferenceGate:
 
 @dataclass(frozen=True)
 class ReconstructParams:
-    method: str
+    method: str | None  # None: model.reconstruct.choose_method decides per frame
     alpha: float
     half: bool
     layers: Literal["sum", "all"]
@@ -160,7 +160,7 @@ class Outcome:
     source_layers: list[str]
 
 
-def reconstruct(frame: Any, method: str, alpha: float, network: Any = None) -> Any:
+def reconstruct(frame: Any, method: str | None, alpha: float, network: Any = None) -> Any:
     """Indirection to ``model.reconstruct.reconstruct`` (imported on first use; tests may patch this name)."""
     from model.reconstruct import reconstruct as model_reconstruct
 

@@ -79,7 +79,8 @@ async def reconstruct_frame(
     engine: Annotated[Engine, Depends(get_engine)],
     metrics: Annotated[ServiceMetrics, Depends(get_metrics)],
     method: Annotated[Literal["network", "l1", "l2"] | None, Query(
-        description="reconstruction method; default network when models are loaded, else l1")] = None,
+        description="reconstruction method; default network when models for the frame's layers "
+                    "are loaded, else l1")] = None,
     alpha: Annotated[float | None, Query(
         gt=0, le=1000, allow_inf_nan=False, description="screened Poisson data weight (l1/l2)")] = None,
     output_format: Annotated[Literal["half", "float"], Query(
@@ -89,9 +90,8 @@ async def reconstruct_frame(
 ) -> Response:
     t_start = time.perf_counter()
     gate = _ready_gate(engine)
-    chosen = method or engine.default_method
-    if chosen not in engine.methods:
-        raise ServiceError(422, "method_unavailable", f"method {chosen!r} is not available on this replica "
+    if method is not None and method not in engine.methods:
+        raise ServiceError(422, "method_unavailable", f"method {method!r} is not available on this replica "
                            f"(no models loaded); available: {', '.join(engine.methods)}",
                            {"available": list(engine.methods)})
     media = _media_type(request)
@@ -105,7 +105,8 @@ async def reconstruct_frame(
     timed_out = False
     try:
         await anyio.to_thread.run_sync(_check_header, source, engine)
-        params = ReconstructParams(chosen, alpha if alpha is not None else engine.settings.default_alpha,
+        # no method named: model.reconstruct picks the network when its models serve the frame, else l1
+        params = ReconstructParams(method, alpha if alpha is not None else engine.settings.default_alpha,
                                    output_format == "half", layers, request_id_of(request.scope))
         job = partial(run_pipeline, source, params, engine.limits, engine.settings.nonfinite, engine.network)
         try:

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 import service.inference
+from model.reconstruct import choose_method
 from service.main import create_app
 from tests.service.conftest import settings, wait_ready
 from tests.service.frames import decode, expected_sum, frame_bytes, rgb
@@ -147,6 +148,8 @@ def test_broken_models_keep_liveness_but_never_ready(serve, monkeypatch):
 class FakeNetwork:
     """What service.inference expects of model.infer.NetworkReconstructor once loaded."""
 
+    layers = frozenset({"direct", "indirect"})
+
     def __init__(self) -> None:
         self.warmed = 0
 
@@ -163,7 +166,8 @@ def test_loaded_network_becomes_the_default_method(serve, monkeypatch):
     monkeypatch.setattr(service.inference, "load_network", lambda models_dir: network)
 
     def reconstruct(frame, method, alpha, network=None):
-        if method != "network":
+        method = method or choose_method(frame, network)
+        if method != "network" or not set(frame.layers) <= network.layers:  # the real one refuses those
             return REAL_RECONSTRUCT(frame, method, alpha, network=network)
         assert isinstance(network, FakeNetwork)
         image = sum(layer.base for layer in frame.layers.values())
@@ -176,10 +180,15 @@ def test_loaded_network_becomes_the_default_method(serve, monkeypatch):
         ready = client.get("/readyz").json()
         assert ready["methods"] == ["network", "l1", "l2"] and ready["default_method"] == "network"
         assert client.get("/v1/models").json()["models"] == network.describe()
-        response = post(client, frame_bytes(seed=9))
+        response = post(client, frame_bytes(seed=9, features=True))
         assert response.status_code == 200
         assert response.headers["x-reconstruction-method"] == "network"
-        assert post(client, frame_bytes(seed=9), {"method": "l2"}).headers["x-reconstruction-method"] == "l2"
+        explicit = post(client, frame_bytes(seed=9, features=True), {"method": "l2"})
+        assert explicit.headers["x-reconstruction-method"] == "l2"
+        # the default falls back to l1 for a frame the models do not serve (no model for `color`)
+        assert post(client, frame_bytes(("color",), seed=9, features=True)).headers["x-reconstruction-method"] == "l1"
+        unserved = post(client, frame_bytes(("color",), seed=9, features=True), {"method": "network"})
+        assert unserved.status_code == 422 and "color" in unserved.json()["error"]["message"]
 
 
 def test_an_unexpected_failure_is_a_json_500_with_the_request_id(serve, monkeypatch):
