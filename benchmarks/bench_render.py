@@ -1,22 +1,32 @@
-"""Benchmark of the G-PT renderer: cost per sample against Mitsuba's `path`, frame time, gradient quality.
+"""Benchmark of the G-PT renderer: issue 4's numbers for both shifts on the Cornell box and procedural scenes.
 
-    .venv/bin/python benchmarks/bench_render.py            # full run (a few minutes on 2 cores)
-    .venv/bin/python benchmarks/bench_render.py --quick    # small sizes, for a smoke check
-    .venv/bin/python benchmarks/bench_render.py --shift hybrid --scene procedural:3 --json out.json
+    .venv/bin/python benchmarks/bench_render.py             # full run: cbox + procedural:0,1 (~10 min, 2 cores)
+    .venv/bin/python benchmarks/bench_render.py --quick     # small sizes, for a smoke check (~1 min)
+    .venv/bin/python benchmarks/bench_render.py --scenes procedural:3 --shifts hybrid --json out.json
 
-Reports, for each shift (default: replay and hybrid; medians of repeats, each after a warm-up render that
-compiles the kernels):
+For every scene and shift (medians of repeats, each after a warm-up render that compiles the kernels):
 
-1. cost per sample: G-PT seconds / Mitsuba `path` seconds at the same scene, resolution, spp and max depth
-   (both with the box filter). G-PT traces five paths per sample plus their shadow rays.
-2. the time of a 1280x720, 16 spp frame (both layers, features, packing into a Frame).
-3. gradient error at equal spp: mean |dx - FD(reference)| for G-PT's dx and for forward differences of G-PT's
-   own primal, against a high-spp `path` reference; their ratio (and the same for dy and the medians).
+1. **cost per sample**: G-PT seconds / Mitsuba `path` seconds at the same scene, resolution (256^2), 16 spp and
+   max depth, box filter for both; G-PT and `path` runs are interleaved so that load changes hit both alike.
+2. **gradient error at equal spp** (issue 4's metric): mean |dx - FD(reference)| (and dy) of G-PT's gradients at
+   16 spp, 128^2, averaged over seeds, against forward differences of a high-spp `path` reference; the same for
+   forward differences of G-PT's own primal; and the ratio replay / hybrid.
+3. **what the metric can resolve**: the reference is noisy too. Its own expected error, E|FD(ref) - truth| =
+   sqrt(2/pi) * sigma per pixel (sigma from the spread of the reference's chunks), is a floor under every
+   estimator's measured error, so the ratio of two good estimators is compressed towards 1. Reported with it:
+   the noise-corrected RMS error sqrt(MSE - Var(FD(ref))) (an unbiased estimate of the estimator's own MSE,
+   since the reference is independent of it) and the estimators' own noise per layer (standard deviation over
+   seeds), which needs no reference at all.
+4. optionally (``--frame``) the time of a 1280x720, 16 spp frame (both layers, features, packed into a Frame).
+
+References are cached with ``--cache DIR`` (keyed by scene, size, depth, spp, Mitsuba version), so a re-run
+costs only the G-PT renders.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import statistics
 import sys
@@ -27,139 +37,222 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-DEFAULT_SCENE = "/work/shared/scenes/cbox/cbox.xml"
+DEFAULT_SCENES = "cbox,procedural:0,procedural:1"
 
 
-def timed(fn, repeats: int) -> tuple[float, list[float]]:
-    """Median wall time of ``fn()`` over ``repeats`` runs after one warm-up (kernel compilation) run."""
-    fn()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times), times
+def resolve_scene(spec: str) -> str:
+    """``cbox``/``teapot`` -> the shared file when present, else the tests' built-in stand-in; others unchanged."""
+    if spec in ("cbox", "teapot"):
+        from tests.renderer.scenes import resolve
+
+        return str(resolve(spec))
+    return spec
 
 
-def path_image(scene, spp: int, seed: int, max_depth: int) -> np.ndarray:
+def path_image(scene, spp: int, seed: int, max_depth: int, rr_depth: int) -> np.ndarray:
     import mitsuba as mi
 
-    integrator = mi.load_dict({"type": "path", "max_depth": max_depth})
-    return np.array(mi.render(scene, integrator=integrator, spp=spp, seed=seed), dtype=np.float64)
+    integrator = mi.load_dict({"type": "path", "max_depth": max_depth, "rr_depth": rr_depth})
+    return np.array(mi.render(scene, integrator=integrator, spp=spp, seed=seed), dtype=np.float64)[..., :3]
 
 
-def reference(scene, spp: int, max_depth: int, chunk: int = 256) -> np.ndarray:
-    """High-spp `path` image in chunks of ``chunk`` spp (distinct seeds), averaged."""
-    chunks = max(1, spp // chunk)
-    return np.mean([path_image(scene, chunk, 50_000 + i, max_depth) for i in range(chunks)], axis=0)
+def reference_chunks(loaded, spp: int, chunk: int, cache: Path | None) -> np.ndarray:
+    """High-spp `path` renders in independent chunks of ``chunk`` spp: (chunks, H, W, 3)."""
+    import mitsuba as mi
+
+    key = hashlib.sha256(json.dumps([loaded.spec, loaded.width, loaded.height, loaded.max_depth, loaded.rr_depth,
+                                     spp, chunk, mi.__version__]).encode()).hexdigest()[:16]
+    path = cache / f"ref-{key}.npy" if cache else None
+    if path is not None and path.is_file():
+        return np.load(path)
+    chunks = np.stack([path_image(loaded.scene, chunk, 50_000 + i, loaded.max_depth, loaded.rr_depth)
+                       for i in range(max(2, spp // chunk))])
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        np.save(path, chunks)
+    return chunks
 
 
 def fd(img: np.ndarray, axis: str) -> np.ndarray:
+    """Forward differences per the frame contract, on (..., H, W, C) stacks."""
     d = np.zeros_like(img)
     if axis == "dx":
-        d[:, :-1] = img[:, 1:] - img[:, :-1]
+        d[..., :, :-1, :] = img[..., :, 1:, :] - img[..., :, :-1, :]
     else:
-        d[:-1] = img[1:] - img[:-1]
+        d[..., :-1, :, :] = img[..., 1:, :, :] - img[..., :-1, :, :]
     return d
 
 
-def bench_cost(spec: str, size: int, spp: int, repeats: int, shift_name: str) -> dict:
-    from renderer.gpt import GptSettings, render_gpt
+def settings_for(loaded):
+    from renderer.gpt import GptSettings
+
+    depth = loaded.max_depth
+    return GptSettings(max_depth=depth, rr_depth=loaded.rr_depth, indirect=depth < 0 or depth > 2)
+
+
+def bench_cost(spec: str, size: int, spp: int, repeats: int, shifts: list[str]) -> dict:
+    """Interleaved timings of `path` and each shift; medians and the ratio of medians."""
+    from renderer.gpt import render_gpt
     from renderer.scene import load_scene
     from renderer.shift import make_shift
 
     loaded = load_scene(spec, width=size, height=size)
-    depth = loaded.max_depth
-    settings = GptSettings(max_depth=depth, rr_depth=loaded.rr_depth, indirect=depth < 0 or depth > 2)
-    shift = make_shift(shift_name)
-    t_gpt, _ = timed(lambda: render_gpt(loaded.scene, shift, settings, size, size, spp, seed=1), repeats)
-    t_path, _ = timed(lambda: path_image(loaded.scene, spp, 1, depth), repeats)
-    return {"scene": spec, "size": size, "spp": spp, "max_depth": depth, "gpt_s": t_gpt, "path_s": t_path,
-            "cost_ratio": t_gpt / t_path}
+    settings = settings_for(loaded)
+    runs = {"path": lambda: path_image(loaded.scene, spp, 1, loaded.max_depth, loaded.rr_depth)}
+
+    def gpt(name: str):
+        return lambda: render_gpt(loaded.scene, make_shift(name), settings, size, size, spp, seed=1)
+
+    for name in shifts:
+        runs[name] = gpt(name)
+    for fn in runs.values():  # warm-up: kernel compilation
+        fn()
+    times: dict[str, list[float]] = {name: [] for name in runs}
+    for _ in range(repeats):
+        for name, fn in runs.items():
+            start = time.perf_counter()
+            fn()
+            times[name].append(time.perf_counter() - start)
+    medians = {name: statistics.median(t) for name, t in times.items()}
+    return {"size": size, "spp": spp, "max_depth": loaded.max_depth, "seconds": medians, "all": times,
+            "cost_ratio": {name: medians[name] / medians["path"] for name in shifts}}
 
 
-def bench_frame(spec: str, width: int, height: int, spp: int, repeats: int, shift_name: str) -> dict:
+def bench_frame(spec: str, width: int, height: int, spp: int, repeats: int, shift: str) -> dict:
     from renderer.render import render_frame
     from renderer.scene import load_scene
 
     loaded = load_scene(spec, width=width, height=height)
-    median, times = timed(lambda: render_frame(loaded, spp=spp, seed=2, shift=shift_name), repeats)
-    return {"scene": spec, "width": width, "height": height, "spp": spp, "seconds": median, "all": times}
+    render_frame(loaded, spp=spp, seed=2, shift=shift)
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        render_frame(loaded, spp=spp, seed=2, shift=shift)
+        times.append(time.perf_counter() - start)
+    return {"width": width, "height": height, "spp": spp, "seconds": statistics.median(times), "all": times}
 
 
-def bench_gradients(spec: str, size: int, spp: int, ref_spp: int, seeds: int, shift_name: str) -> dict:
-    from renderer.gpt import GptSettings, render_gpt
+def bench_gradients(spec: str, size: int, spp: int, ref_spp: int, seeds: int, shifts: list[str],
+                    cache: Path | None) -> dict:
+    """Issue 4's gradient error for each shift, with what the reference's own noise allows to resolve."""
+    from renderer.gpt import render_gpt
     from renderer.scene import load_scene
     from renderer.shift import make_shift
 
     loaded = load_scene(spec, width=size, height=size)
-    depth = loaded.max_depth
-    settings = GptSettings(max_depth=depth, rr_depth=loaded.rr_depth, indirect=depth < 0 or depth > 2)
-    ref = reference(loaded.scene, ref_spp, depth)
-    shift = make_shift(shift_name)
-    out: dict = {"scene": spec, "size": size, "spp": spp, "reference_spp": ref_spp, "seeds": seeds}
-    errors: dict[str, list[float]] = {}
-    for seed in range(seeds):
-        res = render_gpt(loaded.scene, shift, settings, size, size, spp, seed=100 + seed)
-        primal = sum(layer["base"] for layer in res.layers.values()).astype(np.float64)
-        for axis in ("dx", "dy"):
-            grad = sum(layer[axis] for layer in res.layers.values()).astype(np.float64)
-            ref_d = fd(ref, axis)
-            e_gpt, e_fd = np.abs(grad - ref_d), np.abs(fd(primal, axis) - ref_d)
-            for key, value in ((f"{axis}_gpt_mean", e_gpt.mean()), (f"{axis}_fd_mean", e_fd.mean()),
-                               (f"{axis}_gpt_median", np.median(e_gpt)), (f"{axis}_fd_median", np.median(e_fd))):
-                errors.setdefault(key, []).append(float(value))
-    for key, values in errors.items():
-        out[key] = float(np.mean(values))
+    settings = settings_for(loaded)
+    chunks = reference_chunks(loaded, ref_spp, 256, cache)
+    ref = chunks.mean(0)
+    out: dict = {"size": size, "spp": spp, "reference_spp": 256 * len(chunks), "seeds": seeds, "floor": {},
+                 "shifts": {}}
+    ref_fd, ref_var = {}, {}
     for axis in ("dx", "dy"):
-        out[f"{axis}_ratio_mean"] = out[f"{axis}_fd_mean"] / out[f"{axis}_gpt_mean"]
-        out[f"{axis}_ratio_median"] = out[f"{axis}_fd_median"] / max(out[f"{axis}_gpt_median"], 1e-12)
+        ref_fd[axis] = fd(ref, axis)
+        ref_var[axis] = fd(chunks, axis).var(0, ddof=1) / len(chunks)  # variance of FD(ref) per pixel
+        out["floor"][axis] = float(np.mean(np.sqrt(2 / np.pi * ref_var[axis])))
+    for name in shifts:
+        shift = make_shift(name)
+        stats: dict[str, list[float]] = {}
+        layer_stacks: dict[str, list[np.ndarray]] = {}
+        for seed in range(seeds):
+            res = render_gpt(loaded.scene, shift, settings, size, size, spp, seed=100 + seed)
+            primal = sum(layer["base"] for layer in res.layers.values()).astype(np.float64)
+            for axis in ("dx", "dy"):
+                grad = sum(layer[axis] for layer in res.layers.values()).astype(np.float64)
+                err = grad - ref_fd[axis]
+                for key, value in ((f"{axis}_mean", np.abs(err).mean()), (f"{axis}_mse", (err ** 2).mean()),
+                                   (f"{axis}_fd_primal_mean", np.abs(fd(primal, axis) - ref_fd[axis]).mean())):
+                    stats.setdefault(key, []).append(float(value))
+                for layer, images in res.layers.items():
+                    layer_stacks.setdefault(f"{axis}_{layer}", []).append(images[axis].astype(np.float64))
+        row: dict = {key: float(np.mean(values)) for key, values in stats.items()}
+        for axis in ("dx", "dy"):
+            row[f"{axis}_rmse_corrected"] = float(np.sqrt(max(row[f"{axis}_mse"] - ref_var[axis].mean(), 0.0)))
+        for key, images in layer_stacks.items():
+            row[f"{key}_noise"] = float(np.stack(images).std(0, ddof=1).mean())  # estimator noise, no reference
+        out["shifts"][name] = row
+    if "replay" in out["shifts"]:
+        base = out["shifts"]["replay"]
+        for name, row in out["shifts"].items():
+            if name == "replay":
+                continue
+            for axis in ("dx", "dy"):
+                row[f"{axis}_gain_vs_replay"] = base[f"{axis}_mean"] / row[f"{axis}_mean"]
+                row[f"{axis}_gain_vs_replay_corrected"] = (base[f"{axis}_rmse_corrected"]
+                                                           / max(row[f"{axis}_rmse_corrected"], 1e-30))
+                for layer in ("direct", "indirect"):
+                    if f"{axis}_{layer}_noise" in row:
+                        row[f"{axis}_{layer}_noise_gain_vs_replay"] = (base[f"{axis}_{layer}_noise"]
+                                                                       / max(row[f"{axis}_{layer}_noise"], 1e-30))
     return out
+
+
+def print_gradients(scene: str, g: dict) -> None:
+    print(f"  gradient error at {g['spp']} spp ({g['size']}^2, {g['seeds']} seeds, reference {g['reference_spp']} "
+          f"spp; reference's own error floor dx {g['floor']['dx']:.5f}, dy {g['floor']['dy']:.5f}):")
+    for name, row in g["shifts"].items():
+        parts = []
+        for axis in ("dx", "dy"):
+            parts.append(f"{axis} mean|err| {row[f'{axis}_mean']:.5f} "
+                         f"(FD of primal {row[f'{axis}_fd_primal_mean']:.5f}), "
+                         f"RMSE corrected {row[f'{axis}_rmse_corrected']:.4f}")
+        print(f"    [{name}] " + "; ".join(parts))
+        noise = ", ".join(f"{k[:-6]} {v:.5f}" for k, v in row.items() if k.endswith("_noise"))
+        print(f"    [{name}] own noise (std over seeds): {noise}")
+        if "dx_gain_vs_replay" in row:
+            print(f"    [{name}] vs replay: mean|err| {row['dx_gain_vs_replay']:.2f}x (dx) "
+                  f"{row['dy_gain_vs_replay']:.2f}x (dy) lower; corrected RMSE "
+                  f"{row['dx_gain_vs_replay_corrected']:.2f}x / {row['dy_gain_vs_replay_corrected']:.2f}x; own noise "
+                  + ", ".join(f"{k.split('_noise')[0]} {v:.2f}x" for k, v in row.items()
+                              if k.endswith("noise_gain_vs_replay")))
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--scene", default=DEFAULT_SCENE, help="XML path or procedural:SEED")
-    parser.add_argument("--shift", default="replay,hybrid", help="comma-separated shifts to compare")
+    parser.add_argument("--scenes", default=DEFAULT_SCENES,
+                        help="comma-separated: cbox, teapot, XML paths or procedural:SEED (default %(default)s)")
+    parser.add_argument("--shifts", "--shift", default="replay,hybrid", help="comma-separated shifts")
     parser.add_argument("--quick", action="store_true", help="small sizes and few repeats (smoke check)")
-    parser.add_argument("--repeats", type=int, default=None)
-    parser.add_argument("--skip-frame", action="store_true", help="skip the 1280x720 frame timing")
+    parser.add_argument("--repeats", type=int, default=None, help="timing repeats (default 5, quick 2)")
+    parser.add_argument("--ref-spp", type=int, default=None, help="reference spp (default 8192, quick 1024)")
+    parser.add_argument("--seeds", type=int, default=None, help="G-PT renders per shift (default 4, quick 2)")
+    parser.add_argument("--frame", action="store_true", help="also time a 1280x720 16 spp frame per shift")
+    parser.add_argument("--skip-cost", action="store_true", help="skip the cost-per-sample timing")
+    parser.add_argument("--cache", default=None, help="folder for cached references")
     parser.add_argument("--json", default=None, help="also write the results to this file")
     args = parser.parse_args(argv)
+
+    import mitsuba as mi
 
     from renderer.scene import select_variant
 
     variant = select_variant()
     repeats = args.repeats or (2 if args.quick else 5)
-    shifts = [name.strip() for name in args.shift.split(",") if name.strip()]
-    results: dict = {"variant": variant, "scene": args.scene, "quick": args.quick, "shifts": {}}
-    size, spp = (64, 16) if args.quick else (256, 16)
-    gsize, gref, gseeds = (48, 2048, 4) if args.quick else (128, 8192, 8)
-    for shift in shifts:
-        out: dict = {}
-        results["shifts"][shift] = out
-        cost = out["cost"] = bench_cost(args.scene, size, spp, repeats, shift)
-        print(f"[{shift}] cost per sample ({cost['size']}^2, {spp} spp, max_depth {cost['max_depth']}): "
-              f"G-PT {cost['gpt_s']:.3f} s, path {cost['path_s']:.3f} s -> {cost['cost_ratio']:.2f}x")
-        if not args.skip_frame:
+    seeds = args.seeds or (2 if args.quick else 4)
+    ref_spp = args.ref_spp or (1024 if args.quick else 8192)
+    cost_size, grad_size = (64, 48) if args.quick else (256, 128)
+    shifts = [name.strip() for name in args.shifts.split(",") if name.strip()]
+    cache = Path(args.cache) if args.cache else None
+    results: dict = {"variant": variant, "mitsuba": mi.__version__, "quick": args.quick, "scenes": {}}
+    print(f"Mitsuba {mi.__version__} ({variant}); shifts {', '.join(shifts)}")
+    for spec in [s.strip() for s in args.scenes.split(",") if s.strip()]:
+        path = resolve_scene(spec)
+        out: dict = {"path": path}
+        results["scenes"][spec] = out
+        print(f"{spec}:")
+        if not args.skip_cost:
+            cost = out["cost"] = bench_cost(path, cost_size, 16, repeats, shifts)
+            secs = cost["seconds"]
+            print(f"  cost per sample ({cost_size}^2, 16 spp, max_depth {cost['max_depth']}, median of {repeats}): "
+                  f"path {secs['path']:.3f} s; " + "; ".join(
+                      f"{name} {secs[name]:.3f} s = {cost['cost_ratio'][name]:.2f}x" for name in shifts))
+        if args.frame:
             w, h = (320, 180) if args.quick else (1280, 720)
-            frame = out["frame"] = bench_frame(args.scene, w, h, 16, max(1, repeats // 2), shift)
-            print(f"[{shift}] frame {w}x{h} at 16 spp: {frame['seconds']:.2f} s (median of {len(frame['all'])})")
-        grads = out["gradients"] = bench_gradients(args.scene, gsize, 16, gref, gseeds, shift)
-        for axis in ("dx", "dy"):
-            print(f"[{shift}] {axis} error at 16 spp ({gsize}^2, reference {gref} spp, {gseeds} seeds): "
-                  f"mean |G-PT - ref| {grads[f'{axis}_gpt_mean']:.5f}, mean |FD(primal) - ref| "
-                  f"{grads[f'{axis}_fd_mean']:.5f} -> ratio {grads[f'{axis}_ratio_mean']:.2f} "
-                  f"(medians: ratio {grads[f'{axis}_ratio_median']:.2f})")
-    if len(shifts) > 1 and "replay" in results["shifts"]:
-        base = results["shifts"]["replay"]["gradients"]
-        for shift in shifts:
-            if shift == "replay":
-                continue
-            other = results["shifts"][shift]["gradients"]
-            for axis in ("dx", "dy"):
-                gain = base[f"{axis}_gpt_mean"] / other[f"{axis}_gpt_mean"]
-                print(f"{shift} vs replay, {axis}: mean gradient error {gain:.2f}x lower")
+            for name in shifts:
+                frame = out.setdefault("frame", {})[name] = bench_frame(path, w, h, 16, max(1, repeats // 2), name)
+                print(f"  [{name}] frame {w}x{h} at 16 spp: {frame['seconds']:.2f} s")
+        grads = out["gradients"] = bench_gradients(path, grad_size, 16, ref_spp, seeds, shifts, cache)
+        print_gradients(spec, grads)
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=2))
     return 0

@@ -4,7 +4,9 @@ A shift implements the small :class:`renderer.gpt.Shift` protocol: ``start`` mak
 its primary ray, ``step`` advances it by one base-path vertex and returns the offset's contributions for that
 vertex's two events together with the MIS weights of the pixel pair, ``scale``/``kill`` apply the base path's
 Russian roulette. The integrator never looks inside an offset state: :class:`ReplayShift` and
-:class:`HybridShift` (reconnection at rough vertices, replay elsewhere; issue 4) are interchangeable.
+:class:`HybridShift` (reconnection at rough vertices, half-vector copy at glossy ones, replay elsewhere; issue 4)
+are interchangeable; the hybrid shift also implements :class:`renderer.gpt.ConnectingShift`, which lets the
+integrator carry connected offsets cheaply.
 
 Random replay
 -------------
