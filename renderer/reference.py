@@ -29,9 +29,12 @@ import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:  # scene.py needs Mitsuba at import time; load_reference must not
+    from renderer.scene import LoadedScene
 
 # Samples per pass when --tile-spp is not given: about 16 M samples keeps a pass to seconds on a CPU, so the
 # progress bar moves, while a pass is still large enough to keep every core busy. Memory is not the limit on
@@ -96,33 +99,6 @@ def pass_seed(seed: int, index: int) -> int:
 # Scene loading
 # ----------------------------------------------------------------------------------------------------------
 
-@dataclass
-class _Loaded:
-    """What the reference needs from a loaded scene: the scene, a box-filtered sensor and the resolved depth."""
-
-    scene: Any            # mi.Scene
-    sensor: Any           # mi.Sensor with the requested film size and a box filter
-    max_depth: int
-    width: int
-    height: int
-    metadata: dict[str, str]
-
-
-def _load(spec: str, width: int | None, height: int | None, max_depth: int | None,
-          defines: Mapping[str, str]) -> _Loaded:
-    """Load ``spec`` with the project's loader, which forces the box filter and the film size, picks the
-    variant and refuses scenes that cannot be rendered (renderer.scene.SceneError)."""
-    from renderer.scene import load_scene
-
-    loaded = load_scene(spec, width=width, height=height, max_depth=max_depth, defines=dict(defines))
-    meta = {"gradsep.scene": spec}
-    if spec.startswith("procedural:"):
-        from renderer.procedural import GENERATOR_VERSION
-
-        meta["gradsep.procedural_version"] = str(GENERATOR_VERSION)
-    return _Loaded(loaded.scene, loaded.sensor, int(loaded.max_depth), int(loaded.width), int(loaded.height), meta)
-
-
 # ----------------------------------------------------------------------------------------------------------
 # Rendering
 # ----------------------------------------------------------------------------------------------------------
@@ -139,11 +115,13 @@ def render_reference(spec: str, *, spp: int, width: int | None = None, height: i
         _check_positive("tile_spp", tile_spp)
     if seed < 0:
         raise ValueError(f"seed must be non-negative, got {seed}")
-    loaded = _load(spec, width, height, max_depth, defines or {})
+    from renderer.scene import load_scene  # box filter, film size, variant, unrenderable scenes refused
+
+    loaded = load_scene(spec, width=width, height=height, max_depth=max_depth, defines=dict(defines or {}))
     return render_loaded(loaded, spp=spp, seed=seed, tile_spp=tile_spp, progress=progress)
 
 
-def render_loaded(loaded: _Loaded, *, spp: int, seed: int, tile_spp: int | None,
+def render_loaded(loaded: LoadedScene, *, spp: int, seed: int, tile_spp: int | None,
                   progress: bool | None = False) -> Reference:
     """The pass loop: per pass, ``path`` at the scene's depth and at depth 2 with one seed; float64 averages."""
     import mitsuba as mi
@@ -166,7 +144,7 @@ def render_loaded(loaded: _Loaded, *, spp: int, seed: int, tile_spp: int | None,
     shape = (loaded.height, loaded.width, 3)
     total_sum, direct_sum = np.zeros(shape), np.zeros(shape)
     start = time.perf_counter()
-    with _ProgressBar(spp, progress, loaded.metadata.get("gradsep.scene", "")) as advance:
+    with _ProgressBar(spp, progress, loaded.spec) as advance:
         for i, k in enumerate(plan_passes(spp, tile)):
             s = pass_seed(seed, i)
             total = render(total_it, k, s)
@@ -184,7 +162,7 @@ def render_loaded(loaded: _Loaded, *, spp: int, seed: int, tile_spp: int | None,
         direct_mean = direct_sum / spp
         # Per sample the difference is exact; what is left below zero is float rounding (checked per pass).
         indirect_mean = np.maximum(total_mean - direct_mean, 0.0)
-    meta = dict(loaded.metadata)
+    meta = loaded.scene_metadata()
     meta.update({"gradsep.kind": "reference", "gradsep.integrator": "path", "gradsep.spp": str(spp),
                  "gradsep.seed": str(seed), "gradsep.max_depth": str(depth), "gradsep.tile_spp": str(tile),
                  "gradsep.render_seconds": f"{seconds:.3f}", "gradsep.variant": str(mi.variant())})

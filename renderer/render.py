@@ -95,7 +95,7 @@ def render_metadata(scene: LoadedScene, *, spp: int, seed: int, shift: str, laye
     meta = {
         "gradsep.version": __version__,
         "gradsep.integrator": "gpt",
-        "gradsep.scene": scene.spec,
+        **scene.scene_metadata(),
         "gradsep.spp": str(spp),
         "gradsep.seed": str(seed),
         "gradsep.max_depth": str(scene.max_depth),
@@ -107,12 +107,6 @@ def render_metadata(scene: LoadedScene, *, spp: int, seed: int, shift: str, laye
         "gradsep.mitsuba_variant": str(mi.variant()),
         "gradsep.mitsuba_version": str(mi.__version__),
     }
-    if scene.defines:
-        meta["gradsep.defines"] = ",".join(f"{k}={v}" for k, v in sorted(scene.defines.items()))
-    if scene.spec.startswith("procedural:"):
-        from renderer.procedural import GENERATOR_VERSION  # a seed names a scene only for one generator version
-
-        meta["gradsep.procedural_version"] = str(GENERATOR_VERSION)
     return meta
 
 

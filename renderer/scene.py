@@ -61,6 +61,17 @@ class LoadedScene:
     def sensor(self) -> Any:
         return self.scene.sensors()[0]
 
+    def scene_metadata(self) -> dict[str, str]:
+        """The ``gradsep.*`` header attributes that name the scene: spec, overrides, generator version."""
+        meta = {"gradsep.scene": self.spec}
+        if self.defines:
+            meta["gradsep.defines"] = ",".join(f"{k}={v}" for k, v in sorted(self.defines.items()))
+        if self.spec.startswith("procedural:"):
+            from renderer.procedural import GENERATOR_VERSION  # a seed names a scene only for one generator version
+
+            meta["gradsep.procedural_version"] = str(GENERATOR_VERSION)
+        return meta
+
 
 # ---------------------------------------------------------------------------------------------------------------
 # Variant
