@@ -42,6 +42,7 @@ from model.preprocess import (
     network_inputs,
     output_radiance,
     pad_to_alignment,
+    poisson_prior,
 )
 
 if TYPE_CHECKING:
@@ -276,13 +277,14 @@ class NetworkReconstructor:
         plans = plan_tiles(height, width, self.tiles, model.alignment)
         overlap = aligned_size(self.tiles.overlap, model.alignment)
         depth_range = DepthRange.of(features.depth)  # per frame, shared by every window
+        prior = poisson_prior(layer)                 # a global solve: once per layer, cropped per window
         if len(plans) == 1:
-            return self._run_window(model, layer, features, depth_range, plans[0].window)
+            return self._run_window(model, layer, features, depth_range, prior, plans[0].window)
         total = np.zeros((height, width, 3), dtype=np.float32)
         weight = np.zeros((height, width, 1), dtype=np.float32)
         for plan in plans:
             y0, y1, x0, x1 = plan.window
-            out = self._run_window(model, layer, features, depth_range, plan.window)
+            out = self._run_window(model, layer, features, depth_range, prior, plan.window)
             w = np.outer(_ramp(y0, y1, height, overlap), _ramp(x0, x1, width, overlap))
             total[y0:y1, x0:x1] += out * w[..., None]
             weight[y0:y1, x0:x1] += w[..., None]
@@ -290,14 +292,14 @@ class NetworkReconstructor:
 
     @staticmethod
     def _run_window(model: LoadedModel, layer: Layer, features: Features, depth_range: DepthRange,
-                    window: Window) -> np.ndarray:
-        planes = layer_planes(layer, window)
+                    prior: np.ndarray, window: Window) -> np.ndarray:
+        planes = layer_planes(layer, window, prior)
         data, gradient = network_inputs(planes, feature_planes(features, depth_range, window))
         h, w = planes.shape[1:]
         a = model.alignment
         encoded = model.run(np.ascontiguousarray(pad_to_alignment(data, a)),
                             np.ascontiguousarray(pad_to_alignment(gradient, a)))
-        base = planes[0:3].transpose(1, 2, 0)
+        base = planes[9:12].transpose(1, 2, 0)  # the Poisson prior: a failed output degrades to L2
         return output_radiance(crop_to(encoded, h, w), fallback=base)
 
 

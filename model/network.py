@@ -2,12 +2,12 @@
 
 Reads like the diagram in docs/network.md::
 
-    data  (base RGB + albedo + normal + depth, 10 ch) ─► Down ─► Down ─► Down ─┐
+    data  (base, prior, albedo, normal, depth: 13 ch) ─► Down ─► Down ─► Down ─┐
     grad  (dx RGB + dy RGB, 6 ch)                     ─► Down ─► Down ─► Down ─┤ concat
                                                                                ▼
                                                                  residual blocks (bottleneck)
     decoder:  Up(bottleneck ⊕ data₃ ⊕ grad₃) ─► CBAM ─► Up(· ⊕ data₂ ⊕ grad₂) ─► CBAM
-              ─► Up(· ⊕ data₁ ⊕ grad₁) ─► CBAM ─► 3×3 conv ─► ReLU ─► radiance in the log domain
+              ─► Up(· ⊕ data₁ ⊕ grad₁) ─► CBAM ─► 3×3 conv ─► + C(prior) ─► ReLU ─► log-domain radiance
 
 Each Down halves the resolution, so inputs must be a multiple of ``2**depth`` (``NetworkConfig.alignment``);
 model/preprocess.py pads to it. The G-branch (``GBranch``) predicts per-pixel feature coefficients used only
@@ -28,7 +28,7 @@ import torch.nn.functional as F
 from torch import nn
 
 # Channel names are data, defined with the transform that produces them (numpy-only, so inference shares them).
-from model.preprocess import DATA_INPUTS, FEATURE_INPUTS, GRADIENT_INPUTS, OUTPUTS
+from model.preprocess import DATA_INPUTS, FEATURE_INPUTS, GRADIENT_INPUTS, OUTPUTS, PRIOR_CHANNELS
 
 __all__ = ["DATA_INPUTS", "FEATURE_INPUTS", "GRADIENT_INPUTS", "OUTPUTS", "DualBranchNet", "GBranch",
            "NetworkConfig"]
@@ -176,7 +176,7 @@ class Encoder(nn.Module):
 
 
 class DualBranchNet(nn.Module):
-    """Data branch + gradient branch U-Net; ``forward(data, gradient)`` returns log-domain radiance ≥ 0.
+    """Data branch + gradient branch U-Net; ``forward(data, gradient)`` returns log-domain radiance (≥ 0 in eval mode).
 
     Data branch: low frequencies from the noisy base and the features. Gradient branch: high frequencies
     from dx/dy only. They meet at the bottleneck (concatenated, then residual blocks) and at every decoder
@@ -200,6 +200,7 @@ class DualBranchNet(nn.Module):
         self.decoder = nn.ModuleList(ups)
         self.head = nn.Conv2d(widths[0], len(OUTPUTS), 3, padding=1)
         init_weights(self)
+        nn.init.zeros_(self.head.weight)  # start as the identity on C(I_b); see forward
 
     def forward(self, data: torch.Tensor, gradient: torch.Tensor) -> torch.Tensor:
         d_skips = self.data_encoder(data)
@@ -208,8 +209,14 @@ class DualBranchNet(nn.Module):
         # deepest first: each Up sees the stream plus both branches' skips at the stream's resolution
         for level, up in zip(reversed(range(self.config.depth)), self.decoder, strict=True):
             x = up(torch.cat([x, d_skips[level], g_skips[level]], dim=1))
-        # ReLU: the log-domain radiance C(I) is ≥ 0 (GradNet's output activation)
-        return F.relu(self.head(x))
+        # Global residual: predict a correction to C(L2 Poisson prior) (model.preprocess.poisson_prior), with
+        # the head initialised to zero, so training starts from the screened Poisson solution instead of from
+        # black, and a short CPU budget is spent on what the prior gets wrong (outliers it smears, edges the
+        # features explain) rather than on learning to integrate gradients across the image.
+        y = data[:, PRIOR_CHANNELS] + self.head(x)
+        # C(I) ≥ 0. Clamped only in inference: in training a ReLU would stop the gradient of every pixel it
+        # clamps (black input pixels start exactly at 0), and the losses read ŷ < 0 smoothly instead.
+        return y if self.training else F.relu(y)
 
 
 class GBranch(nn.Module):

@@ -10,6 +10,8 @@ What the network sees (channel order in model.network.DATA_INPUTS / GRADIENT_INP
 
 * base radiance, clamped to [0, RADIANCE_MAX], through C(I) = log(1 + μI) / log(1 + μ) with μ = 16 (GradNet's
   transfer function: compresses HDR fireflies while keeping dark regions resolved);
+* the layer's L2 screened Poisson reconstruction (``poisson_prior``) through the same C: the network
+  predicts a correction to it;
 * gradients through the signed version sign(g)·C(|g|), |g| clamped at RADIANCE_MAX;
 * albedo as is (clipped to [0, 1], the contract's range), normal·0.5 + 0.5 (in [0, 1]), depth clamped to
   [0, DEPTH_MAX] and min-max normalised per frame to [0, 1];
@@ -30,6 +32,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from model.poisson import DEFAULT_ALPHA, solve_l2
+
 if TYPE_CHECKING:  # only for hints; importing model.frame at run time is fine but not needed
     from model.frame import Features, Layer
 
@@ -40,23 +44,28 @@ MU = 16.0
 RADIANCE_MAX = 65504.0
 #: Depth clamp before per-frame normalisation (GradNet's 1e5): a far-away sky hit must not squash the rest.
 DEPTH_MAX = 1.0e5
-#: Number of linear planes per layer (base, dx, dy × RGB) and of normalised feature planes.
-LAYER_PLANES = 9
+#: Screening weight α of the L2 Poisson prior (the same default as the `l2` method).
+PRIOR_ALPHA = DEFAULT_ALPHA
+#: Number of linear planes per layer (base, dx, dy, prior × RGB) and of normalised feature planes.
+LAYER_PLANES = 12
 FEATURE_PLANES = 7
 #: The network's input and output channels, in order: data, not code (exported as ONNX metadata and checked
 #: by model/infer.py against each model it loads).
 DATA_INPUTS: tuple[str, ...] = (
     "base.R", "base.G", "base.B",
+    "prior.R", "prior.G", "prior.B",
     "albedo.R", "albedo.G", "albedo.B",
     "normal.X", "normal.Y", "normal.Z",
     "depth.Z",
 )
 GRADIENT_INPUTS: tuple[str, ...] = ("dx.R", "dx.G", "dx.B", "dy.R", "dy.G", "dy.B")
 OUTPUTS: tuple[str, ...] = ("R", "G", "B")
-#: The feature channels the first-order loss differentiates (the data input minus the base radiance).
-FEATURE_INPUTS: tuple[str, ...] = DATA_INPUTS[3:]
+#: The feature channels the first-order loss differentiates (the data input minus the radiance planes).
+FEATURE_INPUTS: tuple[str, ...] = DATA_INPUTS[6:]
+#: Where C(prior) sits in the data input: the network predicts a correction to it (model/network.py).
+PRIOR_CHANNELS = slice(3, 6)
 #: Bumped whenever the numbers the network sees change; stored in checkpoints, caches and ONNX metadata.
-PREPROCESS_VERSION = 1
+PREPROCESS_VERSION = 2
 
 Window = tuple[int, int, int, int]  # (y0, y1, x0, x1), half-open, in frame pixels
 
@@ -88,10 +97,16 @@ class LogTransfer:
         xp = array_namespace(x)
         return xp.log1p(self.mu * xp.clip(x, 0.0, self.max_value)) / self._norm
 
-    def inverse(self, y: Any) -> Any:
-        """Network domain → radiance, clamped to [0, max_value] so the result is finite."""
+    def inverse(self, y: Any, clamp_negative: bool = True) -> Any:
+        """Network domain → radiance, clamped to [0, max_value] so the result is finite.
+
+        ``clamp_negative=False`` (training losses only) keeps the smooth continuation below 0, which is bounded
+        by −1/μ: a clamp there would zero the gradient of a pixel the network currently predicts as negative,
+        and that pixel could never be pulled back up.
+        """
         xp = array_namespace(y)
-        return xp.expm1(xp.clip(y, 0.0, self.max_encoded) * self._norm) / self.mu
+        lo = None if not clamp_negative else 0.0
+        return xp.expm1(xp.clip(y, lo, self.max_encoded) * self._norm) / self.mu
 
     def forward_signed(self, g: Any) -> Any:
         """sign(g)·C(|g|): the gradient transform (odd, so a sign flip of the image flips the input)."""
@@ -139,13 +154,31 @@ def _channels_first(dst: np.ndarray, src: np.ndarray, lo: float, hi: float) -> N
     _sanitise_inplace(dst, lo, hi)
 
 
-def layer_planes(layer: Layer, window: Window | None = None) -> np.ndarray:
-    """(9, h, w) float32: base R G B, dx R G B, dy R G B, linear, finite, base ≥ 0, all within ±RADIANCE_MAX."""
+def poisson_prior(layer: Layer) -> np.ndarray:
+    """(h, w, 3) float32: the exact L2 screened Poisson reconstruction of the whole layer (model.poisson,
+    α = PRIOR_ALPHA) from its sanitised planes, clipped to [0, RADIANCE_MAX].
+
+    The network refines this instead of the raw base image: it integrates the gradients globally (which a
+    CPU-trained U-Net with a small receptive field learns slowly) for 0.06 s per 1280×720 layer. It is a
+    global solve, so it is computed once per layer and windows (tiles, patches) crop it.
+    """
+    planes = layer_planes(layer, prior=np.zeros((*layer.base.shape[:2], 3), np.float32))
+    hwc = planes.transpose(1, 2, 0)
+    prior = solve_l2(hwc[..., 0:3], hwc[..., 3:6], hwc[..., 6:9], PRIOR_ALPHA)
+    return _sanitise_inplace(prior, 0.0, RADIANCE_MAX)
+
+
+def layer_planes(layer: Layer, window: Window | None = None, prior: np.ndarray | None = None) -> np.ndarray:
+    """(12, h, w) float32: base R G B, dx R G B, dy R G B, prior R G B, linear, finite, base and prior ≥ 0,
+    all within ±RADIANCE_MAX. ``prior`` is the whole layer's ``poisson_prior`` (computed here when None)."""
+    if prior is None:
+        prior = poisson_prior(layer)
     base = _crop(layer.base, window)
     out = np.empty((LAYER_PLANES, *base.shape[:2]), dtype=np.float32)
     _channels_first(out[0:3], base, 0.0, RADIANCE_MAX)
     _channels_first(out[3:6], _crop(layer.dx, window), -RADIANCE_MAX, RADIANCE_MAX)
     _channels_first(out[6:9], _crop(layer.dy, window), -RADIANCE_MAX, RADIANCE_MAX)
+    _channels_first(out[9:12], _crop(prior, window), 0.0, RADIANCE_MAX)
     return out
 
 
@@ -192,10 +225,11 @@ def feature_planes(features: Features, depth_range: DepthRange | None = None,
 
 
 def network_inputs(planes: Any, features: Any, transfer: LogTransfer = TRANSFER) -> tuple[Any, Any]:
-    """(data, gradient) for DualBranchNet from (…, 9, h, w) layer planes and (…, 7, h, w) feature planes."""
+    """(data, gradient) for DualBranchNet from (…, 12, h, w) layer planes and (…, 7, h, w) feature planes."""
     xp = array_namespace(planes)
     base, dx, dy = planes[..., 0:3, :, :], planes[..., 3:6, :, :], planes[..., 6:9, :, :]
-    data = xp.concatenate([transfer.forward(base), features], axis=-3)
+    prior = planes[..., 9:12, :, :]
+    data = xp.concatenate([transfer.forward(base), transfer.forward(prior), features], axis=-3)
     gradient = xp.concatenate([transfer.forward_signed(dx), transfer.forward_signed(dy)], axis=-3)
     return data, gradient
 
@@ -258,6 +292,7 @@ def describe_preprocessing(transfer: LogTransfer = TRANSFER) -> dict[str, Any]:
         "albedo": "clip [0,1]",
         "normal": "clip [-1,1] * 0.5 + 0.5",
         "depth": "clip [0, depth_max], per-frame min-max to [0,1]",
+        "prior": f"L2 screened Poisson of the whole layer, alpha={PRIOR_ALPHA}, clip [0, max_value], then C",
         "nonfinite": "0",
         "padding": "reflect, bottom/right, to the network alignment",
     }

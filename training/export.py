@@ -1,7 +1,7 @@
 """`gradsep export RUN_DIR -o models/NAME.onnx`: the trained network as one self-describing ONNX file.
 
 The graph is the main network only (the G-branch exists for the training loss). Inputs ``data``
-(N, 10, H, W) and ``gradient`` (N, 6, H, W), output ``radiance_log`` (N, 3, H, W), all float32, with N, H and
+(N, 13, H, W) and ``gradient`` (N, 6, H, W), output ``radiance_log`` (N, 3, H, W), all float32, with N, H and
 W dynamic (H and W multiples of ``gradsep.alignment``). Everything a consumer needs to feed it correctly is
 in the file's metadata_props (``gradsep.*``): the layer, the channel order, the preprocessing constants, the
 alignment, the network and training configuration, the dataset manifest hash, the code version and the

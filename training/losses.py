@@ -1,18 +1,25 @@
 """The unsupervised losses (paper §4.3, GradNet's loss_functions): L = α·L_data + L_grad + β·L_1st.
 
-No ground truth exists, so every term compares the prediction with the renderer's own noisy estimates, all in
-the log domain of model.preprocess.TRANSFER (GradNet's choice: L1 in that domain is robust to HDR fireflies):
+No ground truth exists, so every term compares the prediction with the renderer's own noisy estimates:
 
-* ``data_loss``: |ŷ − C(I_b)|, the prediction stays close to the noisy base image (low frequencies);
+* ``data_loss``: the prediction's *linear* radiance, box-averaged over DATA_POOL×DATA_POOL blocks, against
+  the same average of the noisy base image, as a relative squared error (Noise2Noise's relMSE: the weight
+  1/(sg(ŷ)² + ε) does not depend on the target, so the minimiser is the target's *mean*). This is where we
+  depart from GradNet, which uses L1 in the log domain: an L1 against a noisy target is minimised by its
+  per-pixel *median*, and 16-spp Monte-Carlo radiance is strongly right-skewed (rare bright samples carry
+  much of the energy), so that estimator is biased dark — our first models came out 4–5× too dark. Pooling
+  keeps the term unbiased while cutting the variance a single firefly adds to it (16 pixels × spp samples);
+  the per-pixel detail comes from the gradient term, as in a screened Poisson reconstruction.
 * ``gradient_loss``: the forward differences of the predicted *linear* image, compressed with sign·C, against
-  the compressed rendered gradients (high frequencies, which G-PT estimates with little noise);
+  the compressed rendered gradients (high frequencies, which G-PT estimates with little noise; differences
+  are nearly symmetric around their mean, so the robust L1 of GradNet is kept here);
 * ``first_order_loss``: the predicted log-domain differences should be explained by feature differences,
   Δŷ ≈ Σₖ aₖ·ΔFₖ, with per-pixel coefficients aₖ from the G-branch, weighted by exp(−9·ΔI_b²) so it acts
   only where the noisy image itself is flat (GradNet's edge-stopping weight). Each pixel pair is tested with
   the coefficients of both pixels (forward with the left/top pixel's, backward with the right/bottom's).
 
-Shapes: predictions (N, 3, H, W) in the log domain; ``planes`` (N, 9, H, W) linear base/dx/dy from
-model.preprocess.layer_planes; ``features`` (N, 7, H, W); coefficients (N, 3·7, H, W).
+Shapes: predictions (N, 3, H, W) in the log domain of model.preprocess.TRANSFER; ``planes`` (N, 12, H, W)
+linear base/dx/dy/prior from model.preprocess.layer_planes; ``features`` (N, 7, H, W); coefficients (N, 3·7, H, W).
 """
 
 from __future__ import annotations
@@ -21,11 +28,16 @@ import math
 from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F
 
 from model.preprocess import TRANSFER, LogTransfer
 
 #: GradNet's edge-stopping sharpness in exp(−k·ΔI²).
 EDGE_SHARPNESS = 9.0
+#: Block size of the data term's box average (4×4 pixels = 256 samples at 16 spp).
+DATA_POOL = 4
+#: ε of the data term's relative weight 1/(ŷ² + ε) (Noise2Noise's 0.01): keeps dark regions from dominating.
+REL_EPS = 1e-2
 
 
 def _dx(x: torch.Tensor) -> torch.Tensor:
@@ -37,9 +49,19 @@ def _dy(x: torch.Tensor) -> torch.Tensor:
     return x[..., 1:, :] - x[..., :-1, :]
 
 
-def data_loss(pred: torch.Tensor, base: torch.Tensor, transfer: LogTransfer = TRANSFER) -> torch.Tensor:
-    """mean |ŷ − C(I_b)| over every pixel and colour."""
-    return torch.mean(torch.abs(pred - transfer.forward(base)))
+def _pool(x: torch.Tensor, size: int) -> torch.Tensor:
+    """Box average over size×size blocks (smaller for tiny images; a ragged border is left out)."""
+    k = max(1, min(size, x.shape[-2], x.shape[-1]))
+    return F.avg_pool2d(x, k) if k > 1 else x
+
+
+def data_loss(pred: torch.Tensor, base: torch.Tensor, transfer: LogTransfer = TRANSFER,
+              pool: int = DATA_POOL, eps: float = REL_EPS) -> torch.Tensor:
+    """mean (P(ŷ) − P(I_b))² / (sg(P(ŷ))² + ε), P = box average of linear radiance; see the module docstring."""
+    mean_pred = _pool(transfer.inverse(pred, clamp_negative=False), pool)
+    mean_base = _pool(base, pool)
+    weight = 1.0 / (mean_pred.detach() ** 2 + eps)
+    return torch.mean((mean_pred - mean_base) ** 2 * weight)
 
 
 def gradient_loss(pred: torch.Tensor, dx: torch.Tensor, dy: torch.Tensor,
@@ -49,7 +71,7 @@ def gradient_loss(pred: torch.Tensor, dx: torch.Tensor, dy: torch.Tensor,
     Differences are taken in linear radiance (that is what the renderer's gradients are) and compared after
     compression; the contract's zero last column/row of dx/dy is not a measurement and is excluded.
     """
-    linear = transfer.inverse(pred)
+    linear = transfer.inverse(pred, clamp_negative=False)
     loss_x = torch.mean(torch.abs(transfer.forward_signed(_dx(linear)) - transfer.forward_signed(dx[..., :, :-1])))
     loss_y = torch.mean(torch.abs(transfer.forward_signed(_dy(linear)) - transfer.forward_signed(dy[..., :-1, :])))
     return loss_x + loss_y

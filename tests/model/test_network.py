@@ -23,7 +23,7 @@ from model.network import (  # noqa: E402
     Up,
     macs_per_pixel,
 )
-from model.preprocess import crop_to, pad_to_alignment  # noqa: E402
+from model.preprocess import PRIOR_CHANNELS, crop_to, pad_to_alignment  # noqa: E402
 
 TINY = NetworkConfig(width=4, residual_blocks=1, gbranch_width=8)
 
@@ -52,6 +52,17 @@ class TestShapes:
             y = net(*_inputs(n, h, w))
         assert y.shape == (n, 3, h, w)
         assert torch.isfinite(y).all() and (y >= 0).all()
+
+    def test_starts_as_the_identity_on_the_input_radiance(self) -> None:
+        """The head starts at zero and the output is a correction to C(prior): an untrained network returns the
+        Poisson prior's channels, not black; after a weight change it no longer does."""
+        net = DualBranchNet(TINY).eval()
+        data, grad = _inputs(1, 16, 16)
+        with torch.no_grad():
+            assert torch.equal(net(data, grad), data[:, PRIOR_CHANNELS])
+            net.head.bias.fill_(-2.0)
+            assert torch.equal(net(data, grad), torch.zeros(1, 3, 16, 16))         # clamped to C(I) ≥ 0
+            assert (net.train()(data, grad) < 0).all()                                # unclamped in training
 
     @pytest.mark.parametrize(("h", "w"), [(1, 1), (5, 13), (17, 9), (3, 64)])
     def test_odd_sizes_through_padding(self, h: int, w: int) -> None:

@@ -8,11 +8,13 @@ import numpy as np
 import pytest
 
 from model.frame import Features, Layer
+from model.poisson import solve_l2
 from model.preprocess import (
     DATA_INPUTS,
     DEPTH_MAX,
     GRADIENT_INPUTS,
     MU,
+    PRIOR_ALPHA,
     RADIANCE_MAX,
     TRANSFER,
     DepthRange,
@@ -24,6 +26,7 @@ from model.preprocess import (
     network_inputs,
     output_radiance,
     pad_to_alignment,
+    poisson_prior,
 )
 
 
@@ -96,10 +99,36 @@ class TestPlanes:
         layer.dx[1, 1, 2] = -np.inf
         layer.dy[1, 0, 0] = np.inf
         p = layer_planes(layer)
-        assert p.shape == (9, 2, 3) and p.dtype == np.float32
+        assert p.shape == (12, 2, 3) and p.dtype == np.float32
         assert p[0, 0, 0] == 0.0 and p[1, 0, 1] == 0.0          # NaN → 0, negative base → 0
         assert p[5, 1, 1] == -RADIANCE_MAX and p[6, 1, 0] == RADIANCE_MAX
         assert np.all(p[2] == 2.0) and np.all(np.isfinite(p))
+        assert np.all(p[9:12] >= 0) and np.all(p[9:12] <= RADIANCE_MAX)   # the prior, from sanitised planes
+
+    def test_prior_is_the_l2_solution_of_the_sanitised_layer(self) -> None:
+        rng = np.random.default_rng(3)
+        layer = _layer(9, 11, 0.0)
+        layer.base[:] = rng.random(layer.base.shape, dtype=np.float32)
+        layer.dx[:] = rng.normal(0, 0.1, layer.dx.shape).astype(np.float32)
+        layer.dy[:] = rng.normal(0, 0.1, layer.dy.shape).astype(np.float32)
+        layer.dx[:, -1] = 0
+        layer.dy[-1] = 0
+        expected = np.clip(solve_l2(layer.base, layer.dx, layer.dy, PRIOR_ALPHA), 0, None)
+        assert np.allclose(poisson_prior(layer), expected, atol=1e-6)
+        layer.base[4, 5, 1] = np.nan                            # sanitised first: NaN → 0, never propagated
+        assert np.all(np.isfinite(poisson_prior(layer)))
+
+    def test_windows_crop_the_whole_layers_prior(self) -> None:
+        """The prior is a global solve: a window's prior planes are the whole layer's, cropped, not a solve
+        of the window alone (which would differ at the window's border)."""
+        rng = np.random.default_rng(4)
+        layer = _layer(12, 10, 0.0)
+        layer.base[:] = rng.random(layer.base.shape, dtype=np.float32)
+        layer.dx[:, :-1] = 0.3
+        full = layer_planes(layer)
+        window = (2, 9, 3, 10)
+        assert np.array_equal(layer_planes(layer, window), full[:, 2:9, 3:10])
+        assert np.array_equal(layer_planes(layer, window, poisson_prior(layer)), full[:, 2:9, 3:10])
 
     def test_features_nonfinite_and_ranges(self) -> None:
         f = _features(4, 5)
@@ -134,8 +163,8 @@ class TestPlanes:
         f = Features(np.zeros((5, 7, 3), np.float32), np.zeros((5, 7, 3), np.float32), np.zeros((5, 7), np.float32))
         data, grad = network_inputs(layer_planes(layer), feature_planes(f))
         assert data.shape == (len(DATA_INPUTS), 5, 7) and grad.shape == (len(GRADIENT_INPUTS), 5, 7)
-        assert np.all(data[0:3] == 0) and np.all(grad == 0) and np.all(data[3:6] == 0)
-        assert np.all(data[6:9] == 0.5) and np.all(data[9] == 0)
+        assert np.all(data[0:6] == 0) and np.all(grad == 0) and np.all(data[6:9] == 0)   # base, prior, albedo
+        assert np.all(data[9:12] == 0.5) and np.all(data[12] == 0)
 
     def test_network_inputs_channel_order(self) -> None:
         layer = _layer(2, 2, 1.0)
@@ -145,7 +174,8 @@ class TestPlanes:
         planes, feats = layer_planes(layer), feature_planes(f)
         data, grad = network_inputs(planes, feats)
         assert np.allclose(data[0:3], 1.0)                      # C(1) = 1
-        assert np.array_equal(data[3:], feats)
+        assert np.allclose(data[3:6], TRANSFER.forward(planes[9:12]))
+        assert np.array_equal(data[6:], feats)
         assert np.allclose(grad[0:3], 2.0) and np.allclose(grad[3:6], -2.0)
 
     def test_network_inputs_batched_torch_equals_numpy(self) -> None:

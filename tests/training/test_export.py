@@ -15,6 +15,7 @@ ort = pytest.importorskip("onnxruntime")
 
 from gradsep.cli import main as cli_main  # noqa: E402
 from model.network import DATA_INPUTS, GRADIENT_INPUTS, DualBranchNet, GBranch, parameter_count  # noqa: E402
+from model.preprocess import PREPROCESS_VERSION  # noqa: E402
 from training.export import PARITY_TOLERANCE, export_run, parity_error, to_onnx  # noqa: E402
 from training.train import TrainConfig, train  # noqa: E402
 
@@ -40,7 +41,7 @@ def test_file_metadata_and_dynamic_axes(exported: tuple[Path, Path, dict], tiny_
     assert meta["gradsep.layer"] == "direct" and meta["gradsep.attention"] == "true"
     assert json.loads(meta["gradsep.inputs"]) == {"data": list(DATA_INPUTS), "gradient": list(GRADIENT_INPUTS)}
     pre = json.loads(meta["gradsep.preprocessing"])
-    assert pre["mu"] == 16.0 and pre["max_value"] == 65504.0 and pre["version"] == 1
+    assert pre["mu"] == 16.0 and pre["max_value"] == 65504.0 and pre["version"] == PREPROCESS_VERSION
     assert meta["gradsep.alignment"] == "8"
     assert json.loads(meta["gradsep.network"])["width"] == 4
     assert json.loads(meta["gradsep.training"])["patch"] == 32
@@ -71,8 +72,8 @@ def test_onnx_runtime_matches_pytorch(exported: tuple[Path, Path, dict], h: int,
     net.load_state_dict(state["model"])
     session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     g = torch.Generator().manual_seed(h * w)
-    data = torch.rand(2, 10, h, w, generator=g)
-    grad = torch.randn(2, 6, h, w, generator=g)
+    data = torch.rand(2, len(DATA_INPUTS), h, w, generator=g)
+    grad = torch.randn(2, len(GRADIENT_INPUTS), h, w, generator=g)
     with torch.no_grad():
         ref = net.eval()(data, grad).numpy()
     got = session.run(None, {"data": data.numpy(), "gradient": grad.numpy()})[0]

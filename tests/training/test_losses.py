@@ -30,9 +30,33 @@ def t(rows: list[list[float]]) -> torch.Tensor:
 
 
 def test_data_loss_by_hand() -> None:
-    pred = torch.zeros(1, 3, 1, 2, dtype=torch.float64)
-    base = torch.tensor([1.0, 18.0], dtype=torch.float64).expand(1, 3, 1, 2)
-    assert float(data_loss(pred, base)) == pytest.approx((1.0 + 2.0) / 2)      # C(1) = 1, C(18) = 2
+    # 4×4 block: prediction C(1) everywhere (linear 1), noisy base averaging 3 → (1 − 3)² / (1² + 0.01)
+    pred = torch.ones(1, 3, 4, 4, dtype=torch.float64)
+    base = torch.zeros(1, 3, 4, 4, dtype=torch.float64)
+    base[..., 0, 0] = 48.0
+    assert float(data_loss(pred, base)) == pytest.approx(4.0 / 1.01, rel=1e-12)
+
+
+def test_data_loss_tiny_images_pool_what_they_have() -> None:
+    pred = torch.zeros(1, 3, 1, 2, dtype=torch.float64)             # linear 0, weight 1/0.01
+    base = torch.tensor([1.0, 3.0], dtype=torch.float64).expand(1, 3, 1, 2)
+    assert float(data_loss(pred, base)) == pytest.approx((1.0 + 9.0) / 2 / 0.01)   # 1×1 blocks
+    one = torch.full((1, 3, 1, 1), C(2.0), dtype=torch.float64)
+    assert float(data_loss(one, torch.full((1, 3, 1, 1), 2.0, dtype=torch.float64))) == pytest.approx(0.0, abs=1e-20)
+
+
+def test_data_loss_is_minimised_by_the_mean_not_the_median() -> None:
+    """The reason for the relMSE data term: a right-skewed noisy target (one bright sample in sixteen, mean 1,
+    median 0) must pull a constant prediction to its mean. GradNet's log-domain L1 would pick the median, 0."""
+    base = torch.zeros(1, 3, 4, 4, dtype=torch.float64)
+    base[..., 2, 1] = 16.0
+    p = torch.full((1, 3, 1, 1), 0.3, dtype=torch.float64, requires_grad=True)
+    opt = torch.optim.Adam([p], lr=0.02)
+    for _ in range(1500):
+        opt.zero_grad()
+        data_loss(p.expand(1, 3, 4, 4), base, pool=1).backward()
+        opt.step()
+    assert float(TRANSFER.inverse(p.detach())[0, 0, 0, 0]) == pytest.approx(1.0, rel=1e-3)
 
 
 def test_gradient_loss_zero_for_consistent_gradients() -> None:

@@ -15,6 +15,7 @@ torch = pytest.importorskip("torch")
 
 from gradsep.cli import main as cli_main  # noqa: E402
 from model.frame import Features, Frame, Layer, write_frame  # noqa: E402
+from model.preprocess import FEATURE_PLANES, LAYER_PLANES  # noqa: E402
 from training.dataset import (  # noqa: E402
     DatasetError,
     PatchDataset,
@@ -43,9 +44,12 @@ def test_smoke_training_lowers_the_loss(make_config) -> None:
     epochs = _epochs(Path(cfg.output))
     assert [e["epoch"] for e in epochs] == [1, 2, 3, 4, 5, 6]
     first, last = epochs[0], epochs[-1]
-    # β is 0 in the first two epochs, so compare the β-free part of the objective
-    assert last["train"]["data"] + last["train"]["grad"] < 0.9 * (first["train"]["data"] + first["train"]["grad"])
-    assert last["val"]["data"] + last["val"]["grad"] < first["val"]["data"] + first["val"]["grad"]
+    # β is 0 in the first two epochs, so compare the β-free part of the objective. The network starts as its
+    # L2 Poisson prior, which already scores well on these losses: the gain is a few percent, not a collapse.
+    def objective(e: dict, split: str) -> float:
+        return e[split]["data"] + e[split]["grad"]
+    assert objective(last, "train") < 0.95 * objective(first, "train")
+    assert [objective(e, "val") for e in epochs] == sorted((objective(e, "val") for e in epochs), reverse=True)
     assert last["beta"] > 0 and last["lr"] < cfg.lr                # β ramps, lr ×0.95 every other epoch
     assert all(np.isfinite(e["gbranch"]) for e in epochs)
 
@@ -154,7 +158,7 @@ def test_patches_are_deterministic_and_change_with_the_epoch(tiny_dataset: Path,
     assert not warnings and all(f is not None for f in files)
     ds = PatchDataset([f for f in files if f], patch=16, patches_per_frame=3, seed=5)
     planes, feats = ds[4]
-    assert planes.shape == (9, 16, 16) and feats.shape == (7, 16, 16)
+    assert planes.shape == (LAYER_PLANES, 16, 16) and feats.shape == (FEATURE_PLANES, 16, 16)
     again = PatchDataset([f for f in files if f], patch=16, patches_per_frame=3, seed=5)
     assert torch.equal(again[4][0], planes)
     origins = [ds.origin(i) for i in range(len(ds))]
@@ -162,7 +166,8 @@ def test_patches_are_deterministic_and_change_with_the_epoch(tiny_dataset: Path,
     assert [ds.origin(i) for i in range(len(ds))] != origins
     # cached planes equal the preprocessing of the frame itself
     cached = np.load(files[0])
-    assert cached.shape == (16, 48, 64) and cached[9:].min() >= 0 and cached[9:].max() <= 1
+    assert cached.shape == (LAYER_PLANES + FEATURE_PLANES, 48, 64)
+    assert cached[LAYER_PLANES:].min() >= 0 and cached[LAYER_PLANES:].max() <= 1
 
 
 def test_cache_is_reused_and_frames_without_the_layer_are_skipped(tmp_path: Path) -> None:
