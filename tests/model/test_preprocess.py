@@ -8,13 +8,15 @@ import numpy as np
 import pytest
 
 from model.frame import Features, Layer
-from model.poisson import solve_l2
+from model.poisson import solve_l1
 from model.preprocess import (
     DATA_INPUTS,
     DEPTH_MAX,
     GRADIENT_INPUTS,
     MU,
     PRIOR_ALPHA,
+    PRIOR_CG_STEPS,
+    PRIOR_IRLS_PASSES,
     RADIANCE_MAX,
     TRANSFER,
     DepthRange,
@@ -105,7 +107,7 @@ class TestPlanes:
         assert np.all(p[2] == 2.0) and np.all(np.isfinite(p))
         assert np.all(p[9:12] >= 0) and np.all(p[9:12] <= RADIANCE_MAX)   # the prior, from sanitised planes
 
-    def test_prior_is_the_l2_solution_of_the_sanitised_layer(self) -> None:
+    def test_prior_is_the_truncated_l1_solution_of_the_sanitised_layer(self) -> None:
         rng = np.random.default_rng(3)
         layer = _layer(9, 11, 0.0)
         layer.base[:] = rng.random(layer.base.shape, dtype=np.float32)
@@ -113,7 +115,8 @@ class TestPlanes:
         layer.dy[:] = rng.normal(0, 0.1, layer.dy.shape).astype(np.float32)
         layer.dx[:, -1] = 0
         layer.dy[-1] = 0
-        expected = np.clip(solve_l2(layer.base, layer.dx, layer.dy, PRIOR_ALPHA), 0, None)
+        expected = np.clip(solve_l1(layer.base, layer.dx, layer.dy, PRIOR_ALPHA, iterations=PRIOR_IRLS_PASSES,
+                                    cg_iterations=PRIOR_CG_STEPS)[0], 0, None)
         assert np.allclose(poisson_prior(layer), expected, atol=1e-6)
         layer.base[4, 5, 1] = np.nan                            # sanitised first: NaN → 0, never propagated
         assert np.all(np.isfinite(poisson_prior(layer)))

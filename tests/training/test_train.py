@@ -44,12 +44,11 @@ def test_smoke_training_lowers_the_loss(make_config) -> None:
     epochs = _epochs(Path(cfg.output))
     assert [e["epoch"] for e in epochs] == [1, 2, 3, 4, 5, 6]
     first, last = epochs[0], epochs[-1]
-    # β is 0 in the first two epochs, so compare the β-free part of the objective. The network starts as its
-    # L2 Poisson prior, which already scores well on these losses: the gain is a few percent, not a collapse.
+    # β is 0 in the first two epochs, so compare the β-free part of the objective
     def objective(e: dict, split: str) -> float:
         return e[split]["data"] + e[split]["grad"]
-    assert objective(last, "train") < 0.95 * objective(first, "train")
-    assert [objective(e, "val") for e in epochs] == sorted((objective(e, "val") for e in epochs), reverse=True)
+    assert objective(last, "train") < 0.9 * objective(first, "train")
+    assert objective(last, "val") < 0.9 * objective(first, "val")
     assert last["beta"] > 0 and last["lr"] < cfg.lr                # β ramps, lr ×0.95 every other epoch
     assert all(np.isfinite(e["gbranch"]) for e in epochs)
 
