@@ -50,6 +50,14 @@ DEPTH_MAX = 1.0e5
 PRIOR_ALPHA = DEFAULT_ALPHA
 PRIOR_IRLS_PASSES = 5
 PRIOR_CG_STEPS = 2
+#: Frames taller than this are solved in horizontal bands (each extended by PRIOR_BAND_OVERLAP rows on both
+#: sides, blended linearly where they overlap) so the solver's ~250 bytes per pixel stay bounded: a 4096-wide
+#: band of 1024 + 2·64 rows needs ~1.2 GB instead of ~4 GB for a whole 4096² layer. The screening term
+#: confines a pixel's influence to ~1/α = 5 pixels, but the truncated CG's step sizes and the IRLS weight
+#: normalisation are global, so bands differ from a whole-frame solve by ~0.1 % (tested); frames up to
+#: 1152 rows, every training frame included, are solved whole.
+PRIOR_BAND_ROWS = 1024
+PRIOR_BAND_OVERLAP = 64
 #: Number of linear planes per layer (base, dx, dy, prior × RGB) and of normalised feature planes.
 LAYER_PLANES = 12
 FEATURE_PLANES = 7
@@ -158,20 +166,47 @@ def _channels_first(dst: np.ndarray, src: np.ndarray, lo: float, hi: float) -> N
     _sanitise_inplace(dst, lo, hi)
 
 
-def poisson_prior(layer: Layer) -> np.ndarray:
+def poisson_prior(layer: Layer, band_rows: int = PRIOR_BAND_ROWS, band_overlap: int = PRIOR_BAND_OVERLAP) -> np.ndarray:
     """(h, w, 3) float32: a robust screened Poisson reconstruction of the whole layer (model.poisson.solve_l1,
     α = PRIOR_ALPHA, PRIOR_IRLS_PASSES passes of PRIOR_CG_STEPS CG steps) from its sanitised planes, clipped
     to [0, RADIANCE_MAX].
 
     The network refines this instead of the raw base image: the solver integrates the gradients globally,
     which a CPU-trained U-Net with a small receptive field learns slowly, and its reweighting discards the
-    outliers an L2 solve would smear. It is a global solve, so it is computed once per layer and windows
-    (tiles, patches) crop it.
+    outliers an L2 solve would smear. It is a whole-layer solve (in overlapping bands for tall frames, see
+    PRIOR_BAND_ROWS), so it is computed once per layer and windows (tiles, patches) crop it.
     """
-    planes = layer_planes(layer, prior=np.zeros((*layer.base.shape[:2], 3), np.float32))
-    hwc = planes.transpose(1, 2, 0)
-    prior, _ = solve_l1(hwc[..., 0:3], hwc[..., 3:6], hwc[..., 6:9], PRIOR_ALPHA, iterations=PRIOR_IRLS_PASSES,
-                        cg_iterations=PRIOR_CG_STEPS)
+    height, width = layer.base.shape[:2]
+    base = _finite(layer.base, 0.0, RADIANCE_MAX)
+    dx = _finite(layer.dx, -RADIANCE_MAX, RADIANCE_MAX)
+    dy = _finite(layer.dy, -RADIANCE_MAX, RADIANCE_MAX)
+    if height <= band_rows + 2 * band_overlap:
+        return _solve_prior(base, dx, dy)
+    out = np.zeros((height, width, 3), np.float32)
+    weight = np.zeros((height, 1, 1), np.float32)
+    for core in range(0, height, band_rows):
+        y0, y1 = max(0, core - band_overlap), min(height, core + band_rows + band_overlap)
+        band_dy = dy[y0:y1].copy()
+        band_dy[-1] = 0.0  # the band's last row has no neighbour below inside the band (as the contract's)
+        w = _band_ramp(y0, y1, height, band_overlap)
+        out[y0:y1] += _solve_prior(base[y0:y1], dx[y0:y1], band_dy) * w
+        weight[y0:y1] += w
+    return out / weight
+
+
+def _band_ramp(y0: int, y1: int, height: int, overlap: int) -> np.ndarray:
+    """(y1 − y0, 1, 1) blending weights: 1 inside, a linear ramp over the rows shared with a neighbour band."""
+    rows = np.arange(y0, y1, dtype=np.float32)
+    w = np.ones_like(rows)
+    if y0 > 0:
+        w = np.minimum(w, (rows - y0 + 1) / (2 * overlap + 1))
+    if y1 < height:
+        w = np.minimum(w, (y1 - rows) / (2 * overlap + 1))
+    return w[:, None, None]
+
+
+def _solve_prior(base: np.ndarray, dx: np.ndarray, dy: np.ndarray) -> np.ndarray:
+    prior, _ = solve_l1(base, dx, dy, PRIOR_ALPHA, iterations=PRIOR_IRLS_PASSES, cg_iterations=PRIOR_CG_STEPS)
     return _sanitise_inplace(prior, 0.0, RADIANCE_MAX)
 
 
