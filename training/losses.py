@@ -4,7 +4,7 @@ No ground truth exists, so every term compares the prediction with the renderer'
 
 * ``data_loss``: the prediction's *linear* radiance, box-averaged over DATA_POOL×DATA_POOL blocks, against
   the same average of the noisy base image, as a relative squared error (Noise2Noise's relMSE: the weight
-  1/(sg(ŷ)² + ε) does not depend on the target, so the minimiser is the target's *mean*). This is where we
+  1/(sg(ŷ)² + ε·level²) does not depend on the target, so the minimiser is the target's *mean*). This is where we
   depart from GradNet, which uses L1 in the log domain: an L1 against a noisy target is minimised by its
   per-pixel *median*, and 16-spp Monte-Carlo radiance is strongly right-skewed (rare bright samples carry
   much of the energy), so that estimator is biased dark — our first models came out 4–5× too dark. Pooling
@@ -36,8 +36,11 @@ from model.preprocess import TRANSFER, LogTransfer
 EDGE_SHARPNESS = 9.0
 #: Block size of the data term's box average (4×4 pixels = 256 samples at 16 spp).
 DATA_POOL = 4
-#: ε of the data term's relative weight 1/(ŷ² + ε) (Noise2Noise's 0.01): keeps dark regions from dominating.
+#: ε of the data term's relative weight 1/(ŷ² + ε·level²) (Noise2Noise's 0.01, here relative to the image's
+#: mean level): keeps the darkest pixels of an image from dominating its term.
 REL_EPS = 1e-2
+#: Keeps the weight finite for an all-black image (radiance² units; far below any rendered level).
+TINY = 1e-12
 
 
 def _dx(x: torch.Tensor) -> torch.Tensor:
@@ -57,10 +60,18 @@ def _pool(x: torch.Tensor, size: int) -> torch.Tensor:
 
 def data_loss(pred: torch.Tensor, base: torch.Tensor, transfer: LogTransfer = TRANSFER,
               pool: int = DATA_POOL, eps: float = REL_EPS) -> torch.Tensor:
-    """mean (P(ŷ) − P(I_b))² / (sg(P(ŷ))² + ε), P = box average of linear radiance; see the module docstring."""
+    """mean (P(ŷ) − P(I_b))² / (sg(P(ŷ))² + ε·sg(m)²), P = box average of linear radiance, m = the mean of
+    P(ŷ) over each image of the batch; see the module docstring.
+
+    The floor is relative to the image's own level (Noise2Noise uses an absolute 0.01, which suits radiance
+    near 1): with an absolute floor a dark frame (radiance ~0.002) is barely anchored and a small log-domain
+    offset doubles its brightness. It is computed from the prediction, not the noisy target, so the weight does
+    not depend on the target and the minimiser stays its mean.
+    """
     mean_pred = _pool(transfer.inverse(pred, clamp_negative=False), pool)
     mean_base = _pool(base, pool)
-    weight = 1.0 / (mean_pred.detach() ** 2 + eps)
+    level = mean_pred.detach().clamp_min(0.0).mean(dim=(-3, -2, -1), keepdim=True)
+    weight = 1.0 / (mean_pred.detach() ** 2 + eps * level ** 2 + TINY)
     return torch.mean((mean_pred - mean_base) ** 2 * weight)
 
 

@@ -30,19 +30,30 @@ def t(rows: list[list[float]]) -> torch.Tensor:
 
 
 def test_data_loss_by_hand() -> None:
-    # 4×4 block: prediction C(1) everywhere (linear 1), noisy base averaging 3 → (1 − 3)² / (1² + 0.01)
+    # 4×4 block: prediction C(1) everywhere (linear 1, level 1), noisy base averaging 3 → (1 − 3)² / (1 + 0.01)
     pred = torch.ones(1, 3, 4, 4, dtype=torch.float64)
     base = torch.zeros(1, 3, 4, 4, dtype=torch.float64)
     base[..., 0, 0] = 48.0
-    assert float(data_loss(pred, base)) == pytest.approx(4.0 / 1.01, rel=1e-12)
+    assert float(data_loss(pred, base)) == pytest.approx(4.0 / 1.01, rel=1e-9)
 
 
 def test_data_loss_tiny_images_pool_what_they_have() -> None:
-    pred = torch.zeros(1, 3, 1, 2, dtype=torch.float64)             # linear 0, weight 1/0.01
+    pred = torch.full((1, 3, 1, 2), C(2.0), dtype=torch.float64)       # linear 2 everywhere, level 2
     base = torch.tensor([1.0, 3.0], dtype=torch.float64).expand(1, 3, 1, 2)
-    assert float(data_loss(pred, base)) == pytest.approx((1.0 + 9.0) / 2 / 0.01)   # 1×1 blocks
+    assert float(data_loss(pred, base)) == pytest.approx(1.0 / (4.0 + 0.04), rel=1e-9)   # 1×1 blocks
     one = torch.full((1, 3, 1, 1), C(2.0), dtype=torch.float64)
     assert float(data_loss(one, torch.full((1, 3, 1, 1), 2.0, dtype=torch.float64))) == pytest.approx(0.0, abs=1e-20)
+
+
+def test_data_loss_is_scale_invariant_and_finite_on_black() -> None:
+    """The weight's floor follows the image's level, so a dark frame is anchored as firmly as a bright one."""
+    gen = torch.Generator().manual_seed(0)
+    linear = torch.rand(2, 3, 8, 8, generator=gen, dtype=torch.float64) + 0.1
+    base = linear * (1 + 0.3 * torch.randn(2, 3, 8, 8, generator=gen, dtype=torch.float64)).clamp_min(0)
+    losses = [float(data_loss(TRANSFER.forward(linear * s), base * s)) for s in (1e-3, 1.0, 1e3)]
+    assert losses[0] == pytest.approx(losses[1], rel=1e-4) and losses[2] == pytest.approx(losses[1], rel=1e-4)
+    black = torch.zeros(1, 3, 8, 8, dtype=torch.float64)
+    assert float(data_loss(black, black)) == 0.0 and torch.isfinite(data_loss(black, black + 1e-3))
 
 
 def test_data_loss_is_minimised_by_the_mean_not_the_median() -> None:
