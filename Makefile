@@ -5,7 +5,7 @@ PYTHON ?= python3
 VENV   ?= .venv
 BIN    := $(VENV)/bin
 
-.PHONY: demo test test-serving system-deps venv lint clean
+.PHONY: demo test test-serving system-deps venv lint clean models
 
 # Mitsuba's LLVM backend needs libllvm19 (LLVM 15/16 abort inside mi.render with "Cannot select: fminimum").
 system-deps:
@@ -45,6 +45,44 @@ test-serving:
 	$(SERVE_VENV)/bin/pip install -q '.[serve]' pytest pytest-timeout pytest-xdist schemathesis
 	$(SERVE_VENV)/bin/python -c "import importlib.util as u, sys; sys.exit(any(u.find_spec(m) for m in ('torch', 'mitsuba')))"
 	$(SERVE_VENV)/bin/pytest -q -n 2 --timeout=300 tests/service
+
+# The shipped models, by one command (docs/network.md, "Shipped models"): a 120-frame procedural dataset, then
+# the two layer models side by side (one core and one torch thread each: two single-threaded runs make more
+# steps per minute on 2 cores than one two-threaded run), then the color baseline and the four Fig. 7 ablation
+# variants (one identical budget of MINUTES_ABLATION per variant; the separated ones split it over their two
+# layers). Writes into MODELS_OUT; copy direct/indirect/color.onnx to models/ to serve them.
+DATASET          ?= data/hyb16b
+MODELS_OUT       ?= runs/ship-models
+MINUTES_LAYER    ?= 15
+MINUTES_COLOR    ?= 10
+MINUTES_ABLATION ?= 5
+TRAIN0 = OMP_NUM_THREADS=1 taskset -c 0 $(BIN)/gradsep
+TRAIN1 = OMP_NUM_THREADS=1 taskset -c 1 $(BIN)/gradsep
+
+$(DATASET)/manifest.json:
+	$(BIN)/gradsep dataset --count 120 --spp 16 --size 256x256 --first-seed 1000 -o $(DATASET)
+
+models: venv system-deps $(DATASET)/manifest.json
+	$(BIN)/pip install -q -e '.[test]'
+	mkdir -p $(MODELS_OUT)/ablation/combined-noattn $(MODELS_OUT)/ablation/combined-attn \
+	         $(MODELS_OUT)/ablation/separated-noattn $(MODELS_OUT)/ablation/separated-attn
+	( $(TRAIN0) train --data $(DATASET) --layer direct --minutes $(MINUTES_LAYER) -o runs/ship-direct && \
+	  $(TRAIN0) export runs/ship-direct -o $(MODELS_OUT)/direct.onnx && \
+	  $(TRAIN0) train --data $(DATASET) --layer color --no-attention --minutes $(MINUTES_COLOR) -o runs/ship-color && \
+	  $(TRAIN0) export runs/ship-color -o $(MODELS_OUT)/color.onnx && \
+	  $(TRAIN0) train --data $(DATASET) --layer color --no-attention --minutes $(MINUTES_ABLATION) -o runs/abl-combined-noattn && \
+	  $(TRAIN0) export runs/abl-combined-noattn -o $(MODELS_OUT)/ablation/combined-noattn/color.onnx && \
+	  $(TRAIN0) train --data $(DATASET) --layer color --minutes $(MINUTES_ABLATION) -o runs/abl-combined-attn && \
+	  $(TRAIN0) export runs/abl-combined-attn -o $(MODELS_OUT)/ablation/combined-attn/color.onnx ) & p0=$$!; \
+	( $(TRAIN1) train --data $(DATASET) --layer indirect --minutes $(MINUTES_LAYER) -o runs/ship-indirect && \
+	  $(TRAIN1) export runs/ship-indirect -o $(MODELS_OUT)/indirect.onnx && \
+	  for v in separated-noattn separated-attn; do for layer in direct indirect; do \
+	    flag=; [ $$v = separated-noattn ] && flag=--no-attention; \
+	    $(TRAIN1) train --data $(DATASET) --layer $$layer $$flag --minutes $$($(PYTHON) -c 'print($(MINUTES_ABLATION) / 2)') \
+	      -o runs/abl-$$v-$$layer && \
+	    $(TRAIN1) export runs/abl-$$v-$$layer -o $(MODELS_OUT)/ablation/$$v/$$layer.onnx || exit 1; \
+	  done; done ) & p1=$$!; \
+	wait $$p0 && wait $$p1
 
 lint: venv
 	$(BIN)/ruff check .
