@@ -43,6 +43,7 @@ from model.preprocess import (
     output_radiance,
     pad_to_alignment,
     poisson_prior,
+    unlit_pixels,
 )
 
 if TYPE_CHECKING:
@@ -279,16 +280,19 @@ class NetworkReconstructor:
         depth_range = DepthRange.of(features.depth)  # per frame, shared by every window
         prior = poisson_prior(layer)                 # a global solve: once per layer, cropped per window
         if len(plans) == 1:
-            return self._run_window(model, layer, features, depth_range, prior, plans[0].window)
-        total = np.zeros((height, width, 3), dtype=np.float32)
-        weight = np.zeros((height, width, 1), dtype=np.float32)
-        for plan in plans:
-            y0, y1, x0, x1 = plan.window
-            out = self._run_window(model, layer, features, depth_range, prior, plan.window)
-            w = np.outer(_ramp(y0, y1, height, overlap), _ramp(x0, x1, width, overlap))
-            total[y0:y1, x0:x1] += out * w[..., None]
-            weight[y0:y1, x0:x1] += w[..., None]
-        return total / weight
+            result = self._run_window(model, layer, features, depth_range, prior, plans[0].window)
+        else:
+            total = np.zeros((height, width, 3), dtype=np.float32)
+            weight = np.zeros((height, width, 1), dtype=np.float32)
+            for plan in plans:
+                y0, y1, x0, x1 = plan.window
+                out = self._run_window(model, layer, features, depth_range, prior, plan.window)
+                w = np.outer(_ramp(y0, y1, height, overlap), _ramp(x0, x1, width, overlap))
+                total[y0:y1, x0:x1] += out * w[..., None]
+                weight[y0:y1, x0:x1] += w[..., None]
+            result = total / weight
+        result[unlit_pixels(layer)] = 0.0             # no measured light: nothing to reconstruct
+        return result
 
     @staticmethod
     def _run_window(model: LoadedModel, layer: Layer, features: Features, depth_range: DepthRange,

@@ -210,6 +210,22 @@ def _solve_prior(base: np.ndarray, dx: np.ndarray, dy: np.ndarray) -> np.ndarray
     return _sanitise_inplace(prior, 0.0, RADIANCE_MAX)
 
 
+def unlit_pixels(layer: Layer) -> np.ndarray:
+    """(h, w) bool: pixels with no measured light in the layer — base 0 in every channel and every gradient
+    term that touches the pixel (dx to its left and right neighbours, dy to those above and below) 0.
+
+    Nothing was measured there, so nothing should be reconstructed there: inference sets the network's output
+    to 0 on these pixels (a black background stays black instead of carrying the network's small offsets).
+    """
+    zero_base = np.all(np.asarray(layer.base) == 0, axis=-1)
+    zero_dx = np.all(np.asarray(layer.dx) == 0, axis=-1)
+    zero_dy = np.all(np.asarray(layer.dy) == 0, axis=-1)
+    unlit = zero_base & zero_dx & zero_dy
+    unlit[:, 1:] &= zero_dx[:, :-1]     # the term linking the pixel to its left neighbour
+    unlit[1:, :] &= zero_dy[:-1, :]     # the term linking it to the pixel above
+    return unlit
+
+
 def layer_planes(layer: Layer, window: Window | None = None, prior: np.ndarray | None = None) -> np.ndarray:
     """(12, h, w) float32: base R G B, dx R G B, dy R G B, prior R G B, linear, finite, base and prior ≥ 0,
     all within ±RADIANCE_MAX. ``prior`` is the whole layer's ``poisson_prior`` (computed here when None)."""

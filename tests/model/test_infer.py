@@ -31,6 +31,7 @@ from model.preprocess import (  # noqa: E402
     network_inputs,
     output_radiance,
     pad_to_alignment,
+    unlit_pixels,
 )
 from training.export import model_metadata, save_onnx, to_onnx  # noqa: E402
 
@@ -103,6 +104,28 @@ def test_matches_the_pytorch_pipeline(models: tuple[Path, dict], h: int, w: int)
         assert np.all(np.isfinite(out)) and out.min() >= 0
         ref = _torch_reference(nets[name], layer, features)
         assert np.abs(out - ref).max() <= 1e-4 * max(float(np.abs(ref).max()), 1e-6)
+
+
+def test_unlit_pixels_stay_black(tmp_path: Path) -> None:
+    """A network that adds light everywhere (head bias > 0) must leave pixels with no measured light at 0 —
+    base and every gradient touching them 0 — and change nothing where light was measured."""
+    net = DualBranchNet(PLAIN).eval()
+    with torch.no_grad():
+        net.head.bias.fill_(0.3)
+    save_onnx(to_onnx(net, model_metadata(PLAIN, "direct")), tmp_path / "direct.onnx")
+    layer, features = _frame(16, 24)
+    for arr in (layer.base, layer.dx, layer.dy):
+        arr[:, 12:] = 0.0                        # right half: nothing measured
+    layer.dx[:, 11] = 0.0                        # the term linking column 11 to column 12
+    out = NetworkReconstructor.load(tmp_path).reconstruct_layer("direct", layer, features)
+    ref = _torch_reference(net, layer, features)
+    assert np.all(out[:, 12:] == 0) and ref[:, 12:].min() > 0          # the raw network output is not black
+    assert np.abs(out[:, :12] - ref[:, :12]).max() <= 1e-4 * float(ref.max())
+    mask = unlit_pixels(layer)
+    assert mask[:, 12:].all() and not mask[:, :12].any()
+    layer.dy[5, 20] = 1e-3                       # one measured gradient lights both pixels it links
+    mask = unlit_pixels(layer)
+    assert not mask[5, 20] and not mask[6, 20] and mask[7, 20] and mask[4, 20]
 
 
 def test_hostile_values_give_finite_output(models: tuple[Path, dict]) -> None:
