@@ -303,8 +303,8 @@ class NetworkReconstructor:
         a = model.alignment
         encoded = model.run(np.ascontiguousarray(pad_to_alignment(data, a)),
                             np.ascontiguousarray(pad_to_alignment(gradient, a)))
-        base = planes[9:12].transpose(1, 2, 0)  # the Poisson prior: a failed output degrades to L2
-        return output_radiance(crop_to(encoded, h, w), fallback=base)
+        window_prior = planes[9:12].transpose(1, 2, 0)  # a failed output degrades to the Poisson prior
+        return output_radiance(crop_to(encoded, h, w), fallback=window_prior)
 
 
 def _check_inputs(layer: Layer, features: Features | None) -> tuple[int, int]:

@@ -200,7 +200,7 @@ class DualBranchNet(nn.Module):
         self.decoder = nn.ModuleList(ups)
         self.head = nn.Conv2d(widths[0], len(OUTPUTS), 3, padding=1)
         init_weights(self)
-        nn.init.zeros_(self.head.weight)  # start as the identity on C(I_b); see forward
+        nn.init.zeros_(self.head.weight)  # start as the identity on C(prior); see forward
 
     def forward(self, data: torch.Tensor, gradient: torch.Tensor) -> torch.Tensor:
         d_skips = self.data_encoder(data)
@@ -209,8 +209,8 @@ class DualBranchNet(nn.Module):
         # deepest first: each Up sees the stream plus both branches' skips at the stream's resolution
         for level, up in zip(reversed(range(self.config.depth)), self.decoder, strict=True):
             x = up(torch.cat([x, d_skips[level], g_skips[level]], dim=1))
-        # Global residual: predict a correction to C(L2 Poisson prior) (model.preprocess.poisson_prior), with
-        # the head initialised to zero, so training starts from the screened Poisson solution instead of from
+        # Global residual: predict a correction to C(prior) (model.preprocess.poisson_prior), with the head
+        # initialised to zero, so training starts from the robust screened Poisson solution instead of from
         # black, and a short CPU budget is spent on what the prior gets wrong (outliers it smears, edges the
         # features explain) rather than on learning to integrate gradients across the image.
         y = data[:, PRIOR_CHANNELS] + self.head(x)

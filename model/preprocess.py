@@ -117,7 +117,7 @@ class LogTransfer:
         and that pixel could never be pulled back up.
         """
         xp = array_namespace(y)
-        lo = None if not clamp_negative else 0.0
+        lo = 0.0 if clamp_negative else None
         return xp.expm1(xp.clip(y, lo, self.max_encoded) * self._norm) / self.mu
 
     def forward_signed(self, g: Any) -> Any:
