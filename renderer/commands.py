@@ -61,5 +61,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--first-seed", type=int, default=1000, help="seed of frame 0; frame i uses first-seed + i")
     p.add_argument("--max-depth", type=int, default=None)
     p.add_argument("--shard", default="0/1", help="i/n: render frames i, i+n, i+2n, ...")
+    p.add_argument("--pairs", action="store_true",
+                   help="also render an independent second realization of every frame (another sampler seed): "
+                        "the Noise2Noise targets `gradsep train` uses when present")
     p.add_argument("-o", "--output", required=True, help="dataset folder")
     p.set_defaults(func=_dataset)

@@ -3,6 +3,8 @@
 Layout of a dataset folder ``DIR`` (docs/dataset.md has the full description)::
 
     DIR/frames/proc_001000.exr           one frame per seed (the frame contract, written atomically)
+    DIR/frames/proc_001000.b.exr         with ``--pairs``: an independent second realization of the same frame
+                                         (another sampler seed), the Noise2Noise target of training
     DIR/manifest.d/shard-0-of-4.json     what shard 0 of 4 has finished: written only by that shard
     DIR/manifest.json                    all parts merged: what training reads
 
@@ -72,6 +74,10 @@ class FrameRecord:
     bytes: int = 0             # file size, checked on resume
     sha256: str = ""           # of the EXR file: part of the manifest hash
     finished_at: str = ""      # UTC, ISO 8601
+    target: str = ""           # with --pairs: the second realization, e.g. "frames/proc_001000.b.exr"
+    target_sampler_seed: int = 0
+    target_bytes: int = 0
+    target_sha256: str = ""
 
     @classmethod
     def from_json(cls, item: dict[str, Any], where: str) -> FrameRecord:
@@ -80,7 +86,10 @@ class FrameRecord:
                        render_seconds=float(item["render_seconds"]), layers=[str(x) for x in item["layers"]],
                        shard=str(item.get("shard", "")), sampler_seed=int(item.get("sampler_seed", 0)),
                        bytes=int(item.get("bytes", 0)), sha256=str(item.get("sha256", "")),
-                       finished_at=str(item.get("finished_at", "")))
+                       finished_at=str(item.get("finished_at", "")), target=str(item.get("target", "")),
+                       target_sampler_seed=int(item.get("target_sampler_seed", 0)),
+                       target_bytes=int(item.get("target_bytes", 0)),
+                       target_sha256=str(item.get("target_sha256", "")))
         except (KeyError, TypeError, ValueError) as exc:
             raise DatasetError(f"{where}: malformed frame record {item!r} ({exc})") from None
 
@@ -96,6 +105,7 @@ class Manifest:
     first_seed: int = 0
     max_depth: int | None = None               # None: the procedural generator's default
     generator_version: int = 0
+    pairs: bool = False                        # every frame has an independent second realization (target)
     version: int = MANIFEST_VERSION
     root: Path | None = field(default=None, compare=False)  # the dataset folder (when loaded from disk)
 
@@ -104,7 +114,7 @@ class Manifest:
         missing = [s for s in range(self.first_seed, self.first_seed + self.count) if s not in done]
         return {"version": self.version, "spp": self.spp, "size": list(self.size), "count": self.count,
                 "first_seed": self.first_seed, "max_depth": self.max_depth,
-                "generator_version": self.generator_version, "complete": not missing,
+                "generator_version": self.generator_version, "pairs": self.pairs, "complete": not missing,
                 "missing": len(missing), "hash": manifest_hash(self),
                 "frames": [asdict(f) for f in self.frames]}
 
@@ -126,10 +136,13 @@ def manifest_hash(manifest: Manifest | str | os.PathLike[str]) -> str:
     layout gives the same hash, while any changed pixel changes it.
     """
     m = manifest if isinstance(manifest, Manifest) else load_manifest(manifest)
-    content = {"version": m.version, "spp": m.spp, "size": list(m.size), "max_depth": m.max_depth,
-               "generator_version": m.generator_version,
-               "frames": [[f.file, f.seed, f.spp, sorted(f.layers), f.sha256]
-                          for f in sorted(m.frames, key=lambda f: f.seed)]}
+    content: dict[str, Any] = {
+        "version": m.version, "spp": m.spp, "size": list(m.size), "max_depth": m.max_depth,
+        "generator_version": m.generator_version,
+        "frames": [[f.file, f.seed, f.spp, sorted(f.layers), f.sha256] + ([f.target, f.target_sha256] if f.target else [])
+                   for f in sorted(m.frames, key=lambda f: f.seed)]}
+    if m.pairs:  # only then, so the hash of a dataset without pairs is what it always was
+        content["pairs"] = True
     text = json.dumps(content, sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(text.encode()).hexdigest()
 
@@ -152,12 +165,15 @@ def load_manifest(folder: str | os.PathLike[str], *, check_files: bool = True) -
     manifest.root = root.resolve()
     if check_files:
         for rec in manifest.frames:
-            frame = root / rec.file
-            if not frame.is_file():
-                raise DatasetError(f"{root}: frame {rec.file} listed in the manifest is missing")
-            if rec.bytes and frame.stat().st_size != rec.bytes:
-                raise DatasetError(f"{root}: frame {rec.file} has {frame.stat().st_size} bytes, the manifest "
-                                   f"recorded {rec.bytes} (truncated or replaced)")
+            for file, size in ((rec.file, rec.bytes), (rec.target, rec.target_bytes)):
+                if not file:
+                    continue
+                frame = root / file
+                if not frame.is_file():
+                    raise DatasetError(f"{root}: frame {file} listed in the manifest is missing")
+                if size and frame.stat().st_size != size:
+                    raise DatasetError(f"{root}: frame {file} has {frame.stat().st_size} bytes, the manifest "
+                                       f"recorded {size} (truncated or replaced)")
     return manifest
 
 
@@ -176,7 +192,7 @@ def _manifest_from_json(data: Any, where: str) -> Manifest:
                         frames=sorted(frames, key=lambda f: f.seed), count=int(data.get("count", len(frames))),
                         first_seed=int(data.get("first_seed", min((f.seed for f in frames), default=0))),
                         max_depth=None if data.get("max_depth") is None else int(data["max_depth"]),
-                        generator_version=int(data.get("generator_version", 0)))
+                        generator_version=int(data.get("generator_version", 0)), pairs=bool(data.get("pairs", False)))
     except (KeyError, TypeError, ValueError) as exc:
         raise DatasetError(f"{where}: malformed manifest ({exc})") from None
 
@@ -198,14 +214,18 @@ class Job:
     shard: int
     shards: int
     generator_version: int
+    pairs: bool = False
 
     @property
     def shard_name(self) -> str:
         return f"{self.shard}/{self.shards}"
 
     def params(self) -> dict[str, Any]:
-        return {"spp": self.spp, "size": [self.width, self.height], "first_seed": self.first_seed,
-                "max_depth": self.max_depth, "generator_version": self.generator_version}
+        params = {"spp": self.spp, "size": [self.width, self.height], "first_seed": self.first_seed,
+                  "max_depth": self.max_depth, "generator_version": self.generator_version}
+        if self.pairs:  # only then, so folders rendered before --pairs existed stay compatible
+            params["pairs"] = True
+        return params
 
     def seeds(self) -> list[int]:
         """This shard's frames: i, i+n, i+2n, ... of the whole dataset, as scene seeds."""
@@ -250,7 +270,7 @@ def _merge_parts(root: Path) -> Manifest:
     return Manifest(spp=int(params["spp"]), size=(int(params["size"][0]), int(params["size"][1])),
                     frames=[by_seed[s] for s in sorted(by_seed)], count=count,
                     first_seed=int(params["first_seed"]), max_depth=params["max_depth"],
-                    generator_version=int(params["generator_version"]))
+                    generator_version=int(params["generator_version"]), pairs=bool(params.get("pairs", False)))
 
 
 def merge_manifest(root: str | os.PathLike[str]) -> Manifest:
@@ -306,10 +326,14 @@ def finished_frames(root: Path) -> dict[int, FrameRecord]:
     for path, data in _read_parts(root):
         for item in data.get("frames", []):
             rec = FrameRecord.from_json(item, str(path))
-            frame = root / rec.file
-            if frame.is_file() and (not rec.bytes or frame.stat().st_size == rec.bytes):
+            if all(_intact(root / file, size) for file, size in ((rec.file, rec.bytes), (rec.target, rec.target_bytes))
+                   if file):
                 done[rec.seed] = rec
     return done
+
+
+def _intact(path: Path, size: int) -> bool:
+    return path.is_file() and (not size or path.stat().st_size == size)
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -319,6 +343,17 @@ def finished_frames(root: Path) -> dict[int, FrameRecord]:
 def frame_file(seed: int) -> str:
     return f"{FRAMES_DIR}/proc_{seed:06d}.exr"
 
+
+def target_file(seed: int) -> str:
+    """The second realization of frame ``seed`` (``--pairs``)."""
+    return f"{FRAMES_DIR}/proc_{seed:06d}.b.exr"
+
+
+def target_sampler_seed(seed: int) -> int:
+    """The second realization's sampler seed: the frame's own seed with the top bit flipped, so it differs from
+    every frame's first-realization seed of any dataset with seeds below 2^31 (the sampler hashes the seed with
+    the pixel index, sample_tea_32, so distinct seeds give independent streams)."""
+    return (seed % 2**32) ^ 2**31
 
 def run_dataset(root: str | os.PathLike[str], job: Job, *, progress: bool | None = None) -> Manifest:
     """Render this shard's unfinished frames into ``root``; returns the merged manifest afterwards."""
@@ -346,17 +381,25 @@ def run_dataset(root: str | os.PathLike[str], job: Job, *, progress: bool | None
         bar = _bar(len(todo), len(job.seeds()) - len(todo), job, progress)
         try:
             for seed in todo:
-                frame = render_frame(f"procedural:{seed}", spp=job.spp, seed=seed % 2**32, width=job.width,
-                                     height=job.height, max_depth=job.max_depth)
+                def render(rel: str, sampler_seed: int) -> tuple[Any, bytes]:
+                    frame = render_frame(f"procedural:{seed}", spp=job.spp, seed=sampler_seed, width=job.width,
+                                         height=job.height, max_depth=job.max_depth)
+                    write_frame(root / rel, frame)  # atomic: temp file + rename
+                    return frame, (root / rel).read_bytes()
+
                 rel = frame_file(seed)
-                write_frame(root / rel, frame)  # atomic: temp file + rename
-                data = (root / rel).read_bytes()
-                own.append(asdict(FrameRecord(
+                frame, data = render(rel, seed % 2**32)
+                record = FrameRecord(
                     file=rel, seed=seed, spp=job.spp,
                     render_seconds=float(frame.metadata.get("gradsep.render_seconds", "nan")),
                     layers=list(frame.layers), shard=job.shard_name, sampler_seed=seed % 2**32, bytes=len(data),
-                    sha256=hashlib.sha256(data).hexdigest(),
-                    finished_at=_dt.datetime.now(_dt.UTC).isoformat(timespec="milliseconds"))))
+                    sha256=hashlib.sha256(data).hexdigest())
+                if job.pairs:
+                    record.target, record.target_sampler_seed = target_file(seed), target_sampler_seed(seed)
+                    _, blob = render(record.target, record.target_sampler_seed)
+                    record.target_bytes, record.target_sha256 = len(blob), hashlib.sha256(blob).hexdigest()
+                record.finished_at = _dt.datetime.now(_dt.UTC).isoformat(timespec="milliseconds")
+                own.append(asdict(record))
                 _write_part(own_path, job, own, count)  # the frame is finished from here on
                 bar.update(1)
                 if time.monotonic() - last_merge > MERGE_INTERVAL_S:
@@ -420,7 +463,8 @@ def parse_shard(text: str) -> tuple[int, int]:
     return i, n
 
 
-def make_job(count: int, spp: int, size: str, shard: str, first_seed: int, max_depth: int | None) -> Job:
+def make_job(count: int, spp: int, size: str, shard: str, first_seed: int, max_depth: int | None,
+             pairs: bool = False) -> Job:
     """Validate the command's options into a :class:`Job`."""
     from renderer.procedural import GENERATOR_VERSION
 
@@ -435,12 +479,13 @@ def make_job(count: int, spp: int, size: str, shard: str, first_seed: int, max_d
     w, h = parse_size(size)
     i, n = parse_shard(shard)
     return Job(count=count, spp=spp, width=w, height=h, first_seed=first_seed, max_depth=max_depth, shard=i,
-               shards=n, generator_version=GENERATOR_VERSION)
+               shards=n, generator_version=GENERATOR_VERSION, pairs=pairs)
 
 
 def dataset_command(args: argparse.Namespace) -> int:
     """Handler of `gradsep dataset`."""
-    job = make_job(args.count, args.spp, args.size, args.shard, args.first_seed, args.max_depth)
+    job = make_job(args.count, args.spp, args.size, args.shard, args.first_seed, args.max_depth,
+                   getattr(args, "pairs", False))
     root = Path(args.output)
     if root.exists() and not root.is_dir():
         raise DatasetError(f"output {root} exists and is not a folder")

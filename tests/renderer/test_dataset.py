@@ -18,8 +18,8 @@ SIZE = "32x32"
 
 
 def job(shard: str = "0/1", count: int = 3, spp: int = 2, size: str = SIZE, first_seed: int = 1000,
-        max_depth: int | None = None) -> ds.Job:
-    return make_job(count, spp, size, shard, first_seed, max_depth)
+        max_depth: int | None = None, pairs: bool = False) -> ds.Job:
+    return make_job(count, spp, size, shard, first_seed, max_depth, pairs)
 
 
 @pytest.fixture(scope="module")
@@ -95,7 +95,50 @@ def test_resume_skips_finished_frames_and_redoes_lost_ones(rendered: Path, tmp_p
     assert load_manifest(root).to_json()["complete"]
 
 
+@pytest.mark.render
+def test_pairs_are_two_independent_realizations_of_one_frame(tmp_path: Path) -> None:
+    from model.frame import read_frame
+
+    manifest = run_dataset(tmp_path, job(count=1, pairs=True), progress=False)
+    rec = manifest.frames[0]
+    assert manifest.pairs and rec.target == "frames/proc_001000.b.exr"
+    assert rec.target_sampler_seed != rec.sampler_seed and rec.target_sha256 and rec.target_bytes > 0
+    a, b = read_frame(tmp_path / rec.file), read_frame(tmp_path / rec.target)
+    assert a.metadata["gradsep.scene"] == b.metadata["gradsep.scene"] == "procedural:1000"
+    fa, fb = a.features, b.features
+    assert fa is not None and fb is not None
+    # features are averages over each pixel's jittered samples: equal up to the pixels an edge crosses
+    assert np.mean(np.abs(fa.depth - fb.depth)) < 0.1 * np.mean(fa.depth), "the realizations show other scenes"
+    for name in a.layers:  # same scene and settings, independent noise: equal in mean, different per pixel
+        x, y = a.layers[name].base, b.layers[name].base
+        assert not np.array_equal(x, y)
+        assert abs(float(x.mean()) - float(y.mean())) < 0.5 * max(float(x.mean()), float(y.mean())) + 1e-6
+
+
 # -- resume and records (synthetic frames) -------------------------------------------------------------------
+
+def test_a_pair_without_its_target_is_rendered_again(tmp_path: Path, counting_renderer: list[int]) -> None:
+    run_dataset(tmp_path, job(count=2, pairs=True), progress=False)
+    assert counting_renderer == [1000, 1000, 1001, 1001]  # each frame twice: the frame and its target
+    h = load_manifest(tmp_path).hash
+    (tmp_path / "frames" / "proc_001001.b.exr").unlink()
+    with pytest.raises(DatasetError, match=r"proc_001001\.b\.exr listed in the manifest is missing"):
+        load_manifest(tmp_path)
+    counting_renderer.clear()
+    run_dataset(tmp_path, job(count=2, pairs=True), progress=False)
+    assert counting_renderer == [1001, 1001]
+    m = load_manifest(tmp_path)
+    assert m.to_json()["complete"] and m.to_json()["pairs"] is True
+    m.frames[0].target_sha256 = "0" * 64
+    assert manifest_hash(m) != h, "the targets' content is part of the dataset's identity"
+
+
+def test_pairs_cannot_be_mixed_with_single_frames(tmp_path: Path, counting_renderer: list[int]) -> None:
+    run_dataset(tmp_path, job(count=1), progress=False)
+    with pytest.raises(DatasetError, match="pairs"):
+        run_dataset(tmp_path, job(count=1, pairs=True), progress=False)
+    assert load_manifest(tmp_path).pairs is False
+
 
 def test_exr_without_a_record_is_not_finished(tmp_path: Path, counting_renderer: list[int]) -> None:
     """Killed between rename and record: the EXR exists but no part lists it, so it is rendered again."""
