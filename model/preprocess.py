@@ -61,6 +61,8 @@ PRIOR_BAND_OVERLAP = 64
 #: Number of linear planes per layer (base, dx, dy, prior × RGB) and of normalised feature planes.
 LAYER_PLANES = 12
 FEATURE_PLANES = 7
+#: The measured part of the layer planes (base, dx, dy × RGB): what the training losses compare with.
+MEASURED_PLANES = 9
 #: The network's input and output channels, in order: data, not code (exported as ONNX metadata and checked
 #: by model/infer.py against each model it loads).
 DATA_INPUTS: tuple[str, ...] = (
@@ -231,13 +233,24 @@ def layer_planes(layer: Layer, window: Window | None = None, prior: np.ndarray |
     all within ±RADIANCE_MAX. ``prior`` is the whole layer's ``poisson_prior`` (computed here when None)."""
     if prior is None:
         prior = poisson_prior(layer)
-    base = _crop(layer.base, window)
-    out = np.empty((LAYER_PLANES, *base.shape[:2]), dtype=np.float32)
-    _channels_first(out[0:3], base, 0.0, RADIANCE_MAX)
-    _channels_first(out[3:6], _crop(layer.dx, window), -RADIANCE_MAX, RADIANCE_MAX)
-    _channels_first(out[6:9], _crop(layer.dy, window), -RADIANCE_MAX, RADIANCE_MAX)
+    out = np.empty((LAYER_PLANES, *_crop(layer.base, window).shape[:2]), dtype=np.float32)
+    _measured_into(out, layer, window)
     _channels_first(out[9:12], _crop(prior, window), 0.0, RADIANCE_MAX)
     return out
+
+
+def measured_planes(layer: Layer, window: Window | None = None) -> np.ndarray:
+    """(9, h, w) float32: the first nine planes of ``layer_planes`` (base, dx, dy), without the prior — what
+    training compares a prediction with (training/losses.py)."""
+    out = np.empty((MEASURED_PLANES, *_crop(layer.base, window).shape[:2]), dtype=np.float32)
+    _measured_into(out, layer, window)
+    return out
+
+
+def _measured_into(out: np.ndarray, layer: Layer, window: Window | None) -> None:
+    _channels_first(out[0:3], _crop(layer.base, window), 0.0, RADIANCE_MAX)
+    _channels_first(out[3:6], _crop(layer.dx, window), -RADIANCE_MAX, RADIANCE_MAX)
+    _channels_first(out[6:9], _crop(layer.dy, window), -RADIANCE_MAX, RADIANCE_MAX)
 
 
 @dataclass(frozen=True)

@@ -139,7 +139,8 @@ def manifest_hash(manifest: Manifest | str | os.PathLike[str]) -> str:
     content: dict[str, Any] = {
         "version": m.version, "spp": m.spp, "size": list(m.size), "max_depth": m.max_depth,
         "generator_version": m.generator_version,
-        "frames": [[f.file, f.seed, f.spp, sorted(f.layers), f.sha256] + ([f.target, f.target_sha256] if f.target else [])
+        "frames": [[f.file, f.seed, f.spp, sorted(f.layers), f.sha256,
+                    *([f.target, f.target_sha256] if f.target else [])]
                    for f in sorted(m.frames, key=lambda f: f.seed)]}
     if m.pairs:  # only then, so the hash of a dataset without pairs is what it always was
         content["pairs"] = True
@@ -357,8 +358,6 @@ def target_sampler_seed(seed: int) -> int:
 
 def run_dataset(root: str | os.PathLike[str], job: Job, *, progress: bool | None = None) -> Manifest:
     """Render this shard's unfinished frames into ``root``; returns the merged manifest afterwards."""
-    from model.frame import write_frame
-    from renderer.render import render_frame
 
     root = Path(root)
     (root / FRAMES_DIR).mkdir(parents=True, exist_ok=True)
@@ -381,14 +380,8 @@ def run_dataset(root: str | os.PathLike[str], job: Job, *, progress: bool | None
         bar = _bar(len(todo), len(job.seeds()) - len(todo), job, progress)
         try:
             for seed in todo:
-                def render(rel: str, sampler_seed: int) -> tuple[Any, bytes]:
-                    frame = render_frame(f"procedural:{seed}", spp=job.spp, seed=sampler_seed, width=job.width,
-                                         height=job.height, max_depth=job.max_depth)
-                    write_frame(root / rel, frame)  # atomic: temp file + rename
-                    return frame, (root / rel).read_bytes()
-
                 rel = frame_file(seed)
-                frame, data = render(rel, seed % 2**32)
+                frame, data = _render_to(root, rel, job, seed, seed % 2**32)
                 record = FrameRecord(
                     file=rel, seed=seed, spp=job.spp,
                     render_seconds=float(frame.metadata.get("gradsep.render_seconds", "nan")),
@@ -396,7 +389,7 @@ def run_dataset(root: str | os.PathLike[str], job: Job, *, progress: bool | None
                     sha256=hashlib.sha256(data).hexdigest())
                 if job.pairs:
                     record.target, record.target_sampler_seed = target_file(seed), target_sampler_seed(seed)
-                    _, blob = render(record.target, record.target_sampler_seed)
+                    _, blob = _render_to(root, record.target, job, seed, record.target_sampler_seed)
                     record.target_bytes, record.target_sha256 = len(blob), hashlib.sha256(blob).hexdigest()
                 record.finished_at = _dt.datetime.now(_dt.UTC).isoformat(timespec="milliseconds")
                 own.append(asdict(record))
@@ -409,6 +402,17 @@ def run_dataset(root: str | os.PathLike[str], job: Job, *, progress: bool | None
             bar.close()
             merge_manifest(root)
     return load_manifest(root, check_files=False)
+
+
+def _render_to(root: Path, rel: str, job: Job, seed: int, sampler_seed: int) -> tuple[Any, bytes]:
+    """Render procedural scene ``seed`` with ``sampler_seed`` into ``root/rel`` (atomically); (frame, file bytes)."""
+    from model.frame import write_frame
+    from renderer.render import render_frame
+
+    frame = render_frame(f"procedural:{seed}", spp=job.spp, seed=sampler_seed, width=job.width, height=job.height,
+                         max_depth=job.max_depth)
+    write_frame(root / rel, frame)  # atomic: temp file + rename
+    return frame, (root / rel).read_bytes()
 
 
 def _write_part(path: Path, job: Job, frames: list[dict[str, Any]], count: int) -> None:

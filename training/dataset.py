@@ -3,9 +3,14 @@
 ``gradsep dataset`` writes ``DIR/manifest.json`` and ``DIR/frames/*.exr`` (frame contract). Decoding a
 1280×720 EXR with every channel takes a noticeable fraction of a training step and holds ~125 MB, so each
 frame is decoded once into a small float32 cache file holding exactly what training needs for the chosen
-layer — 9 linear layer planes + 7 normalised feature planes, preprocessed by model.preprocess (the same code
-inference uses) — and patches are read from it through a memory map. Memory stays bounded by the page cache,
-not by the dataset size.
+layer — 12 linear layer planes + 7 normalised feature planes, preprocessed by model.preprocess (the same code
+inference uses), + 9 target planes when the dataset has pairs — and patches are read from it through a
+memory map. Memory stays bounded by the page cache, not by the dataset size.
+
+Targets. A dataset made with ``gradsep dataset --pairs`` holds a second, independently rendered realization
+of every frame; its base and gradients are the losses' targets (Noise2Noise: the target's noise is
+independent of the input, so the losses are minimised by the clean image, not by a copy of the input's
+noise). Without pairs the targets are the input's own measurements (the paper's self-supervised setting).
 
 Patch positions are a pure function of (seed, epoch, index), so a resumed run sees the same patches, and
 every DDP rank agrees without communication.
@@ -29,14 +34,16 @@ from model.frame import FrameError, Layer, read_frame
 from model.preprocess import (
     FEATURE_PLANES,
     LAYER_PLANES,
+    MEASURED_PLANES,
     PREPROCESS_VERSION,
     DepthRange,
     feature_planes,
     layer_planes,
+    measured_planes,
 )
 
 TRAINABLE_LAYERS = ("direct", "indirect", "color")
-CACHE_FORMAT = 1
+CACHE_FORMAT = 2
 
 
 class DatasetError(ValueError):
@@ -45,11 +52,13 @@ class DatasetError(ValueError):
 
 @dataclass(frozen=True)
 class FrameEntry:
-    """One manifest frame: its EXR path and the manifest record (seed, spp, layers, ...)."""
+    """One manifest frame: its EXR path, its target realization's (``--pairs``; None without) and the
+    manifest record (seed, spp, layers, ...)."""
 
     index: int
     path: Path
     record: dict[str, Any]
+    target: Path | None = None
 
 
 @dataclass(frozen=True)
@@ -85,7 +94,14 @@ def load_manifest(data_dir: str | os.PathLike[str]) -> Manifest:
             raise DatasetError(f"{path}: frames[{i}].file escapes the dataset folder: {rec['file']!r}")
         if not file.is_file():
             raise DatasetError(f"{path}: frames[{i}].file {rec['file']!r} does not exist")
-        entries.append(FrameEntry(i, file, rec))
+        target = None
+        if rec.get("target"):
+            target = (root / str(rec["target"])).resolve()
+            if not target.is_relative_to(root.resolve()):
+                raise DatasetError(f"{path}: frames[{i}].target escapes the dataset folder: {rec['target']!r}")
+            if not target.is_file():
+                raise DatasetError(f"{path}: frames[{i}].target {rec['target']!r} does not exist")
+        entries.append(FrameEntry(i, file, rec, target))
     return Manifest(root, tuple(entries), _identity(raw, blob), raw)
 
 
@@ -129,13 +145,17 @@ def select_layer(frame_layers: dict[str, Layer], layer: str) -> Layer | None:
 
 def _cache_key(entry: FrameEntry, layer: str) -> dict[str, Any]:
     st = entry.path.stat()
-    return {"format": CACHE_FORMAT, "preprocess": PREPROCESS_VERSION, "layer": layer,
-            "source": str(entry.path), "size": st.st_size, "mtime_ns": st.st_mtime_ns}
+    key = {"format": CACHE_FORMAT, "preprocess": PREPROCESS_VERSION, "layer": layer,
+           "source": str(entry.path), "size": st.st_size, "mtime_ns": st.st_mtime_ns}
+    if entry.target is not None:
+        tt = entry.target.stat()
+        key |= {"target": str(entry.target), "target_size": tt.st_size, "target_mtime_ns": tt.st_mtime_ns}
+    return key
 
 
 def build_cache(manifest: Manifest, layer: str, cache_dir: Path,
                 progress: Callable[[int, int], None] | None = None) -> tuple[list[Path | None], list[str]]:
-    """Decode every frame once into ``cache_dir/NNNNN.npy`` (16, H, W) float32; reuse valid existing files.
+    """Decode every frame once into ``cache_dir/NNNNN.npy`` (19 or 28, H, W) float32; reuse valid files.
 
     Returns one path per manifest frame (None when the frame cannot be used for ``layer``) and the warnings
     explaining each skipped frame.
@@ -170,7 +190,17 @@ def _write_cache_file(entry: FrameEntry, layer: str, target: Path, meta_path: Pa
         return f"no {layer} layer (has {', '.join(frame.layers)})"
     if frame.features is None:
         return "no feature channels"
-    planes = np.concatenate([layer_planes(chosen), feature_planes(frame.features, DepthRange.of(frame.features.depth))])
+    parts = [layer_planes(chosen), feature_planes(frame.features, DepthRange.of(frame.features.depth))]
+    if entry.target is not None:
+        try:
+            other = read_frame(entry.target, nonfinite="zero")
+        except FrameError as exc:
+            return f"target unreadable: {exc}"
+        second = select_layer(other.layers, layer)
+        if second is None or (other.height, other.width) != (frame.height, frame.width):
+            return f"target {entry.target.name} has no matching {layer} layer of {frame.width}x{frame.height}"
+        parts.append(measured_planes(second))
+    planes = np.concatenate(parts)
     tmp = target.with_name(target.name + ".tmp.npy")
     np.save(tmp, planes.astype(np.float32, copy=False))
     os.replace(tmp, target)
@@ -184,7 +214,8 @@ def _write_cache_file(entry: FrameEntry, layer: str, target: Path, meta_path: Pa
 
 
 class PatchDataset(Dataset):
-    """``patches_per_frame`` square crops per cached frame; item i → (planes (9,p,p), features (7,p,p)).
+    """``patches_per_frame`` square crops per cached frame; item i → (planes (12,p,p), features (7,p,p),
+    targets (9,p,p)) — the targets are the first nine planes again when the frame has no second realization.
 
     ``fixed=True`` (validation) draws the same crops every epoch; otherwise ``set_epoch`` redraws them.
     Frames smaller than the patch are left out by the caller (see ``usable``).
@@ -206,7 +237,8 @@ class PatchDataset(Dataset):
     def _open(self, i: int) -> np.ndarray:
         if i not in self._maps:
             arr = np.load(self.files[i], mmap_mode="r")
-            if arr.ndim != 3 or arr.shape[0] != LAYER_PLANES + FEATURE_PLANES:
+            if arr.ndim != 3 or arr.shape[0] not in (LAYER_PLANES + FEATURE_PLANES,
+                                                     LAYER_PLANES + FEATURE_PLANES + MEASURED_PLANES):
                 raise DatasetError(f"{self.files[i]}: cache file has shape {arr.shape}; delete it to rebuild")
             self._maps[i] = arr
         return self._maps[i]
@@ -224,11 +256,18 @@ class PatchDataset(Dataset):
         rng = np.random.default_rng([self.seed, 0 if self.fixed else self.epoch + 1, index])
         return frame, int(rng.integers(0, h - self.patch + 1)), int(rng.integers(0, w - self.patch + 1))
 
-    def __getitem__(self, index: int) -> tuple[torch.Tensor, torch.Tensor]:
+    def __getitem__(self, index: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         frame, y0, x0 = self.origin(index)
         crop = np.array(self._open(frame)[:, y0:y0 + self.patch, x0:x0 + self.patch], dtype=np.float32)
         tensor = torch.from_numpy(crop)
-        return tensor[:LAYER_PLANES], tensor[LAYER_PLANES:]
+        split = LAYER_PLANES + FEATURE_PLANES
+        targets = tensor[split:] if tensor.shape[0] > split else tensor[:MEASURED_PLANES]
+        return tensor[:LAYER_PLANES], tensor[LAYER_PLANES:split], targets
+
+    @property
+    def paired(self) -> bool:
+        """True when every frame has an independent target realization."""
+        return all(self._open(i).shape[0] > LAYER_PLANES + FEATURE_PLANES for i in range(len(self.files)))
 
     def __getstate__(self) -> dict[str, Any]:  # memory maps are reopened in worker processes
         state = self.__dict__.copy()

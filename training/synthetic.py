@@ -53,13 +53,18 @@ def _noisy(rng: np.random.Generator, clean: np.ndarray, spp: int, scale: float) 
     return clean * factor
 
 
-def synthetic_frame(seed: int, width: int = 64, height: int = 48,
-                    spp: int = 4) -> tuple[Frame, dict[str, np.ndarray]]:
-    """One frame (direct + indirect + features) and the clean radiance of each layer, (H, W, 3) each."""
+def synthetic_frame(seed: int, width: int = 64, height: int = 48, spp: int = 4,
+                    realization: int = 0) -> tuple[Frame, dict[str, np.ndarray]]:
+    """One frame (direct + indirect + features) and the clean radiance of each layer, (H, W, 3) each.
+
+    ``seed`` fixes the scene, ``realization`` the noise: two realizations of one seed are independent noisy
+    renders of the same clean images (the pairs of ``gradsep dataset --pairs``)."""
     rng = np.random.default_rng(seed)
     albedo = _albedo(rng, height, width)
     direct_shading = _smooth_field(rng, height, width, 3) * 2.0
     indirect_shading = _smooth_field(rng, height, width, 2) * 0.5
+    depth = (2.0 + _smooth_field(rng, height, width, 1)).astype(np.float32)
+    rng = np.random.default_rng([seed, realization])  # the noise, from here on
     layers: dict[str, Layer] = {}
     clean_layers: dict[str, np.ndarray] = {}
     for name, shading, noise in (("direct", direct_shading, 1.0), ("indirect", indirect_shading, 2.0)):
@@ -74,15 +79,15 @@ def synthetic_frame(seed: int, width: int = 64, height: int = 48,
         layers[name] = Layer(_noisy(rng, clean, spp, noise), dx.astype(np.float32), dy.astype(np.float32))
     normal = np.zeros((height, width, 3), dtype=np.float32)
     normal[..., 2] = 1.0
-    depth = (2.0 + _smooth_field(rng, height, width, 1)).astype(np.float32)
     features = Features(albedo=albedo, normal=normal, depth=depth)
     frame = Frame(layers=layers, features=features, metadata={"gradsep.spp": str(spp), "gradsep.synthetic": "1"})
     return frame, clean_layers
 
 
 def make_synthetic_dataset(root: str | os.PathLike[str], frames: int = 6, width: int = 64, height: int = 48,
-                           spp: int = 4, first_seed: int = 1000) -> Path:
-    """Write ``root/manifest.json`` + ``root/frames/*.exr`` the way `gradsep dataset` does; returns root."""
+                           spp: int = 4, first_seed: int = 1000, pairs: bool = False) -> Path:
+    """Write ``root/manifest.json`` + ``root/frames/*.exr`` the way `gradsep dataset` does (with ``pairs``, a
+    second realization per frame as ``--pairs`` does); returns root."""
     root = Path(root)
     (root / "frames").mkdir(parents=True, exist_ok=True)
     records = []
@@ -90,8 +95,12 @@ def make_synthetic_dataset(root: str | os.PathLike[str], frames: int = 6, width:
         frame, _ = synthetic_frame(seed, width, height, spp)
         rel = f"frames/proc_{seed:06d}.exr"
         write_frame(root / rel, frame)
-        records.append({"file": rel, "seed": seed, "spp": spp, "render_seconds": 0.0,
-                        "layers": list(frame.layers)})
-    manifest = {"version": 1, "spp": spp, "size": [width, height], "frames": records, "synthetic": True}
+        record = {"file": rel, "seed": seed, "spp": spp, "render_seconds": 0.0, "layers": list(frame.layers)}
+        if pairs:
+            record["target"] = f"frames/proc_{seed:06d}.b.exr"
+            write_frame(root / record["target"], synthetic_frame(seed, width, height, spp, realization=1)[0])
+        records.append(record)
+    manifest = {"version": 1, "spp": spp, "size": [width, height], "frames": records, "synthetic": True,
+                "pairs": pairs}
     (root / "manifest.json").write_text(json.dumps(manifest, indent=1))
     return root

@@ -41,7 +41,7 @@ from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader, DistributedSampler, Sampler
 
 from model.network import DualBranchNet, GBranch, NetworkConfig, describe
-from model.preprocess import PREPROCESS_VERSION, describe_preprocessing, network_inputs
+from model.preprocess import PREPROCESS_VERSION, TRANSFER, describe_preprocessing, network_inputs
 from training.dataset import (
     TRAINABLE_LAYERS,
     DatasetError,
@@ -395,6 +395,9 @@ class Trainer:
         self._say(f"{len(train_files)} training / {len(val_files)} validation frames, "
                   f"{self.steps_per_epoch} steps per epoch (patch {cfg.patch}, batch {cfg.batch}, "
                   f"{ctx.world} process(es))")
+        paired = self.train_set.paired
+        self._say("targets: " + ("an independent second realization of each frame (Noise2Noise)" if paired
+                                 else "the input's own measurements (no --pairs in the dataset)"))
         self._say(describe(cfg.network))
 
     def wrap_distributed(self) -> None:
@@ -479,13 +482,14 @@ class Trainer:
         return tqdm(total=total, initial=initial, desc=desc, disable=self.quiet, leave=False,
                     dynamic_ncols=True, file=sys.stderr)
 
-    def _batches(self, phase: str) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
-        """The current epoch's batches of one phase, skipping those a previous session already did."""
+    def _batches(self, phase: str) -> Iterator[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
+        """The current epoch's batches of one phase (planes, features, targets), skipping those a previous
+        session already did."""
         self.train_set.set_epoch(self.progress.epoch)
         self.train_sampler.set_epoch(self.progress.epoch)
         skip = self.progress.batch * self.cfg.batch
-        for planes, feats in self._loader(self.train_set, SkipSampler(self.train_sampler, skip)):
-            yield planes.to(self.ctx.device), feats.to(self.ctx.device)
+        for planes, feats, targets in self._loader(self.train_set, SkipSampler(self.train_sampler, skip)):
+            yield planes.to(self.ctx.device), feats.to(self.ctx.device), targets.to(self.ctx.device)
 
     def main_phase(self) -> bool:
         """Train the network for the rest of this epoch; False when the budget ran out first."""
@@ -495,7 +499,7 @@ class Trainer:
         self.gbranch.eval()
         bar = self._bar(self.steps_per_epoch, p.batch, f"epoch {p.epoch + 1} network")
         try:
-            for planes, feats in self._batches("main"):
+            for planes, feats, targets in self._batches("main"):
                 stop, save = self._decide()
                 if stop:
                     return False
@@ -505,7 +509,7 @@ class Trainer:
                 pred = self.model(data, grad)
                 with torch.no_grad():
                     coeffs = self.gbranch(data, grad)
-                terms = loss_terms(pred, coeffs, planes, feats)
+                terms = loss_terms(pred, coeffs, planes, feats, targets)
                 loss = terms.total(cfg.alpha, beta)
                 if not torch.isfinite(loss):
                     raise TrainingError(f"the loss became non-finite at epoch {p.epoch + 1}, step {p.step}; "
@@ -537,7 +541,7 @@ class Trainer:
         self.gbranch.train()
         bar = self._bar(self.steps_per_epoch, p.batch, f"epoch {p.epoch + 1} G-branch")
         try:
-            for planes, feats in self._batches("gbranch"):
+            for planes, feats, _ in self._batches("gbranch"):
                 stop, save = self._decide()
                 if stop:
                     return False
@@ -560,25 +564,34 @@ class Trainer:
 
     @torch.no_grad()
     def validate(self, beta: float) -> dict[str, float] | None:
+        """Mean loss terms on the fixed validation crops, for the network and (keys ``prior_*``) for the Poisson
+        prior it refines scored the same way. With paired data the targets are independent of the input, so
+        ``data`` and ``prior_data`` are unbiased estimates of each one's relative error up to one shared
+        constant (the target's noise): the network helps where its value is below the prior's."""
         if self.val_set is None:
             return None
         self.model.eval()
         self.gbranch.eval()
         sampler = DistributedSampler(self.val_set, num_replicas=self.ctx.world, rank=self.ctx.rank,
                                      shuffle=False)
-        sums = [0.0] * (len(TERMS) + 1)
+        keys = [*TERMS, *(f"prior_{k}" for k in TERMS)]
+        sums = [0.0] * (len(keys) + 1)
         loader = DataLoader(self.val_set, batch_size=self.cfg.batch, sampler=sampler, num_workers=0)
-        for planes, feats in loader:
-            planes, feats = planes.to(self.ctx.device), feats.to(self.ctx.device)
+        for planes, feats, targets in loader:
+            planes, feats, targets = planes.to(self.ctx.device), feats.to(self.ctx.device), targets.to(self.ctx.device)
             data, grad = network_inputs(planes, feats)
-            terms = loss_terms(_unwrap(self.model)(data, grad), _unwrap(self.gbranch)(data, grad), planes, feats)
-            values = terms.as_floats() | {"total": float(terms.total(self.cfg.alpha, beta))}
+            coeffs = _unwrap(self.gbranch)(data, grad)
+            terms = loss_terms(_unwrap(self.model)(data, grad), coeffs, planes, feats, targets)
+            prior = loss_terms(TRANSFER.forward(planes[:, 9:12]), coeffs, planes, feats, targets)  # 9:12 = prior
+            values = (terms.as_floats() | {"total": float(terms.total(self.cfg.alpha, beta))}
+                      | {f"prior_{k}": v for k, v in prior.as_floats().items()}
+                      | {"prior_total": float(prior.total(self.cfg.alpha, beta))})
             n = planes.shape[0]
-            for i, k in enumerate(TERMS):
+            for i, k in enumerate(keys):
                 sums[i] += values[k] * n
             sums[-1] += n
         sums = self.ctx.sum(sums)
-        return {k: sums[i] / max(sums[-1], 1.0) for i, k in enumerate(TERMS)}
+        return {k: sums[i] / max(sums[-1], 1.0) for i, k in enumerate(keys)}
 
     def end_epoch(self, epoch_started: float) -> None:
         cfg, p = self.cfg, self.progress
@@ -595,7 +608,8 @@ class Trainer:
         self.sched_g.step()
         if self.ctx.main:
             append_log(self.run, record)
-            v = f", val total {val['total']:.4f}" if val else ""
+            v = (f", val total {val['total']:.4f} data {val['data']:.4f} (prior alone {val['prior_total']:.4f} / "
+                 f"{val['prior_data']:.4f})" if val else "")
             self._say(f"epoch {p.epoch + 1}: train data {record['train']['data']:.4f} grad "
                       f"{record['train']['grad']:.4f} 1st {record['train']['first']:.4f} (beta {beta:.2f}), "
                       f"G {record['gbranch']:.4f}{v}; {p.step} steps, {self.elapsed() / 60:.1f} min")

@@ -10,6 +10,7 @@ torch = pytest.importorskip("torch")
 
 from model.preprocess import TRANSFER  # noqa: E402
 from training.losses import (  # noqa: E402
+    BLACK_LEVEL,
     BetaSchedule,
     LossTerms,
     data_loss,
@@ -30,30 +31,36 @@ def t(rows: list[list[float]]) -> torch.Tensor:
 
 
 def test_data_loss_by_hand() -> None:
-    # 4×4 block: prediction C(1) everywhere (linear 1, level 1), noisy base averaging 3 → (1 − 3)² / (1 + 0.01)
+    # 4×4 block: prediction C(1) everywhere (linear 1, level 1), noisy base averaging 3
+    # → (1 − 3)² / (1 + 0.01 + BLACK_LEVEL²)
     pred = torch.ones(1, 3, 4, 4, dtype=torch.float64)
     base = torch.zeros(1, 3, 4, 4, dtype=torch.float64)
     base[..., 0, 0] = 48.0
-    assert float(data_loss(pred, base)) == pytest.approx(4.0 / 1.01, rel=1e-9)
+    assert float(data_loss(pred, base)) == pytest.approx(4.0 / (1.01 + BLACK_LEVEL ** 2), rel=1e-12)
 
 
 def test_data_loss_tiny_images_pool_what_they_have() -> None:
     pred = torch.full((1, 3, 1, 2), C(2.0), dtype=torch.float64)       # linear 2 everywhere, level 2
     base = torch.tensor([1.0, 3.0], dtype=torch.float64).expand(1, 3, 1, 2)
-    assert float(data_loss(pred, base)) == pytest.approx(1.0 / (4.0 + 0.04), rel=1e-9)   # 1×1 blocks
+    assert float(data_loss(pred, base)) == pytest.approx(1.0 / (4.0 + 0.04), rel=1e-6)   # 1×1 blocks
     one = torch.full((1, 3, 1, 1), C(2.0), dtype=torch.float64)
     assert float(data_loss(one, torch.full((1, 3, 1, 1), 2.0, dtype=torch.float64))) == pytest.approx(0.0, abs=1e-20)
 
 
 def test_data_loss_is_scale_invariant_and_finite_on_black() -> None:
-    """The weight's floor follows the image's level, so a dark frame is anchored as firmly as a bright one."""
+    """Above the black level the weight's floor follows the image's level, so a dark frame is anchored as firmly
+    as a bright one; on a black patch a tiny prediction costs little and its gradient stays bounded."""
     gen = torch.Generator().manual_seed(0)
     linear = torch.rand(2, 3, 8, 8, generator=gen, dtype=torch.float64) + 0.1
     base = linear * (1 + 0.3 * torch.randn(2, 3, 8, 8, generator=gen, dtype=torch.float64)).clamp_min(0)
-    losses = [float(data_loss(TRANSFER.forward(linear * s), base * s)) for s in (1e-3, 1.0, 1e3)]
-    assert losses[0] == pytest.approx(losses[1], rel=1e-4) and losses[2] == pytest.approx(losses[1], rel=1e-4)
+    losses = [float(data_loss(TRANSFER.forward(linear * s), base * s)) for s in (0.1, 1.0, 1e3)]
+    assert losses[0] == pytest.approx(losses[1], rel=1e-3) and losses[2] == pytest.approx(losses[1], rel=1e-4)
     black = torch.zeros(1, 3, 8, 8, dtype=torch.float64)
     assert float(data_loss(black, black)) == 0.0 and torch.isfinite(data_loss(black, black + 1e-3))
+    pred = TRANSFER.forward(torch.full((1, 3, 8, 8), 1e-4, dtype=torch.float64)).requires_grad_()
+    loss = data_loss(pred, black)
+    loss.backward()
+    assert float(loss.detach()) < 0.02 and float(pred.grad.abs().max()) < 1.0
 
 
 def test_data_loss_is_minimised_by_the_mean_not_the_median() -> None:
@@ -137,6 +144,35 @@ def test_loss_terms_detach_the_gbranch_and_weight_the_total() -> None:
     assert pred.grad is not None and coeffs.grad is None
     manual = LossTerms(torch.tensor(1.0), torch.tensor(2.0), torch.tensor(3.0))
     assert float(manual.total(0.5, 2.0)) == 0.5 + 2.0 + 6.0
+
+
+def test_loss_terms_compare_with_independent_targets_when_given() -> None:
+    g = torch.Generator().manual_seed(2)
+    pred = torch.rand(1, 3, 8, 8, generator=g)
+    coeffs = torch.randn(1, 21, 8, 8, generator=g)
+    planes = torch.rand(1, 12, 8, 8, generator=g)
+    targets = torch.rand(1, 9, 8, 8, generator=g)
+    feats = torch.rand(1, 7, 8, 8, generator=g)
+    paired = loss_terms(pred, coeffs, planes, feats, targets)
+    assert float(paired.data) == pytest.approx(float(data_loss(pred, targets[:, :3])))
+    assert float(paired.grad) == pytest.approx(float(gradient_loss(pred, targets[:, 3:6], targets[:, 6:9])))
+    # the first-order term's edge weight reads the input's base, never the target's
+    assert float(paired.first) == pytest.approx(float(first_order_loss(pred, coeffs, feats, planes[:, :3])))
+    assert float(paired.data) != pytest.approx(float(loss_terms(pred, coeffs, planes, feats).data))
+
+
+def test_noise2noise_data_term_is_minimised_by_the_clean_image_not_the_input() -> None:
+    """With a target independent of the input, predicting the noisy input costs more than predicting the
+    clean image: the loss no longer rewards copying the input's noise (it does without targets)."""
+    g = torch.Generator().manual_seed(3)
+    clean = torch.full((1, 3, 64, 64), 0.5)
+    noisy = [clean * torch.empty_like(clean).exponential_(generator=g) for _ in range(2)]  # mean-one noise
+    enc = TRANSFER.forward
+    inp, tgt = noisy
+    own = lambda x: float(data_loss(enc(x), inp, pool=1))  # noqa: E731 - the self-supervised data term
+    n2n = lambda x: float(data_loss(enc(x), tgt, pool=1))  # noqa: E731
+    assert own(inp) < own(clean)          # self-supervised: copying the input is optimal
+    assert n2n(clean) < 0.5 * n2n(inp)    # Noise2Noise: the clean image wins clearly
 
 
 def test_gbranch_loss_explains_the_noisy_input_and_trains_only_the_coefficients() -> None:

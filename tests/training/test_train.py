@@ -53,6 +53,21 @@ def test_smoke_training_lowers_the_loss(make_config) -> None:
     assert all(np.isfinite(e["gbranch"]) for e in epochs)
 
 
+def test_paired_training_validates_against_the_prior(tmp_path: Path) -> None:
+    from training.synthetic import make_synthetic_dataset
+
+    from .conftest import tiny_config
+
+    root = make_synthetic_dataset(tmp_path / "ds", frames=6, width=64, height=48, pairs=True)
+    cfg = tiny_config(root, tmp_path / "run", epochs=1)
+    train(cfg, quiet=True)
+    val = _epochs(Path(cfg.output))[0]["val"]
+    assert {"data", "grad", "total", "prior_data", "prior_grad", "prior_total"} <= set(val)
+    assert all(np.isfinite(v) for v in val.values())
+    # the network is C(prior) + a zero-initialised correction: one epoch moves it, but not far
+    assert val["data"] == pytest.approx(val["prior_data"], rel=0.5)
+
+
 def test_run_folder_contents(make_config) -> None:
     cfg = make_config(epochs=4, keep_epoch_checkpoints=2, log_every=2)
     train(cfg, quiet=True)
@@ -156,8 +171,9 @@ def test_patches_are_deterministic_and_change_with_the_epoch(tiny_dataset: Path,
     files, warnings = build_cache(load_manifest(tiny_dataset), "direct", tmp_path / "cache")
     assert not warnings and all(f is not None for f in files)
     ds = PatchDataset([f for f in files if f], patch=16, patches_per_frame=3, seed=5)
-    planes, feats = ds[4]
+    planes, feats, targets = ds[4]
     assert planes.shape == (LAYER_PLANES, 16, 16) and feats.shape == (FEATURE_PLANES, 16, 16)
+    assert not ds.paired and torch.equal(targets, planes[:9]), "unpaired: the input's own measurements"
     again = PatchDataset([f for f in files if f], patch=16, patches_per_frame=3, seed=5)
     assert torch.equal(again[4][0], planes)
     origins = [ds.origin(i) for i in range(len(ds))]
@@ -167,6 +183,29 @@ def test_patches_are_deterministic_and_change_with_the_epoch(tiny_dataset: Path,
     cached = np.load(files[0])
     assert cached.shape == (LAYER_PLANES + FEATURE_PLANES, 48, 64)
     assert cached[LAYER_PLANES:].min() >= 0 and cached[LAYER_PLANES:].max() <= 1
+
+
+def test_paired_frames_give_independent_targets(tmp_path: Path) -> None:
+    from model.frame import read_frame
+    from model.preprocess import measured_planes
+    from training.synthetic import make_synthetic_dataset
+
+    root = make_synthetic_dataset(tmp_path / "ds", frames=2, width=24, height=20, pairs=True)
+    manifest = load_manifest(root)
+    assert all(e.target is not None for e in manifest.frames)
+    files, warnings = build_cache(manifest, "indirect", tmp_path / "cache")
+    assert not warnings
+    cached = np.load(files[0])
+    assert cached.shape == (LAYER_PLANES + FEATURE_PLANES + 9, 20, 24)
+    other = read_frame(manifest.frames[0].target)
+    np.testing.assert_array_equal(cached[LAYER_PLANES + FEATURE_PLANES:], measured_planes(other.layers["indirect"]))
+    ds = PatchDataset([f for f in files if f], patch=8, patches_per_frame=2, seed=1)
+    planes, _, targets = ds[0]
+    assert ds.paired and targets.shape == (9, 8, 8) and not torch.equal(targets, planes[:9])
+    # a missing target is named before training starts
+    manifest.frames[1].target.unlink()
+    with pytest.raises(DatasetError, match=r"frames\[1\]\.target .*does not exist"):
+        load_manifest(root)
 
 
 def test_cache_is_reused_and_frames_without_the_layer_are_skipped(tmp_path: Path) -> None:
