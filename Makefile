@@ -46,12 +46,13 @@ test-serving:
 	$(SERVE_VENV)/bin/python -c "import importlib.util as u, sys; sys.exit(any(u.find_spec(m) for m in ('torch', 'mitsuba')))"
 	$(SERVE_VENV)/bin/pytest -q -n 2 --timeout=300 tests/service
 
-# The shipped models, by one command (docs/network.md, "Shipped models"): a 120-frame procedural dataset, then
+# The shipped models, by one command (docs/network.md, "Shipped models"): a 120-frame procedural dataset (two
+# independent realizations per frame: Noise2Noise targets), then
 # the two layer models side by side (one core and one torch thread each: two single-threaded runs make more
 # steps per minute on 2 cores than one two-threaded run), then the color baseline and the four Fig. 7 ablation
 # variants (one identical budget of MINUTES_ABLATION per variant; the separated ones split it over their two
 # layers). Writes into MODELS_OUT; copy direct/indirect/color.onnx to models/ to serve them.
-DATASET          ?= data/hyb16b
+DATASET          ?= data/n2n16
 MODELS_OUT       ?= runs/ship-models
 MINUTES_LAYER    ?= 15
 MINUTES_COLOR    ?= 10
@@ -60,7 +61,7 @@ TRAIN0 = OMP_NUM_THREADS=1 taskset -c 0 $(BIN)/gradsep
 TRAIN1 = OMP_NUM_THREADS=1 taskset -c 1 $(BIN)/gradsep
 
 $(DATASET)/manifest.json:
-	$(BIN)/gradsep dataset --count 120 --spp 16 --size 256x256 --first-seed 1000 -o $(DATASET)
+	$(BIN)/gradsep dataset --count 120 --spp 16 --size 256x256 --first-seed 1000 --pairs -o $(DATASET)
 
 models: venv system-deps $(DATASET)/manifest.json
 	$(BIN)/pip install -q -e '.[test]'
