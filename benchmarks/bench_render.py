@@ -56,16 +56,19 @@ def path_image(scene, spp: int, seed: int, max_depth: int, rr_depth: int) -> np.
     return np.array(mi.render(scene, integrator=integrator, spp=spp, seed=seed), dtype=np.float64)[..., :3]
 
 
-def reference_chunks(loaded, spp: int, chunk: int, cache: Path | None) -> np.ndarray:
-    """High-spp `path` renders in independent chunks of ``chunk`` spp: (chunks, H, W, 3)."""
+def reference_chunks(loaded, spp: int, chunk: int, cache: Path | None, max_depth: int | None = None) -> np.ndarray:
+    """High-spp `path` renders in independent chunks of ``chunk`` spp: (chunks, H, W, 3). ``max_depth`` 2 gives
+    the direct layer (Mitsuba's convention), None the scene's depth."""
     import mitsuba as mi
 
-    key = hashlib.sha256(json.dumps([loaded.spec, loaded.width, loaded.height, loaded.max_depth, loaded.rr_depth,
+    depth = loaded.max_depth if max_depth is None else max_depth
+    key = hashlib.sha256(json.dumps([loaded.spec, loaded.width, loaded.height, depth, loaded.rr_depth,
                                      spp, chunk, mi.__version__]).encode()).hexdigest()[:16]
     path = cache / f"ref-{key}.npy" if cache else None
     if path is not None and path.is_file():
         return np.load(path)
-    chunks = np.stack([path_image(loaded.scene, chunk, 50_000 + i, loaded.max_depth, loaded.rr_depth)
+    seed0 = 50_000 if max_depth is None else 70_000  # the layer references are independent of the full one
+    chunks = np.stack([path_image(loaded.scene, chunk, seed0 + i, depth, loaded.rr_depth)
                        for i in range(max(2, spp // chunk))])
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -150,6 +153,21 @@ def bench_gradients(spec: str, size: int, spp: int, ref_spp: int, seeds: int, sh
         ref_fd[axis] = fd(ref, axis)
         ref_var[axis] = fd(chunks, axis).var(0, ddof=1) / len(chunks)  # variance of FD(ref) per pixel
         out["floor"][axis] = float(np.mean(np.sqrt(2 / np.pi * ref_var[axis])))
+    # Per layer: the direct reference is `path` at depth 2 (independent chunks), the indirect one the full
+    # reference minus it; each layer's gradients are compared with its own reference's differences, which
+    # shows where the total's error comes from (the two shifts differ only after the first vertex).
+    layer_fd: dict[str, np.ndarray] = {}
+    if settings.indirect:
+        direct_chunks = reference_chunks(loaded, ref_spp, 256, cache, max_depth=2)
+        direct_ref = direct_chunks.mean(0)
+        n = min(len(chunks), len(direct_chunks))
+        for axis in ("dx", "dy"):
+            layer_fd[f"{axis}_direct"] = fd(direct_ref, axis)
+            layer_fd[f"{axis}_indirect"] = ref_fd[axis] - layer_fd[f"{axis}_direct"]
+            var_d = fd(direct_chunks, axis).var(0, ddof=1) / len(direct_chunks)
+            var_i = fd(chunks[:n] - direct_chunks[:n], axis).var(0, ddof=1) / n  # upper bound, independent
+            out["floor"][f"{axis}_direct"] = float(np.mean(np.sqrt(2 / np.pi * var_d)))
+            out["floor"][f"{axis}_indirect"] = float(np.mean(np.sqrt(2 / np.pi * var_i)))
     for name in shifts:
         shift = make_shift(name)
         stats: dict[str, list[float]] = {}
@@ -165,6 +183,9 @@ def bench_gradients(spec: str, size: int, spp: int, ref_spp: int, seeds: int, sh
                     stats.setdefault(key, []).append(float(value))
                 for layer, images in res.layers.items():
                     layer_stacks.setdefault(f"{axis}_{layer}", []).append(images[axis].astype(np.float64))
+                    if f"{axis}_{layer}" in layer_fd:
+                        err_l = images[axis].astype(np.float64) - layer_fd[f"{axis}_{layer}"]
+                        stats.setdefault(f"{axis}_{layer}_mean", []).append(float(np.abs(err_l).mean()))
         row: dict = {key: float(np.mean(values)) for key, values in stats.items()}
         for axis in ("dx", "dy"):
             row[f"{axis}_rmse_corrected"] = float(np.sqrt(max(row[f"{axis}_mse"] - ref_var[axis].mean(), 0.0)))
@@ -181,6 +202,9 @@ def bench_gradients(spec: str, size: int, spp: int, ref_spp: int, seeds: int, sh
                 row[f"{axis}_gain_vs_replay_corrected"] = (base[f"{axis}_rmse_corrected"]
                                                            / max(row[f"{axis}_rmse_corrected"], 1e-30))
                 for layer in ("direct", "indirect"):
+                    if f"{axis}_{layer}_mean" in row:
+                        row[f"{axis}_{layer}_gain_vs_replay"] = (base[f"{axis}_{layer}_mean"]
+                                                                 / max(row[f"{axis}_{layer}_mean"], 1e-30))
                     if f"{axis}_{layer}_noise" in row:
                         row[f"{axis}_{layer}_noise_gain_vs_replay"] = (base[f"{axis}_{layer}_noise"]
                                                                        / max(row[f"{axis}_{layer}_noise"], 1e-30))
@@ -199,12 +223,19 @@ def print_gradients(scene: str, g: dict) -> None:
         print(f"    [{name}] " + "; ".join(parts))
         noise = ", ".join(f"{k[:-6]} {v:.5f}" for k, v in row.items() if k.endswith("_noise"))
         print(f"    [{name}] own noise (std over seeds): {noise}")
+        per_layer = ", ".join(f"{k[:-5]} {v:.5f} (floor {g['floor'][k[:-5]]:.5f})" for k, v in row.items()
+                              if k.endswith(("_direct_mean", "_indirect_mean")))
+        if per_layer:
+            print(f"    [{name}] per layer mean|err| against the layer's reference: {per_layer}")
         if "dx_gain_vs_replay" in row:
             print(f"    [{name}] vs replay: mean|err| {row['dx_gain_vs_replay']:.2f}x (dx) "
                   f"{row['dy_gain_vs_replay']:.2f}x (dy) lower; corrected RMSE "
                   f"{row['dx_gain_vs_replay_corrected']:.2f}x / {row['dy_gain_vs_replay_corrected']:.2f}x; own noise "
                   + ", ".join(f"{k.split('_noise')[0]} {v:.2f}x" for k, v in row.items()
-                              if k.endswith("noise_gain_vs_replay")))
+                              if k.endswith("noise_gain_vs_replay"))
+                  + "; per-layer mean|err| " + ", ".join(
+                      f"{k[:-len('_gain_vs_replay')]} {v:.2f}x" for k, v in row.items()
+                      if k.endswith(("_direct_gain_vs_replay", "_indirect_gain_vs_replay"))))
 
 
 def main(argv: list[str] | None = None) -> int:
