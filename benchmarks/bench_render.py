@@ -165,7 +165,7 @@ def bench_gradients(spec: str, size: int, spp: int, ref_spp: int, seeds: int, sh
             layer_fd[f"{axis}_direct"] = fd(direct_ref, axis)
             layer_fd[f"{axis}_indirect"] = ref_fd[axis] - layer_fd[f"{axis}_direct"]
             var_d = fd(direct_chunks, axis).var(0, ddof=1) / len(direct_chunks)
-            var_i = fd(chunks[:n] - direct_chunks[:n], axis).var(0, ddof=1) / n  # upper bound, independent
+            var_i = fd(chunks[:n] - direct_chunks[:n], axis).var(0, ddof=1) / n  # pairs of independent chunks
             out["floor"][f"{axis}_direct"] = float(np.mean(np.sqrt(2 / np.pi * var_d)))
             out["floor"][f"{axis}_indirect"] = float(np.mean(np.sqrt(2 / np.pi * var_i)))
     for name in shifts:
