@@ -54,7 +54,7 @@ test-serving:
 # layers). Writes into MODELS_OUT; copy direct/indirect/color.onnx to models/ to serve them.
 DATASET          ?= data/n2n16
 MODELS_OUT       ?= runs/ship-models
-MINUTES_LAYER    ?= 15
+MINUTES_LAYER    ?= 30
 MINUTES_COLOR    ?= 10
 MINUTES_ABLATION ?= 5
 TRAIN0 = OMP_NUM_THREADS=1 taskset -c 0 $(BIN)/gradsep
