@@ -488,8 +488,7 @@ def make_job(count: int, spp: int, size: str, shard: str, first_seed: int, max_d
 
 def dataset_command(args: argparse.Namespace) -> int:
     """Handler of `gradsep dataset`."""
-    job = make_job(args.count, args.spp, args.size, args.shard, args.first_seed, args.max_depth,
-                   getattr(args, "pairs", False))
+    job = make_job(args.count, args.spp, args.size, args.shard, args.first_seed, args.max_depth, args.pairs)
     root = Path(args.output)
     if root.exists() and not root.is_dir():
         raise DatasetError(f"output {root} exists and is not a folder")

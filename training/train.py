@@ -41,7 +41,7 @@ from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader, DistributedSampler, Sampler
 
 from model.network import DualBranchNet, GBranch, NetworkConfig, describe
-from model.preprocess import PREPROCESS_VERSION, TRANSFER, describe_preprocessing, network_inputs
+from model.preprocess import PREPROCESS_VERSION, PRIOR_CHANNELS, describe_preprocessing, network_inputs
 from training.dataset import (
     TRAINABLE_LAYERS,
     DatasetError,
@@ -582,7 +582,7 @@ class Trainer:
             data, grad = network_inputs(planes, feats)
             coeffs = _unwrap(self.gbranch)(data, grad)
             terms = loss_terms(_unwrap(self.model)(data, grad), coeffs, planes, feats, targets)
-            prior = loss_terms(TRANSFER.forward(planes[:, 9:12]), coeffs, planes, feats, targets)  # 9:12 = prior
+            prior = loss_terms(data[:, PRIOR_CHANNELS], coeffs, planes, feats, targets)  # C(prior): the net's start
             values = (terms.as_floats() | {"total": float(terms.total(self.cfg.alpha, beta))}
                       | {f"prior_{k}": v for k, v in prior.as_floats().items()}
                       | {"prior_total": float(prior.total(self.cfg.alpha, beta))})
