@@ -126,7 +126,8 @@ def mis_power(pdf_a: mi.Float, pdf_b: mi.Float) -> mi.Float:
 
 
 def trace_vertex(scene: mi.Scene, path: PathState, depth: mi.UInt32, max_depth: mi.UInt32,
-                 samples: VertexSamples, strict_light_pdf: bool = False) -> tuple[PathState, Vertex]:
+                 samples: VertexSamples, strict_light_pdf: bool = False,
+                 ray_flags: mi.RayFlags = mi.RayFlags.All) -> tuple[PathState, Vertex]:
     """Advance one path by one vertex exactly as Mitsuba's ``path`` integrator does, minus Russian roulette.
 
     Returns the updated path (ray towards the next vertex, throughput, liveness) and the vertex's events. Whether
@@ -139,7 +140,7 @@ def trace_vertex(scene: mi.Scene, path: PathState, depth: mi.UInt32, max_depth: 
     to exist by one definition on both paths.
     """
     ctx = mi.BSDFContext()
-    si = scene.ray_intersect(path.ray, ray_flags=mi.RayFlags.All, coherent=depth == 0, active=path.active)
+    si = scene.ray_intersect(path.ray, ray_flags=ray_flags, coherent=depth == 0, active=path.active)
 
     # Emission found by the ray (area emitter or environment), MIS-weighted against next-event estimation from
     # the previous vertex. At the camera prev_delta is set, so the emitter pdf is 0 and the weight is 1.
@@ -221,6 +222,9 @@ class Shift(Protocol):
 
     name: str
     reuses_light_samples: bool  # offsets reconnect to the base path's emitter sample (see trace_vertex)
+
+    def ray_flags(self, scene: mi.Scene) -> mi.RayFlags:
+        """What every surface interaction must carry for this shift (the base path's too)."""
 
     def start(self, ray: mi.Ray3f, weight: mi.Spectrum, active: mi.Bool) -> Any:
         """Offset loop state for the offset's primary ray (``active`` is False outside the image)."""
@@ -458,6 +462,7 @@ def render_pass(scene: mi.Scene, shift: Shift, settings: GptSettings, width: int
     rays, _ = _camera_rays(sensor, sampler, px, py, size, (w_o, h_o))
     to_camera = sensor.world_transform().inverse()
 
+    ray_flags = shift.ray_flags(scene)
     base = PathState.start(*rays[0])
     offsets = [shift.start(*r) for r in rays[1:]]
     sums = {name: LayerSums.zeros() for name, on in (("direct", settings.direct), ("indirect", settings.indirect))
@@ -471,7 +476,7 @@ def render_pass(scene: mi.Scene, shift: Shift, settings: GptSettings, width: int
             samples = VertexSamples.draw(sampler)
             ray_d = mi.Vector3f(base.ray.d)
             base_active = mi.Bool(base.active)
-            base, v = trace_vertex(scene, base, depth, max_depth_o, samples, shift.reuses_light_samples)
+            base, v = trace_vertex(scene, base, depth, max_depth_o, samples, shift.reuses_light_samples, ray_flags)
             hit_grads, nee_grads = [], []
             new_offsets = []
             for off in offsets:

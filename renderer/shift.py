@@ -28,6 +28,7 @@ same predicate in both techniques.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import drjit as dr
@@ -43,6 +44,9 @@ class ReplayShift:
 
     name = "replay"
     reuses_light_samples = False
+
+    def ray_flags(self, scene: mi.Scene) -> mi.RayFlags:
+        return mi.RayFlags.All
 
     def start(self, ray: mi.Ray3f, weight: mi.Spectrum, active: mi.Bool) -> PathState:
         return PathState.start(ray, weight, active)
@@ -79,6 +83,7 @@ NOT_CONNECTED, RECENTLY_CONNECTED, CONNECTED = 0, 1, 2
 MIN_DISTANCE2 = 1e-12  # squared distances below this (coinciding points) are clamped, not divided by
 MIN_HALF_COSINE = 1e-4  # half-vector copy fails where either path's direction grazes the microfacet: there the
 #                         Jacobian is a ratio of two float32 cosines that carry absolute errors of ~1e-7
+DEFAULT_FOLLOW_CURVATURE = 0.5  # move onto a specular vertex where curvature * segment exceeds this (_follows)
 DEFAULT_FOOTPRINT = 0.0  # reconnect only where the segment to the shared vertex is this many times longer than
 #                          the distance between base and offset vertex (see HybridShift; 0 = no such condition)
 
@@ -89,6 +94,35 @@ def _rough(flags: mi.UInt32) -> mi.Bool:
     classification by lobe type asks (the reference implementation's threshold, roughness 0.001, is nearly the
     same line)."""
     return mi.has_flag(flags, mi.BSDFFlags.Smooth)
+
+
+def _specular(flags: mi.UInt32, valid: mi.Bool) -> mi.Bool:
+    """A surface vertex whose BSDF has delta lobes only (smooth mirror, glass, a null interface)."""
+    return valid & mi.has_flag(flags, mi.BSDFFlags.Delta) & ~mi.has_flag(flags, mi.BSDFFlags.Smooth)
+
+
+def _curvature(si: mi.SurfaceInteraction3f) -> mi.Float:
+    """Largest normal curvature along the surface's parameter directions, |dn/du| / |dp/du| (and v): 1/R on a
+    sphere of radius R, 0 on flat geometry (needs ``RayFlags.dNSdUV``; 0 where the parameterization degenerates)."""
+    def along(dn: mi.Vector3f, dp: mi.Vector3f) -> mi.Float:
+        dp2 = dr.squared_norm(dp)
+        k = dr.sqrt(dr.squared_norm(dn) / dr.maximum(dp2, 1e-30))
+        return dr.select((dp2 > 1e-20) & dr.isfinite(k), k, 0.0)
+    return dr.maximum(along(si.dn_du, si.dp_du), along(si.dn_dv, si.dp_dv))
+
+
+def _follows(flags: mi.UInt32, valid: mi.Bool, si: mi.SurfaceInteraction3f, d_min: mi.Float,
+             threshold: float = 0.5) -> mi.Bool:
+    """Whether an offset moves onto this specular vertex rather than replaying towards it.
+
+    Replay sends a ray parallel to the base path's, offset by the pixel footprint ``delta``; after a curved
+    interface of curvature k it diverges by ~2 k delta (mirror). Moving onto the base vertex keeps the point and
+    turns the direction by ~delta / d (``d`` the segment to the vertex). Moving on wins where k d > 1/2
+    (``threshold``): never on
+    flat mirrors or panes (replay stays exactly parallel there), nor where the BSDF passes light straight through
+    (a null lobe: thin dielectrics), for which replay is exact."""
+    curved = _curvature(si) * d_min > threshold
+    return _specular(flags, valid) & ~mi.has_flag(flags, mi.BSDFFlags.Null) & curved
 
 
 def _glossy(flags: mi.UInt32) -> mi.Bool:
@@ -103,19 +137,29 @@ def _flags(si: mi.SurfaceInteraction3f) -> mi.UInt32:
     return dr.select(si.is_valid(), si.bsdf().flags(), 0)
 
 
-def scene_has_glossy_vertices(scene: mi.Scene) -> bool:
-    """Whether any shape's BSDF is glossy in the sense of :func:`_glossy` (instances count as "maybe"): only
-    then does the kernel need the half-vector copy's code, which costs ~7% per sample even where unused."""
-    glossy = int(mi.BSDFFlags.Glossy)
-    diffuse = int(mi.BSDFFlags.Diffuse)
+def _scene_has(scene: mi.Scene, kind: Callable[[int], bool]) -> bool:
+    """Whether any shape's BSDF flags satisfy ``kind`` (instances and shapes without a BSDF count as "maybe")."""
     for shape in scene.shapes():
         bsdf = shape.bsdf()
         if bsdf is None or shape.class_name() == "Instance":
             return True
-        flags = int(bsdf.flags())
-        if flags & glossy and not flags & diffuse:
+        if kind(int(bsdf.flags())):
             return True
     return False
+
+
+def scene_has_glossy_vertices(scene: mi.Scene) -> bool:
+    """Whether any shape's BSDF is glossy in the sense of :func:`_glossy`: only then does the kernel need the
+    half-vector copy's code, which costs ~7% per sample even where unused."""
+    glossy, diffuse = int(mi.BSDFFlags.Glossy), int(mi.BSDFFlags.Diffuse)
+    return _scene_has(scene, lambda flags: bool(flags & glossy) and not flags & diffuse)
+
+
+def scene_has_specular_vertices(scene: mi.Scene) -> bool:
+    """Whether any shape's BSDF has delta lobes only (:func:`_specular`): only then does the kernel need the
+    follow strategy and the surfaces' normal derivatives (:func:`_curvature`)."""
+    delta, smooth = int(mi.BSDFFlags.Delta), int(mi.BSDFFlags.Smooth)
+    return _scene_has(scene, lambda flags: bool(flags & delta) and not flags & smooth)
 
 
 def _bsdf_id(bsdf: mi.BSDFPtr) -> mi.UInt32:
@@ -290,12 +334,17 @@ class HybridShift:
     name = "hybrid"
     reuses_light_samples = True
 
-    def __init__(self, footprint: float = DEFAULT_FOOTPRINT, half_vector: bool = True) -> None:
+    def __init__(self, footprint: float = DEFAULT_FOOTPRINT, half_vector: bool = True,
+                 follow_specular: bool = True, follow_curvature: float = DEFAULT_FOLLOW_CURVATURE) -> None:
         if not footprint >= 0.0:
             raise ValueError(f"footprint must be >= 0, got {footprint}")
+        if not follow_curvature >= 0.0:
+            raise ValueError(f"follow_curvature must be >= 0, got {follow_curvature}")
+        self.follow_curvature = float(follow_curvature)
         self.footprint = float(footprint)
         self.half_vector = bool(half_vector)  # False: replay wherever the shift does not reconnect (comparison)
-        self._copy_scene: tuple[mi.Scene, bool] | None = None
+        self.follow_specular = bool(follow_specular)  # False: replay towards specular vertices (comparison)
+        self._scene_features: tuple[mi.Scene, tuple[bool, bool]] | None = None
 
     def start(self, ray: mi.Ray3f, weight: mi.Spectrum, active: mi.Bool) -> HybridState:
         return HybridState(
@@ -312,13 +361,17 @@ class HybridShift:
         sep2 = dr.squared_norm(a - b) * (self.footprint * self.footprint)
         return at_infinity | ((dr.squared_norm(target - a) > sep2) & (dr.squared_norm(target - b) > sep2))
 
-    def _uses_copy(self, scene: mi.Scene) -> bool:
-        """Compile the half-vector copy only for scenes that have glossy vertices (checked once per scene)."""
-        if not self.half_vector:
-            return False
-        if self._copy_scene is None or self._copy_scene[0] is not scene:
-            self._copy_scene = (scene, scene_has_glossy_vertices(scene))
-        return self._copy_scene[1]
+    def _features(self, scene: mi.Scene) -> tuple[bool, bool]:
+        """(half-vector copy, follow) compiled for this scene: only the strategies its materials can use (checked
+        once per scene)."""
+        if self._scene_features is None or self._scene_features[0] is not scene:
+            self._scene_features = (scene, (self.half_vector and scene_has_glossy_vertices(scene),
+                                            self.follow_specular and scene_has_specular_vertices(scene)))
+        return self._scene_features[1]
+
+    def ray_flags(self, scene: mi.Scene) -> mi.RayFlags:
+        """Surface data every intersection needs: normal derivatives where the follow strategy reads curvature."""
+        return mi.RayFlags.All | mi.RayFlags.dNSdUV if self._features(scene)[1] else mi.RayFlags.All
 
     def step(self, scene: mi.Scene, off: HybridState, base: Vertex, depth: mi.UInt32, max_depth: mi.UInt32,
              samples: VertexSamples) -> tuple[HybridState, OffsetEvents]:
@@ -331,7 +384,7 @@ class HybridShift:
         prev_si = off.si
         prev_bsdf = off.bsdf
         base_valid = base.si.is_valid()
-        use_copy = self._uses_copy(scene)
+        use_copy, use_follow = self._features(scene)
         use_far = self.footprint > 0.0
 
         # ---- transition into this vertex: which strategy ---------------------------------------------------
@@ -342,13 +395,22 @@ class HybridShift:
         connected = active & (status == CONNECTED)
         off_rough = _rough(off.flags)
         base_rough = _rough(off.b_flags)
-        reconnect = (not_connected & ~off.b_delta & base_rough & off_rough
-                     & (~base_valid | _rough(base.bsdf_flags)))
+        rough_pair = not_connected & ~off.b_delta & base_rough & off_rough
         if use_far:
-            reconnect &= self._far(off.b_p, prev_si.p, base.si.p, ~base_valid)
+            rough_pair &= self._far(off.b_p, prev_si.p, base.si.p, ~base_valid)
+        reconnect = rough_pair & (~base_valid | _rough(base.bsdf_flags))
+        # A base vertex with delta lobes only (mirror, glass, null interface): move onto that very point and follow
+        # the delta lobe from there with the offset's own incoming direction (replay at it), instead of replaying
+        # from y_k -- which would send a parallel ray to another point of a curved mirror or lens.
+        if use_follow:
+            d_min = dr.sqrt(dr.minimum(dr.squared_norm(base.si.p - off.b_p), dr.squared_norm(base.si.p - prev_si.p)))
+            follow = rough_pair & _follows(base.bsdf_flags, base_valid, base.si, d_min, self.follow_curvature)
+        else:
+            follow = mi.Bool(False)
+        to_vertex = reconnect | follow
         glossy_pair = _glossy(off.b_flags) & _glossy(off.flags)
-        copy = not_connected & ~reconnect & ~off.b_delta & off_rough & glossy_pair if use_copy else mi.Bool(False)
-        replay = not_connected & ~reconnect & ~copy
+        copy = not_connected & ~to_vertex & ~off.b_delta & off_rough & glossy_pair if use_copy else mi.Bool(False)
+        replay = not_connected & ~to_vertex & ~copy
 
         # ---- reconnection to the base path's vertex (or to its direction, at infinity) ----------------------
         # Segments are measured from the rays' actual origins (the surface point pushed off by Mitsuba's ray
@@ -358,7 +420,7 @@ class HybridShift:
         dist2_off = dr.maximum(dr.squared_norm(to_base), MIN_DISTANCE2)
         wo_rc = dr.select(base_valid, to_base * dr.rsqrt(dist2_off), off.b_dir)
         shadow = dr.select(base_valid, prev_si.spawn_ray_to(base.si.p), prev_si.spawn_ray(off.b_dir))
-        visible = ~scene.ray_test(shadow, reconnect)
+        visible = ~scene.ray_test(shadow, to_vertex)
         # Everything per unit *area* at the shared vertex: the base path's density of having found it,
         # b_pdf * cos / t^2, and the offset's geometry term cos' / d'^2. Their ratio is the Jacobian over the
         # base's solid-angle pdf, without forming either one (grazing hits make both blow up in float32).
@@ -376,22 +438,22 @@ class HybridShift:
             refracts = mi.Frame3f.cos_theta(off.b_wi) * mi.Frame3f.cos_theta(off.b_wo) < 0.0
             hv_ok = hv.ok & (~refracts | (_bsdf_id(prev_bsdf) == off.b_bsdf))
             wo_hv = prev_si.to_world(hv.wo)
-            eval_dir = dr.select(reconnect, wo_rc, dr.select(copy, wo_hv, off.b_dir))
-            conv = dr.select(reconnect, conv_rc, dr.select(copy, hv.jacobian, 1.0) * dr.rcp(off.b_pdf))
+            eval_dir = dr.select(to_vertex, wo_rc, dr.select(copy, wo_hv, off.b_dir))
+            conv = dr.select(to_vertex, conv_rc, dr.select(copy, hv.jacobian, 1.0) * dr.rcp(off.b_pdf))
         else:
-            eval_dir = dr.select(reconnect, wo_rc, off.b_dir)
-            conv = dr.select(reconnect, conv_rc, dr.rcp(off.b_pdf))
+            eval_dir = dr.select(to_vertex, wo_rc, off.b_dir)
+            conv = dr.select(to_vertex, conv_rc, dr.rcp(off.b_pdf))
 
         # One BSDF evaluation at the offset's previous vertex serves a new reconnection (towards the base path's
         # vertex), a reconnection made one vertex earlier (towards the base path's next direction) and the
         # half-vector copy; ``conv`` is the Jacobian over the base path's pdf, in solid angle at that vertex.
-        evaluated = reconnect | recent | copy
+        evaluated = to_vertex | recent | copy
         val, pdf = prev_bsdf.eval_pdf(ctx, prev_si, prev_si.to_local(eval_dir), evaluated)
         step_f = dr.select(evaluated, val * conv, 1.0)
         step_r = dr.select(evaluated, pdf * conv, 1.0)
         fail = evaluated & ~(off.b_pdf > 0.0)
         fail |= evaluated & ~(dr.max(val) > 0.0)  # the offset's own base path would end here: no such pair
-        fail |= reconnect & (~visible | (base_valid & ~area_ok))
+        fail |= to_vertex & (~visible | (base_valid & ~area_ok))
         fail |= recent & off.b_delta  # a delta direction of the base path is not one for the offset's own wi
         if use_copy:
             fail |= copy & ~hv_ok
@@ -403,7 +465,7 @@ class HybridShift:
             own_dir = dr.select(copy, wo_hv, own_dir)
         own_ray = dr.select(first, off.ray, prev_si.spawn_ray(own_dir))
         traced = (first & active) | replay | copy
-        si_own = scene.ray_intersect(own_ray, ray_flags=mi.RayFlags.All, coherent=first, active=traced)
+        si_own = scene.ray_intersect(own_ray, ray_flags=self.ray_flags(scene), coherent=first, active=traced)
         own_valid = si_own.is_valid()
         own_bsdf = si_own.bsdf()
         own_flags = dr.select(own_valid, own_bsdf.flags(), 0)
@@ -414,7 +476,11 @@ class HybridShift:
         if use_copy:
             own_nondelta |= copy
         both_rough = own_nondelta & base_rough & off_rough
-        reverse_reconnects = both_rough & (~own_valid | _rough(own_flags))
+        reverse_target = ~own_valid | _rough(own_flags)
+        if use_follow:
+            d_own = dr.sqrt(dr.minimum(dr.squared_norm(si_own.p - prev_si.p), dr.squared_norm(si_own.p - off.b_p)))
+            reverse_target |= _follows(own_flags, own_valid, si_own, d_own, self.follow_curvature)
+        reverse_reconnects = both_rough & reverse_target
         if use_far:
             reverse_reconnects &= self._far(prev_si.p, off.b_p, si_own.p, ~own_valid)
         reverse_strategy_differs = reverse_reconnects
@@ -433,7 +499,7 @@ class HybridShift:
 
         # The offset's vertex here, and how it arrived (for its own emitter/BSDF MIS).
         si_base_wi = mi.SurfaceInteraction3f(base.si)
-        si_base_wi.wi = dr.select(reconnect & base_valid, base.si.to_local(-wo_rc), base.si.wi)
+        si_base_wi.wi = dr.select(to_vertex & base_valid, base.si.to_local(-wo_rc), base.si.wi)
         own = (first & active) | replay | copy
         si = dr.select(own, si_own, si_base_wi)
         flags = dr.select(own, own_flags, base.bsdf_flags)

@@ -22,7 +22,14 @@ from model.frame import read_frame, write_frame  # noqa: E402
 from renderer.gpt import ConnectingShift, GptSettings, pass_plan, render_gpt  # noqa: E402
 from renderer.render import parse_layers, plan_layers, render_frame  # noqa: E402
 from renderer.scene import load_scene, select_variant  # noqa: E402
-from renderer.shift import HybridShift, ReplayShift, half_vector_shift, make_shift, offset_eta  # noqa: E402
+from renderer.shift import (  # noqa: E402
+    HybridShift,
+    ReplayShift,
+    _curvature,
+    half_vector_shift,
+    make_shift,
+    offset_eta,
+)
 from tests.renderer.scenes import resolve  # noqa: E402
 
 pytestmark = pytest.mark.render
@@ -477,7 +484,7 @@ def diffuse_room_dict() -> dict:
     }
 
 
-MATERIAL_SETS = ("diffuse", "mixed", "glossy")
+MATERIAL_SETS = ("diffuse", "mixed", "glossy", "specular")
 
 # Shift variants: the hybrid shift as shipped, with the length condition on reconnections, with a length
 # condition no segment meets (every glossy vertex copies the half-vector, every diffuse one replays), and without
@@ -488,6 +495,9 @@ VARIANTS = {
     "hybrid-footprint": lambda: HybridShift(footprint=4.0),
     "hybrid-copy": lambda: HybridShift(footprint=1e9),
     "hybrid-no-copy": lambda: HybridShift(half_vector=False),
+    "hybrid-no-follow": lambda: HybridShift(follow_specular=False),
+    # the follow-or-replay threshold where most segments to the balls cross it: the inverse shift's check at work
+    "hybrid-follow-threshold": lambda: HybridShift(follow_curvature=2.5),
 }
 
 
@@ -499,7 +509,9 @@ def coarse_room(size: int, materials: str = "mixed"):
     ``mixed`` adds a mirror ball, a diffuse base under a smooth coating (a delta and a non-delta lobe at one
     vertex) on the floor and ball, and a glossy metal; ``glossy`` has narrow and medium glossy lobes in
     reflection and refraction next to the mirror (a rough plastic floor, a rough glass ball, a narrow rough
-    metal), which is where the half-vector copy works."""
+    metal), which is where the half-vector copy works; ``specular`` has delta-only vertices of every kind the
+    shift tells apart: a mirror ball and a glass ball (curved: offsets move onto their vertices, or replay where
+    the segment is short), a flat mirror panel (replay), and a thin-dielectric tube (a null lobe: replay)."""
     select_variant()
     scene = diffuse_room_dict()
     scene["sensor"]["film"]["width"] = scene["sensor"]["film"]["height"] = size
@@ -511,6 +523,13 @@ def coarse_room(size: int, materials: str = "mixed"):
         scene["floor"]["bsdf"] = {"type": "plastic", "diffuse_reflectance": {"type": "rgb", "value": [0.5, 0.5, 0.5]}}
         scene["metal"] = {"type": "sphere", "center": [-0.4, 0.4, -0.5], "radius": 0.25,
                           "bsdf": {"type": "roughconductor", "alpha": 0.15}}
+    elif materials == "specular":
+        scene["ball"]["bsdf"] = {"type": "dielectric", "int_ior": 1.5}
+        tf = mi.ScalarTransform4f
+        scene["panel"] = {"type": "rectangle", "bsdf": {"type": "conductor"},
+                          "to_world": tf().translate([0.55, 0.3, -0.6]).rotate([0, 1, 0], -35).scale(0.3)}
+        scene["tube"] = {"type": "cylinder", "p0": [-0.2, 0.2, -0.2], "p1": [0.3, 0.6, -0.4], "radius": 0.15,
+                         "bsdf": {"type": "thindielectric", "int_ior": 1.5}}
     elif materials == "glossy":
         scene["ball"]["bsdf"] = {"type": "roughdielectric", "alpha": 0.12, "int_ior": 1.5}
         scene["floor"]["bsdf"] = {"type": "roughplastic", "alpha": 0.06,
@@ -523,6 +542,8 @@ def coarse_room(size: int, materials: str = "mixed"):
 @pytest.mark.parametrize(("materials", "variant"), [
     ("mixed", "replay"), ("mixed", "hybrid"), ("mixed", "hybrid-footprint"), ("mixed", "hybrid-copy"),
     ("glossy", "replay"), ("glossy", "hybrid"), ("glossy", "hybrid-copy"), ("glossy", "hybrid-no-copy"),
+    ("specular", "replay"), ("specular", "hybrid"), ("specular", "hybrid-no-follow"),
+    ("specular", "hybrid-follow-threshold"),
 ])
 def test_gradients_unbiased_at_coarse_resolution(materials, variant):
     scene = coarse_room(8, materials)
@@ -549,6 +570,7 @@ def converged_gradients(materials: str, shift: str) -> dict[str, np.ndarray]:
 
 @pytest.mark.parametrize(("materials", "variant"), [
     ("diffuse", "hybrid"), ("mixed", "hybrid"), ("glossy", "hybrid"), ("glossy", "hybrid-copy"),
+    ("specular", "hybrid"), ("specular", "hybrid-follow-threshold"),
 ])
 def test_both_shifts_estimate_the_same_gradients(materials, variant):
     """Two unbiased estimators of the same pixel differences must agree: 4x4 pixels at 16k samples each, so
@@ -664,6 +686,46 @@ def test_gradients_unbiased_on_grazing_and_tiny_geometry(name):
         for key, fd in (("dx", fd_x), ("dy", fd_y)):
             est = np.stack([sum(r.layers[layer][key] for layer in r.layers) for r in results]).astype(np.float64)
             assert_matches_reference(est, fd(ref), 2e-3, f"{name} {shift} {key}")
+
+
+def test_curvature_of_spheres_and_planes():
+    """The follow-or-replay decision at specular vertices reads the surface's curvature: 1/R on a sphere (any
+    point, any radius), 0 on a plane and on a flat mesh."""
+    select_variant()
+    scene = mi.load_dict({"type": "scene",
+                          "ball": {"type": "sphere", "center": [0, 0, 0], "radius": 0.25},
+                          "plane": {"type": "rectangle",
+                                    "to_world": mi.ScalarTransform4f().translate([0, 0, -3]).scale(10)},
+                          "mesh": {"type": "cube",
+                                   "to_world": mi.ScalarTransform4f().translate([4, 0, 0]).scale(0.5)}})
+    rng = np.random.default_rng(1)
+    xy = rng.uniform(-0.17, 0.17, (2, 64))  # inside the ball's silhouette (radius 0.25)
+    origins = np.concatenate([np.stack([xy[0], xy[1], np.full(64, 5.0)]),
+                              np.stack([xy[0] + 4, xy[1], np.full(64, 5.0)])], 1)
+    ray = mi.Ray3f(mi.Point3f(*origins), mi.Vector3f(0, 0, -1))
+    si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.All | mi.RayFlags.dNSdUV, coherent=False)
+    k = np.array(_curvature(si))
+    np.testing.assert_allclose(k[:64], 4.0, rtol=1e-3)
+    np.testing.assert_allclose(k[64:], 0.0, atol=1e-6)
+    miss = scene.ray_intersect(mi.Ray3f(mi.Point3f(0, 0, 5), mi.Vector3f(0, 0, 1)),
+                               ray_flags=mi.RayFlags.All | mi.RayFlags.dNSdUV, coherent=False)
+    assert np.array(_curvature(miss))[0] == 0.0
+
+
+def test_following_specular_vertices_correlates_caustics():
+    """The Cornell box's walls are lit through its mirror ball and glass ball: an offset that moves onto the base
+    path's point of the ball keeps finding the lamp where the base path does, a parallel replayed ray (which
+    meets the curved surface elsewhere) often misses it. Both are unbiased (tests above); the caustics' gradients
+    are much less noisy with the follow strategy (measured: ~2.1x lower variance at 48^2, ~4.7x at 128^2)."""
+    size = 48
+    scene = load_scene(CBOX, width=size, height=size).scene
+    variance = {}
+    for name, shift in (("follow", HybridShift()), ("replay-at-specular", HybridShift(follow_specular=False))):
+        dx = np.stack([render_gpt(scene, shift, GptSettings(max_depth=6), size, size, 16, seed).layers[
+            "indirect"]["dx"] for seed in range(12)]).astype(np.float64)
+        variance[name] = dx.var(0).mean()
+    gain = variance["replay-at-specular"] / variance["follow"]
+    assert gain > 1.5, f"follow/replay-at-specular variance gain on caustics only {gain:.2f}"
 
 
 def test_hybrid_shift_correlates_indirect_light_on_diffuse_walls():
