@@ -9,6 +9,7 @@ of renders per scene is shared through module-scoped fixtures, so only a handful
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -19,7 +20,13 @@ dr = pytest.importorskip("drjit")
 
 from gradsep.cli import CommandError, main  # noqa: E402
 from model.frame import read_frame, write_frame  # noqa: E402
-from renderer.gpt import ConnectingShift, GptSettings, pass_plan, render_gpt  # noqa: E402
+from renderer.gpt import (  # noqa: E402
+    ConnectingShift,
+    GptSettings,
+    pass_plan,
+    render_gpt,
+    stratified_sub_pixel,
+)
 from renderer.render import parse_layers, plan_layers, render_frame  # noqa: E402
 from renderer.scene import load_scene, select_variant  # noqa: E402
 from renderer.shift import (  # noqa: E402
@@ -686,6 +693,22 @@ def test_gradients_unbiased_on_grazing_and_tiny_geometry(name):
         for key, fd in (("dx", fd_x), ("dy", fd_y)):
             est = np.stack([sum(r.layers[layer][key] for layer in r.layers) for r in results]).astype(np.float64)
             assert_matches_reference(est, fd(ref), 2e-3, f"{name} {shift} {key}")
+
+
+@pytest.mark.parametrize("spp", [1, 7, 16, 20])
+def test_sub_pixel_positions_are_stratified(spp):
+    """The pixel's first floor(sqrt(spp))^2 samples fall one per cell of a jittered grid, the rest anywhere in
+    the pixel; every position stays inside the pixel."""
+    select_variant()
+    n = math.isqrt(spp)
+    rng = np.random.default_rng(spp)
+    u = rng.uniform(0, 1, (2, spp))
+    sample = np.arange(spp)
+    pos = np.array(stratified_sub_pixel(mi.Point2f(u[0], u[1]), mi.UInt32(sample), mi.UInt32(n)))
+    assert np.all((pos >= 0) & (pos < 1))
+    cells = np.floor(pos[:, :n * n] * n).astype(int)
+    assert len({(int(x), int(y)) for x, y in cells.T}) == n * n
+    np.testing.assert_allclose(pos[:, n * n:], u[:, n * n:])
 
 
 def test_curvature_of_spheres_and_planes():
