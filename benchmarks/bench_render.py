@@ -16,7 +16,8 @@ For every scene and shift (medians of repeats, each after a warm-up render that 
    estimator's measured error, so the ratio of two good estimators is compressed towards 1. Reported with it:
    the noise-corrected RMS error sqrt(MSE - Var(FD(ref))) (an unbiased estimate of the estimator's own MSE,
    since the reference is independent of it) and the estimators' own noise per layer (standard deviation over
-   seeds), which needs no reference at all.
+   seeds), which needs no reference at all. The mean |err| is also split by pixel class -- geometric edges,
+   texture edges, the rest (from the base path's features) -- to show where each shift's error lives.
 4. optionally (``--frame``) the time of a 1280x720, 16 spp frame (both layers, features, packed into a Frame).
 
 References are cached with ``--cache DIR`` (keyed by scene, size, depth, spp, Mitsuba version), so a re-run
@@ -84,6 +85,18 @@ def fd(img: np.ndarray, axis: str) -> np.ndarray:
     else:
         d[..., :-1, :, :] = img[..., 1:, :, :] - img[..., :-1, :, :]
     return d
+
+
+def edge_classes(normal: np.ndarray, depth: np.ndarray, albedo: np.ndarray, axis: str) -> dict[str, np.ndarray]:
+    """Pixel pairs of a forward difference by what separates the two pixels: ``geometry`` (normal or depth jump:
+    silhouettes, creases), ``texture`` (albedo jump on smooth geometry) or nothing (``rest``); (H, W) masks."""
+    def diff(img: np.ndarray) -> np.ndarray:
+        return fd(img if img.ndim == 3 else img[..., None], axis)
+
+    near = np.maximum(depth, 1e-3)[..., None]
+    geometry = (np.abs(diff(normal)).max(-1) > 0.05) | (np.abs(diff(depth))[..., 0] > 0.03 * near[..., 0])
+    texture = (np.abs(diff(albedo)).max(-1) > 0.05) & ~geometry
+    return {"geometry": geometry, "texture": texture, "rest": ~geometry & ~texture}
 
 
 def settings_for(loaded):
@@ -168,6 +181,11 @@ def bench_gradients(spec: str, size: int, spp: int, ref_spp: int, seeds: int, sh
             var_i = fd(chunks[:n] - direct_chunks[:n], axis).var(0, ddof=1) / n  # pairs of independent chunks
             out["floor"][f"{axis}_direct"] = float(np.mean(np.sqrt(2 / np.pi * var_d)))
             out["floor"][f"{axis}_indirect"] = float(np.mean(np.sqrt(2 / np.pi * var_i)))
+    # Pixel classes from the features of one 64-spp render (features are the base path's, the same for every
+    # shift; 64 spp so that the sampled albedo of glossy materials does not fake texture edges).
+    feat = render_gpt(loaded.scene, make_shift(shifts[0]), settings, size, size, 64, seed=99)
+    classes = {axis: edge_classes(feat.normal, feat.depth, feat.albedo, axis) for axis in ("dx", "dy")}
+    out["pixel_share"] = {f"{axis}_{c}": float(m.mean()) for axis in classes for c, m in classes[axis].items()}
     for name in shifts:
         shift = make_shift(name)
         stats: dict[str, list[float]] = {}
@@ -181,6 +199,10 @@ def bench_gradients(spec: str, size: int, spp: int, ref_spp: int, seeds: int, sh
                 for key, value in ((f"{axis}_mean", np.abs(err).mean()), (f"{axis}_mse", (err ** 2).mean()),
                                    (f"{axis}_fd_primal_mean", np.abs(fd(primal, axis) - ref_fd[axis]).mean())):
                     stats.setdefault(key, []).append(float(value))
+                # the mean |err| split by pixel class: each class's share of the image-wide mean (they add up)
+                abs_err = np.abs(err).mean(-1)
+                for cls, mask in classes[axis].items():
+                    stats.setdefault(f"{axis}_class_{cls}", []).append(float(abs_err[mask].sum() / abs_err.size))
                 for layer, images in res.layers.items():
                     layer_stacks.setdefault(f"{axis}_{layer}", []).append(images[axis].astype(np.float64))
                     if f"{axis}_{layer}" in layer_fd:
@@ -227,6 +249,10 @@ def print_gradients(scene: str, g: dict) -> None:
                               if k.endswith(("_direct_mean", "_indirect_mean")))
         if per_layer:
             print(f"    [{name}] per layer mean|err| against the layer's reference: {per_layer}")
+        split = ", ".join(f"{c} {row[f'dx_class_{c}']:.5f} ({g['pixel_share'][f'dx_{c}']:.0%} of pixels)"
+                          for c in ("geometry", "texture", "rest") if f"dx_class_{c}" in row)
+        if split:
+            print(f"    [{name}] dx mean|err| = sum over pixel classes: {split}")
         if "dx_gain_vs_replay" in row:
             print(f"    [{name}] vs replay: mean|err| {row['dx_gain_vs_replay']:.2f}x (dx) "
                   f"{row['dy_gain_vs_replay']:.2f}x (dy) lower; corrected RMSE "
