@@ -4,7 +4,8 @@ A shift implements the small :class:`renderer.gpt.Shift` protocol: ``start`` mak
 its primary ray, ``step`` advances it by one base-path vertex and returns the offset's contributions for that
 vertex's two events together with the MIS weights of the pixel pair, ``scale``/``kill`` apply the base path's
 Russian roulette. The integrator never looks inside an offset state: :class:`ReplayShift` and
-:class:`HybridShift` (reconnection at rough vertices, half-vector copy at glossy ones, replay elsewhere; issue 4)
+:class:`HybridShift` (reconnection at rough vertices, moving onto curved specular ones, half-vector copy at glossy
+ones, replay elsewhere; issue 4)
 are interchangeable; the hybrid shift also implements :class:`renderer.gpt.ConnectingShift`, which lets the
 integrator carry connected offsets cheaply.
 
@@ -118,9 +119,9 @@ def _follows(flags: mi.UInt32, valid: mi.Bool, si: mi.SurfaceInteraction3f, d_mi
     Replay sends a ray parallel to the base path's, offset by the pixel footprint ``delta``; after a curved
     interface of curvature k it diverges by ~2 k delta (mirror). Moving onto the base vertex keeps the point and
     turns the direction by ~delta / d (``d`` the segment to the vertex). Moving on wins where k d > 1/2
-    (``threshold``): never on
-    flat mirrors or panes (replay stays exactly parallel there), nor where the BSDF passes light straight through
-    (a null lobe: thin dielectrics), for which replay is exact."""
+    (``threshold``): never on flat mirrors or panes (replay stays exactly parallel there), nor where the BSDF
+    passes light straight through (a null lobe: thin dielectrics), for which replay is exact. A function of the
+    vertex and of the two segments' shorter length only, so the pair decides alike from either side."""
     curved = _curvature(si) * d_min > threshold
     return _specular(flags, valid) & ~mi.has_flag(flags, mi.BSDFFlags.Null) & curved
 
@@ -304,6 +305,12 @@ class HybridShift:
       wildly between neighbouring pixels (hybrid noisier than replay along the foot of walls); it is symmetric
       in the pair, so the inverse shift makes the same choice. Measured, it removes that band but costs as much
       elsewhere (docs/renderer.md), hence off by default.
+    * **Follow** when all of the above holds except that ``x_{k+1}`` has delta lobes only and lies on a curved
+      surface (:func:`_follows`: curvature times the shorter segment to it above ``follow_curvature``, no null
+      lobe): the offset moves onto ``x_{k+1}`` exactly as a reconnection does (visibility, Jacobian, density
+      ratio) but stays on its own from there, replaying the delta lobe for its own incoming direction. A
+      parallel replayed ray would meet a curved mirror or lens elsewhere and turn by ~2 k delta; moving onto the
+      point turns it by ~delta / d. On flat mirrors and panes, and through thin dielectrics, replay is exact.
     * **Half-vector copy** otherwise, when the base path sampled a non-delta lobe and both vertices are glossy
       (non-delta lobes, none of them diffuse): :func:`half_vector_shift` reflects or refracts the offset about
       the base path's microfacet normal, copied in the local shading frame, and the offset traces its own ray. A
@@ -314,8 +321,9 @@ class HybridShift:
       lobe it is the same local direction; in primary sample space its Jacobian is 1) and traces its own ray.
 
     Each strategy is invertible only if the shift from the offset back to the base path picks the same one, so the
-    offset fails where it would not: after a half-vector copy or a replay, if the reverse shift would reconnect (or,
-    after a replay that sampled a non-delta lobe between glossy vertices, copy the half-vector). Once reconnected,
+    offset fails where it would not: after a half-vector copy or a replay, if the reverse shift would reconnect or
+    follow (or, after a replay that sampled a non-delta lobe between glossy vertices, copy the half-vector). Once
+    reconnected,
     the offset shares every later vertex: one BSDF evaluation at the reconnection vertex for its own incoming
     direction, afterwards the base path's own BSDF weights, and no further rays. Next-event estimation on a not yet
     connected offset reuses the base path's light sample (same point on the emitter; same direction for emitters at
