@@ -93,8 +93,7 @@ def edge_classes(normal: np.ndarray, depth: np.ndarray, albedo: np.ndarray, axis
     def diff(img: np.ndarray) -> np.ndarray:
         return fd(img if img.ndim == 3 else img[..., None], axis)
 
-    near = np.maximum(depth, 1e-3)[..., None]
-    geometry = (np.abs(diff(normal)).max(-1) > 0.05) | (np.abs(diff(depth))[..., 0] > 0.03 * near[..., 0])
+    geometry = (np.abs(diff(normal)).max(-1) > 0.05) | (np.abs(diff(depth))[..., 0] > 0.03 * np.maximum(depth, 1e-3))
     texture = (np.abs(diff(albedo)).max(-1) > 0.05) & ~geometry
     return {"geometry": geometry, "texture": texture, "rest": ~geometry & ~texture}
 
