@@ -76,7 +76,7 @@ class ReplayShift:
 # Hybrid shift: reconnection at rough vertices, half-vector copy at the others, replay after delta lobes
 # ---------------------------------------------------------------------------------------------------------------
 
-NOT_CONNECTED, RECENTLY_CONNECTED, CONNECTED = 0, 1, 2
+NOT_CONNECTED, RECENTLY_CONNECTED, CONNECTED, PENDING = 0, 1, 2, 3  # PENDING: waiting to connect past a mirror
 
 # Float32-safe thresholds. Every threshold that decides whether a shift *exists* is applied to a quantity that is
 # symmetric in the pair (base path, offset path), so the shift from the neighbour's base path back to this one
@@ -85,6 +85,8 @@ MIN_DISTANCE2 = 1e-12  # squared distances below this (coinciding points) are cl
 MIN_HALF_COSINE = 1e-4  # half-vector copy fails where either path's direction grazes the microfacet: there the
 #                         Jacobian is a ratio of two float32 cosines that carry absolute errors of ~1e-7
 DEFAULT_FOLLOW_CURVATURE = 0.5  # move onto a specular vertex where curvature * segment exceeds this (_follows)
+MANIFOLD_STEPS = 5  # Newton steps of the manifold reconnection through a mirror (each one ray cast)
+MANIFOLD_TOLERANCE = 1e-4  # converged where the reflected ray misses its target by this fraction of the path length
 DEFAULT_FOOTPRINT = 0.0  # reconnect only where the segment to the shared vertex is this many times longer than
 #                          the distance between base and offset vertex (see HybridShift; 0 = no such condition)
 
@@ -124,6 +126,65 @@ def _follows(flags: mi.UInt32, valid: mi.Bool, si: mi.SurfaceInteraction3f, d_mi
     vertex and of the two segments' shorter length only, so the pair decides alike from either side."""
     curved = _curvature(si) * d_min > threshold
     return _specular(flags, valid) & ~mi.has_flag(flags, mi.BSDFFlags.Null) & curved
+
+
+def _mirror(flags: mi.UInt32, valid: mi.Bool) -> mi.Bool:
+    """A smooth mirror: delta reflection only (no transmission, no null lobe, nothing non-delta)."""
+    return (_specular(flags, valid) & mi.has_flag(flags, mi.BSDFFlags.DeltaReflection)
+            & ~mi.has_flag(flags, mi.BSDFFlags.DeltaTransmission) & ~mi.has_flag(flags, mi.BSDFFlags.Null))
+
+
+@dataclass
+class MirrorTransfer:
+    """A ray from ``o`` to a mirror point, reflected there, meeting the plane through a target point."""
+
+    direction: mi.Vector3f  # unit direction from o to the mirror point
+    reflected: mi.Vector3f  # reflected direction
+    q: mi.Point3f  # where the reflected ray meets the target's plane
+    dq_a: mi.Vector3f  # derivatives of q with respect to the direction leaving o, along e_a and e_b (unit)
+    dq_b: mi.Vector3f
+    e_a: mi.Vector3f  # orthonormal basis perpendicular to ``direction``
+    e_b: mi.Vector3f
+
+    def footprint(self, n_target: mi.Vector3f) -> mi.Float:
+        """|dA(q) / d omega|: area on the target's plane per unit solid angle leaving o."""
+        return dr.abs(dr.dot(dr.cross(self.dq_a, self.dq_b), n_target))
+
+
+def mirror_transfer(o: mi.Point3f, si_m: mi.SurfaceInteraction3f, target: mi.Point3f,
+                    n_target: mi.Vector3f) -> MirrorTransfer:
+    """Ray differentials through one mirror vertex ``si_m`` (which needs ``RayFlags.dNSdUV``).
+
+    Perturbing the unit direction d leaving ``o`` by e (perpendicular to d) moves the hit point along the
+    surface's tangent plane, dp = t (e - d (e.n_g) / (d.n_g)), turns the normal by dn = dn/du du + dn/dv dv with
+    (du, dv) from dp in the surface parameterization, turns the reflection r = d - 2 (d.n) n by
+    dr = e - 2 ((e.n) + (d.dn)) n - 2 (d.n) dn, and moves the reflected ray's crossing of the target's plane by
+    dp + s dr projected along r onto that plane."""
+    to_m = si_m.p - o
+    t = dr.norm(to_m)
+    d = to_m / dr.maximum(t, 1e-30)
+    n = si_m.sh_frame.n
+    e_a, e_b = mi.coordinate_system(d)
+    d_n = dr.dot(d, n)
+    r = d - 2.0 * d_n * n
+    r_nt = dr.dot(r, n_target)
+    s = dr.dot(target - si_m.p, n_target) / r_nt
+    q = si_m.p + s * r
+    a11, a12, a22 = (dr.dot(si_m.dp_du, si_m.dp_du), dr.dot(si_m.dp_du, si_m.dp_dv),
+                     dr.dot(si_m.dp_dv, si_m.dp_dv))
+    det = a11 * a22 - a12 * a12
+
+    def derivative(e: mi.Vector3f) -> mi.Vector3f:
+        dp = t * (e - d * (dr.dot(e, si_m.n) / dr.dot(d, si_m.n)))
+        b1, b2 = dr.dot(dp, si_m.dp_du), dr.dot(dp, si_m.dp_dv)
+        du, dv = (a22 * b1 - a12 * b2) / det, (a11 * b2 - a12 * b1) / det
+        dn = si_m.dn_du * du + si_m.dn_dv * dv
+        d_r = e - 2.0 * (dr.dot(e, n) + dr.dot(d, dn)) * n - 2.0 * d_n * dn
+        w = dp + s * d_r
+        return w - r * (dr.dot(n_target, w) / r_nt)
+
+    return MirrorTransfer(direction=d, reflected=r, q=q, dq_a=derivative(e_a), dq_b=derivative(e_b), e_a=e_a,
+                          e_b=e_b)
 
 
 def _glossy(flags: mi.UInt32) -> mi.Bool:
@@ -278,6 +339,9 @@ class HybridState:
     b_wo: mi.Vector3f
     b_eta: mi.Float  # base: relative index of refraction of that sample (1 for reflections)
     b_bsdf: mi.UInt32  # base: the registry id of the BSDF there
+    m_si: mi.SurfaceInteraction3f  # PENDING: the base path's mirror vertex x_{k+1}
+    m_p: mi.Point3f  # PENDING: the base path's vertex x_k before it, and the pdf of the direction leaving it
+    m_pdf: mi.Float
 
 
 @dataclass
@@ -343,7 +407,8 @@ class HybridShift:
     reuses_light_samples = True
 
     def __init__(self, footprint: float = DEFAULT_FOOTPRINT, half_vector: bool = True,
-                 follow_specular: bool = True, follow_curvature: float = DEFAULT_FOLLOW_CURVATURE) -> None:
+                 follow_specular: bool = True, follow_curvature: float = DEFAULT_FOLLOW_CURVATURE,
+                 manifold: bool = True) -> None:
         if not footprint >= 0.0:
             raise ValueError(f"footprint must be >= 0, got {footprint}")
         if not follow_curvature >= 0.0:
@@ -352,6 +417,7 @@ class HybridShift:
         self.footprint = float(footprint)
         self.half_vector = bool(half_vector)  # False: replay wherever the shift does not reconnect (comparison)
         self.follow_specular = bool(follow_specular)  # False: replay towards specular vertices (comparison)
+        self.manifold = bool(manifold)  # False: follow at mirrors too, instead of connecting past them (comparison)
         self._scene_features: tuple[mi.Scene, tuple[bool, bool]] | None = None
 
     def start(self, ray: mi.Ray3f, weight: mi.Spectrum, active: mi.Bool) -> HybridState:
@@ -362,7 +428,7 @@ class HybridShift:
             lobe=mi.Float(0.0), direction=mi.Point2f(0.0), b_pdf=mi.Float(1.0), b_weight=mi.Spectrum(1.0),
             b_dir=mi.Vector3f(0.0, 0.0, 1.0), b_delta=mi.Bool(False), b_flags=mi.UInt32(0), b_p=mi.Point3f(0.0),
             b_wi=mi.Vector3f(0.0, 0.0, 1.0), b_wo=mi.Vector3f(0.0, 0.0, 1.0), b_eta=mi.Float(1.0),
-            b_bsdf=mi.UInt32(0))
+            b_bsdf=mi.UInt32(0), m_si=dr.zeros(mi.SurfaceInteraction3f), m_p=mi.Point3f(0.0), m_pdf=mi.Float(1.0))
 
     def _far(self, a: mi.Point3f, b: mi.Point3f, target: mi.Point3f, at_infinity: mi.Bool) -> mi.Bool:
         """Both segments a-target and b-target are ``footprint`` times longer than a-b (always, at infinity)."""
@@ -380,6 +446,55 @@ class HybridShift:
     def ray_flags(self, scene: mi.Scene) -> mi.RayFlags:
         """Surface data every intersection needs: normal derivatives where the follow strategy reads curvature."""
         return mi.RayFlags.All | mi.RayFlags.dNSdUV if self._features(scene)[1] else mi.RayFlags.All
+
+    def _through_mirror(self, scene: mi.Scene, off: HybridState, prev_si: mi.SurfaceInteraction3f, base: Vertex,
+                        pending: mi.Bool) -> tuple[mi.Bool, mi.Vector3f, mi.Float, mi.Spectrum, mi.Vector3f]:
+        """The manifold reconnection of a PENDING offset: find the point ``y'`` of the base path's mirror that
+        reflects the offset's vertex ``y_k`` onto the base path's vertex after the mirror, ``x_{k+2}``.
+
+        Newton's method on the direction leaving ``y_k`` (start: towards the base path's mirror point), with the
+        ray differential through the mirror (:func:`mirror_transfer`) as the derivative, each step one ray cast.
+        The shift's Jacobian is the ratio of the two paths' ``dA(x_{k+2}) / d omega`` through the mirror. It
+        exists where ``x_{k+2}`` is rough or an emitter, Newton converged onto the same mirror shape, the
+        reflected segment is unoccluded, and the reverse shift (from this offset as a base path) would wait at
+        ``y'`` too (same curvature rule, its own segments). Returns (ok, direction leaving y_k, Jacobian over the
+        base path's pdf at x_k, the mirror's weight for the offset, the offset's incoming direction at x_{k+2} in
+        its local frame)."""
+        ctx = mi.BSDFContext()
+        flags = self.ray_flags(scene)
+        target, n_t = base.si.p, base.si.n
+        ok = (pending & base.si.is_valid() & off.b_delta
+              & (_rough(base.bsdf_flags) | (dr.max(base.emission) > 0.0)))
+        d = dr.normalize(off.m_si.p - prev_si.p)
+        for _ in range(MANIFOLD_STEPS):
+            ray = prev_si.spawn_ray(d)
+            si_m = scene.ray_intersect(ray, ray_flags=flags, coherent=False, active=ok)
+            tr = mirror_transfer(ray.o, si_m, target, n_t)
+            e = tr.q - target
+            g11, g12, g22 = dr.dot(tr.dq_a, tr.dq_a), dr.dot(tr.dq_a, tr.dq_b), dr.dot(tr.dq_b, tr.dq_b)
+            h1, h2 = dr.dot(tr.dq_a, e), dr.dot(tr.dq_b, e)
+            det = g11 * g22 - g12 * g12
+            step = ((g22 * h1 - g12 * h2) * tr.e_a + (g11 * h2 - g12 * h1) * tr.e_b) / det
+            step *= dr.minimum(1.0, 0.25 / dr.maximum(dr.norm(step), 1e-30))  # at most ~14 degrees per step
+            new_d = dr.normalize(tr.direction - step)
+            d = dr.select(ok & si_m.is_valid() & dr.all(dr.isfinite(new_d)), new_d, d)
+        ray = prev_si.spawn_ray(d)
+        si_m = scene.ray_intersect(ray, ray_flags=flags, coherent=False, active=ok)
+        tr = mirror_transfer(ray.o, si_m, target, n_t)
+        length = dr.norm(si_m.p - ray.o) + dr.norm(target - si_m.p)
+        ok &= si_m.is_valid() & (dr.norm(tr.q - target) < MANIFOLD_TOLERANCE * length)
+        ok &= dr.reinterpret_array(mi.UInt32, si_m.shape) == dr.reinterpret_array(mi.UInt32, off.m_si.shape)
+        ok &= dr.dot(target - si_m.p, tr.reflected) > 0.0
+        d_rev = dr.sqrt(dr.minimum(dr.squared_norm(si_m.p - prev_si.p), dr.squared_norm(si_m.p - off.m_p)))
+        ok &= _curvature(si_m) * d_rev > self.follow_curvature
+        ok &= ~scene.ray_test(si_m.spawn_ray_to(target), ok)
+        _, weight = si_m.bsdf().sample(ctx, si_m, 0.0, mi.Point2f(0.5), ok)
+        # Both paths' footprints from their surface points (not the epsilon-offset ray origins), alike, so that a
+        # shift onto the same pixel has a Jacobian of 1 to rounding.
+        base_footprint = mirror_transfer(off.m_p, off.m_si, target, n_t).footprint(n_t)
+        conv = base_footprint / mirror_transfer(prev_si.p, si_m, target, n_t).footprint(n_t) / off.m_pdf
+        ok &= dr.isfinite(conv) & (conv > 0.0) & (dr.max(weight) > 0.0)
+        return ok, tr.direction, conv, weight, base.si.to_local(-tr.reflected)
 
     def step(self, scene: mi.Scene, off: HybridState, base: Vertex, depth: mi.UInt32, max_depth: mi.UInt32,
              samples: VertexSamples) -> tuple[HybridState, OffsetEvents]:
@@ -415,10 +530,26 @@ class HybridShift:
             follow = rough_pair & _follows(base.bsdf_flags, base_valid, base.si, d_min, self.follow_curvature)
         else:
             follow = mi.Bool(False)
+        # A curved mirror (not itself an emitter): wait here and, next iteration, connect to the vertex after it
+        # through the mirror point that reflects this offset's vertex onto it (the manifold reconnection).
+        use_manifold = use_follow and self.manifold
+        if use_manifold:
+            wait = follow & _mirror(base.bsdf_flags, base_valid) & ~(dr.max(base.emission) > 0.0)
+            follow &= ~wait
+        else:
+            wait = mi.Bool(False)
         to_vertex = reconnect | follow
         glossy_pair = _glossy(off.b_flags) & _glossy(off.flags)
-        copy = not_connected & ~to_vertex & ~off.b_delta & off_rough & glossy_pair if use_copy else mi.Bool(False)
-        replay = not_connected & ~to_vertex & ~copy
+        copy = (not_connected & ~to_vertex & ~wait & ~off.b_delta & off_rough & glossy_pair if use_copy
+                else mi.Bool(False))
+        replay = not_connected & ~to_vertex & ~copy & ~wait
+
+        # ---- manifold reconnection: through the mirror to the base path's vertex after it -------------------
+        pending = active & (status == PENDING)
+        if use_manifold:
+            mani, mani_dir, mani_conv, mani_f, mani_wi = self._through_mirror(scene, off, prev_si, base, pending)
+        else:
+            mani = mi.Bool(False)
 
         # ---- reconnection to the base path's vertex (or to its direction, at infinity) ----------------------
         # Segments are measured from the rays' actual origins (the surface point pushed off by Mitsuba's ray
@@ -451,18 +582,24 @@ class HybridShift:
         else:
             eval_dir = dr.select(to_vertex, wo_rc, off.b_dir)
             conv = dr.select(to_vertex, conv_rc, dr.rcp(off.b_pdf))
+        if use_manifold:
+            eval_dir = dr.select(mani, mani_dir, eval_dir)
+            conv = dr.select(mani, mani_conv, conv)
 
         # One BSDF evaluation at the offset's previous vertex serves a new reconnection (towards the base path's
         # vertex), a reconnection made one vertex earlier (towards the base path's next direction) and the
         # half-vector copy; ``conv`` is the Jacobian over the base path's pdf, in solid angle at that vertex.
-        evaluated = to_vertex | recent | copy
+        evaluated = to_vertex | recent | copy | mani
         val, pdf = prev_bsdf.eval_pdf(ctx, prev_si, prev_si.to_local(eval_dir), evaluated)
         step_f = dr.select(evaluated, val * conv, 1.0)
+        if use_manifold:
+            step_f = dr.select(mani, step_f * mani_f, step_f)
         step_r = dr.select(evaluated, pdf * conv, 1.0)
         fail = evaluated & ~(off.b_pdf > 0.0)
         fail |= evaluated & ~(dr.max(val) > 0.0)  # the offset's own base path would end here: no such pair
         fail |= to_vertex & (~visible | (base_valid & ~area_ok))
         fail |= recent & off.b_delta  # a delta direction of the base path is not one for the offset's own wi
+        fail |= pending & ~mani  # no path through the mirror (or the reverse shift would not take one)
         if use_copy:
             fail |= copy & ~hv_ok
 
@@ -512,33 +649,43 @@ class HybridShift:
         si = dr.select(own, si_own, si_base_wi)
         flags = dr.select(own, own_flags, base.bsdf_flags)
         bsdf = dr.select(own, own_bsdf, base.bsdf)
+        if use_manifold:
+            # a waiting offset stays where it is; one connected through the mirror arrives from the mirror point
+            si_base_wi.wi = dr.select(mani, mani_wi, si_base_wi.wi)
+            si = dr.select(wait, prev_si, dr.select(mani, si_base_wi, si))
+            flags = dr.select(wait, off.flags, flags)
+            bsdf = dr.select(wait, prev_bsdf, bsdf)
         shared = active & ~own  # this vertex is the base path's
-        status = dr.select(reconnect, RECENTLY_CONNECTED, dr.select(recent, CONNECTED, status))
+        status = dr.select(reconnect | mani, RECENTLY_CONNECTED, dr.select(recent, CONNECTED, status))
+        status = dr.select(wait, PENDING, status)
         prev_it = _interaction(prev_si)
         prev_pdf = dr.select(replay, bs.pdf, dr.select(evaluated, pdf, off.b_pdf))
         prev_delta = dr.select(replay, mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta),
                                dr.select(evaluated, False, off.b_delta))
         prev_delta |= first
+        # arrived by the mirror's delta reflection: emission found there has MIS weight 1, as on the base path
+        prev_pdf = dr.select(mani, 1.0, prev_pdf)
+        prev_delta |= mani
         # An offset connected before this vertex arrived at the base path's vertex from the base path's previous
         # vertex and in its direction: the emission found and its emitter-sampling pdf are the base path's (only
         # the BSDF pdf of the MIS weight is the offset's own), and so is the next-event estimate per unit
         # throughput, with a light-sample density ratio of 1. Nothing to evaluate there.
         reuse = connected | recent
-        evaluate = active & ~reuse
+        evaluate = active & ~reuse & ~wait  # a waiting offset has no events (nor has the base path at a mirror)
 
         # ---- emission found at this vertex ------------------------------------------------------------------
         ds = _emitter_hit(scene, si, prev_it, evaluate)
         em_pdf = scene.pdf_emitter_direction(prev_it, ds, evaluate & ~prev_delta)
         em_pdf = dr.select(reuse, base.emitter_pdf, em_pdf)
         emission = dr.select(reuse, base.emission, ds.emitter.eval(si, evaluate))
-        emitted = dr.select(active, throughput * mis_power(prev_pdf, em_pdf) * emission, 0.0)
-        w_hit = dr.select(active, _balance(ratio), 1.0)
+        emitted = dr.select(active & ~wait, throughput * mis_power(prev_pdf, em_pdf) * emission, 0.0)
+        w_hit = dr.select(active & ~wait, _balance(ratio), 1.0)
 
         # ---- next-event estimation: the base path's light sample ------------------------------------------
         has_vertex = active & si.is_valid()
         light = base.light
         nee_on = has_vertex & base.nee_sampled & (depth + 1 < max_depth)
-        can_nee = nee_on & _rough(flags) & ~reuse
+        can_nee = nee_on & _rough(flags) & ~reuse & ~wait
         infinite = base.light_infinite
         to_light = light.p - si.p
         dist_off = dr.norm(to_light)
@@ -579,7 +726,9 @@ class HybridShift:
             b_weight=base.sample_weight, b_dir=base.si.to_world(base.sample.wo),
             b_delta=mi.has_flag(base.sample.sampled_type, mi.BSDFFlags.Delta), b_flags=base.bsdf_flags,
             b_p=mi.Point3f(base.si.p), b_wi=mi.Vector3f(base.si.wi), b_wo=mi.Vector3f(base.sample.wo),
-            b_eta=mi.Float(base.sample.eta), b_bsdf=_bsdf_id(base.bsdf))
+            b_eta=mi.Float(base.sample.eta), b_bsdf=_bsdf_id(base.bsdf),
+            m_si=dr.select(wait, base.si, off.m_si), m_p=dr.select(wait, off.b_p, off.m_p),
+            m_pdf=dr.select(wait, off.b_pdf, off.m_pdf))
         return new, OffsetEvents(emitted=emitted, nee=nee, w_hit=w_hit, w_nee=w_nee)
 
     # ---- connected offsets (renderer.gpt.ConnectingShift) ----------------------------------------------------
