@@ -187,6 +187,11 @@ def mirror_transfer(o: mi.Point3f, si_m: mi.SurfaceInteraction3f, target: mi.Poi
                           e_b=e_b)
 
 
+def _no_mirror_path(*_: object) -> tuple[mi.Bool, mi.Vector3f, mi.Float, mi.Spectrum, mi.Vector3f]:
+    """The manifold reconnection's result where no offset waits at a mirror."""
+    return mi.Bool(False), mi.Vector3f(0.0, 0.0, 1.0), mi.Float(0.0), mi.Spectrum(0.0), mi.Vector3f(0.0, 0.0, 1.0)
+
+
 def _glossy(flags: mi.UInt32) -> mi.Bool:
     """A vertex whose non-delta lobes are all glossy (no diffuse lobe): where a shift that does not reconnect
     copies the half-vector. Diffuse vertices replay instead: the same cosine-weighted random numbers give the
@@ -222,6 +227,22 @@ def scene_has_specular_vertices(scene: mi.Scene) -> bool:
     follow strategy and the surfaces' normal derivatives (:func:`_curvature`)."""
     delta, smooth = int(mi.BSDFFlags.Delta), int(mi.BSDFFlags.Smooth)
     return _scene_has(scene, lambda flags: bool(flags & delta) and not flags & smooth)
+
+
+def scene_has_curved_mirrors(scene: mi.Scene) -> bool:
+    """Whether any shape that could be curved (not a rectangle or disk) has a mirror BSDF (:func:`_mirror`): only
+    then does the kernel need the manifold reconnection, whose symbolic branch costs ~15 % per sample even where
+    no offset takes it. Instances and shapes without a BSDF count as "maybe"."""
+    reflect, others = int(mi.BSDFFlags.DeltaReflection), int(mi.BSDFFlags.Smooth | mi.BSDFFlags.DeltaTransmission
+                                                              | mi.BSDFFlags.Null)
+    for shape in scene.shapes():
+        bsdf = shape.bsdf()
+        if bsdf is None or shape.class_name() == "Instance":
+            return True
+        flags = int(bsdf.flags())
+        if flags & reflect and not flags & others and shape.class_name() not in ("Rectangle", "Disk"):
+            return True
+    return False
 
 
 def _bsdf_id(bsdf: mi.BSDFPtr) -> mi.UInt32:
@@ -418,7 +439,7 @@ class HybridShift:
         self.half_vector = bool(half_vector)  # False: replay wherever the shift does not reconnect (comparison)
         self.follow_specular = bool(follow_specular)  # False: replay towards specular vertices (comparison)
         self.manifold = bool(manifold)  # False: follow at mirrors too, instead of connecting past them (comparison)
-        self._scene_features: tuple[mi.Scene, tuple[bool, bool]] | None = None
+        self._scene_features: tuple[mi.Scene, tuple[bool, bool, bool]] | None = None
 
     def start(self, ray: mi.Ray3f, weight: mi.Spectrum, active: mi.Bool) -> HybridState:
         return HybridState(
@@ -435,12 +456,13 @@ class HybridShift:
         sep2 = dr.squared_norm(a - b) * (self.footprint * self.footprint)
         return at_infinity | ((dr.squared_norm(target - a) > sep2) & (dr.squared_norm(target - b) > sep2))
 
-    def _features(self, scene: mi.Scene) -> tuple[bool, bool]:
-        """(half-vector copy, follow) compiled for this scene: only the strategies its materials can use (checked
-        once per scene)."""
+    def _features(self, scene: mi.Scene) -> tuple[bool, bool, bool]:
+        """(half-vector copy, follow, manifold reconnection) compiled for this scene: only the strategies its
+        materials and shapes can use (checked once per scene)."""
         if self._scene_features is None or self._scene_features[0] is not scene:
-            self._scene_features = (scene, (self.half_vector and scene_has_glossy_vertices(scene),
-                                            self.follow_specular and scene_has_specular_vertices(scene)))
+            follow = self.follow_specular and scene_has_specular_vertices(scene)
+            self._scene_features = (scene, (self.half_vector and scene_has_glossy_vertices(scene), follow,
+                                            follow and self.manifold and scene_has_curved_mirrors(scene)))
         return self._scene_features[1]
 
     def ray_flags(self, scene: mi.Scene) -> mi.RayFlags:
@@ -460,14 +482,26 @@ class HybridShift:
         ``y'`` too (same curvature rule, its own segments). Returns (ok, direction leaving y_k, Jacobian over the
         base path's pdf at x_k, the mirror's weight for the offset, the offset's incoming direction at x_{k+2} in
         its local frame)."""
-        ctx = mi.BSDFContext()
-        flags = self.ray_flags(scene)
-        target, n_t = base.si.p, base.si.n
         ok = (pending & base.si.is_valid() & off.b_delta
               & (_rough(base.bsdf_flags) | (dr.max(base.emission) > 0.0)))
-        d = dr.normalize(off.m_si.p - prev_si.p)
+        # A symbolic conditional: SIMD packets without a pending offset skip the solve (its seven ray casts and
+        # the differentials cost as much as the rest of the step even when every lane is masked off). Its
+        # arguments go through memory, so only what the solve needs is passed.
+        origin = _interaction(prev_si)
+        found, direction, conv, weight, reflected = dr.if_stmt(
+            args=(ok, origin, off.m_si, off.m_p, off.m_pdf, base.si.p, base.si.n), cond=ok,
+            true_fn=lambda *a: self._solve_mirror(scene, *a), false_fn=_no_mirror_path)
+        return found, direction, conv, weight, base.si.to_local(-reflected)
+
+    def _solve_mirror(self, scene: mi.Scene, ok: mi.Bool, origin: mi.Interaction3f, m_si: mi.SurfaceInteraction3f,
+                      m_p: mi.Point3f, m_pdf: mi.Float, target: mi.Point3f,
+                      n_t: mi.Vector3f) -> tuple[mi.Bool, mi.Vector3f, mi.Float, mi.Spectrum, mi.Vector3f]:
+        """:meth:`_through_mirror`'s solve, for the lanes ``ok``; returns the reflected direction in world space."""
+        ctx = mi.BSDFContext()
+        flags = self.ray_flags(scene)
+        d = dr.normalize(m_si.p - origin.p)
         for _ in range(MANIFOLD_STEPS):
-            ray = prev_si.spawn_ray(d)
+            ray = origin.spawn_ray(d)
             si_m = scene.ray_intersect(ray, ray_flags=flags, coherent=False, active=ok)
             tr = mirror_transfer(ray.o, si_m, target, n_t)
             e = tr.q - target
@@ -478,23 +512,23 @@ class HybridShift:
             step *= dr.minimum(1.0, 0.25 / dr.maximum(dr.norm(step), 1e-30))  # at most ~14 degrees per step
             new_d = dr.normalize(tr.direction - step)
             d = dr.select(ok & si_m.is_valid() & dr.all(dr.isfinite(new_d)), new_d, d)
-        ray = prev_si.spawn_ray(d)
+        ray = origin.spawn_ray(d)
         si_m = scene.ray_intersect(ray, ray_flags=flags, coherent=False, active=ok)
         tr = mirror_transfer(ray.o, si_m, target, n_t)
         length = dr.norm(si_m.p - ray.o) + dr.norm(target - si_m.p)
         ok &= si_m.is_valid() & (dr.norm(tr.q - target) < MANIFOLD_TOLERANCE * length)
-        ok &= dr.reinterpret_array(mi.UInt32, si_m.shape) == dr.reinterpret_array(mi.UInt32, off.m_si.shape)
+        ok &= dr.reinterpret_array(mi.UInt32, si_m.shape) == dr.reinterpret_array(mi.UInt32, m_si.shape)
         ok &= dr.dot(target - si_m.p, tr.reflected) > 0.0
-        d_rev = dr.sqrt(dr.minimum(dr.squared_norm(si_m.p - prev_si.p), dr.squared_norm(si_m.p - off.m_p)))
+        d_rev = dr.sqrt(dr.minimum(dr.squared_norm(si_m.p - origin.p), dr.squared_norm(si_m.p - m_p)))
         ok &= _curvature(si_m) * d_rev > self.follow_curvature
         ok &= ~scene.ray_test(si_m.spawn_ray_to(target), ok)
         _, weight = si_m.bsdf().sample(ctx, si_m, 0.0, mi.Point2f(0.5), ok)
         # Both paths' footprints from their surface points (not the epsilon-offset ray origins), alike, so that a
         # shift onto the same pixel has a Jacobian of 1 to rounding.
-        base_footprint = mirror_transfer(off.m_p, off.m_si, target, n_t).footprint(n_t)
-        conv = base_footprint / mirror_transfer(prev_si.p, si_m, target, n_t).footprint(n_t) / off.m_pdf
+        base_footprint = mirror_transfer(m_p, m_si, target, n_t).footprint(n_t)
+        conv = base_footprint / mirror_transfer(origin.p, si_m, target, n_t).footprint(n_t) / m_pdf
         ok &= dr.isfinite(conv) & (conv > 0.0) & (dr.max(weight) > 0.0)
-        return ok, tr.direction, conv, weight, base.si.to_local(-tr.reflected)
+        return mi.Bool(ok), mi.Vector3f(tr.direction), mi.Float(conv), mi.Spectrum(weight), mi.Vector3f(tr.reflected)
 
     def step(self, scene: mi.Scene, off: HybridState, base: Vertex, depth: mi.UInt32, max_depth: mi.UInt32,
              samples: VertexSamples) -> tuple[HybridState, OffsetEvents]:
@@ -507,7 +541,7 @@ class HybridShift:
         prev_si = off.si
         prev_bsdf = off.bsdf
         base_valid = base.si.is_valid()
-        use_copy, use_follow = self._features(scene)
+        use_copy, use_follow, use_manifold = self._features(scene)
         use_far = self.footprint > 0.0
 
         # ---- transition into this vertex: which strategy ---------------------------------------------------
@@ -532,7 +566,6 @@ class HybridShift:
             follow = mi.Bool(False)
         # A curved mirror (not itself an emitter): wait here and, next iteration, connect to the vertex after it
         # through the mirror point that reflects this offset's vertex onto it (the manifold reconnection).
-        use_manifold = use_follow and self.manifold
         if use_manifold:
             wait = follow & _mirror(base.bsdf_flags, base_valid) & ~(dr.max(base.emission) > 0.0)
             follow &= ~wait

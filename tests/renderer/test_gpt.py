@@ -742,6 +742,24 @@ def test_curvature_of_spheres_and_planes():
     assert np.array(_curvature(miss))[0] == 0.0
 
 
+def test_manifold_code_only_for_scenes_with_curved_mirrors():
+    """The manifold reconnection is compiled only where a shape that can be curved has a mirror BSDF (it costs
+    even where no offset takes it); the follow strategy wherever a delta-only material exists."""
+    select_variant()
+
+    def features(shapes: dict) -> tuple[bool, bool, bool]:
+        return HybridShift()._features(mi.load_dict({"type": "scene", **shapes}))
+
+    mirror, glass = {"type": "conductor"}, {"type": "dielectric"}
+    assert features({"a": {"type": "sphere", "bsdf": mirror}})[1:] == (True, True)
+    assert features({"a": {"type": "rectangle", "bsdf": mirror}, "b": {"type": "disk", "bsdf": mirror}})[1:] == (
+        True, False)
+    assert features({"a": {"type": "sphere", "bsdf": glass}})[1:] == (True, False)
+    assert features({"a": {"type": "sphere", "bsdf": {"type": "diffuse"}}})[1:] == (False, False)
+    assert HybridShift(manifold=False)._features(
+        mi.load_dict({"type": "scene", "a": {"type": "sphere", "bsdf": mirror}}))[1:] == (True, False)
+
+
 @pytest.mark.parametrize("radius", [0.25, 0.5, 2.0])
 def test_mirror_transfer_matches_finite_differences(radius):
     """The manifold reconnection's Jacobian is a ratio of footprints |dA/d omega| through a mirror, from the ray
