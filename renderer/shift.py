@@ -204,13 +204,14 @@ def _flags(si: mi.SurfaceInteraction3f) -> mi.UInt32:
     return dr.select(si.is_valid(), si.bsdf().flags(), 0)
 
 
-def _scene_has(scene: mi.Scene, kind: Callable[[int], bool]) -> bool:
-    """Whether any shape's BSDF flags satisfy ``kind`` (instances and shapes without a BSDF count as "maybe")."""
+def _scene_has(scene: mi.Scene, kind: Callable[[int], bool], flat_ok: bool = True) -> bool:
+    """Whether any shape's BSDF flags satisfy ``kind`` (instances and shapes without a BSDF count as "maybe");
+    ``flat_ok`` False skips rectangles and disks (shapes that cannot be curved)."""
     for shape in scene.shapes():
         bsdf = shape.bsdf()
         if bsdf is None or shape.class_name() == "Instance":
             return True
-        if kind(int(bsdf.flags())):
+        if kind(int(bsdf.flags())) and (flat_ok or shape.class_name() not in ("Rectangle", "Disk")):
             return True
     return False
 
@@ -233,16 +234,9 @@ def scene_has_curved_mirrors(scene: mi.Scene) -> bool:
     """Whether any shape that could be curved (not a rectangle or disk) has a mirror BSDF (:func:`_mirror`): only
     then does the kernel need the manifold reconnection, whose symbolic branch costs ~15 % per sample even where
     no offset takes it. Instances and shapes without a BSDF count as "maybe"."""
-    reflect, others = int(mi.BSDFFlags.DeltaReflection), int(mi.BSDFFlags.Smooth | mi.BSDFFlags.DeltaTransmission
-                                                              | mi.BSDFFlags.Null)
-    for shape in scene.shapes():
-        bsdf = shape.bsdf()
-        if bsdf is None or shape.class_name() == "Instance":
-            return True
-        flags = int(bsdf.flags())
-        if flags & reflect and not flags & others and shape.class_name() not in ("Rectangle", "Disk"):
-            return True
-    return False
+    reflect = int(mi.BSDFFlags.DeltaReflection)
+    others = int(mi.BSDFFlags.Smooth | mi.BSDFFlags.DeltaTransmission | mi.BSDFFlags.Null)
+    return _scene_has(scene, lambda flags: bool(flags & reflect) and not flags & others, flat_ok=False)
 
 
 def _bsdf_id(bsdf: mi.BSDFPtr) -> mi.UInt32:
