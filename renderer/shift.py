@@ -114,7 +114,14 @@ def _curvature(si: mi.SurfaceInteraction3f) -> mi.Float:
     return dr.maximum(along(si.dn_du, si.dp_du), along(si.dn_dv, si.dp_dv))
 
 
-def _follows(flags: mi.UInt32, valid: mi.Bool, si: mi.SurfaceInteraction3f, d_min: mi.Float,
+def _curved_enough(si: mi.SurfaceInteraction3f, a: mi.Point3f, b: mi.Point3f, threshold: float) -> mi.Bool:
+    """The curvature rule of :func:`_follows`: curvature at ``si`` times the shorter of the segments from the
+    pair of vertices ``a``, ``b`` to it exceeds ``threshold`` (symmetric in ``a`` and ``b``)."""
+    d_min = dr.sqrt(dr.minimum(dr.squared_norm(si.p - a), dr.squared_norm(si.p - b)))
+    return _curvature(si) * d_min > threshold
+
+
+def _follows(flags: mi.UInt32, valid: mi.Bool, si: mi.SurfaceInteraction3f, a: mi.Point3f, b: mi.Point3f,
              threshold: float = 0.5) -> mi.Bool:
     """Whether an offset moves onto this specular vertex rather than replaying towards it.
 
@@ -124,8 +131,7 @@ def _follows(flags: mi.UInt32, valid: mi.Bool, si: mi.SurfaceInteraction3f, d_mi
     (``threshold``): never on flat mirrors or panes (replay stays exactly parallel there), nor where the BSDF
     passes light straight through (a null lobe: thin dielectrics), for which replay is exact. A function of the
     vertex and of the two segments' shorter length only, so the pair decides alike from either side."""
-    curved = _curvature(si) * d_min > threshold
-    return _specular(flags, valid) & ~mi.has_flag(flags, mi.BSDFFlags.Null) & curved
+    return _specular(flags, valid) & ~mi.has_flag(flags, mi.BSDFFlags.Null) & _curved_enough(si, a, b, threshold)
 
 
 def _mirror(flags: mi.UInt32, valid: mi.Bool) -> mi.Bool:
@@ -390,6 +396,9 @@ class HybridShift:
       ratio) but stays on its own from there, replaying the delta lobe for its own incoming direction. A
       parallel replayed ray would meet a curved mirror or lens elsewhere and turn by ~2 k delta; moving onto the
       point turns it by ~delta / d. On flat mirrors and panes, and through thin dielectrics, replay is exact.
+    * **Manifold reconnection** where the follow strategy would apply and ``x_{k+1}`` is a curved mirror: the
+      offset waits one iteration, then solves for the mirror point that reflects ``y_k`` onto ``x_{k+2}`` and
+      connects there (:meth:`_through_mirror`; compiled only for scenes with a possibly curved mirror).
     * **Half-vector copy** otherwise, when the base path sampled a non-delta lobe and both vertices are glossy
       (non-delta lobes, none of them diffuse): :func:`half_vector_shift` reflects or refracts the offset about
       the base path's microfacet normal, copied in the local shading frame, and the offset traces its own ray. A
@@ -513,8 +522,7 @@ class HybridShift:
         ok &= si_m.is_valid() & (dr.norm(tr.q - target) < MANIFOLD_TOLERANCE * length)
         ok &= dr.reinterpret_array(mi.UInt32, si_m.shape) == dr.reinterpret_array(mi.UInt32, m_si.shape)
         ok &= dr.dot(target - si_m.p, tr.reflected) > 0.0
-        d_rev = dr.sqrt(dr.minimum(dr.squared_norm(si_m.p - origin.p), dr.squared_norm(si_m.p - m_p)))
-        ok &= _curvature(si_m) * d_rev > self.follow_curvature
+        ok &= _curved_enough(si_m, origin.p, m_p, self.follow_curvature)
         ok &= ~scene.ray_test(si_m.spawn_ray_to(target), ok)
         _, weight = si_m.bsdf().sample(ctx, si_m, 0.0, mi.Point2f(0.5), ok)
         # Both paths' footprints from their surface points (not the epsilon-offset ray origins), alike, so that a
@@ -554,8 +562,8 @@ class HybridShift:
         # the delta lobe from there with the offset's own incoming direction (replay at it), instead of replaying
         # from y_k -- which would send a parallel ray to another point of a curved mirror or lens.
         if use_follow:
-            d_min = dr.sqrt(dr.minimum(dr.squared_norm(base.si.p - off.b_p), dr.squared_norm(base.si.p - prev_si.p)))
-            follow = rough_pair & _follows(base.bsdf_flags, base_valid, base.si, d_min, self.follow_curvature)
+            follow = rough_pair & _follows(base.bsdf_flags, base_valid, base.si, off.b_p, prev_si.p,
+                                           self.follow_curvature)
         else:
             follow = mi.Bool(False)
         # A curved mirror (not itself an emitter): wait here and, next iteration, connect to the vertex after it
@@ -650,8 +658,7 @@ class HybridShift:
         both_rough = own_nondelta & base_rough & off_rough
         reverse_target = ~own_valid | _rough(own_flags)
         if use_follow:
-            d_own = dr.sqrt(dr.minimum(dr.squared_norm(si_own.p - prev_si.p), dr.squared_norm(si_own.p - off.b_p)))
-            reverse_target |= _follows(own_flags, own_valid, si_own, d_own, self.follow_curvature)
+            reverse_target |= _follows(own_flags, own_valid, si_own, prev_si.p, off.b_p, self.follow_curvature)
         reverse_reconnects = both_rough & reverse_target
         if use_far:
             reverse_reconnects &= self._far(prev_si.p, off.b_p, si_own.p, ~own_valid)
@@ -754,8 +761,9 @@ class HybridShift:
             b_delta=mi.has_flag(base.sample.sampled_type, mi.BSDFFlags.Delta), b_flags=base.bsdf_flags,
             b_p=mi.Point3f(base.si.p), b_wi=mi.Vector3f(base.si.wi), b_wo=mi.Vector3f(base.sample.wo),
             b_eta=mi.Float(base.sample.eta), b_bsdf=_bsdf_id(base.bsdf),
-            m_si=dr.select(wait, base.si, off.m_si), m_p=dr.select(wait, off.b_p, off.m_p),
-            m_pdf=dr.select(wait, off.b_pdf, off.m_pdf))
+            m_si=dr.select(wait, base.si, off.m_si) if use_manifold else off.m_si,
+            m_p=dr.select(wait, off.b_p, off.m_p) if use_manifold else off.m_p,
+            m_pdf=dr.select(wait, off.b_pdf, off.m_pdf) if use_manifold else off.m_pdf)
         return new, OffsetEvents(emitted=emitted, nee=nee, w_hit=w_hit, w_nee=w_nee)
 
     # ---- connected offsets (renderer.gpt.ConnectingShift) ----------------------------------------------------
