@@ -80,6 +80,7 @@ def _torch_reference(net: DualBranchNet, layer: Layer, features: Features) -> np
     return output_radiance(crop_to(y[0].numpy(), h, w))
 
 
+@pytest.mark.slow
 def test_load_nothing_and_something(models: tuple[Path, dict], tmp_path: Path) -> None:
     assert NetworkReconstructor.load(tmp_path) is None
     folder, _ = models
@@ -106,6 +107,7 @@ def test_matches_the_pytorch_pipeline(models: tuple[Path, dict], h: int, w: int)
         assert np.abs(out - ref).max() <= 1e-4 * max(float(np.abs(ref).max()), 1e-6)
 
 
+@pytest.mark.slow
 def test_unlit_pixels_stay_black(tmp_path: Path) -> None:
     """A network that adds light everywhere (head bias > 0) must leave pixels with no measured light at 0 —
     base and every gradient touching them 0 — and change nothing where light was measured."""
