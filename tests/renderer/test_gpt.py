@@ -207,7 +207,6 @@ def assert_matches_reference(est: np.ndarray, ref_chunks: np.ndarray, floor: flo
     per_chunk = (ref_chunks[:, signed] * sign).sum(axis=1) / norm
     scale = per_seed.mean() / per_chunk.mean()
     se = np.sqrt(per_seed.var(ddof=1) / len(per_seed) + per_chunk.var(ddof=1) / len(per_chunk))
-    print(f"SCALECHECK {what} n={int(signed.sum())} scale={scale:.4f} se={se:.4f}")
     assert abs(scale - 1) < 4 * se + 0.03, f"{what}: scaled by {scale:.3f} +- {se:.3f} against the reference"
 
 
