@@ -64,6 +64,7 @@ def test_split_check_fails_when_direct_exceeds_total() -> None:
 
 # -- rendering -------------------------------------------------------------------------------------------------
 
+@pytest.mark.slow
 @pytest.mark.parametrize("spec", ["procedural:4", str(CBOX)], ids=["procedural", "cbox"])
 def test_direct_layer_is_depth_two_light_and_indirect_the_rest(spec: str) -> None:
     """The split against independent renders (other seeds, no split): the direct layer must match a depth-2
