@@ -52,7 +52,7 @@ class Tolerance:
 
 
 TOLERANCES = {"l1": Tolerance(1e-6, 1e-6, 1e-5), "l2": Tolerance(1e-6, 1e-6, 1e-5)}
-LEARNED = Tolerance(0.05, 0.05, 0.5)  # the network and any method added later that is not a Poisson solver
+LEARNED = Tolerance(0.05, 0.05, 0.5)  # network, oidn, fused and any method added later that is not a solver
 
 # The decades each method must handle. The network's transform compresses bright frames (5 % of the energy lost
 # at 1e2, 15 % at 1e3, 84 % at 1e6: clamped at 65504) and adds a small absolute offset at the dark end (6 % at
@@ -60,6 +60,7 @@ LEARNED = Tolerance(0.05, 0.05, 0.5)  # the network and any method added later t
 # those decades are expected failures (not strict: they pass once the fix is in).
 DECADES = range(-8, 10)
 LEARNED_DECADES = range(-8, 7)
+FULL_RANGE = (*POISSON, "oidn")  # oidn scales the exposure exactly (model/oidn.py): held to 1e9 as well
 NETWORK_HDR = "network HDR range: energy lost above 1e1, clamp at 65504 (issue 15, branch serve)"
 NETWORK_DARK = ("network adds an absolute offset of ~1e-4: frames darker than 1e-1 come back >5 % brighter "
                 "(exposure normalisation, issue 15)")
@@ -93,21 +94,29 @@ def _network() -> Any:
     return _networks["net"]
 
 
+def _models(method: str) -> dict[str, Any]:
+    """The keyword arguments ``reconstruct`` needs for ``method``, or a skip naming what this machine lacks."""
+    if method in POISSON:
+        return {}
+    if method == "network":
+        return {"network": _network()}
+    if method == "fused":
+        if "fused" not in _networks:
+            _networks["fused"] = reconstruct_module.load_fused(REPO / "models")
+        if _networks["fused"] is None:
+            pytest.skip("no fused models (models/fused/*.onnx) in this checkout")
+        return {"fused": _networks["fused"]}
+    if method == "oidn":
+        from model.oidn import available
+
+        if not available():
+            pytest.skip("pyoidn is not installed")
+    return {}
+
+
 def _run(frame: Frame, method: str, alpha: float = 0.2) -> Any:
-    """``reconstruct`` with what ``method`` needs; a method added later that cannot run here is skipped with its
-    own error message (the known methods never skip on an error: their prerequisites are checked above)."""
-    if method in (*POISSON, "network"):
-        return reconstruct(frame, method, alpha, network=_network() if method == "network" else None)
-    try:  # a later method may use the network (e.g. as a prior) or not: give it the shipped one when present
-        network = _network()
-    except pytest.skip.Exception:
-        network = None
-    try:
-        return reconstruct(frame, method, alpha, network=network)
-    except (ImportError, FileNotFoundError, ModuleNotFoundError) as exc:
-        pytest.skip(f"method {method} cannot run here: {exc}")
-
-
+    """``reconstruct`` with what ``method`` needs (models, packages), skipping where this machine lacks them."""
+    return reconstruct(frame, method, alpha, **_models(method))
 def _features(h: int, w: int) -> Features:
     normal = np.zeros((h, w, 3), np.float32)
     normal[..., 2] = 1
@@ -158,7 +167,7 @@ def _noisy(h: int, w: int, seed: int, scale: float = 1.0) -> tuple[np.ndarray, .
 def _method_decades() -> list:
     params = []
     for method in METHODS:
-        for decade in DECADES if method in POISSON else LEARNED_DECADES:
+        for decade in DECADES if method in FULL_RANGE else LEARNED_DECADES:
             reason = _network_xfail(method, decade)
             marks = [pytest.mark.xfail(reason=reason, strict=False)] if reason else []
             params.append(pytest.param(method, decade, marks=marks, id=f"{method}-1e{decade}"))
@@ -340,10 +349,10 @@ def test_values_near_the_float32_limit_scale_like_small_ones(method: str) -> Non
 # --------------------------------------------------- failures are flagged, never silently turned into zeros
 
 
-def _poison_backend(method: str, monkeypatch, bad: np.ndarray | None) -> Any:
-    """Make ``method``'s backend return NaN where ``bad`` is True (everywhere when None); returns the network
-    argument to pass. l1/l2 patch the solver reconstruct calls, the network wraps the loaded models, and a
-    method added later is patched at the per-layer dispatch."""
+def _poison_backend(method: str, monkeypatch, bad: np.ndarray | None) -> dict[str, Any]:
+    """Make ``method``'s backend return NaN where ``bad`` is True (everywhere when None); returns the keyword
+    arguments for ``reconstruct``. l1/l2 patch the solver reconstruct calls, the network wraps the loaded models,
+    and every other method (oidn, fused, later ones) is patched at the per-layer dispatch."""
 
     def poisoned(image: np.ndarray) -> np.ndarray:
         out = np.array(image, dtype=np.float32)
@@ -353,7 +362,7 @@ def _poison_backend(method: str, monkeypatch, bad: np.ndarray | None) -> Any:
     if method == "l2":
         real = reconstruct_module.solve_l2
         monkeypatch.setattr(reconstruct_module, "solve_l2", lambda *a, **k: poisoned(real(*a, **k)))
-        return None
+        return {}
     if method == "l1":
         real1 = reconstruct_module.solve_l1
 
@@ -361,21 +370,20 @@ def _poison_backend(method: str, monkeypatch, bad: np.ndarray | None) -> Any:
             image, stats = real1(*a, **k)
             return poisoned(image), stats
         monkeypatch.setattr(reconstruct_module, "solve_l1", l1)
-        return None
-    network = _network() if method == "network" else None
+        return {}
+    kwargs = _models(method)
     if method == "network":
+        network = kwargs["network"]
+
         class Poisoned:
             layers = network.layers
 
             def reconstruct_layer(self, *args: Any) -> np.ndarray:
                 return poisoned(network.reconstruct_layer(*args))
-        return Poisoned()
+        return {"network": Poisoned()}
     real_layer = reconstruct_module._reconstruct_layer
     monkeypatch.setattr(reconstruct_module, "_reconstruct_layer", lambda *a, **k: poisoned(real_layer(*a, **k)))
-    try:
-        return _network()
-    except pytest.skip.Exception:
-        return None
+    return kwargs
 
 
 @pytest.mark.parametrize("everywhere", [False, True], ids=["one-pixel", "whole-layer"])
@@ -386,8 +394,8 @@ def test_a_failing_backend_is_flagged_not_silently_zeroed(method: str, everywher
     bad = None if everywhere else np.zeros((12, 15, 3), bool)
     if bad is not None:
         bad[4, 7, 1] = True
-    network = _poison_backend(method, monkeypatch, bad)
-    result = reconstruct(frame, method, network=network)
+    kwargs = _poison_backend(method, monkeypatch, bad)
+    result = reconstruct(frame, method, **kwargs)
     count = 12 * 15 * 3 if everywhere else 1
     assert len(result.warnings) == 2, result.warnings  # one per layer, naming it and the count
     for name, warning in zip(frame.layers, result.warnings, strict=True):
