@@ -215,6 +215,7 @@ def assert_matches_reference(est: np.ndarray, ref_chunks: np.ndarray, floor: flo
 # ---------------------------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("scene", ["cbox", "teapot", "sky"])
 def test_total_mean_matches_path(scene, request):
     r: Renders = request.getfixturevalue(scene)
@@ -225,6 +226,7 @@ def test_total_mean_matches_path(scene, request):
     assert np.all(np.abs(z) < 4.5), f"image mean differs from path: z={z}, ours={ours.mean(0)}, path={theirs.mean(0)}"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("scene", ["cbox", "teapot", "sky"])
 def test_direct_layer_matches_path_depth_2(scene, request):
     r: Renders = request.getfixturevalue(scene)
@@ -235,6 +237,7 @@ def test_direct_layer_matches_path_depth_2(scene, request):
     assert np.mean(np.abs(zp) > Z_MAX) < 0.01
 
 
+@pytest.mark.slow
 def test_indirect_layer_is_the_rest(cbox):
     """indirect = path(max_depth 6) - path(max_depth 2) in expectation, and clearly nonzero in the cbox."""
     ind = cbox.base["indirect"].mean(axis=(1, 2))
@@ -243,6 +246,7 @@ def test_indirect_layer_is_the_rest(cbox):
     assert ind.mean() > 0.02
 
 
+@pytest.mark.slow
 def test_pixels_match_high_spp_reference_teapot(teapot):
     """Per pixel (teapot: no caustics, so per-pixel errors are close to Gaussian at this sample count)."""
     z = z_against_reference(teapot.total("base"), teapot.ref[4], floor=1e-3)
@@ -255,6 +259,7 @@ def test_pixels_match_high_spp_reference_teapot(teapot):
 # ---------------------------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("shift", SHIFTS)
 @pytest.mark.parametrize("scene", ["cbox", "teapot", "sky"])
 @pytest.mark.parametrize("axis", ["dx", "dy"])
@@ -265,6 +270,7 @@ def test_gradients_converge_to_reference_differences(scene, axis, shift):
     assert_matches_reference(r.total(axis), fd(r.ref[depth]), 2e-3, f"{scene} {axis}")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("shift", SHIFTS)
 @pytest.mark.parametrize("axis", ["dx", "dy"])
 def test_layer_gradients_converge_to_layer_references(axis, shift):
@@ -276,6 +282,7 @@ def test_layer_gradients_converge_to_layer_references(axis, shift):
     assert_matches_reference(est["indirect"], fd(cbox.ref[6] - cbox.ref[2]), 2e-3, f"indirect {axis}")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("shift", SHIFTS)
 def test_russian_roulette_keeps_everything_unbiased(cbox, shift):
     """Russian roulette from the second vertex on (decided on the base path, applied to the whole lane)."""
@@ -293,6 +300,7 @@ def test_russian_roulette_keeps_everything_unbiased(cbox, shift):
                                  max_z2=max(2.0, 1.5 * baseline) if key == "base" else 2.0)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("scene_name", ["cbox", "specular"])
 @pytest.mark.parametrize("shift", SHIFTS)
 def test_offsets_on_the_base_pixel_give_zero_gradients(monkeypatch, shift, scene_name):
@@ -455,6 +463,7 @@ class SinglePhaseHybrid(HybridShift):
     settled = None
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("scene_name", ["cbox", "glossy"])
 def test_connected_offsets_loop_is_exact(scene_name):
     """Summarised connected offsets (renderer.gpt.ConnectingShift) give what the full step gives them."""
@@ -470,6 +479,7 @@ def test_connected_offsets_loop_is_exact(scene_name):
     assert np.abs(two.layers["indirect"]["dx"]).sum() > 0
 
 
+@pytest.mark.slow
 def test_primal_does_not_depend_on_the_shift():
     replay, hybrid = make_renders("sky", "replay"), make_renders("sky", "hybrid")
     for layer in replay.base:
@@ -558,6 +568,7 @@ def coarse_room(size: int, materials: str = "mixed"):
     return mi.load_dict(scene)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("materials", "variant"), [
     ("mixed", "replay"), ("mixed", "hybrid"), ("mixed", "hybrid-footprint"), ("mixed", "hybrid-copy"),
     ("glossy", "replay"), ("glossy", "hybrid"), ("glossy", "hybrid-copy"), ("glossy", "hybrid-no-copy"),
@@ -587,6 +598,7 @@ def converged_gradients(materials: str, shift: str) -> dict[str, np.ndarray]:
     return _converged[materials, shift]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("materials", "variant"), [
     ("diffuse", "hybrid"), ("mixed", "hybrid"), ("glossy", "hybrid"), ("glossy", "hybrid-copy"),
     ("specular", "hybrid"), ("specular", "hybrid-follow-threshold"),
@@ -676,6 +688,7 @@ def grazing_scene(size: int):
 ROBUSTNESS_SCENES = {"grazing": grazing_scene, "tiny": tiny_triangle_room}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["grazing", "tiny"])
 def test_hybrid_shift_onto_the_same_pixel_is_exact_on_grazing_and_tiny_geometry(monkeypatch, name):
     """The identity test of above on geometry where float32 is tight: a reconnection that spuriously fails (a
@@ -696,6 +709,7 @@ def test_hybrid_shift_onto_the_same_pixel_is_exact_on_grazing_and_tiny_geometry(
                 assert worst <= 1e-5, (name, shift.footprint, layer, key, worst)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["grazing", "tiny"])
 def test_gradients_unbiased_on_grazing_and_tiny_geometry(name):
     scene = ROBUSTNESS_SCENES[name](8)
@@ -767,6 +781,7 @@ def test_manifold_code_only_for_scenes_with_curved_mirrors():
         mi.load_dict({"type": "scene", "a": {"type": "sphere", "bsdf": mirror}}))[1:] == (True, False)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("radius", [0.25, 0.5, 2.0])
 def test_mirror_transfer_matches_finite_differences(radius):
     """The manifold reconnection's Jacobian is a ratio of footprints |dA/d omega| through a mirror, from the ray
@@ -803,6 +818,7 @@ def test_mirror_transfer_matches_finite_differences(radius):
     assert checked >= 6
 
 
+@pytest.mark.slow
 def test_following_specular_vertices_correlates_caustics():
     """The Cornell box's walls are lit through its mirror ball and glass ball: an offset that moves onto the base
     path's point of the glass ball, or connects past the mirror through the point that reflects it onto the base
@@ -821,6 +837,7 @@ def test_following_specular_vertices_correlates_caustics():
     assert gain > 2.0, f"specular strategies/replay-at-specular variance gain on caustics only {gain:.2f}"
 
 
+@pytest.mark.slow
 def test_hybrid_shift_correlates_indirect_light_on_diffuse_walls():
     """Reconnection shares every vertex after the first bounce, so on a flat diffuse wall the indirect gradients
     are far less noisy than with random replay, whose offset paths drift apart (measured: ~5-10x lower
@@ -838,6 +855,7 @@ def test_hybrid_shift_correlates_indirect_light_on_diffuse_walls():
     assert gain > 3.0, f"hybrid/replay variance gain on the back wall only {gain:.1f}"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("shift", SHIFTS)
 @pytest.mark.parametrize("axis", ["dx", "dy"])
 def test_gradients_beat_finite_differences_of_primal(axis, shift):
@@ -852,6 +870,7 @@ def test_gradients_beat_finite_differences_of_primal(axis, shift):
     assert err_gpt.mean() < err_fd.mean()
 
 
+@pytest.mark.slow
 def test_contract_borders_are_zero(cbox):
     assert np.all(cbox.total("dx")[:, :, -1, :] == 0)
     assert np.all(cbox.total("dy")[:, -1, :, :] == 0)
@@ -862,6 +881,7 @@ def test_contract_borders_are_zero(cbox):
 # ---------------------------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("scene", ["cbox", "teapot"])
 def test_features_are_valid(scene, request):
     for res in request.getfixturevalue(scene).features[:2]:
@@ -872,6 +892,7 @@ def test_features_are_valid(scene, request):
         assert res.depth.min() >= 0
 
 
+@pytest.mark.slow
 def test_features_follow_the_cbox_geometry(cbox):
     """Features against the Cornell box fixture's geometry (tests/renderer/scenes.py owns the numbers)."""
     g = CBOX_GEOMETRY
@@ -896,6 +917,7 @@ def test_features_follow_the_cbox_geometry(cbox):
     assert res.depth[gy, gx] > g.camera_z - centre[2] + radius
 
 
+@pytest.mark.slow
 def test_teapot_background_has_no_depth(teapot):
     res = teapot.features[0]
     assert res.depth[0, 0] == 0 and np.all(res.albedo[0, 0] == 0)
@@ -914,6 +936,7 @@ def cbox_small():
     return load_scene(CBOX, width=16, height=12)
 
 
+@pytest.mark.slow
 def test_direct_only_render_equals_full_direct_layer(cbox_small):
     """--layers direct traces only to the first vertex and gives exactly the full render's direct layer."""
     full = render_frame(cbox_small, spp=4, seed=3)
@@ -943,6 +966,7 @@ def test_max_depth_1_is_emitters_seen_directly(cbox_small):
     np.testing.assert_allclose(fraction, np.round(fraction * 2) / 2, atol=1e-4)
 
 
+@pytest.mark.slow
 def test_seeds_are_reproducible_and_distinct(cbox_small):
     a = render_frame(cbox_small, spp=2, seed=5, layers="direct")
     b = render_frame(cbox_small, spp=2, seed=5, layers="direct")
@@ -951,6 +975,7 @@ def test_seeds_are_reproducible_and_distinct(cbox_small):
     assert not np.array_equal(a.layers["direct"].base, c.layers["direct"].base)
 
 
+@pytest.mark.slow
 def test_passes_give_the_same_estimator(cbox_small):
     """Splitting samples into passes (3 + 3 + 2 here) changes the random streams, not the expectation."""
     settings = GptSettings(indirect=False)
@@ -984,6 +1009,7 @@ def test_frame_round_trips_through_the_contract(cbox_small, tmp_path):
     assert float(back.metadata["gradsep.render_seconds"]) > 0
 
 
+@pytest.mark.slow
 def test_procedural_frames_record_the_generator_version():
     pytest.importorskip("renderer.procedural")
     from renderer.procedural import GENERATOR_VERSION
@@ -1007,6 +1033,7 @@ def test_layer_and_shift_arguments():
         make_shift("manifold")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("shift", [None, "replay"])
 def test_render_command_end_to_end(tmp_path, capsys, shift):
     out = tmp_path / "t.exr"
