@@ -1,11 +1,12 @@
 # Two entry points for a fresh Debian/Ubuntu machine with Python 3.11:
 #   make demo   installs what the demo needs and runs it
-#   make test   installs the test dependencies and runs the whole suite
+#   make test   installs the test dependencies and runs the whole suite (what CI runs)
+# and, for local work, make test-fast: the suite without the tests marked slow (> ~2.5 s each).
 PYTHON ?= python3
 VENV   ?= .venv
 BIN    := $(VENV)/bin
 
-.PHONY: demo test test-serving system-deps venv lint clean models fused-models
+.PHONY: demo test test-fast test-serving system-deps venv lint clean models fused-models
 
 # Mitsuba's LLVM backend needs libllvm19 (LLVM 15/16 abort inside mi.render with "Cannot select: fminimum").
 system-deps:
@@ -37,6 +38,12 @@ test: venv system-deps
 	$(BIN)/ruff check .
 	$(BIN)/pytest -q -n 2 --timeout=900
 	$(MAKE) test-serving
+
+# Markers (pyproject.toml): slow (> ~2.5 s of CPU per test, measured with --durations), render (runs Mitsuba),
+# train (trains a torch model). CI runs everything; locally e.g. -m "not slow", -m "not render and not train".
+test-fast: venv
+	$(BIN)/pip install -q -e '.[test]'
+	$(BIN)/pytest -q -n 2 --timeout=900 -m "not slow"
 
 test-serving:
 	rm -rf $(SERVE_VENV)

@@ -242,6 +242,8 @@ def first_run(tmp_path_factory):
     return root, evaluation
 
 
+@pytest.mark.slow
+@pytest.mark.render
 def test_run_writes_every_output_with_finite_consistent_rows(first_run):
     root, evaluation = first_run
     report = root / "report"
@@ -262,6 +264,7 @@ def test_run_writes_every_output_with_finite_consistent_rows(first_run):
     assert evaluation.computed == {"frames": len(SPP), "references": 1, "results": len(METHODS) * len(SPP)}
 
 
+@pytest.mark.render
 def test_primal_row_is_the_cached_frame_scored_against_the_cached_reference(first_run):
     """The input's RelMSE recomputed from the files in the cache: the row scores what was rendered."""
     from model.frame import read_frame
@@ -281,6 +284,7 @@ def test_primal_row_is_the_cached_frame_scored_against_the_cached_reference(firs
     assert row["render_seconds"] == pytest.approx(float(frame.metadata["gradsep.render_seconds"]))
 
 
+@pytest.mark.render
 def test_equal_time_methods_use_ours_as_the_budget(first_run):
     _, evaluation = first_run
     by = {(r["method"], r["spp"]): r for r in evaluation.rows}
@@ -295,6 +299,7 @@ def test_equal_time_methods_use_ours_as_the_budget(first_run):
         assert by[("ours", spp)]["relmse_indirect"] is not None
 
 
+@pytest.mark.render
 def test_missing_models_are_skipped_and_reported(first_run):
     root, evaluation = first_run
     # only the methods requested and absent are skipped: separated-attn has its models, the other variants
@@ -312,6 +317,8 @@ def test_missing_models_are_skipped_and_reported(first_run):
     assert evaluation.computed["frames"] == 0  # the 1-spp frame came from the cache
 
 
+@pytest.mark.slow
+@pytest.mark.render
 def test_rerun_computes_only_what_changed(first_run, monkeypatch):
     root, first = first_run
     csv_before = (root / "report" / "results.csv").read_bytes()
