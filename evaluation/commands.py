@@ -44,6 +44,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--ref-spp-cap", type=int, default=None,
                    help="most samples per pixel of each reference (default 8192; 1024 with --quick); "
                         "equal to --ref-spp: a fixed reference spp")
+    p.add_argument("--ref-seconds", type=float, default=None,
+                   help="render-time budget of one scene's two references together: the reference spp is not "
+                        "raised past what fits (default 240; 20 with --quick; 0 = no limit)")
     p.add_argument("--seed", type=int, default=None, help="base seed of every render (default 0)")
     p.add_argument("--methods", default=None,
                    help="comma-separated subset of methods; 'ablation' = the four variants (default: all)")

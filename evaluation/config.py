@@ -32,13 +32,15 @@ class Preset:
     height: int
     spp: tuple[int, ...]
     ref_spp: int  # each of the two references starts here ...
-    ref_spp_cap: int  # ... and is doubled (cached, additive) up to here until the floor criterion holds
+    ref_spp_cap: int  # ... and is doubled (cached, additive) up to here until the floor criterion holds,
+    ref_seconds: float  # ... while both references of a scene together take at most this long to render
 
 
 #: Reference spp: cbox at 320x240 leaves a floor of 0.012 at 128 spp (0.0015 at 1024), teapot 0.0003 at 128
-#: (measured); the cap keeps the full report's references within ~10 minutes on 2 cores (docs/evaluation.md).
-FULL = Preset(320, 240, (1, 2, 4, 8, 16, 32, 64), 512, 4096)
-QUICK = Preset(96, 72, (1, 4, 16), 128, 1024)
+#: (measured); the spp cap and the time budget keep the full report's references within 4 minutes per scene on
+#: 2 cores, so the whole report stays well under 40 minutes (docs/evaluation.md).
+FULL = Preset(320, 240, (1, 2, 4, 8, 16, 32, 64), 512, 4096, 240.0)
+QUICK = Preset(96, 72, (1, 4, 16), 128, 1024, 20.0)
 #: The reference floor must stay under this fraction of the scene's smallest ranked RelMSE.
 FLOOR_FRACTION = 0.1
 
@@ -62,6 +64,7 @@ class EvalConfig:
     table_spp: int | None = None
     quick: bool = False
     ref_spp_cap: int | None = None  # None: ref_spp (a fixed reference spp)
+    ref_seconds: float | None = None  # render-time budget of a scene's two references; None: no limit
 
     @property
     def reference_cap(self) -> int:
@@ -141,6 +144,20 @@ def _int_option(args: argparse.Namespace, name: str, env: str, flag: str, minimu
     return value
 
 
+def _float_option(args: argparse.Namespace, name: str, env: str, flag: str) -> float | None:
+    """A finite number >= 0 from the flag or the environment (0 means: no limit)."""
+    text = _option(args, name, env)
+    if text is None:
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        raise _error(f"{flag}: {text!r} is not a number") from None
+    if not (math.isfinite(value) and value >= 0):
+        raise _error(f"{flag} must be a finite number >= 0 (0: no limit), got {text}")
+    return value
+
+
 def parse_methods(text: str | None) -> tuple[str, ...]:
     """Comma-separated method names (``ablation`` selects the four variants), in the canonical order."""
     known = [m.name for m in METHODS]
@@ -182,6 +199,9 @@ def config_from_args(args: argparse.Namespace) -> EvalConfig:
         ref_cap = max(ref_spp, preset.ref_spp_cap)
     elif ref_cap < ref_spp:
         raise _error(f"--ref-spp-cap {ref_cap} is below --ref-spp {ref_spp}")
+    ref_seconds = _float_option(args, "ref_seconds", "GRADSEP_EVAL_REF_SECONDS", "--ref-seconds")
+    if ref_seconds is None:
+        ref_seconds = preset.ref_seconds
     seed = _int_option(args, "seed", "GRADSEP_EVAL_SEED", "--seed", 0) or 0
     max_depth = _int_option(args, "max_depth", "GRADSEP_EVAL_MAX_DEPTH", "--max-depth", -1)
     if max_depth == 0:
@@ -207,7 +227,8 @@ def config_from_args(args: argparse.Namespace) -> EvalConfig:
         cache_dir=Path(cache) if cache else default_cache_dir(),
         models_dir=models_dir_from(getattr(args, "models", None)),
         methods=parse_methods(_option(args, "methods", "GRADSEP_EVAL_METHODS")),
-        seed=seed, max_depth=max_depth, alpha=alpha, table_spp=table_spp, quick=quick, ref_spp_cap=ref_cap)
+        seed=seed, max_depth=max_depth, alpha=alpha, table_spp=table_spp, quick=quick, ref_spp_cap=ref_cap,
+        ref_seconds=ref_seconds if ref_seconds > 0 else None)
 
 
 # ------------------------------------------------------------------------------------------------ scenes

@@ -51,6 +51,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import cache
 from pathlib import Path
 from typing import Any
 
@@ -98,6 +99,8 @@ class MethodSpec:
 
     def model_names(self, layers: tuple[str, ...]) -> tuple[str, ...]:
         """The model files (``NAME.onnx``) this method needs for a frame with ``layers``."""
+        if self.kind == "fused":
+            return tuple(layers)
         if self.kind != "network":
             return ()
         return tuple(layers) if self.separated else ("color",)
@@ -138,7 +141,7 @@ def unavailable(spec: MethodSpec) -> str | None:
         if wanted not in RECONSTRUCT_METHODS:
             return (f"model.reconstruct has no {wanted!r} method on this branch (expected "
                     f"reconstruct(frame, {wanted!r}{', fused=...' if spec.kind == 'fused' else ''}))")
-    if spec.kind in ("oidn", "sep-oidn", "recon"):
+    if spec.kind in ("oidn", "sep-oidn", "recon", "fused"):
         import importlib.util
 
         if importlib.util.find_spec("pyoidn") is None:
@@ -149,8 +152,10 @@ def unavailable(spec: MethodSpec) -> str | None:
     return None
 
 
+@cache
 def primal_mode_available() -> bool:
-    """Whether the renderer has the primal-only mode ``render_frame(..., gradients=False)``."""
+    """Whether the renderer has the primal-only mode ``render_frame(..., gradients=False)`` (asked once: the
+    code does not change while the process runs)."""
     import inspect
 
     from renderer.render import render_frame
@@ -288,7 +293,7 @@ class PathRenderer:
         }
         self.max_spp = max(1, MAX_WAVEFRONT // max(1, loaded.width * loaded.height))
         self._costs: dict[str, CostModel] = {}
-        self._denoise_seconds: dict[int, float] = {}
+        self._post_seconds: dict[str, float] = {}
         self._warm: set[str] = set()
 
     def render(self, kind: str, spp: int, seed: int) -> tuple[Any, float]:
@@ -298,8 +303,7 @@ class PathRenderer:
         if kind == "primal":
             from renderer.render import render_frame
 
-            output: Any = render_frame(self.loaded, spp=int(spp), seed=int(seed) % (1 << 32),
-                                       gradients=False)  # type: ignore[call-arg]
+            output: Any = render_frame(self.loaded, spp=int(spp), seed=int(seed) % (1 << 32), gradients=False)
         else:
             import mitsuba as mi
 
@@ -389,25 +393,19 @@ class PathRenderer:
             return None  # already at the smallest / largest possible spp
         return guess
 
-    def denoise_seconds(self, calls: int = 1) -> float:
-        """OIDN's time for ``calls`` denoiser calls on a frame of this size, measured on a warm device (its
-        first call initialises it): the faster of two, as noise on a shared machine only adds time."""
-        if calls not in self._denoise_seconds:
-            height, width = self.loaded.height, self.loaded.width
-            rng = np.random.default_rng(0)
-            color = rng.random((height, width, 3), dtype=np.float32)
-            albedo = np.full_like(color, 0.5)
-            normal = np.zeros_like(color)
-            normal[..., 2] = 1.0
-            denoise(color, albedo, normal)
+    def post_seconds(self, name: str, run: Callable[[], object]) -> float:
+        """The time of a row's fixed post-processing ``run`` (a denoiser call) on this scene's frame size,
+        measured once per scene on a warm device (the first call initialises it): the faster of two, as noise
+        on a shared machine only adds time."""
+        if name not in self._post_seconds:
+            run()
             timings = []
             for _ in range(2):
                 start = time.perf_counter()
-                for _ in range(calls):
-                    denoise(color, albedo, normal)
+                run()
                 timings.append(time.perf_counter() - start)
-            self._denoise_seconds[calls] = min(timings)
-        return self._denoise_seconds[calls]
+            self._post_seconds[name] = min(timings)
+        return self._post_seconds[name]
 
 
 def split_features(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -419,16 +417,16 @@ def split_features(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def denoise(color: np.ndarray, albedo: np.ndarray, normal: np.ndarray) -> np.ndarray:
-    """Intel Open Image Denoise, the RT filter on HDR input with (noisy, so prefiltered) albedo and normal.
+    """Intel Open Image Denoise as model/oidn.py runs it for the ``oidn`` method (one definition): the RT filter
+    on HDR input at quality "high", albedo and normal prefiltered first (they are noisy), exact exposure scaling."""
+    from model.frame import Features
+    from model.oidn import shared_denoiser
 
-    Inputs are made finite first (OIDN's contract): radiance ≥ 0, albedo in [0, 1], normals in [-1, 1].
-    """
-    import pyoidn
-
-    c = np.clip(np.nan_to_num(color, nan=0.0, posinf=0.0, neginf=0.0), 0.0, _F32_MAX).astype(np.float32)
-    a = np.clip(np.nan_to_num(albedo), 0.0, 1.0).astype(np.float32)
-    n = np.clip(np.nan_to_num(normal), -1.0, 1.0).astype(np.float32)
-    return _sanitise(pyoidn.denoise(c, a, n, hdr=True, clean_aux=False, quality="high"))
+    denoiser = shared_denoiser()
+    aux = denoiser.prefilter(Features(np.ascontiguousarray(albedo, np.float32),
+                                      np.ascontiguousarray(normal, np.float32),
+                                      np.zeros(color.shape[:2], np.float32)))
+    return _sanitise(denoiser.denoise(np.ascontiguousarray(color, np.float32), aux))
 
 
 # ------------------------------------------------------------------------------------------------ running
@@ -522,9 +520,14 @@ def _run_fused(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
 
     folder = ctx.models_dir / str(spec.models)
     fused = ctx.networks.get(folder)
+    wrong = [m.path.name for m in fused.models.values() if getattr(m, "prior", "oidn") != "oidn"]
+    if wrong:
+        from model.infer import ModelError
+
+        raise ModelError(f"{folder}: {', '.join(wrong)} refine another prior than OIDN's; not fused models")
 
     def run() -> Any:
-        return reconstruct(ctx.frame, "fused", fused=fused)  # type: ignore[call-arg]
+        return reconstruct(ctx.frame, "fused", fused=fused)
 
     ctx.networks.warm_up(folder, run, "fused", (ctx.frame.height, ctx.frame.width))
     start = time.perf_counter()
@@ -556,7 +559,9 @@ def _run_oidn(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
     renderer.warm("features")
     features, feature_seconds = renderer.render("features", FEATURE_SPP, ctx.seed ^ 0x5EED)
     albedo, normal = split_features(features)
-    render_target = max(1e-6, target - feature_seconds - renderer.denoise_seconds())
+    colour = np.ones(albedo.shape, np.float32)
+    post = renderer.post_seconds("path-oidn", lambda: denoise(colour, albedo, normal))
+    render_target = max(1e-6, target - feature_seconds - post)
     raw, seconds, spp, attempts = renderer.render_within("path", render_target, ctx.seed)
     start = time.perf_counter()
     image = denoise(raw[..., :3], albedo, normal)
@@ -567,22 +572,22 @@ def _run_oidn(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
 
 
 def _run_sep_oidn(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
-    """The primal-only G-PT render (separated layers, first-hit features, no gradients), OIDN on each layer with
-    the frame's own albedo and normal, summed; rendered to the budget left after the denoiser calls."""
+    """The primal-only G-PT render (separated layers, first-hit features, no gradients) reconstructed with the
+    ``oidn`` method (OIDN on each layer, summed: model/oidn.py), rendered to the budget left after that."""
+    from model.reconstruct import reconstruct
+
     renderer = ctx.path()
     target = _budget(ctx)
-    layers = len(ctx.frame.layers)
-    frame, seconds, spp, attempts = renderer.render_within("primal", target - renderer.denoise_seconds(layers),
-                                                           ctx.seed)
-    if frame.features is None:
-        raise RuntimeError("the primal-only frame has no feature channels; OIDN needs its albedo and normal")
+    renderer.warm("primal")
+    sample, _ = renderer.render("primal", 1, 23)
+    post = renderer.post_seconds("path-sep-oidn", lambda: reconstruct(sample, "oidn"))
+    frame, seconds, spp, attempts = renderer.render_within("primal", max(1e-6, target - post), ctx.seed)
     start = time.perf_counter()
-    out = {name: denoise(layer.base, frame.features.albedo, frame.features.normal)
-           for name, layer in frame.layers.items()}
+    result = reconstruct(frame, "oidn")
     denoise_seconds = time.perf_counter() - start
-    image = _sanitise(sum(out.values()))
-    return MethodOutput(image, out, seconds, denoise_seconds, spp,
-                        extra=_equal_time_extra(ctx, target, spp, renderer.max_spp, attempts))
+    return MethodOutput(result.image, result.layers, seconds, denoise_seconds, spp,
+                        extra=_equal_time_extra(ctx, target, spp, renderer.max_spp, attempts),
+                        warnings=list(result.warnings))
 
 
 def _equal_time_extra(ctx: MethodContext, target: float, spp: int, max_spp: int, attempts: int) -> dict[str, Any]:

@@ -106,12 +106,14 @@ def _summary(evaluation: Evaluation) -> dict[str, Any]:
         "command": invocation(), "reproduce": reproduce_command(c), "created": _now(), "machine": machine(),
         "software": software(),
         "config": {"scenes": [s.entry.spec for s in evaluation.scenes], "spp": list(c.spp), "size": [c.width, c.height],
-                   "ref_spp": c.ref_spp, "ref_spp_cap": c.reference_cap, "seed": c.seed, "max_depth": c.max_depth,
+                   "ref_spp": c.ref_spp, "ref_spp_cap": c.reference_cap,
+                   "ref_seconds": c.ref_seconds, "seed": c.seed, "max_depth": c.max_depth,
                    "alpha": c.alpha,
                    "table_spp": c.crop_spp, "methods": list(c.methods), "quick": c.quick,
                    "models_dir": str(c.models_dir)},
         "references": {s.entry.name: {"spp_each": s.reference_spp, "floor": s.floor, "smallest_ranked": s.smallest,
-                                      "capped": s.capped, "render_seconds": s.reference_seconds}
+                                      "capped": s.capped, "cap_reason": s.cap_reason,
+                                      "render_seconds": s.reference_seconds}
                        for s in evaluation.scenes},
         "models": evaluation.models, "skipped": evaluation.skipped, "notes": evaluation.notes,
         "rows": evaluation.rows,
@@ -138,7 +140,7 @@ def reproduce_command(c: EvalConfig) -> str:
     does not have yet)."""
     env = {"GRADSEP_MODELS": str(c.models_dir), "GRADSEP_EVAL_SIZE": f"{c.width}x{c.height}",
            "GRADSEP_EVAL_REF_SPP": str(c.ref_spp), "GRADSEP_EVAL_REF_SPP_CAP": str(c.reference_cap),
-           "GRADSEP_EVAL_SEED": str(c.seed),
+           "GRADSEP_EVAL_REF_SECONDS": f"{c.ref_seconds or 0:g}", "GRADSEP_EVAL_SEED": str(c.seed),
            "GRADSEP_EVAL_METHODS": ",".join(c.methods)}
     if c.max_depth is not None:
         env["GRADSEP_EVAL_MAX_DEPTH"] = str(c.max_depth)
@@ -277,7 +279,8 @@ def _provenance(evaluation: Evaluation) -> list[str]:
              "- Software: " + ", ".join(f"{k} {v}" for k, v in sw.items()),
              f"- Frames: {c.width}×{c.height}, G-PT at {', '.join(str(s) for s in c.spp)} spp, seed {c.seed}; "
              f"references: two independent Mitsuba `path` renders per scene (box filter, same max depth), "
-             f"{c.ref_spp} spp each to start, raised up to {c.reference_cap} (see Reference floor)"
+             f"{c.ref_spp} spp each to start, raised up to {c.reference_cap} within "
+             f"{'no time limit' if c.ref_seconds is None else f'{c.ref_seconds:g} s per scene'} (see Reference floor)"
              + (" (--quick)" if c.quick else ""),
              f"- Tables at {c.crop_spp} spp; Poisson α = {c.alpha:g}", "",
              "| scene | spec | max depth | layers |", "|---|---|---|---|"]
@@ -438,7 +441,9 @@ def _floors(evaluation: Evaluation) -> list[str]:
              "would score against one of them, estimated as RelMSE(r1, r2) / 2 (normalised by the mean of the "
              "two): what a one-reference evaluation would add to every error. The product estimator used for "
              "every RelMSE here removes it in expectation; the references are still raised (doubling, cached "
-             f"passes re-used, from {c.ref_spp} up to {c.reference_cap} spp each) until the floor is under "
+             f"passes re-used, from {c.ref_spp} up to {c.reference_cap} spp each, and only while both together "
+             f"render within {'any time' if c.ref_seconds is None else f'{c.ref_seconds:g} s'}) until the floor "
+             "is under "
              f"{FLOOR_FRACTION:.0%} of the scene's smallest ranked RelMSE (over every method and spp).", "",
              "| Scene | spp per reference | floor (total) | floor direct | floor indirect | smallest ranked RelMSE | "
              "floor / smallest | reference s |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
@@ -451,10 +456,10 @@ def _floors(evaluation: Evaluation) -> list[str]:
                      f"{_fmt(scene.floor.get('direct'), 3)} | {_fmt(scene.floor.get('indirect'), 3)} | "
                      f"{_fmt(scene.smallest, 3)} | {ratio:.1%}{flag} | {scene.reference_seconds:.0f} |")
         if scene.capped:
-            warnings.append(f"**Warning: {scene.entry.name}: the reference spp cap ({scene.reference_spp} spp each) "
-                            f"was reached with the floor at {ratio:.0%} of the smallest ranked RelMSE** (target "
-                            f"{FLOOR_FRACTION:.0%}). Its RelMSE values are still unbiased, but noisier; raise "
-                            "--ref-spp-cap for a tighter estimate.")
+            warnings.append(f"**Warning: {scene.entry.name}: the references stopped at {scene.reference_spp} spp "
+                            f"each ({scene.cap_reason}) with the floor at {ratio:.0%} of the smallest ranked "
+                            f"RelMSE** (target {FLOOR_FRACTION:.0%}). Its RelMSE values are still unbiased, but "
+                            "noisier; raise --ref-spp-cap / --ref-seconds for a tighter estimate.")
     return [*lines, "", *warnings, *([""] if warnings else [])]
 
 

@@ -71,7 +71,8 @@ class SceneRun:
     reference_spp: int = 0  # of each of the two references
     floor: dict[str, float] = field(default_factory=dict)  # layer -> reference floor (model.metrics)
     smallest: float = math.nan  # the smallest ranked RelMSE of the scene
-    capped: bool = False  # the floor criterion was not met at the reference spp cap
+    capped: bool = False  # the floor criterion was not met (see cap_reason)
+    cap_reason: str = ""  # what stopped the references: the spp cap or the time budget
     reference_seconds: float = 0.0
     crop_images: dict[str, np.ndarray] = field(default_factory=dict)
 
@@ -139,13 +140,7 @@ class _Runner:
         """(relative file -> sha256 of every model ``spec`` needs for ``layers``, the missing files' paths)."""
         shas: dict[str, str] = {}
         missing = []
-        names = list(spec.model_names(layers))
-        if spec.kind == "fused":  # whatever the fused folder holds; absent or empty: missing
-            folder = self.config.models_dir / str(spec.models)
-            names = sorted(p.stem for p in folder.glob("*.onnx")) if folder.is_dir() else []
-            if not names:
-                return {}, [str(folder / "*.onnx")]
-        for name in names:
+        for name in spec.model_names(layers):
             relative = str(Path(spec.models or "") / f"{name}.onnx")
             sha = self._model_sha(relative)
             if sha is None:
@@ -439,6 +434,8 @@ def _converge_references(runner: _Runner, scene: SceneRun, source: ReferenceSour
         floor = pair.floor()
         smallest = _smallest_ranked(outputs, pair)
         following = next_reference_spp(spp, floor, smallest, FLOOR_FRACTION, config.reference_cap)
+        if following is not None and config.ref_seconds is not None:
+            following = _within_time(spp, following, pair.seconds, config.ref_seconds)
         if following is None:
             break
         runner.log(f"{scene.entry.name}: reference floor {floor:.3g} at {spp} spp is over "
@@ -449,8 +446,26 @@ def _converge_references(runner: _Runner, scene: SceneRun, source: ReferenceSour
     scene.floor = {layer: pair.floor(layer) for layer in pair.first}
     scene.smallest = smallest
     scene.capped = not (smallest > 0 and scene.floor["total"] <= FLOOR_FRACTION * smallest)
+    if scene.capped:
+        scene.cap_reason = (f"the spp cap ({config.reference_cap} spp each)" if spp >= config.reference_cap else
+                            f"the time budget ({config.ref_seconds:g} s for both references; "
+                            f"{2 * spp} spp took {pair.seconds:.0f} s)")
     scene.reference_seconds = pair.seconds
     return pair
+
+
+def _within_time(spp: int, wanted: int, seconds: float, budget: float) -> int | None:
+    """The largest power-of-two multiple of ``spp`` up to ``wanted`` whose predicted render time (both references,
+    linear in spp from the ``seconds`` the current ``spp`` took) fits ``budget``; None when not even 2 × ``spp``
+    fits."""
+    if not (seconds > 0 and math.isfinite(seconds)):
+        return wanted  # no timing recorded: the spp cap alone decides
+    best = None
+    level = spp * 2
+    while level <= wanted and seconds * level / spp <= budget:
+        best = level
+        level *= 2
+    return best
 
 
 def _evaluate_one(runner: _Runner, spec: MethodSpec, scene: SceneRun, spp: int, frame: Any, seconds: float,

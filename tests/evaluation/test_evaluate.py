@@ -86,7 +86,11 @@ def test_quick_replaces_the_default_spp_but_keeps_an_explicit_one(monkeypatch):
         monkeypatch.delenv(name, raising=False)
     quick = config_from_args(_args(quick=True))
     assert quick.spp == QUICK.spp and (quick.width, quick.height) == (QUICK.width, QUICK.height)
-    assert quick.ref_spp == QUICK.ref_spp
+    assert quick.ref_spp == QUICK.ref_spp and quick.reference_cap == QUICK.ref_spp_cap
+    assert quick.ref_seconds == QUICK.ref_seconds
+    assert config_from_args(_args(quick=True, ref_seconds=0)).ref_seconds is None  # 0: no time limit
+    with pytest.raises(CommandError, match="--ref-spp-cap 64 is below --ref-spp 128"):
+        config_from_args(_args(quick=True, ref_spp_cap=64))
     assert config_from_args(_args(quick=True, spp="2,8")).spp == (2, 8)
     monkeypatch.setenv("GRADSEP_EVAL_SIZE", "40x30")
     monkeypatch.setenv("GRADSEP_EVAL_REF_SPP", "64")
@@ -353,7 +357,9 @@ def test_rerun_computes_only_what_changed(first_run, monkeypatch):
     assert again.computed == {"frames": 0, "references": 0, "results": 0}
     assert (root / "report" / "results.csv").read_bytes() == csv_before
 
-    # a new `ours` model: ours is recomputed, and so are the equal-time methods whose budget it sets
+    # a new `ours` model: ours is recomputed, and so are the equal-time methods whose budget it sets (the
+    # separated path + OIDN renders through render_frame again, so rendering is allowed from here on)
+    monkeypatch.undo()
     _blur_model(root / "models" / "direct.onnx", "direct", 5)
     # and a damaged cache entry is recomputed rather than trusted
     damaged = next(p for p in (root / "cache" / "evaluate" / "results").rglob("l1-*spp1-*.json"))
@@ -411,7 +417,7 @@ class _ClockedRenderer:
         self.renderer = PathRenderer.__new__(PathRenderer)  # no Mitsuba: only the budgeting is under test
         self.renderer.max_spp = 100_000
         self.renderer._costs = {}
-        self.renderer._denoise_seconds = {}
+        self.renderer._post_seconds = {}
         self.renderer._warm = set()
         self.cost = cost
         self.factor = 1.0

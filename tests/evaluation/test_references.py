@@ -85,3 +85,13 @@ def test_reference_spp_schedule():
     assert next_reference_spp(512, floor=5e-3, smallest=1e-3, fraction=0.1, cap=4096) == 4096  # capped
     assert next_reference_spp(4096, floor=5e-3, smallest=1e-3, fraction=0.1, cap=4096) is None  # at the cap
     assert next_reference_spp(512, floor=1e-5, smallest=-1e-6, fraction=0.1, cap=2048) == 2048  # unresolved
+
+
+def test_reference_time_budget_limits_the_raise():
+    from evaluation.run import _within_time
+
+    # 512 spp took 20 s for both references: 4096 would take 160 s
+    assert _within_time(512, 4096, seconds=20.0, budget=240.0) == 4096
+    assert _within_time(512, 4096, seconds=20.0, budget=100.0) == 2048  # 80 s fits, 160 s does not
+    assert _within_time(512, 4096, seconds=200.0, budget=240.0) is None  # not even a doubling fits
+    assert _within_time(512, 1024, seconds=float("nan"), budget=1.0) == 1024  # no timing: the cap decides
