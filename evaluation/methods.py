@@ -67,6 +67,7 @@ __all__ = [
     "MethodSpec",
     "NetworkPool",
     "EQUAL_TIME_KINDS",
+    "Attempt",
     "FEATURE_SPP",
     "PathRenderer",
     "CostModel",
@@ -264,6 +265,18 @@ class CostModel:
         return int(min(self.max_spp, max(1, spp)))
 
 
+@dataclass
+class Attempt:
+    """The try :meth:`PathRenderer.render_within` kept: its output (after ``post``), times, spp, tries made."""
+
+    output: Any
+    render_seconds: float
+    post_seconds: float
+    spp: int
+    attempts: int
+    miss: float  # |measured / target - 1|
+
+
 class PathRenderer:
     """The equal-time renderers on one loaded scene, each with its cost model.
 
@@ -350,31 +363,38 @@ class PathRenderer:
             spp = model.spp_for(seconds)
         return spp
 
-    def render_within(self, kind: str, seconds: float, seed: int) -> tuple[Any, float, int, int]:
-        """Render ``kind`` at the spp whose measured time is within :data:`TOLERANCE` of ``seconds``:
-        (output, measured seconds, spp, renders tried). The first spp comes from the cost line; then each
-        try interpolates between the closest too-fast and too-slow renders (bisecting when that would not
-        move inside the bracket), or scales the last render when only one side is known. The render closest
-        to the target is kept."""
-        spp = self.spp_for(kind, seconds)
+    def render_within(self, kind: str, seconds: float, seed: int, post: Callable[[Any], Any] | None = None,
+                      post_estimate: float = 0.0) -> Attempt:
+        """Render ``kind`` (then run ``post`` on the render, e.g. the denoiser) at the spp whose measured time,
+        render + ``post``, is within :data:`TOLERANCE` of ``seconds``. The first spp comes from the cost line
+        (``post_estimate`` off the budget); then each try interpolates between the closest too-fast and
+        too-slow tries (bisecting when that would not move inside the bracket), or scales the last try when only
+        one side is known. The try closest to the target is kept."""
+        spp = self.spp_for(kind, max(1e-6, seconds - post_estimate))
         tried: list[tuple[int, float]] = []
-        best: tuple[float, Any, float, int] | None = None
+        best: Attempt | None = None
         while len(tried) < self.MAX_ATTEMPTS:
             output, took = self.render(kind, spp, seed)
-            tried.append((spp, took))
-            miss = took / seconds - 1.0 if seconds > 0 else math.inf
-            if best is None or abs(miss) < best[0]:
-                best = (abs(miss), output, took, spp)
+            start = time.perf_counter()
+            result = post(output) if post is not None else output
+            post_took = time.perf_counter() - start if post is not None else 0.0
+            total = took + post_took
+            tried.append((spp, total))
+            miss = total / seconds - 1.0 if seconds > 0 else math.inf
+            if best is None or abs(miss) < best.miss:
+                best = Attempt(result, took, post_took, spp, 0, abs(miss))
             if abs(miss) <= self.TOLERANCE:
                 break
-            following = self._next_spp(kind, seconds, tried)
+            following = self._next_spp(kind, seconds, tried, post_estimate)
             if following is None:
                 break
             spp = following
         assert best is not None
-        return best[1], best[2], best[3], len(tried)
+        best.attempts = len(tried)
+        return best
 
-    def _next_spp(self, kind: str, seconds: float, tried: list[tuple[int, float]]) -> int | None:
+    def _next_spp(self, kind: str, seconds: float, tried: list[tuple[int, float]],
+                  post_estimate: float = 0.0) -> int | None:
         """The next spp to try for ``seconds`` given the renders ``tried`` (None: no better integer spp)."""
         fast = [(s, t) for s, t in tried if t < seconds]
         slow = [(s, t) for s, t in tried if t >= seconds]
@@ -387,7 +407,7 @@ class PathRenderer:
                 guess = (s0 + s1) // 2
             return guess
         spp, took = tried[-1]
-        overhead = min(self.cost(kind).fit()[0], 0.5 * took)  # fixed cost per render, from the line
+        overhead = min(self.cost(kind).fit()[0] + post_estimate, 0.5 * took)  # fixed cost per try
         guess = max(1, min(self.max_spp, round(spp * (seconds - overhead) / max(took - overhead, 1e-9))))
         if (slow and spp == 1) or (fast and spp >= self.max_spp) or guess == spp:
             return None  # already at the smallest / largest possible spp
@@ -546,52 +566,48 @@ def _budget(ctx: MethodContext) -> float:
 def _run_path(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
     renderer = ctx.path()
     target = _budget(ctx)
-    image, seconds, spp, attempts = renderer.render_within("path", target, ctx.seed)
-    return MethodOutput(_sanitise(image[..., :3]), {}, seconds, 0.0, spp,
-                        extra=_equal_time_extra(ctx, target, spp, renderer.max_spp, attempts))
+    got = renderer.render_within("path", target, ctx.seed)
+    return MethodOutput(_sanitise(got.output[..., :3]), {}, got.render_seconds, 0.0, got.spp,
+                        extra=_equal_time_extra(ctx, target, got, renderer.max_spp))
 
 
 def _run_oidn(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
-    """``path`` + OIDN: a timed :data:`FEATURE_SPP`-spp feature pass, then ``path`` in what is left of the
-    budget after it and the (pre-measured) denoising, then the timed denoiser call."""
+    """``path`` + OIDN: a timed :data:`FEATURE_SPP`-spp feature pass, then ``path`` + the denoiser call tried
+    at spp bisected until both together fit what is left of the budget."""
     renderer = ctx.path()
     target = _budget(ctx)
     renderer.warm("features")
     features, feature_seconds = renderer.render("features", FEATURE_SPP, ctx.seed ^ 0x5EED)
     albedo, normal = split_features(features)
     colour = np.ones(albedo.shape, np.float32)
-    post = renderer.post_seconds("path-oidn", lambda: denoise(colour, albedo, normal))
-    render_target = max(1e-6, target - feature_seconds - post)
-    raw, seconds, spp, attempts = renderer.render_within("path", render_target, ctx.seed)
-    start = time.perf_counter()
-    image = denoise(raw[..., :3], albedo, normal)
-    denoise_seconds = time.perf_counter() - start
-    extra = _equal_time_extra(ctx, target, spp, renderer.max_spp, attempts)
+    estimate = renderer.post_seconds("path-oidn", lambda: denoise(colour, albedo, normal))
+    got = renderer.render_within("path", max(1e-6, target - feature_seconds), ctx.seed,
+                                 post=lambda raw: denoise(raw[..., :3], albedo, normal), post_estimate=estimate)
+    extra = _equal_time_extra(ctx, target, got, renderer.max_spp)
     extra["feature_spp"] = FEATURE_SPP
-    return MethodOutput(image, {}, seconds + feature_seconds, denoise_seconds, spp, extra=extra)
+    return MethodOutput(got.output, {}, got.render_seconds + feature_seconds, got.post_seconds, got.spp, extra=extra)
 
 
 def _run_sep_oidn(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
     """The primal-only G-PT render (separated layers, first-hit features, no gradients) reconstructed with the
-    ``oidn`` method (OIDN on each layer, summed: model/oidn.py), rendered to the budget left after that."""
+    ``oidn`` method (OIDN on each layer, summed: model/oidn.py), render + reconstruction bisected to the budget."""
     from model.reconstruct import reconstruct
 
     renderer = ctx.path()
     target = _budget(ctx)
     renderer.warm("primal")
     sample, _ = renderer.render("primal", 1, 23)
-    post = renderer.post_seconds("path-sep-oidn", lambda: reconstruct(sample, "oidn"))
-    frame, seconds, spp, attempts = renderer.render_within("primal", max(1e-6, target - post), ctx.seed)
-    start = time.perf_counter()
-    result = reconstruct(frame, "oidn")
-    denoise_seconds = time.perf_counter() - start
-    return MethodOutput(result.image, result.layers, seconds, denoise_seconds, spp,
-                        extra=_equal_time_extra(ctx, target, spp, renderer.max_spp, attempts),
-                        warnings=list(result.warnings))
+    estimate = renderer.post_seconds("path-sep-oidn", lambda: reconstruct(sample, "oidn"))
+    got = renderer.render_within("primal", target, ctx.seed, post=lambda frame: reconstruct(frame, "oidn"),
+                                 post_estimate=estimate)
+    result = got.output
+    return MethodOutput(result.image, result.layers, got.render_seconds, got.post_seconds, got.spp,
+                        extra=_equal_time_extra(ctx, target, got, renderer.max_spp), warnings=list(result.warnings))
 
 
-def _equal_time_extra(ctx: MethodContext, target: float, spp: int, max_spp: int, attempts: int) -> dict[str, Any]:
-    extra: dict[str, Any] = {"target_seconds": target, "budget_method": ctx.budget_method, "attempts": attempts}
-    if spp >= max_spp:
+def _equal_time_extra(ctx: MethodContext, target: float, got: Attempt, max_spp: int) -> dict[str, Any]:
+    extra: dict[str, Any] = {"target_seconds": target, "budget_method": ctx.budget_method,
+                             "attempts": got.attempts}
+    if got.spp >= max_spp:
         extra["capped"] = f"spp capped at {max_spp} (Mitsuba's 2^32 samples per launch)"
     return extra

@@ -120,6 +120,7 @@ class _Runner:
         self.computed = {"frames": 0, "references": 0, "results": 0}
         self.model_shas: dict[str, str] = {}
         self.skipped: dict[str, list[str]] = {}  # method -> reasons
+        self.missing: dict[str, list[str]] = {}  # method -> missing model files
         self._warm_scenes: set[int] = set()
         self.renderer_code = sources_sha256(RENDERER_SOURCES)
         self.reference_code = sources_sha256(REFERENCE_SOURCES)
@@ -153,6 +154,13 @@ class _Runner:
         """Record a skipped method and why (the union over scenes is reported)."""
         known = self.skipped.setdefault(method, [])
         known.extend(r for r in reasons if r not in known)
+
+    def skip_missing(self, method: str, missing: Iterable[str]) -> None:
+        """Record a method skipped for want of model files: one "not found" reason listing every file."""
+        files = self.missing.setdefault(method, [])
+        files.extend(f for f in missing if f not in files)
+        known = [r for r in self.skipped.get(method, []) if not r.startswith("not found: ")]
+        self.skipped[method] = [*known, "not found: " + ", ".join(files)]
 
     # -------------------------------------------------------------------------------------- references
 
@@ -479,7 +487,7 @@ def _evaluate_one(runner: _Runner, spec: MethodSpec, scene: SceneRun, spp: int, 
         return None
     shas, missing = runner.model_files(spec, scene.layers)
     if missing:
-        runner.skip(spec.name, ["not found: " + ", ".join(missing)])
+        runner.skip_missing(spec.name, missing)
         return None
     key: dict[str, Any] = {"format": RESULT_FORMAT, "method": spec.name, "frame": frame_tag, "models": shas,
                            "code": runner.method_code}

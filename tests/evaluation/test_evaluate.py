@@ -434,8 +434,8 @@ class _ClockedRenderer:
 
 def test_equal_time_render_fits_the_budget():
     clock = _ClockedRenderer()
-    image, seconds, spp, attempts = clock.renderer.render_within("path", 1.05, seed=0)
-    assert spp == 500 and seconds == pytest.approx(1.05) and attempts == 1
+    got = clock.renderer.render_within("path", 1.05, seed=0)
+    assert got.spp == 500 and got.render_seconds == pytest.approx(1.05) and got.attempts == 1
     # calibration grew ×4 from 1 spp until a render took a quarter second (each measured twice)
     assert clock.calls[:1] == [1] and 256 in clock.calls and max(clock.calls[:-1]) < 500
 
@@ -448,18 +448,30 @@ def test_equal_time_render_fits_the_budget():
 ])
 def test_equal_time_bisection_lands_within_5_percent(cost, budget):
     clock = _ClockedRenderer(cost)
-    _, seconds, spp, attempts = clock.renderer.render_within("path", budget, seed=0)
-    assert abs(seconds / budget - 1) <= 0.05, (spp, seconds, attempts)
-    assert attempts <= clock.renderer.MAX_ATTEMPTS
+    got = clock.renderer.render_within("path", budget, seed=0)
+    assert abs(got.render_seconds / budget - 1) <= 0.05, got
+    assert got.attempts <= clock.renderer.MAX_ATTEMPTS
 
 
 def test_equal_time_render_is_redone_until_within_5_percent_when_the_machine_slowed_down():
     clock = _ClockedRenderer()
     clock.renderer.cost("path")
     clock.factor = 2.0  # everything now takes twice as long: the first render misses the budget by 100 %
-    _, seconds, spp, attempts = clock.renderer.render_within("path", 1.05, seed=0)
-    assert clock.calls[-attempts] == 500 and spp < 500 and attempts > 1  # redone at a smaller spp
-    assert abs(seconds / 1.05 - 1) <= 0.05
+    got = clock.renderer.render_within("path", 1.05, seed=0)
+    assert clock.calls[-got.attempts] == 500 and got.spp < 500 and got.attempts > 1  # redone at a smaller spp
+    assert abs(got.render_seconds / 1.05 - 1) <= 0.05
+
+
+def test_equal_time_counts_the_post_processing_of_every_try():
+    """A post-processing step after each try (a denoiser): its *measured* time counts, not its estimate. Here
+    the estimate (0.2 s) is far too high for a step that takes microseconds: the first try (at the spp for
+    1.05 - 0.2 s) is too fast, and the bisection recovers the spp that fills the budget. The output kept is the
+    post-processed one."""
+    clock = _ClockedRenderer()
+    got = clock.renderer.render_within("path", 1.05, seed=0, post=lambda image: image + 1.0, post_estimate=0.2)
+    assert abs((got.render_seconds + got.post_seconds) / 1.05 - 1) <= 0.05
+    assert clock.calls[-got.attempts] == 400 and got.attempts > 1 and got.spp > 470
+    assert float(got.output.mean()) == 1.0
 
 
 def test_time_misses_flags_rows_outside_5_percent():
