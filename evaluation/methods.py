@@ -13,32 +13,33 @@ Every method produces (image, per-layer images where it has them, render seconds
                             the network has CBAM attention
 ``ours``                    the shipped pair ``models/direct.onnx`` + ``models/indirect.onnx`` (separation +
                             attention), per layer, summed
-``oidn``                    OIDN on each layer of the G-PT frame, summed (``reconstruct(frame, "oidn")``;
-                            skipped with the reason while model/reconstruct.py lacks that method)
-``fused``                   the fused network of ``models/fused/`` (``reconstruct(frame, "fused", fused=...)``;
-                            skipped with the reason while model/reconstruct.py lacks it or the folder is absent)
+``oidn``                    OIDN on each layer of the G-PT frame, summed (``reconstruct(frame, "oidn")``)
+``fused``                   the fused network of ``models/fused/<layer>.onnx`` (``reconstruct(frame, "fused",
+                            fused=...)``); skipped, listing the missing files, without them
 ``path``                    Mitsuba's own ``path`` integrator at *equal time* (below)
-``path-oidn``               ``path`` denoised by Intel Open Image Denoise (``pyoidn``) with albedo and normal
+``path-oidn``               ``path`` denoised by Intel Open Image Denoise (model/oidn.py) with albedo and normal
                             from a separate :data:`FEATURE_SPP`-spp feature pass (Mitsuba ``aov``) whose time
                             is counted; equal time
 ``path-sep-oidn``           the renderer's primal-only mode (``render_frame(..., gradients=False)``: G-PT's
                             direct/indirect routing and first-hit features, no offset paths), OIDN on each
-                            layer, summed; equal time. Skipped with the reason while the renderer lacks the mode
+                            layer (``reconstruct(frame, "oidn")``), summed; equal time. A method the code base
+                            cannot run (no such reconstruct method, no primal-only mode, no pyoidn) is skipped
+                            with that reason (:func:`unavailable`)
 ==========================  ===============================================================================
 
 Equal time: the budget of a G-PT spp is the G-PT render time plus the reconstruction time of ``ours`` (of
 ``l1`` when ``ours`` is unavailable, which the report says). Each equal-time renderer's cost on the scene is
 measured first as ``seconds = overhead + per_spp · spp``, a line fitted to warm renders (after an untimed 1-spp
 render that pays the JIT compilation, which a user rendering a sequence pays once: 1, 4, 16, ... spp, each the
-faster of two, until one takes a quarter second; every later render adds a point). The fixed costs of a row
-(the feature pass, the measured denoising time) come off the budget first; then the spp is *bisected*: render
-at the line's prediction, and while the measured time misses the target by more than
-:data:`PathRenderer.TOLERANCE` (5 %), bracket the spp between the fastest too-slow and the slowest too-fast
-render and try the refitted line's prediction inside the bracket (its midpoint when the prediction leaves it),
-at most :data:`PathRenderer.MAX_ATTEMPTS` renders. The row keeps the render closest to the target and records
-the attempts; the report flags every row whose measured total is still outside ±5 % of its budget (spp
-granularity at tiny budgets, or a machine whose speed changed between renders). The time in the results is the
-time the kept render actually took, not the prediction, so the plot places every point where it really is.
+faster of two, until one takes a quarter second; every later render adds a point). A *try* is a render plus
+its post-processing (the OIDN call(s)), timed together; ``path-oidn``'s feature pass is rendered once per row and
+taken off the budget first. The spp is *bisected*: the first try at the line's prediction (for the budget less a
+pre-measured post-processing time), and while a try's measured total misses the target by more than
+:data:`PathRenderer.TOLERANCE` (5 %), the next interpolates between the closest too-fast and too-slow tries (their
+midpoint when the interpolation leaves the bracket), at most :data:`PathRenderer.MAX_ATTEMPTS` tries. The row
+keeps the try closest to the target and records the tries; the report flags every row whose measured total is
+still outside ±5 % of its budget (spp granularity at tiny budgets, or a machine whose speed changed between
+tries). The time in the results is the time the kept try actually took, not the prediction.
 
 Timings exclude one-time costs on both sides: each network is run once untimed per frame size (ONNX
 Runtime's allocation on a new shape), Mitsuba's kernels are compiled before the timed render. The G-PT
