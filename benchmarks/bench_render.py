@@ -8,6 +8,9 @@ For every scene and shift (medians of repeats, each after a warm-up render that 
 
 1. **cost per sample**: G-PT seconds / Mitsuba `path` seconds at the same scene, resolution (256^2), 16 spp and
    max depth, box filter for both; G-PT and `path` runs are interleaved so that load changes hit both alike.
+   The primal-only mode (`render --no-gradients`, issue 13: at most 1.15x `path`) is timed with them
+   (``--no-primal`` to skip). Wall and CPU time (all threads) are both reported: on a shared machine the CPU
+   time ratio is the steadier one.
 2. **gradient error at equal spp** (issue 4's metric): mean |dx - FD(reference)| (and dy) of G-PT's gradients at
    16 spp, 128^2, averaged over seeds, against forward differences of a high-spp `path` reference; the same for
    forward differences of G-PT's own primal; and the ratio replay / hybrid.
@@ -106,7 +109,10 @@ def settings_for(loaded):
 
 
 def bench_cost(spec: str, size: int, spp: int, repeats: int, shifts: list[str]) -> dict:
-    """Interleaved timings of `path` and each shift; medians and the ratio of medians."""
+    """Interleaved timings of `path`, each shift and the primal-only mode (``primal``: same layers and features,
+    no offsets); medians and the ratio of medians, in wall time and in the process's CPU time (user + system of
+    all of Dr.Jit's threads: on a loaded machine the wall time also measures how many cores the process got,
+    the CPU time much less so)."""
     from renderer.gpt import render_gpt
     from renderer.scene import load_scene
     from renderer.shift import make_shift
@@ -116,21 +122,27 @@ def bench_cost(spec: str, size: int, spp: int, repeats: int, shifts: list[str]) 
     runs = {"path": lambda: path_image(loaded.scene, spp, 1, loaded.max_depth, loaded.rr_depth)}
 
     def gpt(name: str):
-        return lambda: render_gpt(loaded.scene, make_shift(name), settings, size, size, spp, seed=1)
+        shift = None if name == "primal" else make_shift(name)
+        return lambda: render_gpt(loaded.scene, shift, settings, size, size, spp, seed=1)
 
     for name in shifts:
         runs[name] = gpt(name)
     for fn in runs.values():  # warm-up: kernel compilation
         fn()
     times: dict[str, list[float]] = {name: [] for name in runs}
+    cpu: dict[str, list[float]] = {name: [] for name in runs}
     for _ in range(repeats):
         for name, fn in runs.items():
-            start = time.perf_counter()
+            start, start_cpu = time.perf_counter(), time.process_time()
             fn()
             times[name].append(time.perf_counter() - start)
+            cpu[name].append(time.process_time() - start_cpu)
     medians = {name: statistics.median(t) for name, t in times.items()}
+    cpu_medians = {name: statistics.median(t) for name, t in cpu.items()}
     return {"size": size, "spp": spp, "max_depth": loaded.max_depth, "seconds": medians, "all": times,
-            "cost_ratio": {name: medians[name] / medians["path"] for name in shifts}}
+            "cpu_seconds": cpu_medians, "all_cpu": cpu,
+            "cost_ratio": {name: medians[name] / medians["path"] for name in shifts},
+            "cpu_cost_ratio": {name: cpu_medians[name] / cpu_medians["path"] for name in shifts}}
 
 
 def bench_frame(spec: str, width: int, height: int, spp: int, repeats: int, shift: str) -> dict:
@@ -274,6 +286,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seeds", type=int, default=None, help="G-PT renders per shift (default 4, quick 2)")
     parser.add_argument("--frame", action="store_true", help="also time a 1280x720 16 spp frame per shift")
     parser.add_argument("--skip-cost", action="store_true", help="skip the cost-per-sample timing")
+    parser.add_argument("--no-primal", dest="primal", action="store_false",
+                        help="do not time the primal-only mode (`render --no-gradients`) next to `path`")
+    parser.add_argument("--skip-gradients", action="store_true", help="skip the gradient-error measurement")
     parser.add_argument("--cache", default=None, help="folder for cached references")
     parser.add_argument("--json", default=None, help="also write the results to this file")
     args = parser.parse_args(argv)
@@ -297,18 +312,22 @@ def main(argv: list[str] | None = None) -> int:
         results["scenes"][spec] = out
         print(f"{spec}:")
         if not args.skip_cost:
-            cost = out["cost"] = bench_cost(path, cost_size, 16, repeats, shifts)
+            timed = shifts + (["primal"] if args.primal else [])
+            cost = out["cost"] = bench_cost(path, cost_size, 16, repeats, timed)
             secs = cost["seconds"]
-            print(f"  cost per sample ({cost_size}^2, 16 spp, max_depth {cost['max_depth']}, median of {repeats}): "
-                  f"path {secs['path']:.3f} s; " + "; ".join(
-                      f"{name} {secs[name]:.3f} s = {cost['cost_ratio'][name]:.2f}x" for name in shifts))
+            cpu = cost["cpu_seconds"]
+            print(f"  cost per sample ({cost_size}^2, 16 spp, max_depth {cost['max_depth']}, median of {repeats}; "
+                  f"wall / CPU time): path {secs['path']:.3f} / {cpu['path']:.3f} s; " + "; ".join(
+                      f"{name} {secs[name]:.3f} / {cpu[name]:.3f} s = {cost['cost_ratio'][name]:.2f}x / "
+                      f"{cost['cpu_cost_ratio'][name]:.2f}x" for name in timed))
         if args.frame:
             w, h = (320, 180) if args.quick else (1280, 720)
             for name in shifts:
                 frame = out.setdefault("frame", {})[name] = bench_frame(path, w, h, 16, max(1, repeats // 2), name)
                 print(f"  [{name}] frame {w}x{h} at 16 spp: {frame['seconds']:.2f} s")
-        grads = out["gradients"] = bench_gradients(path, grad_size, 16, ref_spp, seeds, shifts, cache)
-        print_gradients(spec, grads)
+        if not args.skip_gradients:
+            grads = out["gradients"] = bench_gradients(path, grad_size, 16, ref_spp, seeds, shifts, cache)
+            print_gradients(spec, grads)
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=2))
     return 0

@@ -33,9 +33,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="Mitsuba's convention: 2 = direct light only, -1 = unbounded (default: the scene's)")
     p.add_argument("--seed", type=int, default=0, help="sampler seed")
     p.add_argument("--layers", default="direct,indirect",
-                   help="comma-separated illumination layers to render: direct, indirect (default both)")
+                   help="comma-separated illumination layers to render: direct, indirect (default both); "
+                        "color alone renders the unseparated image")
     p.add_argument("--shift", choices=("hybrid", "replay"), default=None,
                    help="shift mapping: hybrid (reconnection + replay, the default) or replay")
+    p.add_argument("--no-gradients", action="store_true",
+                   help="primal-only: the same layers and features, no offset paths and no gradients "
+                        "(about the cost of a plain path tracer)")
     p.add_argument("-D", "--define", action="append", default=[], metavar="NAME=VALUE",
                    help="override a <default> parameter of the XML scene (repeatable)")
     p.add_argument("-o", "--output", required=True, help="output frame (.exr)")

@@ -272,6 +272,13 @@ class GptSettings:
     rr_depth: int = 5
     direct: bool = True
     indirect: bool = True
+    separate: bool = True  # False: one ``color`` layer with every event (direct and indirect must both be on)
+
+    def layer_names(self) -> tuple[str, ...]:
+        """The accumulated illumination layers, in the frame contract's order."""
+        if not self.separate:
+            return ("color",)
+        return tuple(name for name, on in (("direct", self.direct), ("indirect", self.indirect)) if on)
 
     def effective_max_depth(self) -> int:
         """The depth actually traced: a direct-only render stops after the first vertex's BSDF sample."""
@@ -288,6 +295,8 @@ class GptSettings:
             raise ValueError(f"rr_depth must be >= 1, got {self.rr_depth}")
         if not (self.direct or self.indirect):
             raise ValueError("no illumination layer requested")
+        if not self.separate and not (self.direct and self.indirect):
+            raise ValueError("an unseparated (color) render carries all light: direct and indirect must both be on")
         if self.indirect and 0 < self.max_depth <= 2:
             raise ValueError(f"max_depth {self.max_depth} leaves no indirect light; render the direct layer only")
 
@@ -300,8 +309,9 @@ class LayerSums:
     grads: list[mi.Spectrum]
 
     @staticmethod
-    def zeros() -> LayerSums:
-        return LayerSums(base=mi.Spectrum(0.0), grads=[mi.Spectrum(0.0) for _ in SHIFT_OFFSETS])
+    def zeros(gradients: bool = True) -> LayerSums:
+        """Zero sums; without gradients the layer carries the base radiance only."""
+        return LayerSums(base=mi.Spectrum(0.0), grads=[mi.Spectrum(0.0) for _ in SHIFT_OFFSETS] if gradients else [])
 
 
 @dataclass
@@ -321,14 +331,13 @@ class FeatureState:
 
 
 # Output channel groups of one pass (each 3 wide except depth / hit / invalid), per-pixel sums over samples.
-def channel_layout(settings: GptSettings) -> dict[str, int]:
+def channel_layout(settings: GptSettings, gradients: bool = True) -> dict[str, int]:
     """Name -> width of every accumulated per-pixel buffer, in scatter order."""
     layout: dict[str, int] = {}
-    for layer, wanted in (("direct", settings.direct), ("indirect", settings.indirect)):
-        if wanted:
-            layout[f"{layer}.base"] = 3
-            for i in range(len(SHIFT_OFFSETS)):
-                layout[f"{layer}.grad{i}"] = 3
+    for layer in settings.layer_names():
+        layout[f"{layer}.base"] = 3
+        for i in range(len(SHIFT_OFFSETS) if gradients else 0):
+            layout[f"{layer}.grad{i}"] = 3
     layout.update({"albedo": 3, "normal": 3, "depth": 1, "hit": 1, "invalid": 1})
     return layout
 
@@ -337,7 +346,7 @@ def channel_layout(settings: GptSettings) -> dict[str, int]:
 class GptResult:
     """Per-pixel results as float32 numpy arrays (H, W, 3) / (H, W); gradients per the frame contract."""
 
-    layers: dict[str, dict[str, np.ndarray]]  # layer -> {"base", "dx", "dy"}
+    layers: dict[str, dict[str, np.ndarray]]  # layer -> {"base", "dx", "dy"} ({"base"} alone without gradients)
     albedo: np.ndarray
     normal: np.ndarray
     depth: np.ndarray
@@ -364,10 +373,11 @@ def stratified_sub_pixel(u: mi.Point2f, sample: mi.UInt32, strata: mi.UInt32) ->
 
 
 def _camera_rays(sensor: mi.Sensor, sampler: mi.Sampler, px: mi.Int32, py: mi.Int32, size: mi.Vector2f,
-                 res: tuple[mi.Int32, mi.Int32], sample: mi.UInt32,
-                 strata: mi.UInt32) -> tuple[list[tuple[mi.Ray3f, mi.Spectrum, mi.Bool]], mi.Bool]:
-    """Primary rays of the base pixel and of the four shifted pixels, all through the same sub-pixel sample
-    (``sample``-th of the pixel, stratified: :func:`stratified_sub_pixel`).
+                 res: tuple[mi.Int32, mi.Int32], sample: mi.UInt32, strata: mi.UInt32,
+                 shifts: Sequence[tuple[int, int]] = SHIFT_OFFSETS,
+                 ) -> tuple[list[tuple[mi.Ray3f, mi.Spectrum, mi.Bool]], mi.Bool]:
+    """Primary rays of the base pixel and of the shifted pixels (``shifts``; none for a primal-only render), all
+    through the same sub-pixel sample (``sample``-th of the pixel, stratified: :func:`stratified_sub_pixel`).
 
     The shifted pixel index is formed in integers first, so an offset ray and the base ray of the neighbouring
     pixel it stands for are computed bit for bit alike.
@@ -379,7 +389,7 @@ def _camera_rays(sensor: mi.Sensor, sampler: mi.Sampler, px: mi.Int32, py: mi.In
         time += sampler.next_1d() * sensor.shutter_open_time()
     width, height = res
     rays = []
-    for ox, oy in ((0, 0), *SHIFT_OFFSETS):
+    for ox, oy in ((0, 0), *shifts):
         qx, qy = px + ox, py + oy
         inside = (qx >= 0) & (qx < width) & (qy >= 0) & (qy < height)
         pos = (mi.Point2f(mi.Float(qx), mi.Float(qy)) + sub_pixel) / size
@@ -429,7 +439,14 @@ def _update_features(feat: FeatureState, base_active: mi.Bool, v: Vertex, ray_d:
 
 def _route(sums: dict[str, LayerSums], depth: mi.UInt32, settings: GptSettings, hit_value: mi.Spectrum,
            nee_value: mi.Spectrum, hit_grads: list[mi.Spectrum], nee_grads: list[mi.Spectrum]) -> None:
-    """Add one vertex's events to their layer: emission at depth <= 1 and NEE at depth 0 are direct light."""
+    """Add one vertex's events to their layer: emission at depth <= 1 and NEE at depth 0 are direct light; an
+    unseparated render (``color``) takes every event."""
+    if "color" in sums:
+        s = sums["color"]
+        s.base = s.base + hit_value + nee_value
+        for i in range(len(s.grads)):
+            s.grads[i] = s.grads[i] + hit_grads[i] + nee_grads[i]
+        return
     hit_direct = depth <= 1
     nee_direct = depth == 0
     for layer, sel_hit, sel_nee in (("direct", hit_direct, nee_direct), ("indirect", ~hit_direct, ~nee_direct)):
@@ -437,7 +454,7 @@ def _route(sums: dict[str, LayerSums], depth: mi.UInt32, settings: GptSettings, 
             continue
         s = sums[layer]
         s.base = s.base + dr.select(sel_hit, hit_value, 0.0) + dr.select(sel_nee, nee_value, 0.0)
-        for i in range(len(SHIFT_OFFSETS)):
+        for i in range(len(s.grads)):
             s.grads[i] = s.grads[i] + dr.select(sel_hit, hit_grads[i], 0.0) + dr.select(sel_nee, nee_grads[i], 0.0)
 
 
@@ -448,10 +465,22 @@ def _finite(x: Any) -> tuple[Any, mi.Bool]:
     return dr.select(ok, x, 0.0), bad
 
 
-def render_pass(scene: mi.Scene, shift: Shift, settings: GptSettings, width: int, height: int, spp: int,
+def _drop_non_finite(sums: dict[str, LayerSums]) -> tuple[dict[str, LayerSums], mi.Bool]:
+    """Primal-only lanes: a sample whose sum is not finite (degenerate geometry) contributes 0 to every layer;
+    returns the cleaned sums and the per-lane 'was bad' mask."""
+    bad = mi.Bool(False)
+    for s in sums.values():
+        bad |= ~dr.all(dr.isfinite(s.base))
+    for s in sums.values():
+        s.base = dr.select(bad, 0.0, s.base)
+    return sums, bad
+
+
+def render_pass(scene: mi.Scene, shift: Shift | None, settings: GptSettings, width: int, height: int, spp: int,
                 seed: int) -> dict[str, np.ndarray]:
     """Trace ``width*height*spp`` lanes in one kernel; returns per-pixel *sums* (not means) per channel group.
 
+    ``shift`` None renders the primal alone: the base paths with the same routing and features, no offsets.
     Sizes, seed and depth limits enter the kernel as opaque values, so one compiled kernel serves every seed,
     resolution and sample count of a scene.
     """
@@ -476,14 +505,16 @@ def render_pass(scene: mi.Scene, shift: Shift, settings: GptSettings, width: int
     px = mi.Int32(pixel) - py * w_o
     size = mi.Vector2f(mi.Float(w_o), mi.Float(h_o))
     strata_o = dr.opaque(mi.UInt32, math.isqrt(spp))
-    rays, _ = _camera_rays(sensor, sampler, px, py, size, (w_o, h_o), idx % spp_o, strata_o)
+    gradients = shift is not None
+    rays, _ = _camera_rays(sensor, sampler, px, py, size, (w_o, h_o), idx % spp_o, strata_o,
+                           SHIFT_OFFSETS if gradients else ())
     to_camera = sensor.world_transform().inverse()
 
-    ray_flags = shift.ray_flags(scene)
+    ray_flags = shift.ray_flags(scene) if gradients else mi.RayFlags.All
+    strict_light_pdf = shift.reuses_light_samples if gradients else False
     base = PathState.start(*rays[0])
-    offsets = [shift.start(*r) for r in rays[1:]]
-    sums = {name: LayerSums.zeros() for name, on in (("direct", settings.direct), ("indirect", settings.indirect))
-            if on}
+    offsets = [shift.start(*r) for r in rays[1:]] if gradients else []
+    sums = {name: LayerSums.zeros(gradients) for name in settings.layer_names()}
     feat = FeatureState.start()
     depth = mi.UInt32(0)
     invalid = mi.Bool(False)
@@ -493,7 +524,7 @@ def render_pass(scene: mi.Scene, shift: Shift, settings: GptSettings, width: int
             samples = VertexSamples.draw(sampler)
             ray_d = mi.Vector3f(base.ray.d)
             base_active = mi.Bool(base.active)
-            base, v = trace_vertex(scene, base, depth, max_depth_o, samples, shift.reuses_light_samples, ray_flags)
+            base, v = trace_vertex(scene, base, depth, max_depth_o, samples, strict_light_pdf, ray_flags)
             hit_grads, nee_grads = [], []
             new_offsets = []
             for off in offsets:
@@ -503,9 +534,12 @@ def render_pass(scene: mi.Scene, shift: Shift, settings: GptSettings, width: int
                 hit_grads.append(ev.w_hit * (ev.emitted - v.emitted))
                 nee_grads.append(ev.w_nee * (off_nee - v.nee))
                 new_offsets.append(off)
-            hit_value, bad_h = _finite(v.emitted)
-            nee_value, bad_n = _finite(v.nee)
-            bad = bad_h | bad_n
+            if gradients:
+                hit_value, bad_h = _finite(v.emitted)
+                nee_value, bad_n = _finite(v.nee)
+                bad = bad_h | bad_n
+            else:  # checked once per lane after the loop (_drop_non_finite): one check instead of two per vertex
+                hit_value, nee_value, bad = v.emitted, v.nee, mi.Bool(False)
             clean_hit, clean_nee = [], []
             for gh, gn in zip(hit_grads, nee_grads, strict=True):
                 gh, bh = _finite(gh)
@@ -525,11 +559,13 @@ def render_pass(scene: mi.Scene, shift: Shift, settings: GptSettings, width: int
             base.throughput = base.throughput * inv_q
             dead = rr_active & ~survive
             base.active = base.active & ~dead
-            new_offsets = [shift.kill(shift.scale(o, inv_q, rr_active), dead) for o in new_offsets]
+            if gradients:
+                new_offsets = [shift.kill(shift.scale(o, inv_q, rr_active), dead) for o in new_offsets]
             return sampler, depth + 1, base, new_offsets, sums, feat, invalid | bad
         return body
 
     def full_step(off: Any, v: Vertex, depth: mi.UInt32, samples: VertexSamples) -> tuple[Any, OffsetEvents]:
+        assert shift is not None  # only called for offsets, which exist only with a shift
         return shift.step(scene, off, v, depth, max_depth_o, samples)
 
     state = (sampler, depth, base, offsets, sums, feat, invalid)
@@ -557,7 +593,9 @@ def render_pass(scene: mi.Scene, shift: Shift, settings: GptSettings, width: int
                               body=make_body(full_step), label="gpt")
     sampler, depth, base, offsets, sums, feat, invalid = state
 
-    layout = channel_layout(settings)
+    if not gradients:
+        sums, invalid = _drop_non_finite(sums)
+    layout = channel_layout(settings, gradients)
     values: dict[str, Sequence[mi.Float]] = {}
     for layer, s in sums.items():
         values[f"{layer}.base"] = [s.base.x, s.base.y, s.base.z]
@@ -602,10 +640,13 @@ def pass_seed(seed: int, index: int) -> int:
     return (z ^ (z >> 31)) & 0xFFFFFFFF
 
 
-def render_gpt(scene: mi.Scene, shift: Shift, settings: GptSettings, width: int, height: int, spp: int,
+def render_gpt(scene: mi.Scene, shift: Shift | None, settings: GptSettings, width: int, height: int, spp: int,
                seed: int = 0, progress: Callable[[int, int], None] | None = None,
                max_lanes: int = MAX_LANES_PER_PASS) -> GptResult:
-    """Render ``spp`` samples per pixel in passes and combine them into per-layer base/dx/dy images + features."""
+    """Render ``spp`` samples per pixel in passes and combine them into per-layer base/dx/dy images + features.
+
+    ``shift`` None is the primal-only mode: the same base paths, layers and features, no offsets and no
+    gradients (each layer carries ``base`` alone)."""
     settings.validate()
     if spp < 1:
         raise ValueError(f"spp must be >= 1, got {spp}")
@@ -625,8 +666,9 @@ def render_gpt(scene: mi.Scene, shift: Shift, settings: GptSettings, width: int,
 def _finish(t: dict[str, np.ndarray], settings: GptSettings, spp: int, passes: int) -> GptResult:
     """Per-pixel sums -> means; the two one-sided gradient estimates -> dx, dy per the frame contract."""
     layers: dict[str, dict[str, np.ndarray]] = {}
-    for layer in ("direct", "indirect"):
-        if f"{layer}.base" not in t:
+    for layer in settings.layer_names():
+        if f"{layer}.grad0" not in t:  # primal-only render
+            layers[layer] = {"base": (t[f"{layer}.base"] / spp).astype(np.float32)}
             continue
         g = [t[f"{layer}.grad{i}"] for i in range(len(SHIFT_OFFSETS))]  # right, left, down, up
         dx = g[0].copy()

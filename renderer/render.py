@@ -16,27 +16,35 @@ from pathlib import Path
 
 from gradsep import __version__
 from gradsep.cli import CommandError
-from model.frame import SEPARATED_LAYERS, Features, Frame, Layer, write_frame
+from model.frame import ILLUMINATION_LAYERS, SEPARATED_LAYERS, Features, Frame, Layer, write_frame
 from renderer.scene import LoadedScene, load_scene, parse_defines
 
 
 def parse_layers(text: str | Iterable[str]) -> tuple[str, ...]:
-    """``"direct,indirect"`` -> ("direct", "indirect") in contract order; unknown names are a user error."""
+    """``"direct,indirect"`` -> ("direct", "indirect") in contract order; ``color`` alone is the unseparated
+    image (separation off); unknown names are a user error."""
     items = [t.strip() for t in (text.split(",") if isinstance(text, str) else text)]
     items = [t for t in items if t]
-    unknown = sorted(set(items) - set(SEPARATED_LAYERS))
+    unknown = sorted(set(items) - set(ILLUMINATION_LAYERS))
     if unknown:
         raise CommandError(f"unknown layer(s) {', '.join(unknown)}; expected a comma-separated subset of "
-                           f"{','.join(SEPARATED_LAYERS)}")
+                           f"{','.join(SEPARATED_LAYERS)}, or color")
     if not items:
-        raise CommandError("--layers is empty; expected direct, indirect or both")
+        raise CommandError("--layers is empty; expected direct, indirect, both, or color")
+    if "color" in items:
+        if set(items) != {"color"}:
+            raise CommandError("--layers color is the unseparated image; it cannot be combined with direct or "
+                               "indirect")
+        return ("color",)
     return tuple(layer for layer in SEPARATED_LAYERS if layer in items)
 
 
 def plan_layers(requested: tuple[str, ...], max_depth: int) -> tuple[tuple[str, ...], list[str]]:
     """The layers to trace given the depth limit, plus notes about layers dropped because no light reaches them."""
-    notes = []
+    notes: list[str] = []
     layers = requested
+    if layers == ("color",):
+        return layers, notes
     if "indirect" in requested and 0 < max_depth <= 2:
         layers = tuple(layer for layer in requested if layer != "indirect")
         notes.append(f"max_depth {max_depth} carries no indirect light: the indirect layer is not rendered")
@@ -49,11 +57,14 @@ def render_frame(scene: LoadedScene | str, *, spp: int, seed: int = 0,
                  layers: str | Iterable[str] = SEPARATED_LAYERS, shift: str | None = None,
                  max_depth: int | None = None, width: int | None = None, height: int | None = None,
                  defines: Mapping[str, str] | None = None,
-                 progress: Callable[[int, int], None] | None = None) -> Frame:
+                 progress: Callable[[int, int], None] | None = None, gradients: bool = True) -> Frame:
     """Render one G-PT frame: per requested layer base + dx + dy, features at the first non-specular vertex.
 
     ``scene`` is a loaded scene or a spec (XML path / ``procedural:SEED``) loaded with ``width``, ``height``,
-    ``max_depth`` and ``defines``. ``max_depth`` given here overrides the loaded scene's.
+    ``max_depth`` and ``defines``. ``max_depth`` given here overrides the loaded scene's. ``layers`` ``color``
+    renders the unseparated image. ``gradients=False`` is the primal-only mode: the same base paths, layers and
+    features, no offset paths; the frame's layers carry no gradients (``dx``/``dy`` None) and ``shift`` is
+    ignored.
     """
     from renderer.gpt import GptSettings, render_gpt
     from renderer.shift import make_shift  # imports Mitsuba
@@ -71,30 +82,32 @@ def render_frame(scene: LoadedScene | str, *, spp: int, seed: int = 0,
                             scene.defines)
     wanted, notes = plan_layers(parse_layers(layers), scene.max_depth)
     try:
-        shift_impl = make_shift(shift)
+        shift_impl = make_shift(shift) if gradients else None
     except ValueError as exc:
         raise CommandError(str(exc)) from None
-    settings = GptSettings(max_depth=scene.max_depth, rr_depth=scene.rr_depth, direct="direct" in wanted,
-                           indirect="indirect" in wanted)
+    color = wanted == ("color",)
+    settings = GptSettings(max_depth=scene.max_depth, rr_depth=scene.rr_depth, direct=color or "direct" in wanted,
+                           indirect=color or "indirect" in wanted, separate=not color)
     start = time.perf_counter()
     result = render_gpt(scene.scene, shift_impl, settings, scene.width, scene.height, spp, seed, progress)
     seconds = time.perf_counter() - start
 
-    frame_layers = {name: Layer(base=v["base"], dx=v["dx"], dy=v["dy"]) for name, v in result.layers.items()}
+    frame_layers = {name: Layer(base=v["base"], dx=v.get("dx"), dy=v.get("dy")) for name, v in result.layers.items()}
     features = Features(albedo=result.albedo, normal=result.normal, depth=result.depth)
-    metadata = render_metadata(scene, spp=spp, seed=seed, shift=shift_impl.name, layers=wanted, seconds=seconds,
-                               passes=result.passes)
+    metadata = render_metadata(scene, spp=spp, seed=seed, shift=shift_impl.name if shift_impl else "none",
+                               layers=wanted, seconds=seconds, passes=result.passes, gradients=gradients)
     return Frame(layers=frame_layers, features=features, metadata=metadata, warnings=notes + result.warnings)
 
 
 def render_metadata(scene: LoadedScene, *, spp: int, seed: int, shift: str, layers: tuple[str, ...],
-                    seconds: float, passes: int) -> dict[str, str]:
-    """The ``gradsep.*`` EXR header attributes of a rendered frame (all strings)."""
+                    seconds: float, passes: int, gradients: bool = True) -> dict[str, str]:
+    """The ``gradsep.*`` EXR header attributes of a rendered frame (all strings); the integrator is ``gpt``, or
+    ``primal`` for the primal-only mode (shift ``none``)."""
     import mitsuba as mi
 
     meta = {
         "gradsep.version": __version__,
-        "gradsep.integrator": "gpt",
+        "gradsep.integrator": "gpt" if gradients else "primal",
         **scene.scene_metadata(),
         "gradsep.spp": str(spp),
         "gradsep.seed": str(seed),
@@ -117,6 +130,8 @@ def render_command(args: argparse.Namespace) -> int:
         raise CommandError(f"output {args.output} must end in .exr")
     if not output.parent.exists():
         raise CommandError(f"output folder {output.parent} does not exist")
+    if args.no_gradients and args.shift is not None:
+        raise CommandError("--shift has no effect with --no-gradients (no offset paths are traced)")
     scene = load_scene(args.scene, width=args.width, height=args.height, max_depth=args.max_depth,
                        defines=parse_defines(args.define))
     show = sys.stderr.isatty()
@@ -126,7 +141,7 @@ def render_command(args: argparse.Namespace) -> int:
             print(f"\rgradsep render: {done}/{total} spp", end="", file=sys.stderr, flush=True)
 
     frame = render_frame(scene, spp=args.spp, seed=args.seed, layers=args.layers, shift=args.shift,
-                         progress=progress)
+                         progress=progress, gradients=not args.no_gradients)
     if show:
         print(file=sys.stderr)
     write_frame(output, frame)
