@@ -97,12 +97,13 @@ models: venv system-deps $(DATASET)/manifest.json
 # one core each, MINUTES_FUSED of wall time each (the issue's budget: at most 90 minutes for the pair). Writes
 # $(MODELS_OUT)/fused/{direct,indirect}.onnx; copy them to models/fused/ to serve them.
 MINUTES_FUSED ?= 45
+FUSED_FLAGS   ?= --prior oidn --data-weight 10 --lr 3e-4
 fused-models: venv system-deps $(DATASET)/manifest.json
 	$(BIN)/pip install -q -e '.[test]'
 	mkdir -p $(MODELS_OUT)/fused
-	( $(TRAIN0) train --data $(DATASET) --layer direct --prior oidn --minutes $(MINUTES_FUSED) -o runs/fused-direct && \
+	( $(TRAIN0) train --data $(DATASET) --layer direct $(FUSED_FLAGS) --minutes $(MINUTES_FUSED) -o runs/fused-direct && \
 	  $(TRAIN0) export runs/fused-direct -o $(MODELS_OUT)/fused/direct.onnx ) & p0=$$!; \
-	( $(TRAIN1) train --data $(DATASET) --layer indirect --prior oidn --minutes $(MINUTES_FUSED) -o runs/fused-indirect && \
+	( $(TRAIN1) train --data $(DATASET) --layer indirect $(FUSED_FLAGS) --minutes $(MINUTES_FUSED) -o runs/fused-indirect && \
 	  $(TRAIN1) export runs/fused-indirect -o $(MODELS_OUT)/fused/indirect.onnx ) & p1=$$!; \
 	wait $$p0 && wait $$p1
 

@@ -337,8 +337,9 @@ class _Progress:
 
 
 def _budget_method(rows: dict[str, dict[str, Any]]) -> str | None:
-    """The method whose total time is the equal-time budget: ours, else L1 (None: the G-PT render alone)."""
-    for name in ("ours", "l1"):
+    """The method whose total time is the equal-time budget: the product's default for a G-PT frame (fused), else
+    ours (the paper's network), else L1 (None: the G-PT render alone)."""
+    for name in ("fused", "ours", "l1"):
         if name in rows:
             return name
     return None

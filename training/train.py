@@ -672,6 +672,8 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
         value = getattr(args, name)
         if value is not None:
             extra[name] = value
+    if getattr(args, "data_weight", None) is not None:
+        extra["alpha"] = args.data_weight
     return TrainConfig(data=args.data, layer=args.layer, output=args.output, network=network,
                        epochs=args.epochs, minutes=args.minutes, seed=args.seed,
                        prior=getattr(args, "prior", None) or "l1", **extra)
