@@ -40,9 +40,14 @@ from functools import lru_cache
 import numpy as np
 import scipy.fft
 
-__all__ = ["L1Stats", "energy_l1", "energy_l2", "solve_l1", "solve_l2"]
+__all__ = ["MIN_ALPHA", "L1Stats", "energy_l1", "energy_l2", "solve_l1", "solve_l2"]
 
 DEFAULT_ALPHA = 0.2
+#: Smallest accepted α. Below ~1e-154 α² underflows to 0 in float64 and the constant mode (eigenvalue α²) is
+#: undetermined; well before that the data term stops meaning anything. Down to 1e-12 both solvers still
+#: return the exact image from exact data (tested at MIN_ALPHA); 1e-8 keeps a margin of 1e4. Callers (CLI,
+#: service) reject smaller values up front with a message naming the range.
+MIN_ALPHA = 1e-8
 _F32_MAX = float(np.finfo(np.float32).max)
 
 
@@ -88,6 +93,9 @@ def _prepare(base: np.ndarray, dx: np.ndarray, dy: np.ndarray, alpha: float) -> 
             raise ValueError(f"{name} contains {bad} non-finite value(s); sanitise them before solving")
     if not (np.isfinite(alpha) and alpha > 0):
         raise ValueError(f"alpha must be a finite number > 0 (got {alpha}); at 0 the mean is undetermined")
+    if alpha < MIN_ALPHA:
+        raise ValueError(f"alpha must be at least {MIN_ALPHA:g} (got {alpha:g}): below that the base image's "
+                         "weight underflows and the image's mean is undetermined")
     out = []
     for arr in arrays.values():
         a = arr.astype(np.float64)

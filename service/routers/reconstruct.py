@@ -22,6 +22,7 @@ from starlette.datastructures import UploadFile
 from starlette.responses import Response
 
 from model.frame import NotExrError, Source, read_header
+from model.poisson import MIN_ALPHA
 from service.dependencies import get_engine, get_metrics
 from service.errors import ErrorResponse, ServiceError
 from service.inference import Engine, ReconstructParams, run_pipeline, server_timing
@@ -82,7 +83,8 @@ async def reconstruct_frame(
         description="reconstruction method; default network when models for the frame's layers "
                     "are loaded, else l1")] = None,
     alpha: Annotated[float | None, Query(
-        gt=0, le=1000, allow_inf_nan=False, description="screened Poisson data weight (l1/l2)")] = None,
+        ge=MIN_ALPHA, le=1000, allow_inf_nan=False,
+        description=f"screened Poisson data weight (l1/l2), in [{MIN_ALPHA:g}, 1000]")] = None,
     output_format: Annotated[Literal["half", "float"], Query(
         alias="format", description="pixel type of the returned EXR")] = "float",
     layers: Annotated[Literal["sum", "all"], Query(
