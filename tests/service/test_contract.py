@@ -384,6 +384,6 @@ def test_docs_page_and_its_assets_are_served_locally(poisson_api, transport):
     assert assets and all(a.startswith("/docs/static/") for a in assets), assets
     for asset in assets:
         response = client.get(asset)
-        assert response.status_code == 200 and len(response.content) > 1000, asset
+        assert response.status_code == 200 and len(response.content) > 100, asset
     assert "SwaggerUIBundle" in client.get("/docs/static/swagger-ui-bundle.js").text
     assert client.get("/openapi.json").status_code == 200
