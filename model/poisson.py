@@ -40,6 +40,8 @@ from functools import lru_cache
 import numpy as np
 import scipy.fft
 
+from model import kernels
+
 __all__ = ["MIN_ALPHA", "L1Stats", "energy_l1", "energy_l2", "solve_l1", "solve_l2"]
 
 DEFAULT_ALPHA = 0.2
@@ -228,6 +230,19 @@ def _residuals(
     return e0, ex, ey
 
 
+def _residuals_and_norms(x: np.ndarray, base: np.ndarray, dx: np.ndarray, dy: np.ndarray,
+                         alpha: float) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...]]:
+    """:func:`_residuals` and their per-term RGB norms; one fused pass when the compiled kernels exist."""
+    if not kernels.AVAILABLE:
+        residuals = _residuals(x, base, dx, dy, alpha)
+        return residuals, tuple(_norm_c(e) for e in residuals)
+    c, h, w = x.shape
+    e0, ex, ey = np.empty_like(x), np.empty((c, h, w - 1), x.dtype), np.empty((c, h - 1, w), x.dtype)
+    n0, nx, ny = np.empty((h, w), x.dtype), np.empty((h, w - 1), x.dtype), np.empty((h - 1, w), x.dtype)
+    kernels.residuals_and_norms(x, base, dx, dy, alpha, e0, ex, ey, n0, nx, ny)
+    return (e0, ex, ey), (n0, nx, ny)
+
+
 def _norm_c(e: np.ndarray) -> np.ndarray:
     """Per-term norm over channels (‖e‖_RGB): one weight per pixel and term, shared by the channels."""
     return np.sqrt(np.einsum("c...,c...->...", e, e))
@@ -298,6 +313,9 @@ class _WeightedSystem:
 
     def rhs(self, e0: np.ndarray, ex: np.ndarray, ey: np.ndarray) -> np.ndarray:
         """Pᵀ W² e: the normal-equation residual at the current iterate (CG then solves for the update)."""
+        if kernels.AVAILABLE:
+            aw0 = (self.alpha * self.w0).astype(self.dtype, copy=False)
+            return kernels.weighted_rhs(e0, ex, ey, aw0, self.wx, self.wy, np.empty_like(e0))
         out = (self.alpha * self.w0) * e0
         np.multiply(ex, self.wx, out=self._gx)
         np.multiply(ey, self.wy, out=self._gy)
@@ -312,7 +330,9 @@ class _WeightedSystem:
         out[..., 1:, :] += self._gy
 
     def apply(self, p: np.ndarray, out: np.ndarray) -> np.ndarray:
-        """out = A p, without temporaries beyond the two gradient buffers."""
+        """out = A p, without temporaries beyond the two gradient buffers (one fused pass when compiled)."""
+        if kernels.AVAILABLE:
+            return kernels.weighted_apply(p, self._a2w0, self.wx, self.wy, out)
         np.subtract(p[..., :, 1:], p[..., :, :-1], out=self._gx)
         self._gx *= self.wx
         np.subtract(p[..., 1:, :], p[..., :-1, :], out=self._gy)
@@ -356,10 +376,16 @@ def _pcg(
     while it < max_iter:
         system.apply(p, out=ap)
         step = _safe_div(rz, _dots(p, ap)).astype(r.dtype)
-        d += np.multiply(p, step, out=tmp)
-        r -= np.multiply(ap, step, out=tmp)
+        if kernels.AVAILABLE:  # both updates and ‖r‖² in one pass
+            rr = np.empty(r.shape[0])
+            kernels.cg_update(d, r, p, ap, np.ascontiguousarray(step.ravel()), rr)
+            rr = rr[:, None, None]
+        else:
+            d += np.multiply(p, step, out=tmp)
+            r -= np.multiply(ap, step, out=tmp)
+            rr = _dots(r, r)
         it += 1
-        rel = float(np.max(_safe_div(np.sqrt(_dots(r, r)), r0)))
+        rel = float(np.max(_safe_div(np.sqrt(rr), r0)))
         if rel <= tol or it == max_iter:
             break
         z = system.precondition(r)
@@ -425,8 +451,7 @@ def solve_l1(
     b, gx, gy, x = ((a / scale).astype(work) for a in (b, gx, gy, x))
     system = _WeightedSystem(x.shape, alpha, work, preconditioner)
 
-    residuals = _residuals(x, b, gx, gy, alpha)
-    norms = tuple(_norm_c(e) for e in residuals)
+    residuals, norms = _residuals_and_norms(x, b, gx, gy, alpha)
     stats.cg_iterations.append(0)
     stats.cg_residuals.append(0.0)
     stats.energies.append(_l1_energy(norms) * scale)
@@ -435,8 +460,7 @@ def solve_l1(
         system.set_weights(norms, reg=reg_init * reg_decay ** (k - 1) / scale)
         delta, it, rel = _pcg(system, system.rhs(*residuals), cg_iterations, cg_tolerance)
         x += delta
-        residuals = _residuals(x, b, gx, gy, alpha)
-        norms = tuple(_norm_c(e) for e in residuals)
+        residuals, norms = _residuals_and_norms(x, b, gx, gy, alpha)
         stats.cg_iterations.append(it)
         stats.cg_residuals.append(rel)
         stats.energies.append(_l1_energy(norms) * scale)
