@@ -76,32 +76,41 @@ if AVAILABLE:
 
     @njit(**_OPTS)
     def residuals_and_norms(x, base, dx, dy, alpha, e0, ex, ey, n0, nx, ny):  # pragma: no cover - compiled
-        """e0 = α(base − x), ex = dx − H_x x, ey = dy − H_y x and their per-pixel norms over channels."""
+        """e0 = α(base − x), ex = dx − H_x x, ey = dy − H_y x and their per-pixel norms over channels.
+
+        Row by row, channel by channel (contiguous inner loops), summing squares into per-row accumulators."""
         channels, height, width = x.shape
         a = x.dtype.type(alpha)
+        s0 = np.empty(width, np.float64)
+        sx = np.empty(width, np.float64)
+        sy = np.empty(width, np.float64)
         for y in range(height):
-            for col in range(width):
-                s0 = 0.0
-                sx = 0.0
-                sy = 0.0
-                for c in range(channels):
+            s0[:] = 0.0
+            sx[:] = 0.0
+            sy[:] = 0.0
+            below = y + 1 < height
+            for c in range(channels):
+                for col in range(width):
                     xc = x[c, y, col]
                     v = a * (base[c, y, col] - xc)
                     e0[c, y, col] = v
-                    s0 += v * v
-                    if col + 1 < width:
-                        v = dx[c, y, col] - (x[c, y, col + 1] - xc)
-                        ex[c, y, col] = v
-                        sx += v * v
-                    if y + 1 < height:
-                        v = dy[c, y, col] - (x[c, y + 1, col] - xc)
+                    s0[col] += v * v
+                for col in range(width - 1):
+                    v = dx[c, y, col] - (x[c, y, col + 1] - x[c, y, col])
+                    ex[c, y, col] = v
+                    sx[col] += v * v
+                if below:
+                    for col in range(width):
+                        v = dy[c, y, col] - (x[c, y + 1, col] - x[c, y, col])
                         ey[c, y, col] = v
-                        sy += v * v
-                n0[y, col] = np.sqrt(s0)
-                if col + 1 < width:
-                    nx[y, col] = np.sqrt(sx)
-                if y + 1 < height:
-                    ny[y, col] = np.sqrt(sy)
+                        sy[col] += v * v
+            for col in range(width):
+                n0[y, col] = np.sqrt(s0[col])
+            for col in range(width - 1):
+                nx[y, col] = np.sqrt(sx[col])
+            if below:
+                for col in range(width):
+                    ny[y, col] = np.sqrt(sy[col])
 
     @njit(**_OPTS)
     def cg_update(d, r, p, ap, step, rr):  # pragma: no cover - compiled
