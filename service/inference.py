@@ -149,6 +149,7 @@ class ReconstructParams:
     half: bool
     layers: Literal["sum", "all"]
     request_id: str = "-"
+    compression: str | None = None  # the request's EXR compression; the answer reuses it when lossless
 
 
 @dataclass
@@ -190,7 +191,7 @@ def run_pipeline(source: Source, params: ReconstructParams, limits: ReadLimits, 
                 "gradsep.request_id": params.request_id, "gradsep.layers": ",".join(frame.layers)}
     if warnings:
         metadata["gradsep.warnings"] = "; ".join(warnings)[:2000]
-    body = encode_exr(channels, half=params.half, metadata=metadata)
+    body = encode_exr(channels, half=params.half, metadata=metadata, compression=params.compression)
     timings["encode"] = time.perf_counter() - t1
     return Outcome(body, str(result.method), timings, warnings, list(frame.layers))
 

@@ -387,3 +387,29 @@ def test_docs_page_and_its_assets_are_served_locally(poisson_api, transport):
         assert response.status_code == 200 and len(response.content) > 100, asset
     assert "SwaggerUIBundle" in client.get("/docs/static/swagger-ui-bundle.js").text
     assert client.get("/openapi.json").status_code == 200
+
+
+@TRANSPORT
+@pytest.mark.parametrize(("sent", "answered"), [("NO_COMPRESSION", "NO_COMPRESSION"), ("ZIP_COMPRESSION", "ZIP_COMPRESSION"),
+                                                ("PIZ_COMPRESSION", "PIZ_COMPRESSION"),
+                                                ("PXR24_COMPRESSION", "ZIP_COMPRESSION")])
+def test_answer_compression_follows_the_request_when_lossless(poisson_api, transport, sent, answered):
+    from model.frame import encode_exr, read_header
+
+    body = encode_exr(frame_channels(), compression=sent) if sent != "PXR24_COMPRESSION" else _lossy(sent)
+    response = post(poisson_api[transport], body, {"method": "l2"})
+    assert response.status_code == 200, response.text
+    assert read_header(response.content).compression == answered
+    np.testing.assert_allclose(rgb(decode(response.content)[0]), expected_sum(), rtol=1e-4, atol=1e-4)
+
+
+def _lossy(compression: str) -> bytes:
+    """A frame written with a lossy codec (float channels through PXR24 lose mantissa bits)."""
+    import io
+
+    import OpenEXR
+
+    pixels = {k: np.ascontiguousarray(v, np.float32) for k, v in frame_channels().items()}
+    buffer = io.BytesIO()
+    OpenEXR.File({"compression": getattr(OpenEXR, compression), "type": OpenEXR.scanlineimage}, pixels).write(buffer)
+    return buffer.getvalue()
