@@ -390,9 +390,9 @@ def test_docs_page_and_its_assets_are_served_locally(poisson_api, transport):
 
 
 @TRANSPORT
-@pytest.mark.parametrize(("sent", "answered"), [("NO_COMPRESSION", "NO_COMPRESSION"), ("ZIP_COMPRESSION", "ZIP_COMPRESSION"),
-                                                ("PIZ_COMPRESSION", "PIZ_COMPRESSION"),
-                                                ("PXR24_COMPRESSION", "ZIP_COMPRESSION")])
+@pytest.mark.parametrize(("sent", "answered"), [
+    ("NO_COMPRESSION", "NO_COMPRESSION"), ("ZIP_COMPRESSION", "ZIP_COMPRESSION"),
+    ("PIZ_COMPRESSION", "PIZ_COMPRESSION"), ("PXR24_COMPRESSION", "ZIP_COMPRESSION")])
 def test_answer_compression_follows_the_request_when_lossless(poisson_api, transport, sent, answered):
     from model.frame import encode_exr, read_header
 
