@@ -244,7 +244,8 @@ class Engine:
                 await anyio.to_thread.run_sync(self._warm_up)
                 log.info("warm-up of %s done in %.2f s", ", ".join(self.methods), time.perf_counter() - started)
             self.state = "ready"
-            log.info("ready; methods %s (default %s)", ", ".join(self.methods), self.default_method)
+            log.info("ready; methods %s (default %s)%s", ", ".join(self.methods), self.default_method,
+                     self._provider_note())
         except Exception as exc:  # a broken model folder: stay alive (liveness) but never report ready
             self.state, self.failure = "failed", f"{type(exc).__name__}: {exc}"
             log.exception("model loading or warm-up failed; /readyz will answer 503")
@@ -256,6 +257,11 @@ class Engine:
         frame = warm_up_frame()
         for method in self.methods:
             reconstruct(frame, method, self.settings.default_alpha, network=self.network)
+
+    def _provider_note(self) -> str:
+        """`` inference on openvino/bf16`` (one entry per distinct provider/precision of the loaded models)."""
+        kinds = sorted({f"{m.get('provider', '?')}/{m.get('precision', '?')}" for m in self.describe_models()})
+        return f"; network inference on {', '.join(kinds)}" if kinds else ""
 
     def describe_models(self) -> list[dict[str, Any]]:
         if self.network is None:
