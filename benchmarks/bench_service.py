@@ -89,7 +89,8 @@ def free_port() -> int:
 def local_service(concurrency: int, pids: list[int] | None = None) -> Iterator[str]:
     """`gradsep serve` in a subprocess on a free port (Poisson methods unless GRADSEP_MODELS has models)."""
     port = free_port()
-    env = {**os.environ, "PYTHONPATH": str(REPO), "GRADSEP_CONCURRENCY": str(concurrency),
+    path = os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))
+    env = {**os.environ, "PYTHONPATH": path, "GRADSEP_CONCURRENCY": str(concurrency),
            "GRADSEP_LOG_LEVEL": "warning"}
     proc = subprocess.Popen([sys.executable, "-m", "gradsep", "serve", "--host", "127.0.0.1", "--port", str(port)],
                             cwd=REPO, env=env)
