@@ -33,9 +33,17 @@ __all__ = ["AVAILABLE", "cg_update", "residuals_and_norms", "weighted_apply", "w
 if AVAILABLE:
     # Serial: on the 2-core target, with the DCTs and a second request competing for the cores, threaded
     # kernels measured slower (20 ms vs 2-6 ms for one A·p on 3x720x1280 under load) than one thread.
-    _OPTS = {"cache": True, "fastmath": False, "nogil": True}
+    _OPTS = {"fastmath": False, "nogil": True}
 
-    @njit(**_OPTS)
+    def _compiled(fn):
+        """njit with an on-disk cache where numba finds a writable place for one (next to this file, or
+        NUMBA_CACHE_DIR), else without: numba refuses ``cache=True`` when it has nowhere to write."""
+        try:
+            return njit(cache=True, **_OPTS)(fn)
+        except RuntimeError:  # "cannot cache function ...: no locator available"
+            return njit(cache=False, **_OPTS)(fn)
+
+    @_compiled
     def weighted_apply(p, a2w0, wx, wy, out):  # pragma: no cover - compiled
         """out = (α² W0 + H_xᵀ Wx H_x + H_yᵀ Wy H_y) p for p (C, H, W)."""
         channels, height, width = p.shape
@@ -55,7 +63,7 @@ if AVAILABLE:
                 out[c, y, x] = v
         return out
 
-    @njit(**_OPTS)
+    @_compiled
     def weighted_rhs(e0, ex, ey, aw0, wx, wy, out):  # pragma: no cover - compiled
         """out = α W0 e0 + H_xᵀ Wx ex + H_yᵀ Wy ey (the IRLS right-hand side Pᵀ W e)."""
         channels, height, width = e0.shape
@@ -74,7 +82,7 @@ if AVAILABLE:
                 out[c, y, x] = v
         return out
 
-    @njit(**_OPTS)
+    @_compiled
     def residuals_and_norms(x, base, dx, dy, alpha, e0, ex, ey, n0, nx, ny):  # pragma: no cover - compiled
         """e0 = α(base − x), ex = dx − H_x x, ey = dy − H_y x and their per-pixel norms over channels.
 
@@ -112,7 +120,7 @@ if AVAILABLE:
                 for col in range(width):
                     ny[y, col] = np.sqrt(sy[col])
 
-    @njit(**_OPTS)
+    @_compiled
     def cg_update(d, r, p, ap, step, rr):  # pragma: no cover - compiled
         """d += step·p, r −= step·ap per channel; rr[c] = ‖r_c‖² after the update (float64 partial sums)."""
         channels, height, width = r.shape
