@@ -77,8 +77,9 @@ class L1Stats:
 # --------------------------------------------------------------------------------------------- validation
 
 
-def _prepare(base: np.ndarray, dx: np.ndarray, dy: np.ndarray, alpha: float) -> tuple[np.ndarray, ...]:
-    """Validate inputs and return float64 (C, H, W) copies (the layout DCTs along the last axes like)."""
+def _prepare(base: np.ndarray, dx: np.ndarray, dy: np.ndarray, alpha: float,
+             dtype: type = np.float64) -> tuple[np.ndarray, ...]:
+    """Validate inputs and return ``dtype`` (C, H, W) copies (the layout DCTs along the last axes like)."""
     arrays = {"base": np.asarray(base), "dx": np.asarray(dx), "dy": np.asarray(dy)}
     shape = arrays["base"].shape
     if len(shape) not in (2, 3):
@@ -100,9 +101,8 @@ def _prepare(base: np.ndarray, dx: np.ndarray, dy: np.ndarray, alpha: float) -> 
                          "weight underflows and the image's mean is undetermined")
     out = []
     for arr in arrays.values():
-        a = arr.astype(np.float64)
-        a = a[None] if a.ndim == 2 else np.moveaxis(a, -1, 0)
-        out.append(np.ascontiguousarray(a))
+        a = arr[None] if arr.ndim == 2 else np.moveaxis(arr, -1, 0)
+        out.append(np.array(a, dtype=dtype, order="C", copy=True))  # always our own copy (scaled in place)
     return tuple(out)
 
 
@@ -135,7 +135,7 @@ def _grad_y(img: np.ndarray) -> np.ndarray:
 
 def _div(gx: np.ndarray, gy: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
     """H_xᵀ gx + H_yᵀ gy (a negative divergence) for gx (..., H, W-1) and gy (..., H-1, W)."""
-    out = np.zeros(shape, dtype=np.float64)
+    out = np.zeros(shape, dtype=gx.dtype)
     out[..., :, :-1] -= gx
     out[..., :, 1:] += gx
     out[..., :-1, :] -= gy
@@ -190,7 +190,7 @@ def _l2_core(base: np.ndarray, dx: np.ndarray, dy: np.ndarray, alpha: float) -> 
     # The divergence term sums to zero exactly (H·1 = 0), so the DC coefficient of the rhs is α²·Σ I_b / √N:
     # the solution's mean equals the base image's mean whatever α is.
     n = base.shape[-1] * base.shape[-2]
-    dc = alpha2 * base.sum(axis=(-2, -1)) / np.sqrt(n)
+    dc = alpha2 * base.sum(axis=(-2, -1), dtype=np.float64) / np.sqrt(n)
     return _screened_solve(rhs, alpha2, dc)
 
 
@@ -456,16 +456,17 @@ def solve_l1(
         raise ValueError(f"preconditioner must be one of {PRECONDITIONERS}, got {preconditioner!r}")
     start = time.perf_counter()
     ndim = np.ndim(base)
-    b, gx, gy = _prepare(base, dx, dy, alpha)
     alpha = float(alpha)
-    stats = L1Stats()
-
-    x = _l2_core(b, gx, gy, alpha)
     work = np.dtype(np.float32 if alpha >= FLOAT32_MIN_ALPHA else np.float64)
+    b, gx, gy = _prepare(base, dx, dy, alpha, work.type)  # straight into the working precision: no float64 detour
+    stats = L1Stats()
     # IRLS is scale-covariant (inputs × s and reg × s give the solution × s), so iterate on inputs scaled to
-    # max |value| = 1 with reg scaled alike: float32 can then neither overflow nor go subnormal.
+    # max |value| = 1 with reg scaled alike: float32 can then neither overflow nor go subnormal. The L2 start is
+    # linear, so it is solved on the scaled inputs too, in the working precision (its DCTs cost half in float32).
     scale = max(float(np.abs(a).max()) for a in (b, gx, gy)) or 1.0
-    b, gx, gy, x = ((a / scale).astype(work) for a in (b, gx, gy, x))
+    for a in (b, gx, gy):
+        a /= work.type(scale)
+    x = _l2_core(b, gx, gy, alpha)
     system = _WeightedSystem(x.shape, alpha, work, preconditioner)
 
     buffers: list[np.ndarray] = []

@@ -241,3 +241,14 @@ def test_compiled_kernels_match_the_numpy_path(monkeypatch: pytest.MonkeyPatch, 
     np.testing.assert_allclose(compiled, plain, rtol=0, atol=2e-5 * np.abs(plain).max())
     np.testing.assert_allclose(stats_c.energies, stats_p.energies, rtol=1e-4)
     assert stats_c.cg_iterations == stats_p.cg_iterations
+
+
+@pytest.mark.parametrize("size", [(1, 1), (5, 7)])
+def test_solvers_never_modify_their_inputs(size: tuple[int, int]) -> None:
+    """solve_l1 scales its working copies in place: they must be copies even when no conversion is needed."""
+    base, dx, dy = (a.astype(np.float32) for a in _random_problem(*size))
+    before = [a.copy() for a in (base, dx, dy)]
+    solve_l1(base, dx, dy)
+    solve_l2(base, dx, dy)
+    for a, b in zip((base, dx, dy), before, strict=True):
+        np.testing.assert_array_equal(a, b)
