@@ -257,6 +257,8 @@ class Engine:
         frame = warm_up_frame()
         for method in self.methods:
             reconstruct(frame, method, self.settings.default_alpha, network=self.network)
+        if "l1" in self.methods:  # below FLOAT32_MIN_ALPHA IRLS runs in float64: compile those kernels now too
+            reconstruct(frame, "l1", 1e-3, network=self.network)
 
     def _provider_note(self) -> str:
         """`` inference on openvino/bf16`` (one entry per distinct provider/precision of the loaded models)."""
