@@ -3,7 +3,9 @@
 A frame is a single-part scanline OpenEXR file (float32 or half, any compression OpenEXR reads) carrying
 
 * per illumination layer ``L`` in ``direct``, ``indirect`` (or ``color`` for a frame rendered without
-  separation): the base radiance ``L.R L.G L.B`` and its forward differences ``L.dx.{R,G,B}``, ``L.dy.{R,G,B}``;
+  separation): the base radiance ``L.R L.G L.B`` and, for a gradient-domain frame, its forward differences
+  ``L.dx.{R,G,B}``, ``L.dy.{R,G,B}`` (a plain path-traced frame carries the base alone: every layer of a frame has
+  its gradients or none has);
 * features: ``albedo.{R,G,B}`` in [0, 1], ``normal.{X,Y,Z}`` unit camera-space normals, ``depth.Z`` distance in
   scene units (0 where the camera ray missed).
 
@@ -61,16 +63,17 @@ _FLAG_NON_IMAGE = 0x800  # bit 11: deep data
 _FLAG_MULTIPART = 0x1000  # bit 12
 
 
-def layer_channels(layer: str) -> tuple[str, ...]:
-    """The nine channel names of an illumination layer: base RGB, then dx RGB, then dy RGB."""
+def layer_channels(layer: str, gradients: bool = True) -> tuple[str, ...]:
+    """The channel names of an illumination layer: base RGB, then (with ``gradients``) dx RGB, then dy RGB."""
     if layer not in ILLUMINATION_LAYERS:
         raise ValueError(f"unknown illumination layer {layer!r}; expected one of {ILLUMINATION_LAYERS}")
-    return (*(f"{layer}.{c}" for c in RGB), *(f"{layer}.{g}.{c}" for g in GRADIENTS for c in RGB))
+    base = tuple(f"{layer}.{c}" for c in RGB)
+    return (*base, *(f"{layer}.{g}.{c}" for g in GRADIENTS for c in RGB)) if gradients else base
 
 
-def frame_channels(layers: Iterable[str], features: bool = True) -> tuple[str, ...]:
+def frame_channels(layers: Iterable[str], features: bool = True, gradients: bool = True) -> tuple[str, ...]:
     """Every channel a frame with these layers (and optionally the features) carries, in canonical order."""
-    names = [c for layer in layers for c in layer_channels(layer)]
+    names = [c for layer in layers for c in layer_channels(layer, gradients)]
     return (*names, *(FEATURE_CHANNELS if features else ()))
 
 
@@ -128,15 +131,25 @@ class NonFiniteError(FrameError):
 
 @dataclass
 class Layer:
-    """One illumination layer: float32 arrays of shape (H, W, 3)."""
+    """One illumination layer: float32 arrays of shape (H, W, 3). A plain (primal-only) layer has no gradients."""
 
     base: np.ndarray  # primal radiance I
-    dx: np.ndarray  # I(x+1, y) - I(x, y); last column 0
-    dy: np.ndarray  # I(x, y+1) - I(x, y); last row 0
+    dx: np.ndarray | None = None  # I(x+1, y) - I(x, y); last column 0; None for a gradient-free layer
+    dy: np.ndarray | None = None  # I(x, y+1) - I(x, y); last row 0; None for a gradient-free layer
+
+    def __post_init__(self) -> None:
+        if (self.dx is None) != (self.dy is None):
+            raise ValueError("a layer carries both gradients (dx and dy) or neither")
+
+    @property
+    def has_gradients(self) -> bool:
+        return self.dx is not None
 
     def __add__(self, other: Layer) -> Layer:
         """Layers add channel-wise: gradients are linear, so direct + indirect is the unseparated layer."""
-        return Layer(self.base + other.base, self.dx + other.dx, self.dy + other.dy)
+        if self.has_gradients and other.has_gradients:
+            return Layer(self.base + other.base, self.dx + other.dx, self.dy + other.dy)  # type: ignore[operator]
+        return Layer(self.base + other.base)
 
 
 @dataclass
@@ -165,6 +178,11 @@ class Frame:
     def width(self) -> int:
         return int(next(iter(self.layers.values())).base.shape[1])
 
+    @property
+    def has_gradients(self) -> bool:
+        """True for a gradient-domain frame (every layer carries dx/dy), False for a plain path-traced one."""
+        return all(layer.has_gradients for layer in self.layers.values())
+
     def combined(self) -> Layer:
         """All layers summed: the unseparated ("color") layer of this frame."""
         layers = list(self.layers.values())
@@ -178,8 +196,9 @@ class Frame:
         out: dict[str, np.ndarray] = {}
         for name, layer in self.layers.items():
             out.update(rgb_channels(name, layer.base))
-            out.update(rgb_channels(f"{name}.dx", layer.dx))
-            out.update(rgb_channels(f"{name}.dy", layer.dy))
+            if layer.dx is not None and layer.dy is not None:
+                out.update(rgb_channels(f"{name}.dx", layer.dx))
+                out.update(rgb_channels(f"{name}.dy", layer.dy))
         if self.features is not None:
             f = self.features
             out.update(zip(FEATURE_GROUPS["albedo"], np.moveaxis(f.albedo, -1, 0), strict=True))
@@ -417,10 +436,21 @@ def _classify(names: Iterable[str]) -> tuple[list[str], list[str], list[str]]:
     return present_layers, unknown, foreign
 
 
+def has_gradient_channels(names: Iterable[str]) -> bool:
+    """Whether these channels make a gradient-domain frame (any ``L.dx.*``/``L.dy.*``) or a plain one.
+
+    A frame carries gradients for every layer or for none: once one gradient channel is present, every layer's
+    nine channels are required (and the missing ones are named).
+    """
+    return any(n.split(".")[1:2] in (["dx"], ["dy"]) and n.split(".", 1)[0] in ILLUMINATION_LAYERS for n in names)
+
+
 def validate_channels(names: Iterable[str]) -> tuple[list[str], bool, list[str]]:
     """Check channel names against the contract; return (layers, has_features, warnings) or raise ChannelError.
 
-    Every problem is collected and reported together, naming the channels, so a producer fixes them in one go.
+    A layer is its three base channels (a plain path-traced frame) or, when the frame carries any gradient channel,
+    its nine channels. Every problem is collected and reported together, naming the channels, so a producer fixes
+    them in one go.
     """
     names = list(names)
     present = set(names)
@@ -430,7 +460,8 @@ def validate_channels(names: Iterable[str]) -> tuple[list[str], bool, list[str]]
     if unknown:
         problems.append(f"unknown channels {', '.join(sorted(unknown))}")
         details["unknown"] = sorted(unknown)
-    missing = [c for layer in layers for c in layer_channels(layer) if c not in present]
+    gradients = has_gradient_channels(names)
+    missing = [c for layer in layers for c in layer_channels(layer, gradients) if c not in present]
     groups = [g for g, chans in FEATURE_GROUPS.items() if any(c in present for c in chans)]
     if groups:  # features are all-or-nothing: a partial set means the producer dropped something
         missing += [c for chans in FEATURE_GROUPS.values() for c in chans if c not in present]
@@ -475,13 +506,14 @@ def read_frame(source: Source, *, limits: ReadLimits = ReadLimits(),
         raise ValueError(f"nonfinite must be one of {NONFINITE_POLICIES}, got {nonfinite!r}")
     info = read_header(source, limits)
     layers, has_features, warnings = validate_channels(info.channels)
+    gradients = has_gradient_channels(info.channels)
 
     # OpenEXR's own guard, in case a header trick slips past the check above; process-wide but fixed per config.
     OpenEXR.setMaxImageSize(limits.max_side, limits.max_side)
     exr = _open(source, header_only=False)
     decoded = exr.channels()
     channels: dict[str, np.ndarray] = {}
-    for name in frame_channels(layers, has_features):
+    for name in frame_channels(layers, has_features, gradients):
         ch = decoded.get(name)
         pixels = None if ch is None else ch.pixels
         if pixels is None or getattr(pixels, "shape", None) != (info.height, info.width):
@@ -493,7 +525,7 @@ def read_frame(source: Source, *, limits: ReadLimits = ReadLimits(),
         else:
             channels[name] = np.array(pixels, dtype=np.float32)  # half -> float32; own, writable copy
 
-    radiance = [c for layer in layers for c in layer_channels(layer)]
+    radiance = [c for layer in layers for c in layer_channels(layer, gradients)]
     _sanitize(channels, radiance, nonfinite, warnings)
     for name in FEATURE_CHANNELS if has_features else ():
         np.nan_to_num(channels[name], copy=False, nan=0.0, posinf=0.0, neginf=0.0)
@@ -503,8 +535,9 @@ def read_frame(source: Source, *, limits: ReadLimits = ReadLimits(),
 
     frame_layers = {}
     for layer in layers:
-        names = layer_channels(layer)
-        frame_layers[layer] = Layer(stack(names[0:3]), stack(names[3:6]), stack(names[6:9]))
+        names = layer_channels(layer, gradients)
+        frame_layers[layer] = (Layer(stack(names[0:3]), stack(names[3:6]), stack(names[6:9])) if gradients
+                               else Layer(stack(names[0:3])))
     features = None
     if has_features:
         features = Features(stack(FEATURE_GROUPS["albedo"]), stack(FEATURE_GROUPS["normal"]), channels["depth.Z"])

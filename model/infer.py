@@ -35,6 +35,7 @@ from model.preprocess import (
     DATA_INPUTS,
     GRADIENT_INPUTS,
     PREPROCESS_VERSION,
+    PRIOR_KINDS,
     DepthRange,
     Window,
     aligned_size,
@@ -45,6 +46,8 @@ from model.preprocess import (
     output_radiance,
     pad_to_alignment,
     poisson_prior,
+    prior_exposure,
+    scaled_layer,
     unlit_pixels,
 )
 
@@ -52,6 +55,7 @@ if TYPE_CHECKING:
     import onnxruntime
 
     from model.frame import Features, Layer
+    from model.oidn import CleanAux
 
 #: Model files looked for in the models folder, by layer name.
 MODEL_LAYERS: tuple[str, ...] = ("direct", "indirect", "color")
@@ -240,6 +244,11 @@ class LoadedModel:
     alignment: int
     choice: ProviderChoice = ProviderChoice("cpu", "fp32", "default")
 
+    @property
+    def prior(self) -> str:
+        """What the model refines: ``l1`` (truncated Poisson solve) or ``oidn`` (the ``fused`` models)."""
+        return self.metadata.get("gradsep.prior", "l1")
+
     def run(self, data: np.ndarray, gradient: np.ndarray) -> np.ndarray:
         """(C, h, w) aligned inputs → (3, h, w) log-domain output."""
         out = self.session.run([OUTPUT_NAME], {"data": data[None], "gradient": gradient[None]})[0]
@@ -254,6 +263,7 @@ class LoadedModel:
             "sha256": self.sha256,
             "bytes": self.path.stat().st_size if self.path.exists() else None,
             "attention": self.metadata.get("gradsep.attention") == "true",
+            "prior": self.prior,
             "alignment": self.alignment,
             "provider": self.choice.provider,
             "precision": self.choice.precision,
@@ -283,6 +293,15 @@ def _check_metadata(path: Path, name: str, meta: dict[str, str]) -> int:
         raise ModelError(f"{path}: unreadable gradsep metadata") from None
     if inputs != {"data": list(DATA_INPUTS), "gradient": list(GRADIENT_INPUTS)}:
         problems.append(f"its input channels {inputs} differ from this version's")
+    if meta.get("gradsep.prior", "l1") not in PRIOR_KINDS:
+        problems.append(f"its prior {meta.get('gradsep.prior')!r} is none of {', '.join(PRIOR_KINDS)}")
+    elif meta.get("gradsep.prior") == "oidn":
+        from model import oidn
+
+        if meta.get("gradsep.exposure") != "prior-mean":
+            problems.append("an oidn-prior model must declare gradsep.exposure = prior-mean")
+        if not oidn.available():
+            problems.append("its prior is OIDN, but pyoidn is not installed")
     if preprocessing.get("version") != PREPROCESS_VERSION:
         problems.append(f"preprocessing version {preprocessing.get('version')} != {PREPROCESS_VERSION}")
     if alignment < 1:
@@ -348,6 +367,11 @@ class NetworkReconstructor:
         """Layer names this reconstructor can serve."""
         return set(self.models)
 
+    @property
+    def needs_aux(self) -> bool:
+        """True when a model refines an OIDN prior: the caller prefilters the features once per frame."""
+        return any(m.prior == "oidn" for m in self.models.values())
+
     def describe(self) -> list[dict[str, Any]]:
         """One entry per loaded model (name, layer, input channels, sha256, metadata) for /v1/models."""
         return [m.describe() for m in self.models.values()]
@@ -362,26 +386,45 @@ class NetworkReconstructor:
                       np.zeros((len(GRADIENT_INPUTS), side, side), np.float32))
         return time.perf_counter() - start
 
-    def reconstruct_layer(self, name: str, layer: Layer, features: Features | None) -> np.ndarray:
+    def reconstruct_layer(self, name: str, layer: Layer, features: Features | None,
+                          aux: CleanAux | None = None) -> np.ndarray:
         """Reconstruct one illumination layer: (H, W, 3) float32, finite, ≥ 0.
 
-        A layer whose exposure lies outside the range the models were trained on runs scaled by the power of
-        two ``exposure_scale`` picks and is scaled back (exact in floating point), so a sun at 1e9 or a dim
-        frame at 1e-8 keeps its energy instead of clipping at RADIANCE_MAX or vanishing under the network's
-        offsets; ordinary frames (scale 1) are untouched.
+        ``aux``: the frame's OIDN-prefiltered features (model.oidn.Denoiser.prefilter), for models refining an
+        OIDN prior; computed here when None, so pass it to share it between a frame's layers.
+
+        For a Poisson-prior model, a layer whose exposure lies outside the range the models were trained on runs
+        scaled by the power of two ``exposure_scale`` picks and is scaled back (exact in floating point), so a
+        sun at 1e9 or a dim frame at 1e-8 keeps its energy instead of clipping at RADIANCE_MAX or vanishing under
+        the network's offsets; ordinary frames (scale 1) are untouched. (OIDN-prior models normalise their
+        exposure themselves, below.)
         """
         if name not in self.models:
             raise KeyError(f"no model for layer {name!r}; loaded: {', '.join(sorted(self.models)) or 'none'}")
-        scale = exposure_scale(layer)
-        if scale != 1.0:  # the scaled layer's own scale is 1 (tested), so this recurses exactly once
-            return rescale(self.reconstruct_layer(name, scale_layer(layer, 1.0 / scale), features), scale)
+        if self.models[name].prior != "oidn":
+            exposure = exposure_scale(layer)
+            if exposure != 1.0:  # the scaled layer's own scale is 1 (tested), so this recurses exactly once
+                scaled = self.reconstruct_layer(name, scale_layer(layer, 1.0 / exposure), features, aux)
+                return rescale(scaled, exposure)
         height, width = _check_inputs(layer, features)
         assert features is not None  # _check_inputs raised otherwise
         model = self.models[name]
+        unlit = unlit_pixels(layer)
+        scale = 1.0
+        if model.prior == "oidn":  # fused: refine OIDN's denoise at a normalised exposure
+            from model.oidn import shared_denoiser
+
+            denoiser = shared_denoiser()
+            aux = aux if aux is not None else denoiser.prefilter(features)
+            prior = denoiser.denoise(layer.base, aux)
+            scale = prior_exposure(prior)
+            layer = scaled_layer(layer, scale)
+            prior = (prior.astype(np.float64) * scale).astype(np.float32)
+        else:
+            prior = poisson_prior(layer)                 # a global solve: once per layer, cropped per window
         plans = plan_tiles(height, width, self.tiles, model.alignment)
         overlap = aligned_size(self.tiles.overlap, model.alignment)
         depth_range = DepthRange.of(features.depth)  # per frame, shared by every window
-        prior = poisson_prior(layer)                 # a global solve: once per layer, cropped per window
         if len(plans) == 1:
             result = self._run_window(model, layer, features, depth_range, prior, plans[0].window)
         else:
@@ -394,7 +437,9 @@ class NetworkReconstructor:
                 total[y0:y1, x0:x1] += out * w[..., None]
                 weight[y0:y1, x0:x1] += w[..., None]
             result = total / weight
-        result[unlit_pixels(layer)] = 0.0             # no measured light: nothing to reconstruct
+        result[unlit] = 0.0             # no measured light: nothing to reconstruct
+        if scale != 1.0:
+            result = np.clip(result.astype(np.float64) / scale, 0.0, np.finfo(np.float32).max).astype(np.float32)
         return result
 
     @staticmethod

@@ -78,6 +78,17 @@ OUTPUTS: tuple[str, ...] = ("R", "G", "B")
 FEATURE_INPUTS: tuple[str, ...] = DATA_INPUTS[6:]
 #: Where C(prior) sits in the data input: the network predicts a correction to it (model/network.py).
 PRIOR_CHANNELS = slice(3, 6)
+#: What C(prior) is: ``l1`` — the truncated robust Poisson solve above (the paper's method as published here, the
+#: ``network`` method); ``oidn`` — Intel Open Image Denoise run on the layer's base with the frame's prefiltered
+#: albedo and normal (model/oidn.py), the ``fused`` method. Stored as ONNX metadata ``gradsep.prior``; a model
+#: without it is ``l1``.
+PRIOR_KINDS: tuple[str, ...] = ("l1", "oidn")
+#: ``fused`` models see every layer at a normalised exposure: base, gradients and prior multiplied by s so that the
+#: prior's mean is FUSED_MEAN (capped so the prior's peak stays below RADIANCE_MAX / FUSED_PEAK_MARGIN), and the
+#: output divided by s. The model is then the same for a frame at 1e-8 or 1e9 radiance, and HDR values are never
+#: clipped by the transfer's range. Stored as ONNX metadata ``gradsep.exposure`` = ``prior-mean``.
+FUSED_MEAN = 0.5
+FUSED_PEAK_MARGIN = 16.0
 #: Bumped whenever the numbers the network sees change; stored in checkpoints, caches and ONNX metadata.
 PREPROCESS_VERSION = 3
 
@@ -210,6 +221,34 @@ def _band_ramp(y0: int, y1: int, height: int, overlap: int) -> np.ndarray:
 def _solve_prior(base: np.ndarray, dx: np.ndarray, dy: np.ndarray) -> np.ndarray:
     prior, _ = solve_l1(base, dx, dy, PRIOR_ALPHA, iterations=PRIOR_IRLS_PASSES, cg_iterations=PRIOR_CG_STEPS)
     return _sanitise_inplace(prior, 0.0, RADIANCE_MAX)
+
+
+def prior_exposure(prior: np.ndarray) -> float:
+    """The ``fused`` models' exposure s (see FUSED_MEAN): mean(prior·s) = FUSED_MEAN, 1.0 for a black prior.
+
+    Float64 statistics: a 1e9-radiance frame's sum overflows nothing, a 1e-8 one underflows nothing.
+    """
+    if prior.size == 0:
+        return 1.0
+    mean = float(np.mean(prior, dtype=np.float64))
+    peak = float(np.max(prior))
+    if not (math.isfinite(mean) and mean > 0.0 and math.isfinite(peak)):
+        return 1.0
+    return min(FUSED_MEAN / mean, RADIANCE_MAX / FUSED_PEAK_MARGIN / peak)
+
+
+def scaled_layer(layer: Layer, scale: float) -> Layer:
+    """The layer with base and gradients multiplied by ``scale`` (float32, computed in float64 then rounded, so
+    a scale near the float32 range's ends does not overflow halfway)."""
+    from model.frame import Layer
+
+    def mul(x: np.ndarray | None) -> np.ndarray | None:
+        if x is None:
+            return None
+        out = np.asarray(x, np.float64) * scale
+        return np.clip(out, -RADIANCE_MAX * 1e30, RADIANCE_MAX * 1e30).astype(np.float32)
+
+    return Layer(mul(layer.base), mul(layer.dx), mul(layer.dy))  # type: ignore[arg-type]
 
 
 def unlit_pixels(layer: Layer) -> np.ndarray:

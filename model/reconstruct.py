@@ -1,8 +1,19 @@
 """The one reconstruction entry point that the CLI, the service and the evaluation all call.
 
 A frame carries one or more illumination layers (``direct``/``indirect``, or ``color`` for a frame rendered
-without separation). Each layer present is reconstructed on its own -- by the screened Poisson solvers
-(``l1``, ``l2``) or by the network -- and the final image is their sum. Nothing runs for an absent layer.
+without separation). Each layer present is reconstructed on its own and the final image is their sum. Nothing
+runs for an absent layer. The methods:
+
+* ``l1``, ``l2`` -- screened Poisson solvers of the base and the gradients (model/poisson.py);
+* ``network`` -- the paper's GradNet-style network with CBAM, refining a truncated L1 solve (models/*.onnx);
+* ``oidn`` -- Intel Open Image Denoise on each layer's base with the frame's prefiltered albedo/normal; the one
+  method for a plain path-traced frame (no gradients), and it needs no features;
+* ``fused`` -- the same network architecture refining OIDN's denoise with the layer's gradients and features,
+  trained unsupervised (models/fused/*.onnx).
+
+What a frame does not carry costs nothing: no gradients means no Poisson or network work (only ``oidn``
+applies), no features means OIDN without auxiliary images, and the OIDN prefilter of albedo/normal runs once per
+frame, shared by its layers.
 
 Output policy: every reconstructed layer is made finite (NaN/±Inf → 0, with a warning: a solver or network
 that produced them has a bug, and a black pixel is easier to spot than a poisoned downstream average) and
@@ -25,21 +36,23 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from model.frame import Features, Frame, Layer, read_frame, rgb_channels, write_exr
+from model.frame import Features, Frame, FrameError, Layer, read_frame, rgb_channels, write_exr
 from model.poisson import DEFAULT_ALPHA, solve_l1, solve_l2
+from model.policy import DEFAULT_PREFERENCE, GRADIENT_METHODS, METHODS, MODEL_METHODS
 
 __all__ = [
+    "DEFAULT_PREFERENCE",
     "METHODS",
     "NetworkLike",
     "Reconstruction",
     "choose_method",
+    "load_fused",
     "load_network",
     "models_dir_from",
     "reconstruct",
     "reconstruct_command",
 ]
 
-METHODS: tuple[str, ...] = ("network", "l1", "l2")
 _F32_MAX = float(np.finfo(np.float32).max)
 
 
@@ -72,62 +85,130 @@ def _sanitise(name: str, image: np.ndarray, shape: tuple[int, int, int], warning
     return np.clip(out, 0.0, _F32_MAX)
 
 
-def _reconstruct_layer(name: str, layer: Layer, method: str, alpha: float, network: Any,
-                       features: Features | None) -> np.ndarray:
-    if method == "l1":
-        return solve_l1(layer.base, layer.dx, layer.dy, alpha)[0]
-    if method == "l2":
-        return solve_l2(layer.base, layer.dx, layer.dy, alpha)
-    return network.reconstruct_layer(name, layer, features)
+@dataclass
+class _Context:
+    """What one frame's reconstruction shares between its layers."""
+
+    method: str
+    alpha: float
+    models: Any  # the NetworkReconstructor of the method (network or fused), or None
+    features: Features | None
+    aux: Any = None  # the OIDN-prefiltered features, computed once per frame when a layer needs them
 
 
-def choose_method(frame: Frame, network: NetworkLike | None) -> str:
-    """The default method for this frame: the network when it can serve every layer present (a model for each
-    and the feature channels), else L1 -- so a frame the loaded models do not cover still gets an answer."""
-    if network is not None and frame.features is not None:
-        if set(frame.layers) <= set(getattr(network, "layers", frame.layers)):
-            return "network"
-    return "l1"
+def _reconstruct_layer(name: str, layer: Layer, ctx: _Context) -> np.ndarray:
+    if ctx.method == "l1":
+        return solve_l1(layer.base, layer.dx, layer.dy, ctx.alpha)[0]
+    if ctx.method == "l2":
+        return solve_l2(layer.base, layer.dx, layer.dy, ctx.alpha)
+    if ctx.method == "oidn":
+        from model.oidn import shared_denoiser
+
+        return shared_denoiser().denoise(layer.base, ctx.aux)
+    if ctx.aux is not None:  # models refining an OIDN prior share the frame's prefiltered features
+        return ctx.models.reconstruct_layer(name, layer, ctx.features, ctx.aux)
+    return ctx.models.reconstruct_layer(name, layer, ctx.features)
 
 
-def reconstruct(frame: Frame, method: str | None = None, alpha: float = DEFAULT_ALPHA,
-                network: NetworkLike | None = None) -> Reconstruction:
-    """Reconstruct every illumination layer of ``frame`` with ``method`` and sum them.
+def _serves(models: NetworkLike | None, frame: Frame) -> bool:
+    return (models is not None and frame.features is not None
+            and set(frame.layers) <= set(getattr(models, "layers", frame.layers)))
 
-    ``method`` None picks :func:`choose_method` (the network when it serves the frame, else L1).
-    ``alpha`` is the screened Poisson data weight (l1/l2 only). ``network`` is required for ``"network"``,
-    which also needs the frame's feature channels. Raises ValueError for an unknown method, a bad alpha or a
-    missing network, and :class:`model.frame.ChannelError` for a network run on a frame without features.
+
+def available_methods(frame: Frame, network: NetworkLike | None = None, fused: NetworkLike | None = None,
+                      oidn: bool | None = None) -> list[str]:
+    """The methods that can serve this frame, in DEFAULT_PREFERENCE order first, then the rest of METHODS."""
+    if oidn is None:
+        from model.oidn import available
+
+        oidn = available()
+    usable = {"oidn"} if oidn else set()
+    if frame.has_gradients:
+        usable |= {"l1", "l2"}
+        usable |= {"network"} if _serves(network, frame) else set()
+        usable |= {"fused"} if _serves(fused, frame) else set()
+    order = [*DEFAULT_PREFERENCE, *(m for m in METHODS if m not in DEFAULT_PREFERENCE)]
+    return [m for m in order if m in usable]
+
+
+def choose_method(frame: Frame, network: NetworkLike | None = None, fused: NetworkLike | None = None) -> str:
+    """The default method for this frame: the first of DEFAULT_PREFERENCE that can serve it.
+
+    With gradients, features and models for every layer: ``fused``; a gradient-free frame: ``oidn``; a frame
+    that the loaded models do not cover still gets an answer (``oidn``, else ``l1``). Raises ChannelError for a
+    gradient-free frame on a host without OIDN (nothing can serve it).
     """
-    method = method or choose_method(frame, network)
+    usable = available_methods(frame, network, fused)
+    if not usable:
+        from model.frame import ChannelError
+
+        raise ChannelError("this frame has no gradient channels, and the one method for a plain frame (oidn) "
+                           "is not installed here (pip install pyoidn)", {"available_methods": []})
+    return usable[0]
+
+
+def _check_method(frame: Frame, method: str, alpha: float, models: NetworkLike | None) -> None:
+    """Raise a clear error when ``method`` cannot serve ``frame`` (ChannelError names the channels)."""
+    from model.frame import FEATURE_CHANNELS, ChannelError, layer_channels
+
     if method not in METHODS:
         raise ValueError(f"unknown reconstruction method {method!r}; expected one of {', '.join(METHODS)}")
     if method in ("l1", "l2") and not (math.isfinite(alpha) and alpha > 0):
         raise ValueError(f"alpha must be a finite number > 0, got {alpha}")
-    if method == "network":
-        if network is None:
-            raise ValueError("method 'network' needs a loaded network (no models available); use l1 or l2")
-        if frame.features is None:
-            from model.frame import FEATURE_CHANNELS, ChannelError
+    if method in GRADIENT_METHODS and not frame.has_gradients:
+        missing = [c for name in frame.layers for c in layer_channels(name)[3:]]
+        raise ChannelError(f"method {method!r} integrates gradients, which this frame lacks (a plain path-traced "
+                           "frame); use method oidn, or send the L.dx.* / L.dy.* channels", {"missing": missing})
+    if method == "oidn":
+        from model.oidn import available
 
-            raise ChannelError("the network method needs the feature channels, which this frame lacks: "
-                               + ", ".join(FEATURE_CHANNELS), list(FEATURE_CHANNELS))
-        served = set(getattr(network, "layers", frame.layers))
-        unserved = [name for name in frame.layers if name not in served]
-        if unserved:
-            from model.frame import ChannelError
+        if not available():
+            raise ValueError("method 'oidn' needs pyoidn, which is not installed here (pip install pyoidn)")
+    if method not in MODEL_METHODS:
+        return
+    if models is None:
+        where = "models/fused" if method == "fused" else "models"
+        raise ValueError(f"method {method!r} needs a loaded model set ({where}: none available); use oidn, l1 or l2")
+    if frame.features is None:
+        raise ChannelError(f"the {method} method needs the feature channels, which this frame lacks: "
+                           + ", ".join(FEATURE_CHANNELS), list(FEATURE_CHANNELS))
+    served = set(getattr(models, "layers", frame.layers))
+    unserved = [name for name in frame.layers if name not in served]
+    if unserved:
+        raise ChannelError(f"no {method} model for layer(s) {', '.join(unserved)} (models loaded for: "
+                           f"{', '.join(sorted(served)) or 'none'}); use method oidn, l1 or l2",
+                           {"unserved_layers": unserved, "model_layers": sorted(served)})
 
-            raise ChannelError(f"no network model for layer(s) {', '.join(unserved)} (models loaded for: "
-                               f"{', '.join(sorted(served)) or 'none'}); use method l1 or l2",
-                               {"unserved_layers": unserved, "model_layers": sorted(served)})
+
+def reconstruct(frame: Frame, method: str | None = None, alpha: float = DEFAULT_ALPHA,
+                network: NetworkLike | None = None, fused: NetworkLike | None = None) -> Reconstruction:
+    """Reconstruct every illumination layer of ``frame`` with ``method`` and sum them.
+
+    ``method`` None picks :func:`choose_method`. ``alpha`` is the screened Poisson data weight (l1/l2 only).
+    ``network`` (models/*.onnx) is required for ``"network"``, ``fused`` (models/fused/*.onnx) for ``"fused"``;
+    both need the frame's feature channels, and every method but ``oidn`` needs its gradients. Raises ValueError
+    for an unknown method, a bad alpha or a missing model set, and :class:`model.frame.ChannelError` for a frame
+    that lacks what the method needs.
+    """
+    method = method or choose_method(frame, network, fused)
+    models = fused if method == "fused" else network if method == "network" else None
+    _check_method(frame, method, alpha, models)
+    ctx = _Context(method, alpha, models, frame.features)
     shape = (frame.height, frame.width, 3)
     layers: dict[str, np.ndarray] = {}
     timings: dict[str, float] = {}
     warnings: list[str] = []
     total = np.zeros(shape, dtype=np.float64)
+    needs_aux = method == "oidn" or bool(getattr(models, "needs_aux", False))
+    if needs_aux and frame.features is not None:
+        from model.oidn import shared_denoiser
+
+        start = time.perf_counter()
+        ctx.aux = shared_denoiser().prefilter(frame.features)  # once per frame, shared by every layer
+        timings["features"] = time.perf_counter() - start
     for name, layer in frame.layers.items():
         start = time.perf_counter()
-        image = _reconstruct_layer(name, layer, method, alpha, network, frame.features)
+        image = _reconstruct_layer(name, layer, ctx)
         timings[name] = time.perf_counter() - start
         layers[name] = _sanitise(name, image, shape, warnings)
         total += layers[name]
@@ -143,18 +224,38 @@ def models_dir_from(value: str | os.PathLike[str] | None) -> Path:
     return Path(value or os.environ.get("GRADSEP_MODELS") or "models")
 
 
-def load_network(models_dir: str | os.PathLike[str] | None) -> Any:
-    """The network reconstructor from ``model.infer``, or None when there are no models or no inference module.
+#: The ``fused`` models live in this subfolder of the models folder (``models/fused/direct.onnx``, ...).
+FUSED_SUBDIR = "fused"
 
-    Same contract as the service's loader: ``NetworkReconstructor.load(folder)`` returns None for a folder
-    without models and raises for models that fail to load.
-    """
-    folder = models_dir_from(models_dir)
+
+def _load(folder: Path, prior: str) -> Any:
     if not folder.is_dir() or importlib.util.find_spec("model.infer") is None:
         return None
-    from model.infer import NetworkReconstructor  # type: ignore[import-not-found]
+    from model.infer import ModelError, NetworkReconstructor  # type: ignore[import-not-found]
 
-    return NetworkReconstructor.load(folder)
+    models = NetworkReconstructor.load(folder)
+    wrong = [m.path.name for m in (models.models.values() if models else ()) if m.prior != prior]
+    if wrong:
+        raise ModelError(f"{folder}: {', '.join(wrong)} refine a different prior than {prior!r} "
+                         f"(the {'fused' if prior == 'oidn' else 'network'} method's); re-export into the right folder")
+    return models
+
+
+def load_network(models_dir: str | os.PathLike[str] | None) -> Any:
+    """The ``network`` method's reconstructor (models/*.onnx), or None when there are no models or no inference
+    module. Same contract as the service's loader: None for a folder without models, an exception for models
+    that fail to load."""
+    return _load(models_dir_from(models_dir), "l1")
+
+
+def load_fused(models_dir: str | os.PathLike[str] | None) -> Any:
+    """The ``fused`` method's reconstructor (models/fused/*.onnx), or None when absent or pyoidn is missing."""
+    from model.oidn import available
+
+    folder = models_dir_from(models_dir) / FUSED_SUBDIR
+    if not available():
+        return None
+    return _load(folder, "oidn")
 
 
 # ----------------------------------------------------------------------------------------------- command
@@ -173,18 +274,20 @@ def _check_output(path: Path) -> None:
         raise CommandError(f"output folder {str(folder)!r} is not writable")
 
 
-def _resolve_network(args: argparse.Namespace, method: str | None) -> Any:
-    """The network for ``--method network`` (required) or for the default (optional); None for l1/l2."""
+def _resolve_models(args: argparse.Namespace, method: str | None) -> tuple[Any, Any]:
+    """(network, fused) for the named method (required) or for the default (optional); Nones otherwise."""
     from gradsep.cli import CommandError
 
-    if method not in (None, "network"):
-        return None
     folder = models_dir_from(getattr(args, "models", None))
-    network = load_network(folder)
+    network = load_network(folder) if method in (None, "network") else None
+    fused = load_fused(folder) if method in (None, "fused") else None
     if network is None and method == "network":
         raise CommandError(f"--method network needs exported models, but none were found in {str(folder)!r} "
-                           "(set --models or $GRADSEP_MODELS, or use --method l1)")
-    return network
+                           "(set --models or $GRADSEP_MODELS, or use --method oidn or l1)")
+    if fused is None and method == "fused":
+        raise CommandError(f"--method fused needs the fused models in {str(folder / FUSED_SUBDIR)!r} and pyoidn; "
+                           "one of them is missing (set --models or $GRADSEP_MODELS, or use --method oidn)")
+    return network, fused
 
 
 def reconstruct_command(args: argparse.Namespace) -> int:
@@ -201,8 +304,13 @@ def reconstruct_command(args: argparse.Namespace) -> int:
         raise CommandError(f"--alpha must be a finite number > 0, got {args.alpha}")
     _check_output(output)
     frame = read_frame(args.frame, nonfinite=args.nonfinite)
-    network = _resolve_network(args, args.method)
-    result = reconstruct(frame, args.method, alpha, network=network)
+    network, fused = _resolve_models(args, args.method)
+    try:
+        result = reconstruct(frame, args.method, alpha, network=network, fused=fused)
+    except ValueError as exc:
+        if isinstance(exc, FrameError):
+            raise
+        raise CommandError(str(exc)) from exc
     method = result.method
 
     channels = dict(rgb_channels("", result.image))

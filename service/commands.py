@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from model.policy import METHODS
+
 
 def _serve(args: argparse.Namespace) -> int:
     from service.serve import serve_command
@@ -28,7 +30,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("frame", help="input frame (.exr)")
     p.add_argument("-o", "--output", required=True, help="output .exr, written atomically")
     p.add_argument("--url", default=None, help="service base URL (default: $GRADSEP_URL or http://127.0.0.1:8000)")
-    p.add_argument("--method", choices=("network", "l1", "l2"), default=None)
+    p.add_argument("--method", choices=METHODS, default=None,
+                   help="reconstruction method (default: the service picks the best it serves for the frame)")
     p.add_argument("--alpha", type=float, default=None)
     p.add_argument("--format", choices=("half", "float"), default=None)
     p.add_argument("--layers", choices=("sum", "all"), default=None)

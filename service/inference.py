@@ -161,15 +161,15 @@ class Outcome:
     source_layers: list[str]
 
 
-def reconstruct(frame: Any, method: str | None, alpha: float, network: Any = None) -> Any:
+def reconstruct(frame: Any, method: str | None, alpha: float, network: Any = None, fused: Any = None) -> Any:
     """Indirection to ``model.reconstruct.reconstruct`` (imported on first use; tests may patch this name)."""
     from model.reconstruct import reconstruct as model_reconstruct
 
-    return model_reconstruct(frame, method, alpha, network=network)
+    return model_reconstruct(frame, method, alpha, network=network, fused=fused)
 
 
 def run_pipeline(source: Source, params: ReconstructParams, limits: ReadLimits, nonfinite: str,
-                 network: Any) -> Outcome:
+                 network: Any, fused: Any = None) -> Outcome:
     """Decode, reconstruct and encode in the calling (worker) thread; frame problems raise FrameError."""
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
@@ -177,7 +177,7 @@ def run_pipeline(source: Source, params: ReconstructParams, limits: ReadLimits, 
         source.seek(0)  # the header check left the stream somewhere past the header
     frame = read_frame(source, limits=limits, nonfinite=nonfinite)  # type: ignore[arg-type]
     timings["decode"] = time.perf_counter() - t0
-    result = reconstruct(frame, params.method, params.alpha, network=network)
+    result = reconstruct(frame, params.method, params.alpha, network=network, fused=fused)
     for layer, seconds in dict(getattr(result, "timings", {}) or {}).items():
         timings[str(layer)] = float(seconds)
     warnings = [*frame.warnings, *(str(w) for w in getattr(result, "warnings", None) or ())]
@@ -218,17 +218,32 @@ class Engine:
         self.settings = settings
         self.limits = ReadLimits(max_pixels=settings.max_pixels, max_values=settings.max_values)
         self.network: Any = None
+        self.fused: Any = None
+        self.oidn = False
         self.state: Literal["loading", "ready", "failed"] = "loading"
         self.failure: str | None = None
         self.gate: InferenceGate | None = None
 
     @property
     def methods(self) -> tuple[str, ...]:
-        return (("network",) if self.network is not None else ()) + POISSON_METHODS
+        """What this replica serves, in model.policy.METHODS order."""
+        from model.policy import METHODS
+
+        served = {*POISSON_METHODS, *(("network",) if self.network is not None else ()),
+                  *(("fused",) if self.fused is not None else ()), *(("oidn",) if self.oidn else ())}
+        return tuple(m for m in METHODS if m in served)
 
     @property
     def default_method(self) -> str:
-        return "network" if self.network is not None else "l1"
+        """The default for a gradient-domain frame with features (the first of DEFAULT_PREFERENCE served)."""
+        from model.policy import DEFAULT_PREFERENCE
+
+        return next(m for m in (*DEFAULT_PREFERENCE, "l1") if m in self.methods)
+
+    @property
+    def default_method_plain(self) -> str | None:
+        """The default for a plain frame (no gradients): oidn, or None when OIDN is not installed."""
+        return "oidn" if self.oidn else None
 
     def start(self, task_group: TaskGroup) -> None:
         """Create the gate and load + warm up in the background, so /healthz answers during a long load."""
@@ -239,6 +254,10 @@ class Engine:
     async def _load_and_warm_up(self) -> None:
         try:
             self.network = await anyio.to_thread.run_sync(load_network, self.settings.models_dir)
+            self.fused = await anyio.to_thread.run_sync(load_fused, self.settings.models_dir)
+            from model.oidn import available
+
+            self.oidn = available()
             if self.settings.warm_up:
                 started = time.perf_counter()
                 await anyio.to_thread.run_sync(self._warm_up)
@@ -256,9 +275,9 @@ class Engine:
             self.network.warm_up()
         frame = warm_up_frame()
         for method in self.methods:
-            reconstruct(frame, method, self.settings.default_alpha, network=self.network)
+            reconstruct(frame, method, self.settings.default_alpha, network=self.network, fused=self.fused)
         if "l1" in self.methods:  # below FLOAT32_MIN_ALPHA IRLS runs in float64: compile those kernels now too
-            reconstruct(frame, "l1", 1e-3, network=self.network)
+            reconstruct(frame, "l1", 1e-3, network=self.network, fused=self.fused)
 
     def _provider_note(self) -> str:
         """`` inference on openvino/bf16`` (one entry per distinct provider/precision of the loaded models)."""
@@ -266,9 +285,11 @@ class Engine:
         return f"; network inference on {', '.join(kinds)}" if kinds else ""
 
     def describe_models(self) -> list[dict[str, Any]]:
-        if self.network is None:
-            return []
-        return [dict(m) for m in self.network.describe()]
+        out = []
+        for method, models in (("network", self.network), ("fused", self.fused)):
+            if models is not None:
+                out += [{**dict(m), "method": method} for m in models.describe()]
+        return out
 
 
 def load_network(models_dir: Path) -> Any:
@@ -284,6 +305,16 @@ def load_network(models_dir: Path) -> Any:
     if network is None:
         log.info("no models in %s; serving Poisson methods only", models_dir)
     return network
+
+
+def load_fused(models_dir: Path) -> Any:
+    """The fused method's reconstructor (models_dir/fused), or None (no such models, or no pyoidn)."""
+    from model.reconstruct import load_fused as load
+
+    fused = load(models_dir)
+    if fused is None:
+        log.info("no fused models in %s/fused (or no pyoidn); the fused method is not served", models_dir)
+    return fused
 
 
 def warm_up_frame(size: int = 16) -> Any:

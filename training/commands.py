@@ -30,6 +30,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--lr", type=float, default=None, help="Adam learning rate (default 1e-4, as the paper)")
     p.add_argument("--patches-per-frame", type=int, default=None,
                    help="random crops per training frame per epoch (defines an epoch)")
+    p.add_argument("--prior", choices=("l1", "oidn"), default=None,
+                   help="what the network refines: l1 = truncated Poisson solve (the network method, default); "
+                        "oidn = OIDN's denoise at a normalised exposure (the fused method)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("-o", "--output", required=True, help="run folder (config, checkpoints, log, curves)")
     p.set_defaults(func=_train)

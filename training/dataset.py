@@ -40,6 +40,8 @@ from model.preprocess import (
     feature_planes,
     layer_planes,
     measured_planes,
+    prior_exposure,
+    scaled_layer,
 )
 
 TRAINABLE_LAYERS = ("direct", "indirect", "color")
@@ -143,10 +145,12 @@ def select_layer(frame_layers: dict[str, Layer], layer: str) -> Layer | None:
 # ---------------------------------------------------------------------------------------------------------------
 
 
-def _cache_key(entry: FrameEntry, layer: str) -> dict[str, Any]:
+def _cache_key(entry: FrameEntry, layer: str, prior: str) -> dict[str, Any]:
     st = entry.path.stat()
     key = {"format": CACHE_FORMAT, "preprocess": PREPROCESS_VERSION, "layer": layer,
            "source": str(entry.path), "size": st.st_size, "mtime_ns": st.st_mtime_ns}
+    if prior != "l1":  # keys of l1 caches stay as before, so existing caches remain valid
+        key["prior"] = prior
     if entry.target is not None:
         tt = entry.target.stat()
         key |= {"target": str(entry.target), "target_size": tt.st_size, "target_mtime_ns": tt.st_mtime_ns}
@@ -154,8 +158,13 @@ def _cache_key(entry: FrameEntry, layer: str) -> dict[str, Any]:
 
 
 def build_cache(manifest: Manifest, layer: str, cache_dir: Path,
-                progress: Callable[[int, int], None] | None = None) -> tuple[list[Path | None], list[str]]:
+                progress: Callable[[int, int], None] | None = None,
+                prior: str = "l1") -> tuple[list[Path | None], list[str]]:
     """Decode every frame once into ``cache_dir/NNNNN.npy`` (19 or 28, H, W) float32; reuse valid files.
+
+    ``prior``: what the layer planes' prior is (model.preprocess.PRIOR_KINDS): ``l1`` (the network method) or
+    ``oidn`` (the fused method: OIDN's denoise of the base with the prefiltered features, and every plane —
+    base, gradients, prior and the target's — at the normalised exposure of model.preprocess.prior_exposure).
 
     Returns one path per manifest frame (None when the frame cannot be used for ``layer``) and the warnings
     explaining each skipped frame.
@@ -166,11 +175,11 @@ def build_cache(manifest: Manifest, layer: str, cache_dir: Path,
     for entry in manifest.frames:
         target = cache_dir / f"{entry.index:05d}.npy"
         meta_path = target.with_suffix(".json")
-        key = _cache_key(entry, layer)
+        key = _cache_key(entry, layer, prior)
         if target.is_file() and meta_path.is_file() and json.loads(meta_path.read_text()) == key:
             paths.append(target)
         else:
-            reason = _write_cache_file(entry, layer, target, meta_path, key)
+            reason = _write_cache_file(entry, layer, target, meta_path, key, prior)
             paths.append(None if reason else target)
             if reason:
                 warnings.append(f"{entry.path.name}: skipped ({reason})")
@@ -179,7 +188,18 @@ def build_cache(manifest: Manifest, layer: str, cache_dir: Path,
     return paths, warnings
 
 
-def _write_cache_file(entry: FrameEntry, layer: str, target: Path, meta_path: Path, key: dict[str, Any]) -> str:
+def _fused_inputs(chosen: Layer, features: Any) -> tuple[Layer, np.ndarray, float]:
+    """(layer at the normalised exposure, OIDN prior at it, the scale): exactly what inference computes."""
+    from model.oidn import shared_denoiser
+
+    denoiser = shared_denoiser()
+    prior = denoiser.denoise(chosen.base, denoiser.prefilter(features))
+    scale = prior_exposure(prior)
+    return scaled_layer(chosen, scale), (prior.astype(np.float64) * scale).astype(np.float32), scale
+
+
+def _write_cache_file(entry: FrameEntry, layer: str, target: Path, meta_path: Path, key: dict[str, Any],
+                      prior: str = "l1") -> str:
     """Write one cache file atomically; return why the frame is unusable, or "" on success."""
     try:
         frame = read_frame(entry.path, nonfinite="zero")
@@ -190,7 +210,13 @@ def _write_cache_file(entry: FrameEntry, layer: str, target: Path, meta_path: Pa
         return f"no {layer} layer (has {', '.join(frame.layers)})"
     if frame.features is None:
         return "no feature channels"
-    parts = [layer_planes(chosen), feature_planes(frame.features, DepthRange.of(frame.features.depth))]
+    scale = 1.0
+    if prior == "oidn":
+        chosen, prior_image, scale = _fused_inputs(chosen, frame.features)
+        planes_in = layer_planes(chosen, prior=prior_image)
+    else:
+        planes_in = layer_planes(chosen)
+    parts = [planes_in, feature_planes(frame.features, DepthRange.of(frame.features.depth))]
     if entry.target is not None:
         try:
             other = read_frame(entry.target, nonfinite="zero")
@@ -199,7 +225,7 @@ def _write_cache_file(entry: FrameEntry, layer: str, target: Path, meta_path: Pa
         second = select_layer(other.layers, layer)
         if second is None or (other.height, other.width) != (frame.height, frame.width):
             return f"target {entry.target.name} has no matching {layer} layer of {frame.width}x{frame.height}"
-        parts.append(measured_planes(second))
+        parts.append(measured_planes(scaled_layer(second, scale) if scale != 1.0 else second))
     planes = np.concatenate(parts)
     tmp = target.with_name(target.name + ".tmp.npy")
     np.save(tmp, planes.astype(np.float32, copy=False))

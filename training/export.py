@@ -158,6 +158,8 @@ def export_run(run_dir: str | os.PathLike[str], output: str | os.PathLike[str]) 
         "trained_minutes": f"{progress.get('elapsed', 0.0) / 60:.2f}",
         "run_code_version": run_json.get("code_version", ""),
     }
+    if cfg.prior != "l1":  # l1 models keep their metadata as before (no key means l1)
+        extra |= {"prior": cfg.prior, "exposure": "prior-mean"}
     proto = to_onnx(model, model_metadata(cfg.network, cfg.layer, extra))
     err = parity_error(model, proto)
     if not err < PARITY_TOLERANCE:

@@ -41,7 +41,7 @@ from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader, DistributedSampler, Sampler
 
 from model.network import DualBranchNet, GBranch, NetworkConfig, describe
-from model.preprocess import PREPROCESS_VERSION, PRIOR_CHANNELS, describe_preprocessing, network_inputs
+from model.preprocess import PREPROCESS_VERSION, PRIOR_CHANNELS, PRIOR_KINDS, describe_preprocessing, network_inputs
 from training.dataset import (
     TRAINABLE_LAYERS,
     DatasetError,
@@ -88,12 +88,15 @@ class TrainConfig:
     plot_minutes: float = 2.0          # redraw losses.png at an epoch end at most this often (and at the end)
     log_every: int = 10
     keep_epoch_checkpoints: int = 3
+    prior: str = "l1"                 # what the network refines: l1 (the network method) or oidn (fused)
 
     # fields a resumed run may change: everything else must match the run folder's config.json
     RESUMABLE_CHANGES = ("epochs", "minutes", "output", "data", "checkpoint_minutes", "plot_minutes", "log_every",
                          "keep_epoch_checkpoints")
 
     def __post_init__(self) -> None:
+        if self.prior not in PRIOR_KINDS:
+            raise ValueError(f"prior must be one of {PRIOR_KINDS}, got {self.prior!r}")
         if self.layer not in TRAINABLE_LAYERS:
             raise ValueError(f"layer must be one of {TRAINABLE_LAYERS}, got {self.layer!r}")
         for name in ("patch", "batch", "patches_per_frame", "val_patches_per_frame", "lr_decay_every"):
@@ -372,11 +375,12 @@ class Trainer:
         if ctx.main:
             prepare_run_dir(cfg, manifest.sha256)
             self._say(f"dataset {cfg.data}: {len(manifest.frames)} frames; building the {cfg.layer} cache")
-            _, warnings = build_cache(manifest, cfg.layer, self.run / "cache")
+            _, warnings = build_cache(manifest, cfg.layer, self.run / "cache", prior=cfg.prior)
             for w in warnings:
                 self._say(f"warning: {w}")
         ctx.barrier()
-        files, warnings = build_cache(manifest, cfg.layer, self.run / "cache")  # all valid now: no decoding
+        files, warnings = build_cache(manifest, cfg.layer, self.run / "cache",  # all valid now: no decoding
+                                      prior=cfg.prior)
         train_idx, val_idx = split_frames(len(files), cfg.seed, cfg.val_fraction)
         train_files, notes = usable(files, train_idx, cfg.patch)
         val_files, val_notes = usable(files, val_idx, cfg.patch)
@@ -669,7 +673,8 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
         if value is not None:
             extra[name] = value
     return TrainConfig(data=args.data, layer=args.layer, output=args.output, network=network,
-                       epochs=args.epochs, minutes=args.minutes, seed=args.seed, **extra)
+                       epochs=args.epochs, minutes=args.minutes, seed=args.seed,
+                       prior=getattr(args, "prior", None) or "l1", **extra)
 
 
 def train_command(args: argparse.Namespace) -> int:

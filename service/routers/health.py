@@ -5,7 +5,7 @@ from __future__ import annotations
 from typing import Annotated
 
 from fastapi import APIRouter, Depends
-from pydantic import BaseModel
+from pydantic import BaseModel, Field
 
 from service.dependencies import get_engine
 from service.errors import ErrorResponse, ServiceError
@@ -21,7 +21,8 @@ class Health(BaseModel):
 class Ready(BaseModel):
     status: str
     methods: list[str]
-    default_method: str
+    default_method: str = Field(description="the method for a gradient-domain frame with features")
+    default_method_plain: str | None = Field(description="the method for a plain frame without gradients (oidn)")
 
 
 @router.get("/healthz", response_model=Health, summary="Liveness: the process answers (always cheap)")
@@ -38,4 +39,5 @@ async def readyz(engine: Annotated[Engine, Depends(get_engine)]) -> Ready:
                            {"models_dir": str(engine.settings.models_dir)}, {"Retry-After": "60"})
     if engine.state != "ready":
         raise ServiceError(503, "not_ready", "loading models and warming up", None, {"Retry-After": "1"})
-    return Ready(status="ready", methods=list(engine.methods), default_method=engine.default_method)
+    return Ready(status="ready", methods=list(engine.methods), default_method=engine.default_method,
+                 default_method_plain=engine.default_method_plain)

@@ -22,8 +22,12 @@ class Limits(BaseModel):
 
 class ModelsInfo(BaseModel):
     state: str = Field(description="loading, ready or failed")
-    default_method: str = Field(description="the method used when a request names none")
-    methods: list[str] = Field(description="methods this replica serves: network (when models loaded), l1, l2")
+    default_method: str = Field(description="the method used when a request names none, for a gradient-domain "
+                                            "frame with features (a frame the models do not cover gets the "
+                                            "next served method of fused > oidn > network > l1)")
+    default_method_plain: str | None = Field(description="the method for a plain frame without gradients")
+    methods: list[str] = Field(description="methods this replica serves: l1, l2 always; network and fused when "
+                                           "their models are loaded; oidn and fused when pyoidn is installed")
     models: list[dict[str, Any]] = Field(
         description="loaded networks: name, layers, input channels, checksums and export metadata")
     limits: Limits
@@ -33,7 +37,8 @@ class ModelsInfo(BaseModel):
             responses={401: {"model": ErrorResponse, "description": "bearer token missing or invalid"}})
 async def list_models(engine: Annotated[Engine, Depends(get_engine)]) -> ModelsInfo:
     s = engine.settings
-    return ModelsInfo(state=engine.state, default_method=engine.default_method, methods=list(engine.methods),
+    return ModelsInfo(state=engine.state, default_method=engine.default_method,
+                      default_method_plain=engine.default_method_plain, methods=list(engine.methods),
                       models=engine.describe_models(),
                       limits=Limits(max_body_bytes=s.max_body_bytes, max_pixels=s.max_pixels,
                                     max_values=s.max_values))

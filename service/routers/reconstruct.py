@@ -79,9 +79,10 @@ async def reconstruct_frame(
     request: Request,
     engine: Annotated[Engine, Depends(get_engine)],
     metrics: Annotated[ServiceMetrics, Depends(get_metrics)],
-    method: Annotated[Literal["network", "l1", "l2"] | None, Query(
-        description="reconstruction method; default network when models for the frame's layers "
-                    "are loaded, else l1")] = None,
+    method: Annotated[Literal["network", "l1", "l2", "oidn", "fused"] | None, Query(
+        description="reconstruction method; default: the best this replica serves for the frame -- fused "
+                    "(gradients, features and fused models) > oidn > network > l1; a plain frame without "
+                    "gradients gets oidn")] = None,
     alpha: Annotated[float | None, Query(
         ge=MIN_ALPHA, le=1000, allow_inf_nan=False,
         description=f"screened Poisson data weight (l1/l2), in [{MIN_ALPHA:g}, 1000]")] = None,
@@ -94,7 +95,7 @@ async def reconstruct_frame(
     gate = _ready_gate(engine)
     if method is not None and method not in engine.methods:
         raise ServiceError(422, "method_unavailable", f"method {method!r} is not available on this replica "
-                           f"(no models loaded); available: {', '.join(engine.methods)}",
+                           f"(its models or package are not installed); available: {', '.join(engine.methods)}",
                            {"available": list(engine.methods)})
     media = _media_type(request)
     if gate.full:  # shed load before buffering anything; drain so the client reads our answer cleanly
@@ -107,11 +108,12 @@ async def reconstruct_frame(
     timed_out = False
     try:
         header = await anyio.to_thread.run_sync(_check_header, source, engine)
-        # no method named: model.reconstruct picks the network when its models serve the frame, else l1
+        # no method named: model.reconstruct picks the best method that serves the frame (model.policy)
         params = ReconstructParams(method, alpha if alpha is not None else engine.settings.default_alpha,
                                    output_format == "half", layers, request_id_of(request.scope),
                                    header.compression)
-        job = partial(run_pipeline, source, params, engine.limits, engine.settings.nonfinite, engine.network)
+        job = partial(run_pipeline, source, params, engine.limits, engine.settings.nonfinite, engine.network,
+                      engine.fused)
         try:
             outcome, queued = await gate.run(job, engine.settings.inference_timeout)
         except ServiceError as exc:

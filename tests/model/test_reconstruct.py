@@ -110,15 +110,17 @@ def test_reconstruct_errors_are_clear() -> None:
     frame = _frame()
     with pytest.raises(ValueError, match="unknown reconstruction method 'l3'"):
         reconstruct(frame, "l3")
-    with pytest.raises(ValueError, match="needs a loaded network"):
+    with pytest.raises(ValueError, match="needs a loaded model set"):
         reconstruct(frame, "network")
+    with pytest.raises(ValueError, match="needs a loaded model set"):
+        reconstruct(frame, "fused")
     with pytest.raises(ChannelError, match="feature channels"):
         reconstruct(_frame(features=False), "network", network=HalfBase())
     with pytest.raises(ValueError, match="alpha"):
         reconstruct(frame, "l2", alpha=0.0)
     with pytest.raises(RuntimeError, match="shape"):
         reconstruct(frame, "network", network=HalfBase(np.zeros((2, 2, 3), np.float32)))
-    assert METHODS == ("network", "l1", "l2")
+    assert METHODS == ("network", "l1", "l2", "oidn", "fused")
 
 
 def test_network_refuses_layers_it_has_no_model_for() -> None:
@@ -129,12 +131,17 @@ def test_network_refuses_layers_it_has_no_model_for() -> None:
     assert err.value.details["unserved_layers"] == ["indirect"] and only_direct.calls == []
 
 
-def test_default_method_is_the_network_only_when_it_serves_the_frame() -> None:
-    network = HalfBase()
-    network.layers = {"direct", "indirect"}
-    assert choose_method(_frame(), None) == "l1"
+def test_default_method_is_the_first_preferred_method_that_serves_the_frame(monkeypatch) -> None:
+    network, fused = HalfBase(), HalfBase()
+    network.layers = fused.layers = {"direct", "indirect"}
+    assert choose_method(_frame(), network, fused) == "fused"
+    assert choose_method(_frame(), network) == "oidn"  # OIDN (installed here) ranks above the network
+    assert choose_method(_frame(features=False), network, fused) == "oidn"
+    fused.layers = {"direct"}  # fused models that do not cover the frame are passed over
+    assert choose_method(_frame(), network, fused) == "oidn"
+    assert reconstruct(_frame(), network=network, fused=fused).method == "oidn"
+    monkeypatch.setattr("model.oidn.available", lambda: False)  # a host without pyoidn
     assert choose_method(_frame(), network) == "network"
-    assert choose_method(_frame(features=False), network) == "l1"
     network.layers = {"direct"}
     assert choose_method(_frame(), network) == "l1"
     assert reconstruct(_frame(), network=network).method == "l1"
@@ -167,13 +174,13 @@ def test_cli_writes_a_readable_sum(tmp_path: Path, capsys) -> None:
     write_frame(tmp_path / "in.exr", frame)
     code, out, err = _run([str(tmp_path / "in.exr"), "-o", str(tmp_path / "out.exr")], capsys)
     assert code == 0, err
-    assert "l1" in out and "direct" in out and "indirect" in out and len(out.strip().splitlines()) == 1
+    assert "oidn" in out and "direct" in out and "indirect" in out and len(out.strip().splitlines()) == 1
     types = _exr_types(tmp_path / "out.exr")
     assert set(types) == {"R", "G", "B"} and all(t == np.float32 for t in types.values())
     written = _open_exr(tmp_path / "out.exr")
-    want = reconstruct(read_frame(tmp_path / "in.exr"), "l1").image
-    np.testing.assert_allclose(_rgb(tmp_path / "out.exr"), want, atol=1e-6)
-    assert written.header()["gradsep.method"] == "l1"
+    want = reconstruct(read_frame(tmp_path / "in.exr"), "oidn").image  # the default without fused models
+    np.testing.assert_allclose(_rgb(tmp_path / "out.exr"), want, rtol=1e-5, atol=1e-7)
+    assert written.header()["gradsep.method"] == "oidn"
     assert sorted(os.listdir(tmp_path)) == ["in.exr", "out.exr"]
 
 

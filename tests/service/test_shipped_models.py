@@ -53,7 +53,7 @@ def example() -> bytes:
 def test_models_endpoint_lists_the_shipped_models_and_their_provider(serve):
     with serve(create_app(settings(models_dir=MODELS))) as client:
         info = client.get("/v1/models").json()
-        assert info["default_method"] == "network" and "network" in info["methods"]
+        assert "network" in info["methods"]  # the default follows model.policy (fused > oidn > network > l1)
         by_name = {m["name"]: m for m in info["models"]}
         assert {"direct", "indirect"} <= set(by_name)
         for model in by_name.values():
@@ -61,11 +61,11 @@ def test_models_endpoint_lists_the_shipped_models_and_their_provider(serve):
             assert len(model["sha256"]) == 64 and model["provider_reason"]
 
 
-def test_network_is_the_default_and_beats_the_input_on_the_example(serve, example):
+def test_network_beats_the_input_on_the_example(serve, example):
     reference = _reference()
     noisy = read_frame(EXAMPLE).combined().base
     with serve(create_app(settings(models_dir=MODELS))) as client:
-        response = _post(client, example, layers="all")
+        response = _post(client, example, layers="all", method="network")
         assert response.status_code == 200, response.text
         assert response.headers["x-reconstruction-method"] == "network"
         assert "direct" in response.headers["server-timing"] and "indirect" in response.headers["server-timing"]
@@ -76,7 +76,7 @@ def test_network_is_the_default_and_beats_the_input_on_the_example(serve, exampl
         np.testing.assert_allclose(rgb(channels, "direct") + rgb(channels, "indirect"), image, rtol=1e-5, atol=1e-6)
         assert relmse(image, reference) < 0.5 * relmse(noisy, reference)
         # the same request again gives the same bytes' worth of pixels (no state carried between requests)
-        again = rgb(decode(_post(client, example).content)[0])
+        again = rgb(decode(_post(client, example, method="network").content)[0])
         np.testing.assert_array_equal(again, image)
 
 
@@ -84,7 +84,7 @@ def test_network_is_the_default_and_beats_the_input_on_the_example(serve, exampl
 def test_network_over_http_keeps_the_energy_of_a_bright_frame(serve, example, k):
     """Before issue 15 the network clipped each layer at 65504: a 1e6 frame came back ~1e5x too dark."""
     with serve(create_app(settings(models_dir=MODELS))) as client:
-        ordinary = rgb(decode(_post(client, example).content)[0])
+        ordinary = rgb(decode(_post(client, example, method="network").content)[0])
         response = _post(client, _scaled_example(k), method="network")
         assert response.status_code == 200, response.text
         bright = rgb(decode(response.content)[0])
@@ -96,7 +96,6 @@ def test_network_over_http_keeps_the_energy_of_a_bright_frame(serve, example, k)
 def test_network_needs_features_and_says_so(serve):
     with serve(create_app(settings(models_dir=MODELS))) as client:
         no_features = frame_bytes(height=32, width=48)
-        assert _post(client, no_features).headers["x-reconstruction-method"] == "l1"  # default falls back
         response = _post(client, no_features, method="network")
         assert response.status_code == 422, response.text
         assert "feature" in response.json()["error"]["message"]
@@ -110,7 +109,7 @@ def test_short_load_with_the_shipped_models(tmp_path: Path, example):
     argv = ["-m", "gradsep", "serve", "--host", "127.0.0.1", "--port", "{port}"]
     with server_process(argv, env, tmp_path / "server.log") as (url, proc):
         with httpx.Client(base_url=url, timeout=120) as http:
-            first = _post(http, example)
+            first = _post(http, example, method="network")
             assert first.status_code == 200, first.text
         expected = rgb(decode(first.content)[0])
         baseline = rss_bytes(proc.pid)
@@ -119,7 +118,7 @@ def test_short_load_with_the_shipped_models(tmp_path: Path, example):
             with httpx.Client(base_url=url, timeout=120) as http:
                 out = []
                 for _ in range(4):
-                    r = _post(http, example)
+                    r = _post(http, example, method="network")
                     assert r.status_code == 200, r.text
                     assert r.headers["x-reconstruction-method"] == "network"
                     out.append(rgb(decode(r.content)[0]))

@@ -1,0 +1,186 @@
+"""Intel Open Image Denoise as a reconstruction method and as the prior of the ``fused`` network.
+
+OIDN's ``RT`` filter is a pretrained, feature-guided denoiser: it sees one noisy HDR image plus (optionally) the
+albedo and normal of the first visible surface. Used per illumination layer (the direct and the indirect layer
+denoised apart, then summed) it beats denoising their sum, because each layer's noise is more uniform than the
+mix (docs/network.md, "The oidn and fused methods").
+
+Auxiliary features are **prefiltered once per frame** and reused for every layer: OIDN's documented recipe for
+noisy albedo/normal (a separate RT filter with only that image bound), after which the colour filter runs with
+``cleanAux``. Our features come from the first non-specular vertex of a few samples per pixel and carry
+anti-aliasing noise at edges and through glossy/specular chains; without prefiltering OIDN would keep that noise
+as detail.
+
+Numerics: inputs are sanitised (NaN → 0, ±Inf → the largest finite float32 / 0, radiance clamped ≥ 0), and the
+colour filter is given an explicit ``inputScale`` (the reciprocal of the layer's mean, a power of two) rather
+than OIDN's autoexposure, so a frame scaled by 1e-8 or 1e9 is denoised exactly as the same frame at unit
+exposure (up to float rounding): the result scales with the input. A layer with no light is returned black
+without running the filter. This module needs ``pyoidn`` (the ``evaluate`` and ``serve`` extras); importing it
+does not, so the service starts without it and reports the method as unavailable.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+import threading
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from model.frame import Features
+
+#: OIDN's quality preset for every call: "high" measured best per second among the presets on our frames.
+QUALITY = "high"
+_F32_MAX = float(np.finfo(np.float32).max)
+#: The exposure the colour filter sees: the layer scaled so its mean radiance is about 1 (OIDN's HDR models are
+#: trained around that), by a power of two so the scaling itself is exact.
+_TARGET_MEAN = 1.0
+#: OIDN's U-Net loses energy on images a few pixels across (a constant 1×1 image comes back at 23 %, 2×2 at
+#: 92 %, measured): smaller images are mirror-padded to this many pixels per side and cropped back.
+MIN_SIDE = 16
+
+
+def available() -> bool:
+    """True when pyoidn can be imported (checked without importing it)."""
+    return importlib.util.find_spec("pyoidn") is not None
+
+
+@dataclass(frozen=True)
+class CleanAux:
+    """Prefiltered auxiliary features of one frame, (H, W, 3) float32 each, ready for ``cleanAux``."""
+
+    albedo: np.ndarray  # in [0, 1]
+    normal: np.ndarray  # in [-1, 1]
+
+
+def _finite(x: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    out = np.array(x, dtype=np.float32, order="C")
+    np.nan_to_num(out, copy=False, nan=0.0, posinf=hi, neginf=lo)
+    return np.clip(out, lo, hi, out=out)
+
+
+def exposure_scale(image: np.ndarray) -> float:
+    """s such that mean(image * s) is 1 (exactly the reciprocal, so scaled frames denoise alike); 1.0 if black."""
+    mean = float(np.mean(image, dtype=np.float64)) if image.size else 0.0
+    if not (math.isfinite(mean) and mean > 0.0):
+        return 1.0
+    return _TARGET_MEAN / mean
+
+
+class Denoiser:
+    """One OIDN device and its three filters (albedo prefilter, normal prefilter, HDR colour).
+
+    Thread-safe: calls are serialised by a lock (OIDN already uses every core for one image, so running two
+    images at once would not be faster on the 2-core target). Create one per process and reuse it: the device
+    and the filters' weights are set up once.
+    """
+
+    def __init__(self, quality: str = QUALITY) -> None:
+        import pyoidn
+
+        self._oidn = pyoidn
+        self._quality = {"high": pyoidn.OIDN_QUALITY_HIGH, "balanced": pyoidn.OIDN_QUALITY_BALANCED,
+                         "fast": pyoidn.OIDN_QUALITY_FAST}[quality]
+        self.quality = quality
+        self._lock = threading.Lock()
+        self._device = pyoidn.Device()
+        self._device.commit()
+        self._check("device creation")
+        self._filters: dict[str, Any] = {}
+
+    # ------------------------------------------------------------------------------------------- plumbing
+
+    def _check(self, what: str) -> None:
+        message = self._device.get_error()
+        if message:
+            raise RuntimeError(f"OIDN {what} failed: {message}")
+
+    def _filter(self, purpose: str) -> Any:
+        flt = self._filters.get(purpose)
+        if flt is None:
+            flt = self._oidn.Filter(self._device, self._oidn.OIDN_FILTER_TYPE_RT)
+            self._check("filter creation")
+            self._filters[purpose] = flt
+        return flt
+
+    def _run(self, purpose: str, images: dict[str, np.ndarray], output: np.ndarray,
+             flags: dict[str, bool], scale: float | None = None) -> np.ndarray:
+        """Bind ``images`` (+ output) to the purpose's filter, execute, and return ``output``."""
+        height, width = output.shape[:2]
+        if min(height, width) < MIN_SIDE:
+            pads = ((0, max(0, MIN_SIDE - height)), (0, max(0, MIN_SIDE - width)), (0, 0))
+            padded = {k: np.ascontiguousarray(np.pad(v, pads, mode="symmetric")) for k, v in images.items()}
+            big = self._run(purpose, padded, np.empty_like(next(iter(padded.values()))), flags, scale)
+            output[...] = big[:height, :width]
+            return output
+        fmt = self._oidn.OIDN_FORMAT_FLOAT3
+        flt = self._filter(purpose)
+        for name in ("color", "albedo", "normal"):
+            if name not in images:
+                flt.unset_image(name)
+        for name, image in images.items():
+            flt.set_image(name, image, fmt)
+        flt.set_image("output", output, fmt)
+        for name, value in flags.items():
+            flt.set_bool(name, value)
+        if scale is not None:
+            flt.set_float("inputScale", scale)
+        flt.set_quality(self._quality)
+        flt.commit()
+        self._check(f"{purpose} filter setup")
+        flt.execute()
+        self._check(f"{purpose} filter execution")
+        return output
+
+    # ----------------------------------------------------------------------------------------------- API
+
+    def prefilter(self, features: Features) -> CleanAux:
+        """Denoise the frame's albedo and normal once (OIDN's recipe for noisy auxiliary images)."""
+        albedo = _finite(features.albedo, 0.0, 1.0)
+        normal = _finite(features.normal, -1.0, 1.0)
+        with self._lock:
+            clean_albedo = self._run("albedo", {"albedo": albedo}, np.empty_like(albedo), {})
+            clean_normal = self._run("normal", {"normal": normal}, np.empty_like(normal), {})
+        np.clip(clean_albedo, 0.0, 1.0, out=clean_albedo)
+        np.clip(clean_normal, -1.0, 1.0, out=clean_normal)
+        return CleanAux(clean_albedo, clean_normal)
+
+    def denoise(self, color: np.ndarray, aux: CleanAux | None = None) -> np.ndarray:
+        """(H, W, 3) float32 HDR radiance → denoised, finite, ≥ 0; ``aux`` from :meth:`prefilter` or None."""
+        radiance = _finite(color, 0.0, _F32_MAX)
+        scale = exposure_scale(radiance)
+        if scale == 1.0 and not radiance.any():
+            return radiance  # no light: nothing to denoise (and OIDN is not asked to invent any)
+        images = {"color": radiance}
+        if aux is not None:
+            if aux.albedo.shape != radiance.shape or aux.normal.shape != radiance.shape:
+                raise ValueError(f"auxiliary features {aux.albedo.shape} do not match the image {radiance.shape}")
+            images |= {"albedo": aux.albedo, "normal": aux.normal}
+        with self._lock:
+            out = self._run("color", images, np.empty_like(radiance),
+                            {"hdr": True, "cleanAux": aux is not None}, scale=scale)
+        np.nan_to_num(out, copy=False, nan=0.0, posinf=_F32_MAX, neginf=0.0)
+        return np.clip(out, 0.0, _F32_MAX, out=out)
+
+    def close(self) -> None:
+        with self._lock:
+            for flt in self._filters.values():
+                flt.release()
+            self._filters.clear()
+            self._device.release()
+
+
+_shared: Denoiser | None = None
+_shared_lock = threading.Lock()
+
+
+def shared_denoiser() -> Denoiser:
+    """The process-wide :class:`Denoiser` (created on first use)."""
+    global _shared
+    with _shared_lock:
+        if _shared is None:
+            _shared = Denoiser()
+        return _shared
