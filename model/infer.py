@@ -401,12 +401,12 @@ class NetworkReconstructor:
         """
         if name not in self.models:
             raise KeyError(f"no model for layer {name!r}; loaded: {', '.join(sorted(self.models)) or 'none'}")
+        height, width = _check_inputs(layer, features)
         if self.models[name].prior != "oidn":
             exposure = exposure_scale(layer)
             if exposure != 1.0:  # the scaled layer's own scale is 1 (tested), so this recurses exactly once
                 scaled = self.reconstruct_layer(name, scale_layer(layer, 1.0 / exposure), features, aux)
                 return rescale(scaled, exposure)
-        height, width = _check_inputs(layer, features)
         assert features is not None  # _check_inputs raised otherwise
         model = self.models[name]
         unlit = unlit_pixels(layer)
