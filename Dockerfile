@@ -20,7 +20,8 @@ FROM python:3.11-slim
 ENV PATH=/opt/venv/bin:$PATH \
     PYTHONUNBUFFERED=1 \
     PYTHONDONTWRITEBYTECODE=1 \
-    GRADSEP_MODELS=/app/models
+    GRADSEP_MODELS=/app/models \
+    NUMBA_CACHE_DIR=/tmp/gradsep-numba
 RUN useradd --system --uid 10001 --user-group --home-dir /app --shell /usr/sbin/nologin gradsep
 COPY --from=build /opt/venv /opt/venv
 WORKDIR /app

@@ -1,14 +1,22 @@
-"""End-to-end latency of the HTTP service for a 1280×720 frame, per method: p50 / p95 over sequential requests.
+"""End-to-end latency of the HTTP service for a 1280×720 frame, per method: p50 / p95 over sequential requests,
+then throughput with ``--clients`` (2) concurrent clients in frames per minute, and the service's peak RSS.
 
-    python benchmarks/bench_service.py                       # starts `gradsep serve` on a free port, l1 + l2
+    python benchmarks/bench_service.py                       # starts `gradsep serve` on a free port, every method
+    python benchmarks/bench_service.py --methods l2,network  # a subset, by name (fused, oidn, ... when served)
     python benchmarks/bench_service.py --repeats 50 --json   # one JSON document on stdout
-    python benchmarks/bench_service.py --url http://host:8000 --token T   # an already running service
+    python benchmarks/bench_service.py --url http://host:8000 --token T   # an already running service (no RSS)
+    python benchmarks/bench_service.py --io                  # EXR decode/encode cost per compression, no service
 
 What is timed is what a render-farm task sees: upload of the EXR, queueing, decode, reconstruction of each layer,
 encode and download (client-side wall clock, one request at a time, connection kept alive). The service's own
 ``Server-Timing`` breakdown is reported alongside as medians, so transport overhead can be read off the
 difference. Every method the service reports in /readyz is measured (network too when models are loaded) unless
-``--methods`` narrows it.
+``--methods`` narrows it; methods are addressed by name only, so a method the service adds later (``fused``,
+``oidn``) is measured without a change here (METHOD_ORDER only sorts the table).
+
+Throughput: ``--clients`` threads post the same frame ``--throughput-requests`` times in all, against a service
+started with ``--concurrency`` inference slots (default 2: one per core); frames per minute = requests / wall time.
+Peak RSS is the service process's VmHWM (Linux /proc) after all methods ran, children included when it forked.
 
 The frame is synthetic and seeded: direct and indirect layers (smooth shading with edges, Monte-Carlo-like
 multiplicative noise and rare fireflies in the bases, lighter noise in the gradients) plus albedo/normal/depth
@@ -29,6 +37,7 @@ import sys
 import time
 from collections import defaultdict
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -38,10 +47,13 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from model.frame import encode_exr, forward_differences, rgb_channels  # noqa: E402
+from model.frame import LOSSLESS_COMPRESSIONS, encode_exr, forward_differences, read_frame, rgb_channels  # noqa: E402
+
+#: Table order; any other method the service offers is measured after these.
+METHOD_ORDER = ("l2", "l1", "network", "fused", "oidn")
 
 
-def synthetic_frame(height: int, width: int, seed: int = 0) -> bytes:
+def synthetic_frame(height: int, width: int, seed: int = 0, compression: str | None = None) -> bytes:
     """A noisy separated frame with features, as EXR bytes (float32, ZIP)."""
     rng = np.random.default_rng(seed)
     yy, xx = np.mgrid[0:height, 0:width].astype(np.float32)
@@ -64,7 +76,7 @@ def synthetic_frame(height: int, width: int, seed: int = 0) -> bytes:
     channels.update(dict(zip(("albedo.R", "albedo.G", "albedo.B"), np.full((3, height, width), 0.6), strict=True)))
     channels.update(dict(zip(("normal.X", "normal.Y", "normal.Z"), np.moveaxis(normal, -1, 0), strict=True)))
     channels["depth.Z"] = 2.0 + yy
-    return encode_exr({k: np.ascontiguousarray(v, np.float32) for k, v in channels.items()})
+    return encode_exr({k: np.ascontiguousarray(v, np.float32) for k, v in channels.items()}, compression=compression)
 
 
 def free_port() -> int:
@@ -74,13 +86,16 @@ def free_port() -> int:
 
 
 @contextmanager
-def local_service(concurrency: int) -> Iterator[str]:
+def local_service(concurrency: int, pids: list[int] | None = None) -> Iterator[str]:
     """`gradsep serve` in a subprocess on a free port (Poisson methods unless GRADSEP_MODELS has models)."""
     port = free_port()
-    env = {**os.environ, "PYTHONPATH": str(REPO), "GRADSEP_CONCURRENCY": str(concurrency),
+    path = os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))
+    env = {**os.environ, "PYTHONPATH": path, "GRADSEP_CONCURRENCY": str(concurrency),
            "GRADSEP_LOG_LEVEL": "warning"}
     proc = subprocess.Popen([sys.executable, "-m", "gradsep", "serve", "--host", "127.0.0.1", "--port", str(port)],
                             cwd=REPO, env=env)
+    if pids is not None:
+        pids.append(proc.pid)
     try:
         yield f"http://127.0.0.1:{port}"
     finally:
@@ -133,6 +148,58 @@ def measure(client: httpx.Client, data: bytes, method: str, repeats: int, warmup
             "server_median_s": {k: float(np.median(v)) for k, v in steps.items()}, "response_bytes": size}
 
 
+def peak_rss_mib(pid: int) -> float | None:
+    """VmHWM of a process (Linux), MiB; None where /proc is not readable."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return None
+
+
+def throughput(url: str, headers: dict, data: bytes, method: str, clients: int, requests: int, fmt: str) -> dict:
+    """``requests`` posts spread over ``clients`` concurrent connections; frames per minute."""
+    def worker(count: int) -> int:
+        with httpx.Client(base_url=url, headers=headers, timeout=600) as client:
+            for i in range(count):
+                r = client.post("/v1/reconstruct", params={"method": method, "format": fmt}, content=data,
+                                headers={"Content-Type": "image/x-exr", "X-Request-ID": f"tp-{method}-{i}"})
+                if r.status_code != 200:
+                    raise SystemExit(f"{method}: HTTP {r.status_code}: {r.text[:300]}")
+        return count
+
+    shares = [requests // clients + (1 if i < requests % clients else 0) for i in range(clients)]
+    start = time.perf_counter()
+    with ThreadPoolExecutor(clients) as pool:
+        done = sum(pool.map(worker, shares))
+    wall = time.perf_counter() - start
+    return {"clients": clients, "requests": done, "seconds": wall, "frames_per_minute": 60.0 * done / wall}
+
+
+def io_costs(height: int, width: int, repeats: int) -> None:
+    """Decode and encode cost of the benchmark frame per lossless compression (no service)."""
+    import io
+
+    print(f"{width}x{height} direct+indirect frame with features; medians of {repeats}")
+    print(f"{'compression':20} {'request MB':>10} {'read_frame s':>12} {'encode RGB s':>12} {'answer MB':>9}")
+    for compression in LOSSLESS_COMPRESSIONS:
+        data = synthetic_frame(height, width, compression=compression)
+        reads, encodes = [], []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            frame = read_frame(io.BytesIO(data))
+            t1 = time.perf_counter()
+            image = frame.combined().base
+            t2 = time.perf_counter()
+            answer = encode_exr(dict(rgb_channels("", image)), compression=compression)
+            encodes.append(time.perf_counter() - t2)
+            reads.append(t1 - t0)
+        print(f"{compression:20} {len(data) / 1e6:10.1f} {np.median(reads):12.3f} {np.median(encodes):12.3f} "
+              f"{len(answer) / 1e6:9.1f}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--url", default=None, help="measure a running service instead of starting one")
@@ -142,32 +209,55 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=20)
     parser.add_argument("--warmup", type=int, default=2)
     parser.add_argument("--format", choices=("float", "half"), default="float")
-    parser.add_argument("--concurrency", type=int, default=1, help="GRADSEP_CONCURRENCY of a started service")
+    parser.add_argument("--concurrency", type=int, default=2, help="GRADSEP_CONCURRENCY of a started service")
+    parser.add_argument("--clients", type=int, default=2, help="concurrent clients for the throughput phase")
+    parser.add_argument("--throughput-requests", type=int, default=8, help="requests per method in that phase")
+    parser.add_argument("--compression", default="ZIP_COMPRESSION", choices=LOSSLESS_COMPRESSIONS,
+                        help="the request EXR's compression (the answer follows it)")
+    parser.add_argument("--io", action="store_true", help="only measure EXR decode/encode per compression")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args()
     width, height = (int(v) for v in args.size.lower().split("x"))
-    data = synthetic_frame(height, width)
+    if args.io:
+        io_costs(height, width, max(1, min(args.repeats, 5)))
+        return
+    data = synthetic_frame(height, width, compression=args.compression)
 
-    with (contextmanager(lambda: (yield args.url))() if args.url else local_service(args.concurrency)) as url:
+    pids: list[int] = []
+    with (contextmanager(lambda: (yield args.url))() if args.url else local_service(args.concurrency, pids)) as url:
         headers = {"Authorization": f"Bearer {args.token}"} if args.token else {}
         with httpx.Client(base_url=url, headers=headers, timeout=600) as client:
             ready = wait_ready(client)
-            methods = args.methods.split(",") if args.methods else ready["methods"]
+            models = client.get("/v1/models").json().get("models", [])
+            offered = args.methods.split(",") if args.methods else ready["methods"]
+            methods = sorted(offered, key=lambda m: METHOD_ORDER.index(m) if m in METHOD_ORDER else len(METHOD_ORDER))
             results = [measure(client, data, m, args.repeats, args.warmup, args.format) for m in methods]
+        for r in results:
+            r["throughput"] = throughput(url, headers, data, r["method"], args.clients, args.throughput_requests,
+                                         args.format)
+        peak = peak_rss_mib(pids[0]) if pids else None
 
     report = {"frame": f"{width}x{height}", "request_bytes": len(data), "format": args.format,
-              "platform": platform.platform(), "cpus": os.cpu_count(), "loadavg": os.getloadavg(),
+              "compression": args.compression, "platform": platform.platform(), "cpus": os.cpu_count(),
+              "loadavg": os.getloadavg(), "peak_rss_mib": peak,
+              "providers": sorted({f"{m.get('provider', '?')}/{m.get('precision', '?')}" for m in models}),
               "results": results}
     if args.json:
         print(json.dumps(report, indent=2))
         return
-    print(f"{width}x{height} direct+indirect frame ({len(data) / 1e6:.1f} MB EXR), {args.repeats} requests per "
-          f"method, output {args.format}; {os.cpu_count()} CPUs, load average "
+    print(f"{width}x{height} direct+indirect frame ({len(data) / 1e6:.1f} MB EXR, {args.compression}), "
+          f"{args.repeats} requests per method, output {args.format}; {os.cpu_count()} CPUs, load average "
           + " ".join(f"{x:.2f}" for x in os.getloadavg()))
-    print(f"{'method':8} {'p50 s':>8} {'p95 s':>8} {'min s':>8}   server medians (s)")
+    print(f"network provider: {', '.join(report['providers']) or 'no models'}")
+    print(f"{'method':8} {'p50 s':>8} {'p95 s':>8} {'min s':>8} {'frames/min':>10}   server medians (s)")
     for r in results:
         steps = " ".join(f"{k}={v:.3f}" for k, v in r["server_median_s"].items() if k != "total")
-        print(f"{r['method']:8} {r['p50_s']:8.3f} {r['p95_s']:8.3f} {r['min_s']:8.3f}   {steps}")
+        tp = r["throughput"]
+        print(f"{r['method']:8} {r['p50_s']:8.3f} {r['p95_s']:8.3f} {r['min_s']:8.3f} "
+              f"{tp['frames_per_minute']:10.1f}   {steps}")
+    print(f"throughput: {args.clients} concurrent clients, {args.throughput_requests} requests per method, service "
+          f"concurrency {args.concurrency}; peak RSS of the service: "
+          + (f"{peak:.0f} MiB" if peak is not None else "n/a (external service)"))
 
 
 if __name__ == "__main__":

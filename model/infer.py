@@ -18,12 +18,14 @@ not bit-identical with, untiled output; windows are large (1 Mpx cores) to keep 
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
+import logging
 import os
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -59,10 +61,21 @@ if TYPE_CHECKING:
 MODEL_LAYERS: tuple[str, ...] = ("direct", "indirect", "color")
 OUTPUT_NAME = "radiance_log"
 _OPT_LEVELS = ("disable", "basic", "extended", "all")
+#: Execution providers ``SessionSettings.provider`` can ask for; "auto" picks (see ``choose_provider``).
+PROVIDERS = ("auto", "openvino", "cpu")
+OPENVINO_EP, CPU_EP = "OpenVINOExecutionProvider", "CPUExecutionProvider"
+#: CPU flags that give OpenVINO's CPU plugin native bf16 arithmetic (AVX-512 BF16 or AMX).
+BF16_FLAGS = frozenset({"avx512_bf16", "amx_bf16"})
+
+log = logging.getLogger("gradsep.infer")
 
 
 class ModelError(RuntimeError):
     """A model file exists but cannot be served (corrupt, or exported for another layer or preprocessing)."""
+
+
+def _env_provider() -> str:
+    return os.environ.get("GRADSEP_ONNX_PROVIDER", "auto").strip().lower() or "auto"
 
 
 @dataclass(frozen=True)
@@ -72,12 +85,18 @@ class SessionSettings:
     ``intra_op_threads`` 0 lets ORT use one thread per physical core, the fastest setting on the 2-core target;
     a service running several inferences side by side may want fewer. Full graph optimisation (operator
     fusion, NCHWc layouts) measured fastest in benchmarks/bench_network.py.
+
+    ``provider`` (env ``GRADSEP_ONNX_PROVIDER``): "auto" runs the OpenVINO execution provider in bf16 when the
+    installed ``onnxruntime`` build has it (the ``onnxruntime-openvino`` distribution) and the CPU has native
+    bf16 (``avx512_bf16``/``amx_bf16`` in /proc/cpuinfo), else ORT's own CPU provider in fp32; "openvino"
+    forces OpenVINO (bf16 where the CPU has it, else fp32); "cpu" forces ORT's CPU provider (fp32).
     """
 
     intra_op_threads: int = 0
     optimization: str = "all"
     allow_spinning: bool = True  # spinning threads cut latency; turn off to free the CPU between requests
     memory_arena: bool = True    # ORT's CPU arena: faster allocation, but it keeps its high-water mark
+    provider: str = field(default_factory=_env_provider)
 
     def options(self) -> onnxruntime.SessionOptions:
         import onnxruntime as ort
@@ -98,6 +117,56 @@ class SessionSettings:
         so.add_session_config_entry("session.intra_op.allow_spinning", "1" if self.allow_spinning else "0")
         so.log_severity_level = 3  # errors only: ORT's warnings about unused initialisers are noise here
         return so
+
+
+def cpu_flags(cpuinfo: str | os.PathLike[str] = "/proc/cpuinfo") -> frozenset[str]:
+    """The CPU's feature flags (Linux /proc/cpuinfo); empty where that file is missing or unreadable."""
+    try:
+        with open(cpuinfo) as fh:
+            for line in fh:
+                if line.startswith("flags"):
+                    return frozenset(line.partition(":")[2].split())
+    except OSError:
+        pass
+    return frozenset()
+
+
+@dataclass(frozen=True)
+class ProviderChoice:
+    """Which execution provider serves, in which precision, and why (reported by /v1/models and logged)."""
+
+    provider: str   # "openvino" or "cpu"
+    precision: str  # "bf16" or "fp32"
+    reason: str
+
+    def providers(self) -> list[Any]:
+        """The ``providers`` argument of ``InferenceSession``."""
+        if self.provider == "cpu":
+            return [CPU_EP]
+        hint = {"bf16": "bf16", "fp32": "f32"}[self.precision]
+        config = json.dumps({"CPU": {"INFERENCE_PRECISION_HINT": hint}})
+        # The CPU provider stays listed: ORT assigns it any node OpenVINO does not take.
+        return [(OPENVINO_EP, {"device_type": "CPU", "load_config": config}), CPU_EP]
+
+
+def choose_provider(requested: str, available: list[str] | tuple[str, ...], flags: frozenset[str]) -> ProviderChoice:
+    """Pick the provider and precision for ``requested`` ("auto", "openvino" or "cpu") on this host."""
+    if requested not in PROVIDERS:
+        raise ValueError(f"ONNX provider must be one of {', '.join(PROVIDERS)}, got {requested!r}")
+    has_ov = OPENVINO_EP in available
+    bf16 = sorted(BF16_FLAGS & flags)
+    if requested == "cpu":
+        return ProviderChoice("cpu", "fp32", "ORT CPU provider requested")
+    if not has_ov:
+        why = "this onnxruntime build has no OpenVINO provider (install onnxruntime-openvino)"
+        if requested == "openvino":
+            log.warning("OpenVINO provider requested but %s; using the CPU provider", why)
+        return ProviderChoice("cpu", "fp32", why)
+    if bf16:
+        return ProviderChoice("openvino", "bf16", f"OpenVINO provider; the CPU has {', '.join(bf16)}")
+    if requested == "openvino":
+        return ProviderChoice("openvino", "fp32", "OpenVINO provider requested; the CPU lacks native bf16")
+    return ProviderChoice("cpu", "fp32", "the CPU lacks native bf16 (no avx512_bf16/amx_bf16)")
 
 
 @dataclass(frozen=True)
@@ -173,6 +242,7 @@ class LoadedModel:
     metadata: dict[str, str]
     session: onnxruntime.InferenceSession
     alignment: int
+    choice: ProviderChoice = ProviderChoice("cpu", "fp32", "default")
 
     @property
     def prior(self) -> str:
@@ -195,6 +265,9 @@ class LoadedModel:
             "attention": self.metadata.get("gradsep.attention") == "true",
             "prior": self.prior,
             "alignment": self.alignment,
+            "provider": self.choice.provider,
+            "precision": self.choice.precision,
+            "provider_reason": self.choice.reason,
             "metadata": dict(self.metadata),
         }
 
@@ -239,17 +312,38 @@ def _check_metadata(path: Path, name: str, meta: dict[str, str]) -> int:
 
 
 def load_model(path: str | os.PathLike[str], name: str, settings: SessionSettings = SessionSettings()) -> LoadedModel:
-    """Open one exported model for layer ``name``; ModelError when it is unusable."""
+    """Open one exported model for layer ``name``; ModelError when it is unusable.
+
+    The provider is chosen by ``choose_provider``; should the accelerated one fail to build a session for this
+    model, the model is opened again on the CPU provider (logged), so a deployment never loses the network
+    over an optional accelerator.
+    """
     import onnxruntime as ort
 
     path = Path(path)
+    choice = choose_provider(settings.provider, ort.get_available_providers(), cpu_flags())
     try:
-        session = ort.InferenceSession(str(path), settings.options(), providers=["CPUExecutionProvider"])
-    except Exception as exc:  # ORT raises its own exception types for corrupt or unsupported files
-        raise ModelError(f"{path}: ONNX Runtime cannot load it ({exc})") from exc
+        session = _session(path, settings, choice)
+    except ModelError as exc:
+        if choice.provider == "cpu":
+            raise
+        log.warning("%s; falling back to the ORT CPU provider", exc)
+        choice = ProviderChoice("cpu", "fp32", f"OpenVINO failed on this model ({exc})")
+        session = _session(path, settings, choice)
     meta = dict(session.get_modelmeta().custom_metadata_map)
     alignment = _check_metadata(path, name, meta)
-    return LoadedModel(name, path, _sha256(path), meta, session, alignment)
+    log.info("model %s (%s): %s provider, %s (%s)", name, path.name, choice.provider, choice.precision,
+             choice.reason)
+    return LoadedModel(name, path, _sha256(path), meta, session, alignment, choice)
+
+
+def _session(path: Path, settings: SessionSettings, choice: ProviderChoice) -> onnxruntime.InferenceSession:
+    import onnxruntime as ort
+
+    try:
+        return ort.InferenceSession(str(path), settings.options(), providers=choice.providers())
+    except Exception as exc:  # ORT raises its own exception types for corrupt or unsupported files
+        raise ModelError(f"{path}: ONNX Runtime cannot load it on the {choice.provider} provider ({exc})") from exc
 
 
 class NetworkReconstructor:
@@ -298,10 +392,21 @@ class NetworkReconstructor:
 
         ``aux``: the frame's OIDN-prefiltered features (model.oidn.Denoiser.prefilter), for models refining an
         OIDN prior; computed here when None, so pass it to share it between a frame's layers.
+
+        For a Poisson-prior model, a layer whose exposure lies outside the range the models were trained on runs
+        scaled by the power of two ``exposure_scale`` picks and is scaled back (exact in floating point), so a
+        sun at 1e9 or a dim frame at 1e-8 keeps its energy instead of clipping at RADIANCE_MAX or vanishing under
+        the network's offsets; ordinary frames (scale 1) are untouched. (OIDN-prior models normalise their
+        exposure themselves, below.)
         """
         if name not in self.models:
             raise KeyError(f"no model for layer {name!r}; loaded: {', '.join(sorted(self.models)) or 'none'}")
         height, width = _check_inputs(layer, features)
+        if self.models[name].prior != "oidn":
+            exposure = exposure_scale(layer)
+            if exposure != 1.0:  # the scaled layer's own scale is 1 (tested), so this recurses exactly once
+                scaled = self.reconstruct_layer(name, scale_layer(layer, 1.0 / exposure), features, aux)
+                return rescale(scaled, exposure)
         assert features is not None  # _check_inputs raised otherwise
         model = self.models[name]
         unlit = unlit_pixels(layer)
@@ -348,6 +453,50 @@ class NetworkReconstructor:
                             np.ascontiguousarray(pad_to_alignment(gradient, a)))
         window_prior = planes[9:12].transpose(1, 2, 0)  # a failed output degrades to the Poisson prior
         return output_radiance(crop_to(encoded, h, w), fallback=window_prior)
+
+
+#: The exposure range the shipped models were trained on, as the 99.9th percentile of a layer's base radiance:
+#: the procedural training frames span 0.10-309 (direct) and 0.15-6.5 (indirect), the cbox example 1.2-18.
+#: Inside [EXPOSURE_MIN, EXPOSURE_MAX] a layer runs as it is; outside, it is scaled so the level lands near 1.
+EXPOSURE_MIN = 2.0**-8
+EXPOSURE_MAX = 2.0**11
+_F32_MAX = float(np.finfo(np.float32).max)
+
+
+def exposure_level(layer: Layer) -> float:
+    """The 99.9th percentile of the layer's finite base values on every 3rd row and column (a robust peak:
+    fireflies do not move it; the subsample keeps it at ~1 ms for 720p); its maximum when that is 0."""
+    sample = np.nan_to_num(np.asarray(layer.base, np.float32)[::3, ::3].ravel(), nan=0.0, posinf=0.0, neginf=0.0)
+    if sample.size == 0:
+        return 0.0
+    k = int(0.999 * (sample.size - 1))
+    level = float(np.partition(sample, k)[k])
+    return level if level > 0 else float(sample.max())
+
+
+def exposure_scale(layer: Layer) -> float:
+    """The power of two to divide the layer by before inference (and multiply the output by): 1.0 inside the
+    trained exposure range, else 2^round(log2(level)), which brings the level into [0.7, 1.4]. A power of two,
+    so scaling is exact and ordinary frames give bit-identical results. 1.0 for a black layer."""
+    level = exposure_level(layer)
+    if level <= 0.0 or EXPOSURE_MIN <= level <= EXPOSURE_MAX:
+        return 1.0
+    return float(2.0 ** round(np.log2(level)))
+
+
+def scale_layer(layer: Layer, factor: float) -> Layer:
+    """The layer with base and gradients multiplied by ``factor`` (absent gradients stay absent)."""
+    f = np.float32(factor)
+    scaled = {k: (None if getattr(layer, k) is None else np.asarray(getattr(layer, k), np.float32) * f)
+              for k in ("base", "dx", "dy")}
+    return dataclasses.replace(layer, **scaled)
+
+
+def rescale(image: np.ndarray, factor: float) -> np.ndarray:
+    """image × factor, clipped to float32's range so a 1e38 layer still returns finite values."""
+    with np.errstate(over="ignore"):
+        out = image * np.float32(factor)
+    return np.minimum(out, np.float32(_F32_MAX), out=out)
 
 
 def _check_inputs(layer: Layer, features: Features | None) -> tuple[int, int]:

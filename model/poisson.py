@@ -40,9 +40,16 @@ from functools import lru_cache
 import numpy as np
 import scipy.fft
 
-__all__ = ["L1Stats", "energy_l1", "energy_l2", "solve_l1", "solve_l2"]
+from model import kernels
+
+__all__ = ["MIN_ALPHA", "L1Stats", "energy_l1", "energy_l2", "solve_l1", "solve_l2"]
 
 DEFAULT_ALPHA = 0.2
+#: Smallest accepted α. Below ~1e-154 α² underflows to 0 in float64 and the constant mode (eigenvalue α²) is
+#: undetermined; well before that the data term stops meaning anything. Down to 1e-12 both solvers still
+#: return the exact image from exact data (tested at MIN_ALPHA); 1e-8 keeps a margin of 1e4. Callers (CLI,
+#: service) reject smaller values up front with a message naming the range.
+MIN_ALPHA = 1e-8
 _F32_MAX = float(np.finfo(np.float32).max)
 
 
@@ -70,8 +77,9 @@ class L1Stats:
 # --------------------------------------------------------------------------------------------- validation
 
 
-def _prepare(base: np.ndarray, dx: np.ndarray, dy: np.ndarray, alpha: float) -> tuple[np.ndarray, ...]:
-    """Validate inputs and return float64 (C, H, W) copies (the layout DCTs along the last axes like)."""
+def _prepare(base: np.ndarray, dx: np.ndarray, dy: np.ndarray, alpha: float,
+             dtype: type = np.float64) -> tuple[np.ndarray, ...]:
+    """Validate inputs and return ``dtype`` (C, H, W) copies (the layout DCTs along the last axes like)."""
     arrays = {"base": np.asarray(base), "dx": np.asarray(dx), "dy": np.asarray(dy)}
     shape = arrays["base"].shape
     if len(shape) not in (2, 3):
@@ -88,11 +96,13 @@ def _prepare(base: np.ndarray, dx: np.ndarray, dy: np.ndarray, alpha: float) -> 
             raise ValueError(f"{name} contains {bad} non-finite value(s); sanitise them before solving")
     if not (np.isfinite(alpha) and alpha > 0):
         raise ValueError(f"alpha must be a finite number > 0 (got {alpha}); at 0 the mean is undetermined")
+    if alpha < MIN_ALPHA:
+        raise ValueError(f"alpha must be at least {MIN_ALPHA:g} (got {alpha:g}): below that the base image's "
+                         "weight underflows and the image's mean is undetermined")
     out = []
     for arr in arrays.values():
-        a = arr.astype(np.float64)
-        a = a[None] if a.ndim == 2 else np.moveaxis(a, -1, 0)
-        out.append(np.ascontiguousarray(a))
+        a = arr[None] if arr.ndim == 2 else np.moveaxis(arr, -1, 0)
+        out.append(np.array(a, dtype=dtype, order="C", copy=True))  # always our own copy (scaled in place)
     return tuple(out)
 
 
@@ -125,7 +135,7 @@ def _grad_y(img: np.ndarray) -> np.ndarray:
 
 def _div(gx: np.ndarray, gy: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
     """H_xᵀ gx + H_yᵀ gy (a negative divergence) for gx (..., H, W-1) and gy (..., H-1, W)."""
-    out = np.zeros(shape, dtype=np.float64)
+    out = np.zeros(shape, dtype=gx.dtype)
     out[..., :, :-1] -= gx
     out[..., :, 1:] += gx
     out[..., :-1, :] -= gy
@@ -180,7 +190,7 @@ def _l2_core(base: np.ndarray, dx: np.ndarray, dy: np.ndarray, alpha: float) -> 
     # The divergence term sums to zero exactly (H·1 = 0), so the DC coefficient of the rhs is α²·Σ I_b / √N:
     # the solution's mean equals the base image's mean whatever α is.
     n = base.shape[-1] * base.shape[-2]
-    dc = alpha2 * base.sum(axis=(-2, -1)) / np.sqrt(n)
+    dc = alpha2 * base.sum(axis=(-2, -1), dtype=np.float64) / np.sqrt(n)
     return _screened_solve(rhs, alpha2, dc)
 
 
@@ -218,6 +228,25 @@ def _residuals(
     ex = dx[..., :, :-1] - _grad_x(x)
     ey = dy[..., :-1, :] - _grad_y(x)
     return e0, ex, ey
+
+
+def _residuals_and_norms(x: np.ndarray, base: np.ndarray, dx: np.ndarray, dy: np.ndarray, alpha: float,
+                         out: list[np.ndarray] | None = None) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...]]:
+    """:func:`_residuals` and their per-term RGB norms; one fused pass when the compiled kernels exist.
+
+    ``out`` (an empty list the first time) keeps the six output buffers for the next call: IRLS consumes the
+    previous residuals before asking for new ones, and reusing them saves ~45 MB of fresh pages per pass at
+    720p (page faults cost as much as the arithmetic)."""
+    if not kernels.AVAILABLE:
+        residuals = _residuals(x, base, dx, dy, alpha)
+        return residuals, tuple(_norm_c(e) for e in residuals)
+    c, h, w = x.shape
+    if not out:
+        out = [] if out is None else out
+        out += [np.empty_like(x), np.empty((c, h, w - 1), x.dtype), np.empty((c, h - 1, w), x.dtype),
+                np.empty((h, w), x.dtype), np.empty((h, w - 1), x.dtype), np.empty((h - 1, w), x.dtype)]
+    kernels.residuals_and_norms(x, base, dx, dy, alpha, *out)
+    return tuple(out[:3]), tuple(out[3:])
 
 
 def _norm_c(e: np.ndarray) -> np.ndarray:
@@ -288,8 +317,22 @@ class _WeightedSystem:
         elif self.preconditioner == "dct":
             self._scale = np.sqrt(self._diag_l / diag_a).astype(self.dtype)
 
+    def buffer(self, name: str, like: np.ndarray) -> np.ndarray:
+        """A work array shaped like ``like``, kept across IRLS passes (fresh pages cost ~as much as a pass of
+        arithmetic). Callers must be done with the previous pass's content: d is added to x before the next
+        pass, and ap/tmp/p are scratch."""
+        buffers = self.__dict__.setdefault("_buffers", {})
+        if name not in buffers:
+            buffers[name] = np.empty_like(like)
+        return buffers[name]
+
     def rhs(self, e0: np.ndarray, ex: np.ndarray, ey: np.ndarray) -> np.ndarray:
         """Pᵀ W² e: the normal-equation residual at the current iterate (CG then solves for the update)."""
+        if kernels.AVAILABLE:
+            aw0 = (self.alpha * self.w0).astype(self.dtype, copy=False)
+            if getattr(self, "_rhs", None) is None:
+                self._rhs = np.empty_like(e0)  # reused: _pcg consumes it (its r) before the next pass asks
+            return kernels.weighted_rhs(e0, ex, ey, aw0, self.wx, self.wy, self._rhs)
         out = (self.alpha * self.w0) * e0
         np.multiply(ex, self.wx, out=self._gx)
         np.multiply(ey, self.wy, out=self._gy)
@@ -304,7 +347,9 @@ class _WeightedSystem:
         out[..., 1:, :] += self._gy
 
     def apply(self, p: np.ndarray, out: np.ndarray) -> np.ndarray:
-        """out = A p, without temporaries beyond the two gradient buffers."""
+        """out = A p, without temporaries beyond the two gradient buffers (one fused pass when compiled)."""
+        if kernels.AVAILABLE:
+            return kernels.weighted_apply(p, self._a2w0, self.wx, self.wy, out)
         np.subtract(p[..., :, 1:], p[..., :, :-1], out=self._gx)
         self._gx *= self.wx
         np.subtract(p[..., 1:, :], p[..., :-1, :], out=self._gy)
@@ -335,23 +380,29 @@ def _pcg(
     Stops when every channel's residual norm has dropped below ``tol`` relative to its start, or after
     ``max_iter`` iterations. Returns (d, iterations, worst relative residual). ``r`` is consumed.
     """
-    d = np.zeros_like(r)
+    d = system.buffer("d", r)
+    d.fill(0)
     r0 = np.sqrt(_dots(r, r))
     if not np.any(r0 > 0):
         return d, 0, 0.0
-    ap = np.empty_like(r)
-    tmp = np.empty_like(r)
+    ap, tmp, p = system.buffer("ap", r), system.buffer("tmp", r), system.buffer("p", r)
     z = system.precondition(r)
-    p = z.copy()
+    np.copyto(p, z)
     rz = _dots(r, z)
     rel, it = 1.0, 0
     while it < max_iter:
         system.apply(p, out=ap)
         step = _safe_div(rz, _dots(p, ap)).astype(r.dtype)
-        d += np.multiply(p, step, out=tmp)
-        r -= np.multiply(ap, step, out=tmp)
+        if kernels.AVAILABLE:  # both updates and ‖r‖² in one pass
+            rr = np.empty(r.shape[0])
+            kernels.cg_update(d, r, p, ap, np.ascontiguousarray(step.ravel()), rr)
+            rr = rr[:, None, None]
+        else:
+            d += np.multiply(p, step, out=tmp)
+            r -= np.multiply(ap, step, out=tmp)
+            rr = _dots(r, r)
         it += 1
-        rel = float(np.max(_safe_div(np.sqrt(_dots(r, r)), r0)))
+        rel = float(np.max(_safe_div(np.sqrt(rr), r0)))
         if rel <= tol or it == max_iter:
             break
         z = system.precondition(r)
@@ -405,20 +456,21 @@ def solve_l1(
         raise ValueError(f"preconditioner must be one of {PRECONDITIONERS}, got {preconditioner!r}")
     start = time.perf_counter()
     ndim = np.ndim(base)
-    b, gx, gy = _prepare(base, dx, dy, alpha)
     alpha = float(alpha)
-    stats = L1Stats()
-
-    x = _l2_core(b, gx, gy, alpha)
     work = np.dtype(np.float32 if alpha >= FLOAT32_MIN_ALPHA else np.float64)
+    b, gx, gy = _prepare(base, dx, dy, alpha, work.type)  # straight into the working precision: no float64 detour
+    stats = L1Stats()
     # IRLS is scale-covariant (inputs × s and reg × s give the solution × s), so iterate on inputs scaled to
-    # max |value| = 1 with reg scaled alike: float32 can then neither overflow nor go subnormal.
+    # max |value| = 1 with reg scaled alike: float32 can then neither overflow nor go subnormal. The L2 start is
+    # linear, so it is solved on the scaled inputs too, in the working precision (its DCTs cost half in float32).
     scale = max(float(np.abs(a).max()) for a in (b, gx, gy)) or 1.0
-    b, gx, gy, x = ((a / scale).astype(work) for a in (b, gx, gy, x))
+    for a in (b, gx, gy):
+        a /= work.type(scale)
+    x = _l2_core(b, gx, gy, alpha)
     system = _WeightedSystem(x.shape, alpha, work, preconditioner)
 
-    residuals = _residuals(x, b, gx, gy, alpha)
-    norms = tuple(_norm_c(e) for e in residuals)
+    buffers: list[np.ndarray] = []
+    residuals, norms = _residuals_and_norms(x, b, gx, gy, alpha, buffers)
     stats.cg_iterations.append(0)
     stats.cg_residuals.append(0.0)
     stats.energies.append(_l1_energy(norms) * scale)
@@ -427,8 +479,7 @@ def solve_l1(
         system.set_weights(norms, reg=reg_init * reg_decay ** (k - 1) / scale)
         delta, it, rel = _pcg(system, system.rhs(*residuals), cg_iterations, cg_tolerance)
         x += delta
-        residuals = _residuals(x, b, gx, gy, alpha)
-        norms = tuple(_norm_c(e) for e in residuals)
+        residuals, norms = _residuals_and_norms(x, b, gx, gy, alpha, buffers)
         stats.cg_iterations.append(it)
         stats.cg_residuals.append(rel)
         stats.energies.append(_l1_energy(norms) * scale)

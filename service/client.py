@@ -11,8 +11,9 @@ Behaviour a farm scheduler can rely on:
   line can be matched with the service's access log.
 
 Exit status: 0 written; 2 bad input or a 4xx answer (the frame or the request is wrong -- don't retry);
-75 (``EX_TEMPFAIL``) the service stayed unavailable through every retry, or a request timed out (retry the task
-later); 1 the service failed otherwise (a 5xx other than 503, or an answer that is not an EXR).
+75 (``EX_TEMPFAIL``) the service stayed unavailable through every retry, or a request timed out, client-side or
+as the service's 504 (retry the task later); 1 the service failed otherwise (a 5xx other than 503 or 504, or an
+answer that is not an EXR).
 """
 
 from __future__ import annotations
@@ -128,6 +129,9 @@ def post_frame(client: httpx.Client, url: str, data: bytes, params: dict[str, An
         else:
             if response.status_code == 200:
                 return response
+            if response.status_code == 504:  # the service's own timeout: the exit table's 75, no retry (the
+                # abandoned job still runs there, so an immediate retry would only add load)
+                raise Unavailable(f"service timed out: {error_summary(response)}")
             if response.status_code != 503:
                 summary = error_summary(response)
                 if 400 <= response.status_code < 500:

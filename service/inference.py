@@ -149,6 +149,7 @@ class ReconstructParams:
     half: bool
     layers: Literal["sum", "all"]
     request_id: str = "-"
+    compression: str | None = None  # the request's EXR compression; the answer reuses it when lossless
 
 
 @dataclass
@@ -190,7 +191,7 @@ def run_pipeline(source: Source, params: ReconstructParams, limits: ReadLimits, 
                 "gradsep.request_id": params.request_id, "gradsep.layers": ",".join(frame.layers)}
     if warnings:
         metadata["gradsep.warnings"] = "; ".join(warnings)[:2000]
-    body = encode_exr(channels, half=params.half, metadata=metadata)
+    body = encode_exr(channels, half=params.half, metadata=metadata, compression=params.compression)
     timings["encode"] = time.perf_counter() - t1
     return Outcome(body, str(result.method), timings, warnings, list(frame.layers))
 
@@ -262,7 +263,8 @@ class Engine:
                 await anyio.to_thread.run_sync(self._warm_up)
                 log.info("warm-up of %s done in %.2f s", ", ".join(self.methods), time.perf_counter() - started)
             self.state = "ready"
-            log.info("ready; methods %s (default %s)", ", ".join(self.methods), self.default_method)
+            log.info("ready; methods %s (default %s)%s", ", ".join(self.methods), self.default_method,
+                     self._provider_note())
         except Exception as exc:  # a broken model folder: stay alive (liveness) but never report ready
             self.state, self.failure = "failed", f"{type(exc).__name__}: {exc}"
             log.exception("model loading or warm-up failed; /readyz will answer 503")
@@ -274,6 +276,13 @@ class Engine:
         frame = warm_up_frame()
         for method in self.methods:
             reconstruct(frame, method, self.settings.default_alpha, network=self.network, fused=self.fused)
+        if "l1" in self.methods:  # below FLOAT32_MIN_ALPHA IRLS runs in float64: compile those kernels now too
+            reconstruct(frame, "l1", 1e-3, network=self.network, fused=self.fused)
+
+    def _provider_note(self) -> str:
+        """`` inference on openvino/bf16`` (one entry per distinct provider/precision of the loaded models)."""
+        kinds = sorted({f"{m.get('provider', '?')}/{m.get('precision', '?')}" for m in self.describe_models()})
+        return f"; network inference on {', '.join(kinds)}" if kinds else ""
 
     def describe_models(self) -> list[dict[str, Any]]:
         out = []

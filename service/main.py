@@ -13,7 +13,7 @@ from service.errors import install_error_handlers
 from service.inference import Engine
 from service.metrics import ServiceMetrics
 from service.middleware import install_middleware
-from service.openapi import install_openapi
+from service.openapi import install_docs, install_openapi
 from service.routers import health, metrics, models, reconstruct
 from service.settings import Settings
 
@@ -28,13 +28,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             app.state.engine.start(task_group)  # loads models and warms up in the background
             yield
 
-    app = FastAPI(title="gradsep", version=__version__, lifespan=lifespan,
+    app = FastAPI(title="gradsep", version=__version__, lifespan=lifespan, docs_url=None, redoc_url=None,
                   description="Gradient-domain rendering reconstruction with direct/indirect separation.")
     app.state.settings, app.state.metrics, app.state.engine = settings, ServiceMetrics(), Engine(settings)
     app.state.metrics.bind_engine(app.state.engine)
     install_error_handlers(app)
     for module in (health, models, reconstruct, metrics):
         app.include_router(module.router)
+    install_docs(app)  # before the middleware reads the routes: /docs is then a known path for metrics
     install_middleware(app, token=settings.token_value, max_body_bytes=settings.max_body_bytes,
                        metrics=app.state.metrics)
     install_openapi(app, secured=settings.token is not None)

@@ -46,12 +46,15 @@ def serve_command(args: argparse.Namespace) -> int:
         raise CommandError(f"--port must be between 0 and 65535, got {args.port}")
     if args.workers < 1:
         raise CommandError(f"--workers must be at least 1, got {args.workers}")
+    from service.protocol import http_protocol
+
     settings = _settings_or_error()
     uvicorn.run(
         "service.main:create_app", factory=True, host=args.host, port=args.port, workers=args.workers,
         log_level=settings.log_level, log_config=log_config(settings.log_level),
         access_log=False,  # our own access line (service.middleware) has the request id
         server_header=False,
+        http=http_protocol(),  # malformed requests (Content-Length: abc) get our JSON error, not plain text
         # On SIGTERM uvicorn stops accepting, lets in-flight requests finish, then runs the lifespan shutdown
         # (which waits for inference threads). Bound the wait by the longest a request may legitimately take.
         timeout_graceful_shutdown=int(settings.inference_timeout) + 30,

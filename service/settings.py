@@ -12,6 +12,8 @@ from typing import Literal
 from pydantic import AliasChoices, Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from model.poisson import MIN_ALPHA
+
 MiB = 1024 * 1024
 
 
@@ -40,7 +42,7 @@ class Settings(BaseSettings):
     nonfinite: Literal["reject", "zero"] = Field(
         "reject", description="NaN/Inf in radiance or gradients: reject with 422, or replace with 0 and warn")
     default_alpha: float = Field(
-        0.2, gt=0, le=1000, description="screened Poisson data weight used when a request gives no alpha")
+        0.2, ge=MIN_ALPHA, le=1000, description="screened Poisson data weight used when a request gives no alpha")
     warm_up: bool = Field(True, description="run one small inference per method before reporting ready")
     log_level: Literal["critical", "error", "warning", "info", "debug"] = Field("info")
 

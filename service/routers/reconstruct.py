@@ -21,7 +21,8 @@ from fastapi import APIRouter, Depends, Query, Request
 from starlette.datastructures import UploadFile
 from starlette.responses import Response
 
-from model.frame import NotExrError, Source, read_header
+from model.frame import HeaderInfo, NotExrError, Source, read_header
+from model.poisson import MIN_ALPHA
 from service.dependencies import get_engine, get_metrics
 from service.errors import ErrorResponse, ServiceError
 from service.inference import Engine, ReconstructParams, run_pipeline, server_timing
@@ -83,7 +84,8 @@ async def reconstruct_frame(
                     "(gradients, features and fused models) > oidn > network > l1; a plain frame without "
                     "gradients gets oidn")] = None,
     alpha: Annotated[float | None, Query(
-        gt=0, le=1000, allow_inf_nan=False, description="screened Poisson data weight (l1/l2)")] = None,
+        ge=MIN_ALPHA, le=1000, allow_inf_nan=False,
+        description=f"screened Poisson data weight (l1/l2), in [{MIN_ALPHA:g}, 1000]")] = None,
     output_format: Annotated[Literal["half", "float"], Query(
         alias="format", description="pixel type of the returned EXR")] = "float",
     layers: Annotated[Literal["sum", "all"], Query(
@@ -105,10 +107,11 @@ async def reconstruct_frame(
     timings = {"read": time.perf_counter() - t_start}
     timed_out = False
     try:
-        await anyio.to_thread.run_sync(_check_header, source, engine)
+        header = await anyio.to_thread.run_sync(_check_header, source, engine)
         # no method named: model.reconstruct picks the best method that serves the frame (model.policy)
         params = ReconstructParams(method, alpha if alpha is not None else engine.settings.default_alpha,
-                                   output_format == "half", layers, request_id_of(request.scope))
+                                   output_format == "half", layers, request_id_of(request.scope),
+                                   header.compression)
         job = partial(run_pipeline, source, params, engine.limits, engine.settings.nonfinite, engine.network,
                       engine.fused)
         try:
@@ -169,10 +172,10 @@ async def _read_body(request: Request, media: str) -> tuple[Source, Any]:
     return upload.file, form.close
 
 
-def _check_header(source: Source, engine: Engine) -> None:
+def _check_header(source: Source, engine: Engine) -> HeaderInfo:
     """Header only: 400 for non-EXR, 413 for a declared size over the budget, before any pixel is decoded."""
     if isinstance(source, bytes) and not source:
         raise NotExrError("empty request body; expected an OpenEXR file")
     if hasattr(source, "seek"):
         source.seek(0)
-    read_header(source, engine.limits)
+    return read_header(source, engine.limits)

@@ -17,6 +17,7 @@ import uvicorn
 from fastapi import FastAPI
 
 from service.main import create_app
+from service.protocol import http_protocol
 from service.settings import Settings
 
 with warnings.catch_warnings():  # Starlette 1.x nags about httpx in its TestClient; it still works
@@ -51,13 +52,17 @@ def in_process(app: FastAPI, ready: bool = True) -> Iterator[httpx.Client]:
 
 
 @contextmanager
-def uvicorn_server(app: FastAPI) -> Iterator[str]:
-    """Serve ``app`` with a real uvicorn in a thread on a free port; yield its base URL; stop gracefully."""
+def uvicorn_server(app: FastAPI, http: type | None = None) -> Iterator[str]:
+    """Serve ``app`` with a real uvicorn in a thread on a free port; yield its base URL; stop gracefully.
+
+    ``http`` is uvicorn's protocol class: by default the one ``gradsep serve`` runs (service.protocol)."""
     sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     sock.bind(("127.0.0.1", 0))
     port = sock.getsockname()[1]
-    server = uvicorn.Server(uvicorn.Config(app, log_level="warning", lifespan="on", timeout_graceful_shutdown=30))
+    config = uvicorn.Config(app, log_level="warning", lifespan="on", timeout_graceful_shutdown=30,
+                            http=http or http_protocol())
+    server = uvicorn.Server(config)
     thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
     thread.start()
     deadline = time.monotonic() + READY_TIMEOUT

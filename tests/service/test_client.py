@@ -140,9 +140,19 @@ def test_connection_refused_is_retried_then_exits_75(tmp_path, frame):
     assert not (tmp_path / "o.exr").exists()
 
 
-@pytest.mark.parametrize("answer", [json_error(500, "internal"), json_error(504, "timeout"),
+def test_service_timeout_504_exits_75_without_retry(tmp_path, frame, capsys):
+    """A 504 is the service's inference timeout: the exit table's 75 (retry the task later), not 1; no retry,
+    since the abandoned job still runs on the service."""
+    with scripted_server([json_error(504, "timeout"), OK]) as (url, seen):
+        assert client_command(args_for(frame, tmp_path / "o.exr", url), sleep=lambda s: None) == EXIT_UNAVAILABLE
+    assert len(seen) == 1
+    assert not (tmp_path / "o.exr").exists()
+    assert "504 timeout" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("answer", [json_error(500, "internal"),
                                     (200, {"Content-Type": "text/html"}, b"<html>proxy login</html>")],
-                         ids=["500", "504", "200-not-exr"])
+                         ids=["500", "200-not-exr"])
 def test_server_failures_exit_1_without_retry(tmp_path, frame, answer):
     with scripted_server([answer, OK]) as (url, seen):
         assert client_command(args_for(frame, tmp_path / "o.exr", url), sleep=lambda s: None) == EXIT_SERVER_ERROR

@@ -276,11 +276,24 @@ def test_zero_policy_answers_200_finite_with_a_warning(serve):
 @TRANSPORT
 @pytest.mark.parametrize("params, parameter", [
     ({"method": "bilateral"}, "method"), ({"alpha": "0"}, "alpha"), ({"alpha": "nan"}, "alpha"),
-    ({"alpha": "inf"}, "alpha"), ({"alpha": "abc"}, "alpha"), ({"format": "png"}, "format"),
+    ({"alpha": "inf"}, "alpha"), ({"alpha": "abc"}, "alpha"), ({"alpha": "1e-200"}, "alpha"),
+    ({"alpha": "1e-9"}, "alpha"), ({"format": "png"}, "format"),
     ({"layers": "some"}, "layers")])
 def test_invalid_parameters_are_422_naming_the_parameter(poisson_api, transport, params, parameter):
     error = assert_error(post(poisson_api[transport], frame_bytes(), params), 422, "invalid_parameter")
     assert [d["parameter"] for d in error["details"]] == [parameter]
+
+
+@TRANSPORT
+@pytest.mark.parametrize("method", ["l1", "l2"])
+def test_smallest_documented_alpha_returns_the_frames_energy(poisson_api, transport, method):
+    """alpha = 1e-8 (the bottom of the documented range) is served exactly, not as an all-black image."""
+    response = post(poisson_api[transport], frame_bytes(), {"method": method, "alpha": "1e-8"})
+    assert response.status_code == 200, response.text
+    assert "x-gradsep-warnings" not in response.headers
+    image = rgb(decode(response.content)[0])
+    assert np.isfinite(image).all()
+    np.testing.assert_allclose(image, expected_sum(), rtol=1e-4, atol=1e-4)  # exact gradients: exact answer
 
 
 @TRANSPORT
@@ -328,3 +341,83 @@ def test_hostile_foreign_channel_names_cannot_inject_headers(poisson_api, transp
     assert "set-cookie" not in response.headers
     warning = response.headers["x-gradsep-warnings"]
     assert "ignored channels" in warning and "evil??Set-Cookie: x=1?" in warning
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Malformed HTTP (uvicorn's parser) and the offline API docs
+# --------------------------------------------------------------------------------------------------------------
+
+
+def _raw_exchange(url: str, request: bytes) -> bytes:
+    """Send raw bytes to a real server and read the whole answer (the server closes the connection)."""
+    import socket
+    from urllib.parse import urlsplit
+
+    parts = urlsplit(url)
+    with socket.create_connection((parts.hostname, parts.port), timeout=10) as sock:
+        sock.sendall(request)
+        chunks = []
+        while chunk := sock.recv(65536):
+            chunks.append(chunk)
+    return b"".join(chunks)
+
+
+@pytest.mark.parametrize("parser", ["default", "h11"])
+@pytest.mark.parametrize("request_bytes", [
+    b"POST /v1/reconstruct HTTP/1.1\r\nHost: x\r\nContent-Type: image/x-exr\r\nContent-Length: abc\r\n\r\n",
+    b"POST /v1/reconstruct HTTP/1.1\r\nHost: x\r\nContent-Length: -5\r\n\r\n",
+    b"GARBAGE\x01 / HTTP/1.1\r\n\r\n"], ids=["content-length-abc", "content-length-negative", "request-line"])
+def test_requests_uvicorns_parser_rejects_get_the_json_400(parser, request_bytes):
+    """These never reach the app: uvicorn's parser answers them; service.protocol makes that answer ours."""
+    from service.protocol import JsonErrorH11Protocol
+    from tests.service.conftest import uvicorn_server
+
+    http = JsonErrorH11Protocol if parser == "h11" else None
+    with uvicorn_server(create_app(settings()), http=http) as url:
+        answer = _raw_exchange(url, request_bytes)
+    head, _, body = answer.partition(b"\r\n\r\n")
+    assert head.startswith(b"HTTP/1.1 400"), answer[:200]
+    assert b"content-type: application/json" in head.lower()
+    error = __import__("json").loads(body)["error"]
+    assert error["code"] == "bad_request" and "malformed HTTP request" in error["message"]
+
+
+@TRANSPORT
+def test_docs_page_and_its_assets_are_served_locally(poisson_api, transport):
+    """/docs must work on an offline farm network: every script and stylesheet it loads comes from us."""
+    client = poisson_api[transport]
+    page = client.get("/docs")
+    assert page.status_code == 200 and "text/html" in page.headers["content-type"]
+    assets = re.findall(r'(?:src|href)="([^"]+)"', page.text)
+    assert assets and all(a.startswith("/docs/static/") for a in assets), assets
+    for asset in assets:
+        response = client.get(asset)
+        assert response.status_code == 200 and len(response.content) > 100, asset
+    assert "SwaggerUIBundle" in client.get("/docs/static/swagger-ui-bundle.js").text
+    assert client.get("/openapi.json").status_code == 200
+
+
+@TRANSPORT
+@pytest.mark.parametrize(("sent", "answered"), [
+    ("NO_COMPRESSION", "NO_COMPRESSION"), ("ZIP_COMPRESSION", "ZIP_COMPRESSION"),
+    ("PIZ_COMPRESSION", "PIZ_COMPRESSION"), ("PXR24_COMPRESSION", "ZIP_COMPRESSION")])
+def test_answer_compression_follows_the_request_when_lossless(poisson_api, transport, sent, answered):
+    from model.frame import encode_exr, read_header
+
+    body = encode_exr(frame_channels(), compression=sent) if sent != "PXR24_COMPRESSION" else _lossy(sent)
+    response = post(poisson_api[transport], body, {"method": "l2"})
+    assert response.status_code == 200, response.text
+    assert read_header(response.content).compression == answered
+    np.testing.assert_allclose(rgb(decode(response.content)[0]), expected_sum(), rtol=1e-4, atol=1e-4)
+
+
+def _lossy(compression: str) -> bytes:
+    """A frame written with a lossy codec (float channels through PXR24 lose mantissa bits)."""
+    import io
+
+    import OpenEXR
+
+    pixels = {k: np.ascontiguousarray(v, np.float32) for k, v in frame_channels().items()}
+    buffer = io.BytesIO()
+    OpenEXR.File({"compression": getattr(OpenEXR, compression), "type": OpenEXR.scanlineimage}, pixels).write(buffer)
+    return buffer.getvalue()

@@ -1,0 +1,178 @@
+"""Issue 15: the network keeps a frame's energy at any exposure (per-layer power-of-two scaling), and the
+execution provider choice (OpenVINO bf16 vs ORT CPU fp32) is explicit, reported, and accurate.
+
+Uses the shipped models (models/direct.onnx, indirect.onnx) and the shipped example frame: numpy + onnxruntime
+only, no torch.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from model.frame import Frame, read_frame
+from model.infer import (
+    BF16_FLAGS,
+    CPU_EP,
+    EXPOSURE_MAX,
+    EXPOSURE_MIN,
+    OPENVINO_EP,
+    NetworkReconstructor,
+    SessionSettings,
+    choose_provider,
+    cpu_flags,
+    exposure_scale,
+    scale_layer,
+)
+from model.metrics import relmse
+from model.reconstruct import reconstruct
+
+ROOT = Path(__file__).resolve().parents[2]
+MODELS = ROOT / "models"
+EXAMPLE = ROOT / "examples" / "cbox-16spp.exr"
+REFERENCE = ROOT / "examples" / "cbox-reference.exr"
+
+needs_models = pytest.mark.skipif(not (MODELS / "direct.onnx").is_file() or not (MODELS / "indirect.onnx").is_file(),
+                                  reason="the shipped models are not in models/")
+
+
+@pytest.fixture(scope="module")
+def frame() -> Frame:
+    return read_frame(EXAMPLE)
+
+
+@pytest.fixture(scope="module")
+def network() -> NetworkReconstructor:
+    if not (MODELS / "direct.onnx").is_file():
+        pytest.skip("the shipped models are not in models/")
+    net = NetworkReconstructor.load(MODELS)
+    assert net is not None
+    return net
+
+
+def _scaled(frame: Frame, k: float) -> Frame:
+    return Frame({n: scale_layer(layer, k) for n, layer in frame.layers.items()}, frame.features)
+
+
+# ------------------------------------------------------------------------------------------- exposure scaling
+
+
+def test_ordinary_layers_are_not_scaled_and_scaled_ones_land_inside(frame: Frame) -> None:
+    for layer in frame.layers.values():
+        assert exposure_scale(layer) == 1.0  # the example frame is inside the trained range
+        for k in (1e-8, 1e-5, 1e4, 1e6, 1e9, 1e30):
+            s = exposure_scale(scale_layer(layer, k))
+            assert s != 1.0 and np.log2(s) == round(np.log2(s))  # a power of two: exact scaling
+            assert exposure_scale(scale_layer(scale_layer(layer, k), 1.0 / s)) == 1.0  # one recursion only
+    black = scale_layer(next(iter(frame.layers.values())), 0.0)
+    assert exposure_scale(black) == 1.0
+    assert EXPOSURE_MIN < 1.0 < EXPOSURE_MAX
+
+
+@needs_models
+def test_ordinary_frames_take_the_unscaled_path(frame: Frame, network: NetworkReconstructor,
+                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    """Ordinary frames must give bit-identical output to the code before exposure scaling: the scaled path
+    (scale_layer) is never entered for them."""
+    import model.infer
+
+    def refuse(*args: object) -> None:
+        raise AssertionError("an ordinary layer was rescaled")
+
+    monkeypatch.setattr(model.infer, "scale_layer", refuse)
+    for name, layer in frame.layers.items():
+        assert np.isfinite(network.reconstruct_layer(name, layer, frame.features)).all()
+
+
+@needs_models
+@pytest.mark.parametrize("k", [1e-8, 1e4, 1e6, 1e9])
+def test_network_keeps_the_energy_at_any_exposure(frame: Frame, network: NetworkReconstructor, k: float) -> None:
+    """Before issue 15 the network clipped each layer at 65504 (a 1e6 frame came back ~1e5x too dark)."""
+    ref = reconstruct(frame, "network", network=network)
+    out = reconstruct(_scaled(frame, k), "network", network=network)
+    assert np.isfinite(out.image).all() and out.image.min() >= 0
+    for name, image in out.layers.items():
+        ratio = float(image.mean(dtype=np.float64)) / (k * float(ref.layers[name].mean(dtype=np.float64)))
+        assert abs(ratio - 1.0) < 0.02, (name, ratio)
+    # and the shape of the image, not only its mean: RelMSE against the scaled 1x result stays small
+    assert relmse(out.image / np.float32(k), ref.image) < 0.01
+
+
+@pytest.mark.parametrize("method", ["l1", "l2"])
+@pytest.mark.parametrize("k", [1e4, 1e6, 1e9])
+def test_poisson_methods_keep_the_energy_at_high_exposure(frame: Frame, method: str, k: float) -> None:
+    base = reconstruct(_scaled(frame, 1e4), method)  # the L1 reg is absolute: compare within the HDR regime
+    out = reconstruct(_scaled(frame, k), method)
+    assert np.isfinite(out.image).all()
+    ratio = float(out.image.mean(dtype=np.float64)) / (k / 1e4 * float(base.image.mean(dtype=np.float64)))
+    assert abs(ratio - 1.0) < 1e-3, ratio
+    energy = float(frame.combined().base.mean(dtype=np.float64)) * k
+    assert 0.8 < float(out.image.mean(dtype=np.float64)) / energy < 1.2
+
+
+# ------------------------------------------------------------------------------------------- providers
+
+
+@pytest.mark.parametrize(("requested", "available", "flags", "want"), [
+    ("auto", [OPENVINO_EP, CPU_EP], {"avx512f", "avx512_bf16"}, ("openvino", "bf16")),
+    ("auto", [OPENVINO_EP, CPU_EP], {"amx_bf16"}, ("openvino", "bf16")),
+    ("auto", [OPENVINO_EP, CPU_EP], {"avx512f"}, ("cpu", "fp32")),      # no native bf16: plain CPU EP
+    ("auto", [CPU_EP], {"avx512_bf16"}, ("cpu", "fp32")),                # onnxruntime without OpenVINO
+    ("openvino", [OPENVINO_EP, CPU_EP], set(), ("openvino", "fp32")),
+    ("openvino", [CPU_EP], {"avx512_bf16"}, ("cpu", "fp32")),
+    ("cpu", [OPENVINO_EP, CPU_EP], {"avx512_bf16"}, ("cpu", "fp32")),
+])
+def test_provider_choice(requested: str, available: list[str], flags: set[str], want: tuple[str, str]) -> None:
+    choice = choose_provider(requested, available, frozenset(flags))
+    assert (choice.provider, choice.precision) == want and choice.reason
+    names = [p if isinstance(p, str) else p[0] for p in choice.providers()]
+    assert names[-1] == CPU_EP and (OPENVINO_EP in names) == (want[0] == "openvino")
+
+
+def test_unknown_provider_is_refused() -> None:
+    with pytest.raises(ValueError, match="provider"):
+        choose_provider("cuda", [CPU_EP], frozenset())
+
+
+def test_cpu_flags_reads_cpuinfo(tmp_path: Path) -> None:
+    info = tmp_path / "cpuinfo"
+    info.write_text("processor\t: 0\nflags\t\t: fpu sse2 avx512f avx512_bf16\n\nprocessor\t: 1\n")
+    assert {"avx512f", "avx512_bf16"} <= cpu_flags(info)
+    assert cpu_flags(tmp_path / "missing") == frozenset()
+
+
+@needs_models
+def test_models_report_their_provider(network: NetworkReconstructor) -> None:
+    import onnxruntime as ort
+
+    want = choose_provider(SessionSettings().provider, ort.get_available_providers(), cpu_flags())
+    for entry in network.describe():
+        assert (entry["provider"], entry["precision"]) == (want.provider, want.precision)
+        assert entry["provider_reason"]
+
+
+def _accelerated_available() -> bool:
+    import onnxruntime as ort
+
+    return OPENVINO_EP in ort.get_available_providers() and bool(BF16_FLAGS & cpu_flags())
+
+
+@needs_models
+@pytest.mark.skipif(not _accelerated_available(), reason="needs onnxruntime-openvino and a CPU with native bf16")
+def test_openvino_bf16_matches_fp32_on_the_example_frame(frame: Frame) -> None:
+    """The accelerated provider must not cost accuracy: RelMSE against the 4096 spp reference changes by
+    less than 1 % relative to ORT's fp32 CPU provider, and the images agree closely."""
+    from renderer.reference import load_reference
+
+    reference = load_reference(REFERENCE).total
+    fast = NetworkReconstructor.load(MODELS, SessionSettings(provider="openvino"))
+    exact = NetworkReconstructor.load(MODELS, SessionSettings(provider="cpu"))
+    assert fast is not None and exact is not None
+    assert {m["precision"] for m in fast.describe()} == {"bf16"}
+    a = reconstruct(frame, "network", network=fast).image
+    b = reconstruct(frame, "network", network=exact).image
+    err_fast, err_exact = relmse(a, reference), relmse(b, reference)
+    assert abs(err_fast - err_exact) / err_exact < 0.01, (err_fast, err_exact)
+    assert relmse(a, b) < 1e-3
