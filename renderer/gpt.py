@@ -11,7 +11,7 @@ file turns the two sets of contributions into the primal image and the gradients
 Estimators (see docs/renderer.md for the derivation):
 
 * **Primal**: the base paths alone, i.e. an ordinary path tracer (next-event estimation + BSDF sampling combined
-  with the power heuristic, Russian roulette after ``rr_depth`` vertices). It is unbiased and its noise is
+  with the power heuristic, Russian roulette from vertex ``rr_depth`` on as in Mitsuba). It is unbiased and its noise is
   independent from pixel to pixel, which the unsupervised denoiser relies on; the MIS combination of all five
   paths would lower the primal's variance but correlate neighbouring pixels. Sub-pixel positions are stratified
   within each pixel (a jittered grid over the pass's samples), which keeps pixels independent.
@@ -552,7 +552,9 @@ def render_pass(scene: mi.Scene, shift: Shift | None, settings: GptSettings, wid
             # Russian roulette on the base path, applied to the whole lane.
             beta_max = dr.max(base.throughput)
             q = dr.minimum(beta_max * base.eta * base.eta, 0.95)
-            rr_active = base.active & (depth >= rr_depth_o)  # Mitsuba's rule: after vertex rr_depth
+            # Mitsuba's rule: roulette from the rr_depth-th vertex on (its `path` counts the vertex just found
+            # before comparing with rr_depth; rr_depth 1 may end a path at the first visible surface).
+            rr_active = base.active & (depth + 1 >= rr_depth_o)
             survive = sampler.next_1d() < q
             inv_q = dr.select(rr_active, dr.rcp(q), 1.0)
             base.throughput = base.throughput * inv_q
