@@ -464,6 +464,14 @@ def _finite(x: Any) -> tuple[Any, mi.Bool]:
     return dr.select(ok, x, 0.0), bad
 
 
+def scene_has_hittable_emitters(scene: mi.Scene) -> bool:
+    """Whether a ray can find emission: an area light or an environment. Point, spot and directional lights
+    (delta in position or direction) are reached only by next-event estimation, so in a scene lit by them alone
+    the last ray of a path (traced only to look for emission) can be skipped, by `path` and G-PT alike."""
+    delta = int(mi.EmitterFlags.DeltaPosition | mi.EmitterFlags.DeltaDirection)
+    return any(not int(emitter.flags()) & delta for emitter in scene.emitters())
+
+
 def _drop_non_finite(sums: dict[str, LayerSums]) -> tuple[dict[str, LayerSums], mi.Bool]:
     """Primal-only lanes: a sample whose sum is not finite (degenerate geometry) contributes 0 to every layer;
     returns the cleaned sums and the per-lane 'was bad' mask."""
@@ -509,6 +517,7 @@ def render_pass(scene: mi.Scene, shift: Shift | None, settings: GptSettings, wid
                            SHIFT_OFFSETS if gradients else ())
     to_camera = sensor.world_transform().inverse()
 
+    hittable = scene_has_hittable_emitters(scene)
     ray_flags = shift.ray_flags(scene) if gradients else mi.RayFlags.All
     strict_light_pdf = shift.reuses_light_samples if gradients else False
     base = PathState.start(*rays[0])
@@ -548,6 +557,10 @@ def render_pass(scene: mi.Scene, shift: Shift | None, settings: GptSettings, wid
                 clean_nee.append(gn)
             _route(sums, depth, settings, hit_value, nee_value, clean_hit, clean_nee)
             feat = _update_features(feat, base_active, v, ray_d, to_camera)
+            if not hittable:
+                # No emitter can be found by a ray: the next vertex is needed only for next-event estimation
+                # there (or to continue the feature search past a mirror); its emission event is always 0.
+                base.active &= (depth + 2 < max_depth_o) | feat.pending
 
             # Russian roulette on the base path, applied to the whole lane.
             beta_max = dr.max(base.throughput)
