@@ -1,11 +1,12 @@
 # Two entry points for a fresh Debian/Ubuntu machine with Python 3.11:
 #   make demo   installs what the demo needs and runs it
-#   make test   installs the test dependencies and runs the whole suite
+#   make test   installs the test dependencies and runs the whole suite (what CI runs)
+# and, for local work, make test-fast: the suite without the tests marked slow (> ~2.5 s each).
 PYTHON ?= python3
 VENV   ?= .venv
 BIN    := $(VENV)/bin
 
-.PHONY: demo test test-serving system-deps venv lint clean models
+.PHONY: demo test test-fast test-serving system-deps venv lint clean models fused-models
 
 # Mitsuba's LLVM backend needs libllvm19 (LLVM 15/16 abort inside mi.render with "Cannot select: fminimum").
 system-deps:
@@ -37,6 +38,12 @@ test: venv system-deps
 	$(BIN)/ruff check .
 	$(BIN)/pytest -q -n 2 --timeout=900
 	$(MAKE) test-serving
+
+# Markers (pyproject.toml): slow (> ~2.5 s of CPU per test, measured with --durations), render (runs Mitsuba),
+# train (trains a torch model). CI runs everything; locally e.g. -m "not slow", -m "not render and not train".
+test-fast: venv
+	$(BIN)/pip install -q -e '.[test]'
+	$(BIN)/pytest -q -n 2 --timeout=900 -m "not slow"
 
 test-serving:
 	rm -rf $(SERVE_VENV)
@@ -83,6 +90,20 @@ models: venv system-deps $(DATASET)/manifest.json
 	      -o runs/abl-$$v-$$layer && \
 	    $(TRAIN1) export runs/abl-$$v-$$layer -o $(MODELS_OUT)/ablation/$$v/$$layer.onnx || exit 1; \
 	  done; done ) & p1=$$!; \
+	wait $$p0 && wait $$p1
+
+# The fused method's two models by one command (docs/network.md, "The oidn and fused methods"): the same
+# Noise2Noise dataset, each layer's network refining OIDN's denoise (--prior oidn), the two layers side by side on
+# one core each, MINUTES_FUSED of wall time each (the issue's budget: at most 90 minutes for the pair). Writes
+# $(MODELS_OUT)/fused/{direct,indirect}.onnx; copy them to models/fused/ to serve them.
+MINUTES_FUSED ?= 45
+fused-models: venv system-deps $(DATASET)/manifest.json
+	$(BIN)/pip install -q -e '.[test]'
+	mkdir -p $(MODELS_OUT)/fused
+	( $(TRAIN0) train --data $(DATASET) --layer direct --prior oidn --minutes $(MINUTES_FUSED) -o runs/fused-direct && \
+	  $(TRAIN0) export runs/fused-direct -o $(MODELS_OUT)/fused/direct.onnx ) & p0=$$!; \
+	( $(TRAIN1) train --data $(DATASET) --layer indirect --prior oidn --minutes $(MINUTES_FUSED) -o runs/fused-indirect && \
+	  $(TRAIN1) export runs/fused-indirect -o $(MODELS_OUT)/fused/indirect.onnx ) & p1=$$!; \
 	wait $$p0 && wait $$p1
 
 lint: venv

@@ -14,7 +14,8 @@ from collections.abc import Sequence
 from gradsep import __version__
 
 # Packages whose `commands.register(subparsers)` adds subcommands, in help order.
-COMMAND_MODULES = ("renderer.commands", "training.commands", "model.commands", "service.commands")
+COMMAND_MODULES = ("renderer.commands", "training.commands", "model.commands", "evaluation.commands",
+                   "service.commands")
 
 
 class CommandError(Exception):

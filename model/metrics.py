@@ -6,6 +6,12 @@ broken reconstruction).
 
 * :func:`relmse` -- mean over pixels and channels of (x − r)² / (r² + ε), ε = 0.01, on linear radiance: the
   relative MSE of the gradient-domain rendering literature (Kettunen et al. 2015; Ma et al. 2024).
+* :func:`relmse_unbiased` -- the same error against the *truth*, estimated from two independent references
+  r1, r2 with the product estimator mean((x − r1)(x − r2) / (r̄² + ε)), r̄ = (r1 + r2) / 2: per pixel the
+  numerator's expectation is (x − t)² because r1 and r2 are independent of each other and of x, so the
+  references' own noise drops out (the normaliser r̄² uses both, so what is left is the small bias of a ratio).
+  It can be slightly negative for an image close to the truth. :func:`reference_floor` is the RelMSE a perfect
+  method (x = truth) would score against one of the references: mean((r1 − r2)² / (r̄² + ε)) / 2.
 * :func:`psnr` -- 10 log10(peak² / MSE). By default on the display tonemap below, peak 1 (so an HDR firefly
   counts at most as a saturated pixel); ``tonemapped=False`` uses linear values with the given peak.
   Identical images give +inf.
@@ -27,7 +33,8 @@ from functools import lru_cache
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
-__all__ = ["RELMSE_EPSILON", "all_metrics", "flip", "psnr", "relmse", "ssim", "tonemap"]
+__all__ = ["RELMSE_EPSILON", "all_metrics", "flip", "psnr", "reference_floor", "relmse", "relmse_unbiased", "ssim",
+           "tonemap"]
 
 RELMSE_EPSILON = 0.01
 GAMMA = 2.2
@@ -62,6 +69,24 @@ def relmse(image: np.ndarray, reference: np.ndarray, epsilon: float = RELMSE_EPS
     """Relative MSE: mean over pixels and channels of (x − r)² / (r² + ε) on linear radiance."""
     x, r = _pair(image, reference)
     return float(np.mean((x - r) ** 2 / (r * r + epsilon)))
+
+
+def relmse_unbiased(image: np.ndarray, reference1: np.ndarray, reference2: np.ndarray,
+                    epsilon: float = RELMSE_EPSILON) -> float:
+    """RelMSE against the truth with the references' noise removed (see the module docstring):
+    mean((x − r1)(x − r2) / (r̄² + ε)) over two *independent* references of the same truth."""
+    x, r1 = _pair(image, reference1)
+    _, r2 = _pair(image, reference2)
+    mean = 0.5 * (r1 + r2)
+    return float(np.mean((x - r1) * (x - r2) / (mean * mean + epsilon)))
+
+
+def reference_floor(reference1: np.ndarray, reference2: np.ndarray, epsilon: float = RELMSE_EPSILON) -> float:
+    """The RelMSE a perfect method would score against *one* of two independent, equally converged
+    references: E[(t − r1)²] = E[(r1 − r2)²] / 2 per pixel, normalised by r̄² + ε as :func:`relmse_unbiased`."""
+    r1, r2 = _pair(reference1, reference2)
+    mean = 0.5 * (r1 + r2)
+    return float(np.mean((r1 - r2) ** 2 / (mean * mean + epsilon)) / 2.0)
 
 
 def psnr(image: np.ndarray, reference: np.ndarray, *, peak: float = 1.0, tonemapped: bool = True) -> float:

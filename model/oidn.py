@@ -32,8 +32,11 @@ import numpy as np
 if TYPE_CHECKING:
     from model.frame import Features
 
-#: OIDN's quality preset for every call: "high" measured best per second among the presets on our frames.
+#: OIDN's quality preset for the colour filter ("high": lower error than "fast" on every layer we measured), and
+#: for the albedo/normal prefilter ("fast": its output scored the same as "high" to 5 digits on 16 dataset
+#: frames; docs/network.md, "The oidn and fused methods").
 QUALITY = "high"
+AUX_QUALITY = "fast"
 _F32_MAX = float(np.finfo(np.float32).max)
 #: The exposure the colour filter sees: the layer scaled so its mean radiance is about 1 (OIDN's HDR models are
 #: trained around that), by a power of two so the scaling itself is exact.
@@ -78,13 +81,14 @@ class Denoiser:
     and the filters' weights are set up once.
     """
 
-    def __init__(self, quality: str = QUALITY) -> None:
+    def __init__(self, quality: str = QUALITY, aux_quality: str = AUX_QUALITY) -> None:
         import pyoidn
 
         self._oidn = pyoidn
-        self._quality = {"high": pyoidn.OIDN_QUALITY_HIGH, "balanced": pyoidn.OIDN_QUALITY_BALANCED,
-                         "fast": pyoidn.OIDN_QUALITY_FAST}[quality]
-        self.quality = quality
+        presets = {"high": pyoidn.OIDN_QUALITY_HIGH, "balanced": pyoidn.OIDN_QUALITY_BALANCED,
+                   "fast": pyoidn.OIDN_QUALITY_FAST}
+        self._quality = {"color": presets[quality], "albedo": presets[aux_quality], "normal": presets[aux_quality]}
+        self.quality, self.aux_quality = quality, aux_quality
         self._lock = threading.Lock()
         self._device = pyoidn.Device()
         self._device.commit()
@@ -128,7 +132,7 @@ class Denoiser:
             flt.set_bool(name, value)
         if scale is not None:
             flt.set_float("inputScale", scale)
-        flt.set_quality(self._quality)
+        flt.set_quality(self._quality[purpose])
         flt.commit()
         self._check(f"{purpose} filter setup")
         flt.execute()

@@ -421,6 +421,7 @@ def _update_features(feat: FeatureState, base_active: mi.Bool, v: Vertex, ray_d:
     # of the directional albedo that averages to the right colour over the pixel's samples (metals, glass).
     diffuse = v.bsdf.eval_diffuse_reflectance(v.si, rec & valid & has_diffuse)
     albedo = dr.clip(dr.select(has_diffuse, diffuse, v.sample_weight), 0.0, 1.0)
+    albedo = dr.select(dr.isfinite(albedo), albedo, 0.0)  # clip keeps NaN (a broken BSDF): 0, as the reader does
     sampled = v.sample.sampled_type
     specular = ~has_diffuse & (mi.has_flag(sampled, mi.BSDFFlags.Delta)
                                | (mi.has_flag(sampled, mi.BSDFFlags.Glossy) & (v.sample.pdf > NEAR_SPECULAR_PDF)))

@@ -134,6 +134,22 @@ def test_missing_and_unknown_channels_are_all_named() -> None:
     assert "indirect.dy.B" in str(err.value) and "direct.dz.R" in str(err.value)
 
 
+def test_plain_frames_carry_bases_only_and_gradients_are_all_or_nothing() -> None:
+    channels = make_frame().to_channels()
+    plain = {k: v for k, v in channels.items() if ".dx." not in k and ".dy." not in k}
+    frame = read_frame(encode_exr(plain))
+    assert not frame.has_gradients and frame.layers["indirect"].dy is None
+    assert frame.to_channels().keys() == plain.keys()  # writes back exactly what it read
+    # one layer with gradients and one without: the missing gradient channels are named
+    del channels["indirect.dx.R"], channels["indirect.dx.G"], channels["indirect.dx.B"]
+    del channels["indirect.dy.R"], channels["indirect.dy.G"], channels["indirect.dy.B"]
+    with pytest.raises(ChannelError) as err:
+        read_frame(encode_exr(channels))
+    assert err.value.details["missing"] == [f"indirect.{g}.{c}" for g in ("dx", "dy") for c in "RGB"]
+    with pytest.raises(ValueError, match="both gradients"):
+        Layer(np.zeros((2, 2, 3), np.float32), np.zeros((2, 2, 3), np.float32))
+
+
 def test_no_illumination_layer() -> None:
     channels = {c: np.zeros((2, 2), np.float32) for c in FEATURE_CHANNELS}
     with pytest.raises(ChannelError, match="no illumination layer"):

@@ -32,6 +32,22 @@ from pathlib import Path
 SCENES_ENV = "GRADSEP_SCENES"
 SCENE_NAMES: tuple[str, ...] = ("cbox", "teapot")
 
+
+@dataclass(frozen=True)
+class CboxGeometry:
+    """What the Cornell box fixture guarantees (the shared file and the built-in stand-in alike): tests that check
+    renders against the scene's geometry take these values from here, so the scene owns its constants."""
+
+    camera_z: float = 4.0  # the camera at (0, 0, camera_z) looks down -z
+    fov_degrees: float = 39.3077  # along the smaller film axis
+    back_wall_z: float = -1.0
+    white: tuple[float, float, float] = (0.885809, 0.698859, 0.666422)  # the back wall's diffuse reflectance
+    mirror_sphere: tuple[tuple[float, float, float], float] = ((-0.3, -0.5, 0.2), 0.5)  # centre, radius
+    glass_sphere: tuple[tuple[float, float, float], float] = ((0.5, -0.75, -0.2), 0.25)
+
+
+CBOX_GEOMETRY = CboxGeometry()
+
 _CBOX_XML = """<scene version="3.0.0">
     <!-- built-in stand-in for the tutorials' Cornell box (tests/renderer/scenes.py): same room, built-in shapes -->
     <default name="spp" value="128"/>

@@ -57,6 +57,7 @@ def counting_renderer(monkeypatch: pytest.MonkeyPatch) -> list[int]:
 
 # -- a real dataset ----------------------------------------------------------------------------------------
 
+@pytest.mark.slow
 @pytest.mark.render
 def test_manifest_content_of_a_real_dataset(rendered: Path) -> None:
     from model.frame import read_frame

@@ -28,14 +28,15 @@ def layer_image(height: int, width: int, seed: int, layer: str) -> np.ndarray:
 
 
 def frame_channels(layers: Iterable[str] = ("direct", "indirect"), height: int = 24, width: int = 32,
-                   seed: int = 0, features: bool = False) -> dict[str, np.ndarray]:
+                   seed: int = 0, features: bool = False, gradients: bool = True) -> dict[str, np.ndarray]:
     channels: dict[str, np.ndarray] = {}
     for layer in layers:
         base = layer_image(height, width, seed, layer)
-        dx, dy = forward_differences(base)
         channels.update(rgb_channels(layer, base))
-        channels.update(rgb_channels(f"{layer}.dx", dx))
-        channels.update(rgb_channels(f"{layer}.dy", dy))
+        if gradients:  # a plain path-traced frame carries the base alone
+            dx, dy = forward_differences(base)
+            channels.update(rgb_channels(f"{layer}.dx", dx))
+            channels.update(rgb_channels(f"{layer}.dy", dy))
     if features:
         values = {"albedo": np.full((height, width, 3), 0.5, np.float32),
                   "normal": np.dstack([np.zeros((height, width, 2), np.float32), np.ones((height, width))])}
@@ -52,8 +53,8 @@ def expected_sum(layers: Iterable[str] = ("direct", "indirect"), height: int = 2
 
 
 def frame_bytes(layers: Iterable[str] = ("direct", "indirect"), height: int = 24, width: int = 32, *,
-                seed: int = 0, half: bool = False, features: bool = False) -> bytes:
-    return encode_exr(frame_channels(layers, height, width, seed, features), half=half)
+                seed: int = 0, half: bool = False, features: bool = False, gradients: bool = True) -> bytes:
+    return encode_exr(frame_channels(layers, height, width, seed, features, gradients), half=half)
 
 
 def channels_bytes(channels: dict[str, np.ndarray], half: bool = False) -> bytes:

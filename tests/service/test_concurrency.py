@@ -29,7 +29,7 @@ class BlockingReconstruction:
         self.entered = threading.Semaphore(0)
         self.calls = 0
 
-    def __call__(self, frame, method, alpha, network=None):
+    def __call__(self, frame, method, alpha, network=None, fused=None):
         self.calls += 1
         self.entered.release()
         assert self.release.wait(60), "test never released the reconstruction"
@@ -161,11 +161,12 @@ class FakeNetwork:
         self.warmed += 1
 
 
-def test_loaded_network_becomes_the_default_method(serve, monkeypatch):
+def test_loaded_network_becomes_the_default_method_without_oidn(serve, monkeypatch):
     network = FakeNetwork()
     monkeypatch.setattr(service.inference, "load_network", lambda models_dir: network)
+    monkeypatch.setattr("model.oidn.available", lambda: False)  # a replica without pyoidn
 
-    def reconstruct(frame, method, alpha, network=None):
+    def reconstruct(frame, method, alpha, network=None, fused=None):
         method = method or choose_method(frame, network)
         if method != "network" or not set(frame.layers) <= network.layers:  # the real one refuses those
             return REAL_RECONSTRUCT(frame, method, alpha, network=network)
@@ -179,7 +180,8 @@ def test_loaded_network_becomes_the_default_method(serve, monkeypatch):
         assert network.warmed == 1
         ready = client.get("/readyz").json()
         assert ready["methods"] == ["network", "l1", "l2"] and ready["default_method"] == "network"
-        assert client.get("/v1/models").json()["models"] == network.describe()
+        assert ready["default_method_plain"] is None  # no method for a plain frame on this replica
+        assert client.get("/v1/models").json()["models"] == [{**m, "method": "network"} for m in network.describe()]
         response = post(client, frame_bytes(seed=9, features=True))
         assert response.status_code == 200
         assert response.headers["x-reconstruction-method"] == "network"
@@ -191,8 +193,36 @@ def test_loaded_network_becomes_the_default_method(serve, monkeypatch):
         assert unserved.status_code == 422 and "color" in unserved.json()["error"]["message"]
 
 
+def test_fused_models_make_fused_the_default_and_plain_frames_get_oidn(serve, monkeypatch):
+    fused = FakeNetwork()
+    monkeypatch.setattr(service.inference, "load_fused", lambda models_dir: fused)
+    calls: list[str] = []
+
+    def reconstruct(frame, method, alpha, network=None, fused=None):
+        method = method or choose_method(frame, network, fused)
+        calls.append(method)
+        if method != "fused":
+            return REAL_RECONSTRUCT(frame, method, alpha, network=network, fused=fused)
+        image = sum(layer.base for layer in frame.layers.values())
+        return SimpleNamespace(image=image, layers={k: v.base for k, v in frame.layers.items()},
+                               timings=dict.fromkeys(frame.layers, 0.001), method="fused")
+
+    monkeypatch.setattr(service.inference, "reconstruct", reconstruct)
+    with serve(create_app(settings(warm_up=False))) as client:
+        ready = client.get("/readyz").json()
+        assert ready["methods"] == ["l1", "l2", "oidn", "fused"]
+        assert ready["default_method"] == "fused" and ready["default_method_plain"] == "oidn"
+        models = client.get("/v1/models").json()
+        assert models["default_method"] == "fused" and models["models"][0]["method"] == "fused"
+        assert post(client, frame_bytes(seed=9, features=True)).headers["x-reconstruction-method"] == "fused"
+        plain = post(client, frame_bytes(seed=9, features=True, gradients=False))
+        assert plain.status_code == 200 and plain.headers["x-reconstruction-method"] == "oidn"
+        refused = post(client, frame_bytes(seed=9, features=True, gradients=False), {"method": "l1"})
+        assert refused.status_code == 422 and "gradients" in refused.json()["error"]["message"]
+
+
 def test_an_unexpected_failure_is_a_json_500_with_the_request_id(serve, monkeypatch):
-    def crash(frame, method, alpha, network=None):
+    def crash(frame, method, alpha, network=None, fused=None):
         raise RuntimeError("solver exploded")
 
     monkeypatch.setattr(service.inference, "reconstruct", crash)

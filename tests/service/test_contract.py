@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import re
 
 import numpy as np
@@ -70,11 +71,12 @@ def test_multipart_and_raw_bodies_are_both_accepted(poisson_api, transport, enco
     data = frame_bytes(seed=3)
     client = poisson_api[transport]
     if encoding == "multipart":
-        response = client.post("/v1/reconstruct", files={"frame": ("f.exr", data, "image/x-exr")})
+        response = client.post("/v1/reconstruct?method=l1", files={"frame": ("f.exr", data, "image/x-exr")})
     else:
-        response = post(client, data, content_type=None if encoding == "no-content-type" else encoding)
+        response = post(client, data, {"method": "l1"},
+                        content_type=None if encoding == "no-content-type" else encoding)
     assert response.status_code == 200, response.text
-    assert response.headers["x-reconstruction-method"] == "l1"  # default without models
+    assert response.headers["x-reconstruction-method"] == "l1"
     np.testing.assert_allclose(rgb(decode(response.content)[0]), expected_sum(seed=3), rtol=1e-3, atol=1e-3)
 
 
@@ -113,9 +115,12 @@ def test_request_id_and_server_timing(poisson_api, transport):
 def test_health_readiness_models_and_metrics(poisson_api, transport):
     client = poisson_api[transport]
     assert client.get("/healthz").json() == {"status": "ok"}
-    assert client.get("/readyz").json() == {"status": "ready", "methods": ["l1", "l2"], "default_method": "l1"}
+    oidn = importlib.util.find_spec("pyoidn") is not None  # part of the serve extra; l1 is the fallback without
+    methods, default = (["l1", "l2", "oidn"], "oidn") if oidn else (["l1", "l2"], "l1")
+    assert client.get("/readyz").json() == {"status": "ready", "methods": methods, "default_method": default,
+                                            "default_method_plain": "oidn" if oidn else None}
     models = client.get("/v1/models").json()
-    assert models["models"] == [] and models["default_method"] == "l1" and models["state"] == "ready"
+    assert models["models"] == [] and models["default_method"] == default and models["state"] == "ready"
     assert models["limits"]["max_pixels"] == 8192 * 8192
     post(client, b"definitely not an exr")
     metrics = client.get("/metrics")
@@ -282,7 +287,10 @@ def test_invalid_parameters_are_422_naming_the_parameter(poisson_api, transport,
 def test_network_without_models_is_422_listing_available_methods(poisson_api, transport):
     error = assert_error(post(poisson_api[transport], frame_bytes(), {"method": "network"}),
                          422, "method_unavailable")
-    assert error["details"] == {"available": ["l1", "l2"]}
+    oidn = importlib.util.find_spec("pyoidn") is not None
+    assert error["details"] == {"available": ["l1", "l2", "oidn"] if oidn else ["l1", "l2"]}
+    fused = assert_error(post(poisson_api[transport], frame_bytes(), {"method": "fused"}), 422, "method_unavailable")
+    assert "fused" not in fused["details"]["available"]
 
 
 # --------------------------------------------------------------------------------------------------------------

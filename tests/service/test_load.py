@@ -36,6 +36,7 @@ def served_count(url: str, status: int) -> int:
     return int(float(match.group(1))) if match else 0
 
 
+@pytest.mark.slow
 def test_bounded_load_every_request_answered_correctly_with_bounded_memory(tmp_path):
     frames = [frame_bytes(height=SIZE, width=SIZE, seed=s) for s in range(DISTINCT)]
     expected = [expected_sum(height=SIZE, width=SIZE, seed=s) for s in range(DISTINCT)]

@@ -32,6 +32,8 @@ def exported(tiny_dataset: Path, tmp_path_factory: pytest.TempPathFactory) -> tu
     return Path(cfg.output), Path(summary["path"]), summary
 
 
+@pytest.mark.train
+@pytest.mark.slow
 def test_file_metadata_and_dynamic_axes(exported: tuple[Path, Path, dict], tiny_dataset: Path) -> None:
     run, path, summary = exported
     model = onnx.load(path)
@@ -54,6 +56,7 @@ def test_file_metadata_and_dynamic_axes(exported: tuple[Path, Path, dict], tiny_
     assert summary["parity_relative_error"] < PARITY_TOLERANCE
 
 
+@pytest.mark.train
 def test_graph_holds_the_main_network_only(exported: tuple[Path, Path, dict]) -> None:
     run, path, _ = exported
     cfg = TrainConfig.from_dict(json.loads((run / "config.json").read_text())["train"])
@@ -64,6 +67,7 @@ def test_graph_holds_the_main_network_only(exported: tuple[Path, Path, dict]) ->
     assert parameter_count(GBranch(cfg.network)) > 1000
 
 
+@pytest.mark.train
 @pytest.mark.parametrize(("h", "w"), [(8, 8), (24, 40), (56, 16)])
 def test_onnx_runtime_matches_pytorch(exported: tuple[Path, Path, dict], h: int, w: int) -> None:
     run, path, _ = exported
@@ -81,6 +85,7 @@ def test_onnx_runtime_matches_pytorch(exported: tuple[Path, Path, dict], h: int,
     assert np.abs(got - ref).max() / np.abs(ref).max() < 1e-4
 
 
+@pytest.mark.slow
 def test_no_attention_export_is_flagged() -> None:
     from model.network import NetworkConfig
     from training.export import model_metadata
@@ -94,6 +99,8 @@ def test_no_attention_export_is_flagged() -> None:
     assert parity_error(net, proto) < PARITY_TOLERANCE
 
 
+@pytest.mark.train
+@pytest.mark.slow
 def test_export_command(exported: tuple[Path, Path, dict], tmp_path: Path,
                         capsys: pytest.CaptureFixture[str]) -> None:
     run, _, _ = exported

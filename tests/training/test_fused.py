@@ -49,6 +49,8 @@ def test_oidn_cache_is_at_the_normalised_exposure(tiny_dataset: Path, tmp_path: 
     assert not np.allclose(np.load(l1_files[0])[9:12], planes[9:12])  # the two priors differ
 
 
+@pytest.mark.slow
+@pytest.mark.train
 def test_fused_models_load_only_as_fused_and_reconstruct(fused_models: Path, tiny_dataset: Path) -> None:
     fused = load_fused(fused_models)
     assert fused is not None and fused.layers == {"direct", "indirect"} and fused.needs_aux
@@ -64,6 +66,8 @@ def test_fused_models_load_only_as_fused_and_reconstruct(fused_models: Path, tin
     assert result.image.mean() == pytest.approx(base.mean(), rel=0.25)
 
 
+@pytest.mark.slow
+@pytest.mark.train
 def test_fused_is_exposure_invariant(fused_models: Path, tiny_dataset: Path) -> None:
     """A frame at 1e-6 or 1e6 times the radiance comes back scaled by the same factor (no HDR clipping)."""
     fused = load_fused(fused_models)

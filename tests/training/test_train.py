@@ -37,6 +37,8 @@ def _epochs(run: Path) -> list[dict]:
     return [r for r in read_log(run) if r["kind"] == "epoch"]
 
 
+@pytest.mark.slow
+@pytest.mark.train
 def test_smoke_training_lowers_the_loss(make_config) -> None:
     cfg = make_config(epochs=6, lr=2e-3, log_every=1)
     progress = train(cfg, quiet=True)
@@ -53,6 +55,7 @@ def test_smoke_training_lowers_the_loss(make_config) -> None:
     assert all(np.isfinite(e["gbranch"]) for e in epochs)
 
 
+@pytest.mark.train
 def test_paired_training_validates_against_the_prior(tmp_path: Path) -> None:
     from training.synthetic import make_synthetic_dataset
 
@@ -68,6 +71,7 @@ def test_paired_training_validates_against_the_prior(tmp_path: Path) -> None:
     assert val["data"] == pytest.approx(val["prior_data"], rel=0.5)
 
 
+@pytest.mark.train
 def test_run_folder_contents(make_config) -> None:
     cfg = make_config(epochs=4, keep_epoch_checkpoints=2, log_every=2)
     train(cfg, quiet=True)
@@ -82,6 +86,8 @@ def test_run_folder_contents(make_config) -> None:
     assert {"data", "grad", "first", "total", "beta", "lr"} <= set(steps[0])
 
 
+@pytest.mark.slow
+@pytest.mark.train
 def test_resume_with_a_larger_budget_equals_an_uninterrupted_run(make_config) -> None:
     straight = make_config("straight", epochs=3)
     train(straight, quiet=True)
@@ -93,6 +99,8 @@ def test_resume_with_a_larger_budget_equals_an_uninterrupted_run(make_config) ->
     assert [e["epoch"] for e in _epochs(Path(resumed.output))] == [1, 2, 3]
 
 
+@pytest.mark.slow
+@pytest.mark.train
 @pytest.mark.parametrize("stop_phase", ["main", "gbranch"])
 def test_resume_in_the_middle_of_a_phase(make_config, monkeypatch: pytest.MonkeyPatch, stop_phase: str) -> None:
     """A run stopped after the 3rd batch of a phase (as a kill after a periodic checkpoint would leave it)
@@ -125,6 +133,7 @@ def test_resume_in_the_middle_of_a_phase(make_config, monkeypatch: pytest.Monkey
                                                                           rel=1e-4)
 
 
+@pytest.mark.train
 def test_time_budget_stops_and_a_spent_budget_does_nothing(make_config) -> None:
     cfg = make_config(epochs=None, minutes=1e-6)
     progress = train(cfg, quiet=True)
@@ -133,12 +142,14 @@ def test_time_budget_stops_and_a_spent_budget_does_nothing(make_config) -> None:
     assert again.step == 0
 
 
+@pytest.mark.train
 def test_a_different_run_in_the_same_folder_is_refused(make_config) -> None:
     train(make_config(epochs=1), quiet=True)
     with pytest.raises(TrainingError, match="seed"):
         train(make_config(epochs=1, seed=7), quiet=True)
 
 
+@pytest.mark.train
 def test_color_layer_and_training_config_validation(make_config) -> None:
     progress = train(make_config(layer="color", epochs=1), quiet=True)
     assert progress.epoch == 1
@@ -264,6 +275,7 @@ def test_train_command_reports_bad_data_in_one_line(tmp_path: Path, capsys: pyte
 # ------------------------------------------------------------------------------------------------ torchrun
 
 
+@pytest.mark.train
 @pytest.mark.slow
 def test_torchrun_two_process_gloo(tiny_dataset: Path, tmp_path: Path) -> None:
     """`torchrun --nproc-per-node 2 -m gradsep train ...` on CPU: gloo DDP, a DistributedSampler, one folder."""

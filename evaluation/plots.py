@@ -41,6 +41,9 @@ METHOD_STYLES: dict[str, tuple[str, str, str]] = {
     "ours": ("#d62728", "-", "D"),
     "path": ("#8c564b", ":", "o"),
     "path-oidn": ("#9467bd", "--", "P"),
+    "path-sep-oidn": ("#e377c2", "-", "X"),
+    "oidn": ("#17becf", "-.", "h"),
+    "fused": ("#000000", "-", "*"),
 }
 
 
@@ -61,8 +64,14 @@ def _save(fig: Any, path: Path) -> Path:
     return path
 
 
-def plot_error_vs_time(scene: str, rows: Sequence[Mapping[str, Any]], labels: Mapping[str, str], path: Path) -> Path:
-    """RelMSE against total seconds, log-log, one curve per method (points in spp order, labelled for ours)."""
+def plot_error_vs_time(scene: str, rows: Sequence[Mapping[str, Any]], labels: Mapping[str, str], path: Path,
+                       floor: float | None = None) -> Path:
+    """RelMSE against total seconds, log-log, one curve per method (points in spp order, labelled for ours).
+
+    RelMSE is the product estimate with the references' noise removed; ``floor`` (what a perfect method would
+    score against one reference) is drawn as a grey line for scale. An estimate at or below zero (an error the
+    references cannot resolve) is drawn at the bottom of the axis, a tenth of the floor."""
+    bottom = floor / 10 if floor and floor > 0 else 1e-8
     fig = _figure((7.5, 5.0))
     ax = fig.add_subplot(1, 1, 1)
     by_method: dict[str, list[Mapping[str, Any]]] = {}
@@ -71,7 +80,7 @@ def plot_error_vs_time(scene: str, rows: Sequence[Mapping[str, Any]], labels: Ma
     for method, items in by_method.items():
         items = sorted(items, key=lambda r: int(r["spp"]))
         x = [max(float(r["total_seconds"]), 1e-4) for r in items]
-        y = [max(float(r["relmse"]), 1e-8) for r in items]
+        y = [max(float(r["relmse"]), bottom) for r in items]
         colour, style, marker = METHOD_STYLES.get(method, ("black", "-", "o"))
         thin = method.startswith("ablation/")
         ax.plot(x, y, linestyle=style, marker=marker, color=colour, linewidth=1.0 if thin else 1.8,
@@ -80,10 +89,12 @@ def plot_error_vs_time(scene: str, rows: Sequence[Mapping[str, Any]], labels: Ma
             for xi, yi, r in zip(x, y, items, strict=True):
                 ax.annotate(f"{r['spp']}", (xi, yi), textcoords="offset points", xytext=(4, 4), fontsize=7,
                             color=colour)
+    if floor and floor > 0:
+        ax.axhline(floor, color="#999999", linestyle="--", linewidth=1.0, label="reference floor (one reference)")
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("total wall time per frame [s] (render + reconstruction)")
-    ax.set_ylabel("RelMSE")
+    ax.set_ylabel("RelMSE (reference noise removed)")
     ax.set_title(f"{scene}: error against time (labels on ours: G-PT spp)")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7, loc="best")

@@ -1,0 +1,62 @@
+"""`gradsep evaluate`: argparse only at module level; the handler imports the harness lazily."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+
+def evaluate_command(args: argparse.Namespace) -> int:
+    """``gradsep evaluate``: run the evaluation, print where the outputs are and which methods were skipped."""
+    from evaluation.config import config_from_args
+    from evaluation.run import run_evaluation
+
+    config = config_from_args(args)
+    start = time.perf_counter()
+    evaluation = run_evaluation(config, progress=None)
+    elapsed = time.perf_counter() - start
+    for method, reasons in evaluation.skipped.items():
+        print(f"gradsep evaluate: skipped {method}: {'; '.join(reasons)}", file=sys.stderr)
+    for note in evaluation.notes:
+        print(f"gradsep evaluate: note: {note}", file=sys.stderr)
+    computed = evaluation.computed
+    print(f"evaluated {len(evaluation.scenes)} scene(s), {len(evaluation.rows)} rows in {elapsed:.0f} s "
+          f"(computed {computed['frames']} frames, {computed['references']} reference passes, "
+          f"{computed['results']} results; the rest from {config.cache_dir / 'evaluate'}) -> "
+          f"{evaluation.outputs['report']}")
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("evaluate", help="error against run time for every method, with plots and tables")
+    p.add_argument("--scenes", nargs="*", default=None, help="XML paths or procedural:SEED")
+    p.add_argument("--spp", default=None,
+                   help="comma-separated sample counts (default 1,2,4,8,16,32,64; 1,4,16 with --quick)")
+    p.add_argument("--quick", action="store_true", help="small CI-sized run (< 10 minutes)")
+    p.add_argument("--models", default=None, help="folder of exported models (default: $GRADSEP_MODELS or models/)")
+    p.add_argument("--cache", default=None, help="cache folder (default: $GRADSEP_CACHE or ~/.cache/gradsep)")
+    p.add_argument("--size", default=None, metavar="WxH", help="frame size (default 320x240; 96x72 with --quick)")
+    p.add_argument("--ref-spp", type=int, default=None,
+                   help="starting samples per pixel of each of the two references; raised (cached, additive) "
+                        "until the reference floor is under 10 %% of the scene's smallest ranked RelMSE or "
+                        "--ref-spp-cap is reached (default 512; 128 with --quick)")
+    p.add_argument("--ref-spp-cap", type=int, default=None,
+                   help="most samples per pixel of each reference (default 8192; 1024 with --quick); "
+                        "equal to --ref-spp: a fixed reference spp")
+    p.add_argument("--ref-seconds", type=float, default=None,
+                   help="render-time budget of one scene's two references together: the reference spp is not "
+                        "raised past what fits (default 240; 20 with --quick; 0 = no limit)")
+    p.add_argument("--seed", type=int, default=None, help="base seed of every render (default 0)")
+    p.add_argument("--methods", default=None,
+                   help="comma-separated subset of methods; 'ablation' = the four variants (default: all)")
+    p.add_argument("--max-depth", type=int, default=None, help="override every scene's max path depth")
+    p.add_argument("--table-spp", type=int, default=None,
+                   help="spp of Table 1, the ablation and the crops (default 16 or nearest)")
+    p.add_argument("--alpha", type=float, default=None, help="screened Poisson data weight for l1/l2 (default 0.2)")
+    p.add_argument("-o", "--output", required=True, help="report folder")
+    p.set_defaults(func=_evaluate)
+
+
+def _evaluate(args: argparse.Namespace) -> int:
+    return evaluate_command(args)

@@ -1,0 +1,528 @@
+"""`gradsep evaluate`: error against run time for every method, the paper's Table 1 and Fig. 7 ablation, plots.
+
+One command renders (or takes from the cache) G-PT frames at each spp and two independent references per scene,
+runs every method of evaluation/methods.py on each frame, scores it (RelMSE with the references' noise removed
+by the product estimator, SSIM, PSNR, HDR-FLIP against the references' mean; model/metrics.py) and writes into
+the report folder:
+
+* ``results.csv`` -- one row per (scene, method, spp) with render/reconstruction/total seconds and the metrics;
+  ``results.json`` -- the same rows plus the configuration, machine, models, references and skipped methods;
+* ``plots/<scene>.png`` -- RelMSE against total wall time, log-log, one curve per method (equal-time view);
+* ``crops/<scene>.png`` -- the crop comparison of the paper's Fig. 6;
+* ``report.md`` -- Table 1, the Fig. 7 ablation, the equal-time comparison, where ours loses, the reference
+  floors, how it was made.
+
+Per scene: every method's output first (cached without reference: a method's image does not depend on it), then
+the references are raised until their floor is under 10 % of the scene's smallest ranked RelMSE (or the cap),
+then everything is scored (scores cached per output and reference pair). The protocol is in docs/evaluation.md.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import sys
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from evaluation.cache import EvalCache, file_sha256, key_hash, sources_sha256
+from evaluation.config import FLOOR_FRACTION, EvalConfig, SceneEntry, _error, resolve_scenes
+from evaluation.methods import (
+    EQUAL_TIME_KINDS,
+    METHOD_SOURCES,
+    MethodContext,
+    MethodOutput,
+    MethodSpec,
+    NetworkPool,
+    PathRenderer,
+    method_by_name,
+    run_method,
+    unavailable,
+)
+from evaluation.references import ReferencePair, ReferenceSource, next_reference_spp
+
+__all__ = ["CROP_METHODS", "Evaluation", "SceneRun", "machine_summary", "run_evaluation"]
+
+CROP_METHODS: tuple[str, ...] = ("gpt-primal", "l1", "gradnet", "ours", "path-oidn", "path-sep-oidn")
+RENDERER_SOURCES = ("renderer/gpt.py", "renderer/shift.py", "renderer/render.py", "renderer/scene.py",
+                    "renderer/procedural.py")
+REFERENCE_SOURCES = ("renderer/reference.py", "renderer/scene.py", "renderer/procedural.py")
+RESULT_FORMAT = 2  # bump when the cached output/score JSON changes shape
+SCORE_SOURCES = ("model/metrics.py", "evaluation/run.py")
+
+
+# ---------------------------------------------------------------------------------------------- the run
+
+
+@dataclass
+class SceneRun:
+    """What the report needs about one evaluated scene."""
+
+    entry: SceneEntry
+    width: int
+    height: int
+    max_depth: int
+    layers: tuple[str, ...]
+    reference: np.ndarray  # (H, W, 3): the mean of the two references
+    reference_spp: int = 0  # of each of the two references
+    floor: dict[str, float] = field(default_factory=dict)  # layer -> reference floor (model.metrics)
+    smallest: float = math.nan  # the smallest ranked RelMSE of the scene
+    capped: bool = False  # the floor criterion was not met (see cap_reason)
+    cap_reason: str = ""  # what stopped the references: the spp cap or the time budget
+    reference_seconds: float = 0.0
+    crop_images: dict[str, np.ndarray] = field(default_factory=dict)
+
+
+@dataclass
+class Evaluation:
+    """The outcome of :func:`run_evaluation`: rows plus what the report says about how they were made."""
+
+    config: EvalConfig
+    rows: list[dict[str, Any]]
+    scenes: list[SceneRun]
+    skipped: dict[str, list[str]]  # method -> why it was skipped (missing model files, missing code)
+    models: dict[str, str]  # model file (relative to the models folder) -> sha256
+    notes: list[str]
+    computed: dict[str, int]  # what this run computed rather than took from the cache
+    outputs: dict[str, Path] = field(default_factory=dict)
+
+
+def _derived_seed(*parts: int) -> int:
+    """A 32-bit seed from integers (distinct runs, spp and purposes never share sampler streams)."""
+    return int(np.random.SeedSequence([int(p) for p in parts]).generate_state(1, dtype=np.uint32)[0])
+
+
+@dataclass
+class _Output:
+    """One method's output on one (scene, spp): the row without scores, its images, its cache key hash."""
+
+    spec: MethodSpec
+    spp: int
+    row: dict[str, Any]
+    image: np.ndarray
+    layers: dict[str, np.ndarray]
+    tag: str
+
+
+class _Runner:
+    """Runs the evaluation scene by scene; holds the cache, the loaded networks and the counters."""
+
+    def __init__(self, config: EvalConfig, progress: bool | None, log: Callable[[str], None]) -> None:
+        self.config = config
+        self.cache = EvalCache(config.cache_dir / "evaluate")
+        self.networks = NetworkPool()
+        self.log = log
+        self.progress = progress
+        self.computed = {"frames": 0, "references": 0, "results": 0}
+        self.model_shas: dict[str, str] = {}
+        self.skipped: dict[str, list[str]] = {}  # method -> reasons
+        self.missing: dict[str, list[str]] = {}  # method -> missing model files
+        self._warm_scenes: set[int] = set()
+        self.renderer_code = sources_sha256(RENDERER_SOURCES)
+        self.reference_code = sources_sha256(REFERENCE_SOURCES)
+        self.method_code = sources_sha256(METHOD_SOURCES)
+        self.score_code = sources_sha256(SCORE_SOURCES)
+
+    # ------------------------------------------------------------------------------------------ models
+
+    def _model_sha(self, relative: str) -> str | None:
+        path = self.config.models_dir / relative
+        if not path.is_file():
+            return None
+        if relative not in self.model_shas:
+            self.model_shas[relative] = file_sha256(path)
+        return self.model_shas[relative]
+
+    def model_files(self, spec: MethodSpec, layers: tuple[str, ...]) -> tuple[dict[str, str], list[str]]:
+        """(relative file -> sha256 of every model ``spec`` needs for ``layers``, the missing files' paths)."""
+        shas: dict[str, str] = {}
+        missing = []
+        for name in spec.model_names(layers):
+            relative = str(Path(spec.models or "") / f"{name}.onnx")
+            sha = self._model_sha(relative)
+            if sha is None:
+                missing.append(str(self.config.models_dir / relative))
+            else:
+                shas[relative] = sha
+        return shas, missing
+
+    def skip(self, method: str, reasons: Iterable[str]) -> None:
+        """Record a skipped method and why (the union over scenes is reported)."""
+        known = self.skipped.setdefault(method, [])
+        known.extend(r for r in reasons if r not in known)
+
+    def skip_missing(self, method: str, missing: Iterable[str]) -> None:
+        """Record a method skipped for want of model files: one "not found" reason listing every file."""
+        files = self.missing.setdefault(method, [])
+        files.extend(f for f in missing if f not in files)
+        known = [r for r in self.skipped.get(method, []) if not r.startswith("not found: ")]
+        self.skipped[method] = [*known, "not found: " + ", ".join(files)]
+
+    # -------------------------------------------------------------------------------------- references
+
+    def references(self, entry: SceneEntry, loaded: Any) -> ReferenceSource:
+        """The scene's reference passes (cached); see evaluation/references.py."""
+        from renderer.reference import render_loaded
+
+        c = self.config
+        key = {"scene": entry.identity, "size": [loaded.width, loaded.height], "max_depth": loaded.max_depth,
+               "seed": c.seed, "code": self.reference_code, "mitsuba": _mitsuba_id()}
+
+        def render_pass(spp: int, seed: int) -> Any:
+            self.computed["references"] += 1
+            return render_loaded(loaded, spp=spp, seed=seed, tile_spp=None,
+                                 progress=False if self.progress is False else None)
+
+        return ReferenceSource(self.cache, entry.name, key, c.ref_spp, render_pass, self.log)
+
+    # ------------------------------------------------------------------------------------------ frames
+
+    def frame(self, entry: SceneEntry, loaded: Any, spp: int) -> tuple[Any, float, str]:
+        """The G-PT frame at ``spp``, its render seconds and cache key hash (rendered when not cached)."""
+        from model.frame import FrameError, read_frame, write_frame
+        from renderer.render import render_frame
+        from renderer.shift import DEFAULT_SHIFT
+
+        seed = _derived_seed(self.config.seed, 2, spp)
+        key = {"kind": "gpt-frame", "scene": entry.identity, "size": [loaded.width, loaded.height],
+               "max_depth": loaded.max_depth, "spp": spp, "seed": seed, "shift": DEFAULT_SHIFT,
+               "code": self.renderer_code, "mitsuba": _mitsuba_id()}
+        stem = f"{loaded.width}x{loaded.height}-d{loaded.max_depth}-spp{spp}-seed{self.config.seed}"
+        path = self.cache.entry("frames", entry.name, stem, key, ".exr")
+        tag = key_hash(key)
+        if path.is_file():
+            try:
+                frame = read_frame(str(path), nonfinite="zero")
+                seconds = float(frame.metadata.get("gradsep.render_seconds", "nan"))
+                if frame.metadata.get("gradsep.eval_key") == tag and math.isfinite(seconds):
+                    return frame, seconds, tag
+            except (FrameError, ValueError):
+                pass
+            self.log(f"cache entry {path} unreadable; re-rendering the frame")
+        if id(loaded) not in self._warm_scenes:  # the first render of a scene pays Dr.Jit's compilation
+            render_frame(loaded, spp=1, seed=_derived_seed(self.config.seed, 4, 0))
+            self._warm_scenes.add(id(loaded))
+        frame = render_frame(loaded, spp=spp, seed=seed)
+        seconds = float(frame.metadata["gradsep.render_seconds"])
+        frame.metadata["gradsep.eval_key"] = tag
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write_frame(path, frame)
+        self.computed["frames"] += 1
+        return frame, seconds, tag
+
+    # ----------------------------------------------------------------------------------------- outputs
+
+    def output(self, spec: MethodSpec, scene: SceneRun, spp: int, ctx: MethodContext,
+               key: dict[str, Any]) -> _Output:
+        """One method's output on one (scene, spp), from the cache when possible (it does not depend on the
+        references, so raising them re-scores without re-running anything)."""
+        c = self.config
+        stem = f"{spec.name}-{scene.width}x{scene.height}-spp{spp}-seed{c.seed}"
+        path = self.cache.entry("results", scene.entry.name, stem, key, ".json")
+        tag = key_hash(key)
+        cached = self.cache.load_json(path)
+        if cached is not None and cached.get("key") == key and isinstance(cached.get("row"), dict):
+            names = ["image", *cached.get("layers", [])]
+            arrays = self.cache.load_arrays(path.with_suffix(".npz"), names)
+            if arrays is not None:
+                layers = {n: arrays[n] for n in names[1:]}
+                return _Output(spec, spp, {**cached["row"], "scene": scene.entry.name}, arrays["image"], layers, tag)
+        out: MethodOutput = run_method(spec, ctx)
+        for warning in out.warnings:
+            self.log(f"{scene.entry.name} {spec.name} {spp} spp: {warning}")
+        row: dict[str, Any] = {
+            "scene": scene.entry.name, "method": spec.name, "spp": spp, "method_spp": out.method_spp,
+            "width": scene.width, "height": scene.height,
+            "render_seconds": out.render_seconds, "reconstruct_seconds": out.reconstruct_seconds,
+            "total_seconds": out.render_seconds + out.reconstruct_seconds,
+        }
+        row.update({k: v for k, v in out.extra.items()
+                    if k in ("target_seconds", "budget_method", "capped", "attempts", "feature_spp")})
+        row["machine"] = machine_summary()
+        layers = {n: out.layers[n] for n in ("direct", "indirect") if n in out.layers}
+        self.cache.save_arrays(path.with_suffix(".npz"), {"image": out.image, **layers})
+        self.cache.save_json(path, {"format": RESULT_FORMAT, "key": key, "row": row, "layers": list(layers)})
+        self.computed["results"] += 1
+        return _Output(spec, spp, row, out.image, layers, tag)
+
+    def score(self, output: _Output, scene: SceneRun, pair: ReferencePair) -> dict[str, Any]:
+        """The output's metrics against the pair: RelMSE (total and per layer) by the product estimator, SSIM,
+        PSNR and FLIP against the pair's mean. Cached per (output, pair)."""
+        from model.metrics import flip, psnr, relmse_unbiased, ssim
+
+        key = {"format": RESULT_FORMAT, "output": output.tag, "references": pair.tag, "code": self.score_code}
+        path = self.cache.entry("scores", scene.entry.name, f"{output.spec.name}-spp{output.spp}", key, ".json")
+        cached = self.cache.load_json(path)
+        if cached is not None and cached.get("key") == key and isinstance(cached.get("scores"), dict):
+            return cached["scores"]
+        mean = pair.mean()
+        scores: dict[str, Any] = {"relmse": relmse_unbiased(output.image, pair.first["total"], pair.second["total"]),
+                                  "ssim": ssim(output.image, mean), "psnr": psnr(output.image, mean),
+                                  "flip": flip(output.image, mean)}
+        for layer in ("direct", "indirect"):
+            have = layer in output.layers and layer in pair.first
+            scores[f"relmse_{layer}"] = (relmse_unbiased(output.layers[layer], pair.first[layer],
+                                                         pair.second[layer]) if have else None)
+        self.cache.save_json(path, {"key": key, "scores": scores})
+        return scores
+
+
+_MITSUBA: str | None = None
+
+
+def _mitsuba_id() -> str:
+    """Mitsuba version + variant: a different build may sample differently, so it is part of render keys."""
+    global _MITSUBA
+    if _MITSUBA is None:
+        import mitsuba as mi
+
+        from renderer.scene import select_variant
+
+        _MITSUBA = f"{mi.__version__}/{select_variant()}"
+    return _MITSUBA
+
+
+def machine_summary() -> str:
+    """``CPU model, N logical cores`` (+ GPU variant when Mitsuba runs on CUDA): where a timing was taken."""
+    cpu = ""
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as fh:
+            for line in fh:
+                if line.startswith("model name"):
+                    cpu = line.split(":", 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    import platform
+
+    cpu = cpu or platform.processor() or platform.machine()
+    return f"{cpu}, {os.cpu_count()} logical cores"
+
+
+class _Progress:
+    """One tqdm bar over the run's steps (hidden when progress is off, or not a terminal when it is None)."""
+
+    def __init__(self, total: int, enabled: bool | None) -> None:
+        self.bar = None
+        if enabled is False:
+            return
+        try:
+            from tqdm import tqdm
+        except ImportError:
+            return
+        self.bar = tqdm(total=total, unit="step", desc="evaluate", dynamic_ncols=True,
+                        disable=None if enabled is None else not enabled, file=sys.stderr)
+
+    def step(self, description: str) -> None:
+        if self.bar is not None:
+            self.bar.set_description_str(description[:60])
+
+    def advance(self, n: int = 1) -> None:
+        if self.bar is not None:
+            self.bar.update(n)
+
+    def write(self, message: str) -> None:
+        if self.bar is not None and not self.bar.disable:
+            self.bar.write(message, file=sys.stderr)
+        else:
+            print(message, file=sys.stderr)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def _budget_method(rows: dict[str, dict[str, Any]]) -> str | None:
+    """The method whose total time is the equal-time budget: ours, else L1 (None: the G-PT render alone)."""
+    for name in ("ours", "l1"):
+        if name in rows:
+            return name
+    return None
+
+
+def run_evaluation(config: EvalConfig, *, progress: bool | None = None,
+                   log: Callable[[str], None] | None = None) -> Evaluation:
+    """Run the whole evaluation and write every output into ``config.output``; see the module docstring."""
+    from renderer.scene import load_scene
+
+    entries, notes = resolve_scenes(config.scenes)
+    _prepare_output(config.output)
+    methods = [method_by_name(name) for name in config.methods]
+    total = len(entries) * (2 + len(config.spp) * (1 + len(methods)))
+    bar = _Progress(total, progress)
+    runner = _Runner(config, progress, log or bar.write)
+    try:
+        runner.cache.prepare()
+    except OSError as exc:
+        raise _error(f"cache folder {str(runner.cache.root)!r} cannot be created: {exc.strerror or exc}") from exc
+    # every scene is loaded (and so validated) before anything renders: a typo in the last scene should not
+    # surface after an hour of work on the first ones
+    loaded_scenes = [load_scene(e.spec, width=config.width, height=config.height, max_depth=config.max_depth)
+                     for e in entries]
+    rows: list[dict[str, Any]] = []
+    scenes: list[SceneRun] = []
+    try:
+        for entry, loaded in zip(entries, loaded_scenes, strict=True):
+            scene, scene_rows = _run_scene(runner, entry, loaded, methods, bar)
+            scenes.append(scene)
+            rows += scene_rows
+    finally:
+        bar.close()
+    evaluation = Evaluation(config, rows, scenes, runner.skipped, dict(sorted(runner.model_shas.items())),
+                            notes, runner.computed)
+    from evaluation.report import write_outputs
+
+    evaluation.outputs = write_outputs(evaluation)
+    return evaluation
+
+
+def _run_scene(runner: _Runner, entry: SceneEntry, loaded: Any, methods: list[MethodSpec],
+               bar: _Progress) -> tuple[SceneRun, list[dict[str, Any]]]:
+    """One scene: every method's output, then references raised until the floor criterion holds, then scores."""
+    from model.frame import SEPARATED_LAYERS
+    from renderer.render import plan_layers
+
+    config = runner.config
+    layers, _ = plan_layers(SEPARATED_LAYERS, loaded.max_depth)
+    scene = SceneRun(entry, loaded.width, loaded.height, loaded.max_depth, layers,
+                     np.zeros((loaded.height, loaded.width, 3), np.float32))
+    cell: list[PathRenderer] = []
+
+    def get_path() -> PathRenderer:
+        if not cell:
+            cell.append(PathRenderer(loaded))
+        return cell[0]
+
+    outputs: list[_Output] = []
+    for spp in config.spp:
+        bar.step(f"{entry.name}: G-PT {spp} spp")
+        frame, seconds, frame_tag = runner.frame(entry, loaded, spp)
+        bar.advance()
+        done: dict[str, dict[str, Any]] = {}
+        keys: dict[str, str] = {}
+        for spec in methods:
+            bar.step(f"{entry.name} {spp} spp: {spec.name}")
+            out = _evaluate_one(runner, spec, scene, spp, frame, seconds, frame_tag, get_path, done, keys)
+            if out is not None:
+                outputs.append(out)
+            bar.advance()
+    bar.step(f"{entry.name}: references")
+    pair = _converge_references(runner, scene, runner.references(entry, loaded), outputs)
+    bar.advance()
+    bar.step(f"{entry.name}: scoring")
+    rows = []
+    for out in outputs:
+        rows.append({**out.row, **runner.score(out, scene, pair)})
+        if out.spp == config.crop_spp and out.spec.name in CROP_METHODS:
+            scene.crop_images[out.spec.name] = out.image
+    bar.advance()
+    return scene, rows
+
+
+def _smallest_ranked(outputs: list[_Output], pair: ReferencePair) -> float:
+    """The smallest RelMSE (product estimator) over every row of the scene: each one is ranked by the report."""
+    from model.metrics import relmse_unbiased
+
+    values = [relmse_unbiased(o.image, pair.first["total"], pair.second["total"]) for o in outputs]
+    return min(values) if values else math.inf
+
+
+def _converge_references(runner: _Runner, scene: SceneRun, source: ReferenceSource,
+                         outputs: list[_Output]) -> ReferencePair:
+    """Raise both references (doubling, cached passes re-used) until the total floor is under FLOOR_FRACTION
+    of the smallest ranked RelMSE or the spp cap is reached; record the outcome on ``scene``."""
+    config = runner.config
+    spp = config.ref_spp
+    while True:
+        pair = source.pair(spp)
+        floor = pair.floor()
+        smallest = _smallest_ranked(outputs, pair)
+        following = next_reference_spp(spp, floor, smallest, FLOOR_FRACTION, config.reference_cap)
+        if following is not None and config.ref_seconds is not None:
+            following = _within_time(spp, following, pair.seconds, config.ref_seconds)
+        if following is None:
+            break
+        runner.log(f"{scene.entry.name}: reference floor {floor:.3g} at {spp} spp is over "
+                   f"{FLOOR_FRACTION:.0%} of the smallest ranked RelMSE {smallest:.3g}; raising to {following} spp")
+        spp = following
+    scene.reference = pair.mean()
+    scene.reference_spp = spp
+    scene.floor = {layer: pair.floor(layer) for layer in pair.first}
+    scene.smallest = smallest
+    scene.capped = not (smallest > 0 and scene.floor["total"] <= FLOOR_FRACTION * smallest)
+    if scene.capped:
+        scene.cap_reason = (f"the spp cap ({config.reference_cap} spp each)" if spp >= config.reference_cap else
+                            f"the time budget ({config.ref_seconds:g} s for both references; "
+                            f"{2 * spp} spp took {pair.seconds:.0f} s)")
+    scene.reference_seconds = pair.seconds
+    return pair
+
+
+def _within_time(spp: int, wanted: int, seconds: float, budget: float) -> int | None:
+    """The largest power-of-two multiple of ``spp`` up to ``wanted`` whose predicted render time (both references,
+    linear in spp from the ``seconds`` the current ``spp`` took) fits ``budget``; None when not even 2 × ``spp``
+    fits."""
+    if not (seconds > 0 and math.isfinite(seconds)):
+        return wanted  # no timing recorded: the spp cap alone decides
+    best = None
+    level = spp * 2
+    while level <= wanted and seconds * level / spp <= budget:
+        best = level
+        level *= 2
+    return best
+
+
+def _evaluate_one(runner: _Runner, spec: MethodSpec, scene: SceneRun, spp: int, frame: Any, seconds: float,
+                  frame_tag: str, get_path: Callable[[], PathRenderer], done: dict[str, dict[str, Any]],
+                  keys: dict[str, str]) -> _Output | None:
+    """One method on one frame: skip it (with the reason) when it cannot run, else the cached or new output."""
+    c = runner.config
+    reason = unavailable(spec)
+    if reason is not None:
+        runner.skip(spec.name, [reason])
+        return None
+    shas, missing = runner.model_files(spec, scene.layers)
+    if missing:
+        runner.skip_missing(spec.name, missing)
+        return None
+    key: dict[str, Any] = {"format": RESULT_FORMAT, "method": spec.name, "frame": frame_tag, "models": shas,
+                           "code": runner.method_code}
+    if spec.kind == "poisson":
+        key["alpha"] = c.alpha
+    ctx = MethodContext(frame=frame, render_seconds=seconds, spp=spp, seed=_derived_seed(c.seed, 3, spp),
+                        alpha=c.alpha, models_dir=c.models_dir, networks=runner.networks, path=get_path)
+    if spec.kind in EQUAL_TIME_KINDS:
+        budget = _budget_method(done)
+        if budget is None:
+            ctx.budget_seconds, ctx.budget_method = seconds, "G-PT render only"
+        else:
+            ctx.budget_seconds, ctx.budget_method = float(done[budget]["total_seconds"]), budget
+        key["budget"] = keys.get(budget or "", "render:" + frame_tag)
+        key["seed"] = ctx.seed
+        if spec.kind == "sep-oidn":  # our renderer's code renders it
+            key["renderer"] = runner.renderer_code
+    from model.infer import ModelError
+
+    try:
+        out = runner.output(spec, scene, spp, ctx, key)
+    except ModelError as exc:
+        raise _error(f"{spec.name}: {exc}") from exc
+    done[spec.name] = out.row
+    keys[spec.name] = out.tag
+    return out
+
+
+def _prepare_output(output: Path) -> None:
+    """Create the report folder (and its parents), or fail before any rendering when that is impossible."""
+    if output.exists() and not output.is_dir():
+        raise _error(f"output {str(output)!r} exists and is not a folder")
+    try:
+        output.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise _error(f"cannot create the report folder {str(output)!r}: {exc.strerror or exc}") from exc
+    if not os.access(output, os.W_OK | os.X_OK):
+        raise _error(f"report folder {str(output)!r} is not writable")

@@ -1,0 +1,128 @@
+"""The ``oidn`` method and plain (gradient-free) frames: OIDN per layer, features prefiltered once per frame,
+exposure-invariant, energy kept on stiff inputs, and clear errors where a frame lacks what a method needs."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pytest.importorskip("pyoidn")
+
+from model.frame import ChannelError, Features, Frame, Layer, read_frame, write_frame  # noqa: E402
+from model.oidn import MIN_SIDE, Denoiser, exposure_scale, shared_denoiser  # noqa: E402
+from model.reconstruct import available_methods, choose_method, reconstruct  # noqa: E402
+
+
+def _image(h: int, w: int, seed: int = 0, noise: float = 0.3) -> np.ndarray:
+    """A smooth image with multiplicative noise, like a few-spp render of a diffuse scene."""
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[0:h, 0:w].astype(np.float32)
+    clean = 0.6 + 0.4 * np.sin(x[..., None] / 7.0 + np.arange(3)) * np.cos(y[..., None] / 5.0)
+    return (clean * rng.gamma(1 / noise**2, noise**2, (h, w, 3))).astype(np.float32), clean.astype(np.float32)
+
+
+def _features(h: int, w: int) -> Features:
+    normal = np.zeros((h, w, 3), np.float32)
+    normal[..., 2] = 1.0
+    return Features(np.full((h, w, 3), 0.7, np.float32), normal, np.ones((h, w), np.float32))
+
+
+def _plain(h: int = 40, w: int = 56, features: bool = True, scale: float = 1.0) -> Frame:
+    noisy, _ = _image(h, w)
+    layers = {"direct": Layer(noisy * scale), "indirect": Layer(0.3 * noisy[::-1] * scale)}
+    return Frame(layers, _features(h, w) if features else None)
+
+
+def test_oidn_denoises_towards_the_clean_image() -> None:
+    noisy, clean = _image(64, 64, seed=1)
+    out = shared_denoiser().denoise(noisy)
+    err_in, err_out = np.mean((noisy - clean) ** 2), np.mean((out - clean) ** 2)
+    assert err_out < 0.3 * err_in, (err_in, err_out)
+    assert out.mean() == pytest.approx(noisy.mean(), rel=0.05)  # energy kept
+
+
+@pytest.mark.parametrize("scale", [1e-8, 1e-4, 1e4, 1e6, 1e9])
+def test_oidn_is_exposure_invariant_from_1e_minus_8_to_1e9(scale: float) -> None:
+    """Relative accuracy per decade: the frame scaled by k denoises to k times the unit frame's result."""
+    frame = _plain()
+    unit = reconstruct(frame, "oidn")
+    scaled = reconstruct(_plain(scale=scale), "oidn")
+    rel = np.abs(scaled.image / scale - unit.image) / np.maximum(unit.image, 1e-6)
+    assert rel.max() < 1e-3 and not scaled.warnings
+    assert scaled.image.mean() / scale == pytest.approx(sum(lay.base.mean() for lay in frame.layers.values()),
+                                                         rel=0.05)
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (1, 7), (5, 1), (3, 4), (MIN_SIDE - 1, 33), (17, 9)])
+def test_tiny_and_odd_sizes_keep_their_energy(shape: tuple[int, int]) -> None:
+    """OIDN alone returns 23 % of a constant 1×1 image; the mirror padding keeps every size within 5 %."""
+    h, w = shape
+    for value in (1.0, 3.5e5):
+        out = shared_denoiser().denoise(np.full((h, w, 3), value, np.float32))
+        assert out.shape == (h, w, 3) and np.isfinite(out).all()
+        assert out.mean() == pytest.approx(value, rel=0.05), (shape, value, out.mean())
+
+
+def test_black_and_nonfinite_inputs() -> None:
+    d = shared_denoiser()
+    assert not d.denoise(np.zeros((8, 9, 3), np.float32)).any()          # black in, black out (no filter run)
+    bad = np.ones((24, 24, 3), np.float32)
+    bad[3, 4] = np.nan
+    bad[5, 6] = np.inf
+    bad[7, 8] = -np.inf
+    out = d.denoise(bad)
+    assert np.isfinite(out).all() and (out >= 0).all()
+    assert exposure_scale(np.zeros((2, 2, 3), np.float32)) == 1.0
+
+
+def test_prefilter_runs_once_per_frame_and_is_shared(monkeypatch) -> None:
+    calls = []
+    real = Denoiser.prefilter
+    monkeypatch.setattr(Denoiser, "prefilter", lambda self, f: calls.append(1) or real(self, f))
+    result = reconstruct(_plain(), "oidn")
+    assert len(calls) == 1 and "features" in result.timings
+    assert set(result.layers) == {"direct", "indirect"}
+
+
+def test_features_change_the_result_and_are_optional() -> None:
+    with_aux = reconstruct(_plain(), "oidn").image
+    without = reconstruct(_plain(features=False), "oidn")
+    assert without.method == "oidn" and "features" not in without.timings
+    assert not np.allclose(with_aux, without.image)
+
+
+def test_zero_features_are_served() -> None:
+    frame = _plain()
+    frame.features = Features(np.zeros((40, 56, 3), np.float32), np.zeros((40, 56, 3), np.float32),
+                              np.zeros((40, 56), np.float32))
+    result = reconstruct(frame, "oidn")
+    assert np.isfinite(result.image).all() and result.image.mean() > 0
+
+
+def test_plain_frame_round_trips_and_defaults_to_oidn(tmp_path) -> None:
+    frame = _plain()
+    write_frame(tmp_path / "plain.exr", frame, half=True)
+    back = read_frame(tmp_path / "plain.exr")
+    assert not back.has_gradients and set(back.layers) == {"direct", "indirect"}
+    assert back.layers["direct"].dx is None and back.features is not None
+    assert choose_method(back) == "oidn" and available_methods(back) == ["oidn"]
+    for method in ("l1", "l2", "network", "fused"):
+        with pytest.raises(ChannelError, match="integrates gradients") as err:
+            reconstruct(back, method)
+        assert "direct.dx.R" in err.value.details["missing"]
+
+
+def test_plain_color_frame_without_features() -> None:
+    noisy, _ = _image(30, 20)
+    frame = Frame({"color": Layer(noisy)})
+    result = reconstruct(frame)
+    assert result.method == "oidn" and set(result.layers) == {"color"}
+    assert result.image.mean() == pytest.approx(noisy.mean(), rel=0.05)
+
+
+def test_oidn_on_a_gradient_frame_ignores_the_gradients() -> None:
+    noisy, _ = _image(32, 32)
+    dx = np.full_like(noisy, 1e3)  # absurd gradients: oidn does not read them
+    with_gradients = reconstruct(Frame({"direct": Layer(noisy, dx, dx)}), "oidn").image
+    plain = reconstruct(Frame({"direct": Layer(noisy)}), "oidn").image
+    np.testing.assert_array_equal(with_gradients, plain)
