@@ -11,7 +11,7 @@ file turns the two sets of contributions into the primal image and the gradients
 Estimators (see docs/renderer.md for the derivation):
 
 * **Primal**: the base paths alone, i.e. an ordinary path tracer (next-event estimation + BSDF sampling combined
-  with the power heuristic, Russian roulette after ``rr_depth`` vertices). It is unbiased and its noise is
+  with the power heuristic, Russian roulette from vertex ``rr_depth`` on as in Mitsuba). It is unbiased and its noise is
   independent from pixel to pixel, which the unsupervised denoiser relies on; the MIS combination of all five
   paths would lower the primal's variance but correlate neighbouring pixels. Sub-pixel positions are stratified
   within each pixel (a jittered grid over the pass's samples), which keeps pixels independent.
@@ -465,6 +465,14 @@ def _finite(x: Any) -> tuple[Any, mi.Bool]:
     return dr.select(ok, x, 0.0), bad
 
 
+def scene_has_hittable_emitters(scene: mi.Scene) -> bool:
+    """Whether a ray can find emission: an area light or an environment. Point, spot and directional lights
+    (delta in position or direction) are reached only by next-event estimation, so in a scene lit by them alone
+    the last ray of a path (traced only to look for emission) can be skipped, by `path` and G-PT alike."""
+    delta = int(mi.EmitterFlags.DeltaPosition | mi.EmitterFlags.DeltaDirection)
+    return any(not int(emitter.flags()) & delta for emitter in scene.emitters())
+
+
 def _drop_non_finite(sums: dict[str, LayerSums]) -> tuple[dict[str, LayerSums], mi.Bool]:
     """Primal-only lanes: a sample whose sum is not finite (degenerate geometry) contributes 0 to every layer;
     returns the cleaned sums and the per-lane 'was bad' mask."""
@@ -510,6 +518,7 @@ def render_pass(scene: mi.Scene, shift: Shift | None, settings: GptSettings, wid
                            SHIFT_OFFSETS if gradients else ())
     to_camera = sensor.world_transform().inverse()
 
+    hittable = scene_has_hittable_emitters(scene)
     ray_flags = shift.ray_flags(scene) if gradients else mi.RayFlags.All
     strict_light_pdf = shift.reuses_light_samples if gradients else False
     base = PathState.start(*rays[0])
@@ -549,11 +558,17 @@ def render_pass(scene: mi.Scene, shift: Shift | None, settings: GptSettings, wid
                 clean_nee.append(gn)
             _route(sums, depth, settings, hit_value, nee_value, clean_hit, clean_nee)
             feat = _update_features(feat, base_active, v, ray_d, to_camera)
+            if not hittable:
+                # No emitter can be found by a ray: the next vertex is needed only for next-event estimation
+                # there (or to continue the feature search past a mirror); its emission event is always 0.
+                base.active &= (depth + 2 < max_depth_o) | feat.pending
 
             # Russian roulette on the base path, applied to the whole lane.
             beta_max = dr.max(base.throughput)
             q = dr.minimum(beta_max * base.eta * base.eta, 0.95)
-            rr_active = base.active & (depth >= rr_depth_o)  # Mitsuba's rule: after vertex rr_depth
+            # Mitsuba's rule: roulette from the rr_depth-th vertex on (its `path` counts the vertex just found
+            # before comparing with rr_depth; rr_depth 1 may end a path at the first visible surface).
+            rr_active = base.active & (depth + 1 >= rr_depth_o)
             survive = sampler.next_1d() < q
             inv_q = dr.select(rr_active, dr.rcp(q), 1.0)
             base.throughput = base.throughput * inv_q

@@ -372,7 +372,11 @@ class ConnectedState:
     active: mi.Bool
     throughput: mi.Spectrum
     ratio: mi.Float  # fixed once connected: the shared vertices have the same density in both paths
-    b_weight: mi.Spectrum  # base: BSDF weight of the direction leaving its previous vertex
+    b_weight: mi.Spectrum  # BSDF weight of the direction leaving the previous (shared) vertex: the base path's,
+    #                        or, just after the reconnection, the offset's own for its incoming direction there
+    b_ratio: mi.Float  # density ratio of that direction: 1 (shared), or the offset's pdf / the base path's
+    own_pdf: mi.Float  # just after the reconnection: the offset's pdf of that direction, for its emission MIS
+    fresh: mi.Bool  # just reconnected: the next vertex's emission is weighted with ``own_pdf``
 
 
 class HybridShift:
@@ -769,26 +773,47 @@ class HybridShift:
     # ---- connected offsets (renderer.gpt.ConnectingShift) ----------------------------------------------------
 
     def settled(self, offset: HybridState) -> mi.Bool:
-        return ~offset.active | (offset.status == CONNECTED)
+        """Finished, connected, or reconnected in the last iteration (:meth:`summarize` evaluates the one BSDF
+        value the next step would, so such a lane leaves the expensive loop one iteration earlier)."""
+        return ~offset.active | (offset.status == CONNECTED) | (offset.status == RECENTLY_CONNECTED)
 
     def summarize(self, offset: HybridState) -> ConnectedState:
-        return ConnectedState(active=offset.active & (offset.status == CONNECTED), throughput=offset.throughput,
-                              ratio=offset.ratio, b_weight=offset.b_weight)
+        """A settled offset as a few numbers. A ``RECENTLY_CONNECTED`` one is at the base path's vertex with its
+        own incoming direction: what :meth:`step` would do there next -- its BSDF value and pdf for the base
+        path's outgoing direction, failing where that is 0 or the base path sampled a delta lobe -- is done here
+        once and kept as the next step's weight, density ratio and emission-MIS pdf."""
+        ctx = mi.BSDFContext()
+        connected = offset.active & (offset.status == CONNECTED)
+        recent = offset.active & (offset.status == RECENTLY_CONNECTED)
+        val, pdf = offset.bsdf.eval_pdf(ctx, offset.si, offset.si.to_local(offset.b_dir), recent)
+        ok = recent & (offset.b_pdf > 0.0) & (dr.max(val) > 0.0) & ~offset.b_delta
+        inv_pdf = dr.rcp(dr.select(ok, offset.b_pdf, 1.0))
+        # A failed shift keeps this vertex's events (already counted) and contributes 0 from the next one on,
+        # with weight 1 for the base path: a zero weight and density ratio give exactly that.
+        return ConnectedState(active=connected | recent, throughput=offset.throughput, ratio=offset.ratio,
+                              b_weight=dr.select(connected, offset.b_weight, dr.select(ok, val * inv_pdf, 0.0)),
+                              b_ratio=dr.select(recent, dr.select(ok, pdf * inv_pdf, 0.0), 1.0),
+                              own_pdf=mi.Float(pdf), fresh=mi.Bool(recent))
 
     def step_connected(self, off: ConnectedState, base: Vertex, depth: mi.UInt32,
                        max_depth: mi.UInt32) -> tuple[ConnectedState, OffsetEvents]:
-        """:meth:`step` of a ``CONNECTED`` offset, without its (masked-out) work: the base path's BSDF weight,
-        emission and next-event estimate per unit throughput, the density ratio unchanged."""
+        """:meth:`step` of a connected offset, without its (masked-out) work: the BSDF weight of the direction
+        that led here, the base path's emission (MIS-weighted with the offset's own pdf right after the
+        reconnection) and next-event estimate per unit throughput, the density ratio fixed from then on."""
         active = off.active
         throughput = dr.select(active, off.throughput * off.b_weight, 0.0)
-        weight = _balance(off.ratio)
+        ratio = off.ratio * off.b_ratio
+        weight = _balance(ratio)
         has_vertex = active & base.si.is_valid()
         nee_on = has_vertex & base.nee_sampled & (depth + 1 < max_depth)
-        events = OffsetEvents(emitted=dr.select(active, throughput * base.emitted_weight, 0.0),
+        emitted_weight = dr.select(off.fresh, mis_power(off.own_pdf, base.emitter_pdf) * base.emission,
+                                   base.emitted_weight)
+        events = OffsetEvents(emitted=dr.select(active, throughput * emitted_weight, 0.0),
                               nee=dr.select(nee_on, throughput * base.nee_weight, 0.0),
                               w_hit=dr.select(active, weight, 1.0), w_nee=dr.select(nee_on, weight, 1.0))
-        new = ConnectedState(active=has_vertex & (depth + 1 < max_depth), throughput=throughput, ratio=off.ratio,
-                             b_weight=base.sample_weight)
+        new = ConnectedState(active=has_vertex & (depth + 1 < max_depth), throughput=throughput, ratio=ratio,
+                             b_weight=base.sample_weight, b_ratio=mi.Float(1.0), own_pdf=mi.Float(0.0),
+                             fresh=mi.Bool(False))
         return new, events
 
     def scale(self, offset: HybridState | ConnectedState, factor: mi.Float,

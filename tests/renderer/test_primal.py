@@ -151,3 +151,13 @@ def test_no_gradients_command(tmp_path, capsys):
                "-o", str(tmp_path / "x.exr")])
     assert rc == 2 and "--no-gradients" in capsys.readouterr().err
     assert not (tmp_path / "x.exr").exists()
+
+
+def test_which_scenes_can_skip_the_last_ray():
+    """Only a scene lit by delta lights alone (the teapot's point lights) skips the ray after the last next-event
+    vertex; an area light (cbox) or an environment (sky) can be found by that ray."""
+    from renderer.gpt import scene_has_hittable_emitters
+
+    assert not scene_has_hittable_emitters(scene_of("teapot"))
+    assert scene_has_hittable_emitters(scene_of("cbox"))
+    assert scene_has_hittable_emitters(scene_of("sky"))

@@ -1,0 +1,63 @@
+"""A/B in one process of the rule for leaving the hybrid's full-step loop (issue 16, docs/renderer.md).
+
+    .venv/bin/python benchmarks/ab_connected_rule.py [SCENE] [SIZE] [ROUNDS]      # default cbox 256 7
+
+"new rule": offsets reconnected in the last iteration are summarised too (this code); "old rule": only
+``CONNECTED`` offsets leave the first loop (the code before 2026-12-01). Interleaved rounds, 16 spp; prints the
+median of the per-round CPU-time ratios to Mitsuba `path` (steadier than wall time on a shared machine).
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks.bench_render import path_image, resolve_scene, settings_for  # noqa: E402
+
+
+def main(argv: list[str]) -> int:
+    import mitsuba as mi
+
+    from renderer.gpt import render_gpt
+    from renderer.scene import load_scene
+    from renderer.shift import CONNECTED, ConnectedState, HybridShift
+
+    class OldRule(HybridShift):
+        def settled(self, offset):
+            return ~offset.active | (offset.status == CONNECTED)
+
+        def summarize(self, offset):
+            return ConnectedState(active=offset.active & (offset.status == CONNECTED), throughput=offset.throughput,
+                                  ratio=offset.ratio, b_weight=offset.b_weight, b_ratio=mi.Float(1.0),
+                                  own_pdf=mi.Float(0.0), fresh=mi.Bool(False))
+
+    spec = argv[0] if argv else "cbox"
+    size = int(argv[1]) if len(argv) > 1 else 256
+    rounds = int(argv[2]) if len(argv) > 2 else 7
+    loaded = load_scene(resolve_scene(spec), width=size, height=size)
+    settings = settings_for(loaded)
+    runs = {"path": lambda: path_image(loaded.scene, 16, 1, loaded.max_depth, loaded.rr_depth),
+            "old rule": lambda: render_gpt(loaded.scene, OldRule(), settings, size, size, 16, seed=1),
+            "new rule": lambda: render_gpt(loaded.scene, HybridShift(), settings, size, size, 16, seed=1)}
+    for fn in runs.values():
+        fn()  # compile
+    cpu: dict[str, list[float]] = {name: [] for name in runs}
+    for _ in range(rounds):
+        for name, fn in runs.items():
+            start = time.process_time()
+            fn()
+            cpu[name].append(time.process_time() - start)
+    for name in runs:
+        r = np.array(cpu[name]) / np.array(cpu["path"])
+        print(f"{spec} {name}: CPU {np.median(cpu[name]):.3f} s, per-round ratio to path {np.median(r):.2f} "
+              f"(q25 {np.quantile(r, 0.25):.2f}, q75 {np.quantile(r, 0.75):.2f})")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
