@@ -13,6 +13,7 @@ from contextlib import contextmanager
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
+import httpx
 import numpy as np
 import pytest
 
@@ -26,7 +27,7 @@ from service.client import (
     parse_retry_after,
 )
 from service.main import create_app
-from tests.service.conftest import settings, uvicorn_server
+from tests.service.conftest import settings, uvicorn_server, wait_ready
 from tests.service.frames import decode, expected_sum, frame_bytes, rgb
 
 EXR_BODY = frame_bytes(("color",), height=4, width=4)
@@ -184,6 +185,8 @@ def test_bad_local_input_exits_2_before_any_request(tmp_path, frame, problem):
 def test_end_to_end_against_the_real_service_with_a_token(tmp_path, frame):
     out = tmp_path / "out.exr"
     with uvicorn_server(create_app(settings(token="farm-token"))) as url:
+        with httpx.Client(base_url=url, timeout=60) as probe:  # warm-up (OIDN, numba kernels) can outlast
+            wait_ready(probe)                                   # the client's retries on a loaded machine
         assert main(["client", str(frame), "-o", str(out), "--url", url, "--token", "farm-token",
                      "--method", "l2", "--layers", "all", "--format", "half"]) == 0
         with pytest.raises(CommandError, match="401 unauthorized"):
