@@ -144,11 +144,10 @@ def test_valid_exr_bodies_with_nan_or_inf_get_the_documented_422(live_schema) ->
     check()
 
 
-@pytest.mark.xfail(strict=False, reason="issue 15 (branch serve): alpha=1e-200 is schema-valid but its square "
-                   "underflows to 0; today the answer is a black image with a warning header")
 def test_schema_valid_tiny_alpha_is_rejected_or_exact(live_schema) -> None:
+    """alpha=1e-200 (its square underflows to 0): a 422 naming the range, or the exact answer -- never black."""
     frame = frame_channels(("direct",), 4, 5, 7)
-    with httpx.Client(base_url=str(live_schema.base_url)) as client:
+    with httpx.Client(base_url=live_schema.get_base_url()) as client:
         response = client.post("/v1/reconstruct", params={"alpha": 1e-200, "method": "l2"},
                                content=channels_bytes(frame), headers={"content-type": "image/x-exr"})
     if response.status_code != 422:
