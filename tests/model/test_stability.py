@@ -54,25 +54,22 @@ class Tolerance:
 TOLERANCES = {"l1": Tolerance(1e-6, 1e-6, 1e-5), "l2": Tolerance(1e-6, 1e-6, 1e-5)}
 LEARNED = Tolerance(0.05, 0.05, 0.5)  # network, oidn, fused and any method added later that is not a solver
 
-# The decades each method must handle. The network's transform compresses bright frames (5 % of the energy lost
-# at 1e2, 15 % at 1e3, 84 % at 1e6: clamped at 65504) and adds a small absolute offset at the dark end (6 % at
-# 1e-2, x2 at 1e-4): the per-layer exposure normalisation of issue 15 (branch `serve`) fixes both; until it lands
-# those decades are expected failures (not strict: they pass once the fix is in).
+# The decades every method must handle: 1e-8 .. 1e9 (the Poisson solvers are linear, oidn scales the exposure
+# exactly, network and fused normalise the exposure per layer: model/infer.py, model/preprocess.py).
 DECADES = range(-8, 10)
-LEARNED_DECADES = range(-8, 7)
-FULL_RANGE = (*POISSON, "oidn")  # oidn scales the exposure exactly (model/oidn.py): held to 1e9 as well
-NETWORK_HDR = "network HDR range: energy lost above 1e1, clamp at 65504 (issue 15, branch serve)"
-NETWORK_DARK = ("network adds an absolute offset of ~1e-4: frames darker than 1e-1 come back >5 % brighter "
-                "(exposure normalisation, issue 15)")
+
+
+#: Decades where the shipped network's own energy bias exceeds the 5 % tolerance (measured 2026-12-01: 6.0 % at
+#: 1e-2, 5.3 % at 1e2, 14.6 % at 1e3). They lie inside the exposure range model/infer.py leaves unscaled (so that
+#: ordinary frames give bit-identical results); outside it (1e-8, 1e4..1e9) the scaling brings the layer back to
+#: where the models keep energy within 1 %. Strict: a model or scaling change that fixes a decade must drop it here.
+NETWORK_BIASED_DECADES = (-2, 2, 3)
 
 
 def _network_xfail(method: str, decade: int) -> str | None:
-    if method != "network":
-        return None
-    if decade > 1:
-        return NETWORK_HDR
-    if decade < -1:
-        return NETWORK_DARK
+    if method == "network" and decade in NETWORK_BIASED_DECADES:
+        return ("the shipped network's energy bias at this exposure exceeds 5 % (inside the unscaled exposure "
+                "range of model/infer.py)")
     return None
 
 
@@ -167,9 +164,9 @@ def _noisy(h: int, w: int, seed: int, scale: float = 1.0) -> tuple[np.ndarray, .
 def _method_decades() -> list:
     params = []
     for method in METHODS:
-        for decade in DECADES if method in FULL_RANGE else LEARNED_DECADES:
+        for decade in DECADES:
             reason = _network_xfail(method, decade)
-            marks = [pytest.mark.xfail(reason=reason, strict=False)] if reason else []
+            marks = [pytest.mark.xfail(reason=reason, strict=True)] if reason else []
             params.append(pytest.param(method, decade, marks=marks, id=f"{method}-1e{decade}"))
     return params
 
