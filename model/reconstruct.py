@@ -36,6 +36,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from model import policy
 from model.frame import Features, Frame, FrameError, Layer, read_frame, rgb_channels, write_exr
 from model.poisson import DEFAULT_ALPHA, solve_l1, solve_l2
 from model.policy import DEFAULT_PREFERENCE, GRADIENT_METHODS, METHODS, MODEL_METHODS
@@ -127,16 +128,17 @@ def available_methods(frame: Frame, network: NetworkLike | None = None, fused: N
         usable |= {"l1", "l2"}
         usable |= {"network"} if _serves(network, frame) else set()
         usable |= {"fused"} if _serves(fused, frame) else set()
-    order = [*DEFAULT_PREFERENCE, *(m for m in METHODS if m not in DEFAULT_PREFERENCE)]
+    preference = policy.DEFAULT_PREFERENCE  # read at call time: the policy module is the one place to change it
+    order = [*preference, *(m for m in METHODS if m not in preference)]
     return [m for m in order if m in usable]
 
 
 def choose_method(frame: Frame, network: NetworkLike | None = None, fused: NetworkLike | None = None) -> str:
-    """The default method for this frame: the first of DEFAULT_PREFERENCE that can serve it.
+    """The default method for this frame: the first of model.policy.DEFAULT_PREFERENCE that can serve it.
 
-    With gradients, features and models for every layer: ``fused``; a gradient-free frame: ``oidn``; a frame
-    that the loaded models do not cover still gets an answer (``oidn``, else ``l1``). Raises ChannelError for a
-    gradient-free frame on a host without OIDN (nothing can serve it).
+    As shipped: ``oidn`` whenever pyoidn is installed (for a plain frame and a G-PT frame alike), else
+    ``network`` when its models cover the frame's layers and it has features, else ``l1``. Raises ChannelError
+    for a gradient-free frame on a host without OIDN (nothing can serve it).
     """
     usable = available_methods(frame, network, fused)
     if not usable:

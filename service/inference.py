@@ -236,9 +236,9 @@ class Engine:
     @property
     def default_method(self) -> str:
         """The default for a gradient-domain frame with features (the first of DEFAULT_PREFERENCE served)."""
-        from model.policy import DEFAULT_PREFERENCE
+        from model import policy
 
-        return next(m for m in (*DEFAULT_PREFERENCE, "l1") if m in self.methods)
+        return next(m for m in (*policy.DEFAULT_PREFERENCE, "l1") if m in self.methods)
 
     @property
     def default_method_plain(self) -> str | None:

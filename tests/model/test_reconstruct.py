@@ -134,12 +134,16 @@ def test_network_refuses_layers_it_has_no_model_for() -> None:
 def test_default_method_is_the_first_preferred_method_that_serves_the_frame(monkeypatch) -> None:
     network, fused = HalfBase(), HalfBase()
     network.layers = fused.layers = {"direct", "indirect"}
-    assert choose_method(_frame(), network, fused) == "fused"
+    assert choose_method(_frame(), network, fused) == "oidn"  # ranked first by the evaluation (model/policy.py)
     assert choose_method(_frame(), network) == "oidn"  # OIDN (installed here) ranks above the network
     assert choose_method(_frame(features=False), network, fused) == "oidn"
     fused.layers = {"direct"}  # fused models that do not cover the frame are passed over
     assert choose_method(_frame(), network, fused) == "oidn"
     assert reconstruct(_frame(), network=network, fused=fused).method == "oidn"
+    monkeypatch.setattr("model.policy.DEFAULT_PREFERENCE", ("fused", "oidn", "network", "l1"))
+    fused.layers = {"direct", "indirect"}
+    assert choose_method(_frame(), network, fused) == "fused"  # the order is data: a policy change is one line
+    monkeypatch.undo()
     monkeypatch.setattr("model.oidn.available", lambda: False)  # a host without pyoidn
     assert choose_method(_frame(), network) == "network"
     network.layers = {"direct"}

@@ -193,7 +193,7 @@ def test_loaded_network_becomes_the_default_method_without_oidn(serve, monkeypat
         assert unserved.status_code == 422 and "color" in unserved.json()["error"]["message"]
 
 
-def test_fused_models_make_fused_the_default_and_plain_frames_get_oidn(serve, monkeypatch):
+def test_fused_models_are_served_and_the_policy_order_picks_the_default(serve, monkeypatch):
     fused = FakeNetwork()
     monkeypatch.setattr(service.inference, "load_fused", lambda models_dir: fused)
     calls: list[str] = []
@@ -211,9 +211,14 @@ def test_fused_models_make_fused_the_default_and_plain_frames_get_oidn(serve, mo
     with serve(create_app(settings(warm_up=False))) as client:
         ready = client.get("/readyz").json()
         assert ready["methods"] == ["l1", "l2", "oidn", "fused"]
-        assert ready["default_method"] == "fused" and ready["default_method_plain"] == "oidn"
+        assert ready["default_method"] == "oidn" and ready["default_method_plain"] == "oidn"  # model/policy.py
         models = client.get("/v1/models").json()
-        assert models["default_method"] == "fused" and models["models"][0]["method"] == "fused"
+        assert models["default_method"] == "oidn" and models["models"][0]["method"] == "fused"
+        assert post(client, frame_bytes(seed=9, features=True)).headers["x-reconstruction-method"] == "oidn"
+        assert post(client, frame_bytes(seed=9, features=True), {"method": "fused"}).headers[
+            "x-reconstruction-method"] == "fused"
+        monkeypatch.setattr("model.policy.DEFAULT_PREFERENCE", ("fused", "oidn", "network", "l1"))
+        assert client.get("/readyz").json()["default_method"] == "fused"  # one line of policy changes it
         assert post(client, frame_bytes(seed=9, features=True)).headers["x-reconstruction-method"] == "fused"
         plain = post(client, frame_bytes(seed=9, features=True, gradients=False))
         assert plain.status_code == 200 and plain.headers["x-reconstruction-method"] == "oidn"
