@@ -42,7 +42,9 @@ _F32_MAX = float(np.finfo(np.float32).max)
 #: trained around that), by a power of two so the scaling itself is exact.
 _TARGET_MEAN = 1.0
 #: OIDN's U-Net loses energy on images a few pixels across (a constant 1×1 image comes back at 23 %, 2×2 at
-#: 92 %, measured): smaller images are mirror-padded to this many pixels per side and cropped back.
+#: 92 %, measured): smaller images are mirror-padded to this many pixels per side and cropped back, and their
+#: colour output is rescaled per channel to the input's mean (a coloured 1×1 pixel still moved by 5-16 % after
+#: padding: with no neighbours there is nothing to denoise it with, and the frame's energy is what is kept).
 MIN_SIDE = 16
 
 
@@ -167,7 +169,10 @@ class Denoiser:
             out = self._run("color", images, np.empty_like(radiance),
                             {"hdr": True, "cleanAux": aux is not None}, scale=scale)
         np.nan_to_num(out, copy=False, nan=0.0, posinf=_F32_MAX, neginf=0.0)
-        return np.clip(out, 0.0, _F32_MAX, out=out)
+        np.clip(out, 0.0, _F32_MAX, out=out)
+        if min(radiance.shape[:2]) < MIN_SIDE:
+            _match_channel_means(out, radiance)
+        return out
 
     def close(self) -> None:
         with self._lock:
@@ -175,6 +180,17 @@ class Denoiser:
                 flt.release()
             self._filters.clear()
             self._device.release()
+
+
+def _match_channel_means(out: np.ndarray, source: np.ndarray) -> None:
+    """Rescale each colour channel of ``out`` in place so its mean equals ``source``'s (float64 statistics)."""
+    for c in range(out.shape[-1]):
+        want = float(np.mean(source[..., c], dtype=np.float64))
+        got = float(np.mean(out[..., c], dtype=np.float64))
+        if got > 0.0 and math.isfinite(want / got):
+            out[..., c] = np.clip(out[..., c].astype(np.float64) * (want / got), 0.0, _F32_MAX)
+        else:
+            out[..., c] = source[..., c]
 
 
 _shared: Denoiser | None = None

@@ -383,14 +383,15 @@ def test_rerun_computes_only_what_changed(first_run, monkeypatch):
 
 def test_references_are_raised_additively_until_the_floor_criterion_holds(first_run):
     """A higher cap: the references grow from the cached 16-spp passes (only the new passes are rendered), and
-    stop at the cap when the floor stays over 10 % of the smallest error (a 32×32 frame at 1-2 spp is close to
-    a 16-spp reference, so the floor criterion cannot hold there: the report must warn)."""
+    stop at the cap when the floor stays over 10 % of the smallest error, with the report's warning. A 32×32
+    frame at 1-2 spp is near the boundary (the floor of two 16-spp references is ~1/8 of a 2-spp error): when the
+    criterion already holds at 16 spp nothing is rendered, and that is checked too."""
     root, _ = first_run
     config = EvalConfig(**{**_config(root, output="report-raise").__dict__, "methods": ("gpt-primal",),
                            "ref_spp_cap": 64})
     evaluation = run_evaluation(config, progress=False, log=lambda message: None)
     scene = evaluation.scenes[0]
-    assert scene.reference_spp in (32, 64)
+    assert scene.reference_spp in (16, 32, 64)
     assert evaluation.computed["references"] == 2 * (scene.reference_spp // 16) - 2  # passes 0 and 1 re-used
     text = (root / "report-raise" / "report.md").read_text()
     if scene.capped:

@@ -29,7 +29,7 @@ import pytest
 
 import model.reconstruct as reconstruct_module
 from model.frame import Features, Frame, Layer, NonFiniteError, forward_differences, layer_channels, read_frame
-from model.poisson import energy_l1, solve_l1, solve_l2
+from model.poisson import MIN_ALPHA, energy_l1, solve_l1, solve_l2
 from model.reconstruct import METHODS, reconstruct
 
 REPO = Path(__file__).resolve().parents[2]
@@ -283,21 +283,24 @@ def test_alpha_sweep_noisy_data_optimal_energy_kept_irls_converges(size: tuple[i
         assert abs(l1.astype(np.float64).mean() / base.astype(np.float64).mean() - 1) <= 0.02
 
 
-@pytest.mark.parametrize("alpha", [
-    1e-10,
-    *(pytest.param(a, marks=pytest.mark.xfail(strict=False, reason=(
-        "L1 at tiny alpha: CG's constant mode has eigenvalue ~alpha^2, so float rounding in the divergence's "
-        "(analytically zero) mean is amplified ~eps/alpha^2; L2 pins that coefficient exactly, IRLS does not. "
-        "The service accepts any alpha > 0 (issue 15 reviews the range)"))) for a in (1e-14, 1e-20, 1e-39)),
-])
 @pytest.mark.parametrize("size", [(1, 3), (8, 8)])
-def test_l1_exact_data_at_tiny_alpha(size: tuple[int, int], alpha: float) -> None:
-    """Exact float32 frame data (gradients rounded to float32, as a renderer writes them) at α far below the
-    property tests' 1e-6: the answer must still be the image. Measured: 1e-12 of the peak at 1e-10, 1e-6 at
-    1e-12, 3e7x the peak at 1e-20 on a 1x3 frame."""
+def test_l1_exact_data_at_the_smallest_alpha(size: tuple[int, int]) -> None:
+    """Exact float32 frame data (gradients rounded to float32, as a renderer writes them) at the smallest accepted
+    α (MIN_ALPHA = 1e-8, far below the property tests' 1e-6): the answer must still be the image."""
     image = _smooth(*size, seed=1).astype(np.float32)
-    got, _ = solve_l1(image, *forward_differences(image), alpha, dtype=np.float64)
+    got, _ = solve_l1(image, *forward_differences(image), MIN_ALPHA, dtype=np.float64)
     assert np.abs(got - image).max() <= 1e-6 * image.max()
+
+
+@pytest.mark.parametrize("alpha", [1e-10, 1e-14, 1e-20, 1e-39, 1e-200])
+@pytest.mark.parametrize("method", POISSON)
+def test_alpha_below_the_range_is_refused_not_answered_wrongly(method: str, alpha: float) -> None:
+    """Below MIN_ALPHA the base's weight α² underflows (L1 amplified float rounding in the mean ~eps/α²: 3e7x the
+    peak at 1e-20, measured): a clear error naming the range, never a black or wrong image."""
+    image = _smooth(8, 8, seed=1).astype(np.float32)
+    solve = solve_l1 if method == "l1" else solve_l2
+    with pytest.raises(ValueError, match="alpha must be at least"):
+        solve(image, *forward_differences(image), alpha)
 
 
 @pytest.mark.parametrize("where", ["base", "dx", "dy"])
