@@ -305,7 +305,8 @@ def _table1(evaluation: Evaluation, spp: int) -> list[str]:
              "In the form of the paper's Table 1 (which reports SSIM and LPIPS; LPIPS is not computed here, "
              "RelMSE, HDR-FLIP and PSNR are), with the strongest baselines added below the paper's four rows: OIDN "
              "on each layer of the same G-PT frame, the fused network, and the two OIDN baselines at equal time "
-             "(the time of this G-PT frame + ours). Best per scene in bold. SSIM and PSNR on the display tonemap "
+             "(the time of this G-PT frame + the budget method: fused, else ours). Best per scene in bold. "
+             "SSIM and PSNR on the display tonemap "
              "against the mean of the two references, RelMSE on linear radiance with the reference noise removed "
              "(model/metrics.py).", "",
              "| Scene | Method | " + " | ".join(h for _, h, _ in TABLE1_METRICS) + " |",
@@ -396,11 +397,11 @@ def time_misses(rows: Sequence[Mapping[str, Any]]) -> list[str]:
 
 
 def _equal_time(evaluation: Evaluation) -> list[str]:
-    lines = ["## Equal time: G-PT + ours against Mitsuba path, path + OIDN and separated path + OIDN", "",
+    lines = ["## Equal time: G-PT + reconstruction against Mitsuba path, path + OIDN and separated path + OIDN", "",
              "Each equal-time method's spp is bisected until its measured total time (render, feature pass and "
-             "denoising) is within ±5 % of the time of the G-PT render + the reconstruction by ours (by L1 when "
-             "ours is unavailable; column *budget*); the times shown are the measured ones. path + OIDN gets "
-             "its albedo and normal from a separate feature pass (Mitsuba `aov`, spp in results.csv "
+             "denoising) is within ±5 % of the time of the G-PT render + the reconstruction by fused (by ours, "
+             "then L1, when it is unavailable; column *budget*); the times shown are the measured ones. "
+             "path + OIDN gets its albedo and normal from a separate feature pass (Mitsuba `aov`, spp in results.csv "
              "`feature_spp`) whose time is counted; separated path + OIDN is the renderer's primal-only mode "
              "(direct and indirect apart, first-hit features, no gradients) with OIDN on each layer. "
              "Cells: spp / seconds / RelMSE; lowest RelMSE per row in bold.", "",

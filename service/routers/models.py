@@ -23,8 +23,8 @@ class Limits(BaseModel):
 class ModelsInfo(BaseModel):
     state: str = Field(description="loading, ready or failed")
     default_method: str = Field(description="the method used when a request names none, for a gradient-domain "
-                                            "frame with features (a frame the models do not cover gets the "
-                                            "next served method of fused > oidn > network > l1)")
+                                            "frame with features (the first served of model/policy.py's "
+                                            "DEFAULT_PREFERENCE; a frame the models do not cover gets the next)")
     default_method_plain: str | None = Field(description="the method for a plain frame without gradients")
     methods: list[str] = Field(description="methods this replica serves: l1, l2 always; network and fused when "
                                            "their models are loaded; oidn and fused when pyoidn is installed")

@@ -23,6 +23,7 @@ from starlette.responses import Response
 
 from model.frame import HeaderInfo, NotExrError, Source, read_header
 from model.poisson import MIN_ALPHA
+from model.policy import DEFAULT_PREFERENCE
 from service.dependencies import get_engine, get_metrics
 from service.errors import ErrorResponse, ServiceError
 from service.inference import Engine, ReconstructParams, run_pipeline, server_timing
@@ -80,9 +81,9 @@ async def reconstruct_frame(
     engine: Annotated[Engine, Depends(get_engine)],
     metrics: Annotated[ServiceMetrics, Depends(get_metrics)],
     method: Annotated[Literal["network", "l1", "l2", "oidn", "fused"] | None, Query(
-        description="reconstruction method; default: the best this replica serves for the frame -- fused "
-                    "(gradients, features and fused models) > oidn > network > l1; a plain frame without "
-                    "gradients gets oidn")] = None,
+        description="reconstruction method; default: the first of " + " > ".join(DEFAULT_PREFERENCE)
+                    + " (model/policy.py) that this replica serves for the frame; a plain frame without gradients "
+                    "gets oidn")] = None,
     alpha: Annotated[float | None, Query(
         ge=MIN_ALPHA, le=1000, allow_inf_nan=False,
         description=f"screened Poisson data weight (l1/l2), in [{MIN_ALPHA:g}, 1000]")] = None,
