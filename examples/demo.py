@@ -19,7 +19,7 @@ import numpy as np
 
 from model.frame import read_frame
 from model.metrics import psnr, relmse
-from model.reconstruct import load_network, reconstruct
+from model.reconstruct import available_methods, load_fused, load_network, reconstruct
 from renderer.reference import load_reference
 
 HERE = Path(__file__).resolve().parent
@@ -29,22 +29,24 @@ ROOT = HERE.parent
 def main() -> int:
     frame = read_frame(HERE / "cbox-16spp.exr")
     reference = load_reference(HERE / "cbox-reference.exr").total
-    network = load_network(ROOT / "models")
+    network, fused = load_network(ROOT / "models"), load_fused(ROOT / "models")
     print(f"example: {frame.width}x{frame.height} frame, layers {', '.join(frame.layers)}, "
           f"{frame.metadata.get('gradsep.spp', '?')} spp; reference {reference.shape[1]}x{reference.shape[0]}")
     print(f"{'method':<10} {'RelMSE':>9} {'PSNR dB':>8} {'seconds':>8}")
     primal = frame.combined().base
     print(f"{'input':<10} {relmse(primal, reference):9.4f} {psnr(primal, reference):8.2f} {'-':>8}")
-    methods = ["l2", "l1"] + (["network"] if network is not None and set(frame.layers) <= network.layers else [])
+    methods = sorted(available_methods(frame, network, fused), key=["l2", "l1", "network", "oidn", "fused"].index)
     for method in methods:
         start = time.perf_counter()
-        result = reconstruct(frame, method, network=network if method == "network" else None)
+        result = reconstruct(frame, method, network=network, fused=fused)
         seconds = time.perf_counter() - start
         image = result.image
         assert np.isfinite(image).all()
         print(f"{method:<10} {relmse(image, reference):9.4f} {psnr(image, reference):8.2f} {seconds:8.2f}")
     if "network" not in methods:
-        print("(no network models in models/ serve this frame; only the Poisson baselines ran)")
+        print("(no network models in models/ serve this frame; they did not run)")
+    if "oidn" not in methods:
+        print("(pyoidn is not installed: oidn and fused did not run)")
     return 0
 
 
