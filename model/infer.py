@@ -24,7 +24,6 @@ import json
 import logging
 import os
 import time
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -518,10 +517,3 @@ def _check_inputs(layer: Layer, features: Features | None) -> tuple[int, int]:
         raise ChannelError("inconsistent channel shapes: " + "; ".join(bad), [b.split()[0] for b in bad])
     return int(h), int(w)
 
-
-def iter_model_files(models_dir: str | os.PathLike[str]) -> Iterator[Path]:
-    """The model files ``load`` would open, in order (for tools that only need to know what is there)."""
-    folder = Path(models_dir)
-    for name in MODEL_LAYERS:
-        if (folder / f"{name}.onnx").is_file():
-            yield folder / f"{name}.onnx"

@@ -205,11 +205,6 @@ def _glossy(flags: mi.UInt32) -> mi.Bool:
     return mi.has_flag(flags, mi.BSDFFlags.Glossy) & ~mi.has_flag(flags, mi.BSDFFlags.Diffuse)
 
 
-def _flags(si: mi.SurfaceInteraction3f) -> mi.UInt32:
-    """BSDF flags at ``si``, 0 where there is no surface (the ray left the scene)."""
-    return dr.select(si.is_valid(), si.bsdf().flags(), 0)
-
-
 def _scene_has(scene: mi.Scene, kind: Callable[[int], bool], flat_ok: bool = True) -> bool:
     """Whether any shape's BSDF flags satisfy ``kind`` (instances and shapes without a BSDF count as "maybe");
     ``flat_ok`` False skips rectangles and disks (shapes that cannot be curved)."""

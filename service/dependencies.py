@@ -6,7 +6,6 @@ from fastapi import Request
 
 from service.inference import Engine
 from service.metrics import ServiceMetrics
-from service.settings import Settings
 
 
 def get_engine(request: Request) -> Engine:
@@ -16,6 +15,3 @@ def get_engine(request: Request) -> Engine:
 def get_metrics(request: Request) -> ServiceMetrics:
     return request.app.state.metrics
 
-
-def get_settings(request: Request) -> Settings:
-    return request.app.state.settings
