@@ -18,7 +18,6 @@ not bit-identical with, untiled output; windows are large (1 Mpx cores) to keep 
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import json
 import logging
@@ -42,10 +41,11 @@ from model.preprocess import (
     feature_planes,
     layer_planes,
     network_inputs,
+    oidn_prior_inputs,
     output_radiance,
     pad_to_alignment,
     poisson_prior,
-    prior_exposure,
+    scaled_image,
     scaled_layer,
     unlit_pixels,
 )
@@ -404,8 +404,8 @@ class NetworkReconstructor:
         if self.models[name].prior != "oidn":
             exposure = exposure_scale(layer)
             if exposure != 1.0:  # the scaled layer's own scale is 1 (tested), so this recurses exactly once
-                scaled = self.reconstruct_layer(name, scale_layer(layer, 1.0 / exposure), features, aux)
-                return rescale(scaled, exposure)
+                scaled = self.reconstruct_layer(name, scaled_layer(layer, 1.0 / exposure), features, aux)
+                return scaled_image(scaled, exposure)
         assert features is not None  # _check_inputs raised otherwise
         model = self.models[name]
         unlit = unlit_pixels(layer)
@@ -413,12 +413,8 @@ class NetworkReconstructor:
         if model.prior == "oidn":  # fused: refine OIDN's denoise at a normalised exposure
             from model.oidn import shared_denoiser
 
-            denoiser = shared_denoiser()
-            aux = aux if aux is not None else denoiser.prefilter(features)
-            prior = denoiser.denoise(layer.base, aux)
-            scale = prior_exposure(prior)
-            layer = scaled_layer(layer, scale)
-            prior = (prior.astype(np.float64) * scale).astype(np.float32)
+            aux = aux if aux is not None else shared_denoiser().prefilter(features)
+            layer, prior, scale = oidn_prior_inputs(layer, aux)
         else:
             prior = poisson_prior(layer)                 # a global solve: once per layer, cropped per window
         plans = plan_tiles(height, width, self.tiles, model.alignment)
@@ -437,9 +433,7 @@ class NetworkReconstructor:
                 weight[y0:y1, x0:x1] += w[..., None]
             result = total / weight
         result[unlit] = 0.0             # no measured light: nothing to reconstruct
-        if scale != 1.0:
-            result = np.clip(result.astype(np.float64) / scale, 0.0, np.finfo(np.float32).max).astype(np.float32)
-        return result
+        return scaled_image(result, 1.0 / scale) if scale != 1.0 else result
 
     @staticmethod
     def _run_window(model: LoadedModel, layer: Layer, features: Features, depth_range: DepthRange,
@@ -459,7 +453,6 @@ class NetworkReconstructor:
 #: Inside [EXPOSURE_MIN, EXPOSURE_MAX] a layer runs as it is; outside, it is scaled so the level lands near 1.
 EXPOSURE_MIN = 2.0**-8
 EXPOSURE_MAX = 2.0**11
-_F32_MAX = float(np.finfo(np.float32).max)
 
 
 def exposure_level(layer: Layer) -> float:
@@ -481,21 +474,6 @@ def exposure_scale(layer: Layer) -> float:
     if level <= 0.0 or EXPOSURE_MIN <= level <= EXPOSURE_MAX:
         return 1.0
     return float(2.0 ** round(np.log2(level)))
-
-
-def scale_layer(layer: Layer, factor: float) -> Layer:
-    """The layer with base and gradients multiplied by ``factor`` (absent gradients stay absent)."""
-    f = np.float32(factor)
-    scaled = {k: (None if getattr(layer, k) is None else np.asarray(getattr(layer, k), np.float32) * f)
-              for k in ("base", "dx", "dy")}
-    return dataclasses.replace(layer, **scaled)
-
-
-def rescale(image: np.ndarray, factor: float) -> np.ndarray:
-    """image × factor, clipped to float32's range so a 1e38 layer still returns finite values."""
-    with np.errstate(over="ignore"):
-        out = image * np.float32(factor)
-    return np.minimum(out, np.float32(_F32_MAX), out=out)
 
 
 def _check_inputs(layer: Layer, features: Features | None) -> tuple[int, int]:

@@ -237,18 +237,34 @@ def prior_exposure(prior: np.ndarray) -> float:
     return min(FUSED_MEAN / mean, RADIANCE_MAX / FUSED_PEAK_MARGIN / peak)
 
 
+_F32_MAX = float(np.finfo(np.float32).max)
+
+
+def scaled_image(image: np.ndarray, scale: float) -> np.ndarray:
+    """float32 ``image × scale``, the product taken in float64 and rounded once (exact for a power of two) and
+    clipped to float32's range, so a scale near either end of it never overflows to ±Inf."""
+    return np.clip(np.asarray(image, np.float64) * scale, -_F32_MAX, _F32_MAX).astype(np.float32)
+
+
 def scaled_layer(layer: Layer, scale: float) -> Layer:
-    """The layer with base and gradients multiplied by ``scale`` (float32, computed in float64 then rounded, so
-    a scale near the float32 range's ends does not overflow halfway)."""
+    """The layer with base and gradients multiplied by ``scale`` (absent gradients stay absent)."""
     from model.frame import Layer
 
     def mul(x: np.ndarray | None) -> np.ndarray | None:
-        if x is None:
-            return None
-        out = np.asarray(x, np.float64) * scale
-        return np.clip(out, -RADIANCE_MAX * 1e30, RADIANCE_MAX * 1e30).astype(np.float32)
+        return None if x is None else scaled_image(x, scale)
 
     return Layer(mul(layer.base), mul(layer.dx), mul(layer.dy))  # type: ignore[arg-type]
+
+
+def oidn_prior_inputs(layer: Layer, aux: Any) -> tuple[Layer, np.ndarray, float]:
+    """What a ``fused`` model (prior ``oidn``) sees, for training and inference alike: (the layer at the
+    normalised exposure, OIDN's denoise of its base at that exposure, the scale s). ``aux`` is the frame's
+    prefiltered features (model.oidn.Denoiser.prefilter)."""
+    from model.oidn import shared_denoiser
+
+    prior = shared_denoiser().denoise(layer.base, aux)
+    scale = prior_exposure(prior)
+    return scaled_layer(layer, scale), scaled_image(prior, scale), scale
 
 
 def unlit_pixels(layer: Layer) -> np.ndarray:

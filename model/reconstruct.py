@@ -39,10 +39,9 @@ import numpy as np
 from model import policy
 from model.frame import Features, Frame, FrameError, Layer, read_frame, rgb_channels, write_exr
 from model.poisson import DEFAULT_ALPHA, solve_l1, solve_l2
-from model.policy import DEFAULT_PREFERENCE, GRADIENT_METHODS, METHODS, MODEL_METHODS
+from model.policy import GRADIENT_METHODS, METHODS, MODEL_METHODS
 
 __all__ = [
-    "DEFAULT_PREFERENCE",
     "METHODS",
     "NetworkLike",
     "Reconstruction",
@@ -118,7 +117,7 @@ def _serves(models: NetworkLike | None, frame: Frame) -> bool:
 
 def available_methods(frame: Frame, network: NetworkLike | None = None, fused: NetworkLike | None = None,
                       oidn: bool | None = None) -> list[str]:
-    """The methods that can serve this frame, in DEFAULT_PREFERENCE order first, then the rest of METHODS."""
+    """The methods that can serve this frame: model.policy.DEFAULT_PREFERENCE order, then the rest of METHODS."""
     if oidn is None:
         from model.oidn import available
 

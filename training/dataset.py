@@ -40,7 +40,7 @@ from model.preprocess import (
     feature_planes,
     layer_planes,
     measured_planes,
-    prior_exposure,
+    oidn_prior_inputs,
     scaled_layer,
 )
 
@@ -188,16 +188,6 @@ def build_cache(manifest: Manifest, layer: str, cache_dir: Path,
     return paths, warnings
 
 
-def _fused_inputs(chosen: Layer, features: Any) -> tuple[Layer, np.ndarray, float]:
-    """(layer at the normalised exposure, OIDN prior at it, the scale): exactly what inference computes."""
-    from model.oidn import shared_denoiser
-
-    denoiser = shared_denoiser()
-    prior = denoiser.denoise(chosen.base, denoiser.prefilter(features))
-    scale = prior_exposure(prior)
-    return scaled_layer(chosen, scale), (prior.astype(np.float64) * scale).astype(np.float32), scale
-
-
 def _write_cache_file(entry: FrameEntry, layer: str, target: Path, meta_path: Path, key: dict[str, Any],
                       prior: str = "l1") -> str:
     """Write one cache file atomically; return why the frame is unusable, or "" on success."""
@@ -212,7 +202,9 @@ def _write_cache_file(entry: FrameEntry, layer: str, target: Path, meta_path: Pa
         return "no feature channels"
     scale = 1.0
     if prior == "oidn":
-        chosen, prior_image, scale = _fused_inputs(chosen, frame.features)
+        from model.oidn import shared_denoiser
+
+        chosen, prior_image, scale = oidn_prior_inputs(chosen, shared_denoiser().prefilter(frame.features))
         planes_in = layer_planes(chosen, prior=prior_image)
     else:
         planes_in = layer_planes(chosen)

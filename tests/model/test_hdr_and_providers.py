@@ -24,9 +24,9 @@ from model.infer import (
     choose_provider,
     cpu_flags,
     exposure_scale,
-    scale_layer,
 )
 from model.metrics import relmse
+from model.preprocess import scaled_layer
 from model.reconstruct import reconstruct
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -53,7 +53,7 @@ def network() -> NetworkReconstructor:
 
 
 def _scaled(frame: Frame, k: float) -> Frame:
-    return Frame({n: scale_layer(layer, k) for n, layer in frame.layers.items()}, frame.features)
+    return Frame({n: scaled_layer(layer, k) for n, layer in frame.layers.items()}, frame.features)
 
 
 # ------------------------------------------------------------------------------------------- exposure scaling
@@ -63,10 +63,10 @@ def test_ordinary_layers_are_not_scaled_and_scaled_ones_land_inside(frame: Frame
     for layer in frame.layers.values():
         assert exposure_scale(layer) == 1.0  # the example frame is inside the trained range
         for k in (1e-8, 1e-5, 1e4, 1e6, 1e9, 1e30):
-            s = exposure_scale(scale_layer(layer, k))
+            s = exposure_scale(scaled_layer(layer, k))
             assert s != 1.0 and np.log2(s) == round(np.log2(s))  # a power of two: exact scaling
-            assert exposure_scale(scale_layer(scale_layer(layer, k), 1.0 / s)) == 1.0  # one recursion only
-    black = scale_layer(next(iter(frame.layers.values())), 0.0)
+            assert exposure_scale(scaled_layer(scaled_layer(layer, k), 1.0 / s)) == 1.0  # one recursion only
+    black = scaled_layer(next(iter(frame.layers.values())), 0.0)
     assert exposure_scale(black) == 1.0
     assert EXPOSURE_MIN < 1.0 < EXPOSURE_MAX
 
@@ -75,13 +75,13 @@ def test_ordinary_layers_are_not_scaled_and_scaled_ones_land_inside(frame: Frame
 def test_ordinary_frames_take_the_unscaled_path(frame: Frame, network: NetworkReconstructor,
                                                monkeypatch: pytest.MonkeyPatch) -> None:
     """Ordinary frames must give bit-identical output to the code before exposure scaling: the scaled path
-    (scale_layer) is never entered for them."""
+    (scaled_layer) is never entered for them."""
     import model.infer
 
     def refuse(*args: object) -> None:
         raise AssertionError("an ordinary layer was rescaled")
 
-    monkeypatch.setattr(model.infer, "scale_layer", refuse)
+    monkeypatch.setattr(model.infer, "scaled_layer", refuse)
     for name, layer in frame.layers.items():
         assert np.isfinite(network.reconstruct_layer(name, layer, frame.features)).all()
 
