@@ -17,33 +17,26 @@ from gradsep.cli import CommandError, main  # noqa: E402
 from model.frame import read_frame, write_frame  # noqa: E402
 from renderer.gpt import GptSettings, render_gpt  # noqa: E402
 from renderer.render import parse_layers, render_frame  # noqa: E402
-from renderer.scene import load_scene, select_variant  # noqa: E402
+from renderer.scene import load_scene  # noqa: E402
 from renderer.shift import ReplayShift  # noqa: E402
 from tests.renderer.scenes import resolve  # noqa: E402
-from tests.renderer.test_gpt import Z_MAX, open_scene_dict, two_sample_z, z_against_reference  # noqa: E402
+from tests.renderer.test_gpt import (  # noqa: E402  the G-PT tests' scenes, loaded once per worker
+    SCENE_DEPTHS,
+    SIZE,
+    Z_MAX,
+    two_sample_z,
+    z_against_reference,
+)
+from tests.renderer.test_gpt import load_test_scene as scene_of  # noqa: E402
 
 pytestmark = pytest.mark.render
 
 CBOX = str(resolve("cbox"))
 TEAPOT = str(resolve("teapot"))
-SIZE = 24
 SEEDS = 16
 SPP = 8
 REF_CHUNKS = 8
 REF_SPP = 512
-SCENE_DEPTHS = {"cbox": 6, "teapot": 4, "sky": 4}
-_scenes: dict[str, object] = {}
-
-
-def scene_of(name: str):
-    if name not in _scenes:
-        if name == "sky":
-            select_variant()
-            _scenes[name] = mi.load_dict(open_scene_dict())
-        else:
-            spec = CBOX if name == "cbox" else TEAPOT
-            _scenes[name] = load_scene(spec, width=SIZE, height=SIZE, max_depth=SCENE_DEPTHS[name]).scene
-    return _scenes[name]
 
 
 def path_render(scene, spp: int, seed: int, max_depth: int) -> np.ndarray:
