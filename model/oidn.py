@@ -67,7 +67,7 @@ def _finite(x: np.ndarray, lo: float, hi: float) -> np.ndarray:
     return np.clip(out, lo, hi, out=out)
 
 
-def exposure_scale(image: np.ndarray) -> float:
+def input_scale(image: np.ndarray) -> float:
     """s such that mean(image * s) is 1 (exactly the reciprocal, so scaled frames denoise alike); 1.0 if black."""
     mean = float(np.mean(image, dtype=np.float64)) if image.size else 0.0
     if not (math.isfinite(mean) and mean > 0.0):
@@ -157,7 +157,7 @@ class Denoiser:
     def denoise(self, color: np.ndarray, aux: CleanAux | None = None) -> np.ndarray:
         """(H, W, 3) float32 HDR radiance → denoised, finite, ≥ 0; ``aux`` from :meth:`prefilter` or None."""
         radiance = _finite(color, 0.0, _F32_MAX)
-        scale = exposure_scale(radiance)
+        scale = input_scale(radiance)
         if scale == 1.0 and not radiance.any():
             return radiance  # no light: nothing to denoise (and OIDN is not asked to invent any)
         images = {"color": radiance}

@@ -9,7 +9,7 @@ import pytest
 pytest.importorskip("pyoidn")
 
 from model.frame import ChannelError, Features, Frame, Layer, read_frame, write_frame  # noqa: E402
-from model.oidn import MIN_SIDE, Denoiser, exposure_scale, shared_denoiser  # noqa: E402
+from model.oidn import MIN_SIDE, Denoiser, input_scale, shared_denoiser  # noqa: E402
 from model.reconstruct import available_methods, choose_method, reconstruct  # noqa: E402
 
 
@@ -77,7 +77,7 @@ def test_black_and_nonfinite_inputs() -> None:
     bad[7, 8] = -np.inf
     out = d.denoise(bad)
     assert np.isfinite(out).all() and (out >= 0).all()
-    assert exposure_scale(np.zeros((2, 2, 3), np.float32)) == 1.0
+    assert input_scale(np.zeros((2, 2, 3), np.float32)) == 1.0
 
 
 def test_prefilter_runs_once_per_frame_and_is_shared(monkeypatch) -> None:
