@@ -1,0 +1,63 @@
+"""OIDN's cost per layer as the ``oidn`` and ``fused`` methods run it (model/oidn.py), against a plain call.
+
+    python benchmarks/bench_oidn.py                  # 1280x720, medians of 3 after one warm-up call each
+    python benchmarks/bench_oidn.py --size 320x240
+
+Reports, for a synthetic noisy HDR layer with random albedo/normal: ``pyoidn.denoise`` with the raw (noisy)
+features (OIDN's default mode), the colour filter with prefiltered features (``cleanAux``, what the methods
+run), and the two prefilter passes (albedo, normal) the methods run once per frame.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+
+def median_seconds(fn: Callable[[], object], repeats: int) -> float:
+    fn()  # warm-up: device, filter and weights set up
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def main() -> int:
+    import pyoidn
+
+    from model.frame import Features
+    from model.oidn import Denoiser
+
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--size", default="1280x720", help="WIDTHxHEIGHT")
+    parser.add_argument("--repeats", type=int, default=3)
+    args = parser.parse_args()
+    width, height = (int(v) for v in args.size.lower().split("x"))
+    rng = np.random.default_rng(0)
+    image = rng.gamma(2.0, 0.5, (height, width, 3)).astype(np.float32)
+    albedo = rng.uniform(0, 1, (height, width, 3)).astype(np.float32)
+    normal = rng.uniform(-1, 1, (height, width, 3)).astype(np.float32)
+    features = Features(albedo, normal, np.ones((height, width), np.float32))
+    denoiser = Denoiser()
+    aux = denoiser.prefilter(features)
+    rows = [
+        ("pyoidn.denoise, raw albedo/normal (one layer)",
+         lambda: pyoidn.denoise(image, albedo, normal, hdr=True, quality="high")),
+        ("colour filter, prefiltered features / cleanAux (one layer)", lambda: denoiser.denoise(image, aux)),
+        ("prefilter of albedo + normal (once per frame)", lambda: denoiser.prefilter(features)),
+    ]
+    print(f"{width}x{height}, medians of {args.repeats}; load average {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
+    for label, fn in rows:
+        print(f"{label:<62} {median_seconds(fn, args.repeats):7.3f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
