@@ -47,7 +47,8 @@ from evaluation.references import ReferencePair, ReferenceSource, next_reference
 
 __all__ = ["CROP_METHODS", "Evaluation", "SceneRun", "machine_summary", "run_evaluation"]
 
-CROP_METHODS: tuple[str, ...] = ("gpt-primal", "l1", "gradnet", "ours", "path-oidn", "path-sep-oidn")
+CROP_METHODS: tuple[str, ...] = ("gpt-primal", "l1", "gradnet", "ours", "oidn", "oidn-l1", "fused", "path-oidn",
+                                 "path-sep-oidn")
 RENDERER_SOURCES = ("renderer/gpt.py", "renderer/shift.py", "renderer/render.py", "renderer/scene.py",
                     "renderer/procedural.py")
 REFERENCE_SOURCES = ("renderer/reference.py", "renderer/scene.py", "renderer/procedural.py")
@@ -337,9 +338,13 @@ class _Progress:
 
 
 def _budget_method(rows: dict[str, dict[str, Any]]) -> str | None:
-    """The method whose total time is the equal-time budget: the product's default for a G-PT frame (fused), else
-    ours (the paper's network), else L1 (None: the G-PT render alone)."""
-    for name in ("fused", "ours", "l1"):
+    """The method whose total time is the equal-time budget: the product's default for a G-PT frame (the first
+    of model.policy.DEFAULT_PREFERENCE that ran; its ``network`` is the evaluation's ``ours``), else ours, else
+    L1 (None: the G-PT render alone)."""
+    from model import policy
+
+    for method in (*policy.DEFAULT_PREFERENCE, "network", "l1"):
+        name = "ours" if method == "network" else method
         if name in rows:
             return name
     return None

@@ -120,7 +120,7 @@ def test_reconstruct_errors_are_clear() -> None:
         reconstruct(frame, "l2", alpha=0.0)
     with pytest.raises(RuntimeError, match="shape"):
         reconstruct(frame, "network", network=HalfBase(np.zeros((2, 2, 3), np.float32)))
-    assert METHODS == ("network", "l1", "l2", "oidn", "fused")
+    assert METHODS == ("network", "l1", "l2", "oidn", "oidn-l1", "fused")
 
 
 def test_network_refuses_layers_it_has_no_model_for() -> None:

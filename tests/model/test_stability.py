@@ -103,7 +103,7 @@ def _models(method: str) -> dict[str, Any]:
         if _networks["fused"] is None:
             pytest.skip("no fused models (models/fused/*.onnx) in this checkout")
         return {"fused": _networks["fused"]}
-    if method == "oidn":
+    if method in ("oidn", "oidn-l1"):
         from model.oidn import available
 
         if not available():
