@@ -93,7 +93,8 @@ class _Context:
     alpha: float
     models: Any  # the NetworkReconstructor of the method (network or fused), or None
     features: Features | None
-    aux: Any = None  # the OIDN-prefiltered features, computed once per frame when a layer needs them
+    aux: Any = None  # the OIDN auxiliary features (model.oidn.CleanAux), computed once per frame when needed
+    denoiser: Any = None  # the model.oidn.Denoiser of the method (oidn: its setting; fused: the prior's)
 
 
 def _reconstruct_layer(name: str, layer: Layer, ctx: _Context) -> np.ndarray:
@@ -102,9 +103,7 @@ def _reconstruct_layer(name: str, layer: Layer, ctx: _Context) -> np.ndarray:
     if ctx.method == "l2":
         return solve_l2(layer.base, layer.dx, layer.dy, ctx.alpha)
     if ctx.method == "oidn":
-        from model.oidn import shared_denoiser
-
-        return shared_denoiser().denoise(layer.base, ctx.aux)
+        return ctx.denoiser.denoise(layer.base, ctx.aux)
     if ctx.aux is not None:  # models refining an OIDN prior share the frame's prefiltered features
         return ctx.models.reconstruct_layer(name, layer, ctx.features, ctx.aux)
     return ctx.models.reconstruct_layer(name, layer, ctx.features)
@@ -201,11 +200,14 @@ def reconstruct(frame: Frame, method: str | None = None, alpha: float = DEFAULT_
     warnings: list[str] = []
     total = np.zeros(shape, dtype=np.float64)
     needs_aux = method == "oidn" or bool(getattr(models, "needs_aux", False))
-    if needs_aux and frame.features is not None:
-        from model.oidn import shared_denoiser
+    if needs_aux:
+        from model.oidn import method_setting, shared_denoiser
 
+        # oidn runs at its chosen setting; the fused models refine the prior setting they were trained on
+        ctx.denoiser = shared_denoiser(method_setting()) if method == "oidn" else shared_denoiser()
+    if needs_aux and frame.features is not None:
         start = time.perf_counter()
-        ctx.aux = shared_denoiser().prefilter(frame.features)  # once per frame, shared by every layer
+        ctx.aux = ctx.denoiser.prefilter(frame.features)  # once per frame, shared by every layer
         timings["features"] = time.perf_counter() - start
     for name, layer in frame.layers.items():
         start = time.perf_counter()
