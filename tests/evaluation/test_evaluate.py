@@ -487,8 +487,9 @@ def test_equal_time_counts_the_post_processing_of_every_try():
 
 def test_time_misses_flags_rows_outside_5_percent():
     rows = [{"scene": "s", "spp": 1, "method": "path", "method_spp": 9, "total_seconds": 0.72, "target_seconds": 1.0,
-             "attempts": 5},
+             "attempts": 5, "time_note": "spp granularity: 9 spp takes 0.72 s, 10 spp 1.1 s"},
             {"scene": "s", "spp": 2, "method": "path", "method_spp": 9, "total_seconds": 1.04, "target_seconds": 1.0},
             {"scene": "s", "spp": 2, "method": "ours", "method_spp": 2, "total_seconds": 9.0, "target_seconds": None}]
     misses = time_misses(rows)
     assert len(misses) == 1 and "-28%" in misses[0]
+    assert misses[0].endswith("granularity: 9 spp takes 0.72 s, 10 spp 1.1 s")  # the reason is reported
