@@ -33,13 +33,15 @@ measured first as ``seconds = overhead + per_spp · spp``, a line fitted to warm
 render that pays the JIT compilation, which a user rendering a sequence pays once: 1, 4, 16, ... spp, each the
 faster of two, until one takes a quarter second; every later render adds a point). A *try* is a render plus
 its post-processing (the OIDN call(s)), timed together; ``path-oidn``'s feature pass is rendered once per row and
-taken off the budget first. The spp is *bisected*: the first try at the line's prediction (for the budget less a
-pre-measured post-processing time), and while a try's measured total misses the target by more than
-:data:`PathRenderer.TOLERANCE` (5 %), the next interpolates between the closest too-fast and too-slow tries (their
-midpoint when the interpolation leaves the bracket), at most :data:`PathRenderer.MAX_ATTEMPTS` tries. The row
-keeps the try closest to the target and records the tries; the report flags every row whose measured total is
-still outside ±5 % of its budget (spp granularity at tiny budgets, or a machine whose speed changed between
-tries). The time in the results is the time the kept try actually took, not the prediction.
+taken off the budget first. The spp is *interpolated on the measured time curve* (:class:`TimeSearch`): the
+first try at the line's prediction (for the budget less a pre-measured post-processing time); while a try's
+measured total misses the target by more than :data:`PathRenderer.TOLERANCE` (5 %), a line time = a + b · spp
+through the tries so far is solved for the target (a secant step anchored at the closest try; the bracket's
+midpoint when it points at a tried spp), short or surprising tries timed three times (median), at most
+:data:`PathRenderer.MAX_ATTEMPTS` tries. The row keeps the try closest to the target and records its tries and,
+when it is still outside ±5 %, why (1 spp already over budget, the spp cap, integer granularity, timing noise);
+the report lists every such row with that reason. The time in the results is the time the kept try actually
+took (the median of its timings), not the prediction.
 
 Timings exclude one-time costs on both sides: each network is run once untimed per frame size (ONNX
 Runtime's allocation on a new shape), Mitsuba's kernels are compiled before the timed render. The G-PT
