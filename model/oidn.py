@@ -5,11 +5,14 @@ albedo and normal of the first visible surface. Used per illumination layer (the
 denoised apart, then summed) it beats denoising their sum, because each layer's noise is more uniform than the
 mix (docs/network.md, "The oidn and fused methods").
 
-Auxiliary features are **prefiltered once per frame** and reused for every layer: OIDN's documented recipe for
-noisy albedo/normal (a separate RT filter with only that image bound), after which the colour filter runs with
-``cleanAux``. Our features come from the first non-specular vertex of a few samples per pixel and carry
-anti-aliasing noise at edges and through glossy/specular chains; without prefiltering OIDN would keep that noise
-as detail.
+How OIDN is run is a :class:`Setting` (docs/oidn.md): the auxiliary images (``prefiltered``: albedo and normal
+denoised once per frame by their own filters, OIDN's recipe for noisy features, then ``cleanAux``, which at
+quality ``high`` selects OIDN's large model; ``raw``: the frame's own noisy features, OIDN's default mode, no
+prefilter; ``none``) and the colour filter's quality preset. Two settings matter: the ``fused`` models' prior,
+fixed at :data:`PRIOR_SETTING` (the setting their training cache was made with), and the ``oidn`` method's,
+:data:`METHOD_SETTING`, chosen by the error-against-time study of docs/oidn.md to fit the service's latency
+target, and selectable with ``$GRADSEP_OIDN_SETTING``. The auxiliary images are prepared once per frame and
+reused for every layer.
 
 Numerics: inputs are sanitised (NaN → 0, ±Inf → the largest finite float32 / 0, radiance clamped ≥ 0), and the
 colour filter is given an explicit ``inputScale`` (the reciprocal of the layer's mean, a power of two) rather
