@@ -68,9 +68,11 @@ def _denoise_frame(frame, setting: str) -> np.ndarray:
     return sum(denoiser.denoise(layer.base, aux).astype(np.float64) for layer in frame.layers.values())
 
 
-def error(cache: Path, fused_dir: Path | None) -> None:
+def error(cache: Path, fused_dir: Path | None, fused_prior: str | None = None) -> None:
     """RelMSE (reference noise removed) of every setting on every cached (scene, spp), and its ratio to
-    prefiltered-high (the setting before this study)."""
+    prefiltered-high (the setting before this study). ``fused_prior``: also score the fused models fed that
+    setting's OIDN output instead of the prior they were trained on (what switching their prior without
+    retraining would do)."""
     from model.frame import read_frame
     from model.metrics import reference_floor, relmse_unbiased
     from model.oidn import SETTINGS
@@ -100,6 +102,10 @@ def error(cache: Path, fused_dir: Path | None) -> None:
                 value = relmse_unbiased(reconstruct(frame, "fused", fused=fused).image, r1["total"], r2["total"])
                 extra.setdefault("fused", []).append(value)
                 row["fused"] = value
+                if fused_prior:
+                    value = _fused_with_prior(frame, fused, fused_prior, r1["total"], r2["total"])
+                    extra.setdefault(f"fused, prior {fused_prior}", []).append(value)
+                    row[f"fused/{fused_prior}"] = value
             rows.append(row)
             print(" ".join(f"{k}={v:.4g}" if isinstance(v, float) else str(v) for k, v in row.items()), flush=True)
     base = results["prefiltered-high"]
@@ -111,7 +117,23 @@ def error(cache: Path, fused_dir: Path | None) -> None:
         print(f"| {name} | {statistics.fmean(values):.4g} | {geo:.3f} | {max(ratios, default=math.nan):.3f} |")
 
 
-def timing(width: int, height: int, repeats: int) -> None:
+def _fused_with_prior(frame, fused, setting: str, r1: np.ndarray, r2: np.ndarray) -> float:
+    """The fused method's RelMSE with its prior denoiser swapped for ``setting``'s (restored afterwards)."""
+    from model import oidn
+    from model.metrics import relmse_unbiased
+    from model.reconstruct import reconstruct
+
+    trained = oidn.shared_denoiser()
+    with oidn._shared_lock:
+        oidn._shared[oidn.PRIOR_SETTING] = oidn.Denoiser(setting)
+    try:
+        return relmse_unbiased(reconstruct(frame, "fused", fused=fused).image, r1, r2)
+    finally:
+        with oidn._shared_lock:
+            oidn._shared[oidn.PRIOR_SETTING] = trained
+
+
+def timing(width: int, height: int, repeats: int, names: list[str]) -> None:
     """Seconds of one two-layer frame per setting at width x height: auxiliary pass + 2 colour filter calls."""
     from model.frame import Features
     from model.oidn import SETTINGS, shared_denoiser
@@ -123,7 +145,7 @@ def timing(width: int, height: int, repeats: int) -> None:
     print(f"{width}x{height}, medians of {repeats} after a warm-up; load average "
           + " ".join(f"{v:.2f}" for v in os.getloadavg()))
     print("| setting | aux pass s | colour filter s (per layer) | two-layer frame s |\n|---|---:|---:|---:|")
-    for name in SETTINGS:
+    for name in names or SETTINGS:
         denoiser = shared_denoiser(name)
         aux = denoiser.prefilter(features)
         denoiser.denoise(layers[0], aux)  # warm-up: filter and weights set up
@@ -146,17 +168,19 @@ def main() -> int:
     parser.add_argument("--scene", action="append", default=[], help="render: scene spec (repeatable)")
     parser.add_argument("--cache", type=Path, default=DEFAULT_CACHE)
     parser.add_argument("--fused", type=Path, default=Path("models/fused"), help="error: fused models (if present)")
+    parser.add_argument("--fused-prior", help="error: also score fused fed this setting's OIDN output (no retraining)")
     parser.add_argument("--size", default="1280x720", help="time: WIDTHxHEIGHT")
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--settings", default="", help="time: comma-separated subset of settings (default: all)")
     args = parser.parse_args()
     if args.what == "render":
         for scene in args.scene:
             render(scene, args.cache)
     elif args.what == "error":
-        error(args.cache, args.fused)
+        error(args.cache, args.fused, args.fused_prior)
     else:
         width, height = (int(v) for v in args.size.lower().split("x"))
-        timing(width, height, args.repeats)
+        timing(width, height, args.repeats, [n for n in args.settings.split(",") if n])
     return 0
 
 

@@ -375,12 +375,14 @@ class TimeSearch:
         return timed
 
     def _fit_slope(self) -> float:
-        """The per-spp slope: least squares over this search's tries when their spp span at least 20 % of the
-        largest, kept within [1/3, 3] x the calibrated slope (noise cannot flip or explode it); else the
-        calibrated slope."""
-        spps = np.array(list(self.tried), dtype=np.float64)
-        if len(spps) >= 2 and np.ptp(spps) >= 0.2 * spps.max():
-            seconds = np.array([t.seconds for t in self.tried.values()])
+        """The per-spp slope near the target: least squares over the (up to) three tries closest to it when their
+        spp span at least 5 % of the largest (local, because the time curve bends: caches, a denoiser's fixed
+        cost), kept within [1/3, 3] x the calibrated slope so noise cannot flip or explode it; with one try, its
+        excess over the calibrated line read as slope; else the calibrated slope."""
+        near = sorted(self.tried.values(), key=lambda t: abs(self.miss(t.seconds)))[:3]  # local: the curve bends
+        spps = np.array([t.spp for t in near], dtype=np.float64)
+        if len(spps) >= 2 and np.ptp(spps) >= 0.05 * spps.max():
+            seconds = np.array([t.seconds for t in near])
             fitted = float(np.polyfit(spps, seconds, 1)[0])
             return float(np.clip(fitted, self.slope / 3, self.slope * 3))
         if len(self.tried) == 1:  # one try slower than the calibrated line: its excess is read as slope
