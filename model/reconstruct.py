@@ -6,14 +6,14 @@ runs for an absent layer. The methods:
 
 * ``l1``, ``l2`` -- screened Poisson solvers of the base and the gradients (model/poisson.py);
 * ``network`` -- the paper's GradNet-style network with CBAM, refining a truncated L1 solve (models/*.onnx);
-* ``oidn`` -- Intel Open Image Denoise on each layer's base with the frame's prefiltered albedo/normal; the one
-  method for a plain path-traced frame (no gradients), and it needs no features;
+* ``oidn`` -- Intel Open Image Denoise on each layer's base with the frame's albedo/normal (model.oidn's method
+  setting, docs/oidn.md); the one method for a plain path-traced frame (no gradients), and it needs no features;
 * ``fused`` -- the same network architecture refining OIDN's denoise with the layer's gradients and features,
   trained unsupervised (models/fused/*.onnx).
 
 What a frame does not carry costs nothing: no gradients means no Poisson or network work (only ``oidn``
 applies), no features means OIDN without auxiliary images, and the OIDN prefilter of albedo/normal runs once per
-frame, shared by its layers.
+frame, shared by its layers (where the setting prefilters).
 
 Output policy: every reconstructed layer is made finite (NaN/±Inf → 0, with a warning: a solver or network
 that produced them has a bug, and a black pixel is easier to spot than a poisoned downstream average) and
