@@ -46,6 +46,12 @@ import numpy as np
 # Pixel offsets of the four offset paths, (dx, dy) with y growing downward: right, left, down, up.
 SHIFT_OFFSETS: tuple[tuple[int, int], ...] = ((1, 0), (-1, 0), (0, 1), (0, -1))
 
+# Which offsets a sample traces: "all" four of SHIFT_OFFSETS; "pair": the two of one axis, right and left
+# (SHIFT_OFFSETS[0:2]) or down and up ([2:4]); "single": one of the four. The group is chosen per sample
+# (offset_group) and its gradient terms count OFFSET_GROUPS[mode] times (the group's inverse probability).
+OFFSET_MODES: tuple[str, ...] = ("all", "pair", "single")
+OFFSET_GROUPS: dict[str, int] = {"all": 1, "pair": 2, "single": 4}
+
 # A glossy lobe whose sampled direction has a solid-angle pdf above this is treated as a mirror when looking for
 # the feature vertex: a GGX lobe reaches ~100 sr^-1 near alpha 0.05, where reflections are still sharp images.
 NEAR_SPECULAR_PDF = 100.0
@@ -273,6 +279,7 @@ class GptSettings:
     direct: bool = True
     indirect: bool = True
     separate: bool = True  # False: one ``color`` layer with every event (direct and indirect must both be on)
+    offsets: str = "all"  # four offsets per sample, or fewer: "pair" (one axis), "single" (OFFSET_MODES)
 
     def layer_names(self) -> tuple[str, ...]:
         """The accumulated illumination layers, in the frame contract's order."""
@@ -295,6 +302,8 @@ class GptSettings:
             raise ValueError(f"rr_depth must be >= 1, got {self.rr_depth}")
         if not (self.direct or self.indirect):
             raise ValueError("no illumination layer requested")
+        if self.offsets not in OFFSET_MODES:
+            raise ValueError(f"unknown offsets mode {self.offsets!r}; expected one of {OFFSET_MODES}")
         if not self.separate and not (self.direct and self.indirect):
             raise ValueError("an unseparated (color) render carries all light: direct and indirect must both be on")
         if self.indirect and 0 < self.max_depth <= 2:
@@ -309,9 +318,9 @@ class LayerSums:
     grads: list[mi.Spectrum]
 
     @staticmethod
-    def zeros(gradients: bool = True) -> LayerSums:
-        """Zero sums; without gradients the layer carries the base radiance only."""
-        return LayerSums(base=mi.Spectrum(0.0), grads=[mi.Spectrum(0.0) for _ in SHIFT_OFFSETS] if gradients else [])
+    def zeros(n_offsets: int = len(SHIFT_OFFSETS)) -> LayerSums:
+        """Zero sums, one gradient estimate per traced offset (none: the layer carries the base radiance only)."""
+        return LayerSums(base=mi.Spectrum(0.0), grads=[mi.Spectrum(0.0) for _ in range(n_offsets)])
 
 
 @dataclass
@@ -372,9 +381,25 @@ def stratified_sub_pixel(u: mi.Point2f, sample: mi.UInt32, strata: mi.UInt32) ->
     return dr.select(sample < cells, (cell + u) / mi.Float(strata), u)
 
 
+def offset_group(pixel: mi.UInt32, sample: mi.UInt32, strata: mi.UInt32, seed: mi.UInt32,
+                 groups: int) -> mi.UInt32:
+    """Which group of offsets (of ``groups`` equal groups of SHIFT_OFFSETS: 2 axes, or 4 single offsets) sample
+    ``sample`` of ``pixel`` traces when a sample traces fewer than all four.
+
+    The pixel's stratified samples (one per cell of its ``strata x strata`` grid) are dealt out along the grid's
+    diagonals -- cell (cx, cy) gets ``cx + (groups // 2) cy`` (a checkerboard for two groups) -- later samples in
+    turn, and a random offset per pixel and pass (a hash of the pixel and the pass's seed) rotates the groups.
+    So every sample traces each group with probability exactly ``1/groups``, whatever its sub-pixel position --
+    counting its gradient terms ``groups`` times keeps every gradient estimate unbiased -- and each group's
+    samples still spread over the pixel (every row of the grid holds every group)."""
+    rotate = mi.sample_tea_32(pixel, seed)[0]
+    cell = sample % strata + (groups // 2) * (sample // strata)
+    return (dr.select(sample < strata * strata, cell, sample) + rotate) % groups
+
+
 def _camera_rays(sensor: mi.Sensor, sampler: mi.Sampler, px: mi.Int32, py: mi.Int32, size: mi.Vector2f,
                  res: tuple[mi.Int32, mi.Int32], sample: mi.UInt32, strata: mi.UInt32,
-                 shifts: Sequence[tuple[int, int]] = SHIFT_OFFSETS,
+                 shifts: Sequence[tuple[int | mi.Int32, int | mi.Int32]] = SHIFT_OFFSETS,
                  ) -> tuple[list[tuple[mi.Ray3f, mi.Spectrum, mi.Bool]], mi.Bool]:
     """Primary rays of the base pixel and of the shifted pixels (``shifts``; none for a primal-only render), all
     through the same sub-pixel sample (``sample``-th of the pixel, stratified: :func:`stratified_sub_pixel`).
@@ -512,6 +537,7 @@ class PassKernel:
     ray_flags: mi.RayFlags
     strict_light_pdf: bool
     hittable: bool  # some emitter can be found by a ray (scene_has_hittable_emitters)
+    offset_group: mi.UInt32 | None  # per lane, the group of offsets it traces (offset_group); None: all four
 
     @property
     def gradients(self) -> bool:
@@ -540,22 +566,36 @@ def _start_lanes(scene: mi.Scene, shift: Shift | None, settings: GptSettings, wi
         rr_depth=dr.opaque(mi.UInt32, settings.rr_depth), to_camera=sensor.world_transform().inverse(),
         ray_flags=shift.ray_flags(scene) if gradients else mi.RayFlags.All,
         strict_light_pdf=shift.reuses_light_samples if gradients else False,
-        hittable=scene_has_hittable_emitters(scene))
+        hittable=scene_has_hittable_emitters(scene), offset_group=None)
 
+    seed_o = dr.opaque(mi.UInt32, seed & 0xFFFFFFFF)
     sampler = mi.load_dict({"type": "independent", "sample_count": spp})
-    sampler.seed(dr.opaque(mi.UInt32, seed & 0xFFFFFFFF), lanes)
+    sampler.seed(seed_o, lanes)
     idx = dr.arange(mi.UInt32, lanes)
     pixel = idx // spp_o
     py = mi.Int32(pixel // mi.UInt32(w_o))
     px = mi.Int32(pixel) - py * w_o
     size = mi.Vector2f(mi.Float(w_o), mi.Float(h_o))
     strata_o = dr.opaque(mi.UInt32, math.isqrt(spp))
-    rays, _ = _camera_rays(sensor, sampler, px, py, size, (w_o, h_o), idx % spp_o, strata_o,
-                           SHIFT_OFFSETS if gradients else ())
+    sample = idx % spp_o
+    shifts: Sequence[tuple[int | mi.Int32, int | mi.Int32]] = SHIFT_OFFSETS if gradients else ()
+    groups = OFFSET_GROUPS[settings.offsets]
+    if gradients and groups > 1:
+        group = kernel.offset_group = offset_group(pixel, sample, strata_o, seed_o, groups)
+        per_group = len(SHIFT_OFFSETS) // groups
+        shifts = []
+        for k in range(per_group):  # the k-th offset of the lane's group
+            choices = SHIFT_OFFSETS[k::per_group]
+            ox, oy = mi.Int32(choices[0][0]), mi.Int32(choices[0][1])
+            for g, (cx, cy) in enumerate(choices[1:], start=1):
+                ox = dr.select(group == g, cx, ox)
+                oy = dr.select(group == g, cy, oy)
+            shifts.append((ox, oy))
+    rays, _ = _camera_rays(sensor, sampler, px, py, size, (w_o, h_o), sample, strata_o, shifts)
     state = LoopState(
         sampler=sampler, depth=mi.UInt32(0), base=PathState.start(*rays[0]),
         offsets=[shift.start(*r) for r in rays[1:]] if shift is not None else [],
-        sums={name: LayerSums.zeros(gradients) for name in settings.layer_names()},
+        sums={name: LayerSums.zeros(len(shifts)) for name in settings.layer_names()},
         feat=FeatureState.start(), invalid=mi.Bool(False))
     return kernel, state, pixel
 
@@ -659,7 +699,7 @@ def _run_loops(k: PassKernel, s: LoopState) -> LoopState:
 
 
 def _pixel_sums(settings: GptSettings, s: LoopState, pixel: mi.UInt32, width: int, height: int,
-                gradients: bool) -> dict[str, np.ndarray]:
+                gradients: bool, offset_group: mi.UInt32 | None = None) -> dict[str, np.ndarray]:
     """Scatter-add every lane's sums and features into per-pixel buffers (one launch, fused with the loops)."""
     sums, invalid = (s.sums, s.invalid) if gradients else _drop_non_finite(s.sums)
     feat = s.feat
@@ -677,11 +717,17 @@ def _pixel_sums(settings: GptSettings, s: LoopState, pixel: mi.UInt32, width: in
     values["invalid"] = [dr.select(invalid, 1.0, 0.0)]
     n_channels = sum(layout.values())
     target = dr.zeros(mi.Float, n_channels * n_pixels)
+    per_lane = len(next(iter(sums.values())).grads)  # gradient estimates a lane carries
     channel = 0
     for name, width_c in layout.items():
-        for comp in values[name][:width_c]:
-            dr.scatter_reduce(dr.ReduceOp.Add, target, comp, pixel + channel * n_pixels)
+        for comp in values.get(name, [])[:width_c]:
+            index = pixel + channel * n_pixels
+            if offset_group is not None and ".grad" in name:
+                # fewer offsets per lane: its k-th estimate belongs to offset (group * per_group + k)
+                index = index + offset_group * (3 * per_lane * n_pixels)
+            dr.scatter_reduce(dr.ReduceOp.Add, target, comp, index)
             channel += 1
+        channel += width_c - len(values.get(name, [])[:width_c])
     dr.eval(target)
     flat = target.numpy().reshape(n_channels, height, width)
     out: dict[str, np.ndarray] = {}
@@ -705,7 +751,7 @@ def render_pass(scene: mi.Scene, shift: Shift | None, settings: GptSettings, wid
         raise ValueError(f"{lanes} samples in one pass exceed 2^32; use fewer samples per pass")
     kernel, state, pixel = _start_lanes(scene, shift, settings, width, height, spp, seed)
     state = _run_loops(kernel, state)
-    return _pixel_sums(settings, state, pixel, width, height, kernel.gradients)
+    return _pixel_sums(settings, state, pixel, width, height, kernel.gradients, kernel.offset_group)
 
 
 def pass_plan(width: int, height: int, spp: int, max_lanes: int = MAX_LANES_PER_PASS) -> list[int]:
@@ -762,8 +808,10 @@ def _finish(t: dict[str, np.ndarray], settings: GptSettings, spp: int, passes: i
         dy = g[2].copy()
         dy[:-1, :] -= g[3][1:, :]
         dy[-1, :] = 0.0
-        layers[layer] = {k: (v / spp).astype(np.float32) for k, v in
-                         (("base", t[f"{layer}.base"]), ("dx", dx), ("dy", dy))}
+        # fewer offsets per sample: each traced its group with probability 1/groups, so its terms count groups times
+        per_axis = spp / OFFSET_GROUPS[settings.offsets]
+        layers[layer] = {"base": (t[f"{layer}.base"] / spp).astype(np.float32),
+                         "dx": (dx / per_axis).astype(np.float32), "dy": (dy / per_axis).astype(np.float32)}
     hits = t["hit"][..., 0]
     safe = np.maximum(hits, 1.0)[..., None]
     albedo = np.clip(t["albedo"] / safe, 0.0, 1.0)

@@ -22,6 +22,7 @@ from gradsep.cli import CommandError, main  # noqa: E402
 from model.frame import read_frame, write_frame  # noqa: E402
 from renderer.gpt import (  # noqa: E402
     GptSettings,
+    offset_group,
     pass_plan,
     render_gpt,
     stratified_sub_pixel,
@@ -87,7 +88,7 @@ SHIFTS = ("replay", "hybrid")
 SCENE_DEPTHS = {"cbox": 6, "teapot": 4, "sky": 4}
 _scenes: dict[str, object] = {}
 _references: dict[str, tuple[dict, dict]] = {}
-_renders: dict[tuple[str, str], Renders] = {}
+_renders: dict[tuple[str, str, str], Renders] = {}
 
 
 def load_test_scene(name: str):
@@ -103,13 +104,14 @@ def load_test_scene(name: str):
     return _scenes[name]
 
 
-def make_renders(name: str, shift: str) -> Renders:
-    """G-PT over SEEDS seeds with ``shift``, plus the scene's `path` references (shared between shifts)."""
-    if (name, shift) in _renders:
-        return _renders[name, shift]
+def make_renders(name: str, shift: str, offsets: str = "all") -> Renders:
+    """G-PT over SEEDS seeds with ``shift`` (tracing ``offsets``: GptSettings.offsets), plus the scene's `path`
+    references (shared between shifts)."""
+    if (name, shift, offsets) in _renders:
+        return _renders[name, shift, offsets]
     scene, depth = load_test_scene(name), SCENE_DEPTHS[name]
-    results = [render_gpt(scene, make_shift(shift), GptSettings(max_depth=depth), SIZE, SIZE, SPP, seed)
-               for seed in range(SEEDS)]
+    settings = GptSettings(max_depth=depth, offsets=offsets)
+    results = [render_gpt(scene, make_shift(shift), settings, SIZE, SIZE, SPP, seed) for seed in range(SEEDS)]
     layers = list(results[0].layers)
     stack = {k: {layer: np.stack([r.layers[layer][k] for r in results]).astype(np.float64) for layer in layers}
              for k in ("base", "dx", "dy")}
@@ -119,9 +121,9 @@ def make_renders(name: str, shift: str) -> Renders:
         low = {d: np.stack([path_render(scene, SPP, 20_000 + i, d) for i in range(SEEDS)]) for d in (depth, 2)}
         _references[name] = (ref, low)
     ref, low = _references[name]
-    _renders[name, shift] = Renders(base=stack["base"], dx=stack["dx"], dy=stack["dy"], features=results,
-                                    ref=ref, low=low)
-    return _renders[name, shift]
+    _renders[name, shift, offsets] = Renders(base=stack["base"], dx=stack["dx"], dy=stack["dy"],
+                                             features=results, ref=ref, low=low)
+    return _renders[name, shift, offsets]
 
 
 @pytest.fixture(scope="module")
@@ -266,6 +268,68 @@ def test_gradients_converge_to_reference_differences(scene, axis, shift):
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("offsets", ["pair", "single"])
+@pytest.mark.parametrize("scene", ["cbox", "teapot", "sky"])
+@pytest.mark.parametrize("axis", ["dx", "dy"])
+def test_fewer_offsets_per_sample_converge_to_reference_differences(scene, axis, offsets):
+    """Tracing one axis's two offsets (or one offset) per sample, chosen per sample and counted with its inverse
+    probability (GptSettings.offsets), is unbiased too, with the hybrid shift; each layer against its own
+    reference on the cbox."""
+    r = make_renders(scene, "hybrid", offsets)
+    depth = max(r.ref)
+    fd = fd_x if axis == "dx" else fd_y
+    assert_matches_reference(r.total(axis), fd(r.ref[depth]), 2e-3, f"{scene} {axis} {offsets}")
+    if scene == "cbox":
+        est = r.dx if axis == "dx" else r.dy
+        assert_matches_reference(est["direct"], fd(r.ref[2]), 2e-3, f"direct {axis} {offsets}")
+        assert_matches_reference(est["indirect"], fd(r.ref[6] - r.ref[2]), 2e-3, f"indirect {axis} {offsets}")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("offsets", ["pair", "single"])
+def test_fewer_offsets_keep_the_primal_and_count_gradients_at_any_spp(offsets):
+    """The primal is the base paths alone, bit for bit the same whichever offsets are traced; at an odd sample
+    count (stratified and unstratified samples, groups of unequal size within a pixel) the gradients of the
+    coarse mixed room still match the reference, for replay and the hybrid shift."""
+    sky = make_renders("sky", "hybrid", offsets)
+    full = make_renders("sky", "hybrid")
+    for layer in sky.base:
+        np.testing.assert_array_equal(sky.base[layer], full.base[layer])
+    scene = coarse_room(8, "mixed")
+    ref = np.stack([path_render(scene, 4096, 30_000 + i, 4) for i in range(REF_CHUNKS)])
+    for shift in SHIFTS:
+        results = [render_gpt(scene, make_shift(shift), GptSettings(max_depth=4, offsets=offsets), 8, 8, 67, seed)
+                   for seed in range(SEEDS)]
+        for key, fd in (("dx", fd_x), ("dy", fd_y)):
+            est = np.stack([sum(r.layers[layer][key] for layer in r.layers) for r in results]).astype(np.float64)
+            assert_matches_reference(est, fd(ref), 2e-3, f"coarse mixed {shift} {offsets} {key}")
+
+
+@pytest.mark.parametrize("groups", [2, 4])
+def test_offset_groups_are_balanced_and_spread(groups):
+    """Each sample traces each group with probability 1/groups (over pixels and passes), and within a pixel the
+    stratified cells are dealt out evenly, every row of the grid holding every group."""
+    select_variant()
+    strata, spp, pixels = 4, 20, 4096
+    pixel = np.repeat(np.arange(pixels), spp)
+    sample = np.tile(np.arange(spp), pixels)
+    group = np.array(offset_group(mi.UInt32(pixel), mi.UInt32(sample), mi.UInt32(strata), mi.UInt32(12345),
+                                  groups)).reshape(pixels, spp)
+    for s in range(spp):
+        counts = np.bincount(group[:, s], minlength=groups) / pixels
+        assert np.all(np.abs(counts - 1 / groups) < 5 * np.sqrt(1 / pixels)), (s, counts)
+    grid = group[:, :strata * strata].reshape(pixels, strata, strata)  # [pixel, row, column]
+    for g in range(groups):
+        assert np.all((grid == g).sum(axis=(1, 2)) == strata * strata // groups)
+        assert np.all((grid == g).any(axis=2))
+
+
+def test_offsets_mode_is_validated():
+    with pytest.raises(ValueError, match="offsets mode"):
+        GptSettings(offsets="three").validate()
+
+
+@pytest.mark.slow
 @pytest.mark.parametrize("shift", SHIFTS)
 @pytest.mark.parametrize("axis", ["dx", "dy"])
 def test_layer_gradients_converge_to_layer_references(axis, shift):
@@ -296,9 +360,10 @@ def test_russian_roulette_keeps_everything_unbiased(cbox, shift):
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("offsets", ["all", "pair"])
 @pytest.mark.parametrize("scene_name", ["cbox", "specular"])
 @pytest.mark.parametrize("shift", SHIFTS)
-def test_offsets_on_the_base_pixel_give_zero_gradients(monkeypatch, shift, scene_name):
+def test_offsets_on_the_base_pixel_give_zero_gradients(monkeypatch, shift, scene_name, offsets):
     """With all four pixel shifts set to (0, 0), every offset path *is* its base path, so every gradient sample
     must vanish -- at every depth, through mirrors and glass, with Russian roulette from the second vertex on.
     Any asymmetry between how the lane treats base and offsets (random numbers, roulette weights, termination,
@@ -310,7 +375,8 @@ def test_offsets_on_the_base_pixel_give_zero_gradients(monkeypatch, shift, scene
 
     monkeypatch.setattr(gpt, "SHIFT_OFFSETS", ((0, 0),) * 4)
     scene = load_scene(CBOX, width=16, height=16).scene if scene_name == "cbox" else coarse_room(16, "specular")
-    res = render_gpt(scene, make_shift(shift), GptSettings(max_depth=-1, rr_depth=1), 16, 16, 4, seed=7)
+    res = render_gpt(scene, make_shift(shift), GptSettings(max_depth=-1, rr_depth=1, offsets=offsets), 16, 16, 4,
+                     seed=7)
     tolerance = 0.0 if shift == "replay" else 2e-4
     for layer in ("direct", "indirect"):
         base = res.layers[layer]["base"]
