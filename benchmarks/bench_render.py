@@ -3,6 +3,7 @@
     .venv/bin/python benchmarks/bench_render.py             # full run: cbox + procedural:0,1 (~10 min, 2 cores)
     .venv/bin/python benchmarks/bench_render.py --quick     # small sizes, for a smoke check (~1 min)
     .venv/bin/python benchmarks/bench_render.py --scenes procedural:3 --shifts hybrid --json out.json
+    .venv/bin/python benchmarks/bench_render.py --issue16 --cache runs/refcache   # issue 16's table (~8 min)
 
 For every scene and shift (medians of repeats, each after a warm-up render that compiles the kernels):
 
@@ -313,6 +314,10 @@ def main(argv: list[str] | None = None) -> int:
                         help="comma-separated: cbox, teapot, XML paths or procedural:SEED (default %(default)s)")
     parser.add_argument("--shifts", "--shift", default="replay,hybrid", help="comma-separated shifts")
     parser.add_argument("--quick", action="store_true", help="small sizes and few repeats (smoke check)")
+    parser.add_argument("--issue16", action="store_true",
+                        help="issue 16's table: cbox, procedural:0, procedural:1, teapot; hybrid with all four, one "
+                             "axis's two (+pair) or one (+single) offsets per sample; 3 repeats, 4 seeds, 2048-spp "
+                             "references (explicit options override)")
     parser.add_argument("--repeats", type=int, default=None, help="timing repeats (default 5, quick 2)")
     parser.add_argument("--ref-spp", type=int, default=None, help="reference spp (default 8192, quick 1024)")
     parser.add_argument("--seeds", type=int, default=None, help="G-PT renders per shift (default 4, quick 2)")
@@ -327,6 +332,14 @@ def main(argv: list[str] | None = None) -> int:
                              "time of the first configuration at 16 spp")
     parser.add_argument("--json", default=None, help="also write the results to this file")
     args = parser.parse_args(argv)
+    if args.issue16:
+        given = set(argv if argv is not None else sys.argv[1:])
+        if "--scenes" not in given:
+            args.scenes = "cbox,procedural:0,procedural:1,teapot"
+        if not given & {"--shifts", "--shift"}:
+            args.shifts = "hybrid,hybrid+pair,hybrid+single"
+        args.repeats = args.repeats or 3
+        args.ref_spp = args.ref_spp or 2048
 
     import mitsuba as mi
 
