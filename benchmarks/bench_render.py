@@ -3,7 +3,7 @@
     .venv/bin/python benchmarks/bench_render.py             # full run: cbox + procedural:0,1 (~10 min, 2 cores)
     .venv/bin/python benchmarks/bench_render.py --quick     # small sizes, for a smoke check (~1 min)
     .venv/bin/python benchmarks/bench_render.py --scenes procedural:3 --shifts hybrid --json out.json
-    .venv/bin/python benchmarks/bench_render.py --issue16 --cache runs/refcache   # issue 16's table (~8 min)
+    .venv/bin/python benchmarks/bench_render.py --issue16 --cache runs/refcache   # issue 16 (1 min warm, 5-8 cold)
 
 For every scene and shift (medians of repeats, each after a warm-up render that compiles the kernels):
 
