@@ -15,6 +15,8 @@ from typing import Any
 
 from evaluation.cache import REPO_ROOT, default_cache_dir, file_sha256, key_hash
 from evaluation.methods import METHODS
+from model.errors import CommandError
+from model.policy import DEFAULT_ALPHA, models_dir_from
 
 #: The command line's --spp default (model/commands.py); with --quick it is replaced by the quick list.
 CLI_DEFAULT_SPP = "1,2,4,8,16,32,64"
@@ -60,7 +62,7 @@ class EvalConfig:
     methods: tuple[str, ...] = tuple(m.name for m in METHODS)
     seed: int = 0
     max_depth: int | None = None
-    alpha: float = 0.2
+    alpha: float = DEFAULT_ALPHA
     table_spp: int | None = None
     quick: bool = False
     ref_spp_cap: int | None = None  # None: ref_spp (a fixed reference spp)
@@ -80,12 +82,6 @@ class EvalConfig:
 # ----------------------------------------------------------------------------------------------- options
 
 
-def _error(message: str) -> Exception:
-    from gradsep.cli import CommandError
-
-    return CommandError(message)
-
-
 def parse_spp(text: str | Sequence[int]) -> tuple[int, ...]:
     """``"1,2,4"`` -> (1, 2, 4): positive integers, sorted, duplicates dropped."""
     items = text.split(",") if isinstance(text, str) else list(text)
@@ -97,12 +93,12 @@ def parse_spp(text: str | Sequence[int]) -> tuple[int, ...]:
         try:
             value = int(item_text)
         except ValueError:
-            raise _error(f"--spp: {item_text!r} is not an integer (expected e.g. 1,2,4,8)") from None
+            raise CommandError(f"--spp: {item_text!r} is not an integer (expected e.g. 1,2,4,8)") from None
         if value < 1:
-            raise _error(f"--spp: sample counts must be >= 1, got {value}")
+            raise CommandError(f"--spp: sample counts must be >= 1, got {value}")
         values.append(value)
     if not values:
-        raise _error("--spp is empty; expected comma-separated sample counts such as 1,2,4,8")
+        raise CommandError("--spp is empty; expected comma-separated sample counts such as 1,2,4,8")
     return tuple(sorted(set(values)))
 
 
@@ -112,9 +108,9 @@ def parse_size(text: str) -> tuple[int, int]:
     try:
         width, height = (int(p) for p in parts)
     except ValueError:
-        raise _error(f"size {text!r}: expected WIDTHxHEIGHT, e.g. 320x240") from None
+        raise CommandError(f"size {text!r}: expected WIDTHxHEIGHT, e.g. 320x240") from None
     if width < 1 or height < 1:
-        raise _error(f"size {text!r}: width and height must be >= 1")
+        raise CommandError(f"size {text!r}: width and height must be >= 1")
     return width, height
 
 
@@ -138,9 +134,9 @@ def _int_option(args: argparse.Namespace, name: str, env: str, flag: str, minimu
     try:
         value = int(text)
     except ValueError:
-        raise _error(f"{flag}: {text!r} is not an integer") from None
+        raise CommandError(f"{flag}: {text!r} is not an integer") from None
     if value < minimum:
-        raise _error(f"{flag} must be >= {minimum}, got {value}")
+        raise CommandError(f"{flag} must be >= {minimum}, got {value}")
     return value
 
 
@@ -152,9 +148,9 @@ def _float_option(args: argparse.Namespace, name: str, env: str, flag: str) -> f
     try:
         value = float(text)
     except ValueError:
-        raise _error(f"{flag}: {text!r} is not a number") from None
+        raise CommandError(f"{flag}: {text!r} is not a number") from None
     if not (math.isfinite(value) and value >= 0):
-        raise _error(f"{flag} must be a finite number >= 0 (0: no limit), got {text}")
+        raise CommandError(f"{flag} must be a finite number >= 0 (0: no limit), got {text}")
     return value
 
 
@@ -172,10 +168,10 @@ def parse_methods(text: str | None) -> tuple[str, ...]:
         elif item in known:
             wanted.add(item)
         else:
-            raise _error(f"--methods: unknown method {item!r}; expected a comma-separated subset of "
+            raise CommandError(f"--methods: unknown method {item!r}; expected a comma-separated subset of "
                          f"{', '.join(known)} (or 'ablation' for the four variants)")
     if not wanted:
-        raise _error("--methods is empty")
+        raise CommandError("--methods is empty")
     return tuple(n for n in known if n in wanted)
 
 
@@ -198,28 +194,26 @@ def config_from_args(args: argparse.Namespace) -> EvalConfig:
     if ref_cap is None:
         ref_cap = max(ref_spp, preset.ref_spp_cap)
     elif ref_cap < ref_spp:
-        raise _error(f"--ref-spp-cap {ref_cap} is below --ref-spp {ref_spp}")
+        raise CommandError(f"--ref-spp-cap {ref_cap} is below --ref-spp {ref_spp}")
     ref_seconds = _float_option(args, "ref_seconds", "GRADSEP_EVAL_REF_SECONDS", "--ref-seconds")
     if ref_seconds is None:
         ref_seconds = preset.ref_seconds
     seed = _int_option(args, "seed", "GRADSEP_EVAL_SEED", "--seed", 0) or 0
     max_depth = _int_option(args, "max_depth", "GRADSEP_EVAL_MAX_DEPTH", "--max-depth", -1)
     if max_depth == 0:
-        raise _error("--max-depth must be -1 (unbounded) or >= 1, got 0")
+        raise CommandError("--max-depth must be -1 (unbounded) or >= 1, got 0")
     table_spp = _int_option(args, "table_spp", "GRADSEP_EVAL_TABLE_SPP", "--table-spp", 1)
     if table_spp is not None and table_spp not in spp:
-        raise _error(f"--table-spp {table_spp} is not one of the evaluated sample counts {list(spp)}")
+        raise CommandError(f"--table-spp {table_spp} is not one of the evaluated sample counts {list(spp)}")
     alpha_text = _option(args, "alpha", "GRADSEP_EVAL_ALPHA")
-    alpha = 0.2
+    alpha = DEFAULT_ALPHA
     if alpha_text is not None:
         try:
             alpha = float(alpha_text)
         except ValueError:
-            raise _error(f"--alpha: {alpha_text!r} is not a number") from None
+            raise CommandError(f"--alpha: {alpha_text!r} is not a number") from None
         if not (math.isfinite(alpha) and alpha > 0):
-            raise _error(f"--alpha must be a finite number > 0, got {alpha_text}")
-    from model.reconstruct import models_dir_from
-
+            raise CommandError(f"--alpha must be a finite number > 0, got {alpha_text}")
     cache = _option(args, "cache", "GRADSEP_CACHE")
     return EvalConfig(
         scenes=tuple(args.scenes) if getattr(args, "scenes", None) else (),
@@ -252,9 +246,9 @@ def _xml_for(path: Path) -> Path:
         found = sorted(path.glob("*.xml"))
         if len(found) == 1:
             return found[0]
-        raise _error(f"scene folder {str(path)!r} holds {len(found)} .xml files; name the one to evaluate")
+        raise CommandError(f"scene folder {str(path)!r} holds {len(found)} .xml files; name the one to evaluate")
     if not path.is_file():
-        raise _error(f"scene {str(path)!r} not found (expected a Mitsuba XML file or procedural:SEED)")
+        raise CommandError(f"scene {str(path)!r} not found (expected a Mitsuba XML file or procedural:SEED)")
     return path
 
 
@@ -294,9 +288,9 @@ def _procedural_entry(spec: str) -> SceneEntry:
     try:
         seed = int(text)
     except ValueError:
-        raise _error(f"bad scene {spec!r}: expected procedural:SEED with an integer seed") from None
+        raise CommandError(f"bad scene {spec!r}: expected procedural:SEED with an integer seed") from None
     if seed < 0:
-        raise _error(f"bad scene {spec!r}: the seed must be >= 0")
+        raise CommandError(f"bad scene {spec!r}: the seed must be >= 0")
     from renderer.procedural import GENERATOR_VERSION
 
     return SceneEntry(f"procedural:{seed}", f"procedural:{seed}", {"procedural": seed, "generator": GENERATOR_VERSION})

@@ -84,7 +84,7 @@ MAX_WAVEFRONT = (1 << 32) - 1  # Mitsuba's samples per launch
 FEATURE_SPP = 4
 #: Source files whose changes alter a method's images or scores (part of every result's cache key).
 METHOD_SOURCES: tuple[str, ...] = ("evaluation/methods.py", "model/poisson.py", "model/reconstruct.py",
-                                   "model/infer.py", "model/preprocess.py", "model/metrics.py")
+                                   "model/infer.py", "model/preprocess.py", "model/metrics.py", "model/policy.py")
 
 
 @dataclass(frozen=True)

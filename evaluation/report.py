@@ -26,6 +26,7 @@ from evaluation.cache import slug
 from evaluation.methods import ABLATION_VARIANTS, METHODS
 from evaluation.plots import plot_crops, plot_error_vs_time
 from model.frame import write_bytes_atomic
+from model.policy import DEFAULT_ALPHA
 
 if TYPE_CHECKING:
     from evaluation.run import EvalConfig, Evaluation
@@ -144,7 +145,7 @@ def reproduce_command(c: EvalConfig) -> str:
            "GRADSEP_EVAL_METHODS": ",".join(c.methods)}
     if c.max_depth is not None:
         env["GRADSEP_EVAL_MAX_DEPTH"] = str(c.max_depth)
-    if c.alpha != 0.2:
+    if c.alpha != DEFAULT_ALPHA:
         env["GRADSEP_EVAL_ALPHA"] = f"{c.alpha:g}"
     args = ["gradsep", "evaluate"]
     if c.scenes:

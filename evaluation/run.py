@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 
 from evaluation.cache import EvalCache, file_sha256, key_hash, sources_sha256
-from evaluation.config import FLOOR_FRACTION, EvalConfig, SceneEntry, _error, resolve_scenes
+from evaluation.config import FLOOR_FRACTION, EvalConfig, SceneEntry, resolve_scenes
 from evaluation.methods import (
     EQUAL_TIME_KINDS,
     METHOD_SOURCES,
@@ -44,12 +44,13 @@ from evaluation.methods import (
     unavailable,
 )
 from evaluation.references import ReferencePair, ReferenceSource, next_reference_spp
+from model.errors import CommandError
 
 __all__ = ["CROP_METHODS", "Evaluation", "SceneRun", "machine_summary", "run_evaluation"]
 
 CROP_METHODS: tuple[str, ...] = ("gpt-primal", "l1", "gradnet", "ours", "path-oidn", "path-sep-oidn")
 RENDERER_SOURCES = ("renderer/gpt.py", "renderer/shift.py", "renderer/render.py", "renderer/scene.py",
-                    "renderer/procedural.py")
+                    "renderer/procedural.py", "model/policy.py")
 REFERENCE_SOURCES = ("renderer/reference.py", "renderer/scene.py", "renderer/procedural.py")
 RESULT_FORMAT = 2  # bump when the cached output/score JSON changes shape
 SCORE_SOURCES = ("model/metrics.py", "evaluation/run.py")
@@ -359,7 +360,7 @@ def run_evaluation(config: EvalConfig, *, progress: bool | None = None,
     try:
         runner.cache.prepare()
     except OSError as exc:
-        raise _error(f"cache folder {str(runner.cache.root)!r} cannot be created: {exc.strerror or exc}") from exc
+        raise CommandError(f"cache folder {str(runner.cache.root)!r} cannot be created: {exc.strerror or exc}") from exc
     # every scene is loaded (and so validated) before anything renders: a typo in the last scene should not
     # surface after an hour of work on the first ones
     loaded_scenes = [load_scene(e.spec, width=config.width, height=config.height, max_depth=config.max_depth)
@@ -511,7 +512,7 @@ def _evaluate_one(runner: _Runner, spec: MethodSpec, scene: SceneRun, spp: int, 
     try:
         out = runner.output(spec, scene, spp, ctx, key)
     except ModelError as exc:
-        raise _error(f"{spec.name}: {exc}") from exc
+        raise CommandError(f"{spec.name}: {exc}") from exc
     done[spec.name] = out.row
     keys[spec.name] = out.tag
     return out
@@ -520,10 +521,10 @@ def _evaluate_one(runner: _Runner, spec: MethodSpec, scene: SceneRun, spp: int, 
 def _prepare_output(output: Path) -> None:
     """Create the report folder (and its parents), or fail before any rendering when that is impossible."""
     if output.exists() and not output.is_dir():
-        raise _error(f"output {str(output)!r} exists and is not a folder")
+        raise CommandError(f"output {str(output)!r} exists and is not a folder")
     try:
         output.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise _error(f"cannot create the report folder {str(output)!r}: {exc.strerror or exc}") from exc
+        raise CommandError(f"cannot create the report folder {str(output)!r}: {exc.strerror or exc}") from exc
     if not os.access(output, os.W_OK | os.X_OK):
-        raise _error(f"report folder {str(output)!r} is not writable")
+        raise CommandError(f"report folder {str(output)!r} is not writable")

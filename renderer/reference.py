@@ -21,9 +21,7 @@ lets a progress bar advance.
 
 from __future__ import annotations
 
-import argparse
 import io
-import math
 import os
 import time
 from collections.abc import Callable, Mapping
@@ -262,44 +260,3 @@ def load_reference(source: str | os.PathLike[str] | bytes) -> Reference:
 
     indirect = stack("indirect") if all(f"indirect.{c}" in names for c in RGB) else None
     return Reference(stack(""), stack("direct"), indirect, dict(info.attributes))
-
-
-# ----------------------------------------------------------------------------------------------------------
-# Command
-# ----------------------------------------------------------------------------------------------------------
-
-def reference_command(args: argparse.Namespace) -> int:
-    """Handler of `gradsep reference`: validate, render, write atomically, print a one-line summary."""
-    from gradsep.cli import CommandError
-    from renderer.scene import parse_defines
-
-    for name in ("spp", "tile_spp", "width", "height"):
-        value = getattr(args, name, None)
-        if value is not None and value < 1:
-            raise CommandError(f"--{name.replace('_', '-')} must be a positive integer, got {value}")
-    if args.max_depth is not None and (args.max_depth == 0 or args.max_depth < -1):
-        raise CommandError(f"--max-depth must be -1 (unbounded) or a positive integer, got {args.max_depth}")
-    if args.seed < 0:
-        raise CommandError(f"--seed must be non-negative, got {args.seed}")
-    out = Path(args.output)
-    if out.suffix.lower() != ".exr":
-        raise CommandError(f"output must be an .exr file, got {out}")
-    if not out.parent.exists():
-        raise CommandError(f"output folder {out.parent} does not exist")
-    try:
-        ref = render_reference(args.scene, spp=args.spp, width=args.width, height=args.height,
-                               max_depth=args.max_depth, seed=args.seed, tile_spp=args.tile_spp,
-                               defines=parse_defines(args.define), progress=None)
-    except (ValueError, FileNotFoundError) as exc:
-        raise CommandError(str(exc)) from exc
-    write_reference(out, ref)
-    layers = "direct, indirect" if ref.indirect is not None else "direct"
-    seconds = float(ref.metadata["gradsep.render_seconds"])
-    print(f"wrote {out}: {ref.total.shape[1]}x{ref.total.shape[0]}, {args.spp} spp, layers {layers}, "
-          f"{seconds:.1f} s ({_rate(args.spp, ref.total.shape, seconds)})")
-    return 0
-
-
-def _rate(spp: int, shape: tuple[int, ...], seconds: float) -> str:
-    samples = spp * shape[0] * shape[1]
-    return f"{samples / max(seconds, 1e-9) / 1e6:.1f} M samples/s" if math.isfinite(seconds) else ""

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from gradsep.cli import CommandError
+from model.errors import CommandError
 
 SUPPORTED_SENSORS: tuple[str, ...] = ("PerspectiveCamera", "ThinLensCamera")
 DEFAULT_MAX_DEPTH = 6  # Mitsuba's own default for path tracers

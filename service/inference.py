@@ -236,14 +236,16 @@ class Engine:
     @property
     def default_method(self) -> str:
         """The default for a gradient-domain frame with features (the first of DEFAULT_PREFERENCE served)."""
-        from model import policy
+        from model.policy import default_method
 
-        return next(m for m in (*policy.DEFAULT_PREFERENCE, "l1") if m in self.methods)
+        return default_method(self.methods, gradients=True) or "l1"
 
     @property
     def default_method_plain(self) -> str | None:
         """The default for a plain frame (no gradients): oidn, or None when OIDN is not installed."""
-        return "oidn" if self.oidn else None
+        from model.policy import default_method
+
+        return default_method(self.methods, gradients=False)
 
     def start(self, task_group: TaskGroup) -> None:
         """Create the gate and load + warm up in the background, so /healthz answers during a long load."""

@@ -31,6 +31,7 @@ import torch
 from torch.utils.data import Dataset
 
 from model.frame import FrameError, Layer, read_frame
+from model.policy import ILLUMINATION_LAYERS
 from model.preprocess import (
     FEATURE_PLANES,
     LAYER_PLANES,
@@ -44,7 +45,7 @@ from model.preprocess import (
     scaled_layer,
 )
 
-TRAINABLE_LAYERS = ("direct", "indirect", "color")
+TRAINABLE_LAYERS = ILLUMINATION_LAYERS  # a network per layer; color = the unseparated baseline
 CACHE_FORMAT = 2
 
 

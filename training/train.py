@@ -21,7 +21,6 @@ DistributedSampler; rank 0 writes the run folder and decides when to stop, and t
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import dataclasses
 import json
@@ -220,7 +219,7 @@ class SkipSampler(Sampler[int]):
 
 def code_version() -> str:
     """gradsep version plus the git commit of this checkout when there is one (for metadata)."""
-    from gradsep import __version__
+    from model import __version__
 
     try:
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
@@ -665,33 +664,7 @@ def train(cfg: TrainConfig, quiet: bool = False) -> Progress:
         teardown_distributed(ctx)
 
 
-def config_from_args(args: argparse.Namespace) -> TrainConfig:
-    network = NetworkConfig(use_attention=not args.no_attention)
-    extra: dict[str, Any] = {}
-    for name in ("patch", "batch", "lr", "patches_per_frame"):
-        value = getattr(args, name)
-        if value is not None:
-            extra[name] = value
-    if getattr(args, "data_weight", None) is not None:
-        extra["alpha"] = args.data_weight
-    return TrainConfig(data=args.data, layer=args.layer, output=args.output, network=network,
-                       epochs=args.epochs, minutes=args.minutes, seed=args.seed,
-                       prior=getattr(args, "prior", None) or "l1", **extra)
-
-
-def train_command(args: argparse.Namespace) -> int:
-    """`gradsep train`: bad settings or data become a one-line CommandError."""
-    from gradsep.cli import CommandError
-
-    try:
-        cfg = config_from_args(args)
-        train(cfg)
-    except (ValueError, TrainingError) as exc:  # DatasetError is a ValueError
-        raise CommandError(str(exc)) from exc
-    return 0
-
-
 if __name__ == "__main__":  # `torchrun -m training.train ...` works as well as `torchrun -m gradsep train ...`
-    from gradsep.cli import main
+    from training.commands import train_main
 
-    sys.exit(main(["train", *sys.argv[1:]]))
+    sys.exit(train_main(sys.argv[1:]))

@@ -32,7 +32,8 @@ from evaluation.methods import CostModel, primal_mode_available, split_features
 from evaluation.plots import select_crop
 from evaluation.report import CSV_COLUMNS, losses_of_ours, time_misses
 from evaluation.run import run_evaluation
-from gradsep.cli import CommandError, main
+from gradsep.cli import main
+from model.errors import CommandError
 
 SCENE = "procedural:90001"
 SPP = (1, 2)

@@ -1,0 +1,83 @@
+"""The import layering of docs/architecture.md, checked on the source (every import, lazy ones inside functions
+included, parsed with ast -- nothing is imported):
+
+* ``model/`` is the ground floor: it imports none of renderer/, training/, service/, evaluation/, gradsep/;
+* ``gradsep/`` is the roof: no library module imports it (the error base class and the version live in model/);
+* every package's ``commands.py`` imports only the standard library and the import-light ``model.errors`` /
+  ``model.policy`` at module level, so building the parser needs neither numpy, torch, mitsuba nor FastAPI.
+"""
+
+from __future__ import annotations
+
+import ast
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+LIBRARY = ("model", "renderer", "training", "service", "evaluation")
+ABOVE_MODEL = ("renderer", "training", "service", "evaluation", "gradsep")
+COMMAND_MODULE_ALLOWED = ("model.errors", "model.policy")
+
+
+def imports(source: str) -> list[tuple[str, int, bool]]:
+    """(imported module, line, at module level?) for every import statement in ``source``, lazy ones included.
+    ``from a import b`` yields ``a`` and ``a.b`` (b may be a submodule); relative imports are not used here."""
+    tree = ast.parse(source)
+    top_level = {id(node) for node in tree.body}
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            found += [(alias.name, node.lineno, id(node) in top_level) for alias in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.module:
+            found.append((node.module, node.lineno, id(node) in top_level))
+            found += [(f"{node.module}.{alias.name}", node.lineno, id(node) in top_level) for alias in node.names]
+    return found
+
+
+def package_files(package: str) -> list[Path]:
+    return sorted((REPO / package).rglob("*.py"))
+
+
+def violations(package: str, forbidden: tuple[str, ...]) -> list[str]:
+    out = []
+    for path in package_files(package):
+        for name, line, _ in imports(path.read_text()):
+            if name.split(".")[0] in forbidden:
+                out.append(f"{path.relative_to(REPO)}:{line} imports {name}")
+    return sorted(set(out))
+
+
+def test_the_checker_sees_lazy_and_from_imports():
+    """The checks below can fail: a lazy import inside a function and a from-import are both found."""
+    source = "import os\nfrom model.frame import Frame\n\ndef f():\n    from gradsep.cli import main\n    return main\n"
+    found = imports(source)
+    assert ("gradsep.cli", 5, False) in found and ("model.frame", 2, True) in found and ("os", 1, True) in found
+
+
+def test_model_imports_no_package_above_it():
+    assert violations("model", ABOVE_MODEL) == []
+
+
+@pytest.mark.parametrize("package", LIBRARY)
+def test_no_library_module_imports_the_command_line(package: str):
+    assert violations(package, ("gradsep",)) == []
+
+
+@pytest.mark.parametrize("path", sorted(p for package in LIBRARY for p in [REPO / package / "commands.py"]
+                                        if p.is_file()), ids=lambda p: p.parent.name)
+def test_command_modules_are_import_light_at_module_level(path: Path):
+    heavy = [f"{name} (line {line})" for name, line, top in imports(path.read_text())
+             if top and name.split(".")[0] not in sys.stdlib_module_names
+             and name not in COMMAND_MODULE_ALLOWED and not name.startswith(tuple(f"{m}." for m in
+                                                                                   COMMAND_MODULE_ALLOWED))]
+    assert heavy == [], f"{path.relative_to(REPO)} imports at module level: {', '.join(heavy)}"
+
+
+def test_every_library_package_has_a_command_module():
+    """The CLI's COMMAND_MODULES are exactly the library packages' commands.py (none forgotten, none extra)."""
+    from gradsep.cli import COMMAND_MODULES
+
+    assert sorted(COMMAND_MODULES) == sorted(f"{p}.commands" for p in LIBRARY if (REPO / p / "commands.py").is_file())
+    assert len(COMMAND_MODULES) == len(LIBRARY)
