@@ -23,7 +23,7 @@ CLI_DEFAULT_SPP = "1,2,4,8,16,32,64"
 DEFAULT_PROCEDURAL: tuple[str, ...] = ("procedural:90001", "procedural:90002")  # training starts at seed 1000
 SHARED_SCENES: tuple[str, ...] = ("cbox/cbox.xml", "teapot/teapot.xml")
 #: Methods whose images the crop comparison shows, in its order (the reference comes last).
-
+CROP_METHODS: tuple[str, ...] = ("gpt-primal", "l1", "gradnet", "ours", "path-oidn", "path-sep-oidn")
 
 
 @dataclass(frozen=True)
@@ -265,9 +265,12 @@ def resolve_scenes(specs: Sequence[str]) -> tuple[list[SceneEntry], list[str]]:
                 notes.append(f"default scene {shared / rel} not found; evaluated without it")
         specs = [*specs, *DEFAULT_PROCEDURAL]
     entries: list[SceneEntry] = []
+    from renderer.procedural import parse_procedural  # numpy only: no Mitsuba to resolve the scene list
+
     for spec in specs:
-        if spec.startswith("procedural:"):
-            entries.append(_procedural_entry(spec))
+        seed = parse_procedural(spec)
+        if seed is not None:
+            entries.append(_procedural_entry(seed))
         else:
             xml = _xml_for(Path(spec).expanduser())
             entries.append(SceneEntry(str(xml), scene_label(xml), {"xml": str(xml.resolve()),
@@ -283,14 +286,7 @@ def scene_label(xml: Path) -> str:
     return xml.stem
 
 
-def _procedural_entry(spec: str) -> SceneEntry:
-    text = spec[len("procedural:"):]
-    try:
-        seed = int(text)
-    except ValueError:
-        raise CommandError(f"bad scene {spec!r}: expected procedural:SEED with an integer seed") from None
-    if seed < 0:
-        raise CommandError(f"bad scene {spec!r}: the seed must be >= 0")
+def _procedural_entry(seed: int) -> SceneEntry:
     from renderer.procedural import GENERATOR_VERSION
 
     return SceneEntry(f"procedural:{seed}", f"procedural:{seed}", {"procedural": seed, "generator": GENERATOR_VERSION})

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from evaluation.cache import slug
+from evaluation.config import CROP_METHODS
 from evaluation.methods import ABLATION_VARIANTS, METHODS
 from evaluation.plots import plot_crops, plot_error_vs_time
 from model.frame import write_bytes_atomic
@@ -84,8 +85,6 @@ def write_outputs(evaluation: Evaluation) -> dict[str, Path]:
                                                        scene.floor.get("total"))
         table = _by_method(scene_rows, evaluation.config.crop_spp)
         metrics = {m: float(r["relmse"]) for m, r in table.items()}
-        from evaluation.run import CROP_METHODS
-
         paths[f"crop:{name}"] = plot_crops(name, scene.reference, scene.crop_images, CROP_METHODS, _crop_labels(),
                                            metrics, evaluation.config.crop_spp, out / "crops" / f"{slug(name)}.png")
     paths["json"] = out / "results.json"

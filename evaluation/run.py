@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import math
 import os
-import sys
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from evaluation.cache import EvalCache, file_sha256, key_hash, sources_sha256
-from evaluation.config import FLOOR_FRACTION, EvalConfig, SceneEntry, resolve_scenes
+from evaluation.config import CROP_METHODS, FLOOR_FRACTION, EvalConfig, SceneEntry, resolve_scenes
 from evaluation.methods import (
     EQUAL_TIME_KINDS,
     METHOD_SOURCES,
@@ -45,13 +44,13 @@ from evaluation.methods import (
 )
 from evaluation.references import ReferencePair, ReferenceSource, next_reference_spp
 from model.errors import CommandError
+from model.progress import ProgressBar
 
 __all__ = ["CROP_METHODS", "Evaluation", "SceneRun", "machine_summary", "run_evaluation"]
 
-CROP_METHODS: tuple[str, ...] = ("gpt-primal", "l1", "gradnet", "ours", "path-oidn", "path-sep-oidn")
 RENDERER_SOURCES = ("renderer/gpt.py", "renderer/shift.py", "renderer/render.py", "renderer/scene.py",
-                    "renderer/procedural.py", "model/policy.py")
-REFERENCE_SOURCES = ("renderer/reference.py", "renderer/scene.py", "renderer/procedural.py")
+                    "renderer/procedural.py", "renderer/variant.py", "model/policy.py")
+REFERENCE_SOURCES = ("renderer/reference.py", "renderer/scene.py", "renderer/procedural.py", "renderer/variant.py")
 RESULT_FORMAT = 2  # bump when the cached output/score JSON changes shape
 SCORE_SOURCES = ("model/metrics.py", "evaluation/run.py")
 
@@ -304,39 +303,6 @@ def machine_summary() -> str:
     return f"{cpu}, {os.cpu_count()} logical cores"
 
 
-class _Progress:
-    """One tqdm bar over the run's steps (hidden when progress is off, or not a terminal when it is None)."""
-
-    def __init__(self, total: int, enabled: bool | None) -> None:
-        self.bar = None
-        if enabled is False:
-            return
-        try:
-            from tqdm import tqdm
-        except ImportError:
-            return
-        self.bar = tqdm(total=total, unit="step", desc="evaluate", dynamic_ncols=True,
-                        disable=None if enabled is None else not enabled, file=sys.stderr)
-
-    def step(self, description: str) -> None:
-        if self.bar is not None:
-            self.bar.set_description_str(description[:60])
-
-    def advance(self, n: int = 1) -> None:
-        if self.bar is not None:
-            self.bar.update(n)
-
-    def write(self, message: str) -> None:
-        if self.bar is not None and not self.bar.disable:
-            self.bar.write(message, file=sys.stderr)
-        else:
-            print(message, file=sys.stderr)
-
-    def close(self) -> None:
-        if self.bar is not None:
-            self.bar.close()
-
-
 def _budget_method(rows: dict[str, dict[str, Any]]) -> str | None:
     """The method whose total time is the equal-time budget: the product's default for a G-PT frame (fused), else
     ours (the paper's network), else L1 (None: the G-PT render alone)."""
@@ -355,7 +321,7 @@ def run_evaluation(config: EvalConfig, *, progress: bool | None = None,
     _prepare_output(config.output)
     methods = [method_by_name(name) for name in config.methods]
     total = len(entries) * (2 + len(config.spp) * (1 + len(methods)))
-    bar = _Progress(total, progress)
+    bar = ProgressBar(total, enabled=progress, desc="evaluate", unit="step")
     runner = _Runner(config, progress, log or bar.write)
     try:
         runner.cache.prepare()
@@ -383,7 +349,7 @@ def run_evaluation(config: EvalConfig, *, progress: bool | None = None,
 
 
 def _run_scene(runner: _Runner, entry: SceneEntry, loaded: Any, methods: list[MethodSpec],
-               bar: _Progress) -> tuple[SceneRun, list[dict[str, Any]]]:
+               bar: ProgressBar) -> tuple[SceneRun, list[dict[str, Any]]]:
     """One scene: every method's output, then references raised until the floor criterion holds, then scores."""
     from model.frame import SEPARATED_LAYERS
     from renderer.render import plan_layers
@@ -401,27 +367,27 @@ def _run_scene(runner: _Runner, entry: SceneEntry, loaded: Any, methods: list[Me
 
     outputs: list[_Output] = []
     for spp in config.spp:
-        bar.step(f"{entry.name}: G-PT {spp} spp")
+        bar.describe(f"{entry.name}: G-PT {spp} spp")
         frame, seconds, frame_tag = runner.frame(entry, loaded, spp)
-        bar.advance()
+        bar.update()
         done: dict[str, dict[str, Any]] = {}
         keys: dict[str, str] = {}
         for spec in methods:
-            bar.step(f"{entry.name} {spp} spp: {spec.name}")
+            bar.describe(f"{entry.name} {spp} spp: {spec.name}")
             out = _evaluate_one(runner, spec, scene, spp, frame, seconds, frame_tag, get_path, done, keys)
             if out is not None:
                 outputs.append(out)
-            bar.advance()
-    bar.step(f"{entry.name}: references")
+            bar.update()
+    bar.describe(f"{entry.name}: references")
     pair = _converge_references(runner, scene, runner.references(entry, loaded), outputs)
-    bar.advance()
-    bar.step(f"{entry.name}: scoring")
+    bar.update()
+    bar.describe(f"{entry.name}: scoring")
     rows = []
     for out in outputs:
         rows.append({**out.row, **runner.score(out, scene, pair)})
         if out.spp == config.crop_spp and out.spec.name in CROP_METHODS:
             scene.crop_images[out.spec.name] = out.image
-    bar.advance()
+    bar.update()
     return scene, rows
 
 

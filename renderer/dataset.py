@@ -41,6 +41,7 @@ from typing import Any
 
 from model.errors import CommandError
 from model.frame import write_bytes_atomic
+from model.progress import ProgressBar
 
 MANIFEST_VERSION = 1
 MANIFEST_NAME = "manifest.json"
@@ -419,25 +420,10 @@ def _write_part(path: Path, job: Job, frames: list[dict[str, Any]], count: int) 
                               "params": job.params(), "frames": sorted(frames, key=lambda f: int(f["seed"]))})
 
 
-class _NoBar:
-    def update(self, n: int) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
-
-
-def _bar(total: int, skipped: int, job: Job, progress: bool | None) -> Any:
-    """tqdm over this run's frames with ETA; frames finished by earlier runs are named in the label."""
-    if progress is False:
-        return _NoBar()
-    try:
-        from tqdm import tqdm
-    except ImportError:
-        return _NoBar()
+def _bar(total: int, skipped: int, job: Job, progress: bool | None) -> ProgressBar:
+    """A bar over this run's frames with ETA; frames finished by earlier runs are named in the label."""
     label = f"dataset shard {job.shard_name}" + (f" ({skipped} done before)" if skipped else "")
-    return tqdm(total=total, unit="frame", desc=label, disable=None if progress is None else not progress,
-                dynamic_ncols=True)
+    return ProgressBar(total, enabled=progress, desc=label, unit="frame")
 
 
 # ----------------------------------------------------------------------------------------------------------

@@ -24,12 +24,14 @@ from __future__ import annotations
 import io
 import os
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+from model.progress import ProgressBar
 
 if TYPE_CHECKING:  # scene.py needs Mitsuba at import time; load_reference must not
     from renderer.scene import LoadedScene
@@ -142,7 +144,7 @@ def render_loaded(loaded: LoadedScene, *, spp: int, seed: int, tile_spp: int | N
     shape = (loaded.height, loaded.width, 3)
     total_sum, direct_sum = np.zeros(shape), np.zeros(shape)
     start = time.perf_counter()
-    with _ProgressBar(spp, progress, loaded.spec) as advance:
+    with ProgressBar(spp, enabled=progress, desc=f"reference {loaded.spec}".strip(), unit="spp") as bar:
         for i, k in enumerate(plan_passes(spp, tile)):
             s = pass_seed(seed, i)
             total = render(total_it, k, s)
@@ -151,7 +153,7 @@ def render_loaded(loaded: LoadedScene, *, spp: int, seed: int, tile_spp: int | N
                 direct = render(direct_it, k, s)
                 _check_split(total, direct, i)
                 direct_sum += k * direct
-            advance(k)
+            bar.update(k)
     seconds = time.perf_counter() - start
     total_mean = total_sum / spp
     if direct_it is None:
@@ -183,28 +185,6 @@ def _check_split(total: np.ndarray, direct: np.ndarray, index: int) -> None:
 def _finite32(image: np.ndarray) -> np.ndarray:
     """float32 with non-finite values (a NaN from a degenerate BSDF sample) replaced by 0: outputs stay finite."""
     return np.nan_to_num(image, nan=0.0, posinf=0.0, neginf=0.0).astype(np.float32)
-
-
-class _ProgressBar:
-    """tqdm over samples per pixel; a no-op when tqdm is missing or progress is off."""
-
-    def __init__(self, total: int, enabled: bool | None, label: str) -> None:
-        self.bar = None
-        if enabled is False:
-            return
-        try:
-            from tqdm import tqdm
-        except ImportError:
-            return
-        self.bar = tqdm(total=total, unit="spp", desc=f"reference {label}".strip(), disable=None if enabled is None
-                        else not enabled, dynamic_ncols=True)
-
-    def __enter__(self) -> Callable[[int], None]:
-        return (lambda n: self.bar.update(n)) if self.bar is not None else (lambda n: None)
-
-    def __exit__(self, *exc: object) -> None:
-        if self.bar is not None:
-            self.bar.close()
 
 
 def _check_positive(name: str, value: int) -> None:

@@ -21,11 +21,21 @@ ABOVE_MODEL = ("renderer", "training", "service", "evaluation", "gradsep")
 COMMAND_MODULE_ALLOWED = ("model.errors", "model.policy")
 
 
-def imports(source: str) -> list[tuple[str, int, bool]]:
-    """(imported module, line, at module level?) for every import statement in ``source``, lazy ones included.
-    ``from a import b`` yields ``a`` and ``a.b`` (b may be a submodule); relative imports are not used here."""
+def _is_main_block(node: ast.stmt) -> bool:
+    """``if __name__ == "__main__":`` -- a script entry point, not part of the module's import graph."""
+    test = node.test if isinstance(node, ast.If) else None
+    return (isinstance(test, ast.Compare) and isinstance(test.left, ast.Name) and test.left.id == "__name__"
+            and any(isinstance(c, ast.Constant) and c.value == "__main__" for c in test.comparators))
+
+
+def imports(source: str, *, main_block: bool = True) -> list[tuple[str, int, bool]]:
+    """(imported module, line, at module level?) for every import statement in ``source``, lazy ones included
+    (``main_block=False`` leaves out the ``if __name__ == "__main__":`` block). ``from a import b`` yields ``a``
+    and ``a.b`` (b may be a submodule); relative imports are not used here."""
     tree = ast.parse(source)
     top_level = {id(node) for node in tree.body}
+    if not main_block:
+        tree.body = [node for node in tree.body if not _is_main_block(node)]
     found = []
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
@@ -54,6 +64,31 @@ def test_the_checker_sees_lazy_and_from_imports():
     source = "import os\nfrom model.frame import Frame\n\ndef f():\n    from gradsep.cli import main\n    return main\n"
     found = imports(source)
     assert ("gradsep.cli", 5, False) in found and ("model.frame", 2, True) in found and ("os", 1, True) in found
+
+
+def module_imports() -> dict[str, set[str]]:
+    """Library + CLI module name -> every module it imports (lazy ones included, script entry blocks not)."""
+    out = {}
+    for package in (*LIBRARY, "gradsep"):
+        for path in package_files(package):
+            name = ".".join(path.relative_to(REPO).with_suffix("").parts).removesuffix(".__init__")
+            out[name] = {n for n, _, _ in imports(path.read_text(), main_block=False)}
+    return out
+
+
+#: Pairs of modules that still import each other (lazily), to be split; the test fails on any other pair, and
+#: when one of these is resolved (then delete it here). evaluation.run writes the report at the end of a run
+#: and evaluation.report types its argument with run's result classes and asks run for the machine summary.
+KNOWN_MUTUAL_IMPORTS = {("evaluation.report", "evaluation.run")}
+
+
+def test_no_two_modules_import_each_other():
+    """An import loop (even through lazy imports) means neither module can be read or tested alone; the
+    scene/procedural loop (renderer.variant and renderer.errors now hold what both need) must not come back."""
+    graph = module_imports()
+    mutual = {tuple(sorted((a, b))) for a, deps in graph.items() for b in deps
+              if b in graph and b != a and a in graph[b]}
+    assert mutual == KNOWN_MUTUAL_IMPORTS
 
 
 def test_model_imports_no_package_above_it():

@@ -41,6 +41,7 @@ from torch.utils.data import DataLoader, DistributedSampler, Sampler
 
 from model.network import DualBranchNet, GBranch, NetworkConfig, describe
 from model.preprocess import PREPROCESS_VERSION, PRIOR_CHANNELS, PRIOR_KINDS, describe_preprocessing, network_inputs
+from model.progress import ProgressBar
 from training.dataset import (
     TRAINABLE_LAYERS,
     DatasetError,
@@ -479,11 +480,8 @@ class Trainer:
     def _loader(self, dataset: PatchDataset, sampler: Sampler[int]) -> DataLoader:
         return DataLoader(dataset, batch_size=self.cfg.batch, sampler=sampler, drop_last=True, num_workers=0)
 
-    def _bar(self, total: int, initial: int, desc: str) -> Any:
-        from tqdm import tqdm
-
-        return tqdm(total=total, initial=initial, desc=desc, disable=self.quiet, leave=False,
-                    dynamic_ncols=True, file=sys.stderr)
+    def _bar(self, total: int, initial: int, desc: str) -> ProgressBar:
+        return ProgressBar(total, enabled=not self.quiet, desc=desc, initial=initial, leave=False)
 
     def _batches(self, phase: str) -> Iterator[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
         """The current epoch's batches of one phase (planes, features, targets), skipping those a previous
@@ -531,7 +529,7 @@ class Trainer:
                                           "beta": beta, "lr": self.opt.param_groups[0]["lr"],
                                           "elapsed": round(self.elapsed(), 2)})
                 bar.update(1)
-                bar.set_postfix(data=f"{values['data']:.4f}", grad=f"{values['grad']:.4f}",
+                bar.postfix(data=f"{values['data']:.4f}", grad=f"{values['grad']:.4f}",
                                 first=f"{values['first']:.4f}", beta=f"{beta:.2f}")
         finally:
             bar.close()
@@ -559,7 +557,7 @@ class Trainer:
                 p.sums["gn"] = p.sums.get("gn", 0.0) + 1
                 p.batch += 1
                 bar.update(1)
-                bar.set_postfix(first=f"{float(loss.detach()):.4f}")
+                bar.postfix(first=f"{float(loss.detach()):.4f}")
         finally:
             bar.close()
         p.phase, p.batch = "done", 0
