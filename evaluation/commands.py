@@ -6,13 +6,27 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from typing import TYPE_CHECKING
 
 from model.policy import DEFAULT_ALPHA, MODELS_ENV
+
+if TYPE_CHECKING:
+    from evaluation.config import EvalConfig
+
+
+def config_from_args(args: argparse.Namespace) -> EvalConfig:
+    """The run's configuration from the parsed flags (a flag not given: its GRADSEP_EVAL_* variable, else the
+    preset); a Namespace without some flag counts it as not given."""
+    from evaluation.config import EvalSettings, load_settings, make_config
+
+    settings = load_settings(**{name: getattr(args, name, None) for name in EvalSettings.model_fields})
+    return make_config(settings, output=args.output, scenes=getattr(args, "scenes", None) or (),
+                       spp=getattr(args, "spp", None), quick=bool(getattr(args, "quick", False)),
+                       models=getattr(args, "models", None), cache=getattr(args, "cache", None))
 
 
 def evaluate_command(args: argparse.Namespace) -> int:
     """``gradsep evaluate``: run the evaluation, print where the outputs are and which methods were skipped."""
-    from evaluation.config import config_from_args
     from evaluation.run import run_evaluation
 
     config = config_from_args(args)

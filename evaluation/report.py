@@ -23,11 +23,11 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from evaluation.cache import slug
-from evaluation.config import CROP_METHODS
+from evaluation.config import CROP_METHODS, EvalSettings
 from evaluation.methods import ABLATION_VARIANTS, METHODS
 from evaluation.plots import plot_crops, plot_error_vs_time
 from model.frame import write_bytes_atomic
-from model.policy import DEFAULT_ALPHA
+from model.policy import DEFAULT_ALPHA, MODELS_ENV
 
 if TYPE_CHECKING:
     from evaluation.run import EvalConfig, Evaluation
@@ -136,16 +136,16 @@ def invocation() -> str:
 
 
 def reproduce_command(c: EvalConfig) -> str:
-    """A command that reproduces this run with every setting explicit (env vars for the options the parser
-    does not have yet)."""
-    env = {"GRADSEP_MODELS": str(c.models_dir), "GRADSEP_EVAL_SIZE": f"{c.width}x{c.height}",
-           "GRADSEP_EVAL_REF_SPP": str(c.ref_spp), "GRADSEP_EVAL_REF_SPP_CAP": str(c.reference_cap),
-           "GRADSEP_EVAL_REF_SECONDS": f"{c.ref_seconds or 0:g}", "GRADSEP_EVAL_SEED": str(c.seed),
-           "GRADSEP_EVAL_METHODS": ",".join(c.methods)}
+    """A command that reproduces this run with every setting explicit (the options as GRADSEP_EVAL_* variables,
+    the names evaluation.config.EvalSettings reads)."""
+    var = EvalSettings.variable
+    env = {MODELS_ENV: str(c.models_dir), var("size"): f"{c.width}x{c.height}", var("ref_spp"): str(c.ref_spp),
+           var("ref_spp_cap"): str(c.reference_cap), var("ref_seconds"): f"{c.ref_seconds or 0:g}",
+           var("seed"): str(c.seed), var("methods"): ",".join(c.methods)}
     if c.max_depth is not None:
-        env["GRADSEP_EVAL_MAX_DEPTH"] = str(c.max_depth)
+        env[var("max_depth")] = str(c.max_depth)
     if c.alpha != DEFAULT_ALPHA:
-        env["GRADSEP_EVAL_ALPHA"] = f"{c.alpha:g}"
+        env[var("alpha")] = f"{c.alpha:g}"
     args = ["gradsep", "evaluate"]
     if c.scenes:
         args += ["--scenes", *c.scenes]
