@@ -44,6 +44,7 @@ from evaluation.methods import (
 )
 from evaluation.references import ReferencePair, ReferenceSource, next_reference_spp
 from model.errors import CommandError
+from model.policy import SEPARATED_LAYERS
 from model.progress import ProgressBar
 
 __all__ = ["CROP_METHODS", "Evaluation", "SceneRun", "machine_summary", "run_evaluation"]
@@ -243,7 +244,7 @@ class _Runner:
         row.update({k: v for k, v in out.extra.items()
                     if k in ("target_seconds", "budget_method", "capped", "attempts", "feature_spp")})
         row["machine"] = machine_summary()
-        layers = {n: out.layers[n] for n in ("direct", "indirect") if n in out.layers}
+        layers = {n: out.layers[n] for n in SEPARATED_LAYERS if n in out.layers}
         self.cache.save_arrays(path.with_suffix(".npz"), {"image": out.image, **layers})
         self.cache.save_json(path, {"format": RESULT_FORMAT, "key": key, "row": row, "layers": list(layers)})
         self.computed["results"] += 1
@@ -263,7 +264,7 @@ class _Runner:
         scores: dict[str, Any] = {"relmse": relmse_unbiased(output.image, pair.first["total"], pair.second["total"]),
                                   "ssim": ssim(output.image, mean), "psnr": psnr(output.image, mean),
                                   "flip": flip(output.image, mean)}
-        for layer in ("direct", "indirect"):
+        for layer in SEPARATED_LAYERS:
             have = layer in output.layers and layer in pair.first
             scores[f"relmse_{layer}"] = (relmse_unbiased(output.layers[layer], pair.first[layer],
                                                          pair.second[layer]) if have else None)

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from model.errors import CommandError
-from model.policy import DEFAULT_ALPHA, DEFAULT_PREFERENCE, METHODS, MODELS_ENV, models_dir_from
+from model.policy import DEFAULT_ALPHA, DEFAULT_PREFERENCE, METHODS, MODELS_ENV, POISSON_METHODS, models_dir_from
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -90,7 +90,7 @@ def reconstruct_command(args: argparse.Namespace) -> int:
             channels.update(rgb_channels(name, image))
     metadata = {"gradsep.method": method, "gradsep.layers": ",".join(result.layers),
                 "gradsep.source": Path(args.frame).name}
-    if method in ("l1", "l2"):
+    if method in POISSON_METHODS:
         metadata["gradsep.alpha"] = f"{alpha:g}"
     warnings = [*frame.warnings, *result.warnings]
     if warnings:

@@ -27,6 +27,8 @@ DEFAULT_MODELS_DIR = "models"
 
 #: Every reconstruction method (model/reconstruct.py documents each).
 METHODS: tuple[str, ...] = ("network", "l1", "l2", "oidn", "fused")
+#: The screened Poisson solvers: the methods that take ``alpha``.
+POISSON_METHODS: tuple[str, ...] = ("l1", "l2")
 #: Methods that integrate gradients: a plain (gradient-free) frame cannot use them.
 GRADIENT_METHODS: frozenset[str] = frozenset({"network", "l1", "l2", "fused"})
 #: Methods that need a loaded model set (and the frame's feature channels).

@@ -37,7 +37,7 @@ import numpy as np
 from model import policy
 from model.frame import Features, Frame, Layer
 from model.poisson import solve_l1, solve_l2
-from model.policy import DEFAULT_ALPHA, GRADIENT_METHODS, METHODS, MODEL_METHODS, models_dir_from
+from model.policy import DEFAULT_ALPHA, GRADIENT_METHODS, METHODS, MODEL_METHODS, POISSON_METHODS, models_dir_from
 
 __all__ = [
     "METHODS",
@@ -149,7 +149,7 @@ def _check_method(frame: Frame, method: str, alpha: float, models: NetworkLike |
 
     if method not in METHODS:
         raise ValueError(f"unknown reconstruction method {method!r}; expected one of {', '.join(METHODS)}")
-    if method in ("l1", "l2") and not (math.isfinite(alpha) and alpha > 0):
+    if method in POISSON_METHODS and not (math.isfinite(alpha) and alpha > 0):
         raise ValueError(f"alpha must be a finite number > 0, got {alpha}")
     if method in GRADIENT_METHODS and not frame.has_gradients:
         missing = [c for name in frame.layers for c in layer_channels(name)[3:]]

@@ -32,12 +32,12 @@ from model.frame import (
     read_frame,
     rgb_channels,
 )
+from model.policy import POISSON_METHODS
 from service.errors import ServiceError
 from service.settings import Settings
 
 log = logging.getLogger("gradsep.service")
 
-POISSON_METHODS = ("l1", "l2")
 T = TypeVar("T")
 
 
