@@ -91,6 +91,29 @@ def test_no_two_modules_import_each_other():
     assert mutual == KNOWN_MUTUAL_IMPORTS
 
 
+#: Who may import whom, package by package (docs/architecture.md draws it). gradsep/ loads the packages'
+#: commands.py through importlib (by name), which an import statement does not show.
+ALLOWED_LAYERS = {
+    "model": set(),
+    "renderer": {"model"},
+    "training": {"model"},
+    "service": {"model"},
+    "evaluation": {"model", "renderer"},
+    "gradsep": {"model"},
+}
+
+
+def test_packages_import_only_the_layers_below_them():
+    graph = module_imports()
+    found: dict[str, set[str]] = {package: set() for package in ALLOWED_LAYERS}
+    for module, deps in graph.items():
+        package = module.split(".")[0]
+        found[package] |= {d.split(".")[0] for d in deps if d.split(".")[0] in ALLOWED_LAYERS} - {package}
+    extra = {package: sorted(found[package] - allowed) for package, allowed in ALLOWED_LAYERS.items()
+             if found[package] - allowed}
+    assert extra == {}
+
+
 def test_model_imports_no_package_above_it():
     assert violations("model", ABOVE_MODEL) == []
 
