@@ -37,7 +37,7 @@ __all__ = ["CSV_COLUMNS", "losses_of_ours", "write_outputs"]
 CSV_COLUMNS: tuple[str, ...] = (
     "scene", "method", "spp", "method_spp", "width", "height", "render_seconds", "reconstruct_seconds",
     "total_seconds", "relmse", "ssim", "psnr", "flip", "relmse_direct", "relmse_indirect", "target_seconds",
-    "budget_method", "attempts", "feature_spp",
+    "budget_method", "attempts", "feature_spp", "time_note",
 )
 LABELS: dict[str, str] = {m.name: m.label for m in METHODS}
 TABLE1: tuple[tuple[str, str], ...] = (("gpt-primal", "Input"), ("l1", "L1"), ("gradnet", "GradNet-style"),
@@ -390,17 +390,28 @@ def time_misses(rows: Sequence[Mapping[str, Any]]) -> list[str]:
             continue
         miss = float(r["total_seconds"]) / float(target) - 1.0
         if abs(miss) > TIME_TOLERANCE:
+            reason = r.get("time_note") or "no reason recorded"
             out.append(f"{r['scene']}, {r['spp']} spp, {r['method']}: {float(r['total_seconds']):.3g} s for a "
-                       f"{float(target):.3g} s budget ({miss:+.0%}; {r.get('attempts', '?')} renders tried at "
-                       f"{r['method_spp']} spp)")
+                       f"{float(target):.3g} s budget ({miss:+.0%}; {r.get('attempts', '?')} tries, kept "
+                       f"{r['method_spp']} spp): {reason}")
     return out
+
+
+def _search_method(rows: Sequence[Mapping[str, Any]]) -> str:
+    """How the rows' equal-time spp were found (each row records it; cached rows may predate the search)."""
+    methods = sorted({str(r.get("time_search") or "bisected") for r in rows if r.get("target_seconds")})
+    return " / ".join(methods) or "interpolated on the measured time curve"
 
 
 def _equal_time(evaluation: Evaluation) -> list[str]:
     lines = ["## Equal time: G-PT + reconstruction against Mitsuba path, path + OIDN and separated path + OIDN", "",
-             "Each equal-time method's spp is bisected until its measured total time (render, feature pass and "
-             "denoising) is within ±5 % of the time of the G-PT render + the reconstruction by fused (by ours, "
-             "then L1, when it is unavailable; column *budget*); the times shown are the measured ones. "
+             f"Each equal-time method's spp is {_search_method(evaluation.rows)} until its measured total time "
+             "(render, feature pass and denoising) is within ±5 % of the time of the G-PT render + the "
+             "reconstruction by fused (by ours, then L1, when it is unavailable; column *budget*): a line "
+             "time = overhead + per-spp cost is fitted to the renders already measured and solved for the budget "
+             "(a secant step; bisection of the closest bracket when the line points at a tried spp), tries under "
+             "2 s or off the line's prediction by over 15 % are timed three times and their median used, at most "
+             "8 tries per row. The times shown are the measured ones. "
              "path + OIDN gets its albedo and normal from a separate feature pass (Mitsuba `aov`, spp in results.csv "
              "`feature_spp`) whose time is counted; separated path + OIDN is the renderer's primal-only mode "
              "(direct and indirect apart, first-hit features, no gradients) with OIDN on each layer. "

@@ -242,7 +242,8 @@ class _Runner:
             "total_seconds": out.render_seconds + out.reconstruct_seconds,
         }
         row.update({k: v for k, v in out.extra.items()
-                    if k in ("target_seconds", "budget_method", "capped", "attempts", "feature_spp")})
+                    if k in ("target_seconds", "budget_method", "capped", "attempts", "feature_spp",
+                             "time_search", "time_tries", "time_note")})
         row["machine"] = machine_summary()
         layers = {n: out.layers[n] for n in SEPARATED_LAYERS if n in out.layers}
         self.cache.save_arrays(path.with_suffix(".npz"), {"image": out.image, **layers})

@@ -6,14 +6,14 @@ runs for an absent layer. The methods:
 
 * ``l1``, ``l2`` -- screened Poisson solvers of the base and the gradients (model/poisson.py);
 * ``network`` -- the paper's GradNet-style network with CBAM, refining a truncated L1 solve (models/*.onnx);
-* ``oidn`` -- Intel Open Image Denoise on each layer's base with the frame's prefiltered albedo/normal; the one
-  method for a plain path-traced frame (no gradients), and it needs no features;
+* ``oidn`` -- Intel Open Image Denoise on each layer's base with the frame's albedo/normal (model.oidn's method
+  setting, docs/oidn.md); the one method for a plain path-traced frame (no gradients), and it needs no features;
 * ``fused`` -- the same network architecture refining OIDN's denoise with the layer's gradients and features,
   trained unsupervised (models/fused/*.onnx).
 
 What a frame does not carry costs nothing: no gradients means no Poisson or network work (only ``oidn``
 applies), no features means OIDN without auxiliary images, and the OIDN prefilter of albedo/normal runs once per
-frame, shared by its layers.
+frame, shared by its layers (where the setting prefilters).
 
 Output policy: every reconstructed layer is made finite (NaN/±Inf → 0, with a warning: a solver or network
 that produced them has a bug, and a black pixel is easier to spot than a poisoned downstream average) and
@@ -90,7 +90,8 @@ class _Context:
     alpha: float
     models: Any  # the NetworkReconstructor of the method (network or fused), or None
     features: Features | None
-    aux: Any = None  # the OIDN-prefiltered features, computed once per frame when a layer needs them
+    aux: Any = None  # the OIDN auxiliary features (model.oidn.CleanAux), computed once per frame when needed
+    denoiser: Any = None  # the model.oidn.Denoiser of the method (oidn: its setting; fused: the prior's)
 
 
 def _reconstruct_layer(name: str, layer: Layer, ctx: _Context) -> np.ndarray:
@@ -99,9 +100,7 @@ def _reconstruct_layer(name: str, layer: Layer, ctx: _Context) -> np.ndarray:
     if ctx.method == "l2":
         return solve_l2(layer.base, layer.dx, layer.dy, ctx.alpha)
     if ctx.method == "oidn":
-        from model.oidn import shared_denoiser
-
-        return shared_denoiser().denoise(layer.base, ctx.aux)
+        return ctx.denoiser.denoise(layer.base, ctx.aux)
     if ctx.aux is not None:  # models refining an OIDN prior share the frame's prefiltered features
         return ctx.models.reconstruct_layer(name, layer, ctx.features, ctx.aux)
     return ctx.models.reconstruct_layer(name, layer, ctx.features)
@@ -196,11 +195,14 @@ def reconstruct(frame: Frame, method: str | None = None, alpha: float = DEFAULT_
     warnings: list[str] = []
     total = np.zeros(shape, dtype=np.float64)
     needs_aux = method == "oidn" or bool(getattr(models, "needs_aux", False))
-    if needs_aux and frame.features is not None:
-        from model.oidn import shared_denoiser
+    if needs_aux:
+        from model.oidn import method_setting, shared_denoiser
 
+        # oidn runs at its chosen setting; the fused models refine the prior setting they were trained on
+        ctx.denoiser = shared_denoiser(method_setting()) if method == "oidn" else shared_denoiser()
+    if needs_aux and frame.features is not None:
         start = time.perf_counter()
-        ctx.aux = shared_denoiser().prefilter(frame.features)  # once per frame, shared by every layer
+        ctx.aux = ctx.denoiser.prefilter(frame.features)  # once per frame, shared by every layer
         timings["features"] = time.perf_counter() - start
     for name, layer in frame.layers.items():
         start = time.perf_counter()
