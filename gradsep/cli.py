@@ -39,8 +39,10 @@ def build_parser(modules: Sequence[str] | None = None) -> argparse.ArgumentParse
     parser.add_argument("--version", action="version", version=f"gradsep {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in COMMAND_MODULES if modules is None else modules:
-        package = name.split(".")[0]
-        if importlib.util.find_spec(package) is None:  # the whole package is not part of this install
+        spec = importlib.util.find_spec(name.split(".")[0])
+        # The whole package is not part of this install. A folder of that name without __init__.py (a
+        # namespace package, e.g. a user's `training/` data folder in the cwd of `python -m gradsep`) is not it.
+        if spec is None or spec.origin is None:
             continue
         try:
             module = importlib.import_module(name)

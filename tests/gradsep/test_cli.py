@@ -26,7 +26,7 @@ EVERY_COMMAND = ("render", "reference", "dataset", "train", "export", "reconstru
 def fake_module(monkeypatch: pytest.MonkeyPatch, name: str, handler) -> None:
     """Install ``name`` (a command module) whose one subcommand ``fake`` runs ``handler``."""
     module = types.ModuleType(name)
-    module.__spec__ = importlib.machinery.ModuleSpec(name, None)
+    module.__spec__ = importlib.machinery.ModuleSpec(name, None, origin="<test>")
 
     def register(sub: argparse._SubParsersAction) -> None:
         p = sub.add_parser("fake", help="a test command")
@@ -136,7 +136,7 @@ def test_a_broken_command_module_is_an_error(monkeypatch, tmp_path: Path) -> Non
 
 def test_a_command_module_without_register_is_an_error(monkeypatch) -> None:
     module = types.ModuleType("tests_empty_commands")
-    module.__spec__ = importlib.machinery.ModuleSpec("tests_empty_commands", None)
+    module.__spec__ = importlib.machinery.ModuleSpec("tests_empty_commands", None, origin="<test>")
     monkeypatch.setitem(sys.modules, "tests_empty_commands", module)
     monkeypatch.setattr(cli, "COMMAND_MODULES", (*cli.COMMAND_MODULES, "tests_empty_commands"))
     with pytest.raises(cli.CommandModuleError, match="no register"):
@@ -149,6 +149,15 @@ def test_a_package_left_out_of_the_install_drops_only_its_commands(monkeypatch) 
     monkeypatch.setattr(cli, "COMMAND_MODULES", ("model.commands", "tests_absent_package_xyz.commands"))
     parser = cli.build_parser()
     assert parser.parse_args(["reconstruct", "f.exr", "-o", "o.exr"]).command == "reconstruct"
+
+
+def test_a_same_named_data_folder_is_not_taken_for_a_package(monkeypatch, tmp_path: Path) -> None:
+    """On a serving host `python -m gradsep` run in a folder holding e.g. `tests_data_folder/` (no __init__.py)
+    must not try to load commands from it."""
+    (tmp_path / "tests_data_folder").mkdir()
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setattr(cli, "COMMAND_MODULES", ("model.commands", "tests_data_folder.commands"))
+    assert "reconstruct" in cli.build_parser().format_help()
 
 
 def test_python_dash_m_gradsep_runs_the_same_cli() -> None:
