@@ -26,11 +26,13 @@ from evaluation.cache import slug
 from evaluation.config import CROP_METHODS, EvalSettings
 from evaluation.methods import ABLATION_VARIANTS, METHODS
 from evaluation.plots import plot_crops, plot_error_vs_time
+from evaluation.results import machine_summary
 from model.frame import write_bytes_atomic
 from model.policy import DEFAULT_ALPHA, MODELS_ENV
 
 if TYPE_CHECKING:
-    from evaluation.run import EvalConfig, Evaluation
+    from evaluation.config import EvalConfig
+    from evaluation.results import Evaluation
 
 __all__ = ["CSV_COLUMNS", "losses_of_ours", "write_outputs"]
 
@@ -157,8 +159,6 @@ def reproduce_command(c: EvalConfig) -> str:
 
 
 def machine() -> str:
-    from evaluation.run import machine_summary
-
     mem = ""
     try:
         pages, size = os.sysconf("SC_PHYS_PAGES"), os.sysconf("SC_PAGE_SIZE")

@@ -22,7 +22,7 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -43,6 +43,7 @@ from evaluation.methods import (
     unavailable,
 )
 from evaluation.references import ReferencePair, ReferenceSource, next_reference_spp
+from evaluation.results import Evaluation, SceneRun, machine_summary
 from model.errors import CommandError
 from model.policy import SEPARATED_LAYERS
 from model.progress import ProgressBar
@@ -57,39 +58,6 @@ SCORE_SOURCES = ("model/metrics.py", "evaluation/run.py")
 
 
 # ---------------------------------------------------------------------------------------------- the run
-
-
-@dataclass
-class SceneRun:
-    """What the report needs about one evaluated scene."""
-
-    entry: SceneEntry
-    width: int
-    height: int
-    max_depth: int
-    layers: tuple[str, ...]
-    reference: np.ndarray  # (H, W, 3): the mean of the two references
-    reference_spp: int = 0  # of each of the two references
-    floor: dict[str, float] = field(default_factory=dict)  # layer -> reference floor (model.metrics)
-    smallest: float = math.nan  # the smallest ranked RelMSE of the scene
-    capped: bool = False  # the floor criterion was not met (see cap_reason)
-    cap_reason: str = ""  # what stopped the references: the spp cap or the time budget
-    reference_seconds: float = 0.0
-    crop_images: dict[str, np.ndarray] = field(default_factory=dict)
-
-
-@dataclass
-class Evaluation:
-    """The outcome of :func:`run_evaluation`: rows plus what the report says about how they were made."""
-
-    config: EvalConfig
-    rows: list[dict[str, Any]]
-    scenes: list[SceneRun]
-    skipped: dict[str, list[str]]  # method -> why it was skipped (missing model files, missing code)
-    models: dict[str, str]  # model file (relative to the models folder) -> sha256
-    notes: list[str]
-    computed: dict[str, int]  # what this run computed rather than took from the cache
-    outputs: dict[str, Path] = field(default_factory=dict)
 
 
 def _derived_seed(*parts: int) -> int:
@@ -286,23 +254,6 @@ def _mitsuba_id() -> str:
 
         _MITSUBA = f"{mi.__version__}/{select_variant()}"
     return _MITSUBA
-
-
-def machine_summary() -> str:
-    """``CPU model, N logical cores`` (+ GPU variant when Mitsuba runs on CUDA): where a timing was taken."""
-    cpu = ""
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8") as fh:
-            for line in fh:
-                if line.startswith("model name"):
-                    cpu = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    import platform
-
-    cpu = cpu or platform.processor() or platform.machine()
-    return f"{cpu}, {os.cpu_count()} logical cores"
 
 
 def _budget_method(rows: dict[str, dict[str, Any]]) -> str | None:
