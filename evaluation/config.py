@@ -24,7 +24,8 @@ CLI_DEFAULT_SPP = "1,2,4,8,16,32,64"
 DEFAULT_PROCEDURAL: tuple[str, ...] = ("procedural:90001", "procedural:90002")  # training starts at seed 1000
 SHARED_SCENES: tuple[str, ...] = ("cbox/cbox.xml", "teapot/teapot.xml")
 #: Methods whose images the crop comparison shows, in its order (the reference comes last).
-CROP_METHODS: tuple[str, ...] = ("gpt-primal", "l1", "gradnet", "ours", "path-oidn", "path-sep-oidn")
+CROP_METHODS: tuple[str, ...] = ("gpt-primal", "l1", "gradnet", "ours", "oidn", "oidn-l1", "fused", "path-oidn",
+                                 "path-sep-oidn")
 
 
 @dataclass(frozen=True)

@@ -14,6 +14,9 @@ Every method produces (image, per-layer images where it has them, render seconds
 ``ours``                    the shipped pair ``models/direct.onnx`` + ``models/indirect.onnx`` (separation +
                             attention), per layer, summed
 ``oidn``                    OIDN on each layer of the G-PT frame, summed (``reconstruct(frame, "oidn")``)
+``oidn-l1``                 ``oidn``, then the direct layer refined by its gradients (an L1 screened Poisson
+                            solve with OIDN's image as the data term, model/refine.py;
+                            ``reconstruct(frame, "oidn-l1")``)
 ``fused``                   the fused network of ``models/fused/<layer>.onnx`` (``reconstruct(frame, "fused",
                             fused=...)``); skipped, listing the missing files, without them
 ``path``                    Mitsuba's own ``path`` integrator at *equal time* (below)
@@ -88,7 +91,8 @@ MAX_WAVEFRONT = (1 << 32) - 1  # Mitsuba's samples per launch
 FEATURE_SPP = 4
 #: Source files whose changes alter a method's images or scores (part of every result's cache key).
 METHOD_SOURCES: tuple[str, ...] = ("evaluation/methods.py", "model/oidn.py", "model/poisson.py", "model/reconstruct.py",
-                                   "model/infer.py", "model/preprocess.py", "model/metrics.py", "model/policy.py")
+                                   "model/infer.py", "model/preprocess.py", "model/metrics.py", "model/refine.py",
+                                   "model/kernels.py", "model/policy.py")
 
 
 @dataclass(frozen=True)
@@ -128,6 +132,7 @@ METHODS: tuple[MethodSpec, ...] = (
     *(MethodSpec(f"ablation/{v}", f"Ablation {v}", "network", models=f"ablation/{v}", separated=s, attention=a)
       for v, s, a in ABLATION_VARIANTS),
     MethodSpec("oidn", "G-PT + OIDN per layer", "recon", poisson="oidn"),
+    MethodSpec("oidn-l1", "G-PT + OIDN, direct refined by its gradients (L1)", "recon", poisson="oidn-l1"),
     MethodSpec("fused", "Fused network", "fused", models="fused"),
     MethodSpec("ours", "Ours (separated + attention)", "network", models="", separated=True, attention=True),
     MethodSpec("path", "Mitsuba path (equal time)", "path"),

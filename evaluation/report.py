@@ -43,7 +43,8 @@ CSV_COLUMNS: tuple[str, ...] = (
 )
 LABELS: dict[str, str] = {m.name: m.label for m in METHODS}
 TABLE1: tuple[tuple[str, str], ...] = (("gpt-primal", "Input"), ("l1", "L1"), ("gradnet", "GradNet-style"),
-                                       ("ours", "Ours"), ("oidn", "G-PT + OIDN per layer"), ("fused", "Fused"),
+                                       ("ours", "Ours"), ("oidn", "G-PT + OIDN per layer"),
+                                       ("oidn-l1", "OIDN + gradients (direct)"), ("fused", "Fused"),
                                        ("path-oidn", "path + OIDN (equal time)"),
                                        ("path-sep-oidn", "sep. path + OIDN per layer (equal time)"))
 #: (metric, header, higher is better)
@@ -98,6 +99,7 @@ def write_outputs(evaluation: Evaluation) -> dict[str, Path]:
 
 def _crop_labels() -> dict[str, str]:
     return {"gpt-primal": "Input (G-PT)", "l1": "L1", "gradnet": "GradNet-style", "ours": "Ours",
+            "oidn": "G-PT + OIDN", "oidn-l1": "OIDN + gradients", "fused": "Fused",
             "path-oidn": "path + OIDN", "path-sep-oidn": "sep. path + OIDN/layer",
             "reference": "Reference (mean of 2)"}
 

@@ -257,9 +257,13 @@ def _mitsuba_id() -> str:
 
 
 def _budget_method(rows: dict[str, dict[str, Any]]) -> str | None:
-    """The method whose total time is the equal-time budget: the product's default for a G-PT frame (fused), else
-    ours (the paper's network), else L1 (None: the G-PT render alone)."""
-    for name in ("fused", "ours", "l1"):
+    """The method whose total time is the equal-time budget: the product's default for a G-PT frame (the first
+    of model.policy.DEFAULT_PREFERENCE that ran; its ``network`` is the evaluation's ``ours``), else ours, else
+    L1 (None: the G-PT render alone)."""
+    from model import policy
+
+    for method in (*policy.DEFAULT_PREFERENCE, "network", "l1"):
+        name = "ours" if method == "network" else method
         if name in rows:
             return name
     return None

@@ -8,6 +8,8 @@ runs for an absent layer. The methods:
 * ``network`` -- the paper's GradNet-style network with CBAM, refining a truncated L1 solve (models/*.onnx);
 * ``oidn`` -- Intel Open Image Denoise on each layer's base with the frame's albedo/normal (model.oidn's method
   setting, docs/oidn.md); the one method for a plain path-traced frame (no gradients), and it needs no features;
+* ``oidn-l1`` -- ``oidn``, then the direct layer refined by its gradients: an L1 screened Poisson solve with
+  OIDN's image as the data term (model/refine.py); the indirect layer keeps OIDN's image;
 * ``fused`` -- the same network architecture refining OIDN's denoise with the layer's gradients and features,
   trained unsupervised (models/fused/*.onnx).
 
@@ -37,7 +39,15 @@ import numpy as np
 from model import policy
 from model.frame import Features, Frame, Layer
 from model.poisson import solve_l1, solve_l2
-from model.policy import DEFAULT_ALPHA, GRADIENT_METHODS, METHODS, MODEL_METHODS, POISSON_METHODS, models_dir_from
+from model.policy import (
+    DEFAULT_ALPHA,
+    GRADIENT_METHODS,
+    METHODS,
+    MODEL_METHODS,
+    OIDN_METHODS,
+    POISSON_METHODS,
+    models_dir_from,
+)
 
 __all__ = [
     "METHODS",
@@ -99,8 +109,13 @@ def _reconstruct_layer(name: str, layer: Layer, ctx: _Context) -> np.ndarray:
         return solve_l1(layer.base, layer.dx, layer.dy, ctx.alpha)[0]
     if ctx.method == "l2":
         return solve_l2(layer.base, layer.dx, layer.dy, ctx.alpha)
-    if ctx.method == "oidn":
-        return ctx.denoiser.denoise(layer.base, ctx.aux)
+    if ctx.method in OIDN_METHODS:
+        denoised = ctx.denoiser.denoise(layer.base, ctx.aux)
+        if ctx.method == "oidn":
+            return denoised
+        from model.refine import refine_layer
+
+        return refine_layer(name, denoised, layer)
     if ctx.aux is not None:  # models refining an OIDN prior share the frame's prefiltered features
         return ctx.models.reconstruct_layer(name, layer, ctx.features, ctx.aux)
     return ctx.models.reconstruct_layer(name, layer, ctx.features)
@@ -120,7 +135,7 @@ def available_methods(frame: Frame, network: NetworkLike | None = None, fused: N
         oidn = available()
     usable = {"oidn"} if oidn else set()
     if frame.has_gradients:
-        usable |= {"l1", "l2"}
+        usable |= {"l1", "l2"} | ({"oidn-l1"} if oidn else set())
         usable |= {"network"} if _serves(network, frame) else set()
         usable |= {"fused"} if _serves(fused, frame) else set()
     return [m for m in policy.preference_order() if m in usable]
@@ -154,11 +169,11 @@ def _check_method(frame: Frame, method: str, alpha: float, models: NetworkLike |
         missing = [c for name in frame.layers for c in layer_channels(name)[3:]]
         raise ChannelError(f"method {method!r} integrates gradients, which this frame lacks (a plain path-traced "
                            "frame); use method oidn, or send the L.dx.* / L.dy.* channels", {"missing": missing})
-    if method == "oidn":
+    if method in OIDN_METHODS:
         from model.oidn import available
 
         if not available():
-            raise ValueError("method 'oidn' needs pyoidn, which is not installed here (pip install pyoidn)")
+            raise ValueError(f"method {method!r} needs pyoidn, which is not installed here (pip install pyoidn)")
     if method not in MODEL_METHODS:
         return
     if models is None:
@@ -194,12 +209,12 @@ def reconstruct(frame: Frame, method: str | None = None, alpha: float = DEFAULT_
     timings: dict[str, float] = {}
     warnings: list[str] = []
     total = np.zeros(shape, dtype=np.float64)
-    needs_aux = method == "oidn" or bool(getattr(models, "needs_aux", False))
+    needs_aux = method in OIDN_METHODS or bool(getattr(models, "needs_aux", False))
     if needs_aux:
         from model.oidn import method_setting, shared_denoiser
 
         # oidn runs at its chosen setting; the fused models refine the prior setting they were trained on
-        ctx.denoiser = shared_denoiser(method_setting()) if method == "oidn" else shared_denoiser()
+        ctx.denoiser = shared_denoiser(method_setting()) if method in OIDN_METHODS else shared_denoiser()
     if needs_aux and frame.features is not None:
         start = time.perf_counter()
         ctx.aux = ctx.denoiser.prefilter(frame.features)  # once per frame, shared by every layer

@@ -227,10 +227,11 @@ class Engine:
     @property
     def methods(self) -> tuple[str, ...]:
         """What this replica serves, in model.policy.METHODS order."""
-        from model.policy import METHODS
+        from model.policy import METHODS, OIDN_METHODS
 
         served = {*POISSON_METHODS, *(("network",) if self.network is not None else ()),
-                  *(("fused",) if self.fused is not None else ()), *(("oidn",) if self.oidn else ())}
+                  *(("fused",) if self.fused is not None else ()),
+                  *(sorted(OIDN_METHODS) if self.oidn else ())}
         return tuple(m for m in METHODS if m in served)
 
     @property

@@ -80,7 +80,7 @@ async def reconstruct_frame(
     request: Request,
     engine: Annotated[Engine, Depends(get_engine)],
     metrics: Annotated[ServiceMetrics, Depends(get_metrics)],
-    method: Annotated[Literal[METHODS] | None, Query(  # Literal of a tuple = Literal of its items
+    method: Annotated[Literal[METHODS] | None, Query(  # type: ignore[valid-type]
         description="reconstruction method; default: the first of " + " > ".join(DEFAULT_PREFERENCE)
                     + " (model/policy.py) that this replica serves for the frame; a plain frame without gradients "
                     "gets oidn")] = None,

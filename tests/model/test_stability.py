@@ -60,7 +60,7 @@ LEARNED_FAST_OIDN = Tolerance(0.05, 0.05, 0.65)
 
 
 def _tolerance(method: str) -> Tolerance:
-    if method == "oidn":
+    if method in ("oidn", "oidn-l1"):
         from model.oidn import SETTINGS, method_setting
 
         if SETTINGS[method_setting()].quality == "fast":
@@ -116,7 +116,7 @@ def _models(method: str) -> dict[str, Any]:
         if _networks["fused"] is None:
             pytest.skip("no fused models (models/fused/*.onnx) in this checkout")
         return {"fused": _networks["fused"]}
-    if method == "oidn":
+    if method in ("oidn", "oidn-l1"):
         from model.oidn import available
 
         if not available():
