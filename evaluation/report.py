@@ -23,12 +23,16 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from evaluation.cache import slug
+from evaluation.config import CROP_METHODS, EvalSettings
 from evaluation.methods import ABLATION_VARIANTS, METHODS
 from evaluation.plots import plot_crops, plot_error_vs_time
+from evaluation.results import machine_summary
 from model.frame import write_bytes_atomic
+from model.policy import DEFAULT_ALPHA, MODELS_ENV
 
 if TYPE_CHECKING:
-    from evaluation.run import EvalConfig, Evaluation
+    from evaluation.config import EvalConfig
+    from evaluation.results import Evaluation
 
 __all__ = ["CSV_COLUMNS", "losses_of_ours", "write_outputs"]
 
@@ -84,8 +88,6 @@ def write_outputs(evaluation: Evaluation) -> dict[str, Path]:
                                                        scene.floor.get("total"))
         table = _by_method(scene_rows, evaluation.config.crop_spp)
         metrics = {m: float(r["relmse"]) for m, r in table.items()}
-        from evaluation.run import CROP_METHODS
-
         paths[f"crop:{name}"] = plot_crops(name, scene.reference, scene.crop_images, CROP_METHODS, _crop_labels(),
                                            metrics, evaluation.config.crop_spp, out / "crops" / f"{slug(name)}.png")
     paths["json"] = out / "results.json"
@@ -138,16 +140,16 @@ def invocation() -> str:
 
 
 def reproduce_command(c: EvalConfig) -> str:
-    """A command that reproduces this run with every setting explicit (env vars for the options the parser
-    does not have yet)."""
-    env = {"GRADSEP_MODELS": str(c.models_dir), "GRADSEP_EVAL_SIZE": f"{c.width}x{c.height}",
-           "GRADSEP_EVAL_REF_SPP": str(c.ref_spp), "GRADSEP_EVAL_REF_SPP_CAP": str(c.reference_cap),
-           "GRADSEP_EVAL_REF_SECONDS": f"{c.ref_seconds or 0:g}", "GRADSEP_EVAL_SEED": str(c.seed),
-           "GRADSEP_EVAL_METHODS": ",".join(c.methods)}
+    """A command that reproduces this run with every setting explicit (the options as GRADSEP_EVAL_* variables,
+    the names evaluation.config.EvalSettings reads)."""
+    var = EvalSettings.variable
+    env = {MODELS_ENV: str(c.models_dir), var("size"): f"{c.width}x{c.height}", var("ref_spp"): str(c.ref_spp),
+           var("ref_spp_cap"): str(c.reference_cap), var("ref_seconds"): f"{c.ref_seconds or 0:g}",
+           var("seed"): str(c.seed), var("methods"): ",".join(c.methods)}
     if c.max_depth is not None:
-        env["GRADSEP_EVAL_MAX_DEPTH"] = str(c.max_depth)
-    if c.alpha != 0.2:
-        env["GRADSEP_EVAL_ALPHA"] = f"{c.alpha:g}"
+        env[var("max_depth")] = str(c.max_depth)
+    if c.alpha != DEFAULT_ALPHA:
+        env[var("alpha")] = f"{c.alpha:g}"
     args = ["gradsep", "evaluate"]
     if c.scenes:
         args += ["--scenes", *c.scenes]
@@ -159,8 +161,6 @@ def reproduce_command(c: EvalConfig) -> str:
 
 
 def machine() -> str:
-    from evaluation.run import machine_summary
-
     mem = ""
     try:
         pages, size = os.sysconf("SC_PHYS_PAGES"), os.sysconf("SC_PAGE_SIZE")

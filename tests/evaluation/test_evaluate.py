@@ -17,11 +17,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from evaluation.commands import evaluate_command
+from evaluation.commands import config_from_args, evaluate_command
 from evaluation.config import (
     QUICK,
     EvalConfig,
-    config_from_args,
     parse_methods,
     parse_size,
     parse_spp,
@@ -32,7 +31,8 @@ from evaluation.methods import CostModel, primal_mode_available, split_features
 from evaluation.plots import select_crop
 from evaluation.report import CSV_COLUMNS, losses_of_ours, time_misses
 from evaluation.run import run_evaluation
-from gradsep.cli import CommandError, main
+from gradsep.cli import main
+from model.errors import CommandError
 
 SCENE = "procedural:90001"
 SPP = (1, 2)
@@ -117,6 +117,26 @@ def test_command_line_flags_win_over_the_environment(monkeypatch):
     assert str(config.models_dir) == "m" and str(config.cache_dir) == "c"
     with pytest.raises(CommandError, match="--alpha must be"):
         config_from_args(_args(alpha=float("nan")))
+
+
+def test_environment_is_loaded_once_typed_and_named_in_errors(monkeypatch):
+    """GRADSEP_EVAL_* go through one pydantic-settings class: a malformed value names its variable, an empty
+    one counts as unset, and the report's reproduce line uses the same names."""
+    from evaluation.config import EvalSettings, load_settings
+    from evaluation.report import reproduce_command
+
+    monkeypatch.setenv("GRADSEP_EVAL_REF_SPP", "lots")
+    with pytest.raises(CommandError, match="GRADSEP_EVAL_REF_SPP: Input should be a valid integer"):
+        config_from_args(_args(spp="1,4"))
+    monkeypatch.setenv("GRADSEP_EVAL_REF_SPP", "")
+    monkeypatch.setenv("GRADSEP_EVAL_ALPHA", "0.5")
+    assert load_settings(seed=3).model_dump(exclude_none=True) == {"seed": 3, "alpha": 0.5}
+    config = config_from_args(_args(spp="1,4"))
+    assert config.ref_spp == 512 and config.alpha == 0.5
+    line = reproduce_command(config)
+    assert "GRADSEP_EVAL_ALPHA=0.5" in line and "GRADSEP_EVAL_REF_SPP=512" in line
+    assert {f"GRADSEP_EVAL_{n.upper()}" for n in EvalSettings.model_fields} >= {
+        name.split("=")[0] for name in line.split() if name.startswith("GRADSEP_EVAL_")}
 
 
 def test_scene_resolution(tmp_path):

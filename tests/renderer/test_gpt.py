@@ -18,7 +18,8 @@ import pytest
 mi = pytest.importorskip("mitsuba")
 dr = pytest.importorskip("drjit")
 
-from gradsep.cli import CommandError, main  # noqa: E402
+from gradsep.cli import main  # noqa: E402
+from model.errors import CommandError  # noqa: E402
 from model.frame import read_frame, write_frame  # noqa: E402
 from renderer.gpt import (  # noqa: E402
     GptSettings,
