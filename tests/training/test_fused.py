@@ -58,7 +58,7 @@ def test_fused_models_load_only_as_fused_and_reconstruct(fused_models: Path, tin
     with pytest.raises(ModelError, match="different prior"):
         load_network(fused_models / "fused")  # a fused model in the network method's folder is refused
     frame = read_frame(load_manifest(tiny_dataset).frames[0].path, nonfinite="zero")
-    assert reconstruct(frame, network=None, fused=fused).method == "oidn"  # the default (model/policy.py)
+    assert reconstruct(frame, network=None, fused=fused).method == "oidn-l1"  # the default (model/policy.py)
     result = reconstruct(frame, "fused", fused=fused)
     assert result.method == "fused" and "features" in result.timings
     assert np.isfinite(result.image).all() and result.image.mean() > 0
