@@ -384,7 +384,8 @@ class _WeightedSystem:
             return r.copy()
         if self.preconditioner == "mg":
             return self._multigrid.vcycle(r)
-        coeffs = _dct(r * self._scale, overwrite=True)
+        scaled = np.multiply(r, self._scale, out=self.buffer("scaled", r))  # kept: no fresh pages per step
+        coeffs = _dct(scaled, overwrite=True)
         coeffs /= self._denominator
         z = _idct(coeffs, overwrite=True)
         z *= self._scale
