@@ -33,8 +33,8 @@ def main(argv: list[str]) -> int:
 
         def summarize(self, offset):
             return ConnectedState(active=offset.active & (offset.status == CONNECTED), throughput=offset.throughput,
-                                  ratio=offset.ratio, b_weight=offset.b_weight, b_ratio=mi.Float(1.0),
-                                  own_pdf=mi.Float(0.0), fresh=mi.Bool(False))
+                                  ratio=offset.ratio, next_weight=offset.base_out_weight, next_ratio=mi.Float(1.0),
+                                  own_next_pdf=mi.Float(0.0), just_connected=mi.Bool(False))
 
     spec = argv[0] if argv else "cbox"
     size = int(argv[1]) if len(argv) > 1 else 256

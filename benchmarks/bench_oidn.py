@@ -1,11 +1,12 @@
-"""OIDN's cost per layer as the ``oidn`` and ``fused`` methods run it (model/oidn.py), against a plain call.
+"""OIDN's cost per layer as the ``fused`` prior runs it (model/oidn.py, prefiltered-high), against a plain call.
 
     python benchmarks/bench_oidn.py                  # 1280x720, medians of 3 after one warm-up call each
     python benchmarks/bench_oidn.py --size 320x240
 
 Reports, for a synthetic noisy HDR layer with random albedo/normal: ``pyoidn.denoise`` with the raw (noisy)
-features (OIDN's default mode), the colour filter with prefiltered features (``cleanAux``, what the methods
-run), and the two prefilter passes (albedo, normal) the methods run once per frame.
+features (OIDN's default mode), the colour filter with prefiltered features (``cleanAux``, the fused prior's
+setting), and the two prefilter passes (albedo, normal) it runs once per frame. Every OIDN setting, the ``oidn``
+method's default among them: benchmarks/study_oidn.py (docs/oidn.md).
 """
 
 from __future__ import annotations

@@ -37,6 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from model.frame import forward_differences  # noqa: E402
 from model.metrics import relmse  # noqa: E402
 from model.poisson import L1_PASSES, energy_l1, solve_l1, solve_l2  # noqa: E402
+from model.policy import DEFAULT_ALPHA  # noqa: E402
 
 LAYERS = {"direct": 0.3, "indirect": 0.8, "color": 0.5}  # layer -> relative noise level
 
@@ -174,7 +175,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--layers", type=int, choices=(1, 2, 3), default=3,
                    help="illumination layers: 1 = direct, 2 = + indirect, 3 = + color (default 3)")
     p.add_argument("--repeats", type=int, default=5, help="timed repeats per configuration (default 5)")
-    p.add_argument("--alpha", type=float, default=0.2)
+    p.add_argument("--alpha", type=float, default=DEFAULT_ALPHA)
     p.add_argument("--passes", type=int, default=L1_PASSES,
                    help=f"IRLS passes for 'l1' (default {L1_PASSES}, model.poisson.L1_PASSES)")
     p.add_argument("--cg-iterations", type=int, default=4, help="CG steps per IRLS pass for 'l1' (default 4)")

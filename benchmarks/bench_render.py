@@ -3,6 +3,7 @@
     .venv/bin/python benchmarks/bench_render.py             # full run: cbox + procedural:0,1 (~10 min, 2 cores)
     .venv/bin/python benchmarks/bench_render.py --quick     # small sizes, for a smoke check (~1 min)
     .venv/bin/python benchmarks/bench_render.py --scenes procedural:3 --shifts hybrid --json out.json
+    .venv/bin/python benchmarks/bench_render.py --issue16 --cache runs/refcache   # issue 16 (1 min warm, 5-8 cold)
 
 For every scene and shift (medians of repeats, each after a warm-up render that compiles the kernels):
 
@@ -101,11 +102,20 @@ def edge_classes(normal: np.ndarray, depth: np.ndarray, albedo: np.ndarray, axis
     return {"geometry": geometry, "texture": texture, "rest": ~geometry & ~texture}
 
 
-def settings_for(loaded):
+def settings_for(loaded, offsets: str = "all"):
     from renderer.gpt import GptSettings
 
     depth = loaded.max_depth
-    return GptSettings(max_depth=depth, rr_depth=loaded.rr_depth, indirect=depth < 0 or depth > 2)
+    return GptSettings(max_depth=depth, rr_depth=loaded.rr_depth, indirect=depth < 0 or depth > 2, offsets=offsets)
+
+
+def configuration(loaded, name: str):
+    """``SHIFT`` or ``SHIFT+OFFSETS`` (e.g. ``hybrid+pair``: the hybrid shift tracing one axis's two offsets per
+    sample, GptSettings.offsets) -> (shift, settings)."""
+    from renderer.shift import make_shift
+
+    shift, _, offsets = name.partition("+")
+    return make_shift(shift), settings_for(loaded, offsets or "all")
 
 
 def bench_cost(spec: str, size: int, spp: int, repeats: int, shifts: list[str]) -> dict:
@@ -115,14 +125,12 @@ def bench_cost(spec: str, size: int, spp: int, repeats: int, shifts: list[str]) 
     the CPU time much less so)."""
     from renderer.gpt import render_gpt
     from renderer.scene import load_scene
-    from renderer.shift import make_shift
 
     loaded = load_scene(spec, width=size, height=size)
-    settings = settings_for(loaded)
     runs = {"path": lambda: path_image(loaded.scene, spp, 1, loaded.max_depth, loaded.rr_depth)}
 
     def gpt(name: str):
-        shift = None if name == "primal" else make_shift(name)
+        shift, settings = (None, settings_for(loaded)) if name == "primal" else configuration(loaded, name)
         return lambda: render_gpt(loaded.scene, shift, settings, size, size, spp, seed=1)
 
     for name in shifts:
@@ -139,10 +147,15 @@ def bench_cost(spec: str, size: int, spp: int, repeats: int, shifts: list[str]) 
             cpu[name].append(time.process_time() - start_cpu)
     medians = {name: statistics.median(t) for name, t in times.items()}
     cpu_medians = {name: statistics.median(t) for name, t in cpu.items()}
+    # the median of per-round ratios: each round's runs are back to back, so a load change between rounds
+    # cancels in its ratio
+    round_ratio = {name: statistics.median(c / p for c, p in zip(cpu[name], cpu["path"], strict=True))
+                   for name in shifts}
     return {"size": size, "spp": spp, "max_depth": loaded.max_depth, "seconds": medians, "all": times,
             "cpu_seconds": cpu_medians, "all_cpu": cpu,
             "cost_ratio": {name: medians[name] / medians["path"] for name in shifts},
-            "cpu_cost_ratio": {name: cpu_medians[name] / cpu_medians["path"] for name in shifts}}
+            "cpu_cost_ratio": {name: cpu_medians[name] / cpu_medians["path"] for name in shifts},
+            "cpu_round_ratio": round_ratio}
 
 
 def bench_frame(spec: str, width: int, height: int, spp: int, repeats: int, shift: str) -> dict:
@@ -160,14 +173,16 @@ def bench_frame(spec: str, width: int, height: int, spp: int, repeats: int, shif
 
 
 def bench_gradients(spec: str, size: int, spp: int, ref_spp: int, seeds: int, shifts: list[str],
-                    cache: Path | None) -> dict:
-    """Issue 4's gradient error for each shift, with what the reference's own noise allows to resolve."""
+                    cache: Path | None, spp_by_shift: dict[str, int] | None = None) -> dict:
+    """Issue 4's gradient error for each shift, with what the reference's own noise allows to resolve.
+    ``spp_by_shift``: samples per pixel of each configuration (default ``spp``): equal render time when set
+    from the measured costs."""
     from renderer.gpt import render_gpt
     from renderer.scene import load_scene
-    from renderer.shift import make_shift
 
     loaded = load_scene(spec, width=size, height=size)
     settings = settings_for(loaded)
+    spp_by_shift = spp_by_shift or {}
     chunks = reference_chunks(loaded, ref_spp, 256, cache)
     ref = chunks.mean(0)
     out: dict = {"size": size, "spp": spp, "reference_spp": 256 * len(chunks), "seeds": seeds, "floor": {},
@@ -194,15 +209,16 @@ def bench_gradients(spec: str, size: int, spp: int, ref_spp: int, seeds: int, sh
             out["floor"][f"{axis}_indirect"] = float(np.mean(np.sqrt(2 / np.pi * var_i)))
     # Pixel classes from the features of one 64-spp render (features are the base path's, the same for every
     # shift; 64 spp so that the sampled albedo of glossy materials does not fake texture edges).
-    feat = render_gpt(loaded.scene, make_shift(shifts[0]), settings, size, size, 64, seed=99)
+    feat = render_gpt(loaded.scene, None, settings, size, size, 64, seed=99)
     classes = {axis: edge_classes(feat.normal, feat.depth, feat.albedo, axis) for axis in ("dx", "dy")}
     out["pixel_share"] = {f"{axis}_{c}": float(m.mean()) for axis in classes for c, m in classes[axis].items()}
     for name in shifts:
-        shift = make_shift(name)
-        stats: dict[str, list[float]] = {}
+        shift, config_settings = configuration(loaded, name)
+        stats: dict[str, list[float]] = {"spp": [spp_by_shift.get(name, spp)]}
         layer_stacks: dict[str, list[np.ndarray]] = {}
         for seed in range(seeds):
-            res = render_gpt(loaded.scene, shift, settings, size, size, spp, seed=100 + seed)
+            res = render_gpt(loaded.scene, shift, config_settings, size, size, spp_by_shift.get(name, spp),
+                             seed=100 + seed)
             primal = sum(layer["base"] for layer in res.layers.values()).astype(np.float64)
             for axis in ("dx", "dy"):
                 grad = sum(layer[axis] for layer in res.layers.values()).astype(np.float64)
@@ -245,7 +261,7 @@ def bench_gradients(spec: str, size: int, spp: int, ref_spp: int, seeds: int, sh
 
 
 def print_gradients(scene: str, g: dict) -> None:
-    print(f"  gradient error at {g['spp']} spp ({g['size']}^2, {g['seeds']} seeds, reference {g['reference_spp']} "
+    print(f"  gradient error ({g['size']}^2, {g['seeds']} seeds, reference {g['reference_spp']} "
           f"spp; reference's own error floor dx {g['floor']['dx']:.5f}, dy {g['floor']['dy']:.5f}):")
     for name, row in g["shifts"].items():
         parts = []
@@ -253,7 +269,7 @@ def print_gradients(scene: str, g: dict) -> None:
             parts.append(f"{axis} mean|err| {row[f'{axis}_mean']:.5f} "
                          f"(FD of primal {row[f'{axis}_fd_primal_mean']:.5f}), "
                          f"RMSE corrected {row[f'{axis}_rmse_corrected']:.4f}")
-        print(f"    [{name}] " + "; ".join(parts))
+        print(f"    [{name}] {row['spp']:.0f} spp: " + "; ".join(parts))
         noise = ", ".join(f"{k[:-6]} {v:.5f}" for k, v in row.items() if k.endswith("_noise"))
         print(f"    [{name}] own noise (std over seeds): {noise}")
         per_layer = ", ".join(f"{k[:-5]} {v:.5f} (floor {g['floor'][k[:-5]]:.5f})" for k, v in row.items()
@@ -275,12 +291,33 @@ def print_gradients(scene: str, g: dict) -> None:
                       if k.endswith(("_direct_gain_vs_replay", "_indirect_gain_vs_replay"))))
 
 
+def print_summary(results: dict, shifts: list[str]) -> None:
+    """The final table: cost per sample against `path` and the equal-time gradient error, per scene."""
+    print("\nsummary (CPU cost per sample / `path`, median of per-round ratios; gradient error mean |d - FD(ref)| "
+          f"at the render time of {shifts[0]} at 16 spp)")
+    print(f"  {'scene':<14} {'configuration':<14} {'cost':>6} {'spp':>4} {'dx err':>9} {'dy err':>9}")
+    for spec, out in results["scenes"].items():
+        for name in shifts + ["primal"]:
+            cost = out.get("cost", {}).get("cpu_round_ratio", {}).get(name)
+            row = out.get("gradients", {}).get("shifts", {}).get(name)
+            if cost is None and row is None:
+                continue
+            cost_s = f"{cost:.2f}x" if cost is not None else "-"
+            errs = (f"{row['spp']:>4.0f} {row['dx_mean']:>9.5f} {row['dy_mean']:>9.5f}" if row
+                    else f"{'-':>4} {'-':>9} {'-':>9}")
+            print(f"  {spec:<14} {name:<14} {cost_s:>6} {errs}")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenes", default=DEFAULT_SCENES,
                         help="comma-separated: cbox, teapot, XML paths or procedural:SEED (default %(default)s)")
     parser.add_argument("--shifts", "--shift", default="replay,hybrid", help="comma-separated shifts")
     parser.add_argument("--quick", action="store_true", help="small sizes and few repeats (smoke check)")
+    parser.add_argument("--issue16", action="store_true",
+                        help="issue 16's table: cbox, procedural:0, procedural:1, teapot; hybrid with all four, one "
+                             "axis's two (+pair) or one (+single) offsets per sample; 3 repeats, 4 seeds, 2048-spp "
+                             "references (explicit options override)")
     parser.add_argument("--repeats", type=int, default=None, help="timing repeats (default 5, quick 2)")
     parser.add_argument("--ref-spp", type=int, default=None, help="reference spp (default 8192, quick 1024)")
     parser.add_argument("--seeds", type=int, default=None, help="G-PT renders per shift (default 4, quick 2)")
@@ -290,8 +327,19 @@ def main(argv: list[str] | None = None) -> int:
                         help="do not time the primal-only mode (`render --no-gradients`) next to `path`")
     parser.add_argument("--skip-gradients", action="store_true", help="skip the gradient-error measurement")
     parser.add_argument("--cache", default=None, help="folder for cached references")
+    parser.add_argument("--equal-spp", dest="equal_time", action="store_false",
+                        help="measure every configuration's gradient error at 16 spp instead of at the render "
+                             "time of the first configuration at 16 spp")
     parser.add_argument("--json", default=None, help="also write the results to this file")
     args = parser.parse_args(argv)
+    if args.issue16:
+        given = set(argv if argv is not None else sys.argv[1:])
+        if "--scenes" not in given:
+            args.scenes = "cbox,procedural:0,procedural:1,teapot"
+        if not given & {"--shifts", "--shift"}:
+            args.shifts = "hybrid,hybrid+pair,hybrid+single"
+        args.repeats = args.repeats or 3
+        args.ref_spp = args.ref_spp or 2048
 
     import mitsuba as mi
 
@@ -326,8 +374,16 @@ def main(argv: list[str] | None = None) -> int:
                 frame = out.setdefault("frame", {})[name] = bench_frame(path, w, h, 16, max(1, repeats // 2), name)
                 print(f"  [{name}] frame {w}x{h} at 16 spp: {frame['seconds']:.2f} s")
         if not args.skip_gradients:
-            grads = out["gradients"] = bench_gradients(path, grad_size, 16, ref_spp, seeds, shifts, cache)
+            # Equal render time: every configuration gets the samples it buys in the time the first one
+            # (the baseline) takes for 16 spp, from the measured CPU cost ratios (per-round medians).
+            spp_by_shift = None
+            if "cost" in out and args.equal_time:
+                ratio = out["cost"]["cpu_round_ratio"]
+                spp_by_shift = {name: max(1, round(16 * ratio[shifts[0]] / ratio[name])) for name in shifts}
+            grads = out["gradients"] = bench_gradients(path, grad_size, 16, ref_spp, seeds, shifts, cache,
+                                                       spp_by_shift)
             print_gradients(spec, grads)
+    print_summary(results, shifts)
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=2))
     return 0

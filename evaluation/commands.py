@@ -1,15 +1,32 @@
-"""`gradsep evaluate`: argparse only at module level; the handler imports the harness lazily."""
+"""`gradsep evaluate`: argparse and the import-light policy only at module level; the handler imports the harness
+lazily."""
 
 from __future__ import annotations
 
 import argparse
 import sys
 import time
+from typing import TYPE_CHECKING
+
+from model.policy import DEFAULT_ALPHA, MODELS_ENV
+
+if TYPE_CHECKING:
+    from evaluation.config import EvalConfig
+
+
+def config_from_args(args: argparse.Namespace) -> EvalConfig:
+    """The run's configuration from the parsed flags (a flag not given: its GRADSEP_EVAL_* variable, else the
+    preset); a Namespace without some flag counts it as not given."""
+    from evaluation.config import EvalSettings, load_settings, make_config
+
+    settings = load_settings(**{name: getattr(args, name, None) for name in EvalSettings.model_fields})
+    return make_config(settings, output=args.output, scenes=getattr(args, "scenes", None) or (),
+                       spp=getattr(args, "spp", None), quick=bool(getattr(args, "quick", False)),
+                       models=getattr(args, "models", None), cache=getattr(args, "cache", None))
 
 
 def evaluate_command(args: argparse.Namespace) -> int:
     """``gradsep evaluate``: run the evaluation, print where the outputs are and which methods were skipped."""
-    from evaluation.config import config_from_args
     from evaluation.run import run_evaluation
 
     config = config_from_args(args)
@@ -34,7 +51,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--spp", default=None,
                    help="comma-separated sample counts (default 1,2,4,8,16,32,64; 1,4,16 with --quick)")
     p.add_argument("--quick", action="store_true", help="small CI-sized run (< 10 minutes)")
-    p.add_argument("--models", default=None, help="folder of exported models (default: $GRADSEP_MODELS or models/)")
+    p.add_argument("--models", default=None, help=f"folder of exported models (default: ${MODELS_ENV} or models/)")
     p.add_argument("--cache", default=None, help="cache folder (default: $GRADSEP_CACHE or ~/.cache/gradsep)")
     p.add_argument("--size", default=None, metavar="WxH", help="frame size (default 320x240; 96x72 with --quick)")
     p.add_argument("--ref-spp", type=int, default=None,
@@ -53,10 +70,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--max-depth", type=int, default=None, help="override every scene's max path depth")
     p.add_argument("--table-spp", type=int, default=None,
                    help="spp of Table 1, the ablation and the crops (default 16 or nearest)")
-    p.add_argument("--alpha", type=float, default=None, help="screened Poisson data weight for l1/l2 (default 0.2)")
+    p.add_argument("--alpha", type=float, default=None,
+                   help=f"screened Poisson data weight for l1/l2 (default {DEFAULT_ALPHA:g})")
     p.add_argument("-o", "--output", required=True, help="report folder")
-    p.set_defaults(func=_evaluate)
-
-
-def _evaluate(args: argparse.Namespace) -> int:
-    return evaluate_command(args)
+    p.set_defaults(func=evaluate_command)

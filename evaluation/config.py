@@ -1,27 +1,31 @@
-"""What defines an evaluation run: the presets, the options (flags first, then environment variables), the scenes.
+"""What defines an evaluation run: the presets, the options (flags first, then ``GRADSEP_EVAL_*`` environment
+variables, loaded by one pydantic-settings class), the scenes.
 
 Everything here is validated before anything renders, and bad input is one clear error naming the problem.
 """
 
 from __future__ import annotations
 
-import argparse
 import math
-import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
 from evaluation.cache import REPO_ROOT, default_cache_dir, file_sha256, key_hash
 from evaluation.methods import METHODS
+from model.errors import CommandError
+from model.policy import DEFAULT_ALPHA, models_dir_from
 
 #: The command line's --spp default (model/commands.py); with --quick it is replaced by the quick list.
 CLI_DEFAULT_SPP = "1,2,4,8,16,32,64"
 DEFAULT_PROCEDURAL: tuple[str, ...] = ("procedural:90001", "procedural:90002")  # training starts at seed 1000
 SHARED_SCENES: tuple[str, ...] = ("cbox/cbox.xml", "teapot/teapot.xml")
 #: Methods whose images the crop comparison shows, in its order (the reference comes last).
-
+CROP_METHODS: tuple[str, ...] = ("gpt-primal", "l1", "gradnet", "ours", "oidn", "oidn-l1", "fused", "path-oidn",
+                                 "path-sep-oidn")
 
 
 @dataclass(frozen=True)
@@ -60,7 +64,7 @@ class EvalConfig:
     methods: tuple[str, ...] = tuple(m.name for m in METHODS)
     seed: int = 0
     max_depth: int | None = None
-    alpha: float = 0.2
+    alpha: float = DEFAULT_ALPHA
     table_spp: int | None = None
     quick: bool = False
     ref_spp_cap: int | None = None  # None: ref_spp (a fixed reference spp)
@@ -80,12 +84,6 @@ class EvalConfig:
 # ----------------------------------------------------------------------------------------------- options
 
 
-def _error(message: str) -> Exception:
-    from gradsep.cli import CommandError
-
-    return CommandError(message)
-
-
 def parse_spp(text: str | Sequence[int]) -> tuple[int, ...]:
     """``"1,2,4"`` -> (1, 2, 4): positive integers, sorted, duplicates dropped."""
     items = text.split(",") if isinstance(text, str) else list(text)
@@ -97,12 +95,12 @@ def parse_spp(text: str | Sequence[int]) -> tuple[int, ...]:
         try:
             value = int(item_text)
         except ValueError:
-            raise _error(f"--spp: {item_text!r} is not an integer (expected e.g. 1,2,4,8)") from None
+            raise CommandError(f"--spp: {item_text!r} is not an integer (expected e.g. 1,2,4,8)") from None
         if value < 1:
-            raise _error(f"--spp: sample counts must be >= 1, got {value}")
+            raise CommandError(f"--spp: sample counts must be >= 1, got {value}")
         values.append(value)
     if not values:
-        raise _error("--spp is empty; expected comma-separated sample counts such as 1,2,4,8")
+        raise CommandError("--spp is empty; expected comma-separated sample counts such as 1,2,4,8")
     return tuple(sorted(set(values)))
 
 
@@ -112,9 +110,9 @@ def parse_size(text: str) -> tuple[int, int]:
     try:
         width, height = (int(p) for p in parts)
     except ValueError:
-        raise _error(f"size {text!r}: expected WIDTHxHEIGHT, e.g. 320x240") from None
+        raise CommandError(f"size {text!r}: expected WIDTHxHEIGHT, e.g. 320x240") from None
     if width < 1 or height < 1:
-        raise _error(f"size {text!r}: width and height must be >= 1")
+        raise CommandError(f"size {text!r}: width and height must be >= 1")
     return width, height
 
 
@@ -123,39 +121,64 @@ def table_spp_for(spp: Sequence[int]) -> int:
     return min(spp, key=lambda s: (abs(math.log2(s) - 4.0), -s))
 
 
-def _option(args: argparse.Namespace, name: str, env: str) -> str | None:
-    """A command-line value when the parser has that flag and it was given, else the environment variable."""
-    value = getattr(args, name, None)
-    if value is not None:
-        return str(value)
-    return os.environ.get(env) or None
+class EvalSettings(BaseSettings):
+    """The options of `gradsep evaluate` that a flag or a ``GRADSEP_EVAL_*`` environment variable can set.
+
+    Loaded in one place (:func:`load_settings`): a flag given on the command line wins over its variable
+    (``--ref-spp`` over ``GRADSEP_EVAL_REF_SPP``); an empty variable counts as unset. pydantic checks the types;
+    :func:`make_config` checks the ranges, with the same messages whichever of the two set a value. None means
+    unset: the preset decides.
+    """
+
+    model_config = SettingsConfigDict(env_prefix="GRADSEP_EVAL_", env_ignore_empty=True, extra="ignore")
+
+    size: str | None = None  # WxH
+    ref_spp: int | None = None
+    ref_spp_cap: int | None = None
+    ref_seconds: float | None = None  # 0: no limit
+    seed: int | None = None
+    methods: str | None = None  # comma-separated; "ablation" = the four variants
+    max_depth: int | None = None
+    table_spp: int | None = None
+    alpha: float | None = None
+
+    @classmethod
+    def variable(cls, name: str) -> str:
+        """The environment variable of option ``name`` (``ref_spp`` -> ``GRADSEP_EVAL_REF_SPP``)."""
+        return f"{cls.model_config['env_prefix']}{name.upper()}"
 
 
-def _int_option(args: argparse.Namespace, name: str, env: str, flag: str, minimum: int) -> int | None:
-    text = _option(args, name, env)
-    if text is None:
-        return None
+def load_settings(**flags: Any) -> EvalSettings:
+    """The options from the flags given (None = not given) over the environment; a malformed variable is a
+    CommandError naming it."""
+    from pydantic import ValidationError
+
     try:
-        value = int(text)
-    except ValueError:
-        raise _error(f"{flag}: {text!r} is not an integer") from None
-    if value < minimum:
-        raise _error(f"{flag} must be >= {minimum}, got {value}")
+        return EvalSettings(**{name: value for name, value in flags.items() if value is not None})
+    except ValidationError as exc:
+        problems = "; ".join(f"{EvalSettings.variable(str(e['loc'][0]))}: {e['msg']}" for e in exc.errors())
+        raise CommandError(f"invalid evaluation settings: {problems}") from None
+
+
+def _at_least(value: int | None, minimum: int, flag: str) -> int | None:
+    if value is not None and value < minimum:
+        raise CommandError(f"{flag} must be >= {minimum}, got {value}")
     return value
 
 
-def _float_option(args: argparse.Namespace, name: str, env: str, flag: str) -> float | None:
-    """A finite number >= 0 from the flag or the environment (0 means: no limit)."""
-    text = _option(args, name, env)
-    if text is None:
-        return None
-    try:
-        value = float(text)
-    except ValueError:
-        raise _error(f"{flag}: {text!r} is not a number") from None
-    if not (math.isfinite(value) and value >= 0):
-        raise _error(f"{flag} must be a finite number >= 0 (0: no limit), got {text}")
-    return value
+def _reference_budget(settings: EvalSettings, preset: Preset) -> tuple[int, int, float | None]:
+    """(starting spp, spp cap, seconds or None = no limit) of each scene's references."""
+    ref_spp = _at_least(settings.ref_spp, 1, "--ref-spp") or preset.ref_spp
+    ref_cap = _at_least(settings.ref_spp_cap, 1, "--ref-spp-cap")
+    if ref_cap is None:
+        ref_cap = max(ref_spp, preset.ref_spp_cap)
+    elif ref_cap < ref_spp:
+        raise CommandError(f"--ref-spp-cap {ref_cap} is below --ref-spp {ref_spp}")
+    seconds = settings.ref_seconds
+    if seconds is not None and not (math.isfinite(seconds) and seconds >= 0):
+        raise CommandError(f"--ref-seconds must be a finite number >= 0 (0: no limit), got {seconds}")
+    seconds = preset.ref_seconds if seconds is None else seconds
+    return ref_spp, ref_cap, seconds if seconds > 0 else None
 
 
 def parse_methods(text: str | None) -> tuple[str, ...]:
@@ -172,63 +195,41 @@ def parse_methods(text: str | None) -> tuple[str, ...]:
         elif item in known:
             wanted.add(item)
         else:
-            raise _error(f"--methods: unknown method {item!r}; expected a comma-separated subset of "
-                         f"{', '.join(known)} (or 'ablation' for the four variants)")
+            raise CommandError(f"--methods: unknown method {item!r}; expected a comma-separated subset of "
+                               f"{', '.join(known)} (or 'ablation' for the four variants)")
     if not wanted:
-        raise _error("--methods is empty")
+        raise CommandError("--methods is empty")
     return tuple(n for n in known if n in wanted)
 
 
-def config_from_args(args: argparse.Namespace) -> EvalConfig:
-    """Build the run's configuration from the parsed command line and the environment.
+def make_config(settings: EvalSettings, *, output: str | Path, scenes: Sequence[str] = (),
+                spp: str | Sequence[int] | None = None, quick: bool = False, models: str | Path | None = None,
+                cache: str | Path | None = None) -> EvalConfig:
+    """The run's configuration: the preset (full or ``quick``), overridden by ``settings`` and the arguments.
 
-    Flags the parser does not have yet fall back to environment variables: ``--models`` / $GRADSEP_MODELS,
-    ``--cache`` / $GRADSEP_CACHE, ``--size`` / $GRADSEP_EVAL_SIZE, ``--ref-spp`` / $GRADSEP_EVAL_REF_SPP,
-    ``--seed`` / $GRADSEP_EVAL_SEED, ``--methods`` / $GRADSEP_EVAL_METHODS, ``--max-depth`` /
-    $GRADSEP_EVAL_MAX_DEPTH, ``--table-spp`` / $GRADSEP_EVAL_TABLE_SPP, ``--alpha`` / $GRADSEP_EVAL_ALPHA.
+    ``spp`` None (or the command line's default list with ``quick``) takes the preset's list; ``models`` None
+    is $GRADSEP_MODELS or ``models/`` (model.policy), ``cache`` None is $GRADSEP_CACHE or the user cache
+    (evaluation.cache). Raises CommandError naming the first bad value.
     """
-    quick = bool(getattr(args, "quick", False))
     preset = QUICK if quick else FULL
-    spp_text = getattr(args, "spp", None)
-    spp = preset.spp if spp_text is None or (quick and spp_text == CLI_DEFAULT_SPP) else parse_spp(spp_text)
-    size = _option(args, "size", "GRADSEP_EVAL_SIZE")
-    width, height = parse_size(size) if size else (preset.width, preset.height)
-    ref_spp = _int_option(args, "ref_spp", "GRADSEP_EVAL_REF_SPP", "--ref-spp", 1) or preset.ref_spp
-    ref_cap = _int_option(args, "ref_spp_cap", "GRADSEP_EVAL_REF_SPP_CAP", "--ref-spp-cap", 1)
-    if ref_cap is None:
-        ref_cap = max(ref_spp, preset.ref_spp_cap)
-    elif ref_cap < ref_spp:
-        raise _error(f"--ref-spp-cap {ref_cap} is below --ref-spp {ref_spp}")
-    ref_seconds = _float_option(args, "ref_seconds", "GRADSEP_EVAL_REF_SECONDS", "--ref-seconds")
-    if ref_seconds is None:
-        ref_seconds = preset.ref_seconds
-    seed = _int_option(args, "seed", "GRADSEP_EVAL_SEED", "--seed", 0) or 0
-    max_depth = _int_option(args, "max_depth", "GRADSEP_EVAL_MAX_DEPTH", "--max-depth", -1)
+    spp_list = preset.spp if spp is None or (quick and spp == CLI_DEFAULT_SPP) else parse_spp(spp)
+    width, height = parse_size(settings.size) if settings.size else (preset.width, preset.height)
+    ref_spp, ref_cap, ref_seconds = _reference_budget(settings, preset)
+    seed = _at_least(settings.seed, 0, "--seed") or 0
+    max_depth = _at_least(settings.max_depth, -1, "--max-depth")
     if max_depth == 0:
-        raise _error("--max-depth must be -1 (unbounded) or >= 1, got 0")
-    table_spp = _int_option(args, "table_spp", "GRADSEP_EVAL_TABLE_SPP", "--table-spp", 1)
-    if table_spp is not None and table_spp not in spp:
-        raise _error(f"--table-spp {table_spp} is not one of the evaluated sample counts {list(spp)}")
-    alpha_text = _option(args, "alpha", "GRADSEP_EVAL_ALPHA")
-    alpha = 0.2
-    if alpha_text is not None:
-        try:
-            alpha = float(alpha_text)
-        except ValueError:
-            raise _error(f"--alpha: {alpha_text!r} is not a number") from None
-        if not (math.isfinite(alpha) and alpha > 0):
-            raise _error(f"--alpha must be a finite number > 0, got {alpha_text}")
-    from model.reconstruct import models_dir_from
-
-    cache = _option(args, "cache", "GRADSEP_CACHE")
+        raise CommandError("--max-depth must be -1 (unbounded) or >= 1, got 0")
+    table_spp = _at_least(settings.table_spp, 1, "--table-spp")
+    if table_spp is not None and table_spp not in spp_list:
+        raise CommandError(f"--table-spp {table_spp} is not one of the evaluated sample counts {list(spp_list)}")
+    alpha = DEFAULT_ALPHA if settings.alpha is None else settings.alpha
+    if not (math.isfinite(alpha) and alpha > 0):
+        raise CommandError(f"--alpha must be a finite number > 0, got {alpha}")
     return EvalConfig(
-        scenes=tuple(args.scenes) if getattr(args, "scenes", None) else (),
-        spp=spp, width=width, height=height, ref_spp=ref_spp, output=Path(args.output),
-        cache_dir=Path(cache) if cache else default_cache_dir(),
-        models_dir=models_dir_from(getattr(args, "models", None)),
-        methods=parse_methods(_option(args, "methods", "GRADSEP_EVAL_METHODS")),
-        seed=seed, max_depth=max_depth, alpha=alpha, table_spp=table_spp, quick=quick, ref_spp_cap=ref_cap,
-        ref_seconds=ref_seconds if ref_seconds > 0 else None)
+        scenes=tuple(scenes or ()), spp=spp_list, width=width, height=height, ref_spp=ref_spp, output=Path(output),
+        cache_dir=Path(cache) if cache else default_cache_dir(), models_dir=models_dir_from(models),
+        methods=parse_methods(settings.methods), seed=seed, max_depth=max_depth, alpha=alpha, table_spp=table_spp,
+        quick=quick, ref_spp_cap=ref_cap, ref_seconds=ref_seconds)
 
 
 # ------------------------------------------------------------------------------------------------ scenes
@@ -252,9 +253,9 @@ def _xml_for(path: Path) -> Path:
         found = sorted(path.glob("*.xml"))
         if len(found) == 1:
             return found[0]
-        raise _error(f"scene folder {str(path)!r} holds {len(found)} .xml files; name the one to evaluate")
+        raise CommandError(f"scene folder {str(path)!r} holds {len(found)} .xml files; name the one to evaluate")
     if not path.is_file():
-        raise _error(f"scene {str(path)!r} not found (expected a Mitsuba XML file or procedural:SEED)")
+        raise CommandError(f"scene {str(path)!r} not found (expected a Mitsuba XML file or procedural:SEED)")
     return path
 
 
@@ -271,9 +272,12 @@ def resolve_scenes(specs: Sequence[str]) -> tuple[list[SceneEntry], list[str]]:
                 notes.append(f"default scene {shared / rel} not found; evaluated without it")
         specs = [*specs, *DEFAULT_PROCEDURAL]
     entries: list[SceneEntry] = []
+    from renderer.procedural import parse_procedural  # numpy only: no Mitsuba to resolve the scene list
+
     for spec in specs:
-        if spec.startswith("procedural:"):
-            entries.append(_procedural_entry(spec))
+        seed = parse_procedural(spec)
+        if seed is not None:
+            entries.append(_procedural_entry(seed))
         else:
             xml = _xml_for(Path(spec).expanduser())
             entries.append(SceneEntry(str(xml), scene_label(xml), {"xml": str(xml.resolve()),
@@ -289,14 +293,7 @@ def scene_label(xml: Path) -> str:
     return xml.stem
 
 
-def _procedural_entry(spec: str) -> SceneEntry:
-    text = spec[len("procedural:"):]
-    try:
-        seed = int(text)
-    except ValueError:
-        raise _error(f"bad scene {spec!r}: expected procedural:SEED with an integer seed") from None
-    if seed < 0:
-        raise _error(f"bad scene {spec!r}: the seed must be >= 0")
+def _procedural_entry(seed: int) -> SceneEntry:
     from renderer.procedural import GENERATOR_VERSION
 
     return SceneEntry(f"procedural:{seed}", f"procedural:{seed}", {"procedural": seed, "generator": GENERATOR_VERSION})

@@ -14,6 +14,9 @@ Every method produces (image, per-layer images where it has them, render seconds
 ``ours``                    the shipped pair ``models/direct.onnx`` + ``models/indirect.onnx`` (separation +
                             attention), per layer, summed
 ``oidn``                    OIDN on each layer of the G-PT frame, summed (``reconstruct(frame, "oidn")``)
+``oidn-l1``                 ``oidn``, then the direct layer refined by its gradients (an L1 screened Poisson
+                            solve with OIDN's image as the data term, model/refine.py;
+                            ``reconstruct(frame, "oidn-l1")``)
 ``fused``                   the fused network of ``models/fused/<layer>.onnx`` (``reconstruct(frame, "fused",
                             fused=...)``); skipped, listing the missing files, without them
 ``path``                    Mitsuba's own ``path`` integrator at *equal time* (below)
@@ -33,13 +36,15 @@ measured first as ``seconds = overhead + per_spp · spp``, a line fitted to warm
 render that pays the JIT compilation, which a user rendering a sequence pays once: 1, 4, 16, ... spp, each the
 faster of two, until one takes a quarter second; every later render adds a point). A *try* is a render plus
 its post-processing (the OIDN call(s)), timed together; ``path-oidn``'s feature pass is rendered once per row and
-taken off the budget first. The spp is *bisected*: the first try at the line's prediction (for the budget less a
-pre-measured post-processing time), and while a try's measured total misses the target by more than
-:data:`PathRenderer.TOLERANCE` (5 %), the next interpolates between the closest too-fast and too-slow tries (their
-midpoint when the interpolation leaves the bracket), at most :data:`PathRenderer.MAX_ATTEMPTS` tries. The row
-keeps the try closest to the target and records the tries; the report flags every row whose measured total is
-still outside ±5 % of its budget (spp granularity at tiny budgets, or a machine whose speed changed between
-tries). The time in the results is the time the kept try actually took, not the prediction.
+taken off the budget first. The spp is *interpolated on the measured time curve* (:class:`TimeSearch`): the
+first try at the line's prediction (for the budget less a pre-measured post-processing time); while a try's
+measured total misses the target by more than :data:`PathRenderer.TOLERANCE` (5 %), a line time = a + b · spp
+through the tries so far is solved for the target (a secant step anchored at the closest try; the bracket's
+midpoint when it points at a tried spp), short or surprising tries timed three times (median), at most
+:data:`PathRenderer.MAX_ATTEMPTS` tries. The row keeps the try closest to the target and records its tries and,
+when it is still outside ±5 %, why (1 spp already over budget, the spp cap, integer granularity, timing noise);
+the report lists every such row with that reason. The time in the results is the time the kept try actually
+took (the median of its timings), not the prediction.
 
 Timings exclude one-time costs on both sides: each network is run once untimed per frame size (ONNX
 Runtime's allocation on a new shape), Mitsuba's kernels are compiled before the timed render. The G-PT
@@ -69,6 +74,8 @@ __all__ = [
     "NetworkPool",
     "EQUAL_TIME_KINDS",
     "Attempt",
+    "TIME_SEARCH",
+    "TimeSearch",
     "FEATURE_SPP",
     "PathRenderer",
     "CostModel",
@@ -83,8 +90,9 @@ MAX_WAVEFRONT = (1 << 32) - 1  # Mitsuba's samples per launch
 #: writes them nearly for free; 4 spp antialiases edges well enough for OIDN, which prefilters them anyway.
 FEATURE_SPP = 4
 #: Source files whose changes alter a method's images or scores (part of every result's cache key).
-METHOD_SOURCES: tuple[str, ...] = ("evaluation/methods.py", "model/poisson.py", "model/reconstruct.py",
-                                   "model/infer.py", "model/preprocess.py", "model/metrics.py")
+METHOD_SOURCES: tuple[str, ...] = ("evaluation/methods.py", "model/oidn.py", "model/poisson.py", "model/reconstruct.py",
+                                   "model/infer.py", "model/preprocess.py", "model/metrics.py", "model/refine.py",
+                                   "model/kernels.py", "model/policy.py")
 
 
 @dataclass(frozen=True)
@@ -124,6 +132,7 @@ METHODS: tuple[MethodSpec, ...] = (
     *(MethodSpec(f"ablation/{v}", f"Ablation {v}", "network", models=f"ablation/{v}", separated=s, attention=a)
       for v, s, a in ABLATION_VARIANTS),
     MethodSpec("oidn", "G-PT + OIDN per layer", "recon", poisson="oidn"),
+    MethodSpec("oidn-l1", "G-PT + OIDN, direct refined by its gradients (L1)", "recon", poisson="oidn-l1"),
     MethodSpec("fused", "Fused network", "fused", models="fused"),
     MethodSpec("ours", "Ours (separated + attention)", "network", models="", separated=True, attention=True),
     MethodSpec("path", "Mitsuba path (equal time)", "path"),
@@ -276,6 +285,171 @@ class Attempt:
     spp: int
     attempts: int
     miss: float  # |measured / target - 1|
+    tries: list[tuple[int, float]] = field(default_factory=list)  # (spp, measured total) of every try
+    note: str = ""  # why the kept try is outside the tolerance ("" when it is within)
+
+
+#: How the equal-time spp is found (recorded per row and stated by the report).
+TIME_SEARCH = "interpolated on the measured time curve"
+
+
+@dataclass
+class _Timed:
+    """One try: the spp, its kept output, and the timings of each repeat (render, post)."""
+
+    spp: int
+    output: Any
+    timings: list[tuple[float, float]]
+
+    @property
+    def totals(self) -> list[float]:
+        return [r + p for r, p in self.timings]
+
+    @property
+    def seconds(self) -> float:
+        return float(np.median(self.totals))
+
+    def median_timing(self) -> tuple[float, float]:
+        """The (render, post) repeat whose total is the median (lower median for an even count)."""
+        order = sorted(range(len(self.timings)), key=lambda i: self.totals[i])
+        return self.timings[order[(len(order) - 1) // 2]]
+
+
+class TimeSearch:
+    """The spp whose measured time (render + post-processing) is within ``tolerance`` of ``target``.
+
+    Time is modelled as ``a + b · spp`` (a: fixed per-render cost, launch + denoiser; b: cost per sample). The
+    slope comes from the renderer's calibration (``slope``, with ``overhead`` its expected fixed cost: any excess
+    of the first try over that line is read as a steeper slope, the cautious reading) until this search has
+    measured two spp far enough apart to fit its own; the line is then anchored at the measured try closest to
+    the target and solved for it (a secant step on the measured curve: a fixed overhead or a mis-predicted
+    slope costs one try, not a bisection). When the line points at an spp already tried, the next try bisects
+    the closest too-fast/too-slow bracket, or re-times that spp. Short tries (under ``repeat_below`` seconds,
+    where a load spike is a large share of the time) and any try more than 3 x the tolerance off the line's
+    prediction (a spike, or a wrong line) are timed ``repeats`` times and their median used, so one noisy
+    timing neither stops the search nor walls off the right spp. It gives up, saying why, when the target is
+    impossible (1 spp already too slow, the spp cap too fast), when two adjacent spp straddle it (integer
+    granularity, or noise when the jump is larger than one sample's cost), or after ``max_tries`` tries.
+    """
+
+    def __init__(self, target: float, slope: float, max_spp: int, *, overhead: float = 0.0,
+                 tolerance: float = 0.05, max_tries: int = 8, repeat_below: float = 2.0, repeats: int = 3) -> None:
+        self.target, self.slope, self.max_spp = target, max(slope, 1e-12), max_spp
+        self.overhead = max(0.0, overhead)
+        self.tolerance, self.max_tries = tolerance, max_tries
+        self.repeat_below, self.repeats = repeat_below, repeats
+        self.tried: dict[int, _Timed] = {}
+        self.made = 0  # tries made, re-timings of a tried spp included
+
+    def miss(self, seconds: float) -> float:
+        return seconds / self.target - 1.0 if self.target > 0 else math.inf
+
+    def run(self, measure: Callable[[int], tuple[Any, float, float]], first_spp: int) -> Attempt:
+        """Search from ``first_spp``; ``measure(spp)`` -> (output, render seconds, post seconds)."""
+        spp: int | None = max(1, min(self.max_spp, int(first_spp)))
+        note = ""
+        predicted = self.overhead + self.slope * spp
+        while spp is not None and self.made < self.max_tries:
+            timed = self._measure(measure, spp, predicted)
+            if abs(self.miss(timed.seconds)) <= self.tolerance:
+                break
+            spp, note = self._next(spp)
+            predicted = self.target  # the line was solved for the target at the next spp
+        else:
+            if spp is not None:
+                note = self._exhausted()
+        best = min(self.tried.values(), key=lambda t: abs(self.miss(t.seconds)))
+        render, post = best.median_timing()
+        miss = abs(self.miss(render + post))
+        tries = [(t.spp, round(t.seconds, 4)) for t in self.tried.values()]
+        return Attempt(best.output, render, post, best.spp, self.made, miss, tries,
+                       note if miss > self.tolerance else "")
+
+    def _measure(self, measure: Callable[[int], tuple[Any, float, float]], spp: int, predicted: float) -> _Timed:
+        self.made += 1
+        if spp in self.tried:  # a re-timing: more repeats of a spp whose median sits on the wrong side
+            timed = self.tried[spp]
+            timed.timings += [measure(spp)[1:] for _ in range(self.repeats - 1)]
+            return timed
+        output, render, post = measure(spp)
+        timed = _Timed(spp, output, [(render, post)])
+        surprise = abs((render + post) / max(predicted, 1e-12) - 1.0) > 3 * self.tolerance
+        if render + post < self.repeat_below or surprise:
+            timed.timings += [measure(spp)[1:] for _ in range(self.repeats - 1)]
+        self.tried[spp] = timed
+        return timed
+
+    def _fit_slope(self) -> float:
+        """The per-spp slope near the target: least squares over the (up to) three tries closest to it when their
+        spp span at least 5 % of the largest (local, because the time curve bends: caches, a denoiser's fixed
+        cost), kept within [1/3, 3] x the calibrated slope so noise cannot flip or explode it; with one try, its
+        excess over the calibrated line read as slope; else the calibrated slope."""
+        near = sorted(self.tried.values(), key=lambda t: abs(self.miss(t.seconds)))[:3]  # local: the curve bends
+        spps = np.array([t.spp for t in near], dtype=np.float64)
+        if len(spps) >= 2 and np.ptp(spps) >= 0.05 * spps.max():
+            seconds = np.array([t.seconds for t in near])
+            fitted = float(np.polyfit(spps, seconds, 1)[0])
+            return float(np.clip(fitted, self.slope / 3, self.slope * 3))
+        if len(self.tried) == 1:  # one try slower than the calibrated line: its excess is read as slope
+            (spp, timed), = self.tried.items()
+            return float(np.clip((timed.seconds - self.overhead) / spp, self.slope, self.slope * 3))
+        return self.slope
+
+    def _next(self, spp: int) -> tuple[int | None, str]:
+        """The next spp to try after ``spp`` missed (None: stop, with the reason)."""
+        seconds = self.tried[spp].seconds
+        if spp <= 1 and seconds > self.target:
+            return None, f"1 spp alone takes {seconds:.3g} s (render + post-processing), over the budget"
+        if spp >= self.max_spp and seconds < self.target:
+            return None, f"the spp cap ({self.max_spp}) takes only {seconds:.3g} s"
+        anchor = min(self.tried.values(), key=lambda t: abs(self.miss(t.seconds)))
+        guess = anchor.spp + (self.target - anchor.seconds) / self._fit_slope()
+        following = int(max(1, min(self.max_spp, round(guess))))
+        if following in self.tried:  # the line points at a tried spp: step to its neighbour towards the target
+            step = 1 if self.tried[following].seconds < self.target else -1
+            following = max(1, min(self.max_spp, following + step))
+        straddle = self._straddle()
+        if straddle:
+            low, high = straddle
+            t0, t1 = self.tried[low].seconds, self.tried[high].seconds
+            # one sample's cost above the tolerance band is granularity; a larger jump than the slope allows is noise
+            if self._fit_slope() >= self.tolerance * self.target:
+                return None, f"spp granularity: {low} spp takes {t0:.3g} s, {high} spp {t1:.3g} s"
+            # a jump larger than one sample costs is noise: re-time the side further off, once
+            retime = max((low, high), key=lambda s: abs(self.miss(self.tried[s].seconds)))
+            if len(self.tried[retime].timings) <= self.repeats:
+                return retime, ""
+            return None, f"timing noise (adjacent spp): {low} spp takes {t0:.3g} s, {high} spp {t1:.3g} s"
+        if following in self.tried:
+            return self._bracket_or_retime(following)
+        return following, ""
+
+    def _bracket_or_retime(self, spp: int) -> tuple[int | None, str]:
+        """The line points at tried ``spp``: bisect the closest too-fast / too-slow bracket when it has an untried
+        spp inside, else re-time ``spp`` (once: its repeats may have been unlucky), else stop."""
+        fast = [s for s, t in self.tried.items() if t.seconds < self.target]
+        slow = [s for s, t in self.tried.items() if t.seconds > self.target]
+        if fast and slow and max(fast) < min(slow):
+            middle = (max(fast) + min(slow)) // 2
+            if middle not in self.tried:
+                return middle, ""
+        if len(self.tried[spp].timings) <= self.repeats:
+            return spp, ""
+        return None, f"timing noise: the measured time curve is flat near {spp} spp"
+
+    def _straddle(self) -> tuple[int, int] | None:
+        """Two adjacent spp, one too fast and one too slow (no integer spp lands within the tolerance)."""
+        for s, t in self.tried.items():
+            above = self.tried.get(s + 1)
+            if above is not None and t.seconds < self.target < above.seconds:
+                return s, s + 1
+        return None
+
+    def _exhausted(self) -> str:
+        spread = max((max(t.totals) - min(t.totals)) / t.seconds for t in self.tried.values())
+        noisy = spread > 2 * self.tolerance
+        return (f"{self.max_tries} tries" + (f"; repeated timings of one spp differed by up to {spread:.0%} "
+                                             "(timing noise)" if noisy else ""))
 
 
 class PathRenderer:
@@ -292,8 +466,11 @@ class PathRenderer:
     EXTRAPOLATION = 8
     #: A render is accepted when its measured time is within this fraction of its target.
     TOLERANCE = 0.05
-    #: Renders tried per row before the one closest to the target is kept.
-    MAX_ATTEMPTS = 5
+    #: Tries (distinct spp) per row before the one closest to the target is kept.
+    MAX_ATTEMPTS = 8
+    #: Tries shorter than this are timed REPEATS times and their median used (noise is a larger share of them).
+    REPEAT_BELOW = 2.0
+    REPEATS = 3
 
     def __init__(self, loaded: Any) -> None:
         import mitsuba as mi
@@ -367,52 +544,21 @@ class PathRenderer:
     def render_within(self, kind: str, seconds: float, seed: int, post: Callable[[Any], Any] | None = None,
                       post_estimate: float = 0.0) -> Attempt:
         """Render ``kind`` (then run ``post`` on the render, e.g. the denoiser) at the spp whose measured time,
-        render + ``post``, is within :data:`TOLERANCE` of ``seconds``. The first spp comes from the cost line
-        (``post_estimate`` off the budget); then each try interpolates between the closest too-fast and
-        too-slow tries (bisecting when that would not move inside the bracket), or scales the last try when only
-        one side is known. The try closest to the target is kept."""
-        spp = self.spp_for(kind, max(1e-6, seconds - post_estimate))
-        tried: list[tuple[int, float]] = []
-        best: Attempt | None = None
-        while len(tried) < self.MAX_ATTEMPTS:
+        render + ``post``, is within :data:`TOLERANCE` of ``seconds``: :class:`TimeSearch` from the cost line's
+        prediction (``post_estimate`` off the budget), with the line's slope. The try closest to the target is
+        kept, with the reason when it is still outside the tolerance."""
+        first = self.spp_for(kind, max(1e-6, seconds - post_estimate))
+        overhead, per_spp = self.cost(kind).fit()
+        search = TimeSearch(seconds, per_spp, self.max_spp, overhead=overhead + post_estimate, tolerance=self.TOLERANCE,
+                            max_tries=self.MAX_ATTEMPTS, repeat_below=self.REPEAT_BELOW, repeats=self.REPEATS)
+
+        def measure(spp: int) -> tuple[Any, float, float]:
             output, took = self.render(kind, spp, seed)
             start = time.perf_counter()
             result = post(output) if post is not None else output
-            post_took = time.perf_counter() - start if post is not None else 0.0
-            total = took + post_took
-            tried.append((spp, total))
-            miss = total / seconds - 1.0 if seconds > 0 else math.inf
-            if best is None or abs(miss) < best.miss:
-                best = Attempt(result, took, post_took, spp, 0, abs(miss))
-            if abs(miss) <= self.TOLERANCE:
-                break
-            following = self._next_spp(kind, seconds, tried, post_estimate)
-            if following is None:
-                break
-            spp = following
-        assert best is not None
-        best.attempts = len(tried)
-        return best
+            return result, took, (time.perf_counter() - start if post is not None else 0.0)
 
-    def _next_spp(self, kind: str, seconds: float, tried: list[tuple[int, float]],
-                  post_estimate: float = 0.0) -> int | None:
-        """The next spp to try for ``seconds`` given the renders ``tried`` (None: no better integer spp)."""
-        fast = [(s, t) for s, t in tried if t < seconds]
-        slow = [(s, t) for s, t in tried if t >= seconds]
-        if fast and slow:
-            (s0, t0), (s1, t1) = max(fast), min(slow)
-            if s1 - s0 <= 1:  # spp granularity: no integer between a too-fast and a too-slow render
-                return None
-            guess = round(s0 + (seconds - t0) * (s1 - s0) / (t1 - t0)) if t1 > t0 else (s0 + s1) // 2
-            if not s0 < guess < s1 or any(guess == s for s, _ in tried):
-                guess = (s0 + s1) // 2
-            return guess
-        spp, took = tried[-1]
-        overhead = min(self.cost(kind).fit()[0] + post_estimate, 0.5 * took)  # fixed cost per try
-        guess = max(1, min(self.max_spp, round(spp * (seconds - overhead) / max(took - overhead, 1e-9))))
-        if (slow and spp == 1) or (fast and spp >= self.max_spp) or guess == spp:
-            return None  # already at the smallest / largest possible spp
-        return guess
+        return search.run(measure, first)
 
     def post_seconds(self, name: str, run: Callable[[], object]) -> float:
         """The time of a row's fixed post-processing ``run`` (a denoiser call) on this scene's frame size,
@@ -439,11 +585,12 @@ def split_features(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def denoise(color: np.ndarray, albedo: np.ndarray, normal: np.ndarray) -> np.ndarray:
     """Intel Open Image Denoise as model/oidn.py runs it for the ``oidn`` method (one definition): the RT filter
-    on HDR input at quality "high", albedo and normal prefiltered first (they are noisy), exact exposure scaling."""
+    on HDR input at the method's setting (model.oidn.method_setting: auxiliary images, quality), exact exposure
+    scaling."""
     from model.frame import Features
-    from model.oidn import shared_denoiser
+    from model.oidn import method_setting, shared_denoiser
 
-    denoiser = shared_denoiser()
+    denoiser = shared_denoiser(method_setting())
     aux = denoiser.prefilter(Features(np.ascontiguousarray(albedo, np.float32),
                                       np.ascontiguousarray(normal, np.float32),
                                       np.zeros(color.shape[:2], np.float32)))
@@ -608,7 +755,8 @@ def _run_sep_oidn(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
 
 def _equal_time_extra(ctx: MethodContext, target: float, got: Attempt, max_spp: int) -> dict[str, Any]:
     extra: dict[str, Any] = {"target_seconds": target, "budget_method": ctx.budget_method,
-                             "attempts": got.attempts}
+                             "attempts": got.attempts, "time_search": TIME_SEARCH, "time_tries": got.tries,
+                             "time_note": got.note}
     if got.spp >= max_spp:
         extra["capped"] = f"spp capped at {max_spp} (Mitsuba's 2^32 samples per launch)"
     return extra

@@ -43,6 +43,7 @@ METHOD_STYLES: dict[str, tuple[str, str, str]] = {
     "path-oidn": ("#9467bd", "--", "P"),
     "path-sep-oidn": ("#e377c2", "-", "X"),
     "oidn": ("#17becf", "-.", "h"),
+    "oidn-l1": ("#bcbd22", "-", "v"),
     "fused": ("#000000", "-", "*"),
 }
 

@@ -22,10 +22,11 @@ from typing import Any
 import numpy as np
 
 from evaluation.cache import EvalCache, key_hash
+from model.policy import SEPARATED_LAYERS
 
 __all__ = ["ReferencePair", "ReferenceSource", "next_reference_spp"]
 
-LAYER_NAMES = ("total", "direct", "indirect")
+LAYER_NAMES = ("total", *SEPARATED_LAYERS)
 
 
 @dataclass

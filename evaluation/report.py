@@ -23,23 +23,28 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from evaluation.cache import slug
+from evaluation.config import CROP_METHODS, EvalSettings
 from evaluation.methods import ABLATION_VARIANTS, METHODS
 from evaluation.plots import plot_crops, plot_error_vs_time
+from evaluation.results import machine_summary
 from model.frame import write_bytes_atomic
+from model.policy import DEFAULT_ALPHA, MODELS_ENV
 
 if TYPE_CHECKING:
-    from evaluation.run import EvalConfig, Evaluation
+    from evaluation.config import EvalConfig
+    from evaluation.results import Evaluation
 
 __all__ = ["CSV_COLUMNS", "losses_of_ours", "write_outputs"]
 
 CSV_COLUMNS: tuple[str, ...] = (
     "scene", "method", "spp", "method_spp", "width", "height", "render_seconds", "reconstruct_seconds",
     "total_seconds", "relmse", "ssim", "psnr", "flip", "relmse_direct", "relmse_indirect", "target_seconds",
-    "budget_method", "attempts", "feature_spp",
+    "budget_method", "attempts", "feature_spp", "time_note",
 )
 LABELS: dict[str, str] = {m.name: m.label for m in METHODS}
 TABLE1: tuple[tuple[str, str], ...] = (("gpt-primal", "Input"), ("l1", "L1"), ("gradnet", "GradNet-style"),
-                                       ("ours", "Ours"), ("oidn", "G-PT + OIDN per layer"), ("fused", "Fused"),
+                                       ("ours", "Ours"), ("oidn", "G-PT + OIDN per layer"),
+                                       ("oidn-l1", "OIDN + gradients (direct)"), ("fused", "Fused"),
                                        ("path-oidn", "path + OIDN (equal time)"),
                                        ("path-sep-oidn", "sep. path + OIDN per layer (equal time)"))
 #: (metric, header, higher is better)
@@ -83,8 +88,6 @@ def write_outputs(evaluation: Evaluation) -> dict[str, Path]:
                                                        scene.floor.get("total"))
         table = _by_method(scene_rows, evaluation.config.crop_spp)
         metrics = {m: float(r["relmse"]) for m, r in table.items()}
-        from evaluation.run import CROP_METHODS
-
         paths[f"crop:{name}"] = plot_crops(name, scene.reference, scene.crop_images, CROP_METHODS, _crop_labels(),
                                            metrics, evaluation.config.crop_spp, out / "crops" / f"{slug(name)}.png")
     paths["json"] = out / "results.json"
@@ -96,6 +99,7 @@ def write_outputs(evaluation: Evaluation) -> dict[str, Path]:
 
 def _crop_labels() -> dict[str, str]:
     return {"gpt-primal": "Input (G-PT)", "l1": "L1", "gradnet": "GradNet-style", "ours": "Ours",
+            "oidn": "G-PT + OIDN", "oidn-l1": "OIDN + gradients", "fused": "Fused",
             "path-oidn": "path + OIDN", "path-sep-oidn": "sep. path + OIDN/layer",
             "reference": "Reference (mean of 2)"}
 
@@ -136,16 +140,16 @@ def invocation() -> str:
 
 
 def reproduce_command(c: EvalConfig) -> str:
-    """A command that reproduces this run with every setting explicit (env vars for the options the parser
-    does not have yet)."""
-    env = {"GRADSEP_MODELS": str(c.models_dir), "GRADSEP_EVAL_SIZE": f"{c.width}x{c.height}",
-           "GRADSEP_EVAL_REF_SPP": str(c.ref_spp), "GRADSEP_EVAL_REF_SPP_CAP": str(c.reference_cap),
-           "GRADSEP_EVAL_REF_SECONDS": f"{c.ref_seconds or 0:g}", "GRADSEP_EVAL_SEED": str(c.seed),
-           "GRADSEP_EVAL_METHODS": ",".join(c.methods)}
+    """A command that reproduces this run with every setting explicit (the options as GRADSEP_EVAL_* variables,
+    the names evaluation.config.EvalSettings reads)."""
+    var = EvalSettings.variable
+    env = {MODELS_ENV: str(c.models_dir), var("size"): f"{c.width}x{c.height}", var("ref_spp"): str(c.ref_spp),
+           var("ref_spp_cap"): str(c.reference_cap), var("ref_seconds"): f"{c.ref_seconds or 0:g}",
+           var("seed"): str(c.seed), var("methods"): ",".join(c.methods)}
     if c.max_depth is not None:
-        env["GRADSEP_EVAL_MAX_DEPTH"] = str(c.max_depth)
-    if c.alpha != 0.2:
-        env["GRADSEP_EVAL_ALPHA"] = f"{c.alpha:g}"
+        env[var("max_depth")] = str(c.max_depth)
+    if c.alpha != DEFAULT_ALPHA:
+        env[var("alpha")] = f"{c.alpha:g}"
     args = ["gradsep", "evaluate"]
     if c.scenes:
         args += ["--scenes", *c.scenes]
@@ -157,8 +161,6 @@ def reproduce_command(c: EvalConfig) -> str:
 
 
 def machine() -> str:
-    from evaluation.run import machine_summary
-
     mem = ""
     try:
         pages, size = os.sysconf("SC_PHYS_PAGES"), os.sysconf("SC_PAGE_SIZE")
@@ -390,17 +392,28 @@ def time_misses(rows: Sequence[Mapping[str, Any]]) -> list[str]:
             continue
         miss = float(r["total_seconds"]) / float(target) - 1.0
         if abs(miss) > TIME_TOLERANCE:
+            reason = r.get("time_note") or "no reason recorded"
             out.append(f"{r['scene']}, {r['spp']} spp, {r['method']}: {float(r['total_seconds']):.3g} s for a "
-                       f"{float(target):.3g} s budget ({miss:+.0%}; {r.get('attempts', '?')} renders tried at "
-                       f"{r['method_spp']} spp)")
+                       f"{float(target):.3g} s budget ({miss:+.0%}; {r.get('attempts', '?')} tries, kept "
+                       f"{r['method_spp']} spp): {reason}")
     return out
+
+
+def _search_method(rows: Sequence[Mapping[str, Any]]) -> str:
+    """How the rows' equal-time spp were found (each row records it; cached rows may predate the search)."""
+    methods = sorted({str(r.get("time_search") or "bisected") for r in rows if r.get("target_seconds")})
+    return " / ".join(methods) or "interpolated on the measured time curve"
 
 
 def _equal_time(evaluation: Evaluation) -> list[str]:
     lines = ["## Equal time: G-PT + reconstruction against Mitsuba path, path + OIDN and separated path + OIDN", "",
-             "Each equal-time method's spp is bisected until its measured total time (render, feature pass and "
-             "denoising) is within ±5 % of the time of the G-PT render + the reconstruction by fused (by ours, "
-             "then L1, when it is unavailable; column *budget*); the times shown are the measured ones. "
+             f"Each equal-time method's spp is {_search_method(evaluation.rows)} until its measured total time "
+             "(render, feature pass and denoising) is within ±5 % of the time of the G-PT render + the "
+             "reconstruction by fused (by ours, then L1, when it is unavailable; column *budget*): a line "
+             "time = overhead + per-spp cost is fitted to the renders already measured and solved for the budget "
+             "(a secant step; bisection of the closest bracket when the line points at a tried spp), tries under "
+             "2 s or off the line's prediction by over 15 % are timed three times and their median used, at most "
+             "8 tries per row. The times shown are the measured ones. "
              "path + OIDN gets its albedo and normal from a separate feature pass (Mitsuba `aov`, spp in results.csv "
              "`feature_spp`) whose time is counted; separated path + OIDN is the renderer's primal-only mode "
              "(direct and indirect apart, first-hit features, no gradients) with OIDN on each layer. "

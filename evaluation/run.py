@@ -21,16 +21,15 @@ from __future__ import annotations
 
 import math
 import os
-import sys
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from evaluation.cache import EvalCache, file_sha256, key_hash, sources_sha256
-from evaluation.config import FLOOR_FRACTION, EvalConfig, SceneEntry, _error, resolve_scenes
+from evaluation.config import CROP_METHODS, FLOOR_FRACTION, EvalConfig, SceneEntry, resolve_scenes
 from evaluation.methods import (
     EQUAL_TIME_KINDS,
     METHOD_SOURCES,
@@ -44,51 +43,21 @@ from evaluation.methods import (
     unavailable,
 )
 from evaluation.references import ReferencePair, ReferenceSource, next_reference_spp
+from evaluation.results import Evaluation, SceneRun, machine_summary
+from model.errors import CommandError
+from model.policy import SEPARATED_LAYERS
+from model.progress import ProgressBar
 
 __all__ = ["CROP_METHODS", "Evaluation", "SceneRun", "machine_summary", "run_evaluation"]
 
-CROP_METHODS: tuple[str, ...] = ("gpt-primal", "l1", "gradnet", "ours", "path-oidn", "path-sep-oidn")
 RENDERER_SOURCES = ("renderer/gpt.py", "renderer/shift.py", "renderer/render.py", "renderer/scene.py",
-                    "renderer/procedural.py")
-REFERENCE_SOURCES = ("renderer/reference.py", "renderer/scene.py", "renderer/procedural.py")
+                    "renderer/procedural.py", "renderer/variant.py", "model/policy.py")
+REFERENCE_SOURCES = ("renderer/reference.py", "renderer/scene.py", "renderer/procedural.py", "renderer/variant.py")
 RESULT_FORMAT = 2  # bump when the cached output/score JSON changes shape
 SCORE_SOURCES = ("model/metrics.py", "evaluation/run.py")
 
 
 # ---------------------------------------------------------------------------------------------- the run
-
-
-@dataclass
-class SceneRun:
-    """What the report needs about one evaluated scene."""
-
-    entry: SceneEntry
-    width: int
-    height: int
-    max_depth: int
-    layers: tuple[str, ...]
-    reference: np.ndarray  # (H, W, 3): the mean of the two references
-    reference_spp: int = 0  # of each of the two references
-    floor: dict[str, float] = field(default_factory=dict)  # layer -> reference floor (model.metrics)
-    smallest: float = math.nan  # the smallest ranked RelMSE of the scene
-    capped: bool = False  # the floor criterion was not met (see cap_reason)
-    cap_reason: str = ""  # what stopped the references: the spp cap or the time budget
-    reference_seconds: float = 0.0
-    crop_images: dict[str, np.ndarray] = field(default_factory=dict)
-
-
-@dataclass
-class Evaluation:
-    """The outcome of :func:`run_evaluation`: rows plus what the report says about how they were made."""
-
-    config: EvalConfig
-    rows: list[dict[str, Any]]
-    scenes: list[SceneRun]
-    skipped: dict[str, list[str]]  # method -> why it was skipped (missing model files, missing code)
-    models: dict[str, str]  # model file (relative to the models folder) -> sha256
-    notes: list[str]
-    computed: dict[str, int]  # what this run computed rather than took from the cache
-    outputs: dict[str, Path] = field(default_factory=dict)
 
 
 def _derived_seed(*parts: int) -> int:
@@ -241,9 +210,10 @@ class _Runner:
             "total_seconds": out.render_seconds + out.reconstruct_seconds,
         }
         row.update({k: v for k, v in out.extra.items()
-                    if k in ("target_seconds", "budget_method", "capped", "attempts", "feature_spp")})
+                    if k in ("target_seconds", "budget_method", "capped", "attempts", "feature_spp",
+                             "time_search", "time_tries", "time_note")})
         row["machine"] = machine_summary()
-        layers = {n: out.layers[n] for n in ("direct", "indirect") if n in out.layers}
+        layers = {n: out.layers[n] for n in SEPARATED_LAYERS if n in out.layers}
         self.cache.save_arrays(path.with_suffix(".npz"), {"image": out.image, **layers})
         self.cache.save_json(path, {"format": RESULT_FORMAT, "key": key, "row": row, "layers": list(layers)})
         self.computed["results"] += 1
@@ -263,7 +233,7 @@ class _Runner:
         scores: dict[str, Any] = {"relmse": relmse_unbiased(output.image, pair.first["total"], pair.second["total"]),
                                   "ssim": ssim(output.image, mean), "psnr": psnr(output.image, mean),
                                   "flip": flip(output.image, mean)}
-        for layer in ("direct", "indirect"):
+        for layer in SEPARATED_LAYERS:
             have = layer in output.layers and layer in pair.first
             scores[f"relmse_{layer}"] = (relmse_unbiased(output.layers[layer], pair.first[layer],
                                                          pair.second[layer]) if have else None)
@@ -286,60 +256,14 @@ def _mitsuba_id() -> str:
     return _MITSUBA
 
 
-def machine_summary() -> str:
-    """``CPU model, N logical cores`` (+ GPU variant when Mitsuba runs on CUDA): where a timing was taken."""
-    cpu = ""
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8") as fh:
-            for line in fh:
-                if line.startswith("model name"):
-                    cpu = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    import platform
-
-    cpu = cpu or platform.processor() or platform.machine()
-    return f"{cpu}, {os.cpu_count()} logical cores"
-
-
-class _Progress:
-    """One tqdm bar over the run's steps (hidden when progress is off, or not a terminal when it is None)."""
-
-    def __init__(self, total: int, enabled: bool | None) -> None:
-        self.bar = None
-        if enabled is False:
-            return
-        try:
-            from tqdm import tqdm
-        except ImportError:
-            return
-        self.bar = tqdm(total=total, unit="step", desc="evaluate", dynamic_ncols=True,
-                        disable=None if enabled is None else not enabled, file=sys.stderr)
-
-    def step(self, description: str) -> None:
-        if self.bar is not None:
-            self.bar.set_description_str(description[:60])
-
-    def advance(self, n: int = 1) -> None:
-        if self.bar is not None:
-            self.bar.update(n)
-
-    def write(self, message: str) -> None:
-        if self.bar is not None and not self.bar.disable:
-            self.bar.write(message, file=sys.stderr)
-        else:
-            print(message, file=sys.stderr)
-
-    def close(self) -> None:
-        if self.bar is not None:
-            self.bar.close()
-
-
 def _budget_method(rows: dict[str, dict[str, Any]]) -> str | None:
-    """The method whose total time is the equal-time budget: the product's default for a G-PT frame (fused), else
-    ours (the paper's network), else L1 (None: the G-PT render alone)."""
-    for name in ("fused", "ours", "l1"):
+    """The method whose total time is the equal-time budget: the product's default for a G-PT frame (the first
+    of model.policy.DEFAULT_PREFERENCE that ran; its ``network`` is the evaluation's ``ours``), else ours, else
+    L1 (None: the G-PT render alone)."""
+    from model import policy
+
+    for method in (*policy.DEFAULT_PREFERENCE, "network", "l1"):
+        name = "ours" if method == "network" else method
         if name in rows:
             return name
     return None
@@ -354,12 +278,12 @@ def run_evaluation(config: EvalConfig, *, progress: bool | None = None,
     _prepare_output(config.output)
     methods = [method_by_name(name) for name in config.methods]
     total = len(entries) * (2 + len(config.spp) * (1 + len(methods)))
-    bar = _Progress(total, progress)
+    bar = ProgressBar(total, enabled=progress, desc="evaluate", unit="step")
     runner = _Runner(config, progress, log or bar.write)
     try:
         runner.cache.prepare()
     except OSError as exc:
-        raise _error(f"cache folder {str(runner.cache.root)!r} cannot be created: {exc.strerror or exc}") from exc
+        raise CommandError(f"cache folder {str(runner.cache.root)!r} cannot be created: {exc.strerror or exc}") from exc
     # every scene is loaded (and so validated) before anything renders: a typo in the last scene should not
     # surface after an hour of work on the first ones
     loaded_scenes = [load_scene(e.spec, width=config.width, height=config.height, max_depth=config.max_depth)
@@ -382,7 +306,7 @@ def run_evaluation(config: EvalConfig, *, progress: bool | None = None,
 
 
 def _run_scene(runner: _Runner, entry: SceneEntry, loaded: Any, methods: list[MethodSpec],
-               bar: _Progress) -> tuple[SceneRun, list[dict[str, Any]]]:
+               bar: ProgressBar) -> tuple[SceneRun, list[dict[str, Any]]]:
     """One scene: every method's output, then references raised until the floor criterion holds, then scores."""
     from model.frame import SEPARATED_LAYERS
     from renderer.render import plan_layers
@@ -400,27 +324,27 @@ def _run_scene(runner: _Runner, entry: SceneEntry, loaded: Any, methods: list[Me
 
     outputs: list[_Output] = []
     for spp in config.spp:
-        bar.step(f"{entry.name}: G-PT {spp} spp")
+        bar.describe(f"{entry.name}: G-PT {spp} spp")
         frame, seconds, frame_tag = runner.frame(entry, loaded, spp)
-        bar.advance()
+        bar.update()
         done: dict[str, dict[str, Any]] = {}
         keys: dict[str, str] = {}
         for spec in methods:
-            bar.step(f"{entry.name} {spp} spp: {spec.name}")
+            bar.describe(f"{entry.name} {spp} spp: {spec.name}")
             out = _evaluate_one(runner, spec, scene, spp, frame, seconds, frame_tag, get_path, done, keys)
             if out is not None:
                 outputs.append(out)
-            bar.advance()
-    bar.step(f"{entry.name}: references")
+            bar.update()
+    bar.describe(f"{entry.name}: references")
     pair = _converge_references(runner, scene, runner.references(entry, loaded), outputs)
-    bar.advance()
-    bar.step(f"{entry.name}: scoring")
+    bar.update()
+    bar.describe(f"{entry.name}: scoring")
     rows = []
     for out in outputs:
         rows.append({**out.row, **runner.score(out, scene, pair)})
         if out.spp == config.crop_spp and out.spec.name in CROP_METHODS:
             scene.crop_images[out.spec.name] = out.image
-    bar.advance()
+    bar.update()
     return scene, rows
 
 
@@ -511,7 +435,7 @@ def _evaluate_one(runner: _Runner, spec: MethodSpec, scene: SceneRun, spp: int, 
     try:
         out = runner.output(spec, scene, spp, ctx, key)
     except ModelError as exc:
-        raise _error(f"{spec.name}: {exc}") from exc
+        raise CommandError(f"{spec.name}: {exc}") from exc
     done[spec.name] = out.row
     keys[spec.name] = out.tag
     return out
@@ -520,10 +444,10 @@ def _evaluate_one(runner: _Runner, spec: MethodSpec, scene: SceneRun, spp: int, 
 def _prepare_output(output: Path) -> None:
     """Create the report folder (and its parents), or fail before any rendering when that is impossible."""
     if output.exists() and not output.is_dir():
-        raise _error(f"output {str(output)!r} exists and is not a folder")
+        raise CommandError(f"output {str(output)!r} exists and is not a folder")
     try:
         output.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise _error(f"cannot create the report folder {str(output)!r}: {exc.strerror or exc}") from exc
+        raise CommandError(f"cannot create the report folder {str(output)!r}: {exc.strerror or exc}") from exc
     if not os.access(output, os.W_OK | os.X_OK):
-        raise _error(f"report folder {str(output)!r} is not writable")
+        raise CommandError(f"report folder {str(output)!r} is not writable")

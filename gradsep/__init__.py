@@ -1,3 +1,5 @@
 """gradsep: gradient-domain rendering with illumination separation, reconstructed by an unsupervised network."""
 
-__version__ = "0.1.0"
+from model import __version__
+
+__all__ = ["__version__"]

@@ -1,44 +1,63 @@
 """The `gradsep` console command: one subcommand per job.
 
-Each package registers its own subcommands in a light ``commands.py`` (argparse only, no heavy imports at
-module level), so `gradsep serve` works on a serving host without torch or mitsuba installed.
+The roof of the import graph: it parses arguments and dispatches, nothing else. Each package registers its own
+subcommands and their handlers in a light ``commands.py`` (argparse and the import-light model modules only at
+module level; the handlers import the heavy modules), so `gradsep serve` works on a serving host without torch
+or mitsuba installed. No library module imports this package (tests/test_layering.py checks it).
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import importlib.util
 import sys
 from collections.abc import Sequence
 
-from gradsep import __version__
+from model import __version__
+from model.errors import CommandError
+
+
+class CommandModuleError(ImportError):
+    """An installed package's command module is missing or broken (not a user error: a traceback, exit 1)."""
+
 
 # Packages whose `commands.register(subparsers)` adds subcommands, in help order.
 COMMAND_MODULES = ("renderer.commands", "training.commands", "model.commands", "evaluation.commands",
                    "service.commands")
 
 
-class CommandError(Exception):
-    """A user-facing failure: printed as one line on stderr, exit status 2."""
+def build_parser(modules: Sequence[str] | None = None) -> argparse.ArgumentParser:
+    """The parser with every installed package's subcommands.
 
-
-def build_parser() -> argparse.ArgumentParser:
+    A role-specific install may leave whole packages out (the serving image has no renderer/, training/ or
+    evaluation/, Dockerfile): their commands are then absent. A package that is installed but whose command
+    module is missing or fails to import is a broken install or a bug, and raises CommandModuleError instead of
+    silently dropping commands (the modules import only argparse and model/, which every install has).
+    """
     parser = argparse.ArgumentParser(prog="gradsep", description=__doc__.splitlines()[0])
     parser.add_argument("--version", action="version", version=f"gradsep {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for name in COMMAND_MODULES:
+    for name in COMMAND_MODULES if modules is None else modules:
+        spec = importlib.util.find_spec(name.split(".")[0])
+        # The whole package is not part of this install. A folder of that name without __init__.py (a
+        # namespace package, e.g. a user's `training/` data folder in the cwd of `python -m gradsep`) is not it.
+        if spec is None or spec.origin is None:
+            continue
         try:
             module = importlib.import_module(name)
-        except ModuleNotFoundError as exc:  # a package not present in this install
-            if exc.name and name.startswith(exc.name):
-                continue
-            raise
-        module.register(sub)
+        except ImportError as exc:
+            raise CommandModuleError(f"command module {name} cannot be imported: {type(exc).__name__}: {exc}") \
+                from exc
+        register = getattr(module, "register", None)
+        if not callable(register):
+            raise CommandModuleError(f"command module {name} has no register(subparsers) function")
+        register(sub)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from model.frame import FrameError
+    from model.frame import FrameError  # numpy + OpenEXR: not needed to build the parser
 
     parser = build_parser()
     args = parser.parse_args(argv)

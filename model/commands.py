@@ -1,17 +1,20 @@
-"""`gradsep reconstruct`: argparse only; the handler imports the solvers lazily (`gradsep evaluate` lives in
-evaluation/commands.py)."""
+"""`gradsep reconstruct`: the argument parser and its handler (`gradsep evaluate` lives in evaluation/commands.py).
+
+argparse and the import-light policy module only at module level: the handler imports the solvers lazily, so
+building the parser (``gradsep --help``, ``gradsep serve``) costs nothing.
+"""
 
 from __future__ import annotations
 
 import argparse
+import math
+import os
+import sys
+from pathlib import Path
+from typing import Any
 
-from model.policy import DEFAULT_PREFERENCE, METHODS
-
-
-def _reconstruct(args: argparse.Namespace) -> int:
-    from model.reconstruct import reconstruct_command
-
-    return reconstruct_command(args)
+from model.errors import CommandError
+from model.policy import DEFAULT_ALPHA, DEFAULT_PREFERENCE, METHODS, MODELS_ENV, POISSON_METHODS, models_dir_from
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -21,10 +24,85 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--method", choices=METHODS, default=None,
                    help="reconstruction method (default: the best that serves the frame -- "
                         + " > ".join(DEFAULT_PREFERENCE) + "; a plain frame without gradients gets oidn)")
-    p.add_argument("--alpha", type=float, default=0.2, help="screened Poisson data weight (l1/l2)")
+    p.add_argument("--alpha", type=float, default=DEFAULT_ALPHA, help="screened Poisson data weight (l1/l2)")
     p.add_argument("--half", action="store_true", help="write half floats instead of float32")
     p.add_argument("--layers", action="store_true", help="also write each reconstructed layer (direct.R, ...)")
-    p.add_argument("--models", default=None, help="folder of exported models (default: $GRADSEP_MODELS or models/)")
+    p.add_argument("--models", default=None, help=f"folder of exported models (default: ${MODELS_ENV} or models/)")
     p.add_argument("--nonfinite", choices=("reject", "zero"), default="reject",
                    help="policy for NaN/Inf radiance or gradients (features are always zeroed)")
-    p.set_defaults(func=_reconstruct)
+    p.set_defaults(func=reconstruct_command)
+
+
+def _check_output(path: Path) -> None:
+    """Fail before the (possibly long) solve when the output cannot be written at all."""
+    folder = path.parent if str(path.parent) else Path(".")
+    if path.is_dir():
+        raise CommandError(f"output {str(path)!r} is a directory")
+    if not folder.is_dir():
+        raise CommandError(f"output folder {str(folder)!r} does not exist")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise CommandError(f"output folder {str(folder)!r} is not writable")
+
+
+def _resolve_models(models: str | None, method: str | None) -> tuple[Any, Any]:
+    """(network, fused) for the named method (required) or for the default (optional); Nones otherwise."""
+    from model.reconstruct import FUSED_SUBDIR, load_fused, load_network
+
+    folder = models_dir_from(models)
+    network = load_network(folder) if method in (None, "network") else None
+    fused = load_fused(folder) if method in (None, "fused") else None
+    if network is None and method == "network":
+        raise CommandError(f"--method network needs exported models, but none were found in {str(folder)!r} "
+                           f"(set --models or ${MODELS_ENV}, or use --method oidn or l1)")
+    if fused is None and method == "fused":
+        raise CommandError(f"--method fused needs the fused models in {str(folder / FUSED_SUBDIR)!r} and pyoidn; "
+                           f"one of them is missing (set --models or ${MODELS_ENV}, or use --method oidn)")
+    return network, fused
+
+
+def reconstruct_command(args: argparse.Namespace) -> int:
+    """``gradsep reconstruct FRAME -o OUT``: read, reconstruct every layer, write ``R G B`` (+ layers) atomically.
+
+    Bad input raises FrameError/CommandError (the dispatcher prints one line and exits 2) before anything is
+    written; the output appears only complete (temporary file + rename).
+    """
+    from model.frame import FrameError, read_frame, rgb_channels, write_exr
+    from model.reconstruct import reconstruct
+
+    output = Path(args.output)
+    alpha = float(args.alpha)
+    if not (math.isfinite(alpha) and alpha > 0):
+        raise CommandError(f"--alpha must be a finite number > 0, got {args.alpha}")
+    _check_output(output)
+    frame = read_frame(args.frame, nonfinite=args.nonfinite)
+    network, fused = _resolve_models(getattr(args, "models", None), args.method)
+    try:
+        result = reconstruct(frame, args.method, alpha, network=network, fused=fused)
+    except ValueError as exc:
+        if isinstance(exc, FrameError):
+            raise
+        raise CommandError(str(exc)) from exc
+    method = result.method
+
+    channels = dict(rgb_channels("", result.image))
+    if args.layers:
+        for name, image in result.layers.items():
+            channels.update(rgb_channels(name, image))
+    metadata = {"gradsep.method": method, "gradsep.layers": ",".join(result.layers),
+                "gradsep.source": Path(args.frame).name}
+    if method in POISSON_METHODS:
+        metadata["gradsep.alpha"] = f"{alpha:g}"
+    warnings = [*frame.warnings, *result.warnings]
+    if warnings:
+        metadata["gradsep.warnings"] = "; ".join(warnings)[:2000]
+    try:
+        write_exr(output, channels, half=bool(args.half), metadata=metadata)
+    except OSError as exc:
+        raise CommandError(f"cannot write {str(output)!r}: {exc.strerror or exc}") from exc
+
+    for warning in warnings:
+        print(f"gradsep reconstruct: warning: {warning}", file=sys.stderr)
+    per_layer = ", ".join(f"{name} {seconds:.2f} s" for name, seconds in result.timings.items())
+    print(f"reconstructed {frame.width}x{frame.height} with {method}: {per_layer}; "
+          f"total {sum(result.timings.values()):.2f} s -> {output}")
+    return 0

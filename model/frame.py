@@ -36,12 +36,13 @@ from typing import Any, BinaryIO, Literal
 import numpy as np
 import OpenEXR
 
+from model.policy import ILLUMINATION_LAYERS, SEPARATED_LAYERS
+
 # ---------------------------------------------------------------------------------------------------------------
 # Channel names: data, not code
 # ---------------------------------------------------------------------------------------------------------------
 
-ILLUMINATION_LAYERS: tuple[str, ...] = ("direct", "indirect", "color")
-SEPARATED_LAYERS: tuple[str, ...] = ("direct", "indirect")
+# The layer names are the contract's constants (model/policy.py, import-light for the argument parsers).
 RGB: tuple[str, ...] = ("R", "G", "B")
 GRADIENTS: tuple[str, ...] = ("dx", "dy")
 FEATURE_GROUPS: dict[str, tuple[str, ...]] = {

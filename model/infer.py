@@ -29,6 +29,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from model.policy import ILLUMINATION_LAYERS
 from model.preprocess import (
     DATA_INPUTS,
     GRADIENT_INPUTS,
@@ -57,7 +58,7 @@ if TYPE_CHECKING:
     from model.oidn import CleanAux
 
 #: Model files looked for in the models folder, by layer name.
-MODEL_LAYERS: tuple[str, ...] = ("direct", "indirect", "color")
+MODEL_LAYERS: tuple[str, ...] = ILLUMINATION_LAYERS
 OUTPUT_NAME = "radiance_log"
 _OPT_LEVELS = ("disable", "basic", "extended", "all")
 #: Execution providers ``SessionSettings.provider`` can ask for; "auto" picks (see ``choose_provider``).

@@ -5,11 +5,14 @@ albedo and normal of the first visible surface. Used per illumination layer (the
 denoised apart, then summed) it beats denoising their sum, because each layer's noise is more uniform than the
 mix (docs/network.md, "The oidn and fused methods").
 
-Auxiliary features are **prefiltered once per frame** and reused for every layer: OIDN's documented recipe for
-noisy albedo/normal (a separate RT filter with only that image bound), after which the colour filter runs with
-``cleanAux``. Our features come from the first non-specular vertex of a few samples per pixel and carry
-anti-aliasing noise at edges and through glossy/specular chains; without prefiltering OIDN would keep that noise
-as detail.
+How OIDN is run is a :class:`Setting` (docs/oidn.md): the auxiliary images (``prefiltered``: albedo and normal
+denoised once per frame by their own filters, OIDN's recipe for noisy features, then ``cleanAux``, which at
+quality ``high`` selects OIDN's large model; ``raw``: the frame's own noisy features, OIDN's default mode, no
+prefilter; ``none``) and the colour filter's quality preset. Two settings matter: the ``fused`` models' prior,
+fixed at :data:`PRIOR_SETTING` (the setting their training cache was made with), and the ``oidn`` method's,
+:data:`METHOD_SETTING`, chosen by the error-against-time study of docs/oidn.md to fit the service's latency
+target, and selectable with ``$GRADSEP_OIDN_SETTING``. The auxiliary images are prepared once per frame and
+reused for every layer.
 
 Numerics: inputs are sanitised (NaN → 0, ±Inf → the largest finite float32 / 0, radiance clamped ≥ 0), and the
 colour filter is given an explicit ``inputScale`` (the reciprocal of the layer's mean, a power of two) rather
@@ -23,6 +26,7 @@ from __future__ import annotations
 
 import importlib.util
 import math
+import os
 import threading
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -32,10 +36,8 @@ import numpy as np
 if TYPE_CHECKING:
     from model.frame import Features
 
-#: OIDN's quality preset for the colour filter ("high": lower error than "fast" on every layer we measured), and
-#: for the albedo/normal prefilter ("fast": its output scored the same as "high" to 5 digits on 16 dataset
+#: The albedo/normal prefilter's quality: "fast" (its output scored the same as "high" to 5 digits on 16 dataset
 #: frames; docs/network.md, "The oidn and fused methods").
-QUALITY = "high"
 AUX_QUALITY = "fast"
 _F32_MAX = float(np.finfo(np.float32).max)
 #: The exposure the colour filter sees: the layer scaled so its mean radiance is about 1 (OIDN's HDR models are
@@ -54,11 +56,52 @@ def available() -> bool:
 
 
 @dataclass(frozen=True)
+class Setting:
+    """How OIDN is run: which auxiliary images the colour filter gets and at which quality preset.
+
+    ``aux``: ``prefiltered`` (albedo and normal denoised once per frame by their own filters, then ``cleanAux``),
+    ``raw`` (the frame's noisy albedo and normal passed as they are: OIDN's default mode, no prefilter) or
+    ``none`` (colour only). ``quality``: the colour filter's preset (high, balanced, fast). OIDN's ``high`` preset
+    with ``cleanAux`` runs its large model, about 2.4x the cost of the same call on raw features (docs/oidn.md).
+    """
+
+    aux: str
+    quality: str
+    aux_quality: str = AUX_QUALITY
+
+    @property
+    def name(self) -> str:
+        return f"{self.aux}-{self.quality}"
+
+
+#: Every setting the study in docs/oidn.md measured, by name (``raw-fast``, ``prefiltered-high``, ...).
+SETTINGS: dict[str, Setting] = {s.name: s for s in (Setting(a, q) for a in ("prefiltered", "raw", "none")
+                                                    for q in ("high", "balanced", "fast"))}
+#: The ``fused`` models' prior: the setting their training cache was made with (preprocess.oidn_prior_inputs).
+#: Fixed: a fused model refines exactly this OIDN output, so changing it would need retraining.
+PRIOR_SETTING = "prefiltered-high"
+#: The ``oidn`` method's setting (and so the served default's and the evaluation's OIDN baselines'): chosen
+#: by error against time on held-out frames (docs/oidn.md); ``$GRADSEP_OIDN_SETTING`` selects another one.
+METHOD_SETTING = "raw-fast"
+SETTING_ENV = "GRADSEP_OIDN_SETTING"
+
+
+def method_setting() -> str:
+    """The ``oidn`` method's setting name: ``$GRADSEP_OIDN_SETTING`` when set, else :data:`METHOD_SETTING`."""
+    name = os.environ.get(SETTING_ENV, "").strip() or METHOD_SETTING
+    if name not in SETTINGS:
+        raise ValueError(f"${SETTING_ENV}={name!r} is not an OIDN setting; use one of {', '.join(SETTINGS)}")
+    return name
+
+
+@dataclass(frozen=True)
 class CleanAux:
-    """Prefiltered auxiliary features of one frame, (H, W, 3) float32 each, ready for ``cleanAux``."""
+    """The auxiliary features one frame's colour filters get, (H, W, 3) float32 each: prefiltered (``clean``,
+    passed with ``cleanAux``) or the frame's own, sanitised (``clean`` False)."""
 
     albedo: np.ndarray  # in [0, 1]
     normal: np.ndarray  # in [-1, 1]
+    clean: bool = True
 
 
 def _finite(x: np.ndarray, lo: float, hi: float) -> np.ndarray:
@@ -76,15 +119,22 @@ def input_scale(image: np.ndarray) -> float:
 
 
 class Denoiser:
-    """One OIDN device and its three filters (albedo prefilter, normal prefilter, HDR colour).
+    """One OIDN device and its three filters (albedo prefilter, normal prefilter, HDR colour), run as ``setting``.
 
     Thread-safe: calls are serialised by a lock (OIDN already uses every core for one image, so running two
     images at once would not be faster on the 2-core target). Create one per process and reuse it: the device
     and the filters' weights are set up once.
     """
 
-    def __init__(self, quality: str = QUALITY, aux_quality: str = AUX_QUALITY) -> None:
+    def __init__(self, setting: Setting | str = PRIOR_SETTING) -> None:
         import pyoidn
+
+        if isinstance(setting, str):
+            if setting not in SETTINGS:
+                raise ValueError(f"unknown OIDN setting {setting!r}; use one of {', '.join(SETTINGS)}")
+            setting = SETTINGS[setting]
+        self.setting = setting
+        quality, aux_quality = setting.quality, setting.aux_quality
 
         self._oidn = pyoidn
         presets = {"high": pyoidn.OIDN_QUALITY_HIGH, "balanced": pyoidn.OIDN_QUALITY_BALANCED,
@@ -143,10 +193,16 @@ class Denoiser:
 
     # ----------------------------------------------------------------------------------------------- API
 
-    def prefilter(self, features: Features) -> CleanAux:
-        """Denoise the frame's albedo and normal once (OIDN's recipe for noisy auxiliary images)."""
+    def prefilter(self, features: Features) -> CleanAux | None:
+        """The frame's auxiliary images for every layer's colour filter, computed once per frame: albedo and
+        normal denoised (setting ``prefiltered``, OIDN's recipe for noisy auxiliary images), sanitised only
+        (``raw``), or None (``none``)."""
+        if self.setting.aux == "none":
+            return None
         albedo = _finite(features.albedo, 0.0, 1.0)
         normal = _finite(features.normal, -1.0, 1.0)
+        if self.setting.aux == "raw":
+            return CleanAux(albedo, normal, clean=False)
         with self._lock:
             clean_albedo = self._run("albedo", {"albedo": albedo}, np.empty_like(albedo), {})
             clean_normal = self._run("normal", {"normal": normal}, np.empty_like(normal), {})
@@ -167,7 +223,7 @@ class Denoiser:
             images |= {"albedo": aux.albedo, "normal": aux.normal}
         with self._lock:
             out = self._run("color", images, np.empty_like(radiance),
-                            {"hdr": True, "cleanAux": aux is not None}, scale=scale)
+                            {"hdr": True, "cleanAux": aux is not None and aux.clean}, scale=scale)
         np.nan_to_num(out, copy=False, nan=0.0, posinf=_F32_MAX, neginf=0.0)
         np.clip(out, 0.0, _F32_MAX, out=out)
         if min(radiance.shape[:2]) < MIN_SIDE:
@@ -193,14 +249,14 @@ def _match_channel_means(out: np.ndarray, source: np.ndarray) -> None:
             out[..., c] = source[..., c]
 
 
-_shared: Denoiser | None = None
+_shared: dict[str, Denoiser] = {}
 _shared_lock = threading.Lock()
 
 
-def shared_denoiser() -> Denoiser:
-    """The process-wide :class:`Denoiser` (created on first use)."""
-    global _shared
+def shared_denoiser(setting: str = PRIOR_SETTING) -> Denoiser:
+    """The process-wide :class:`Denoiser` of ``setting`` (created on first use). The default is the fused
+    models' prior; the ``oidn`` method asks for :func:`method_setting`."""
     with _shared_lock:
-        if _shared is None:
-            _shared = Denoiser()
-        return _shared
+        if setting not in _shared:
+            _shared[setting] = Denoiser(setting)
+        return _shared[setting]

@@ -44,10 +44,10 @@ import numpy as np
 import scipy.fft
 
 from model import kernels
+from model.policy import DEFAULT_ALPHA
 
 __all__ = ["L1_PASSES", "MIN_ALPHA", "L1Stats", "energy_l1", "energy_l2", "solve_l1", "solve_l2"]
 
-DEFAULT_ALPHA = 0.2
 #: Smallest accepted α. Below ~1e-154 α² underflows to 0 in float64 and the constant mode (eigenvalue α²) is
 #: undetermined; well before that the data term stops meaning anything. Down to 1e-12 both solvers still
 #: return the exact image from exact data (tested at MIN_ALPHA); 1e-8 keeps a margin of 1e4. Callers (CLI,

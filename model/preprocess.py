@@ -32,7 +32,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from model.poisson import DEFAULT_ALPHA, solve_l1
+from model.poisson import solve_l1
+from model.policy import DEFAULT_ALPHA
 
 if TYPE_CHECKING:  # only for hints; importing model.frame at run time is fine but not needed
     from model.frame import Features, Layer

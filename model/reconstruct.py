@@ -6,14 +6,16 @@ runs for an absent layer. The methods:
 
 * ``l1``, ``l2`` -- screened Poisson solvers of the base and the gradients (model/poisson.py);
 * ``network`` -- the paper's GradNet-style network with CBAM, refining a truncated L1 solve (models/*.onnx);
-* ``oidn`` -- Intel Open Image Denoise on each layer's base with the frame's prefiltered albedo/normal; the one
-  method for a plain path-traced frame (no gradients), and it needs no features;
+* ``oidn`` -- Intel Open Image Denoise on each layer's base with the frame's albedo/normal (model.oidn's method
+  setting, docs/oidn.md); the one method for a plain path-traced frame (no gradients), and it needs no features;
+* ``oidn-l1`` -- ``oidn``, then the direct layer refined by its gradients: an L1 screened Poisson solve with
+  OIDN's image as the data term (model/refine.py); the indirect layer keeps OIDN's image;
 * ``fused`` -- the same network architecture refining OIDN's denoise with the layer's gradients and features,
   trained unsupervised (models/fused/*.onnx).
 
 What a frame does not carry costs nothing: no gradients means no Poisson or network work (only ``oidn``
 applies), no features means OIDN without auxiliary images, and the OIDN prefilter of albedo/normal runs once per
-frame, shared by its layers.
+frame, shared by its layers (where the setting prefilters).
 
 Output policy: every reconstructed layer is made finite (NaN/±Inf → 0, with a warning: a solver or network
 that produced them has a bug, and a black pixel is easier to spot than a poisoned downstream average) and
@@ -24,11 +26,9 @@ written and the image is finite and ≥ 0 as well.
 
 from __future__ import annotations
 
-import argparse
 import importlib.util
 import math
 import os
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,9 +37,17 @@ from typing import Any, Protocol
 import numpy as np
 
 from model import policy
-from model.frame import Features, Frame, FrameError, Layer, read_frame, rgb_channels, write_exr
-from model.poisson import DEFAULT_ALPHA, solve_l1, solve_l2
-from model.policy import GRADIENT_METHODS, METHODS, MODEL_METHODS
+from model.frame import Features, Frame, Layer
+from model.poisson import solve_l1, solve_l2
+from model.policy import (
+    DEFAULT_ALPHA,
+    GRADIENT_METHODS,
+    METHODS,
+    MODEL_METHODS,
+    OIDN_METHODS,
+    POISSON_METHODS,
+    models_dir_from,
+)
 
 __all__ = [
     "METHODS",
@@ -50,7 +58,6 @@ __all__ = [
     "load_network",
     "models_dir_from",
     "reconstruct",
-    "reconstruct_command",
 ]
 
 _F32_MAX = float(np.finfo(np.float32).max)
@@ -93,7 +100,8 @@ class _Context:
     alpha: float
     models: Any  # the NetworkReconstructor of the method (network or fused), or None
     features: Features | None
-    aux: Any = None  # the OIDN-prefiltered features, computed once per frame when a layer needs them
+    aux: Any = None  # the OIDN auxiliary features (model.oidn.CleanAux), computed once per frame when needed
+    denoiser: Any = None  # the model.oidn.Denoiser of the method (oidn: its setting; fused: the prior's)
 
 
 def _reconstruct_layer(name: str, layer: Layer, ctx: _Context) -> np.ndarray:
@@ -101,10 +109,13 @@ def _reconstruct_layer(name: str, layer: Layer, ctx: _Context) -> np.ndarray:
         return solve_l1(layer.base, layer.dx, layer.dy, ctx.alpha)[0]
     if ctx.method == "l2":
         return solve_l2(layer.base, layer.dx, layer.dy, ctx.alpha)
-    if ctx.method == "oidn":
-        from model.oidn import shared_denoiser
+    if ctx.method in OIDN_METHODS:
+        denoised = ctx.denoiser.denoise(layer.base, ctx.aux)
+        if ctx.method == "oidn":
+            return denoised
+        from model.refine import refine_layer
 
-        return shared_denoiser().denoise(layer.base, ctx.aux)
+        return refine_layer(name, denoised, layer)
     if ctx.aux is not None:  # models refining an OIDN prior share the frame's prefiltered features
         return ctx.models.reconstruct_layer(name, layer, ctx.features, ctx.aux)
     return ctx.models.reconstruct_layer(name, layer, ctx.features)
@@ -124,12 +135,10 @@ def available_methods(frame: Frame, network: NetworkLike | None = None, fused: N
         oidn = available()
     usable = {"oidn"} if oidn else set()
     if frame.has_gradients:
-        usable |= {"l1", "l2"}
+        usable |= {"l1", "l2"} | ({"oidn-l1"} if oidn else set())
         usable |= {"network"} if _serves(network, frame) else set()
         usable |= {"fused"} if _serves(fused, frame) else set()
-    preference = policy.DEFAULT_PREFERENCE  # read at call time: the policy module is the one place to change it
-    order = [*preference, *(m for m in METHODS if m not in preference)]
-    return [m for m in order if m in usable]
+    return [m for m in policy.preference_order() if m in usable]
 
 
 def choose_method(frame: Frame, network: NetworkLike | None = None, fused: NetworkLike | None = None) -> str:
@@ -139,13 +148,13 @@ def choose_method(frame: Frame, network: NetworkLike | None = None, fused: Netwo
     ``network`` when its models cover the frame's layers and it has features, else ``l1``. Raises ChannelError
     for a gradient-free frame on a host without OIDN (nothing can serve it).
     """
-    usable = available_methods(frame, network, fused)
-    if not usable:
+    chosen = policy.default_method(available_methods(frame, network, fused), gradients=frame.has_gradients)
+    if chosen is None:
         from model.frame import ChannelError
 
         raise ChannelError("this frame has no gradient channels, and the one method for a plain frame (oidn) "
                            "is not installed here (pip install pyoidn)", {"available_methods": []})
-    return usable[0]
+    return chosen
 
 
 def _check_method(frame: Frame, method: str, alpha: float, models: NetworkLike | None) -> None:
@@ -154,17 +163,17 @@ def _check_method(frame: Frame, method: str, alpha: float, models: NetworkLike |
 
     if method not in METHODS:
         raise ValueError(f"unknown reconstruction method {method!r}; expected one of {', '.join(METHODS)}")
-    if method in ("l1", "l2") and not (math.isfinite(alpha) and alpha > 0):
+    if method in POISSON_METHODS and not (math.isfinite(alpha) and alpha > 0):
         raise ValueError(f"alpha must be a finite number > 0, got {alpha}")
     if method in GRADIENT_METHODS and not frame.has_gradients:
         missing = [c for name in frame.layers for c in layer_channels(name)[3:]]
         raise ChannelError(f"method {method!r} integrates gradients, which this frame lacks (a plain path-traced "
                            "frame); use method oidn, or send the L.dx.* / L.dy.* channels", {"missing": missing})
-    if method == "oidn":
+    if method in OIDN_METHODS:
         from model.oidn import available
 
         if not available():
-            raise ValueError("method 'oidn' needs pyoidn, which is not installed here (pip install pyoidn)")
+            raise ValueError(f"method {method!r} needs pyoidn, which is not installed here (pip install pyoidn)")
     if method not in MODEL_METHODS:
         return
     if models is None:
@@ -200,12 +209,15 @@ def reconstruct(frame: Frame, method: str | None = None, alpha: float = DEFAULT_
     timings: dict[str, float] = {}
     warnings: list[str] = []
     total = np.zeros(shape, dtype=np.float64)
-    needs_aux = method == "oidn" or bool(getattr(models, "needs_aux", False))
-    if needs_aux and frame.features is not None:
-        from model.oidn import shared_denoiser
+    needs_aux = method in OIDN_METHODS or bool(getattr(models, "needs_aux", False))
+    if needs_aux:
+        from model.oidn import method_setting, shared_denoiser
 
+        # oidn runs at its chosen setting; the fused models refine the prior setting they were trained on
+        ctx.denoiser = shared_denoiser(method_setting()) if method in OIDN_METHODS else shared_denoiser()
+    if needs_aux and frame.features is not None:
         start = time.perf_counter()
-        ctx.aux = shared_denoiser().prefilter(frame.features)  # once per frame, shared by every layer
+        ctx.aux = ctx.denoiser.prefilter(frame.features)  # once per frame, shared by every layer
         timings["features"] = time.perf_counter() - start
     for name, layer in frame.layers.items():
         start = time.perf_counter()
@@ -218,11 +230,6 @@ def reconstruct(frame: Frame, method: str | None = None, alpha: float = DEFAULT_
 
 
 # ------------------------------------------------------------------------------------------------ models
-
-
-def models_dir_from(value: str | os.PathLike[str] | None) -> Path:
-    """The models folder: the explicit value, else $GRADSEP_MODELS, else ``models`` (relative to cwd)."""
-    return Path(value or os.environ.get("GRADSEP_MODELS") or "models")
 
 
 #: The ``fused`` models live in this subfolder of the models folder (``models/fused/direct.onnx``, ...).
@@ -257,82 +264,3 @@ def load_fused(models_dir: str | os.PathLike[str] | None) -> Any:
     if not available():
         return None
     return _load(folder, "oidn")
-
-
-# ----------------------------------------------------------------------------------------------- command
-
-
-def _check_output(path: Path) -> None:
-    """Fail before the (possibly long) solve when the output cannot be written at all."""
-    from gradsep.cli import CommandError
-
-    folder = path.parent if str(path.parent) else Path(".")
-    if path.is_dir():
-        raise CommandError(f"output {str(path)!r} is a directory")
-    if not folder.is_dir():
-        raise CommandError(f"output folder {str(folder)!r} does not exist")
-    if not os.access(folder, os.W_OK | os.X_OK):
-        raise CommandError(f"output folder {str(folder)!r} is not writable")
-
-
-def _resolve_models(args: argparse.Namespace, method: str | None) -> tuple[Any, Any]:
-    """(network, fused) for the named method (required) or for the default (optional); Nones otherwise."""
-    from gradsep.cli import CommandError
-
-    folder = models_dir_from(getattr(args, "models", None))
-    network = load_network(folder) if method in (None, "network") else None
-    fused = load_fused(folder) if method in (None, "fused") else None
-    if network is None and method == "network":
-        raise CommandError(f"--method network needs exported models, but none were found in {str(folder)!r} "
-                           "(set --models or $GRADSEP_MODELS, or use --method oidn or l1)")
-    if fused is None and method == "fused":
-        raise CommandError(f"--method fused needs the fused models in {str(folder / FUSED_SUBDIR)!r} and pyoidn; "
-                           "one of them is missing (set --models or $GRADSEP_MODELS, or use --method oidn)")
-    return network, fused
-
-
-def reconstruct_command(args: argparse.Namespace) -> int:
-    """``gradsep reconstruct FRAME -o OUT``: read, reconstruct every layer, write ``R G B`` (+ layers) atomically.
-
-    Bad input raises FrameError/CommandError (the dispatcher prints one line and exits 2) before anything is
-    written; the output appears only complete (temporary file + rename).
-    """
-    from gradsep.cli import CommandError
-
-    output = Path(args.output)
-    alpha = float(args.alpha)
-    if not (math.isfinite(alpha) and alpha > 0):
-        raise CommandError(f"--alpha must be a finite number > 0, got {args.alpha}")
-    _check_output(output)
-    frame = read_frame(args.frame, nonfinite=args.nonfinite)
-    network, fused = _resolve_models(args, args.method)
-    try:
-        result = reconstruct(frame, args.method, alpha, network=network, fused=fused)
-    except ValueError as exc:
-        if isinstance(exc, FrameError):
-            raise
-        raise CommandError(str(exc)) from exc
-    method = result.method
-
-    channels = dict(rgb_channels("", result.image))
-    if args.layers:
-        for name, image in result.layers.items():
-            channels.update(rgb_channels(name, image))
-    metadata = {"gradsep.method": method, "gradsep.layers": ",".join(result.layers),
-                "gradsep.source": Path(args.frame).name}
-    if method in ("l1", "l2"):
-        metadata["gradsep.alpha"] = f"{alpha:g}"
-    warnings = [*frame.warnings, *result.warnings]
-    if warnings:
-        metadata["gradsep.warnings"] = "; ".join(warnings)[:2000]
-    try:
-        write_exr(output, channels, half=bool(args.half), metadata=metadata)
-    except OSError as exc:
-        raise CommandError(f"cannot write {str(output)!r}: {exc.strerror or exc}") from exc
-
-    for warning in warnings:
-        print(f"gradsep reconstruct: warning: {warning}", file=sys.stderr)
-    per_layer = ", ".join(f"{name} {seconds:.2f} s" for name, seconds in result.timings.items())
-    print(f"reconstructed {frame.width}x{frame.height} with {method}: {per_layer}; "
-          f"total {sum(result.timings.values()):.2f} s -> {output}")
-    return 0

@@ -1,26 +1,107 @@
-"""`gradsep render | reference | dataset`: argparse only; handlers import Mitsuba lazily."""
+"""`gradsep render | reference | dataset`: the argument parsers and their handlers.
+
+Only argparse and the import-light model modules at module level: each handler imports Mitsuba (through the
+renderer modules) when it runs, so ``gradsep --help`` and ``gradsep serve`` work without Mitsuba installed.
+"""
 
 from __future__ import annotations
 
 import argparse
+import math
+import sys
+from pathlib import Path
+
+from model.errors import CommandError
+from model.policy import SEPARATED_LAYERS
 
 
-def _render(args: argparse.Namespace) -> int:
-    from renderer.render import render_command
+def render_command(args: argparse.Namespace) -> int:
+    """`gradsep render`: render a frame and write it atomically to ``args.output``."""
+    from model.frame import write_frame
+    from renderer.render import render_frame
+    from renderer.scene import load_scene, parse_defines
 
-    return render_command(args)
+    output = Path(args.output)
+    if output.suffix.lower() != ".exr":
+        raise CommandError(f"output {args.output} must end in .exr")
+    if not output.parent.exists():
+        raise CommandError(f"output folder {output.parent} does not exist")
+    if args.no_gradients and args.shift is not None:
+        raise CommandError("--shift has no effect with --no-gradients (no offset paths are traced)")
+    scene = load_scene(args.scene, width=args.width, height=args.height, max_depth=args.max_depth,
+                       defines=parse_defines(args.define))
+    show = sys.stderr.isatty()
+
+    def progress(done: int, total: int) -> None:
+        if show:
+            print(f"\rgradsep render: {done}/{total} spp", end="", file=sys.stderr, flush=True)
+
+    frame = render_frame(scene, spp=args.spp, seed=args.seed, layers=args.layers, shift=args.shift,
+                         progress=progress, gradients=not args.no_gradients)
+    if show:
+        print(file=sys.stderr)
+    write_frame(output, frame)
+    for note in frame.warnings:
+        print(f"gradsep render: note: {note}", file=sys.stderr)
+    print(f"{output}: {frame.width}x{frame.height}, {args.spp} spp, layers {', '.join(frame.layers)}, "
+          f"{frame.metadata['gradsep.render_seconds']} s")
+    return 0
 
 
-def _reference(args: argparse.Namespace) -> int:
-    from renderer.reference import reference_command
+def reference_command(args: argparse.Namespace) -> int:
+    """Handler of `gradsep reference`: validate, render, write atomically, print a one-line summary."""
+    from renderer.reference import render_reference, write_reference
+    from renderer.scene import parse_defines
 
-    return reference_command(args)
+    for name in ("spp", "tile_spp", "width", "height"):
+        value = getattr(args, name, None)
+        if value is not None and value < 1:
+            raise CommandError(f"--{name.replace('_', '-')} must be a positive integer, got {value}")
+    if args.max_depth is not None and (args.max_depth == 0 or args.max_depth < -1):
+        raise CommandError(f"--max-depth must be -1 (unbounded) or a positive integer, got {args.max_depth}")
+    if args.seed < 0:
+        raise CommandError(f"--seed must be non-negative, got {args.seed}")
+    out = Path(args.output)
+    if out.suffix.lower() != ".exr":
+        raise CommandError(f"output must be an .exr file, got {out}")
+    if not out.parent.exists():
+        raise CommandError(f"output folder {out.parent} does not exist")
+    try:
+        ref = render_reference(args.scene, spp=args.spp, width=args.width, height=args.height,
+                               max_depth=args.max_depth, seed=args.seed, tile_spp=args.tile_spp,
+                               defines=parse_defines(args.define), progress=None)
+    except (ValueError, FileNotFoundError) as exc:
+        raise CommandError(str(exc)) from exc
+    write_reference(out, ref)
+    layers = "direct, indirect" if ref.indirect is not None else "direct"
+    seconds = float(ref.metadata["gradsep.render_seconds"])
+    print(f"wrote {out}: {ref.total.shape[1]}x{ref.total.shape[0]}, {args.spp} spp, layers {layers}, "
+          f"{seconds:.1f} s ({_rate(args.spp, ref.total.shape, seconds)})")
+    return 0
 
 
-def _dataset(args: argparse.Namespace) -> int:
-    from renderer.dataset import dataset_command
+def _rate(spp: int, shape: tuple[int, ...], seconds: float) -> str:
+    samples = spp * shape[0] * shape[1]
+    return f"{samples / max(seconds, 1e-9) / 1e6:.1f} M samples/s" if math.isfinite(seconds) else ""
 
-    return dataset_command(args)
+
+def dataset_command(args: argparse.Namespace) -> int:
+    """Handler of `gradsep dataset`."""
+    from renderer.dataset import MANIFEST_NAME, PARTS_DIR, DatasetError, finished_frames, make_job, run_dataset
+
+    job = make_job(args.count, args.spp, args.size, args.shard, args.first_seed, args.max_depth, args.pairs)
+    root = Path(args.output)
+    if root.exists() and not root.is_dir():
+        raise DatasetError(f"output {root} exists and is not a folder")
+    root.mkdir(parents=True, exist_ok=True)
+    before = len(finished_frames(root)) if (root / PARTS_DIR).is_dir() else 0
+    manifest = run_dataset(root, job, progress=None)
+    mine = set(job.seeds())
+    have = sum(1 for f in manifest.frames if f.seed in mine)
+    total = sum(1 for f in manifest.frames if job.first_seed <= f.seed < job.first_seed + job.count)
+    print(f"{root}: shard {job.shard_name} has {have}/{len(mine)} frames; dataset {total}/{job.count} "
+          f"({len(manifest.frames) - before:+d} this run); manifest {root / MANIFEST_NAME} hash {manifest.hash[:16]}")
+    return 0
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -32,7 +113,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--max-depth", type=int, default=None,
                    help="Mitsuba's convention: 2 = direct light only, -1 = unbounded (default: the scene's)")
     p.add_argument("--seed", type=int, default=0, help="sampler seed")
-    p.add_argument("--layers", default="direct,indirect",
+    p.add_argument("--layers", default=",".join(SEPARATED_LAYERS),
                    help="comma-separated illumination layers to render: direct, indirect (default both); "
                         "color alone renders the unseparated image")
     p.add_argument("--shift", choices=("hybrid", "replay"), default=None,
@@ -43,7 +124,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("-D", "--define", action="append", default=[], metavar="NAME=VALUE",
                    help="override a <default> parameter of the XML scene (repeatable)")
     p.add_argument("-o", "--output", required=True, help="output frame (.exr)")
-    p.set_defaults(func=_render)
+    p.set_defaults(func=render_command)
 
     p = sub.add_parser("reference", help="render a reference with Mitsuba's path integrator (R G B + layers)")
     p.add_argument("scene", help="Mitsuba 3 XML scene path or procedural:SEED")
@@ -56,7 +137,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="samples per pass; passes are averaged so large spp fits in memory")
     p.add_argument("-D", "--define", action="append", default=[], metavar="NAME=VALUE")
     p.add_argument("-o", "--output", required=True, help="output reference (.exr)")
-    p.set_defaults(func=_reference)
+    p.set_defaults(func=reference_command)
 
     p = sub.add_parser("dataset", help="render N procedural frames plus a manifest (shardable, resumable)")
     p.add_argument("--count", type=int, required=True, help="number of frames in the whole dataset")
@@ -69,4 +150,4 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="also render an independent second realization of every frame (another sampler seed): "
                         "the Noise2Noise targets `gradsep train` uses when present")
     p.add_argument("-o", "--output", required=True, help="dataset folder")
-    p.set_defaults(func=_dataset)
+    p.set_defaults(func=dataset_command)

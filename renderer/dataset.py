@@ -26,7 +26,6 @@ Why it is built this way:
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import datetime as _dt
 import fcntl
@@ -40,8 +39,9 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from gradsep.cli import CommandError
+from model.errors import CommandError
 from model.frame import write_bytes_atomic
+from model.progress import ProgressBar
 
 MANIFEST_VERSION = 1
 MANIFEST_NAME = "manifest.json"
@@ -420,25 +420,10 @@ def _write_part(path: Path, job: Job, frames: list[dict[str, Any]], count: int) 
                               "params": job.params(), "frames": sorted(frames, key=lambda f: int(f["seed"]))})
 
 
-class _NoBar:
-    def update(self, n: int) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
-
-
-def _bar(total: int, skipped: int, job: Job, progress: bool | None) -> Any:
-    """tqdm over this run's frames with ETA; frames finished by earlier runs are named in the label."""
-    if progress is False:
-        return _NoBar()
-    try:
-        from tqdm import tqdm
-    except ImportError:
-        return _NoBar()
+def _bar(total: int, skipped: int, job: Job, progress: bool | None) -> ProgressBar:
+    """A bar over this run's frames with ETA; frames finished by earlier runs are named in the label."""
     label = f"dataset shard {job.shard_name}" + (f" ({skipped} done before)" if skipped else "")
-    return tqdm(total=total, unit="frame", desc=label, disable=None if progress is None else not progress,
-                dynamic_ncols=True)
+    return ProgressBar(total, enabled=progress, desc=label, unit="frame")
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -484,20 +469,3 @@ def make_job(count: int, spp: int, size: str, shard: str, first_seed: int, max_d
     i, n = parse_shard(shard)
     return Job(count=count, spp=spp, width=w, height=h, first_seed=first_seed, max_depth=max_depth, shard=i,
                shards=n, generator_version=GENERATOR_VERSION, pairs=pairs)
-
-
-def dataset_command(args: argparse.Namespace) -> int:
-    """Handler of `gradsep dataset`."""
-    job = make_job(args.count, args.spp, args.size, args.shard, args.first_seed, args.max_depth, args.pairs)
-    root = Path(args.output)
-    if root.exists() and not root.is_dir():
-        raise DatasetError(f"output {root} exists and is not a folder")
-    root.mkdir(parents=True, exist_ok=True)
-    before = len(finished_frames(root)) if (root / PARTS_DIR).is_dir() else 0
-    manifest = run_dataset(root, job, progress=None)
-    mine = set(job.seeds())
-    have = sum(1 for f in manifest.frames if f.seed in mine)
-    total = sum(1 for f in manifest.frames if job.first_seed <= f.seed < job.first_seed + job.count)
-    print(f"{root}: shard {job.shard_name} has {have}/{len(mine)} frames; dataset {total}/{job.count} "
-          f"({len(manifest.frames) - before:+d} this run); manifest {root / MANIFEST_NAME} hash {manifest.hash[:16]}")
-    return 0

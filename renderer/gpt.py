@@ -46,6 +46,12 @@ import numpy as np
 # Pixel offsets of the four offset paths, (dx, dy) with y growing downward: right, left, down, up.
 SHIFT_OFFSETS: tuple[tuple[int, int], ...] = ((1, 0), (-1, 0), (0, 1), (0, -1))
 
+# Which offsets a sample traces: "all" four of SHIFT_OFFSETS; "pair": the two of one axis, right and left
+# (SHIFT_OFFSETS[0:2]) or down and up ([2:4]); "single": one of the four. The group is chosen per sample
+# (offset_group) and its gradient terms count OFFSET_GROUPS[mode] times (the group's inverse probability).
+OFFSET_MODES: tuple[str, ...] = ("all", "pair", "single")
+OFFSET_GROUPS: dict[str, int] = {"all": 1, "pair": 2, "single": 4}
+
 # A glossy lobe whose sampled direction has a solid-angle pdf above this is treated as a mirror when looking for
 # the feature vertex: a GGX lobe reaches ~100 sr^-1 near alpha 0.05, where reflections are still sharp images.
 NEAR_SPECULAR_PDF = 100.0
@@ -273,6 +279,7 @@ class GptSettings:
     direct: bool = True
     indirect: bool = True
     separate: bool = True  # False: one ``color`` layer with every event (direct and indirect must both be on)
+    offsets: str = "all"  # four offsets per sample, or fewer: "pair" (one axis), "single" (OFFSET_MODES)
 
     def layer_names(self) -> tuple[str, ...]:
         """The accumulated illumination layers, in the frame contract's order."""
@@ -295,6 +302,8 @@ class GptSettings:
             raise ValueError(f"rr_depth must be >= 1, got {self.rr_depth}")
         if not (self.direct or self.indirect):
             raise ValueError("no illumination layer requested")
+        if self.offsets not in OFFSET_MODES:
+            raise ValueError(f"unknown offsets mode {self.offsets!r}; expected one of {OFFSET_MODES}")
         if not self.separate and not (self.direct and self.indirect):
             raise ValueError("an unseparated (color) render carries all light: direct and indirect must both be on")
         if self.indirect and 0 < self.max_depth <= 2:
@@ -309,9 +318,9 @@ class LayerSums:
     grads: list[mi.Spectrum]
 
     @staticmethod
-    def zeros(gradients: bool = True) -> LayerSums:
-        """Zero sums; without gradients the layer carries the base radiance only."""
-        return LayerSums(base=mi.Spectrum(0.0), grads=[mi.Spectrum(0.0) for _ in SHIFT_OFFSETS] if gradients else [])
+    def zeros(n_offsets: int = len(SHIFT_OFFSETS)) -> LayerSums:
+        """Zero sums, one gradient estimate per traced offset (none: the layer carries the base radiance only)."""
+        return LayerSums(base=mi.Spectrum(0.0), grads=[mi.Spectrum(0.0) for _ in range(n_offsets)])
 
 
 @dataclass
@@ -372,9 +381,25 @@ def stratified_sub_pixel(u: mi.Point2f, sample: mi.UInt32, strata: mi.UInt32) ->
     return dr.select(sample < cells, (cell + u) / mi.Float(strata), u)
 
 
+def offset_group(pixel: mi.UInt32, sample: mi.UInt32, strata: mi.UInt32, seed: mi.UInt32,
+                 groups: int) -> mi.UInt32:
+    """Which group of offsets (of ``groups`` equal groups of SHIFT_OFFSETS: 2 axes, or 4 single offsets) sample
+    ``sample`` of ``pixel`` traces when a sample traces fewer than all four.
+
+    The pixel's stratified samples (one per cell of its ``strata x strata`` grid) are dealt out along the grid's
+    diagonals -- cell (cx, cy) gets ``cx + (groups // 2) cy`` (a checkerboard for two groups) -- later samples in
+    turn, and a random offset per pixel and pass (a hash of the pixel and the pass's seed) rotates the groups.
+    So every sample traces each group with probability exactly ``1/groups``, whatever its sub-pixel position --
+    counting its gradient terms ``groups`` times keeps every gradient estimate unbiased -- and each group's
+    samples still spread over the pixel (every row of the grid holds every group)."""
+    rotate = mi.sample_tea_32(pixel, seed)[0]
+    cell = sample % strata + (groups // 2) * (sample // strata)
+    return (dr.select(sample < strata * strata, cell, sample) + rotate) % groups
+
+
 def _camera_rays(sensor: mi.Sensor, sampler: mi.Sampler, px: mi.Int32, py: mi.Int32, size: mi.Vector2f,
                  res: tuple[mi.Int32, mi.Int32], sample: mi.UInt32, strata: mi.UInt32,
-                 shifts: Sequence[tuple[int, int]] = SHIFT_OFFSETS,
+                 shifts: Sequence[tuple[int | mi.Int32, int | mi.Int32]] = SHIFT_OFFSETS,
                  ) -> tuple[list[tuple[mi.Ray3f, mi.Spectrum, mi.Bool]], mi.Bool]:
     """Primary rays of the base pixel and of the shifted pixels (``shifts``; none for a primal-only render), all
     through the same sub-pixel sample (``sample``-th of the pixel, stratified: :func:`stratified_sub_pixel`).
@@ -484,137 +509,206 @@ def _drop_non_finite(sums: dict[str, LayerSums]) -> tuple[dict[str, LayerSums], 
     return sums, bad
 
 
-def render_pass(scene: mi.Scene, shift: Shift | None, settings: GptSettings, width: int, height: int, spp: int,
-                seed: int) -> dict[str, np.ndarray]:
-    """Trace ``width*height*spp`` lanes in one kernel; returns per-pixel *sums* (not means) per channel group.
+@dataclass
+class LoopState:
+    """Loop state of one wavefront lane (one pixel sample), declared once for both G-PT loops (Dr.Jit traverses
+    dataclasses: this is the tuple Mitsuba's ``prb.py`` spells out as its loop state). Kettunen et al.'s names:
+    the base path x̄ of the lane's pixel and one offset path ȳ per pixel shift."""
 
-    ``shift`` None renders the primal alone: the base paths with the same routing and features, no offsets.
-    Sizes, seed and depth limits enter the kernel as opaque values, so one compiled kernel serves every seed,
-    resolution and sample count of a scene.
-    """
+    sampler: mi.Sampler
+    depth: mi.UInt32  # index of the vertex this iteration finds (0: the camera ray's hit)
+    base: PathState  # x̄
+    offsets: list[Any]  # ȳ per entry of SHIFT_OFFSETS: the shift's state (first loop) or its summary (second)
+    sums: dict[str, LayerSums]  # per layer: base radiance and one gradient estimate per shift
+    feat: FeatureState  # the feature-vertex search along x̄
+    invalid: mi.Bool  # some event of the lane was not finite (and was zeroed)
+
+
+@dataclass
+class PassKernel:
+    """What the loop body of one pass reads and never changes: the scene, the shift and the opaque limits."""
+
+    scene: mi.Scene
+    shift: Shift | None  # None: primal only (no offsets)
+    settings: GptSettings
+    max_depth: mi.UInt32  # opaque: one compiled kernel serves every depth limit
+    rr_depth: mi.UInt32
+    to_camera: mi.Transform4f  # world -> camera, for the normal feature
+    ray_flags: mi.RayFlags
+    strict_light_pdf: bool
+    hittable: bool  # some emitter can be found by a ray (scene_has_hittable_emitters)
+    offset_group: mi.UInt32 | None  # per lane, the group of offsets it traces (offset_group); None: all four
+
+    @property
+    def gradients(self) -> bool:
+        return self.shift is not None
+
+
+# How an offset advances by one base vertex: the shift's full step, or the second loop's connected step.
+OffsetStep = Callable[[Any, Vertex, Any, VertexSamples], tuple[Any, OffsetEvents]]  # (offset, vertex, depth, samples)
+
+
+def _start_lanes(scene: mi.Scene, shift: Shift | None, settings: GptSettings, width: int, height: int, spp: int,
+                 seed: int) -> tuple[PassKernel, LoopState, mi.UInt32]:
+    """One lane per pixel sample: its sampler stream, primary rays (base and offsets) and zero sums. Sizes, seed
+    and depth limits enter as opaque values. Returns the pass's constants, the initial state and each lane's
+    pixel index."""
     sensor = scene.sensors()[0]
-    n_pixels = width * height
-    lanes = n_pixels * spp
-    if lanes >= 1 << 32:
-        raise ValueError(f"{lanes} samples in one pass exceed 2^32; use fewer samples per pass")
+    lanes = width * height * spp
     w_o = dr.opaque(mi.Int32, width)
     h_o = dr.opaque(mi.Int32, height)
     spp_o = dr.opaque(mi.UInt32, spp)
     max_depth = settings.effective_max_depth()
-    max_depth_o = dr.opaque(mi.UInt32, UNBOUNDED if max_depth < 0 else max_depth)
-    rr_depth_o = dr.opaque(mi.UInt32, settings.rr_depth)
+    gradients = shift is not None
+    kernel = PassKernel(
+        scene=scene, shift=shift, settings=settings,
+        max_depth=dr.opaque(mi.UInt32, UNBOUNDED if max_depth < 0 else max_depth),
+        rr_depth=dr.opaque(mi.UInt32, settings.rr_depth), to_camera=sensor.world_transform().inverse(),
+        ray_flags=shift.ray_flags(scene) if gradients else mi.RayFlags.All,
+        strict_light_pdf=shift.reuses_light_samples if gradients else False,
+        hittable=scene_has_hittable_emitters(scene), offset_group=None)
 
+    seed_o = dr.opaque(mi.UInt32, seed & 0xFFFFFFFF)
     sampler = mi.load_dict({"type": "independent", "sample_count": spp})
-    sampler.seed(dr.opaque(mi.UInt32, seed & 0xFFFFFFFF), lanes)
-
+    sampler.seed(seed_o, lanes)
     idx = dr.arange(mi.UInt32, lanes)
     pixel = idx // spp_o
     py = mi.Int32(pixel // mi.UInt32(w_o))
     px = mi.Int32(pixel) - py * w_o
     size = mi.Vector2f(mi.Float(w_o), mi.Float(h_o))
     strata_o = dr.opaque(mi.UInt32, math.isqrt(spp))
-    gradients = shift is not None
-    rays, _ = _camera_rays(sensor, sampler, px, py, size, (w_o, h_o), idx % spp_o, strata_o,
-                           SHIFT_OFFSETS if gradients else ())
-    to_camera = sensor.world_transform().inverse()
+    sample = idx % spp_o
+    shifts: Sequence[tuple[int | mi.Int32, int | mi.Int32]] = SHIFT_OFFSETS if gradients else ()
+    groups = OFFSET_GROUPS[settings.offsets]
+    if gradients and groups > 1:
+        group = kernel.offset_group = offset_group(pixel, sample, strata_o, seed_o, groups)
+        per_group = len(SHIFT_OFFSETS) // groups
+        shifts = []
+        for k in range(per_group):  # the k-th offset of the lane's group
+            choices = SHIFT_OFFSETS[k::per_group]
+            ox, oy = mi.Int32(choices[0][0]), mi.Int32(choices[0][1])
+            for g, (cx, cy) in enumerate(choices[1:], start=1):
+                ox = dr.select(group == g, cx, ox)
+                oy = dr.select(group == g, cy, oy)
+            shifts.append((ox, oy))
+    rays, _ = _camera_rays(sensor, sampler, px, py, size, (w_o, h_o), sample, strata_o, shifts)
+    state = LoopState(
+        sampler=sampler, depth=mi.UInt32(0), base=PathState.start(*rays[0]),
+        offsets=[shift.start(*r) for r in rays[1:]] if shift is not None else [],
+        sums={name: LayerSums.zeros(len(shifts)) for name in settings.layer_names()},
+        feat=FeatureState.start(), invalid=mi.Bool(False))
+    return kernel, state, pixel
 
-    hittable = scene_has_hittable_emitters(scene)
-    ray_flags = shift.ray_flags(scene) if gradients else mi.RayFlags.All
-    strict_light_pdf = shift.reuses_light_samples if gradients else False
-    base = PathState.start(*rays[0])
-    offsets = [shift.start(*r) for r in rays[1:]] if gradients else []
-    sums = {name: LayerSums.zeros(gradients) for name in settings.layer_names()}
-    feat = FeatureState.start()
-    depth = mi.UInt32(0)
-    invalid = mi.Bool(False)
 
-    def make_body(step_offset: Callable[[Any, Vertex, VertexSamples], tuple[Any, OffsetEvents]]) -> Callable:
-        def body(sampler, depth, base, offsets, sums, feat, invalid):
-            samples = VertexSamples.draw(sampler)
-            ray_d = mi.Vector3f(base.ray.d)
-            base_active = mi.Bool(base.active)
-            base, v = trace_vertex(scene, base, depth, max_depth_o, samples, strict_light_pdf, ray_flags)
-            hit_grads, nee_grads = [], []
-            new_offsets = []
-            for off in offsets:
-                off, ev = step_offset(off, v, depth, samples)
-                # An event the base path does not have belongs to the mirrored technique alone (weight 1 there).
-                off_nee = dr.select(v.has_nee, ev.nee, 0.0)
-                hit_grads.append(ev.w_hit * (ev.emitted - v.emitted))
-                nee_grads.append(ev.w_nee * (off_nee - v.nee))
-                new_offsets.append(off)
-            if gradients:
-                hit_value, bad_h = _finite(v.emitted)
-                nee_value, bad_n = _finite(v.nee)
-                bad = bad_h | bad_n
-            else:  # checked once per lane after the loop (_drop_non_finite): one check instead of two per vertex
-                hit_value, nee_value, bad = v.emitted, v.nee, mi.Bool(False)
-            clean_hit, clean_nee = [], []
-            for gh, gn in zip(hit_grads, nee_grads, strict=True):
-                gh, bh = _finite(gh)
-                gn, bn = _finite(gn)
-                bad |= bh | bn
-                clean_hit.append(gh)
-                clean_nee.append(gn)
-            _route(sums, depth, settings, hit_value, nee_value, clean_hit, clean_nee)
-            feat = _update_features(feat, base_active, v, ray_d, to_camera)
-            if not hittable:
-                # No emitter can be found by a ray: the next vertex is needed only for next-event estimation
-                # there (or to continue the feature search past a mirror); its emission event is always 0.
-                base.active &= (depth + 2 < max_depth_o) | feat.pending
+def _offset_events(k: PassKernel, s: LoopState, v: Vertex, samples: VertexSamples,
+                   step_offset: OffsetStep) -> tuple[list[mi.Spectrum], list[mi.Spectrum], mi.Bool]:
+    """Advance every offset by the base vertex ``v`` (in place in ``s.offsets``); returns per offset the
+    gradient terms ``w (f_offset - f_base)`` of the emission and next-event events, zeroed where not finite,
+    and the lane's 'was not finite' mask."""
+    hit_grads, nee_grads = [], []
+    bad = mi.Bool(False)
+    for i, off in enumerate(s.offsets):
+        s.offsets[i], ev = step_offset(off, v, s.depth, samples)
+        # An event the base path does not have belongs to the mirrored technique alone (weight 1 there).
+        off_nee = dr.select(v.has_nee, ev.nee, 0.0)
+        gh, bad_h = _finite(ev.w_hit * (ev.emitted - v.emitted))
+        gn, bad_n = _finite(ev.w_nee * (off_nee - v.nee))
+        bad |= bad_h | bad_n
+        hit_grads.append(gh)
+        nee_grads.append(gn)
+    return hit_grads, nee_grads, bad
 
-            # Russian roulette on the base path, applied to the whole lane.
-            beta_max = dr.max(base.throughput)
-            q = dr.minimum(beta_max * base.eta * base.eta, 0.95)
-            # Mitsuba's rule: roulette from the rr_depth-th vertex on (its `path` counts the vertex just found
-            # before comparing with rr_depth; rr_depth 1 may end a path at the first visible surface).
-            rr_active = base.active & (depth + 1 >= rr_depth_o)
-            survive = sampler.next_1d() < q
-            inv_q = dr.select(rr_active, dr.rcp(q), 1.0)
-            base.throughput = base.throughput * inv_q
-            dead = rr_active & ~survive
-            base.active = base.active & ~dead
-            if gradients:
-                new_offsets = [shift.kill(shift.scale(o, inv_q, rr_active), dead) for o in new_offsets]
-            return sampler, depth + 1, base, new_offsets, sums, feat, invalid | bad
-        return body
+
+def _russian_roulette(k: PassKernel, s: LoopState) -> None:
+    """Russian roulette on the base path (Mitsuba's rule), applied to the whole lane: the offsets are scaled by
+    the same 1/q and die with their base path (in place)."""
+    base = s.base
+    q = dr.minimum(dr.max(base.throughput) * base.eta * base.eta, 0.95)
+    # Mitsuba's rule: roulette from the rr_depth-th vertex on (its `path` counts the vertex just found before
+    # comparing with rr_depth; rr_depth 1 may end a path at the first visible surface).
+    rr_active = base.active & (s.depth + 1 >= k.rr_depth)
+    survive = s.sampler.next_1d() < q
+    inv_q = dr.select(rr_active, dr.rcp(q), 1.0)
+    base.throughput = base.throughput * inv_q
+    dead = rr_active & ~survive
+    base.active = base.active & ~dead
+    if k.shift is not None:
+        s.offsets = [k.shift.kill(k.shift.scale(o, inv_q, rr_active), dead) for o in s.offsets]
+
+
+def _vertex(k: PassKernel, s: LoopState, step_offset: OffsetStep) -> LoopState:
+    """One loop iteration: the base path's next vertex, every offset's, their events into the layer sums, the
+    feature search, Russian roulette."""
+    samples = VertexSamples.draw(s.sampler)
+    ray_d = mi.Vector3f(s.base.ray.d)
+    base_active = mi.Bool(s.base.active)
+    s.base, v = trace_vertex(k.scene, s.base, s.depth, k.max_depth, samples, k.strict_light_pdf, k.ray_flags)
+    if k.gradients:
+        hit_grads, nee_grads, bad = _offset_events(k, s, v, samples, step_offset)
+        hit_value, bad_h = _finite(v.emitted)
+        nee_value, bad_n = _finite(v.nee)
+        bad |= bad_h | bad_n
+    else:  # checked once per lane after the loop (_drop_non_finite): one check instead of two per vertex
+        hit_grads, nee_grads = [], []
+        hit_value, nee_value, bad = v.emitted, v.nee, mi.Bool(False)
+    _route(s.sums, s.depth, k.settings, hit_value, nee_value, hit_grads, nee_grads)
+    s.feat = _update_features(s.feat, base_active, v, ray_d, k.to_camera)
+    if not k.hittable:
+        # No emitter can be found by a ray: the next vertex is needed only for next-event estimation there (or to
+        # continue the feature search past a mirror); its emission event is always 0.
+        s.base.active &= (s.depth + 2 < k.max_depth) | s.feat.pending
+    _russian_roulette(k, s)
+    s.depth = s.depth + 1
+    s.invalid = s.invalid | bad
+    return s
+
+
+def _run_loops(k: PassKernel, s: LoopState) -> LoopState:
+    """The symbolic loops over path vertices. With a :class:`ConnectingShift`: a first loop while some offset of
+    the lane still has vertices of its own, then a second, cheap one carrying the settled offsets' summaries."""
+    shift = k.shift
+
+    def loop(state: LoopState, cond: Callable[[LoopState], mi.Bool], step_offset: OffsetStep,
+             label: str) -> LoopState:
+        (state,) = dr.while_loop(state=(state,), cond=cond, body=lambda st: (_vertex(k, st, step_offset),),
+                                 label=label)
+        return state
 
     def full_step(off: Any, v: Vertex, depth: mi.UInt32, samples: VertexSamples) -> tuple[Any, OffsetEvents]:
         assert shift is not None  # only called for offsets, which exist only with a shift
-        return shift.step(scene, off, v, depth, max_depth_o, samples)
+        return shift.step(k.scene, off, v, depth, k.max_depth, samples)
 
-    state = (sampler, depth, base, offsets, sums, feat, invalid)
-    if isinstance(shift, ConnectingShift):
-        # Phase 1 while some offset of the lane still has its own vertices; phase 2 (base path + summaries).
-        def unsettled(sampler, depth, base, offsets, sums, feat, invalid):
-            settled = mi.Bool(True)
-            for off in offsets:
-                settled &= shift.settled(off)
-            return base.active & ~settled
+    def base_alive(st: LoopState) -> mi.Bool:
+        return st.base.active
 
-        state = dr.while_loop(state=state, cond=unsettled, body=make_body(full_step), label="gpt")
-        sampler, depth, base, offsets, sums, feat, invalid = state
-        summaries = [shift.summarize(off) for off in offsets]
+    if not isinstance(shift, ConnectingShift):
+        return loop(s, base_alive, full_step, "gpt")
 
-        def connected_step(off: Any, v: Vertex, depth: mi.UInt32,
-                           samples: VertexSamples) -> tuple[Any, OffsetEvents]:
-            return shift.step_connected(off, v, depth, max_depth_o)
+    def unsettled(st: LoopState) -> mi.Bool:
+        settled = mi.Bool(True)
+        for off in st.offsets:
+            settled &= shift.settled(off)
+        return st.base.active & ~settled
 
-        state = (sampler, depth, base, summaries, sums, feat, invalid)
-        state = dr.while_loop(state=state, cond=lambda sampler, depth, base, *rest: base.active,
-                              body=make_body(connected_step), label="gpt_connected")
-    else:
-        state = dr.while_loop(state=state, cond=lambda sampler, depth, base, *rest: base.active,
-                              body=make_body(full_step), label="gpt")
-    sampler, depth, base, offsets, sums, feat, invalid = state
+    def connected_step(off: Any, v: Vertex, depth: mi.UInt32, samples: VertexSamples) -> tuple[Any, OffsetEvents]:
+        return shift.step_connected(off, v, depth, k.max_depth)
 
-    if not gradients:
-        sums, invalid = _drop_non_finite(sums)
+    s = loop(s, unsettled, full_step, "gpt")
+    s.offsets = [shift.summarize(off) for off in s.offsets]
+    return loop(s, base_alive, connected_step, "gpt_connected")
+
+
+def _pixel_sums(settings: GptSettings, s: LoopState, pixel: mi.UInt32, width: int, height: int,
+                gradients: bool, offset_group: mi.UInt32 | None = None) -> dict[str, np.ndarray]:
+    """Scatter-add every lane's sums and features into per-pixel buffers (one launch, fused with the loops)."""
+    sums, invalid = (s.sums, s.invalid) if gradients else _drop_non_finite(s.sums)
+    feat = s.feat
+    n_pixels = width * height
     layout = channel_layout(settings, gradients)
     values: dict[str, Sequence[mi.Float]] = {}
-    for layer, s in sums.items():
-        values[f"{layer}.base"] = [s.base.x, s.base.y, s.base.z]
-        for i, g in enumerate(s.grads):
+    for layer, ls in sums.items():
+        values[f"{layer}.base"] = [ls.base.x, ls.base.y, ls.base.z]
+        for i, g in enumerate(ls.grads):
             values[f"{layer}.grad{i}"] = [g.x, g.y, g.z]
     values["albedo"] = [feat.albedo.x * feat.hit, feat.albedo.y * feat.hit, feat.albedo.z * feat.hit]
     values["normal"] = [feat.normal.x, feat.normal.y, feat.normal.z]
@@ -623,11 +717,17 @@ def render_pass(scene: mi.Scene, shift: Shift | None, settings: GptSettings, wid
     values["invalid"] = [dr.select(invalid, 1.0, 0.0)]
     n_channels = sum(layout.values())
     target = dr.zeros(mi.Float, n_channels * n_pixels)
+    per_lane = len(next(iter(sums.values())).grads)  # gradient estimates a lane carries
     channel = 0
     for name, width_c in layout.items():
-        for comp in values[name][:width_c]:
-            dr.scatter_reduce(dr.ReduceOp.Add, target, comp, pixel + channel * n_pixels)
+        for comp in values.get(name, [])[:width_c]:
+            index = pixel + channel * n_pixels
+            if offset_group is not None and ".grad" in name:
+                # fewer offsets per lane: its k-th estimate belongs to offset (group * per_group + k)
+                index = index + offset_group * (3 * per_lane * n_pixels)
+            dr.scatter_reduce(dr.ReduceOp.Add, target, comp, index)
             channel += 1
+        channel += width_c - len(values.get(name, [])[:width_c])
     dr.eval(target)
     flat = target.numpy().reshape(n_channels, height, width)
     out: dict[str, np.ndarray] = {}
@@ -636,6 +736,22 @@ def render_pass(scene: mi.Scene, shift: Shift | None, settings: GptSettings, wid
         out[name] = np.moveaxis(flat[channel:channel + width_c], 0, -1).astype(np.float64)
         channel += width_c
     return out
+
+
+def render_pass(scene: mi.Scene, shift: Shift | None, settings: GptSettings, width: int, height: int, spp: int,
+                seed: int) -> dict[str, np.ndarray]:
+    """Trace ``width*height*spp`` lanes in one kernel; returns per-pixel *sums* (not means) per channel group.
+
+    ``shift`` None renders the primal alone: the base paths with the same routing and features, no offsets.
+    Sizes, seed and depth limits enter the kernel as opaque values, so one compiled kernel serves every seed,
+    resolution and sample count of a scene.
+    """
+    lanes = width * height * spp
+    if lanes >= 1 << 32:
+        raise ValueError(f"{lanes} samples in one pass exceed 2^32; use fewer samples per pass")
+    kernel, state, pixel = _start_lanes(scene, shift, settings, width, height, spp, seed)
+    state = _run_loops(kernel, state)
+    return _pixel_sums(settings, state, pixel, width, height, kernel.gradients, kernel.offset_group)
 
 
 def pass_plan(width: int, height: int, spp: int, max_lanes: int = MAX_LANES_PER_PASS) -> list[int]:
@@ -692,8 +808,10 @@ def _finish(t: dict[str, np.ndarray], settings: GptSettings, spp: int, passes: i
         dy = g[2].copy()
         dy[:-1, :] -= g[3][1:, :]
         dy[-1, :] = 0.0
-        layers[layer] = {k: (v / spp).astype(np.float32) for k, v in
-                         (("base", t[f"{layer}.base"]), ("dx", dx), ("dy", dy))}
+        # fewer offsets per sample: each traced its group with probability 1/groups, so its terms count groups times
+        per_axis = spp / OFFSET_GROUPS[settings.offsets]
+        layers[layer] = {"base": (t[f"{layer}.base"] / spp).astype(np.float32),
+                         "dx": (dx / per_axis).astype(np.float32), "dy": (dy / per_axis).astype(np.float32)}
     hits = t["hit"][..., 0]
     safe = np.maximum(hits, 1.0)[..., None]
     albedo = np.clip(t["albedo"] / safe, 0.0, 1.0)

@@ -24,7 +24,10 @@ from typing import Any
 
 import numpy as np
 
+from renderer.errors import SceneError
+
 GENERATOR_VERSION = 1
+PROCEDURAL_PREFIX = "procedural:"  # a scene spec naming a procedural scene: procedural:SEED
 DEFAULT_MAX_DEPTH = 8  # deep enough for glass and multi-bounce indirect light; Russian roulette trims the rest
 _WALLS = ("north", "south", "east", "west")
 
@@ -63,6 +66,21 @@ class ProceduralScene:
 # ----------------------------------------------------------------------------------------------------------
 # Public entry points
 # ----------------------------------------------------------------------------------------------------------
+
+def parse_procedural(spec: str) -> int | None:
+    """The seed of a ``procedural:SEED`` scene spec, or None when ``spec`` names no procedural scene (an XML
+    path). The one parser of the spec: scene loading, the dataset and the evaluation all use it. A malformed
+    or negative seed is a SceneError naming the spec."""
+    if not spec.startswith(PROCEDURAL_PREFIX):
+        return None
+    try:
+        seed = int(spec[len(PROCEDURAL_PREFIX):])
+    except ValueError:
+        raise SceneError(f"bad scene {spec!r}: expected procedural:SEED with an integer seed") from None
+    if seed < 0:
+        raise SceneError(f"bad scene {spec!r}: the seed must be >= 0")
+    return seed
+
 
 def procedural_scene(seed: int, width: int = 256, height: int = 256, max_depth: int | None = None) -> dict:
     """The Mitsuba scene dict of ``procedural:SEED`` (for ``mi.load_dict``); deterministic per seed."""
@@ -737,7 +755,7 @@ def _to_mitsuba(node: Any, key: str = "") -> Any:
 
 
 def _ensure_variant() -> None:
-    """Pick the project's variant when no caller has yet: renderer.scene owns that choice (CUDA or LLVM)."""
-    from renderer.scene import select_variant
+    """Pick the project's variant when no caller has yet: renderer.variant owns that choice (CUDA or LLVM)."""
+    from renderer.variant import select_variant
 
     select_variant()

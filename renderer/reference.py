@@ -21,17 +21,17 @@ lets a progress bar advance.
 
 from __future__ import annotations
 
-import argparse
 import io
-import math
 import os
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+from model.progress import ProgressBar
 
 if TYPE_CHECKING:  # scene.py needs Mitsuba at import time; load_reference must not
     from renderer.scene import LoadedScene
@@ -144,7 +144,7 @@ def render_loaded(loaded: LoadedScene, *, spp: int, seed: int, tile_spp: int | N
     shape = (loaded.height, loaded.width, 3)
     total_sum, direct_sum = np.zeros(shape), np.zeros(shape)
     start = time.perf_counter()
-    with _ProgressBar(spp, progress, loaded.spec) as advance:
+    with ProgressBar(spp, enabled=progress, desc=f"reference {loaded.spec}".strip(), unit="spp") as bar:
         for i, k in enumerate(plan_passes(spp, tile)):
             s = pass_seed(seed, i)
             total = render(total_it, k, s)
@@ -153,7 +153,7 @@ def render_loaded(loaded: LoadedScene, *, spp: int, seed: int, tile_spp: int | N
                 direct = render(direct_it, k, s)
                 _check_split(total, direct, i)
                 direct_sum += k * direct
-            advance(k)
+            bar.update(k)
     seconds = time.perf_counter() - start
     total_mean = total_sum / spp
     if direct_it is None:
@@ -185,28 +185,6 @@ def _check_split(total: np.ndarray, direct: np.ndarray, index: int) -> None:
 def _finite32(image: np.ndarray) -> np.ndarray:
     """float32 with non-finite values (a NaN from a degenerate BSDF sample) replaced by 0: outputs stay finite."""
     return np.nan_to_num(image, nan=0.0, posinf=0.0, neginf=0.0).astype(np.float32)
-
-
-class _ProgressBar:
-    """tqdm over samples per pixel; a no-op when tqdm is missing or progress is off."""
-
-    def __init__(self, total: int, enabled: bool | None, label: str) -> None:
-        self.bar = None
-        if enabled is False:
-            return
-        try:
-            from tqdm import tqdm
-        except ImportError:
-            return
-        self.bar = tqdm(total=total, unit="spp", desc=f"reference {label}".strip(), disable=None if enabled is None
-                        else not enabled, dynamic_ncols=True)
-
-    def __enter__(self) -> Callable[[int], None]:
-        return (lambda n: self.bar.update(n)) if self.bar is not None else (lambda n: None)
-
-    def __exit__(self, *exc: object) -> None:
-        if self.bar is not None:
-            self.bar.close()
 
 
 def _check_positive(name: str, value: int) -> None:
@@ -262,44 +240,3 @@ def load_reference(source: str | os.PathLike[str] | bytes) -> Reference:
 
     indirect = stack("indirect") if all(f"indirect.{c}" in names for c in RGB) else None
     return Reference(stack(""), stack("direct"), indirect, dict(info.attributes))
-
-
-# ----------------------------------------------------------------------------------------------------------
-# Command
-# ----------------------------------------------------------------------------------------------------------
-
-def reference_command(args: argparse.Namespace) -> int:
-    """Handler of `gradsep reference`: validate, render, write atomically, print a one-line summary."""
-    from gradsep.cli import CommandError
-    from renderer.scene import parse_defines
-
-    for name in ("spp", "tile_spp", "width", "height"):
-        value = getattr(args, name, None)
-        if value is not None and value < 1:
-            raise CommandError(f"--{name.replace('_', '-')} must be a positive integer, got {value}")
-    if args.max_depth is not None and (args.max_depth == 0 or args.max_depth < -1):
-        raise CommandError(f"--max-depth must be -1 (unbounded) or a positive integer, got {args.max_depth}")
-    if args.seed < 0:
-        raise CommandError(f"--seed must be non-negative, got {args.seed}")
-    out = Path(args.output)
-    if out.suffix.lower() != ".exr":
-        raise CommandError(f"output must be an .exr file, got {out}")
-    if not out.parent.exists():
-        raise CommandError(f"output folder {out.parent} does not exist")
-    try:
-        ref = render_reference(args.scene, spp=args.spp, width=args.width, height=args.height,
-                               max_depth=args.max_depth, seed=args.seed, tile_spp=args.tile_spp,
-                               defines=parse_defines(args.define), progress=None)
-    except (ValueError, FileNotFoundError) as exc:
-        raise CommandError(str(exc)) from exc
-    write_reference(out, ref)
-    layers = "direct, indirect" if ref.indirect is not None else "direct"
-    seconds = float(ref.metadata["gradsep.render_seconds"])
-    print(f"wrote {out}: {ref.total.shape[1]}x{ref.total.shape[0]}, {args.spp} spp, layers {layers}, "
-          f"{seconds:.1f} s ({_rate(args.spp, ref.total.shape, seconds)})")
-    return 0
-
-
-def _rate(spp: int, shape: tuple[int, ...], seconds: float) -> str:
-    samples = spp * shape[0] * shape[1]
-    return f"{samples / max(seconds, 1e-9) / 1e6:.1f} M samples/s" if math.isfinite(seconds) else ""

@@ -8,16 +8,13 @@ contract's metadata keys (``gradsep.*``).
 
 from __future__ import annotations
 
-import argparse
-import sys
 import time
 from collections.abc import Callable, Iterable, Mapping
-from pathlib import Path
 
-from gradsep import __version__
-from gradsep.cli import CommandError
-from model.frame import ILLUMINATION_LAYERS, SEPARATED_LAYERS, Features, Frame, Layer, write_frame
-from renderer.scene import LoadedScene, load_scene, parse_defines
+from model import __version__
+from model.errors import CommandError
+from model.frame import ILLUMINATION_LAYERS, SEPARATED_LAYERS, Features, Frame, Layer
+from renderer.scene import LoadedScene, load_scene
 
 
 def parse_layers(text: str | Iterable[str]) -> tuple[str, ...]:
@@ -121,32 +118,3 @@ def render_metadata(scene: LoadedScene, *, spp: int, seed: int, shift: str, laye
         "gradsep.mitsuba_version": str(mi.__version__),
     }
     return meta
-
-
-def render_command(args: argparse.Namespace) -> int:
-    """`gradsep render`: render a frame and write it atomically to ``args.output``."""
-    output = Path(args.output)
-    if output.suffix.lower() != ".exr":
-        raise CommandError(f"output {args.output} must end in .exr")
-    if not output.parent.exists():
-        raise CommandError(f"output folder {output.parent} does not exist")
-    if args.no_gradients and args.shift is not None:
-        raise CommandError("--shift has no effect with --no-gradients (no offset paths are traced)")
-    scene = load_scene(args.scene, width=args.width, height=args.height, max_depth=args.max_depth,
-                       defines=parse_defines(args.define))
-    show = sys.stderr.isatty()
-
-    def progress(done: int, total: int) -> None:
-        if show:
-            print(f"\rgradsep render: {done}/{total} spp", end="", file=sys.stderr, flush=True)
-
-    frame = render_frame(scene, spp=args.spp, seed=args.seed, layers=args.layers, shift=args.shift,
-                         progress=progress, gradients=not args.no_gradients)
-    if show:
-        print(file=sys.stderr)
-    write_frame(output, frame)
-    for note in frame.warnings:
-        print(f"gradsep render: note: {note}", file=sys.stderr)
-    print(f"{output}: {frame.width}x{frame.height}, {args.spp} spp, layers {', '.join(frame.layers)}, "
-          f"{frame.metadata['gradsep.render_seconds']} s")
-    return 0

@@ -14,7 +14,6 @@ something wrong.
 
 from __future__ import annotations
 
-import os
 import re
 import threading
 import xml.etree.ElementTree as ET
@@ -24,7 +23,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from gradsep.cli import CommandError
+from renderer.errors import SceneError
+from renderer.procedural import GENERATOR_VERSION, parse_procedural, procedural_scene
+from renderer.variant import select_variant
 
 SUPPORTED_SENSORS: tuple[str, ...] = ("PerspectiveCamera", "ThinLensCamera")
 DEFAULT_MAX_DEPTH = 6  # Mitsuba's own default for path tracers
@@ -32,17 +33,7 @@ DEFAULT_RR_DEPTH = 5
 DEFAULT_PROCEDURAL_SIZE = 256
 MITSUBA_DEFAULT_FILM = (768, 576)  # hdrfilm's size when a scene gives none
 MAX_FILM_PIXELS = 8192 * 8192  # the frame contract's reading budget: larger frames could not be read back
-VARIANT_ENV = "GRADSEP_MI_VARIANT"
-CPU_VARIANT = "llvm_ad_rgb"
-GPU_VARIANT = "cuda_ad_rgb"
-PROCEDURAL_PREFIX = "procedural:"
-
-_variant_lock = threading.Lock()
 _resolver_lock = threading.Lock()
-
-
-class SceneError(CommandError):
-    """A scene that cannot be loaded or rendered by G-PT; the message says why. Printed as one line by the CLI."""
 
 
 @dataclass
@@ -66,62 +57,9 @@ class LoadedScene:
         meta = {"gradsep.scene": self.spec}
         if self.defines:
             meta["gradsep.defines"] = ",".join(f"{k}={v}" for k, v in sorted(self.defines.items()))
-        if self.spec.startswith("procedural:"):
-            from renderer.procedural import GENERATOR_VERSION  # a seed names a scene only for one generator version
-
+        if parse_procedural(self.spec) is not None:  # a seed names a scene only for one generator version
             meta["gradsep.procedural_version"] = str(GENERATOR_VERSION)
         return meta
-
-
-# ---------------------------------------------------------------------------------------------------------------
-# Variant
-# ---------------------------------------------------------------------------------------------------------------
-
-
-def select_variant() -> str:
-    """Set (once) and return the Mitsuba variant: $GRADSEP_MI_VARIANT, else CUDA when usable, else LLVM.
-
-    Only ``*_ad_rgb`` variants make sense here (the integrator is written for RGB with Dr.Jit JIT arrays); an
-    explicit request for anything else is refused rather than silently replaced.
-    """
-    import mitsuba as mi
-
-    with _variant_lock:
-        current = mi.variant()
-        if current is not None and current in (GPU_VARIANT, CPU_VARIANT) and VARIANT_ENV not in os.environ:
-            return current
-        wanted = os.environ.get(VARIANT_ENV)
-        if wanted:
-            if wanted not in (CPU_VARIANT, GPU_VARIANT):
-                raise SceneError(f"{VARIANT_ENV}={wanted!r}: the G-PT renderer needs {CPU_VARIANT} or {GPU_VARIANT}")
-            if wanted not in mi.variants():
-                raise SceneError(f"{VARIANT_ENV}={wanted!r}: this Mitsuba build has no such variant")
-            if current != wanted:
-                try:
-                    mi.set_variant(wanted)
-                except Exception as exc:  # e.g. no CUDA driver
-                    raise SceneError(f"{VARIANT_ENV}={wanted!r} cannot be used here: {exc}") from exc
-            return wanted
-        if current in (GPU_VARIANT, CPU_VARIANT):
-            return current
-        if GPU_VARIANT in mi.variants() and _cuda_available():
-            try:
-                mi.set_variant(GPU_VARIANT)
-                return GPU_VARIANT
-            except Exception:  # driver present but unusable: fall back to the CPU
-                pass
-        mi.set_variant(CPU_VARIANT)
-        return CPU_VARIANT
-
-
-def _cuda_available() -> bool:
-    """Whether Dr.Jit can reach a CUDA device (never raises)."""
-    try:
-        import drjit as dr
-
-        return bool(dr.has_backend(dr.JitBackend.CUDA))
-    except Exception:
-        return False
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -157,10 +95,11 @@ def load_scene(spec: str, *, width: int | None = None, height: int | None = None
     if max_depth is not None and (max_depth == 0 or max_depth < -1):
         raise SceneError(f"--max-depth must be -1 (unbounded) or >= 1, got {max_depth}")
 
-    if spec.startswith(PROCEDURAL_PREFIX):
+    seed = parse_procedural(spec)
+    if seed is not None:
         if defines:
             raise SceneError("--define applies to XML scenes only; procedural scenes are named by their seed")
-        scene = _load_procedural(spec, width, height, max_depth)
+        scene = _load_procedural(seed, width, height, max_depth)
     else:
         scene = _load_xml(spec, width, height, defines)
     del mi
@@ -176,18 +115,9 @@ def load_scene(spec: str, *, width: int | None = None, height: int | None = None
                        defines=defines)
 
 
-def _load_procedural(spec: str, width: int | None, height: int | None, max_depth: int | None) -> Any:
+def _load_procedural(seed: int, width: int | None, height: int | None, max_depth: int | None) -> Any:
     import mitsuba as mi
 
-    text = spec[len(PROCEDURAL_PREFIX):]
-    try:
-        seed = int(text)
-    except ValueError:
-        raise SceneError(f"bad scene {spec!r}: expected procedural:SEED with an integer seed") from None
-    try:
-        from renderer.procedural import procedural_scene
-    except ImportError as exc:
-        raise SceneError(f"procedural scenes are not available: {exc}") from exc
     w = width or (height or DEFAULT_PROCEDURAL_SIZE)
     h = height or (width or DEFAULT_PROCEDURAL_SIZE)
     scene_dict = procedural_scene(seed, w, h, max_depth)

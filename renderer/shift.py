@@ -327,37 +327,38 @@ def offset_eta(wi: mi.Vector3f, eta: mi.Float, wi_off: mi.Vector3f) -> mi.Float:
 
 @dataclass
 class HybridState:
-    """Loop state of one hybrid offset path.
+    """Loop state of one hybrid offset path ȳ, between two iterations.
 
-    ``si`` is the offset's vertex of the *previous* iteration, with the offset's own incoming direction (for a
-    recently connected offset: the base path's vertex seen from the offset's previous vertex), ``flags`` its
-    BSDF's flags; the ``b_*`` fields stash what the transition into the next vertex needs from the base path's
-    previous vertex.
+    In Kettunen et al.'s names: the offset sits at its vertex ``y_k`` (``vertex``, with the offset's own incoming
+    direction; for a recently connected offset, the base path's vertex seen from the offset's previous vertex),
+    and the base path has just left ``x_k``; the ``base_*`` fields stash what the transition into the next vertex
+    needs from the base path's step out of ``x_k``. The ``mirror_*`` fields are set while the offset waits for a
+    manifold reconnection through the base path's mirror vertex ``x_{k+1}``.
     """
 
     active: mi.Bool
-    status: mi.UInt32
+    status: mi.UInt32  # NOT_CONNECTED, RECENTLY_CONNECTED, CONNECTED or PENDING (waiting at a mirror)
     throughput: mi.Spectrum  # f(offset prefix) * Jacobians / p(base prefix), with the base's roulette
     ratio: mi.Float  # p(offset prefix as a base path) * Jacobians / p(base prefix); roulette excluded
     ray: mi.Ray3f  # primary ray (first iteration only)
-    si: mi.SurfaceInteraction3f
-    bsdf: mi.BSDFPtr  # of ``si``, and its flags
-    flags: mi.UInt32
-    lobe: mi.Float  # the base path's random numbers of the previous vertex, for replay
-    direction: mi.Point2f
-    b_pdf: mi.Float  # base: pdf of the direction leaving its previous vertex
-    b_weight: mi.Spectrum  # base: BSDF weight of that direction
-    b_dir: mi.Vector3f  # base: that direction, world space
-    b_delta: mi.Bool  # base: that direction came from a delta lobe
-    b_flags: mi.UInt32  # base: BSDF flags of its previous vertex
-    b_p: mi.Point3f  # base: its previous vertex
-    b_wi: mi.Vector3f  # base: incoming and outgoing direction there, in its local shading frame
-    b_wo: mi.Vector3f
-    b_eta: mi.Float  # base: relative index of refraction of that sample (1 for reflections)
-    b_bsdf: mi.UInt32  # base: the registry id of the BSDF there
-    m_si: mi.SurfaceInteraction3f  # PENDING: the base path's mirror vertex x_{k+1}
-    m_p: mi.Point3f  # PENDING: the base path's vertex x_k before it, and the pdf of the direction leaving it
-    m_pdf: mi.Float
+    vertex: mi.SurfaceInteraction3f  # y_k
+    vertex_bsdf: mi.BSDFPtr  # the BSDF at y_k, and its flags
+    vertex_flags: mi.UInt32
+    replay_lobe: mi.Float  # the base path's random numbers at x_k, for a replay at y_k
+    replay_direction: mi.Point2f
+    base_point: mi.Point3f  # x_k
+    base_flags: mi.UInt32  # BSDF flags at x_k
+    base_bsdf_id: mi.UInt32  # the registry id of the BSDF at x_k (same id: same material, same IOR)
+    base_wi: mi.Vector3f  # the base path's incoming and outgoing directions at x_k, in its local shading frame
+    base_wo: mi.Vector3f
+    base_out_dir: mi.Vector3f  # the outgoing direction in world space
+    base_out_pdf: mi.Float  # its solid-angle pdf
+    base_out_weight: mi.Spectrum  # its BSDF weight (value * cos / pdf)
+    base_out_delta: mi.Bool  # it came from a delta lobe
+    base_out_eta: mi.Float  # its relative index of refraction (1 for reflections)
+    mirror_si: mi.SurfaceInteraction3f  # PENDING: the base path's mirror vertex x_{k+1}
+    mirror_origin: mi.Point3f  # PENDING: the base path's vertex x_k before the mirror
+    mirror_origin_pdf: mi.Float  # PENDING: the pdf of the base path's direction from x_k to the mirror
 
 
 @dataclass
@@ -367,11 +368,82 @@ class ConnectedState:
     active: mi.Bool
     throughput: mi.Spectrum
     ratio: mi.Float  # fixed once connected: the shared vertices have the same density in both paths
-    b_weight: mi.Spectrum  # BSDF weight of the direction leaving the previous (shared) vertex: the base path's,
-    #                        or, just after the reconnection, the offset's own for its incoming direction there
-    b_ratio: mi.Float  # density ratio of that direction: 1 (shared), or the offset's pdf / the base path's
-    own_pdf: mi.Float  # just after the reconnection: the offset's pdf of that direction, for its emission MIS
-    fresh: mi.Bool  # just reconnected: the next vertex's emission is weighted with ``own_pdf``
+    next_weight: mi.Spectrum  # BSDF weight of the direction leaving the previous (shared) vertex: the base
+    #                           path's, or, just after the reconnection, the offset's own for its incoming direction
+    next_ratio: mi.Float  # density ratio of that direction: 1 (shared), or the offset's pdf / the base path's
+    own_next_pdf: mi.Float  # just after the reconnection: the offset's pdf of that direction, for its emission MIS
+    just_connected: mi.Bool  # just reconnected: the next vertex's emission is weighted with ``own_next_pdf``
+
+
+@dataclass
+class Strategy:
+    """How each offset leaves its vertex ``y_k`` in this iteration (per-lane masks; see :class:`HybridShift`),
+    and the vertex classes they were decided from."""
+
+    first: mi.Bool  # the offset's primary ray (depth 0)
+    recent: mi.Bool  # reconnected last iteration: its BSDF at the shared vertex for the base path's direction
+    connected: mi.Bool  # shares every vertex: the base path's BSDF weight
+    pending: mi.Bool  # waited at a mirror last iteration: manifold reconnection now
+    reconnect: mi.Bool  # to the base path's next vertex x_{k+1} (or its direction, at infinity)
+    follow: mi.Bool  # onto a curved specular x_{k+1}, staying on its own from there
+    wait: mi.Bool  # at y_k, for a manifold reconnection through the mirror x_{k+1} next iteration
+    copy: mi.Bool  # half-vector copy at y_k
+    replay: mi.Bool  # the base path's random numbers at y_k
+    base_rough: mi.Bool  # x_k has a non-delta lobe
+    off_rough: mi.Bool  # y_k has one
+    glossy_pair: mi.Bool  # both are glossy (:func:`_glossy`)
+
+    @property
+    def to_vertex(self) -> mi.Bool:
+        """The offset moves onto the base path's vertex x_{k+1}."""
+        return self.reconnect | self.follow
+
+
+@dataclass
+class Transition:
+    """The offset's step from ``y_k`` into its next vertex: direction evaluated at ``y_k`` by a reconnection,
+    follow, half-vector copy or manifold reconnection, the step's throughput factor and density ratio, and
+    where the shift fails."""
+
+    evaluated: mi.Bool  # the BSDF at y_k was evaluated for a direction not sampled by the offset
+    pdf: mi.Float  # the offset's pdf of that direction
+    step_f: mi.Spectrum  # throughput factor (BSDF value * Jacobian / base pdf)
+    step_r: mi.Float  # density-ratio factor
+    fail: mi.Bool
+    reconnection_dir: mi.Vector3f  # y_k -> x_{k+1} (world)
+    copy_dir: mi.Vector3f  # the half-vector copy's direction (world), where ``copy``
+    mirror: mi.Bool  # the manifold reconnection through the mirror succeeded
+    mirror_wi: mi.Vector3f  # after it: the offset's incoming direction at x_{k+2} (local)
+
+
+@dataclass
+class OwnVertex:
+    """The vertex an offset finds by tracing its own ray (primary ray, replay, half-vector copy)."""
+
+    si: mi.SurfaceInteraction3f
+    bsdf: mi.BSDFPtr
+    flags: mi.UInt32
+    sample: mi.BSDFSample3f  # the replayed BSDF sample at y_k
+    weight: mi.Spectrum  # its BSDF weight
+
+
+@dataclass
+class Arrival:
+    """Where an offset is after this iteration's transition, and how it arrived (for its emitter/BSDF MIS)."""
+
+    active: mi.Bool
+    throughput: mi.Spectrum
+    ratio: mi.Float
+    status: mi.UInt32
+    si: mi.SurfaceInteraction3f  # its vertex (its own, the base path's with its own wi, or y_k while waiting)
+    bsdf: mi.BSDFPtr
+    flags: mi.UInt32
+    prev: mi.Interaction3f  # y_k
+    prev_pdf: mi.Float  # pdf of the direction that led here, and whether it was a delta lobe
+    prev_delta: mi.Bool
+    shared: mi.Bool  # this vertex is the base path's
+    reuse: mi.Bool  # connected before this vertex: emission and next-event estimate are the base path's
+    evaluate: mi.Bool  # its own events must be evaluated here
 
 
 class HybridShift:
@@ -446,12 +518,14 @@ class HybridShift:
     def start(self, ray: mi.Ray3f, weight: mi.Spectrum, active: mi.Bool) -> HybridState:
         return HybridState(
             active=mi.Bool(active), status=mi.UInt32(NOT_CONNECTED), throughput=mi.Spectrum(weight),
-            ratio=mi.Float(1.0), ray=mi.Ray3f(ray), si=dr.zeros(mi.SurfaceInteraction3f),
-            bsdf=dr.zeros(mi.BSDFPtr), flags=mi.UInt32(0),
-            lobe=mi.Float(0.0), direction=mi.Point2f(0.0), b_pdf=mi.Float(1.0), b_weight=mi.Spectrum(1.0),
-            b_dir=mi.Vector3f(0.0, 0.0, 1.0), b_delta=mi.Bool(False), b_flags=mi.UInt32(0), b_p=mi.Point3f(0.0),
-            b_wi=mi.Vector3f(0.0, 0.0, 1.0), b_wo=mi.Vector3f(0.0, 0.0, 1.0), b_eta=mi.Float(1.0),
-            b_bsdf=mi.UInt32(0), m_si=dr.zeros(mi.SurfaceInteraction3f), m_p=mi.Point3f(0.0), m_pdf=mi.Float(1.0))
+            ratio=mi.Float(1.0), ray=mi.Ray3f(ray), vertex=dr.zeros(mi.SurfaceInteraction3f),
+            vertex_bsdf=dr.zeros(mi.BSDFPtr), vertex_flags=mi.UInt32(0), replay_lobe=mi.Float(0.0),
+            replay_direction=mi.Point2f(0.0), base_point=mi.Point3f(0.0), base_flags=mi.UInt32(0),
+            base_bsdf_id=mi.UInt32(0), base_wi=mi.Vector3f(0.0, 0.0, 1.0), base_wo=mi.Vector3f(0.0, 0.0, 1.0),
+            base_out_dir=mi.Vector3f(0.0, 0.0, 1.0), base_out_pdf=mi.Float(1.0),
+            base_out_weight=mi.Spectrum(1.0), base_out_delta=mi.Bool(False), base_out_eta=mi.Float(1.0),
+            mirror_si=dr.zeros(mi.SurfaceInteraction3f), mirror_origin=mi.Point3f(0.0),
+            mirror_origin_pdf=mi.Float(1.0))
 
     def _far(self, a: mi.Point3f, b: mi.Point3f, target: mi.Point3f, at_infinity: mi.Bool) -> mi.Bool:
         """Both segments a-target and b-target are ``footprint`` times longer than a-b (always, at infinity)."""
@@ -484,24 +558,24 @@ class HybridShift:
         ``y'`` too (same curvature rule, its own segments). Returns (ok, direction leaving y_k, Jacobian over the
         base path's pdf at x_k, the mirror's weight for the offset, the offset's incoming direction at x_{k+2} in
         its local frame)."""
-        ok = (pending & base.si.is_valid() & off.b_delta
+        ok = (pending & base.si.is_valid() & off.base_out_delta
               & (_rough(base.bsdf_flags) | (dr.max(base.emission) > 0.0)))
         # A symbolic conditional: SIMD packets without a pending offset skip the solve (its seven ray casts and
         # the differentials cost as much as the rest of the step even when every lane is masked off). Its
         # arguments go through memory, so only what the solve needs is passed.
         origin = _interaction(prev_si)
         found, direction, conv, weight, reflected = dr.if_stmt(
-            args=(ok, origin, off.m_si, off.m_p, off.m_pdf, base.si.p, base.si.n), cond=ok,
+            args=(ok, origin, off.mirror_si, off.mirror_origin, off.mirror_origin_pdf, base.si.p, base.si.n), cond=ok,
             true_fn=lambda *a: self._solve_mirror(scene, *a), false_fn=_no_mirror_path)
         return found, direction, conv, weight, base.si.to_local(-reflected)
 
-    def _solve_mirror(self, scene: mi.Scene, ok: mi.Bool, origin: mi.Interaction3f, m_si: mi.SurfaceInteraction3f,
-                      m_p: mi.Point3f, m_pdf: mi.Float, target: mi.Point3f,
+    def _solve_mirror(self, scene: mi.Scene, ok: mi.Bool, origin: mi.Interaction3f, mirror_si: mi.SurfaceInteraction3f,
+                      mirror_origin: mi.Point3f, mirror_origin_pdf: mi.Float, target: mi.Point3f,
                       n_t: mi.Vector3f) -> tuple[mi.Bool, mi.Vector3f, mi.Float, mi.Spectrum, mi.Vector3f]:
         """:meth:`_through_mirror`'s solve, for the lanes ``ok``; returns the reflected direction in world space."""
         ctx = mi.BSDFContext()
         flags = self.ray_flags(scene)
-        d = dr.normalize(m_si.p - origin.p)
+        d = dr.normalize(mirror_si.p - origin.p)
         for _ in range(MANIFOLD_STEPS):
             ray = origin.spawn_ray(d)
             si_m = scene.ray_intersect(ray, ray_flags=flags, coherent=False, active=ok)
@@ -519,49 +593,66 @@ class HybridShift:
         tr = mirror_transfer(ray.o, si_m, target, n_t)
         length = dr.norm(si_m.p - ray.o) + dr.norm(target - si_m.p)
         ok &= si_m.is_valid() & (dr.norm(tr.q - target) < MANIFOLD_TOLERANCE * length)
-        ok &= dr.reinterpret_array(mi.UInt32, si_m.shape) == dr.reinterpret_array(mi.UInt32, m_si.shape)
+        ok &= dr.reinterpret_array(mi.UInt32, si_m.shape) == dr.reinterpret_array(mi.UInt32, mirror_si.shape)
         ok &= dr.dot(target - si_m.p, tr.reflected) > 0.0
-        ok &= _curved_enough(si_m, origin.p, m_p, self.follow_curvature)
+        ok &= _curved_enough(si_m, origin.p, mirror_origin, self.follow_curvature)
         ok &= ~scene.ray_test(si_m.spawn_ray_to(target), ok)
         _, weight = si_m.bsdf().sample(ctx, si_m, 0.0, mi.Point2f(0.5), ok)
         # Both paths' footprints from their surface points (not the epsilon-offset ray origins), alike, so that a
         # shift onto the same pixel has a Jacobian of 1 to rounding.
-        base_footprint = mirror_transfer(m_p, m_si, target, n_t).footprint(n_t)
-        conv = base_footprint / mirror_transfer(origin.p, si_m, target, n_t).footprint(n_t) / m_pdf
+        base_footprint = mirror_transfer(mirror_origin, mirror_si, target, n_t).footprint(n_t)
+        conv = base_footprint / mirror_transfer(origin.p, si_m, target, n_t).footprint(n_t) / mirror_origin_pdf
         ok &= dr.isfinite(conv) & (conv > 0.0) & (dr.max(weight) > 0.0)
         return mi.Bool(ok), mi.Vector3f(tr.direction), mi.Float(conv), mi.Spectrum(weight), mi.Vector3f(tr.reflected)
 
     def step(self, scene: mi.Scene, off: HybridState, base: Vertex, depth: mi.UInt32, max_depth: mi.UInt32,
              samples: VertexSamples) -> tuple[HybridState, OffsetEvents]:
-        ctx = mi.BSDFContext()
+        """Advance the offset by the base path's vertex ``x_{k+1}`` (``base``): choose the strategy, make the
+        transition, arrive, and evaluate the offset's two events there."""
+        use_copy, use_follow, use_manifold = self._features(scene)
+        st = self._choose(off, base, depth, use_follow, use_manifold, use_copy)
+        tr = self._transition(scene, off, base, st, use_copy, use_manifold)
+        own = self._trace_own(scene, off, base, st, tr, depth, use_copy, use_follow)
+        at = self._arrive(off, base, st, tr, own, use_manifold)
+        emitted, w_hit = self._emission(scene, base, st, at)
+        nee, w_nee, has_vertex = self._next_event(scene, base, st, at, depth, max_depth)
+        new = HybridState(
+            active=has_vertex & (depth + 1 < max_depth), status=at.status, throughput=at.throughput,
+            ratio=at.ratio, ray=off.ray, vertex=at.si, vertex_bsdf=at.bsdf, vertex_flags=at.flags,
+            replay_lobe=mi.Float(samples.lobe), replay_direction=mi.Point2f(samples.direction),
+            base_point=mi.Point3f(base.si.p), base_flags=base.bsdf_flags, base_bsdf_id=_bsdf_id(base.bsdf),
+            base_wi=mi.Vector3f(base.si.wi), base_wo=mi.Vector3f(base.sample.wo),
+            base_out_dir=base.si.to_world(base.sample.wo), base_out_pdf=base.sample.pdf,
+            base_out_weight=base.sample_weight,
+            base_out_delta=mi.has_flag(base.sample.sampled_type, mi.BSDFFlags.Delta),
+            base_out_eta=mi.Float(base.sample.eta),
+            mirror_si=dr.select(st.wait, base.si, off.mirror_si) if use_manifold else off.mirror_si,
+            mirror_origin=dr.select(st.wait, off.base_point, off.mirror_origin) if use_manifold else off.mirror_origin,
+            mirror_origin_pdf=(dr.select(st.wait, off.base_out_pdf, off.mirror_origin_pdf) if use_manifold
+                               else off.mirror_origin_pdf))
+        return new, OffsetEvents(emitted=emitted, nee=nee, w_hit=w_hit, w_nee=w_nee)
+
+    def _choose(self, off: HybridState, base: Vertex, depth: mi.UInt32, use_follow: bool, use_manifold: bool,
+                use_copy: bool) -> Strategy:
+        """The strategy out of ``y_k``. Every condition is a symmetric function of the pair (base vertex x_k,
+        offset vertex y_k) and of the path being shifted, so the shift back from the offset's own base path
+        chooses the same strategy."""
         first = depth == 0
         active = mi.Bool(off.active)
-        throughput = mi.Spectrum(off.throughput)
-        ratio = mi.Float(off.ratio)
         status = mi.UInt32(off.status)
-        prev_si = off.si
-        prev_bsdf = off.bsdf
         base_valid = base.si.is_valid()
-        use_copy, use_follow, use_manifold = self._features(scene)
-        use_far = self.footprint > 0.0
-
-        # ---- transition into this vertex: which strategy ---------------------------------------------------
-        # Every condition below is a symmetric function of the pair (base vertex x_k, offset vertex y_k) and of
-        # the path being shifted, so the shift back from the offset's own base path chooses the same strategy.
         not_connected = active & (status == NOT_CONNECTED) & ~first
-        recent = active & (status == RECENTLY_CONNECTED)
-        connected = active & (status == CONNECTED)
-        off_rough = _rough(off.flags)
-        base_rough = _rough(off.b_flags)
-        rough_pair = not_connected & ~off.b_delta & base_rough & off_rough
-        if use_far:
-            rough_pair &= self._far(off.b_p, prev_si.p, base.si.p, ~base_valid)
+        off_rough = _rough(off.vertex_flags)
+        base_rough = _rough(off.base_flags)
+        rough_pair = not_connected & ~off.base_out_delta & base_rough & off_rough
+        if self.footprint > 0.0:
+            rough_pair &= self._far(off.base_point, off.vertex.p, base.si.p, ~base_valid)
         reconnect = rough_pair & (~base_valid | _rough(base.bsdf_flags))
         # A base vertex with delta lobes only (mirror, glass, null interface): move onto that very point and follow
         # the delta lobe from there with the offset's own incoming direction (replay at it), instead of replaying
         # from y_k -- which would send a parallel ray to another point of a curved mirror or lens.
         if use_follow:
-            follow = rough_pair & _follows(base.bsdf_flags, base_valid, base.si, off.b_p, prev_si.p,
+            follow = rough_pair & _follows(base.bsdf_flags, base_valid, base.si, off.base_point, off.vertex.p,
                                            self.follow_curvature)
         else:
             follow = mi.Bool(False)
@@ -573,152 +664,197 @@ class HybridShift:
         else:
             wait = mi.Bool(False)
         to_vertex = reconnect | follow
-        glossy_pair = _glossy(off.b_flags) & _glossy(off.flags)
-        copy = (not_connected & ~to_vertex & ~wait & ~off.b_delta & off_rough & glossy_pair if use_copy
+        glossy_pair = _glossy(off.base_flags) & _glossy(off.vertex_flags)
+        copy = (not_connected & ~to_vertex & ~wait & ~off.base_out_delta & off_rough & glossy_pair if use_copy
                 else mi.Bool(False))
-        replay = not_connected & ~to_vertex & ~copy & ~wait
+        return Strategy(first=first, recent=active & (status == RECENTLY_CONNECTED),
+                        connected=active & (status == CONNECTED), pending=active & (status == PENDING),
+                        reconnect=reconnect, follow=follow, wait=wait, copy=copy,
+                        replay=not_connected & ~to_vertex & ~copy & ~wait, base_rough=base_rough,
+                        off_rough=off_rough, glossy_pair=glossy_pair)
 
-        # ---- manifold reconnection: through the mirror to the base path's vertex after it -------------------
-        pending = active & (status == PENDING)
-        if use_manifold:
-            mani, mani_dir, mani_conv, mani_f, mani_wi = self._through_mirror(scene, off, prev_si, base, pending)
-        else:
-            mani = mi.Bool(False)
-
-        # ---- reconnection to the base path's vertex (or to its direction, at infinity) ----------------------
+    def _reconnection(self, scene: mi.Scene, off: HybridState, base: Vertex,
+                      to_vertex: mi.Bool) -> tuple[mi.Vector3f, mi.Float, mi.Bool]:
+        """**Reconnection** (and the first half of **follow**): the direction from ``y_k`` to the base path's
+        vertex ``x_{k+1}`` (or the base path's direction, at infinity), its Jacobian over the base path's
+        solid-angle pdf at ``x_k``, and whether the segment exists (unoccluded, a positive base density)."""
+        prev_si = off.vertex
+        base_valid = base.si.is_valid()
         # Segments are measured from the rays' actual origins (the surface point pushed off by Mitsuba's ray
         # epsilon), as the base path's ray was: for coinciding vertices the shift is the identity to rounding.
         origin = prev_si.spawn_ray(base.si.p - prev_si.p).o
         to_base = base.si.p - origin
         dist2_off = dr.maximum(dr.squared_norm(to_base), MIN_DISTANCE2)
-        wo_rc = dr.select(base_valid, to_base * dr.rsqrt(dist2_off), off.b_dir)
-        shadow = dr.select(base_valid, prev_si.spawn_ray_to(base.si.p), prev_si.spawn_ray(off.b_dir))
+        wo_rc = dr.select(base_valid, to_base * dr.rsqrt(dist2_off), off.base_out_dir)
+        shadow = dr.select(base_valid, prev_si.spawn_ray_to(base.si.p), prev_si.spawn_ray(off.base_out_dir))
         visible = ~scene.ray_test(shadow, to_vertex)
         # Everything per unit *area* at the shared vertex: the base path's density of having found it,
-        # b_pdf * cos / t^2, and the offset's geometry term cos' / d'^2. Their ratio is the Jacobian over the
-        # base's solid-angle pdf, without forming either one (grazing hits make both blow up in float32).
-        area_pdf_base = off.b_pdf * dr.abs(dr.dot(base.si.n, off.b_dir)) / dr.square(base.si.t)
+        # base_out_pdf * cos / t^2, and the offset's geometry term cos' / d'^2. Their ratio is the Jacobian over
+        # the base's solid-angle pdf, without forming either one (grazing hits make both blow up in float32).
+        area_pdf_base = off.base_out_pdf * dr.abs(dr.dot(base.si.n, off.base_out_dir)) / dr.square(base.si.t)
         geometry_off = dr.abs(dr.dot(base.si.n, wo_rc)) / dist2_off
         area_ok = area_pdf_base > 0.0
-        conv_rc = dr.select(base_valid, geometry_off / dr.select(area_ok, area_pdf_base, 1.0), dr.rcp(off.b_pdf))
+        conv_rc = dr.select(base_valid, geometry_off / dr.select(area_ok, area_pdf_base, 1.0),
+                            dr.rcp(off.base_out_pdf))
+        return wo_rc, conv_rc, visible & (~base_valid | area_ok)
 
-        # ---- half-vector copy at the offset's vertex ---------------------------------------------------------
+    def _half_vector_copy(self, off: HybridState) -> tuple[mi.Bool, mi.Vector3f, mi.Float]:
+        """**Half-vector copy** at ``y_k``: (exists, direction in world space, Jacobian). A refraction keeps the
+        material's index of refraction (the base path's, or its reciprocal where the offset arrives from the
+        other side): it needs the same BSDF at both vertices."""
+        prev_si = off.vertex
+        hv = half_vector_shift(off.base_wi, off.base_wo, off.base_out_eta, prev_si.wi,
+                               offset_eta(off.base_wi, off.base_out_eta, prev_si.wi))
+        refracts = mi.Frame3f.cos_theta(off.base_wi) * mi.Frame3f.cos_theta(off.base_wo) < 0.0
+        ok = hv.ok & (~refracts | (_bsdf_id(off.vertex_bsdf) == off.base_bsdf_id))
+        return ok, prev_si.to_world(hv.wo), hv.jacobian
+
+    def _transition(self, scene: mi.Scene, off: HybridState, base: Vertex, st: Strategy, use_copy: bool,
+                    use_manifold: bool) -> Transition:
+        """The strategies that evaluate the offset's BSDF at ``y_k`` for a direction they construct
+        (reconnection, follow, half-vector copy, manifold reconnection) or for the base path's next direction
+        (an offset reconnected last iteration): one BSDF evaluation serves them all; ``conv`` is the Jacobian
+        over the base path's pdf, in solid angle at that vertex."""
+        ctx = mi.BSDFContext()
+        prev_si, prev_bsdf = off.vertex, off.vertex_bsdf
+        to_vertex = st.to_vertex
+        wo_rc, conv_rc, rc_ok = self._reconnection(scene, off, base, to_vertex)
+        eval_dir = dr.select(to_vertex, wo_rc, off.base_out_dir)
+        copy_dir = mi.Vector3f(0.0, 0.0, 1.0)
         if use_copy:
-            # A refraction keeps the material's index of refraction (the base path's, or its reciprocal where the
-            # offset arrives from the other side): it needs the same BSDF at both vertices.
-            hv = half_vector_shift(off.b_wi, off.b_wo, off.b_eta, prev_si.wi,
-                                   offset_eta(off.b_wi, off.b_eta, prev_si.wi))
-            refracts = mi.Frame3f.cos_theta(off.b_wi) * mi.Frame3f.cos_theta(off.b_wo) < 0.0
-            hv_ok = hv.ok & (~refracts | (_bsdf_id(prev_bsdf) == off.b_bsdf))
-            wo_hv = prev_si.to_world(hv.wo)
-            eval_dir = dr.select(to_vertex, wo_rc, dr.select(copy, wo_hv, off.b_dir))
-            conv = dr.select(to_vertex, conv_rc, dr.select(copy, hv.jacobian, 1.0) * dr.rcp(off.b_pdf))
+            hv_ok, copy_dir, hv_jacobian = self._half_vector_copy(off)
+            eval_dir = dr.select(to_vertex, wo_rc, dr.select(st.copy, copy_dir, off.base_out_dir))
+            conv = dr.select(to_vertex, conv_rc, dr.select(st.copy, hv_jacobian, 1.0) * dr.rcp(off.base_out_pdf))
         else:
-            eval_dir = dr.select(to_vertex, wo_rc, off.b_dir)
-            conv = dr.select(to_vertex, conv_rc, dr.rcp(off.b_pdf))
+            conv = dr.select(to_vertex, conv_rc, dr.rcp(off.base_out_pdf))
+        mani = mi.Bool(False)
+        mirror_wi = mi.Vector3f(0.0, 0.0, 1.0)
         if use_manifold:
+            mani, mani_dir, mani_conv, mani_f, mirror_wi = self._through_mirror(scene, off, prev_si, base,
+                                                                              st.pending)
             eval_dir = dr.select(mani, mani_dir, eval_dir)
             conv = dr.select(mani, mani_conv, conv)
-
-        # One BSDF evaluation at the offset's previous vertex serves a new reconnection (towards the base path's
-        # vertex), a reconnection made one vertex earlier (towards the base path's next direction) and the
-        # half-vector copy; ``conv`` is the Jacobian over the base path's pdf, in solid angle at that vertex.
-        evaluated = to_vertex | recent | copy | mani
+        evaluated = to_vertex | st.recent | st.copy | mani
         val, pdf = prev_bsdf.eval_pdf(ctx, prev_si, prev_si.to_local(eval_dir), evaluated)
         step_f = dr.select(evaluated, val * conv, 1.0)
         if use_manifold:
             step_f = dr.select(mani, step_f * mani_f, step_f)
         step_r = dr.select(evaluated, pdf * conv, 1.0)
-        fail = evaluated & ~(off.b_pdf > 0.0)
+        fail = evaluated & ~(off.base_out_pdf > 0.0)
         fail |= evaluated & ~(dr.max(val) > 0.0)  # the offset's own base path would end here: no such pair
-        fail |= to_vertex & (~visible | (base_valid & ~area_ok))
-        fail |= recent & off.b_delta  # a delta direction of the base path is not one for the offset's own wi
-        fail |= pending & ~mani  # no path through the mirror (or the reverse shift would not take one)
+        fail |= to_vertex & ~rc_ok
+        fail |= st.recent & off.base_out_delta  # a delta direction of the base path is not one for the offset's wi
+        fail |= st.pending & ~mani  # no path through the mirror (or the reverse shift would not take one)
         if use_copy:
-            fail |= copy & ~hv_ok
+            fail |= st.copy & ~hv_ok
+        return Transition(evaluated=evaluated, pdf=pdf, step_f=step_f, step_r=step_r, fail=fail,
+                          reconnection_dir=wo_rc, copy_dir=copy_dir, mirror=mani, mirror_wi=mirror_wi)
 
-        # ---- replay at the offset's own vertex, or the primary ray ---------------------------------------------
-        bs, bs_weight = prev_bsdf.sample(ctx, prev_si, off.lobe, off.direction, replay)
+    def _trace_own(self, scene: mi.Scene, off: HybridState, base: Vertex, st: Strategy, tr: Transition,
+                   depth: mi.UInt32, use_copy: bool, use_follow: bool) -> OwnVertex:
+        """**Replay** at ``y_k`` (the base path's random numbers), and the ray of every offset that finds its next
+        vertex itself (primary ray, replay, half-vector copy). Adds to ``tr.fail`` where the reverse shift, from
+        this offset as a base path back to the base path, would pick another strategy: it reconnects (or
+        follows) where the offset left a non-delta lobe towards a rough (or curved specular) vertex; after a
+        replay with a non-delta lobe between two glossy vertices, it would copy the half-vector."""
+        ctx = mi.BSDFContext()
+        prev_si, prev_bsdf = off.vertex, off.vertex_bsdf
+        bs, bs_weight = prev_bsdf.sample(ctx, prev_si, off.replay_lobe, off.replay_direction, st.replay)
         own_dir = prev_si.to_world(bs.wo)
         if use_copy:
-            own_dir = dr.select(copy, wo_hv, own_dir)
-        own_ray = dr.select(first, off.ray, prev_si.spawn_ray(own_dir))
-        traced = (first & active) | replay | copy
-        si_own = scene.ray_intersect(own_ray, ray_flags=self.ray_flags(scene), coherent=first, active=traced)
+            own_dir = dr.select(st.copy, tr.copy_dir, own_dir)
+        own_ray = dr.select(st.first, off.ray, prev_si.spawn_ray(own_dir))
+        traced = (st.first & off.active) | st.replay | st.copy
+        si_own = scene.ray_intersect(own_ray, ray_flags=self.ray_flags(scene), coherent=st.first, active=traced)
         own_valid = si_own.is_valid()
         own_bsdf = si_own.bsdf()
         own_flags = dr.select(own_valid, own_bsdf.flags(), 0)
-        # The reverse shift, from this offset as a base path back to the base path, must pick the same strategy.
-        # It reconnects where the offset left a vertex with a non-delta lobe towards a rough vertex; after a
-        # replay with a non-delta lobe between two glossy vertices, it would copy the half-vector.
         own_nondelta = ~mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
         if use_copy:
-            own_nondelta |= copy
-        both_rough = own_nondelta & base_rough & off_rough
+            own_nondelta |= st.copy
+        both_rough = own_nondelta & st.base_rough & st.off_rough
         reverse_target = ~own_valid | _rough(own_flags)
         if use_follow:
-            reverse_target |= _follows(own_flags, own_valid, si_own, prev_si.p, off.b_p, self.follow_curvature)
+            reverse_target |= _follows(own_flags, own_valid, si_own, prev_si.p, off.base_point,
+                                       self.follow_curvature)
         reverse_reconnects = both_rough & reverse_target
-        if use_far:
-            reverse_reconnects &= self._far(prev_si.p, off.b_p, si_own.p, ~own_valid)
+        if self.footprint > 0.0:
+            reverse_reconnects &= self._far(prev_si.p, off.base_point, si_own.p, ~own_valid)
         reverse_strategy_differs = reverse_reconnects
         if use_copy:
-            reverse_strategy_differs |= both_rough & glossy_pair
-            fail |= copy & reverse_reconnects
-        fail |= replay & (reverse_strategy_differs | (dr.max(bs_weight) == 0.0))
-        step_f = dr.select(replay, bs_weight, step_f)
-        step_f = dr.select(connected, off.b_weight, step_f)
+            reverse_strategy_differs |= both_rough & st.glossy_pair
+            tr.fail |= st.copy & reverse_reconnects
+        tr.fail |= st.replay & (reverse_strategy_differs | (dr.max(bs_weight) == 0.0))
+        tr.step_f = dr.select(st.replay, bs_weight, tr.step_f)
+        tr.step_f = dr.select(st.connected, off.base_out_weight, tr.step_f)
+        return OwnVertex(si=si_own, bsdf=own_bsdf, flags=own_flags, sample=bs, weight=bs_weight)
 
-        throughput = dr.select(active, throughput * step_f, throughput)
-        ratio = dr.select(active, ratio * step_r, ratio)
-        active &= ~fail
+    def _arrive(self, off: HybridState, base: Vertex, st: Strategy, tr: Transition, own_vertex: OwnVertex,
+                use_manifold: bool) -> Arrival:
+        """Apply the transition: the offset's throughput, density ratio and status, and the vertex it arrives at
+        -- its own, the base path's (with its own incoming direction), or ``y_k`` while it waits at a mirror."""
+        active = mi.Bool(off.active)
+        throughput = dr.select(active, off.throughput * tr.step_f, off.throughput)
+        ratio = dr.select(active, off.ratio * tr.step_r, off.ratio)
+        active &= ~tr.fail
         throughput = dr.select(active, throughput, 0.0)
         ratio = dr.select(active, ratio, 0.0)
 
-        # The offset's vertex here, and how it arrived (for its own emitter/BSDF MIS).
+        base_valid = base.si.is_valid()
         si_base_wi = mi.SurfaceInteraction3f(base.si)
-        si_base_wi.wi = dr.select(to_vertex & base_valid, base.si.to_local(-wo_rc), base.si.wi)
-        own = (first & active) | replay | copy
-        si = dr.select(own, si_own, si_base_wi)
-        flags = dr.select(own, own_flags, base.bsdf_flags)
-        bsdf = dr.select(own, own_bsdf, base.bsdf)
+        si_base_wi.wi = dr.select(st.to_vertex & base_valid, base.si.to_local(-tr.reconnection_dir), base.si.wi)
+        own = (st.first & active) | st.replay | st.copy
+        si = dr.select(own, own_vertex.si, si_base_wi)
+        flags = dr.select(own, own_vertex.flags, base.bsdf_flags)
+        bsdf = dr.select(own, own_vertex.bsdf, base.bsdf)
         if use_manifold:
             # a waiting offset stays where it is; one connected through the mirror arrives from the mirror point
-            si_base_wi.wi = dr.select(mani, mani_wi, si_base_wi.wi)
-            si = dr.select(wait, prev_si, dr.select(mani, si_base_wi, si))
-            flags = dr.select(wait, off.flags, flags)
-            bsdf = dr.select(wait, prev_bsdf, bsdf)
-        shared = active & ~own  # this vertex is the base path's
-        status = dr.select(reconnect | mani, RECENTLY_CONNECTED, dr.select(recent, CONNECTED, status))
-        status = dr.select(wait, PENDING, status)
-        prev_it = _interaction(prev_si)
-        prev_pdf = dr.select(replay, bs.pdf, dr.select(evaluated, pdf, off.b_pdf))
-        prev_delta = dr.select(replay, mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta),
-                               dr.select(evaluated, False, off.b_delta))
-        prev_delta |= first
+            si_base_wi.wi = dr.select(tr.mirror, tr.mirror_wi, si_base_wi.wi)
+            si = dr.select(st.wait, off.vertex, dr.select(tr.mirror, si_base_wi, si))
+            flags = dr.select(st.wait, off.vertex_flags, flags)
+            bsdf = dr.select(st.wait, off.vertex_bsdf, bsdf)
+        status = dr.select(st.reconnect | tr.mirror, RECENTLY_CONNECTED,
+                           dr.select(st.recent, CONNECTED, mi.UInt32(off.status)))
+        status = dr.select(st.wait, PENDING, status)
+        bs = own_vertex.sample
+        prev_pdf = dr.select(st.replay, bs.pdf, dr.select(tr.evaluated, tr.pdf, off.base_out_pdf))
+        prev_delta = dr.select(st.replay, mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta),
+                               dr.select(tr.evaluated, False, off.base_out_delta))
+        prev_delta |= st.first
         # arrived by the mirror's delta reflection: emission found there has MIS weight 1, as on the base path
-        prev_pdf = dr.select(mani, 1.0, prev_pdf)
-        prev_delta |= mani
+        prev_pdf = dr.select(tr.mirror, 1.0, prev_pdf)
+        prev_delta |= tr.mirror
         # An offset connected before this vertex arrived at the base path's vertex from the base path's previous
         # vertex and in its direction: the emission found and its emitter-sampling pdf are the base path's (only
         # the BSDF pdf of the MIS weight is the offset's own), and so is the next-event estimate per unit
         # throughput, with a light-sample density ratio of 1. Nothing to evaluate there.
-        reuse = connected | recent
-        evaluate = active & ~reuse & ~wait  # a waiting offset has no events (nor has the base path at a mirror)
+        reuse = st.connected | st.recent
+        return Arrival(active=active, throughput=throughput, ratio=ratio, status=status, si=si, bsdf=bsdf,
+                       flags=flags, prev=_interaction(off.vertex), prev_pdf=prev_pdf, prev_delta=prev_delta,
+                       shared=active & ~own, reuse=reuse,
+                       evaluate=active & ~reuse & ~st.wait)  # a waiting offset has no events (nor has the base)
 
-        # ---- emission found at this vertex ------------------------------------------------------------------
-        ds = _emitter_hit(scene, si, prev_it, evaluate)
-        em_pdf = scene.pdf_emitter_direction(prev_it, ds, evaluate & ~prev_delta)
-        em_pdf = dr.select(reuse, base.emitter_pdf, em_pdf)
-        emission = dr.select(reuse, base.emission, ds.emitter.eval(si, evaluate))
-        emitted = dr.select(active & ~wait, throughput * mis_power(prev_pdf, em_pdf) * emission, 0.0)
-        w_hit = dr.select(active & ~wait, _balance(ratio), 1.0)
+    def _emission(self, scene: mi.Scene, base: Vertex, st: Strategy, at: Arrival) -> tuple[mi.Spectrum, mi.Float]:
+        """The offset's contribution to the event "emission found at this vertex", and its MIS weight."""
+        ds = _emitter_hit(scene, at.si, at.prev, at.evaluate)
+        em_pdf = scene.pdf_emitter_direction(at.prev, ds, at.evaluate & ~at.prev_delta)
+        em_pdf = dr.select(at.reuse, base.emitter_pdf, em_pdf)
+        emission = dr.select(at.reuse, base.emission, ds.emitter.eval(at.si, at.evaluate))
+        emitting = at.active & ~st.wait
+        emitted = dr.select(emitting, at.throughput * mis_power(at.prev_pdf, em_pdf) * emission, 0.0)
+        return emitted, dr.select(emitting, _balance(at.ratio), 1.0)
 
-        # ---- next-event estimation: the base path's light sample ------------------------------------------
-        has_vertex = active & si.is_valid()
+    def _next_event(self, scene: mi.Scene, base: Vertex, st: Strategy, at: Arrival, depth: mi.UInt32,
+                    max_depth: mi.UInt32) -> tuple[mi.Spectrum, mi.Float, mi.Bool]:
+        """The offset's next-event estimate with the base path's light sample (reconnected to the same emitter
+        point, or the same direction at infinity) and its own shadow ray; on shared vertices the base path's
+        estimate per unit throughput. Returns (contribution, MIS weight, the offset has a surface vertex)."""
+        ctx = mi.BSDFContext()
+        si = at.si
+        has_vertex = at.active & si.is_valid()
         light = base.light
         nee_on = has_vertex & base.nee_sampled & (depth + 1 < max_depth)
-        can_nee = nee_on & _rough(flags) & ~reuse & ~wait
+        can_nee = nee_on & _rough(at.flags) & ~at.reuse & ~st.wait
         infinite = base.light_infinite
         to_light = light.p - si.p
         dist_off = dr.norm(to_light)
@@ -727,12 +863,12 @@ class HybridShift:
                                       dr.select(infinite, light.d, to_light / dr.maximum(dist_off, 1e-12)),
                                       dr.select(infinite, light.dist, dist_off), light.emitter)
         own_shadow = dr.select(infinite, si.spawn_ray(light.d), si.spawn_ray_to(light.p))
-        light_visible = dr.select(shared, base.light_visible,
-                                  ~scene.ray_test(own_shadow, can_nee & ~shared))
+        light_visible = dr.select(at.shared, base.light_visible,
+                                  ~scene.ray_test(own_shadow, can_nee & ~at.shared))
         le = scene.eval_emitter_direction(_interaction(si), ds_off, can_nee)
         light_pdf = scene.pdf_emitter_direction(_interaction(si), ds_off, can_nee & ~light.delta)
-        # Per unit area on an area emitter (see the reconnection above); delta and infinitely distant emitters
-        # keep the point (or direction), so the Jacobian is 1 and solid-angle pdfs compare directly.
+        # Per unit area on an area emitter (see the reconnection); delta and infinitely distant emitters keep the
+        # point (or direction), so the Jacobian is 1 and solid-angle pdfs compare directly.
         on_area = ~light.delta & ~infinite
         area_pdf_light = light.pdf * dr.abs(dr.dot(light.n, light.d)) / dr.square(light.dist)
         geometry_l = dr.abs(dr.dot(light.n, ds_off.d)) / dr.maximum(dr.square(dist_off), MIN_DISTANCE2)
@@ -740,30 +876,16 @@ class HybridShift:
         # The offset produces this event only where its own emitter-sampling density is finite and nonzero
         # (a vertex in the emitter's plane, or behind it, cannot): then the weight is the base path's alone.
         can_nee &= light.delta | (dr.isfinite(light_pdf) & (light_pdf > 0.0))
-        b_val, b_pdf = bsdf.eval_pdf(ctx, si, si.to_local(ds_off.d), can_nee)
+        b_val, b_pdf = at.bsdf.eval_pdf(ctx, si, si.to_local(ds_off.d), can_nee)
         mis_l = dr.select(light.delta, 1.0, mis_power(light_pdf, b_pdf))
-        nee = throughput * mis_l * b_val * le * conv_l
+        nee = at.throughput * mis_l * b_val * le * conv_l
         nee = dr.select(can_nee & light_visible, nee, 0.0)
         r_light = dr.select(light.delta, 1.0, light_pdf * conv_l)
-        w_nee = dr.select(can_nee, _balance(ratio * r_light), 1.0)
-        reused_nee = reuse & nee_on
-        nee = dr.select(reused_nee, throughput * base.nee_weight, nee)
-        w_nee = dr.select(reused_nee, _balance(ratio), w_nee)
-
-        # ---- stash what the next transition needs --------------------------------------------------------
-        continues = has_vertex & (depth + 1 < max_depth)
-        new = HybridState(
-            active=continues, status=status, throughput=throughput, ratio=ratio, ray=off.ray, si=si, bsdf=bsdf,
-            flags=flags,
-            lobe=mi.Float(samples.lobe), direction=mi.Point2f(samples.direction), b_pdf=base.sample.pdf,
-            b_weight=base.sample_weight, b_dir=base.si.to_world(base.sample.wo),
-            b_delta=mi.has_flag(base.sample.sampled_type, mi.BSDFFlags.Delta), b_flags=base.bsdf_flags,
-            b_p=mi.Point3f(base.si.p), b_wi=mi.Vector3f(base.si.wi), b_wo=mi.Vector3f(base.sample.wo),
-            b_eta=mi.Float(base.sample.eta), b_bsdf=_bsdf_id(base.bsdf),
-            m_si=dr.select(wait, base.si, off.m_si) if use_manifold else off.m_si,
-            m_p=dr.select(wait, off.b_p, off.m_p) if use_manifold else off.m_p,
-            m_pdf=dr.select(wait, off.b_pdf, off.m_pdf) if use_manifold else off.m_pdf)
-        return new, OffsetEvents(emitted=emitted, nee=nee, w_hit=w_hit, w_nee=w_nee)
+        w_nee = dr.select(can_nee, _balance(at.ratio * r_light), 1.0)
+        reused_nee = at.reuse & nee_on
+        nee = dr.select(reused_nee, at.throughput * base.nee_weight, nee)
+        w_nee = dr.select(reused_nee, _balance(at.ratio), w_nee)
+        return nee, w_nee, has_vertex
 
     # ---- connected offsets (renderer.gpt.ConnectingShift) ----------------------------------------------------
 
@@ -780,15 +902,17 @@ class HybridShift:
         ctx = mi.BSDFContext()
         connected = offset.active & (offset.status == CONNECTED)
         recent = offset.active & (offset.status == RECENTLY_CONNECTED)
-        val, pdf = offset.bsdf.eval_pdf(ctx, offset.si, offset.si.to_local(offset.b_dir), recent)
-        ok = recent & (offset.b_pdf > 0.0) & (dr.max(val) > 0.0) & ~offset.b_delta
-        inv_pdf = dr.rcp(dr.select(ok, offset.b_pdf, 1.0))
+        val, pdf = offset.vertex_bsdf.eval_pdf(ctx, offset.vertex, offset.vertex.to_local(offset.base_out_dir),
+                                                 recent)
+        ok = recent & (offset.base_out_pdf > 0.0) & (dr.max(val) > 0.0) & ~offset.base_out_delta
+        inv_pdf = dr.rcp(dr.select(ok, offset.base_out_pdf, 1.0))
         # A failed shift keeps this vertex's events (already counted) and contributes 0 from the next one on,
         # with weight 1 for the base path: a zero weight and density ratio give exactly that.
         return ConnectedState(active=connected | recent, throughput=offset.throughput, ratio=offset.ratio,
-                              b_weight=dr.select(connected, offset.b_weight, dr.select(ok, val * inv_pdf, 0.0)),
-                              b_ratio=dr.select(recent, dr.select(ok, pdf * inv_pdf, 0.0), 1.0),
-                              own_pdf=mi.Float(pdf), fresh=mi.Bool(recent))
+                              next_weight=dr.select(connected, offset.base_out_weight,
+                                                    dr.select(ok, val * inv_pdf, 0.0)),
+                              next_ratio=dr.select(recent, dr.select(ok, pdf * inv_pdf, 0.0), 1.0),
+                              own_next_pdf=mi.Float(pdf), just_connected=mi.Bool(recent))
 
     def step_connected(self, off: ConnectedState, base: Vertex, depth: mi.UInt32,
                        max_depth: mi.UInt32) -> tuple[ConnectedState, OffsetEvents]:
@@ -796,19 +920,19 @@ class HybridShift:
         that led here, the base path's emission (MIS-weighted with the offset's own pdf right after the
         reconnection) and next-event estimate per unit throughput, the density ratio fixed from then on."""
         active = off.active
-        throughput = dr.select(active, off.throughput * off.b_weight, 0.0)
-        ratio = off.ratio * off.b_ratio
+        throughput = dr.select(active, off.throughput * off.next_weight, 0.0)
+        ratio = off.ratio * off.next_ratio
         weight = _balance(ratio)
         has_vertex = active & base.si.is_valid()
         nee_on = has_vertex & base.nee_sampled & (depth + 1 < max_depth)
-        emitted_weight = dr.select(off.fresh, mis_power(off.own_pdf, base.emitter_pdf) * base.emission,
+        emitted_weight = dr.select(off.just_connected, mis_power(off.own_next_pdf, base.emitter_pdf) * base.emission,
                                    base.emitted_weight)
         events = OffsetEvents(emitted=dr.select(active, throughput * emitted_weight, 0.0),
                               nee=dr.select(nee_on, throughput * base.nee_weight, 0.0),
                               w_hit=dr.select(active, weight, 1.0), w_nee=dr.select(nee_on, weight, 1.0))
         new = ConnectedState(active=has_vertex & (depth + 1 < max_depth), throughput=throughput, ratio=ratio,
-                             b_weight=base.sample_weight, b_ratio=mi.Float(1.0), own_pdf=mi.Float(0.0),
-                             fresh=mi.Bool(False))
+                             next_weight=base.sample_weight, next_ratio=mi.Float(1.0), own_next_pdf=mi.Float(0.0),
+                             just_connected=mi.Bool(False))
         return new, events
 
     def scale(self, offset: HybridState | ConnectedState, factor: mi.Float,

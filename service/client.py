@@ -18,7 +18,6 @@ answer that is not an EXR).
 
 from __future__ import annotations
 
-import argparse
 import email.utils
 import logging
 import os
@@ -32,6 +31,8 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+
+from model.errors import CommandError
 
 DEFAULT_URL = "http://127.0.0.1:8000"
 EXIT_OK, EXIT_SERVER_ERROR, EXIT_UNAVAILABLE = 0, 1, 75
@@ -112,8 +113,6 @@ def post_frame(client: httpx.Client, url: str, data: bytes, params: dict[str, An
                policy: RetryPolicy, sleep: Callable[[float], None] = time.sleep,
                rng: random.Random | None = None) -> httpx.Response:
     """POST the frame, retrying 503 and connection failures; return the 200 response or raise."""
-    from gradsep.cli import CommandError
-
     endpoint = f"{url.rstrip('/')}/v1/reconstruct"
     headers = {"Content-Type": "image/x-exr", "X-Request-ID": request_id}
     attempts = policy.retries + 1
@@ -147,13 +146,11 @@ def post_frame(client: httpx.Client, url: str, data: bytes, params: dict[str, An
     raise Unavailable(f"{reason} (gave up after {attempts} attempts)")
 
 
-def _resolve(args: argparse.Namespace) -> tuple[str, str | None]:
-    """URL and token: the flag, else GRADSEP_URL / GRADSEP_TOKEN, else the default URL and no token."""
-    url = args.url or os.environ.get("GRADSEP_URL") or DEFAULT_URL
-    token = args.token or os.environ.get("GRADSEP_TOKEN") or None
+def resolve_target(url: str | None, token: str | None) -> tuple[str, str | None]:
+    """URL and token: the given value, else GRADSEP_URL / GRADSEP_TOKEN, else the default URL and no token."""
+    url = url or os.environ.get("GRADSEP_URL") or DEFAULT_URL
+    token = token or os.environ.get("GRADSEP_TOKEN") or None
     if not url.startswith(("http://", "https://")):
-        from gradsep.cli import CommandError
-
         raise CommandError(f"--url must start with http:// or https://, got {url!r}")
     return url, token
 
@@ -167,33 +164,38 @@ def _setup_logging() -> None:
         log.propagate = False
 
 
-def client_command(args: argparse.Namespace, *, sleep: Callable[[float], None] = time.sleep) -> int:
-    """Post ``args.frame`` to the service and write the answer to ``args.output`` atomically."""
-    from gradsep.cli import CommandError
+def send_frame(frame: Path, output: Path, *, url: str | None = None, token: str | None = None,
+               params: dict[str, Any] | None = None, retries: int = 5, timeout: float = 300.0,
+               sleep: Callable[[float], None] = time.sleep) -> int:
+    """Post ``frame`` to the service and write the answer to ``output`` atomically; returns the exit status.
+
+    ``params`` are the request's query parameters (method, alpha, format, layers; None values are dropped).
+    Bad input and 4xx answers raise CommandError (exit 2); an unavailable or failing service returns
+    EXIT_UNAVAILABLE / EXIT_SERVER_ERROR after printing one line.
+    """
     from model.frame import write_bytes_atomic
 
     _setup_logging()
-    url, token = _resolve(args)
-    if args.retries < 0:
-        raise CommandError(f"--retries must be 0 or more, got {args.retries}")
-    if not args.timeout > 0:
-        raise CommandError(f"--timeout must be positive, got {args.timeout}")
-    frame, output = Path(args.frame), Path(args.output)
+    url, token = resolve_target(url, token)
+    if retries < 0:
+        raise CommandError(f"--retries must be 0 or more, got {retries}")
+    if not timeout > 0:
+        raise CommandError(f"--timeout must be positive, got {timeout}")
+    frame, output = Path(frame), Path(output)
     try:
         data = frame.read_bytes()
     except OSError as exc:
         raise CommandError(f"cannot read {frame}: {exc.strerror or exc}") from None
     if not output.parent.is_dir():
         raise CommandError(f"output folder {output.parent} does not exist")
-    params = {k: v for k, v in (("method", args.method), ("alpha", args.alpha), ("format", args.format),
-                                ("layers", args.layers)) if v is not None}
+    params = {k: v for k, v in (params or {}).items() if v is not None}
     request_id = uuid.uuid4().hex
     auth = {"Authorization": f"Bearer {token}"} if token else {}
-    timeout = httpx.Timeout(args.timeout, connect=min(args.timeout, 10.0))
+    http_timeout = httpx.Timeout(timeout, connect=min(timeout, 10.0))
     started = time.perf_counter()
     try:
-        with httpx.Client(timeout=timeout, headers=auth) as client:
-            response = post_frame(client, url, data, params, request_id, RetryPolicy(retries=args.retries), sleep)
+        with httpx.Client(timeout=http_timeout, headers=auth) as client:
+            response = post_frame(client, url, data, params, request_id, RetryPolicy(retries=retries), sleep)
         if not response.content.startswith(EXR_MAGIC):
             raise ServerFailure(f"service answered 200 with a non-EXR body "
                                 f"({response.headers.get('content-type', 'no content type')})")

@@ -1,22 +1,32 @@
-"""`gradsep serve | client`: argparse only; handlers import FastAPI/httpx lazily."""
+"""`gradsep serve | client`: the argument parsers and their handlers; FastAPI/uvicorn/httpx are imported lazily
+by the handlers, so building the parser costs nothing."""
 
 from __future__ import annotations
 
 import argparse
+import time
+from collections.abc import Callable
+from pathlib import Path
 
 from model.policy import METHODS
 
 
-def _serve(args: argparse.Namespace) -> int:
-    from service.serve import serve_command
+def serve_command(args: argparse.Namespace) -> int:
+    """`gradsep serve`: run the service under uvicorn with settings validated up front."""
+    from service.serve import serve
 
-    return serve_command(args)
+    serve(args.host, args.port, args.workers)
+    return 0
 
 
-def _client(args: argparse.Namespace) -> int:
-    from service.client import client_command
+def client_command(args: argparse.Namespace, *, sleep: Callable[[float], None] = time.sleep) -> int:
+    """`gradsep client FRAME -o OUT`: post the frame, write the answer atomically; the exit status of
+    service.client.send_frame (0 written, 2 bad input or 4xx, 75 unavailable, 1 service failure)."""
+    from service.client import send_frame
 
-    return client_command(args)
+    params = {"method": args.method, "alpha": args.alpha, "format": args.format, "layers": args.layers}
+    return send_frame(Path(args.frame), Path(args.output), url=args.url, token=args.token, params=params,
+                      retries=args.retries, timeout=args.timeout, sleep=sleep)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -24,7 +34,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--host", default="0.0.0.0")
     p.add_argument("--port", type=int, default=8000)
     p.add_argument("--workers", type=int, default=1)
-    p.set_defaults(func=_serve)
+    p.set_defaults(func=serve_command)
 
     p = sub.add_parser("client", help="post a frame to the service and write the reconstruction (render-farm task)")
     p.add_argument("frame", help="input frame (.exr)")
@@ -38,4 +48,4 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--retries", type=int, default=5, help="retries on 503 and connection errors")
     p.add_argument("--timeout", type=float, default=300.0, help="seconds per request")
     p.add_argument("--token", default=None, help="bearer token (or $GRADSEP_TOKEN)")
-    p.set_defaults(func=_client)
+    p.set_defaults(func=client_command)

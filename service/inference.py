@@ -32,12 +32,12 @@ from model.frame import (
     read_frame,
     rgb_channels,
 )
+from model.policy import POISSON_METHODS
 from service.errors import ServiceError
 from service.settings import Settings
 
 log = logging.getLogger("gradsep.service")
 
-POISSON_METHODS = ("l1", "l2")
 T = TypeVar("T")
 
 
@@ -227,23 +227,26 @@ class Engine:
     @property
     def methods(self) -> tuple[str, ...]:
         """What this replica serves, in model.policy.METHODS order."""
-        from model.policy import METHODS
+        from model.policy import METHODS, OIDN_METHODS
 
         served = {*POISSON_METHODS, *(("network",) if self.network is not None else ()),
-                  *(("fused",) if self.fused is not None else ()), *(("oidn",) if self.oidn else ())}
+                  *(("fused",) if self.fused is not None else ()),
+                  *(sorted(OIDN_METHODS) if self.oidn else ())}
         return tuple(m for m in METHODS if m in served)
 
     @property
     def default_method(self) -> str:
         """The default for a gradient-domain frame with features (the first of DEFAULT_PREFERENCE served)."""
-        from model import policy
+        from model.policy import default_method
 
-        return next(m for m in (*policy.DEFAULT_PREFERENCE, "l1") if m in self.methods)
+        return default_method(self.methods, gradients=True) or "l1"
 
     @property
     def default_method_plain(self) -> str | None:
         """The default for a plain frame (no gradients): oidn, or None when OIDN is not installed."""
-        return "oidn" if self.oidn else None
+        from model.policy import default_method
+
+        return default_method(self.methods, gradients=False)
 
     def start(self, task_group: TaskGroup) -> None:
         """Create the gate and load + warm up in the background, so /healthz answers during a long load."""

@@ -8,7 +8,7 @@ from contextlib import asynccontextmanager
 import anyio
 from fastapi import FastAPI
 
-from gradsep import __version__
+from model import __version__
 from service.errors import install_error_handlers
 from service.inference import Engine
 from service.metrics import ServiceMetrics

@@ -2,18 +2,16 @@
 
 from __future__ import annotations
 
-import argparse
 import copy
 from typing import Any
 
+from model.errors import CommandError
 from service.settings import Settings
 
 
 def _settings_or_error() -> Settings:
     """Read GRADSEP_* once here so a typo fails the command with one line instead of crashing each worker."""
     from pydantic import ValidationError
-
-    from gradsep.cli import CommandError
 
     try:
         return Settings()
@@ -36,21 +34,19 @@ def log_config(level: str) -> dict[str, Any]:
     return config
 
 
-def serve_command(args: argparse.Namespace) -> int:
+def serve(host: str, port: int, workers: int) -> None:
     """Start uvicorn with the app factory; each worker process builds its own app (stateless replicas)."""
     import uvicorn
 
-    from gradsep.cli import CommandError
-
-    if not 0 <= args.port <= 65535:
-        raise CommandError(f"--port must be between 0 and 65535, got {args.port}")
-    if args.workers < 1:
-        raise CommandError(f"--workers must be at least 1, got {args.workers}")
+    if not 0 <= port <= 65535:
+        raise CommandError(f"--port must be between 0 and 65535, got {port}")
+    if workers < 1:
+        raise CommandError(f"--workers must be at least 1, got {workers}")
     from service.protocol import http_protocol
 
     settings = _settings_or_error()
     uvicorn.run(
-        "service.main:create_app", factory=True, host=args.host, port=args.port, workers=args.workers,
+        "service.main:create_app", factory=True, host=host, port=port, workers=workers,
         log_level=settings.log_level, log_config=log_config(settings.log_level),
         access_log=False,  # our own access line (service.middleware) has the request id
         server_header=False,
@@ -59,4 +55,3 @@ def serve_command(args: argparse.Namespace) -> int:
         # (which waits for inference threads). Bound the wait by the longest a request may legitimately take.
         timeout_graceful_shutdown=int(settings.inference_timeout) + 30,
     )
-    return 0

@@ -13,6 +13,7 @@ from pydantic import AliasChoices, Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from model.poisson import MIN_ALPHA
+from model.policy import DEFAULT_ALPHA, DEFAULT_MODELS_DIR, MODELS_ENV
 
 MiB = 1024 * 1024
 
@@ -37,12 +38,13 @@ class Settings(BaseSettings):
     token: SecretStr | None = Field(
         None, description="bearer token; when set every endpoint but /healthz and /readyz requires it (401)")
     models_dir: Path = Field(
-        Path("models"), validation_alias=AliasChoices("GRADSEP_MODELS", "GRADSEP_MODELS_DIR"),
-        description="folder of exported ONNX models (env GRADSEP_MODELS); absent -> Poisson methods only")
+        Path(DEFAULT_MODELS_DIR), validation_alias=AliasChoices(MODELS_ENV, "GRADSEP_MODELS_DIR"),
+        description=f"folder of exported ONNX models (env {MODELS_ENV}); absent -> Poisson methods only")
     nonfinite: Literal["reject", "zero"] = Field(
         "reject", description="NaN/Inf in radiance or gradients: reject with 422, or replace with 0 and warn")
     default_alpha: float = Field(
-        0.2, ge=MIN_ALPHA, le=1000, description="screened Poisson data weight used when a request gives no alpha")
+        DEFAULT_ALPHA, ge=MIN_ALPHA, le=1000,
+        description="screened Poisson data weight used when a request gives no alpha")
     warm_up: bool = Field(True, description="run one small inference per method before reporting ready")
     log_level: Literal["critical", "error", "warning", "info", "debug"] = Field("info")
 

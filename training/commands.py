@@ -1,26 +1,70 @@
-"""`gradsep train | export`: argparse only; handlers import torch lazily."""
+"""`gradsep train | export`: the argument parsers and their handlers.
+
+Only argparse and the import-light model modules at module level: the handlers import torch (through
+training.train / training.export) when they run, so ``gradsep --help`` and ``gradsep serve`` work without torch.
+"""
 
 from __future__ import annotations
 
 import argparse
+import sys
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
+
+from model.errors import CommandError
+from model.policy import ILLUMINATION_LAYERS
+
+if TYPE_CHECKING:
+    from training.train import TrainConfig
 
 
-def _train(args: argparse.Namespace) -> int:
-    from training.train import train_command
+def config_from_args(args: argparse.Namespace) -> TrainConfig:
+    """The typed training configuration of `gradsep train`'s flags (None = the config's default)."""
+    from model.network import NetworkConfig
+    from training.train import TrainConfig
 
-    return train_command(args)
+    network = NetworkConfig(use_attention=not args.no_attention)
+    extra: dict[str, Any] = {}
+    for name in ("patch", "batch", "lr", "patches_per_frame"):
+        value = getattr(args, name)
+        if value is not None:
+            extra[name] = value
+    if getattr(args, "data_weight", None) is not None:
+        extra["alpha"] = args.data_weight
+    return TrainConfig(data=args.data, layer=args.layer, output=args.output, network=network,
+                       epochs=args.epochs, minutes=args.minutes, seed=args.seed,
+                       prior=getattr(args, "prior", None) or "l1", **extra)
 
 
-def _export(args: argparse.Namespace) -> int:
-    from training.export import export_command
+def train_command(args: argparse.Namespace) -> int:
+    """`gradsep train`: bad settings or data become a one-line CommandError."""
+    from training.train import TrainingError, train
 
-    return export_command(args)
+    try:
+        cfg = config_from_args(args)
+        train(cfg)
+    except (ValueError, TrainingError) as exc:  # DatasetError is a ValueError
+        raise CommandError(str(exc)) from exc
+    return 0
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("train", help="train the unsupervised reconstruction network for one layer")
+def export_command(args: argparse.Namespace) -> int:
+    """`gradsep export RUN -o OUT.onnx`: export, check ONNX Runtime against PyTorch, print a summary."""
+    from training.export import ExportError, export_run
+
+    try:
+        summary = export_run(args.run, args.output)
+    except ExportError as exc:
+        raise CommandError(str(exc)) from exc
+    print(f"wrote {summary['path']} ({summary['bytes'] / 1e6:.1f} MB): layer {summary['layer']}, attention "
+          f"{'on' if summary['attention'] else 'off'}, {summary['epochs']} epochs / {summary['steps']} steps, "
+          f"ORT-vs-PyTorch relative error {summary['parity_relative_error']:.1e}")
+    return 0
+
+
+def _add_train_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", required=True, help="dataset folder made by `gradsep dataset`")
-    p.add_argument("--layer", choices=("direct", "indirect", "color"), required=True,
+    p.add_argument("--layer", choices=ILLUMINATION_LAYERS, required=True,
                    help="color = direct+indirect summed (the no-separation baseline)")
     p.add_argument("--no-attention", action="store_true", help="drop CBAM (GradNet-style ablation)")
     p.add_argument("--minutes", type=float, default=None, help="wall-clock training budget")
@@ -37,9 +81,27 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "oidn = OIDN's denoise at a normalised exposure (the fused method)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("-o", "--output", required=True, help="run folder (config, checkpoints, log, curves)")
-    p.set_defaults(func=_train)
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("train", help="train the unsupervised reconstruction network for one layer")
+    _add_train_arguments(p)
+    p.set_defaults(func=train_command)
 
     p = sub.add_parser("export", help="export a trained run to ONNX with metadata")
     p.add_argument("run", help="run folder made by `gradsep train`")
     p.add_argument("-o", "--output", required=True, help="output .onnx")
-    p.set_defaults(func=_export)
+    p.set_defaults(func=export_command)
+
+
+def train_main(argv: Sequence[str] | None = None) -> int:
+    """``torchrun -m training.train ARGS``: `gradsep train ARGS` without the command-line package (each torchrun
+    worker runs this module); bad input is one line on stderr and exit status 2, as under ``gradsep``."""
+    parser = argparse.ArgumentParser(prog="training.train", description="same as `gradsep train`")
+    _add_train_arguments(parser)
+    args = parser.parse_args(argv)
+    try:
+        return train_command(args)
+    except CommandError as exc:
+        print(f"gradsep train: error: {exc}", file=sys.stderr)
+        return 2

@@ -31,6 +31,7 @@ import torch
 from torch.utils.data import Dataset
 
 from model.frame import FrameError, Layer, read_frame
+from model.policy import ILLUMINATION_LAYERS, SEPARATED_LAYERS
 from model.preprocess import (
     FEATURE_PLANES,
     LAYER_PLANES,
@@ -44,7 +45,7 @@ from model.preprocess import (
     scaled_layer,
 )
 
-TRAINABLE_LAYERS = ("direct", "indirect", "color")
+TRAINABLE_LAYERS = ILLUMINATION_LAYERS  # a network per layer; color = the unseparated baseline
 CACHE_FORMAT = 2
 
 
@@ -131,7 +132,7 @@ def select_layer(frame_layers: dict[str, Layer], layer: str) -> Layer | None:
     if layer in frame_layers:
         return frame_layers[layer]
     if layer == "color":
-        parts = [frame_layers[k] for k in ("direct", "indirect") if k in frame_layers]
+        parts = [frame_layers[k] for k in SEPARATED_LAYERS if k in frame_layers]
         if parts:
             total = parts[0]
             for p in parts[1:]:

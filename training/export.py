@@ -10,7 +10,6 @@ attention flag. The export is checked against PyTorch in ONNX Runtime before the
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import io
 import json
@@ -169,16 +168,3 @@ def export_run(run_dir: str | os.PathLike[str], output: str | os.PathLike[str]) 
     return {"path": str(path), "bytes": path.stat().st_size, "layer": cfg.layer,
             "attention": cfg.network.use_attention, "epochs": progress.get("epoch", 0),
             "steps": progress.get("step", 0), "parity_relative_error": err}
-
-
-def export_command(args: argparse.Namespace) -> int:
-    from gradsep.cli import CommandError
-
-    try:
-        summary = export_run(args.run, args.output)
-    except ExportError as exc:
-        raise CommandError(str(exc)) from exc
-    print(f"wrote {summary['path']} ({summary['bytes'] / 1e6:.1f} MB): layer {summary['layer']}, attention "
-          f"{'on' if summary['attention'] else 'off'}, {summary['epochs']} epochs / {summary['steps']} steps, "
-          f"ORT-vs-PyTorch relative error {summary['parity_relative_error']:.1e}")
-    return 0

@@ -21,7 +21,6 @@ DistributedSampler; rank 0 writes the run folder and decides when to stop, and t
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import dataclasses
 import json
@@ -42,6 +41,7 @@ from torch.utils.data import DataLoader, DistributedSampler, Sampler
 
 from model.network import DualBranchNet, GBranch, NetworkConfig, describe
 from model.preprocess import PREPROCESS_VERSION, PRIOR_CHANNELS, PRIOR_KINDS, describe_preprocessing, network_inputs
+from model.progress import ProgressBar
 from training.dataset import (
     TRAINABLE_LAYERS,
     DatasetError,
@@ -220,7 +220,7 @@ class SkipSampler(Sampler[int]):
 
 def code_version() -> str:
     """gradsep version plus the git commit of this checkout when there is one (for metadata)."""
-    from gradsep import __version__
+    from model import __version__
 
     try:
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
@@ -480,11 +480,8 @@ class Trainer:
     def _loader(self, dataset: PatchDataset, sampler: Sampler[int]) -> DataLoader:
         return DataLoader(dataset, batch_size=self.cfg.batch, sampler=sampler, drop_last=True, num_workers=0)
 
-    def _bar(self, total: int, initial: int, desc: str) -> Any:
-        from tqdm import tqdm
-
-        return tqdm(total=total, initial=initial, desc=desc, disable=self.quiet, leave=False,
-                    dynamic_ncols=True, file=sys.stderr)
+    def _bar(self, total: int, initial: int, desc: str) -> ProgressBar:
+        return ProgressBar(total, enabled=not self.quiet, desc=desc, initial=initial, leave=False)
 
     def _batches(self, phase: str) -> Iterator[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
         """The current epoch's batches of one phase (planes, features, targets), skipping those a previous
@@ -532,7 +529,7 @@ class Trainer:
                                           "beta": beta, "lr": self.opt.param_groups[0]["lr"],
                                           "elapsed": round(self.elapsed(), 2)})
                 bar.update(1)
-                bar.set_postfix(data=f"{values['data']:.4f}", grad=f"{values['grad']:.4f}",
+                bar.postfix(data=f"{values['data']:.4f}", grad=f"{values['grad']:.4f}",
                                 first=f"{values['first']:.4f}", beta=f"{beta:.2f}")
         finally:
             bar.close()
@@ -560,7 +557,7 @@ class Trainer:
                 p.sums["gn"] = p.sums.get("gn", 0.0) + 1
                 p.batch += 1
                 bar.update(1)
-                bar.set_postfix(first=f"{float(loss.detach()):.4f}")
+                bar.postfix(first=f"{float(loss.detach()):.4f}")
         finally:
             bar.close()
         p.phase, p.batch = "done", 0
@@ -665,33 +662,7 @@ def train(cfg: TrainConfig, quiet: bool = False) -> Progress:
         teardown_distributed(ctx)
 
 
-def config_from_args(args: argparse.Namespace) -> TrainConfig:
-    network = NetworkConfig(use_attention=not args.no_attention)
-    extra: dict[str, Any] = {}
-    for name in ("patch", "batch", "lr", "patches_per_frame"):
-        value = getattr(args, name)
-        if value is not None:
-            extra[name] = value
-    if getattr(args, "data_weight", None) is not None:
-        extra["alpha"] = args.data_weight
-    return TrainConfig(data=args.data, layer=args.layer, output=args.output, network=network,
-                       epochs=args.epochs, minutes=args.minutes, seed=args.seed,
-                       prior=getattr(args, "prior", None) or "l1", **extra)
-
-
-def train_command(args: argparse.Namespace) -> int:
-    """`gradsep train`: bad settings or data become a one-line CommandError."""
-    from gradsep.cli import CommandError
-
-    try:
-        cfg = config_from_args(args)
-        train(cfg)
-    except (ValueError, TrainingError) as exc:  # DatasetError is a ValueError
-        raise CommandError(str(exc)) from exc
-    return 0
-
-
 if __name__ == "__main__":  # `torchrun -m training.train ...` works as well as `torchrun -m gradsep train ...`
-    from gradsep.cli import main
+    from training.commands import train_main
 
-    sys.exit(main(["train", *sys.argv[1:]]))
+    sys.exit(train_main(sys.argv[1:]))

@@ -23,7 +23,7 @@ from starlette.responses import Response
 
 from model.frame import HeaderInfo, NotExrError, Source, read_header
 from model.poisson import MIN_ALPHA
-from model.policy import DEFAULT_PREFERENCE
+from model.policy import DEFAULT_PREFERENCE, METHODS
 from service.dependencies import get_engine, get_metrics
 from service.errors import ErrorResponse, ServiceError
 from service.inference import Engine, ReconstructParams, run_pipeline, server_timing
@@ -80,7 +80,7 @@ async def reconstruct_frame(
     request: Request,
     engine: Annotated[Engine, Depends(get_engine)],
     metrics: Annotated[ServiceMetrics, Depends(get_metrics)],
-    method: Annotated[Literal["network", "l1", "l2", "oidn", "fused"] | None, Query(
+    method: Annotated[Literal[METHODS] | None, Query(  # type: ignore[valid-type]
         description="reconstruction method; default: the first of " + " > ".join(DEFAULT_PREFERENCE)
                     + " (model/policy.py) that this replica serves for the frame; a plain frame without gradients "
                     "gets oidn")] = None,

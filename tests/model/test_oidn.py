@@ -131,3 +131,51 @@ def test_oidn_on_a_gradient_frame_ignores_the_gradients() -> None:
     with_gradients = reconstruct(Frame({"direct": Layer(noisy, dx, dx)}), "oidn").image
     plain = reconstruct(Frame({"direct": Layer(noisy)}), "oidn").image
     np.testing.assert_array_equal(with_gradients, plain)
+
+
+# ------------------------------------------------------------------------------------------- settings
+
+
+def test_oidn_runs_its_setting_and_fused_keeps_its_trained_prior(monkeypatch) -> None:
+    """``oidn`` runs METHOD_SETTING (or $GRADSEP_OIDN_SETTING); the fused models' prior stays PRIOR_SETTING, the
+    setting their training cache was made with, whatever ``oidn`` runs (docs/oidn.md)."""
+    from model import oidn
+
+    assert oidn.PRIOR_SETTING == "prefiltered-high" and oidn.METHOD_SETTING in oidn.SETTINGS
+    assert shared_denoiser().setting.name == oidn.PRIOR_SETTING  # what preprocess/infer use for fused
+    used = []
+    real = Denoiser.denoise
+    monkeypatch.setattr(Denoiser, "denoise", lambda self, *a: used.append(self.setting.name) or real(self, *a))
+    reconstruct(_plain(), "oidn")
+    assert set(used) == {oidn.METHOD_SETTING}
+    used.clear()
+    monkeypatch.setenv(oidn.SETTING_ENV, "none-high")
+    reconstruct(_plain(), "oidn")
+    assert set(used) == {"none-high"}
+    monkeypatch.setenv(oidn.SETTING_ENV, "sharpest")
+    with pytest.raises(ValueError, match="raw-fast"):  # an unknown setting names the valid ones
+        reconstruct(_plain(), "oidn")
+
+
+@pytest.mark.parametrize("name", ["prefiltered-high", "raw-fast", "none-fast"])
+def test_every_setting_is_exposure_exact_energy_keeping_and_black_safe(name: str) -> None:
+    """The stability guarantees hold per setting: 1e-8 and 1e9 scale exactly, black stays black, 1x1 keeps its
+    energy, and the auxiliary images follow the setting (denoised, passed raw, or none)."""
+    denoiser = Denoiser(name)
+    frame = _plain()
+    aux = denoiser.prefilter(frame.features)
+    assert (aux is None) == (name.startswith("none"))
+    if aux is not None:
+        assert aux.clean == name.startswith("prefiltered")
+        assert aux.clean or np.array_equal(aux.albedo, frame.features.albedo)
+    base = frame.layers["direct"].base
+    unit = denoiser.denoise(base, aux)
+    for scale in (1e-8, 1e9):
+        scaled = denoiser.denoise(base * np.float32(scale), aux)
+        rel = np.abs(scaled / scale - unit) / np.maximum(unit, 1e-6)
+        assert np.isfinite(scaled).all() and rel.max() < 1e-3, (name, scale)
+    assert not denoiser.denoise(np.zeros((8, 9, 3), np.float32), None).any()
+    pixel = np.array([[[0.2, 3.0, 7.5]]], np.float32)
+    np.testing.assert_allclose(denoiser.denoise(pixel, None), pixel, rtol=1e-5)
+    with pytest.raises(ValueError, match="unknown OIDN setting"):
+        Denoiser("fastest")

@@ -120,7 +120,7 @@ def test_reconstruct_errors_are_clear() -> None:
         reconstruct(frame, "l2", alpha=0.0)
     with pytest.raises(RuntimeError, match="shape"):
         reconstruct(frame, "network", network=HalfBase(np.zeros((2, 2, 3), np.float32)))
-    assert METHODS == ("network", "l1", "l2", "oidn", "fused")
+    assert METHODS == ("network", "l1", "l2", "oidn", "oidn-l1", "fused")
 
 
 def test_network_refuses_layers_it_has_no_model_for() -> None:
@@ -134,12 +134,14 @@ def test_network_refuses_layers_it_has_no_model_for() -> None:
 def test_default_method_is_the_first_preferred_method_that_serves_the_frame(monkeypatch) -> None:
     network, fused = HalfBase(), HalfBase()
     network.layers = fused.layers = {"direct", "indirect"}
-    assert choose_method(_frame(), network, fused) == "oidn"  # ranked first by the evaluation (model/policy.py)
-    assert choose_method(_frame(), network) == "oidn"  # OIDN (installed here) ranks above the network
-    assert choose_method(_frame(features=False), network, fused) == "oidn"
+    assert choose_method(_frame(), network, fused) == "oidn-l1"  # first in model/policy.py (held-out study)
+    assert choose_method(_frame(), network) == "oidn-l1"  # OIDN (installed here) ranks above the network
+    assert choose_method(_frame(features=False), network, fused) == "oidn-l1"  # features are optional for it
+    plain = Frame({n: Layer(layer.base) for n, layer in _frame().layers.items()}, _frame().features)
+    assert choose_method(plain, network, fused) == "oidn"  # oidn-l1 needs gradients
     fused.layers = {"direct"}  # fused models that do not cover the frame are passed over
-    assert choose_method(_frame(), network, fused) == "oidn"
-    assert reconstruct(_frame(), network=network, fused=fused).method == "oidn"
+    assert choose_method(_frame(), network, fused) == "oidn-l1"
+    assert reconstruct(_frame(), network=network, fused=fused).method == "oidn-l1"
     monkeypatch.setattr("model.policy.DEFAULT_PREFERENCE", ("fused", "oidn", "network", "l1"))
     fused.layers = {"direct", "indirect"}
     assert choose_method(_frame(), network, fused) == "fused"  # the order is data: a policy change is one line
@@ -182,9 +184,9 @@ def test_cli_writes_a_readable_sum(tmp_path: Path, capsys) -> None:
     types = _exr_types(tmp_path / "out.exr")
     assert set(types) == {"R", "G", "B"} and all(t == np.float32 for t in types.values())
     written = _open_exr(tmp_path / "out.exr")
-    want = reconstruct(read_frame(tmp_path / "in.exr"), "oidn").image  # the default without fused models
+    want = reconstruct(read_frame(tmp_path / "in.exr"), "oidn-l1").image  # the default for a G-PT frame
     np.testing.assert_allclose(_rgb(tmp_path / "out.exr"), want, rtol=1e-5, atol=1e-7)
-    assert written.header()["gradsep.method"] == "oidn"
+    assert written.header()["gradsep.method"] == "oidn-l1"
     assert sorted(os.listdir(tmp_path)) == ["in.exr", "out.exr"]
 
 

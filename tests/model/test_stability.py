@@ -53,6 +53,19 @@ class Tolerance:
 
 TOLERANCES = {"l1": Tolerance(1e-6, 1e-6, 1e-5), "l2": Tolerance(1e-6, 1e-6, 1e-5)}
 LEARNED = Tolerance(0.05, 0.05, 0.5)  # network, oidn, fused and any method added later that is not a solver
+#: OIDN's ``fast`` model (the ``oidn`` method's default setting raw-fast, docs/oidn.md) is less exact at the image
+#: border: on these exact frames its worst pixel (a corner) is 0.50-0.54 off (median 0.4-0.5 %, energy within
+#: 1 %; measured 2026-12-01), where the high/balanced models stay under 0.5. Energy and median bounds unchanged.
+LEARNED_FAST_OIDN = Tolerance(0.05, 0.05, 0.65)
+
+
+def _tolerance(method: str) -> Tolerance:
+    if method in ("oidn", "oidn-l1"):
+        from model.oidn import SETTINGS, method_setting
+
+        if SETTINGS[method_setting()].quality == "fast":
+            return LEARNED_FAST_OIDN
+    return TOLERANCES.get(method, LEARNED)
 
 # The decades every method must handle: 1e-8 .. 1e9 (the Poisson solvers are linear, oidn scales the exposure
 # exactly, network and fused normalise the exposure per layer: model/infer.py, model/preprocess.py).
@@ -103,7 +116,7 @@ def _models(method: str) -> dict[str, Any]:
         if _networks["fused"] is None:
             pytest.skip("no fused models (models/fused/*.onnx) in this checkout")
         return {"fused": _networks["fused"]}
-    if method == "oidn":
+    if method in ("oidn", "oidn-l1"):
         from model.oidn import available
 
         if not available():
@@ -180,7 +193,7 @@ def test_exact_frame_energy_and_accuracy_per_decade(method: str, decade: int) ->
     so the mean (energy) and every pixel must come back within the method's stated tolerance, at every decade."""
     frame, exact = _exact_frame(24, 29, 10.0**decade, seed=decade + 20)
     result = _run(frame, method)
-    tol = TOLERANCES.get(method, LEARNED)
+    tol = _tolerance(method)
     assert not result.warnings
     energy = abs(result.image.astype(np.float64).mean() / exact.mean() - 1)
     assert energy <= tol.energy, f"{method} at 1e{decade}: mean off by {energy:.2e} (allowed {tol.energy:g})"
@@ -198,7 +211,7 @@ def test_degenerate_sizes_reconstruct_the_exact_frame(method: str, size: tuple[i
     """1x1, single rows/columns and odd sizes: no special case may lose a row, a column or a layer."""
     frame, exact = _exact_frame(*size, scale=1.0, seed=size[0] * 100 + size[1])
     result = _run(frame, method)
-    tol = TOLERANCES.get(method, LEARNED)
+    tol = _tolerance(method)
     assert result.image.shape == (*size, 3) and not result.warnings
     assert abs(result.image.astype(np.float64).mean() / exact.mean() - 1) <= tol.energy
     assert _rel(result.image, exact).max() <= tol.worst

@@ -13,7 +13,8 @@ import pytest
 
 mi = pytest.importorskip("mitsuba")
 
-from gradsep.cli import CommandError, main  # noqa: E402
+from gradsep.cli import main  # noqa: E402
+from model.errors import CommandError  # noqa: E402
 from model.frame import read_frame, write_frame  # noqa: E402
 from renderer.gpt import GptSettings, render_gpt  # noqa: E402
 from renderer.render import parse_layers, render_frame  # noqa: E402

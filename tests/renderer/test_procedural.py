@@ -8,7 +8,15 @@ from typing import Any
 import numpy as np
 import pytest
 
-from renderer.procedural import GENERATOR_VERSION, describe, generate, procedural_scene, scene_summary
+from renderer.errors import SceneError
+from renderer.procedural import (
+    GENERATOR_VERSION,
+    describe,
+    generate,
+    parse_procedural,
+    procedural_scene,
+    scene_summary,
+)
 
 DISTRIBUTION_SEEDS = range(300)  # plan generation only (no rendering): ~1 s
 
@@ -80,6 +88,15 @@ def test_bad_arguments_are_clear_errors(kwargs: dict) -> None:
 
 
 # -- distribution ------------------------------------------------------------------------------------------
+
+def test_the_one_spec_parser() -> None:
+    assert parse_procedural("procedural:42") == 42 and parse_procedural("procedural:0") == 0
+    assert parse_procedural("scenes/cbox.xml") is None and parse_procedural("procedural.xml") is None
+    with pytest.raises(SceneError, match="integer seed"):
+        parse_procedural("procedural:x")
+    with pytest.raises(SceneError, match="must be >= 0"):
+        parse_procedural("procedural:-3")
+
 
 def test_every_seed_has_an_emitter_and_a_camera_inside_the_room() -> None:
     for seed in DISTRIBUTION_SEEDS:

@@ -10,7 +10,7 @@ import pytest
 
 mi = pytest.importorskip("mitsuba")
 
-from gradsep.cli import CommandError  # noqa: E402
+from model.errors import CommandError  # noqa: E402
 from renderer.scene import (  # noqa: E402
     SceneError,
     force_film_dict,

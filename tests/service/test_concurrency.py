@@ -210,11 +210,11 @@ def test_fused_models_are_served_and_the_policy_order_picks_the_default(serve, m
     monkeypatch.setattr(service.inference, "reconstruct", reconstruct)
     with serve(create_app(settings(warm_up=False))) as client:
         ready = client.get("/readyz").json()
-        assert ready["methods"] == ["l1", "l2", "oidn", "fused"]
-        assert ready["default_method"] == "oidn" and ready["default_method_plain"] == "oidn"  # model/policy.py
+        assert ready["methods"] == ["l1", "l2", "oidn", "oidn-l1", "fused"]
+        assert ready["default_method"] == "oidn-l1" and ready["default_method_plain"] == "oidn"  # model/policy.py
         models = client.get("/v1/models").json()
-        assert models["default_method"] == "oidn" and models["models"][0]["method"] == "fused"
-        assert post(client, frame_bytes(seed=9, features=True)).headers["x-reconstruction-method"] == "oidn"
+        assert models["default_method"] == "oidn-l1" and models["models"][0]["method"] == "fused"
+        assert post(client, frame_bytes(seed=9, features=True)).headers["x-reconstruction-method"] == "oidn-l1"
         assert post(client, frame_bytes(seed=9, features=True), {"method": "fused"}).headers[
             "x-reconstruction-method"] == "fused"
         monkeypatch.setattr("model.policy.DEFAULT_PREFERENCE", ("fused", "oidn", "network", "l1"))

@@ -116,7 +116,7 @@ def test_health_readiness_models_and_metrics(poisson_api, transport):
     client = poisson_api[transport]
     assert client.get("/healthz").json() == {"status": "ok"}
     oidn = importlib.util.find_spec("pyoidn") is not None  # part of the serve extra; l1 is the fallback without
-    methods, default = (["l1", "l2", "oidn"], "oidn") if oidn else (["l1", "l2"], "l1")
+    methods, default = (["l1", "l2", "oidn", "oidn-l1"], "oidn-l1") if oidn else (["l1", "l2"], "l1")
     assert client.get("/readyz").json() == {"status": "ready", "methods": methods, "default_method": default,
                                             "default_method_plain": "oidn" if oidn else None}
     models = client.get("/v1/models").json()
@@ -301,7 +301,7 @@ def test_network_without_models_is_422_listing_available_methods(poisson_api, tr
     error = assert_error(post(poisson_api[transport], frame_bytes(), {"method": "network"}),
                          422, "method_unavailable")
     oidn = importlib.util.find_spec("pyoidn") is not None
-    assert error["details"] == {"available": ["l1", "l2", "oidn"] if oidn else ["l1", "l2"]}
+    assert error["details"] == {"available": ["l1", "l2", "oidn", "oidn-l1"] if oidn else ["l1", "l2"]}
     fused = assert_error(post(poisson_api[transport], frame_bytes(), {"method": "fused"}), 422, "method_unavailable")
     assert "fused" not in fused["details"]["available"]
 

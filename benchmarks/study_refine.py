@@ -1,0 +1,178 @@
+"""Held-out study behind the ``oidn-l1`` method (model/refine.py, docs/network.md "The oidn-l1 method"): does an
+L1 gradient-domain solve with OIDN's image as its data term improve on OIDN, for which layers, at which α, with
+how many IRLS passes, and at what cost.
+
+    python benchmarks/study_refine.py render --seeds 81001-81008 --spp 1,4,16,64   # frames + references (cached)
+    python benchmarks/study_refine.py error                                      # the tables (cached frames)
+    python benchmarks/study_refine.py time                                       # 1280x720 cost of the refinement
+
+Scenes: procedural seeds that are neither evaluation scenes (90001, 90002) nor in the training range; nothing
+here reads cbox or the teapot. Frames: G-PT at 320x240 (seed 7), each spp. References: two independent Mitsuba
+``path`` renders (seeds 1 and 2, ``--ref-spp`` each). Error: RelMSE of the summed layers with the references'
+noise removed (model.metrics.relmse_unbiased), as a ratio to ``oidn`` at the same OIDN setting; geometric means.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import statistics
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+SIZE = (320, 240)
+DEFAULT_CACHE = Path(os.environ.get("GRADSEP_CACHE", Path.home() / ".cache" / "gradsep")) / "refine-study"
+ALPHAS = (0.5, 1.0, 2.0)
+PASSES = (2, 4, 8, 20)
+
+
+def _seeds(text: str) -> list[int]:
+    out: list[int] = []
+    for part in text.split(","):
+        lo, _, hi = part.partition("-")
+        out.extend(range(int(lo), int(hi or lo) + 1))
+    return out
+
+
+def render(seeds: list[int], spps: list[int], ref_spp: int, cache: Path) -> None:
+    from model.frame import write_frame
+    from renderer.reference import render_loaded
+    from renderer.render import render_frame
+    from renderer.scene import load_scene
+
+    for seed in seeds:
+        folder = cache / f"procedural-{seed}"
+        folder.mkdir(parents=True, exist_ok=True)
+        loaded = load_scene(f"procedural:{seed}", width=SIZE[0], height=SIZE[1])
+        for spp in spps:
+            path = folder / f"gpt-{spp}.exr"
+            if not path.is_file():
+                write_frame(path, render_frame(loaded, spp=spp, seed=7))
+        for ref_seed in (1, 2):
+            path = folder / f"ref-{ref_seed}-{ref_spp}.npz"
+            if not path.is_file():
+                ref = render_loaded(loaded, spp=ref_spp, seed=ref_seed, tile_spp=None, progress=False)
+                images = {"total": ref.total, "direct": ref.direct}
+                if ref.indirect is not None:
+                    images["indirect"] = ref.indirect
+                np.savez(path, **{k: np.asarray(v, np.float32) for k, v in images.items()})
+        print(f"procedural:{seed}: cached in {folder}", flush=True)
+
+
+def _variants(setting: str) -> dict[str, Callable]:
+    """name -> f(name, denoised, layer) for one layer; 'oidn' is the identity."""
+    from model import refine
+
+    def solve(alpha: float, passes: int, layers: frozenset[str]) -> Callable:
+        def run(name, denoised, layer):
+            if name not in layers:
+                return denoised
+            saved = refine.REFINE_ITERATIONS, refine.REFINED_LAYERS
+            refine.REFINE_ITERATIONS, refine.REFINED_LAYERS = passes, layers
+            try:
+                return refine.refine_layer(name, denoised, layer, alpha)
+            finally:
+                refine.REFINE_ITERATIONS, refine.REFINED_LAYERS = saved
+        return run
+
+    direct, both = frozenset({"direct"}), frozenset({"direct", "indirect"})
+    out: dict[str, Callable] = {"oidn": lambda name, denoised, layer: denoised}
+    out["oidn-l1 (shipped)"] = solve(refine.REFINE_ALPHA, refine.REFINE_ITERATIONS, refine.REFINED_LAYERS)
+    for alpha in ALPHAS:
+        out[f"direct, a={alpha:g}"] = solve(alpha, refine.REFINE_ITERATIONS, direct)
+        out[f"both layers, a={alpha:g}"] = solve(alpha, refine.REFINE_ITERATIONS, both)
+    for passes in PASSES:
+        out[f"direct, a={refine.REFINE_ALPHA:g}, {passes} passes"] = solve(refine.REFINE_ALPHA, passes, direct)
+    return out
+
+
+def error(cache: Path, settings: list[str]) -> None:
+    from model.frame import read_frame
+    from model.metrics import relmse_unbiased
+    from model.oidn import Denoiser
+
+    scores: dict[tuple[str, str], list[float]] = {}
+    cases = 0
+    for folder in sorted(p for p in cache.glob("procedural-*") if p.is_dir()):
+        refs = sorted(folder.glob("ref-*.npz"))
+        if len(refs) < 2:
+            continue
+        r1, r2 = (np.load(p) for p in refs[:2])
+        for frame_path in sorted(folder.glob("gpt-*.exr"), key=lambda p: int(p.stem.split("-")[1])):
+            frame = read_frame(str(frame_path))
+            cases += 1
+            for setting in settings:
+                den = Denoiser(setting)
+                aux = den.prefilter(frame.features) if frame.features is not None else None
+                denoised = {n: den.denoise(layer.base, aux) for n, layer in frame.layers.items()}
+                base = None
+                for variant, run in _variants(setting).items():
+                    total = sum(run(n, denoised[n], layer) for n, layer in frame.layers.items())
+                    score = relmse_unbiased(total, r1["total"], r2["total"])
+                    base = score if variant == "oidn" else base
+                    scores.setdefault((setting, variant), []).append(score / base)
+                den.close()
+            print(f"{folder.name} {frame_path.stem}: done", flush=True)
+    print(f"\n{cases} frames; RelMSE / oidn's at the same OIDN setting (geometric mean, worst, cases better)\n")
+    print("| OIDN setting | variant | geo mean | worst | better than oidn |")
+    print("|---|---|---:|---:|---:|")
+    for (setting, variant), ratios in scores.items():
+        if variant == "oidn":
+            continue
+        geo = math.exp(sum(math.log(r) for r in ratios) / len(ratios))
+        better = sum(r < 1 for r in ratios)
+        print(f"| {setting} | {variant} | {geo:.3f} | {max(ratios):.2f} | {better}/{len(ratios)} |")
+
+
+def timing(width: int, height: int, repeats: int) -> None:
+    """The refinement of one 1280x720 direct layer (synthetic noisy HDR data: the solve's cost does not depend
+    on content), medians of ``repeats``."""
+    from model.frame import Layer, forward_differences
+    from model.refine import refine_layer
+
+    rng = np.random.default_rng(0)
+    truth = rng.uniform(0.1, 2.0, (height // 16 + 1, width // 16 + 1, 3)).astype(np.float32)
+    truth = np.repeat(np.repeat(truth, 16, 0), 16, 1)[:height, :width]
+    dx, dy = forward_differences(truth)
+    noise = lambda: rng.normal(0, 0.1, truth.shape).astype(np.float32)  # noqa: E731
+    layer = Layer(truth + noise(), dx + noise(), dy + noise())
+    refine_layer("direct", truth, layer)  # warm-up (numba/FFT plans)
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        refine_layer("direct", truth, layer)
+        times.append(time.perf_counter() - start)
+    print(f"refinement of one {width}x{height} direct layer: median {statistics.median(times):.3f} s "
+          f"(min {min(times):.3f}, {repeats} repeats)")
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--cache", type=Path, default=DEFAULT_CACHE)
+    sub = parser.add_subparsers(dest="command", required=True)
+    r = sub.add_parser("render")
+    r.add_argument("--seeds", default="81001-81008")
+    r.add_argument("--spp", default="1,4,16,64")
+    r.add_argument("--ref-spp", type=int, default=1024)
+    e = sub.add_parser("error")
+    e.add_argument("--settings", default="raw-fast", help="comma-separated model.oidn.SETTINGS names")
+    t = sub.add_parser("time")
+    t.add_argument("--width", type=int, default=1280)
+    t.add_argument("--height", type=int, default=720)
+    t.add_argument("--repeats", type=int, default=5)
+    args = parser.parse_args()
+    if args.command == "render":
+        render(_seeds(args.seeds), [int(s) for s in args.spp.split(",")], args.ref_spp, args.cache)
+    elif args.command == "error":
+        error(args.cache, args.settings.split(","))
+    else:
+        timing(args.width, args.height, args.repeats)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

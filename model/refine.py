@@ -1,0 +1,66 @@
+"""Gradient-domain refinement of a denoised layer: the second stage of the ``oidn-l1`` method.
+
+OIDN sees one noisy image and the frame's albedo and normal; a G-PT frame also carries each layer's sampled
+gradients, which OIDN cannot use. Here OIDN's result becomes the *data term* of the L1 screened Poisson problem
+(model/poisson.py ``solve_l1``)::
+
+    argmin_I  Σ α‖I − OIDN(base)‖ + Σ ‖(H_x I − dx, H_y I − dy)‖
+
+so the solution keeps OIDN's image where the gradients disagree with it only by noise (the L1 norm lets
+isolated noisy gradients go) and takes the gradients' detail where they agree with each other: edges and texture
+that OIDN blurred, light that it smeared. α is the weight of OIDN's image against the gradients.
+
+Only the **direct** layer is refined, with α = 1. Both were chosen on held-out procedural seeds (81001-81008,
+320x240, G-PT 1, 4, 16 and 64 spp, two independent 1024-spp references, product estimator; docs/network.md
+"The oidn-l1 method"), never on the evaluation's scenes. Refining the direct layer lowered the frame's RelMSE
+against OIDN alone in all 12 (seed, spp) cases at 16 and 64 spp and in 10 of 12 at 1 and 4 spp (2 % and 0.7 %
+worse in the other two). α = 0.5 was a little better at 16-64 spp but once four times worse than OIDN at 4 spp;
+α = 1 never was. Refining the indirect layer made it worse at α ≤ 1 and changed nothing at α = 5: its gradients
+come from longer paths whose shifts fail more often, so they are noisier than OIDN's own estimate. A ``color``
+layer (a frame rendered without separation) mixes both and is left as OIDN returns it.
+
+The solve runs at a normalised exposure (the layer divided by the mean of OIDN's image), because the IRLS
+regulariser of ``solve_l1`` is an absolute radiance: without it a 1e-6 frame and a 1e6 frame of the same scene
+would be refined differently. The result is scaled back, so every exposure returns the frame's own energy.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from model.frame import Layer
+from model.poisson import solve_l1
+from model.preprocess import scaled_image, scaled_layer
+
+#: The layers whose gradients refine OIDN's result (the rest keep OIDN's).
+REFINED_LAYERS: frozenset[str] = frozenset({"direct"})
+#: α of the refinement: the weight of OIDN's image against the gradients (held-out seeds, see the docstring).
+REFINE_ALPHA = 1.0
+#: IRLS passes of the refinement (solve_l1's default; pass 0 is the exact L2 solve).
+REFINE_ITERATIONS = 20
+
+_F32_MAX = float(np.finfo(np.float32).max)
+
+
+def refinement_exposure(prior: np.ndarray) -> float:
+    """The scale s that brings ``prior`` to mean 1 (float64 statistics); 1.0 for a black or non-finite prior."""
+    if prior.size == 0:
+        return 1.0
+    mean = float(np.mean(prior, dtype=np.float64))
+    if not (math.isfinite(mean) and mean > 0.0):
+        return 1.0
+    return 1.0 / mean
+
+
+def refine_layer(name: str, prior: np.ndarray, layer: Layer, alpha: float = REFINE_ALPHA) -> np.ndarray:
+    """``prior`` (OIDN's denoise of ``layer.base``) refined by the layer's gradients when ``name`` is one of
+    REFINED_LAYERS and the layer carries gradients; otherwise ``prior`` unchanged. float32 (H, W, 3), ≥ 0."""
+    if name not in REFINED_LAYERS or not layer.has_gradients:
+        return prior
+    scale = refinement_exposure(prior)
+    scaled = scaled_layer(layer, scale)
+    solved, _ = solve_l1(scaled_image(prior, scale), scaled.dx, scaled.dy, alpha, REFINE_ITERATIONS)
+    out = np.asarray(solved, np.float64) / scale
+    return np.clip(out, 0.0, _F32_MAX).astype(np.float32)
