@@ -1,7 +1,8 @@
 """Time the screened Poisson solvers on a synthetic 1280×720 frame and print medians.
 
     python benchmarks/bench_poisson.py                 # L2 and L1 (defaults), 3 layers, 5 repeats
-    python benchmarks/bench_poisson.py --compare       # + the reference solver's unpreconditioned CG, Jacobi
+    python benchmarks/bench_poisson.py --candidates    # + 20x4 (the old default), multigrid budgets, the prior
+    python benchmarks/bench_poisson.py --compare       # + those, the reference solver's unpreconditioned CG, Jacobi
     python benchmarks/bench_poisson.py --json          # one JSON document on stdout instead of the table
 
 The frame has three illumination layers' worth of channels (direct, indirect, color: base + dx + dy each, RGB)
@@ -35,7 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from model.frame import forward_differences  # noqa: E402
 from model.metrics import relmse  # noqa: E402
-from model.poisson import energy_l1, solve_l1, solve_l2  # noqa: E402
+from model.poisson import L1_PASSES, energy_l1, solve_l1, solve_l2  # noqa: E402
 from model.policy import DEFAULT_ALPHA  # noqa: E402
 
 LAYERS = {"direct": 0.3, "indirect": 0.8, "color": 0.5}  # layer -> relative noise level
@@ -80,6 +81,12 @@ def configurations(args: argparse.Namespace) -> dict[str, dict]:
         "l1": {"solver": "l1", "iterations": args.passes, "cg_iterations": args.cg_iterations,
                "preconditioner": "dct"},
     }
+    if args.candidates or args.compare:
+        # the budget l1 ran before issue 15 (the reference's 20 passes), and the multigrid preconditioner
+        configs["l1-dct-20x4"] = {"solver": "l1", "iterations": 20, "cg_iterations": 4, "preconditioner": "dct"}
+        configs["l1-mg-20x1"] = {"solver": "l1", "iterations": 20, "cg_iterations": 1, "preconditioner": "mg"}
+        configs["l1-mg-10x1"] = {"solver": "l1", "iterations": 10, "cg_iterations": 1, "preconditioner": "mg"}
+        configs["prior-dct-5x2"] = {"solver": "l1", "iterations": 5, "cg_iterations": 2, "preconditioner": "dct"}
     if args.compare:
         configs["l1-jacobi-8"] = {"solver": "l1", "cg_iterations": 8, "preconditioner": "jacobi"}
         # The reference solver's L1D preset: 20 passes of 50 unpreconditioned CG steps each.
@@ -169,8 +176,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="illumination layers: 1 = direct, 2 = + indirect, 3 = + color (default 3)")
     p.add_argument("--repeats", type=int, default=5, help="timed repeats per configuration (default 5)")
     p.add_argument("--alpha", type=float, default=DEFAULT_ALPHA)
-    p.add_argument("--passes", type=int, default=20, help="IRLS passes for 'l1' (default 20, as the reference)")
+    p.add_argument("--passes", type=int, default=L1_PASSES,
+                   help=f"IRLS passes for 'l1' (default {L1_PASSES}, model.poisson.L1_PASSES)")
     p.add_argument("--cg-iterations", type=int, default=4, help="CG steps per IRLS pass for 'l1' (default 4)")
+    p.add_argument("--candidates", action="store_true",
+                   help="+ the pre-issue-15 budget (20x4), multigrid-preconditioned budgets and the network's prior")
     p.add_argument("--compare", action="store_true",
                    help="also run Jacobi-PCG and the reference's unpreconditioned 50-step CG (slow, 1 repeat)")
     p.add_argument("--json", action="store_true", help="print one JSON document instead of the table")
