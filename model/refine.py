@@ -38,8 +38,9 @@ from model.preprocess import scaled_image, scaled_layer
 REFINED_LAYERS: frozenset[str] = frozenset({"direct"})
 #: α of the refinement: the weight of OIDN's image against the gradients (held-out seeds, see the docstring).
 REFINE_ALPHA = 1.0
-#: IRLS passes of the refinement (solve_l1's default; pass 0 is the exact L2 solve).
-REFINE_ITERATIONS = 20
+#: IRLS passes of the refinement (pass 0 is the exact L2 solve, which lets every noisy gradient through). 8 passes:
+#: on the held-out study 1.5 % above 20 passes' RelMSE (geo. mean 0.773 vs 0.761 of oidn's) at 40 % of the cost.
+REFINE_ITERATIONS = 8
 
 _F32_MAX = float(np.finfo(np.float32).max)
 
