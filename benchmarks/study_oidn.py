@@ -53,10 +53,7 @@ def render(scene: str, cache: Path) -> None:
         if not path.is_file():
             start = time.perf_counter()
             ref = render_loaded(loaded, spp=REF_SPP, seed=seed, tile_spp=None, progress=False)
-            images = {"total": ref.total, "direct": ref.direct}
-            if ref.indirect is not None:
-                images["indirect"] = ref.indirect
-            np.savez(path, **{k: np.asarray(v, np.float32) for k, v in images.items()})
+            np.savez(path, **{k: np.asarray(v, np.float32) for k, v in ref.images().items()})
             print(f"{scene}: reference {seed} ({REF_SPP} spp) in {time.perf_counter() - start:.0f} s", flush=True)
 
 

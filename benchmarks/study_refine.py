@@ -56,10 +56,7 @@ def render(seeds: list[int], spps: list[int], ref_spp: int, cache: Path) -> None
             path = folder / f"ref-{ref_seed}-{ref_spp}.npz"
             if not path.is_file():
                 ref = render_loaded(loaded, spp=ref_spp, seed=ref_seed, tile_spp=None, progress=False)
-                images = {"total": ref.total, "direct": ref.direct}
-                if ref.indirect is not None:
-                    images["indirect"] = ref.indirect
-                np.savez(path, **{k: np.asarray(v, np.float32) for k, v in images.items()})
+                np.savez(path, **{k: np.asarray(v, np.float32) for k, v in ref.images().items()})
         print(f"procedural:{seed}: cached in {folder}", flush=True)
 
 

@@ -105,9 +105,7 @@ class ReferenceSource:
             path.parent.mkdir(parents=True, exist_ok=True)
             write_reference(path, ref)
             self.rendered += 1
-        images = {"total": ref.total, "direct": ref.direct}
-        if ref.indirect is not None:
-            images["indirect"] = ref.indirect
+        images = ref.images()
         seconds = float(ref.metadata.get("gradsep.render_seconds", "nan"))
         self._passes[index] = (images, seconds)
         return self._passes[index]

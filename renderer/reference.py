@@ -62,6 +62,13 @@ class Reference:
             out.update(rgb_channels("indirect", self.indirect))
         return {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in out.items()}
 
+    def images(self) -> dict[str, np.ndarray]:
+        """``total``, ``direct`` and, when present, ``indirect``: the reference's images by layer name."""
+        out = {"total": self.total, "direct": self.direct}
+        if self.indirect is not None:
+            out["indirect"] = self.indirect
+        return out
+
     def layer(self, name: str) -> np.ndarray:
         """``total``/``color`` (the unseparated image), ``direct`` or ``indirect``; a clear error if absent."""
         if name in ("total", "color"):
