@@ -26,13 +26,12 @@ would be refined differently. The result is scaled back, so every exposure retur
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from model.frame import Layer
+from model.oidn import input_scale
 from model.poisson import solve_l1
-from model.preprocess import scaled_image, scaled_layer
+from model.preprocess import scaled_image
 
 #: The layers whose gradients refine OIDN's result (the rest keep OIDN's).
 REFINED_LAYERS: frozenset[str] = frozenset({"direct"})
@@ -45,23 +44,13 @@ REFINE_ITERATIONS = 8
 _F32_MAX = float(np.finfo(np.float32).max)
 
 
-def refinement_exposure(prior: np.ndarray) -> float:
-    """The scale s that brings ``prior`` to mean 1 (float64 statistics); 1.0 for a black or non-finite prior."""
-    if prior.size == 0:
-        return 1.0
-    mean = float(np.mean(prior, dtype=np.float64))
-    if not (math.isfinite(mean) and mean > 0.0):
-        return 1.0
-    return 1.0 / mean
-
-
 def refine_layer(name: str, prior: np.ndarray, layer: Layer, alpha: float = REFINE_ALPHA) -> np.ndarray:
     """``prior`` (OIDN's denoise of ``layer.base``) refined by the layer's gradients when ``name`` is one of
     REFINED_LAYERS and the layer carries gradients; otherwise ``prior`` unchanged. float32 (H, W, 3), ≥ 0."""
     if name not in REFINED_LAYERS or not layer.has_gradients:
         return prior
-    scale = refinement_exposure(prior)
-    scaled = scaled_layer(layer, scale)
-    solved, _ = solve_l1(scaled_image(prior, scale), scaled.dx, scaled.dy, alpha, REFINE_ITERATIONS)
+    scale = input_scale(prior)  # mean 1, as OIDN's own input is normalised; 1.0 for a black prior
+    dx, dy = scaled_image(layer.dx, scale), scaled_image(layer.dy, scale)  # the base is not used: OIDN's is
+    solved, _ = solve_l1(scaled_image(prior, scale), dx, dy, alpha, REFINE_ITERATIONS)
     out = np.asarray(solved, np.float64) / scale
     return np.clip(out, 0.0, _F32_MAX).astype(np.float32)
