@@ -737,16 +737,20 @@ def _run_direct_gradient_loops(k: PassKernel, s: LoopState, loop: LoopRunner,
     and gradients are that render's. Their depth limit is capped at DIRECT_VERTICES: the offsets' next-event
     estimate at depth 1 (an indirect event, whose gradient is not kept) is not evaluated (no emitter sample
     reconnection, no shadow ray); nothing the direct layer reads depends on that limit (the emission found at
-    depth 1 does not, and the next-event estimate at depth 0 needs only ``1 < limit``)."""
+    depth 1 does not, and the next-event estimate at depth 0 needs only ``1 < limit``). In a scene where no ray can
+    find emission (point, spot and directional lights only: ``k.hittable`` False) the emission event at depth 1
+    is 0 for base and offsets alike, so the offsets stop after vertex 0 (the ``all`` render adds 0 there too).
+    """
     shift = k.shift
     assert shift is not None
     offset_max_depth = dr.minimum(k.max_depth, mi.UInt32(DIRECT_VERTICES))
+    vertices = DIRECT_VERTICES if k.hittable else 1
 
     def direct_step(off: Any, v: Vertex, depth: mi.UInt32, samples: VertexSamples) -> tuple[Any, OffsetEvents]:
         return shift.step(k.scene, off, v, depth, offset_max_depth, samples)
 
     def direct_vertices(st: LoopState) -> mi.Bool:
-        return st.base.active & (st.depth < DIRECT_VERTICES)
+        return st.base.active & (st.depth < vertices)
 
     def no_offsets(*_: Any) -> tuple[Any, OffsetEvents]:
         raise AssertionError("no offsets are traced past the direct layer's vertices")
