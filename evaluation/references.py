@@ -1,9 +1,10 @@
 """Two independent references per scene, grown (cached, additively) until their noise no longer matters.
 
 Each reference is the mean of independent *passes* of Mitsuba's ``path`` (renderer.reference, split exactly
-into direct and indirect), every pass at the starting spp with its own seed: pass 0, 2, 4, ... belong to the
-first reference, 1, 3, 5, ... to the second. A reference at k times the starting spp is the mean of its first
-k passes, so raising the reference spp re-uses every pass already rendered (each pass is one cache entry).
+into direct and indirect, drawn with the stratified REFERENCE_SAMPLER), every pass at the starting spp with its
+own seed: pass 0, 2, 4, ... belong to the first reference, 1, 3, 5, ... to the second. A reference at k times
+the starting spp is the mean of its first k passes, so raising the reference spp re-uses every pass already
+rendered (each pass is one cache entry).
 
 The *floor* is what a perfect method would score against one reference (model.metrics.reference_floor); the
 run doubles both references until the floor is under FLOOR_FRACTION of the scene's smallest ranked RelMSE or
@@ -23,10 +24,14 @@ import numpy as np
 
 from evaluation.cache import EvalCache, key_hash
 from model.policy import SEPARATED_LAYERS
+from renderer.reference import DEFAULT_SAMPLER
 
-__all__ = ["ReferencePair", "ReferenceSource", "next_reference_spp"]
+__all__ = ["REFERENCE_SAMPLER", "ReferencePair", "ReferenceSource", "next_reference_spp"]
 
 LAYER_NAMES = ("total", *SEPARATED_LAYERS)
+# Mitsuba's sampler for every reference pass: the stratified one chosen by floor per CPU-second on held-out
+# scenes (docs/evaluation.md, "Reference sampler"); part of every pass's cache key.
+REFERENCE_SAMPLER = DEFAULT_SAMPLER
 
 
 @dataclass
@@ -78,6 +83,10 @@ class ReferenceSource:
         self.log = log
         self.rendered = 0
         self._passes: dict[int, tuple[dict[str, np.ndarray], float]] = {}
+
+    def ensure(self, index: int) -> None:
+        """Pass ``index`` is in the cache afterwards (rendered when it was not): a farm shard's unit of work."""
+        self._pass(index)
 
     def _pass(self, index: int) -> tuple[dict[str, np.ndarray], float]:
         if index in self._passes:

@@ -42,7 +42,7 @@ from evaluation.methods import (
     run_method,
     unavailable,
 )
-from evaluation.references import ReferencePair, ReferenceSource, next_reference_spp
+from evaluation.references import REFERENCE_SAMPLER, ReferencePair, ReferenceSource, next_reference_spp
 from evaluation.results import Evaluation, SceneRun, machine_summary
 from model.errors import CommandError
 from model.policy import SEPARATED_LAYERS
@@ -138,12 +138,14 @@ class _Runner:
         from renderer.reference import render_loaded
 
         c = self.config
+        # The sampler is in the key by name (not only through the reference code's hash), so a cache rendered
+        # with another sampler is never mixed into these references.
         key = {"scene": entry.identity, "size": [loaded.width, loaded.height], "max_depth": loaded.max_depth,
-               "seed": c.seed, "code": self.reference_code, "mitsuba": _mitsuba_id()}
+               "seed": c.seed, "code": self.reference_code, "mitsuba": _mitsuba_id(), "sampler": REFERENCE_SAMPLER}
 
         def render_pass(spp: int, seed: int) -> Any:
             self.computed["references"] += 1
-            return render_loaded(loaded, spp=spp, seed=seed, tile_spp=None,
+            return render_loaded(loaded, spp=spp, seed=seed, tile_spp=None, sampler=REFERENCE_SAMPLER,
                                  progress=False if self.progress is False else None)
 
         return ReferenceSource(self.cache, entry.name, key, c.ref_spp, render_pass, self.log)
