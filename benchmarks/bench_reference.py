@@ -51,9 +51,9 @@ def samplers(args: argparse.Namespace) -> None:
     print(f"{'scene':20s} {'sampler':12s} {'spp':>4s} {'floor':>10s} {'CPU s':>6s} {'floor-s':>10s} "
           f"{'gain':>6s}  means", flush=True)
     for spec in args.scenes:
-        loaded = load_scene(spec, width=args.width, height=args.height)
+        loaded = load_scene(spec, width=args.width, height=args.height, max_depth=args.max_depth)
         render_loaded(loaded, spp=1, seed=0, tile_spp=1, sampler="independent")  # Dr.Jit compiles once
-        base = None
+        base, depth = None, "" if args.max_depth is None else f" d{args.max_depth}"
         for sampler in args.sampler or SAMPLERS:
             spp = sampler_count(sampler, args.spp)
             refs, cpu = _pair(loaded, sampler, spp, (args.seed, args.seed + 1))
@@ -61,13 +61,13 @@ def samplers(args: argparse.Namespace) -> None:
             fs = floor * cpu
             base = fs if sampler == "independent" else base
             gain = f"{base / fs:6.2f}" if base else "     -"
-            print(f"{spec:20s} {sampler:12s} {spp:4d} {floor:10.3e} {cpu:6.1f} {fs:10.3e} {gain}  "
+            print(f"{spec + depth:20s} {sampler:12s} {spp:4d} {floor:10.3e} {cpu:6.1f} {fs:10.3e} {gain}  "
                   f"{refs[0].total.mean():.5f}/{refs[1].total.mean():.5f}", flush=True)
 
 
 def scaling(args: argparse.Namespace) -> None:
     for spec in args.scenes:
-        loaded = load_scene(spec, width=args.width, height=args.height)
+        loaded = load_scene(spec, width=args.width, height=args.height, max_depth=args.max_depth)
         sums = [np.zeros((loaded.height, loaded.width, 3)), np.zeros((loaded.height, loaded.width, 3))]
         cpu, xs, ys = 0.0, [], []
         for i in range(args.passes):
@@ -102,6 +102,7 @@ def main() -> None:
     p.add_argument("--passes", type=int, default=8)
     p.add_argument("--width", type=int, default=320)
     p.add_argument("--height", type=int, default=240)
+    p.add_argument("--max-depth", type=int, default=None, help="override the scenes' depth (2: direct light only)")
     p.add_argument("--seed", type=int, default=7001)
     args = p.parse_args()
     samplers(args) if args.mode == "samplers" else scaling(args)
