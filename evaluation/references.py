@@ -55,15 +55,31 @@ class ReferencePair:
         return reference_floor(self.first[layer], self.second[layer])
 
 
-def next_reference_spp(spp: int, floor: float, smallest: float, fraction: float, cap: int) -> int | None:
+# Raise the references to this much more than the floor's 1/spp fall predicts: the floor is itself an estimate
+# (heavy-tailed pixels make it noisy) and falls a little slower than 1/spp where paths are rare (measured slopes
+# -0.9 to -1.0 on cbox, teapot, procedural:90001; docs/evaluation.md, "Reference sampler").
+RAISE_MARGIN = 1.25
+
+
+def next_reference_spp(spp: int, floor: float, smallest: float, fraction: float, cap: int,
+                       step: int | None = None) -> int | None:
     """The reference spp predicted to bring ``floor`` under ``fraction`` × ``smallest`` (the floor falls as
-    1/spp), as a power-of-two multiple of ``spp`` and at most ``cap``; None when ``spp`` already suffices or
-    is at the cap. A non-positive ``smallest`` (an error the references cannot resolve) asks for the cap."""
+    1/spp), at most ``cap``; None when ``spp`` already suffices or is at the cap. A non-positive ``smallest``
+    (an error the references cannot resolve) asks for the cap.
+
+    ``step`` None: a power-of-two multiple of ``spp``. ``step`` = the pass spp: the smallest multiple of it
+    at least :data:`RAISE_MARGIN` × the prediction (so 22 passes are rendered, not the 32 of the next power of
+    two), at least one pass more than now."""
     if spp >= cap:
         return None
     if smallest > 0 and floor <= fraction * smallest:
         return None
     needed = math.inf if smallest <= 0 else spp * floor / (fraction * smallest)
+    if step is not None:
+        if not math.isfinite(needed):
+            return cap
+        passes = max(spp // step + 1, math.ceil(RAISE_MARGIN * needed / step))
+        return min(cap, passes * step)
     factor = 2
     while spp * factor < needed and spp * factor < cap:
         factor *= 2

@@ -368,9 +368,10 @@ def _converge_references(runner: _Runner, scene: SceneRun, source: ReferenceSour
         pair = source.pair(spp)
         floor = pair.floor()
         smallest = _smallest_ranked(outputs, pair)
-        following = next_reference_spp(spp, floor, smallest, FLOOR_FRACTION, config.reference_cap)
+        following = next_reference_spp(spp, floor, smallest, FLOOR_FRACTION, config.reference_cap,
+                                       step=config.ref_spp)
         if following is not None and config.ref_seconds is not None:
-            following = _within_time(spp, following, pair.seconds, config.ref_seconds)
+            following = _within_time(spp, following, pair.seconds, config.ref_seconds, step=config.ref_spp)
         if following is None:
             break
         runner.log(f"{scene.entry.name}: reference floor {floor:.3g} at {spp} spp is over "
@@ -389,12 +390,15 @@ def _converge_references(runner: _Runner, scene: SceneRun, source: ReferenceSour
     return pair
 
 
-def _within_time(spp: int, wanted: int, seconds: float, budget: float) -> int | None:
-    """The largest power-of-two multiple of ``spp`` up to ``wanted`` whose predicted render time (both references,
-    linear in spp from the ``seconds`` the current ``spp`` took) fits ``budget``; None when not even 2 × ``spp``
-    fits."""
+def _within_time(spp: int, wanted: int, seconds: float, budget: float, step: int | None = None) -> int | None:
+    """The largest spp up to ``wanted`` whose predicted render time (both references, linear in spp from the
+    ``seconds`` the current ``spp`` took) fits ``budget``: a power-of-two multiple of ``spp`` (``step`` None)
+    or a multiple of ``step`` (the pass spp); None when nothing above ``spp`` fits."""
     if not (seconds > 0 and math.isfinite(seconds)):
         return wanted  # no timing recorded: the spp cap alone decides
+    if step is not None:
+        level = min(wanted, int(budget * spp / seconds) // step * step)
+        return level if level > spp else None
     best = None
     level = spp * 2
     while level <= wanted and seconds * level / spp <= budget:
