@@ -62,6 +62,10 @@ MAX_WAVEFRONT = (1 << 32) - 1  # Mitsuba's limit on samples per launch (32-bit s
 # CPU-second on held-out procedural scenes (docs/evaluation.md, "Reference sampler"; benchmarks/bench_reference.py).
 SAMPLERS: tuple[str, ...] = ("independent", "multijitter", "stratified", "ldsampler", "orthogonal")
 DEFAULT_SAMPLER = "multijitter"
+# What `gradsep reference --sampler` offers: not ldsampler, whose two references of a scene agreed with each
+# other but sat 0.45 % above every other sampler's image mean on two held-out scenes (a bias or a correlation
+# between seeds; either breaks the product estimator), measured by benchmarks/bench_reference.py.
+CLI_SAMPLERS: tuple[str, ...] = tuple(s for s in SAMPLERS if s != "ldsampler")
 
 
 @dataclass

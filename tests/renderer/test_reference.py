@@ -313,7 +313,6 @@ def test_command_shards_and_merges(tmp_path: Path, capsys: pytest.CaptureFixture
 @pytest.mark.parametrize(("argv", "message"), [
     (["--spp", "4", "--shard", "3/2"], "--shard"),
     (["--spp", "4", "--shard", "two"], "--shard"),
-    (["--spp", "4", "--sampler", "sobol"], "--sampler"),
     (["--spp", "0"], "--spp"),
     (["--spp", "4", "--tile-spp", "0"], "--tile-spp"),
     (["--spp", "4", "--max-depth", "0"], "--max-depth"),
@@ -327,6 +326,16 @@ def test_command_rejects_bad_options(argv: list[str], message: str, tmp_path: Pa
     assert main(["reference", str(CBOX), *argv, "-o", str(tmp_path / "r.exr")]) == 2
     assert message in capsys.readouterr().err
     assert not (tmp_path / "r.exr").exists()
+
+
+@pytest.mark.parametrize("sampler", ["sobol", "ldsampler"])
+def test_command_offers_only_unbiased_samplers(sampler: str, tmp_path: Path,
+                                               capsys: pytest.CaptureFixture[str]) -> None:
+    from gradsep.cli import main
+
+    with pytest.raises(SystemExit) as exit_info:  # argparse's own choice check
+        main(["reference", str(CBOX), "--spp", "4", "--sampler", sampler, "-o", str(tmp_path / "r.exr")])
+    assert exit_info.value.code == 2 and "--sampler" in capsys.readouterr().err
 
 
 def test_command_rejects_bad_scene_and_output(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
