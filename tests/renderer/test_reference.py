@@ -113,6 +113,28 @@ def test_rebuilt_camera_with_the_independent_sampler_renders_bit_identically(spe
     np.testing.assert_array_equal(rebuilt, own)
 
 
+def test_rebuilt_thin_lens_camera_renders_bit_identically() -> None:
+    import mitsuba as mi
+
+    from renderer.reference import sampler_sensor
+    from renderer.scene import LoadedScene, load_scene
+
+    load_scene("procedural:1", width=4, height=4)  # selects the variant
+    scene = mi.load_dict({
+        "type": "scene", "light": {"type": "constant"}, "ball": {"type": "sphere", "radius": 0.5},
+        "floor": {"type": "rectangle", "to_world": mi.ScalarTransform4f().translate([0, 0, -1]).scale(3)},
+        "camera": {"type": "thinlens", "aperture_radius": 0.2, "focus_distance": 2.5, "fov": 40,
+                   "to_world": mi.ScalarTransform4f().look_at(origin=[0, -1, 4], target=[0, 0, 0], up=[0, 0, 1]),
+                   "film": {"type": "hdrfilm", "width": 18, "height": 12, "rfilter": {"type": "box"}}}})
+    loaded = LoadedScene(scene=scene, spec="thinlens", width=18, height=12, max_depth=3, rr_depth=5)
+    path = mi.load_dict({"type": "path", "max_depth": 3})
+    own = np.array(mi.render(scene, sensor=loaded.sensor, integrator=path, spp=4, seed=2))[..., :3]
+    rebuilt = np.array(mi.render(scene, sensor=sampler_sensor(loaded, "independent"), integrator=path, spp=4,
+                                 seed=2))
+    assert own.std() > 0
+    np.testing.assert_array_equal(rebuilt, own)
+
+
 def _image_means(spec: str, sampler: str, first_seed: int, count: int = 8) -> np.ndarray:
     refs = [render_reference(spec, spp=16, width=16, height=16, seed=first_seed + i, sampler=sampler)
             for i in range(count)]
