@@ -495,7 +495,9 @@ def _floors(evaluation: Evaluation) -> list[str]:
             warnings.append(f"**Warning: {scene.entry.name}: the references stopped at {scene.reference_spp} spp "
                             f"each ({scene.cap_reason}) with the floor at {ratio:.0%} of the smallest ranked "
                             f"RelMSE** (target {FLOOR_FRACTION:.0%}). Its RelMSE values are still unbiased, but "
-                            "noisier; raise --ref-spp-cap / --ref-seconds for a tighter estimate.")
+                            "noisier; raise --ref-spp-cap / --ref-seconds for a tighter estimate, or render the "
+                            "passes on N machines (`gradsep evaluate --references-only --shard K/N`, "
+                            "docs/evaluation.md).")
     return [*lines, "", *warnings, *([""] if warnings else [])]
 
 
