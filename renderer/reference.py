@@ -288,13 +288,18 @@ def render_loaded(loaded: LoadedScene, *, spp: int, seed: int, tile_spp: int | N
     """The pass loop: per pass, ``path`` at the scene's depth and at depth 2 with one seed; float64 averages.
 
     ``shard`` = (K, N) renders only passes K-1, K-1+N, ... of the job's plan (same pass seeds), records them in
-    the metadata, and returns their mean: :func:`merge_references` combines the N shards exactly.
+    the metadata, and returns their mean: :func:`merge_references` combines the N shards exactly. Without an
+    explicit ``tile_spp`` a sharded job's passes hold at most spp / N samples, so every shard gets some.
     """
     import mitsuba as mi
 
     check_sampler(sampler)
     depth = loaded.max_depth
     tile = tile_spp or default_tile_spp(spp, loaded.width, loaded.height, sampler)
+    if shard is not None and tile_spp is None:
+        # Every shard needs passes: at most spp / N samples per pass (a function of the job alone, so all shards
+        # plan the same passes; the merge checks that their tiles agree).
+        tile = max(1, min(tile, spp // shard[1]))
     if loaded.width * loaded.height * tile > MAX_WAVEFRONT:
         raise ValueError(f"--tile-spp {tile} at {loaded.width}x{loaded.height} exceeds Mitsuba's 2^32 samples "
                          f"per pass; use at most {MAX_WAVEFRONT // (loaded.width * loaded.height)}")

@@ -322,6 +322,10 @@ def test_command_shards_and_merges(tmp_path: Path, capsys: pytest.CaptureFixture
     for k in (1, 2):
         assert main(["reference", *common, "--shard", f"{k}/2", "-o", str(tmp_path / f"p{k}.exr")]) == 0
     assert "shard 1/2" in capsys.readouterr().out
+    # without --tile-spp a sharded job still deals passes to every shard (at most spp / N per pass)
+    assert main(["reference", "procedural:3", "--spp", "8", "--width", "8", "--height", "6", "--shard", "2/2",
+                 "-o", str(tmp_path / "q2.exr")]) == 0
+    assert load_reference(tmp_path / "q2.exr").metadata["gradsep.spp"] == "4"
     assert main(["reference-merge", str(tmp_path / "p2.exr"), str(tmp_path / "p1.exr"),
                  "-o", str(tmp_path / "m.exr")]) == 0
     merged = load_reference(tmp_path / "m.exr")
