@@ -16,7 +16,8 @@ Every method produces (image, per-layer images where it has them, render seconds
 ``oidn``                    OIDN on each layer of the G-PT frame, summed (``reconstruct(frame, "oidn")``)
 ``oidn-l1``                 ``oidn``, then the direct layer refined by its gradients (an L1 screened Poisson
                             solve with OIDN's image as the data term, model/refine.py;
-                            ``reconstruct(frame, "oidn-l1")``)
+                            ``reconstruct(frame, "oidn-l1")``), on the ``--gradients direct`` render of the same
+                            seed (the same direct layer and indirect base; no indirect offsets traced)
 ``fused``                   the fused network of ``models/fused/<layer>.onnx`` (``reconstruct(frame, "fused",
                             fused=...)``); skipped, listing the missing files, without them
 ``path``                    Mitsuba's own ``path`` integrator at *equal time* (below)
@@ -106,6 +107,10 @@ class MethodSpec:
     models: str | None = None
     separated: bool | None = None  # network: per-layer models (True) or the color model on the sum (False)
     attention: bool | None = None  # for the ablation table
+    #: G-PT render mode of the frame it reconstructs (``gradsep render --gradients``): ``direct`` for a method
+    #: that integrates only the direct layer's gradients, so its frame traces no offsets past the direct
+    #: layer's vertices and its render time (which the equal-time budget counts) is that mode's.
+    gradients: str = "all"
 
     def model_names(self, layers: tuple[str, ...]) -> tuple[str, ...]:
         """The model files (``NAME.onnx``) this method needs for a frame with ``layers``."""
@@ -132,7 +137,8 @@ METHODS: tuple[MethodSpec, ...] = (
     *(MethodSpec(f"ablation/{v}", f"Ablation {v}", "network", models=f"ablation/{v}", separated=s, attention=a)
       for v, s, a in ABLATION_VARIANTS),
     MethodSpec("oidn", "G-PT + OIDN per layer", "recon", poisson="oidn"),
-    MethodSpec("oidn-l1", "G-PT + OIDN, direct refined by its gradients (L1)", "recon", poisson="oidn-l1"),
+    MethodSpec("oidn-l1", "G-PT + OIDN, direct refined by its gradients (L1)", "recon", poisson="oidn-l1",
+               gradients="direct"),
     MethodSpec("fused", "Fused network", "fused", models="fused"),
     MethodSpec("ours", "Ours (separated + attention)", "network", models="", separated=True, attention=True),
     MethodSpec("path", "Mitsuba path (equal time)", "path"),

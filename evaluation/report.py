@@ -40,7 +40,7 @@ __all__ = ["CSV_COLUMNS", "losses_of_ours", "write_outputs"]
 CSV_COLUMNS: tuple[str, ...] = (
     "scene", "method", "spp", "method_spp", "width", "height", "render_seconds", "reconstruct_seconds",
     "total_seconds", "relmse", "ssim", "psnr", "flip", "relmse_direct", "relmse_indirect", "target_seconds",
-    "budget_method", "attempts", "feature_spp", "time_note",
+    "budget_method", "attempts", "feature_spp", "time_note", "gradients",
 )
 LABELS: dict[str, str] = {m.name: m.label for m in METHODS}
 TABLE1: tuple[tuple[str, str], ...] = (("gpt-primal", "Input"), ("l1", "L1"), ("gradnet", "GradNet-style"),
@@ -427,6 +427,10 @@ def _equal_time(evaluation: Evaluation) -> list[str]:
              "(a secant step; bisection of the closest bracket when the line points at a tried spp), tries under "
              "2 s or off the line's prediction by over 15 % are timed three times and their median used, at most "
              "8 tries per row. The times shown are the measured ones. "
+             "The G-PT render of a method that integrates only the direct layer's gradients (`oidn-l1`; "
+             "results.csv `gradients` = direct) is `gradsep render --gradients direct` with the same seed: its "
+             "direct layer and indirect base equal those of the full render, its offsets stop after the direct "
+             "layer's vertices, and its render time is that mode's. "
              "path + OIDN gets its albedo and normal from a separate feature pass (Mitsuba `aov`, spp in results.csv "
              "`feature_spp`) whose time is counted; separated path + OIDN is the renderer's primal-only mode "
              "(direct and indirect apart, first-hit features, no gradients) with OIDN on each layer. "

@@ -90,7 +90,7 @@ class _Runner:
         self.model_shas: dict[str, str] = {}
         self.skipped: dict[str, list[str]] = {}  # method -> reasons
         self.missing: dict[str, list[str]] = {}  # method -> missing model files
-        self._warm_scenes: set[int] = set()
+        self._warm_scenes: set[tuple[int, str]] = set()
         self.renderer_code = sources_sha256(RENDERER_SOURCES)
         self.reference_code = sources_sha256(REFERENCE_SOURCES)
         self.method_code = sources_sha256(METHOD_SOURCES)
@@ -152,8 +152,10 @@ class _Runner:
 
     # ------------------------------------------------------------------------------------------ frames
 
-    def frame(self, entry: SceneEntry, loaded: Any, spp: int) -> tuple[Any, float, str]:
-        """The G-PT frame at ``spp``, its render seconds and cache key hash (rendered when not cached)."""
+    def frame(self, entry: SceneEntry, loaded: Any, spp: int, gradients: str = "all") -> tuple[Any, float, str]:
+        """The G-PT frame at ``spp`` in render mode ``gradients`` (``all`` or ``direct``: renderer.render), its
+        render seconds and cache key hash (rendered when not cached). Both modes use the same seed, so the
+        ``direct`` frame's direct layer is the ``all`` frame's and its indirect base the same primal."""
         from model.frame import FrameError, read_frame, write_frame
         from renderer.render import render_frame
         from renderer.shift import DEFAULT_SHIFT
@@ -161,8 +163,9 @@ class _Runner:
         seed = _derived_seed(self.config.seed, 2, spp)
         key = {"kind": "gpt-frame", "scene": entry.identity, "size": [loaded.width, loaded.height],
                "max_depth": loaded.max_depth, "spp": spp, "seed": seed, "shift": DEFAULT_SHIFT,
-               "code": self.renderer_code, "mitsuba": _mitsuba_id()}
-        stem = f"{loaded.width}x{loaded.height}-d{loaded.max_depth}-spp{spp}-seed{self.config.seed}"
+               "gradients": gradients, "code": self.renderer_code, "mitsuba": _mitsuba_id()}
+        mode = "" if gradients == "all" else f"-{gradients}"
+        stem = f"{loaded.width}x{loaded.height}-d{loaded.max_depth}-spp{spp}-seed{self.config.seed}{mode}"
         path = self.cache.entry("frames", entry.name, stem, key, ".exr")
         tag = key_hash(key)
         if path.is_file():
@@ -174,10 +177,10 @@ class _Runner:
             except (FrameError, ValueError):
                 pass
             self.log(f"cache entry {path} unreadable; re-rendering the frame")
-        if id(loaded) not in self._warm_scenes:  # the first render of a scene pays Dr.Jit's compilation
-            render_frame(loaded, spp=1, seed=_derived_seed(self.config.seed, 4, 0))
-            self._warm_scenes.add(id(loaded))
-        frame = render_frame(loaded, spp=spp, seed=seed)
+        if (id(loaded), gradients) not in self._warm_scenes:  # the first render of a kernel pays its compilation
+            render_frame(loaded, spp=1, seed=_derived_seed(self.config.seed, 4, 0), gradients=gradients)
+            self._warm_scenes.add((id(loaded), gradients))
+        frame = render_frame(loaded, spp=spp, seed=seed, gradients=gradients)
         seconds = float(frame.metadata["gradsep.render_seconds"])
         frame.metadata["gradsep.eval_key"] = tag
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -209,7 +212,7 @@ class _Runner:
             "scene": scene.entry.name, "method": spec.name, "spp": spp, "method_spp": out.method_spp,
             "width": scene.width, "height": scene.height,
             "render_seconds": out.render_seconds, "reconstruct_seconds": out.reconstruct_seconds,
-            "total_seconds": out.render_seconds + out.reconstruct_seconds,
+            "total_seconds": out.render_seconds + out.reconstruct_seconds, "gradients": spec.gradients,
         }
         row.update({k: v for k, v in out.extra.items()
                     if k in ("target_seconds", "budget_method", "capped", "attempts", "feature_spp",
@@ -327,12 +330,15 @@ def _run_scene(runner: _Runner, entry: SceneEntry, loaded: Any, methods: list[Me
     outputs: list[_Output] = []
     for spp in config.spp:
         bar.describe(f"{entry.name}: G-PT {spp} spp")
-        frame, seconds, frame_tag = runner.frame(entry, loaded, spp)
+        frames = {"all": runner.frame(entry, loaded, spp)}
         bar.update()
         done: dict[str, dict[str, Any]] = {}
         keys: dict[str, str] = {}
         for spec in methods:
             bar.describe(f"{entry.name} {spp} spp: {spec.name}")
+            if spec.gradients not in frames and unavailable(spec) is None:
+                frames[spec.gradients] = runner.frame(entry, loaded, spp, spec.gradients)
+            frame, seconds, frame_tag = frames.get(spec.gradients, frames["all"])
             out = _evaluate_one(runner, spec, scene, spp, frame, seconds, frame_tag, get_path, done, keys)
             if out is not None:
                 outputs.append(out)

@@ -27,7 +27,7 @@ from evaluation.config import (
     resolve_scenes,
     table_spp_for,
 )
-from evaluation.methods import CostModel, primal_mode_available, split_features
+from evaluation.methods import CostModel, method_by_name, primal_mode_available, split_features
 from evaluation.plots import select_crop
 from evaluation.report import CSV_COLUMNS, losses_of_ours, time_misses
 from evaluation.run import run_evaluation
@@ -36,8 +36,8 @@ from model.errors import CommandError
 
 SCENE = "procedural:90001"
 SPP = (1, 2)
-METHODS = ("gpt-primal", "l1", "gradnet", "ablation/separated-attn", "oidn", "ours", "path", "path-oidn",
-           "path-sep-oidn")
+METHODS = ("gpt-primal", "l1", "gradnet", "ablation/separated-attn", "oidn", "oidn-l1", "ours", "path",
+           "path-oidn", "path-sep-oidn")
 
 
 def _runnable(methods) -> tuple[str, ...]:
@@ -302,7 +302,10 @@ def test_run_writes_every_output_with_finite_consistent_rows(first_run):
     for png in ("plots/procedural-90001.png", "crops/procedural-90001.png"):
         assert (report / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     # two references of one 16-spp pass each (the cap equals the start here)
-    assert evaluation.computed == {"frames": len(SPP), "references": 2, "results": len(ran) * len(SPP)}
+    # one G-PT frame per spp, and one more per spp in the `direct` render mode when oidn-l1 ran
+    modes = {method_by_name(m).gradients for m in ran}
+    assert evaluation.computed == {"frames": len(modes) * len(SPP), "references": 2,
+                                   "results": len(ran) * len(SPP)}
     text = (report / "report.md").read_text()
     assert "## Reference floor" in text and "RelMSE(r1, r2) / 2" in text
 
@@ -316,7 +319,8 @@ def test_rows_are_scored_with_the_product_estimator_over_the_cached_references(f
     from renderer.reference import load_reference
 
     root, evaluation = first_run
-    frames = sorted((root / "cache" / "evaluate" / "frames").rglob("*spp2-*.exr"))
+    frames = [f for f in sorted((root / "cache" / "evaluate" / "frames").rglob("*spp2-*.exr"))
+              if "-direct" not in f.name]
     passes = [sorted((root / "cache" / "evaluate" / "references").rglob(f"*pass{i}-*.exr")) for i in (0, 1)]
     assert len(frames) == 1 and [len(p) for p in passes] == [1, 1]
     frame = read_frame(str(frames[0]))
@@ -354,6 +358,29 @@ def test_equal_time_methods_use_the_default_method_as_the_budget(first_run):
         assert by[("path-oidn", spp)]["reconstruct_seconds"] > 0  # the denoiser's time is counted
         assert by[("path-oidn", spp)]["feature_spp"] >= 1  # and the feature pass's, in render_seconds
         assert by[("ours", spp)]["relmse_indirect"] is not None
+
+
+@pytest.mark.render
+def test_oidn_l1_reconstructs_a_direct_gradient_render_with_the_same_image(first_run):
+    """oidn-l1 integrates only the direct layer's gradients, so its row reconstructs the `--gradients direct`
+    render of the same seed (cheaper: no indirect offsets) and counts that render's time; its image is what the
+    method gives on the full frame (same direct layer, same indirect base), to float rounding."""
+    from model.frame import read_frame
+    from model.reconstruct import reconstruct
+
+    root, evaluation = first_run
+    if "oidn-l1" not in _runnable(METHODS):
+        pytest.skip("oidn-l1 cannot run here (pyoidn missing)")
+    frames = sorted((root / "cache" / "evaluate" / "frames").rglob("*spp2-*.exr"))
+    full = read_frame(str(next(f for f in frames if "-direct" not in f.name)))
+    direct = read_frame(str(next(f for f in frames if "-direct" in f.name)))
+    assert direct.metadata["gradsep.gradients"] == "direct" and direct.layers["indirect"].dx is None
+    row = next(r for r in evaluation.rows if r["method"] == "oidn-l1" and r["spp"] == 2)
+    assert row["gradients"] == "direct"
+    assert row["render_seconds"] == pytest.approx(float(direct.metadata["gradsep.render_seconds"]))
+    np.testing.assert_allclose(reconstruct(direct, "oidn-l1").image, reconstruct(full, "oidn-l1").image,
+                               rtol=1e-4, atol=1e-6)
+    assert next(r for r in evaluation.rows if r["method"] == "oidn" and r["spp"] == 2)["gradients"] == "all"
 
 
 @pytest.mark.render
