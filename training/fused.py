@@ -155,7 +155,7 @@ def validate(net: torch.nn.Module, maps: list[np.ndarray], kinds: tuple[str, ...
     net.eval()
     sums: dict[str, float] = {}
     for arr in maps:
-        planes = torch.from_numpy(np.asarray(arr))[None]
+        planes = torch.from_numpy(np.array(arr))[None]  # a copy: the memory map is read-only
         data, gradient, cands, target = tensors(planes, kinds)
         weights = net(data, gradient)
         sums["blend"] = sums.get("blend", 0.0) + float(n2n_loss(weights, cands, target, cands[:, 0]))
@@ -217,7 +217,7 @@ def train(args: argparse.Namespace) -> None:
         loss.backward()
         opt.step()
         step += 1
-        running.append(float(loss))
+        running.append(float(loss.detach()))
         if step % 50 == 0:
             with open(run / "log.jsonl", "a") as fh:
                 fh.write(json.dumps({"kind": "step", "step": step, "loss": float(np.mean(running)),
