@@ -97,7 +97,7 @@ models: venv system-deps $(DATASET)/manifest.json
 # as inference computes them); then each layer's blend network trained for MINUTES_FUSED, the two layers side by
 # side on one core each, and exported. Writes $(MODELS_OUT)/fused/{direct,indirect}.onnx; copy them to
 # models/fused/ to serve them. The run folders resume: re-running with a larger MINUTES_FUSED continues them.
-MINUTES_FUSED    ?= 20
+MINUTES_FUSED    ?= 15
 FUSED_CANDIDATES ?= oidn,refine
 FUSED_PY0 = OMP_NUM_THREADS=1 taskset -c 0 $(BIN)/python -m training.fused
 FUSED_PY1 = OMP_NUM_THREADS=1 taskset -c 1 $(BIN)/python -m training.fused

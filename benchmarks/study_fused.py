@@ -2,7 +2,7 @@
 
     python benchmarks/study_fused.py prepare                 # baselines + candidates of the held-out frames (cached)
     python benchmarks/study_fused.py error RUNS...                # blend designs (training/fused.py run folders)
-    python benchmarks/study_fused.py error --models models         # the shipped models/fused through reconstruct()
+    python benchmarks/study_fused.py error --models models --per-frame   # the shipped models/fused via reconstruct()
     python benchmarks/study_fused.py time [--models models]        # 1280x720 two-layer frame, in-process medians
 
 Frames: the refine study's held-out procedural seeds 81001-81008 (benchmarks/study_refine.py ``render``: 320x240 G-PT
@@ -119,7 +119,7 @@ def _table(scores: dict[str, dict[tuple[str, int], float]], spps: list[int]) -> 
               + f" | {per[0]:.3f} | {per[1]:.3f} |")
 
 
-def error(designs: list[str], models: str | None) -> None:
+def error(designs: list[str], models: str | None, per_frame: bool = False) -> None:
     from model.frame import read_frame
     from model.metrics import relmse_unbiased
 
@@ -141,6 +141,9 @@ def error(designs: list[str], models: str | None) -> None:
             images["fused (shipped, reconstruct)"] = reconstruct(read_frame(str(path)), "fused", fused=fused).image
         for method, image in images.items():
             scores.setdefault(method, {})[(scene, spp)] = relmse_unbiased(image, r1, r2)
+        if per_frame:
+            row = {m: v[(scene, spp)] / scores["oidn-l1"][(scene, spp)] for m, v in scores.items()}
+            print(f"{scene} {spp:>2} spp, RelMSE / oidn-l1: " + " ".join(f"{m}={r:.3f}" for m, r in row.items()))
     _table(scores, sorted({spp for _, spp in scores["oidn-l1"]}))
 
 
@@ -179,6 +182,7 @@ def main() -> int:
     e = sub.add_parser("error")
     e.add_argument("designs", nargs="*", help="NAME=RUN_DIRECT,RUN_INDIRECT")
     e.add_argument("--models", default=None, help="also the shipped fused models of this models folder")
+    e.add_argument("--per-frame", action="store_true", help="print every frame's ratios too")
     t = sub.add_parser("time")
     t.add_argument("--models", default="models")
     t.add_argument("--repeats", type=int, default=3)
@@ -186,7 +190,7 @@ def main() -> int:
     if args.cmd == "prepare":
         prepare()
     elif args.cmd == "error":
-        error(args.designs, args.models)
+        error(args.designs, args.models, args.per_frame)
     else:
         timing(args.models, args.repeats)
     return 0
