@@ -8,6 +8,7 @@ import sys
 import time
 from typing import TYPE_CHECKING
 
+from model.errors import CommandError
 from model.policy import DEFAULT_ALPHA, MODELS_ENV
 
 if TYPE_CHECKING:
@@ -30,6 +31,12 @@ def evaluate_command(args: argparse.Namespace) -> int:
     from evaluation.run import run_evaluation
 
     config = config_from_args(args)
+    shard = getattr(args, "shard", None)
+    if getattr(args, "references_only", False):
+        return _references_only(config, shard)
+    if shard is not None:
+        raise CommandError("--shard applies to --references-only (a farm renders reference passes; one machine "
+                           "then runs the evaluation on the combined cache)")
     start = time.perf_counter()
     evaluation = run_evaluation(config, progress=None)
     elapsed = time.perf_counter() - start
@@ -42,6 +49,23 @@ def evaluate_command(args: argparse.Namespace) -> int:
           f"(computed {computed['frames']} frames, {computed['references']} reference passes, "
           f"{computed['results']} results; the rest from {config.cache_dir / 'evaluate'}) -> "
           f"{evaluation.outputs['report']}")
+    return 0
+
+
+def _references_only(config: EvalConfig, shard_text: str | None) -> int:
+    """``--references-only [--shard K/N]``: render (a shard of) the reference passes up to the cap, no methods."""
+    from evaluation.farm import render_reference_shard
+    from renderer.reference import parse_shard
+
+    try:
+        shard = parse_shard(shard_text) if shard_text else (1, 1)
+    except ValueError as exc:
+        raise CommandError(str(exc)) from exc
+    reports = render_reference_shard(config, shard, progress=None, log=lambda m: print(m, file=sys.stderr))
+    rendered = sum(r.rendered for r in reports)
+    print(f"reference shard {shard[0]}/{shard[1]}: {rendered} passes rendered, "
+          f"{sum(len(r.passes) for r in reports) - rendered} cached, {len(reports)} scene(s), up to "
+          f"{config.reference_cap} spp per reference -> {config.cache_dir / 'evaluate' / 'references'}")
     return 0
 
 
@@ -59,7 +83,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "until the reference floor is under 10 %% of the scene's smallest ranked RelMSE or "
                         "--ref-spp-cap is reached (default 512; 128 with --quick)")
     p.add_argument("--ref-spp-cap", type=int, default=None,
-                   help="most samples per pixel of each reference (default 8192; 1024 with --quick); "
+                   help="most samples per pixel of each reference (default 4096; 1024 with --quick); "
                         "equal to --ref-spp: a fixed reference spp")
     p.add_argument("--ref-seconds", type=float, default=None,
                    help="render-time budget of one scene's two references together: the reference spp is not "
@@ -72,5 +96,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="spp of Table 1, the ablation and the crops (default 16 or nearest)")
     p.add_argument("--alpha", type=float, default=None,
                    help=f"screened Poisson data weight for l1/l2 (default {DEFAULT_ALPHA:g})")
+    p.add_argument("--references-only", action="store_true",
+                   help="render only the reference passes up to --ref-spp-cap into the cache (no methods, no "
+                        "report; -o is still required and left untouched): a farm's job, see --shard")
+    p.add_argument("--shard", default=None, metavar="K/N",
+                   help="with --references-only: render shard K of N of the passes; copy the N caches' "
+                        "evaluate/references/ folders into one and run the evaluation there with --ref-seconds 0")
     p.add_argument("-o", "--output", required=True, help="report folder")
     p.set_defaults(func=evaluate_command)

@@ -1,9 +1,10 @@
 """Two independent references per scene, grown (cached, additively) until their noise no longer matters.
 
 Each reference is the mean of independent *passes* of Mitsuba's ``path`` (renderer.reference, split exactly
-into direct and indirect), every pass at the starting spp with its own seed: pass 0, 2, 4, ... belong to the
-first reference, 1, 3, 5, ... to the second. A reference at k times the starting spp is the mean of its first
-k passes, so raising the reference spp re-uses every pass already rendered (each pass is one cache entry).
+into direct and indirect, drawn with the stratified REFERENCE_SAMPLER), every pass at the starting spp with its
+own seed: pass 0, 2, 4, ... belong to the first reference, 1, 3, 5, ... to the second. A reference at k times
+the starting spp is the mean of its first k passes, so raising the reference spp re-uses every pass already
+rendered (each pass is one cache entry).
 
 The *floor* is what a perfect method would score against one reference (model.metrics.reference_floor); the
 run doubles both references until the floor is under FLOOR_FRACTION of the scene's smallest ranked RelMSE or
@@ -23,10 +24,14 @@ import numpy as np
 
 from evaluation.cache import EvalCache, key_hash
 from model.policy import SEPARATED_LAYERS
+from renderer.reference import DEFAULT_SAMPLER
 
-__all__ = ["ReferencePair", "ReferenceSource", "next_reference_spp"]
+__all__ = ["REFERENCE_SAMPLER", "ReferencePair", "ReferenceSource", "next_reference_spp"]
 
 LAYER_NAMES = ("total", *SEPARATED_LAYERS)
+# Mitsuba's sampler for every reference pass: the stratified one chosen by floor per CPU-second on held-out
+# scenes (docs/evaluation.md, "Reference sampler"); part of every pass's cache key.
+REFERENCE_SAMPLER = DEFAULT_SAMPLER
 
 
 @dataclass
@@ -50,15 +55,31 @@ class ReferencePair:
         return reference_floor(self.first[layer], self.second[layer])
 
 
-def next_reference_spp(spp: int, floor: float, smallest: float, fraction: float, cap: int) -> int | None:
+# Raise the references to this much more than the floor's 1/spp fall predicts: the floor is itself an estimate
+# (heavy-tailed pixels make it noisy) and falls a little slower than 1/spp where paths are rare (measured slopes
+# -0.9 to -1.0 on cbox, teapot, procedural:90001; docs/evaluation.md, "Reference sampler").
+RAISE_MARGIN = 1.25
+
+
+def next_reference_spp(spp: int, floor: float, smallest: float, fraction: float, cap: int,
+                       step: int | None = None) -> int | None:
     """The reference spp predicted to bring ``floor`` under ``fraction`` × ``smallest`` (the floor falls as
-    1/spp), as a power-of-two multiple of ``spp`` and at most ``cap``; None when ``spp`` already suffices or
-    is at the cap. A non-positive ``smallest`` (an error the references cannot resolve) asks for the cap."""
+    1/spp), at most ``cap``; None when ``spp`` already suffices or is at the cap. A non-positive ``smallest``
+    (an error the references cannot resolve) asks for the cap.
+
+    ``step`` None: a power-of-two multiple of ``spp``. ``step`` = the pass spp: the smallest multiple of it
+    at least :data:`RAISE_MARGIN` × the prediction (so 22 passes are rendered, not the 32 of the next power of
+    two), at least one pass more than now."""
     if spp >= cap:
         return None
     if smallest > 0 and floor <= fraction * smallest:
         return None
     needed = math.inf if smallest <= 0 else spp * floor / (fraction * smallest)
+    if step is not None:
+        if not math.isfinite(needed):
+            return cap
+        passes = max(spp // step + 1, math.ceil(RAISE_MARGIN * needed / step))
+        return min(cap, passes * step)
     factor = 2
     while spp * factor < needed and spp * factor < cap:
         factor *= 2
@@ -78,6 +99,10 @@ class ReferenceSource:
         self.log = log
         self.rendered = 0
         self._passes: dict[int, tuple[dict[str, np.ndarray], float]] = {}
+
+    def ensure(self, index: int) -> None:
+        """Pass ``index`` is in the cache afterwards (rendered when it was not): a farm shard's unit of work."""
+        self._pass(index)
 
     def _pass(self, index: int) -> tuple[dict[str, np.ndarray], float]:
         if index in self._passes:

@@ -26,6 +26,7 @@ from evaluation.cache import slug
 from evaluation.config import CROP_METHODS, EvalSettings
 from evaluation.methods import ABLATION_VARIANTS, METHODS
 from evaluation.plots import plot_crops, plot_error_vs_time
+from evaluation.references import REFERENCE_SAMPLER
 from evaluation.results import machine_summary
 from model.frame import write_bytes_atomic
 from model.policy import DEFAULT_ALPHA, MODELS_ENV
@@ -115,7 +116,8 @@ def _summary(evaluation: Evaluation) -> dict[str, Any]:
                    "alpha": c.alpha,
                    "table_spp": c.crop_spp, "methods": list(c.methods), "quick": c.quick,
                    "models_dir": str(c.models_dir)},
-        "references": {s.entry.name: {"spp_each": s.reference_spp, "floor": s.floor, "smallest_ranked": s.smallest,
+        "references": {s.entry.name: {"spp_each": s.reference_spp, "sampler": REFERENCE_SAMPLER,
+                                      "floor": s.floor, "smallest_ranked": s.smallest,
                                       "capped": s.capped, "cap_reason": s.cap_reason,
                                       "render_seconds": s.reference_seconds}
                        for s in evaluation.scenes},
@@ -174,11 +176,18 @@ def software() -> dict[str, str]:
     from importlib import metadata
 
     out = {"python": platform.python_version()}
+    providers: dict[str, list[str]] | None = None
     for package in ("mitsuba", "drjit", "numpy", "onnxruntime", "pyoidn", "flip-evaluator"):
         try:
             out[package] = metadata.version(package)
+            continue
         except metadata.PackageNotFoundError:
-            out[package] = "not installed"
+            pass
+        # The module may come from another distribution of the same name (onnxruntime-openvino, -gpu, ...
+        # all install the `onnxruntime` module): report the one that provides it.
+        providers = metadata.packages_distributions() if providers is None else providers
+        dists = providers.get(package.replace("-", "_"), [])
+        out[package] = f"{metadata.version(dists[0])} ({dists[0]})" if dists else "not installed"
     try:
         import mitsuba as mi
 
@@ -281,7 +290,8 @@ def _provenance(evaluation: Evaluation) -> list[str]:
              f"- Machine: {machine()}",
              "- Software: " + ", ".join(f"{k} {v}" for k, v in sw.items()),
              f"- Frames: {c.width}×{c.height}, G-PT at {', '.join(str(s) for s in c.spp)} spp, seed {c.seed}; "
-             f"references: two independent Mitsuba `path` renders per scene (box filter, same max depth), "
+             f"references: two independent Mitsuba `path` renders per scene (box filter, same max depth, "
+             f"`{REFERENCE_SAMPLER}` sampler), "
              f"{c.ref_spp} spp each to start, raised up to {c.reference_cap} within "
              f"{'no time limit' if c.ref_seconds is None else f'{c.ref_seconds:g} s per scene'} (see Reference floor)"
              + (" (--quick)" if c.quick else ""),
@@ -461,7 +471,9 @@ def _floors(evaluation: Evaluation) -> list[str]:
 
     c = evaluation.config
     lines = ["## Reference floor", "",
-             "Two independent references per scene (different seeds). The *floor* is the RelMSE a perfect method "
+             f"Two independent references per scene (different seeds; Mitsuba `path` with the stratified "
+             f"`{REFERENCE_SAMPLER}` sampler, unbiased like the independent one, lower noise per second). "
+             "The *floor* is the RelMSE a perfect method "
              "would score against one of them, estimated as RelMSE(r1, r2) / 2 (normalised by the mean of the "
              "two): what a one-reference evaluation would add to every error. The product estimator used for "
              "every RelMSE here removes it in expectation; the references are still raised (doubling, cached "
@@ -483,7 +495,9 @@ def _floors(evaluation: Evaluation) -> list[str]:
             warnings.append(f"**Warning: {scene.entry.name}: the references stopped at {scene.reference_spp} spp "
                             f"each ({scene.cap_reason}) with the floor at {ratio:.0%} of the smallest ranked "
                             f"RelMSE** (target {FLOOR_FRACTION:.0%}). Its RelMSE values are still unbiased, but "
-                            "noisier; raise --ref-spp-cap / --ref-seconds for a tighter estimate.")
+                            "noisier; raise --ref-spp-cap / --ref-seconds for a tighter estimate, or render the "
+                            "passes on N machines (`gradsep evaluate --references-only --shard K/N`, "
+                            "docs/evaluation.md).")
     return [*lines, "", *warnings, *([""] if warnings else [])]
 
 

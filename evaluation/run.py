@@ -42,7 +42,7 @@ from evaluation.methods import (
     run_method,
     unavailable,
 )
-from evaluation.references import ReferencePair, ReferenceSource, next_reference_spp
+from evaluation.references import REFERENCE_SAMPLER, ReferencePair, ReferenceSource, next_reference_spp
 from evaluation.results import Evaluation, SceneRun, machine_summary
 from model.errors import CommandError
 from model.policy import SEPARATED_LAYERS
@@ -138,12 +138,14 @@ class _Runner:
         from renderer.reference import render_loaded
 
         c = self.config
+        # The sampler is in the key by name (not only through the reference code's hash), so a cache rendered
+        # with another sampler is never mixed into these references.
         key = {"scene": entry.identity, "size": [loaded.width, loaded.height], "max_depth": loaded.max_depth,
-               "seed": c.seed, "code": self.reference_code, "mitsuba": _mitsuba_id()}
+               "seed": c.seed, "code": self.reference_code, "mitsuba": _mitsuba_id(), "sampler": REFERENCE_SAMPLER}
 
         def render_pass(spp: int, seed: int) -> Any:
             self.computed["references"] += 1
-            return render_loaded(loaded, spp=spp, seed=seed, tile_spp=None,
+            return render_loaded(loaded, spp=spp, seed=seed, tile_spp=None, sampler=REFERENCE_SAMPLER,
                                  progress=False if self.progress is False else None)
 
         return ReferenceSource(self.cache, entry.name, key, c.ref_spp, render_pass, self.log)
@@ -366,9 +368,10 @@ def _converge_references(runner: _Runner, scene: SceneRun, source: ReferenceSour
         pair = source.pair(spp)
         floor = pair.floor()
         smallest = _smallest_ranked(outputs, pair)
-        following = next_reference_spp(spp, floor, smallest, FLOOR_FRACTION, config.reference_cap)
+        following = next_reference_spp(spp, floor, smallest, FLOOR_FRACTION, config.reference_cap,
+                                       step=config.ref_spp)
         if following is not None and config.ref_seconds is not None:
-            following = _within_time(spp, following, pair.seconds, config.ref_seconds)
+            following = _within_time(spp, following, pair.seconds, config.ref_seconds, step=config.ref_spp)
         if following is None:
             break
         runner.log(f"{scene.entry.name}: reference floor {floor:.3g} at {spp} spp is over "
@@ -387,12 +390,15 @@ def _converge_references(runner: _Runner, scene: SceneRun, source: ReferenceSour
     return pair
 
 
-def _within_time(spp: int, wanted: int, seconds: float, budget: float) -> int | None:
-    """The largest power-of-two multiple of ``spp`` up to ``wanted`` whose predicted render time (both references,
-    linear in spp from the ``seconds`` the current ``spp`` took) fits ``budget``; None when not even 2 × ``spp``
-    fits."""
+def _within_time(spp: int, wanted: int, seconds: float, budget: float, step: int | None = None) -> int | None:
+    """The largest spp up to ``wanted`` whose predicted render time (both references, linear in spp from the
+    ``seconds`` the current ``spp`` took) fits ``budget``: a power-of-two multiple of ``spp`` (``step`` None)
+    or a multiple of ``step`` (the pass spp); None when nothing above ``spp`` fits."""
     if not (seconds > 0 and math.isfinite(seconds)):
         return wanted  # no timing recorded: the spp cap alone decides
+    if step is not None:
+        level = min(wanted, int(budget * spp / seconds) // step * step)
+        return level if level > spp else None
     best = None
     level = spp * 2
     while level <= wanted and seconds * level / spp <= budget:

@@ -1,4 +1,4 @@
-"""`gradsep render | reference | dataset`: the argument parsers and their handlers.
+"""`gradsep render | reference | reference-merge | dataset`: the argument parsers and their handlers.
 
 Only argparse and the import-light model modules at module level: each handler imports Mitsuba (through the
 renderer modules) when it runs, so ``gradsep --help`` and ``gradsep serve`` work without Mitsuba installed.
@@ -10,6 +10,7 @@ import argparse
 import math
 import sys
 from pathlib import Path
+from typing import Any
 
 from model.errors import CommandError
 from model.policy import SEPARATED_LAYERS
@@ -26,8 +27,12 @@ def render_command(args: argparse.Namespace) -> int:
         raise CommandError(f"output {args.output} must end in .exr")
     if not output.parent.exists():
         raise CommandError(f"output folder {output.parent} does not exist")
-    if args.no_gradients and args.shift is not None:
-        raise CommandError("--shift has no effect with --no-gradients (no offset paths are traced)")
+    gradients = args.gradients or ("none" if args.no_gradients else "all")
+    if args.no_gradients and gradients != "none":
+        raise CommandError(f"--no-gradients is --gradients none; it contradicts --gradients {args.gradients}")
+    if gradients == "none" and args.shift is not None:
+        flag = "--no-gradients" if args.no_gradients else "--gradients none"
+        raise CommandError(f"--shift has no effect with {flag} (no offset paths are traced)")
     scene = load_scene(args.scene, width=args.width, height=args.height, max_depth=args.max_depth,
                        defines=parse_defines(args.define))
     show = sys.stderr.isatty()
@@ -37,7 +42,7 @@ def render_command(args: argparse.Namespace) -> int:
             print(f"\rgradsep render: {done}/{total} spp", end="", file=sys.stderr, flush=True)
 
     frame = render_frame(scene, spp=args.spp, seed=args.seed, layers=args.layers, shift=args.shift,
-                         progress=progress, gradients=not args.no_gradients)
+                         progress=progress, gradients=gradients)
     if show:
         print(file=sys.stderr)
     write_frame(output, frame)
@@ -50,7 +55,7 @@ def render_command(args: argparse.Namespace) -> int:
 
 def reference_command(args: argparse.Namespace) -> int:
     """Handler of `gradsep reference`: validate, render, write atomically, print a one-line summary."""
-    from renderer.reference import render_reference, write_reference
+    from renderer.reference import parse_shard, render_reference, write_reference
     from renderer.scene import parse_defines
 
     for name in ("spp", "tile_spp", "width", "height"):
@@ -67,16 +72,52 @@ def reference_command(args: argparse.Namespace) -> int:
     if not out.parent.exists():
         raise CommandError(f"output folder {out.parent} does not exist")
     try:
+        shard = parse_shard(args.shard) if args.shard else None
         ref = render_reference(args.scene, spp=args.spp, width=args.width, height=args.height,
                                max_depth=args.max_depth, seed=args.seed, tile_spp=args.tile_spp,
-                               defines=parse_defines(args.define), progress=None)
+                               defines=parse_defines(args.define), progress=None, sampler=args.sampler,
+                               shard=shard)
     except (ValueError, FileNotFoundError) as exc:
         raise CommandError(str(exc)) from exc
     write_reference(out, ref)
+    _print_written(out, ref)
+    return 0
+
+
+def _print_written(out: Path, ref: Any) -> None:
     layers = "direct, indirect" if ref.indirect is not None else "direct"
     seconds = float(ref.metadata["gradsep.render_seconds"])
-    print(f"wrote {out}: {ref.total.shape[1]}x{ref.total.shape[0]}, {args.spp} spp, layers {layers}, "
-          f"{seconds:.1f} s ({_rate(args.spp, ref.total.shape, seconds)})")
+    spp = int(ref.metadata["gradsep.spp"])
+    part = f", shard {ref.metadata['gradsep.shard']}" if "gradsep.shard" in ref.metadata else ""
+    sampler = ref.metadata.get("gradsep.sampler", "?")
+    print(f"wrote {out}: {ref.total.shape[1]}x{ref.total.shape[0]}, {spp} spp{part}, layers {layers}, "
+          f"sampler {sampler}, {seconds:.1f} s ({_rate(spp, ref.total.shape, seconds)})")
+
+
+def reference_merge_command(args: argparse.Namespace) -> int:
+    """Handler of `gradsep reference-merge`: the N ``--shard K/N`` files of one job -> the job's reference."""
+    from model.frame import FrameError
+    from renderer.reference import load_reference, merge_references, write_reference
+
+    out = Path(args.output)
+    if out.suffix.lower() != ".exr":
+        raise CommandError(f"output must be an .exr file, got {out}")
+    if not out.parent.exists():
+        raise CommandError(f"output folder {out.parent} does not exist")
+    parts = []
+    for name in args.parts:
+        if not Path(name).is_file():
+            raise CommandError(f"shard file not found: {name}")
+        try:
+            parts.append(load_reference(name))
+        except FrameError as exc:
+            raise CommandError(f"{name}: {exc}") from exc
+    try:
+        ref = merge_references(parts)
+    except ValueError as exc:
+        raise CommandError(str(exc)) from exc
+    write_reference(out, ref)
+    _print_written(out, ref)
     return 0
 
 
@@ -105,6 +146,8 @@ def dataset_command(args: argparse.Namespace) -> int:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    from renderer.reference import CLI_SAMPLERS, DEFAULT_SAMPLER  # numpy only: no Mitsuba at parser time
+
     p = sub.add_parser("render", help="render a G-PT frame (base + gradients + features per illumination layer)")
     p.add_argument("scene", help="Mitsuba 3 XML scene path or procedural:SEED")
     p.add_argument("--spp", type=int, required=True, help="samples per pixel")
@@ -118,9 +161,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "color alone renders the unseparated image")
     p.add_argument("--shift", choices=("hybrid", "replay"), default=None,
                    help="shift mapping: hybrid (reconnection + replay, the default) or replay")
+    p.add_argument("--gradients", choices=("all", "direct", "none"), default=None,
+                   help="which layers carry gradients: all (the default); direct (the direct layer's only: offset "
+                        "paths stop after the first visible vertex's light, the indirect layer is a plain primal; "
+                        "what the default oidn-l1 method uses); none (primal-only)")
     p.add_argument("--no-gradients", action="store_true",
-                   help="primal-only: the same layers and features, no offset paths and no gradients "
-                        "(about the cost of a plain path tracer)")
+                   help="primal-only, the same as --gradients none: the same layers and features, no offset paths "
+                        "and no gradients (about the cost of a plain path tracer)")
     p.add_argument("-D", "--define", action="append", default=[], metavar="NAME=VALUE",
                    help="override a <default> parameter of the XML scene (repeatable)")
     p.add_argument("-o", "--output", required=True, help="output frame (.exr)")
@@ -136,8 +183,19 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--tile-spp", type=int, default=None,
                    help="samples per pass; passes are averaged so large spp fits in memory")
     p.add_argument("-D", "--define", action="append", default=[], metavar="NAME=VALUE")
+    p.add_argument("--sampler", choices=CLI_SAMPLERS, default=DEFAULT_SAMPLER,
+                   help=f"Mitsuba sampler of every pass (default {DEFAULT_SAMPLER}: stratified, lower noise per "
+                        "second than independent; all are unbiased)")
+    p.add_argument("--shard", default=None, metavar="K/N",
+                   help="render only shard K of N of this job's passes (same seeds as the whole job); combine "
+                        "the N files with `gradsep reference-merge`")
     p.add_argument("-o", "--output", required=True, help="output reference (.exr)")
     p.set_defaults(func=reference_command)
+
+    p = sub.add_parser("reference-merge", help="combine the N --shard K/N files of one reference job")
+    p.add_argument("parts", nargs="+", help="the shard files (.exr), shards 1..N of one job, any order")
+    p.add_argument("-o", "--output", required=True, help="output reference (.exr)")
+    p.set_defaults(func=reference_merge_command)
 
     p = sub.add_parser("dataset", help="render N procedural frames plus a manifest (shardable, resumable)")
     p.add_argument("--count", type=int, required=True, help="number of frames in the whole dataset")

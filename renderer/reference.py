@@ -17,6 +17,20 @@ Samples are rendered in passes of ``tile_spp`` samples with distinct seeds (deri
 index by a hash, so references rendered with neighbouring seeds share no pass) and averaged in float64, which
 bounds the wavefront (Mitsuba addresses at most 2^32 samples per launch: 4096 spp at 1280x720 is 3.8e9) and
 lets a progress bar advance.
+
+The sampler (``--sampler``, :data:`DEFAULT_SAMPLER`): each pass draws its samples from one Mitsuba sampler
+seeded with the pass seed. A stratified sampler (``multijitter``) spreads a pass's samples over each pixel's
+first dimensions instead of drawing them independently, which lowers the variance of a pass at the same cost
+(measured per CPU-second on held-out procedural scenes: docs/evaluation.md, "Reference sampler"); passes with
+different seeds are still independent (each permutation and jitter is hashed from its seed), which is all the
+pass averaging, the two-reference product estimator and sharding rely on. Every sampler renders an unbiased
+estimate of the same image, so the choice changes the noise, not the expectation. The sensor is rebuilt with
+the chosen sampler (:func:`sampler_sensor`) so a scene file's own ``<sampler>`` no longer decides.
+
+Sharding (``--shard K/N``): a job's passes are dealt round-robin to N shards, shard K renders passes
+K-1, K-1+N, ... with the same pass seeds as the whole job, and :func:`merge_references` (``gradsep
+reference-merge``) combines the N shard files, weighted by their samples, into the reference one machine
+would have rendered (to float32 rounding): N machines buy N times the samples.
 """
 
 from __future__ import annotations
@@ -24,8 +38,9 @@ from __future__ import annotations
 import io
 import os
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from functools import cache
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -41,6 +56,16 @@ if TYPE_CHECKING:  # scene.py needs Mitsuba at import time; load_reference must 
 # LLVM (a symbolic loop keeps path state in registers): 1280x720 at 16 spp per pass peaks at ~230 MB.
 PASS_SAMPLE_BUDGET = 1 << 24
 MAX_WAVEFRONT = (1 << 32) - 1  # Mitsuba's limit on samples per launch (32-bit sample index)
+
+# Mitsuba samplers a reference may use. ``independent`` draws every sample independently (the behaviour before
+# issue 13's sampler study); the others stratify a pass's samples per pixel. Chosen by measured floor per
+# CPU-second on held-out procedural scenes (docs/evaluation.md, "Reference sampler"; benchmarks/bench_reference.py).
+SAMPLERS: tuple[str, ...] = ("independent", "multijitter", "stratified", "ldsampler", "orthogonal")
+DEFAULT_SAMPLER = "multijitter"
+# What `gradsep reference --sampler` offers: not ldsampler, whose two references of a scene agreed with each
+# other but sat 0.45 % above every other sampler's image mean on two held-out scenes (a bias or a correlation
+# between seeds; either breaks the product estimator), measured by benchmarks/bench_reference.py.
+CLI_SAMPLERS: tuple[str, ...] = tuple(s for s in SAMPLERS if s != "ldsampler")
 
 
 @dataclass
@@ -84,17 +109,75 @@ class Reference:
 # Passes and seeds
 # ----------------------------------------------------------------------------------------------------------
 
-def plan_passes(spp: int, tile_spp: int) -> list[int]:
-    """Samples per pass: ``tile_spp`` each, the last one takes the remainder (weighted accordingly)."""
+def plan_passes(spp: int, tile_spp: int, sampler: str = "independent") -> list[int]:
+    """Samples per pass: at most ``tile_spp`` each, every count one that ``sampler`` renders exactly.
+
+    Independent sampling: ``tile_spp`` each, the last pass takes the remainder (weighted accordingly).
+    A stratified sampler rounds a sample count it cannot stratify (multijitter renders 528 samples when asked
+    for 512), which would silently change the spp; so each pass takes the largest count the sampler renders
+    exactly, in as few passes as possible (512 in tiles of 256 -> 256 + 256). A ValueError when
+    ``spp`` cannot be split so (ldsampler and orthogonal render at least 4 samples per pixel).
+    """
     if spp < 1 or tile_spp < 1:
         raise ValueError(f"spp and tile_spp must be positive, got {spp} and {tile_spp}")
-    full, rest = divmod(spp, tile_spp)
-    return [tile_spp] * full + ([rest] if rest else [])
+    if sampler == "independent":
+        full, rest = divmod(spp, tile_spp)
+        return [tile_spp] * full + ([rest] if rest else [])
+    exact = [k for k in range(min(tile_spp, spp), 0, -1) if sampler_count(sampler, k) == k]
+    # Whole tiles first, then the fewest exact passes for the rest (a little dynamic programme over the last
+    # tile plus the remainder, largest pass first among equals: one large stratified pass beats two small ones).
+    full = max(0, spp // tile_spp - 1) if exact and exact[0] == tile_spp else 0
+    rest = spp - full * tile_spp
+    fewest, choice = [0] + [rest + 1] * rest, [0] * (rest + 1)
+    for n in range(1, rest + 1):
+        for k in exact:
+            if k <= n and fewest[n - k] + 1 < fewest[n]:
+                fewest[n], choice[n] = fewest[n - k] + 1, k
+    if fewest[rest] > rest:
+        raise ValueError(f"{spp} spp cannot be split into passes the {sampler} sampler renders exactly "
+                         f"(its smallest sample count is {sampler_count(sampler, 1)}); choose another spp "
+                         "or --sampler independent")
+    out = [tile_spp] * full
+    while rest:
+        out.append(choice[rest])
+        rest -= choice[rest]
+    return out
 
 
-def default_tile_spp(spp: int, width: int, height: int) -> int:
-    """Samples per pass so one pass holds about :data:`PASS_SAMPLE_BUDGET` samples (at least 1, at most spp)."""
-    return max(1, min(spp, PASS_SAMPLE_BUDGET // max(1, width * height)))
+@cache
+def sampler_count(sampler: str, spp: int) -> int:
+    """The samples per pixel Mitsuba's ``sampler`` actually renders when asked for ``spp``."""
+    import mitsuba as mi
+
+    from renderer.variant import select_variant
+
+    select_variant()
+    if sampler not in SAMPLERS:
+        raise ValueError(f"unknown sampler {sampler!r}; choose one of {', '.join(SAMPLERS)}")
+    level = mi.log_level()
+    mi.set_log_level(mi.LogLevel.Error)  # orthogonal warns when it rounds; the caller checks the count
+    try:
+        obj = mi.load_dict({"type": sampler, "sample_count": 4})
+        obj.set_sample_count(int(spp))
+        return int(obj.sample_count())
+    finally:
+        mi.set_log_level(level)
+
+
+def default_tile_spp(spp: int, width: int, height: int, sampler: str = "independent") -> int:
+    """Samples per pass so one pass holds about :data:`PASS_SAMPLE_BUDGET` samples (at least 1, at most spp).
+
+    A stratified sampler gets the largest power of four within twice that budget (a count every stratified
+    sampler but ``orthogonal`` renders exactly; 256 at 320x240): its variance falls faster than 1/spp within a
+    pass, so larger passes pay, and 2^25 samples per launch stay well inside memory on LLVM.
+    """
+    budget = PASS_SAMPLE_BUDGET // max(1, width * height)
+    if sampler == "independent":
+        return max(1, min(spp, budget))
+    tile = 1
+    while tile * 4 <= 2 * budget:
+        tile *= 4
+    return max(1, min(spp, tile))
 
 
 def pass_seed(seed: int, index: int) -> int:
@@ -112,47 +195,136 @@ def pass_seed(seed: int, index: int) -> int:
 
 def render_reference(spec: str, *, spp: int, width: int | None = None, height: int | None = None,
                      max_depth: int | None = None, seed: int = 0, tile_spp: int | None = None,
-                     defines: Mapping[str, str] | None = None, progress: bool | None = False) -> Reference:
+                     defines: Mapping[str, str] | None = None, progress: bool | None = False,
+                     sampler: str = DEFAULT_SAMPLER, shard: tuple[int, int] | None = None) -> Reference:
     """Render a reference of ``spec`` with Mitsuba's ``path`` integrator, split into direct and indirect.
 
-    ``progress``: True shows a tqdm bar, None shows it only on a terminal, False hides it.
+    ``progress``: True shows a tqdm bar, None shows it only on a terminal, False hides it. ``shard`` = (K, N):
+    only shard K (1-based) of N of the job's passes (see :func:`render_loaded`).
     """
     _check_positive("spp", spp)
     if tile_spp is not None:
         _check_positive("tile_spp", tile_spp)
     if seed < 0:
         raise ValueError(f"seed must be non-negative, got {seed}")
+    check_sampler(sampler)
+    if shard is not None:
+        check_shard(shard)
     from renderer.scene import load_scene  # box filter, film size, variant, unrenderable scenes refused
 
     loaded = load_scene(spec, width=width, height=height, max_depth=max_depth, defines=dict(defines or {}))
-    return render_loaded(loaded, spp=spp, seed=seed, tile_spp=tile_spp, progress=progress)
+    return render_loaded(loaded, spp=spp, seed=seed, tile_spp=tile_spp, progress=progress, sampler=sampler,
+                         shard=shard)
+
+
+def check_sampler(sampler: str) -> None:
+    """A ValueError naming the choices when ``sampler`` is not one of :data:`SAMPLERS`."""
+    if sampler not in SAMPLERS:
+        raise ValueError(f"unknown sampler {sampler!r}; choose one of {', '.join(SAMPLERS)}")
+
+
+def check_shard(shard: tuple[int, int]) -> None:
+    """A ValueError unless ``shard`` = (K, N) with 1 <= K <= N."""
+    k, n = shard
+    if n < 1 or not 1 <= k <= n:
+        raise ValueError(f"shard must be K/N with 1 <= K <= N, got {k}/{n}")
+
+
+def parse_shard(text: str) -> tuple[int, int]:
+    """``"2/8"`` -> (2, 8); a ValueError naming the expected form otherwise."""
+    k, sep, n = text.partition("/")
+    try:
+        shard = (int(k), int(n))
+    except ValueError:
+        shard = (0, 0)
+    if not sep or shard[1] < 1 or not 1 <= shard[0] <= shard[1]:
+        raise ValueError(f"--shard must be K/N with 1 <= K <= N (e.g. 1/4), got {text!r}")
+    return shard
+
+
+def sampler_sensor(loaded: LoadedScene, sampler: str) -> Any:
+    """The scene's camera rebuilt with Mitsuba's ``sampler``: same type, transform, field of view, clip planes,
+    shutter, lens and film size, box filter. Mitsuba cannot swap a loaded sensor's sampler, and the scene's
+    sensors are limited to perspective and thin-lens cameras (renderer.scene.SUPPORTED_SENSORS), whose every
+    parameter ``mi.traverse`` exposes. With ``independent`` the rebuilt camera renders bit-identically to the
+    scene's own independent one (tests/renderer/test_reference.py checks it)."""
+    import mitsuba as mi
+
+    check_sampler(sampler)
+    sensor = loaded.sensor
+    params = mi.traverse(sensor)
+
+    def scalar(name: str) -> float:
+        value = params[name]
+        return float(value[0]) if hasattr(value, "__len__") else float(value)
+
+    matrix = np.array(params["to_world"].matrix, dtype=np.float64).reshape(4, 4)
+    film = sensor.film()
+    size = [int(v) for v in film.size()]
+    desc: dict[str, Any] = {
+        "to_world": mi.ScalarTransform4f(np.ascontiguousarray(matrix, dtype=np.float32)),
+        "fov": scalar("x_fov"), "fov_axis": "x",
+        "near_clip": scalar("near_clip"), "far_clip": scalar("far_clip"),
+        "shutter_open": scalar("shutter_open"), "shutter_close": scalar("shutter_open") + scalar("shutter_open_time"),
+        "film": {"type": "hdrfilm", "width": size[0], "height": size[1], "rfilter": {"type": "box"},
+                 "pixel_format": "rgb", "component_format": "float32", "sample_border": bool(film.sample_border())},
+        "sampler": {"type": sampler, "sample_count": 4},
+    }
+    kind = sensor.class_name()
+    if kind == "ThinLensCamera":
+        desc.update(type="thinlens", aperture_radius=scalar("aperture_radius"),
+                    focus_distance=scalar("focus_distance"))
+    elif kind == "PerspectiveCamera":
+        desc.update(type="perspective", principal_point_offset_x=scalar("principal_point_offset_x"),
+                    principal_point_offset_y=scalar("principal_point_offset_y"))
+    else:  # load_scene refuses other sensors; fail loudly should that change
+        raise ValueError(f"cannot rebuild a {kind} with another sampler (perspective and thin-lens only)")
+    return mi.load_dict(desc)
 
 
 def render_loaded(loaded: LoadedScene, *, spp: int, seed: int, tile_spp: int | None,
-                  progress: bool | None = False) -> Reference:
-    """The pass loop: per pass, ``path`` at the scene's depth and at depth 2 with one seed; float64 averages."""
+                  progress: bool | None = False, sampler: str = DEFAULT_SAMPLER,
+                  shard: tuple[int, int] | None = None) -> Reference:
+    """The pass loop: per pass, ``path`` at the scene's depth and at depth 2 with one seed; float64 averages.
+
+    ``shard`` = (K, N) renders only passes K-1, K-1+N, ... of the job's plan (same pass seeds), records them in
+    the metadata, and returns their mean: :func:`merge_references` combines the N shards exactly. Without an
+    explicit ``tile_spp`` a sharded job's passes hold at most spp / N samples, so every shard gets some.
+    """
     import mitsuba as mi
 
+    check_sampler(sampler)
     depth = loaded.max_depth
-    tile = tile_spp or default_tile_spp(spp, loaded.width, loaded.height)
+    tile = tile_spp or default_tile_spp(spp, loaded.width, loaded.height, sampler)
+    if shard is not None and tile_spp is None:
+        # Every shard needs passes: at most spp / N samples per pass (a function of the job alone, so all shards
+        # plan the same passes; the merge checks that their tiles agree).
+        tile = max(1, min(tile, spp // shard[1]))
     if loaded.width * loaded.height * tile > MAX_WAVEFRONT:
         raise ValueError(f"--tile-spp {tile} at {loaded.width}x{loaded.height} exceeds Mitsuba's 2^32 samples "
                          f"per pass; use at most {MAX_WAVEFRONT // (loaded.width * loaded.height)}")
+    plan = plan_passes(spp, tile, sampler)
+    mine = list(enumerate(plan)) if shard is None else list(enumerate(plan))[shard[0] - 1::shard[1]]
+    if not mine:
+        raise ValueError(f"shard {shard[0]}/{shard[1]} has no passes: {spp} spp in passes of {tile} make "
+                         f"{len(plan)}; use at most {len(plan)} shards or a smaller --tile-spp")
     split = depth == -1 or depth > 2      # max depth <= 2: nothing but direct light exists
     total_it = mi.load_dict({"type": "path", "max_depth": depth})
     direct_it = mi.load_dict({"type": "path", "max_depth": 2}) if split else None
+    sensor = sampler_sensor(loaded, sampler)
 
     def render(integrator: Any, k: int, s: int) -> np.ndarray:
-        img = np.asarray(mi.render(loaded.scene, sensor=loaded.sensor, integrator=integrator, spp=k, seed=s),
+        img = np.asarray(mi.render(loaded.scene, sensor=sensor, integrator=integrator, spp=k, seed=s),
                          dtype=np.float64)
-        # An XML film may ask for RGBA (alpha dropped) or luminance (replicated): the file is always R G B.
+        # The rebuilt film is RGB; kept general should a film ever come back RGBA (alpha dropped) or luminance.
         return img[..., :3] if img.shape[-1] >= 3 else np.repeat(img[..., :1], 3, axis=-1)
 
     shape = (loaded.height, loaded.width, 3)
     total_sum, direct_sum = np.zeros(shape), np.zeros(shape)
+    samples = sum(k for _, k in mine)
     start = time.perf_counter()
-    with ProgressBar(spp, enabled=progress, desc=f"reference {loaded.spec}".strip(), unit="spp") as bar:
-        for i, k in enumerate(plan_passes(spp, tile)):
+    with ProgressBar(samples, enabled=progress, desc=f"reference {loaded.spec}".strip(), unit="spp") as bar:
+        for i, k in mine:
             s = pass_seed(seed, i)
             total = render(total_it, k, s)
             total_sum += k * total
@@ -162,19 +334,67 @@ def render_loaded(loaded: LoadedScene, *, spp: int, seed: int, tile_spp: int | N
                 direct_sum += k * direct
             bar.update(k)
     seconds = time.perf_counter() - start
-    total_mean = total_sum / spp
-    if direct_it is None:
-        direct_mean, indirect_mean = total_mean, None
-    else:
-        direct_mean = direct_sum / spp
-        # Per sample the difference is exact; what is left below zero is float rounding (checked per pass).
-        indirect_mean = np.maximum(total_mean - direct_mean, 0.0)
     meta = loaded.scene_metadata()
-    meta.update({"gradsep.kind": "reference", "gradsep.integrator": "path", "gradsep.spp": str(spp),
+    meta.update({"gradsep.kind": "reference", "gradsep.integrator": "path", "gradsep.spp": str(samples),
                  "gradsep.seed": str(seed), "gradsep.max_depth": str(depth), "gradsep.tile_spp": str(tile),
+                 "gradsep.sampler": sampler, "gradsep.size": f"{loaded.width}x{loaded.height}",
                  "gradsep.render_seconds": f"{seconds:.3f}", "gradsep.variant": str(mi.variant())})
-    return Reference(_finite32(total_mean), _finite32(direct_mean),
-                     None if indirect_mean is None else _finite32(indirect_mean), meta)
+    if shard is not None:
+        meta.update({"gradsep.shard": f"{shard[0]}/{shard[1]}", "gradsep.job_spp": str(spp),
+                     "gradsep.passes": ",".join(str(i) for i, _ in mine)})
+    return _mean_reference(total_sum / samples, None if direct_it is None else direct_sum / samples, meta)
+
+
+def _mean_reference(total_mean: np.ndarray, direct_mean: np.ndarray | None, meta: dict[str, str]) -> Reference:
+    """The Reference of float64 means; ``direct_mean`` None: depth <= 2, everything is direct light."""
+    if direct_mean is None:
+        return Reference(_finite32(total_mean), _finite32(total_mean), None, meta)
+    # Per sample the difference is exact; what is left below zero is float rounding (checked per pass).
+    indirect_mean = np.maximum(total_mean - direct_mean, 0.0)
+    return Reference(_finite32(total_mean), _finite32(direct_mean), _finite32(indirect_mean), meta)
+
+
+# Metadata every shard of one job must share (the scene and everything that decides its passes and seeds).
+SHARD_JOB_KEYS = ("gradsep.scene", "gradsep.defines", "gradsep.procedural_version", "gradsep.job_spp",
+                  "gradsep.seed", "gradsep.max_depth", "gradsep.tile_spp", "gradsep.sampler", "gradsep.size",
+                  "gradsep.variant", "gradsep.integrator")
+
+
+def merge_references(parts: Sequence[Reference]) -> Reference:
+    """Combine the N shards of one ``--shard K/N`` job into the job's reference, weighted by their samples.
+
+    Exact up to float32 storage: the shards hold the job's passes with the job's seeds, so the merge is the
+    same sample-weighted mean the unsharded render computes (indirect recomputed from the merged total and
+    direct, as there). Refused, naming the problem, unless the parts are shards 1..N of one job, each once.
+    """
+    if not parts:
+        raise ValueError("nothing to merge: give the N shard files of one job")
+    metas = [p.metadata for p in parts]
+    missing = [i for i, m in enumerate(metas) if "gradsep.shard" not in m]
+    if missing:
+        raise ValueError(f"part {missing[0] + 1} is not a shard (no gradsep.shard; render it with --shard K/N)")
+    for key in SHARD_JOB_KEYS:
+        values = {m.get(key) for m in metas}
+        if len(values) > 1:
+            raise ValueError(f"the parts come from different jobs: {key} differs ({', '.join(map(str, values))})")
+    shards = [parse_shard(m["gradsep.shard"]) for m in metas]
+    n = shards[0][1]
+    got = sorted(k for k, _ in shards)
+    if {s[1] for s in shards} != {n} or got != list(range(1, n + 1)):
+        raise ValueError(f"need shards 1..{n} of {n} exactly once each, got {', '.join(f'{k}/{m}' for k, m in shards)}")
+    weights = [int(m["gradsep.spp"]) for m in metas]
+    samples = sum(weights)
+    if str(samples) != metas[0]["gradsep.job_spp"]:
+        raise ValueError(f"the shards hold {samples} spp, their job {metas[0]['gradsep.job_spp']}")
+    total = sum(w * p.total.astype(np.float64) for w, p in zip(weights, parts, strict=True)) / samples
+    direct = None
+    if parts[0].indirect is not None:
+        direct = sum(w * p.direct.astype(np.float64) for w, p in zip(weights, parts, strict=True)) / samples
+    meta = {k: v for k, v in metas[0].items()
+            if k not in ("gradsep.shard", "gradsep.passes", "gradsep.job_spp", "gradsep.eval_key")}
+    meta.update({"gradsep.spp": str(samples), "gradsep.shards": str(n),
+                 "gradsep.render_seconds": f"{sum(float(m.get('gradsep.render_seconds', 'nan')) for m in metas):.3f}"})
+    return _mean_reference(total, direct, meta)
 
 
 def _check_split(total: np.ndarray, direct: np.ndarray, index: int) -> None:

@@ -87,6 +87,16 @@ def test_reference_spp_schedule():
     assert next_reference_spp(512, floor=1e-5, smallest=-1e-6, fraction=0.1, cap=2048) == 2048  # unresolved
 
 
+def test_reference_spp_schedule_in_whole_passes():
+    """With the pass spp as step: the smallest whole number of passes covering 1.25x the 1/spp prediction."""
+    # 2048 spp at a floor 10.7x the target (cbox-like): 21.9k predicted, 27.4k with the margin -> 54 passes of 512
+    assert next_reference_spp(2048, floor=8.0e-4, smallest=7.5e-4, fraction=0.1, cap=65536, step=512) == 27648
+    assert next_reference_spp(512, floor=1.1e-4, smallest=1e-3, fraction=0.1, cap=4096, step=512) == 1024  # +1 pass
+    assert next_reference_spp(512, floor=5e-3, smallest=1e-3, fraction=0.1, cap=4096, step=512) == 4096  # capped
+    assert next_reference_spp(512, floor=1e-5, smallest=1e-3, fraction=0.1, cap=4096, step=512) is None
+    assert next_reference_spp(512, floor=1e-5, smallest=0.0, fraction=0.1, cap=2048, step=512) == 2048
+
+
 def test_reference_time_budget_limits_the_raise():
     from evaluation.run import _within_time
 
@@ -95,3 +105,6 @@ def test_reference_time_budget_limits_the_raise():
     assert _within_time(512, 4096, seconds=20.0, budget=100.0) == 2048  # 80 s fits, 160 s does not
     assert _within_time(512, 4096, seconds=200.0, budget=240.0) is None  # not even a doubling fits
     assert _within_time(512, 1024, seconds=float("nan"), budget=1.0) == 1024  # no timing: the cap decides
+    # in whole passes: 512 spp took 20 s, 100 s fit 2560 spp = 5 passes
+    assert _within_time(512, 4096, seconds=20.0, budget=100.0, step=512) == 2560
+    assert _within_time(512, 4096, seconds=20.0, budget=30.0, step=512) is None  # 1024 would take 40 s
