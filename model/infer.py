@@ -280,8 +280,17 @@ def _sha256(path: Path) -> str:
     return h.hexdigest()
 
 
+class BlendModelFound(ModelError):
+    """The file is a ``fused`` blend model (model/fused.py), which this class does not run: the caller
+    (``NetworkReconstructor.load``) hands the folder to model.fused.FusedReconstructor instead."""
+
+
 def _check_metadata(path: Path, name: str, meta: dict[str, str]) -> int:
     """Refuse a model this code would feed wrongly; return its alignment."""
+    from model.fused import BLEND_PRIOR
+
+    if meta.get("gradsep.prior") == BLEND_PRIOR:
+        raise BlendModelFound(f"{path}: a fused blend model (gradsep.prior = {BLEND_PRIOR})")
     problems = []
     if meta.get("gradsep.layer") != name:
         problems.append(f"it was trained for layer {meta.get('gradsep.layer')!r}, not {name!r}")
@@ -356,10 +365,20 @@ class NetworkReconstructor:
     @classmethod
     def load(cls, models_dir: str | os.PathLike[str], settings: SessionSettings = SessionSettings(),
              tiles: TileSettings = TileSettings()) -> NetworkReconstructor | None:
-        """Load every ``{direct,indirect,color}.onnx`` present; None when there is none."""
+        """Load every ``{direct,indirect,color}.onnx`` present; None when there is none. A folder of ``fused``
+        blend models (model/fused.py) loads as a model.fused.FusedReconstructor (same reconstruct_layer
+        contract), so callers that open models/fused through this class keep working."""
         folder = Path(models_dir)
-        models = {name: load_model(folder / f"{name}.onnx", name, settings)
-                  for name in MODEL_LAYERS if (folder / f"{name}.onnx").is_file()}
+        try:
+            models = {name: load_model(folder / f"{name}.onnx", name, settings)
+                      for name in MODEL_LAYERS if (folder / f"{name}.onnx").is_file()}
+        except BlendModelFound:
+            from model.fused import BlendModelError, FusedReconstructor
+
+            try:
+                return FusedReconstructor.load(folder)  # type: ignore[return-value]
+            except BlendModelError as exc:
+                raise ModelError(str(exc)) from exc
         return cls(models, tiles) if models else None
 
     @property

@@ -10,8 +10,8 @@ runs for an absent layer. The methods:
   setting, docs/oidn.md); the one method for a plain path-traced frame (no gradients), and it needs no features;
 * ``oidn-l1`` -- ``oidn``, then the direct layer refined by its gradients: an L1 screened Poisson solve with
   OIDN's image as the data term (model/refine.py); the indirect layer keeps OIDN's image;
-* ``fused`` -- the same network architecture refining OIDN's denoise with the layer's gradients and features,
-  trained unsupervised (models/fused/*.onnx).
+* ``fused`` -- the paper's network architecture predicting per-pixel convex weights over candidate reconstructions
+  (OIDN's image, its gradient-domain refinement, ...), trained unsupervised (model/fused.py, models/fused/*.onnx).
 
 What a frame does not carry costs nothing: no gradients means no Poisson or network work (only ``oidn``
 applies), no features means OIDN without auxiliary images, and the OIDN prefilter of albedo/normal runs once per
@@ -248,10 +248,11 @@ def reconstruct(frame: Frame, method: str | None = None, alpha: float = DEFAULT_
     total = np.zeros(shape, dtype=np.float64)
     needs_aux = method in OIDN_METHODS or bool(getattr(models, "needs_aux", False))
     if needs_aux:
-        from model.oidn import method_setting, shared_denoiser
+        from model.oidn import PRIOR_SETTING, method_setting, shared_denoiser
 
-        # oidn runs at its chosen setting; the fused models refine the prior setting they were trained on
-        ctx.denoiser = shared_denoiser(method_setting()) if method in OIDN_METHODS else shared_denoiser()
+        # oidn runs at its chosen setting; model sets that use OIDN name the setting they were trained with
+        ctx.denoiser = (shared_denoiser(method_setting()) if method in OIDN_METHODS
+                        else shared_denoiser(getattr(models, "oidn_setting", PRIOR_SETTING)))
     if needs_aux and frame.features is not None:
         start = time.perf_counter()
         ctx.aux = ctx.denoiser.prefilter(frame.features)  # once per frame, shared by every layer
@@ -279,7 +280,8 @@ def _load(folder: Path, prior: str) -> Any:
     from model.infer import ModelError, NetworkReconstructor  # type: ignore[import-not-found]
 
     models = NetworkReconstructor.load(folder)
-    wrong = [m.path.name for m in (models.models.values() if models else ()) if m.prior != prior]
+    # a folder of fused blend models loads as model.fused.FusedReconstructor, whose models have no ``prior``
+    wrong = [m.path.name for m in (models.models.values() if models else ()) if getattr(m, "prior", "blend") != prior]
     if wrong:
         raise ModelError(f"{folder}: {', '.join(wrong)} refine a different prior than {prior!r} "
                          f"(the {'fused' if prior == 'oidn' else 'network'} method's); re-export into the right folder")
@@ -294,10 +296,18 @@ def load_network(models_dir: str | os.PathLike[str] | None) -> Any:
 
 
 def load_fused(models_dir: str | os.PathLike[str] | None) -> Any:
-    """The ``fused`` method's reconstructor (models/fused/*.onnx), or None when absent or pyoidn is missing."""
+    """The ``fused`` method's reconstructor (models/fused/*.onnx: per-pixel blend models, model/fused.py), or None
+    when the folder has no model or pyoidn is missing. A model of another prior kind there (an ``l1`` network
+    model, or the earlier OIDN-residual ``oidn`` models) is refused with ModelError."""
     from model.oidn import available
 
     folder = models_dir_from(models_dir) / FUSED_SUBDIR
-    if not available():
+    if not available() or not folder.is_dir():
         return None
-    return _load(folder, "oidn")
+    from model.fused import BlendModelError, FusedReconstructor
+    from model.infer import ModelError  # type: ignore[import-not-found]
+
+    try:
+        return FusedReconstructor.load(folder)
+    except BlendModelError as exc:
+        raise ModelError(str(exc)) from exc

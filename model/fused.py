@@ -1,0 +1,250 @@
+"""The ``fused`` method (issue 14): a per-pixel learned blend of gradient-domain and denoised candidates.
+
+The paper's dual-branch CBAM network (model/blend_net.py: the same encoders, bottleneck, decoder and attention
+as model/network.py) sees K *candidate* reconstructions of a layer side by side and predicts, per pixel, softmax
+weights over them; the output is the convex blend ``Σ_k w_k · candidate_k``. The candidates (``CANDIDATES``):
+
+* ``oidn``   -- OIDN's denoise of the base with the frame's albedo/normal (the ``oidn`` method's setting,
+  ``OIDN_SETTING``: raw features, quality fast);
+* ``refine`` -- that image refined by the layer's gradients: the L1 screened Poisson solve with OIDN's image
+  as the data term (model.refine.refine_layer, the ``oidn-l1`` method's second stage), computed for *every*
+  layer (``oidn-l1`` refines only the direct one; here the network decides where it helps);
+* ``l1``     -- the truncated robust Poisson solve of base + gradients the ``network`` method refines
+  (model.preprocess.poisson_prior).
+
+A convex blend cannot leave the hull of its candidates: it never invents energy, never rings below 0 (every
+candidate is >= 0), and an untrained model (zero head) returns their plain average. The weights are computed
+from the layer at a normalised exposure (base, gradients and candidates multiplied by s with mean(s·OIDN) =
+FUSED_MEAN, model.preprocess.prior_exposure), and the blend is taken of the frame's own candidates, so the
+method is the same for a frame at 1e-8 or 1e9 radiance and HDR values are never clipped.
+
+This module is numpy + ONNX Runtime only (inference); the same ``layer_candidates``/``blend_inputs`` build the
+training cache (training/fused.py), so training and inference see identical numbers.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from model.frame import Features, Layer
+from model.preprocess import (
+    RADIANCE_MAX,
+    TRANSFER,
+    DepthRange,
+    aligned_size,
+    feature_planes,
+    poisson_prior,
+    prior_exposure,
+    scaled_image,
+    scaled_layer,
+)
+
+#: The candidate kinds a blend model may use (its metadata ``gradsep.candidates`` names its own, in order).
+CANDIDATES: tuple[str, ...] = ("oidn", "refine", "l1")
+#: The OIDN setting of the ``oidn``/``refine`` candidates (model.oidn.SETTINGS): the ``oidn`` method's default.
+OIDN_SETTING = "raw-fast"
+#: ONNX metadata ``gradsep.prior`` of a blend model; a model of another prior kind is refused by ``load_blend``.
+BLEND_PRIOR = "blend"
+BLEND_FORMAT = "1"
+INPUT_NAMES = ("data", "gradient")
+OUTPUT_NAME = "weights"
+_F32_MAX = float(np.finfo(np.float32).max)
+
+
+class BlendModelError(ValueError):
+    """A fused model file cannot be used (wrong prior kind, candidates, layer...); the message says why."""
+
+
+def data_channels(k: int) -> int:
+    """Channels of the data input for K candidates: C(base), C(candidate_1..K), albedo, normal, depth."""
+    return 3 + 3 * k + 7
+
+
+def layer_candidates(layer: Layer, aux: Any, kinds: tuple[str, ...] = CANDIDATES,
+                     denoiser: Any = None) -> tuple[Layer, list[np.ndarray], float]:
+    """(the layer at the normalised exposure, its candidates at that exposure (each (H, W, 3) float32, finite,
+    in [0, RADIANCE_MAX]), the scale s). ``aux``: the frame's OIDN features for ``OIDN_SETTING``
+    (``denoiser.prefilter(features)``), or None without features."""
+    from model.oidn import shared_denoiser
+    from model.refine import refine_layer
+
+    unknown = [k for k in kinds if k not in CANDIDATES]
+    if unknown:
+        raise BlendModelError(f"unknown candidate kind(s) {unknown}; expected some of {', '.join(CANDIDATES)}")
+    den = denoiser or shared_denoiser(OIDN_SETTING)
+    denoised = den.denoise(layer.base, aux)  # scale-invariant: OIDN's input is normalised to mean 1
+    scale = prior_exposure(denoised)
+    scaled = scaled_layer(layer, scale)
+    oidn = scaled_image(denoised, scale)
+    out: list[np.ndarray] = []
+    for kind in kinds:
+        if kind == "oidn":
+            image = oidn
+        elif kind == "refine":
+            # refine_layer refines the layers named in model.refine.REFINED_LAYERS; "direct" asks it to refine
+            # this layer whatever it is (the indirect layer's refinement is a candidate the network may reject)
+            image = refine_layer("direct", oidn, scaled)
+        else:
+            image = poisson_prior(scaled)
+        out.append(np.clip(np.nan_to_num(image, nan=0.0, posinf=RADIANCE_MAX, neginf=0.0), 0.0,
+                           RADIANCE_MAX).astype(np.float32))
+    return scaled, out, scale
+
+
+def _chw(image: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    return np.clip(np.nan_to_num(np.asarray(image, np.float32), nan=0.0, posinf=hi, neginf=lo), lo,
+                   hi).transpose(2, 0, 1)
+
+
+def blend_inputs(scaled: Layer, candidates: list[np.ndarray], features: Features) -> tuple[np.ndarray, np.ndarray]:
+    """(data (3+3K+7, H, W), gradient (6, H, W)) float32 network inputs, from the normalised layer and candidates.
+
+    Radiance planes go through the log transfer C (model.preprocess.TRANSFER), gradients through sign·C, the
+    features as the ``network`` method normalises them (albedo, normal·0.5+0.5, depth per frame)."""
+    radiance = [TRANSFER.forward(_chw(scaled.base, 0.0, RADIANCE_MAX))]
+    radiance += [TRANSFER.forward(_chw(c, 0.0, RADIANCE_MAX)) for c in candidates]
+    feats = feature_planes(features, DepthRange.of(features.depth))
+    data = np.concatenate([*radiance, feats]).astype(np.float32)
+    gradient = np.concatenate([TRANSFER.forward_signed(_chw(scaled.dx, -RADIANCE_MAX, RADIANCE_MAX)),
+                               TRANSFER.forward_signed(_chw(scaled.dy, -RADIANCE_MAX, RADIANCE_MAX))])
+    return data, gradient.astype(np.float32)
+
+
+def blend(weights: np.ndarray, candidates: list[np.ndarray], scale: float) -> np.ndarray:
+    """Σ_k w_k · candidate_k / s, float64 accumulation, as (H, W, 3) float32 finite and >= 0.
+
+    ``weights`` (K, H, W); non-finite or negative weights (a broken model) fall back to the first candidate's
+    (OIDN's) image: the method degrades to ``oidn``, never to holes."""
+    w = np.asarray(weights, np.float64)
+    bad = ~np.all(np.isfinite(w) & (w >= 0), axis=0)
+    total = np.zeros(candidates[0].shape, np.float64)
+    for k, image in enumerate(candidates):
+        total += np.where(bad, 1.0 if k == 0 else 0.0, w[k])[..., None] * image
+    out = total / scale
+    return np.clip(np.nan_to_num(out, nan=0.0, posinf=_F32_MAX, neginf=0.0), 0.0, _F32_MAX).astype(np.float32)
+
+
+def _pad(x: np.ndarray, alignment: int) -> np.ndarray:
+    h, w = x.shape[-2:]
+    ph, pw = aligned_size(h, alignment) - h, aligned_size(w, alignment) - w
+    if not (ph or pw):
+        return x
+    mode = "reflect" if min(h, w) > 1 else "edge"
+    return np.pad(x, [(0, 0), (0, ph), (0, pw)], mode=mode)
+
+
+@dataclass
+class BlendModel:
+    """One exported blend model (a layer's)."""
+
+    name: str
+    path: Path
+    metadata: dict[str, str]
+    session: Any
+    candidates: tuple[str, ...]
+    alignment: int
+
+    def weights(self, data: np.ndarray, gradient: np.ndarray) -> np.ndarray:
+        """(C, H, W) inputs of any size → (K, H, W) weights (padded to the alignment and cropped back)."""
+        h, w = data.shape[-2:]
+        out = self.session.run([OUTPUT_NAME], {"data": _pad(data, self.alignment)[None],
+                                               "gradient": _pad(gradient, self.alignment)[None]})[0]
+        return out[0, :, :h, :w]
+
+
+def _check(path: Path, name: str, meta: dict[str, str]) -> tuple[tuple[str, ...], int]:
+    prior = meta.get("gradsep.prior", "l1")
+    if prior != BLEND_PRIOR:
+        raise BlendModelError(f"{path}: a model of prior kind {prior!r}, not a fused blend model "
+                              f"({BLEND_PRIOR!r}); re-export it into the folder of its own method")
+    if meta.get("gradsep.layer") != name:
+        raise BlendModelError(f"{path}: made for layer {meta.get('gradsep.layer')!r}, not {name!r}")
+    try:
+        kinds = tuple(json.loads(meta.get("gradsep.candidates", "")))
+        alignment = int(meta.get("gradsep.alignment", ""))
+    except (ValueError, TypeError) as exc:
+        raise BlendModelError(f"{path}: unreadable gradsep.candidates / gradsep.alignment ({exc})") from exc
+    if not kinds or any(k not in CANDIDATES for k in kinds):
+        raise BlendModelError(f"{path}: candidates {kinds} are not a subset of {CANDIDATES}")
+    if meta.get("gradsep.oidn_setting") != OIDN_SETTING:
+        raise BlendModelError(f"{path}: trained on OIDN setting {meta.get('gradsep.oidn_setting')!r}, this code "
+                              f"computes {OIDN_SETTING!r}")
+    return kinds, alignment
+
+
+def load_model(path: str | os.PathLike[str], name: str) -> BlendModel:
+    """Open one blend model with the service's ONNX Runtime settings; BlendModelError when unusable."""
+    import onnxruntime as ort
+
+    from model.infer import SessionSettings
+
+    path = Path(path)
+    try:
+        session = ort.InferenceSession(str(path), SessionSettings().options(), providers=["CPUExecutionProvider"])
+    except Exception as exc:  # ORT's own exception types for corrupt files
+        raise BlendModelError(f"{path}: ONNX Runtime cannot load it ({exc})") from exc
+    meta = dict(session.get_modelmeta().custom_metadata_map)
+    kinds, alignment = _check(path, name, meta)
+    return BlendModel(name, path, meta, session, kinds, alignment)
+
+
+class FusedReconstructor:
+    """The ``fused`` method's per-layer blend models (models/fused/{direct,indirect,color}.onnx)."""
+
+    needs_aux = True
+    oidn_setting = OIDN_SETTING
+
+    def __init__(self, models: dict[str, BlendModel]) -> None:
+        self.models = models
+
+    @classmethod
+    def load(cls, folder: str | os.PathLike[str]) -> FusedReconstructor | None:
+        folder = Path(folder)
+        models = {n: load_model(folder / f"{n}.onnx", n) for n in ("direct", "indirect", "color")
+                  if (folder / f"{n}.onnx").is_file()}
+        return cls(models) if models else None
+
+    @property
+    def layers(self) -> set[str]:
+        return set(self.models)
+
+    def describe(self) -> list[dict[str, Any]]:
+        """One entry per model, with the keys of model.infer.LoadedModel.describe (the service's /v1/models)."""
+        import hashlib
+
+        return [{"name": m.name, "layer": m.name, "file": m.path.name,
+                 "inputs": {"data": data_channels(len(m.candidates)), "gradient": 6,
+                            "candidates": list(m.candidates)},
+                 "sha256": hashlib.sha256(m.path.read_bytes()).hexdigest(), "bytes": m.path.stat().st_size,
+                 "attention": m.metadata.get("gradsep.attention") == "true", "prior": BLEND_PRIOR,
+                 "alignment": m.alignment, "provider": "cpu", "precision": "fp32",
+                 "provider_reason": "the fused blend models run on ORT's CPU provider",
+                 "metadata": dict(m.metadata)} for m in self.models.values()]
+
+    def warm_up(self, size: int = 64) -> float:
+        import time
+
+        start = time.perf_counter()
+        for m in self.models.values():
+            k = len(m.candidates)
+            m.weights(np.zeros((data_channels(k), size, size), np.float32), np.zeros((6, size, size), np.float32))
+        return time.perf_counter() - start
+
+    def reconstruct_layer(self, name: str, layer: Layer, features: Features | None, aux: Any = None) -> np.ndarray:
+        """(H, W, 3) float32 >= 0: the blend of the layer's candidates with the model's per-pixel weights."""
+        if features is None:
+            raise BlendModelError("the fused method needs the frame's feature channels")
+        model = self.models[name]
+        if aux is None:
+            from model.oidn import shared_denoiser
+
+            aux = shared_denoiser(OIDN_SETTING).prefilter(features)
+        scaled, cands, scale = layer_candidates(layer, aux, model.candidates)
+        data, gradient = blend_inputs(scaled, cands, features)
+        return blend(model.weights(data, gradient), cands, scale)
