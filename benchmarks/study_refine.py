@@ -114,7 +114,8 @@ def _speed_variants(setting: str) -> dict[str, Callable]:
     for passes, cg in ((4, 4), (5, 4), (6, 3)):
         out[f"L2 start, {passes} passes, {cg} CG"] = solve(a, passes, direct, cg_steps=cg)
     out["warm start, 4 passes, 2 mg"] = solve(a, 4, direct, warm_start=True, cg_steps=2, preconditioner="mg")
-    out["L2 start, 8 passes, 2 mg"] = solve(a, 8, direct, cg_steps=2, preconditioner="mg")
+    for passes, cg in ((8, 2), (8, 1), (6, 2), (5, 2), (6, 1), (8, 3)):
+        out[f"L2 start, {passes} passes, {cg} mg"] = solve(a, passes, direct, cg_steps=cg, preconditioner="mg")
     return out
 
 
@@ -157,11 +158,28 @@ def error(cache: Path, settings: list[str], family: str = "design") -> None:
         print(f"| {setting} | {variant} | {geo:.3f} | {max(ratios):.2f} | {better}/{len(ratios)} |")
 
 
-def timing(width: int, height: int, repeats: int) -> None:
+def timing(width: int, height: int, repeats: int, variants: list[str] | None = None) -> None:
     """The refinement of one 1280x720 direct layer (synthetic noisy HDR data: the solve's cost does not depend
-    on content), medians of ``repeats``."""
+    on content), medians of ``repeats``; ``variants`` ("PASSES:CG:PRECONDITIONER[:warm]", e.g. "8:2:mg") are
+    timed in the same run, interleaved with the shipped setting."""
+    from model import refine
+
+    settings = [None, *(variants or [])]
+    runs = {v: [] for v in settings}
+    for _ in range(repeats):
+        for v in settings:
+            runs[v].append(_time_refinement(width, height, v))
+    for v in settings:
+        times = runs[v]
+        label = v or (f"shipped {refine.REFINE_ITERATIONS}:{refine.REFINE_CG_STEPS}:{refine.REFINE_PRECONDITIONER}"
+                      f"{':warm' if refine.REFINE_WARM_START else ''}")
+        print(f"refinement of one {width}x{height} direct layer, {label}: median {statistics.median(times):.3f} s "
+              f"(min {min(times):.3f}, {repeats} repeats), load {os.getloadavg()[0]:.2f}")
+
+
+def _time_refinement(width: int, height: int, variant: str | None) -> float:
     from model.frame import Layer, forward_differences
-    from model.refine import refine_layer
+    from model.refine import REFINED_LAYERS
 
     rng = np.random.default_rng(0)
     truth = rng.uniform(0.1, 2.0, (height // 16 + 1, width // 16 + 1, 3)).astype(np.float32)
@@ -169,14 +187,18 @@ def timing(width: int, height: int, repeats: int) -> None:
     dx, dy = forward_differences(truth)
     noise = lambda: rng.normal(0, 0.1, truth.shape).astype(np.float32)  # noqa: E731
     layer = Layer(truth + noise(), dx + noise(), dy + noise())
-    refine_layer("direct", truth, layer)  # warm-up (numba/FFT plans)
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        refine_layer("direct", truth, layer)
-        times.append(time.perf_counter() - start)
-    print(f"refinement of one {width}x{height} direct layer: median {statistics.median(times):.3f} s "
-          f"(min {min(times):.3f}, {repeats} repeats)")
+    if variant is None:
+        from model.refine import REFINE_ALPHA, REFINE_ITERATIONS
+
+        run = _solver(REFINE_ALPHA, REFINE_ITERATIONS, REFINED_LAYERS)
+    else:
+        passes, cg, preconditioner, *warm = variant.split(":")
+        run = _solver(1.0, int(passes), REFINED_LAYERS, cg_steps=int(cg), preconditioner=preconditioner,
+                      warm_start=bool(warm))
+    run("direct", truth, layer)  # warm-up (numba/FFT plans)
+    start = time.perf_counter()
+    run("direct", truth, layer)
+    return time.perf_counter() - start
 
 
 def main() -> int:
@@ -195,13 +217,14 @@ def main() -> int:
     t.add_argument("--width", type=int, default=1280)
     t.add_argument("--height", type=int, default=720)
     t.add_argument("--repeats", type=int, default=5)
+    t.add_argument("--variants", default="", help="comma-separated PASSES:CG:PRECONDITIONER[:warm], e.g. 8:2:mg")
     args = parser.parse_args()
     if args.command == "render":
         render(_seeds(args.seeds), [int(s) for s in args.spp.split(",")], args.ref_spp, args.cache)
     elif args.command == "error":
         error(args.cache, args.settings.split(","), args.family)
     else:
-        timing(args.width, args.height, args.repeats)
+        timing(args.width, args.height, args.repeats, [v for v in args.variants.split(",") if v])
     return 0
 
 
