@@ -106,13 +106,16 @@ class _Context:
     denoiser: Any = None  # the model.oidn.Denoiser of the method (oidn: its setting; fused: the prior's)
 
 
-def _reconstruct_layer(name: str, layer: Layer, ctx: _Context) -> np.ndarray:
+def _reconstruct_layer(name: str, layer: Layer, ctx: _Context, denoised: np.ndarray | None = None) -> np.ndarray:
+    """One layer by ``ctx.method``; ``denoised``: the layer's OIDN image when already computed (OIDN methods)."""
     if ctx.method == "l1":
         return solve_l1(layer.base, layer.dx, layer.dy, ctx.alpha)[0]
     if ctx.method == "l2":
         return solve_l2(layer.base, layer.dx, layer.dy, ctx.alpha)
     if ctx.method in OIDN_METHODS:
-        return _finish_oidn_layer(name, ctx.denoiser.denoise(layer.base, ctx.aux), layer, ctx)
+        if denoised is None:
+            denoised = ctx.denoiser.denoise(layer.base, ctx.aux)
+        return _finish_oidn_layer(name, denoised, layer, ctx)
     if ctx.aux is not None:  # models refining an OIDN prior share the frame's prefiltered features
         return ctx.models.reconstruct_layer(name, layer, ctx.features, ctx.aux)
     return ctx.models.reconstruct_layer(name, layer, ctx.features)
@@ -165,7 +168,7 @@ def _run_layers(frame: Frame, ctx: _Context) -> dict[str, tuple[np.ndarray, floa
     thread, in the frame's order with the refined layers first, and each refinement (the L1 solve of oidn-l1)
     runs in a worker beside the next layer's denoise; OIDN's own order is therefore fixed."""
     threads = min(layer_threads(), len(frame.layers))
-    if threads <= 1:
+    if threads <= 1 or ctx.method == "oidn":  # oidn: one denoiser, already on every core; nothing to overlap
         return {name: _timed(_reconstruct_layer, name, layer, ctx) for name, layer in frame.layers.items()}
     with ThreadPoolExecutor(max_workers=threads, thread_name_prefix="gradsep-layer") as pool:
         if ctx.method not in OIDN_METHODS:
@@ -179,7 +182,7 @@ def _run_layers(frame: Frame, ctx: _Context) -> dict[str, tuple[np.ndarray, floa
         for name in order:
             layer = frame.layers[name]
             denoised, seconds = _timed(ctx.denoiser.denoise, layer.base, ctx.aux)
-            pending[name] = (pool.submit(_in_worker, _finish_oidn_layer, name, denoised, layer, ctx), seconds)
+            pending[name] = (pool.submit(_in_worker, _reconstruct_layer, name, layer, ctx, denoised), seconds)
         out = {}
         for name, (future, denoise_seconds) in pending.items():
             image, seconds = future.result()
