@@ -123,12 +123,16 @@ def _reconstruct_layer(name: str, layer: Layer, ctx: _Context, denoised: np.ndar
 
 #: ``$GRADSEP_LAYER_THREADS``: how many of a frame's layers are reconstructed at once (1: one after the other).
 LAYER_THREADS_ENV = "GRADSEP_LAYER_THREADS"
-#: The default: the direct and indirect layers at once. Their solves are independent, and most of each one runs
-#: single-threaded (the compiled IRLS kernels, numpy's element-wise passes) or releases the GIL (the DCTs,
-#: ONNX Runtime, OIDN): on the 2-core target two layers at once cut the frame's wall time by ~30-40 % for l1,
-#: network and oidn-l1 (benchmarks/bench_layers.py, docs/service.md "Benchmark"). The result is bit-for-bit
-#: the same: every layer's computation is unchanged, and the sum is taken in the frame's order.
+#: The default: two layers at once, for the methods where that was measured to pay (CONCURRENT_METHODS).
 DEFAULT_LAYER_THREADS = 2
+#: Methods whose layers run concurrently. Their solves are independent and most of each runs single-threaded
+#: (the compiled IRLS/multigrid kernels) or releases the GIL (DCTs, OIDN), but the 2 cores are shared, so it only
+#: pays where one layer leaves a core idle. Measured in-process (benchmarks/bench_layers.py, 1280x720, 2 cores,
+#: same-run medians, concurrent / sequential): l1 0.75-0.85 (four runs), oidn-l1 0.95-0.97 (its direct layer's
+#: refinement beside the indirect layer's denoise), network 0.98-1.15 (OpenVINO and the DCTs already use both
+#: cores), l2 1.7-2.3 (two DCTs per layer: thread start-up and contention outweigh them). fused: not measured.
+#: Every other method runs its layers one after the other. Output is bit-for-bit the same either way.
+CONCURRENT_METHODS: frozenset[str] = frozenset({"l1", "oidn-l1"})
 
 
 def layer_threads() -> int:
@@ -161,14 +165,14 @@ def _in_worker(fn: Callable[..., np.ndarray], *args: Any) -> tuple[np.ndarray, f
 
 
 def _run_layers(frame: Frame, ctx: _Context) -> dict[str, tuple[np.ndarray, float]]:
-    """Every layer's (image, seconds), one after the other or :func:`layer_threads` at once.
+    """Every layer's (image, seconds), one after the other or (CONCURRENT_METHODS) :func:`layer_threads` at once.
 
     Concurrent seconds are each layer's own wall time and overlap. For the OIDN methods the denoiser is one
     device behind a lock that already uses every core, so the layers are denoised one after the other in this
     thread, in the frame's order with the refined layers first, and each refinement (the L1 solve of oidn-l1)
     runs in a worker beside the next layer's denoise; OIDN's own order is therefore fixed."""
     threads = min(layer_threads(), len(frame.layers))
-    if threads <= 1 or ctx.method == "oidn":  # oidn: one denoiser, already on every core; nothing to overlap
+    if threads <= 1 or ctx.method not in CONCURRENT_METHODS:
         return {name: _timed(_reconstruct_layer, name, layer, ctx) for name, layer in frame.layers.items()}
     with ThreadPoolExecutor(max_workers=threads, thread_name_prefix="gradsep-layer") as pool:
         if ctx.method not in OIDN_METHODS:

@@ -41,12 +41,12 @@ REFINE_ALPHA = 1.0
 #: on the held-out study 1.5 % above 20 passes' RelMSE (geo. mean 0.773 vs 0.761 of oidn's) at 40 % of the cost.
 REFINE_ITERATIONS = 8
 #: Preconditioned CG steps per IRLS pass (model.poisson.solve_l1's cg_iterations).
-REFINE_CG_STEPS = 4
+REFINE_CG_STEPS = 2
 #: Start the IRLS from OIDN's image instead of the exact L2 solve (whose first weights come from a solution
 #: that let every noisy gradient through).
 REFINE_WARM_START = False
 #: The CG preconditioner (model.poisson.PRECONDITIONERS).
-REFINE_PRECONDITIONER = "dct"
+REFINE_PRECONDITIONER = "mg"
 
 _F32_MAX = float(np.finfo(np.float32).max)
 

@@ -307,6 +307,9 @@ def _methods_here() -> list[str]:
 
 @pytest.mark.parametrize("method", _methods_here())
 def test_concurrent_layers_give_the_sequential_result_bit_for_bit(method: str, monkeypatch) -> None:
+    import model.reconstruct as module
+
+    monkeypatch.setattr(module, "CONCURRENT_METHODS", frozenset(METHODS))  # the threaded path for every method
     frame = _frame(h=40, w=56, noise=0.1)
     monkeypatch.setenv("GRADSEP_LAYER_THREADS", "1")
     sequential = reconstruct(frame, method, alpha=0.3)
@@ -329,12 +332,16 @@ def test_concurrent_layers_run_in_worker_threads_and_keep_errors(monkeypatch) ->
             seen.add(threading.current_thread().name)
             return super().reconstruct_layer(name, layer, features)
 
+    import model.reconstruct as module
+
     monkeypatch.setenv("GRADSEP_LAYER_THREADS", "2")
+    monkeypatch.setattr(module, "CONCURRENT_METHODS", frozenset({"network"}))
     result = reconstruct(_frame(), "network", network=Recording())
     assert seen and all(n.startswith("gradsep-layer") for n in seen)
     np.testing.assert_array_equal(result.layers["direct"], np.clip(_frame().layers["direct"].base * 0.5, 0, None))
     with pytest.raises(RuntimeError, match="shape"):  # a worker's exception reaches the caller unchanged
         reconstruct(_frame(), "network", network=HalfBase(np.zeros((2, 2, 3), np.float32)))
+
 
 
 @pytest.mark.parametrize("value", ["0", "-1", "two"])
