@@ -102,20 +102,33 @@ def edge_classes(normal: np.ndarray, depth: np.ndarray, albedo: np.ndarray, axis
     return {"geometry": geometry, "texture": texture, "rest": ~geometry & ~texture}
 
 
-def settings_for(loaded, offsets: str = "all"):
+def settings_for(loaded, offsets: str = "all", gradients: str = "all"):
     from renderer.gpt import GptSettings
 
     depth = loaded.max_depth
-    return GptSettings(max_depth=depth, rr_depth=loaded.rr_depth, indirect=depth < 0 or depth > 2, offsets=offsets)
+    return GptSettings(max_depth=depth, rr_depth=loaded.rr_depth, indirect=depth < 0 or depth > 2, offsets=offsets,
+                       gradients=gradients)
 
 
 def configuration(loaded, name: str):
-    """``SHIFT`` or ``SHIFT+OFFSETS`` (e.g. ``hybrid+pair``: the hybrid shift tracing one axis's two offsets per
-    sample, GptSettings.offsets) -> (shift, settings)."""
+    """``SHIFT`` or ``SHIFT+OPTION[+OPTION]`` -> (shift, settings). Options: an offsets mode (``hybrid+pair``: one
+    axis's two offsets per sample, ``+single``: one; GptSettings.offsets) and/or ``direct`` (``hybrid+direct``:
+    gradients of the direct layer alone, offsets traced to its vertices only; GptSettings.gradients, `gradsep
+    render --gradients direct`)."""
+    from renderer.gpt import GRADIENT_MODES, OFFSET_MODES
     from renderer.shift import make_shift
 
-    shift, _, offsets = name.partition("+")
-    return make_shift(shift), settings_for(loaded, offsets or "all")
+    shift, *options = name.split("+")
+    offsets, gradients = "all", "all"
+    for option in options:
+        if option in OFFSET_MODES:
+            offsets = option
+        elif option in GRADIENT_MODES:
+            gradients = option
+        else:
+            raise SystemExit(f"unknown configuration option {option!r} in {name!r}; expected one of "
+                             f"{OFFSET_MODES + GRADIENT_MODES}")
+    return make_shift(shift), settings_for(loaded, offsets, gradients)
 
 
 def bench_cost(spec: str, size: int, spp: int, repeats: int, shifts: list[str]) -> dict:
@@ -220,7 +233,8 @@ def bench_gradients(spec: str, size: int, spp: int, ref_spp: int, seeds: int, sh
             res = render_gpt(loaded.scene, shift, config_settings, size, size, spp_by_shift.get(name, spp),
                              seed=100 + seed)
             primal = sum(layer["base"] for layer in res.layers.values()).astype(np.float64)
-            for axis in ("dx", "dy"):
+            every_layer = all("dx" in layer for layer in res.layers.values())  # not with gradients of direct alone
+            for axis in ("dx", "dy") if every_layer else ():
                 grad = sum(layer[axis] for layer in res.layers.values()).astype(np.float64)
                 err = grad - ref_fd[axis]
                 for key, value in ((f"{axis}_mean", np.abs(err).mean()), (f"{axis}_mse", (err ** 2).mean()),
@@ -230,13 +244,14 @@ def bench_gradients(spec: str, size: int, spp: int, ref_spp: int, seeds: int, sh
                 abs_err = np.abs(err).mean(-1)
                 for cls, mask in classes[axis].items():
                     stats.setdefault(f"{axis}_class_{cls}", []).append(float(abs_err[mask].sum() / abs_err.size))
-                for layer, images in res.layers.items():
+            for axis in ("dx", "dy"):
+                for layer, images in ((n, im) for n, im in res.layers.items() if axis in im):
                     layer_stacks.setdefault(f"{axis}_{layer}", []).append(images[axis].astype(np.float64))
                     if f"{axis}_{layer}" in layer_fd:
                         err_l = images[axis].astype(np.float64) - layer_fd[f"{axis}_{layer}"]
                         stats.setdefault(f"{axis}_{layer}_mean", []).append(float(np.abs(err_l).mean()))
         row: dict = {key: float(np.mean(values)) for key, values in stats.items()}
-        for axis in ("dx", "dy"):
+        for axis in ("dx", "dy") if "dx_mse" in row else ():
             row[f"{axis}_rmse_corrected"] = float(np.sqrt(max(row[f"{axis}_mse"] - ref_var[axis].mean(), 0.0)))
         for key, images in layer_stacks.items():
             row[f"{key}_noise"] = float(np.stack(images).std(0, ddof=1).mean())  # estimator noise, no reference
@@ -247,9 +262,10 @@ def bench_gradients(spec: str, size: int, spp: int, ref_spp: int, seeds: int, sh
             if name == "replay":
                 continue
             for axis in ("dx", "dy"):
-                row[f"{axis}_gain_vs_replay"] = base[f"{axis}_mean"] / row[f"{axis}_mean"]
-                row[f"{axis}_gain_vs_replay_corrected"] = (base[f"{axis}_rmse_corrected"]
-                                                           / max(row[f"{axis}_rmse_corrected"], 1e-30))
+                if f"{axis}_mean" in row:
+                    row[f"{axis}_gain_vs_replay"] = base[f"{axis}_mean"] / row[f"{axis}_mean"]
+                    row[f"{axis}_gain_vs_replay_corrected"] = (base[f"{axis}_rmse_corrected"]
+                                                               / max(row[f"{axis}_rmse_corrected"], 1e-30))
                 for layer in ("direct", "indirect"):
                     if f"{axis}_{layer}_mean" in row:
                         row[f"{axis}_{layer}_gain_vs_replay"] = (base[f"{axis}_{layer}_mean"]
@@ -265,11 +281,11 @@ def print_gradients(scene: str, g: dict) -> None:
           f"spp; reference's own error floor dx {g['floor']['dx']:.5f}, dy {g['floor']['dy']:.5f}):")
     for name, row in g["shifts"].items():
         parts = []
-        for axis in ("dx", "dy"):
+        for axis in ("dx", "dy") if "dx_mean" in row else ():
             parts.append(f"{axis} mean|err| {row[f'{axis}_mean']:.5f} "
                          f"(FD of primal {row[f'{axis}_fd_primal_mean']:.5f}), "
                          f"RMSE corrected {row[f'{axis}_rmse_corrected']:.4f}")
-        print(f"    [{name}] {row['spp']:.0f} spp: " + "; ".join(parts))
+        print(f"    [{name}] {row['spp']:.0f} spp: " + ("; ".join(parts) or "gradients of the direct layer only"))
         noise = ", ".join(f"{k[:-6]} {v:.5f}" for k, v in row.items() if k.endswith("_noise"))
         print(f"    [{name}] own noise (std over seeds): {noise}")
         per_layer = ", ".join(f"{k[:-5]} {v:.5f} (floor {g['floor'][k[:-5]]:.5f})" for k, v in row.items()
@@ -280,7 +296,7 @@ def print_gradients(scene: str, g: dict) -> None:
                           for c in ("geometry", "texture", "rest") if f"dx_class_{c}" in row)
         if split:
             print(f"    [{name}] dx mean|err| = sum over pixel classes: {split}")
-        if "dx_gain_vs_replay" in row:
+        if "dx_gain_vs_replay" in row and "dy_gain_vs_replay" in row:
             print(f"    [{name}] vs replay: mean|err| {row['dx_gain_vs_replay']:.2f}x (dx) "
                   f"{row['dy_gain_vs_replay']:.2f}x (dy) lower; corrected RMSE "
                   f"{row['dx_gain_vs_replay_corrected']:.2f}x / {row['dy_gain_vs_replay_corrected']:.2f}x; own noise "
@@ -294,8 +310,14 @@ def print_gradients(scene: str, g: dict) -> None:
 def print_summary(results: dict, shifts: list[str]) -> None:
     """The final table: cost per sample against `path` and the equal-time gradient error, per scene."""
     print("\nsummary (CPU cost per sample / `path`, median of per-round ratios; gradient error mean |d - FD(ref)| "
-          f"at the render time of {shifts[0]} at 16 spp)")
-    print(f"  {'scene':<14} {'configuration':<14} {'cost':>6} {'spp':>4} {'dx err':>9} {'dy err':>9}")
+          f"at the render time of {shifts[0]} at 16 spp: of the whole frame, and of the direct layer against its "
+          "own reference where the scene has an indirect layer)")
+    print(f"  {'scene':<14} {'configuration':<16} {'cost':>6} {'spp':>4} {'dx err':>9} {'dy err':>9} "
+          f"{'direct dx':>9} {'direct dy':>9}")
+
+    def cell(row: dict | None, key: str) -> str:
+        return f"{row[key]:>9.5f}" if row and key in row else f"{'-':>9}"
+
     for spec, out in results["scenes"].items():
         for name in shifts + ["primal"]:
             cost = out.get("cost", {}).get("cpu_round_ratio", {}).get(name)
@@ -303,21 +325,23 @@ def print_summary(results: dict, shifts: list[str]) -> None:
             if cost is None and row is None:
                 continue
             cost_s = f"{cost:.2f}x" if cost is not None else "-"
-            errs = (f"{row['spp']:>4.0f} {row['dx_mean']:>9.5f} {row['dy_mean']:>9.5f}" if row
-                    else f"{'-':>4} {'-':>9} {'-':>9}")
-            print(f"  {spec:<14} {name:<14} {cost_s:>6} {errs}")
+            spp = f"{row['spp']:>4.0f}" if row else f"{'-':>4}"
+            errs = " ".join(cell(row, k) for k in ("dx_mean", "dy_mean", "dx_direct_mean", "dy_direct_mean"))
+            print(f"  {spec:<14} {name:<16} {cost_s:>6} {spp} {errs}")
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenes", default=DEFAULT_SCENES,
                         help="comma-separated: cbox, teapot, XML paths or procedural:SEED (default %(default)s)")
-    parser.add_argument("--shifts", "--shift", default="replay,hybrid", help="comma-separated shifts")
+    parser.add_argument("--shifts", "--shift", default="replay,hybrid",
+                        help="comma-separated configurations: SHIFT[+pair|+single][+direct] (see configuration())")
     parser.add_argument("--quick", action="store_true", help="small sizes and few repeats (smoke check)")
     parser.add_argument("--issue16", action="store_true",
-                        help="issue 16's table: cbox, procedural:0, procedural:1, teapot; hybrid with all four, one "
-                             "axis's two (+pair) or one (+single) offsets per sample; 3 repeats, 4 seeds, 2048-spp "
-                             "references (explicit options override)")
+                        help="issue 16's table: cbox, procedural:0, procedural:1, teapot; hybrid with all four, "
+                             "gradients of the direct layer alone (+direct), one axis's two (+pair) or one (+single) "
+                             "offsets per sample; 3 repeats, 4 seeds, 2048-spp references (explicit options "
+                             "override)")
     parser.add_argument("--repeats", type=int, default=None, help="timing repeats (default 5, quick 2)")
     parser.add_argument("--ref-spp", type=int, default=None, help="reference spp (default 8192, quick 1024)")
     parser.add_argument("--seeds", type=int, default=None, help="G-PT renders per shift (default 4, quick 2)")
@@ -337,7 +361,7 @@ def main(argv: list[str] | None = None) -> int:
         if "--scenes" not in given:
             args.scenes = "cbox,procedural:0,procedural:1,teapot"
         if not given & {"--shifts", "--shift"}:
-            args.shifts = "hybrid,hybrid+pair,hybrid+single"
+            args.shifts = "hybrid,hybrid+direct,hybrid+pair,hybrid+single"
         args.repeats = args.repeats or 3
         args.ref_spp = args.ref_spp or 2048
 

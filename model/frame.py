@@ -4,8 +4,9 @@ A frame is a single-part scanline OpenEXR file (float32 or half, any compression
 
 * per illumination layer ``L`` in ``direct``, ``indirect`` (or ``color`` for a frame rendered without
   separation): the base radiance ``L.R L.G L.B`` and, for a gradient-domain frame, its forward differences
-  ``L.dx.{R,G,B}``, ``L.dy.{R,G,B}`` (a plain path-traced frame carries the base alone: every layer of a frame has
-  its gradients or none has);
+  ``L.dx.{R,G,B}``, ``L.dy.{R,G,B}`` (a plain path-traced frame carries the base alone; each layer has its
+  three base channels or all nine, so a frame may carry gradients on some layers only, e.g. ``gradsep render
+  --gradients direct``: the direct layer's gradients and a plain indirect layer);
 * features: ``albedo.{R,G,B}`` in [0, 1], ``normal.{X,Y,Z}`` unit camera-space normals, ``depth.Z`` distance in
   scene units (0 where the camera ray missed).
 
@@ -181,8 +182,14 @@ class Frame:
 
     @property
     def has_gradients(self) -> bool:
-        """True for a gradient-domain frame (every layer carries dx/dy), False for a plain path-traced one."""
+        """True for a gradient-domain frame (every layer carries dx/dy); False for a plain path-traced one and for
+        a frame with gradients on some layers only (see :attr:`gradient_layers`)."""
         return all(layer.has_gradients for layer in self.layers.values())
+
+    @property
+    def gradient_layers(self) -> tuple[str, ...]:
+        """The layers that carry dx/dy, in contract order: all of them, some (``--gradients direct``), or none."""
+        return tuple(name for name, layer in self.layers.items() if layer.has_gradients)
 
     def combined(self) -> Layer:
         """All layers summed: the unseparated ("color") layer of this frame."""
@@ -437,21 +444,22 @@ def _classify(names: Iterable[str]) -> tuple[list[str], list[str], list[str]]:
     return present_layers, unknown, foreign
 
 
-def has_gradient_channels(names: Iterable[str]) -> bool:
-    """Whether these channels make a gradient-domain frame (any ``L.dx.*``/``L.dy.*``) or a plain one.
+def has_gradient_channels(names: Iterable[str], layer: str | None = None) -> bool:
+    """Whether these channels carry any gradient channel (``L.dx.*``/``L.dy.*``) -- of ``layer``, or of any layer.
 
-    A frame carries gradients for every layer or for none: once one gradient channel is present, every layer's
-    nine channels are required (and the missing ones are named).
+    Gradients are decided per layer: a layer with one gradient channel needs all nine of its channels (the
+    missing ones are named); a layer with none is a plain layer (its three base channels).
     """
-    return any(n.split(".")[1:2] in (["dx"], ["dy"]) and n.split(".", 1)[0] in ILLUMINATION_LAYERS for n in names)
+    layers = ILLUMINATION_LAYERS if layer is None else (layer,)
+    return any(n.split(".")[1:2] in (["dx"], ["dy"]) and n.split(".", 1)[0] in layers for n in names)
 
 
 def validate_channels(names: Iterable[str]) -> tuple[list[str], bool, list[str]]:
     """Check channel names against the contract; return (layers, has_features, warnings) or raise ChannelError.
 
-    A layer is its three base channels (a plain path-traced frame) or, when the frame carries any gradient channel,
-    its nine channels. Every problem is collected and reported together, naming the channels, so a producer fixes
-    them in one go.
+    Each layer is its three base channels (a plain layer) or, when it has any gradient channel, its nine channels;
+    the layers of one frame may differ (gradients on the direct layer only). Every problem is collected and
+    reported together, naming the channels, so a producer fixes them in one go.
     """
     names = list(names)
     present = set(names)
@@ -461,8 +469,8 @@ def validate_channels(names: Iterable[str]) -> tuple[list[str], bool, list[str]]
     if unknown:
         problems.append(f"unknown channels {', '.join(sorted(unknown))}")
         details["unknown"] = sorted(unknown)
-    gradients = has_gradient_channels(names)
-    missing = [c for layer in layers for c in layer_channels(layer, gradients) if c not in present]
+    missing = [c for layer in layers for c in layer_channels(layer, has_gradient_channels(names, layer))
+               if c not in present]
     groups = [g for g, chans in FEATURE_GROUPS.items() if any(c in present for c in chans)]
     if groups:  # features are all-or-nothing: a partial set means the producer dropped something
         missing += [c for chans in FEATURE_GROUPS.values() for c in chans if c not in present]
@@ -507,14 +515,15 @@ def read_frame(source: Source, *, limits: ReadLimits = ReadLimits(),
         raise ValueError(f"nonfinite must be one of {NONFINITE_POLICIES}, got {nonfinite!r}")
     info = read_header(source, limits)
     layers, has_features, warnings = validate_channels(info.channels)
-    gradients = has_gradient_channels(info.channels)
+    gradients = {layer: has_gradient_channels(info.channels, layer) for layer in layers}
 
     # OpenEXR's own guard, in case a header trick slips past the check above; process-wide but fixed per config.
     OpenEXR.setMaxImageSize(limits.max_side, limits.max_side)
     exr = _open(source, header_only=False)
     decoded = exr.channels()
     channels: dict[str, np.ndarray] = {}
-    for name in frame_channels(layers, has_features, gradients):
+    wanted = [c for layer in layers for c in layer_channels(layer, gradients[layer])]
+    for name in (*wanted, *(FEATURE_CHANNELS if has_features else ())):
         ch = decoded.get(name)
         pixels = None if ch is None else ch.pixels
         if pixels is None or getattr(pixels, "shape", None) != (info.height, info.width):
@@ -526,8 +535,7 @@ def read_frame(source: Source, *, limits: ReadLimits = ReadLimits(),
         else:
             channels[name] = np.array(pixels, dtype=np.float32)  # half -> float32; own, writable copy
 
-    radiance = [c for layer in layers for c in layer_channels(layer, gradients)]
-    _sanitize(channels, radiance, nonfinite, warnings)
+    _sanitize(channels, wanted, nonfinite, warnings)
     for name in FEATURE_CHANNELS if has_features else ():
         np.nan_to_num(channels[name], copy=False, nan=0.0, posinf=0.0, neginf=0.0)
 
@@ -536,8 +544,8 @@ def read_frame(source: Source, *, limits: ReadLimits = ReadLimits(),
 
     frame_layers = {}
     for layer in layers:
-        names = layer_channels(layer, gradients)
-        frame_layers[layer] = (Layer(stack(names[0:3]), stack(names[3:6]), stack(names[6:9])) if gradients
+        names = layer_channels(layer, gradients[layer])
+        frame_layers[layer] = (Layer(stack(names[0:3]), stack(names[3:6]), stack(names[6:9])) if gradients[layer]
                                else Layer(stack(names[0:3])))
     features = None
     if has_features:

@@ -29,7 +29,9 @@ DEFAULT_MODELS_DIR = "models"
 METHODS: tuple[str, ...] = ("network", "l1", "l2", "oidn", "oidn-l1", "fused")
 #: The screened Poisson solvers: the methods that take ``alpha``.
 POISSON_METHODS: tuple[str, ...] = ("l1", "l2")
-#: Methods that integrate gradients: a plain (gradient-free) frame cannot use them.
+#: Methods that integrate gradients: a plain (gradient-free) frame cannot use them. ``oidn-l1`` needs only the direct
+#: layer's (the one it refines; a frame from ``gradsep render --gradients direct``), the others every layer's
+#: (model.reconstruct.missing_gradient_channels).
 GRADIENT_METHODS: frozenset[str] = frozenset({"network", "l1", "l2", "oidn-l1", "fused"})
 #: Methods that run Open Image Denoise (they need pyoidn).
 OIDN_METHODS: frozenset[str] = frozenset({"oidn", "oidn-l1"})
@@ -55,8 +57,9 @@ def preference_order() -> tuple[str, ...]:
 def default_method(served: Collection[str], *, gradients: bool = True) -> str | None:
     """The default method for a frame, given the methods that can serve it.
 
-    A gradient-domain frame gets the first of :func:`preference_order` in ``served``; a plain frame (no
-    gradients) gets PLAIN_METHOD when served, else None (nothing can serve it). Used by
+    A frame with gradients (on every layer, or on some: ``gradients`` True) gets the first of
+    :func:`preference_order` in ``served``; a plain frame (no gradients) gets PLAIN_METHOD when served, else None
+    (nothing can serve it). Used by
     model.reconstruct.choose_method per frame and by the service's /readyz and /v1/models.
     """
     if not gradients:

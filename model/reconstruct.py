@@ -216,11 +216,38 @@ def available_methods(frame: Frame, network: NetworkLike | None = None, fused: N
 
         oidn = available()
     usable = {"oidn"} if oidn else set()
+    if oidn and refinable(frame):
+        usable.add("oidn-l1")
     if frame.has_gradients:
-        usable |= {"l1", "l2"} | ({"oidn-l1"} if oidn else set())
+        usable |= {"l1", "l2"}
         usable |= {"network"} if _serves(network, frame) else set()
         usable |= {"fused"} if _serves(fused, frame) else set()
     return [m for m in policy.preference_order() if m in usable]
+
+
+def refinable(frame: Frame) -> bool:
+    """Whether ``oidn-l1`` serves this frame: it carries gradients, and every layer it refines
+    (model.refine.REFINED_LAYERS: the direct layer) that is present has them. So a frame with the direct layer's
+    gradients and a plain indirect layer (``gradsep render --gradients direct``) is served, as is every frame with
+    gradients on all layers; the other gradient methods need every layer's gradients."""
+    from model.refine import REFINED_LAYERS
+
+    with_gradients = frame.gradient_layers
+    return bool(with_gradients) and all(name in with_gradients for name in frame.layers if name in REFINED_LAYERS)
+
+
+def missing_gradient_channels(frame: Frame, method: str) -> list[str]:
+    """The gradient channels ``method`` needs and this frame lacks (empty: it has what the method needs)."""
+    from model.frame import layer_channels
+
+    if method not in GRADIENT_METHODS or (method == "oidn-l1" and refinable(frame)):
+        return []
+    needed = list(frame.layers)  # a plain frame: every layer's (as the contract always named them)
+    if method == "oidn-l1" and frame.gradient_layers:  # gradients on some layers, but not on the direct layer
+        from model.refine import REFINED_LAYERS
+
+        needed = [name for name in frame.layers if name in REFINED_LAYERS]
+    return [c for name in needed if name not in frame.gradient_layers for c in layer_channels(name)[3:]]
 
 
 def choose_method(frame: Frame, network: NetworkLike | None = None, fused: NetworkLike | None = None) -> str:
@@ -230,10 +257,15 @@ def choose_method(frame: Frame, network: NetworkLike | None = None, fused: Netwo
     ``network`` when its models cover the frame's layers and it has features, else ``l1``. Raises ChannelError
     for a gradient-free frame on a host without OIDN (nothing can serve it).
     """
-    chosen = policy.default_method(available_methods(frame, network, fused), gradients=frame.has_gradients)
+    chosen = policy.default_method(available_methods(frame, network, fused), gradients=bool(frame.gradient_layers))
     if chosen is None:
         from model.frame import ChannelError
 
+        if frame.gradient_layers:  # gradients on some layers only: oidn and oidn-l1 serve it, both need pyoidn
+            raise ChannelError(f"this frame carries gradients only for layer(s) {', '.join(frame.gradient_layers)}; "
+                               "the methods that serve it (oidn, oidn-l1) need pyoidn, which is not installed here "
+                               "(pip install pyoidn), and the others need every layer's gradients",
+                               {"available_methods": [], "missing": missing_gradient_channels(frame, "l1")})
         raise ChannelError("this frame has no gradient channels, and the one method for a plain frame (oidn) "
                            "is not installed here (pip install pyoidn)", {"available_methods": []})
     return chosen
@@ -241,16 +273,21 @@ def choose_method(frame: Frame, network: NetworkLike | None = None, fused: Netwo
 
 def _check_method(frame: Frame, method: str, alpha: float, models: NetworkLike | None) -> None:
     """Raise a clear error when ``method`` cannot serve ``frame`` (ChannelError names the channels)."""
-    from model.frame import FEATURE_CHANNELS, ChannelError, layer_channels
+    from model.frame import FEATURE_CHANNELS, ChannelError
 
     if method not in METHODS:
         raise ValueError(f"unknown reconstruction method {method!r}; expected one of {', '.join(METHODS)}")
     if method in POISSON_METHODS and not (math.isfinite(alpha) and alpha > 0):
         raise ValueError(f"alpha must be a finite number > 0, got {alpha}")
-    if method in GRADIENT_METHODS and not frame.has_gradients:
-        missing = [c for name in frame.layers for c in layer_channels(name)[3:]]
+    missing = missing_gradient_channels(frame, method)
+    if missing and not frame.gradient_layers:
         raise ChannelError(f"method {method!r} integrates gradients, which this frame lacks (a plain path-traced "
                            "frame); use method oidn, or send the L.dx.* / L.dy.* channels", {"missing": missing})
+    if missing:
+        alternatives = "oidn or oidn-l1" if refinable(frame) else "oidn"
+        raise ChannelError(f"method {method!r} integrates the gradients of every layer; this frame carries them only "
+                           f"for {', '.join(frame.gradient_layers)} (missing {', '.join(missing)}); use method "
+                           f"{alternatives}, or send the missing channels", {"missing": missing})
     if method in OIDN_METHODS:
         from model.oidn import available
 

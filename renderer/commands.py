@@ -26,8 +26,12 @@ def render_command(args: argparse.Namespace) -> int:
         raise CommandError(f"output {args.output} must end in .exr")
     if not output.parent.exists():
         raise CommandError(f"output folder {output.parent} does not exist")
-    if args.no_gradients and args.shift is not None:
-        raise CommandError("--shift has no effect with --no-gradients (no offset paths are traced)")
+    gradients = args.gradients or ("none" if args.no_gradients else "all")
+    if args.no_gradients and gradients != "none":
+        raise CommandError(f"--no-gradients is --gradients none; it contradicts --gradients {args.gradients}")
+    if gradients == "none" and args.shift is not None:
+        flag = "--no-gradients" if args.no_gradients else "--gradients none"
+        raise CommandError(f"--shift has no effect with {flag} (no offset paths are traced)")
     scene = load_scene(args.scene, width=args.width, height=args.height, max_depth=args.max_depth,
                        defines=parse_defines(args.define))
     show = sys.stderr.isatty()
@@ -37,7 +41,7 @@ def render_command(args: argparse.Namespace) -> int:
             print(f"\rgradsep render: {done}/{total} spp", end="", file=sys.stderr, flush=True)
 
     frame = render_frame(scene, spp=args.spp, seed=args.seed, layers=args.layers, shift=args.shift,
-                         progress=progress, gradients=not args.no_gradients)
+                         progress=progress, gradients=gradients)
     if show:
         print(file=sys.stderr)
     write_frame(output, frame)
@@ -118,9 +122,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "color alone renders the unseparated image")
     p.add_argument("--shift", choices=("hybrid", "replay"), default=None,
                    help="shift mapping: hybrid (reconnection + replay, the default) or replay")
+    p.add_argument("--gradients", choices=("all", "direct", "none"), default=None,
+                   help="which layers carry gradients: all (the default); direct (the direct layer's only: offset "
+                        "paths stop after the first visible vertex's light, the indirect layer is a plain primal; "
+                        "what the default oidn-l1 method uses); none (primal-only)")
     p.add_argument("--no-gradients", action="store_true",
-                   help="primal-only: the same layers and features, no offset paths and no gradients "
-                        "(about the cost of a plain path tracer)")
+                   help="primal-only, the same as --gradients none: the same layers and features, no offset paths "
+                        "and no gradients (about the cost of a plain path tracer)")
     p.add_argument("-D", "--define", action="append", default=[], metavar="NAME=VALUE",
                    help="override a <default> parameter of the XML scene (repeatable)")
     p.add_argument("-o", "--output", required=True, help="output frame (.exr)")

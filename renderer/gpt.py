@@ -52,6 +52,14 @@ SHIFT_OFFSETS: tuple[tuple[int, int], ...] = ((1, 0), (-1, 0), (0, 1), (0, -1))
 OFFSET_MODES: tuple[str, ...] = ("all", "pair", "single")
 OFFSET_GROUPS: dict[str, int] = {"all": 1, "pair": 2, "single": 4}
 
+# Which layers get gradients when offsets are traced: "all" of them, or the "direct" layer alone. With "direct" the
+# offsets are traced only as far as the direct layer's events reach (emission seen at vertex 0, next-event
+# estimation there, emission found by the BSDF sample leaving it: vertices 0 and 1) and the base path continues
+# alone, so the indirect layer is a plain primal. The primal-only mode (no offsets at all) is ``shift=None``.
+GRADIENT_MODES: tuple[str, ...] = ("all", "direct")
+# Vertices whose events belong to the direct layer (emission at depth <= 1, NEE at depth 0): _route's rule.
+DIRECT_VERTICES = 2
+
 # A glossy lobe whose sampled direction has a solid-angle pdf above this is treated as a mirror when looking for
 # the feature vertex: a GGX lobe reaches ~100 sr^-1 near alpha 0.05, where reflections are still sharp images.
 NEAR_SPECULAR_PDF = 100.0
@@ -280,12 +288,19 @@ class GptSettings:
     indirect: bool = True
     separate: bool = True  # False: one ``color`` layer with every event (direct and indirect must both be on)
     offsets: str = "all"  # four offsets per sample, or fewer: "pair" (one axis), "single" (OFFSET_MODES)
+    gradients: str = "all"  # the layers with gradients when a shift is given: "all", or "direct" (GRADIENT_MODES)
 
     def layer_names(self) -> tuple[str, ...]:
         """The accumulated illumination layers, in the frame contract's order."""
         if not self.separate:
             return ("color",)
         return tuple(name for name, on in (("direct", self.direct), ("indirect", self.indirect)) if on)
+
+    def gradient_layer_names(self) -> tuple[str, ...]:
+        """The layers that carry gradients when offsets are traced (every layer, or the direct layer alone)."""
+        if self.gradients == "direct":
+            return tuple(name for name in self.layer_names() if name == "direct")
+        return self.layer_names()
 
     def effective_max_depth(self) -> int:
         """The depth actually traced: a direct-only render stops after the first vertex's BSDF sample."""
@@ -304,6 +319,11 @@ class GptSettings:
             raise ValueError("no illumination layer requested")
         if self.offsets not in OFFSET_MODES:
             raise ValueError(f"unknown offsets mode {self.offsets!r}; expected one of {OFFSET_MODES}")
+        if self.gradients not in GRADIENT_MODES:
+            raise ValueError(f"unknown gradients mode {self.gradients!r}; expected one of {GRADIENT_MODES}")
+        if self.gradients == "direct" and not (self.separate and self.direct):
+            raise ValueError("gradients of the direct layer alone need the separated direct layer "
+                             "(not an unseparated color render, nor the indirect layer alone)")
         if not self.separate and not (self.direct and self.indirect):
             raise ValueError("an unseparated (color) render carries all light: direct and indirect must both be on")
         if self.indirect and 0 < self.max_depth <= 2:
@@ -343,9 +363,10 @@ class FeatureState:
 def channel_layout(settings: GptSettings, gradients: bool = True) -> dict[str, int]:
     """Name -> width of every accumulated per-pixel buffer, in scatter order."""
     layout: dict[str, int] = {}
+    with_gradients = settings.gradient_layer_names() if gradients else ()
     for layer in settings.layer_names():
         layout[f"{layer}.base"] = 3
-        for i in range(len(SHIFT_OFFSETS) if gradients else 0):
+        for i in range(len(SHIFT_OFFSETS) if layer in with_gradients else 0):
             layout[f"{layer}.grad{i}"] = 3
     layout.update({"albedo": 3, "normal": 3, "depth": 1, "hit": 1, "invalid": 1})
     return layout
@@ -465,11 +486,12 @@ def _update_features(feat: FeatureState, base_active: mi.Bool, v: Vertex, ray_d:
 def _route(sums: dict[str, LayerSums], depth: mi.UInt32, settings: GptSettings, hit_value: mi.Spectrum,
            nee_value: mi.Spectrum, hit_grads: list[mi.Spectrum], nee_grads: list[mi.Spectrum]) -> None:
     """Add one vertex's events to their layer: emission at depth <= 1 and NEE at depth 0 are direct light; an
-    unseparated render (``color``) takes every event."""
+    unseparated render (``color``) takes every event. A layer's gradient sums take the offsets' terms when this
+    vertex has any (``hit_grads`` empty: no offsets are traced any more; a layer without gradients has none)."""
     if "color" in sums:
         s = sums["color"]
         s.base = s.base + hit_value + nee_value
-        for i in range(len(s.grads)):
+        for i in range(len(s.grads) if hit_grads else 0):
             s.grads[i] = s.grads[i] + hit_grads[i] + nee_grads[i]
         return
     hit_direct = depth <= 1
@@ -479,7 +501,7 @@ def _route(sums: dict[str, LayerSums], depth: mi.UInt32, settings: GptSettings, 
             continue
         s = sums[layer]
         s.base = s.base + dr.select(sel_hit, hit_value, 0.0) + dr.select(sel_nee, nee_value, 0.0)
-        for i in range(len(s.grads)):
+        for i in range(len(s.grads) if hit_grads else 0):
             s.grads[i] = s.grads[i] + dr.select(sel_hit, hit_grads[i], 0.0) + dr.select(sel_nee, nee_grads[i], 0.0)
 
 
@@ -580,6 +602,7 @@ def _start_lanes(scene: mi.Scene, shift: Shift | None, settings: GptSettings, wi
     sample = idx % spp_o
     shifts: Sequence[tuple[int | mi.Int32, int | mi.Int32]] = SHIFT_OFFSETS if gradients else ()
     groups = OFFSET_GROUPS[settings.offsets]
+    with_gradients = settings.gradient_layer_names() if gradients else ()
     if gradients and groups > 1:
         group = kernel.offset_group = offset_group(pixel, sample, strata_o, seed_o, groups)
         per_group = len(SHIFT_OFFSETS) // groups
@@ -595,7 +618,7 @@ def _start_lanes(scene: mi.Scene, shift: Shift | None, settings: GptSettings, wi
     state = LoopState(
         sampler=sampler, depth=mi.UInt32(0), base=PathState.start(*rays[0]),
         offsets=[shift.start(*r) for r in rays[1:]] if shift is not None else [],
-        sums={name: LayerSums.zeros(len(shifts)) for name in settings.layer_names()},
+        sums={name: LayerSums.zeros(len(shifts) if name in with_gradients else 0) for name in settings.layer_names()},
         feat=FeatureState.start(), invalid=mi.Bool(False))
     return kernel, state, pixel
 
@@ -681,6 +704,8 @@ def _run_loops(k: PassKernel, s: LoopState) -> LoopState:
     def base_alive(st: LoopState) -> mi.Bool:
         return st.base.active
 
+    if k.settings.gradients == "direct" and shift is not None:
+        return _run_direct_gradient_loops(k, s, loop, base_alive)
     if not isinstance(shift, ConnectingShift):
         return loop(s, base_alive, full_step, "gpt")
 
@@ -696,6 +721,43 @@ def _run_loops(k: PassKernel, s: LoopState) -> LoopState:
     s = loop(s, unsettled, full_step, "gpt")
     s.offsets = [shift.summarize(off) for off in s.offsets]
     return loop(s, base_alive, connected_step, "gpt_connected")
+
+
+LoopRunner = Callable[[LoopState, Callable[[LoopState], Any], OffsetStep, str], LoopState]  # (state, cond, step, label)
+
+
+def _run_direct_gradient_loops(k: PassKernel, s: LoopState, loop: LoopRunner,
+                               base_alive: Callable[[LoopState], mi.Bool]) -> LoopState:
+    """Gradients of the direct layer alone (``GptSettings.gradients == "direct"``): every offset takes the
+    shift's full step at the first DIRECT_VERTICES vertices -- the direct layer's events are emission at depth
+    0 and 1 and next-event estimation at depth 0 -- and is then dropped; the base path continues alone for the
+    indirect layer's primal, in a loop with no offset work at all.
+
+    The offsets take the very step (and random numbers) of an ``all`` render there, so the direct layer's base
+    and gradients are that render's. Their depth limit is capped at DIRECT_VERTICES: the offsets' next-event
+    estimate at depth 1 (an indirect event, whose gradient is not kept) is not evaluated (no emitter sample
+    reconnection, no shadow ray); nothing the direct layer reads depends on that limit (the emission found at
+    depth 1 does not, and the next-event estimate at depth 0 needs only ``1 < limit``). In a scene where no ray can
+    find emission (point, spot and directional lights only: ``k.hittable`` False) the emission event at depth 1
+    is 0 for base and offsets alike, so the offsets stop after vertex 0 (the ``all`` render adds 0 there too).
+    """
+    shift = k.shift
+    assert shift is not None
+    offset_max_depth = dr.minimum(k.max_depth, mi.UInt32(DIRECT_VERTICES))
+    vertices = DIRECT_VERTICES if k.hittable else 1
+
+    def direct_step(off: Any, v: Vertex, depth: mi.UInt32, samples: VertexSamples) -> tuple[Any, OffsetEvents]:
+        return shift.step(k.scene, off, v, depth, offset_max_depth, samples)
+
+    def direct_vertices(st: LoopState) -> mi.Bool:
+        return st.base.active & (st.depth < vertices)
+
+    def no_offsets(*_: Any) -> tuple[Any, OffsetEvents]:
+        raise AssertionError("no offsets are traced past the direct layer's vertices")
+
+    s = loop(s, direct_vertices, direct_step, "gpt_direct")
+    s.offsets = []
+    return loop(s, base_alive, no_offsets, "gpt_base")
 
 
 def _pixel_sums(settings: GptSettings, s: LoopState, pixel: mi.UInt32, width: int, height: int,
@@ -717,7 +779,7 @@ def _pixel_sums(settings: GptSettings, s: LoopState, pixel: mi.UInt32, width: in
     values["invalid"] = [dr.select(invalid, 1.0, 0.0)]
     n_channels = sum(layout.values())
     target = dr.zeros(mi.Float, n_channels * n_pixels)
-    per_lane = len(next(iter(sums.values())).grads)  # gradient estimates a lane carries
+    per_lane = max(len(ls.grads) for ls in sums.values())  # gradient estimates a lane carries per layer that has them
     channel = 0
     for name, width_c in layout.items():
         for comp in values.get(name, [])[:width_c]:

@@ -50,18 +50,35 @@ def plan_layers(requested: tuple[str, ...], max_depth: int) -> tuple[tuple[str, 
     return layers, notes
 
 
+#: ``gradsep render --gradients``: which layers carry gradients. ``all`` (every layer, the default), ``direct``
+#: (the direct layer's; offsets are traced only to the direct layer's vertices, the indirect layer is a plain
+#: primal), ``none`` (the primal-only mode: no offset paths).
+GRADIENT_CHOICES: tuple[str, ...] = ("all", "direct", "none")
+
+
+def gradients_mode(gradients: bool | str) -> str:
+    """``render_frame``'s ``gradients`` as one of GRADIENT_CHOICES (True = ``all``, False = ``none``)."""
+    if isinstance(gradients, bool):
+        return "all" if gradients else "none"
+    if gradients not in GRADIENT_CHOICES:
+        raise CommandError(f"--gradients must be one of {', '.join(GRADIENT_CHOICES)}, got {gradients!r}")
+    return gradients
+
+
 def render_frame(scene: LoadedScene | str, *, spp: int, seed: int = 0,
                  layers: str | Iterable[str] = SEPARATED_LAYERS, shift: str | None = None,
                  max_depth: int | None = None, width: int | None = None, height: int | None = None,
                  defines: Mapping[str, str] | None = None,
-                 progress: Callable[[int, int], None] | None = None, gradients: bool = True) -> Frame:
+                 progress: Callable[[int, int], None] | None = None, gradients: bool | str = True) -> Frame:
     """Render one G-PT frame: per requested layer base + dx + dy, features at the first non-specular vertex.
 
     ``scene`` is a loaded scene or a spec (XML path / ``procedural:SEED``) loaded with ``width``, ``height``,
     ``max_depth`` and ``defines``. ``max_depth`` given here overrides the loaded scene's. ``layers`` ``color``
-    renders the unseparated image. ``gradients=False`` is the primal-only mode: the same base paths, layers and
-    features, no offset paths; the frame's layers carry no gradients (``dx``/``dy`` None) and ``shift`` is
-    ignored.
+    renders the unseparated image. ``gradients`` (GRADIENT_CHOICES, or True = ``all`` / False = ``none``):
+    ``none`` is the primal-only mode: the same base paths, layers and features, no offset paths; the frame's
+    layers carry no gradients (``dx``/``dy`` None) and ``shift`` is ignored. ``direct`` gives the direct layer
+    its gradients -- the same as an ``all`` render with this seed -- and the indirect layer none (its base is the
+    primal-only render's): the offsets stop after the direct layer's vertices.
     """
     from renderer.gpt import GptSettings, render_gpt
     from renderer.shift import make_shift  # imports Mitsuba
@@ -77,14 +94,19 @@ def render_frame(scene: LoadedScene | str, *, spp: int, seed: int = 0,
             raise CommandError(f"--max-depth must be -1 (unbounded) or >= 1, got {max_depth}")
         scene = LoadedScene(scene.scene, scene.spec, scene.width, scene.height, max_depth, scene.rr_depth,
                             scene.defines)
+    mode = gradients_mode(gradients)
     wanted, notes = plan_layers(parse_layers(layers), scene.max_depth)
+    if mode == "direct" and "direct" not in wanted:
+        raise CommandError(f"--gradients direct needs the separated direct layer; --layers {','.join(wanted)} "
+                           "has none (use --gradients all or none)")
     try:
-        shift_impl = make_shift(shift) if gradients else None
+        shift_impl = make_shift(shift) if mode != "none" else None
     except ValueError as exc:
         raise CommandError(str(exc)) from None
     color = wanted == ("color",)
     settings = GptSettings(max_depth=scene.max_depth, rr_depth=scene.rr_depth, direct=color or "direct" in wanted,
-                           indirect=color or "indirect" in wanted, separate=not color)
+                           indirect=color or "indirect" in wanted, separate=not color,
+                           gradients="direct" if mode == "direct" else "all")
     start = time.perf_counter()
     result = render_gpt(scene.scene, shift_impl, settings, scene.width, scene.height, spp, seed, progress)
     seconds = time.perf_counter() - start
@@ -92,19 +114,22 @@ def render_frame(scene: LoadedScene | str, *, spp: int, seed: int = 0,
     frame_layers = {name: Layer(base=v["base"], dx=v.get("dx"), dy=v.get("dy")) for name, v in result.layers.items()}
     features = Features(albedo=result.albedo, normal=result.normal, depth=result.depth)
     metadata = render_metadata(scene, spp=spp, seed=seed, shift=shift_impl.name if shift_impl else "none",
-                               layers=wanted, seconds=seconds, passes=result.passes, gradients=gradients)
+                               layers=wanted, seconds=seconds, passes=result.passes, gradients=mode)
     return Frame(layers=frame_layers, features=features, metadata=metadata, warnings=notes + result.warnings)
 
 
 def render_metadata(scene: LoadedScene, *, spp: int, seed: int, shift: str, layers: tuple[str, ...],
-                    seconds: float, passes: int, gradients: bool = True) -> dict[str, str]:
+                    seconds: float, passes: int, gradients: bool | str = True) -> dict[str, str]:
     """The ``gradsep.*`` EXR header attributes of a rendered frame (all strings); the integrator is ``gpt``, or
-    ``primal`` for the primal-only mode (shift ``none``)."""
+    ``primal`` for the primal-only mode (shift ``none``); ``gradsep.gradients`` says which layers carry
+    gradients (``all``, ``direct`` or ``none``)."""
     import mitsuba as mi
 
+    mode = gradients_mode(gradients)
     meta = {
         "gradsep.version": __version__,
-        "gradsep.integrator": "gpt" if gradients else "primal",
+        "gradsep.integrator": "gpt" if mode != "none" else "primal",
+        "gradsep.gradients": mode,
         **scene.scene_metadata(),
         "gradsep.spp": str(spp),
         "gradsep.seed": str(seed),

@@ -134,20 +134,42 @@ def test_missing_and_unknown_channels_are_all_named() -> None:
     assert "indirect.dy.B" in str(err.value) and "direct.dz.R" in str(err.value)
 
 
-def test_plain_frames_carry_bases_only_and_gradients_are_all_or_nothing() -> None:
+def test_plain_frames_carry_bases_only_and_gradients_are_per_layer() -> None:
     channels = make_frame().to_channels()
     plain = {k: v for k, v in channels.items() if ".dx." not in k and ".dy." not in k}
     frame = read_frame(encode_exr(plain))
-    assert not frame.has_gradients and frame.layers["indirect"].dy is None
+    assert not frame.has_gradients and frame.layers["indirect"].dy is None and frame.gradient_layers == ()
     assert frame.to_channels().keys() == plain.keys()  # writes back exactly what it read
-    # one layer with gradients and one without: the missing gradient channels are named
-    del channels["indirect.dx.R"], channels["indirect.dx.G"], channels["indirect.dx.B"]
-    del channels["indirect.dy.R"], channels["indirect.dy.G"], channels["indirect.dy.B"]
+    # a layer with some but not all of its gradient channels: the missing ones (of that layer only) are named
+    partial = dict(channels)
+    del partial["indirect.dx.G"], partial["indirect.dy.R"], partial["direct.dy.B"]
     with pytest.raises(ChannelError) as err:
-        read_frame(encode_exr(channels))
-    assert err.value.details["missing"] == [f"indirect.{g}.{c}" for g in ("dx", "dy") for c in "RGB"]
+        read_frame(encode_exr(partial))
+    assert err.value.details["missing"] == ["direct.dy.B", "indirect.dx.G", "indirect.dy.R"]
     with pytest.raises(ValueError, match="both gradients"):
         Layer(np.zeros((2, 2, 3), np.float32), np.zeros((2, 2, 3), np.float32))
+
+
+@pytest.mark.parametrize("plain_layer", ["indirect", "direct"])
+def test_a_frame_may_carry_gradients_on_some_layers_only(tmp_path, plain_layer: str) -> None:
+    """`gradsep render --gradients direct`: the direct layer's nine channels and a plain indirect layer (and, as
+    the contract is per layer, the other way round too). Read back exactly; has_gradients means every layer."""
+    channels = {k: v for k, v in make_frame().to_channels().items()
+                if not k.startswith((f"{plain_layer}.dx.", f"{plain_layer}.dy."))}
+    frame = read_frame(encode_exr(channels))
+    with_gradients = "direct" if plain_layer == "indirect" else "indirect"
+    assert frame.gradient_layers == (with_gradients,) and not frame.has_gradients
+    assert frame.layers[plain_layer].dx is None and frame.layers[with_gradients].dy is not None
+    assert frame.to_channels().keys() == channels.keys()
+    for name, value in frame.to_channels().items():
+        np.testing.assert_array_equal(value, channels[name], err_msg=name)
+    write_frame(tmp_path / "mixed.exr", frame)
+    assert read_frame(tmp_path / "mixed.exr").gradient_layers == (with_gradients,)
+    # the non-finite policy covers the gradients that are there, and only those
+    channels[f"{with_gradients}.dx.R"][0, 0] = np.nan
+    with pytest.raises(NonFiniteError) as err:
+        read_frame(encode_exr(channels))
+    assert err.value.details == {f"{with_gradients}.dx.R": 1}
 
 
 def test_no_illumination_layer() -> None:

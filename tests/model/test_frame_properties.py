@@ -18,7 +18,7 @@ from model.frame import (
     ChannelError,
     NonFiniteError,
     encode_exr,
-    frame_channels,
+    layer_channels,
     read_frame,
 )
 from tests.service.frames import channels_bytes
@@ -33,6 +33,9 @@ def frames(draw) -> dict:
     """A valid frame's channels: layers, optional features, optional foreign channels, size, dtype, pixels."""
     layers = draw(st.sampled_from(LAYER_SETS))
     gradients = draw(st.booleans())  # False: a plain path-traced frame (base radiance only)
+    gradient_layers = layers if gradients else ()
+    if gradients and len(layers) > 1 and draw(st.booleans()):  # gradients on one layer only (per-layer contract)
+        gradient_layers = (draw(st.sampled_from(layers)),)
     features = draw(st.booleans())
     foreign = draw(st.lists(st.sampled_from(["A", "Z", "custom.R", "aov.normal.X"]), unique=True, max_size=2))
     h, w = draw(st.integers(1, 64)), draw(st.integers(1, 64))
@@ -40,7 +43,8 @@ def frames(draw) -> dict:
     rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
     peak = HALF_MAX if half else 1e30
     channels = {}
-    for name in frame_channels(layers, features, gradients):
+    names = [c for layer in layers for c in layer_channels(layer, layer in gradient_layers)]
+    for name in (*names, *(FEATURE_CHANNELS if features else ())):
         if name in FEATURE_CHANNELS:
             channels[name] = rng.uniform(0, 1, (h, w))
         else:  # radiance over many decades, gradients signed
@@ -50,8 +54,8 @@ def frames(draw) -> dict:
     for name in foreign:
         channels[name] = rng.uniform(0, 1, (h, w))
     channels = {k: v.astype(np.float16 if half else np.float32).astype(np.float32) for k, v in channels.items()}
-    return {"layers": layers, "gradients": gradients, "features": features, "foreign": foreign, "h": h, "w": w,
-            "half": half, "channels": channels}
+    return {"layers": layers, "gradient_layers": gradient_layers, "features": features, "foreign": foreign,
+            "h": h, "w": w, "half": half, "channels": channels}
 
 
 def _assert_same(frame, channels: dict[str, np.ndarray]) -> None:
@@ -75,7 +79,8 @@ def test_round_trip_is_exact(spec: dict) -> None:
     assert list(frame.layers) == list(spec["layers"])
     assert (frame.height, frame.width) == (spec["h"], spec["w"])
     assert (frame.features is not None) == spec["features"]
-    assert frame.has_gradients == spec["gradients"]
+    assert frame.gradient_layers == spec["gradient_layers"]
+    assert frame.has_gradients == (spec["gradient_layers"] == spec["layers"])
     _assert_same(frame, spec["channels"])
     if spec["foreign"]:
         assert len(frame.warnings) == 1 and all(name in frame.warnings[0] for name in spec["foreign"])

@@ -153,6 +153,50 @@ def test_default_method_is_the_first_preferred_method_that_serves_the_frame(monk
     assert reconstruct(_frame(), network=network).method == "l1"
 
 
+def _direct_gradients_only(frame: Frame) -> Frame:
+    """The frame `gradsep render --gradients direct` writes: the direct layer's gradients, a plain indirect."""
+    layers = {name: layer if name == "direct" else Layer(layer.base) for name, layer in frame.layers.items()}
+    return Frame(layers, frame.features)
+
+
+def test_a_frame_with_the_direct_layers_gradients_only(monkeypatch) -> None:
+    """oidn-l1 (the default) and oidn serve it; oidn-l1 gives what it gives the full frame (it refines the
+    direct layer alone); the methods that integrate every layer's gradients refuse it naming the channels."""
+    full = _frame(noise=0.2)
+    mixed = _direct_gradients_only(full)
+    network, fused = HalfBase(), HalfBase()
+    network.layers = fused.layers = {"direct", "indirect"}
+    assert choose_method(mixed, network, fused) == "oidn-l1"
+    result = reconstruct(mixed)
+    assert result.method == "oidn-l1"
+    np.testing.assert_array_equal(result.image, reconstruct(full, "oidn-l1").image)
+    assert not np.array_equal(result.layers["direct"], reconstruct(mixed, "oidn").layers["direct"])
+    missing = [f"indirect.{g}.{c}" for g in ("dx", "dy") for c in "RGB"]
+    for method, models in (("l1", None), ("l2", None), ("network", network), ("fused", fused)):
+        with pytest.raises(ChannelError, match="indirect.dx.R") as err:
+            reconstruct(mixed, method, network=models if method == "network" else None,
+                        fused=models if method == "fused" else None)
+        assert err.value.details["missing"] == missing, method
+    # the direct layer without gradients and the indirect with them: oidn-l1 cannot refine, oidn serves it
+    other = Frame({"direct": Layer(full.layers["direct"].base), "indirect": full.layers["indirect"]}, full.features)
+    assert choose_method(other, network, fused) == "oidn"
+    with pytest.raises(ChannelError) as err:
+        reconstruct(other, "oidn-l1")
+    assert err.value.details["missing"] == [f"direct.{g}.{c}" for g in ("dx", "dy") for c in "RGB"]
+    monkeypatch.setattr("model.oidn.available", lambda: False)  # a host without pyoidn: nothing serves it
+    with pytest.raises(ChannelError, match="only for layer"):
+        choose_method(mixed, network, fused)
+
+
+def test_cli_reconstructs_a_frame_with_the_direct_layers_gradients_only(tmp_path: Path, capsys) -> None:
+    write_frame(tmp_path / "mixed.exr", _direct_gradients_only(_frame()))
+    code, out, err = _run([str(tmp_path / "mixed.exr"), "-o", str(tmp_path / "out.exr")], capsys)
+    assert code == 0 and np.isfinite(_rgb(tmp_path / "out.exr")).all(), err
+    assert _open_exr(tmp_path / "out.exr").header()["gradsep.method"] == "oidn-l1"
+    code, _, err = _run([str(tmp_path / "mixed.exr"), "--method", "l1", "-o", str(tmp_path / "l1.exr")], capsys)
+    assert code == 2 and "indirect.dx.R" in err and not (tmp_path / "l1.exr").exists()
+
+
 # ---------------------------------------------------------------------------------------------- the CLI
 
 

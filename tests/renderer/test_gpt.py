@@ -105,16 +105,18 @@ def load_test_scene(name: str):
     return _scenes[name]
 
 
-def make_renders(name: str, shift: str, offsets: str = "all") -> Renders:
-    """G-PT over SEEDS seeds with ``shift`` (tracing ``offsets``: GptSettings.offsets), plus the scene's `path`
-    references (shared between shifts)."""
-    if (name, shift, offsets) in _renders:
-        return _renders[name, shift, offsets]
+def make_renders(name: str, shift: str, offsets: str = "all", gradients: str = "all") -> Renders:
+    """G-PT over SEEDS seeds with ``shift`` (tracing ``offsets``: GptSettings.offsets; gradients of ``gradients``
+    layers: GptSettings.gradients), plus the scene's `path` references (shared between shifts)."""
+    key = (name, shift, offsets) if gradients == "all" else (name, shift, offsets, gradients)
+    if key in _renders:
+        return _renders[key]
     scene, depth = load_test_scene(name), SCENE_DEPTHS[name]
-    settings = GptSettings(max_depth=depth, offsets=offsets)
+    settings = GptSettings(max_depth=depth, offsets=offsets, gradients=gradients)
     results = [render_gpt(scene, make_shift(shift), settings, SIZE, SIZE, SPP, seed) for seed in range(SEEDS)]
     layers = list(results[0].layers)
-    stack = {k: {layer: np.stack([r.layers[layer][k] for r in results]).astype(np.float64) for layer in layers}
+    stack = {k: {layer: np.stack([r.layers[layer][k] for r in results]).astype(np.float64) for layer in layers
+                 if k in results[0].layers[layer]}  # a layer without gradients has "base" alone
              for k in ("base", "dx", "dy")}
     if name not in _references:
         ref = {d: np.stack([path_render(scene, REF_SPP, 10_000 + i, d) for i in range(REF_CHUNKS)])
@@ -122,9 +124,8 @@ def make_renders(name: str, shift: str, offsets: str = "all") -> Renders:
         low = {d: np.stack([path_render(scene, SPP, 20_000 + i, d) for i in range(SEEDS)]) for d in (depth, 2)}
         _references[name] = (ref, low)
     ref, low = _references[name]
-    _renders[name, shift, offsets] = Renders(base=stack["base"], dx=stack["dx"], dy=stack["dy"],
-                                             features=results, ref=ref, low=low)
-    return _renders[name, shift, offsets]
+    _renders[key] = Renders(base=stack["base"], dx=stack["dx"], dy=stack["dy"], features=results, ref=ref, low=low)
+    return _renders[key]
 
 
 @pytest.fixture(scope="module")
@@ -304,6 +305,66 @@ def test_fewer_offsets_keep_the_primal_and_count_gradients_at_any_spp(offsets):
         for key, fd in (("dx", fd_x), ("dy", fd_y)):
             est = np.stack([sum(r.layers[layer][key] for layer in r.layers) for r in results]).astype(np.float64)
             assert_matches_reference(est, fd(ref), 2e-3, f"coarse mixed {shift} {offsets} {key}")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("scene_name", "shift", "offsets"), [
+    ("cbox", "hybrid", "all"), ("cbox", "replay", "all"), ("sky", "hybrid", "all"), ("cbox", "hybrid", "pair"),
+    ("teapot", "hybrid", "all")])
+def test_direct_gradients_mode_is_the_full_renders_direct_layer(scene_name, shift, offsets):
+    """GptSettings(gradients="direct") traces the offsets only to the direct layer's vertices: its direct layer
+    (base and gradients) is the ``all`` render's with the same seed, bit for bit up to rounding; its indirect
+    layer carries no gradients and is the primal-only render's; the features are unchanged. (The teapot, lit by
+    point lights at depth 4, is the case where the offsets stop after the first vertex.)"""
+    scene, depth = load_test_scene(scene_name), SCENE_DEPTHS[scene_name]
+    for seed in (0, 7):
+        full = render_gpt(scene, make_shift(shift), GptSettings(max_depth=depth, offsets=offsets), SIZE, SIZE, 5, seed)
+        direct = render_gpt(scene, make_shift(shift), GptSettings(max_depth=depth, offsets=offsets,
+                                                                   gradients="direct"), SIZE, SIZE, 5, seed)
+        primal = render_gpt(scene, None, GptSettings(max_depth=depth), SIZE, SIZE, 5, seed)
+        assert set(direct.layers["direct"]) == {"base", "dx", "dy"} and set(direct.layers["indirect"]) == {"base"}
+        assert np.abs(full.layers["direct"]["dx"]).max() > 0
+        for key in ("base", "dx", "dy"):
+            np.testing.assert_allclose(direct.layers["direct"][key], full.layers["direct"][key], rtol=1e-6,
+                                       atol=1e-7, err_msg=f"direct {key}")
+        np.testing.assert_allclose(direct.layers["indirect"]["base"], primal.layers["indirect"]["base"], rtol=1e-6,
+                                   atol=1e-7)
+        np.testing.assert_allclose(direct.layers["indirect"]["base"], full.layers["indirect"]["base"], rtol=1e-6,
+                                   atol=1e-7)
+        for key in ("albedo", "normal", "depth"):
+            np.testing.assert_array_equal(getattr(direct, key), getattr(full, key), err_msg=key)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("scene", ["cbox", "sky"])
+@pytest.mark.parametrize("axis", ["dx", "dy"])
+def test_direct_gradients_mode_is_unbiased(scene, axis):
+    """The direct layer's gradients against finite differences of the depth-2 reference; both layers' energy
+    against `path` (the total at the scene's depth, the direct layer at depth 2, indirect = the rest)."""
+    r = make_renders(scene, "hybrid", gradients="direct")
+    depth = max(r.ref)
+    fd = fd_x if axis == "dx" else fd_y
+    assert set(getattr(r, axis)) == {"direct"}
+    assert_matches_reference(getattr(r, axis)["direct"], fd(r.ref[2]), 2e-3, f"{scene} direct {axis}")
+    z = two_sample_z(r.total("base").mean(axis=(1, 2)), r.low[depth].mean(axis=(1, 2)))
+    assert np.all(np.abs(z) < 4.5), f"{scene}: image mean differs from path: z={z}"
+    z = two_sample_z(r.base["direct"].mean(axis=(1, 2)), r.low[2].mean(axis=(1, 2)))
+    assert np.all(np.abs(z) < 4.5), f"{scene}: direct layer mean differs from path at depth 2: z={z}"
+    rest = (r.low[depth] - r.low[2]).mean(axis=(1, 2))
+    assert np.all(np.abs(two_sample_z(r.base["indirect"].mean(axis=(1, 2)), rest)) < 4.5)
+
+
+def test_gradients_mode_is_validated():
+    with pytest.raises(ValueError, match="unknown gradients mode"):
+        GptSettings(gradients="indirect").validate()
+    with pytest.raises(ValueError, match="direct layer"):
+        GptSettings(gradients="direct", separate=False).validate()
+    with pytest.raises(ValueError, match="direct layer"):
+        GptSettings(gradients="direct", direct=False).validate()
+    assert GptSettings(gradients="direct").gradient_layer_names() == ("direct",)
+    assert GptSettings().gradient_layer_names() == ("direct", "indirect")
+    with pytest.raises(CommandError, match="--gradients must be one of"):
+        render_frame(CBOX, spp=1, width=4, height=4, gradients="sometimes")
 
 
 @pytest.mark.parametrize("groups", [2, 4])
@@ -818,7 +879,27 @@ def test_render_command_end_to_end(tmp_path, capsys, shift):
     assert frame.metadata["gradsep.shift"] == (shift or "hybrid")
 
 
+@pytest.mark.slow
+def test_render_command_gradients_direct(tmp_path, capsys):
+    """`--gradients direct`: a frame with the direct layer's gradients and a plain indirect layer, which the
+    frame contract reads back; the metadata says which layers carry gradients."""
+    out = tmp_path / "d.exr"
+    rc = main(["render", CBOX, "--spp", "2", "--width", "16", "--height", "12", "--seed", "4",
+               "--gradients", "direct", "-o", str(out)])
+    assert rc == 0
+    frame = read_frame(out)
+    assert list(frame.layers) == ["direct", "indirect"] and frame.gradient_layers == ("direct",)
+    assert frame.metadata["gradsep.gradients"] == "direct" and frame.metadata["gradsep.integrator"] == "gpt"
+    full = render_frame(load_scene(CBOX, width=16, height=12), spp=2, seed=4)
+    assert full.metadata["gradsep.gradients"] == "all"
+    np.testing.assert_allclose(frame.layers["direct"].dx, full.layers["direct"].dx, rtol=1e-6, atol=1e-7)
+
+
 @pytest.mark.parametrize("argv, message", [
+    (["--gradients", "direct", "--layers", "color"], "--gradients direct"),
+    (["--gradients", "direct", "--layers", "indirect"], "--gradients direct"),
+    (["--no-gradients", "--gradients", "all"], "--no-gradients"),
+    (["--gradients", "none", "--shift", "replay"], "--shift"),
     (["--spp", "0"], "spp"),
     (["--layers", "glossy"], "unknown layer"),
     (["--max-depth", "0"], "max-depth"),

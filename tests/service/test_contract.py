@@ -297,6 +297,29 @@ def test_smallest_documented_alpha_returns_the_frames_energy(poisson_api, transp
 
 
 @TRANSPORT
+def test_a_frame_with_the_direct_layers_gradients_only(poisson_api, transport):
+    """`gradsep render --gradients direct`: direct.* with its gradients, a plain indirect layer. The default
+    (oidn-l1, which refines the direct layer alone) and oidn serve it; l1/l2 answer 422 naming the indirect
+    layer's gradient channels."""
+    client = poisson_api[transport]
+    channels = {k: v for k, v in frame_channels(("direct", "indirect"), features=True, seed=4).items()
+                if not k.startswith(("indirect.dx.", "indirect.dy."))}
+    for method in ("l1", "l2"):
+        error = assert_error(post(client, channels_bytes(channels), {"method": method}), 422, "bad_channels")
+        assert error["details"]["missing"] == [f"indirect.{g}.{c}" for g in ("dx", "dy") for c in "RGB"]
+        assert "indirect.dx.R" in error["message"]
+    response = post(client, channels_bytes(channels))
+    if importlib.util.find_spec("pyoidn") is None:  # nothing serves it on a host without OIDN
+        assert_error(response, 422, "bad_channels")
+        return
+    assert response.status_code == 200, response.text
+    assert response.headers["x-reconstruction-method"] == "oidn-l1"
+    assert np.isfinite(rgb(decode(response.content)[0])).all()
+    explicit = post(client, channels_bytes(channels), {"method": "oidn"})
+    assert explicit.status_code == 200 and explicit.headers["x-reconstruction-method"] == "oidn"
+
+
+@TRANSPORT
 def test_network_without_models_is_422_listing_available_methods(poisson_api, transport):
     error = assert_error(post(poisson_api[transport], frame_bytes(), {"method": "network"}),
                          422, "method_unavailable")
