@@ -2,6 +2,7 @@
 
     python benchmarks/bench_layers.py                           # 1280x720 two-layer frame, every method served here
     python benchmarks/bench_layers.py --methods l1,network --repeats 5
+    python benchmarks/bench_layers.py --all-concurrent        # also the methods kept sequential (CONCURRENT_METHODS)
 
 For each method the two settings alternate (1, 2, 1, 2, ...) so that both see the same machine load; the medians,
 their ratio and the largest difference between the two outputs (expected: 0, the same computation) are printed
@@ -44,7 +45,13 @@ def main() -> None:
     parser.add_argument("--height", type=int, default=720)
     parser.add_argument("--width", type=int, default=1280)
     parser.add_argument("--threads", type=int, default=2, help="the concurrent setting compared with 1")
+    parser.add_argument("--all-concurrent", action="store_true",
+                        help="run every method's layers concurrently, not only model.reconstruct.CONCURRENT_METHODS")
     args = parser.parse_args()
+    if args.all_concurrent:
+        import model.reconstruct
+
+        model.reconstruct.CONCURRENT_METHODS = frozenset(model.reconstruct.METHODS)
 
     frame = read_frame(synthetic_frame(args.height, args.width))
     network, fused = load_network(None), load_fused(None)
