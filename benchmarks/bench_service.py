@@ -6,6 +6,7 @@ then throughput with ``--clients`` (2) concurrent clients in frames per minute, 
     python benchmarks/bench_service.py --repeats 50 --json   # one JSON document on stdout
     python benchmarks/bench_service.py --url http://host:8000 --token T   # an already running service (no RSS)
     python benchmarks/bench_service.py --io                  # EXR decode/encode cost per compression, no service
+    python benchmarks/bench_service.py --io --io-compressions ZIP_COMPRESSION --io-threads 0,1,2  # OpenEXR pool
 
 What is timed is what a render-farm task sees: upload of the EXR, queueing, decode, reconstruction of each layer,
 encode and download (client-side wall clock, one request at a time, connection kept alive). The service's own
@@ -178,26 +179,33 @@ def throughput(url: str, headers: dict, data: bytes, method: str, clients: int, 
     return {"clients": clients, "requests": done, "seconds": wall, "frames_per_minute": 60.0 * done / wall}
 
 
-def io_costs(height: int, width: int, repeats: int) -> None:
-    """Decode and encode cost of the benchmark frame per lossless compression (no service)."""
+def io_costs(height: int, width: int, repeats: int, compressions: list[str], thread_counts: list[int]) -> None:
+    """Decode and encode cost of the benchmark frame per lossless compression and OpenEXR thread-pool size
+    (``GRADSEP_EXR_THREADS``; the service's default -1 is one per core), no service."""
     import io
 
-    print(f"{width}x{height} direct+indirect frame with features; medians of {repeats}")
-    print(f"{'compression':20} {'request MB':>10} {'read_frame s':>12} {'encode RGB s':>12} {'answer MB':>9}")
-    for compression in LOSSLESS_COMPRESSIONS:
+    import OpenEXR
+
+    print(f"{width}x{height} direct+indirect frame with features; medians of {repeats}; "
+          f"load {os.getloadavg()[0]:.2f}")
+    print(f"{'compression':20} {'threads':>7} {'request MB':>10} {'read_frame s':>12} {'encode RGB s':>12} "
+          f"{'answer MB':>9}")
+    for compression in compressions:
         data = synthetic_frame(height, width, compression=compression)
-        reads, encodes = [], []
-        for _ in range(repeats):
-            t0 = time.perf_counter()
-            frame = read_frame(io.BytesIO(data))
-            t1 = time.perf_counter()
-            image = frame.combined().base
-            t2 = time.perf_counter()
-            answer = encode_exr(dict(rgb_channels("", image)), compression=compression)
-            encodes.append(time.perf_counter() - t2)
-            reads.append(t1 - t0)
-        print(f"{compression:20} {len(data) / 1e6:10.1f} {np.median(reads):12.3f} {np.median(encodes):12.3f} "
-              f"{len(answer) / 1e6:9.1f}")
+        for threads in thread_counts:
+            OpenEXR.set_global_thread_count((os.cpu_count() or 1) if threads < 0 else threads)
+            reads, encodes = [], []
+            for _ in range(repeats):
+                t0 = time.perf_counter()
+                frame = read_frame(io.BytesIO(data))
+                t1 = time.perf_counter()
+                image = frame.combined().base
+                t2 = time.perf_counter()
+                answer = encode_exr(dict(rgb_channels("", image)), compression=compression)
+                encodes.append(time.perf_counter() - t2)
+                reads.append(t1 - t0)
+            print(f"{compression:20} {threads:7} {len(data) / 1e6:10.1f} {np.median(reads):12.3f} "
+                  f"{np.median(encodes):12.3f} {len(answer) / 1e6:9.1f}", flush=True)
 
 
 def main() -> None:
@@ -215,11 +223,15 @@ def main() -> None:
     parser.add_argument("--compression", default="ZIP_COMPRESSION", choices=LOSSLESS_COMPRESSIONS,
                         help="the request EXR's compression (the answer follows it)")
     parser.add_argument("--io", action="store_true", help="only measure EXR decode/encode per compression")
+    parser.add_argument("--io-compressions", default=",".join(LOSSLESS_COMPRESSIONS),
+                        help="--io: comma-separated compressions")
+    parser.add_argument("--io-threads", default="0,-1", help="--io: OpenEXR thread-pool sizes (-1: one per core)")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args()
     width, height = (int(v) for v in args.size.lower().split("x"))
     if args.io:
-        io_costs(height, width, max(1, min(args.repeats, 5)))
+        io_costs(height, width, max(1, min(args.repeats, 5)), args.io_compressions.split(","),
+                 [int(t) for t in args.io_threads.split(",")])
         return
     data = synthetic_frame(height, width, compression=args.compression)
 

@@ -4,6 +4,7 @@ how many IRLS passes, and at what cost.
 
     python benchmarks/study_refine.py render --seeds 81001-81008 --spp 1,4,16,64   # frames + references (cached)
     python benchmarks/study_refine.py error                                      # the tables (cached frames)
+    python benchmarks/study_refine.py error --family speed                       # cheaper solves of the same
     python benchmarks/study_refine.py time                                       # 1280x720 cost of the refinement
 
 Scenes: procedural seeds that are neither evaluation scenes (90001, 90002) nor in the training range; nothing
@@ -60,22 +61,32 @@ def render(seeds: list[int], spps: list[int], ref_spp: int, cache: Path) -> None
         print(f"procedural:{seed}: cached in {folder}", flush=True)
 
 
+def _solver(alpha: float, passes: int, layers: frozenset[str], **solver) -> Callable:
+    """f(name, denoised, layer): model.refine.refine_layer with its module settings overridden for the call;
+    ``solver``: REFINE_CG_STEPS / REFINE_WARM_START / REFINE_PRECONDITIONER (lower-case keys without REFINE_)."""
+    from model import refine
+
+    names = ("REFINE_ITERATIONS", "REFINED_LAYERS", *(f"REFINE_{k.upper()}" for k in solver))
+
+    def run(name, denoised, layer):
+        if name not in layers:
+            return denoised
+        saved = {n: getattr(refine, n) for n in names}
+        for n, value in zip(names, (passes, layers, *solver.values()), strict=True):
+            setattr(refine, n, value)
+        try:
+            return refine.refine_layer(name, denoised, layer, alpha)
+        finally:
+            for n, value in saved.items():
+                setattr(refine, n, value)
+    return run
+
+
 def _variants(setting: str) -> dict[str, Callable]:
     """name -> f(name, denoised, layer) for one layer; 'oidn' is the identity."""
     from model import refine
 
-    def solve(alpha: float, passes: int, layers: frozenset[str]) -> Callable:
-        def run(name, denoised, layer):
-            if name not in layers:
-                return denoised
-            saved = refine.REFINE_ITERATIONS, refine.REFINED_LAYERS
-            refine.REFINE_ITERATIONS, refine.REFINED_LAYERS = passes, layers
-            try:
-                return refine.refine_layer(name, denoised, layer, alpha)
-            finally:
-                refine.REFINE_ITERATIONS, refine.REFINED_LAYERS = saved
-        return run
-
+    solve = _solver
     direct, both = frozenset({"direct"}), frozenset({"direct", "indirect"})
     out: dict[str, Callable] = {"oidn": lambda name, denoised, layer: denoised}
     out["oidn-l1 (shipped)"] = solve(refine.REFINE_ALPHA, refine.REFINE_ITERATIONS, refine.REFINED_LAYERS)
@@ -87,7 +98,27 @@ def _variants(setting: str) -> dict[str, Callable]:
     return out
 
 
-def error(cache: Path, settings: list[str]) -> None:
+def _speed_variants(setting: str) -> dict[str, Callable]:
+    """Cheaper solves of the shipped refinement (issue 15): a warm start from OIDN's image instead of the L2
+    solve, fewer IRLS passes, fewer CG steps per pass, the multigrid preconditioner."""
+    from model import refine
+
+    solve = _solver
+    a, direct = refine.REFINE_ALPHA, refine.REFINED_LAYERS
+    out: dict[str, Callable] = {"oidn": lambda name, denoised, layer: denoised}
+    out["shipped"] = solve(a, refine.REFINE_ITERATIONS, direct)
+    out["L2 start, 8 passes, 4 dct CG (before issue 15)"] = solve(a, 8, direct, cg_steps=4, preconditioner="dct")
+    for passes in (3, 5, 8):
+        out[f"warm start, {passes} passes, 4 dct CG"] = solve(a, passes, direct, warm_start=True, cg_steps=4,
+                                                             preconditioner="dct")
+    for passes, cg in ((5, 4), (6, 3)):
+        out[f"L2 start, {passes} passes, {cg} dct CG"] = solve(a, passes, direct, cg_steps=cg, preconditioner="dct")
+    for passes, cg in ((8, 2), (8, 1), (6, 2), (5, 2), (6, 1)):
+        out[f"L2 start, {passes} passes, {cg} mg CG"] = solve(a, passes, direct, cg_steps=cg, preconditioner="mg")
+    return out
+
+
+def error(cache: Path, settings: list[str], family: str = "design") -> None:
     from model.frame import read_frame
     from model.metrics import relmse_unbiased
     from model.oidn import Denoiser
@@ -107,7 +138,8 @@ def error(cache: Path, settings: list[str]) -> None:
                 aux = den.prefilter(frame.features) if frame.features is not None else None
                 denoised = {n: den.denoise(layer.base, aux) for n, layer in frame.layers.items()}
                 base = None
-                for variant, run in _variants(setting).items():
+                variants = _speed_variants(setting) if family == "speed" else _variants(setting)
+                for variant, run in variants.items():
                     total = sum(run(n, denoised[n], layer) for n, layer in frame.layers.items())
                     score = relmse_unbiased(total, r1["total"], r2["total"])
                     base = score if variant == "oidn" else base
@@ -125,11 +157,28 @@ def error(cache: Path, settings: list[str]) -> None:
         print(f"| {setting} | {variant} | {geo:.3f} | {max(ratios):.2f} | {better}/{len(ratios)} |")
 
 
-def timing(width: int, height: int, repeats: int) -> None:
+def timing(width: int, height: int, repeats: int, variants: list[str] | None = None) -> None:
     """The refinement of one 1280x720 direct layer (synthetic noisy HDR data: the solve's cost does not depend
-    on content), medians of ``repeats``."""
+    on content), medians of ``repeats``; ``variants`` ("PASSES:CG:PRECONDITIONER[:warm]", e.g. "8:2:mg") are
+    timed in the same run, interleaved with the shipped setting."""
+    from model import refine
+
+    settings = [None, *(variants or [])]
+    runs = {v: [] for v in settings}
+    for _ in range(repeats):
+        for v in settings:
+            runs[v].append(_time_refinement(width, height, v))
+    for v in settings:
+        times = runs[v]
+        label = v or (f"shipped {refine.REFINE_ITERATIONS}:{refine.REFINE_CG_STEPS}:{refine.REFINE_PRECONDITIONER}"
+                      f"{':warm' if refine.REFINE_WARM_START else ''}")
+        print(f"refinement of one {width}x{height} direct layer, {label}: median {statistics.median(times):.3f} s "
+              f"(min {min(times):.3f}, {repeats} repeats), load {os.getloadavg()[0]:.2f}")
+
+
+def _time_refinement(width: int, height: int, variant: str | None) -> float:
     from model.frame import Layer, forward_differences
-    from model.refine import refine_layer
+    from model.refine import REFINED_LAYERS
 
     rng = np.random.default_rng(0)
     truth = rng.uniform(0.1, 2.0, (height // 16 + 1, width // 16 + 1, 3)).astype(np.float32)
@@ -137,14 +186,18 @@ def timing(width: int, height: int, repeats: int) -> None:
     dx, dy = forward_differences(truth)
     noise = lambda: rng.normal(0, 0.1, truth.shape).astype(np.float32)  # noqa: E731
     layer = Layer(truth + noise(), dx + noise(), dy + noise())
-    refine_layer("direct", truth, layer)  # warm-up (numba/FFT plans)
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        refine_layer("direct", truth, layer)
-        times.append(time.perf_counter() - start)
-    print(f"refinement of one {width}x{height} direct layer: median {statistics.median(times):.3f} s "
-          f"(min {min(times):.3f}, {repeats} repeats)")
+    if variant is None:
+        from model.refine import REFINE_ALPHA, REFINE_ITERATIONS
+
+        run = _solver(REFINE_ALPHA, REFINE_ITERATIONS, REFINED_LAYERS)
+    else:
+        passes, cg, preconditioner, *warm = variant.split(":")
+        run = _solver(1.0, int(passes), REFINED_LAYERS, cg_steps=int(cg), preconditioner=preconditioner,
+                      warm_start=bool(warm))
+    run("direct", truth, layer)  # warm-up (numba/FFT plans)
+    start = time.perf_counter()
+    run("direct", truth, layer)
+    return time.perf_counter() - start
 
 
 def main() -> int:
@@ -157,17 +210,20 @@ def main() -> int:
     r.add_argument("--ref-spp", type=int, default=1024)
     e = sub.add_parser("error")
     e.add_argument("--settings", default="raw-fast", help="comma-separated model.oidn.SETTINGS names")
+    e.add_argument("--family", choices=("design", "speed"), default="design",
+                   help="design: alpha, layers, passes (the method's choice); speed: cheaper solves of it")
     t = sub.add_parser("time")
     t.add_argument("--width", type=int, default=1280)
     t.add_argument("--height", type=int, default=720)
     t.add_argument("--repeats", type=int, default=5)
+    t.add_argument("--variants", default="", help="comma-separated PASSES:CG:PRECONDITIONER[:warm], e.g. 8:2:mg")
     args = parser.parse_args()
     if args.command == "render":
         render(_seeds(args.seeds), [int(s) for s in args.spp.split(",")], args.ref_spp, args.cache)
     elif args.command == "error":
-        error(args.cache, args.settings.split(","))
+        error(args.cache, args.settings.split(","), args.family)
     else:
-        timing(args.width, args.height, args.repeats)
+        timing(args.width, args.height, args.repeats, [v for v in args.variants.split(",") if v])
     return 0
 
 

@@ -74,6 +74,9 @@ def reconstruct_command(args: argparse.Namespace) -> int:
     if not (math.isfinite(alpha) and alpha > 0):
         raise CommandError(f"--alpha must be a finite number > 0, got {args.alpha}")
     _check_output(output)
+    import OpenEXR
+
+    OpenEXR.set_global_thread_count(os.cpu_count() or 1)  # (de)compress line blocks on every core (no pool by default)
     frame = read_frame(args.frame, nonfinite=args.nonfinite)
     network, fused = _resolve_models(getattr(args, "models", None), args.method)
     try:

@@ -36,7 +36,10 @@ Results are returned as float32 (the frame format's precision) unless ``dtype=np
 
 from __future__ import annotations
 
+import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from functools import lru_cache
 
@@ -160,12 +163,30 @@ def _laplacian_eigenvalues(height: int, width: int) -> np.ndarray:
     return lam
 
 
+_local = threading.local()
+
+
+@contextmanager
+def fft_workers(workers: int) -> Iterator[None]:
+    """Within the block, this thread's DCTs use ``workers`` threads (-1, the default: every core). A caller
+    that runs several solves at once (model.reconstruct's concurrent layers) gives each one thread, so that the
+    solves share the cores instead of oversubscribing them; the transforms' results do not depend on it."""
+    previous = getattr(_local, "workers", -1)
+    _local.workers = workers
+    try:
+        yield
+    finally:
+        _local.workers = previous
+
+
 def _dct(a: np.ndarray, overwrite: bool = False) -> np.ndarray:
-    return scipy.fft.dctn(a, type=2, axes=(-2, -1), norm="ortho", workers=-1, overwrite_x=overwrite)
+    return scipy.fft.dctn(a, type=2, axes=(-2, -1), norm="ortho", workers=getattr(_local, "workers", -1),
+                          overwrite_x=overwrite)
 
 
 def _idct(a: np.ndarray, overwrite: bool = False) -> np.ndarray:
-    return scipy.fft.idctn(a, type=2, axes=(-2, -1), norm="ortho", workers=-1, overwrite_x=overwrite)
+    return scipy.fft.idctn(a, type=2, axes=(-2, -1), norm="ortho", workers=getattr(_local, "workers", -1),
+                           overwrite_x=overwrite)
 
 
 def _screened_solve(rhs: np.ndarray, alpha2: float, dc: np.ndarray | None = None) -> np.ndarray:
@@ -502,6 +523,7 @@ def solve_l1(
     cg_tolerance: float = 1e-3,
     preconditioner: str = "dct",
     dtype=np.float32,
+    initial: np.ndarray | None = None,
 ) -> tuple[np.ndarray, L1Stats]:
     """L1 screened Poisson reconstruction by IRLS: argmin Σ‖α(I − base)‖ + Σ‖(H_x I − dx, H_y I − dy)‖.
 
@@ -514,6 +536,8 @@ def solve_l1(
     The channels of an (H, W, C) input share weights (the norm is over channels), so pass a layer's RGB
     together. ``preconditioner`` is ``"dct"`` (diagonally rescaled DCT solve, the default), ``"jacobi"`` or
     ``"none"`` (the reference's plain CG). Iterates in float32, or float64 when α < FLOAT32_MIN_ALPHA.
+    ``initial`` (the shape of ``base``) replaces pass 0's exact L2 solve as the starting iterate: the first
+    weights are then taken from its residuals (model/refine.py starts from OIDN's image, which is already close).
     Returns the image (float32 by default) and :class:`L1Stats`. Raises ValueError like :func:`solve_l2` and
     for non-positive iteration counts or an unknown preconditioner.
     """
@@ -535,7 +559,11 @@ def solve_l1(
     scale = max(float(np.abs(a).max()) for a in (b, gx, gy)) or 1.0
     for a in (b, gx, gy):
         a /= work.type(scale)
-    x = _l2_core(b, gx, gy, alpha)
+    if initial is None:
+        x = _l2_core(b, gx, gy, alpha)
+    else:
+        (x, _, _) = _prepare(initial, dx, dy, alpha, work.type)
+        x /= work.type(scale)
     system = _WeightedSystem(x.shape, alpha, work, preconditioner)
 
     buffers: list[np.ndarray] = []

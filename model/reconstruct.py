@@ -30,6 +30,8 @@ import importlib.util
 import math
 import os
 import time
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
@@ -104,21 +106,101 @@ class _Context:
     denoiser: Any = None  # the model.oidn.Denoiser of the method (oidn: its setting; fused: the prior's)
 
 
-def _reconstruct_layer(name: str, layer: Layer, ctx: _Context) -> np.ndarray:
+def _reconstruct_layer(name: str, layer: Layer, ctx: _Context, denoised: np.ndarray | None = None) -> np.ndarray:
+    """One layer by ``ctx.method``; ``denoised``: the layer's OIDN image when already computed (OIDN methods)."""
     if ctx.method == "l1":
         return solve_l1(layer.base, layer.dx, layer.dy, ctx.alpha)[0]
     if ctx.method == "l2":
         return solve_l2(layer.base, layer.dx, layer.dy, ctx.alpha)
     if ctx.method in OIDN_METHODS:
-        denoised = ctx.denoiser.denoise(layer.base, ctx.aux)
-        if ctx.method == "oidn":
-            return denoised
-        from model.refine import refine_layer
-
-        return refine_layer(name, denoised, layer)
+        if denoised is None:
+            denoised = ctx.denoiser.denoise(layer.base, ctx.aux)
+        return _finish_oidn_layer(name, denoised, layer, ctx)
     if ctx.aux is not None:  # models refining an OIDN prior share the frame's prefiltered features
         return ctx.models.reconstruct_layer(name, layer, ctx.features, ctx.aux)
     return ctx.models.reconstruct_layer(name, layer, ctx.features)
+
+
+#: ``$GRADSEP_LAYER_THREADS``: how many of a frame's layers are reconstructed at once (1: one after the other).
+LAYER_THREADS_ENV = "GRADSEP_LAYER_THREADS"
+#: The default: two layers at once, for the methods where that was measured to pay (CONCURRENT_METHODS).
+DEFAULT_LAYER_THREADS = 2
+#: Methods whose layers run concurrently. Their solves are independent and most of each runs single-threaded
+#: (the compiled IRLS/multigrid kernels) or releases the GIL (DCTs, OIDN), but the 2 cores are shared, so it only
+#: pays where one layer leaves a core idle. Measured in-process (benchmarks/bench_layers.py, 1280x720, 2 cores,
+#: same-run medians, concurrent / sequential): l1 0.75-0.85 (four runs), oidn-l1 0.95-0.97 (its direct layer's
+#: refinement beside the indirect layer's denoise), network 0.98-1.15 (OpenVINO and the DCTs already use both
+#: cores), l2 1.7-2.3 (two DCTs per layer: thread start-up and contention outweigh them). fused: not measured.
+#: Every other method runs its layers one after the other. Output is bit-for-bit the same either way.
+CONCURRENT_METHODS: frozenset[str] = frozenset({"l1", "oidn-l1"})
+
+
+def layer_threads() -> int:
+    """The number of layers reconstructed concurrently: ``$GRADSEP_LAYER_THREADS`` (≥ 1) or the default."""
+    raw = os.environ.get(LAYER_THREADS_ENV, "").strip()
+    if not raw:
+        return DEFAULT_LAYER_THREADS
+    try:
+        value = int(raw)
+    except ValueError:
+        raise ValueError(f"${LAYER_THREADS_ENV}={raw!r} is not an integer (1 runs the layers one after the "
+                         "other)") from None
+    if value < 1:
+        raise ValueError(f"${LAYER_THREADS_ENV}={value} must be at least 1")
+    return value
+
+
+def _timed(fn: Callable[..., np.ndarray], *args: Any) -> tuple[np.ndarray, float]:
+    start = time.perf_counter()
+    image = fn(*args)
+    return image, time.perf_counter() - start
+
+
+def _in_worker(fn: Callable[..., np.ndarray], *args: Any) -> tuple[np.ndarray, float]:
+    """:func:`_timed` in a layer thread: its DCTs on one thread (the other layer has the other core)."""
+    from model.poisson import fft_workers
+
+    with fft_workers(1):
+        return _timed(fn, *args)
+
+
+def _run_layers(frame: Frame, ctx: _Context) -> dict[str, tuple[np.ndarray, float]]:
+    """Every layer's (image, seconds), one after the other or (CONCURRENT_METHODS) :func:`layer_threads` at once.
+
+    Concurrent seconds are each layer's own wall time and overlap. For the OIDN methods the denoiser is one
+    device behind a lock that already uses every core, so the layers are denoised one after the other in this
+    thread, in the frame's order with the refined layers first, and each refinement (the L1 solve of oidn-l1)
+    runs in a worker beside the next layer's denoise; OIDN's own order is therefore fixed."""
+    threads = min(layer_threads(), len(frame.layers))
+    if threads <= 1 or ctx.method not in CONCURRENT_METHODS:
+        return {name: _timed(_reconstruct_layer, name, layer, ctx) for name, layer in frame.layers.items()}
+    with ThreadPoolExecutor(max_workers=threads, thread_name_prefix="gradsep-layer") as pool:
+        if ctx.method not in OIDN_METHODS:
+            futures = {name: pool.submit(_in_worker, _reconstruct_layer, name, layer, ctx)
+                       for name, layer in frame.layers.items()}
+            return {name: future.result() for name, future in futures.items()}
+        from model.refine import REFINED_LAYERS
+
+        order = sorted(frame.layers, key=lambda n: n not in REFINED_LAYERS)  # stable: the frame's order otherwise
+        pending: dict[str, tuple[Future, float]] = {}
+        for name in order:
+            layer = frame.layers[name]
+            denoised, seconds = _timed(ctx.denoiser.denoise, layer.base, ctx.aux)
+            pending[name] = (pool.submit(_in_worker, _reconstruct_layer, name, layer, ctx, denoised), seconds)
+        out = {}
+        for name, (future, denoise_seconds) in pending.items():
+            image, seconds = future.result()
+            out[name] = (image, denoise_seconds + seconds)
+        return out
+
+
+def _finish_oidn_layer(name: str, denoised: np.ndarray, layer: Layer, ctx: _Context) -> np.ndarray:
+    """The second stage of an OIDN method for one layer: nothing for oidn, the gradient refinement for oidn-l1."""
+    if ctx.method == "oidn":
+        return denoised
+    from model.refine import refine_layer
+
+    return refine_layer(name, denoised, layer)
 
 
 def _serves(models: NetworkLike | None, frame: Frame) -> bool:
@@ -257,11 +339,10 @@ def reconstruct(frame: Frame, method: str | None = None, alpha: float = DEFAULT_
         start = time.perf_counter()
         ctx.aux = ctx.denoiser.prefilter(frame.features)  # once per frame, shared by every layer
         timings["features"] = time.perf_counter() - start
-    for name, layer in frame.layers.items():
-        start = time.perf_counter()
-        image = _reconstruct_layer(name, layer, ctx)
-        timings[name] = time.perf_counter() - start
+    for name, (image, seconds) in _run_layers(frame, ctx).items():
+        timings[name] = seconds
         layers[name] = _sanitise(name, image, shape, warnings)
+    for name in frame.layers:  # summed in the frame's order whatever order the layers finished in
         total += layers[name]
     image = np.clip(total, 0.0, _F32_MAX).astype(np.float32)
     return Reconstruction(image, layers, timings, method, warnings)

@@ -40,6 +40,18 @@ REFINE_ALPHA = 1.0
 #: IRLS passes of the refinement (pass 0 is the exact L2 solve, which lets every noisy gradient through). 8 passes:
 #: on the held-out study 1.5 % above 20 passes' RelMSE (geo. mean 0.773 vs 0.761 of oidn's) at 40 % of the cost.
 REFINE_ITERATIONS = 8
+#: CG steps per IRLS pass, and their preconditioner (model.poisson.solve_l1): 2 steps of the multigrid V-cycle.
+#: Chosen on the same held-out study (benchmarks/study_refine.py error --family speed; docs/network.md "The
+#: oidn-l1 method"): RelMSE / oidn 0.768 (worst 1.02, 31/32 better) against 0.773 (1.03, 30/32) for the former
+#: 4 DCT-preconditioned steps, at 0.89 s instead of 1.06 s per 1280x720 layer (study_refine.py time, same run).
+#: Fewer passes or one V-cycle per pass were cheaper still (0.58-0.60 s) but 3-7 % worse on average and up to
+#: 2.7x oidn's error on single frames.
+REFINE_CG_STEPS = 2
+REFINE_PRECONDITIONER = "mg"
+#: Start the IRLS from OIDN's image instead of the exact L2 solve. Measured and rejected: the first weights then
+#: come from OIDN's image, whose smoothed edges the L1 norm keeps, so less of the gradients' detail returns
+#: (0.81 at 8 passes, 0.89 at 3, against 0.77 from the L2 start); never worse than oidn, though (worst 0.98).
+REFINE_WARM_START = False
 
 _F32_MAX = float(np.finfo(np.float32).max)
 
@@ -51,6 +63,8 @@ def refine_layer(name: str, prior: np.ndarray, layer: Layer, alpha: float = REFI
         return prior
     scale = input_scale(prior)  # mean 1, as OIDN's own input is normalised; 1.0 for a black prior
     dx, dy = scaled_image(layer.dx, scale), scaled_image(layer.dy, scale)  # the base is not used: OIDN's is
-    solved, _ = solve_l1(scaled_image(prior, scale), dx, dy, alpha, REFINE_ITERATIONS)
+    data = scaled_image(prior, scale)
+    solved, _ = solve_l1(data, dx, dy, alpha, REFINE_ITERATIONS, cg_iterations=REFINE_CG_STEPS,
+                         preconditioner=REFINE_PRECONDITIONER, initial=data if REFINE_WARM_START else None)
     out = np.asarray(solved, np.float64) / scale
     return np.clip(out, 0.0, _F32_MAX).astype(np.float32)

@@ -45,6 +45,14 @@ class Settings(BaseSettings):
     default_alpha: float = Field(
         DEFAULT_ALPHA, ge=MIN_ALPHA, le=1000,
         description="screened Poisson data weight used when a request gives no alpha")
+    layer_threads: int = Field(
+        2, ge=1, le=64,
+        description="a frame's layers reconstructed at once (1: one after the other); read by model.reconstruct "
+                    "from the same variable, validated here so a bad value stops `gradsep serve` at startup")
+    exr_threads: int = Field(
+        -1, ge=-1, le=256,
+        description="OpenEXR's process-wide worker threads for decoding requests and encoding answers "
+                    "(line blocks are (de)compressed in parallel): -1 one per core, 0 single-threaded")
     warm_up: bool = Field(True, description="run one small inference per method before reporting ready")
     log_level: Literal["critical", "error", "warning", "info", "debug"] = Field("info")
 

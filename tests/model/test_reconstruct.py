@@ -338,3 +338,58 @@ def test_console_command_end_to_end(tmp_path: Path) -> None:
     assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "out2.exr").exists()
 
+
+
+# ------------------------------------------------------------------------------------ concurrent layers
+
+
+def _methods_here() -> list[str]:
+    from model.oidn import available
+
+    return ["l1", "l2", *(["oidn", "oidn-l1"] if available() else [])]
+
+
+@pytest.mark.parametrize("method", _methods_here())
+def test_concurrent_layers_give_the_sequential_result_bit_for_bit(method: str, monkeypatch) -> None:
+    import model.reconstruct as module
+
+    monkeypatch.setattr(module, "CONCURRENT_METHODS", frozenset(METHODS))  # the threaded path for every method
+    frame = _frame(h=40, w=56, noise=0.1)
+    monkeypatch.setenv("GRADSEP_LAYER_THREADS", "1")
+    sequential = reconstruct(frame, method, alpha=0.3)
+    monkeypatch.setenv("GRADSEP_LAYER_THREADS", "2")
+    concurrent = reconstruct(frame, method, alpha=0.3)
+    assert list(concurrent.layers) == list(sequential.layers) == ["direct", "indirect"]
+    for name in sequential.layers:
+        np.testing.assert_array_equal(concurrent.layers[name], sequential.layers[name])
+    np.testing.assert_array_equal(concurrent.image, sequential.image)
+    assert set(concurrent.timings) >= {"direct", "indirect"}
+
+
+def test_concurrent_layers_run_in_worker_threads_and_keep_errors(monkeypatch) -> None:
+    import threading
+
+    seen: set[str] = set()
+
+    class Recording(HalfBase):
+        def reconstruct_layer(self, name, layer, features):
+            seen.add(threading.current_thread().name)
+            return super().reconstruct_layer(name, layer, features)
+
+    import model.reconstruct as module
+
+    monkeypatch.setenv("GRADSEP_LAYER_THREADS", "2")
+    monkeypatch.setattr(module, "CONCURRENT_METHODS", frozenset({"network"}))
+    result = reconstruct(_frame(), "network", network=Recording())
+    assert seen and all(n.startswith("gradsep-layer") for n in seen)
+    np.testing.assert_array_equal(result.layers["direct"], np.clip(_frame().layers["direct"].base * 0.5, 0, None))
+    with pytest.raises(RuntimeError, match="shape"):  # a worker's exception reaches the caller unchanged
+        reconstruct(_frame(), "network", network=HalfBase(np.zeros((2, 2, 3), np.float32)))
+
+
+
+@pytest.mark.parametrize("value", ["0", "-1", "two"])
+def test_a_bad_layer_thread_setting_is_named(value: str, monkeypatch) -> None:
+    monkeypatch.setenv("GRADSEP_LAYER_THREADS", value)
+    with pytest.raises(ValueError, match="GRADSEP_LAYER_THREADS"):
+        reconstruct(_frame(), "l2")

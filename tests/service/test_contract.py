@@ -444,3 +444,26 @@ def _lossy(compression: str) -> bytes:
     buffer = io.BytesIO()
     OpenEXR.File({"compression": getattr(OpenEXR, compression), "type": OpenEXR.scanlineimage}, pixels).write(buffer)
     return buffer.getvalue()
+
+
+def test_exr_thread_pool_changes_no_pixel() -> None:
+    """GRADSEP_EXR_THREADS: OpenEXR's pool (de)compresses line blocks in parallel; bytes and pixels are the same."""
+    import OpenEXR
+
+    from model.frame import encode_exr, read_frame
+    from service.inference import configure_exr_threads
+
+    data = frame_bytes(("direct", "indirect"), height=70, width=90)
+    image = {"R": np.random.default_rng(0).random((70, 90), dtype=np.float32)}
+    before = OpenEXR.global_thread_count()
+    try:
+        configure_exr_threads(0)
+        serial, encoded = read_frame(data), encode_exr(image)
+        assert configure_exr_threads(-1) >= 1 and OpenEXR.global_thread_count() >= 1
+        threaded = read_frame(data)
+        assert encode_exr(image) == encoded
+        for name, layer in serial.layers.items():
+            for part in ("base", "dx", "dy"):
+                np.testing.assert_array_equal(getattr(layer, part), getattr(threaded.layers[name], part))
+    finally:
+        OpenEXR.set_global_thread_count(before)

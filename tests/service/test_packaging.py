@@ -109,6 +109,8 @@ def test_dockerfile_healthcheck_passes_on_a_live_service_and_fails_on_a_dead_one
 @pytest.mark.parametrize("env, argv, needle", [
     ({"GRADSEP_CONCURRENCY": "0"}, [], "GRADSEP_CONCURRENCY"),
     ({"GRADSEP_NONFINITE": "ignore"}, [], "GRADSEP_NONFINITE"),
+    ({"GRADSEP_LAYER_THREADS": "0"}, [], "GRADSEP_LAYER_THREADS"),
+    ({"GRADSEP_EXR_THREADS": "-2"}, [], "GRADSEP_EXR_THREADS"),
     ({}, ["--port", "70000"], "--port"),
     ({}, ["--workers", "0"], "--workers"),
 ])
