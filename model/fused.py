@@ -47,6 +47,11 @@ from model.preprocess import (
 
 #: The candidate kinds a blend model may use (its metadata ``gradsep.candidates`` names its own, in order).
 CANDIDATES: tuple[str, ...] = ("oidn", "refine", "l1")
+#: The solve of the ``refine`` candidate: the one the shipped models' training candidates were computed with
+#: (DCT-preconditioned CG, 4 steps per IRLS pass; the ``oidn-l1`` method has since moved to the cheaper
+#: multigrid solve of about the same quality, docs/poisson.md), so inference feeds what training saw.
+REFINE_PRECONDITIONER = "dct"
+REFINE_CG_STEPS = 4
 #: The OIDN setting of the ``oidn``/``refine`` candidates (model.oidn.SETTINGS): the ``oidn`` method's default.
 OIDN_SETTING = "raw-fast"
 #: ONNX metadata ``gradsep.prior`` of a blend model; a model of another prior kind is refused by ``load_blend``.
@@ -89,7 +94,8 @@ def layer_candidates(layer: Layer, aux: Any, kinds: tuple[str, ...] = CANDIDATES
         elif kind == "refine":
             # refine_layer refines the layers named in model.refine.REFINED_LAYERS; "direct" asks it to refine
             # this layer whatever it is (the indirect layer's refinement is a candidate the network may reject)
-            image = refine_layer("direct", oidn, scaled)
+            image = refine_layer("direct", oidn, scaled, preconditioner=REFINE_PRECONDITIONER,
+                                     cg_steps=REFINE_CG_STEPS)
         else:
             image = poisson_prior(scaled)
         out.append(np.clip(np.nan_to_num(image, nan=0.0, posinf=RADIANCE_MAX, neginf=0.0), 0.0,
