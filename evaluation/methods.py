@@ -214,12 +214,22 @@ class NetworkPool:
         self._loaded: dict[Path, Any] = {}
         self._warm: set[tuple[Path, str, tuple[int, int]]] = set()
 
-    def get(self, folder: Path) -> Any:
+    def get(self, folder: Path, fused: bool = False) -> Any:
+        """The folder's network models, or with ``fused`` its fused blend models (model.fused)."""
         folder = folder.resolve()
         if folder not in self._loaded:
-            from model.infer import NetworkReconstructor
+            if fused:
+                from model.fused import BlendModelError, FusedReconstructor
+                from model.infer import ModelError
 
-            self._loaded[folder] = NetworkReconstructor.load(folder)
+                try:
+                    self._loaded[folder] = FusedReconstructor.load(folder)
+                except BlendModelError as exc:
+                    raise ModelError(str(exc)) from exc
+            else:
+                from model.infer import NetworkReconstructor
+
+                self._loaded[folder] = NetworkReconstructor.load(folder)
         return self._loaded[folder]
 
     def warm_up(self, folder: Path, run: Callable[[], object], key: str, shape: tuple[int, int]) -> None:
@@ -689,16 +699,12 @@ def _run_recon(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
 
 
 def _run_fused(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
-    """``reconstruct(frame, "fused", fused=<NetworkReconstructor of models/fused/>)``."""
+    """``reconstruct(frame, "fused", fused=<model.fused.FusedReconstructor of models/fused/>)``; a model of
+    another kind there is refused at load (ModelError)."""
     from model.reconstruct import reconstruct
 
     folder = ctx.models_dir / str(spec.models)
-    fused = ctx.networks.get(folder)
-    wrong = [m.path.name for m in fused.models.values() if getattr(m, "prior", "oidn") != "oidn"]
-    if wrong:
-        from model.infer import ModelError
-
-        raise ModelError(f"{folder}: {', '.join(wrong)} refine another prior than OIDN's; not fused models")
+    fused = ctx.networks.get(folder, fused=True)
 
     def run() -> Any:
         return reconstruct(ctx.frame, "fused", fused=fused)

@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 
 from model.frame import Features, Layer
+from model.infer import BLEND_PRIOR
 from model.preprocess import (
     RADIANCE_MAX,
     TRANSFER,
@@ -54,8 +55,6 @@ REFINE_PRECONDITIONER = "dct"
 REFINE_CG_STEPS = 4
 #: The OIDN setting of the ``oidn``/``refine`` candidates (model.oidn.SETTINGS): the ``oidn`` method's default.
 OIDN_SETTING = "raw-fast"
-#: ONNX metadata ``gradsep.prior`` of a blend model; a model of another prior kind is refused by ``load_blend``.
-BLEND_PRIOR = "blend"
 BLEND_FORMAT = "1"
 INPUT_NAMES = ("data", "gradient")
 OUTPUT_NAME = "weights"

@@ -280,17 +280,16 @@ def _sha256(path: Path) -> str:
     return h.hexdigest()
 
 
-class BlendModelFound(ModelError):
-    """The file is a ``fused`` blend model (model/fused.py), which this class does not run: the caller
-    (``NetworkReconstructor.load``) hands the folder to model.fused.FusedReconstructor instead."""
+#: ONNX metadata ``gradsep.prior`` of a ``fused`` blend model (model/fused.py). Such a model is served by the
+#: fused method (model.reconstruct.load_fused -> model.fused.FusedReconstructor), never as a network model.
+BLEND_PRIOR = "blend"
 
 
 def _check_metadata(path: Path, name: str, meta: dict[str, str]) -> int:
     """Refuse a model this code would feed wrongly; return its alignment."""
-    from model.fused import BLEND_PRIOR
-
     if meta.get("gradsep.prior") == BLEND_PRIOR:
-        raise BlendModelFound(f"{path}: a fused blend model (gradsep.prior = {BLEND_PRIOR})")
+        raise ModelError(f"{path}: a fused blend model (gradsep.prior = {BLEND_PRIOR}): the fused method serves it "
+                         "(models/fused/), not the network method")
     problems = []
     if meta.get("gradsep.layer") != name:
         problems.append(f"it was trained for layer {meta.get('gradsep.layer')!r}, not {name!r}")
@@ -365,20 +364,11 @@ class NetworkReconstructor:
     @classmethod
     def load(cls, models_dir: str | os.PathLike[str], settings: SessionSettings = SessionSettings(),
              tiles: TileSettings = TileSettings()) -> NetworkReconstructor | None:
-        """Load every ``{direct,indirect,color}.onnx`` present; None when there is none. A folder of ``fused``
-        blend models (model/fused.py) loads as a model.fused.FusedReconstructor (same reconstruct_layer
-        contract), so callers that open models/fused through this class keep working."""
+        """Load every ``{direct,indirect,color}.onnx`` present; None when there is none. A ``fused`` blend model
+        is refused (ModelError): model.reconstruct.load_fused opens those."""
         folder = Path(models_dir)
-        try:
-            models = {name: load_model(folder / f"{name}.onnx", name, settings)
-                      for name in MODEL_LAYERS if (folder / f"{name}.onnx").is_file()}
-        except BlendModelFound:
-            from model.fused import BlendModelError, FusedReconstructor
-
-            try:
-                return FusedReconstructor.load(folder)  # type: ignore[return-value]
-            except BlendModelError as exc:
-                raise ModelError(str(exc)) from exc
+        models = {name: load_model(folder / f"{name}.onnx", name, settings)
+                  for name in MODEL_LAYERS if (folder / f"{name}.onnx").is_file()}
         return cls(models, tiles) if models else None
 
     @property
