@@ -113,7 +113,7 @@ def _speed_variants(setting: str) -> dict[str, Callable]:
                                                              preconditioner="dct")
     for passes, cg in ((5, 4), (6, 3)):
         out[f"L2 start, {passes} passes, {cg} dct CG"] = solve(a, passes, direct, cg_steps=cg, preconditioner="dct")
-    for passes, cg in ((8, 2), (8, 1), (6, 2), (5, 2), (6, 1)):
+    for passes, cg in ((8, 4), (8, 2), (8, 1), (6, 2), (5, 2), (6, 1)):
         out[f"L2 start, {passes} passes, {cg} mg CG"] = solve(a, passes, direct, cg_steps=cg, preconditioner="mg")
     return out
 
