@@ -57,17 +57,20 @@ _F32_MAX = float(np.finfo(np.float32).max)
 
 
 def refine_layer(name: str, prior: np.ndarray, layer: Layer, alpha: float = REFINE_ALPHA, *,
-                 preconditioner: str = REFINE_PRECONDITIONER, cg_steps: int = REFINE_CG_STEPS) -> np.ndarray:
+                 preconditioner: str | None = None, cg_steps: int | None = None) -> np.ndarray:
     """``prior`` (OIDN's denoise of ``layer.base``) refined by the layer's gradients when ``name`` is one of
     REFINED_LAYERS and the layer carries gradients; otherwise ``prior`` unchanged. float32 (H, W, 3), ≥ 0.
-    ``preconditioner``/``cg_steps`` select the solve (the defaults are the ``oidn-l1`` method's; a model trained
-    on refinements of another solve, such as the fused models, passes the one it was trained with)."""
+    ``preconditioner``/``cg_steps`` select the solve (None: the module's REFINE_PRECONDITIONER / REFINE_CG_STEPS,
+    read at call time, the ``oidn-l1`` method's; a model trained on refinements of another solve, such as the
+    fused models, passes the one it was trained with)."""
     if name not in REFINED_LAYERS or not layer.has_gradients:
         return prior
     scale = input_scale(prior)  # mean 1, as OIDN's own input is normalised; 1.0 for a black prior
     dx, dy = scaled_image(layer.dx, scale), scaled_image(layer.dy, scale)  # the base is not used: OIDN's is
     data = scaled_image(prior, scale)
-    solved, _ = solve_l1(data, dx, dy, alpha, REFINE_ITERATIONS, cg_iterations=cg_steps,
-                         preconditioner=preconditioner, initial=data if REFINE_WARM_START else None)
+    solved, _ = solve_l1(data, dx, dy, alpha, REFINE_ITERATIONS,
+                         cg_iterations=REFINE_CG_STEPS if cg_steps is None else cg_steps,
+                         preconditioner=preconditioner or REFINE_PRECONDITIONER,
+                         initial=data if REFINE_WARM_START else None)
     out = np.asarray(solved, np.float64) / scale
     return np.clip(out, 0.0, _F32_MAX).astype(np.float32)
