@@ -175,20 +175,19 @@ class Encoder(nn.Module):
         return skips
 
 
-class DualBranchNet(nn.Module):
-    """Data branch + gradient branch U-Net; ``forward(data, gradient)`` returns log-domain radiance (≥ 0 in eval mode).
+class DualBranchTrunk(nn.Module):
+    """The paper's dual-branch U-Net up to its output head: a data encoder and a gradient encoder that meet at
+    the bottleneck (concatenated, then residual blocks) and at every decoder stage, where both branches' skips
+    are concatenated with the upsampled stream; a 3×3 head with ``outputs`` channels, zero-initialised. The
+    `network` model (DualBranchNet) and the fused blend model (model.blend_net.BlendNet) read its head."""
 
-    Data branch: low frequencies from the noisy base and the features. Gradient branch: high frequencies
-    from dx/dy only. They meet at the bottleneck (concatenated, then residual blocks) and at every decoder
-    stage, where both branches' skips are concatenated with the upsampled stream.
-    """
-
-    def __init__(self, config: NetworkConfig | None = None) -> None:
+    def __init__(self, data_inputs: int, gradient_inputs: int, outputs: int,
+                 config: NetworkConfig | None = None) -> None:
         super().__init__()
         self.config = config = config or NetworkConfig()
         widths = config.stage_widths()
-        self.data_encoder = Encoder(len(DATA_INPUTS), widths)
-        self.grad_encoder = Encoder(len(GRADIENT_INPUTS), widths)
+        self.data_encoder = Encoder(data_inputs, widths)
+        self.grad_encoder = Encoder(gradient_inputs, widths)
         bottleneck = 2 * widths[-1]
         self.bottleneck = nn.Sequential(*(ResidualBlock(bottleneck) for _ in range(config.residual_blocks)))
         ups = []
@@ -198,22 +197,37 @@ class DualBranchNet(nn.Module):
             # next stage input: this output + the data and gradient skips one level shallower
             cin = widths[i] + (2 * widths[i - 1] if i > 0 else 0)
         self.decoder = nn.ModuleList(ups)
-        self.head = nn.Conv2d(widths[0], len(OUTPUTS), 3, padding=1)
+        self.head = nn.Conv2d(widths[0], outputs, 3, padding=1)
         init_weights(self)
-        nn.init.zeros_(self.head.weight)  # start as the identity on C(prior); see forward
+        nn.init.zeros_(self.head.weight)  # the subclass's output starts at its neutral value; see its forward
 
-    def forward(self, data: torch.Tensor, gradient: torch.Tensor) -> torch.Tensor:
+    def head_output(self, data: torch.Tensor, gradient: torch.Tensor) -> torch.Tensor:
+        """The head's (N, outputs, H, W) response to the two branches' inputs."""
         d_skips = self.data_encoder(data)
         g_skips = self.grad_encoder(gradient)
         x = self.bottleneck(torch.cat([d_skips[-1], g_skips[-1]], dim=1))
         # deepest first: each Up sees the stream plus both branches' skips at the stream's resolution
         for level, up in zip(reversed(range(self.config.depth)), self.decoder, strict=True):
             x = up(torch.cat([x, d_skips[level], g_skips[level]], dim=1))
+        return self.head(x)
+
+
+class DualBranchNet(DualBranchTrunk):
+    """Data branch + gradient branch U-Net; ``forward(data, gradient)`` returns log-domain radiance (≥ 0 in eval mode).
+
+    Data branch: low frequencies from the noisy base and the features. Gradient branch: high frequencies
+    from dx/dy only (DualBranchTrunk). The zero-initialised head starts the model as the identity on C(prior).
+    """
+
+    def __init__(self, config: NetworkConfig | None = None) -> None:
+        super().__init__(len(DATA_INPUTS), len(GRADIENT_INPUTS), len(OUTPUTS), config)
+
+    def forward(self, data: torch.Tensor, gradient: torch.Tensor) -> torch.Tensor:
         # Global residual: predict a correction to C(prior) (model.preprocess.poisson_prior), with the head
         # initialised to zero, so training starts from the robust screened Poisson solution instead of from
         # black, and a short CPU budget is spent on what the prior gets wrong (outliers it smears, edges the
         # features explain) rather than on learning to integrate gradients across the image.
-        y = data[:, PRIOR_CHANNELS] + self.head(x)
+        y = data[:, PRIOR_CHANNELS] + self.head_output(data, gradient)
         # C(I) ≥ 0. Clamped only in inference: in training a ReLU would stop the gradient of every pixel it
         # clamps (black input pixels start exactly at 0), and the losses read ŷ < 0 smoothly instead.
         return y if self.training else F.relu(y)
