@@ -49,6 +49,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from model.frame import LOSSLESS_COMPRESSIONS, encode_exr, forward_differences, read_frame, rgb_channels  # noqa: E402
+from service.client import upload_body  # noqa: E402
 
 #: Table order; any other method the service offers is measured after these.
 METHOD_ORDER = ("l2", "l1", "network", "fused", "oidn")
@@ -127,14 +128,20 @@ def server_timing(header: str) -> dict[str, float]:
     return out
 
 
+def post(client: httpx.Client, data: bytes, method: str, fmt: str, request_id: str) -> httpx.Response:
+    """One POST of the frame as ``gradsep client`` sends it (service.client.upload_body: memoryview slices)."""
+    body = upload_body(data)
+    return client.post("/v1/reconstruct", params={"method": method, "format": fmt}, content=body["content"],
+                       headers={"Content-Type": "image/x-exr", "X-Request-ID": request_id, **body["headers"]})
+
+
 def measure(client: httpx.Client, data: bytes, method: str, repeats: int, warmup: int, fmt: str) -> dict:
     latencies: list[float] = []
     steps: dict[str, list[float]] = defaultdict(list)
     size = 0
     for i in range(warmup + repeats):
         t0 = time.perf_counter()
-        r = client.post("/v1/reconstruct", params={"method": method, "format": fmt}, content=data,
-                        headers={"Content-Type": "image/x-exr", "X-Request-ID": f"bench-{method}-{i}"})
+        r = post(client, data, method, fmt, f"bench-{method}-{i}")
         elapsed = time.perf_counter() - t0
         if r.status_code != 200:
             raise SystemExit(f"{method}: HTTP {r.status_code}: {r.text[:300]}")
@@ -165,8 +172,7 @@ def throughput(url: str, headers: dict, data: bytes, method: str, clients: int, 
     def worker(count: int) -> int:
         with httpx.Client(base_url=url, headers=headers, timeout=600) as client:
             for i in range(count):
-                r = client.post("/v1/reconstruct", params={"method": method, "format": fmt}, content=data,
-                                headers={"Content-Type": "image/x-exr", "X-Request-ID": f"tp-{method}-{i}"})
+                r = post(client, data, method, fmt, f"tp-{method}-{i}")
                 if r.status_code != 200:
                     raise SystemExit(f"{method}: HTTP {r.status_code}: {r.text[:300]}")
         return count

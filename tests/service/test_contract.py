@@ -405,6 +405,44 @@ def test_requests_uvicorns_parser_rejects_get_the_json_400(parser, request_bytes
     assert error["code"] == "bad_request" and "malformed HTTP request" in error["message"]
 
 
+def test_large_body_streams_intact_through_the_buffered_protocol():
+    """service.protocol reads ahead up to BODY_HIGH_WATER per connection: a body several times that size (sent as
+    ``gradsep client`` sends it, memoryview slices with a Content-Length) arrives byte for byte, unchunked."""
+    import hashlib
+
+    import httpx
+
+    from service.client import upload_body
+    from service.protocol import BODY_HIGH_WATER
+    from tests.service.conftest import uvicorn_server
+
+    seen: dict[str, object] = {}
+
+    async def app(scope, receive, send):
+        if scope["type"] != "http":
+            return
+        digest, size, more = hashlib.sha256(), 0, True
+        while more:
+            message = await receive()
+            digest.update(message.get("body", b""))
+            size += len(message.get("body", b""))
+            more = message.get("more_body", False)
+        seen.update(size=size, headers=dict(scope["headers"]))
+        body = digest.hexdigest().encode()
+        await send({"type": "http.response.start", "status": 200,
+                    "headers": [(b"content-length", str(len(body)).encode())]})
+        await send({"type": "http.response.body", "body": body})
+
+    data = np.random.default_rng(5).bytes(3 * BODY_HIGH_WATER + 12345)
+    with uvicorn_server(app) as url, httpx.Client(base_url=url, timeout=60) as client:
+        body = upload_body(data, chunk=1 << 18)
+        answer = client.post("/", content=body["content"], headers=body["headers"])
+    assert answer.status_code == 200 and answer.text == hashlib.sha256(data).hexdigest()
+    assert seen["size"] == len(data)
+    assert seen["headers"][b"content-length"] == str(len(data)).encode()
+    assert b"transfer-encoding" not in seen["headers"]
+
+
 @TRANSPORT
 def test_docs_page_and_its_assets_are_served_locally(poisson_api, transport):
     """/docs must work on an offline farm network: every script and stylesheet it loads comes from us."""
