@@ -22,7 +22,9 @@ import hashlib
 import json
 import logging
 import os
+import threading
 import time
+import weakref
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -33,6 +35,8 @@ from model.policy import ILLUMINATION_LAYERS
 from model.preprocess import (
     DATA_INPUTS,
     GRADIENT_INPUTS,
+    LAYER_PLANES,
+    MEASURED_PLANES,
     PREPROCESS_VERSION,
     PRIOR_KINDS,
     DepthRange,
@@ -41,7 +45,9 @@ from model.preprocess import (
     crop_to,
     feature_planes,
     layer_planes,
+    measured_planes,
     network_inputs,
+    network_inputs_numpy,
     oidn_prior_inputs,
     output_radiance,
     pad_to_alignment,
@@ -49,6 +55,7 @@ from model.preprocess import (
     scaled_image,
     scaled_layer,
     unlit_pixels,
+    with_prior,
 )
 
 if TYPE_CHECKING:
@@ -360,6 +367,7 @@ class NetworkReconstructor:
     def __init__(self, models: dict[str, LoadedModel], tiles: TileSettings = TileSettings()) -> None:
         self.models = models
         self.tiles = tiles
+        self._cache = threading.local()  # the last frame's feature planes, per thread (see _features)
 
     @classmethod
     def load(cls, models_dir: str | os.PathLike[str], settings: SessionSettings = SessionSettings(),
@@ -425,14 +433,22 @@ class NetworkReconstructor:
 
             aux = aux if aux is not None else shared_denoiser().prefilter(features)
             layer, prior, scale = oidn_prior_inputs(layer, aux)
-        else:
-            prior = poisson_prior(layer)                 # a global solve: once per layer, cropped per window
         plans = plan_tiles(height, width, self.tiles, model.alignment)
         overlap = aligned_size(self.tiles.overlap, model.alignment)
         depth_range = DepthRange.of(features.depth)  # per frame, shared by every window
-        if len(plans) == 1:
+        if len(plans) == 1 and model.prior != "oidn":
+            # one window: the measured planes are made once, and the prior is solved from them (no second
+            # sanitised, transposed copy of the layer); bit-for-bit what layer_planes(layer, prior=...) gives
+            planes = np.empty((LAYER_PLANES, height, width), np.float32)
+            measured_planes(layer, out=planes[:MEASURED_PLANES])
+            prior = poisson_prior(layer, planes=planes[:MEASURED_PLANES])
+            with_prior(planes, prior)
+            result = self._run_planes(model, planes, self._features(features, depth_range))
+        elif len(plans) == 1:
             result = self._run_window(model, layer, features, depth_range, prior, plans[0].window)
         else:
+            if model.prior != "oidn":
+                prior = poisson_prior(layer)             # a global solve: once per layer, cropped per window
             total = np.zeros((height, width, 3), dtype=np.float32)
             weight = np.zeros((height, width, 1), dtype=np.float32)
             for plan in plans:
@@ -444,6 +460,27 @@ class NetworkReconstructor:
             result = total / weight
         result[unlit] = 0.0             # no measured light: nothing to reconstruct
         return scaled_image(result, 1.0 / scale) if scale != 1.0 else result
+
+    def _features(self, features: Features, depth_range: DepthRange) -> np.ndarray:
+        """The whole frame's feature planes, made once per frame: a frame's layers are reconstructed one after
+        the other with the same Features object, so the second layer reuses the first one's (per thread, as
+        concurrent requests share this reconstructor; only the last frame's are kept)."""
+        cached = getattr(self._cache, "features", None)
+        if cached is not None and cached[0]() is features and cached[1] == depth_range:
+            return cached[2]
+        planes = feature_planes(features, depth_range)
+        planes.flags.writeable = False  # shared between layers: nobody may write into it
+        self._cache.features = (weakref.ref(features), depth_range, planes)
+        return planes
+
+    @staticmethod
+    def _run_planes(model: LoadedModel, planes: np.ndarray, features: np.ndarray) -> np.ndarray:
+        """One window's (12, h, w) layer planes and (7, h, w) feature planes through the network → radiance."""
+        h, w = planes.shape[1:]
+        data, gradient = network_inputs_numpy(planes, features, model.alignment)
+        encoded = model.run(data, gradient)
+        window_prior = planes[9:12].transpose(1, 2, 0)  # a failed output degrades to the Poisson prior
+        return output_radiance(crop_to(encoded, h, w), fallback=window_prior)
 
     @staticmethod
     def _run_window(model: LoadedModel, layer: Layer, features: Features, depth_range: DepthRange,

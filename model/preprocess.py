@@ -51,6 +51,10 @@ DEPTH_MAX = 1.0e5
 PRIOR_ALPHA = DEFAULT_ALPHA
 PRIOR_IRLS_PASSES = 5
 PRIOR_CG_STEPS = 2
+#: The rest of the prior's solve, pinned (model.poisson.solve_l1's defaults when the models were trained).
+PRIOR_REG_INIT = 0.05
+PRIOR_REG_DECAY = 0.5
+PRIOR_CG_TOLERANCE = 1e-3
 #: Frames taller than this are solved in horizontal bands (each extended by PRIOR_BAND_OVERLAP rows on both
 #: sides, blended linearly where they overlap) so the solver's ~250 bytes per pixel stay bounded: a 4096-wide
 #: band of 1024 + 2·64 rows needs ~1.2 GB instead of ~4 GB for a whole 4096² layer. The screening term
@@ -180,7 +184,8 @@ def _channels_first(dst: np.ndarray, src: np.ndarray, lo: float, hi: float) -> N
     _sanitise_inplace(dst, lo, hi)
 
 
-def poisson_prior(layer: Layer, band_rows: int = PRIOR_BAND_ROWS, band_overlap: int = PRIOR_BAND_OVERLAP) -> np.ndarray:
+def poisson_prior(layer: Layer, band_rows: int = PRIOR_BAND_ROWS, band_overlap: int = PRIOR_BAND_OVERLAP,
+                  planes: np.ndarray | None = None) -> np.ndarray:
     """(h, w, 3) float32: a robust screened Poisson reconstruction of the whole layer (model.poisson.solve_l1,
     α = PRIOR_ALPHA, PRIOR_IRLS_PASSES passes of PRIOR_CG_STEPS CG steps) from its sanitised planes, clipped
     to [0, RADIANCE_MAX].
@@ -189,11 +194,20 @@ def poisson_prior(layer: Layer, band_rows: int = PRIOR_BAND_ROWS, band_overlap: 
     which a CPU-trained U-Net with a small receptive field learns slowly, and its reweighting discards the
     outliers an L2 solve would smear. It is a whole-layer solve (in overlapping bands for tall frames, see
     PRIOR_BAND_ROWS), so it is computed once per layer and windows (tiles, patches) crop it.
+
+    ``planes``: the whole layer's ``measured_planes`` when the caller has them (inference does): the same
+    sanitised numbers, already channels-first, so the solver copies them contiguously instead of transposing
+    three sanitised copies of its own (the result is bit-for-bit the same).
     """
     height, width = layer.base.shape[:2]
-    base = _finite(layer.base, 0.0, RADIANCE_MAX)
-    dx = _finite(layer.dx, -RADIANCE_MAX, RADIANCE_MAX)
-    dy = _finite(layer.dy, -RADIANCE_MAX, RADIANCE_MAX)
+    if planes is not None:
+        if planes.shape[0] < MEASURED_PLANES or planes.shape[1:] != (height, width):
+            raise ValueError(f"planes {planes.shape} are not the measured planes of a {height}x{width} layer")
+        base, dx, dy = (planes[i:i + 3].transpose(1, 2, 0) for i in (0, 3, 6))
+    else:
+        base = _finite(layer.base, 0.0, RADIANCE_MAX)
+        dx = _finite(layer.dx, -RADIANCE_MAX, RADIANCE_MAX)
+        dy = _finite(layer.dy, -RADIANCE_MAX, RADIANCE_MAX)
     if height <= band_rows + 2 * band_overlap:
         return _solve_prior(base, dx, dy)
     out = np.zeros((height, width, 3), np.float32)
@@ -220,7 +234,11 @@ def _band_ramp(y0: int, y1: int, height: int, overlap: int) -> np.ndarray:
 
 
 def _solve_prior(base: np.ndarray, dx: np.ndarray, dy: np.ndarray) -> np.ndarray:
-    prior, _ = solve_l1(base, dx, dy, PRIOR_ALPHA, iterations=PRIOR_IRLS_PASSES, cg_iterations=PRIOR_CG_STEPS)
+    # every solver setting named: the shipped models were trained on exactly this solve (DCT-preconditioned CG),
+    # whatever the l1 method's defaults become
+    prior, _ = solve_l1(base, dx, dy, PRIOR_ALPHA, iterations=PRIOR_IRLS_PASSES, cg_iterations=PRIOR_CG_STEPS,
+                        reg_init=PRIOR_REG_INIT, reg_decay=PRIOR_REG_DECAY, cg_tolerance=PRIOR_CG_TOLERANCE,
+                        preconditioner="dct")
     return _sanitise_inplace(prior, 0.0, RADIANCE_MAX)
 
 
@@ -302,12 +320,20 @@ def layer_planes(layer: Layer, window: Window | None = None, prior: np.ndarray |
     return out
 
 
-def measured_planes(layer: Layer, window: Window | None = None) -> np.ndarray:
+def measured_planes(layer: Layer, window: Window | None = None, out: np.ndarray | None = None) -> np.ndarray:
     """(9, h, w) float32: the first nine planes of ``layer_planes`` (base, dx, dy), without the prior — what
-    training compares a prediction with (training/losses.py)."""
-    out = np.empty((MEASURED_PLANES, *_crop(layer.base, window).shape[:2]), dtype=np.float32)
+    training compares a prediction with (training/losses.py). ``out``: a (9, h, w) float32 array to fill."""
+    if out is None:
+        out = np.empty((MEASURED_PLANES, *_crop(layer.base, window).shape[:2]), dtype=np.float32)
     _measured_into(out, layer, window)
     return out
+
+
+def with_prior(planes: np.ndarray, prior: np.ndarray) -> np.ndarray:
+    """Write the (h, w, 3) prior into planes 9-12 of (12, h, w) ``planes`` exactly as ``layer_planes`` does
+    (channels first, clipped to [0, RADIANCE_MAX]); returns ``planes``."""
+    _channels_first(planes[9:12], prior, 0.0, RADIANCE_MAX)
+    return planes
 
 
 def _measured_into(out: np.ndarray, layer: Layer, window: Window | None) -> None:
@@ -368,6 +394,32 @@ def network_inputs(planes: Any, features: Any, transfer: LogTransfer = TRANSFER)
     return data, gradient
 
 
+def network_inputs_numpy(planes: np.ndarray, features: np.ndarray, alignment: int = 1,
+                         transfer: LogTransfer = TRANSFER) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`network_inputs` for one numpy window, written straight into the network's contiguous input arrays
+    and reflect-padded to ``alignment`` (``pad_to_alignment``): the same float32 operations in the same order, so
+    bit-for-bit the same numbers (tested), without the temporaries and the two concatenations (inference)."""
+    height, width = planes.shape[-2:]
+    data = np.empty((len(DATA_INPUTS), height, width), np.float32)
+    gradient = np.empty((len(GRADIENT_INPUTS), height, width), np.float32)
+    for src, dst in ((planes[0:3], data[0:3]), (planes[9:12], data[3:6])):
+        _forward_into(dst, src, transfer)
+    data[6:] = features
+    for src, dst in ((planes[3:6], gradient[0:3]), (planes[6:9], gradient[3:6])):
+        np.abs(src, out=dst)
+        _forward_into(dst, dst, transfer)
+        dst *= np.sign(src)
+    return pad_to_alignment(data, alignment), pad_to_alignment(gradient, alignment)
+
+
+def _forward_into(dst: np.ndarray, src: np.ndarray, transfer: LogTransfer) -> None:
+    """dst = transfer.forward(src) in place: log1p(μ·clip(x, 0, max)) / log(1 + μ), float32 throughout."""
+    np.clip(src, 0.0, transfer.max_value, out=dst)
+    dst *= transfer.mu
+    np.log1p(dst, out=dst)
+    dst /= transfer._norm
+
+
 def output_radiance(encoded: np.ndarray, fallback: np.ndarray | None = None,
                     transfer: LogTransfer = TRANSFER) -> np.ndarray:
     """Network output (3, h, w) in the transfer domain → (h, w, 3) float32 radiance, finite and ≥ 0.
@@ -379,8 +431,14 @@ def output_radiance(encoded: np.ndarray, fallback: np.ndarray | None = None,
     """
     y = np.asarray(encoded, dtype=np.float32)
     bad = ~np.isfinite(y)
+    if not bad.any():  # the usual case: transfer.inverse's float32 operations, in one scratch array
+        radiance = np.clip(y, 0.0, transfer.max_encoded)
+        radiance *= transfer._norm
+        np.expm1(radiance, out=radiance)
+        radiance /= transfer.mu
+        return np.ascontiguousarray(radiance.transpose(1, 2, 0))
     radiance = transfer.inverse(np.where(bad, 0.0, y)).astype(np.float32)
-    if bad.any() and fallback is not None:
+    if fallback is not None:
         radiance = np.where(bad, np.asarray(fallback, np.float32).transpose(2, 0, 1), radiance)
     return np.ascontiguousarray(radiance.transpose(1, 2, 0))
 

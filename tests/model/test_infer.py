@@ -242,3 +242,28 @@ def test_inference_runs_without_torch(models: tuple[Path, dict]) -> None:
     proc = subprocess.run([sys.executable, "-c", code], env=env, cwd=REPO, capture_output=True, text=True,
                           timeout=120, check=False)
     assert proc.returncode == 0 and proc.stdout.strip() == "ok", proc.stderr[-2000:]
+
+
+@pytest.mark.parametrize(("h", "w"), [(13, 21), (24, 40), (1, 1)])
+def test_single_window_path_is_the_windowed_pipeline_bit_for_bit(models: tuple[Path, dict], h: int, w: int) -> None:
+    """The one-window fast path (planes made once, prior solved from them, inputs written in place, the frame's
+    feature planes reused by its next layer) gives exactly what the per-window pipeline gives."""
+    from model.preprocess import DepthRange, poisson_prior
+
+    folder, _ = models
+    rec = NetworkReconstructor.load(folder)
+    layer, features = _frame(h, w, seed=3)
+    layer.base[0, 0] = np.nan  # hostile values go through the same sanitising in both paths
+    layer.dx[-1, 0] = -np.inf
+    for name in ("direct", "indirect", "direct"):  # the second and third calls reuse the cached feature planes
+        fast = rec.reconstruct_layer(name, layer, features)
+        model = rec.models[name]
+        slow = rec._run_window(model, layer, features, DepthRange.of(features.depth), poisson_prior(layer),
+                               (0, h, 0, w))
+        slow[unlit_pixels(layer)] = 0.0
+        assert fast.dtype == np.float32 and np.array_equal(fast.view(np.uint32), slow.view(np.uint32))
+    other = Features(features.albedo * 0.5, features.normal, features.depth)  # another frame: planes not reused
+    expected = rec._run_window(rec.models["direct"], layer, other, DepthRange.of(other.depth), poisson_prior(layer),
+                               (0, h, 0, w))
+    expected[unlit_pixels(layer)] = 0.0
+    assert np.array_equal(rec.reconstruct_layer("direct", layer, other), expected)

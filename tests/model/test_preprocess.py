@@ -250,3 +250,47 @@ class TestAlignment:
     def test_aligned_size(self) -> None:
         assert [aligned_size(n, 8) for n in (1, 8, 9, 720)] == [8, 8, 16, 720]
         assert math.isclose(aligned_size(1280, 8), 1280)
+
+
+def test_inference_fast_paths_are_bit_identical_to_the_shared_definitions() -> None:
+    """network_inputs_numpy, poisson_prior(planes=...) and output_radiance's in-place path compute the very
+    numbers of network_inputs / poisson_prior / TRANSFER.inverse (bitwise, signed zeros included)."""
+    from model.frame import Layer
+    from model.preprocess import (
+        layer_planes,
+        measured_planes,
+        network_inputs,
+        network_inputs_numpy,
+        output_radiance,
+        pad_to_alignment,
+        poisson_prior,
+        with_prior,
+    )
+
+    rng = np.random.default_rng(11)
+    h, w = 21, 30
+    base = rng.lognormal(0.0, 2.0, (h, w, 3)).astype(np.float32)
+    dx, dy = (rng.normal(0.0, 3.0, (h, w, 3)).astype(np.float32) for _ in range(2))
+    base[0, 0, 0], dx[1, 1, 1], dy[2, 2, 2], dx[3, 3, 0] = np.nan, np.inf, -1e9, -0.0
+    layer = Layer(base, dx, dy)
+    bits = lambda a: np.ascontiguousarray(a).view(np.uint32)  # noqa: E731
+
+    planes = np.empty((12, h, w), np.float32)
+    measured_planes(layer, out=planes[:9])
+    prior = poisson_prior(layer, planes=planes[:9])
+    assert np.array_equal(bits(prior), bits(poisson_prior(layer)))
+    with_prior(planes, prior)
+    assert np.array_equal(bits(planes), bits(layer_planes(layer, prior=prior)))
+
+    features = rng.uniform(0.0, 1.0, (7, h, w)).astype(np.float32)
+    for alignment in (1, 8):
+        data, gradient = network_inputs_numpy(planes, features, alignment)
+        want_data, want_gradient = (pad_to_alignment(a, alignment) for a in network_inputs(planes, features))
+        assert np.array_equal(bits(data), bits(want_data)) and np.array_equal(bits(gradient), bits(want_gradient))
+        assert data.flags.c_contiguous and gradient.flags.c_contiguous
+
+    encoded = rng.normal(1.0, 2.0, (3, h, w)).astype(np.float32)
+    from model.preprocess import TRANSFER
+
+    want = np.ascontiguousarray(TRANSFER.inverse(encoded).astype(np.float32).transpose(1, 2, 0))
+    assert np.array_equal(bits(output_radiance(encoded)), bits(want))
