@@ -129,9 +129,12 @@ DEFAULT_LAYER_THREADS = 2
 #: (the compiled IRLS/multigrid kernels) or releases the GIL (DCTs, OIDN), but the 2 cores are shared, so it only
 #: pays where one layer leaves a core idle. Measured in-process (benchmarks/bench_layers.py, 1280x720, 2 cores,
 #: same-run medians, concurrent / sequential): l1 0.75-0.85 (four runs), oidn-l1 0.95-0.97 (its direct layer's
-#: refinement beside the indirect layer's denoise), network 0.98-1.15 (OpenVINO and the DCTs already use both
-#: cores), l2 1.7-2.3 (two DCTs per layer: thread start-up and contention outweigh them). fused: not measured.
-#: Every other method runs its layers one after the other. Output is bit-for-bit the same either way.
+#: refinement beside the indirect layer's denoise), l2 1.7-2.3 (two DCTs per layer: thread start-up and contention
+#: outweigh them). network: 0.98-1.15 at first; in-process 0.89 and 0.85 once its per-layer numpy copies were
+#: gone (two runs, 2026-12-02 02:17-02:19 UTC, load 3.5), but through the service (bench_service.py, same hold,
+#: alternating) concurrent layers were slower, p50 1.93/2.01 s against 1.86/1.69 s, at twice the peak RSS
+#: (3.3-3.8 vs 1.9 GB), so it stays sequential. fused: not measured. Every other method runs its layers one after
+#: the other. Output is bit-for-bit the same either way.
 CONCURRENT_METHODS: frozenset[str] = frozenset({"l1", "oidn-l1"})
 
 
