@@ -77,6 +77,9 @@ NEAR_SPECULAR_PDF = 100.0
 # Lanes per pass: bounds the sampler state and the scatter traffic of one kernel launch (~16 B per lane).
 MAX_LANES_PER_PASS = 1 << 22
 
+# Trace the first vertex before the symbolic loop, where its depth is a literal 0 (see _run_loops).
+PEEL_FIRST_VERTEX = True
+
 # Mitsuba's convention for an unbounded path length.
 UNBOUNDED = 0xFFFFFFFF
 
@@ -784,7 +787,12 @@ def _run_loops(k: PassKernel, s: LoopState) -> LoopState:
     shift = k.shift
 
     def loop(state: LoopState, cond: Callable[[LoopState], mi.Bool], step_offset: OffsetStep,
-             label: str) -> LoopState:
+             label: str, peel: bool = False) -> LoopState:
+        if peel:
+            # The first vertex outside the symbolic loop (same kernel): its depth is the literal 0 there, so
+            # everything the shift does only after the primary ray (transitions, replays, reconnection rays, BSDF
+            # calls masked by ``depth > 0``) folds away instead of running masked in every SIMD packet.
+            state = _vertex(k, state, step_offset)
         (state,) = dr.while_loop(state=(state,), cond=cond, body=lambda st: (_vertex(k, st, step_offset),),
                                  label=label)
         return state
@@ -799,7 +807,7 @@ def _run_loops(k: PassKernel, s: LoopState) -> LoopState:
     if k.settings.gradients == "direct" and shift is not None:
         return _run_direct_gradient_loops(k, s, loop, base_alive)
     if not isinstance(shift, ConnectingShift):
-        return loop(s, base_alive, full_step, "gpt")
+        return loop(s, base_alive, full_step, "gpt", peel=PEEL_FIRST_VERTEX)
 
     def unsettled(st: LoopState) -> mi.Bool:
         settled = mi.Bool(True)
@@ -811,12 +819,12 @@ def _run_loops(k: PassKernel, s: LoopState) -> LoopState:
                        i: int) -> tuple[Any, OffsetEvents]:
         return shift.step_connected(off, v, depth, k.max_depth)
 
-    s = loop(s, unsettled, full_step, "gpt")
+    s = loop(s, unsettled, full_step, "gpt", peel=PEEL_FIRST_VERTEX)
     s.offsets = [shift.summarize(off) for off in s.offsets]
     return loop(s, base_alive, connected_step, "gpt_connected")
 
 
-LoopRunner = Callable[[LoopState, Callable[[LoopState], Any], OffsetStep, str], LoopState]  # (state, cond, step, label)
+LoopRunner = Callable[..., LoopState]  # (state, cond, step, label, peel=False)
 
 
 def _run_direct_gradient_loops(k: PassKernel, s: LoopState, loop: LoopRunner,
@@ -849,7 +857,7 @@ def _run_direct_gradient_loops(k: PassKernel, s: LoopState, loop: LoopRunner,
     def no_offsets(*_: Any) -> tuple[Any, OffsetEvents]:
         raise AssertionError("no offsets are traced past the direct layer's vertices")
 
-    s = loop(s, direct_vertices, direct_step, "gpt_direct")
+    s = loop(s, direct_vertices, direct_step, "gpt_direct", peel=PEEL_FIRST_VERTEX)
     s.offsets = []
     return loop(s, base_alive, no_offsets, "gpt_base")
 
