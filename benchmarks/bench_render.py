@@ -102,36 +102,33 @@ def edge_classes(normal: np.ndarray, depth: np.ndarray, albedo: np.ndarray, axis
     return {"geometry": geometry, "texture": texture, "rest": ~geometry & ~texture}
 
 
-def settings_for(loaded, offsets: str = "all", gradients: str = "all", primary: str = "own"):
+def settings_for(loaded, offsets: str = "all", gradients: str = "all"):
     from renderer.gpt import GptSettings
 
     depth = loaded.max_depth
     return GptSettings(max_depth=depth, rr_depth=loaded.rr_depth, indirect=depth < 0 or depth > 2, offsets=offsets,
-                       gradients=gradients, primary=primary)
+                       gradients=gradients)
 
 
 def configuration(loaded, name: str):
     """``SHIFT`` or ``SHIFT+OPTION[+OPTION]`` -> (shift, settings). Options: an offsets mode (``hybrid+pair``: one
     axis's two offsets per sample, ``+single``: one; GptSettings.offsets) and/or ``direct`` (``hybrid+direct``:
     gradients of the direct layer alone, offsets traced to its vertices only; GptSettings.gradients, `gradsep
-    render --gradients direct`) and/or ``shared`` (``hybrid+shared``: every pixel's k-th sample shares one camera
-    sample, so the offsets' primary hits are the neighbours' base hits, not traced again; GptSettings.primary)."""
+    render --gradients direct`)."""
     from renderer.gpt import GRADIENT_MODES, OFFSET_MODES
     from renderer.shift import make_shift
 
     shift, *options = name.split("+")
-    offsets, gradients, primary = "all", "all", "own"
+    offsets, gradients = "all", "all"
     for option in options:
         if option in OFFSET_MODES:
             offsets = option
         elif option in GRADIENT_MODES:
             gradients = option
-        elif option == "shared":
-            primary = option
         else:
             raise SystemExit(f"unknown configuration option {option!r} in {name!r}; expected one of "
-                             f"{OFFSET_MODES + GRADIENT_MODES + ('shared',)}")
-    return make_shift(shift), settings_for(loaded, offsets, gradients, primary)
+                             f"{OFFSET_MODES + GRADIENT_MODES}")
+    return make_shift(shift), settings_for(loaded, offsets, gradients)
 
 
 def bench_cost(spec: str, size: int, spp: int, repeats: int, shifts: list[str]) -> dict:

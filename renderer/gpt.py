@@ -52,16 +52,6 @@ SHIFT_OFFSETS: tuple[tuple[int, int], ...] = ((1, 0), (-1, 0), (0, 1), (0, -1))
 OFFSET_MODES: tuple[str, ...] = ("all", "pair", "single")
 OFFSET_GROUPS: dict[str, int] = {"all": 1, "pair": 2, "single": 4}
 
-# Where an offset's primary ray comes from: "own" -- every pixel sample has its own sub-pixel position (and
-# aperture and time sample) and each offset traces its primary ray; "shared" -- the k-th sample of every pixel in a
-# pass shares one camera sample, so the offset of pixel p towards p + delta *is* the base ray of the k-th sample of
-# p + delta, and its first hit is gathered from the base paths' primary hits (traced once per lane in a short
-# kernel before the loop: _shared_first_hits) instead of being traced again. Exact (bit for bit the hit the offset
-# would trace itself); what it changes is the estimator's correlation (docs/renderer.md).
-PRIMARY_MODES: tuple[str, ...] = ("own", "shared")
-# Salt of the shared camera samples' hash (kept apart from offset_group's hash of the same seed).
-_SHARED_CAMERA_SALT = 0x5BD1E995
-
 # Which layers get gradients when offsets are traced: "all" of them, or the "direct" layer alone. With "direct" the
 # offsets are traced only as far as the direct layer's events reach (emission seen at vertex 0, next-event
 # estimation there, emission found by the BSDF sample leaving it: vertices 0 and 1) and the base path continues
@@ -154,23 +144,9 @@ def mis_power(pdf_a: mi.Float, pdf_b: mi.Float) -> mi.Float:
     return dr.select(dr.isfinite(w), w, 0.0)
 
 
-def intersect(scene: mi.Scene, ray: mi.Ray3f, ray_flags: mi.RayFlags, first: mi.Bool, active: mi.Bool,
-              first_hit: mi.PreliminaryIntersection3f | None = None) -> mi.SurfaceInteraction3f:
-    """``scene.ray_intersect`` (``coherent`` for primary rays), or, with ``first_hit``, the surface interaction of
-    that precomputed hit where ``first`` (the primary ray, not traced again) and of a traced ray elsewhere: the
-    same interaction bit for bit, since ``ray_intersect`` is the preliminary intersection completed the same way
-    (tests/renderer/test_gpt.py checks the frames)."""
-    if first_hit is None:
-        return scene.ray_intersect(ray, ray_flags=ray_flags, coherent=first, active=active)
-    pi = scene.ray_intersect_preliminary(ray, coherent=False, active=active & ~first)
-    pi = dr.select(first, first_hit, pi)
-    return pi.compute_surface_interaction(ray, ray_flags, active)
-
-
 def trace_vertex(scene: mi.Scene, path: PathState, depth: mi.UInt32, max_depth: mi.UInt32,
                  samples: VertexSamples, strict_light_pdf: bool = False,
-                 ray_flags: mi.RayFlags = mi.RayFlags.All,
-                 first_hit: mi.PreliminaryIntersection3f | None = None) -> tuple[PathState, Vertex]:
+                 ray_flags: mi.RayFlags = mi.RayFlags.All) -> tuple[PathState, Vertex]:
     """Advance one path by one vertex exactly as Mitsuba's ``path`` integrator does, minus Russian roulette.
 
     Returns the updated path (ray towards the next vertex, throughput, liveness) and the vertex's events. Whether
@@ -181,12 +157,9 @@ def trace_vertex(scene: mi.Scene, path: PathState, depth: mi.UInt32, max_depth: 
     ``pdf_emitter_direction`` reports it": behind a one-sided emitter Mitsuba's sampling still returns a point
     with a nonzero pdf (and zero weight). A shift that reuses the light sample on another path needs the event
     to exist by one definition on both paths.
-
-    ``first_hit``: the primary ray's hit, already traced (``GptSettings.primary == "shared"``): used at depth 0
-    instead of tracing the ray again (:func:`intersect`).
     """
     ctx = mi.BSDFContext()
-    si = intersect(scene, path.ray, ray_flags, depth == 0, path.active, first_hit)
+    si = scene.ray_intersect(path.ray, ray_flags=ray_flags, coherent=depth == 0, active=path.active)
 
     # Emission found by the ray (area emitter or environment), MIS-weighted against next-event estimation from
     # the previous vertex. At the camera prev_delta is set, so the emitter pdf is 0 and the weight is 1.
@@ -276,10 +249,8 @@ class Shift(Protocol):
         """Offset loop state for the offset's primary ray (``active`` is False outside the image)."""
 
     def step(self, scene: mi.Scene, offset: Any, base: Vertex, depth: mi.UInt32, max_depth: mi.UInt32,
-             samples: VertexSamples, first_hit: mi.PreliminaryIntersection3f | None = None,
-             ) -> tuple[Any, OffsetEvents]:
-        """Advance an offset path by the base path's vertex; returns the new state and its events. ``first_hit``:
-        the offset's primary hit, already traced (see :func:`intersect`), or None to trace it."""
+             samples: VertexSamples) -> tuple[Any, OffsetEvents]:
+        """Advance an offset path by the base path's vertex; returns the new state and its events."""
 
     def scale(self, offset: Any, factor: mi.Float, active: mi.Bool) -> Any:
         """Multiply the offset's throughput by ``factor`` where ``active`` (Russian roulette of the base)."""
@@ -321,7 +292,6 @@ class GptSettings:
     separate: bool = True  # False: one ``color`` layer with every event (direct and indirect must both be on)
     offsets: str = "all"  # four offsets per sample, or fewer: "pair" (one axis), "single" (OFFSET_MODES)
     gradients: str = "all"  # the layers with gradients when a shift is given: "all", or "direct" (GRADIENT_MODES)
-    primary: str = "own"  # offsets' primary rays: "own", or "shared" with the neighbours' base paths (PRIMARY_MODES)
 
     def layer_names(self) -> tuple[str, ...]:
         """The accumulated illumination layers, in the frame contract's order."""
@@ -352,8 +322,6 @@ class GptSettings:
             raise ValueError("no illumination layer requested")
         if self.offsets not in OFFSET_MODES:
             raise ValueError(f"unknown offsets mode {self.offsets!r}; expected one of {OFFSET_MODES}")
-        if self.primary not in PRIMARY_MODES:
-            raise ValueError(f"unknown primary mode {self.primary!r}; expected one of {PRIMARY_MODES}")
         if self.gradients not in GRADIENT_MODES:
             raise ValueError(f"unknown gradients mode {self.gradients!r}; expected one of {GRADIENT_MODES}")
         if self.gradients == "direct" and not (self.separate and self.direct):
@@ -453,36 +421,7 @@ def offset_group(pixel: mi.UInt32, sample: mi.UInt32, strata: mi.UInt32, seed: m
     return (dr.select(sample < strata * strata, cell, sample) + rotate) % groups
 
 
-@dataclass
-class CameraSamples:
-    """The random numbers of a primary ray: sub-pixel position, aperture and time samples (all in [0, 1))."""
-
-    sub_pixel: mi.Point2f
-    aperture: mi.Point2f
-    time: mi.Float
-
-    @staticmethod
-    def draw(sampler: mi.Sampler, sensor: mi.Sensor) -> CameraSamples:
-        """The lane's own (``GptSettings.primary == "own"``): drawn from its sampler, only what the sensor uses."""
-        sub_pixel = sampler.next_2d()
-        aperture = sampler.next_2d() if sensor.needs_aperture_sample() else mi.Point2f(0.5)
-        time = sampler.next_1d() if sensor.shutter_open_time() > 0 else mi.Float(0.0)
-        return CameraSamples(sub_pixel=sub_pixel, aperture=aperture, time=time)
-
-    @staticmethod
-    def shared(sample: mi.UInt32, seed: mi.UInt32) -> CameraSamples:
-        """One per sample index and pass, the same in every pixel (``primary == "shared"``): a hash of the index
-        and the pass's seed, uniform in [0, 1) and independent between indices and passes."""
-        a = mi.sample_tea_32(sample, seed ^ _SHARED_CAMERA_SALT, 8)
-        b = mi.sample_tea_32(sample, seed ^ (_SHARED_CAMERA_SALT + 1), 8)
-
-        def unit(x: mi.UInt32) -> mi.Float:
-            return mi.Float(x >> 8) * (1.0 / (1 << 24))
-        return CameraSamples(sub_pixel=mi.Point2f(unit(a[0]), unit(a[1])), aperture=mi.Point2f(unit(b[0]), unit(b[1])),
-                             time=unit(a[0] ^ b[1]))
-
-
-def _camera_rays(sensor: mi.Sensor, camera: CameraSamples, px: mi.Int32, py: mi.Int32, size: mi.Vector2f,
+def _camera_rays(sensor: mi.Sensor, sampler: mi.Sampler, px: mi.Int32, py: mi.Int32, size: mi.Vector2f,
                  res: tuple[mi.Int32, mi.Int32], sample: mi.UInt32, strata: mi.UInt32,
                  shifts: Sequence[tuple[int | mi.Int32, int | mi.Int32]] = SHIFT_OFFSETS,
                  ) -> tuple[list[tuple[mi.Ray3f, mi.Spectrum, mi.Bool]], mi.Bool]:
@@ -492,11 +431,11 @@ def _camera_rays(sensor: mi.Sensor, camera: CameraSamples, px: mi.Int32, py: mi.
     The shifted pixel index is formed in integers first, so an offset ray and the base ray of the neighbouring
     pixel it stands for are computed bit for bit alike.
     """
-    sub_pixel = stratified_sub_pixel(camera.sub_pixel, sample, strata)
-    aperture = camera.aperture if sensor.needs_aperture_sample() else mi.Point2f(0.5)
+    sub_pixel = stratified_sub_pixel(sampler.next_2d(), sample, strata)
+    aperture = sampler.next_2d() if sensor.needs_aperture_sample() else mi.Point2f(0.5)
     time = sensor.shutter_open()
     if sensor.shutter_open_time() > 0:
-        time += camera.time * sensor.shutter_open_time()
+        time += sampler.next_1d() * sensor.shutter_open_time()
     width, height = res
     rays = []
     for ox, oy in ((0, 0), *shifts):
@@ -624,11 +563,6 @@ class PassKernel:
     strict_light_pdf: bool
     hittable: bool  # some emitter can be found by a ray (scene_has_hittable_emitters)
     offset_group: mi.UInt32 | None  # per lane, the group of offsets it traces (offset_group); None: all four
-    first_hits: list[mi.PreliminaryIntersection3f] | None = None  # "shared" primary: base's, then each offset's
-
-    def first_hit(self, path: int) -> mi.PreliminaryIntersection3f | None:
-        """The precomputed primary hit of path ``path`` (0: the base path, 1 + i: offset i), or None."""
-        return self.first_hits[path] if self.first_hits is not None else None
 
     @property
     def gradients(self) -> bool:
@@ -636,8 +570,7 @@ class PassKernel:
 
 
 # How an offset advances by one base vertex: the shift's full step, or the second loop's connected step.
-# (offset, vertex, depth, samples, the offset's index in LoopState.offsets)
-OffsetStep = Callable[[Any, Vertex, Any, VertexSamples, int], tuple[Any, OffsetEvents]]
+OffsetStep = Callable[[Any, Vertex, Any, VertexSamples], tuple[Any, OffsetEvents]]  # (offset, vertex, depth, samples)
 
 
 def _start_lanes(scene: mi.Scene, shift: Shift | None, settings: GptSettings, width: int, height: int, spp: int,
@@ -684,37 +617,13 @@ def _start_lanes(scene: mi.Scene, shift: Shift | None, settings: GptSettings, wi
                 ox = dr.select(group == g, cx, ox)
                 oy = dr.select(group == g, cy, oy)
             shifts.append((ox, oy))
-    shared = gradients and settings.primary == "shared"
-    camera = CameraSamples.shared(sample, seed_o) if shared else CameraSamples.draw(sampler, sensor)
-    rays, _ = _camera_rays(sensor, camera, px, py, size, (w_o, h_o), sample, strata_o, shifts)
-    if shared:
-        kernel.first_hits = _shared_first_hits(scene, rays, px, py, w_o, spp_o, sample, shifts)
+    rays, _ = _camera_rays(sensor, sampler, px, py, size, (w_o, h_o), sample, strata_o, shifts)
     state = LoopState(
         sampler=sampler, depth=mi.UInt32(0), base=PathState.start(*rays[0]),
         offsets=[shift.start(*r) for r in rays[1:]] if shift is not None else [],
         sums={name: LayerSums.zeros(len(shifts) if name in with_gradients else 0) for name in settings.layer_names()},
         feat=FeatureState.start(), invalid=mi.Bool(False))
     return kernel, state, pixel
-
-
-def _shared_first_hits(scene: mi.Scene, rays: list[tuple[mi.Ray3f, mi.Spectrum, mi.Bool]], px: mi.Int32,
-                       py: mi.Int32, width: mi.Int32, spp: mi.UInt32, sample: mi.UInt32,
-                       shifts: Sequence[tuple[int | mi.Int32, int | mi.Int32]]) -> list[mi.PreliminaryIntersection3f]:
-    """``primary == "shared"``: every lane's base primary ray traced once, in a kernel of its own, and each path's
-    first hit gathered from it -- the base path's own, and for the offset towards ``p + delta`` the hit of the base
-    ray of the same sample index at ``p + delta``, which is the offset's ray bit for bit (same camera sample, pixel
-    index formed in integers: :func:`_camera_rays`). Outside the image the hit is a miss (the offset is inactive).
-    Saves one ray cast per offset and sample; costs ~28 bytes per lane and one short kernel per pass."""
-    base_ray, _, base_inside = rays[0]
-    hits = scene.ray_intersect_preliminary(base_ray, coherent=True, active=base_inside)
-    dr.eval(hits)  # materialised before the loop, which gathers from it
-    out = []
-    for (ox, oy), (_, _, inside) in zip(((0, 0), *shifts), rays, strict=True):
-        lane = mi.UInt32((py + oy) * width + (px + ox)) * spp + sample
-        hit = dr.gather(mi.PreliminaryIntersection3f, hits, lane, inside)
-        hit.t = dr.select(inside, hit.t, dr.inf)
-        out.append(hit)
-    return out
 
 
 def _offset_events(k: PassKernel, s: LoopState, v: Vertex, samples: VertexSamples,
@@ -725,7 +634,7 @@ def _offset_events(k: PassKernel, s: LoopState, v: Vertex, samples: VertexSample
     hit_grads, nee_grads = [], []
     bad = mi.Bool(False)
     for i, off in enumerate(s.offsets):
-        s.offsets[i], ev = step_offset(off, v, s.depth, samples, i)
+        s.offsets[i], ev = step_offset(off, v, s.depth, samples)
         # An event the base path does not have belongs to the mirrored technique alone (weight 1 there).
         off_nee = dr.select(v.has_nee, ev.nee, 0.0)
         gh, bad_h = _finite(ev.w_hit * (ev.emitted - v.emitted))
@@ -759,8 +668,7 @@ def _vertex(k: PassKernel, s: LoopState, step_offset: OffsetStep) -> LoopState:
     samples = VertexSamples.draw(s.sampler)
     ray_d = mi.Vector3f(s.base.ray.d)
     base_active = mi.Bool(s.base.active)
-    s.base, v = trace_vertex(k.scene, s.base, s.depth, k.max_depth, samples, k.strict_light_pdf, k.ray_flags,
-                             k.first_hit(0))
+    s.base, v = trace_vertex(k.scene, s.base, s.depth, k.max_depth, samples, k.strict_light_pdf, k.ray_flags)
     if k.gradients:
         hit_grads, nee_grads, bad = _offset_events(k, s, v, samples, step_offset)
         hit_value, bad_h = _finite(v.emitted)
@@ -797,9 +705,9 @@ def _run_loops(k: PassKernel, s: LoopState) -> LoopState:
                                  label=label)
         return state
 
-    def full_step(off: Any, v: Vertex, depth: mi.UInt32, samples: VertexSamples, i: int) -> tuple[Any, OffsetEvents]:
+    def full_step(off: Any, v: Vertex, depth: mi.UInt32, samples: VertexSamples) -> tuple[Any, OffsetEvents]:
         assert shift is not None  # only called for offsets, which exist only with a shift
-        return shift.step(k.scene, off, v, depth, k.max_depth, samples, first_hit=k.first_hit(1 + i))
+        return shift.step(k.scene, off, v, depth, k.max_depth, samples)
 
     def base_alive(st: LoopState) -> mi.Bool:
         return st.base.active
@@ -815,8 +723,7 @@ def _run_loops(k: PassKernel, s: LoopState) -> LoopState:
             settled &= shift.settled(off)
         return st.base.active & ~settled
 
-    def connected_step(off: Any, v: Vertex, depth: mi.UInt32, samples: VertexSamples,
-                       i: int) -> tuple[Any, OffsetEvents]:
+    def connected_step(off: Any, v: Vertex, depth: mi.UInt32, samples: VertexSamples) -> tuple[Any, OffsetEvents]:
         return shift.step_connected(off, v, depth, k.max_depth)
 
     s = loop(s, unsettled, full_step, "gpt", peel=PEEL_FIRST_VERTEX)
@@ -847,9 +754,8 @@ def _run_direct_gradient_loops(k: PassKernel, s: LoopState, loop: LoopRunner,
     offset_max_depth = dr.minimum(k.max_depth, mi.UInt32(DIRECT_VERTICES))
     vertices = DIRECT_VERTICES if k.hittable else 1
 
-    def direct_step(off: Any, v: Vertex, depth: mi.UInt32, samples: VertexSamples,
-                    i: int) -> tuple[Any, OffsetEvents]:
-        return shift.step(k.scene, off, v, depth, offset_max_depth, samples, first_hit=k.first_hit(1 + i))
+    def direct_step(off: Any, v: Vertex, depth: mi.UInt32, samples: VertexSamples) -> tuple[Any, OffsetEvents]:
+        return shift.step(k.scene, off, v, depth, offset_max_depth, samples)
 
     def direct_vertices(st: LoopState) -> mi.Bool:
         return st.base.active & (st.depth < vertices)

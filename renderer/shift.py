@@ -35,7 +35,7 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-from renderer.gpt import OffsetEvents, PathState, Shift, Vertex, VertexSamples, intersect, mis_power, trace_vertex
+from renderer.gpt import OffsetEvents, PathState, Shift, Vertex, VertexSamples, mis_power, trace_vertex
 
 SHIFT_NAMES: tuple[str, ...] = ("replay", "hybrid")
 
@@ -53,9 +53,8 @@ class ReplayShift:
         return PathState.start(ray, weight, active)
 
     def step(self, scene: mi.Scene, offset: PathState, base: Vertex, depth: mi.UInt32, max_depth: mi.UInt32,
-             samples: VertexSamples, first_hit: mi.PreliminaryIntersection3f | None = None,
-             ) -> tuple[PathState, OffsetEvents]:
-        offset, v = trace_vertex(scene, offset, depth, max_depth, samples, first_hit=first_hit)
+             samples: VertexSamples) -> tuple[PathState, OffsetEvents]:
+        offset, v = trace_vertex(scene, offset, depth, max_depth, samples)
         events = OffsetEvents(
             emitted=v.emitted,
             nee=v.nee,
@@ -607,15 +606,13 @@ class HybridShift:
         return mi.Bool(ok), mi.Vector3f(tr.direction), mi.Float(conv), mi.Spectrum(weight), mi.Vector3f(tr.reflected)
 
     def step(self, scene: mi.Scene, off: HybridState, base: Vertex, depth: mi.UInt32, max_depth: mi.UInt32,
-             samples: VertexSamples, first_hit: mi.PreliminaryIntersection3f | None = None,
-             ) -> tuple[HybridState, OffsetEvents]:
+             samples: VertexSamples) -> tuple[HybridState, OffsetEvents]:
         """Advance the offset by the base path's vertex ``x_{k+1}`` (``base``): choose the strategy, make the
-        transition, arrive, and evaluate the offset's two events there. ``first_hit``: the primary ray's hit,
-        already traced (``GptSettings.primary == "shared"``)."""
+        transition, arrive, and evaluate the offset's two events there."""
         use_copy, use_follow, use_manifold = self._features(scene)
         st = self._choose(off, base, depth, use_follow, use_manifold, use_copy)
         tr = self._transition(scene, off, base, st, use_copy, use_manifold)
-        own = self._trace_own(scene, off, base, st, tr, depth, use_copy, use_follow, first_hit)
+        own = self._trace_own(scene, off, base, st, tr, depth, use_copy, use_follow)
         at = self._arrive(off, base, st, tr, own, use_manifold)
         emitted, w_hit = self._emission(scene, base, st, at)
         nee, w_nee, has_vertex = self._next_event(scene, base, st, at, depth, max_depth)
@@ -754,8 +751,7 @@ class HybridShift:
                           reconnection_dir=wo_rc, copy_dir=copy_dir, mirror=mani, mirror_wi=mirror_wi)
 
     def _trace_own(self, scene: mi.Scene, off: HybridState, base: Vertex, st: Strategy, tr: Transition,
-                   depth: mi.UInt32, use_copy: bool, use_follow: bool,
-                   first_hit: mi.PreliminaryIntersection3f | None = None) -> OwnVertex:
+                   depth: mi.UInt32, use_copy: bool, use_follow: bool) -> OwnVertex:
         """**Replay** at ``y_k`` (the base path's random numbers), and the ray of every offset that finds its next
         vertex itself (primary ray, replay, half-vector copy). Adds to ``tr.fail`` where the reverse shift, from
         this offset as a base path back to the base path, would pick another strategy: it reconnects (or
@@ -769,7 +765,7 @@ class HybridShift:
             own_dir = dr.select(st.copy, tr.copy_dir, own_dir)
         own_ray = dr.select(st.first, off.ray, prev_si.spawn_ray(own_dir))
         traced = (st.first & off.active) | st.replay | st.copy
-        si_own = intersect(scene, own_ray, self.ray_flags(scene), st.first, traced, first_hit)
+        si_own = scene.ray_intersect(own_ray, ray_flags=self.ray_flags(scene), coherent=st.first, active=traced)
         own_valid = si_own.is_valid()
         own_bsdf = si_own.bsdf()
         own_flags = dr.select(own_valid, own_bsdf.flags(), 0)
