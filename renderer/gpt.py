@@ -67,7 +67,8 @@ NEAR_SPECULAR_PDF = 100.0
 # Lanes per pass: bounds the sampler state and the scatter traffic of one kernel launch (~16 B per lane).
 MAX_LANES_PER_PASS = 1 << 22
 
-# Trace the first vertex before the symbolic loop, where its depth is a literal 0 (see _run_loops).
+# Trace the first vertex before the symbolic loop, where its depth is a literal 0 (see _run_loops; not in the
+# primal-only mode).
 PEEL_FIRST_VERTEX = True
 
 # Mitsuba's convention for an unbounded path length.
@@ -705,6 +706,10 @@ def _run_loops(k: PassKernel, s: LoopState) -> LoopState:
                                  label=label)
         return state
 
+    # The primal-only mode's loop is not peeled: its small body gains nothing and the larger kernel measured
+    # 5-10 % slower (benchmarks/ab_peel.py, docs/renderer.md).
+    peel = PEEL_FIRST_VERTEX and shift is not None
+
     def full_step(off: Any, v: Vertex, depth: mi.UInt32, samples: VertexSamples) -> tuple[Any, OffsetEvents]:
         assert shift is not None  # only called for offsets, which exist only with a shift
         return shift.step(k.scene, off, v, depth, k.max_depth, samples)
@@ -715,7 +720,7 @@ def _run_loops(k: PassKernel, s: LoopState) -> LoopState:
     if k.settings.gradients == "direct" and shift is not None:
         return _run_direct_gradient_loops(k, s, loop, base_alive)
     if not isinstance(shift, ConnectingShift):
-        return loop(s, base_alive, full_step, "gpt", peel=PEEL_FIRST_VERTEX)
+        return loop(s, base_alive, full_step, "gpt", peel=peel)
 
     def unsettled(st: LoopState) -> mi.Bool:
         settled = mi.Bool(True)
@@ -726,7 +731,7 @@ def _run_loops(k: PassKernel, s: LoopState) -> LoopState:
     def connected_step(off: Any, v: Vertex, depth: mi.UInt32, samples: VertexSamples) -> tuple[Any, OffsetEvents]:
         return shift.step_connected(off, v, depth, k.max_depth)
 
-    s = loop(s, unsettled, full_step, "gpt", peel=PEEL_FIRST_VERTEX)
+    s = loop(s, unsettled, full_step, "gpt", peel=peel)
     s.offsets = [shift.summarize(off) for off in s.offsets]
     return loop(s, base_alive, connected_step, "gpt_connected")
 
