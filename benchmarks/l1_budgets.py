@@ -116,12 +116,13 @@ def main(argv: list[str] | None = None) -> int:
     base_err = np.array(rows[0][1])
     print(f"{len(cases)} layers; ratios are per-layer RelMSE / the first configuration's, then summarised")
     print(f"{'configuration':<72}{'mean RelMSE':>12}{'ratio mean':>11}{'ratio geo':>10}{'ratio max':>10}"
-          f"{'ratio min':>10}{'s/layer':>9}")
+          f"{'ratio min':>10}{'>1.1':>6}{'<0.9':>6}{'s/layer':>9}")
     for config, errors, seconds in rows:
         ratio = np.array(errors) / base_err
         geo = float(np.exp(np.mean(np.log(np.abs(ratio)))))
         print(f"{str(config):<72}{np.mean(errors):>12.5f}{ratio.mean():>11.4f}{geo:>10.4f}{ratio.max():>10.4f}"
-              f"{ratio.min():>10.4f}{statistics.mean(seconds):>9.3f}", flush=True)
+              f"{ratio.min():>10.4f}{int((ratio > 1.1).sum()):>6}{int((ratio < 0.9).sum()):>6}"
+              f"{statistics.mean(seconds):>9.3f}", flush=True)
     if args.per_case:
         print("case, RelMSE of the first configuration, then each other's ratio to it")
         for i, (name, _, _) in enumerate(cases):
