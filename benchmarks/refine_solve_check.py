@@ -40,5 +40,6 @@ solves = {"default (REFINE_CG_TOLERANCE rule)": {}, "mg 2 (before)": {"precondit
 for label, kwargs in solves.items():
     d_img = refine.refine_layer("direct", base.layers["direct"], frame.layers["direct"], **kwargs)
     d = relmse_unbiased(d_img, pair.first["direct"], pair.second["direct"])
-    t = relmse_unbiased(d_img + base.layers["indirect"], pair.first["total"], pair.second["total"])
+    rest = sum(img for name, img in base.layers.items() if name != "direct")  # 0 for a direct-only frame
+    t = relmse_unbiased(d_img + rest, pair.first["total"], pair.second["total"])
     print(scene, spp, label, "direct", f"{d:.6f}", "total", f"{t:.6f}", flush=True)

@@ -29,7 +29,7 @@ from the divergence, whose DC is zero analytically but rounding noise numericall
 IRLS starts from that float64 solution and iterates in float32 on inputs scaled to max |value| = 1 (no overflow,
 no subnormals), or in float64 when α < FLOAT32_MIN_ALPHA; CG inner products are BLAS dots (~1e-7 relative).
 Exact input data is recovered to ~1e-7 of the image's peak by both solvers. IRLS is run to a fixed budget (as
-the reference), not to convergence: with the default 4 CG steps per pass the L1 energy lands within ~0.2% of
+the reference), not to convergence: with 4 CG steps per pass the L1 energy lands within ~0.2% of
 the reference preset's on noisy renders; a single outlier of 1e6 in a gradient is reduced ~40x against L2 but
 needs ``cg_iterations`` ≈ 50 to vanish entirely.
 Results are returned as float32 (the frame format's precision) unless ``dtype=np.float64`` is asked for.
