@@ -45,7 +45,8 @@ REFINE_ITERATIONS = 8
 #: oidn-l1 method"): RelMSE / oidn 0.768 (worst 1.02, 31/32 better) against 0.773 (1.03, 30/32) for the former
 #: 4 DCT-preconditioned steps, at 0.89 s instead of 1.06 s per 1280x720 layer (study_refine.py time, same run).
 #: Fewer passes or one V-cycle per pass were cheaper still (0.58-0.60 s) but 3-7 % worse on average and up to
-#: 2.7x oidn's error on single frames.
+#: 2.7x oidn's error on single frames. Since issue 14's tolerance rule below, this fixed budget is used only when
+#: REFINE_CG_TOLERANCE is None (it under-converged on some frames: cbox 64 spp).
 REFINE_CG_STEPS = 2
 REFINE_PRECONDITIONER = "mg"
 #: The default solve's CG rule (issue 14, since the fixed 2 steps under-converged on some frames): each IRLS pass
