@@ -36,7 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from model.frame import forward_differences  # noqa: E402
 from model.metrics import relmse  # noqa: E402
-from model.poisson import L1_PASSES, energy_l1, solve_l1, solve_l2  # noqa: E402
+from model.poisson import L1_CG_STEPS, L1_PASSES, energy_l1, solve_l1, solve_l2  # noqa: E402
 from model.policy import DEFAULT_ALPHA  # noqa: E402
 
 LAYERS = {"direct": 0.3, "indirect": 0.8, "color": 0.5}  # layer -> relative noise level
@@ -84,6 +84,8 @@ def configurations(args: argparse.Namespace) -> dict[str, dict]:
     if args.candidates or args.compare:
         # the budget l1 ran before issue 15 (the reference's 20 passes), and the multigrid preconditioner
         configs["l1-dct-20x4"] = {"solver": "l1", "iterations": 20, "cg_iterations": 4, "preconditioner": "dct"}
+        # the budget of issue 15's rounds 1-2 (l1's default until 8 x 2)
+        configs["l1-dct-10x4"] = {"solver": "l1", "iterations": 10, "cg_iterations": 4, "preconditioner": "dct"}
         configs["l1-mg-20x1"] = {"solver": "l1", "iterations": 20, "cg_iterations": 1, "preconditioner": "mg"}
         configs["l1-mg-10x1"] = {"solver": "l1", "iterations": 10, "cg_iterations": 1, "preconditioner": "mg"}
         configs["prior-dct-5x2"] = {"solver": "l1", "iterations": 5, "cg_iterations": 2, "preconditioner": "dct"}
@@ -178,7 +180,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--alpha", type=float, default=DEFAULT_ALPHA)
     p.add_argument("--passes", type=int, default=L1_PASSES,
                    help=f"IRLS passes for 'l1' (default {L1_PASSES}, model.poisson.L1_PASSES)")
-    p.add_argument("--cg-iterations", type=int, default=4, help="CG steps per IRLS pass for 'l1' (default 4)")
+    p.add_argument("--cg-iterations", type=int, default=L1_CG_STEPS,
+                   help=f"CG steps per IRLS pass for 'l1' (default {L1_CG_STEPS}, model.poisson.L1_CG_STEPS)")
     p.add_argument("--candidates", action="store_true",
                    help="+ the pre-issue-15 budget (20x4), multigrid-preconditioned budgets and the network's prior")
     p.add_argument("--compare", action="store_true",

@@ -120,13 +120,13 @@ def offset_statistics(loaded, size: int, spp: int) -> dict:
         dr.scatter_reduce(dr.ReduceOp.Add, counts, dr.select(mask, mi.UInt32(1), mi.UInt32(0)), index)
 
     class Counting(HybridShift):
-        def step(self, scene, off, base, depth, max_depth, samples):
+        def step(self, scene, off, base, depth, max_depth, samples, later=False):
             lane = dr.arange(mi.UInt32, dr.width(off.active))
             connected = off.active & ((off.status == CONNECTED) | (off.status == RECENTLY_CONNECTED))
             add("own", off.active & ~connected, lane)
             add("connected", connected, lane)
             add("ended", ~off.active & base.has_hit, lane)
-            new, events = super().step(scene, off, base, depth, max_depth, samples)
+            new, events = super().step(scene, off, base, depth, max_depth, samples, later=later)
             # ended by a failed shift: active before, throughput zeroed while the base path still had a vertex
             add("failed", off.active & base.si.is_valid() & (dr.max(new.throughput) == 0.0), lane)
             return new, events

@@ -3,6 +3,9 @@ references (product estimator): does the solve budget change the error? Needs th
 `gradsep evaluate --cache runs/evalcache` run (reference passes and frames present).
 
     PYTHONPATH=. python benchmarks/refine_solve_check.py cbox 64
+
+Run from a folder whose runs/evalcache is that cache (e.g. the main checkout, PYTHONPATH pointing at this one).
+A *check* of the refinement's solve on the evaluation frames: nothing is chosen from it (docs/network.md).
 """
 import glob
 import sys
@@ -31,9 +34,12 @@ assert src.rendered == 0, "rendered passes: cache mismatch"
 folder = f"runs/evalcache/evaluate/frames/{scene.replace(':', '-')}"
 frame = read_frame(glob.glob(f"{folder}/*spp{spp}-seed0-direct*.exr")[0])
 base = reconstruct(frame, "oidn")
-for prec, cg in (("mg", 2), ("dct", 4), ("mg", 4)):
-    d_img = refine.refine_layer("direct", base.layers["direct"], frame.layers["direct"], preconditioner=prec,
-                                cg_steps=cg)
+solves = {"default (REFINE_CG_TOLERANCE rule)": {}, "mg 2 (before)": {"preconditioner": "mg", "cg_steps": 2},
+          "dct 4": {"preconditioner": "dct", "cg_steps": 4}, "mg 4": {"preconditioner": "mg", "cg_steps": 4},
+          "mg converged": {"preconditioner": "mg", "cg_steps": 40, "cg_tolerance": 1e-5}}
+for label, kwargs in solves.items():
+    d_img = refine.refine_layer("direct", base.layers["direct"], frame.layers["direct"], **kwargs)
     d = relmse_unbiased(d_img, pair.first["direct"], pair.second["direct"])
-    t = relmse_unbiased(d_img + base.layers["indirect"], pair.first["total"], pair.second["total"])
-    print(scene, spp, prec, cg, "direct", d, "total", t, flush=True)
+    rest = sum(img for name, img in base.layers.items() if name != "direct")  # 0 for a direct-only frame
+    t = relmse_unbiased(d_img + rest, pair.first["total"], pair.second["total"])
+    print(scene, spp, label, "direct", f"{d:.6f}", "total", f"{t:.6f}", flush=True)

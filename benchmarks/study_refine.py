@@ -5,6 +5,8 @@ how many IRLS passes, and at what cost.
     python benchmarks/study_refine.py render --seeds 81001-81008 --spp 1,4,16,64   # frames + references (cached)
     python benchmarks/study_refine.py error                                      # the tables (cached frames)
     python benchmarks/study_refine.py error --family speed                       # cheaper solves of the same
+    python benchmarks/study_refine.py error --family tolerance                   # per-pass CG tolerance rules
+    python benchmarks/study_refine.py convergence                                # CG rules vs the converged solve
     python benchmarks/study_refine.py time                                       # 1280x720 cost of the refinement
 
 Scenes: procedural seeds that are neither evaluation scenes (90001, 90002) nor in the training range; nothing
@@ -66,6 +68,8 @@ def _solver(alpha: float, passes: int, layers: frozenset[str], **solver) -> Call
     ``solver``: REFINE_CG_STEPS / REFINE_WARM_START / REFINE_PRECONDITIONER (lower-case keys without REFINE_)."""
     from model import refine
 
+    if "cg_steps" in solver and "cg_tolerance" not in solver:  # a fixed budget: no tolerance rule
+        solver["cg_tolerance"] = None
     names = ("REFINE_ITERATIONS", "REFINED_LAYERS", *(f"REFINE_{k.upper()}" for k in solver))
 
     def run(name, denoised, layer):
@@ -118,12 +122,34 @@ def _speed_variants(setting: str) -> dict[str, Callable]:
     return out
 
 
+def _tolerance_variants(setting: str) -> dict[str, Callable]:
+    """Issue 14's convergence rule for the default refinement: per IRLS pass, V-cycle-preconditioned CG until the
+    relative residual is below a tolerance, with a cap on the steps; against the fixed budgets."""
+    from model import refine
+
+    solve = _solver
+    a, direct, passes = refine.REFINE_ALPHA, refine.REFINED_LAYERS, refine.REFINE_ITERATIONS
+    out: dict[str, Callable] = {"oidn": lambda name, denoised, layer: denoised}
+    out["shipped"] = solve(a, passes, direct)
+    for cg in (2, 4, 8):
+        out[f"fixed {cg} mg CG"] = solve(a, passes, direct, cg_steps=cg, preconditioner="mg")
+    for tol in (0.2, 0.1, 0.05, 0.02):
+        for cap in (4, 8):
+            out[f"mg CG to {tol:g}, at most {cap}"] = solve(a, passes, direct, preconditioner="mg", cg_tolerance=tol,
+                                                           max_cg_steps=cap)
+    return out
+
+
+FAMILIES = {"design": "_variants", "speed": "_speed_variants", "tolerance": "_tolerance_variants"}
+
+
 def error(cache: Path, settings: list[str], family: str = "design") -> None:
     from model.frame import read_frame
     from model.metrics import relmse_unbiased
     from model.oidn import Denoiser
 
     scores: dict[tuple[str, str], list[float]] = {}
+    seconds: dict[tuple[str, str], list[float]] = {}
     cases = 0
     for folder in sorted(p for p in cache.glob("procedural-*") if p.is_dir()):
         refs = sorted(folder.glob("ref-*.npz"))
@@ -138,23 +164,80 @@ def error(cache: Path, settings: list[str], family: str = "design") -> None:
                 aux = den.prefilter(frame.features) if frame.features is not None else None
                 denoised = {n: den.denoise(layer.base, aux) for n, layer in frame.layers.items()}
                 base = None
-                variants = _speed_variants(setting) if family == "speed" else _variants(setting)
+                variants = globals()[FAMILIES[family]](setting)
                 for variant, run in variants.items():
+                    start = time.perf_counter()
                     total = sum(run(n, denoised[n], layer) for n, layer in frame.layers.items())
+                    seconds.setdefault((setting, variant), []).append(time.perf_counter() - start)
                     score = relmse_unbiased(total, r1["total"], r2["total"])
                     base = score if variant == "oidn" else base
                     scores.setdefault((setting, variant), []).append(score / base)
                 den.close()
             print(f"{folder.name} {frame_path.stem}: done", flush=True)
     print(f"\n{cases} frames; RelMSE / oidn's at the same OIDN setting (geometric mean, worst, cases better)\n")
-    print("| OIDN setting | variant | geo mean | worst | better than oidn |")
-    print("|---|---|---:|---:|---:|")
+    print("| OIDN setting | variant | geo mean | worst | better than oidn | s per frame (320x240, mean) |")
+    print("|---|---|---:|---:|---:|---:|")
     for (setting, variant), ratios in scores.items():
         if variant == "oidn":
             continue
         geo = math.exp(sum(math.log(r) for r in ratios) / len(ratios))
         better = sum(r < 1 for r in ratios)
-        print(f"| {setting} | {variant} | {geo:.3f} | {max(ratios):.2f} | {better}/{len(ratios)} |")
+        secs = statistics.mean(seconds[(setting, variant)])
+        print(f"| {setting} | {variant} | {geo:.3f} | {max(ratios):.2f} | {better}/{len(ratios)} | {secs:.3f} |")
+
+
+CONVERGENCE_RULES = ((2, None), (4, None), (8, 0.2), (8, 0.1), (8, 0.05), (8, 0.02), (16, 0.05))
+
+
+def convergence(cache: Path, setting: str, rules=CONVERGENCE_RULES) -> None:
+    """How far each CG rule of the default refinement leaves the direct layer from the *converged* IRLS of the same
+    passes, against that converged result's own error: RelMSE(rule, converged) / RelMSE_unbiased(converged, truth)
+    per frame. A rule whose ratio is small on every frame has converged where it matters; the mean CG steps per
+    pass are its cost. ``rules``: (at most / fixed steps, tolerance or None for the fixed budget)."""
+    from model import refine
+    from model.frame import read_frame
+    from model.metrics import relmse, relmse_unbiased
+    from model.oidn import Denoiser
+
+    steps: list[int] = []
+    real_solve = refine.solve_l1
+
+    def counting_solve(*args, **kwargs):
+        image, stats = real_solve(*args, **kwargs)
+        steps.append(stats.total_cg_iterations)
+        return image, stats
+
+    refine.solve_l1 = counting_solve
+    den = Denoiser(setting)
+    rows: dict[str, list[tuple[float, float]]] = {}
+    try:
+        for folder in sorted(p for p in cache.glob("procedural-*") if p.is_dir()):
+            r1, r2 = (np.load(p) for p in sorted(folder.glob("ref-*.npz"))[:2])
+            for frame_path in sorted(folder.glob("gpt-*.exr"), key=lambda p: int(p.stem.split("-")[1])):
+                frame = read_frame(str(frame_path))
+                layer = frame.layers["direct"]
+                aux = den.prefilter(frame.features) if frame.features is not None else None
+                prior = den.denoise(layer.base, aux)
+                exact = refine.refine_layer("direct", prior, layer, preconditioner="mg", cg_steps=40,
+                                            cg_tolerance=1e-5)
+                floor = relmse_unbiased(exact, r1["direct"], r2["direct"])
+                line = f"{folder.name} {frame_path.stem}: converged {floor:.5f}"
+                for cap, tol in rules:
+                    steps.clear()
+                    img = refine.refine_layer("direct", prior, layer, preconditioner="mg", cg_steps=cap,
+                                              cg_tolerance=tol)
+                    ratio = relmse(img, exact) / max(floor, 1e-12)
+                    rows.setdefault(f"{cap}:{tol}", []).append((ratio, steps[0] / (refine.REFINE_ITERATIONS - 1)))
+                    line += f" | {cap}:{tol} {ratio:.3f}"
+                print(line, flush=True)
+    finally:
+        refine.solve_l1 = real_solve
+        den.close()
+    print("\n| rule (steps:tolerance) | mean ratio | worst ratio | mean CG steps per pass |")
+    print("|---|---:|---:|---:|")
+    for rule, values in rows.items():
+        ratios, per_pass = zip(*values, strict=True)
+        print(f"| {rule} | {statistics.mean(ratios):.3f} | {max(ratios):.3f} | {statistics.mean(per_pass):.2f} |")
 
 
 def timing(width: int, height: int, repeats: int, variants: list[str] | None = None) -> None:
@@ -210,8 +293,11 @@ def main() -> int:
     r.add_argument("--ref-spp", type=int, default=1024)
     e = sub.add_parser("error")
     e.add_argument("--settings", default="raw-fast", help="comma-separated model.oidn.SETTINGS names")
-    e.add_argument("--family", choices=("design", "speed"), default="design",
-                   help="design: alpha, layers, passes (the method's choice); speed: cheaper solves of it")
+    e.add_argument("--family", choices=tuple(FAMILIES), default="design",
+                   help="design: alpha, layers, passes (the method's choice); speed: cheaper solves of it; "
+                        "tolerance: a per-pass CG tolerance with a cap on the steps (issue 14)")
+    c = sub.add_parser("convergence", help="distance of CG rules from the converged refinement (issue 14)")
+    c.add_argument("--setting", default="raw-fast")
     t = sub.add_parser("time")
     t.add_argument("--width", type=int, default=1280)
     t.add_argument("--height", type=int, default=720)
@@ -220,6 +306,8 @@ def main() -> int:
     args = parser.parse_args()
     if args.command == "render":
         render(_seeds(args.seeds), [int(s) for s in args.spp.split(",")], args.ref_spp, args.cache)
+    elif args.command == "convergence":
+        convergence(args.cache, args.setting)
     elif args.command == "error":
         error(args.cache, args.settings.split(","), args.family)
     else:

@@ -86,8 +86,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="most samples per pixel of each reference (default 4096; 1024 with --quick); "
                         "equal to --ref-spp: a fixed reference spp")
     p.add_argument("--ref-seconds", type=float, default=None,
-                   help="render-time budget of one scene's two references together: the reference spp is not "
-                        "raised past what fits (default 240; 20 with --quick; 0 = no limit)")
+                   help="budget of new reference rendering per scene (both references together): the reference "
+                        "spp is not raised past what is predicted to fit; passes already in the cache cost "
+                        "nothing (default 240; 20 with --quick; 0 = no limit)")
     p.add_argument("--seed", type=int, default=None, help="base seed of every render (default 0)")
     p.add_argument("--methods", default=None,
                    help="comma-separated subset of methods; 'ablation' = the four variants (default: all)")
@@ -101,6 +102,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "report; -o is still required and left untouched): a farm's job, see --shard")
     p.add_argument("--shard", default=None, metavar="K/N",
                    help="with --references-only: render shard K of N of the passes; copy the N caches' "
-                        "evaluate/references/ folders into one and run the evaluation there with --ref-seconds 0")
+                        "evaluate/references/ folders into one and run the evaluation there (cached passes cost no "
+                        "--ref-seconds budget)")
     p.add_argument("-o", "--output", required=True, help="report folder")
     p.set_defaults(func=evaluate_command)

@@ -8,8 +8,8 @@ index, sampler, reference code, Mitsuba version). A reference at ``--ref-spp-cap
 prefix of them. Shard K of N renders the passes whose index is K-1 modulo N into its cache: exactly the files one
 machine would have written, so combining the shards is copying their ``evaluate/references/`` folders into one
 cache (the names never collide, and an identical name means an identical pass). The final ``gradsep evaluate``
-on that cache (same --ref-spp, --seed, --size, code and Mitsuba; ``--ref-seconds 0`` so the time budget, which
-counts cached passes with the time they took, does not stop it) then finds every pass it needs and renders none.
+on that cache (same --ref-spp, --seed, --size, code and Mitsuba) then finds every pass it needs and renders none:
+its ``--ref-seconds`` budget counts only passes it would render itself.
 """
 
 from __future__ import annotations

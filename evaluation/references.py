@@ -104,16 +104,29 @@ class ReferenceSource:
         """Pass ``index`` is in the cache afterwards (rendered when it was not): a farm shard's unit of work."""
         self._pass(index)
 
+    def _entry(self, index: int) -> tuple[int, str, Any]:
+        """(seed, key hash, cache path) of pass ``index``."""
+        seed = int(np.random.SeedSequence([int(self.key["seed"]), 1, index]).generate_state(1, np.uint32)[0])
+        key = {**self.key, "kind": "reference-pass", "spp": self.base_spp, "pass": index, "pass_seed": seed}
+        path = self.cache.entry("references", self.scene_name, f"spp{self.base_spp}-pass{index}", key, ".exr")
+        return seed, key_hash(key), path
+
+    def cached(self, index: int) -> bool:
+        """Whether pass ``index`` needs no rendering: loaded already, or its cache file exists (the file name
+        carries the hash of its key; a corrupt one is re-rendered when loaded)."""
+        return index in self._passes or self._entry(index)[2].is_file()
+
+    def passes_to_render(self, spp: int) -> int:
+        """How many passes both references at ``spp`` each still need rendered (not in the cache)."""
+        return sum(not self.cached(i) for i in range(2 * (spp // self.base_spp)))
+
     def _pass(self, index: int) -> tuple[dict[str, np.ndarray], float]:
         if index in self._passes:
             return self._passes[index]
         from model.frame import FrameError
         from renderer.reference import load_reference, write_reference
 
-        seed = int(np.random.SeedSequence([int(self.key["seed"]), 1, index]).generate_state(1, np.uint32)[0])
-        key = {**self.key, "kind": "reference-pass", "spp": self.base_spp, "pass": index, "pass_seed": seed}
-        tag = key_hash(key)
-        path = self.cache.entry("references", self.scene_name, f"spp{self.base_spp}-pass{index}", key, ".exr")
+        seed, tag, path = self._entry(index)
         ref = None
         if path.is_file():
             try:

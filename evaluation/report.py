@@ -293,7 +293,8 @@ def _provenance(evaluation: Evaluation) -> list[str]:
              f"references: two independent Mitsuba `path` renders per scene (box filter, same max depth, "
              f"`{REFERENCE_SAMPLER}` sampler), "
              f"{c.ref_spp} spp each to start, raised up to {c.reference_cap} within "
-             f"{'no time limit' if c.ref_seconds is None else f'{c.ref_seconds:g} s per scene'} (see Reference floor)"
+             f"{'no time limit' if c.ref_seconds is None else f'{c.ref_seconds:g} s of new rendering per scene'} "
+             "(see Reference floor)"
              + (" (--quick)" if c.quick else ""),
              f"- Tables at {c.crop_spp} spp; Poisson α = {c.alpha:g}", "",
              "| scene | spec | max depth | layers |", "|---|---|---|---|"]
@@ -481,8 +482,9 @@ def _floors(evaluation: Evaluation) -> list[str]:
              "would score against one of them, estimated as RelMSE(r1, r2) / 2 (normalised by the mean of the "
              "two): what a one-reference evaluation would add to every error. The product estimator used for "
              "every RelMSE here removes it in expectation; the references are still raised (doubling, cached "
-             f"passes re-used, from {c.ref_spp} up to {c.reference_cap} spp each, and only while both together "
-             f"render within {'any time' if c.ref_seconds is None else f'{c.ref_seconds:g} s'}) until the floor "
+             f"passes re-used, from {c.ref_spp} up to {c.reference_cap} spp each, and only while the passes not yet "
+             f"cached render within {'any time' if c.ref_seconds is None else f'{c.ref_seconds:g} s'}) until "
+             "the floor "
              "is under "
              f"{FLOOR_FRACTION:.0%} of the scene's smallest ranked RelMSE (over every method and spp).", "",
              "| Scene | spp per reference | floor (total) | floor direct | floor indirect | smallest ranked RelMSE | "

@@ -377,7 +377,8 @@ def _converge_references(runner: _Runner, scene: SceneRun, source: ReferenceSour
         following = next_reference_spp(spp, floor, smallest, FLOOR_FRACTION, config.reference_cap,
                                        step=config.ref_spp)
         if following is not None and config.ref_seconds is not None:
-            following = _within_time(spp, following, pair.seconds, config.ref_seconds, step=config.ref_spp)
+            following = _within_time(spp, following, pair.seconds, config.ref_seconds, step=config.ref_spp,
+                                     to_render=source.passes_to_render)
         if following is None:
             break
         runner.log(f"{scene.entry.name}: reference floor {floor:.3g} at {spp} spp is over "
@@ -390,24 +391,34 @@ def _converge_references(runner: _Runner, scene: SceneRun, source: ReferenceSour
     scene.capped = not (smallest > 0 and scene.floor["total"] <= FLOOR_FRACTION * smallest)
     if scene.capped:
         scene.cap_reason = (f"the spp cap ({config.reference_cap} spp each)" if spp >= config.reference_cap else
-                            f"the time budget ({config.ref_seconds:g} s for both references; "
-                            f"{2 * spp} spp took {pair.seconds:.0f} s)")
+                            f"the time budget ({config.ref_seconds:g} s of new reference rendering per scene; "
+                            f"{2 * spp} spp were recorded at {pair.seconds:.0f} s)")
     scene.reference_seconds = pair.seconds
     return pair
 
 
-def _within_time(spp: int, wanted: int, seconds: float, budget: float, step: int | None = None) -> int | None:
-    """The largest spp up to ``wanted`` whose predicted render time (both references, linear in spp from the
-    ``seconds`` the current ``spp`` took) fits ``budget``: a power-of-two multiple of ``spp`` (``step`` None)
-    or a multiple of ``step`` (the pass spp); None when nothing above ``spp`` fits."""
+def _within_time(spp: int, wanted: int, seconds: float, budget: float, step: int | None = None,
+                 to_render: Callable[[int], int] | None = None) -> int | None:
+    """The largest spp up to ``wanted`` whose new rendering (both references) is predicted to fit ``budget``
+    seconds: a power-of-two multiple of ``spp`` (``step`` None) or a multiple of ``step`` (the pass spp); None
+    when nothing above ``spp`` fits. Render time is predicted linearly in spp from the ``seconds`` the current
+    ``spp`` took. With ``to_render`` (spp -> passes of that level not in the cache yet, ``step`` given), only
+    those count: passes already cached (a farm's shards, an earlier run) cost this run nothing, whatever time
+    they were recorded with; without it every pass above the current ``spp`` is new."""
     if not (seconds > 0 and math.isfinite(seconds)):
         return wanted  # no timing recorded: the spp cap alone decides
     if step is not None:
-        level = min(wanted, int(budget * spp / seconds) // step * step)
-        return level if level > spp else None
+        per_pass = seconds / (2 * spp / step)  # both references: two passes per step
+        level = wanted // step * step
+        while level > spp:
+            new = to_render(level) if to_render is not None else 2 * (level - spp) // step
+            if new * per_pass <= budget:
+                return level
+            level -= step
+        return None
     best = None
     level = spp * 2
-    while level <= wanted and seconds * level / spp <= budget:
+    while level <= wanted and seconds * (level - spp) / spp <= budget:
         best = level
         level *= 2
     return best

@@ -16,9 +16,10 @@ NVIDIA reference solver (Kettunen et al. 2015) α multiplies the *residual*, so 
   per-term weights ``w = 1/(‖e‖_RGB + reg)`` normalised to mean 1 and ``reg = reg_init · reg_decay^(k−1)``.
   Each weighted system is solved by conjugate gradients warm-started from the previous iterate; unlike the
   reference we precondition CG with the DCT solve of the unweighted system, rescaled to the weights' diagonal:
-  4 such steps per pass reach the image quality the reference gets from 50 unpreconditioned ones, and 10 passes
-  (L1_PASSES; the reference runs 20) a lower RelMSE on rendered frames at half the cost (docs/poisson.md has the
-  measurements). ``preconditioner="mg"`` is an aggregation-multigrid V-cycle instead (compiled kernels): it
+  4 such steps per pass reach the image quality the reference gets from 50 unpreconditioned ones, and the default
+  budget of L1_PASSES = 8 passes of L1_CG_STEPS = 2 steps (the reference runs 20 passes) the same mean RelMSE on
+  held-out rendered frames at about a fifth of the old 20 x 4 cost (docs/poisson.md has the measurements).
+  ``preconditioner="mg"`` is an aggregation-multigrid V-cycle instead (compiled kernels): it
   solves each pass far more exactly per step, which on rendered frames moved the image *further* from the
   reference (the truncated DCT-PCG regularises), so it stays opt-in.
 
@@ -28,7 +29,7 @@ from the divergence, whose DC is zero analytically but rounding noise numericall
 IRLS starts from that float64 solution and iterates in float32 on inputs scaled to max |value| = 1 (no overflow,
 no subnormals), or in float64 when α < FLOAT32_MIN_ALPHA; CG inner products are BLAS dots (~1e-7 relative).
 Exact input data is recovered to ~1e-7 of the image's peak by both solvers. IRLS is run to a fixed budget (as
-the reference), not to convergence: with the default 4 CG steps per pass the L1 energy lands within ~0.2% of
+the reference), not to convergence: with 4 CG steps per pass the L1 energy lands within ~0.2% of
 the reference preset's on noisy renders; a single outlier of 1e6 in a gradient is reduced ~40x against L2 but
 needs ``cg_iterations`` ≈ 50 to vanish entirely.
 Results are returned as float32 (the frame format's precision) unless ``dtype=np.float64`` is asked for.
@@ -49,7 +50,7 @@ import scipy.fft
 from model import kernels
 from model.policy import DEFAULT_ALPHA
 
-__all__ = ["L1_PASSES", "MIN_ALPHA", "L1Stats", "energy_l1", "energy_l2", "solve_l1", "solve_l2"]
+__all__ = ["L1_CG_STEPS", "L1_PASSES", "MIN_ALPHA", "L1Stats", "energy_l1", "energy_l2", "solve_l1", "solve_l2"]
 
 #: Smallest accepted α. Below ~1e-154 α² underflows to 0 in float64 and the constant mode (eigenvalue α²) is
 #: undetermined; well before that the data term stops meaning anything. Down to 1e-12 both solvers still
@@ -499,11 +500,14 @@ def _pcg(
 
 
 PRECONDITIONERS = ("dct", "mg", "jacobi", "none")
-#: IRLS passes of the ``l1`` method (pass 0, the exact L2 start, included). The reference solver's preset runs
-#: 20; on rendered frames 10 passes of 4 DCT-PCG steps gave a RelMSE 5 % lower on average (at most 1.7 % higher
-#: on any of 32 layers) at half the cost: the later passes, at ever smaller reg, fit the noise's gradients more
-#: closely rather than the image (docs/poisson.md, benchmarks/l1_budgets.py).
-L1_PASSES = 10
+#: IRLS passes of the ``l1`` method (pass 0, the exact L2 start, included) and DCT-PCG steps per pass. The
+#: reference solver's preset runs 20 passes of 50 plain CG steps. 10 x 4 (issue 15, round 1) became 8 x 2 in
+#: round 3: 0.47x the time of a 720p layer at the same mean RelMSE on 64 held-out rendered layers (geometric-mean
+#: ratio 0.914; 35 layers >10 % better, 9 >10 % worse, worst 2.3x on high-contrast direct layers) and the same
+#: RelMSE on the synthetic benchmark frame (docs/poisson.md "Round 3", benchmarks/l1_budgets.py --study). The
+#: truncated CG regularises: more steps or passes are not uniformly better on rendered frames.
+L1_PASSES = 8
+L1_CG_STEPS = 2
 # IRLS iterates in float32 (half the memory traffic, 3-4x faster DCTs) unless α is small: the constant mode's
 # eigenvalue is ~α², so float32 rounding lets the image mean drift by ~eps32/α² (4e-6 relative at α = 1e-4,
 # 2e-8 at 1e-2, measured); below this threshold the iteration runs in float64.
@@ -519,7 +523,7 @@ def solve_l1(
     *,
     reg_init: float = 0.05,
     reg_decay: float = 0.5,
-    cg_iterations: int = 4,
+    cg_iterations: int = L1_CG_STEPS,
     cg_tolerance: float = 1e-3,
     preconditioner: str = "dct",
     dtype=np.float32,

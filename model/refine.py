@@ -45,9 +45,17 @@ REFINE_ITERATIONS = 8
 #: oidn-l1 method"): RelMSE / oidn 0.768 (worst 1.02, 31/32 better) against 0.773 (1.03, 30/32) for the former
 #: 4 DCT-preconditioned steps, at 0.89 s instead of 1.06 s per 1280x720 layer (study_refine.py time, same run).
 #: Fewer passes or one V-cycle per pass were cheaper still (0.58-0.60 s) but 3-7 % worse on average and up to
-#: 2.7x oidn's error on single frames.
+#: 2.7x oidn's error on single frames. Since issue 14's tolerance rule below, this fixed budget is used only when
+#: REFINE_CG_TOLERANCE is None (it under-converged on some frames: cbox 64 spp).
 REFINE_CG_STEPS = 2
 REFINE_PRECONDITIONER = "mg"
+#: The default solve's CG rule (issue 14, since the fixed 2 steps under-converged on some frames): each IRLS pass
+#: takes V-cycle-preconditioned CG steps until the residual fell to REFINE_CG_TOLERANCE of the pass's start, at most
+#: REFINE_MAX_CG_STEPS. Relative, so scene- and exposure-independent. Chosen on the held-out study (docs/network.md
+#: "The oidn-l1 method", benchmarks/study_refine.py error --family tolerance). Callers that pass ``cg_steps`` (the
+#: fused models, pinned to what they were trained with) keep the fixed-budget solve: solve_l1's own tolerance.
+REFINE_CG_TOLERANCE: float | None = 0.1
+REFINE_MAX_CG_STEPS = 8
 #: Start the IRLS from OIDN's image instead of the exact L2 solve. Measured and rejected: the first weights then
 #: come from OIDN's image, whose smoothed edges the L1 norm keeps, so less of the gradients' detail returns
 #: (0.81 at 8 passes, 0.89 at 3, against 0.77 from the L2 start); never worse than oidn, though (worst 0.98).
@@ -56,20 +64,32 @@ REFINE_WARM_START = False
 _F32_MAX = float(np.finfo(np.float32).max)
 
 
+def _cg_budget(cg_steps: int | None, cg_tolerance: float | None) -> dict:
+    """solve_l1's CG keywords for refine_layer's arguments (module settings read at call time)."""
+    if cg_steps is not None:  # the pinned fixed budget; a tolerance only if one is asked for
+        return {"cg_iterations": cg_steps} | ({} if cg_tolerance is None else {"cg_tolerance": cg_tolerance})
+    tolerance = REFINE_CG_TOLERANCE if cg_tolerance is None else cg_tolerance
+    if tolerance is None:  # no tolerance rule configured: the fixed REFINE_CG_STEPS of before
+        return {"cg_iterations": REFINE_CG_STEPS}
+    return {"cg_iterations": REFINE_MAX_CG_STEPS, "cg_tolerance": tolerance}
+
+
 def refine_layer(name: str, prior: np.ndarray, layer: Layer, alpha: float = REFINE_ALPHA, *,
-                 preconditioner: str | None = None, cg_steps: int | None = None) -> np.ndarray:
+                 preconditioner: str | None = None, cg_steps: int | None = None,
+                 cg_tolerance: float | None = None) -> np.ndarray:
     """``prior`` (OIDN's denoise of ``layer.base``) refined by the layer's gradients when ``name`` is one of
     REFINED_LAYERS and the layer carries gradients; otherwise ``prior`` unchanged. float32 (H, W, 3), ≥ 0.
     ``preconditioner``/``cg_steps`` select the solve (None: the module's REFINE_PRECONDITIONER / REFINE_CG_STEPS,
     read at call time, the ``oidn-l1`` method's; a model trained on refinements of another solve, such as the
-    fused models, passes the one it was trained with)."""
+    fused models, passes the one it was trained with). Without ``cg_steps`` each pass runs to the relative residual
+    ``cg_tolerance`` (None: REFINE_CG_TOLERANCE) in at most REFINE_MAX_CG_STEPS steps; with ``cg_steps`` and no
+    ``cg_tolerance`` the solve is the fixed budget of before (solve_l1's default tolerance), bit for bit."""
     if name not in REFINED_LAYERS or not layer.has_gradients:
         return prior
     scale = input_scale(prior)  # mean 1, as OIDN's own input is normalised; 1.0 for a black prior
     dx, dy = scaled_image(layer.dx, scale), scaled_image(layer.dy, scale)  # the base is not used: OIDN's is
     data = scaled_image(prior, scale)
-    solved, _ = solve_l1(data, dx, dy, alpha, REFINE_ITERATIONS,
-                         cg_iterations=REFINE_CG_STEPS if cg_steps is None else cg_steps,
+    solved, _ = solve_l1(data, dx, dy, alpha, REFINE_ITERATIONS, **_cg_budget(cg_steps, cg_tolerance),
                          preconditioner=preconditioner or REFINE_PRECONDITIONER,
                          initial=data if REFINE_WARM_START else None)
     out = np.asarray(solved, np.float64) / scale

@@ -67,6 +67,10 @@ NEAR_SPECULAR_PDF = 100.0
 # Lanes per pass: bounds the sampler state and the scatter traffic of one kernel launch (~16 B per lane).
 MAX_LANES_PER_PASS = 1 << 22
 
+# Trace the first vertex before the symbolic loop, where its depth is a literal 0 (see _run_loops; not in the
+# primal-only mode).
+PEEL_FIRST_VERTEX = True
+
 # Mitsuba's convention for an unbounded path length.
 UNBOUNDED = 0xFFFFFFFF
 
@@ -246,8 +250,9 @@ class Shift(Protocol):
         """Offset loop state for the offset's primary ray (``active`` is False outside the image)."""
 
     def step(self, scene: mi.Scene, offset: Any, base: Vertex, depth: mi.UInt32, max_depth: mi.UInt32,
-             samples: VertexSamples) -> tuple[Any, OffsetEvents]:
-        """Advance an offset path by the base path's vertex; returns the new state and its events."""
+             samples: VertexSamples, later: bool = False) -> tuple[Any, OffsetEvents]:
+        """Advance an offset path by the base path's vertex; returns the new state and its events. ``later``: the
+        caller knows the vertex is not the first (depth >= 1), so primary-ray code may be left out."""
 
     def scale(self, offset: Any, factor: mi.Float, active: mi.Bool) -> Any:
         """Multiply the offset's throughput by ``factor`` where ``active`` (Russian roulette of the base)."""
@@ -692,14 +697,29 @@ def _run_loops(k: PassKernel, s: LoopState) -> LoopState:
     shift = k.shift
 
     def loop(state: LoopState, cond: Callable[[LoopState], mi.Bool], step_offset: OffsetStep,
-             label: str) -> LoopState:
-        (state,) = dr.while_loop(state=(state,), cond=cond, body=lambda st: (_vertex(k, st, step_offset),),
+             label: str, peel: bool = False, step_later: OffsetStep | None = None) -> LoopState:
+        if peel:
+            # The first vertex outside the symbolic loop (same kernel): its depth is the literal 0 there, so
+            # everything the shift does only after the primary ray (transitions, replays, reconnection rays, BSDF
+            # calls masked by ``depth > 0``) folds away instead of running masked in every SIMD packet; inside
+            # the loop every vertex is a later one (``step_later``: the primary-ray code folds away there).
+            state = _vertex(k, state, step_offset)
+        body_step = step_later if peel and step_later is not None else step_offset
+        (state,) = dr.while_loop(state=(state,), cond=cond, body=lambda st: (_vertex(k, st, body_step),),
                                  label=label)
         return state
+
+    # The primal-only mode's loop is not peeled: its small body gains nothing and the larger kernel measured
+    # 5-10 % slower (benchmarks/ab_peel.py, docs/renderer.md).
+    peel = PEEL_FIRST_VERTEX and shift is not None
 
     def full_step(off: Any, v: Vertex, depth: mi.UInt32, samples: VertexSamples) -> tuple[Any, OffsetEvents]:
         assert shift is not None  # only called for offsets, which exist only with a shift
         return shift.step(k.scene, off, v, depth, k.max_depth, samples)
+
+    def later_step(off: Any, v: Vertex, depth: mi.UInt32, samples: VertexSamples) -> tuple[Any, OffsetEvents]:
+        assert shift is not None
+        return shift.step(k.scene, off, v, depth, k.max_depth, samples, later=True)
 
     def base_alive(st: LoopState) -> mi.Bool:
         return st.base.active
@@ -707,7 +727,7 @@ def _run_loops(k: PassKernel, s: LoopState) -> LoopState:
     if k.settings.gradients == "direct" and shift is not None:
         return _run_direct_gradient_loops(k, s, loop, base_alive)
     if not isinstance(shift, ConnectingShift):
-        return loop(s, base_alive, full_step, "gpt")
+        return loop(s, base_alive, full_step, "gpt", peel=peel, step_later=later_step)
 
     def unsettled(st: LoopState) -> mi.Bool:
         settled = mi.Bool(True)
@@ -718,12 +738,12 @@ def _run_loops(k: PassKernel, s: LoopState) -> LoopState:
     def connected_step(off: Any, v: Vertex, depth: mi.UInt32, samples: VertexSamples) -> tuple[Any, OffsetEvents]:
         return shift.step_connected(off, v, depth, k.max_depth)
 
-    s = loop(s, unsettled, full_step, "gpt")
+    s = loop(s, unsettled, full_step, "gpt", peel=peel, step_later=later_step)
     s.offsets = [shift.summarize(off) for off in s.offsets]
     return loop(s, base_alive, connected_step, "gpt_connected")
 
 
-LoopRunner = Callable[[LoopState, Callable[[LoopState], Any], OffsetStep, str], LoopState]  # (state, cond, step, label)
+LoopRunner = Callable[..., LoopState]  # (state, cond, step, label, peel=False)
 
 
 def _run_direct_gradient_loops(k: PassKernel, s: LoopState, loop: LoopRunner,
@@ -749,13 +769,16 @@ def _run_direct_gradient_loops(k: PassKernel, s: LoopState, loop: LoopRunner,
     def direct_step(off: Any, v: Vertex, depth: mi.UInt32, samples: VertexSamples) -> tuple[Any, OffsetEvents]:
         return shift.step(k.scene, off, v, depth, offset_max_depth, samples)
 
+    def direct_later(off: Any, v: Vertex, depth: mi.UInt32, samples: VertexSamples) -> tuple[Any, OffsetEvents]:
+        return shift.step(k.scene, off, v, depth, offset_max_depth, samples, later=True)
+
     def direct_vertices(st: LoopState) -> mi.Bool:
         return st.base.active & (st.depth < vertices)
 
     def no_offsets(*_: Any) -> tuple[Any, OffsetEvents]:
         raise AssertionError("no offsets are traced past the direct layer's vertices")
 
-    s = loop(s, direct_vertices, direct_step, "gpt_direct")
+    s = loop(s, direct_vertices, direct_step, "gpt_direct", peel=PEEL_FIRST_VERTEX, step_later=direct_later)
     s.offsets = []
     return loop(s, base_alive, no_offsets, "gpt_base")
 

@@ -53,7 +53,7 @@ class ReplayShift:
         return PathState.start(ray, weight, active)
 
     def step(self, scene: mi.Scene, offset: PathState, base: Vertex, depth: mi.UInt32, max_depth: mi.UInt32,
-             samples: VertexSamples) -> tuple[PathState, OffsetEvents]:
+             samples: VertexSamples, later: bool = False) -> tuple[PathState, OffsetEvents]:
         offset, v = trace_vertex(scene, offset, depth, max_depth, samples)
         events = OffsetEvents(
             emitted=v.emitted,
@@ -606,11 +606,12 @@ class HybridShift:
         return mi.Bool(ok), mi.Vector3f(tr.direction), mi.Float(conv), mi.Spectrum(weight), mi.Vector3f(tr.reflected)
 
     def step(self, scene: mi.Scene, off: HybridState, base: Vertex, depth: mi.UInt32, max_depth: mi.UInt32,
-             samples: VertexSamples) -> tuple[HybridState, OffsetEvents]:
+             samples: VertexSamples, later: bool = False) -> tuple[HybridState, OffsetEvents]:
         """Advance the offset by the base path's vertex ``x_{k+1}`` (``base``): choose the strategy, make the
-        transition, arrive, and evaluate the offset's two events there."""
+        transition, arrive, and evaluate the offset's two events there. ``later``: the vertex is known not to be
+        the first, so the primary-ray case is a literal False (its code folds away)."""
         use_copy, use_follow, use_manifold = self._features(scene)
-        st = self._choose(off, base, depth, use_follow, use_manifold, use_copy)
+        st = self._choose(off, base, depth, use_follow, use_manifold, use_copy, later)
         tr = self._transition(scene, off, base, st, use_copy, use_manifold)
         own = self._trace_own(scene, off, base, st, tr, depth, use_copy, use_follow)
         at = self._arrive(off, base, st, tr, own, use_manifold)
@@ -633,11 +634,11 @@ class HybridShift:
         return new, OffsetEvents(emitted=emitted, nee=nee, w_hit=w_hit, w_nee=w_nee)
 
     def _choose(self, off: HybridState, base: Vertex, depth: mi.UInt32, use_follow: bool, use_manifold: bool,
-                use_copy: bool) -> Strategy:
+                use_copy: bool, later: bool = False) -> Strategy:
         """The strategy out of ``y_k``. Every condition is a symmetric function of the pair (base vertex x_k,
         offset vertex y_k) and of the path being shifted, so the shift back from the offset's own base path
         chooses the same strategy."""
-        first = depth == 0
+        first = mi.Bool(False) if later else depth == 0
         active = mi.Bool(off.active)
         status = mi.UInt32(off.status)
         base_valid = base.si.is_valid()

@@ -100,11 +100,52 @@ def test_reference_spp_schedule_in_whole_passes():
 def test_reference_time_budget_limits_the_raise():
     from evaluation.run import _within_time
 
-    # 512 spp took 20 s for both references: 4096 would take 160 s
+    # 512 spp took 20 s for both references: 4096 would add 140 s of new rendering
     assert _within_time(512, 4096, seconds=20.0, budget=240.0) == 4096
-    assert _within_time(512, 4096, seconds=20.0, budget=100.0) == 2048  # 80 s fits, 160 s does not
-    assert _within_time(512, 4096, seconds=200.0, budget=240.0) is None  # not even a doubling fits
+    assert _within_time(512, 4096, seconds=20.0, budget=100.0) == 2048  # 60 s more fits, 140 s does not
+    assert _within_time(512, 4096, seconds=200.0, budget=100.0) is None  # not even a doubling fits
     assert _within_time(512, 1024, seconds=float("nan"), budget=1.0) == 1024  # no timing: the cap decides
-    # in whole passes: 512 spp took 20 s, 100 s fit 2560 spp = 5 passes
-    assert _within_time(512, 4096, seconds=20.0, budget=100.0, step=512) == 2560
-    assert _within_time(512, 4096, seconds=20.0, budget=30.0, step=512) is None  # 1024 would take 40 s
+    # in whole passes (10 s each, two per step): 100 s buy 10 new passes, so 3072 spp
+    assert _within_time(512, 4096, seconds=20.0, budget=100.0, step=512) == 3072
+    assert _within_time(512, 4096, seconds=20.0, budget=15.0, step=512) is None  # 1024 would add 20 s
+
+
+def test_reference_time_budget_counts_only_passes_not_yet_cached():
+    from evaluation.run import _within_time
+
+    cached = 6  # passes 0..5 are in the cache (a farm's shards or an earlier run): 1536 spp each is free
+    to_render = lambda spp: max(0, 2 * spp // 512 - cached)  # noqa: E731
+    assert _within_time(512, 4096, seconds=20.0, budget=0.5, step=512, to_render=to_render) == 1536
+    assert _within_time(512, 4096, seconds=20.0, budget=20.0, step=512, to_render=to_render) == 2048
+    assert _within_time(512, 1024, seconds=20.0, budget=0.5, step=512, to_render=lambda spp: 0) == 1024
+    assert _within_time(512, 4096, seconds=20.0, budget=0.5, step=512, to_render=lambda spp: 2) is None
+
+
+
+
+def test_reference_source_counts_the_passes_still_to_render(tmp_path):
+    """The budget's input: a pass in the cache (written by this or an earlier run, or a farm shard) is not new."""
+    from evaluation.cache import EvalCache
+    from evaluation.references import ReferenceSource
+    from renderer.reference import Reference
+
+    rendered: list[int] = []
+
+    def render_pass(spp: int, seed: int) -> Reference:
+        rendered.append(seed)
+        image = np.full((2, 3, 3), 0.5, np.float32)
+        return Reference(image, image.copy(), None, {"gradsep.render_seconds": "1.0"})
+
+    key = {"scene": "toy", "size": [3, 2], "seed": 0}
+
+    def source() -> ReferenceSource:
+        return ReferenceSource(EvalCache(tmp_path), "toy", key, 4, render_pass, lambda message: None)
+
+    first = source()
+    assert first.passes_to_render(8) == 4 and not first.cached(0)
+    first.pair(4)  # passes 0 and 1
+    assert len(rendered) == 2 and first.passes_to_render(4) == 0 and first.passes_to_render(8) == 2
+    again = source()  # a later run on the same cache: the files count as cached
+    assert again.cached(1) and not again.cached(2) and again.passes_to_render(12) == 4
+    again.pair(4)
+    assert len(rendered) == 2  # nothing re-rendered

@@ -96,3 +96,50 @@ def test_tiny_and_black_frames_stay_finite(shape: tuple[int, int]) -> None:
     bright = np.full((h, w, 3), 3.0, np.float32)
     out = refine_layer("direct", bright, _layer_of(bright))
     np.testing.assert_allclose(out, bright, rtol=1e-5)
+
+
+def _old_refine(prior: np.ndarray, layer: Layer, preconditioner: str, cg_steps: int) -> np.ndarray:
+    """refine_layer's solve as it was before the tolerance rule (issue 14), written out: what the fused models
+    were trained on, so a call pinned to (preconditioner, cg_steps) must still give exactly this."""
+    from model import refine
+    from model.oidn import input_scale
+    from model.poisson import solve_l1
+    from model.preprocess import scaled_image
+
+    scale = input_scale(prior)
+    data = scaled_image(prior, scale)
+    solved, _ = solve_l1(data, scaled_image(layer.dx, scale), scaled_image(layer.dy, scale), refine.REFINE_ALPHA,
+                         refine.REFINE_ITERATIONS, cg_iterations=cg_steps, preconditioner=preconditioner)
+    return np.clip(np.asarray(solved, np.float64) / scale, 0.0, np.finfo(np.float32).max).astype(np.float32)
+
+
+@pytest.mark.parametrize(("preconditioner", "cg_steps"), [("dct", 4), ("mg", 2)])
+def test_a_pinned_budget_gives_the_fixed_solve_bit_for_bit(preconditioner: str, cg_steps: int) -> None:
+    truth = _sharp(40, 56, 4)
+    prior, layer = _blur(truth), _layer_of(truth, noise=0.05, seed=5)
+    out = refine_layer("direct", prior, layer, preconditioner=preconditioner, cg_steps=cg_steps)
+    assert np.array_equal(out, _old_refine(prior, layer, preconditioner, cg_steps))
+
+
+def test_the_default_solve_runs_each_pass_to_the_tolerance(monkeypatch: pytest.MonkeyPatch) -> None:
+    from model import refine
+
+    seen = []
+    real = refine.solve_l1
+
+    def spy(*args, **kwargs):
+        image, stats = real(*args, **kwargs)
+        seen.append(stats)
+        return image, stats
+
+    monkeypatch.setattr(refine, "solve_l1", spy)
+    truth = _sharp(40, 56, 6) ** 4  # high contrast: some passes need more than the old 2 steps
+    out = refine_layer("direct", _blur(truth), _layer_of(truth, noise=0.05, seed=7))
+    (stats,) = seen
+    assert refine.REFINE_CG_TOLERANCE is not None
+    for steps, residual in zip(stats.cg_iterations[1:], stats.cg_residuals[1:], strict=True):
+        assert residual <= refine.REFINE_CG_TOLERANCE or steps == refine.REFINE_MAX_CG_STEPS
+    assert stats.total_cg_iterations > 2 * (stats.iterations - 1)  # not the old fixed budget
+    explicit = refine_layer("direct", _blur(truth), _layer_of(truth, noise=0.05, seed=7),
+                            cg_steps=refine.REFINE_MAX_CG_STEPS, cg_tolerance=refine.REFINE_CG_TOLERANCE)
+    assert np.array_equal(out, explicit)

@@ -336,6 +336,34 @@ def test_direct_gradients_mode_is_the_full_renders_direct_layer(scene_name, shif
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize(("scene_name", "shift", "gradients"), [
+    ("cbox", "hybrid", "all"), ("cbox", "replay", "all"), ("cbox", "hybrid", "direct"), ("teapot", "hybrid", "all"),
+    ("teapot", "replay", "direct")])
+def test_first_vertex_before_the_loop_is_the_loops_first_iteration(monkeypatch, scene_name, shift, gradients):
+    """The first path vertex is traced before the symbolic loop (renderer.gpt.PEEL_FIRST_VERTEX), where its depth
+    is a literal and the shift's later-vertex code folds away: the frame is bit for bit the one the loop's first
+    iteration gives (primal, both layers' gradients, features), for both shifts and the direct-gradients mode
+    (the primal-only mode is not peeled)."""
+    import renderer.gpt as gpt
+
+    scene, depth = load_test_scene(scene_name), SCENE_DEPTHS[scene_name]
+    settings = GptSettings(max_depth=depth, gradients=gradients)
+    results = []
+    for peel in (True, False):
+        monkeypatch.setattr(gpt, "PEEL_FIRST_VERTEX", peel)
+        results.append(render_gpt(scene, make_shift(shift), settings, SIZE, SIZE, 5, 3))
+    peeled, in_loop = results
+    assert peeled.layers.keys() == in_loop.layers.keys()
+    for layer, images in peeled.layers.items():
+        assert images.keys() == in_loop.layers[layer].keys()
+        for key, image in images.items():
+            np.testing.assert_array_equal(image, in_loop.layers[layer][key], err_msg=f"{layer} {key}")
+    for key in ("albedo", "normal", "depth"):
+        np.testing.assert_array_equal(getattr(peeled, key), getattr(in_loop, key), err_msg=key)
+    assert np.abs(peeled.layers["direct"]["base"]).max() > 0
+
+
+@pytest.mark.slow
 @pytest.mark.parametrize("scene", ["cbox", "sky"])
 @pytest.mark.parametrize("axis", ["dx", "dy"])
 def test_direct_gradients_mode_is_unbiased(scene, axis):
