@@ -46,7 +46,8 @@ RADIANCE_MAX = 65504.0
 #: Depth clamp before per-frame normalisation (GradNet's 1e5): a far-away sky hit must not squash the rest.
 DEPTH_MAX = 1.0e5
 #: The Poisson prior the network refines: α as the `l1`/`l2` methods, and a truncated IRLS (5 passes of at most
-#: 2 CG steps instead of the `l1` method's 10 × 4), about 1/4 of its cost. On held-out procedural frames the
+#: 2 CG steps; the `l1` method ran 10 × 4 when the models were trained, 8 × 2 since issue 15's round 3), about 1/4
+#: of that cost. On held-out procedural frames the
 #: truncated solve scored the same or lower RelMSE than the converged one (docs/network.md).
 PRIOR_ALPHA = DEFAULT_ALPHA
 PRIOR_IRLS_PASSES = 5
