@@ -1,7 +1,7 @@
 """Held-out study of the ``fused`` method's designs (model/fused.py, docs/network.md "The fused method").
 
     python benchmarks/study_fused.py prepare                 # baselines + candidates of the held-out frames (cached)
-    python benchmarks/study_fused.py error RUNS...                # blend designs (training/fused.py run folders)
+    python benchmarks/study_fused.py error NAME=DIRECT,INDIRECT ...  # designs (run folders or candidate kinds)
     python benchmarks/study_fused.py error --models models --per-frame   # the shipped models/fused via reconstruct()
     python benchmarks/study_fused.py time [--models models]        # 1280x720 two-layer frame, in-process medians
 
@@ -11,8 +11,10 @@ at 1, 4, 16, 64 spp, two independent 1024-spp references each): neither evaluati
 (model.metrics.relmse_unbiased), as a ratio to ``oidn-l1`` (the default method) on the same frame; geometric mean
 over the 32 frames, the worst ratio, and the frames where the method is below ``oidn-l1`` per spp.
 
-A design ``RUNS`` entry is ``NAME=RUN_DIRECT,RUN_INDIRECT`` (two run folders of training/fused.py, evaluated from
-their PyTorch checkpoints on the cached candidates, the very arrays inference computes).
+A design entry is ``NAME=DIRECT,INDIRECT``: each a run folder of training/fused.py (its network, evaluated from the
+PyTorch checkpoint on the cached candidates, the very arrays inference computes, blends its candidates) or a
+candidate kind of model.fused.CANDIDATES (the layer is that candidate alone, no network: ``refine,RUN`` is the
+shipped design's shape). The candidates are cached per blend format (``*-cands2.npz``), the baselines once.
 """
 
 from __future__ import annotations
