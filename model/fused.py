@@ -106,18 +106,20 @@ def refine(kind: str, oidn: np.ndarray, scaled: Layer) -> np.ndarray:
 
 
 def layer_candidates(layer: Layer, aux: Any, kinds: tuple[str, ...] = CANDIDATES,
-                     denoiser: Any = None) -> tuple[Layer, list[np.ndarray], float]:
+                     denoiser: Any = None, denoised: np.ndarray | None = None) -> tuple[Layer, list[np.ndarray], float]:
     """(the layer at the normalised exposure, its candidates at that exposure (each (H, W, 3) float32, finite,
     in [0, RADIANCE_MAX]), the scale s). ``aux``: the frame's OIDN features for ``OIDN_SETTING``
     (``denoiser.prefilter(features)``), or None without features. OIDN runs once per layer; every kind is
-    computed from that one image."""
+    computed from that one image. ``denoised``: the layer's OIDN_SETTING image when the caller already has it
+    (a pipeline that denoises the next layer while this one is refined), so OIDN is not run twice."""
     from model.oidn import shared_denoiser
 
     unknown = [k for k in kinds if k not in CANDIDATES]
     if unknown:
         raise BlendModelError(f"unknown candidate kind(s) {unknown}; expected some of {', '.join(CANDIDATES)}")
-    den = denoiser or shared_denoiser(OIDN_SETTING)
-    denoised = den.denoise(layer.base, aux)  # scale-invariant: OIDN's input is normalised to mean 1
+    if denoised is None:
+        den = denoiser or shared_denoiser(OIDN_SETTING)
+        denoised = den.denoise(layer.base, aux)  # scale-invariant: OIDN's input is normalised to mean 1
     scale = prior_exposure(denoised)
     scaled = scaled_layer(layer, scale)
     oidn = scaled_image(denoised, scale)
@@ -304,8 +306,10 @@ class FusedReconstructor:
             m.weights(np.zeros((data_channels(k), size, size), np.float32), np.zeros((6, size, size), np.float32))
         return time.perf_counter() - start
 
-    def reconstruct_layer(self, name: str, layer: Layer, features: Features | None, aux: Any = None) -> np.ndarray:
-        """(H, W, 3) float32 >= 0: the blend of the layer's candidates with the model's per-pixel weights."""
+    def reconstruct_layer(self, name: str, layer: Layer, features: Features | None, aux: Any = None,
+                          denoised: np.ndarray | None = None) -> np.ndarray:
+        """(H, W, 3) float32 >= 0: the blend of the layer's candidates with the model's per-pixel weights.
+        ``denoised``: the layer's OIDN image (OIDN_SETTING) if the caller computed it already."""
         if features is None:
             raise BlendModelError("the fused method needs the frame's feature channels")
         if aux is None:
@@ -313,9 +317,9 @@ class FusedReconstructor:
 
             aux = shared_denoiser(OIDN_SETTING).prefilter(features)
         if name in self.fixed:  # no network for this layer: its one candidate, back at the frame's exposure
-            _, (image,), scale = layer_candidates(layer, aux, (self.fixed[name],))
+            _, (image,), scale = layer_candidates(layer, aux, (self.fixed[name],), denoised=denoised)
             return blend(np.ones((1, *image.shape[:2]), np.float32), [image], scale)
         model = self.models[name]
-        scaled, cands, scale = layer_candidates(layer, aux, model.candidates)
+        scaled, cands, scale = layer_candidates(layer, aux, model.candidates, denoised=denoised)
         data, gradient = blend_inputs(scaled, cands, features)
         return blend(model.weights(data, gradient), cands, scale)
