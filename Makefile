@@ -92,26 +92,23 @@ models: venv system-deps $(DATASET)/manifest.json
 	  done; done ) & p1=$$!; \
 	wait $$p0 && wait $$p1
 
-# The fused method's two blend models by one command (docs/network.md, "The fused method"): the same Noise2Noise
-# dataset; every training frame's candidates computed once into runs/fused-cache (model.fused.layer_candidates,
-# as inference computes them); then each layer's blend network trained for MINUTES_FUSED, the two layers side by
-# side on one core each, and exported. Writes $(MODELS_OUT)/fused/{direct,indirect}.onnx; copy them to
-# models/fused/ to serve them. The run folders resume: re-running with a larger MINUTES_FUSED continues them.
+# The fused method's blend model by one command (docs/network.md, "The fused method"): the same Noise2Noise dataset;
+# every training frame's candidates computed once into runs/fused-cache (model.fused.layer_candidates, as inference
+# computes them); then the indirect layer's blend network trained for MINUTES_FUSED on one core and exported. The
+# direct layer has no model: the method serves it with its refine candidate (model.fused.FIXED_LAYERS, chosen on the
+# held-out study). Writes $(MODELS_OUT)/fused/indirect.onnx; copy it to models/fused/ to serve it. The run folder
+# resumes: re-running with a larger MINUTES_FUSED continues it.
 MINUTES_FUSED    ?= 15
-FUSED_CANDIDATES ?= oidn,refine
-FUSED_PY0 = OMP_NUM_THREADS=1 taskset -c 0 $(BIN)/python -m training.fused
-FUSED_PY1 = OMP_NUM_THREADS=1 taskset -c 1 $(BIN)/python -m training.fused
+FUSED_CANDIDATES ?= oidn,refine-fast
+FUSED_PY = OMP_NUM_THREADS=1 taskset -c 0 $(BIN)/python -m training.fused
 fused-models: venv system-deps $(DATASET)/manifest.json
 	$(BIN)/pip install -q -e '.[test]'
 	mkdir -p $(MODELS_OUT)/fused
 	$(BIN)/python -m training.fused cache --data $(DATASET) -o runs/fused-cache
-	( $(FUSED_PY0) train --cache runs/fused-cache --layer direct --candidates $(FUSED_CANDIDATES) \
-	    --minutes $(MINUTES_FUSED) -o runs/fused-blend-direct && \
-	  $(FUSED_PY0) export runs/fused-blend-direct -o $(MODELS_OUT)/fused/direct.onnx ) & p0=$$!; \
-	( $(FUSED_PY1) train --cache runs/fused-cache --layer indirect --candidates $(FUSED_CANDIDATES) \
-	    --minutes $(MINUTES_FUSED) -o runs/fused-blend-indirect && \
-	  $(FUSED_PY1) export runs/fused-blend-indirect -o $(MODELS_OUT)/fused/indirect.onnx ) & p1=$$!; \
-	wait $$p0 && wait $$p1
+	$(FUSED_PY) train --cache runs/fused-cache --layer indirect --candidates $(FUSED_CANDIDATES) \
+	    --minutes $(MINUTES_FUSED) -o runs/fused-blend-indirect
+	$(FUSED_PY) export runs/fused-blend-indirect -o $(MODELS_OUT)/fused/indirect.onnx
+	rm -f $(MODELS_OUT)/fused/direct.onnx
 
 lint: venv
 	$(BIN)/ruff check .

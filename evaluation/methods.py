@@ -18,7 +18,8 @@ Every method produces (image, per-layer images where it has them, render seconds
                             solve with OIDN's image as the data term, model/refine.py;
                             ``reconstruct(frame, "oidn-l1")``), on the ``--gradients direct`` render of the same
                             seed (the same direct layer and indirect base; no indirect offsets traced)
-``fused``                   the fused network of ``models/fused/<layer>.onnx`` (``reconstruct(frame, "fused",
+``fused``                   the fused blend of ``models/fused/<layer>.onnx`` (the indirect layer's; the direct layer
+                            needs none, model.fused.FIXED_LAYERS) (``reconstruct(frame, "fused",
                             fused=...)``); skipped, listing the missing files, without them
 ``path``                    Mitsuba's own ``path`` integrator at *equal time* (below)
 ``path-oidn``               ``path`` denoised by Intel Open Image Denoise (model/oidn.py) with albedo and normal
@@ -114,8 +115,10 @@ class MethodSpec:
 
     def model_names(self, layers: tuple[str, ...]) -> tuple[str, ...]:
         """The model files (``NAME.onnx``) this method needs for a frame with ``layers``."""
-        if self.kind == "fused":
-            return tuple(layers)
+        if self.kind == "fused":  # the layers model.fused serves with one candidate alone need no file
+            from model.fused import FIXED_LAYERS
+
+            return tuple(name for name in layers if name not in FIXED_LAYERS)
         if self.kind != "network":
             return ()
         return tuple(layers) if self.separated else ("color",)

@@ -4,13 +4,18 @@ The paper's dual-branch CBAM network (model/blend_net.py: the same encoders, bot
 as model/network.py) sees K *candidate* reconstructions of a layer side by side and predicts, per pixel, softmax
 weights over them; the output is the convex blend ``Σ_k w_k · candidate_k``. The candidates (``CANDIDATES``):
 
-* ``oidn``   -- OIDN's denoise of the base with the frame's albedo/normal (the ``oidn`` method's setting,
-  ``OIDN_SETTING``: raw features, quality fast);
-* ``refine`` -- that image refined by the layer's gradients: the L1 screened Poisson solve with OIDN's image
-  as the data term (model.refine.refine_layer, the ``oidn-l1`` method's second stage), computed for *every*
-  layer (``oidn-l1`` refines only the direct one; here the network decides where it helps);
-* ``l1``     -- the truncated robust Poisson solve of base + gradients the ``network`` method refines
-  (model.preprocess.poisson_prior).
+* ``oidn``        -- OIDN's denoise of the base with the frame's albedo/normal (the ``oidn`` method's setting,
+  ``OIDN_SETTING``: raw features, quality fast), computed once per layer; every other kind starts from it;
+* ``refine``      -- that image refined by the layer's gradients: the L1 screened Poisson solve with OIDN's image
+  as the data term (model/refine.py explains it), 8 IRLS passes of 2 multigrid V-cycles (the ``oidn-l1`` solve);
+* ``refine-fast`` -- the same problem solved cheaply (3 passes of 1 V-cycle, a quarter of the time): too rough
+  alone, but a candidate the network can weigh;
+* ``l1``          -- the truncated robust Poisson solve of base + gradients the ``network`` method refines
+  (model.preprocess.poisson_prior); kept for studies, not used by the shipped models (it lost badly).
+
+Per layer (chosen on held-out seeds, docs/network.md "The fused method"): the indirect layer is the learned blend
+of {oidn, refine-fast} (models/fused/indirect.onnx); the direct layer, where no learned blend beat it, is the
+``refine`` candidate alone (``FIXED_LAYERS``), so the network runs once per frame.
 
 A convex blend cannot leave the hull of its candidates: it never invents energy, never rings below 0 (every
 candidate is >= 0), and an untrained model (zero head) returns their plain average. The weights are computed
@@ -25,6 +30,7 @@ training cache (training/fused.py), so training and inference see identical numb
 from __future__ import annotations
 
 import json
+import logging
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -47,18 +53,31 @@ from model.preprocess import (
 )
 
 #: The candidate kinds a blend model may use (its metadata ``gradsep.candidates`` names its own, in order).
-CANDIDATES: tuple[str, ...] = ("oidn", "refine", "l1")
-#: The solve of the ``refine`` candidate: the one the shipped models' training candidates were computed with
-#: (DCT-preconditioned CG, 4 steps per IRLS pass; the ``oidn-l1`` method has since moved to the cheaper
-#: multigrid solve of about the same quality, docs/poisson.md), so inference feeds what training saw.
-REFINE_PRECONDITIONER = "dct"
-REFINE_CG_STEPS = 4
+CANDIDATES: tuple[str, ...] = ("oidn", "refine", "refine-fast", "l1")
+#: The refinement solves of the ``refine`` / ``refine-fast`` candidates: (IRLS passes, CG steps per pass), both
+#: multigrid-preconditioned (model.poisson.solve_l1), α = REFINE_ALPHA. Pinned here, not read from model/refine.py,
+#: because a model is trained on the numbers one solve gives: ``refine`` is the ``oidn-l1`` method's solve as chosen
+#: on the held-out study (8 passes of 2 V-cycles, 0.9 s per 1280x720 layer), ``refine-fast`` the cheap one
+#: (3 passes of 1 V-cycle, 0.21 s; alone 3-7 % worse than ``refine`` on that study, here the network weighs it).
+REFINE_SOLVES: dict[str, tuple[int, int]] = {"refine": (8, 2), "refine-fast": (3, 1)}
+REFINE_PRECONDITIONER = "mg"
+REFINE_ALPHA = 1.0
 #: The OIDN setting of the ``oidn``/``refine`` candidates (model.oidn.SETTINGS): the ``oidn`` method's default.
 OIDN_SETTING = "raw-fast"
-BLEND_FORMAT = "1"
+#: Layers the method serves with one candidate alone, no network, unless the models folder has a model for them.
+#: The direct layer is OIDN refined by its gradients (``refine``: the oidn-l1 method's image): on the held-out study
+#: (docs/network.md "The fused method") every learned blend for it was worse than that candidate alone (blend of
+#: oidn + refine: 1.01x refine's RelMSE on average, worst 1.36x; of oidn + refine-fast: 1.18x, worst 3.9x), while
+#: the indirect layer's blend of oidn + refine-fast earns 5 % (no fixed weighting of the two does: a plain 25/75
+#: average is 2.7x worse at worst). So the network runs where it pays, and once per frame.
+FIXED_LAYERS: dict[str, str] = {"direct": "refine"}
+#: "2": the refine candidates are the multigrid solves above (format "1" models were trained on a DCT solve).
+BLEND_FORMAT = "2"
 INPUT_NAMES = ("data", "gradient")
 OUTPUT_NAME = "weights"
 _F32_MAX = float(np.finfo(np.float32).max)
+
+log = logging.getLogger("gradsep.fused")
 
 
 class BlendModelError(ValueError):
@@ -70,19 +89,37 @@ def data_channels(k: int) -> int:
     return 3 + 3 * k + 7
 
 
+def refine(kind: str, oidn: np.ndarray, scaled: Layer) -> np.ndarray:
+    """OIDN's image refined by the layer's gradients with the ``kind`` solve of REFINE_SOLVES: the L1 screened
+    Poisson problem with OIDN's image as the data term (model/refine.py explains it), solved at mean 1 as
+    model.refine.refine_layer does, with this module's pinned passes and CG steps. (H, W, 3), finite."""
+    from model.oidn import input_scale
+    from model.poisson import solve_l1
+
+    passes, cg_steps = REFINE_SOLVES[kind]
+    if not scaled.has_gradients:
+        return oidn
+    s = input_scale(oidn)  # the IRLS regulariser is absolute: solve at mean 1, as refine_layer does
+    solved, _ = solve_l1(scaled_image(oidn, s), scaled_image(scaled.dx, s), scaled_image(scaled.dy, s),
+                         REFINE_ALPHA, passes, cg_iterations=cg_steps, preconditioner=REFINE_PRECONDITIONER)
+    return np.asarray(solved, np.float64) / s
+
+
 def layer_candidates(layer: Layer, aux: Any, kinds: tuple[str, ...] = CANDIDATES,
-                     denoiser: Any = None) -> tuple[Layer, list[np.ndarray], float]:
+                     denoiser: Any = None, denoised: np.ndarray | None = None) -> tuple[Layer, list[np.ndarray], float]:
     """(the layer at the normalised exposure, its candidates at that exposure (each (H, W, 3) float32, finite,
     in [0, RADIANCE_MAX]), the scale s). ``aux``: the frame's OIDN features for ``OIDN_SETTING``
-    (``denoiser.prefilter(features)``), or None without features."""
+    (``denoiser.prefilter(features)``), or None without features. OIDN runs once per layer; every kind is
+    computed from that one image. ``denoised``: the layer's OIDN_SETTING image when the caller already has it
+    (a pipeline that denoises the next layer while this one is refined), so OIDN is not run twice."""
     from model.oidn import shared_denoiser
-    from model.refine import refine_layer
 
     unknown = [k for k in kinds if k not in CANDIDATES]
     if unknown:
         raise BlendModelError(f"unknown candidate kind(s) {unknown}; expected some of {', '.join(CANDIDATES)}")
-    den = denoiser or shared_denoiser(OIDN_SETTING)
-    denoised = den.denoise(layer.base, aux)  # scale-invariant: OIDN's input is normalised to mean 1
+    if denoised is None:
+        den = denoiser or shared_denoiser(OIDN_SETTING)
+        denoised = den.denoise(layer.base, aux)  # scale-invariant: OIDN's input is normalised to mean 1
     scale = prior_exposure(denoised)
     scaled = scaled_layer(layer, scale)
     oidn = scaled_image(denoised, scale)
@@ -90,11 +127,8 @@ def layer_candidates(layer: Layer, aux: Any, kinds: tuple[str, ...] = CANDIDATES
     for kind in kinds:
         if kind == "oidn":
             image = oidn
-        elif kind == "refine":
-            # refine_layer refines the layers named in model.refine.REFINED_LAYERS; "direct" asks it to refine
-            # this layer whatever it is (the indirect layer's refinement is a candidate the network may reject)
-            image = refine_layer("direct", oidn, scaled, preconditioner=REFINE_PRECONDITIONER,
-                                     cg_steps=REFINE_CG_STEPS)
+        elif kind in REFINE_SOLVES:
+            image = refine(kind, oidn, scaled)
         else:
             image = poisson_prior(scaled)
         out.append(np.clip(np.nan_to_num(image, nan=0.0, posinf=RADIANCE_MAX, neginf=0.0), 0.0,
@@ -154,6 +188,7 @@ class BlendModel:
     session: Any
     candidates: tuple[str, ...]
     alignment: int
+    choice: Any = None  # model.infer.ProviderChoice: which execution provider serves it, in which precision
 
     def weights(self, data: np.ndarray, gradient: np.ndarray) -> np.ndarray:
         """(C, H, W) inputs of any size → (K, H, W) weights (padded to the alignment and cropped back)."""
@@ -177,26 +212,52 @@ def _check(path: Path, name: str, meta: dict[str, str]) -> tuple[tuple[str, ...]
         raise BlendModelError(f"{path}: unreadable gradsep.candidates / gradsep.alignment ({exc})") from exc
     if not kinds or any(k not in CANDIDATES for k in kinds):
         raise BlendModelError(f"{path}: candidates {kinds} are not a subset of {CANDIDATES}")
+    if meta.get("gradsep.format") != BLEND_FORMAT:
+        raise BlendModelError(f"{path}: blend model format {meta.get('gradsep.format')!r}, this code reads "
+                              f"{BLEND_FORMAT!r} (its candidates are computed differently); retrain it "
+                              "(make fused-models)")
     if meta.get("gradsep.oidn_setting") != OIDN_SETTING:
         raise BlendModelError(f"{path}: trained on OIDN setting {meta.get('gradsep.oidn_setting')!r}, this code "
                               f"computes {OIDN_SETTING!r}")
     return kinds, alignment
 
 
-def load_model(path: str | os.PathLike[str], name: str) -> BlendModel:
-    """Open one blend model with the service's ONNX Runtime settings; BlendModelError when unusable."""
+def _session(path: Path, choice: Any) -> Any:
     import onnxruntime as ort
 
     from model.infer import SessionSettings
 
-    path = Path(path)
     try:
-        session = ort.InferenceSession(str(path), SessionSettings().options(), providers=["CPUExecutionProvider"])
-    except Exception as exc:  # ORT's own exception types for corrupt files
-        raise BlendModelError(f"{path}: ONNX Runtime cannot load it ({exc})") from exc
+        return ort.InferenceSession(str(path), SessionSettings().options(), providers=choice.providers())
+    except Exception as exc:  # ORT's own exception types for corrupt files or a provider that refuses the graph
+        raise BlendModelError(f"{path}: ONNX Runtime cannot load it on the {choice.provider} provider ({exc})") from exc
+
+
+def load_model(path: str | os.PathLike[str], name: str) -> BlendModel:
+    """Open one blend model on the provider the ``network`` method's models use (model.infer.choose_provider:
+    OpenVINO in bf16 where the CPU has native bf16, else ORT's CPU provider in fp32; ``GRADSEP_ONNX_PROVIDER``
+    overrides), falling back to the CPU provider should the accelerated one fail; BlendModelError when unusable.
+    The weights only choose among candidates (the blend itself is float64 numpy), so bf16 moves them by about
+    1e-3 at most (benchmarks/study_fused.py time prints the parity)."""
+    import onnxruntime as ort
+
+    from model.infer import ProviderChoice, SessionSettings, choose_provider, cpu_flags
+
+    path = Path(path)
+    choice = choose_provider(SessionSettings().provider, ort.get_available_providers(), cpu_flags())
+    try:
+        session = _session(path, choice)
+    except BlendModelError as exc:
+        if choice.provider == "cpu":
+            raise
+        log.warning("%s; falling back to the ORT CPU provider", exc)
+        choice = ProviderChoice("cpu", "fp32", f"OpenVINO failed on this model ({exc})")
+        session = _session(path, choice)
     meta = dict(session.get_modelmeta().custom_metadata_map)
     kinds, alignment = _check(path, name, meta)
-    return BlendModel(name, path, meta, session, kinds, alignment)
+    log.info("fused model %s (%s): %s provider, %s (%s)", name, path.name, choice.provider, choice.precision,
+             choice.reason)
+    return BlendModel(name, path, meta, session, kinds, alignment, choice)
 
 
 class FusedReconstructor:
@@ -205,19 +266,22 @@ class FusedReconstructor:
     needs_aux = True
     oidn_setting = OIDN_SETTING
 
-    def __init__(self, models: dict[str, BlendModel]) -> None:
+    def __init__(self, models: dict[str, BlendModel], fixed: dict[str, str] | None = None) -> None:
         self.models = models
+        #: layers served by one candidate alone (FIXED_LAYERS), where the folder has no model for them
+        self.fixed = {n: k for n, k in (fixed or {}).items() if n not in models}
 
     @classmethod
     def load(cls, folder: str | os.PathLike[str]) -> FusedReconstructor | None:
+        """The models of ``folder`` plus FIXED_LAYERS; None when the folder holds no blend model at all."""
         folder = Path(folder)
         models = {n: load_model(folder / f"{n}.onnx", n) for n in ("direct", "indirect", "color")
                   if (folder / f"{n}.onnx").is_file()}
-        return cls(models) if models else None
+        return cls(models, FIXED_LAYERS) if models else None
 
     @property
     def layers(self) -> set[str]:
-        return set(self.models)
+        return set(self.models) | set(self.fixed)
 
     def describe(self) -> list[dict[str, Any]]:
         """One entry per model, with the keys of model.infer.LoadedModel.describe (the service's /v1/models)."""
@@ -228,8 +292,9 @@ class FusedReconstructor:
                             "candidates": list(m.candidates)},
                  "sha256": hashlib.sha256(m.path.read_bytes()).hexdigest(), "bytes": m.path.stat().st_size,
                  "attention": m.metadata.get("gradsep.attention") == "true", "prior": BLEND_PRIOR,
-                 "alignment": m.alignment, "provider": "cpu", "precision": "fp32",
-                 "provider_reason": "the fused blend models run on ORT's CPU provider",
+                 "alignment": m.alignment, "provider": getattr(m.choice, "provider", "cpu"),
+                 "precision": getattr(m.choice, "precision", "fp32"),
+                 "provider_reason": getattr(m.choice, "reason", "ORT CPU provider"),
                  "metadata": dict(m.metadata)} for m in self.models.values()]
 
     def warm_up(self, size: int = 64) -> float:
@@ -241,15 +306,20 @@ class FusedReconstructor:
             m.weights(np.zeros((data_channels(k), size, size), np.float32), np.zeros((6, size, size), np.float32))
         return time.perf_counter() - start
 
-    def reconstruct_layer(self, name: str, layer: Layer, features: Features | None, aux: Any = None) -> np.ndarray:
-        """(H, W, 3) float32 >= 0: the blend of the layer's candidates with the model's per-pixel weights."""
+    def reconstruct_layer(self, name: str, layer: Layer, features: Features | None, aux: Any = None,
+                          denoised: np.ndarray | None = None) -> np.ndarray:
+        """(H, W, 3) float32 >= 0: the blend of the layer's candidates with the model's per-pixel weights.
+        ``denoised``: the layer's OIDN image (OIDN_SETTING) if the caller computed it already."""
         if features is None:
             raise BlendModelError("the fused method needs the frame's feature channels")
-        model = self.models[name]
         if aux is None:
             from model.oidn import shared_denoiser
 
             aux = shared_denoiser(OIDN_SETTING).prefilter(features)
-        scaled, cands, scale = layer_candidates(layer, aux, model.candidates)
+        if name in self.fixed:  # no network for this layer: its one candidate, back at the frame's exposure
+            _, (image,), scale = layer_candidates(layer, aux, (self.fixed[name],), denoised=denoised)
+            return blend(np.ones((1, *image.shape[:2]), np.float32), [image], scale)
+        model = self.models[name]
+        scaled, cands, scale = layer_candidates(layer, aux, model.candidates, denoised=denoised)
         data, gradient = blend_inputs(scaled, cands, features)
         return blend(model.weights(data, gradient), cands, scale)

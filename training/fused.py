@@ -6,7 +6,7 @@
     python -m training.fused export runs/fused-blend-direct -o models/fused/direct.onnx
 
 The cache holds, per frame and layer, at the normalised exposure of model.fused.layer_candidates (computed by that
-very function, as inference does): the layer's base, dx, dy; every candidate of model.fused.CANDIDATES; the 7
+very function, as inference does): the layer's base, dx, dy; the candidates it was built for (cache.json); the 7
 feature planes; and the base of the frame's independent second realization, multiplied by the *input's* scale s
 (the target never decides s, so its noise stays independent of everything the network sees).
 
@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 import time
@@ -36,9 +37,15 @@ import torch
 from model.fused import BLEND_FORMAT, BLEND_PRIOR, CANDIDATES, INPUT_NAMES, OIDN_SETTING, OUTPUT_NAME, data_channels
 from model.preprocess import TRANSFER
 
-#: Planes per cached (frame, layer): base 3, dx 3, dy 3, candidates 3·K_all, features 7, target base 3.
-CACHE_PLANES = 9 + 3 * len(CANDIDATES) + 7 + 3
-CACHE_VERSION = 1
+#: The candidate kinds a cache holds unless told otherwise (``cache --candidates``): what the designs use.
+CACHE_CANDIDATES: tuple[str, ...] = ("oidn", "refine", "refine-fast")
+CACHE_VERSION = 2
+
+
+def cache_planes(k: int) -> int:
+    """Planes per cached (frame, layer) with K candidates: base 3, dx 3, dy 3, candidates 3·K, features 7,
+    target base 3."""
+    return 9 + 3 * k + 7 + 3
 REL_EPS = 1e-2
 LAYERS = ("direct", "indirect")
 
@@ -46,12 +53,14 @@ LAYERS = ("direct", "indirect")
 # ------------------------------------------------------------------------------------------------ cache
 
 
-def frame_planes(layer: Any, features: Any, target_base: np.ndarray, aux: Any) -> np.ndarray:
-    """(CACHE_PLANES, H, W) float32 for one layer of one frame; the candidates from model.fused.layer_candidates."""
+def frame_planes(layer: Any, features: Any, target_base: np.ndarray, aux: Any,
+                 kinds: tuple[str, ...] = CACHE_CANDIDATES) -> np.ndarray:
+    """(cache_planes(K), H, W) float32 for one layer of one frame; the candidates ``kinds`` from
+    model.fused.layer_candidates."""
     from model.fused import layer_candidates
     from model.preprocess import DepthRange, feature_planes, scaled_image
 
-    scaled, cands, scale = layer_candidates(layer, aux, CANDIDATES)
+    scaled, cands, scale = layer_candidates(layer, aux, kinds)
     chw = [np.asarray(x, np.float32).transpose(2, 0, 1) for x in (scaled.base, scaled.dx, scaled.dy, *cands)]
     feats = feature_planes(features, DepthRange.of(features.depth))
     target = scaled_image(target_base, scale).transpose(2, 0, 1)
@@ -59,7 +68,7 @@ def frame_planes(layer: Any, features: Any, target_base: np.ndarray, aux: Any) -
     return np.nan_to_num(planes, nan=0.0, posinf=0.0, neginf=0.0)
 
 
-def build_cache(data: Path, out: Path) -> None:
+def build_cache(data: Path, out: Path, kinds: tuple[str, ...] = CACHE_CANDIDATES) -> None:
     """Write out/{layer}/NNNNN.npy for every frame of the Noise2Noise dataset ``data`` (skips existing files)."""
     from model.frame import read_frame
     from model.oidn import shared_denoiser
@@ -69,9 +78,12 @@ def build_cache(data: Path, out: Path) -> None:
     den = shared_denoiser(OIDN_SETTING)
     for layer in LAYERS:
         (out / layer).mkdir(parents=True, exist_ok=True)
-    (out / "cache.json").write_text(json.dumps({"version": CACHE_VERSION, "candidates": list(CANDIDATES),
-                                                "oidn_setting": OIDN_SETTING, "dataset": manifest.sha256,
-                                                "frames": len(manifest.frames)}))
+    meta = {"version": CACHE_VERSION, "candidates": list(kinds), "oidn_setting": OIDN_SETTING,
+            "blend_format": BLEND_FORMAT, "dataset": manifest.sha256, "frames": len(manifest.frames)}
+    if (out / "cache.json").is_file() and json.loads((out / "cache.json").read_text()) != meta:
+        raise SystemExit(f"{out} holds a cache of other candidates or code ({(out / 'cache.json').read_text()}); "
+                         "use another folder or delete it")
+    (out / "cache.json").write_text(json.dumps(meta))
     start = time.monotonic()
     for entry in manifest.frames:
         paths = {layer: out / layer / f"{entry.index:05d}.npy" for layer in LAYERS}
@@ -85,7 +97,7 @@ def build_cache(data: Path, out: Path) -> None:
         for layer, path in paths.items():
             if layer not in frame.layers or layer not in other.layers:
                 continue
-            planes = frame_planes(frame.layers[layer], frame.features, other.layers[layer].base, aux)
+            planes = frame_planes(frame.layers[layer], frame.features, other.layers[layer].base, aux, kinds)
             tmp = path.with_name(path.name + ".tmp.npy")
             np.save(tmp, planes)
             os.replace(tmp, path)
@@ -102,11 +114,13 @@ def split(files: list[Path], seed: int = 0) -> tuple[list[Path], list[Path]]:
     return [files[i] for i in sorted(order[n_val:])], [files[i] for i in sorted(order[:n_val])]
 
 
-def tensors(planes: torch.Tensor, kinds: tuple[str, ...]) -> tuple[torch.Tensor, ...]:
-    """(data, gradient, candidates (N, K, 3, h, w), target (N, 3, h, w)) from cached (N, CACHE_PLANES, h, w)."""
-    idx = [CANDIDATES.index(k) for k in kinds]
+def tensors(planes: torch.Tensor, kinds: tuple[str, ...],
+            cached: tuple[str, ...] = CACHE_CANDIDATES) -> tuple[torch.Tensor, ...]:
+    """(data, gradient, candidates (N, K, 3, h, w), target (N, 3, h, w)) of the candidates ``kinds`` from
+    cached (N, cache_planes(len(cached)), h, w) planes holding the candidates ``cached``."""
+    idx = [cached.index(k) for k in kinds]
     cands = torch.stack([planes[:, 9 + 3 * i: 12 + 3 * i] for i in idx], dim=1)
-    f0 = 9 + 3 * len(CANDIDATES)
+    f0 = 9 + 3 * len(cached)
     feats, target = planes[:, f0:f0 + 7], planes[:, f0 + 7:f0 + 10]
     data = torch.cat([TRANSFER.forward(planes[:, 0:3]), *(TRANSFER.forward(cands[:, k]) for k in range(len(idx))),
                       feats], dim=1)
@@ -123,7 +137,7 @@ def n2n_loss(weights: torch.Tensor, cands: torch.Tensor, target: torch.Tensor,
 
 
 def sample(maps: list[np.ndarray], batch: int, patch: int, rng: np.random.Generator) -> torch.Tensor:
-    out = np.empty((batch, CACHE_PLANES, patch, patch), np.float32)
+    out = np.empty((batch, maps[0].shape[0], patch, patch), np.float32)
     for b in range(batch):
         arr = maps[int(rng.integers(len(maps)))]
         h, w = arr.shape[1:]
@@ -149,14 +163,15 @@ def _net(cfg: dict[str, Any]) -> torch.nn.Module:
 
 
 @torch.no_grad()
-def validate(net: torch.nn.Module, maps: list[np.ndarray], kinds: tuple[str, ...]) -> dict[str, float]:
+def validate(net: torch.nn.Module, maps: list[np.ndarray], kinds: tuple[str, ...],
+             cached: tuple[str, ...] = CACHE_CANDIDATES) -> dict[str, float]:
     """Noise2Noise loss on the validation frames (whole frames) for the blend and for each candidate alone:
     the blend earns its place where its value is below every candidate's (all share the target's variance)."""
     net.eval()
     sums: dict[str, float] = {}
     for arr in maps:
         planes = torch.from_numpy(np.array(arr))[None]  # a copy: the memory map is read-only
-        data, gradient, cands, target = tensors(planes, kinds)
+        data, gradient, cands, target = tensors(planes, kinds, cached)
         weights = net(data, gradient)
         sums["blend"] = sums.get("blend", 0.0) + float(n2n_loss(weights, cands, target, cands[:, 0]))
         for k, kind in enumerate(kinds):
@@ -176,10 +191,16 @@ def train(args: argparse.Namespace) -> None:
         raise SystemExit(f"--candidates must start with oidn and be some of {CANDIDATES}, got {kinds}")
     cache = Path(args.cache)
     meta = json.loads((cache / "cache.json").read_text())
+    cached = tuple(meta["candidates"])
+    if meta.get("blend_format") != BLEND_FORMAT or any(k not in cached for k in kinds):
+        raise SystemExit(f"{cache} holds candidates {cached} (format {meta.get('blend_format')}); this run needs "
+                         f"{kinds} (format {BLEND_FORMAT}): rebuild the cache")
     cfg = {"layer": args.layer, "candidates": list(kinds), "patch": args.patch, "batch": args.batch, "lr": args.lr,
+           "lr_schedule": args.lr_schedule,
            "seed": args.seed,
            "network": {"width": args.width, "depth": 3, "residual_blocks": args.blocks, "use_attention": True},
-           "oidn_setting": OIDN_SETTING, "loss": f"n2n relmse eps {REL_EPS}", "dataset": meta["dataset"]}
+           "oidn_setting": OIDN_SETTING, "format": BLEND_FORMAT, "loss": f"n2n relmse eps {REL_EPS}",
+           "dataset": meta["dataset"]}
     if cfg_path.is_file() and json.loads(cfg_path.read_text()) != cfg:
         raise SystemExit(f"{run} holds a different run; use another folder")
     cfg_path.write_text(json.dumps(cfg, indent=2))
@@ -209,9 +230,13 @@ def train(args: argparse.Namespace) -> None:
 
     running = []
     while elapsed + time.monotonic() - start < budget:
+        if args.lr_schedule == "cosine":  # over the run's time budget, to 0 at its end (resumes continue it)
+            done = min(1.0, (elapsed + time.monotonic() - start) / budget)
+            for group in opt.param_groups:
+                group["lr"] = args.lr * 0.5 * (1.0 + math.cos(math.pi * done))
         rng = np.random.default_rng([args.seed, step])
         planes = sample(maps, args.batch, args.patch, rng)
-        data, gradient, cands, target = tensors(planes, kinds)
+        data, gradient, cands, target = tensors(planes, kinds, cached)
         loss = n2n_loss(net(data, gradient), cands, target, cands[:, 0])
         opt.zero_grad(set_to_none=True)
         loss.backward()
@@ -227,7 +252,7 @@ def train(args: argparse.Namespace) -> None:
             save()
             last_save = time.monotonic()
     save()
-    val = validate(net, val_maps, kinds)
+    val = validate(net, val_maps, kinds, cached)
     record = {"kind": "validation", "step": step, "elapsed": round(elapsed + time.monotonic() - start, 1),
               "n2n_relmse": val}
     with open(run / "log.jsonl", "a") as fh:
@@ -289,6 +314,7 @@ def main(argv: list[str] | None = None) -> int:
     c = sub.add_parser("cache")
     c.add_argument("--data", required=True)
     c.add_argument("-o", "--output", required=True)
+    c.add_argument("--candidates", default=",".join(CACHE_CANDIDATES), help="the candidate kinds to cache")
     t = sub.add_parser("train")
     t.add_argument("--cache", required=True)
     t.add_argument("--layer", choices=LAYERS, required=True)
@@ -297,6 +323,9 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument("--patch", type=int, default=64)
     t.add_argument("--batch", type=int, default=8)
     t.add_argument("--lr", type=float, default=1e-3)
+    t.add_argument("--lr-schedule", choices=("constant", "cosine"), default="cosine",
+                   help="cosine: the learning rate decays to 0 over --minutes (a constant 1e-3 drifted: the held-out "
+                        "error of a 15-min run was above its own 5-min checkpoint's)")
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--width", type=int, default=16, help="network width (model/network.py NetworkConfig)")
     t.add_argument("--blocks", type=int, default=4, help="residual blocks at the bottleneck")
@@ -307,7 +336,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1")))
     if args.cmd == "cache":
-        build_cache(Path(args.data), Path(args.output))
+        build_cache(Path(args.data), Path(args.output), tuple(k.strip() for k in args.candidates.split(",")))
     elif args.cmd == "train":
         train(args)
     else:

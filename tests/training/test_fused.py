@@ -14,7 +14,7 @@ torch = pytest.importorskip("torch")
 pytest.importorskip("pyoidn")
 
 from model.frame import read_frame  # noqa: E402
-from model.fused import CANDIDATES, OIDN_SETTING, blend_inputs, layer_candidates  # noqa: E402
+from model.fused import OIDN_SETTING, blend_inputs, layer_candidates  # noqa: E402
 from model.infer import ModelError  # noqa: E402
 from model.oidn import shared_denoiser  # noqa: E402
 from model.preprocess import FUSED_MEAN  # noqa: E402
@@ -22,6 +22,9 @@ from model.reconstruct import load_fused, load_network, reconstruct  # noqa: E40
 from training import fused as fused_training  # noqa: E402
 from training.dataset import load_manifest  # noqa: E402
 from training.synthetic import make_synthetic_dataset  # noqa: E402
+
+CACHED = fused_training.CACHE_CANDIDATES  # the cache's candidates (oidn, refine, refine-fast), in order
+KINDS = ("oidn", "refine-fast")  # the test models' candidates
 
 pytestmark = pytest.mark.train
 
@@ -44,7 +47,7 @@ def blend_models(cache: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     root = tmp_path_factory.mktemp("blend")
     for layer in ("direct", "indirect"):
         run = root / f"run-{layer}"
-        fused_training.main(["train", "--cache", str(cache), "--layer", layer, "--candidates", "oidn,refine,l1",
+        fused_training.main(["train", "--cache", str(cache), "--layer", layer, "--candidates", ",".join(KINDS),
                              "--minutes", "0.03", "--patch", "32", "--batch", "2", "--width", "4", "--blocks", "1",
                              "-o", str(run)])
         fused_training.main(["export", str(run), "-o", str(root / "models" / "fused" / f"{layer}.onnx")])
@@ -57,26 +60,27 @@ def test_cache_holds_what_inference_computes(paired: Path, cache: Path) -> None:
     frame = read_frame(entry.path, nonfinite="zero")
     planes = np.load(cache / "indirect" / f"{entry.index:05d}.npy")
     aux = shared_denoiser(OIDN_SETTING).prefilter(frame.features)
-    scaled, cands, scale = layer_candidates(frame.layers["indirect"], aux, CANDIDATES)
-    for k in range(len(CANDIDATES)):
+    scaled, cands, scale = layer_candidates(frame.layers["indirect"], aux, CACHED)
+    for k in range(len(CACHED)):
         np.testing.assert_array_equal(planes[9 + 3 * k:12 + 3 * k], cands[k].transpose(2, 0, 1))
     np.testing.assert_array_equal(planes[0:3], scaled.base.transpose(2, 0, 1))
     assert cands[0].mean() == pytest.approx(FUSED_MEAN, rel=1e-3)  # the exposure normalises OIDN's image
     data, gradient = blend_inputs(scaled, cands, frame.features)
-    t_data, t_grad, t_cands, target = fused_training.tensors(torch.from_numpy(planes)[None], CANDIDATES)
+    t_data, t_grad, t_cands, target = fused_training.tensors(torch.from_numpy(planes)[None], CACHED, CACHED)
     np.testing.assert_allclose(t_data[0].numpy(), data, rtol=1e-6, atol=1e-6)
     np.testing.assert_allclose(t_grad[0].numpy(), gradient, rtol=1e-6, atol=1e-6)
     other = read_frame(entry.target, nonfinite="zero").layers["indirect"].base  # the N2N target, scaled by s
     np.testing.assert_allclose(target[0].numpy(), (other * scale).transpose(2, 0, 1), rtol=1e-5, atol=1e-7)
     # the candidate subset a design uses is read from the same planes, in its order
-    sub = fused_training.tensors(torch.from_numpy(planes)[None], ("oidn", "l1"))[2]
+    sub = fused_training.tensors(torch.from_numpy(planes)[None], ("oidn", "refine-fast"), CACHED)[2]
     np.testing.assert_array_equal(sub[0, 1].numpy(), planes[15:18])
+    assert planes.shape[0] == fused_training.cache_planes(len(CACHED))
 
 
 def test_flip_augmentation_keeps_gradients_consistent() -> None:
     """A (possibly flipped) patch's dx are the forward differences of its base, exactly, where the patch has them."""
     rng = np.random.default_rng(0)
-    planes = rng.uniform(0, 1, (fused_training.CACHE_PLANES, 40, 50)).astype(np.float32)
+    planes = rng.uniform(0, 1, (fused_training.cache_planes(3), 40, 50)).astype(np.float32)
     base = planes[0:3]
     planes[3:6] = 0.0
     planes[3:6, :, :-1] = base[:, :, 1:] - base[:, :, :-1]  # the contract's dx: last column 0
@@ -92,7 +96,7 @@ def test_flip_augmentation_keeps_gradients_consistent() -> None:
 def test_blend_models_load_reconstruct_and_are_exposure_invariant(blend_models: Path, paired: Path) -> None:
     fused = load_fused(blend_models)
     assert fused is not None and fused.layers == {"direct", "indirect"} and fused.needs_aux
-    assert all(d["prior"] == "blend" and d["inputs"]["candidates"] == list(CANDIDATES) for d in fused.describe())
+    assert all(d["prior"] == "blend" and d["inputs"]["candidates"] == list(KINDS) for d in fused.describe())
     frame = read_frame(load_manifest(paired).frames[0].path, nonfinite="zero")
     result = reconstruct(frame, "fused", fused=fused)
     assert result.method == "fused" and np.isfinite(result.image).all() and result.image.min() >= 0
@@ -153,3 +157,37 @@ def test_stiff_frames_stay_finite(blend_models: Path, case: str) -> None:
     assert image.shape == (h, w, 3) and np.isfinite(image).all() and image.min() >= 0
     if case == "black":
         assert image.max() == 0.0
+
+
+@pytest.mark.slow
+def test_a_fixed_layer_is_its_candidate_and_old_formats_are_refused(blend_models: Path, paired: Path,
+                                                                     tmp_path: Path) -> None:
+    """A layer without a model in the folder is served by its FIXED_LAYERS candidate alone (the direct layer:
+    OIDN refined by its gradients, the oidn-l1 method's image); a model of blend format 1 (trained on the former
+    DCT-solved candidates) is refused rather than fed candidates it never saw."""
+    import onnx
+
+    from model.fused import FIXED_LAYERS
+
+    folder = tmp_path / "models" / "fused"
+    folder.mkdir(parents=True)
+    shutil.copy(blend_models / "fused" / "indirect.onnx", folder / "indirect.onnx")
+    fused = load_fused(tmp_path / "models")
+    assert fused is not None and fused.layers == {"indirect"} | set(FIXED_LAYERS)
+    frame = read_frame(load_manifest(paired).frames[0].path, nonfinite="zero")
+    result = reconstruct(frame, "fused", fused=fused)
+    assert np.isfinite(result.image).all() and result.image.min() >= 0
+    for name, kind in FIXED_LAYERS.items():
+        aux = shared_denoiser(OIDN_SETTING).prefilter(frame.features)
+        _, (image,), scale = layer_candidates(frame.layers[name], aux, (kind,))
+        np.testing.assert_allclose(result.layers[name], image / scale, rtol=1e-6, atol=1e-7)
+    if "direct" in FIXED_LAYERS:  # the same image oidn-l1 gives, up to float32 rounding of the exposures
+        oidn_l1 = reconstruct(frame, "oidn-l1").layers["direct"]
+        np.testing.assert_allclose(result.layers["direct"], oidn_l1, rtol=1e-3, atol=1e-4 * oidn_l1.max())
+    proto = onnx.load(folder / "indirect.onnx")
+    for prop in proto.metadata_props:
+        if prop.key == "gradsep.format":
+            prop.value = "1"
+    onnx.save(proto, folder / "indirect.onnx")
+    with pytest.raises(ModelError, match="format '1'"):
+        load_fused(tmp_path / "models")
