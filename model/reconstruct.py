@@ -116,6 +116,8 @@ def _reconstruct_layer(name: str, layer: Layer, ctx: _Context, denoised: np.ndar
         if denoised is None:
             denoised = ctx.denoiser.denoise(layer.base, ctx.aux)
         return _finish_oidn_layer(name, denoised, layer, ctx)
+    if ctx.method == "fused":  # its candidates start from the layer's OIDN image, denoised here or by the caller
+        return ctx.models.reconstruct_layer(name, layer, ctx.features, ctx.aux, denoised=denoised)
     if ctx.aux is not None:  # models refining an OIDN prior share the frame's prefiltered features
         return ctx.models.reconstruct_layer(name, layer, ctx.features, ctx.aux)
     return ctx.models.reconstruct_layer(name, layer, ctx.features)
@@ -133,9 +135,13 @@ DEFAULT_LAYER_THREADS = 2
 #: outweigh them). network: 0.98-1.15 at first; in-process 0.89 and 0.85 once its per-layer numpy copies were
 #: gone (two runs, 2026-12-02 02:17-02:19 UTC, load 3.5), but through the service (bench_service.py, same hold,
 #: alternating) concurrent layers were slower, p50 1.93/2.01 s against 1.86/1.69 s, at twice the peak RSS
-#: (3.3-3.8 vs 1.9 GB), so it stays sequential. fused: not measured. Every other method runs its layers one after
-#: the other. Output is bit-for-bit the same either way.
-CONCURRENT_METHODS: frozenset[str] = frozenset({"l1", "oidn-l1"})
+#: (3.3-3.8 vs 1.9 GB), so it stays sequential. fused is pipelined like oidn-l1 (each layer's OIDN image in this
+#: thread, the rest of the layer in a worker beside the next denoise): a probe took a 720p frame from 4.16 to
+#: 2.71 s, same output (fused3 helper, 2026-12-02, load ~4). Every other method runs its layers one after the
+#: other. Output is bit-for-bit the same either way.
+CONCURRENT_METHODS: frozenset[str] = frozenset({"l1", "oidn-l1", "fused"})
+#: Concurrent methods whose layers start from an OIDN image: denoised one after the other, then finished in workers.
+_PIPELINED_METHODS: frozenset[str] = frozenset({*OIDN_METHODS, "fused"})
 
 
 def layer_threads() -> int:
@@ -170,15 +176,16 @@ def _in_worker(fn: Callable[..., np.ndarray], *args: Any) -> tuple[np.ndarray, f
 def _run_layers(frame: Frame, ctx: _Context) -> dict[str, tuple[np.ndarray, float]]:
     """Every layer's (image, seconds), one after the other or (CONCURRENT_METHODS) :func:`layer_threads` at once.
 
-    Concurrent seconds are each layer's own wall time and overlap. For the OIDN methods the denoiser is one
+    Concurrent seconds are each layer's own wall time and overlap. For the OIDN methods and fused the denoiser is one
     device behind a lock that already uses every core, so the layers are denoised one after the other in this
     thread, in the frame's order with the refined layers first, and each refinement (the L1 solve of oidn-l1)
-    runs in a worker beside the next layer's denoise; OIDN's own order is therefore fixed."""
+    (or fused's candidates and blend) runs in a worker beside the next layer's denoise; OIDN's own order is
+    therefore fixed."""
     threads = min(layer_threads(), len(frame.layers))
     if threads <= 1 or ctx.method not in CONCURRENT_METHODS:
         return {name: _timed(_reconstruct_layer, name, layer, ctx) for name, layer in frame.layers.items()}
     with ThreadPoolExecutor(max_workers=threads, thread_name_prefix="gradsep-layer") as pool:
-        if ctx.method not in OIDN_METHODS:
+        if ctx.method not in _PIPELINED_METHODS:
             futures = {name: pool.submit(_in_worker, _reconstruct_layer, name, layer, ctx)
                        for name, layer in frame.layers.items()}
             return {name: future.result() for name, future in futures.items()}

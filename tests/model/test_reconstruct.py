@@ -346,7 +346,16 @@ def test_console_command_end_to_end(tmp_path: Path) -> None:
 def _methods_here() -> list[str]:
     from model.oidn import available
 
-    return ["l1", "l2", *(["oidn", "oidn-l1"] if available() else [])]
+    shipped_fused = (REPO / "models" / "fused" / "indirect.onnx").is_file()
+    return ["l1", "l2", *(["oidn", "oidn-l1"] if available() else []),
+            *(["fused"] if available() and shipped_fused else [])]
+
+
+def _shipped_fused(method: str):
+    """The shipped fused models for ``fused`` (its pipelined path: OIDN here, the rest in a worker), else None."""
+    from model.reconstruct import load_fused
+
+    return load_fused(REPO / "models") if method == "fused" else None
 
 
 @pytest.mark.parametrize("method", _methods_here())
@@ -356,9 +365,9 @@ def test_concurrent_layers_give_the_sequential_result_bit_for_bit(method: str, m
     monkeypatch.setattr(module, "CONCURRENT_METHODS", frozenset(METHODS))  # the threaded path for every method
     frame = _frame(h=40, w=56, noise=0.1)
     monkeypatch.setenv("GRADSEP_LAYER_THREADS", "1")
-    sequential = reconstruct(frame, method, alpha=0.3)
+    sequential = reconstruct(frame, method, alpha=0.3, fused=_shipped_fused(method))
     monkeypatch.setenv("GRADSEP_LAYER_THREADS", "2")
-    concurrent = reconstruct(frame, method, alpha=0.3)
+    concurrent = reconstruct(frame, method, alpha=0.3, fused=_shipped_fused(method))
     assert list(concurrent.layers) == list(sequential.layers) == ["direct", "indirect"]
     for name in sequential.layers:
         np.testing.assert_array_equal(concurrent.layers[name], sequential.layers[name])
