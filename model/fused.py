@@ -15,7 +15,7 @@ weights over them; the output is the convex blend ``Σ_k w_k · candidate_k``. T
 
 Per layer (chosen on held-out seeds, docs/network.md "The fused method"): the indirect layer is the learned blend
 of {oidn, refine-fast} (models/fused/indirect.onnx); the direct layer, where no learned blend beat it, is the
-``refine`` candidate alone (``FIXED_LAYERS``), so the network runs once per frame.
+``oidn-l1`` method's refinement alone (``FIXED_LAYERS``), so the network runs once per frame.
 
 A convex blend cannot leave the hull of its candidates: it never invents energy, never rings below 0 (every
 candidate is >= 0), and an untrained model (zero head) returns their plain average. The weights are computed
@@ -64,13 +64,18 @@ REFINE_PRECONDITIONER = "mg"
 REFINE_ALPHA = 1.0
 #: The OIDN setting of the ``oidn``/``refine`` candidates (model.oidn.SETTINGS): the ``oidn`` method's default.
 OIDN_SETTING = "raw-fast"
+#: Kinds a layer served without a network may use besides CANDIDATES: ``oidn-l1`` is that method's own refinement
+#: (model.refine.refine_layer with its settings read at call time). No model consumes it, so unlike the candidates
+#: it need not be pinned: it follows the oidn-l1 method's solve (since issue 15's round 3 a per-pass convergence
+#: rule, which fixed its under-convergence on some frames; the fixed 8 x 2 solve of ``refine`` kept it).
+FIXED_KINDS: tuple[str, ...] = ("oidn-l1",)
 #: Layers the method serves with one candidate alone, no network, unless the models folder has a model for them.
-#: The direct layer is OIDN refined by its gradients (``refine``: the oidn-l1 method's image): on the held-out study
+#: The direct layer is OIDN refined by its gradients (the oidn-l1 method's image): on the held-out study
 #: (docs/network.md "The fused method") every learned blend for it was worse than that candidate alone (blend of
 #: oidn + refine: 1.01x refine's RelMSE on average, worst 1.36x; of oidn + refine-fast: 1.18x, worst 3.9x), while
 #: the indirect layer's blend of oidn + refine-fast earns 5 % (no fixed weighting of the two does: a plain 25/75
 #: average is 2.7x worse at worst). So the network runs where it pays, and once per frame.
-FIXED_LAYERS: dict[str, str] = {"direct": "refine"}
+FIXED_LAYERS: dict[str, str] = {"direct": "oidn-l1"}
 #: "2": the refine candidates are the multigrid solves above (format "1" models were trained on a DCT solve).
 BLEND_FORMAT = "2"
 INPUT_NAMES = ("data", "gradient")
@@ -114,7 +119,7 @@ def layer_candidates(layer: Layer, aux: Any, kinds: tuple[str, ...] = CANDIDATES
     (a pipeline that denoises the next layer while this one is refined), so OIDN is not run twice."""
     from model.oidn import shared_denoiser
 
-    unknown = [k for k in kinds if k not in CANDIDATES]
+    unknown = [k for k in kinds if k not in CANDIDATES and k not in FIXED_KINDS]
     if unknown:
         raise BlendModelError(f"unknown candidate kind(s) {unknown}; expected some of {', '.join(CANDIDATES)}")
     if denoised is None:
@@ -129,6 +134,10 @@ def layer_candidates(layer: Layer, aux: Any, kinds: tuple[str, ...] = CANDIDATES
             image = oidn
         elif kind in REFINE_SOLVES:
             image = refine(kind, oidn, scaled)
+        elif kind == "oidn-l1":
+            from model.refine import refine_layer
+
+            image = refine_layer("direct", oidn, scaled)  # "direct": refine this layer, whatever its name
         else:
             image = poisson_prior(scaled)
         out.append(np.clip(np.nan_to_num(image, nan=0.0, posinf=RADIANCE_MAX, neginf=0.0), 0.0,
