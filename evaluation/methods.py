@@ -94,7 +94,7 @@ FEATURE_SPP = 4
 #: Source files whose changes alter a method's images or scores (part of every result's cache key).
 METHOD_SOURCES: tuple[str, ...] = ("evaluation/methods.py", "model/oidn.py", "model/poisson.py", "model/reconstruct.py",
                                    "model/infer.py", "model/preprocess.py", "model/metrics.py", "model/refine.py",
-                                   "model/kernels.py", "model/policy.py")
+                                   "model/kernels.py", "model/policy.py", "model/fused.py")
 
 
 @dataclass(frozen=True)
