@@ -10,14 +10,13 @@ median of the per-round CPU-time ratios to Mitsuba `path` (steadier than wall ti
 from __future__ import annotations
 
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.bench_render import path_image, resolve_scene, settings_for  # noqa: E402
+from benchmarks.bench_render import interleaved_rounds, path_image, resolve_scene, settings_for  # noqa: E402
 
 
 def main(argv: list[str]) -> int:
@@ -44,14 +43,7 @@ def main(argv: list[str]) -> int:
     runs = {"path": lambda: path_image(loaded.scene, 16, 1, loaded.max_depth, loaded.rr_depth),
             "old rule": lambda: render_gpt(loaded.scene, OldRule(), settings, size, size, 16, seed=1),
             "new rule": lambda: render_gpt(loaded.scene, HybridShift(), settings, size, size, 16, seed=1)}
-    for fn in runs.values():
-        fn()  # compile
-    cpu: dict[str, list[float]] = {name: [] for name in runs}
-    for _ in range(rounds):
-        for name, fn in runs.items():
-            start = time.process_time()
-            fn()
-            cpu[name].append(time.process_time() - start)
+    _, cpu = interleaved_rounds(runs, rounds)
     for name in runs:
         r = np.array(cpu[name]) / np.array(cpu["path"])
         print(f"{spec} {name}: CPU {np.median(cpu[name]):.3f} s, per-round ratio to path {np.median(r):.2f} "

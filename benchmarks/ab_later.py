@@ -11,14 +11,13 @@ from __future__ import annotations
 
 import statistics
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.bench_render import path_image, resolve_scene, settings_for  # noqa: E402
+from benchmarks.bench_render import interleaved_rounds, path_image, resolve_scene, settings_for  # noqa: E402
 
 
 def main(argv: list[str]) -> int:
@@ -53,14 +52,7 @@ def main(argv: list[str]) -> int:
                 "peel": lambda ls=loaded, st=settings: gpt.render_gpt(ls.scene, NotLater(), st, size, size, 16, 1),
                 "peel+later": lambda ls=loaded, st=settings: gpt.render_gpt(ls.scene, HybridShift(), st, size, size,
                                                                            16, 1)}
-        for fn in runs.values():
-            fn()
-        cpu: dict[str, list[float]] = {name: [] for name in runs}
-        for _ in range(rounds):
-            for name, fn in runs.items():
-                start = time.process_time()
-                fn()
-                cpu[name].append(time.process_time() - start)
+        _, cpu = interleaved_rounds(runs, rounds)
         cells = [f"{name} {statistics.median(t):.3f} s = "
                  f"{statistics.median(x / p for x, p in zip(t, cpu['path'], strict=True)):.2f}x"
                  for name, t in cpu.items()]

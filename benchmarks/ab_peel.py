@@ -15,12 +15,17 @@ from __future__ import annotations
 import argparse
 import statistics
 import sys
-import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.bench_render import configuration, path_image, resolve_scene, settings_for  # noqa: E402
+from benchmarks.bench_render import (  # noqa: E402
+    configuration,
+    interleaved_rounds,
+    path_image,
+    resolve_scene,
+    settings_for,
+)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -51,14 +56,7 @@ def main(argv: list[str] | None = None) -> int:
                     finally:
                         gpt.PEEL_FIRST_VERTEX = True
                 runs[f"{name} {'peeled' if peel else 'in loop'}"] = render
-        for fn in runs.values():  # warm-up: kernel compilation
-            fn()
-        cpu: dict[str, list[float]] = {name: [] for name in runs}
-        for _ in range(args.rounds):
-            for name, fn in runs.items():
-                start = time.process_time()
-                fn()
-                cpu[name].append(time.process_time() - start)
+        _, cpu = interleaved_rounds(runs, args.rounds)
         print(f"{spec} ({args.size}^2, {args.spp} spp, max_depth {loaded.max_depth}, {args.rounds} rounds):")
         for name, times in cpu.items():
             ratio = statistics.median(t / p for t, p in zip(times, cpu["path"], strict=True))

@@ -36,6 +36,7 @@ import json
 import statistics
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -148,16 +149,7 @@ def bench_cost(spec: str, size: int, spp: int, repeats: int, shifts: list[str]) 
 
     for name in shifts:
         runs[name] = gpt(name)
-    for fn in runs.values():  # warm-up: kernel compilation
-        fn()
-    times: dict[str, list[float]] = {name: [] for name in runs}
-    cpu: dict[str, list[float]] = {name: [] for name in runs}
-    for _ in range(repeats):
-        for name, fn in runs.items():
-            start, start_cpu = time.perf_counter(), time.process_time()
-            fn()
-            times[name].append(time.perf_counter() - start)
-            cpu[name].append(time.process_time() - start_cpu)
+    times, cpu = interleaved_rounds(runs, repeats)
     medians = {name: statistics.median(t) for name, t in times.items()}
     cpu_medians = {name: statistics.median(t) for name, t in cpu.items()}
     # the median of per-round ratios: each round's runs are back to back, so a load change between rounds
@@ -169,6 +161,24 @@ def bench_cost(spec: str, size: int, spp: int, repeats: int, shifts: list[str]) 
             "cost_ratio": {name: medians[name] / medians["path"] for name in shifts},
             "cpu_cost_ratio": {name: cpu_medians[name] / cpu_medians["path"] for name in shifts},
             "cpu_round_ratio": round_ratio}
+
+
+def interleaved_rounds(runs: dict[str, Callable[[], object]], rounds: int
+                       ) -> tuple[dict[str, list[float]], dict[str, list[float]]]:
+    """(wall seconds, CPU seconds) per run name over ``rounds`` rounds, each round every run once back to back,
+    after one warm-up call each (kernel compilation). Interleaving makes a load change between rounds cancel in
+    each round's ratios; CPU time (user + system of every thread) is steadier than wall time on a shared machine."""
+    for fn in runs.values():
+        fn()
+    wall: dict[str, list[float]] = {name: [] for name in runs}
+    cpu: dict[str, list[float]] = {name: [] for name in runs}
+    for _ in range(rounds):
+        for name, fn in runs.items():
+            start, start_cpu = time.perf_counter(), time.process_time()
+            fn()
+            wall[name].append(time.perf_counter() - start)
+            cpu[name].append(time.process_time() - start_cpu)
+    return wall, cpu
 
 
 def bench_frame(spec: str, width: int, height: int, spp: int, repeats: int, shift: str) -> dict:

@@ -184,19 +184,11 @@ def _tiled_frame():
     return Frame(layers, Features(tile(f.albedo), tile(f.normal), tile(f.depth)))
 
 
-def _median_of(fn, repeats: int) -> float:
-    fn()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
-
-
 def _stages(fused, frame, repeats: int) -> None:
     """Where the fused method's time goes per layer: OIDN, each candidate, the network inputs, the network, the
     blend (the same functions reconstruct_layer calls, timed one by one)."""
+    from bench_oidn import median_seconds  # this script's folder is on sys.path
+
     from model.fused import OIDN_SETTING, refine
     from model.oidn import shared_denoiser
     from model.preprocess import prior_exposure, scaled_image, scaled_layer
@@ -204,29 +196,32 @@ def _stages(fused, frame, repeats: int) -> None:
     den = shared_denoiser(OIDN_SETTING)
     aux = den.prefilter(frame.features)
     for name, layer in frame.layers.items():
-        row = {"oidn": _median_of(lambda layer=layer: den.denoise(layer.base, aux), repeats)}
+        row = {"oidn": median_seconds(lambda layer=layer: den.denoise(layer.base, aux), repeats)}
         denoised = den.denoise(layer.base, aux)
         scale = prior_exposure(denoised)
         scaled, oidn = scaled_layer(layer, scale), scaled_image(denoised, scale)
         kinds = fused.models[name].candidates if name in fused.models else (getattr(fused, "fixed", {})[name],)
         for kind in kinds:
             if kind != "oidn":
-                row[kind] = _median_of(lambda kind=kind, scaled=scaled, oidn=oidn: refine(kind, oidn, scaled), repeats)
+                row[kind] = median_seconds(lambda kind=kind, scaled=scaled, oidn=oidn: refine(kind, oidn, scaled),
+                                           repeats)
         if name in fused.models:
             row |= _network_stages(fused.models[name], layer, aux, frame.features, repeats)
         print(f"  {name}: " + ", ".join(f"{k} {v:.3f} s" for k, v in row.items()), flush=True)
 
 
 def _network_stages(model, layer, aux, features, repeats: int) -> dict[str, float]:
+    from bench_oidn import median_seconds  # this script's folder is on sys.path
+
     from model.fused import blend, blend_inputs, layer_candidates
 
     scaled, cands, scale = layer_candidates(layer, aux, model.candidates)
-    row = {"inputs": _median_of(lambda: blend_inputs(scaled, cands, features), repeats)}
+    row = {"inputs": median_seconds(lambda: blend_inputs(scaled, cands, features), repeats)}
     data, gradient = blend_inputs(scaled, cands, features)
-    row[f"network ({model.choice.provider} {model.choice.precision})"] = _median_of(
+    row[f"network ({model.choice.provider} {model.choice.precision})"] = median_seconds(
         lambda: model.weights(data, gradient), repeats)
     w = model.weights(data, gradient)
-    row["blend"] = _median_of(lambda: blend(w, cands, scale), repeats)
+    row["blend"] = median_seconds(lambda: blend(w, cands, scale), repeats)
     return row
 
 
