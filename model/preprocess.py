@@ -139,6 +139,24 @@ class LogTransfer:
         lo = 0.0 if clamp_negative else None
         return xp.expm1(xp.clip(y, lo, self.max_encoded) * self._norm) / self.mu
 
+    def forward_into(self, dst: np.ndarray, src: np.ndarray) -> np.ndarray:
+        """:meth:`forward` of numpy float32 ``src`` written into ``dst`` (may be ``src``): the same float32
+        operations in the same order, so bit-for-bit its numbers, without temporaries (inference)."""
+        np.clip(src, 0.0, self.max_value, out=dst)
+        dst *= self.mu
+        np.log1p(dst, out=dst)
+        dst /= self._norm
+        return dst
+
+    def inverse_into(self, dst: np.ndarray, src: np.ndarray) -> np.ndarray:
+        """:meth:`inverse` (negatives clamped) of numpy float32 ``src`` written into ``dst`` (may be ``src``),
+        bit-for-bit its numbers."""
+        np.clip(src, 0.0, self.max_encoded, out=dst)
+        dst *= self._norm
+        np.expm1(dst, out=dst)
+        dst /= self.mu
+        return dst
+
     def forward_signed(self, g: Any) -> Any:
         """sign(g)·C(|g|): the gradient transform (odd, so a sign flip of the image flips the input)."""
         xp = array_namespace(g)
@@ -404,21 +422,13 @@ def network_inputs_numpy(planes: np.ndarray, features: np.ndarray, alignment: in
     data = np.empty((len(DATA_INPUTS), height, width), np.float32)
     gradient = np.empty((len(GRADIENT_INPUTS), height, width), np.float32)
     for src, dst in ((planes[0:3], data[0:3]), (planes[9:12], data[3:6])):
-        _forward_into(dst, src, transfer)
+        transfer.forward_into(dst, src)
     data[6:] = features
     for src, dst in ((planes[3:6], gradient[0:3]), (planes[6:9], gradient[3:6])):
         np.abs(src, out=dst)
-        _forward_into(dst, dst, transfer)
+        transfer.forward_into(dst, dst)
         dst *= np.sign(src)
     return pad_to_alignment(data, alignment), pad_to_alignment(gradient, alignment)
-
-
-def _forward_into(dst: np.ndarray, src: np.ndarray, transfer: LogTransfer) -> None:
-    """dst = transfer.forward(src) in place: log1p(μ·clip(x, 0, max)) / log(1 + μ), float32 throughout."""
-    np.clip(src, 0.0, transfer.max_value, out=dst)
-    dst *= transfer.mu
-    np.log1p(dst, out=dst)
-    dst /= transfer._norm
 
 
 def output_radiance(encoded: np.ndarray, fallback: np.ndarray | None = None,
@@ -433,10 +443,7 @@ def output_radiance(encoded: np.ndarray, fallback: np.ndarray | None = None,
     y = np.asarray(encoded, dtype=np.float32)
     bad = ~np.isfinite(y)
     if not bad.any():  # the usual case: transfer.inverse's float32 operations, in one scratch array
-        radiance = np.clip(y, 0.0, transfer.max_encoded)
-        radiance *= transfer._norm
-        np.expm1(radiance, out=radiance)
-        radiance /= transfer.mu
+        radiance = transfer.inverse_into(np.empty_like(y), y)
         return np.ascontiguousarray(radiance.transpose(1, 2, 0))
     radiance = transfer.inverse(np.where(bad, 0.0, y)).astype(np.float32)
     if fallback is not None:
