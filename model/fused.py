@@ -95,19 +95,15 @@ def data_channels(k: int) -> int:
 
 
 def refine(kind: str, oidn: np.ndarray, scaled: Layer) -> np.ndarray:
-    """OIDN's image refined by the layer's gradients with the ``kind`` solve of REFINE_SOLVES: the L1 screened
-    Poisson problem with OIDN's image as the data term (model/refine.py explains it), solved at mean 1 as
-    model.refine.refine_layer does, with this module's pinned passes and CG steps. (H, W, 3), finite."""
-    from model.oidn import input_scale
-    from model.poisson import solve_l1
+    """OIDN's image refined by the layer's gradients with the ``kind`` solve of REFINE_SOLVES: the oidn-l1
+    refinement (model.refine.refine_layer: the L1 screened Poisson problem with OIDN's image as the data term,
+    solved at mean 1) with every setting of the solve pinned here. (H, W, 3) float32, finite."""
+    from model.refine import refine_layer
 
     passes, cg_steps = REFINE_SOLVES[kind]
-    if not scaled.has_gradients:
-        return oidn
-    s = input_scale(oidn)  # the IRLS regulariser is absolute: solve at mean 1, as refine_layer does
-    solved, _ = solve_l1(scaled_image(oidn, s), scaled_image(scaled.dx, s), scaled_image(scaled.dy, s),
-                         REFINE_ALPHA, passes, cg_iterations=cg_steps, preconditioner=REFINE_PRECONDITIONER)
-    return np.asarray(solved, np.float64) / s
+    # "direct": refine this layer whatever its name
+    return refine_layer("direct", oidn, scaled, REFINE_ALPHA, preconditioner=REFINE_PRECONDITIONER,
+                        cg_steps=cg_steps, passes=passes, warm_start=False)
 
 
 def layer_candidates(layer: Layer, aux: Any, kinds: tuple[str, ...] = CANDIDATES,

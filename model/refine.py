@@ -76,21 +76,24 @@ def _cg_budget(cg_steps: int | None, cg_tolerance: float | None) -> dict:
 
 def refine_layer(name: str, prior: np.ndarray, layer: Layer, alpha: float = REFINE_ALPHA, *,
                  preconditioner: str | None = None, cg_steps: int | None = None,
-                 cg_tolerance: float | None = None) -> np.ndarray:
+                 cg_tolerance: float | None = None, passes: int | None = None,
+                 warm_start: bool | None = None) -> np.ndarray:
     """``prior`` (OIDN's denoise of ``layer.base``) refined by the layer's gradients when ``name`` is one of
     REFINED_LAYERS and the layer carries gradients; otherwise ``prior`` unchanged. float32 (H, W, 3), ≥ 0.
     ``preconditioner``/``cg_steps`` select the solve (None: the module's REFINE_PRECONDITIONER / REFINE_CG_STEPS,
     read at call time, the ``oidn-l1`` method's; a model trained on refinements of another solve, such as the
     fused models, passes the one it was trained with). Without ``cg_steps`` each pass runs to the relative residual
     ``cg_tolerance`` (None: REFINE_CG_TOLERANCE) in at most REFINE_MAX_CG_STEPS steps; with ``cg_steps`` and no
-    ``cg_tolerance`` the solve is the fixed budget of before (solve_l1's default tolerance), bit for bit."""
+    ``cg_tolerance`` the solve is the fixed budget of before (solve_l1's default tolerance), bit for bit.
+    ``passes`` / ``warm_start``: IRLS passes and the starting iterate (None: REFINE_ITERATIONS /
+    REFINE_WARM_START), for callers that pin their whole solve (model.fused's candidates)."""
     if name not in REFINED_LAYERS or not layer.has_gradients:
         return prior
     scale = input_scale(prior)  # mean 1, as OIDN's own input is normalised; 1.0 for a black prior
     dx, dy = scaled_image(layer.dx, scale), scaled_image(layer.dy, scale)  # the base is not used: OIDN's is
     data = scaled_image(prior, scale)
-    solved, _ = solve_l1(data, dx, dy, alpha, REFINE_ITERATIONS, **_cg_budget(cg_steps, cg_tolerance),
-                         preconditioner=preconditioner or REFINE_PRECONDITIONER,
-                         initial=data if REFINE_WARM_START else None)
+    warm = REFINE_WARM_START if warm_start is None else warm_start
+    solved, _ = solve_l1(data, dx, dy, alpha, passes or REFINE_ITERATIONS, **_cg_budget(cg_steps, cg_tolerance),
+                         preconditioner=preconditioner or REFINE_PRECONDITIONER, initial=data if warm else None)
     out = np.asarray(solved, np.float64) / scale
     return np.clip(out, 0.0, _F32_MAX).astype(np.float32)
