@@ -63,19 +63,21 @@ REFINE_MAX_CG_STEPS = 8
 #: (0.81 at 8 passes, 0.89 at 3, against 0.77 from the L2 start); never worse than oidn, though (worst 0.98).
 REFINE_WARM_START = False
 
-#: The trust rule (issue 14; ``refine_layer`` without an explicit α): OIDN's own error (its bias and over-smoothing)
-#: dominates once a layer is only a little noisy, and there the frame's base with its gradients is the better data
-#: term (the ``l1`` method's). The rule reads how well the base agrees with the sampled gradients, relative to the
-#: gradients' own size: r = Σ ω‖∇base − g‖² / Σ ω‖g‖² (ω = 1/(lum(OIDN)² + TRUST_EPSILON) at mean-1 exposure, so
-#: every part of the image counts relatively). r is small when the base is nearly noise-free next to the detail the
-#: gradients carry; it grows with the base's noise. The data term becomes w·base + (1 − w)·OIDN with
-#: w = 1 at r ≤ TRUST_R_LOW, 0 at r ≥ TRUST_R_HIGH (the plain refinement above), log-linear between, and
-#: α = REFINE_ALPHA − (REFINE_ALPHA − TRUST_ALPHA_BASE)·w. Chosen on held-out procedural seeds only (docs/network.md
-#: "The trust rule"; benchmarks/study_direct_trust.py), never on cbox, the teapot or the evaluation seeds.
+#: The trust rule (issue 14; ``refine_layer`` without an explicit α). OIDN's own error (its bias and
+#: over-smoothing) dominates once a layer is only a little noisy, and there the frame's base with its gradients is
+#: the better data term (the ``l1`` method's); where the base is noisy OIDN's image is. The rule reads, in a
+#: (2·TRUST_RADIUS+1)² window around each pixel, how well the base agrees with the sampled gradients relative to
+#: the gradients' own size, r = box(‖∇base − g‖²) / box(‖g‖²) (mean over RGB): small where the base is nearly
+#: noise-free next to the detail the gradients carry, large where its noise dominates. The data term becomes
+#: w·base + (1 − w)·OIDN per pixel, w = 1 at r ≤ TRUST_R_LOW, 0 at r ≥ TRUST_R_HIGH, log-linear between, solved
+#: at REFINE_ALPHA like the plain refinement. A layer whose base is not finite is not mixed. Chosen on held-out
+#: procedural seeds only (docs/network.md "The trust rule", benchmarks/study_direct_trust.py), against a
+#: per-frame version of the same statistic; never on cbox, the teapot or the evaluation seeds.
+TRUST_RADIUS = 3
 TRUST_R_LOW = 0.1
-TRUST_R_HIGH = 0.3
-TRUST_ALPHA_BASE = 0.5
-TRUST_EPSILON = 1e-2
+TRUST_R_HIGH = 1.0
+#: Keeps r finite where the window's gradients are all zero (r is then 0 for an exact base, huge for a noisy one).
+TRUST_FLOOR = 1e-12
 
 _F32_MAX = float(np.finfo(np.float32).max)
 
@@ -88,33 +90,30 @@ def _forward_differences(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return gx, gy
 
 
-def gradient_disagreement(base: np.ndarray, prior: np.ndarray, dx: np.ndarray, dy: np.ndarray) -> float:
-    """The trust rule's statistic r (see TRUST_R_LOW) for one layer at mean-1 exposure: 0 when the base agrees
-    with the gradients exactly (a noise-free layer, or a flat one with zero gradients), inf when the gradients
-    are all zero but the base is not flat, NaN never. Float64 sums, finite inputs assumed (model.frame's policy)."""
+def trust_weights(base: np.ndarray, dx: np.ndarray, dy: np.ndarray) -> np.ndarray:
+    """The trust rule's per-pixel weight of the base, (H, W, 1) float32 in [0, 1], for one layer at mean-1
+    exposure (see TRUST_RADIUS): 1 where the base agrees with the gradients (an exact layer, or a flat one with
+    zero gradients), 0 where its disagreement is TRUST_R_HIGH of the gradients' energy or more. Finite inputs."""
+    from scipy.ndimage import uniform_filter
+
     b = np.asarray(base, np.float64)
-    weight = 1.0 / (np.mean(np.asarray(prior, np.float64), axis=-1, keepdims=True) ** 2 + TRUST_EPSILON)
-    bx, by = _forward_differences(b)
     g_x, g_y = np.asarray(dx, np.float64), np.asarray(dy, np.float64)
-    residual = float(np.sum(weight * ((bx - g_x) ** 2 + (by - g_y) ** 2)))
-    signal = float(np.sum(weight * (g_x ** 2 + g_y ** 2)))
-    if not (math.isfinite(residual) and math.isfinite(signal)):
-        return math.inf
-    if signal <= 0.0:
-        return 0.0 if residual <= 0.0 else math.inf
-    return residual / signal
+    bx, by = _forward_differences(b)
+    size = 2 * TRUST_RADIUS + 1
+    residual = uniform_filter(np.mean((bx - g_x) ** 2 + (by - g_y) ** 2, axis=-1), size, mode="nearest")
+    signal = uniform_filter(np.mean(g_x ** 2 + g_y ** 2, axis=-1), size, mode="nearest")
+    r = np.maximum(residual, 0.0) / (np.maximum(signal, 0.0) + TRUST_FLOOR)
+    w = np.log(TRUST_R_HIGH / np.maximum(r, TRUST_FLOOR)) / math.log(TRUST_R_HIGH / TRUST_R_LOW)
+    return np.clip(np.nan_to_num(w, nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0).astype(np.float32)[..., None]
 
 
-def trust(base: np.ndarray, prior: np.ndarray, dx: np.ndarray, dy: np.ndarray) -> tuple[float, float]:
-    """(α, w) of the trust rule for one layer at mean-1 exposure: the data term is w·base + (1 − w)·prior."""
-    r = gradient_disagreement(base, prior, dx, dy)
-    if r <= TRUST_R_LOW:
-        weight = 1.0
-    elif r >= TRUST_R_HIGH:  # also inf
-        weight = 0.0
-    else:
-        weight = math.log(TRUST_R_HIGH / r) / math.log(TRUST_R_HIGH / TRUST_R_LOW)
-    return REFINE_ALPHA - (REFINE_ALPHA - TRUST_ALPHA_BASE) * weight, weight
+def trusted_data(base: np.ndarray, prior: np.ndarray, dx: np.ndarray, dy: np.ndarray) -> np.ndarray:
+    """The trust rule's data term w·base + (1 − w)·prior (all at mean-1 exposure, finite), float32; ``prior``
+    itself where the base is nowhere trusted."""
+    w = trust_weights(base, dx, dy)
+    if not np.any(w > 0):
+        return prior
+    return (prior + w * (np.asarray(base, np.float32) - prior)).astype(np.float32)
 
 
 def _cg_budget(cg_steps: int | None, cg_tolerance: float | None) -> dict:
@@ -145,10 +144,10 @@ def refine_layer(name: str, prior: np.ndarray, layer: Layer, alpha: float | None
     scale = input_scale(prior)  # mean 1, as OIDN's own input is normalised; 1.0 for a black prior
     dx, dy = scaled_image(layer.dx, scale), scaled_image(layer.dy, scale)
     data = scaled_image(prior, scale)
-    if alpha is None:  # the trust rule: how far this frame's own base is trusted beside OIDN's image
-        alpha, weight = trust(scaled_image(layer.base, scale), data, dx, dy)
-        if weight > 0.0:
-            data = (weight * scaled_image(layer.base, scale) + (1.0 - weight) * data).astype(np.float32)
+    if alpha is None:  # the trust rule: per pixel, how far the frame's own base is trusted beside OIDN's image
+        if np.all(np.isfinite(layer.base)):  # (the frame policy keeps NaN/Inf out; a direct caller may not)
+            data = trusted_data(scaled_image(layer.base, scale), data, dx, dy)
+        alpha = REFINE_ALPHA
     warm = REFINE_WARM_START if warm_start is None else warm_start
     solved, _ = solve_l1(data, dx, dy, alpha, passes or REFINE_ITERATIONS, **_cg_budget(cg_steps, cg_tolerance),
                          preconditioner=preconditioner or REFINE_PRECONDITIONER, initial=data if warm else None)
