@@ -32,23 +32,21 @@ import numpy as np
 CACHE_ROOT = Path(os.environ.get("GRADSEP_CACHE", Path.home() / ".cache" / "gradsep"))
 DESIGN_CACHE = CACHE_ROOT / "refine-study"
 VALIDATION_CACHE = CACHE_ROOT / "trust-study"
-#: Per-pixel rule variants measured beside the shipped constants: (TRUST_RADIUS, TRUST_R_LOW, TRUST_R_HIGH).
-RULES: dict[str, tuple[float, float, float]] = {
-    "window 17, r 0.1-1": (8, 0.1, 1.0),
-    "window 7, r 0.05-0.5": (3, 0.05, 0.5),
-    "window 7, r 0.2-2": (3, 0.2, 2.0),
+#: Rule variants measured beside the shipped constants: (TRUST_RADIUS, TRUST_R_LOW, TRUST_R_HIGH, TRUST_FRAME_R).
+RULES: dict[str, tuple] = {
+    "per pixel only (window 7, r 0.1-1)": (3, 0.1, 1.0, None),
+    "per pixel only, window 17": (8, 0.1, 1.0, None),
+    "per pixel only, r 0.05-0.5": (3, 0.05, 0.5, None),
+    "per pixel only, r 0.2-2": (3, 0.2, 2.0, None),
+    "per pixel + frame r 0.1-0.3": (3, 0.1, 1.0, (0.1, 0.3)),
 }
-#: Design (a), measured, not shipped: one weight per frame from the frame-wide r (the sums over the image of the
-#: per-pixel rule's two terms, weighted by 1/(lum(OIDN)² + 0.01)), w log-linear from 1 at FRAME_R[0] to 0 at
-#: FRAME_R[1], α = 1 − 0.5·w (the design grid's best: base-heavy data terms want a lower α).
-FRAME_R = (0.1, 0.3)
 
 
-def _rule(constants: tuple[float, float, float] | None) -> Callable:
+def _rule(constants: tuple | None) -> Callable:
     """f(denoised, layer): model.refine.refine_layer's default (the trust rule), its constants overridden."""
     from model import refine
 
-    names = ("TRUST_RADIUS", "TRUST_R_LOW", "TRUST_R_HIGH")
+    names = ("TRUST_RADIUS", "TRUST_R_LOW", "TRUST_R_HIGH", "TRUST_FRAME_R")
 
     def run(denoised, layer):
         if constants is None:
@@ -64,26 +62,14 @@ def _rule(constants: tuple[float, float, float] | None) -> Callable:
     return run
 
 
-def frame_disagreement(base: np.ndarray, prior: np.ndarray, dx: np.ndarray, dy: np.ndarray) -> float:
-    """Design (a)'s frame-wide r at mean-1 exposure: Σ ω‖∇base − g‖² / Σ ω‖g‖², ω = 1/(lum(prior)² + 0.01)."""
-    from model.refine import _forward_differences
-
-    b = np.asarray(base, np.float64)
-    weight = 1.0 / (np.mean(np.asarray(prior, np.float64), axis=-1, keepdims=True) ** 2 + 1e-2)
-    bx, by = _forward_differences(b)
-    residual = float(np.sum(weight * ((bx - dx) ** 2 + (by - dy) ** 2)))
-    signal = float(np.sum(weight * (np.asarray(dx, np.float64) ** 2 + np.asarray(dy, np.float64) ** 2)))
-    return residual / signal if signal > 0 else (0.0 if residual <= 0 else math.inf)
-
-
 def _per_frame(denoised, layer):
-    """Design (a): the refinement of w·base + (1 − w)·OIDN with one w (and α) per frame."""
+    """Design (a): the refinement of w·base + (1 − w)·OIDN with one w per frame (the frame-wide r of
+    model.refine.frame_disagreement, log-linear from 1 at 0.1 to 0 at 0.3), α = 1 − 0.5·w."""
     from model import refine
 
     s = refine.input_scale(denoised)
-    r = frame_disagreement(*(refine.scaled_image(a, s) for a in (layer.base, denoised, layer.dx, layer.dy)))
-    low, high = FRAME_R
-    w = 1.0 if r <= low else 0.0 if r >= high else math.log(high / r) / math.log(high / low)
+    r = refine.frame_disagreement(*(refine.scaled_image(a, s) for a in (layer.base, denoised, layer.dx, layer.dy)))
+    w = refine._log_ramp(r, 0.1, 0.3)
     data = (w * layer.base + (1 - w) * denoised).astype(np.float32)
     return refine.refine_layer("direct", data, layer, 1.0 - 0.5 * w)
 
@@ -98,10 +84,10 @@ def variants() -> dict[str, Callable]:
         "plain refinement (before)": lambda d, layer: refine.refine_layer("direct", d, layer, refine.REFINE_ALPHA),
         "oidn": lambda d, layer: d,
         "l1 (base + gradients)": lambda d, layer: solve_l1(layer.base, layer.dx, layer.dy, DEFAULT_ALPHA)[0],
-        "trust rule, per pixel (shipped)": _rule(None),
-        "per-frame rule (design a)": _per_frame,
+        "trust rule (shipped)": _rule(None),
+        "per-frame rule only (design a)": _per_frame,
     }
-    out.update({f"per-pixel {k}": _rule(v) for k, v in RULES.items()})
+    out.update({k: _rule(v) for k, v in RULES.items()})
     return out
 
 
@@ -122,7 +108,7 @@ def score_set(cache: Path, per_frame: bool) -> dict[str, dict[str, list[float]]]
     from model.metrics import relmse_unbiased
     from model.oidn import METHOD_SETTING, Denoiser, input_scale
     from model.preprocess import scaled_image
-    from model.refine import trust_weights
+    from model.refine import frame_disagreement, trust_weights
 
     den = Denoiser(METHOD_SETTING)
     runs = variants()
@@ -144,9 +130,11 @@ def score_set(cache: Path, per_frame: bool) -> dict[str, dict[str, list[float]]]
             ratios["frame"].setdefault(name, []).append(t / before[1])
         if per_frame:
             s = input_scale(denoised)
-            w = trust_weights(scaled_image(layer.base, s), scaled_image(layer.dx, s), scaled_image(layer.dy, s))
-            shipped = scores["trust rule, per pixel (shipped)"]
-            print(f"| {label} | {float(w.mean()):.2f} | {before[0]:.3g} | {shipped[0] / before[0]:.3f} | "
+            scaled = [scaled_image(a, s) for a in (layer.base, denoised, layer.dx, layer.dy)]
+            w = trust_weights(scaled[0], *scaled[2:])
+            r = frame_disagreement(*scaled)
+            shipped = scores["trust rule (shipped)"]
+            print(f"| {label} | {r:.3g} | {float(w.mean()):.2f} | {before[0]:.3g} | {shipped[0] / before[0]:.3f} | "
                   f"{scores['oidn'][0] / before[0]:.2f} | {scores['l1 (base + gradients)'][0] / before[0]:.2f} | "
                   f"{shipped[1] / before[1]:.3f} |", flush=True)
     den.close()
@@ -161,8 +149,8 @@ def error(caches: dict[str, Path], per_frame: bool) -> None:
     for set_name, cache in caches.items():
         print(f"\n## {set_name}: {cache}\n")
         if per_frame:
-            print("| frame | mean w | plain refinement RelMSE (direct) | rule / plain (direct) | oidn / plain | "
-                  "l1 / plain | rule / plain (frame) |\n|---|---:|---:|---:|---:|---:|---:|")
+            print("| frame | frame r | mean per-pixel w | plain refinement RelMSE (direct) | rule / plain (direct) | "
+                  "oidn / plain | l1 / plain | rule / plain (frame) |\n|---|---:|---:|---:|---:|---:|---:|---:|")
         ratios = score_set(cache, per_frame)
         labels = [label for label, *_ in _frames(cache)]
         spps = sorted({int(label.split()[1]) for label in labels})

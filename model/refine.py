@@ -78,6 +78,13 @@ TRUST_R_LOW = 0.1
 TRUST_R_HIGH = 1.0
 #: Keeps r finite where the window's gradients are all zero (r is then 0 for an exact base, huge for a noisy one).
 TRUST_FLOOR = 1e-12
+#: The frame-wide part of the rule: the same r over the whole layer (its two terms summed over the image,
+#: each pixel weighted by 1/(lum(OIDN)² + 0.01) so dark and bright parts count alike) gives a weight w_f (1 at
+#: r ≤ TRUST_FRAME_R_LOW, 0 at r ≥ TRUST_FRAME_R_HIGH, log-linear between); each pixel's weight is at least w_f,
+#: and α = REFINE_ALPHA − (REFINE_ALPHA − TRUST_ALPHA_BASE)·w_f: a layer clean as a whole leans on its base with
+#: the gradients taking over more of the detail (the ``l1`` method's regime). None: no frame-wide part.
+TRUST_FRAME_R: tuple[float, float] | None = (0.05, 0.2)
+TRUST_ALPHA_BASE = 0.5
 
 _F32_MAX = float(np.finfo(np.float32).max)
 
@@ -107,13 +114,40 @@ def trust_weights(base: np.ndarray, dx: np.ndarray, dy: np.ndarray) -> np.ndarra
     return np.clip(np.nan_to_num(w, nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0).astype(np.float32)[..., None]
 
 
-def trusted_data(base: np.ndarray, prior: np.ndarray, dx: np.ndarray, dy: np.ndarray) -> np.ndarray:
-    """The trust rule's data term w·base + (1 − w)·prior (all at mean-1 exposure, finite), float32; ``prior``
-    itself where the base is nowhere trusted."""
+def _log_ramp(r: float, low: float, high: float) -> float:
+    """1 at r ≤ low, 0 at r ≥ high (and for NaN), log-linear between."""
+    if r <= low:
+        return 1.0
+    if not r < high:
+        return 0.0
+    return math.log(high / r) / math.log(high / low)
+
+
+def frame_disagreement(base: np.ndarray, prior: np.ndarray, dx: np.ndarray, dy: np.ndarray) -> float:
+    """The frame-wide r (TRUST_FRAME_R) at mean-1 exposure: Σ ω‖∇base − g‖² / Σ ω‖g‖², ω = 1/(lum(prior)² +
+    0.01); 0 for an exact (or flat, agreeing) layer, inf when the gradients are all zero but the base is not."""
+    b = np.asarray(base, np.float64)
+    g_x, g_y = np.asarray(dx, np.float64), np.asarray(dy, np.float64)
+    weight = 1.0 / (np.mean(np.asarray(prior, np.float64), axis=-1, keepdims=True) ** 2 + 1e-2)
+    bx, by = _forward_differences(b)
+    residual = float(np.sum(weight * ((bx - g_x) ** 2 + (by - g_y) ** 2)))
+    signal = float(np.sum(weight * (g_x ** 2 + g_y ** 2)))
+    if signal > 0.0 and math.isfinite(signal):
+        return residual / signal
+    return 0.0 if residual == 0.0 else math.inf
+
+
+def trusted_data(base: np.ndarray, prior: np.ndarray, dx: np.ndarray, dy: np.ndarray) -> tuple[np.ndarray, float]:
+    """(the trust rule's data term w·base + (1 − w)·prior, its α), all at mean-1 exposure, finite inputs; the
+    data term is ``prior`` itself, at REFINE_ALPHA, where the base is nowhere trusted."""
     w = trust_weights(base, dx, dy)
+    frame = 0.0 if TRUST_FRAME_R is None else _log_ramp(frame_disagreement(base, prior, dx, dy), *TRUST_FRAME_R)
+    if frame > 0.0:
+        w = np.maximum(w, np.float32(frame))
     if not np.any(w > 0):
-        return prior
-    return (prior + w * (np.asarray(base, np.float32) - prior)).astype(np.float32)
+        return prior, REFINE_ALPHA
+    alpha = REFINE_ALPHA - (REFINE_ALPHA - TRUST_ALPHA_BASE) * frame
+    return (prior + w * (np.asarray(base, np.float32) - prior)).astype(np.float32), alpha
 
 
 def _cg_budget(cg_steps: int | None, cg_tolerance: float | None) -> dict:
@@ -145,9 +179,9 @@ def refine_layer(name: str, prior: np.ndarray, layer: Layer, alpha: float | None
     dx, dy = scaled_image(layer.dx, scale), scaled_image(layer.dy, scale)
     data = scaled_image(prior, scale)
     if alpha is None:  # the trust rule: per pixel, how far the frame's own base is trusted beside OIDN's image
-        if np.all(np.isfinite(layer.base)):  # (the frame policy keeps NaN/Inf out; a direct caller may not)
-            data = trusted_data(scaled_image(layer.base, scale), data, dx, dy)
         alpha = REFINE_ALPHA
+        if np.all(np.isfinite(layer.base)):  # (the frame policy keeps NaN/Inf out; a direct caller may not)
+            data, alpha = trusted_data(scaled_image(layer.base, scale), data, dx, dy)
     warm = REFINE_WARM_START if warm_start is None else warm_start
     solved, _ = solve_l1(data, dx, dy, alpha, passes or REFINE_ITERATIONS, **_cg_budget(cg_steps, cg_tolerance),
                          preconditioner=preconditioner or REFINE_PRECONDITIONER, initial=data if warm else None)
