@@ -253,3 +253,26 @@ def test_the_rule_is_exposure_invariant(decade: int, sigma: float) -> None:
     out = refine_layer("direct", prior * k, Layer(layer.base * k, layer.dx * k, layer.dy * k))
     assert np.all(np.isfinite(out)) and np.all(out >= 0)
     np.testing.assert_allclose(out / k, ref, rtol=2e-3, atol=1e-6 * float(ref.max()))
+
+
+def test_the_frame_wide_part_of_the_rule() -> None:
+    """A layer clean as a whole is trusted everywhere at the lower α (the l1 method's regime); a noisy one keeps
+    OIDN's image as the data term at REFINE_ALPHA; degenerate layers give a finite or infinite r, never NaN."""
+    from model.refine import TRUST_ALPHA_BASE, frame_disagreement, trusted_data
+
+    truth = _sharp(48, 64, 24)
+    prior = _blur(truth)
+    layer = _layer_of(truth)
+    assert frame_disagreement(truth, prior, layer.dx, layer.dy) < 1e-9  # float32 differences round
+    data, alpha = trusted_data(truth, prior, layer.dx, layer.dy)
+    assert alpha == TRUST_ALPHA_BASE and np.array_equal(data, truth)
+    noisy = _noisy(truth, 1.0, 25)
+    assert frame_disagreement(noisy, prior, layer.dx, layer.dy) > 1.0
+    data, alpha = trusted_data(noisy, prior, *_gradients(truth, 0.05, 26))
+    assert alpha == REFINE_ALPHA and data is prior
+    flat = np.full((4, 5, 3), 2.0, np.float32)
+    zero = np.zeros_like(flat)
+    assert frame_disagreement(flat, flat, zero, zero) == 0.0
+    bumpy = flat.copy()
+    bumpy[1, 1] = 3.0
+    assert frame_disagreement(bumpy, flat, zero, zero) == float("inf")
