@@ -97,20 +97,35 @@ def _forward_differences(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return gx, gy
 
 
-def trust_weights(base: np.ndarray, dx: np.ndarray, dy: np.ndarray) -> np.ndarray:
+def _disagreement_maps(base: np.ndarray, dx: np.ndarray, dy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per pixel, RGB means: (‖∇base − g‖², ‖g‖²), float32 (H, W), for one layer at mean-1 exposure (float32 is
+    ample there; an overflow gives inf, which the rule reads as "do not trust")."""
+    b = np.asarray(base, np.float32)
+    g_x, g_y = np.asarray(dx, np.float32), np.asarray(dy, np.float32)
+    bx, by = _forward_differences(b)
+    with np.errstate(over="ignore", invalid="ignore"):
+        bx -= g_x
+        by -= g_y
+        residual = np.mean(np.square(bx, out=bx) + np.square(by, out=by), axis=-1)
+        signal = np.mean(np.square(g_x) + np.square(g_y), axis=-1)
+    return residual, signal
+
+
+def trust_weights(base: np.ndarray, dx: np.ndarray, dy: np.ndarray,
+                  maps: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """The trust rule's per-pixel weight of the base, (H, W, 1) float32 in [0, 1], for one layer at mean-1
     exposure (see TRUST_RADIUS): 1 where the base agrees with the gradients (an exact layer, or a flat one with
-    zero gradients), 0 where its disagreement is TRUST_R_HIGH of the gradients' energy or more. Finite inputs."""
+    zero gradients), 0 where its disagreement is TRUST_R_HIGH of the gradients' energy or more. Finite inputs.
+    ``maps``: _disagreement_maps of the same layer, if the caller has them."""
     from scipy.ndimage import uniform_filter
 
-    b = np.asarray(base, np.float64)
-    g_x, g_y = np.asarray(dx, np.float64), np.asarray(dy, np.float64)
-    bx, by = _forward_differences(b)
+    residual, signal = maps if maps is not None else _disagreement_maps(base, dx, dy)
     size = 2 * TRUST_RADIUS + 1
-    residual = uniform_filter(np.mean((bx - g_x) ** 2 + (by - g_y) ** 2, axis=-1), size, mode="nearest")
-    signal = uniform_filter(np.mean(g_x ** 2 + g_y ** 2, axis=-1), size, mode="nearest")
-    r = np.maximum(residual, 0.0) / (np.maximum(signal, 0.0) + TRUST_FLOOR)
-    w = np.log(TRUST_R_HIGH / np.maximum(r, TRUST_FLOOR)) / math.log(TRUST_R_HIGH / TRUST_R_LOW)
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        r = (np.maximum(uniform_filter(residual, size, mode="nearest"), 0.0)
+             / (np.maximum(uniform_filter(signal, size, mode="nearest"), 0.0) + np.float32(TRUST_FLOOR)))
+        w = np.log(np.float32(TRUST_R_HIGH) / np.maximum(r, np.float32(TRUST_FLOOR)))
+    w *= np.float32(1.0 / math.log(TRUST_R_HIGH / TRUST_R_LOW))
     return np.clip(np.nan_to_num(w, nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0).astype(np.float32)[..., None]
 
 
@@ -123,25 +138,27 @@ def _log_ramp(r: float, low: float, high: float) -> float:
     return math.log(high / r) / math.log(high / low)
 
 
-def frame_disagreement(base: np.ndarray, prior: np.ndarray, dx: np.ndarray, dy: np.ndarray) -> float:
+def frame_disagreement(base: np.ndarray, prior: np.ndarray, dx: np.ndarray, dy: np.ndarray,
+                       maps: tuple[np.ndarray, np.ndarray] | None = None) -> float:
     """The frame-wide r (TRUST_FRAME_R) at mean-1 exposure: Σ ω‖∇base − g‖² / Σ ω‖g‖², ω = 1/(lum(prior)² +
-    0.01); 0 for an exact (or flat, agreeing) layer, inf when the gradients are all zero but the base is not."""
-    b = np.asarray(base, np.float64)
-    g_x, g_y = np.asarray(dx, np.float64), np.asarray(dy, np.float64)
-    weight = 1.0 / (np.mean(np.asarray(prior, np.float64), axis=-1, keepdims=True) ** 2 + 1e-2)
-    bx, by = _forward_differences(b)
-    residual = float(np.sum(weight * ((bx - g_x) ** 2 + (by - g_y) ** 2)))
-    signal = float(np.sum(weight * (g_x ** 2 + g_y ** 2)))
-    if signal > 0.0 and math.isfinite(signal):
-        return residual / signal
-    return 0.0 if residual == 0.0 else math.inf
+    0.01); 0 for an exact (or flat, agreeing) layer, inf when the gradients are all zero but the base is not.
+    ``maps``: _disagreement_maps of the same layer, if the caller has them."""
+    residual, signal = maps if maps is not None else _disagreement_maps(base, dx, dy)
+    weight = 1.0 / (np.square(np.mean(np.asarray(prior, np.float32), axis=-1)) + np.float32(1e-2))
+    res = float(np.sum(weight * residual, dtype=np.float64))
+    sig = float(np.sum(weight * signal, dtype=np.float64))
+    if sig > 0.0 and math.isfinite(sig):
+        return res / sig
+    return 0.0 if res == 0.0 else math.inf
 
 
 def trusted_data(base: np.ndarray, prior: np.ndarray, dx: np.ndarray, dy: np.ndarray) -> tuple[np.ndarray, float]:
     """(the trust rule's data term w·base + (1 − w)·prior, its α), all at mean-1 exposure, finite inputs; the
     data term is ``prior`` itself, at REFINE_ALPHA, where the base is nowhere trusted."""
-    w = trust_weights(base, dx, dy)
-    frame = 0.0 if TRUST_FRAME_R is None else _log_ramp(frame_disagreement(base, prior, dx, dy), *TRUST_FRAME_R)
+    maps = _disagreement_maps(base, dx, dy)
+    w = trust_weights(base, dx, dy, maps)
+    frame = 0.0 if TRUST_FRAME_R is None else _log_ramp(frame_disagreement(base, prior, dx, dy, maps),
+                                                         *TRUST_FRAME_R)
     if frame > 0.0:
         w = np.maximum(w, np.float32(frame))
     if not np.any(w > 0):
