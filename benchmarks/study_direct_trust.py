@@ -180,7 +180,7 @@ def time_rule(width: int, height: int, repeats: int) -> None:
              * np.array([1.0, 0.8, 0.6])).astype(np.float32)
     truth[height // 3: height // 2, width // 4: width // 2] *= 0.2  # a shadow edge
     dx, dy = forward_differences(truth)
-    for noise in (0.02, 0.3):  # a clean layer (the rule mixes the base in) and a noisy one (it does not)
+    for noise in (0.001, 0.3):  # a clean layer (the rule mixes the base in) and a noisy one (it does not)
         base = (truth * (1 + noise * rng.standard_normal(truth.shape))).clip(0).astype(np.float32)
         _time_one(Layer(base, dx, dy), (0.5 * truth + 0.5 * base).astype(np.float32), repeats, median_seconds,
                   f"{width}x{height}, base noise {noise}")

@@ -19,6 +19,13 @@ worse in the other two). α = 0.5 was a little better at 16-64 spp but once four
 come from longer paths whose shifts fail more often, so they are noisier than OIDN's own estimate. A ``color``
 layer (a frame rendered without separation) mixes both and is left as OIDN returns it.
 
+Since issue 14's trust rule (``trusted_data``; docs/network.md "The trust rule"), ``refine_layer`` without an
+explicit α mixes the frame's own base into that data term where the frame shows it is clean: per pixel, from how
+well the base agrees with the sampled gradients next to the detail they carry, and per frame, from the same ratio
+over the whole layer (which also lowers α). OIDN's own error (bias, over-smoothing) dominates a layer that is only
+a little noisy; there the base with its gradients (the ``l1`` method's data) is the better anchor. A noisy layer
+gets the plain refinement above, bit for bit. Callers that pass α (model/fused.py's pinned candidates) keep it.
+
 The solve runs at a normalised exposure (the layer divided by the mean of OIDN's image), because the IRLS
 regulariser of ``solve_l1`` is an absolute radiance: without it a 1e-6 frame and a 1e6 frame of the same scene
 would be refined differently. The result is scaled back, so every exposure returns the frame's own energy.
