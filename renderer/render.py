@@ -69,7 +69,8 @@ def render_frame(scene: LoadedScene | str, *, spp: int, seed: int = 0,
                  layers: str | Iterable[str] = SEPARATED_LAYERS, shift: str | None = None,
                  max_depth: int | None = None, width: int | None = None, height: int | None = None,
                  defines: Mapping[str, str] | None = None,
-                 progress: Callable[[int, int], None] | None = None, gradients: bool | str = True) -> Frame:
+                 progress: Callable[[int, int], None] | None = None, gradients: bool | str = True,
+                 offsets: str = "all") -> Frame:
     """Render one G-PT frame: per requested layer base + dx + dy, features at the first non-specular vertex.
 
     ``scene`` is a loaded scene or a spec (XML path / ``procedural:SEED``) loaded with ``width``, ``height``,
@@ -78,9 +79,11 @@ def render_frame(scene: LoadedScene | str, *, spp: int, seed: int = 0,
     ``none`` is the primal-only mode: the same base paths, layers and features, no offset paths; the frame's
     layers carry no gradients (``dx``/``dy`` None) and ``shift`` is ignored. ``direct`` gives the direct layer
     its gradients -- the same as an ``all`` render with this seed -- and the indirect layer none (its base is the
-    primal-only render's): the offsets stop after the direct layer's vertices.
+    primal-only render's): the offsets stop after the direct layer's vertices. ``offsets`` (library only, not on
+    the command line): which offsets a sample traces, ``GptSettings.offsets`` (``all``, or fewer: ``alternate``,
+    ``pair``, ``single``; same frame contract, gradients counted with their inverse probability).
     """
-    from renderer.gpt import GptSettings, render_gpt
+    from renderer.gpt import OFFSET_MODES, GptSettings, render_gpt
     from renderer.shift import make_shift  # imports Mitsuba
 
     if spp < 1:
@@ -95,6 +98,8 @@ def render_frame(scene: LoadedScene | str, *, spp: int, seed: int = 0,
         scene = LoadedScene(scene.scene, scene.spec, scene.width, scene.height, max_depth, scene.rr_depth,
                             scene.defines)
     mode = gradients_mode(gradients)
+    if offsets not in OFFSET_MODES:
+        raise CommandError(f"offsets must be one of {', '.join(OFFSET_MODES)}, got {offsets!r}")
     wanted, notes = plan_layers(parse_layers(layers), scene.max_depth)
     if mode == "direct" and "direct" not in wanted:
         raise CommandError(f"--gradients direct needs the separated direct layer; --layers {','.join(wanted)} "
@@ -106,7 +111,7 @@ def render_frame(scene: LoadedScene | str, *, spp: int, seed: int = 0,
     color = wanted == ("color",)
     settings = GptSettings(max_depth=scene.max_depth, rr_depth=scene.rr_depth, direct=color or "direct" in wanted,
                            indirect=color or "indirect" in wanted, separate=not color,
-                           gradients="direct" if mode == "direct" else "all")
+                           gradients="direct" if mode == "direct" else "all", offsets=offsets)
     start = time.perf_counter()
     result = render_gpt(scene.scene, shift_impl, settings, scene.width, scene.height, spp, seed, progress)
     seconds = time.perf_counter() - start
