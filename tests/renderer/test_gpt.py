@@ -311,7 +311,7 @@ def test_fewer_offsets_keep_the_primal_and_count_gradients_at_any_spp(offsets):
 @pytest.mark.slow
 @pytest.mark.parametrize(("scene_name", "shift", "offsets"), [
     ("cbox", "hybrid", "all"), ("cbox", "replay", "all"), ("sky", "hybrid", "all"), ("cbox", "hybrid", "pair"),
-    ("teapot", "hybrid", "all")])
+    ("cbox", "hybrid", "alternate"), ("teapot", "hybrid", "all")])
 def test_direct_gradients_mode_is_the_full_renders_direct_layer(scene_name, shift, offsets):
     """GptSettings(gradients="direct") traces the offsets only to the direct layer's vertices: its direct layer
     (base and gradients) is the ``all`` render's with the same seed, bit for bit up to rounding; its indirect
