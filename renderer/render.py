@@ -54,6 +54,9 @@ def plan_layers(requested: tuple[str, ...], max_depth: int) -> tuple[tuple[str, 
 #: (the direct layer's; offsets are traced only to the direct layer's vertices, the indirect layer is a plain
 #: primal), ``none`` (the primal-only mode: no offset paths).
 GRADIENT_CHOICES: tuple[str, ...] = ("all", "direct", "none")
+#: ``gradsep render --offsets``: which offset paths a sample traces (``renderer.gpt.OFFSET_MODES``, which a test keeps
+#: equal to this without importing Mitsuba here).
+OFFSET_CHOICES: tuple[str, ...] = ("all", "pair", "single", "alternate")
 
 
 def gradients_mode(gradients: bool | str) -> str:
@@ -79,11 +82,11 @@ def render_frame(scene: LoadedScene | str, *, spp: int, seed: int = 0,
     ``none`` is the primal-only mode: the same base paths, layers and features, no offset paths; the frame's
     layers carry no gradients (``dx``/``dy`` None) and ``shift`` is ignored. ``direct`` gives the direct layer
     its gradients -- the same as an ``all`` render with this seed -- and the indirect layer none (its base is the
-    primal-only render's): the offsets stop after the direct layer's vertices. ``offsets`` (library only, not on
-    the command line): which offsets a sample traces, ``GptSettings.offsets`` (``all``, or fewer: ``alternate``,
-    ``pair``, ``single``; same frame contract, gradients counted with their inverse probability).
+    primal-only render's): the offsets stop after the direct layer's vertices. ``offsets`` (``--offsets``): which
+    offsets a sample traces, ``GptSettings.offsets`` (``all``, or fewer: ``alternate``, ``pair``, ``single``; the
+    same channels, gradients counted with their inverse probability; recorded as ``gradsep.offsets`` unless ``all``).
     """
-    from renderer.gpt import OFFSET_MODES, GptSettings, render_gpt
+    from renderer.gpt import GptSettings, render_gpt
     from renderer.shift import make_shift  # imports Mitsuba
 
     if spp < 1:
@@ -98,8 +101,10 @@ def render_frame(scene: LoadedScene | str, *, spp: int, seed: int = 0,
         scene = LoadedScene(scene.scene, scene.spec, scene.width, scene.height, max_depth, scene.rr_depth,
                             scene.defines)
     mode = gradients_mode(gradients)
-    if offsets not in OFFSET_MODES:
-        raise CommandError(f"offsets must be one of {', '.join(OFFSET_MODES)}, got {offsets!r}")
+    if offsets not in OFFSET_CHOICES:
+        raise CommandError(f"--offsets must be one of {', '.join(OFFSET_CHOICES)}, got {offsets!r}")
+    if mode == "none" and offsets != "all":
+        raise CommandError("--offsets has no effect without gradients (no offset paths are traced)")
     wanted, notes = plan_layers(parse_layers(layers), scene.max_depth)
     if mode == "direct" and "direct" not in wanted:
         raise CommandError(f"--gradients direct needs the separated direct layer; --layers {','.join(wanted)} "
@@ -120,6 +125,8 @@ def render_frame(scene: LoadedScene | str, *, spp: int, seed: int = 0,
     features = Features(albedo=result.albedo, normal=result.normal, depth=result.depth)
     metadata = render_metadata(scene, spp=spp, seed=seed, shift=shift_impl.name if shift_impl else "none",
                                layers=wanted, seconds=seconds, passes=result.passes, gradients=mode)
+    if offsets != "all":
+        metadata["gradsep.offsets"] = offsets
     return Frame(layers=frame_layers, features=features, metadata=metadata, warnings=notes + result.warnings)
 
 

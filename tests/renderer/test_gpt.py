@@ -960,11 +960,34 @@ def test_render_command_gradients_direct(tmp_path, capsys):
     np.testing.assert_allclose(frame.layers["direct"].dx, full.layers["direct"].dx, rtol=1e-6, atol=1e-7)
 
 
+def test_render_command_offsets(tmp_path):
+    """`--offsets alternate`: the same channels as a full render (both layers' gradients), the same primal, and
+    the mode in the metadata (absent for the default `all`); the command's choices are the renderer's modes."""
+    from renderer.gpt import OFFSET_MODES
+    from renderer.render import OFFSET_CHOICES
+
+    assert OFFSET_CHOICES == OFFSET_MODES
+    with pytest.raises(CommandError, match="--offsets must be one of"):
+        render_frame(CBOX, spp=1, width=4, height=4, offsets="three")
+    out = tmp_path / "a.exr"
+    rc = main(["render", CBOX, "--spp", "2", "--width", "10", "--height", "8", "--seed", "4", "--max-depth", "4",
+               "--offsets", "alternate", "-o", str(out)])
+    assert rc == 0
+    frame = read_frame(out)
+    assert frame.gradient_layers == ("direct", "indirect") and frame.metadata["gradsep.offsets"] == "alternate"
+    full = render_frame(load_scene(CBOX, width=10, height=8, max_depth=4), spp=2, seed=4)
+    assert "gradsep.offsets" not in full.metadata
+    for layer in ("direct", "indirect"):
+        np.testing.assert_array_equal(frame.layers[layer].base, full.layers[layer].base)
+        assert np.abs(frame.layers[layer].dx).max() > 0
+
+
 @pytest.mark.parametrize("argv, message", [
     (["--gradients", "direct", "--layers", "color"], "--gradients direct"),
     (["--gradients", "direct", "--layers", "indirect"], "--gradients direct"),
     (["--no-gradients", "--gradients", "all"], "--no-gradients"),
     (["--gradients", "none", "--shift", "replay"], "--shift"),
+    (["--no-gradients", "--offsets", "alternate"], "--offsets"),
     (["--spp", "0"], "spp"),
     (["--layers", "glossy"], "unknown layer"),
     (["--max-depth", "0"], "max-depth"),
