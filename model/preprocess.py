@@ -56,6 +56,7 @@ PRIOR_CG_STEPS = 2
 PRIOR_REG_INIT = 0.05
 PRIOR_REG_DECAY = 0.5
 PRIOR_CG_TOLERANCE = 1e-3
+PRIOR_PRECONDITIONER = "dct"
 #: Frames taller than this are solved in horizontal bands (each extended by PRIOR_BAND_OVERLAP rows on both
 #: sides, blended linearly where they overlap) so the solver's ~250 bytes per pixel stay bounded: a 4096-wide
 #: band of 1024 + 2·64 rows needs ~1.2 GB instead of ~4 GB for a whole 4096² layer. The screening term
@@ -257,7 +258,7 @@ def _solve_prior(base: np.ndarray, dx: np.ndarray, dy: np.ndarray) -> np.ndarray
     # whatever the l1 method's defaults become
     prior, _ = solve_l1(base, dx, dy, PRIOR_ALPHA, iterations=PRIOR_IRLS_PASSES, cg_iterations=PRIOR_CG_STEPS,
                         reg_init=PRIOR_REG_INIT, reg_decay=PRIOR_REG_DECAY, cg_tolerance=PRIOR_CG_TOLERANCE,
-                        preconditioner="dct")
+                        preconditioner=PRIOR_PRECONDITIONER)
     return _sanitise_inplace(prior, 0.0, RADIANCE_MAX)
 
 
