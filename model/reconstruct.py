@@ -135,9 +135,10 @@ DEFAULT_LAYER_THREADS = 2
 #: outweigh them). network: its prior solve (~0.5 s of a 720p layer) runs on one core, so the other layer's prior
 #: fills the idle one; its ONNX graphs are serialised by NetworkReconstructor's graph lock (one graph already uses
 #: both cores; two at once doubled the peak RSS, 1.9 -> 3.5-4.2 GB). Issue 15 (netspeed helper, 2026-12-02, load
-#: ~4, docs/network.md "Serving latency"): through the service, alternating, without the graph lock, network p50
-#: 3.08/2.31 s sequential against 1.98/2.08 s concurrent; an earlier alternating run had seen the opposite
-#: (1.86/1.69 against 1.93/2.01 s), so see docs/network.md for the runs with the lock.
+#: ~4, docs/network.md "Serving latency"): through the service, alternating, network p50 2.20/1.95 s sequential
+#: against 2.15/1.74 s concurrent with the lock (3.08/2.31 against 1.98/2.08 s before it; an earlier run without it
+#: had seen the opposite, 1.86/1.69 against 1.93/2.01 s); in-process 0.92. Cost: peak RSS 2.0 -> 3.5 GB with two
+#: clients (four prior solves in flight); GRADSEP_LAYER_THREADS=1 gives it back.
 #: fused is pipelined like oidn-l1 (each layer's OIDN image in this thread, the rest of the layer in a worker beside
 #: the next denoise): a probe took a 720p frame from 4.16 to
 #: 2.71 s, same output (fused3 helper, 2026-12-02, load ~4). Every other method runs its layers one after the
