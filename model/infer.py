@@ -370,7 +370,7 @@ class NetworkReconstructor:
         self._cache = threading.local()  # the last frame's feature planes, per thread (see _features)
         # One ONNX graph at a time per reconstructor: a frame's layers run concurrently (model.reconstruct's
         # CONCURRENT_METHODS) so that one layer's prior solve, which is single-threaded, overlaps the other's; the
-        # graph already uses every core, so two at once only contend and double the activations' memory.
+        # graph already uses every core (OpenVINO's default threads), so two at once would only contend.
         self._graph_lock = threading.Lock()
 
     @classmethod

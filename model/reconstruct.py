@@ -134,7 +134,7 @@ DEFAULT_LAYER_THREADS = 2
 #: refinement beside the indirect layer's denoise), l2 1.7-2.3 (two DCTs per layer: thread start-up and contention
 #: outweigh them). network: its prior solve (~0.5 s of a 720p layer) runs on one core, so the other layer's prior
 #: fills the idle one; its ONNX graphs are serialised by NetworkReconstructor's graph lock (one graph already uses
-#: both cores; two at once doubled the peak RSS, 1.9 -> 3.5-4.2 GB). Issue 15 (netspeed helper, 2026-12-02, load
+#: both cores, two at once only contend). Issue 15 (netspeed helper, 2026-12-02, load
 #: ~4, docs/network.md "Serving latency"): through the service, alternating, network p50 2.20/1.95 s sequential
 #: against 2.15/1.74 s concurrent with the lock (3.08/2.31 against 1.98/2.08 s before it; an earlier run without it
 #: had seen the opposite, 1.86/1.69 against 1.93/2.01 s); in-process 0.92. Cost: peak RSS 2.0 -> 3.5 GB with two
