@@ -136,8 +136,9 @@ DEFAULT_LAYER_THREADS = 2
 #: fills the idle one; its ONNX graphs are serialised by NetworkReconstructor's graph lock (one graph already uses
 #: both cores, two at once only contend). Issue 15 (netspeed helper, 2026-12-02, load
 #: ~4, docs/network.md "Serving latency"): through the service, alternating, network p50 2.20/1.95 s sequential
-#: against 2.15/1.74 s concurrent with the lock (3.08/2.31 against 1.98/2.08 s before it; an earlier run without it
-#: had seen the opposite, 1.86/1.69 against 1.93/2.01 s); in-process 0.92. Cost: peak RSS 2.0 -> 3.5 GB with two
+#: against 2.15/1.74 s concurrent with the lock, and 2.16/1.72 against 1.84/1.87 s in a second hold (medians 2.06
+#: against 1.85 s; before the lock 3.08/2.31 against 1.98/2.08 s; an earlier run without it had seen the opposite,
+#: 1.86/1.69 against 1.93/2.01 s); in-process 0.92, 0.93. Cost: peak RSS 2.0 -> 3.5 GB with two
 #: clients (four prior solves in flight); GRADSEP_LAYER_THREADS=1 gives it back.
 #: fused is pipelined like oidn-l1 (each layer's OIDN image in this thread, the rest of the layer in a worker beside
 #: the next denoise): a probe took a 720p frame from 4.16 to
