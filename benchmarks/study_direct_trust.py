@@ -2,7 +2,7 @@
 how far the direct layer's refinement should trust the frame's own noisy base against OIDN's image, per frame,
 from what the frame carries (base, gradients, OIDN's image; no reference).
 
-    python benchmarks/study_direct_trust.py render --seeds 84001-84006 --spp 4,16,64,256   # validation frames
+    python benchmarks/study_direct_trust.py render --seeds 84001-84004 --spp 4,16,64,256   # validation frames
     python benchmarks/study_direct_trust.py error                   # design + validation tables (cached frames)
     python benchmarks/study_direct_trust.py error --per-frame       # plus each frame's statistic r and ratios
     python benchmarks/study_direct_trust.py time                    # 1280x720 cost of the rule
@@ -10,7 +10,7 @@ from what the frame carries (base, gradients, OIDN's image; no reference).
 Two frame sets, both procedural seeds outside the evaluation's (90001, 90002) and the training range; nothing here
 reads cbox or the teapot. **Design**: the ``oidn-l1`` study's frames (benchmarks/study_refine.py's cache, seeds
 81001-81008 at 1, 4, 16, 64 spp), on which the rule's three constants were chosen. **Validation**: seeds
-84001-84006 at 4, 16, 64 and 256 spp (256 spp: layers as clean as the least noisy frames a user renders), rendered
+84001-84004 at 4, 16, 64 and 256 spp (256 spp: layers as clean as the least noisy frames a user renders), rendered
 by this script into its own cache and not looked at while choosing. Frames: G-PT 320x240 (seed 7); references:
 two independent 1024-spp Mitsuba ``path`` renders. Error: RelMSE with the references' noise removed
 (model.metrics.relmse_unbiased) of the direct layer, and of the frame (direct + OIDN's indirect layer, which the
@@ -205,7 +205,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
     r = sub.add_parser("render", help="render validation frames and references into the cache")
-    r.add_argument("--seeds", default="84001-84006")
+    r.add_argument("--seeds", default="84001-84004")
     r.add_argument("--spp", default="4,16,64,256")
     r.add_argument("--ref-spp", type=int, default=1024)
     r.add_argument("--cache", type=Path, default=VALIDATION_CACHE)
