@@ -77,9 +77,9 @@ REFINE_WARM_START = False
 #: the gradients' own size, r = box(‖∇base − g‖²) / box(‖g‖²) (mean over RGB): small where the base is nearly
 #: noise-free next to the detail the gradients carry, large where its noise dominates. The data term becomes
 #: w·base + (1 − w)·OIDN per pixel, w = 1 at r ≤ TRUST_R_LOW, 0 at r ≥ TRUST_R_HIGH, log-linear between, solved
-#: at REFINE_ALPHA like the plain refinement. A layer whose base is not finite is not mixed. Chosen on held-out
-#: procedural seeds only (docs/network.md "The trust rule", benchmarks/study_direct_trust.py), against a
-#: per-frame version of the same statistic; never on cbox, the teapot or the evaluation seeds.
+#: like the plain refinement (α lowered by the frame-wide part below). A base that is not finite is not mixed.
+#: Chosen on held-out procedural seeds only (docs/network.md "The trust rule", benchmarks/study_direct_trust.py),
+#: against either part alone; never on cbox, the teapot or the evaluation seeds.
 TRUST_RADIUS = 3
 TRUST_R_LOW = 0.1
 TRUST_R_HIGH = 1.0
@@ -87,7 +87,7 @@ TRUST_R_HIGH = 1.0
 TRUST_FLOOR = 1e-12
 #: The frame-wide part of the rule: the same r over the whole layer (its two terms summed over the image,
 #: each pixel weighted by 1/(lum(OIDN)² + 0.01) so dark and bright parts count alike) gives a weight w_f (1 at
-#: r ≤ TRUST_FRAME_R_LOW, 0 at r ≥ TRUST_FRAME_R_HIGH, log-linear between); each pixel's weight is at least w_f,
+#: r ≤ TRUST_FRAME_R[0], 0 at r ≥ TRUST_FRAME_R[1], log-linear between); each pixel's weight is at least w_f,
 #: and α = REFINE_ALPHA − (REFINE_ALPHA − TRUST_ALPHA_BASE)·w_f: a layer clean as a whole leans on its base with
 #: the gradients taking over more of the detail (the ``l1`` method's regime). None: no frame-wide part.
 TRUST_FRAME_R: tuple[float, float] | None = (0.05, 0.2)
