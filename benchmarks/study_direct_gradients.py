@@ -4,7 +4,9 @@
 
 For each scene (a ``REFERENCE_DIR:SCENE`` pair: a folder holding independent reference passes ``*passN-*.exr`` as
 the evaluation caches them -- split into two independent halves -- and the scene they were rendered from; the
-scene's size and max depth are read from the references' metadata) this renders, at **equal CPU render time**:
+scene's size and max depth are read from the references' metadata), or a folder of benchmarks/study_refine.py's
+held-out cache (``ref-1-*.npz`` and ``ref-2-*.npz``, the scene's default depth; e.g.
+``~/.cache/gradsep/refine-study/procedural-81001:procedural:81001``) this renders, at **equal CPU render time**:
 
 * ``all`` -- G-PT with every layer's gradients at ``--spp`` (the budget), reconstructed with ``oidn-l1``;
 * ``direct`` -- `--gradients direct` at the spp it buys in that time, reconstructed with ``oidn-l1``;
@@ -40,6 +42,10 @@ def references(folder: Path) -> tuple:
     averaged against passes k..2k-1, or pass 0 against pass 1."""
     from renderer.reference import Reference, load_reference
 
+    pairs = sorted(folder.glob("ref-*.npz"))  # benchmarks/study_refine.py's held-out cache: two references
+    if len(pairs) >= 2:
+        first, second = (np.load(p) for p in pairs[:2])
+        return tuple(Reference(r["total"], r["direct"], None, {}) for r in (first, second))
     passes = []
     for index in range(64):
         files = sorted(folder.glob(f"*pass{index}-*.exr"), key=lambda p: p.stat().st_mtime)
@@ -71,7 +77,8 @@ def study(folder: Path, spec: str, spp: int, seeds: int, rounds: int, modes: lis
 
     ref0, ref1 = references(folder)
     height, width = ref0.total.shape[:2]
-    depth = int(ref0.metadata.get("gradsep.max_depth", "-1"))
+    stated = ref0.metadata.get("gradsep.max_depth")
+    depth = int(stated) if stated is not None else None  # None: the scene's own (what study_refine rendered)
     loaded = load_scene(spec, width=width, height=height, max_depth=depth)
 
     def render(mode: str, n: int, seed: int):

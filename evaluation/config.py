@@ -25,7 +25,7 @@ DEFAULT_PROCEDURAL: tuple[str, ...] = ("procedural:90001", "procedural:90002")  
 SHARED_SCENES: tuple[str, ...] = ("cbox/cbox.xml", "teapot/teapot.xml")
 #: Methods whose images the crop comparison shows, in its order (the reference comes last).
 CROP_METHODS: tuple[str, ...] = ("gpt-primal", "l1", "gradnet", "ours", "oidn", "oidn-l1", "fused", "path-oidn",
-                                 "path-sep-oidn")
+                                 "path-sep-oidn", "gpt-oidn-l1")
 
 
 @dataclass(frozen=True)

@@ -30,6 +30,10 @@ Every method produces (image, per-layer images where it has them, render seconds
                             layer (``reconstruct(frame, "oidn")``), summed; equal time. A method the code base
                             cannot run (no such reconstruct method, no primal-only mode, no pyoidn) is skipped
                             with that reason (:func:`unavailable`)
+``gpt-oidn-l1``             G-PT at *equal time*: the ``--gradients direct`` render (offsets
+                            :data:`EQUAL_TIME_OFFSETS`) at the spp the budget buys, reconstructed with ``oidn-l1``
+                            -- what a farm gets from our renderer + service in the time the baselines are given
+                            (the G-PT rows above are at equal spp, each at its own time)
 ==========================  ===============================================================================
 
 Equal time: the budget of a G-PT spp is the G-PT render time plus the reconstruction time of ``ours`` (of
@@ -103,7 +107,7 @@ class MethodSpec:
 
     name: str
     label: str
-    kind: str  # primal | poisson | network | recon | fused | path | oidn | sep-oidn
+    kind: str  # primal | poisson | network | recon | fused | path | oidn | sep-oidn | gpt-equal
     poisson: str | None = None  # poisson: l1 | l2; recon: the model.reconstruct method name
     models: str | None = None
     separated: bool | None = None  # network: per-layer models (True) or the color model on the sum (False)
@@ -147,9 +151,15 @@ METHODS: tuple[MethodSpec, ...] = (
     MethodSpec("path", "Mitsuba path (equal time)", "path"),
     MethodSpec("path-oidn", "Mitsuba path + OIDN (equal time)", "oidn"),
     MethodSpec("path-sep-oidn", "Separated path + OIDN per layer (equal time)", "sep-oidn"),
+    MethodSpec("gpt-oidn-l1", "G-PT (direct gradients) + oidn-l1 (equal time)", "gpt-equal", poisson="oidn-l1",
+               gradients="direct"),
 )
 #: Methods rendered to a time budget rather than reconstructing the G-PT frame.
-EQUAL_TIME_KINDS: tuple[str, ...] = ("path", "oidn", "sep-oidn")
+EQUAL_TIME_KINDS: tuple[str, ...] = ("path", "oidn", "sep-oidn", "gpt-equal")
+#: Offsets of the equal-time G-PT row's render (``gradsep render --offsets``): ``alternate`` traces one offset per
+#: axis (every pixel pair keeps both MIS techniques on half the samples), so the budget buys more samples; chosen
+#: on held-out procedural scenes, docs/evaluation.md "Equal-time G-PT".
+EQUAL_TIME_OFFSETS = "alternate"
 
 
 def unavailable(spec: MethodSpec) -> str | None:
@@ -161,11 +171,13 @@ def unavailable(spec: MethodSpec) -> str | None:
         if wanted not in RECONSTRUCT_METHODS:
             return (f"model.reconstruct has no {wanted!r} method on this branch (expected "
                     f"reconstruct(frame, {wanted!r}{', fused=...' if spec.kind == 'fused' else ''}))")
-    if spec.kind in ("oidn", "sep-oidn", "recon", "fused"):
+    if spec.kind in ("oidn", "sep-oidn", "recon", "fused", "gpt-equal"):
         import importlib.util
 
         if importlib.util.find_spec("pyoidn") is None:
             return "pyoidn is not installed (pip install 'gradsep[evaluate]')"
+    if spec.kind == "gpt-equal" and not offsets_mode_available():
+        return "renderer.render.render_frame has no offsets= parameter on this branch"
     if spec.kind == "sep-oidn" and not primal_mode_available():
         return ("renderer.render.render_frame has no gradients= parameter: the primal-only render mode "
                 "(issue 13 item 3) is not on this branch")
@@ -181,6 +193,16 @@ def primal_mode_available() -> bool:
     from renderer.render import render_frame
 
     return "gradients" in inspect.signature(render_frame).parameters
+
+
+@cache
+def offsets_mode_available() -> bool:
+    """Whether the renderer takes ``render_frame(..., offsets=...)`` (``gradsep render --offsets``; asked once)."""
+    import inspect
+
+    from renderer.render import render_frame
+
+    return "offsets" in inspect.signature(render_frame).parameters
 
 
 def method_by_name(name: str) -> MethodSpec:
@@ -475,7 +497,8 @@ class PathRenderer:
     """The equal-time renderers on one loaded scene, each with its cost model.
 
     Kinds: ``path`` (Mitsuba ``path``, raw colour), ``features`` (Mitsuba ``aov``: albedo and shading normal
-    only, the cheap pass feeding OIDN) and ``primal`` (our renderer's primal-only mode, a gradient-free Frame).
+    only, the cheap pass feeding OIDN), ``primal`` (our renderer's primal-only mode, a gradient-free Frame) and
+    ``gpt-direct`` (our G-PT renderer, ``--gradients direct``, offsets :data:`EQUAL_TIME_OFFSETS`: a Frame).
     """
 
     #: Calibration renders grow ×4 from 1 spp until one takes this long: shorter ones are all noise and
@@ -514,6 +537,11 @@ class PathRenderer:
             from renderer.render import render_frame
 
             output: Any = render_frame(self.loaded, spp=int(spp), seed=int(seed) % (1 << 32), gradients=False)
+        elif kind == "gpt-direct":
+            from renderer.render import render_frame
+
+            output = render_frame(self.loaded, spp=int(spp), seed=int(seed) % (1 << 32), gradients="direct",
+                                  offsets=EQUAL_TIME_OFFSETS)
         else:
             import mitsuba as mi
 
@@ -638,7 +666,8 @@ class MethodContext:
 def run_method(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
     """Run one method; ModelError for a model that exists but cannot be served."""
     runner = {"primal": _run_primal, "poisson": _run_poisson, "network": _run_network, "recon": _run_recon,
-              "fused": _run_fused, "path": _run_path, "oidn": _run_oidn, "sep-oidn": _run_sep_oidn}[spec.kind]
+              "fused": _run_fused, "path": _run_path, "oidn": _run_oidn, "sep-oidn": _run_sep_oidn,
+              "gpt-equal": _run_gpt_equal}[spec.kind]
     return runner(spec, ctx)
 
 
@@ -754,14 +783,26 @@ def _run_oidn(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
 def _run_sep_oidn(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
     """The primal-only G-PT render (separated layers, first-hit features, no gradients) reconstructed with the
     ``oidn`` method (OIDN on each layer, summed: model/oidn.py), render + reconstruction bisected to the budget."""
+    return _run_frame_within(spec, ctx, "primal", "oidn")
+
+
+def _run_gpt_equal(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
+    """Our G-PT render (``--gradients direct``, :data:`EQUAL_TIME_OFFSETS`) reconstructed with ``spec.poisson``
+    (``oidn-l1``), render + reconstruction bisected to the budget like the baselines'."""
+    return _run_frame_within(spec, ctx, "gpt-direct", str(spec.poisson))
+
+
+def _run_frame_within(spec: MethodSpec, ctx: MethodContext, kind: str, method: str) -> MethodOutput:
+    """A Frame-producing renderer ``kind`` + ``reconstruct(frame, method)`` at the spp whose measured total fits
+    the budget (:meth:`PathRenderer.render_within`)."""
     from model.reconstruct import reconstruct
 
     renderer = ctx.path()
     target = _budget(ctx)
-    renderer.warm("primal")
-    sample, _ = renderer.render("primal", 1, 23)
-    estimate = renderer.post_seconds("path-sep-oidn", lambda: reconstruct(sample, "oidn"))
-    got = renderer.render_within("primal", target, ctx.seed, post=lambda frame: reconstruct(frame, "oidn"),
+    renderer.warm(kind)
+    sample, _ = renderer.render(kind, 1, 23)
+    estimate = renderer.post_seconds(spec.name, lambda: reconstruct(sample, method))
+    got = renderer.render_within(kind, target, ctx.seed, post=lambda frame: reconstruct(frame, method),
                                  post_estimate=estimate)
     result = got.output
     return MethodOutput(result.image, result.layers, got.render_seconds, got.post_seconds, got.spp,

@@ -45,6 +45,7 @@ METHOD_STYLES: dict[str, tuple[str, str, str]] = {
     "oidn": ("#17becf", "-.", "h"),
     "oidn-l1": ("#bcbd22", "-", "v"),
     "fused": ("#000000", "-", "*"),
+    "gpt-oidn-l1": ("#ff7f0e", "--", "v"),
 }
 
 

@@ -451,8 +451,12 @@ def _evaluate_one(runner: _Runner, spec: MethodSpec, scene: SceneRun, spp: int, 
             ctx.budget_seconds, ctx.budget_method = float(done[budget]["total_seconds"]), budget
         key["budget"] = keys.get(budget or "", "render:" + frame_tag)
         key["seed"] = ctx.seed
-        if spec.kind == "sep-oidn":  # our renderer's code renders it
+        if spec.kind in ("sep-oidn", "gpt-equal"):  # our renderer's code renders it
             key["renderer"] = runner.renderer_code
+        if spec.kind == "gpt-equal":
+            from evaluation.methods import EQUAL_TIME_OFFSETS
+
+            key["offsets"] = EQUAL_TIME_OFFSETS
     from model.infer import ModelError
 
     try:

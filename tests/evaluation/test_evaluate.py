@@ -37,7 +37,8 @@ from model.errors import CommandError
 SCENE = "procedural:90001"
 SPP = (1, 2)
 METHODS = ("gpt-primal", "l1", "gradnet", "ablation/separated-attn", "oidn", "oidn-l1", "ours", "path",
-           "path-oidn", "path-sep-oidn")
+           "path-oidn", "path-sep-oidn", "gpt-oidn-l1")
+EQUAL_TIME_METHODS = {"path", "path-oidn", "path-sep-oidn", "gpt-oidn-l1"}
 
 
 def _runnable(methods) -> tuple[str, ...]:
@@ -350,7 +351,7 @@ def test_equal_time_methods_use_the_default_method_as_the_budget(first_run):
                   if n in ran)
     for spp in SPP:
         anchor = by[(budget, spp)]
-        for method in {"path", "path-oidn", "path-sep-oidn"} & set(_runnable(METHODS)):
+        for method in EQUAL_TIME_METHODS & set(_runnable(METHODS)):
             row = by[(method, spp)]
             assert row["budget_method"] == budget
             assert row["target_seconds"] == pytest.approx(anchor["total_seconds"])
@@ -358,6 +359,10 @@ def test_equal_time_methods_use_the_default_method_as_the_budget(first_run):
         assert by[("path-oidn", spp)]["reconstruct_seconds"] > 0  # the denoiser's time is counted
         assert by[("path-oidn", spp)]["feature_spp"] >= 1  # and the feature pass's, in render_seconds
         assert by[("ours", spp)]["relmse_indirect"] is not None
+        if "gpt-oidn-l1" in _runnable(METHODS):  # our renderer at equal time: the direct-gradient render, rebought
+            row = by[("gpt-oidn-l1", spp)]
+            assert row["gradients"] == "direct" and row["reconstruct_seconds"] > 0
+            assert row["relmse_direct"] is not None and row["relmse_indirect"] is not None
 
 
 @pytest.mark.render
@@ -426,7 +431,7 @@ def test_rerun_computes_only_what_changed(first_run, monkeypatch):
     damaged = next(p for p in (root / "cache" / "evaluate" / "results").rglob("l1-*spp1-*.json"))
     damaged.write_text("{ truncated")
     changed = run_evaluation(_config(root), progress=False, log=lambda message: None)
-    equal_time = len({"path", "path-oidn", "path-sep-oidn"} & set(_runnable(METHODS)))
+    equal_time = len(EQUAL_TIME_METHODS & set(_runnable(METHODS)))
     if next(r["budget_method"] for r in first.rows if r["method"] == "path") != "ours":
         equal_time = 0
     assert changed.computed == {"frames": 0, "references": 0, "results": (1 + equal_time) * len(SPP) + 1}
