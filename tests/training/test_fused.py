@@ -163,8 +163,8 @@ def test_stiff_frames_stay_finite(blend_models: Path, case: str) -> None:
 def test_a_fixed_layer_is_its_candidate_and_old_formats_are_refused(blend_models: Path, paired: Path,
                                                                      tmp_path: Path) -> None:
     """A layer without a model in the folder is served by its FIXED_LAYERS candidate alone (the direct layer:
-    OIDN refined by its gradients, the oidn-l1 method's refinement at fused's CG budget); a model of blend format 1 (trained on the former
-    DCT-solved candidates) is refused rather than fed candidates it never saw."""
+    OIDN refined by its gradients, the oidn-l1 method's refinement at fused's CG budget); a model of blend
+    format 1 (trained on the former DCT-solved candidates) is refused rather than fed candidates it never saw."""
     import onnx
 
     from model.fused import FIXED_LAYERS
