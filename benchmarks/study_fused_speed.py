@@ -214,22 +214,43 @@ def _time(fn, repeats: int) -> tuple[float, float]:
     return statistics.median(walls), statistics.median(cpus)
 
 
-def timing(names: list[str], repeats: int) -> None:
-    from study_fused import _tiled_frame
+def _frame(kind: str):
+    """The 1280x720 frame to time: ``tiled`` (a held-out render tiled) or ``synthetic`` (bench_service.py's)."""
+    if kind == "tiled":
+        from study_fused import _tiled_frame
 
+        return _tiled_frame()
+    from bench_service import synthetic_frame
+
+    from model.frame import read_frame
+
+    return read_frame(synthetic_frame(720, 1280))
+
+
+def timing(names: list[str], repeats: int, frame_kind: str) -> None:
     from model.fused import OIDN_SETTING
     from model.oidn import shared_denoiser
     from model.reconstruct import load_fused, reconstruct
 
-    frame = _tiled_frame()
+    frame = _frame(frame_kind)
     fused = load_fused("models")
     model = fused.models["indirect"]
     den = shared_denoiser(OIDN_SETTING)
     aux = den.prefilter(frame.features)
     lay = frame.layers
     print(f"load {os.getloadavg()[0]:.2f}")
-    for method in ("oidn", "oidn-l1", "fused"):
-        w, c = _time(lambda m=method: reconstruct(frame, m, fused=fused), repeats)
+    import model.fused as fused_mod
+    from model.refine import REFINE_CG_TOLERANCE, REFINE_MAX_CG_STEPS
+
+    shipped_cg = fused_mod.DIRECT_CG
+    for method in ("oidn", "oidn-l1", "fused", "fused (before)"):
+        # "fused (before)": the direct layer at the oidn-l1 method's CG budget, as fused ran before this study
+        fused_mod.DIRECT_CG = (REFINE_CG_TOLERANCE, REFINE_MAX_CG_STEPS) if method == "fused (before)" else shipped_cg
+        name = method.split()[0]
+        try:
+            w, c = _time(lambda m=name: reconstruct(frame, m, fused=fused), repeats)
+        finally:
+            fused_mod.DIRECT_CG = shipped_cg
         print(f"reconstruct {method}: wall {w:.3f} s, cpu {c:.3f} s", flush=True)
     dn = {n: den.denoise(lay[n].base, aux) for n in lay}
     w, c = _time(lambda: den.denoise(lay["indirect"].base, aux), repeats)
@@ -253,6 +274,8 @@ def main() -> int:
     t = sub.add_parser("time")
     t.add_argument("--variants", default="before,shipped,oidn-l1,d8s2,fast2x1,net/2")
     t.add_argument("--repeats", type=int, default=3)
+    t.add_argument("--frame", choices=("tiled", "synthetic"), default="tiled",
+                   help="a held-out render tiled to 1280x720, or bench_service.py's synthetic frame")
     args = p.parse_args()
     names = [n for n in args.variants.split(",") if n]
     unknown = [n for n in names if n not in VARIANTS]
@@ -261,7 +284,7 @@ def main() -> int:
     if args.cmd == "error":
         error(["before", *[n for n in names if n != "before"]], args.per_frame)
     else:
-        timing(names, args.repeats)
+        timing(names, args.repeats, args.frame)
     return 0
 
 
