@@ -64,6 +64,7 @@ VARIANTS: dict[str, Variant] = {
     "before": Variant(),  # fused before issue 15's budget study: the oidn-l1 method's full solve on direct
     "shipped": _shipped(),
     "oidn-l1": Variant(blend=False),
+    "oidn-l1@DIRECT_CG": Variant(direct=(8, 0.2, 3), blend=False),  # the oidn-l1 method at fused's direct budget
     "d6": Variant(direct=(6, 0.1, 8)),
     "d5": Variant(direct=(5, 0.1, 8)),
     "d4": Variant(direct=(4, 0.1, 8)),
