@@ -113,7 +113,8 @@ def settings_for(loaded, offsets: str = "all", gradients: str = "all"):
 
 def configuration(loaded, name: str):
     """``SHIFT`` or ``SHIFT+OPTION[+OPTION]`` -> (shift, settings). Options: an offsets mode (``hybrid+pair``: one
-    axis's two offsets per sample, ``+single``: one; GptSettings.offsets) and/or ``direct`` (``hybrid+direct``:
+    axis's two offsets per sample, ``+single``: one, ``+alternate``: one per axis, neighbouring pixels paired;
+    GptSettings.offsets) and/or ``direct`` (``hybrid+direct``:
     gradients of the direct layer alone, offsets traced to its vertices only; GptSettings.gradients, `gradsep
     render --gradients direct`)."""
     from renderer.gpt import GRADIENT_MODES, OFFSET_MODES
@@ -345,13 +346,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scenes", default=DEFAULT_SCENES,
                         help="comma-separated: cbox, teapot, XML paths or procedural:SEED (default %(default)s)")
     parser.add_argument("--shifts", "--shift", default="replay,hybrid",
-                        help="comma-separated configurations: SHIFT[+pair|+single][+direct] (see configuration())")
+                        help="comma-separated configurations: SHIFT[+pair|+single|+alternate][+direct] "
+                             "(see configuration())")
     parser.add_argument("--quick", action="store_true", help="small sizes and few repeats (smoke check)")
     parser.add_argument("--issue16", action="store_true",
                         help="issue 16's table: cbox, procedural:0, procedural:1, teapot; hybrid with all four, "
-                             "gradients of the direct layer alone (+direct), one axis's two (+pair) or one (+single) "
-                             "offsets per sample; 3 repeats, 4 seeds, 2048-spp references (explicit options "
-                             "override)")
+                             "gradients of the direct layer alone (+direct), one axis's two (+pair), one (+single) "
+                             "or one per axis, neighbours paired (+alternate) offsets per sample; "
+                             "3 repeats, 4 seeds, 2048-spp references (explicit options override)")
     parser.add_argument("--repeats", type=int, default=None, help="timing repeats (default 5, quick 2)")
     parser.add_argument("--ref-spp", type=int, default=None, help="reference spp (default 8192, quick 1024)")
     parser.add_argument("--seeds", type=int, default=None, help="G-PT renders per shift (default 4, quick 2)")
@@ -371,7 +373,7 @@ def main(argv: list[str] | None = None) -> int:
         if "--scenes" not in given:
             args.scenes = "cbox,procedural:0,procedural:1,teapot"
         if not given & {"--shifts", "--shift"}:
-            args.shifts = "hybrid,hybrid+direct,hybrid+pair,hybrid+single"
+            args.shifts = "hybrid,hybrid+direct,hybrid+pair,hybrid+single,hybrid+alternate"
         args.repeats = args.repeats or 3
         args.ref_spp = args.ref_spp or 2048
 

@@ -29,7 +29,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-MODES = {"all": ("all", "oidn-l1"), "direct": ("direct", "oidn-l1"), "primal": ("none", "oidn")}
+# mode -> (`--gradients`, reconstruction method, GptSettings.offsets); --modes picks a subset ("all" is the budget)
+MODES = {"all": ("all", "oidn-l1", "all"), "direct": ("direct", "oidn-l1", "all"), "primal": ("none", "oidn", "all"),
+         "alternate": ("all", "oidn-l1", "alternate"), "alternate+direct": ("direct", "oidn-l1", "alternate"),
+         "pair": ("all", "oidn-l1", "pair")}
 
 
 def references(folder: Path) -> tuple:
@@ -60,7 +63,7 @@ def timed(fn) -> tuple[object, float]:
     return out, time.process_time() - start
 
 
-def study(folder: Path, spec: str, spp: int, seeds: int, rounds: int) -> dict:
+def study(folder: Path, spec: str, spp: int, seeds: int, rounds: int, modes: list[str]) -> dict:
     from model.metrics import relmse_unbiased
     from model.reconstruct import reconstruct
     from renderer.render import render_frame
@@ -72,19 +75,19 @@ def study(folder: Path, spec: str, spp: int, seeds: int, rounds: int) -> dict:
     loaded = load_scene(spec, width=width, height=height, max_depth=depth)
 
     def render(mode: str, n: int, seed: int):
-        return render_frame(loaded, spp=n, seed=seed, gradients=MODES[mode][0])
+        return render_frame(loaded, spp=n, seed=seed, gradients=MODES[mode][0], offsets=MODES[mode][2])
 
-    for mode in MODES:  # kernel compilation
+    for mode in modes:  # kernel compilation
         render(mode, 1, 0)
-    cpu: dict[str, list[float]] = {mode: [] for mode in MODES}
+    cpu: dict[str, list[float]] = {mode: [] for mode in modes}
     for r in range(rounds):
-        for mode in MODES:
+        for mode in modes:
             cpu[mode].append(timed(lambda m=mode, s=1000 + r: render(m, spp, s))[1])
-    cost = {mode: statistics.median(a / b for a, b in zip(cpu[mode], cpu["all"], strict=True)) for mode in MODES}
-    budget = {mode: max(1, round(spp / cost[mode])) for mode in MODES}
-    scores: dict[str, dict[str, list[float]]] = {mode: {"frame": [], "direct": []} for mode in MODES}
+    cost = {mode: statistics.median(a / b for a, b in zip(cpu[mode], cpu["all"], strict=True)) for mode in modes}
+    budget = {mode: max(1, round(spp / cost[mode])) for mode in modes}
+    scores: dict[str, dict[str, list[float]]] = {mode: {"frame": [], "direct": []} for mode in modes}
     for seed in range(seeds):
-        for mode in MODES:
+        for mode in modes:
             frame = render(mode, budget[mode], 2000 + seed)
             result = reconstruct(frame, MODES[mode][1])
             scores[mode]["frame"].append(relmse_unbiased(result.image, ref0.total, ref1.total))
@@ -101,15 +104,21 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--spp", type=int, default=16, help="the budget: spp of the `all` render (default 16)")
     parser.add_argument("--seeds", type=int, default=2)
     parser.add_argument("--rounds", type=int, default=3, help="interleaved timing rounds")
+    parser.add_argument("--modes", default="all,direct,primal",
+                        help=f"comma-separated, from {','.join(MODES)}; `all` (the budget) is always included")
     args = parser.parse_args(argv)
+    modes = ["all"] + [m for m in args.modes.split(",") if m and m != "all"]
+    unknown = [m for m in modes if m not in MODES]
+    if unknown:
+        raise SystemExit(f"unknown modes {unknown}; expected some of {list(MODES)}")
     print(f"equal CPU render time = `all` at {args.spp} spp; RelMSE noise-corrected against two reference passes")
-    print(f"  {'scene':<18} {'mode':<7} {'cost':>6} {'spp':>4} {'frame RelMSE':>13} {'direct RelMSE':>14}")
+    print(f"  {'scene':<18} {'mode':<16} {'cost':>6} {'spp':>4} {'frame RelMSE':>13} {'direct RelMSE':>14}")
     for item in args.scenes:
         folder, _, spec = item.partition(":")
-        out = study(Path(folder), spec, args.spp, args.seeds, args.rounds)
-        for mode in MODES:
+        out = study(Path(folder), spec, args.spp, args.seeds, args.rounds, modes)
+        for mode in modes:
             r = out["relmse"][mode]
-            print(f"  {spec:<18} {mode:<7} {out['cost_vs_all'][mode]:>5.2f}x {out['spp'][mode]:>4} "
+            print(f"  {spec:<18} {mode:<16} {out['cost_vs_all'][mode]:>5.2f}x {out['spp'][mode]:>4} "
                   f"{r['frame']:>13.5f} {r['direct']:>14.5f}", flush=True)
     return 0
 

@@ -368,6 +368,10 @@ class NetworkReconstructor:
         self.models = models
         self.tiles = tiles
         self._cache = threading.local()  # the last frame's feature planes, per thread (see _features)
+        # One ONNX graph at a time per reconstructor: a frame's layers run concurrently (model.reconstruct's
+        # CONCURRENT_METHODS) so that one layer's prior solve, which is single-threaded, overlaps the other's; the
+        # graph already uses every core (OpenVINO's default threads), so two at once would only contend.
+        self._graph_lock = threading.Lock()
 
     @classmethod
     def load(cls, models_dir: str | os.PathLike[str], settings: SessionSettings = SessionSettings(),
@@ -473,24 +477,27 @@ class NetworkReconstructor:
         self._cache.features = (weakref.ref(features), depth_range, planes)
         return planes
 
-    @staticmethod
-    def _run_planes(model: LoadedModel, planes: np.ndarray, features: np.ndarray) -> np.ndarray:
+    def _graph(self, model: LoadedModel, data: np.ndarray, gradient: np.ndarray) -> np.ndarray:
+        """``model.run`` under the graph lock (see __init__)."""
+        with self._graph_lock:
+            return model.run(data, gradient)
+
+    def _run_planes(self, model: LoadedModel, planes: np.ndarray, features: np.ndarray) -> np.ndarray:
         """One window's (12, h, w) layer planes and (7, h, w) feature planes through the network → radiance."""
         h, w = planes.shape[1:]
         data, gradient = network_inputs_numpy(planes, features, model.alignment)
-        encoded = model.run(data, gradient)
+        encoded = self._graph(model, data, gradient)
         window_prior = planes[9:12].transpose(1, 2, 0)  # a failed output degrades to the Poisson prior
         return output_radiance(crop_to(encoded, h, w), fallback=window_prior)
 
-    @staticmethod
-    def _run_window(model: LoadedModel, layer: Layer, features: Features, depth_range: DepthRange,
+    def _run_window(self, model: LoadedModel, layer: Layer, features: Features, depth_range: DepthRange,
                     prior: np.ndarray, window: Window) -> np.ndarray:
         planes = layer_planes(layer, window, prior)
         data, gradient = network_inputs(planes, feature_planes(features, depth_range, window))
         h, w = planes.shape[1:]
         a = model.alignment
-        encoded = model.run(np.ascontiguousarray(pad_to_alignment(data, a)),
-                            np.ascontiguousarray(pad_to_alignment(gradient, a)))
+        encoded = self._graph(model, np.ascontiguousarray(pad_to_alignment(data, a)),
+                              np.ascontiguousarray(pad_to_alignment(gradient, a)))
         window_prior = planes[9:12].transpose(1, 2, 0)  # a failed output degrades to the Poisson prior
         return output_radiance(crop_to(encoded, h, w), fallback=window_prior)
 

@@ -52,10 +52,16 @@ DEPTH_MAX = 1.0e5
 PRIOR_ALPHA = DEFAULT_ALPHA
 PRIOR_IRLS_PASSES = 5
 PRIOR_CG_STEPS = 2
+#: Inference uses exactly this budget, as the models were trained (issue 15 looked for a cheaper one to serve faster:
+#: benchmarks/study_prior.py, the network's output on 32 held-out frames (procedural 81001-81008, 1-64 spp) against
+#: 1024-spp references. Rule: geometric-mean RelMSE within 1 % of this budget's and no frame > 3 % worse. Every
+#: cheaper budget failed it: 4x2 worst frame +23 %, 3x2 +76 %, 5x1 +106 %, 3x2 multigrid +46 % (geo mean -7 %),
+#: L2 only +1114 %; a looser CG tolerance (1e-1) changes nothing because 2 steps never reach it.)
 #: The rest of the prior's solve, pinned (model.poisson.solve_l1's defaults when the models were trained).
 PRIOR_REG_INIT = 0.05
 PRIOR_REG_DECAY = 0.5
 PRIOR_CG_TOLERANCE = 1e-3
+PRIOR_PRECONDITIONER = "dct"
 #: Frames taller than this are solved in horizontal bands (each extended by PRIOR_BAND_OVERLAP rows on both
 #: sides, blended linearly where they overlap) so the solver's ~250 bytes per pixel stay bounded: a 4096-wide
 #: band of 1024 + 2·64 rows needs ~1.2 GB instead of ~4 GB for a whole 4096² layer. The screening term
@@ -257,7 +263,7 @@ def _solve_prior(base: np.ndarray, dx: np.ndarray, dy: np.ndarray) -> np.ndarray
     # whatever the l1 method's defaults become
     prior, _ = solve_l1(base, dx, dy, PRIOR_ALPHA, iterations=PRIOR_IRLS_PASSES, cg_iterations=PRIOR_CG_STEPS,
                         reg_init=PRIOR_REG_INIT, reg_decay=PRIOR_REG_DECAY, cg_tolerance=PRIOR_CG_TOLERANCE,
-                        preconditioner="dct")
+                        preconditioner=PRIOR_PRECONDITIONER)
     return _sanitise_inplace(prior, 0.0, RADIANCE_MAX)
 
 

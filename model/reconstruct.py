@@ -132,14 +132,19 @@ DEFAULT_LAYER_THREADS = 2
 #: pays where one layer leaves a core idle. Measured in-process (benchmarks/bench_layers.py, 1280x720, 2 cores,
 #: same-run medians, concurrent / sequential): l1 0.75-0.85 (four runs), oidn-l1 0.95-0.97 (its direct layer's
 #: refinement beside the indirect layer's denoise), l2 1.7-2.3 (two DCTs per layer: thread start-up and contention
-#: outweigh them). network: 0.98-1.15 at first; in-process 0.89 and 0.85 once its per-layer numpy copies were
-#: gone (two runs, 2026-12-02 02:17-02:19 UTC, load 3.5), but through the service (bench_service.py, same hold,
-#: alternating) concurrent layers were slower, p50 1.93/2.01 s against 1.86/1.69 s, at twice the peak RSS
-#: (3.3-3.8 vs 1.9 GB), so it stays sequential. fused is pipelined like oidn-l1 (each layer's OIDN image in this
-#: thread, the rest of the layer in a worker beside the next denoise): a probe took a 720p frame from 4.16 to
+#: outweigh them). network: its prior solve (~0.5 s of a 720p layer) runs on one core, so the other layer's prior
+#: fills the idle one; its ONNX graphs are serialised by NetworkReconstructor's graph lock (one graph already uses
+#: both cores, two at once only contend). Issue 15 (netspeed helper, 2026-12-02, load
+#: ~4, docs/network.md "Serving latency"): through the service, alternating, network p50 2.20/1.95 s sequential
+#: against 2.15/1.74 s concurrent with the lock, and 2.16/1.72 against 1.84/1.87 s in a second hold (medians 2.06
+#: against 1.85 s; before the lock 3.08/2.31 against 1.98/2.08 s; an earlier run without it had seen the opposite,
+#: 1.86/1.69 against 1.93/2.01 s); in-process 0.92, 0.93. Cost: peak RSS 2.0 -> 3.5 GB with two
+#: clients (four prior solves in flight); GRADSEP_LAYER_THREADS=1 gives it back.
+#: fused is pipelined like oidn-l1 (each layer's OIDN image in this thread, the rest of the layer in a worker beside
+#: the next denoise): a probe took a 720p frame from 4.16 to
 #: 2.71 s, same output (fused3 helper, 2026-12-02, load ~4). Every other method runs its layers one after the
 #: other. Output is bit-for-bit the same either way.
-CONCURRENT_METHODS: frozenset[str] = frozenset({"l1", "oidn-l1", "fused"})
+CONCURRENT_METHODS: frozenset[str] = frozenset({"l1", "oidn-l1", "fused", "network"})
 #: Concurrent methods whose layers start from an OIDN image: denoised one after the other, then finished in workers.
 _PIPELINED_METHODS: frozenset[str] = frozenset({*OIDN_METHODS, "fused"})
 

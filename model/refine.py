@@ -19,12 +19,21 @@ worse in the other two). α = 0.5 was a little better at 16-64 spp but once four
 come from longer paths whose shifts fail more often, so they are noisier than OIDN's own estimate. A ``color``
 layer (a frame rendered without separation) mixes both and is left as OIDN returns it.
 
+Since issue 14's trust rule (``trusted_data``; docs/network.md "The trust rule"), ``refine_layer`` without an
+explicit α mixes the frame's own base into that data term where the frame shows it is clean: per pixel, from how
+well the base agrees with the sampled gradients next to the detail they carry, and per frame, from the same ratio
+over the whole layer (which also lowers α). OIDN's own error (bias, over-smoothing) dominates a layer that is only
+a little noisy; there the base with its gradients (the ``l1`` method's data) is the better anchor. A noisy layer
+gets the plain refinement above, bit for bit. Callers that pass α (model/fused.py's pinned candidates) keep it.
+
 The solve runs at a normalised exposure (the layer divided by the mean of OIDN's image), because the IRLS
 regulariser of ``solve_l1`` is an absolute radiance: without it a 1e-6 frame and a 1e6 frame of the same scene
 would be refined differently. The result is scaled back, so every exposure returns the frame's own energy.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
@@ -61,7 +70,108 @@ REFINE_MAX_CG_STEPS = 8
 #: (0.81 at 8 passes, 0.89 at 3, against 0.77 from the L2 start); never worse than oidn, though (worst 0.98).
 REFINE_WARM_START = False
 
+#: The trust rule (issue 14; ``refine_layer`` without an explicit α). OIDN's own error (its bias and
+#: over-smoothing) dominates once a layer is only a little noisy, and there the frame's base with its gradients is
+#: the better data term (the ``l1`` method's); where the base is noisy OIDN's image is. The rule reads, in a
+#: (2·TRUST_RADIUS+1)² window around each pixel, how well the base agrees with the sampled gradients relative to
+#: the gradients' own size, r = box(‖∇base − g‖²) / box(‖g‖²) (mean over RGB): small where the base is nearly
+#: noise-free next to the detail the gradients carry, large where its noise dominates. The data term becomes
+#: w·base + (1 − w)·OIDN per pixel, w = 1 at r ≤ TRUST_R_LOW, 0 at r ≥ TRUST_R_HIGH, log-linear between, solved
+#: like the plain refinement (α lowered by the frame-wide part below). A base that is not finite is not mixed.
+#: Chosen on held-out procedural seeds only (docs/network.md "The trust rule", benchmarks/study_direct_trust.py),
+#: against either part alone; never on cbox, the teapot or the evaluation seeds.
+TRUST_RADIUS = 3
+TRUST_R_LOW = 0.1
+TRUST_R_HIGH = 1.0
+#: Keeps r finite where the window's gradients are all zero (r is then 0 for an exact base, huge for a noisy one).
+TRUST_FLOOR = 1e-12
+#: The frame-wide part of the rule: the same r over the whole layer (its two terms summed over the image,
+#: each pixel weighted by 1/(lum(OIDN)² + 0.01) so dark and bright parts count alike) gives a weight w_f (1 at
+#: r ≤ TRUST_FRAME_R[0], 0 at r ≥ TRUST_FRAME_R[1], log-linear between); each pixel's weight is at least w_f,
+#: and α = REFINE_ALPHA − (REFINE_ALPHA − TRUST_ALPHA_BASE)·w_f: a layer clean as a whole leans on its base with
+#: the gradients taking over more of the detail (the ``l1`` method's regime). None: no frame-wide part.
+TRUST_FRAME_R: tuple[float, float] | None = (0.05, 0.2)
+TRUST_ALPHA_BASE = 0.5
+
 _F32_MAX = float(np.finfo(np.float32).max)
+
+
+def _forward_differences(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    gx = np.zeros_like(image)
+    gy = np.zeros_like(image)
+    np.subtract(image[:, 1:], image[:, :-1], out=gx[:, :-1])
+    np.subtract(image[1:], image[:-1], out=gy[:-1])
+    return gx, gy
+
+
+def _disagreement_maps(base: np.ndarray, dx: np.ndarray, dy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per pixel, RGB means: (‖∇base − g‖², ‖g‖²), float32 (H, W), for one layer at mean-1 exposure (float32 is
+    ample there; an overflow gives inf, which the rule reads as "do not trust")."""
+    b = np.asarray(base, np.float32)
+    g_x, g_y = np.asarray(dx, np.float32), np.asarray(dy, np.float32)
+    bx, by = _forward_differences(b)
+    with np.errstate(over="ignore", invalid="ignore"):
+        bx -= g_x
+        by -= g_y
+        residual = np.mean(np.square(bx, out=bx) + np.square(by, out=by), axis=-1)
+        signal = np.mean(np.square(g_x) + np.square(g_y), axis=-1)
+    return residual, signal
+
+
+def trust_weights(base: np.ndarray, dx: np.ndarray, dy: np.ndarray,
+                  maps: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """The trust rule's per-pixel weight of the base, (H, W, 1) float32 in [0, 1], for one layer at mean-1
+    exposure (see TRUST_RADIUS): 1 where the base agrees with the gradients (an exact layer, or a flat one with
+    zero gradients), 0 where its disagreement is TRUST_R_HIGH of the gradients' energy or more. Finite inputs.
+    ``maps``: _disagreement_maps of the same layer, if the caller has them."""
+    from scipy.ndimage import uniform_filter
+
+    residual, signal = maps if maps is not None else _disagreement_maps(base, dx, dy)
+    size = 2 * TRUST_RADIUS + 1
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        r = (np.maximum(uniform_filter(residual, size, mode="nearest"), 0.0)
+             / (np.maximum(uniform_filter(signal, size, mode="nearest"), 0.0) + np.float32(TRUST_FLOOR)))
+        w = np.log(np.float32(TRUST_R_HIGH) / np.maximum(r, np.float32(TRUST_FLOOR)))
+    w *= np.float32(1.0 / math.log(TRUST_R_HIGH / TRUST_R_LOW))
+    return np.clip(np.nan_to_num(w, nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0).astype(np.float32)[..., None]
+
+
+def _log_ramp(r: float, low: float, high: float) -> float:
+    """1 at r ≤ low, 0 at r ≥ high (and for NaN), log-linear between."""
+    if r <= low:
+        return 1.0
+    if not r < high:
+        return 0.0
+    return math.log(high / r) / math.log(high / low)
+
+
+def frame_disagreement(base: np.ndarray, prior: np.ndarray, dx: np.ndarray, dy: np.ndarray,
+                       maps: tuple[np.ndarray, np.ndarray] | None = None) -> float:
+    """The frame-wide r (TRUST_FRAME_R) at mean-1 exposure: Σ ω‖∇base − g‖² / Σ ω‖g‖², ω = 1/(lum(prior)² +
+    0.01); 0 for an exact (or flat, agreeing) layer, inf when the gradients are all zero but the base is not.
+    ``maps``: _disagreement_maps of the same layer, if the caller has them."""
+    residual, signal = maps if maps is not None else _disagreement_maps(base, dx, dy)
+    weight = 1.0 / (np.square(np.mean(np.asarray(prior, np.float32), axis=-1)) + np.float32(1e-2))
+    res = float(np.sum(weight * residual, dtype=np.float64))
+    sig = float(np.sum(weight * signal, dtype=np.float64))
+    if sig > 0.0 and math.isfinite(sig):
+        return res / sig
+    return 0.0 if res == 0.0 else math.inf
+
+
+def trusted_data(base: np.ndarray, prior: np.ndarray, dx: np.ndarray, dy: np.ndarray) -> tuple[np.ndarray, float]:
+    """(the trust rule's data term w·base + (1 − w)·prior, its α), all at mean-1 exposure, finite inputs; the
+    data term is ``prior`` itself, at REFINE_ALPHA, where the base is nowhere trusted."""
+    maps = _disagreement_maps(base, dx, dy)
+    w = trust_weights(base, dx, dy, maps)
+    frame = 0.0 if TRUST_FRAME_R is None else _log_ramp(frame_disagreement(base, prior, dx, dy, maps),
+                                                         *TRUST_FRAME_R)
+    if frame > 0.0:
+        w = np.maximum(w, np.float32(frame))
+    if not np.any(w > 0):
+        return prior, REFINE_ALPHA
+    alpha = REFINE_ALPHA - (REFINE_ALPHA - TRUST_ALPHA_BASE) * frame
+    return (prior + w * (np.asarray(base, np.float32) - prior)).astype(np.float32), alpha
 
 
 def _cg_budget(cg_steps: int | None, cg_tolerance: float | None) -> dict:
@@ -74,7 +184,7 @@ def _cg_budget(cg_steps: int | None, cg_tolerance: float | None) -> dict:
     return {"cg_iterations": REFINE_MAX_CG_STEPS, "cg_tolerance": tolerance}
 
 
-def refine_layer(name: str, prior: np.ndarray, layer: Layer, alpha: float = REFINE_ALPHA, *,
+def refine_layer(name: str, prior: np.ndarray, layer: Layer, alpha: float | None = None, *,
                  preconditioner: str | None = None, cg_steps: int | None = None,
                  cg_tolerance: float | None = None, passes: int | None = None,
                  warm_start: bool | None = None) -> np.ndarray:
@@ -90,8 +200,12 @@ def refine_layer(name: str, prior: np.ndarray, layer: Layer, alpha: float = REFI
     if name not in REFINED_LAYERS or not layer.has_gradients:
         return prior
     scale = input_scale(prior)  # mean 1, as OIDN's own input is normalised; 1.0 for a black prior
-    dx, dy = scaled_image(layer.dx, scale), scaled_image(layer.dy, scale)  # the base is not used: OIDN's is
+    dx, dy = scaled_image(layer.dx, scale), scaled_image(layer.dy, scale)
     data = scaled_image(prior, scale)
+    if alpha is None:  # the trust rule: per pixel, how far the frame's own base is trusted beside OIDN's image
+        alpha = REFINE_ALPHA
+        if np.all(np.isfinite(layer.base)):  # (the frame policy keeps NaN/Inf out; a direct caller may not)
+            data, alpha = trusted_data(scaled_image(layer.base, scale), data, dx, dy)
     warm = REFINE_WARM_START if warm_start is None else warm_start
     solved, _ = solve_l1(data, dx, dy, alpha, passes or REFINE_ITERATIONS, **_cg_budget(cg_steps, cg_tolerance),
                          preconditioner=preconditioner or REFINE_PRECONDITIONER, initial=data if warm else None)

@@ -33,6 +33,9 @@ def render_command(args: argparse.Namespace) -> int:
     if gradients == "none" and args.shift is not None:
         flag = "--no-gradients" if args.no_gradients else "--gradients none"
         raise CommandError(f"--shift has no effect with {flag} (no offset paths are traced)")
+    if gradients == "none" and args.offsets != "all":
+        flag = "--no-gradients" if args.no_gradients else "--gradients none"
+        raise CommandError(f"--offsets has no effect with {flag} (no offset paths are traced)")
     scene = load_scene(args.scene, width=args.width, height=args.height, max_depth=args.max_depth,
                        defines=parse_defines(args.define))
     show = sys.stderr.isatty()
@@ -42,7 +45,7 @@ def render_command(args: argparse.Namespace) -> int:
             print(f"\rgradsep render: {done}/{total} spp", end="", file=sys.stderr, flush=True)
 
     frame = render_frame(scene, spp=args.spp, seed=args.seed, layers=args.layers, shift=args.shift,
-                         progress=progress, gradients=gradients)
+                         progress=progress, gradients=gradients, offsets=args.offsets)
     if show:
         print(file=sys.stderr)
     write_frame(output, frame)
@@ -147,6 +150,7 @@ def dataset_command(args: argparse.Namespace) -> int:
 
 def register(sub: argparse._SubParsersAction) -> None:
     from renderer.reference import CLI_SAMPLERS, DEFAULT_SAMPLER  # numpy only: no Mitsuba at parser time
+    from renderer.render import OFFSET_CHOICES  # no Mitsuba at import time either
 
     p = sub.add_parser("render", help="render a G-PT frame (base + gradients + features per illumination layer)")
     p.add_argument("scene", help="Mitsuba 3 XML scene path or procedural:SEED")
@@ -165,6 +169,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="which layers carry gradients: all (the default); direct (the direct layer's only: offset "
                         "paths stop after the first visible vertex's light, the indirect layer is a plain primal; "
                         "what the default oidn-l1 method uses); none (primal-only)")
+    p.add_argument("--offsets", choices=OFFSET_CHOICES, default="all",
+                   help="offset paths per sample: all four (the default); alternate (one per axis, neighbouring "
+                        "pixels paired: ~0.7x the cost, gradients from half the samples; cheaper samples for "
+                        "oidn-l1, see docs/renderer.md); pair, single")
     p.add_argument("--no-gradients", action="store_true",
                    help="primal-only, the same as --gradients none: the same layers and features, no offset paths "
                         "and no gradients (about the cost of a plain path tracer)")

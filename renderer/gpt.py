@@ -49,8 +49,11 @@ SHIFT_OFFSETS: tuple[tuple[int, int], ...] = ((1, 0), (-1, 0), (0, 1), (0, -1))
 # Which offsets a sample traces: "all" four of SHIFT_OFFSETS; "pair": the two of one axis, right and left
 # (SHIFT_OFFSETS[0:2]) or down and up ([2:4]); "single": one of the four. The group is chosen per sample
 # (offset_group) and its gradient terms count OFFSET_GROUPS[mode] times (the group's inverse probability).
-OFFSET_MODES: tuple[str, ...] = ("all", "pair", "single")
-OFFSET_GROUPS: dict[str, int] = {"all": 1, "pair": 2, "single": 4}
+# "alternate": one offset per axis, right or left and down or up, chosen so that neighbouring pixels pair up
+# (alternate_offsets): on a given sample pixel x traces right exactly when pixel x+1 traces left, so each pixel
+# pair gets both of its MIS techniques on half the samples; every offset is traced with probability 1/2.
+OFFSET_MODES: tuple[str, ...] = ("all", "pair", "single", "alternate")
+OFFSET_GROUPS: dict[str, int] = {"all": 1, "pair": 2, "single": 4, "alternate": 2}
 
 # Which layers get gradients when offsets are traced: "all" of them, or the "direct" layer alone. With "direct" the
 # offsets are traced only as far as the direct layer's events reach (emission seen at vertex 0, next-event
@@ -292,7 +295,7 @@ class GptSettings:
     direct: bool = True
     indirect: bool = True
     separate: bool = True  # False: one ``color`` layer with every event (direct and indirect must both be on)
-    offsets: str = "all"  # four offsets per sample, or fewer: "pair" (one axis), "single" (OFFSET_MODES)
+    offsets: str = "all"  # four offsets per sample, or fewer: "pair" (one axis), "single", "alternate" (OFFSET_MODES)
     gradients: str = "all"  # the layers with gradients when a shift is given: "all", or "direct" (GRADIENT_MODES)
 
     def layer_names(self) -> tuple[str, ...]:
@@ -421,6 +424,39 @@ def offset_group(pixel: mi.UInt32, sample: mi.UInt32, strata: mi.UInt32, seed: m
     rotate = mi.sample_tea_32(pixel, seed)[0]
     cell = sample % strata + (groups // 2) * (sample // strata)
     return (dr.select(sample < strata * strata, cell, sample) + rotate) % groups
+
+
+def alternate_offsets(px: mi.Int32, py: mi.Int32, sample: mi.UInt32, strata: mi.UInt32,
+                      seed: mi.UInt32) -> tuple[mi.UInt32, mi.UInt32]:
+    """Which offset of each axis sample ``sample`` of pixel (px, py) traces in the "alternate" mode: indices into
+    SHIFT_OFFSETS, right (0) or left (1), and down (2) or up (3).
+
+    Pixel x traces right where ``x + c + r`` is even and left where it is odd, with ``c`` the sample's place in
+    the pixel's stratified grid (cell (cx, cy) -> cx + cy, a checkerboard, so each direction's samples cover
+    every row and column of the grid; later samples: the sample index) and ``r`` a random bit per image row and
+    pass (a hash of the row and the pass's seed). So on every sample pixel x traces right exactly when pixel x+1
+    traces left -- the pair (x, x+1) gets both of its MIS techniques on the same half of the samples, and the
+    weights of the two techniques still sum to 1 -- and, over ``r``, each sample traces each direction with
+    probability exactly 1/2 whatever its sub-pixel position: counted twice (OFFSET_GROUPS), every gradient
+    estimate stays unbiased. Vertically likewise, with a bit per column."""
+    diagonal = dr.select(sample < strata * strata, sample % strata + sample // strata, sample)
+    row_bits = mi.sample_tea_32(mi.UInt32(py), seed)[0]
+    column_bits = mi.sample_tea_32(mi.UInt32(px), seed)[1]
+    horizontal = (mi.UInt32(px) + diagonal + row_bits) & 1
+    vertical = (mi.UInt32(py) + diagonal + column_bits) & 1
+    return horizontal, vertical + 2
+
+
+def _offsets_by_index(targets: Sequence[mi.UInt32]) -> list[tuple[mi.Int32, mi.Int32]]:
+    """Per-lane pixel shifts (dx, dy) of the offsets ``targets`` (indices into SHIFT_OFFSETS)."""
+    shifts = []
+    for target in targets:
+        ox, oy = mi.Int32(SHIFT_OFFSETS[0][0]), mi.Int32(SHIFT_OFFSETS[0][1])
+        for i, (cx, cy) in enumerate(SHIFT_OFFSETS[1:], start=1):
+            ox = dr.select(target == i, cx, ox)
+            oy = dr.select(target == i, cy, oy)
+        shifts.append((ox, oy))
+    return shifts
 
 
 def _camera_rays(sensor: mi.Sensor, sampler: mi.Sampler, px: mi.Int32, py: mi.Int32, size: mi.Vector2f,
@@ -564,7 +600,8 @@ class PassKernel:
     ray_flags: mi.RayFlags
     strict_light_pdf: bool
     hittable: bool  # some emitter can be found by a ray (scene_has_hittable_emitters)
-    offset_group: mi.UInt32 | None  # per lane, the group of offsets it traces (offset_group); None: all four
+    # per lane and traced offset, the index in SHIFT_OFFSETS whose gradient sums it feeds; None: all four, in order
+    offset_targets: list[mi.UInt32] | None
 
     @property
     def gradients(self) -> bool:
@@ -593,7 +630,7 @@ def _start_lanes(scene: mi.Scene, shift: Shift | None, settings: GptSettings, wi
         rr_depth=dr.opaque(mi.UInt32, settings.rr_depth), to_camera=sensor.world_transform().inverse(),
         ray_flags=shift.ray_flags(scene) if gradients else mi.RayFlags.All,
         strict_light_pdf=shift.reuses_light_samples if gradients else False,
-        hittable=scene_has_hittable_emitters(scene), offset_group=None)
+        hittable=scene_has_hittable_emitters(scene), offset_targets=None)
 
     seed_o = dr.opaque(mi.UInt32, seed & 0xFFFFFFFF)
     sampler = mi.load_dict({"type": "independent", "sample_count": spp})
@@ -608,17 +645,15 @@ def _start_lanes(scene: mi.Scene, shift: Shift | None, settings: GptSettings, wi
     shifts: Sequence[tuple[int | mi.Int32, int | mi.Int32]] = SHIFT_OFFSETS if gradients else ()
     groups = OFFSET_GROUPS[settings.offsets]
     with_gradients = settings.gradient_layer_names() if gradients else ()
-    if gradients and groups > 1:
-        group = kernel.offset_group = offset_group(pixel, sample, strata_o, seed_o, groups)
+    if gradients and settings.offsets == "alternate":
+        kernel.offset_targets = list(alternate_offsets(px, py, sample, strata_o, seed_o))
+        shifts = _offsets_by_index(kernel.offset_targets)
+    elif gradients and groups > 1:
+        group = offset_group(pixel, sample, strata_o, seed_o, groups)
         per_group = len(SHIFT_OFFSETS) // groups
-        shifts = []
-        for k in range(per_group):  # the k-th offset of the lane's group
-            choices = SHIFT_OFFSETS[k::per_group]
-            ox, oy = mi.Int32(choices[0][0]), mi.Int32(choices[0][1])
-            for g, (cx, cy) in enumerate(choices[1:], start=1):
-                ox = dr.select(group == g, cx, ox)
-                oy = dr.select(group == g, cy, oy)
-            shifts.append((ox, oy))
+        # the k-th offset of the lane's group
+        kernel.offset_targets = [group * per_group + k for k in range(per_group)]
+        shifts = _offsets_by_index(kernel.offset_targets)
     rays, _ = _camera_rays(sensor, sampler, px, py, size, (w_o, h_o), sample, strata_o, shifts)
     state = LoopState(
         sampler=sampler, depth=mi.UInt32(0), base=PathState.start(*rays[0]),
@@ -784,7 +819,7 @@ def _run_direct_gradient_loops(k: PassKernel, s: LoopState, loop: LoopRunner,
 
 
 def _pixel_sums(settings: GptSettings, s: LoopState, pixel: mi.UInt32, width: int, height: int,
-                gradients: bool, offset_group: mi.UInt32 | None = None) -> dict[str, np.ndarray]:
+                gradients: bool, offset_targets: list[mi.UInt32] | None = None) -> dict[str, np.ndarray]:
     """Scatter-add every lane's sums and features into per-pixel buffers (one launch, fused with the loops)."""
     sums, invalid = (s.sums, s.invalid) if gradients else _drop_non_finite(s.sums)
     feat = s.feat
@@ -802,14 +837,14 @@ def _pixel_sums(settings: GptSettings, s: LoopState, pixel: mi.UInt32, width: in
     values["invalid"] = [dr.select(invalid, 1.0, 0.0)]
     n_channels = sum(layout.values())
     target = dr.zeros(mi.Float, n_channels * n_pixels)
-    per_lane = max(len(ls.grads) for ls in sums.values())  # gradient estimates a lane carries per layer that has them
     channel = 0
     for name, width_c in layout.items():
         for comp in values.get(name, [])[:width_c]:
             index = pixel + channel * n_pixels
-            if offset_group is not None and ".grad" in name:
-                # fewer offsets per lane: its k-th estimate belongs to offset (group * per_group + k)
-                index = index + offset_group * (3 * per_lane * n_pixels)
+            if offset_targets is not None and ".grad" in name:
+                # fewer offsets per lane: its k-th estimate belongs to offset offset_targets[k] (grad channels: 3 each)
+                k = int(name.rsplit(".grad", 1)[1])
+                index = index + (offset_targets[k] - k) * (3 * n_pixels)
             dr.scatter_reduce(dr.ReduceOp.Add, target, comp, index)
             channel += 1
         channel += width_c - len(values.get(name, [])[:width_c])
@@ -836,7 +871,7 @@ def render_pass(scene: mi.Scene, shift: Shift | None, settings: GptSettings, wid
         raise ValueError(f"{lanes} samples in one pass exceed 2^32; use fewer samples per pass")
     kernel, state, pixel = _start_lanes(scene, shift, settings, width, height, spp, seed)
     state = _run_loops(kernel, state)
-    return _pixel_sums(settings, state, pixel, width, height, kernel.gradients, kernel.offset_group)
+    return _pixel_sums(settings, state, pixel, width, height, kernel.gradients, kernel.offset_targets)
 
 
 def pass_plan(width: int, height: int, spp: int, max_lanes: int = MAX_LANES_PER_PASS) -> list[int]:

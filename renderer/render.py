@@ -54,6 +54,9 @@ def plan_layers(requested: tuple[str, ...], max_depth: int) -> tuple[tuple[str, 
 #: (the direct layer's; offsets are traced only to the direct layer's vertices, the indirect layer is a plain
 #: primal), ``none`` (the primal-only mode: no offset paths).
 GRADIENT_CHOICES: tuple[str, ...] = ("all", "direct", "none")
+#: ``gradsep render --offsets``: which offset paths a sample traces (``renderer.gpt.OFFSET_MODES``, which a test keeps
+#: equal to this without importing Mitsuba here).
+OFFSET_CHOICES: tuple[str, ...] = ("all", "pair", "single", "alternate")
 
 
 def gradients_mode(gradients: bool | str) -> str:
@@ -69,7 +72,8 @@ def render_frame(scene: LoadedScene | str, *, spp: int, seed: int = 0,
                  layers: str | Iterable[str] = SEPARATED_LAYERS, shift: str | None = None,
                  max_depth: int | None = None, width: int | None = None, height: int | None = None,
                  defines: Mapping[str, str] | None = None,
-                 progress: Callable[[int, int], None] | None = None, gradients: bool | str = True) -> Frame:
+                 progress: Callable[[int, int], None] | None = None, gradients: bool | str = True,
+                 offsets: str = "all") -> Frame:
     """Render one G-PT frame: per requested layer base + dx + dy, features at the first non-specular vertex.
 
     ``scene`` is a loaded scene or a spec (XML path / ``procedural:SEED``) loaded with ``width``, ``height``,
@@ -78,7 +82,9 @@ def render_frame(scene: LoadedScene | str, *, spp: int, seed: int = 0,
     ``none`` is the primal-only mode: the same base paths, layers and features, no offset paths; the frame's
     layers carry no gradients (``dx``/``dy`` None) and ``shift`` is ignored. ``direct`` gives the direct layer
     its gradients -- the same as an ``all`` render with this seed -- and the indirect layer none (its base is the
-    primal-only render's): the offsets stop after the direct layer's vertices.
+    primal-only render's): the offsets stop after the direct layer's vertices. ``offsets`` (``--offsets``): which
+    offsets a sample traces, ``GptSettings.offsets`` (``all``, or fewer: ``alternate``, ``pair``, ``single``; the
+    same channels, gradients counted with their inverse probability; recorded as ``gradsep.offsets`` unless ``all``).
     """
     from renderer.gpt import GptSettings, render_gpt
     from renderer.shift import make_shift  # imports Mitsuba
@@ -95,6 +101,10 @@ def render_frame(scene: LoadedScene | str, *, spp: int, seed: int = 0,
         scene = LoadedScene(scene.scene, scene.spec, scene.width, scene.height, max_depth, scene.rr_depth,
                             scene.defines)
     mode = gradients_mode(gradients)
+    if offsets not in OFFSET_CHOICES:
+        raise CommandError(f"--offsets must be one of {', '.join(OFFSET_CHOICES)}, got {offsets!r}")
+    if mode == "none" and offsets != "all":
+        raise CommandError("--offsets has no effect without gradients (no offset paths are traced)")
     wanted, notes = plan_layers(parse_layers(layers), scene.max_depth)
     if mode == "direct" and "direct" not in wanted:
         raise CommandError(f"--gradients direct needs the separated direct layer; --layers {','.join(wanted)} "
@@ -106,7 +116,7 @@ def render_frame(scene: LoadedScene | str, *, spp: int, seed: int = 0,
     color = wanted == ("color",)
     settings = GptSettings(max_depth=scene.max_depth, rr_depth=scene.rr_depth, direct=color or "direct" in wanted,
                            indirect=color or "indirect" in wanted, separate=not color,
-                           gradients="direct" if mode == "direct" else "all")
+                           gradients="direct" if mode == "direct" else "all", offsets=offsets)
     start = time.perf_counter()
     result = render_gpt(scene.scene, shift_impl, settings, scene.width, scene.height, spp, seed, progress)
     seconds = time.perf_counter() - start
@@ -115,6 +125,8 @@ def render_frame(scene: LoadedScene | str, *, spp: int, seed: int = 0,
     features = Features(albedo=result.albedo, normal=result.normal, depth=result.depth)
     metadata = render_metadata(scene, spp=spp, seed=seed, shift=shift_impl.name if shift_impl else "none",
                                layers=wanted, seconds=seconds, passes=result.passes, gradients=mode)
+    if offsets != "all":
+        metadata["gradsep.offsets"] = offsets
     return Frame(layers=frame_layers, features=features, metadata=metadata, warnings=notes + result.warnings)
 
 

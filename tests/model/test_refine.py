@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from model.frame import Layer, forward_differences
-from model.refine import REFINED_LAYERS, refine_layer
+from model.refine import REFINE_ALPHA, REFINED_LAYERS, refine_layer
 
 
 def _sharp(h: int, w: int, seed: int) -> np.ndarray:
@@ -38,7 +38,7 @@ def _layer_of(truth: np.ndarray, noise: float = 0.0, seed: int = 0) -> Layer:
 def test_exact_gradients_restore_the_edges_a_denoiser_blurred() -> None:
     truth = _sharp(48, 64, 1)
     prior = _blur(truth)
-    out = refine_layer("direct", prior, _layer_of(truth))
+    out = refine_layer("direct", prior, _layer_of(truth), REFINE_ALPHA)  # the plain refinement: OIDN's image only
     err_prior = np.mean(np.abs(prior - truth))
     err_out = np.mean(np.abs(out - truth))
     assert err_out < 0.5 * err_prior, (err_out, err_prior)  # measured ~0.33 at α = 1
@@ -48,7 +48,7 @@ def test_exact_gradients_restore_the_edges_a_denoiser_blurred() -> None:
 def test_noisy_gradients_still_help_and_keep_the_energy() -> None:
     truth = _sharp(64, 64, 2)
     prior = _blur(truth)
-    out = refine_layer("direct", prior, _layer_of(truth, noise=0.05, seed=3))
+    out = refine_layer("direct", prior, _layer_of(truth, noise=0.05, seed=3), REFINE_ALPHA)
     assert np.mean(np.abs(out - truth)) < 0.5 * np.mean(np.abs(prior - truth))
     assert abs(out.mean() / prior.mean() - 1) < 0.01
 
@@ -117,7 +117,7 @@ def _old_refine(prior: np.ndarray, layer: Layer, preconditioner: str, cg_steps: 
 def test_a_pinned_budget_gives_the_fixed_solve_bit_for_bit(preconditioner: str, cg_steps: int) -> None:
     truth = _sharp(40, 56, 4)
     prior, layer = _blur(truth), _layer_of(truth, noise=0.05, seed=5)
-    out = refine_layer("direct", prior, layer, preconditioner=preconditioner, cg_steps=cg_steps)
+    out = refine_layer("direct", prior, layer, REFINE_ALPHA, preconditioner=preconditioner, cg_steps=cg_steps)
     assert np.array_equal(out, _old_refine(prior, layer, preconditioner, cg_steps))
 
 
@@ -134,12 +134,146 @@ def test_the_default_solve_runs_each_pass_to_the_tolerance(monkeypatch: pytest.M
 
     monkeypatch.setattr(refine, "solve_l1", spy)
     truth = _sharp(40, 56, 6) ** 4  # high contrast: some passes need more than the old 2 steps
-    out = refine_layer("direct", _blur(truth), _layer_of(truth, noise=0.05, seed=7))
+    out = refine_layer("direct", _blur(truth), _layer_of(truth, noise=0.05, seed=7), REFINE_ALPHA)
     (stats,) = seen
     assert refine.REFINE_CG_TOLERANCE is not None
     for steps, residual in zip(stats.cg_iterations[1:], stats.cg_residuals[1:], strict=True):
         assert residual <= refine.REFINE_CG_TOLERANCE or steps == refine.REFINE_MAX_CG_STEPS
     assert stats.total_cg_iterations > 2 * (stats.iterations - 1)  # not the old fixed budget
-    explicit = refine_layer("direct", _blur(truth), _layer_of(truth, noise=0.05, seed=7),
+    explicit = refine_layer("direct", _blur(truth), _layer_of(truth, noise=0.05, seed=7), REFINE_ALPHA,
                             cg_steps=refine.REFINE_MAX_CG_STEPS, cg_tolerance=refine.REFINE_CG_TOLERANCE)
     assert np.array_equal(out, explicit)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# The trust rule (refine_layer without an explicit α): how far the frame's own base is trusted beside OIDN's image
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def _noisy(truth: np.ndarray, sigma: float, seed: int) -> np.ndarray:
+    """truth with relative Gaussian noise of ``sigma`` (clipped at 0, as radiance is)."""
+    rng = np.random.default_rng(seed)
+    return np.clip(truth * (1 + sigma * rng.standard_normal(truth.shape)), 0, None).astype(np.float32)
+
+
+def _gradients(truth: np.ndarray, noise: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    layer = _layer_of(truth, noise, seed)
+    return layer.dx, layer.dy
+
+
+def test_a_noiseless_base_and_gradients_come_back_as_the_base() -> None:
+    """OIDN's bias must not survive when the frame itself is exact: the rule trusts the base fully."""
+    from model.refine import trust_weights
+
+    truth = _sharp(48, 64, 11)
+    prior = _blur(truth)  # OIDN's over-smoothing
+    layer = _layer_of(truth)
+    assert np.all(trust_weights(truth, layer.dx, layer.dy) == 1.0)
+    out = refine_layer("direct", prior, layer)
+    assert np.mean(np.abs(out - truth)) < 1e-3 * np.mean(truth)
+    plain = refine_layer("direct", prior, layer, REFINE_ALPHA)
+    assert np.mean(np.abs(plain - truth)) > 10 * np.mean(np.abs(out - truth))
+
+
+def test_a_slightly_noisy_base_beats_a_biased_prior() -> None:
+    """Low noise (the clean-layer regime): the rule's result is closer to the truth than the plain refinement."""
+    truth = _sharp(64, 64, 12)
+    prior = _blur(truth)
+    layer = Layer(_noisy(truth, 0.01, 13), *_gradients(truth, 0.002, 14))
+    err_rule = np.mean(np.abs(refine_layer("direct", prior, layer) - truth))
+    err_plain = np.mean(np.abs(refine_layer("direct", prior, layer, REFINE_ALPHA) - truth))
+    assert err_rule < 0.5 * err_plain, (err_rule, err_plain)
+
+
+def test_a_very_noisy_base_leans_on_oidn() -> None:
+    """A base far noisier than its gradients' detail is not mixed in: the plain refinement of OIDN's image, bit
+    for bit."""
+    from model.refine import trust_weights
+
+    truth = _sharp(48, 64, 15)
+    prior = _blur(truth)
+    layer = Layer(_noisy(truth, 1.0, 16), *_gradients(truth, 0.05, 17))
+    assert np.all(trust_weights(layer.base, layer.dx, layer.dy) == 0.0)
+    assert np.array_equal(refine_layer("direct", prior, layer), refine_layer("direct", prior, layer, REFINE_ALPHA))
+
+
+def test_the_weight_falls_with_the_base_noise() -> None:
+    from model.refine import trust_weights
+
+    truth = _sharp(64, 64, 18)
+    layer = _layer_of(truth)
+    means = []
+    for sigma in (0.0, 0.003, 0.01, 0.03, 0.1, 0.3, 1.0):
+        w = trust_weights(_noisy(truth, sigma, 19), layer.dx, layer.dy)
+        assert w.shape == (64, 64, 1) and w.dtype == np.float32 and np.all((w >= 0) & (w <= 1))
+        means.append(float(w.mean()))
+    assert means == sorted(means, reverse=True) and means[0] == 1.0 and means[-1] == 0.0, means
+
+
+def test_the_weights_on_degenerate_layers() -> None:
+    from model.refine import trust_weights
+
+    flat = np.full((6, 7, 3), 2.0, np.float32)
+    zero = np.zeros_like(flat)
+    assert np.all(trust_weights(flat, zero, zero) == 1.0)  # flat and agreeing: noise-free
+    bumpy = flat.copy()
+    bumpy[3, 3] = 5.0
+    assert np.all(trust_weights(bumpy, zero, zero) == 0.0)  # structure the gradients deny, in every window
+    one = np.ones((1, 1, 3), np.float32)
+    assert trust_weights(one, np.zeros_like(one), np.zeros_like(one)).shape == (1, 1, 1)
+    huge = np.full((5, 5, 3), np.finfo(np.float32).max / 4, np.float32)
+    huge[2, 2] = 0.0
+    w = trust_weights(huge, np.zeros_like(huge), np.zeros_like(huge))
+    assert np.all(np.isfinite(w)) and np.all(w == 0.0)
+
+
+def test_a_non_finite_base_falls_back_to_the_plain_refinement() -> None:
+    """The frame reader's policy keeps NaN/Inf out; a direct caller that lets one through gets OIDN's refinement
+    (the base is not mixed in), finite."""
+    truth = _sharp(24, 32, 20)
+    layer = _layer_of(truth)
+    base = layer.base.copy()
+    base[5, 5] = np.nan
+    base[6, 6] = np.inf
+    out = refine_layer("direct", _blur(truth), Layer(base, layer.dx, layer.dy))
+    assert np.all(np.isfinite(out))
+    assert np.array_equal(out, refine_layer("direct", _blur(truth), layer, REFINE_ALPHA))
+
+
+@pytest.mark.parametrize("decade", [-8, 0, 9])
+@pytest.mark.parametrize("sigma", [0.005, 0.5])
+def test_the_rule_is_exposure_invariant(decade: int, sigma: float) -> None:
+    """Both regimes (base mixed in or not) at 1e-8 … 1e9 radiance: finite, and k times the result at k times the
+    light (the statistic is a ratio at mean-1 exposure)."""
+    truth = _sharp(32, 40, 21)
+    prior = _blur(truth)
+    layer = Layer(_noisy(truth, sigma, 22), *_gradients(truth, 0.01, 23))
+    k = np.float32(10.0 ** decade)
+    ref = refine_layer("direct", prior, layer)
+    out = refine_layer("direct", prior * k, Layer(layer.base * k, layer.dx * k, layer.dy * k))
+    assert np.all(np.isfinite(out)) and np.all(out >= 0)
+    np.testing.assert_allclose(out / k, ref, rtol=2e-3, atol=1e-6 * float(ref.max()))
+
+
+def test_the_frame_wide_part_of_the_rule() -> None:
+    """A layer clean as a whole is trusted everywhere at the lower α (the l1 method's regime); a noisy one keeps
+    OIDN's image as the data term at REFINE_ALPHA; degenerate layers give a finite or infinite r, never NaN."""
+    from model.refine import TRUST_ALPHA_BASE, frame_disagreement, trusted_data
+
+    truth = _sharp(48, 64, 24)
+    prior = _blur(truth)
+    layer = _layer_of(truth)
+    assert frame_disagreement(truth, prior, layer.dx, layer.dy) < 1e-9  # float32 differences round
+    data, alpha = trusted_data(truth, prior, layer.dx, layer.dy)
+    assert alpha == TRUST_ALPHA_BASE
+    np.testing.assert_allclose(data, truth, rtol=1e-6)  # prior + 1·(base − prior), rounded
+    noisy = _noisy(truth, 1.0, 25)
+    assert frame_disagreement(noisy, prior, layer.dx, layer.dy) > 1.0
+    data, alpha = trusted_data(noisy, prior, *_gradients(truth, 0.05, 26))
+    assert alpha == REFINE_ALPHA and data is prior
+    flat = np.full((4, 5, 3), 2.0, np.float32)
+    zero = np.zeros_like(flat)
+    assert frame_disagreement(flat, flat, zero, zero) == 0.0
+    bumpy = flat.copy()
+    bumpy[1, 1] = 3.0
+    assert frame_disagreement(bumpy, flat, zero, zero) == float("inf")

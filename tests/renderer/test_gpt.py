@@ -23,6 +23,7 @@ from model.errors import CommandError  # noqa: E402
 from model.frame import read_frame, write_frame  # noqa: E402
 from renderer.gpt import (  # noqa: E402
     GptSettings,
+    alternate_offsets,
     offset_group,
     pass_plan,
     render_gpt,
@@ -270,7 +271,7 @@ def test_gradients_converge_to_reference_differences(scene, axis, shift):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("offsets", ["pair", "single"])
+@pytest.mark.parametrize("offsets", ["pair", "single", "alternate"])
 @pytest.mark.parametrize("scene", ["cbox", "teapot", "sky"])
 @pytest.mark.parametrize("axis", ["dx", "dy"])
 def test_fewer_offsets_per_sample_converge_to_reference_differences(scene, axis, offsets):
@@ -288,7 +289,7 @@ def test_fewer_offsets_per_sample_converge_to_reference_differences(scene, axis,
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("offsets", ["pair", "single"])
+@pytest.mark.parametrize("offsets", ["pair", "single", "alternate"])
 def test_fewer_offsets_keep_the_primal_and_count_gradients_at_any_spp(offsets):
     """The primal is the base paths alone, bit for bit the same whichever offsets are traced; at an odd sample
     count (stratified and unstratified samples, groups of unequal size within a pixel) the gradients of the
@@ -310,7 +311,7 @@ def test_fewer_offsets_keep_the_primal_and_count_gradients_at_any_spp(offsets):
 @pytest.mark.slow
 @pytest.mark.parametrize(("scene_name", "shift", "offsets"), [
     ("cbox", "hybrid", "all"), ("cbox", "replay", "all"), ("sky", "hybrid", "all"), ("cbox", "hybrid", "pair"),
-    ("teapot", "hybrid", "all")])
+    ("cbox", "hybrid", "alternate"), ("teapot", "hybrid", "all")])
 def test_direct_gradients_mode_is_the_full_renders_direct_layer(scene_name, shift, offsets):
     """GptSettings(gradients="direct") traces the offsets only to the direct layer's vertices: its direct layer
     (base and gradients) is the ``all`` render's with the same seed, bit for bit up to rounding; its indirect
@@ -414,6 +415,42 @@ def test_offset_groups_are_balanced_and_spread(groups):
         assert np.all((grid == g).any(axis=2))
 
 
+def test_alternate_offsets_pair_neighbours_and_are_balanced():
+    """The "alternate" mode: on every sample, pixel x traces right exactly when pixel x+1 traces left (and y
+    down exactly when y+1 traces up), so each pixel pair gets both MIS techniques on the same samples; over
+    rows/columns and passes each sample traces each direction with probability 1/2; within a pixel each
+    direction's stratified samples cover every row and column of the grid."""
+    select_variant()
+    strata, spp, size = 4, 20, 64
+    y, x, s = np.meshgrid(np.arange(size), np.arange(size), np.arange(spp), indexing="ij")
+    h, v = (np.array(a).reshape(size, size, spp) for a in alternate_offsets(
+        mi.Int32(x.ravel()), mi.Int32(y.ravel()), mi.UInt32(s.ravel()), mi.UInt32(strata), mi.UInt32(777)))
+    assert set(np.unique(h)) == {0, 1} and set(np.unique(v)) == {2, 3}  # SHIFT_OFFSETS: right/left, down/up
+    np.testing.assert_array_equal(h[:, :-1] == 0, h[:, 1:] == 1)  # right at x  <=>  left at x+1
+    np.testing.assert_array_equal(v[:-1, :] == 2, v[1:, :] == 3)  # down at y  <=>  up at y+1
+    for sample in range(spp):  # the random bit per row (column) and pass makes each direction equally likely
+        for axis_choice in (h[:, 0, sample] == 0, v[0, :, sample] == 2):
+            assert abs(axis_choice.mean() - 0.5) < 5 * np.sqrt(0.25 / size), sample
+    grid = h[..., :strata * strata].reshape(size, size, strata, strata)  # [y, x, grid row, grid column]
+    for direction in (0, 1):
+        assert np.all((grid == direction).sum(axis=(2, 3)) == strata * strata // 2)
+        assert np.all((grid == direction).any(axis=3)) and np.all((grid == direction).any(axis=2))
+
+
+def test_alternate_offsets_trace_two_offsets_and_keep_the_primal():
+    """Each lane traces one offset per axis (both axes get gradients), and the primal is bit for bit the `all`
+    render's: the offsets never touch the base path or its random numbers."""
+    scene = load_scene(CBOX, width=12, height=10).scene
+    full = render_gpt(scene, make_shift("hybrid"), GptSettings(max_depth=4), 12, 10, 4, seed=5)
+    alt = render_gpt(scene, make_shift("hybrid"), GptSettings(max_depth=4, offsets="alternate"), 12, 10, 4, seed=5)
+    for layer, images in alt.layers.items():
+        np.testing.assert_array_equal(images["base"], full.layers[layer]["base"])
+        for key in ("dx", "dy"):
+            assert np.all(np.isfinite(images[key])) and np.abs(images[key][:, :-1] if key == "dx"
+                                                                 else images[key][:-1]).max() > 0, (layer, key)
+        assert np.all(images["dx"][:, -1] == 0) and np.all(images["dy"][-1] == 0)
+
+
 def test_offsets_mode_is_validated():
     with pytest.raises(ValueError, match="offsets mode"):
         GptSettings(offsets="three").validate()
@@ -450,7 +487,7 @@ def test_russian_roulette_keeps_everything_unbiased(cbox, shift):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("offsets", ["all", "pair"])
+@pytest.mark.parametrize("offsets", ["all", "pair", "alternate"])
 @pytest.mark.parametrize("scene_name", ["cbox", "specular"])
 @pytest.mark.parametrize("shift", SHIFTS)
 def test_offsets_on_the_base_pixel_give_zero_gradients(monkeypatch, shift, scene_name, offsets):
@@ -923,11 +960,34 @@ def test_render_command_gradients_direct(tmp_path, capsys):
     np.testing.assert_allclose(frame.layers["direct"].dx, full.layers["direct"].dx, rtol=1e-6, atol=1e-7)
 
 
+def test_render_command_offsets(tmp_path):
+    """`--offsets alternate`: the same channels as a full render (both layers' gradients), the same primal, and
+    the mode in the metadata (absent for the default `all`); the command's choices are the renderer's modes."""
+    from renderer.gpt import OFFSET_MODES
+    from renderer.render import OFFSET_CHOICES
+
+    assert OFFSET_CHOICES == OFFSET_MODES
+    with pytest.raises(CommandError, match="--offsets must be one of"):
+        render_frame(CBOX, spp=1, width=4, height=4, offsets="three")
+    out = tmp_path / "a.exr"
+    rc = main(["render", CBOX, "--spp", "2", "--width", "10", "--height", "8", "--seed", "4", "--max-depth", "4",
+               "--offsets", "alternate", "-o", str(out)])
+    assert rc == 0
+    frame = read_frame(out)
+    assert frame.gradient_layers == ("direct", "indirect") and frame.metadata["gradsep.offsets"] == "alternate"
+    full = render_frame(load_scene(CBOX, width=10, height=8, max_depth=4), spp=2, seed=4)
+    assert "gradsep.offsets" not in full.metadata
+    for layer in ("direct", "indirect"):
+        np.testing.assert_array_equal(frame.layers[layer].base, full.layers[layer].base)
+        assert np.abs(frame.layers[layer].dx).max() > 0
+
+
 @pytest.mark.parametrize("argv, message", [
     (["--gradients", "direct", "--layers", "color"], "--gradients direct"),
     (["--gradients", "direct", "--layers", "indirect"], "--gradients direct"),
     (["--no-gradients", "--gradients", "all"], "--no-gradients"),
     (["--gradients", "none", "--shift", "replay"], "--shift"),
+    (["--no-gradients", "--offsets", "alternate"], "--offsets"),
     (["--spp", "0"], "spp"),
     (["--layers", "glossy"], "unknown layer"),
     (["--max-depth", "0"], "max-depth"),

@@ -1,0 +1,234 @@
+"""Held-out study behind the refinement's trust rule (model/refine.py ``trust``; docs/network.md "The trust rule"):
+how far the direct layer's refinement should trust the frame's own noisy base against OIDN's image, per frame,
+from what the frame carries (base, gradients, OIDN's image; no reference).
+
+    python benchmarks/study_direct_trust.py render --seeds 84001-84004 --spp 4,16,64,256   # validation frames
+    python benchmarks/study_direct_trust.py error                   # design + validation tables (cached frames)
+    python benchmarks/study_direct_trust.py error --per-frame       # plus each frame's statistic r and ratios
+    python benchmarks/study_direct_trust.py time                    # 1280x720 cost of the rule
+
+Two frame sets, both procedural seeds outside the evaluation's (90001, 90002) and the training range; nothing here
+reads cbox or the teapot. **Design**: the ``oidn-l1`` study's frames (benchmarks/study_refine.py's cache, seeds
+81001-81008 at 1, 4, 16, 64 spp), on which the rule's three constants were chosen. **Validation**: seeds
+84001-84004 at 4, 16, 64 and 256 spp (256 spp: layers as clean as the least noisy frames a user renders), rendered
+by this script into its own cache and not looked at while choosing. Frames: G-PT 320x240 (seed 7); references:
+two independent 1024-spp Mitsuba ``path`` renders. Error: RelMSE with the references' noise removed
+(model.metrics.relmse_unbiased) of the direct layer, and of the frame (direct + OIDN's indirect layer, which the
+rule does not touch), as a ratio to the plain refinement (OIDN's image as the data term, α = 1: the rule before);
+geometric means.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+CACHE_ROOT = Path(os.environ.get("GRADSEP_CACHE", Path.home() / ".cache" / "gradsep"))
+DESIGN_CACHE = CACHE_ROOT / "refine-study"
+VALIDATION_CACHE = CACHE_ROOT / "trust-study"
+#: Rule variants measured beside the shipped constants: (TRUST_RADIUS, TRUST_R_LOW, TRUST_R_HIGH, TRUST_FRAME_R).
+RULES: dict[str, tuple] = {
+    "per pixel only (window 7, r 0.1-1)": (3, 0.1, 1.0, None),
+    "per pixel only, window 17": (8, 0.1, 1.0, None),
+    "per pixel only, r 0.05-0.5": (3, 0.05, 0.5, None),
+    "per pixel only, r 0.2-2": (3, 0.2, 2.0, None),
+    "per pixel + frame r 0.1-0.3": (3, 0.1, 1.0, (0.1, 0.3)),
+}
+
+
+def _rule(constants: tuple | None) -> Callable:
+    """f(denoised, layer): model.refine.refine_layer's default (the trust rule), its constants overridden."""
+    from model import refine
+
+    names = ("TRUST_RADIUS", "TRUST_R_LOW", "TRUST_R_HIGH", "TRUST_FRAME_R")
+
+    def run(denoised, layer):
+        if constants is None:
+            return refine.refine_layer("direct", denoised, layer)
+        saved = {n: getattr(refine, n) for n in names}
+        for n, value in zip(names, constants, strict=True):
+            setattr(refine, n, value)
+        try:
+            return refine.refine_layer("direct", denoised, layer)
+        finally:
+            for n, value in saved.items():
+                setattr(refine, n, value)
+    return run
+
+
+def _per_frame(denoised, layer):
+    """Design (a): the refinement of w·base + (1 − w)·OIDN with one w per frame (the frame-wide r of
+    model.refine.frame_disagreement, log-linear from 1 at 0.1 to 0 at 0.3), α = 1 − 0.5·w."""
+    from model import refine
+
+    s = refine.input_scale(denoised)
+    r = refine.frame_disagreement(*(refine.scaled_image(a, s) for a in (layer.base, denoised, layer.dx, layer.dy)))
+    w = refine._log_ramp(r, 0.1, 0.3)
+    data = (w * layer.base + (1 - w) * denoised).astype(np.float32)
+    return refine.refine_layer("direct", data, layer, 1.0 - 0.5 * w)
+
+
+def variants() -> dict[str, Callable]:
+    """name -> f(denoised direct image, direct layer); 'plain refinement' is the ratio's denominator."""
+    from model import refine
+    from model.poisson import solve_l1
+    from model.policy import DEFAULT_ALPHA
+
+    out: dict[str, Callable] = {
+        "plain refinement (before)": lambda d, layer: refine.refine_layer("direct", d, layer, refine.REFINE_ALPHA),
+        "oidn": lambda d, layer: d,
+        "l1 (base + gradients)": lambda d, layer: solve_l1(layer.base, layer.dx, layer.dy, DEFAULT_ALPHA)[0],
+        "trust rule (shipped)": _rule(None),
+        "per-frame rule only (design a)": _per_frame,
+    }
+    out.update({k: _rule(v) for k, v in RULES.items()})
+    return out
+
+
+def _frames(cache: Path):
+    """(label, frame path, reference 1, reference 2) of every cached frame with two references."""
+    for folder in sorted(p for p in cache.glob("procedural-*") if p.is_dir()):
+        refs = sorted(folder.glob("ref-*.npz"))
+        if len(refs) < 2:
+            continue
+        r1, r2 = (np.load(p) for p in refs[:2])
+        for path in sorted(folder.glob("gpt-*.exr"), key=lambda p: int(p.stem.split("-")[1])):
+            yield f"{folder.name.removeprefix('procedural-')} {path.stem.removeprefix('gpt-')} spp", path, r1, r2
+
+
+def score_set(cache: Path, per_frame: bool) -> dict[str, dict[str, list[float]]]:
+    """{'direct'|'frame': {variant: [ratio to the plain refinement per frame]}} over one cache's frames."""
+    from model.frame import read_frame
+    from model.metrics import relmse_unbiased
+    from model.oidn import METHOD_SETTING, Denoiser, input_scale
+    from model.preprocess import scaled_image
+    from model.refine import frame_disagreement, trust_weights
+
+    den = Denoiser(METHOD_SETTING)
+    runs = variants()
+    ratios: dict[str, dict[str, list[float]]] = {"direct": {}, "frame": {}}
+    for label, path, r1, r2 in _frames(cache):
+        frame = read_frame(str(path))
+        aux = den.prefilter(frame.features) if frame.features is not None else None
+        layer = frame.layers["direct"]
+        denoised = den.denoise(layer.base, aux)
+        indirect = den.denoise(frame.layers["indirect"].base, aux)
+        scores = {}
+        for name, run in runs.items():
+            image = run(denoised, layer)
+            scores[name] = (relmse_unbiased(image, r1["direct"], r2["direct"]),
+                            relmse_unbiased(image + indirect, r1["total"], r2["total"]))
+        before = scores["plain refinement (before)"]
+        for name, (d, t) in scores.items():
+            ratios["direct"].setdefault(name, []).append(d / before[0])
+            ratios["frame"].setdefault(name, []).append(t / before[1])
+        if per_frame:
+            s = input_scale(denoised)
+            scaled = [scaled_image(a, s) for a in (layer.base, denoised, layer.dx, layer.dy)]
+            w = trust_weights(scaled[0], *scaled[2:])
+            r = frame_disagreement(*scaled)
+            shipped = scores["trust rule (shipped)"]
+            print(f"| {label} | {r:.3g} | {float(w.mean()):.2f} | {before[0]:.3g} | {shipped[0] / before[0]:.3f} | "
+                  f"{scores['oidn'][0] / before[0]:.2f} | {scores['l1 (base + gradients)'][0] / before[0]:.2f} | "
+                  f"{shipped[1] / before[1]:.3f} |", flush=True)
+    den.close()
+    return ratios
+
+
+def _geo(values: list[float]) -> float:
+    return math.exp(sum(math.log(max(v, 1e-12)) for v in values) / len(values))
+
+
+def error(caches: dict[str, Path], per_frame: bool) -> None:
+    for set_name, cache in caches.items():
+        print(f"\n## {set_name}: {cache}\n")
+        if per_frame:
+            print("| frame | frame r | mean per-pixel w | plain refinement RelMSE (direct) | rule / plain (direct) | "
+                  "oidn / plain | l1 / plain | rule / plain (frame) |\n|---|---:|---:|---:|---:|---:|---:|---:|")
+        ratios = score_set(cache, per_frame)
+        labels = [label for label, *_ in _frames(cache)]
+        spps = sorted({int(label.split()[1]) for label in labels})
+        print(f"\n{len(labels)} frames; RelMSE / the plain refinement's (geometric mean, worst, frames better)\n")
+        print("| variant | direct: geo | worst | better | frame: geo | worst | better | "
+              + " | ".join(f"frame @{s}" for s in spps) + " |")
+        print("|---|" + "---:|" * (6 + len(spps)))
+        for name in ratios["direct"]:
+            d, t = ratios["direct"][name], ratios["frame"][name]
+            by_spp = [_geo([v for v, lab in zip(t, labels, strict=True) if int(lab.split()[1]) == s]) for s in spps]
+            print(f"| {name} | {_geo(d):.3f} | {max(d):.2f} | {sum(v < 1 for v in d)}/{len(d)} | {_geo(t):.3f} | "
+                  f"{max(t):.2f} | {sum(v < 1 for v in t)}/{len(t)} | " + " | ".join(f"{g:.3f}" for g in by_spp)
+                  + " |", flush=True)
+
+
+def time_rule(width: int, height: int, repeats: int) -> None:
+    """Cost of the rule on one 1280x720 direct layer: its data term (weights and mix) alone, and the refinement
+    with and without the rule (the mixed data term can change the IRLS/CG work), synthetic noisy data, medians."""
+    sys.path.insert(0, str(Path(__file__).parent))
+    from bench_oidn import median_seconds
+
+    from model.frame import Layer, forward_differences
+
+    rng = np.random.default_rng(0)
+    yy, xx = np.mgrid[0:height, 0:width]
+    truth = (1.0 + 0.5 * np.sin(xx / 37.0)[..., None] * np.cos(yy / 23.0)[..., None]
+             * np.array([1.0, 0.8, 0.6])).astype(np.float32)
+    truth[height // 3: height // 2, width // 4: width // 2] *= 0.2  # a shadow edge
+    dx, dy = forward_differences(truth)
+    for noise in (0.001, 0.3):  # a clean layer (the rule mixes the base in) and a noisy one (it does not)
+        base = (truth * (1 + noise * rng.standard_normal(truth.shape))).clip(0).astype(np.float32)
+        _time_one(Layer(base, dx, dy), (0.5 * truth + 0.5 * base).astype(np.float32), repeats, median_seconds,
+                  f"{width}x{height}, base noise {noise}")
+
+
+def _time_one(layer, prior: np.ndarray, repeats: int, median_seconds: Callable, label: str) -> None:
+    from model import refine
+
+    s = refine.input_scale(prior)
+    base, dx, dy = (refine.scaled_image(a, s) for a in (layer.base, layer.dx, layer.dy))
+    stat = median_seconds(lambda: refine.trusted_data(base, refine.scaled_image(prior, s), dx, dy), repeats)
+    plain = median_seconds(lambda: refine.refine_layer("direct", prior, layer, refine.REFINE_ALPHA), repeats)
+    rule = median_seconds(lambda: refine.refine_layer("direct", prior, layer), repeats)
+    print(f"{label}: mean base weight {float(refine.trust_weights(base, dx, dy).mean()):.2f}; the rule's data term "
+          f"{stat:.3f} s; refinement {plain:.3f} s plain, {rule:.3f} s with the rule (medians of {repeats})",
+          flush=True)
+
+
+def main() -> int:
+    from study_refine import _seeds, render
+
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="command", required=True)
+    r = sub.add_parser("render", help="render validation frames and references into the cache")
+    r.add_argument("--seeds", default="84001-84004")
+    r.add_argument("--spp", default="4,16,64,256")
+    r.add_argument("--ref-spp", type=int, default=1024)
+    r.add_argument("--cache", type=Path, default=VALIDATION_CACHE)
+    e = sub.add_parser("error", help="the design and validation tables")
+    e.add_argument("--design-cache", type=Path, default=DESIGN_CACHE)
+    e.add_argument("--validation-cache", type=Path, default=VALIDATION_CACHE)
+    e.add_argument("--sets", default="design,validation")
+    e.add_argument("--per-frame", action="store_true")
+    t = sub.add_parser("time", help="1280x720 cost of the rule")
+    t.add_argument("--width", type=int, default=1280)
+    t.add_argument("--height", type=int, default=720)
+    t.add_argument("--repeats", type=int, default=5)
+    args = parser.parse_args()
+    if args.command == "render":
+        render(_seeds(args.seeds), [int(s) for s in args.spp.split(",")], args.ref_spp, args.cache)
+    elif args.command == "error":
+        caches = {"design": args.design_cache, "validation": args.validation_cache}
+        error({k: caches[k] for k in args.sets.split(",")}, args.per_frame)
+    else:
+        time_rule(args.width, args.height, args.repeats)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.path.insert(0, str(Path(__file__).parent))
+    raise SystemExit(main())
