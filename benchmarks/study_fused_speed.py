@@ -64,7 +64,7 @@ VARIANTS: dict[str, Variant] = {
     "before": Variant(),  # fused before issue 15's budget study: the oidn-l1 method's full solve on direct
     "shipped": _shipped(),
     "oidn-l1": Variant(blend=False),
-    "oidn-l1@DIRECT_CG": Variant(direct=(8, 0.2, 3), blend=False),  # the oidn-l1 method at fused's direct budget
+    "oidn-l1@DIRECT_CG": Variant(direct=(8, 0.1, 4), blend=False),  # the oidn-l1 method at fused's direct budget
     "d6": Variant(direct=(6, 0.1, 8)),
     "d5": Variant(direct=(5, 0.1, 8)),
     "d4": Variant(direct=(4, 0.1, 8)),
@@ -82,8 +82,13 @@ VARIANTS: dict[str, Variant] = {
     "d7": Variant(direct=(7, 0.1, 8)),
     "d7t.2": Variant(direct=(7, 0.2, 8)),
     "d8t.25": Variant(direct=(8, 0.25, 8)),
+    "d8t.15": Variant(direct=(8, 0.15, 8)),
+    "d8t.15c4": Variant(direct=(8, 0.15, 4)),
+    "d8t.15c3": Variant(direct=(8, 0.15, 3)),
+    "d8t.1c4": Variant(direct=(8, 0.1, 4)),
+    "d8t.1c3": Variant(direct=(8, 0.1, 3)),
     "d8t.2c4": Variant(direct=(8, 0.2, 4)),
-    "d8t.2c3": Variant(direct=(8, 0.2, 3)),
+    "d8t.2c3": Variant(direct=(8, 0.2, 3)),  # shipped before the trust rule was merged
     "net/2": Variant(net_scale=2),
     "fast2x1": Variant(fast=(2, 1)),
     "fast1x1": Variant(fast=(1, 1)),
