@@ -15,7 +15,8 @@ weights over them; the output is the convex blend ``Σ_k w_k · candidate_k``. T
 
 Per layer (chosen on held-out seeds, docs/network.md "The fused method"): the indirect layer is the learned blend
 of {oidn, refine-fast} (models/fused/indirect.onnx); the direct layer, where no learned blend beat it, is the
-``oidn-l1`` method's refinement alone (``FIXED_LAYERS``), so the network runs once per frame.
+``oidn-l1`` method's refinement alone at a cheaper CG budget (``FIXED_LAYERS``, ``DIRECT_CG``), so the network runs
+once per frame.
 
 A convex blend cannot leave the hull of its candidates: it never invents energy, never rings below 0 (every
 candidate is >= 0), and an untrained model (zero head) returns their plain average. The weights are computed
@@ -65,17 +66,25 @@ REFINE_ALPHA = 1.0
 #: The OIDN setting of the ``oidn``/``refine`` candidates (model.oidn.SETTINGS): the ``oidn`` method's default.
 OIDN_SETTING = "raw-fast"
 #: Kinds a layer served without a network may use besides CANDIDATES: ``oidn-l1`` is that method's own refinement
-#: (model.refine.refine_layer with its settings read at call time). No model consumes it, so unlike the candidates
-#: it need not be pinned: it follows the oidn-l1 method's solve (since issue 15's round 3 a per-pass convergence
-#: rule, which fixed its under-convergence on some frames; the fixed 8 x 2 solve of ``refine`` kept it).
-FIXED_KINDS: tuple[str, ...] = ("oidn-l1",)
+#: (model.refine.refine_layer with its settings read at call time); ``refine-direct`` is the same refinement (its
+#: data weight, preconditioner and passes: model/refine.py) at fused's own CG budget, DIRECT_CG. No model consumes
+#: either, so unlike the candidates they need not be pinned to a training run.
+FIXED_KINDS: tuple[str, ...] = ("oidn-l1", "refine-direct")
+#: The CG budget of ``refine-direct``: each IRLS pass stops at a relative residual of 0.1 or after 4 V-cycle-
+#: preconditioned steps, where the oidn-l1 method allows 8 (model.refine.REFINE_CG_TOLERANCE / REFINE_MAX_CG_STEPS;
+#: its later passes all hit that cap on real renders). Chosen on the held-out frames (seeds 81001-81008,
+#: benchmarks/study_fused_speed.py, docs/network.md "fused's speed"), with the trust rule: the fused frame's RelMSE
+#: 1.000x the full solve's (geometric mean), worst frame 1.008x, at 28 instead of 51 CG steps on the 1280x720
+#: render (direct refinement about half the CPU). Looser budgets lost a frame by 3-27 % (tolerance 0.2 or a
+#: 3-step cap; procedural:81004 at 64 spp), and fewer IRLS passes far more (5 passes: 1.10x, worst 2.7x).
+DIRECT_CG: tuple[float, int] = (0.1, 4)
 #: Layers the method serves with one candidate alone, no network, unless the models folder has a model for them.
-#: The direct layer is OIDN refined by its gradients (the oidn-l1 method's image): on the held-out study
-#: (docs/network.md "The fused method") every learned blend for it was worse than that candidate alone (blend of
-#: oidn + refine: 1.01x refine's RelMSE on average, worst 1.36x; of oidn + refine-fast: 1.18x, worst 3.9x), while
-#: the indirect layer's blend of oidn + refine-fast earns 5 % (no fixed weighting of the two does: a plain 25/75
-#: average is 2.7x worse at worst). So the network runs where it pays, and once per frame.
-FIXED_LAYERS: dict[str, str] = {"direct": "oidn-l1"}
+#: The direct layer is OIDN refined by its gradients (the oidn-l1 method's refinement at DIRECT_CG): on the
+#: held-out study (docs/network.md "The fused method") every learned blend for it was worse than that candidate
+#: alone (blend of oidn + refine: 1.01x refine's RelMSE on average, worst 1.36x; of oidn + refine-fast: 1.18x,
+#: worst 3.9x), while the indirect layer's blend of oidn + refine-fast earns 5 % (no fixed weighting of the two
+#: does: a plain 25/75 average is 2.7x worse at worst). So the network runs where it pays, and once per frame.
+FIXED_LAYERS: dict[str, str] = {"direct": "refine-direct"}
 #: "2": the refine candidates are the multigrid solves above (format "1" models were trained on a DCT solve).
 BLEND_FORMAT = "2"
 INPUT_NAMES = ("data", "gradient")
@@ -106,6 +115,17 @@ def refine(kind: str, oidn: np.ndarray, scaled: Layer) -> np.ndarray:
                         cg_steps=cg_steps, passes=passes, warm_start=False)
 
 
+def refine_direct(kind: str, oidn: np.ndarray, scaled: Layer) -> np.ndarray:
+    """A FIXED_KINDS image: OIDN's image refined by the layer's gradients as the oidn-l1 method refines it
+    (``oidn-l1``), or the same at fused's CG budget DIRECT_CG (``refine-direct``)."""
+    from model.refine import refine_layer
+
+    if kind == "oidn-l1":
+        return refine_layer("direct", oidn, scaled)  # "direct": refine this layer, whatever its name
+    tolerance, steps = DIRECT_CG
+    return refine_layer("direct", oidn, scaled, cg_steps=steps, cg_tolerance=tolerance)
+
+
 def layer_candidates(layer: Layer, aux: Any, kinds: tuple[str, ...] = CANDIDATES,
                      denoiser: Any = None, denoised: np.ndarray | None = None) -> tuple[Layer, list[np.ndarray], float]:
     """(the layer at the normalised exposure, its candidates at that exposure (each (H, W, 3) float32, finite,
@@ -130,10 +150,8 @@ def layer_candidates(layer: Layer, aux: Any, kinds: tuple[str, ...] = CANDIDATES
             image = oidn
         elif kind in REFINE_SOLVES:
             image = refine(kind, oidn, scaled)
-        elif kind == "oidn-l1":
-            from model.refine import refine_layer
-
-            image = refine_layer("direct", oidn, scaled)  # "direct": refine this layer, whatever its name
+        elif kind in FIXED_KINDS:
+            image = refine_direct(kind, oidn, scaled)
         else:
             image = poisson_prior(scaled)
         out.append(np.clip(np.nan_to_num(image, nan=0.0, posinf=RADIANCE_MAX, neginf=0.0), 0.0,
