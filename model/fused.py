@@ -71,8 +71,9 @@ OIDN_SETTING = "raw-fast"
 #: either, so unlike the candidates they need not be pinned to a training run.
 FIXED_KINDS: tuple[str, ...] = ("oidn-l1", "refine-direct")
 #: The CG budget of ``refine-direct``: each IRLS pass stops at a relative residual of 0.1 or after 4 V-cycle-
-#: preconditioned steps, where the oidn-l1 method allows 8 (model.refine.REFINE_CG_TOLERANCE / REFINE_MAX_CG_STEPS;
-#: its later passes all hit that cap on real renders). Chosen on the held-out frames (seeds 81001-81008,
+#: preconditioned steps, where the oidn-l1 method allowed 8 (model.refine.REFINE_CG_TOLERANCE / REFINE_MAX_CG_STEPS;
+#: its later passes all hit that cap on real renders; since this study the oidn-l1 method uses the same cap, so the
+#: two kinds solve alike until one of them is re-budgeted). Chosen on the held-out frames (seeds 81001-81008,
 #: benchmarks/study_fused_speed.py, docs/network.md "fused's speed"), with the trust rule: the fused frame's RelMSE
 #: 1.000x the full solve's (geometric mean), worst frame 1.008x, at 28 instead of 51 CG steps on the 1280x720
 #: render (direct refinement about half the CPU). Looser budgets lost a frame by 3-27 % (tolerance 0.2 or a

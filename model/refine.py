@@ -64,7 +64,11 @@ REFINE_PRECONDITIONER = "mg"
 #: "The oidn-l1 method", benchmarks/study_refine.py error --family tolerance). Callers that pass ``cg_steps`` (the
 #: fused models, pinned to what they were trained with) keep the fixed-budget solve: solve_l1's own tolerance.
 REFINE_CG_TOLERANCE: float | None = 0.1
-REFINE_MAX_CG_STEPS = 8
+#: Was 8; 4 since issue 15's held-out frontier (benchmarks/study_fused_speed.py error --per-frame, variants
+#: oidn-l1 vs oidn-l1@DIRECT_CG, with the trust rule): same geometric-mean RelMSE (1.0001x), every frame within
+#: 1 % (worst 81004 @ 64 spp, 1.008x), about 2.7 -> 1.7 CPU-seconds for a real 720p direct solve, where every pass
+#: after the second used all 8 steps.
+REFINE_MAX_CG_STEPS = 4
 #: Start the IRLS from OIDN's image instead of the exact L2 solve. Measured and rejected: the first weights then
 #: come from OIDN's image, whose smoothed edges the L1 norm keeps, so less of the gradients' detail returns
 #: (0.81 at 8 passes, 0.89 at 3, against 0.77 from the L2 start); never worse than oidn, though (worst 0.98).
