@@ -32,7 +32,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.bench_render import path_image, resolve_scene, settings_for  # noqa: E402
+from benchmarks.bench_render import (  # noqa: E402
+    interleaved_rounds,
+    path_image,
+    resolve_scene,
+    settings_for,
+)
 
 
 def kernel_times(fn) -> tuple[float, float, float, float]:
@@ -82,15 +87,9 @@ def variants(loaded, size: int, spp: int) -> dict:
 
 
 def stage_costs(runs: dict, rounds: int) -> dict:
-    """Interleaved rounds; per-round CPU-time and wall-time ratios to `path`, medians."""
-    cpu: dict[str, list[float]] = {name: [] for name in runs}
-    wall: dict[str, list[float]] = {name: [] for name in runs}
-    for _ in range(rounds):
-        for name, fn in runs.items():
-            start, start_cpu = time.perf_counter(), time.process_time()
-            fn()
-            wall[name].append(time.perf_counter() - start)
-            cpu[name].append(time.process_time() - start_cpu)
+    """Interleaved rounds (bench_render.interleaved_rounds: one untimed warm-up call each, so a stage's kernel
+    compilation no longer lands in its first round); per-round CPU-time and wall-time ratios to `path`, medians."""
+    wall, cpu = interleaved_rounds(runs, rounds)
     out = {}
     for name in runs:
         r_cpu = np.array(cpu[name]) / np.array(cpu["path"])
