@@ -48,8 +48,9 @@ def test_direct_layer_is_the_refinement_at_the_pinned_cg_budget(monkeypatch: pyt
 
 
 def test_direct_budget_is_cheaper_than_and_close_to_the_oidn_l1_solve() -> None:
-    """refine-direct is oidn-l1's refinement solved less far: a different but nearby image, from the same OIDN
-    pass (the other kinds are unchanged: oidn-l1 stays the method's own solve)."""
+    """refine-direct is oidn-l1's refinement at fused's own CG budget: a nearby image (the same one while both
+    budgets are equal, as since the oidn-l1 cap became 4 steps), from the same OIDN pass (the other kinds are
+    unchanged: oidn-l1 stays the method's own solve)."""
     layer = _layer(40, 48, seed=7)
     _, (oidn, cheap, full), _ = fused.layer_candidates(layer, None, ("oidn", "refine-direct", "oidn-l1"))
     assert not np.array_equal(cheap, oidn)
