@@ -80,6 +80,9 @@ __all__ = [
     "NetworkPool",
     "EQUAL_TIME_KINDS",
     "Attempt",
+    "Bracketed",
+    "BracketOutput",
+    "interpolate_at",
     "TIME_SEARCH",
     "TimeSearch",
     "FEATURE_SPP",
@@ -223,6 +226,24 @@ class MethodOutput:
     method_spp: int
     extra: dict[str, Any] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
+    # An equal-time row outside the tolerance whose budget lies between two tries: both tries' outputs, the
+    # too-fast one first, so the row's metrics can be interpolated to the budget (evaluation.run scores them).
+    bracket: list[BracketOutput] = field(default_factory=list)
+
+
+@dataclass
+class BracketOutput:
+    """One try of an equal-time row's bracket, as the row would be had it been kept."""
+
+    spp: int
+    render_seconds: float
+    reconstruct_seconds: float
+    image: np.ndarray
+    layers: dict[str, np.ndarray]
+
+    @property
+    def total_seconds(self) -> float:
+        return self.render_seconds + self.reconstruct_seconds
 
 
 # ------------------------------------------------------------------------------------------------ networks
@@ -328,6 +349,37 @@ class Attempt:
     miss: float  # |measured / target - 1|
     tries: list[tuple[int, float]] = field(default_factory=list)  # (spp, measured total) of every try
     note: str = ""  # why the kept try is outside the tolerance ("" when it is within)
+    # When the kept try is outside the tolerance: the closest too-fast and too-slow tries (the budget lies
+    # between their measured times), so the row's error can be interpolated to the budget (see interpolate_at).
+    bracket: tuple[Bracketed, Bracketed] | None = None
+
+
+@dataclass
+class Bracketed:
+    """One side of an :class:`Attempt`'s bracket: a try's spp, median timing and output (after ``post``)."""
+
+    spp: int
+    render_seconds: float
+    post_seconds: float
+    output: Any
+
+    @property
+    def seconds(self) -> float:
+        return self.render_seconds + self.post_seconds
+
+
+def interpolate_at(target: float, low: tuple[float, float], high: tuple[float, float], *, log_value: bool) -> float:
+    """The value at time ``target`` on the line through ``low`` and ``high`` = (seconds, value), in log time
+    and, with ``log_value``, log value (an error falling as a power of time is a straight line there: RelMSE
+    ∝ 1/spp and time ≈ a + b·spp); linear in the value where it is not positive. ``target`` is expected between
+    the two times; outside, the line is extended."""
+    (t0, v0), (t1, v1) = low, high
+    if not (t0 > 0 and t1 > 0 and target > 0) or t0 == t1:
+        return v0 if abs(target - t0) <= abs(target - t1) else v1
+    w = (math.log(target) - math.log(t0)) / (math.log(t1) - math.log(t0))
+    if log_value and v0 > 0 and v1 > 0:
+        return math.exp((1 - w) * math.log(v0) + w * math.log(v1))
+    return (1 - w) * v0 + w * v1
 
 
 #: How the equal-time spp is found (recorded per row and stated by the report).
@@ -403,8 +455,18 @@ class TimeSearch:
         render, post = best.median_timing()
         miss = abs(self.miss(render + post))
         tries = [(t.spp, round(t.seconds, 4)) for t in self.tried.values()]
-        return Attempt(best.output, render, post, best.spp, self.made, miss, tries,
-                       note if miss > self.tolerance else "")
+        outside = miss > self.tolerance
+        return Attempt(best.output, render, post, best.spp, self.made, miss, tries, note if outside else "",
+                       self._bracket() if outside else None)
+
+    def _bracket(self) -> tuple[Bracketed, Bracketed] | None:
+        """The slowest too-fast and the fastest too-slow try, when there are both (the budget between them)."""
+        fast = [t for t in self.tried.values() if t.seconds < self.target]
+        slow = [t for t in self.tried.values() if t.seconds > self.target]
+        if not fast or not slow:
+            return None
+        sides = (max(fast, key=lambda t: t.seconds), min(slow, key=lambda t: t.seconds))
+        return tuple(Bracketed(t.spp, *t.median_timing(), t.output) for t in sides)  # type: ignore[return-value]
 
     def _measure(self, measure: Callable[[int], tuple[Any, float, float]], spp: int, predicted: float) -> _Timed:
         self.made += 1
@@ -760,7 +822,8 @@ def _run_path(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
     target = _budget(ctx)
     got = renderer.render_within("path", target, ctx.seed)
     return MethodOutput(_sanitise(got.output[..., :3]), {}, got.render_seconds, 0.0, got.spp,
-                        extra=_equal_time_extra(ctx, target, got, renderer.max_spp))
+                        extra=_equal_time_extra(ctx, target, got, renderer.max_spp),
+                        bracket=_bracket_outputs(got, lambda raw: (_sanitise(raw[..., :3]), {})))
 
 
 def _run_oidn(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
@@ -777,7 +840,8 @@ def _run_oidn(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
                                  post=lambda raw: denoise(raw[..., :3], albedo, normal), post_estimate=estimate)
     extra = _equal_time_extra(ctx, target, got, renderer.max_spp)
     extra["feature_spp"] = FEATURE_SPP
-    return MethodOutput(got.output, {}, got.render_seconds + feature_seconds, got.post_seconds, got.spp, extra=extra)
+    return MethodOutput(got.output, {}, got.render_seconds + feature_seconds, got.post_seconds, got.spp, extra=extra,
+                        bracket=_bracket_outputs(got, lambda image: (image, {}), extra_render=feature_seconds))
 
 
 def _run_sep_oidn(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
@@ -806,7 +870,18 @@ def _run_frame_within(spec: MethodSpec, ctx: MethodContext, kind: str, method: s
                                  post_estimate=estimate)
     result = got.output
     return MethodOutput(result.image, result.layers, got.render_seconds, got.post_seconds, got.spp,
-                        extra=_equal_time_extra(ctx, target, got, renderer.max_spp), warnings=list(result.warnings))
+                        extra=_equal_time_extra(ctx, target, got, renderer.max_spp), warnings=list(result.warnings),
+                        bracket=_bracket_outputs(got, lambda r: (r.image, dict(r.layers))))
+
+
+def _bracket_outputs(got: Attempt, convert: Callable[[Any], tuple[np.ndarray, dict[str, np.ndarray]]],
+                     extra_render: float = 0.0) -> list[BracketOutput]:
+    """The attempt's bracket as outputs (``convert``: a try's output -> (image, layers)); [] without one.
+    ``extra_render``: time every try also paid on the render side (path + OIDN's feature pass)."""
+    if got.bracket is None:
+        return []
+    return [BracketOutput(b.spp, b.render_seconds + extra_render, b.post_seconds, *convert(b.output))
+            for b in got.bracket]
 
 
 def _equal_time_extra(ctx: MethodContext, target: float, got: Attempt, max_spp: int) -> dict[str, Any]:

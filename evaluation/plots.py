@@ -81,7 +81,9 @@ def plot_error_vs_time(scene: str, rows: Sequence[Mapping[str, Any]], labels: Ma
         by_method.setdefault(str(row["method"]), []).append(row)
     for method, items in by_method.items():
         items = sorted(items, key=lambda r: int(r["spp"]))
-        x = [max(float(r["total_seconds"]), 1e-4) for r in items]
+        # a row interpolated to its equal-time budget stands for that time (evaluation.report.row_seconds)
+        x = [max(float(r["target_seconds"]) if r.get("time_interpolated") and r.get("target_seconds")
+                 else float(r["total_seconds"]), 1e-4) for r in items]
         y = [max(float(r["relmse"]), bottom) for r in items]
         colour, style, marker = METHOD_STYLES.get(method, ("black", "-", "o"))
         thin = method.startswith("ablation/")

@@ -40,7 +40,7 @@ __all__ = ["CSV_COLUMNS", "losses_of_ours", "write_outputs"]
 CSV_COLUMNS: tuple[str, ...] = (
     "scene", "method", "spp", "method_spp", "width", "height", "render_seconds", "reconstruct_seconds",
     "total_seconds", "relmse", "ssim", "psnr", "flip", "relmse_direct", "relmse_indirect", "target_seconds",
-    "budget_method", "attempts", "feature_spp", "time_note", "gradients",
+    "budget_method", "attempts", "feature_spp", "time_note", "gradients", "time_interpolated",
 )
 LABELS: dict[str, str] = {m.name: m.label for m in METHODS}
 TABLE1: tuple[tuple[str, str], ...] = (("gpt-primal", "Input"), ("l1", "L1"), ("gradnet", "GradNet-style"),
@@ -401,11 +401,12 @@ TIME_TOLERANCE = 0.05
 
 
 def time_misses(rows: Sequence[Mapping[str, Any]]) -> list[str]:
-    """Every equal-time row whose measured total is outside ±5 % of its budget, as sentences."""
+    """Every equal-time row whose measured total is outside ±5 % of its budget and whose metrics were not
+    interpolated to the budget (:func:`time_interpolations`), as sentences."""
     out = []
     for r in rows:
         target = r.get("target_seconds")
-        if target in (None, "") or not float(target) > 0:
+        if target in (None, "") or not float(target) > 0 or r.get("time_interpolated"):
             continue
         miss = float(r["total_seconds"]) / float(target) - 1.0
         if abs(miss) > TIME_TOLERANCE:
@@ -414,6 +415,27 @@ def time_misses(rows: Sequence[Mapping[str, Any]]) -> list[str]:
                        f"{float(target):.3g} s budget ({miss:+.0%}; {r.get('attempts', '?')} tries, kept "
                        f"{r['method_spp']} spp): {reason}")
     return out
+
+
+def time_interpolations(rows: Sequence[Mapping[str, Any]]) -> list[str]:
+    """Every equal-time row whose metrics are interpolated to its budget between two tries, as sentences."""
+    return [f"{r['scene']}, {r['spp']} spp, {r['method']}: budget {float(r['target_seconds']):.3g} s, between "
+            f"{r['time_interpolated']} ({r.get('time_note') or 'no reason recorded'})"
+            for r in rows if r.get("target_seconds") and r.get("time_interpolated")]
+
+
+def row_seconds(row: Mapping[str, Any]) -> float:
+    """The time a row stands for: its budget when its metrics were interpolated to it, else its measured total."""
+    if row.get("time_interpolated") and row.get("target_seconds"):
+        return float(row["target_seconds"])
+    return float(row["total_seconds"])
+
+
+def _spp_cell(row: Mapping[str, Any]) -> str:
+    bracket = row.get("time_bracket")
+    if row.get("time_interpolated") and isinstance(bracket, list) and len(bracket) == 2:
+        return f"{bracket[0]['spp']}–{bracket[1]['spp']}*"
+    return str(row["method_spp"])
 
 
 def _search_method(rows: Sequence[Mapping[str, Any]]) -> str:
@@ -460,7 +482,7 @@ def _equal_time(evaluation: Evaluation) -> list[str]:
             budget = anchor.get("budget_method") or ""
             values = {m: (float(table[m]["relmse"]) if m in table else None) for m in (budget, *dict(EQUAL_TIME))}
             cells = _bold_best(values, higher=False)
-            parts = [f"{table[m]['method_spp']} / {_fmt(table[m]['total_seconds'], 3)} s / {cells[m]}"
+            parts = [f"{_spp_cell(table[m])} / {_fmt(row_seconds(table[m]), 3)} s / {cells[m]}"
                      if m in table else "–" for m, _ in EQUAL_TIME]
             baselines = set(dict(EQUAL_TIME)) - GPT_EQUAL_TIME
             gpt = {m: float(r["relmse"]) for m, r in table.items()
@@ -474,6 +496,15 @@ def _equal_time(evaluation: Evaluation) -> list[str]:
     misses = time_misses(evaluation.rows)
     lines += ["", "Equal-time rows outside ±5 % of their budget: " + ("none." if not misses else ""), ""]
     lines += [f"- {m}" for m in misses]
+    interpolated = time_interpolations(evaluation.rows)
+    if interpolated:
+        lines += ["", "Rows marked * (spp `a–b*`): no spp landed within ±5 % of the budget (one sample costs more "
+                  "than 5 % of it, or the timings were too noisy), so every metric of the row is interpolated to the "
+                  "budget between the slowest too-fast and the fastest too-slow try, in log time (RelMSE and FLIP "
+                  "in log value: an error falling as a power of time is a line there; SSIM and PSNR linearly); "
+                  "the time shown is the budget. The issue allows this for rows the spp cannot resolve. Crops show "
+                  "the try closer to the budget.", ""]
+        lines += [f"- {m}" for m in interpolated]
     return [*lines, ""]
 
 
@@ -553,7 +584,8 @@ def _targets(rows: Sequence[Mapping[str, Any]]) -> list[str]:
 
 def _relmse_tables(evaluation: Evaluation) -> list[str]:
     lines = ["## RelMSE and time by spp, all methods", "",
-             "Cells: RelMSE / total seconds. Per-layer RelMSE (direct, indirect) is in results.csv.", ""]
+             "Cells: RelMSE / total seconds (*: interpolated to the equal-time budget, see Equal time). Per-layer "
+             "RelMSE (direct, indirect) is in results.csv.", ""]
     for scene in evaluation.scenes:
         scene_rows = [r for r in evaluation.rows if r["scene"] == scene.entry.name]
         spps = sorted({int(r["spp"]) for r in scene_rows})
@@ -564,7 +596,8 @@ def _relmse_tables(evaluation: Evaluation) -> list[str]:
             cells = []
             for s in spps:
                 r = next((r for r in scene_rows if r["method"] == method and int(r["spp"]) == s), None)
-                cells.append("–" if r is None else f"{_fmt(r['relmse'])} / {_fmt(r['total_seconds'], 3)} s")
+                star = "*" if r is not None and r.get("time_interpolated") else ""
+                cells.append("–" if r is None else f"{_fmt(r['relmse'])} / {_fmt(row_seconds(r), 3)} s{star}")
             lines.append(f"| {LABELS.get(method, method)} | " + " | ".join(cells) + " |")
         lines.append("")
     return lines

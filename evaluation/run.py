@@ -22,7 +22,7 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -33,11 +33,13 @@ from evaluation.config import CROP_METHODS, FLOOR_FRACTION, EvalConfig, SceneEnt
 from evaluation.methods import (
     EQUAL_TIME_KINDS,
     METHOD_SOURCES,
+    BracketOutput,
     MethodContext,
     MethodOutput,
     MethodSpec,
     NetworkPool,
     PathRenderer,
+    interpolate_at,
     method_by_name,
     run_method,
     unavailable,
@@ -53,7 +55,7 @@ __all__ = ["CROP_METHODS", "Evaluation", "SceneRun", "machine_summary", "run_eva
 RENDERER_SOURCES = ("renderer/gpt.py", "renderer/shift.py", "renderer/render.py", "renderer/scene.py",
                     "renderer/procedural.py", "renderer/variant.py", "model/policy.py")
 REFERENCE_SOURCES = ("renderer/reference.py", "renderer/scene.py", "renderer/procedural.py", "renderer/variant.py")
-RESULT_FORMAT = 2  # bump when the cached output/score JSON changes shape
+RESULT_FORMAT = 3  # bump when the cached output/score JSON changes shape
 SCORE_SOURCES = ("model/metrics.py", "evaluation/run.py")
 
 
@@ -75,6 +77,12 @@ class _Output:
     image: np.ndarray
     layers: dict[str, np.ndarray]
     tag: str
+    bracket: list[BracketOutput] = field(default_factory=list)  # see MethodOutput.bracket
+
+
+#: Metrics interpolated in log value (errors: a power of time is a line in log-log); the others (SSIM, PSNR,
+#: already a logarithm) linearly in value. Both in log time.
+LOG_INTERPOLATED = ("relmse", "flip", *(f"relmse_{layer}" for layer in SEPARATED_LAYERS))
 
 
 class _Runner:
@@ -200,11 +208,18 @@ class _Runner:
         tag = key_hash(key)
         cached = self.cache.load_json(path)
         if cached is not None and cached.get("key") == key and isinstance(cached.get("row"), dict):
+            brackets = cached.get("bracket", [])
             names = ["image", *cached.get("layers", [])]
+            names += [f"bracket{i}{suffix}" for i, b in enumerate(brackets)
+                      for suffix in ("", *(f".{n}" for n in b["layers"]))]
             arrays = self.cache.load_arrays(path.with_suffix(".npz"), names)
             if arrays is not None:
-                layers = {n: arrays[n] for n in names[1:]}
-                return _Output(spec, spp, {**cached["row"], "scene": scene.entry.name}, arrays["image"], layers, tag)
+                layers = {n: arrays[n] for n in cached.get("layers", [])}
+                bracket = [BracketOutput(int(b["spp"]), float(b["render_seconds"]), float(b["reconstruct_seconds"]),
+                                         arrays[f"bracket{i}"], {n: arrays[f"bracket{i}.{n}"] for n in b["layers"]})
+                           for i, b in enumerate(brackets)]
+                return _Output(spec, spp, {**cached["row"], "scene": scene.entry.name}, arrays["image"], layers, tag,
+                               bracket)
         out: MethodOutput = run_method(spec, ctx)
         for warning in out.warnings:
             self.log(f"{scene.entry.name} {spec.name} {spp} spp: {warning}")
@@ -219,31 +234,72 @@ class _Runner:
                              "time_search", "time_tries", "time_note")})
         row["machine"] = machine_summary()
         layers = {n: out.layers[n] for n in SEPARATED_LAYERS if n in out.layers}
-        self.cache.save_arrays(path.with_suffix(".npz"), {"image": out.image, **layers})
-        self.cache.save_json(path, {"format": RESULT_FORMAT, "key": key, "row": row, "layers": list(layers)})
+        arrays = {"image": out.image, **layers}
+        brackets = []
+        for i, b in enumerate(out.bracket):
+            kept = [n for n in SEPARATED_LAYERS if n in b.layers]
+            arrays[f"bracket{i}"] = b.image
+            arrays.update({f"bracket{i}.{n}": b.layers[n] for n in kept})
+            brackets.append({"spp": b.spp, "render_seconds": b.render_seconds,
+                             "reconstruct_seconds": b.reconstruct_seconds, "layers": kept})
+        if brackets:
+            row["time_bracket"] = [{"spp": b["spp"], "total_seconds": b["render_seconds"] + b["reconstruct_seconds"]}
+                                   for b in brackets]
+        self.cache.save_arrays(path.with_suffix(".npz"), arrays)
+        self.cache.save_json(path, {"format": RESULT_FORMAT, "key": key, "row": row, "layers": list(layers),
+                                    "bracket": brackets})
         self.computed["results"] += 1
-        return _Output(spec, spp, row, out.image, layers, tag)
+        return _Output(spec, spp, row, out.image, layers, tag, list(out.bracket))
 
     def score(self, output: _Output, scene: SceneRun, pair: ReferencePair) -> dict[str, Any]:
-        """The output's metrics against the pair: RelMSE (total and per layer) by the product estimator, SSIM,
-        PSNR and FLIP against the pair's mean. Cached per (output, pair)."""
-        from model.metrics import flip, psnr, relmse_unbiased, ssim
-
+        """The output's metrics against the pair (:func:`image_scores`; an equal-time row with a bracket:
+        :func:`interpolated_scores`). Cached per (output, pair)."""
         key = {"format": RESULT_FORMAT, "output": output.tag, "references": pair.tag, "code": self.score_code}
         path = self.cache.entry("scores", scene.entry.name, f"{output.spec.name}-spp{output.spp}", key, ".json")
         cached = self.cache.load_json(path)
         if cached is not None and cached.get("key") == key and isinstance(cached.get("scores"), dict):
             return cached["scores"]
-        mean = pair.mean()
-        scores: dict[str, Any] = {"relmse": relmse_unbiased(output.image, pair.first["total"], pair.second["total"]),
-                                  "ssim": ssim(output.image, mean), "psnr": psnr(output.image, mean),
-                                  "flip": flip(output.image, mean)}
-        for layer in SEPARATED_LAYERS:
-            have = layer in output.layers and layer in pair.first
-            scores[f"relmse_{layer}"] = (relmse_unbiased(output.layers[layer], pair.first[layer],
-                                                         pair.second[layer]) if have else None)
+        target = output.row.get("target_seconds")
+        if len(output.bracket) == 2 and target:
+            scores = interpolated_scores(float(target), output.bracket, pair)
+        else:
+            scores = image_scores(output.image, output.layers, pair)
         self.cache.save_json(path, {"key": key, "scores": scores})
         return scores
+
+
+def image_scores(image: np.ndarray, layers: dict[str, np.ndarray], pair: ReferencePair) -> dict[str, Any]:
+    """RelMSE (total and per layer) by the product estimator; SSIM, PSNR and FLIP against the pair's mean."""
+    from model.metrics import flip, psnr, relmse_unbiased, ssim
+
+    mean = pair.mean()
+    scores: dict[str, Any] = {"relmse": relmse_unbiased(image, pair.first["total"], pair.second["total"]),
+                              "ssim": ssim(image, mean), "psnr": psnr(image, mean), "flip": flip(image, mean)}
+    for layer in SEPARATED_LAYERS:
+        have = layer in layers and layer in pair.first
+        scores[f"relmse_{layer}"] = (relmse_unbiased(layers[layer], pair.first[layer], pair.second[layer])
+                                     if have else None)
+    return scores
+
+
+def interpolated_scores(target: float, bracket: list[BracketOutput], pair: ReferencePair) -> dict[str, Any]:
+    """An equal-time row that no spp could bring within the tolerance (one sample costs more than 5 % of the
+    budget, or the timings were too noisy): every metric of its two bracketing tries, interpolated to the budget
+    ``target`` in log time (errors in log value, :data:`LOG_INTERPOLATED`). ``time_interpolated`` says between
+    what it was interpolated."""
+    low, high = bracket
+    sides = [image_scores(b.image, b.layers, pair) for b in bracket]
+    scores: dict[str, Any] = {}
+    for name, v0 in sides[0].items():
+        v1 = sides[1][name]
+        if v0 is None or v1 is None or not (math.isfinite(v0) and math.isfinite(v1)):
+            scores[name] = v0 if abs(target - low.total_seconds) <= abs(target - high.total_seconds) else v1
+            continue
+        scores[name] = interpolate_at(target, (low.total_seconds, float(v0)), (high.total_seconds, float(v1)),
+                                      log_value=name in LOG_INTERPOLATED)
+    scores["time_interpolated"] = (f"{low.spp} spp ({low.total_seconds:.3g} s, RelMSE {sides[0]['relmse']:.4g}) and "
+                                   f"{high.spp} spp ({high.total_seconds:.3g} s, RelMSE {sides[1]['relmse']:.4g})")
+    return scores
 
 
 _MITSUBA: str | None = None
@@ -360,7 +416,15 @@ def _smallest_ranked(outputs: list[_Output], pair: ReferencePair) -> float:
     """The smallest RelMSE (product estimator) over every row of the scene: each one is ranked by the report."""
     from model.metrics import relmse_unbiased
 
-    values = [relmse_unbiased(o.image, pair.first["total"], pair.second["total"]) for o in outputs]
+    def ranked(o: _Output) -> float:
+        target = o.row.get("target_seconds")
+        if len(o.bracket) == 2 and target:
+            low, high = o.bracket
+            e0, e1 = (relmse_unbiased(b.image, pair.first["total"], pair.second["total"]) for b in o.bracket)
+            return interpolate_at(float(target), (low.total_seconds, e0), (high.total_seconds, e1), log_value=True)
+        return relmse_unbiased(o.image, pair.first["total"], pair.second["total"])
+
+    values = [ranked(o) for o in outputs]
     return min(values) if values else math.inf
 
 
