@@ -50,6 +50,7 @@ class Variant:
     fast: tuple[int, int] = (3, 1)
     net_scale: int = 1
     blend: bool = True  # False: the indirect layer is OIDN's image (the oidn-l1 method)
+    oidn_half: tuple[str, ...] = ()  # layers whose OIDN image is computed at half resolution and upsampled
 
 
 def _shipped() -> Variant:
@@ -96,7 +97,33 @@ VARIANTS: dict[str, Variant] = {
     "fast2x1+d8t.2c4": Variant(direct=(8, 0.2, 4), fast=(2, 1)),
     "d5+net/2": Variant(direct=(5, 0.1, 8), net_scale=2),
     "d4t.2+net/2": Variant(direct=(4, 0.2, 8), net_scale=2),
+    # OIDN at half resolution (2x2-averaged colour and features, bilinear back): a quarter of its cost
+    "oidn/2-direct": Variant(direct=_shipped().direct, oidn_half=("direct",)),
+    "oidn/2-both": Variant(direct=_shipped().direct, oidn_half=("direct", "indirect")),
+    "oidn-l1+oidn/2-direct": Variant(direct=(8, 0.1, 4), blend=False, oidn_half=("direct",)),
 }
+
+
+def _hwc_pool2(x: np.ndarray) -> np.ndarray:
+    """(H, W[, C]) → 2x2 means (edge-replicated to even sizes)."""
+    y = x if x.ndim == 3 else x[..., None]
+    out = _pool2(np.moveaxis(y, -1, 0).astype(np.float32))
+    out = np.moveaxis(out, 0, -1)
+    return out if x.ndim == 3 else out[..., 0]
+
+
+def half_res_denoise(den, color: np.ndarray, features) -> np.ndarray:
+    """OIDN on the 2x2-averaged colour with 2x2-averaged albedo and (renormalised) normal, upsampled bilinearly."""
+    from model.frame import Features
+
+    normal = _hwc_pool2(features.normal)
+    norm = np.linalg.norm(normal, axis=-1, keepdims=True)
+    normal = np.where(norm > 1e-6, normal / np.maximum(norm, 1e-6), 0.0).astype(np.float32)
+    small = Features(np.ascontiguousarray(_hwc_pool2(features.albedo)), np.ascontiguousarray(normal),
+                     np.ascontiguousarray(_hwc_pool2(features.depth)))
+    out = den.denoise(np.ascontiguousarray(_hwc_pool2(color)), den.prefilter(small))
+    h, w = color.shape[:2]
+    return np.moveaxis(_upsample2(np.moveaxis(out, -1, 0), h, w), 0, -1)
 
 
 def _pool2(x: np.ndarray) -> np.ndarray:
@@ -186,11 +213,16 @@ def error(names: list[str], per_frame: bool) -> None:
         r1, r2 = (np.load(p)["total"] for p in sorted((REFINE_CACHE / scene).glob("ref-*.npz"))[:2])
         aux = den.prefilter(frame.features)
         dn = {n: den.denoise(lay.base, aux) for n, lay in frame.layers.items()}
+        half: dict[str, np.ndarray] = {}
         scores = {}
         for name in names:
             v = VARIANTS[name]
-            image = (direct_image(frame.layers["direct"], dn["direct"], v.direct)
-                     + indirect_image(frame.layers["indirect"], dn["indirect"], frame.features, model, v))
+            for n in v.oidn_half:
+                if n not in half:
+                    half[n] = half_res_denoise(den, frame.layers[n].base, frame.features)
+            d = {n: half[n] if n in v.oidn_half else dn[n] for n in dn}
+            image = (direct_image(frame.layers["direct"], d["direct"], v.direct)
+                     + indirect_image(frame.layers["indirect"], d["indirect"], frame.features, model, v))
             scores[name] = relmse_unbiased(image, r1, r2)
         if "shipped" in names and scene.endswith("81001") and spp == 16:  # this study's path == the served method
             served = relmse_unbiased(reconstruct(frame, "fused", fused=fused).image, r1, r2)
