@@ -13,15 +13,23 @@ held-out cache (``ref-1-*.npz`` and ``ref-2-*.npz``, the scene's default depth; 
 * ``primal`` -- the primal-only mode (`--no-gradients`) at the spp it buys, reconstructed with ``oidn`` (the
   evaluation's "separated path + OIDN per layer" baseline);
 
+and, with ``--fractions F1,F2,...`` (issue 14's split samples), ``split-F``: a fraction F of that render time spent
+on ``alternate+direct`` G-PT samples (K = F x budget / its cost) and the rest on primal-only samples
+(N - K = (1 - F) x budget / their cost), merged by ``render_frame(spp=N, gradient_spp=K)`` and reconstructed with
+``oidn-l1`` (F = 1 is ``alternate+direct``, F = 0 is ``primal``; both are timed whenever a fraction is asked for);
+
 and scores each with the noise-corrected RelMSE against the two reference passes (model.metrics.relmse_unbiased),
 for the frame and for the direct layer. Costs are CPU times per render (median of ``--rounds`` interleaved
 rounds), measured in the same process; reconstruction time is not part of the budget (oidn-l1 costs the same
-on both G-PT frames; oidn is cheaper, which favours ``primal`` slightly more than shown).
+on both G-PT frames; oidn is cheaper, which favours ``primal`` slightly more than shown). The ``cost@spp`` column
+is each mode's CPU time at its chosen spp over `all`'s at the budget, measured on the scored renders (median over
+seeds): ~1.0 when the equal-time split holds, and the check that a split render costs what its parts predict.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import statistics
 import sys
 import time
@@ -69,7 +77,32 @@ def timed(fn) -> tuple[object, float]:
     return out, time.process_time() - start
 
 
-def study(folder: Path, spec: str, spp: int, seeds: int, rounds: int, modes: list[str]) -> dict:
+SPLIT_BASE = "alternate+direct"  # the G-PT part of a split-F mode (the evaluation's gpt-direct render)
+
+
+def split_fraction(mode: str) -> float | None:
+    """``split-0.25`` -> 0.25; None for the plain modes."""
+    return float(mode.removeprefix("split-")) if mode.startswith("split-") else None
+
+
+def budgets(modes: list[str], spp: int, cost: dict[str, float], overhead: float = 0.0) -> dict[str, tuple[int, int]]:
+    """mode -> (N, K): total samples and samples with gradients (K = N for the plain modes) at `all`'s time. A split
+    render first pays ``overhead`` (its second kernel's fixed cost, as a fraction of `all`'s time)."""
+    out: dict[str, tuple[int, int]] = {}
+    for mode in modes:
+        f = split_fraction(mode)
+        if f is None:
+            n = max(1, round(spp / cost[mode]))
+            out[mode] = (n, n)
+        else:
+            left = spp * max(0.0, 1.0 - overhead)
+            k = max(1, round(f * left / cost[SPLIT_BASE]))
+            out[mode] = (k + max(0, round((1 - f) * left / cost["primal"])), k)
+    return out
+
+
+def study(folder: Path, spec: str, spp: int, seeds: int, rounds: int, modes: list[str],
+          score_all: bool = True, first_seed: int = 2000) -> dict:
     from model.metrics import relmse_unbiased
     from model.reconstruct import reconstruct
     from renderer.render import render_frame
@@ -81,26 +114,53 @@ def study(folder: Path, spec: str, spp: int, seeds: int, rounds: int, modes: lis
     depth = int(stated) if stated is not None else None  # None: the scene's own (what study_refine rendered)
     loaded = load_scene(spec, width=width, height=height, max_depth=depth)
 
-    def render(mode: str, n: int, seed: int):
-        return render_frame(loaded, spp=n, seed=seed, gradients=MODES[mode][0], offsets=MODES[mode][2])
+    def render(mode: str, n: int, seed: int, k: int | None = None):
+        base = SPLIT_BASE if split_fraction(mode) is not None else mode
+        gradient_spp = None if k is None or k >= n else k
+        return render_frame(loaded, spp=n, seed=seed, gradients=MODES[base][0], offsets=MODES[base][2],
+                            gradient_spp=gradient_spp)
 
-    for mode in modes:  # kernel compilation
-        render(mode, 1, 0)
-    cpu: dict[str, list[float]] = {mode: [] for mode in modes}
+    split = any(split_fraction(m) is not None for m in modes)
+    # a split render's extra cost over its parts' (its second kernel): timed as spp samples, half with gradients
+    timed_modes = [m for m in modes if split_fraction(m) is None] + (["split-probe"] if split else [])
+
+    def timed_render(mode: str, seed: int):
+        if mode == "split-probe":
+            return render("split-0.5", spp, seed, max(1, spp // 2))
+        return render(mode, spp, seed)
+
+    for mode in timed_modes[:len(timed_modes) - split]:  # kernel compilation (the probe reuses these kernels)
+        timed_render(mode, 0)
+    cpu: dict[str, list[float]] = {mode: [] for mode in timed_modes}
     for r in range(rounds):
-        for mode in modes:
-            cpu[mode].append(timed(lambda m=mode, s=1000 + r: render(m, spp, s))[1])
-    cost = {mode: statistics.median(a / b for a, b in zip(cpu[mode], cpu["all"], strict=True)) for mode in modes}
-    budget = {mode: max(1, round(spp / cost[mode])) for mode in modes}
-    scores: dict[str, dict[str, list[float]]] = {mode: {"frame": [], "direct": []} for mode in modes}
+        for mode in timed_modes:
+            cpu[mode].append(timed(lambda m=mode, s=1000 + r: timed_render(m, s))[1])
+    cost = {mode: statistics.median(a / b for a, b in zip(cpu[mode], cpu["all"], strict=True))
+            for mode in timed_modes}
+    overhead = 0.0
+    if split:
+        k = max(1, spp // 2)
+        parts = (k * cost[SPLIT_BASE] + (spp - k) * cost["primal"]) / spp
+        overhead = max(0.0, cost.pop("split-probe") - parts)
+    budget = budgets(modes, spp, cost, overhead)
+    scored = [m for m in modes if score_all or m != "all"]
+    scores: dict[str, dict[str, list[float]]] = {mode: {"frame": [], "direct": []} for mode in scored}
+    seconds: dict[str, list[float]] = {mode: [] for mode in scored}
     for seed in range(seeds):
-        for mode in modes:
-            frame = render(mode, budget[mode], 2000 + seed)
-            result = reconstruct(frame, MODES[mode][1])
+        for mode in scored:
+            n, k = budget[mode]
+            frame, used = timed(lambda m=mode, n=n, k=k, s=first_seed + seed: render(m, n, s, k))
+            seconds[mode].append(used)
+            method = "oidn-l1" if split_fraction(mode) is not None else MODES[mode][1]
+            result = reconstruct(frame, method)
             scores[mode]["frame"].append(relmse_unbiased(result.image, ref0.total, ref1.total))
             scores[mode]["direct"].append(relmse_unbiased(result.layers["direct"], ref0.direct, ref1.direct))
+    all_seconds = statistics.median(cpu["all"])
     return {"size": f"{width}x{height}", "max_depth": depth, "cost_vs_all": cost, "spp": budget,
-            "relmse": {m: {k: float(np.mean(v)) for k, v in s.items()} for m, s in scores.items()}}
+            "split_overhead": overhead,
+            "cost_at_spp": {m: statistics.median(v) / all_seconds for m, v in seconds.items()},
+            "relmse": {m: {k: float(np.mean(v)) for k, v in s.items()} for m, s in scores.items()},
+            "per_seed": {m: {k: [float(x) for x in v] for k, v in s.items()} for m, s in scores.items()}}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -113,20 +173,45 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rounds", type=int, default=3, help="interleaved timing rounds")
     parser.add_argument("--modes", default="all,direct,primal",
                         help=f"comma-separated, from {','.join(MODES)}; `all` (the budget) is always included")
+    parser.add_argument("--fractions", default="",
+                        help="comma-separated fractions F in (0, 1) of the render time spent on alternate+direct "
+                             "G-PT samples, the rest on primal-only samples (split-F modes; adds alternate+direct "
+                             "and primal)")
+    parser.add_argument("--skip-all", action="store_true",
+                        help="time `all` (the budget) but do not score it")
+    parser.add_argument("--first-seed", type=int, default=2000, help="render seed of the first scored frame")
+    parser.add_argument("--json", default=None, help="also write every scene's numbers (per seed too) here")
     args = parser.parse_args(argv)
     modes = ["all"] + [m for m in args.modes.split(",") if m and m != "all"]
     unknown = [m for m in modes if m not in MODES]
     if unknown:
         raise SystemExit(f"unknown modes {unknown}; expected some of {list(MODES)}")
+    fractions = [float(f) for f in args.fractions.split(",") if f.strip()]
+    if any(not 0 < f < 1 for f in fractions):
+        raise SystemExit(f"--fractions must be in (0, 1), got {fractions}")
+    if fractions:
+        modes += [m for m in (SPLIT_BASE, "primal") if m not in modes]
+        modes += [f"split-{f:g}" for f in fractions]
     print(f"equal CPU render time = `all` at {args.spp} spp; RelMSE noise-corrected against two reference passes")
-    print(f"  {'scene':<18} {'mode':<16} {'cost':>6} {'spp':>4} {'frame RelMSE':>13} {'direct RelMSE':>14}")
+    print(f"  {'scene':<18} {'mode':<16} {'cost':>6} {'spp (grad)':>10} {'cost@spp':>8} {'frame RelMSE':>13} "
+          f"{'direct RelMSE':>14}")
+    results = {}
     for item in args.scenes:
         folder, _, spec = item.partition(":")
-        out = study(Path(folder), spec, args.spp, args.seeds, args.rounds, modes)
-        for mode in modes:
+        out = study(Path(folder), spec, args.spp, args.seeds, args.rounds, modes, score_all=not args.skip_all,
+                    first_seed=args.first_seed)
+        results[spec] = out
+        for mode in out["relmse"]:
             r = out["relmse"][mode]
-            print(f"  {spec:<18} {mode:<16} {out['cost_vs_all'][mode]:>5.2f}x {out['spp'][mode]:>4} "
-                  f"{r['frame']:>13.5f} {r['direct']:>14.5f}", flush=True)
+            n, k = out["spp"][mode]
+            cost = out["cost_vs_all"].get(mode)
+            spp_text = f"{n} ({k})" if k < n else f"{n}"
+            print(f"  {spec:<18} {mode:<16} {f'{cost:.2f}x' if cost else '-':>6} {spp_text:>10} "
+                  f"{out['cost_at_spp'][mode]:>7.2f}x {r['frame']:>13.5f} {r['direct']:>14.5f}", flush=True)
+        if "split_overhead" in out and any(split_fraction(m) is not None for m in modes):
+            print(f"  {spec:<18} split render overhead over its parts: {out['split_overhead']:.3f} of the budget")
+        if args.json:
+            Path(args.json).write_text(json.dumps(results, indent=1))
     return 0
 
 

@@ -36,6 +36,12 @@ def render_command(args: argparse.Namespace) -> int:
     if gradients == "none" and args.offsets != "all":
         flag = "--no-gradients" if args.no_gradients else "--gradients none"
         raise CommandError(f"--offsets has no effect with {flag} (no offset paths are traced)")
+    if args.gradient_spp is not None:
+        if gradients == "none":
+            flag = "--no-gradients" if args.no_gradients else "--gradients none"
+            raise CommandError(f"--gradient-spp has no effect with {flag} (no offset paths are traced)")
+        if args.spp >= 1 and not 1 <= args.gradient_spp <= args.spp:  # a bad --spp: render_frame's error
+            raise CommandError(f"--gradient-spp must be between 1 and --spp ({args.spp}), got {args.gradient_spp}")
     scene = load_scene(args.scene, width=args.width, height=args.height, max_depth=args.max_depth,
                        defines=parse_defines(args.define))
     show = sys.stderr.isatty()
@@ -45,13 +51,16 @@ def render_command(args: argparse.Namespace) -> int:
             print(f"\rgradsep render: {done}/{total} spp", end="", file=sys.stderr, flush=True)
 
     frame = render_frame(scene, spp=args.spp, seed=args.seed, layers=args.layers, shift=args.shift,
-                         progress=progress, gradients=gradients, offsets=args.offsets)
+                         progress=progress, gradients=gradients, offsets=args.offsets,
+                         gradient_spp=args.gradient_spp)
     if show:
         print(file=sys.stderr)
     write_frame(output, frame)
     for note in frame.warnings:
         print(f"gradsep render: note: {note}", file=sys.stderr)
-    print(f"{output}: {frame.width}x{frame.height}, {args.spp} spp, layers {', '.join(frame.layers)}, "
+    split = frame.metadata.get("gradsep.gradient_spp")
+    spp_text = f"{args.spp} spp ({split} with gradients)" if split else f"{args.spp} spp"
+    print(f"{output}: {frame.width}x{frame.height}, {spp_text}, layers {', '.join(frame.layers)}, "
           f"{frame.metadata['gradsep.render_seconds']} s")
     return 0
 
@@ -173,6 +182,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="offset paths per sample: all four (the default); alternate (one per axis, neighbouring "
                         "pixels paired: ~0.7x the cost, gradients from half the samples; cheaper samples for "
                         "oidn-l1, see docs/renderer.md); pair, single")
+    p.add_argument("--gradient-spp", type=int, default=None, metavar="K",
+                   help="trace offsets on K of the --spp samples only (1 <= K <= --spp; default all): the other "
+                        "samples are primal-only, the bases and features average all --spp samples, the gradients "
+                        "the K G-PT ones (see docs/renderer.md, \"Split samples\")")
     p.add_argument("--no-gradients", action="store_true",
                    help="primal-only, the same as --gradients none: the same layers and features, no offset paths "
                         "and no gradients (about the cost of a plain path tracer)")

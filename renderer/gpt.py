@@ -34,6 +34,7 @@ Estimators (see docs/renderer.md for the derivation):
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -893,29 +894,48 @@ def pass_seed(seed: int, index: int) -> int:
 
 def render_gpt(scene: mi.Scene, shift: Shift | None, settings: GptSettings, width: int, height: int, spp: int,
                seed: int = 0, progress: Callable[[int, int], None] | None = None,
-               max_lanes: int = MAX_LANES_PER_PASS) -> GptResult:
+               max_lanes: int = MAX_LANES_PER_PASS, gradient_spp: int | None = None) -> GptResult:
     """Render ``spp`` samples per pixel in passes and combine them into per-layer base/dx/dy images + features.
 
     ``shift`` None is the primal-only mode: the same base paths, layers and features, no offsets and no
-    gradients (each layer carries ``base`` alone)."""
+    gradients (each layer carries ``base`` alone).
+
+    ``gradient_spp`` K (default ``spp``; needs a shift): only K of the ``spp`` samples trace offsets; the other
+    ``spp - K`` are primal-only samples. The primal-only mode's bases and features are the same estimator as
+    G-PT's primal, so the layers' bases and the features are per-pixel sums over all ``spp`` samples (the
+    spp-weighted mean of the two renders, features normalised by their combined hit counts exactly as one
+    render's), and the gradients come from the K G-PT samples alone. The primal-only passes continue the pass
+    index after the G-PT passes, so every pass has its own seed stream (``pass_seed``). K == ``spp`` is the
+    plain render, bit for bit."""
     settings.validate()
     if spp < 1:
         raise ValueError(f"spp must be >= 1, got {spp}")
-    plan = pass_plan(width, height, spp, max_lanes)
+    k = spp if gradient_spp is None else int(gradient_spp)
+    if not 1 <= k <= spp:
+        raise ValueError(f"gradient_spp must be in [1, spp={spp}], got {gradient_spp}")
+    if shift is None and k != spp:
+        raise ValueError("gradient_spp needs gradients: the primal-only mode traces no offsets")
+    plan = [(shift, settings, n) for n in pass_plan(width, height, k, max_lanes)]
+    if k < spp:  # the primal-only mode's own settings (what render_frame's gradients="none" passes)
+        primal = dataclasses.replace(settings, gradients="all", offsets="all")
+        plan += [(None, primal, n) for n in pass_plan(width, height, spp - k, max_lanes)]
     totals: dict[str, np.ndarray] | None = None
     done = 0
-    for i, n in enumerate(plan):
-        sums = render_pass(scene, shift, settings, width, height, n, pass_seed(seed, i))
-        totals = sums if totals is None else {k: totals[k] + sums[k] for k in totals}
+    for i, (pass_shift, pass_settings, n) in enumerate(plan):
+        sums = render_pass(scene, pass_shift, pass_settings, width, height, n, pass_seed(seed, i))
+        # a primal-only pass has no gradient sums: those stay the G-PT passes' (keys of the first pass)
+        totals = sums if totals is None else {key: v + sums[key] if key in sums else v for key, v in totals.items()}
         done += n
         if progress is not None:
             progress(done, spp)
     assert totals is not None
-    return _finish(totals, settings, spp, len(plan))
+    return _finish(totals, settings, spp, len(plan), k)
 
 
-def _finish(t: dict[str, np.ndarray], settings: GptSettings, spp: int, passes: int) -> GptResult:
-    """Per-pixel sums -> means; the two one-sided gradient estimates -> dx, dy per the frame contract."""
+def _finish(t: dict[str, np.ndarray], settings: GptSettings, spp: int, passes: int,
+            gradient_spp: int | None = None) -> GptResult:
+    """Per-pixel sums -> means; the two one-sided gradient estimates -> dx, dy per the frame contract. The
+    bases and features are sums over ``spp`` samples, the gradients over ``gradient_spp`` (default ``spp``)."""
     layers: dict[str, dict[str, np.ndarray]] = {}
     for layer in settings.layer_names():
         if f"{layer}.grad0" not in t:  # primal-only render
@@ -929,7 +949,7 @@ def _finish(t: dict[str, np.ndarray], settings: GptSettings, spp: int, passes: i
         dy[:-1, :] -= g[3][1:, :]
         dy[-1, :] = 0.0
         # fewer offsets per sample: each traced its group with probability 1/groups, so its terms count groups times
-        per_axis = spp / OFFSET_GROUPS[settings.offsets]
+        per_axis = (spp if gradient_spp is None else gradient_spp) / OFFSET_GROUPS[settings.offsets]
         layers[layer] = {"base": (t[f"{layer}.base"] / spp).astype(np.float32),
                          "dx": (dx / per_axis).astype(np.float32), "dy": (dy / per_axis).astype(np.float32)}
     hits = t["hit"][..., 0]

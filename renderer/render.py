@@ -8,6 +8,7 @@ contract's metadata keys (``gradsep.*``).
 
 from __future__ import annotations
 
+import numbers
 import time
 from collections.abc import Callable, Iterable, Mapping
 
@@ -68,12 +69,26 @@ def gradients_mode(gradients: bool | str) -> str:
     return gradients
 
 
+def check_gradient_spp(gradient_spp: int | None, spp: int, mode: str) -> int:
+    """``--gradient-spp`` checked against ``--spp`` and the gradients mode; None -> ``spp`` (every sample)."""
+    if gradient_spp is None:
+        return spp
+    if isinstance(gradient_spp, bool) or not isinstance(gradient_spp, numbers.Integral):
+        raise CommandError(f"--gradient-spp must be an integer, got {gradient_spp!r}")
+    gradient_spp = int(gradient_spp)
+    if mode == "none":
+        raise CommandError("--gradient-spp has no effect without gradients (no offset paths are traced)")
+    if not 1 <= gradient_spp <= spp:
+        raise CommandError(f"--gradient-spp must be between 1 and --spp ({spp}), got {gradient_spp}")
+    return gradient_spp
+
+
 def render_frame(scene: LoadedScene | str, *, spp: int, seed: int = 0,
                  layers: str | Iterable[str] = SEPARATED_LAYERS, shift: str | None = None,
                  max_depth: int | None = None, width: int | None = None, height: int | None = None,
                  defines: Mapping[str, str] | None = None,
                  progress: Callable[[int, int], None] | None = None, gradients: bool | str = True,
-                 offsets: str = "all") -> Frame:
+                 offsets: str = "all", gradient_spp: int | None = None) -> Frame:
     """Render one G-PT frame: per requested layer base + dx + dy, features at the first non-specular vertex.
 
     ``scene`` is a loaded scene or a spec (XML path / ``procedural:SEED``) loaded with ``width``, ``height``,
@@ -85,6 +100,10 @@ def render_frame(scene: LoadedScene | str, *, spp: int, seed: int = 0,
     primal-only render's): the offsets stop after the direct layer's vertices. ``offsets`` (``--offsets``): which
     offsets a sample traces, ``GptSettings.offsets`` (``all``, or fewer: ``alternate``, ``pair``, ``single``; the
     same channels, gradients counted with their inverse probability; recorded as ``gradsep.offsets`` unless ``all``).
+    ``gradient_spp`` K (``--gradient-spp``; default ``spp``): only K of the ``spp`` samples trace offsets, the
+    other ``spp - K`` are primal-only samples; the bases and features are the mean over all ``spp`` samples, the
+    gradients the K G-PT samples' (``render_gpt``). K == ``spp`` is the plain render; a K below ``spp`` is recorded
+    as ``gradsep.gradient_spp`` (``gradsep.spp`` stays the bases' sample count).
     """
     from renderer.gpt import GptSettings, render_gpt
     from renderer.shift import make_shift  # imports Mitsuba
@@ -105,6 +124,7 @@ def render_frame(scene: LoadedScene | str, *, spp: int, seed: int = 0,
         raise CommandError(f"--offsets must be one of {', '.join(OFFSET_CHOICES)}, got {offsets!r}")
     if mode == "none" and offsets != "all":
         raise CommandError("--offsets has no effect without gradients (no offset paths are traced)")
+    gradient_spp = check_gradient_spp(gradient_spp, spp, mode)
     wanted, notes = plan_layers(parse_layers(layers), scene.max_depth)
     if mode == "direct" and "direct" not in wanted:
         raise CommandError(f"--gradients direct needs the separated direct layer; --layers {','.join(wanted)} "
@@ -118,7 +138,8 @@ def render_frame(scene: LoadedScene | str, *, spp: int, seed: int = 0,
                            indirect=color or "indirect" in wanted, separate=not color,
                            gradients="direct" if mode == "direct" else "all", offsets=offsets)
     start = time.perf_counter()
-    result = render_gpt(scene.scene, shift_impl, settings, scene.width, scene.height, spp, seed, progress)
+    result = render_gpt(scene.scene, shift_impl, settings, scene.width, scene.height, spp, seed, progress,
+                        gradient_spp=gradient_spp)
     seconds = time.perf_counter() - start
 
     frame_layers = {name: Layer(base=v["base"], dx=v.get("dx"), dy=v.get("dy")) for name, v in result.layers.items()}
@@ -127,6 +148,8 @@ def render_frame(scene: LoadedScene | str, *, spp: int, seed: int = 0,
                                layers=wanted, seconds=seconds, passes=result.passes, gradients=mode)
     if offsets != "all":
         metadata["gradsep.offsets"] = offsets
+    if gradient_spp < spp:
+        metadata["gradsep.gradient_spp"] = str(gradient_spp)
     return Frame(layers=frame_layers, features=features, metadata=metadata, warnings=notes + result.warnings)
 
 
