@@ -36,21 +36,21 @@ Every method produces (image, per-layer images where it has them, render seconds
                             (the G-PT rows above are at equal spp, each at its own time)
 ==========================  ===============================================================================
 
-Equal time: the budget of a G-PT spp is the G-PT render time plus the reconstruction time of the product's
-default method for a G-PT frame (the first of model.policy.DEFAULT_PREFERENCE that was evaluated, ``oidn-l1`` as
-shipped; ``ours``, then ``l1``, when none was: evaluation.run._budget_method; the report names it). Each equal-time renderer's cost on the scene is
-measured first as ``seconds = overhead + per_spp · spp``, a line fitted to warm renders (after an untimed 1-spp
-render that pays the JIT compilation, which a user rendering a sequence pays once: 1, 4, 16, ... spp, each the
-faster of two, until one takes a quarter second; every later render adds a point). A *try* is a render plus
-its post-processing (the OIDN call(s)), timed together; ``path-oidn``'s feature pass is rendered once per row and
-taken off the budget first. The spp is *interpolated on the measured time curve* (:class:`TimeSearch`): the
-first try at the line's prediction (for the budget less a pre-measured post-processing time); while a try's
-measured total misses the target by more than :data:`PathRenderer.TOLERANCE` (5 %), a line time = a + b · spp
-through the tries so far is solved for the target (a secant step anchored at the closest try; the bracket's
-midpoint when it points at a tried spp), short or surprising tries timed three times (median), at most
-:data:`PathRenderer.MAX_ATTEMPTS` tries. The row keeps the try closest to the target and records its tries and,
-when it is still outside ±5 %, why (1 spp already over budget, the spp cap, integer granularity, timing noise);
-the report lists every such row with that reason. Such a row with tries on both sides of the budget keeps both
+Equal time: the budget of a G-PT spp is the G-PT render time plus the reconstruction time of the product's default
+method for a G-PT frame (the first of model.policy.DEFAULT_PREFERENCE that was evaluated, ``oidn-l1`` as shipped;
+``ours``, then ``l1``, when none was: evaluation.run._budget_method; the report names it). Each equal-time
+renderer's cost on the scene is measured first as ``seconds = overhead + per_spp · spp``, a line fitted to warm
+renders (after an untimed 1-spp render that pays the JIT compilation, which a user rendering a sequence pays once:
+1, 4, 16, ... spp, each the faster of two, until one takes a quarter second; every later render adds a point). A
+*try* is a render plus its post-processing (the OIDN call(s)), timed together; ``path-oidn``'s feature pass is
+rendered once per row and taken off the budget first. The spp is *interpolated on the measured time curve*
+(:class:`TimeSearch`): the first try at the line's prediction (for the budget less a pre-measured post-processing
+time); while a try's measured total misses the target by more than :data:`PathRenderer.TOLERANCE` (5 %), a line time
+= a + b · spp through the tries so far is solved for the target (a secant step anchored at the closest try; the
+bracket's midpoint when it points at a tried spp), short or surprising tries timed three times (median), at most
+:data:`PathRenderer.MAX_ATTEMPTS` tries. The row keeps the try closest to the target and records its tries and, when
+it is still outside ±5 %, why (1 spp already over budget, the spp cap, integer granularity, timing noise); the
+report lists every such row with that reason. Such a row with tries on both sides of the budget keeps both
 (:attr:`Attempt.bracket`, :attr:`MethodOutput.bracket`) and its metrics are interpolated to the budget in log time
 (evaluation.run.interpolated_scores; the report marks it). The time in the results is the time the kept try actually
 took (the median of its timings), not the prediction.
