@@ -52,11 +52,11 @@ DEPTH_MAX = 1.0e5
 PRIOR_ALPHA = DEFAULT_ALPHA
 PRIOR_IRLS_PASSES = 5
 PRIOR_CG_STEPS = 2
-#: Inference uses exactly this budget, as the models were trained (issue 15 looked for a cheaper one to serve faster:
-#: benchmarks/study_prior.py, the network's output on 32 held-out frames (procedural 81001-81008, 1-64 spp) against
-#: 1024-spp references. Rule: geometric-mean RelMSE within 1 % of this budget's and no frame > 3 % worse. Every
-#: cheaper budget failed it: 4x2 worst frame +23 %, 3x2 +76 %, 5x1 +106 %, 3x2 multigrid +46 % (geo mean -7 %),
-#: L2 only +1114 %; a looser CG tolerance (1e-1) changes nothing because 2 steps never reach it.)
+#: Inference uses exactly this budget for ``l1`` models, as they were trained (issue 15 looked for a cheaper one to
+#: serve faster: benchmarks/study_prior.py, the network's output on 32 held-out frames (procedural 81001-81008,
+#: 1-64 spp) against 1024-spp references. Rule: geometric-mean RelMSE within 1 % of this budget's and no frame
+#: > 3 % worse. Every cheaper budget failed it: 4x2 worst frame +23 %, 3x2 +76 %, 5x1 +106 %, 3x2 multigrid
+#: +46 % (geo mean -7 %), L2 only +1114 %; a looser CG tolerance (1e-1) changes nothing because 2 steps never reach it.)
 #: The rest of the prior's solve, pinned (model.poisson.solve_l1's defaults when the models were trained).
 PRIOR_REG_INIT = 0.05
 PRIOR_REG_DECAY = 0.5
@@ -97,8 +97,10 @@ PRIOR_CHANNELS = slice(3, 6)
 #:
 #: * ``l1`` — the truncated robust Poisson solve above (PRIOR_IRLS_PASSES × PRIOR_CG_STEPS, DCT-preconditioned): the
 #:   shipped ``network`` models (the paper's method as published here);
-#: * ``l2`` — the exact screened-Poisson (L2) solve, DCT, the IRLS's pass 0 alone in the working precision: ~1/6 of
-#:   the ``l1`` prior's cost (issue 15: the prior is the bulk of a ``network`` layer's time);
+#: * ``l2`` — the exact screened-Poisson (L2) solve, DCT, the IRLS's pass 0 alone in the working precision: ~1/5 of
+#:   the ``l1`` prior's cost (issue 15: the prior is the bulk of a ``network`` layer's time). Models retrained on it
+#:   (663 steps) were rejected on held-out frames: geo-mean RelMSE 1.20x today's, worst frame 10.8x, where the L2
+#:   solve smears gradient fireflies (docs/network.md, "Retraining on a cheaper prior"); the shipped models stay l1;
 #: * ``l1-mg3x2`` — the robust solve truncated to 3 passes × 2 CG steps with the multigrid preconditioner;
 #: * ``oidn`` — Intel Open Image Denoise run on the layer's base with the frame's prefiltered albedo and normal
 #:   (model/oidn.py), the ``fused`` method.
