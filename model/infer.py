@@ -34,6 +34,7 @@ import numpy as np
 from model.policy import ILLUMINATION_LAYERS
 from model.preprocess import (
     DATA_INPUTS,
+    DEFAULT_PRIOR,
     GRADIENT_INPUTS,
     LAYER_PLANES,
     MEASURED_PLANES,
@@ -253,8 +254,10 @@ class LoadedModel:
 
     @property
     def prior(self) -> str:
-        """What the model refines: ``l1`` (truncated Poisson solve) or ``oidn`` (the ``fused`` models)."""
-        return self.metadata.get("gradsep.prior", "l1")
+        """What the model refines (model.preprocess.PRIOR_KINDS, checked at load): a Poisson prior kind (``l1``,
+        the truncated L1 solve, for models without the key; ``l2``; ``l1-mg3x2``) or ``oidn`` (the ``fused``
+        models). Inference computes exactly this prior for the model."""
+        return self.metadata.get("gradsep.prior", DEFAULT_PRIOR)
 
     def run(self, data: np.ndarray, gradient: np.ndarray) -> np.ndarray:
         """(C, h, w) aligned inputs → (3, h, w) log-domain output."""
@@ -308,8 +311,9 @@ def _check_metadata(path: Path, name: str, meta: dict[str, str]) -> int:
         raise ModelError(f"{path}: unreadable gradsep metadata") from None
     if inputs != {"data": list(DATA_INPUTS), "gradient": list(GRADIENT_INPUTS)}:
         problems.append(f"its input channels {inputs} differ from this version's")
-    if meta.get("gradsep.prior", "l1") not in PRIOR_KINDS:
-        problems.append(f"its prior {meta.get('gradsep.prior')!r} is none of {', '.join(PRIOR_KINDS)}")
+    if meta.get("gradsep.prior", DEFAULT_PRIOR) not in PRIOR_KINDS:
+        problems.append(f"its prior {meta.get('gradsep.prior')!r} is unknown to this version (known: "
+                        f"{', '.join(PRIOR_KINDS)}), so it cannot be computed as the model was trained")
     elif meta.get("gradsep.prior") == "oidn":
         from model import oidn
 
@@ -445,14 +449,14 @@ class NetworkReconstructor:
             # sanitised, transposed copy of the layer); bit-for-bit what layer_planes(layer, prior=...) gives
             planes = np.empty((LAYER_PLANES, height, width), np.float32)
             measured_planes(layer, out=planes[:MEASURED_PLANES])
-            prior = poisson_prior(layer, planes=planes[:MEASURED_PLANES])
+            prior = poisson_prior(layer, planes=planes[:MEASURED_PLANES], kind=model.prior)
             with_prior(planes, prior)
             result = self._run_planes(model, planes, self._features(features, depth_range))
         elif len(plans) == 1:
             result = self._run_window(model, layer, features, depth_range, prior, plans[0].window)
         else:
             if model.prior != "oidn":
-                prior = poisson_prior(layer)             # a global solve: once per layer, cropped per window
+                prior = poisson_prior(layer, kind=model.prior)  # a global solve: once per layer, cropped per window
             total = np.zeros((height, width, 3), dtype=np.float32)
             weight = np.zeros((height, width, 1), dtype=np.float32)
             for plan in plans:

@@ -52,11 +52,11 @@ DEPTH_MAX = 1.0e5
 PRIOR_ALPHA = DEFAULT_ALPHA
 PRIOR_IRLS_PASSES = 5
 PRIOR_CG_STEPS = 2
-#: Inference uses exactly this budget, as the models were trained (issue 15 looked for a cheaper one to serve faster:
-#: benchmarks/study_prior.py, the network's output on 32 held-out frames (procedural 81001-81008, 1-64 spp) against
-#: 1024-spp references. Rule: geometric-mean RelMSE within 1 % of this budget's and no frame > 3 % worse. Every
-#: cheaper budget failed it: 4x2 worst frame +23 %, 3x2 +76 %, 5x1 +106 %, 3x2 multigrid +46 % (geo mean -7 %),
-#: L2 only +1114 %; a looser CG tolerance (1e-1) changes nothing because 2 steps never reach it.)
+#: Inference uses exactly this budget for ``l1`` models, as they were trained (issue 15 looked for a cheaper one to
+#: serve faster: benchmarks/study_prior.py, the network's output on 32 held-out frames (procedural 81001-81008,
+#: 1-64 spp) against 1024-spp references. Rule: geometric-mean RelMSE within 1 % of this budget's and no frame
+#: > 3 % worse. Every cheaper budget failed it: 4x2 worst frame +23 %, 3x2 +76 %, 5x1 +106 %, 3x2 multigrid
+#: +46 % (geo mean -7 %), L2 only +1114 %; a looser CG tolerance (1e-1) changes nothing because 2 steps never reach it.)
 #: The rest of the prior's solve, pinned (model.poisson.solve_l1's defaults when the models were trained).
 PRIOR_REG_INIT = 0.05
 PRIOR_REG_DECAY = 0.5
@@ -90,11 +90,31 @@ OUTPUTS: tuple[str, ...] = ("R", "G", "B")
 FEATURE_INPUTS: tuple[str, ...] = DATA_INPUTS[6:]
 #: Where C(prior) sits in the data input: the network predicts a correction to it (model/network.py).
 PRIOR_CHANNELS = slice(3, 6)
-#: What C(prior) is: ``l1`` — the truncated robust Poisson solve above (the paper's method as published here, the
-#: ``network`` method); ``oidn`` — Intel Open Image Denoise run on the layer's base with the frame's prefiltered
-#: albedo and normal (model/oidn.py), the ``fused`` method. Stored as ONNX metadata ``gradsep.prior``; a model
-#: without it is ``l1``.
-PRIOR_KINDS: tuple[str, ...] = ("l1", "oidn")
+#: What C(prior) is, a property of each model chosen when it is trained (``gradsep train --prior``), stored as ONNX
+#: metadata ``gradsep.prior`` and used at inference from the loaded model's metadata (model/infer.py), so every model
+#: is served with the prior it was trained on. A model without the key is ``l1``; a model naming a kind not listed
+#: here is refused at load.
+#:
+#: * ``l1`` — the truncated robust Poisson solve above (PRIOR_IRLS_PASSES × PRIOR_CG_STEPS, DCT-preconditioned): the
+#:   shipped ``network`` models (the paper's method as published here);
+#: * ``l2`` — the exact screened-Poisson (L2) solve, DCT, the IRLS's pass 0 alone in the working precision: ~1/5 of
+#:   the ``l1`` prior's cost (issue 15: the prior is the bulk of a ``network`` layer's time). Models retrained on it
+#:   (663 steps) were rejected on held-out frames: geo-mean RelMSE 1.20x today's, worst frame 10.8x, where the L2
+#:   solve smears gradient fireflies (docs/network.md, "Retraining on a cheaper prior"); the shipped models stay l1;
+#: * ``l1-mg3x2`` — the robust solve truncated to 3 passes × 2 CG steps with the multigrid preconditioner;
+#: * ``oidn`` — Intel Open Image Denoise run on the layer's base with the frame's prefiltered albedo and normal
+#:   (model/oidn.py), the ``fused`` method.
+#:
+#: POISSON_PRIORS maps each Poisson kind to its solve_l1 budget (passes, CG steps, preconditioner); the rest of the
+#: solve (α, reg schedule, CG tolerance) is the PRIOR_* constants above for all of them.
+POISSON_PRIORS: dict[str, tuple[int, int, str]] = {
+    "l1": (PRIOR_IRLS_PASSES, PRIOR_CG_STEPS, PRIOR_PRECONDITIONER),
+    "l2": (1, 1, "dct"),
+    "l1-mg3x2": (3, 2, "mg"),
+}
+PRIOR_KINDS: tuple[str, ...] = (*POISSON_PRIORS, "oidn")
+#: The kind a model without ``gradsep.prior`` metadata refines (every model exported before kinds existed).
+DEFAULT_PRIOR = "l1"
 #: ``fused`` models see every layer at a normalised exposure: base, gradients and prior multiplied by s so that the
 #: prior's mean is FUSED_MEAN (capped so the prior's peak stays below RADIANCE_MAX / FUSED_PEAK_MARGIN), and the
 #: output divided by s. The model is then the same for a frame at 1e-8 or 1e9 radiance, and HDR values are never
@@ -210,7 +230,7 @@ def _channels_first(dst: np.ndarray, src: np.ndarray, lo: float, hi: float) -> N
 
 
 def poisson_prior(layer: Layer, band_rows: int = PRIOR_BAND_ROWS, band_overlap: int = PRIOR_BAND_OVERLAP,
-                  planes: np.ndarray | None = None) -> np.ndarray:
+                  planes: np.ndarray | None = None, kind: str = DEFAULT_PRIOR) -> np.ndarray:
     """(h, w, 3) float32: a robust screened Poisson reconstruction of the whole layer (model.poisson.solve_l1,
     α = PRIOR_ALPHA, PRIOR_IRLS_PASSES passes of PRIOR_CG_STEPS CG steps) from its sanitised planes, clipped
     to [0, RADIANCE_MAX].
@@ -223,7 +243,11 @@ def poisson_prior(layer: Layer, band_rows: int = PRIOR_BAND_ROWS, band_overlap: 
     ``planes``: the whole layer's ``measured_planes`` when the caller has them (inference does): the same
     sanitised numbers, already channels-first, so the solver copies them contiguously instead of transposing
     three sanitised copies of its own (the result is bit-for-bit the same).
+
+    ``kind``: which Poisson prior (a key of POISSON_PRIORS): the one the model being fed was trained on.
     """
+    if kind not in POISSON_PRIORS:
+        raise ValueError(f"unknown Poisson prior kind {kind!r}; known: {', '.join(POISSON_PRIORS)}")
     height, width = layer.base.shape[:2]
     if planes is not None:
         if planes.shape[0] < MEASURED_PLANES or planes.shape[1:] != (height, width):
@@ -234,7 +258,7 @@ def poisson_prior(layer: Layer, band_rows: int = PRIOR_BAND_ROWS, band_overlap: 
         dx = _finite(layer.dx, -RADIANCE_MAX, RADIANCE_MAX)
         dy = _finite(layer.dy, -RADIANCE_MAX, RADIANCE_MAX)
     if height <= band_rows + 2 * band_overlap:
-        return _solve_prior(base, dx, dy)
+        return _solve_prior(base, dx, dy, kind)
     out = np.zeros((height, width, 3), np.float32)
     weight = np.zeros((height, 1, 1), np.float32)
     for core in range(0, height, band_rows):
@@ -242,7 +266,7 @@ def poisson_prior(layer: Layer, band_rows: int = PRIOR_BAND_ROWS, band_overlap: 
         band_dy = dy[y0:y1].copy()
         band_dy[-1] = 0.0  # the band's last row has no neighbour below inside the band (as the contract's)
         w = _band_ramp(y0, y1, height, band_overlap)
-        out[y0:y1] += _solve_prior(base[y0:y1], dx[y0:y1], band_dy) * w
+        out[y0:y1] += _solve_prior(base[y0:y1], dx[y0:y1], band_dy, kind) * w
         weight[y0:y1] += w
     return out / weight
 
@@ -258,12 +282,15 @@ def _band_ramp(y0: int, y1: int, height: int, overlap: int) -> np.ndarray:
     return w[:, None, None]
 
 
-def _solve_prior(base: np.ndarray, dx: np.ndarray, dy: np.ndarray) -> np.ndarray:
-    # every solver setting named: the shipped models were trained on exactly this solve (DCT-preconditioned CG),
-    # whatever the l1 method's defaults become
-    prior, _ = solve_l1(base, dx, dy, PRIOR_ALPHA, iterations=PRIOR_IRLS_PASSES, cg_iterations=PRIOR_CG_STEPS,
+def _solve_prior(base: np.ndarray, dx: np.ndarray, dy: np.ndarray, kind: str = DEFAULT_PRIOR) -> np.ndarray:
+    # every solver setting named: the models were trained on exactly this solve, whatever the l1 method's defaults
+    # become. ``l1`` reads the PRIOR_* constants at call time (benchmarks/study_prior.py overrides them).
+    passes, steps, preconditioner = ((PRIOR_IRLS_PASSES, PRIOR_CG_STEPS, PRIOR_PRECONDITIONER) if kind == "l1"
+                                     else POISSON_PRIORS[kind])
+    # one pass = solve_l1's pass 0: the exact L2 solve, in the working precision (float32 for α = PRIOR_ALPHA)
+    prior, _ = solve_l1(base, dx, dy, PRIOR_ALPHA, iterations=passes, cg_iterations=steps,
                         reg_init=PRIOR_REG_INIT, reg_decay=PRIOR_REG_DECAY, cg_tolerance=PRIOR_CG_TOLERANCE,
-                        preconditioner=PRIOR_PRECONDITIONER)
+                        preconditioner=preconditioner)
     return _sanitise_inplace(prior, 0.0, RADIANCE_MAX)
 
 
@@ -334,11 +361,13 @@ def _all_channels_zero(image: np.ndarray) -> np.ndarray:
     return out
 
 
-def layer_planes(layer: Layer, window: Window | None = None, prior: np.ndarray | None = None) -> np.ndarray:
+def layer_planes(layer: Layer, window: Window | None = None, prior: np.ndarray | None = None,
+                 kind: str = DEFAULT_PRIOR) -> np.ndarray:
     """(12, h, w) float32: base R G B, dx R G B, dy R G B, prior R G B, linear, finite, base and prior ≥ 0,
-    all within ±RADIANCE_MAX. ``prior`` is the whole layer's ``poisson_prior`` (computed here when None)."""
+    all within ±RADIANCE_MAX. ``prior`` is the whole layer's ``poisson_prior`` (computed here, of ``kind``, when
+    None)."""
     if prior is None:
-        prior = poisson_prior(layer)
+        prior = poisson_prior(layer, kind=kind)
     out = np.empty((LAYER_PLANES, *_crop(layer.base, window).shape[:2]), dtype=np.float32)
     _measured_into(out, layer, window)
     _channels_first(out[9:12], _crop(prior, window), 0.0, RADIANCE_MAX)
@@ -488,8 +517,24 @@ def crop_to(x: np.ndarray, height: int, width: int) -> np.ndarray:
     return x[..., :height, :width]
 
 
-def describe_preprocessing(transfer: LogTransfer = TRANSFER) -> dict[str, Any]:
-    """The constants that define the input transform, for ONNX metadata and config.json."""
+def describe_prior(kind: str = DEFAULT_PRIOR) -> str:
+    """The ``prior`` entry of ``describe_preprocessing`` for a Poisson prior kind (``l1``'s text is unchanged since
+    the shipped models were exported, so their metadata stays true)."""
+    if kind not in POISSON_PRIORS:
+        raise ValueError(f"unknown Poisson prior kind {kind!r}; known: {', '.join(POISSON_PRIORS)}")
+    if kind == "l1":
+        return (f"L1 screened Poisson (IRLS, {PRIOR_IRLS_PASSES} passes x {PRIOR_CG_STEPS} CG steps) of the whole "
+                f"layer, alpha={PRIOR_ALPHA}, clip [0, max_value], then C")
+    passes, steps, preconditioner = POISSON_PRIORS[kind]
+    if passes == 1:
+        return f"L2 screened Poisson (exact, DCT) of the whole layer, alpha={PRIOR_ALPHA}, clip [0, max_value], then C"
+    return (f"L1 screened Poisson (IRLS, {passes} passes x {steps} CG steps, {preconditioner} preconditioner) of "
+            f"the whole layer, alpha={PRIOR_ALPHA}, clip [0, max_value], then C")
+
+
+def describe_preprocessing(transfer: LogTransfer = TRANSFER, prior: str = DEFAULT_PRIOR) -> dict[str, Any]:
+    """The constants that define the input transform, for ONNX metadata and config.json (``prior``: the Poisson
+    prior kind the model refines; ``oidn`` models describe the l1 text, as they always have)."""
     return {
         "version": PREPROCESS_VERSION,
         "transfer": "log1p(mu*x)/log1p(mu); gradients sign(g)*C(|g|)",
@@ -498,8 +543,7 @@ def describe_preprocessing(transfer: LogTransfer = TRANSFER) -> dict[str, Any]:
         "albedo": "clip [0,1]",
         "normal": "clip [-1,1] * 0.5 + 0.5",
         "depth": "clip [0, depth_max], per-frame min-max to [0,1]",
-        "prior": (f"L1 screened Poisson (IRLS, {PRIOR_IRLS_PASSES} passes x {PRIOR_CG_STEPS} CG steps) of the whole "
-                  f"layer, alpha={PRIOR_ALPHA}, clip [0, max_value], then C"),
+        "prior": describe_prior(prior if prior in POISSON_PRIORS else DEFAULT_PRIOR),
         "nonfinite": "0",
         "padding": "reflect, bottom/right, to the network alignment",
     }

@@ -370,25 +370,30 @@ def reconstruct(frame: Frame, method: str | None = None, alpha: float = DEFAULT_
 FUSED_SUBDIR = "fused"
 
 
-def _load(folder: Path, prior: str) -> Any:
+def _load(folder: Path, priors: tuple[str, ...]) -> Any:
     if not folder.is_dir() or importlib.util.find_spec("model.infer") is None:
         return None
     from model.infer import ModelError, NetworkReconstructor  # type: ignore[import-not-found]
 
     models = NetworkReconstructor.load(folder)
     # a folder of fused blend models loads as model.fused.FusedReconstructor, whose models have no ``prior``
-    wrong = [m.path.name for m in (models.models.values() if models else ()) if getattr(m, "prior", "blend") != prior]
+    wrong = [m.path.name for m in (models.models.values() if models else ())
+             if getattr(m, "prior", "blend") not in priors]
     if wrong:
-        raise ModelError(f"{folder}: {', '.join(wrong)} refine a different prior than {prior!r} "
-                         f"(the {'fused' if prior == 'oidn' else 'network'} method's); re-export into the right folder")
+        raise ModelError(f"{folder}: {', '.join(wrong)} refine a different prior than {' or '.join(priors)} "
+                         f"(the {'fused' if priors == ('oidn',) else 'network'} method's); re-export into the right "
+                         "folder")
     return models
 
 
 def load_network(models_dir: str | os.PathLike[str] | None) -> Any:
     """The ``network`` method's reconstructor (models/*.onnx), or None when there are no models or no inference
     module. Same contract as the service's loader: None for a folder without models, an exception for models
-    that fail to load."""
-    return _load(models_dir_from(models_dir), "l1")
+    that fail to load. Each model may refine any Poisson prior kind (model.preprocess.POISSON_PRIORS: the one
+    its metadata names is what it is fed); models refining OIDN (the ``fused`` kind) are refused."""
+    from model.preprocess import POISSON_PRIORS
+
+    return _load(models_dir_from(models_dir), tuple(POISSON_PRIORS))
 
 
 def load_fused(models_dir: str | os.PathLike[str] | None) -> Any:

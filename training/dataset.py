@@ -163,9 +163,10 @@ def build_cache(manifest: Manifest, layer: str, cache_dir: Path,
                 prior: str = "l1") -> tuple[list[Path | None], list[str]]:
     """Decode every frame once into ``cache_dir/NNNNN.npy`` (19 or 28, H, W) float32; reuse valid files.
 
-    ``prior``: what the layer planes' prior is (model.preprocess.PRIOR_KINDS): ``l1`` (the network method) or
-    ``oidn`` (the fused method: OIDN's denoise of the base with the prefiltered features, and every plane —
-    base, gradients, prior and the target's — at the normalised exposure of model.preprocess.prior_exposure).
+    ``prior``: what the layer planes' prior is (model.preprocess.PRIOR_KINDS): a Poisson kind (``l1``, the shipped
+    network method's, ``l2``, ``l1-mg3x2``: model.preprocess.POISSON_PRIORS) or ``oidn`` (the fused method: OIDN's
+    denoise of the base with the prefiltered features, and every plane — base, gradients, prior and the target's —
+    at the normalised exposure of model.preprocess.prior_exposure).
 
     Returns one path per manifest frame (None when the frame cannot be used for ``layer``) and the warnings
     explaining each skipped frame.
@@ -208,7 +209,7 @@ def _write_cache_file(entry: FrameEntry, layer: str, target: Path, meta_path: Pa
         chosen, prior_image, scale = oidn_prior_inputs(chosen, shared_denoiser().prefilter(frame.features))
         planes_in = layer_planes(chosen, prior=prior_image)
     else:
-        planes_in = layer_planes(chosen)
+        planes_in = layer_planes(chosen, kind=prior)
     parts = [planes_in, feature_planes(frame.features, DepthRange.of(frame.features.depth))]
     if entry.target is not None:
         try:

@@ -88,7 +88,7 @@ class TrainConfig:
     plot_minutes: float = 2.0          # redraw losses.png at an epoch end at most this often (and at the end)
     log_every: int = 10
     keep_epoch_checkpoints: int = 3
-    prior: str = "l1"                 # what the network refines: l1 (the network method) or oidn (fused)
+    prior: str = "l1"                 # what the network refines: model.preprocess.PRIOR_KINDS (l1 = shipped network)
 
     # fields a resumed run may change: everything else must match the run folder's config.json
     RESUMABLE_CHANGES = ("epochs", "minutes", "output", "data", "checkpoint_minutes", "plot_minutes", "log_every",
@@ -247,7 +247,7 @@ def prepare_run_dir(cfg: TrainConfig, manifest_sha256: str) -> dict[str, Any]:
     run = Path(cfg.output)
     (run / "checkpoints").mkdir(parents=True, exist_ok=True)
     path = run / "config.json"
-    fresh = {"train": cfg.to_dict(), "preprocessing": describe_preprocessing(),
+    fresh = {"train": cfg.to_dict(), "preprocessing": describe_preprocessing(prior=cfg.prior),
              "dataset_manifest_sha256": manifest_sha256, "code_version": code_version(),
              "torch": torch.__version__}
     if path.is_file():
