@@ -19,7 +19,7 @@ from model.policy import SEPARATED_LAYERS
 def render_command(args: argparse.Namespace) -> int:
     """`gradsep render`: render a frame and write it atomically to ``args.output``."""
     from model.frame import write_frame
-    from renderer.render import render_frame
+    from renderer.render import check_gradient_spp, render_frame
     from renderer.scene import load_scene, parse_defines
 
     output = Path(args.output)
@@ -40,8 +40,8 @@ def render_command(args: argparse.Namespace) -> int:
         if gradients == "none":
             flag = "--no-gradients" if args.no_gradients else "--gradients none"
             raise CommandError(f"--gradient-spp has no effect with {flag} (no offset paths are traced)")
-        if args.spp >= 1 and not 1 <= args.gradient_spp <= args.spp:  # a bad --spp: render_frame's error
-            raise CommandError(f"--gradient-spp must be between 1 and --spp ({args.spp}), got {args.gradient_spp}")
+        if args.spp >= 1:  # checked before the scene loads (a bad --spp: render_frame's error)
+            check_gradient_spp(args.gradient_spp, args.spp, gradients)
     scene = load_scene(args.scene, width=args.width, height=args.height, max_depth=args.max_depth,
                        defines=parse_defines(args.define))
     show = sys.stderr.isatty()
