@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from evaluation.results import row_seconds
 from model.frame import write_bytes_atomic
 from model.metrics import tonemap
 
@@ -81,9 +82,7 @@ def plot_error_vs_time(scene: str, rows: Sequence[Mapping[str, Any]], labels: Ma
         by_method.setdefault(str(row["method"]), []).append(row)
     for method, items in by_method.items():
         items = sorted(items, key=lambda r: int(r["spp"]))
-        # a row interpolated to its equal-time budget stands for that time (evaluation.report.row_seconds)
-        x = [max(float(r["target_seconds"]) if r.get("time_interpolated") and r.get("target_seconds")
-                 else float(r["total_seconds"]), 1e-4) for r in items]
+        x = [max(row_seconds(r), 1e-4) for r in items]  # an interpolated row stands at its budget
         y = [max(float(r["relmse"]), bottom) for r in items]
         colour, style, marker = METHOD_STYLES.get(method, ("black", "-", "o"))
         thin = method.startswith("ablation/")

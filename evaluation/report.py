@@ -27,7 +27,7 @@ from evaluation.config import CROP_METHODS, EvalSettings
 from evaluation.methods import ABLATION_VARIANTS, METHODS
 from evaluation.plots import plot_crops, plot_error_vs_time
 from evaluation.references import REFERENCE_SAMPLER
-from evaluation.results import machine_summary
+from evaluation.results import machine_summary, row_seconds
 from model.frame import write_bytes_atomic
 from model.policy import DEFAULT_ALPHA, MODELS_ENV
 
@@ -422,13 +422,6 @@ def time_interpolations(rows: Sequence[Mapping[str, Any]]) -> list[str]:
     return [f"{r['scene']}, {r['spp']} spp, {r['method']}: budget {float(r['target_seconds']):.3g} s, between "
             f"{r['time_interpolated']} ({r.get('time_note') or 'no reason recorded'})"
             for r in rows if r.get("target_seconds") and r.get("time_interpolated")]
-
-
-def row_seconds(row: Mapping[str, Any]) -> float:
-    """The time a row stands for: its budget when its metrics were interpolated to it, else its measured total."""
-    if row.get("time_interpolated") and row.get("target_seconds"):
-        return float(row["target_seconds"])
-    return float(row["total_seconds"])
 
 
 def _spp_cell(row: Mapping[str, Any]) -> str:

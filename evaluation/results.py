@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -17,7 +18,7 @@ import numpy as np
 
 from evaluation.config import EvalConfig, SceneEntry
 
-__all__ = ["Evaluation", "SceneRun", "machine_summary"]
+__all__ = ["Evaluation", "SceneRun", "machine_summary", "row_seconds"]
 
 
 @dataclass
@@ -51,6 +52,14 @@ class Evaluation:
     notes: list[str]
     computed: dict[str, int]  # what this run computed rather than took from the cache
     outputs: dict[str, Path] = field(default_factory=dict)
+
+
+def row_seconds(row: Mapping[str, Any]) -> float:
+    """The time a row stands for: its equal-time budget when its metrics were interpolated to it
+    (evaluation.run.interpolated_scores), else its measured total."""
+    if row.get("time_interpolated") and row.get("target_seconds"):
+        return float(row["target_seconds"])
+    return float(row["total_seconds"])
 
 
 def machine_summary() -> str:

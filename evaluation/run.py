@@ -79,6 +79,13 @@ class _Output:
     tag: str
     bracket: list[BracketOutput] = field(default_factory=list)  # see MethodOutput.bracket
 
+    def interpolation(self) -> tuple[float, BracketOutput, BracketOutput] | None:
+        """(budget, too-fast try, too-slow try) when this row's metrics are interpolated to its budget, else None."""
+        target = self.row.get("target_seconds")
+        if len(self.bracket) != 2 or not target:
+            return None
+        return float(target), self.bracket[0], self.bracket[1]
+
 
 #: Metrics interpolated in log value (errors: a power of time is a line in log-log); the others (SSIM, PSNR,
 #: already a logarithm) linearly in value. Both in log time.
@@ -259,9 +266,10 @@ class _Runner:
         cached = self.cache.load_json(path)
         if cached is not None and cached.get("key") == key and isinstance(cached.get("scores"), dict):
             return cached["scores"]
-        target = output.row.get("target_seconds")
-        if len(output.bracket) == 2 and target:
-            scores = interpolated_scores(float(target), output.bracket, pair)
+        interpolation = output.interpolation()
+        if interpolation is not None:
+            target, low, high = interpolation
+            scores = interpolated_scores(target, [low, high], pair)
         else:
             scores = image_scores(output.image, output.layers, pair)
         self.cache.save_json(path, {"key": key, "scores": scores})
@@ -416,13 +424,16 @@ def _smallest_ranked(outputs: list[_Output], pair: ReferencePair) -> float:
     """The smallest RelMSE (product estimator) over every row of the scene: each one is ranked by the report."""
     from model.metrics import relmse_unbiased
 
-    def ranked(o: _Output) -> float:
-        target = o.row.get("target_seconds")
-        if len(o.bracket) == 2 and target:
-            low, high = o.bracket
-            e0, e1 = (relmse_unbiased(b.image, pair.first["total"], pair.second["total"]) for b in o.bracket)
-            return interpolate_at(float(target), (low.total_seconds, e0), (high.total_seconds, e1), log_value=True)
-        return relmse_unbiased(o.image, pair.first["total"], pair.second["total"])
+    def relmse(image: np.ndarray) -> float:
+        return relmse_unbiased(image, pair.first["total"], pair.second["total"])
+
+    def ranked(o: _Output) -> float:  # the figure the report shows: interpolated as interpolated_scores does
+        interpolation = o.interpolation()
+        if interpolation is None:
+            return relmse(o.image)
+        target, low, high = interpolation
+        return interpolate_at(target, (low.total_seconds, relmse(low.image)), (high.total_seconds, relmse(high.image)),
+                              log_value="relmse" in LOG_INTERPOLATED)
 
     values = [ranked(o) for o in outputs]
     return min(values) if values else math.inf
