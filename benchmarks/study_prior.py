@@ -69,6 +69,18 @@ def prior_budget(overrides: dict[str, Any]) -> Iterator[None]:
             setattr(preprocess, name, value)
 
 
+def held_out_frames(cache: Path) -> Iterator[tuple[str, int, Path, np.ndarray, np.ndarray]]:
+    """(scene folder name, spp, G-PT frame path, reference 1, reference 2) of every held-out frame of ``cache``
+    whose scene has two references, scenes in name order and each scene's frames by spp."""
+    for folder in sorted(p for p in cache.glob("procedural-*") if p.is_dir()):
+        refs = sorted(folder.glob("ref-*.npz"))
+        if len(refs) < 2:
+            continue
+        r1, r2 = (np.load(p)["total"] for p in refs[:2])
+        for path in sorted(folder.glob("gpt-*.exr"), key=lambda p: int(p.stem.split("-")[1])):
+            yield folder.name, int(path.stem.split("-")[1]), path, r1, r2
+
+
 def error(cache: Path, variants: dict[str, dict[str, Any]]) -> None:
     from model.frame import read_frame
     from model.metrics import relmse_unbiased
@@ -80,23 +92,18 @@ def error(cache: Path, variants: dict[str, dict[str, Any]]) -> None:
     ratios: dict[str, list[float]] = {name: [] for name in variants}
     scores: dict[str, list[float]] = {name: [] for name in variants}
     frames = 0
-    for folder in sorted(p for p in cache.glob("procedural-*") if p.is_dir()):
-        refs = sorted(folder.glob("ref-*.npz"))
-        if len(refs) < 2:
-            continue
-        r1, r2 = (np.load(p)["total"] for p in refs[:2])
-        for path in sorted(folder.glob("gpt-*.exr"), key=lambda p: int(p.stem.split("-")[1])):
-            frame = read_frame(str(path))
-            frames += 1
-            baseline = None
-            for name, overrides in variants.items():
-                with prior_budget(overrides):
-                    total = sum(network.reconstruct_layer(n, layer, frame.features)
-                                for n, layer in frame.layers.items() if n in network.layers)
-                score = relmse_unbiased(total, r1, r2)
-                baseline = score if baseline is None else baseline
-                scores[name].append(score)
-                ratios[name].append(score / baseline)
+    for _, _, path, r1, r2 in held_out_frames(cache):
+        frame = read_frame(str(path))
+        frames += 1
+        baseline = None
+        for name, overrides in variants.items():
+            with prior_budget(overrides):
+                total = sum(network.reconstruct_layer(n, layer, frame.features)
+                            for n, layer in frame.layers.items() if n in network.layers)
+            score = relmse_unbiased(total, r1, r2)
+            baseline = score if baseline is None else baseline
+            scores[name].append(score)
+            ratios[name].append(score / baseline)
     if not frames:
         raise SystemExit(f"no held-out frames in {cache} (see the module docstring to render them)")
     print(f"\n{frames} held-out frames ({cache}); network RelMSE (unbiased) / the trained budget's, same frame\n")

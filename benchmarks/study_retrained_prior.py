@@ -37,6 +37,7 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
 from bench_oidn import median_seconds  # noqa: E402
+from study_prior import held_out_frames  # noqa: E402
 
 from model import preprocess  # noqa: E402
 
@@ -57,21 +58,16 @@ def held_out_scores(cache: Path, baseline: Any, candidate: Any) -> list[dict[str
     from model.reconstruct import reconstruct
 
     rows = []
-    for folder in sorted(p for p in cache.glob("procedural-*") if p.is_dir()):
-        refs = sorted(folder.glob("ref-*.npz"))
-        if len(refs) < 2:
-            continue
-        r1, r2 = (np.load(p)["total"] for p in refs[:2])
-        for path in sorted(folder.glob("gpt-*.exr"), key=lambda p: int(p.stem.split("-")[1])):
-            frame = read_frame(str(path))
-            rows.append({
-                "frame": f"{folder.name.split('-')[1]} {path.stem.split('-')[1]} spp",
-                "baseline": relmse_unbiased(_network_total(baseline, frame), r1, r2),
-                "candidate": relmse_unbiased(_network_total(candidate, frame), r1, r2),
-                "l1": relmse_unbiased(reconstruct(frame, "l1").image, r1, r2),
-            })
-            print(f"  {rows[-1]['frame']}: baseline {rows[-1]['baseline']:.5f} candidate "
-                  f"{rows[-1]['candidate']:.5f} l1 {rows[-1]['l1']:.5f}", file=sys.stderr, flush=True)
+    for scene, spp, path, r1, r2 in held_out_frames(cache):
+        frame = read_frame(str(path))
+        rows.append({
+            "frame": f"{scene.split('-')[1]} {spp} spp",
+            "baseline": relmse_unbiased(_network_total(baseline, frame), r1, r2),
+            "candidate": relmse_unbiased(_network_total(candidate, frame), r1, r2),
+            "l1": relmse_unbiased(reconstruct(frame, "l1").image, r1, r2),
+        })
+        print(f"  {rows[-1]['frame']}: baseline {rows[-1]['baseline']:.5f} candidate "
+              f"{rows[-1]['candidate']:.5f} l1 {rows[-1]['l1']:.5f}", file=sys.stderr, flush=True)
     return rows
 
 
