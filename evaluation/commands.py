@@ -63,8 +63,9 @@ def _references_only(config: EvalConfig, shard_text: str | None) -> int:
         raise CommandError(str(exc)) from exc
     reports = render_reference_shard(config, shard, progress=None, log=lambda m: print(m, file=sys.stderr))
     rendered = sum(r.rendered for r in reports)
+    owned = sum(len(r.passes) + len(r.pilots) for r in reports)
     print(f"reference shard {shard[0]}/{shard[1]}: {rendered} passes rendered, "
-          f"{sum(len(r.passes) for r in reports) - rendered} cached, {len(reports)} scene(s), up to "
+          f"{owned - rendered} cached (pilot passes included), {len(reports)} scene(s), up to "
           f"{config.reference_cap} spp per reference -> {config.cache_dir / 'evaluate' / 'references'}")
     return 0
 

@@ -10,6 +10,10 @@ machine would have written, so combining the shards is copying their ``evaluate/
 cache (the names never collide, and an identical name means an identical pass). The final ``gradsep evaluate``
 on that cache (same --ref-spp, --seed, --size, code and Mitsuba) then finds every pass it needs and renders none:
 its ``--ref-seconds`` budget counts only passes it would render itself.
+
+The shards also render the pilot passes (pilot i in shard K when i = K-1 modulo N), which place the region
+passes of a scene whose floor the full passes leave too high (evaluation/region.py). Region passes themselves
+depend on the floor the evaluation needs, so the evaluating machine renders them, within its own budget.
 """
 
 from __future__ import annotations
@@ -19,6 +23,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from evaluation.config import EvalConfig, resolve_scenes
+from evaluation.region import PILOT_PASSES
 from model.errors import CommandError
 
 __all__ = ["ShardReport", "render_reference_shard"]
@@ -26,12 +31,14 @@ __all__ = ["ShardReport", "render_reference_shard"]
 
 @dataclass
 class ShardReport:
-    """What one shard did per scene: passes it owns, passes it rendered (the rest were cached), seconds."""
+    """What one shard did per scene: passes it owns, passes it rendered (the rest were cached), seconds, and
+    the pilot passes it owns (they place the region passes; evaluation/region.py)."""
 
     scene: str
     passes: list[int]
     rendered: int
     seconds: float
+    pilots: list[int]
 
 
 def shard_passes(ref_spp: int, cap: int, shard: tuple[int, int]) -> list[int]:
@@ -66,8 +73,12 @@ def render_reference_shard(config: EvalConfig, shard: tuple[int, int], *, progre
         before, start = runner.computed["references"], time.perf_counter()
         for i in indices:
             source.ensure(i)
+        pilots = list(range(shard[0] - 1, PILOT_PASSES, shard[1]))
+        for i in pilots:
+            source.ensure(i, "pilot")
         rendered = runner.computed["references"] - before
-        out.append(ShardReport(entry.name, indices, rendered, time.perf_counter() - start))
-        log(f"{entry.name}: shard {shard[0]}/{shard[1]}: {len(indices)} passes of {config.ref_spp} spp "
-            f"({rendered} rendered, {len(indices) - rendered} cached) in {out[-1].seconds:.0f} s")
+        out.append(ShardReport(entry.name, indices, rendered, time.perf_counter() - start, pilots))
+        log(f"{entry.name}: shard {shard[0]}/{shard[1]}: {len(indices)} passes and {len(pilots)} pilot passes of "
+            f"{config.ref_spp} spp ({rendered} rendered, {len(indices) + len(pilots) - rendered} cached) in "
+            f"{out[-1].seconds:.0f} s")
     return out

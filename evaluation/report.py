@@ -119,6 +119,7 @@ def _summary(evaluation: Evaluation) -> dict[str, Any]:
                    "table_spp": c.crop_spp, "methods": list(c.methods), "quick": c.quick,
                    "models_dir": str(c.models_dir)},
         "references": {s.entry.name: {"spp_each": s.reference_spp, "sampler": REFERENCE_SAMPLER,
+                                      "region": s.reference_region, "region_spp_each": s.region_spp,
                                       "floor": s.floor, "smallest_ranked": s.smallest,
                                       "capped": s.capped, "cap_reason": s.cap_reason,
                                       "render_seconds": s.reference_seconds}
@@ -517,7 +518,11 @@ def _floors(evaluation: Evaluation) -> list[str]:
              f"cached render within {'any time' if c.ref_seconds is None else f'{c.ref_seconds:g} s'}) until "
              "the floor "
              "is under "
-             f"{FLOOR_FRACTION:.0%} of the scene's smallest ranked RelMSE (over every method and spp).", "",
+             f"{FLOOR_FRACTION:.0%} of the scene's smallest ranked RelMSE (over every method and spp). Where the "
+             "full passes stop short of that, *region passes* add samples over the one rectangle where a pilot "
+             "render (seeds of its own, in neither reference) places most of the floor, as many as the floor "
+             "there is predicted to need, up to the cap more and within the same time budget; inside it a pixel "
+             "is the mean of all its samples (docs/evaluation.md, \"Region passes\").", "",
              "| Scene | spp per reference | floor (total) | floor direct | floor indirect | smallest ranked RelMSE | "
              "floor / smallest | reference s |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
     warnings = []
@@ -525,7 +530,12 @@ def _floors(evaluation: Evaluation) -> list[str]:
         floor = scene.floor.get("total", math.nan)
         ratio = floor / scene.smallest if scene.smallest > 0 else math.inf
         flag = " ⚠" if scene.capped else ""
-        lines.append(f"| {scene.entry.name} | {scene.reference_spp} | {_fmt(floor, 3)} | "
+        spp = f"{scene.reference_spp}"
+        if scene.reference_region and scene.region_spp:
+            x, y, w, h = scene.reference_region
+            share = w * h / (scene.width * scene.height)
+            spp += f" + {scene.region_spp} in {w}×{h} at ({x}, {y}) ({share:.0%} of the pixels)"
+        lines.append(f"| {scene.entry.name} | {spp} | {_fmt(floor, 3)} | "
                      f"{_fmt(scene.floor.get('direct'), 3)} | {_fmt(scene.floor.get('indirect'), 3)} | "
                      f"{_fmt(scene.smallest, 3)} | {ratio:.1%}{flag} | {scene.reference_seconds:.0f} |")
         if scene.capped:

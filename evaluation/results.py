@@ -31,7 +31,9 @@ class SceneRun:
     max_depth: int
     layers: tuple[str, ...]
     reference: np.ndarray  # (H, W, 3): the mean of the two references
-    reference_spp: int = 0  # of each of the two references
+    reference_spp: int = 0  # of each of the two references, in full passes
+    reference_region: list[int] | None = None  # x, y, width, height of the region passes' rectangle, if any
+    region_spp: int = 0  # extra spp of each reference inside that rectangle
     floor: dict[str, float] = field(default_factory=dict)  # layer -> reference floor (model.metrics)
     smallest: float = math.nan  # the smallest ranked RelMSE of the scene
     capped: bool = False  # the floor criterion was not met (see cap_reason)

@@ -44,7 +44,8 @@ from evaluation.methods import (
     run_method,
     unavailable,
 )
-from evaluation.references import REFERENCE_SAMPLER, ReferencePair, ReferenceSource, next_reference_spp
+from evaluation.references import RAISE_MARGIN, REFERENCE_SAMPLER, ReferencePair, ReferenceSource, next_reference_spp
+from evaluation.region import Region
 from evaluation.results import Evaluation, SceneRun, machine_summary
 from model.errors import CommandError
 from model.policy import SEPARATED_LAYERS
@@ -150,6 +151,7 @@ class _Runner:
 
     def references(self, entry: SceneEntry, loaded: Any) -> ReferenceSource:
         """The scene's reference passes (cached); see evaluation/references.py."""
+        from evaluation.region import render_region
         from renderer.reference import render_loaded
 
         c = self.config
@@ -163,7 +165,11 @@ class _Runner:
             return render_loaded(loaded, spp=spp, seed=seed, tile_spp=None, sampler=REFERENCE_SAMPLER,
                                  progress=False if self.progress is False else None)
 
-        return ReferenceSource(self.cache, entry.name, key, c.ref_spp, render_pass, self.log)
+        def render_crop(region: Region, spp: int, seed: int) -> Any:
+            self.computed["references"] += 1
+            return render_region(loaded, region, spp=spp, seed=seed, sampler=REFERENCE_SAMPLER)
+
+        return ReferenceSource(self.cache, entry.name, key, c.ref_spp, render_pass, self.log, render_crop)
 
     # ------------------------------------------------------------------------------------------ frames
 
@@ -441,8 +447,9 @@ def _smallest_ranked(outputs: list[_Output], pair: ReferencePair) -> float:
 
 def _converge_references(runner: _Runner, scene: SceneRun, source: ReferenceSource,
                          outputs: list[_Output]) -> ReferencePair:
-    """Raise both references (doubling, cached passes re-used) until the total floor is under FLOOR_FRACTION
-    of the smallest ranked RelMSE or the spp cap is reached; record the outcome on ``scene``."""
+    """Raise both references (cached passes re-used) until the total floor is under FLOOR_FRACTION of the
+    smallest ranked RelMSE: full passes up to the spp cap and the time budget, then region passes
+    (:func:`_add_region_passes`); record the outcome on ``scene``."""
     config = runner.config
     spp = config.ref_spp
     while True:
@@ -459,17 +466,83 @@ def _converge_references(runner: _Runner, scene: SceneRun, source: ReferenceSour
         runner.log(f"{scene.entry.name}: reference floor {floor:.3g} at {spp} spp is over "
                    f"{FLOOR_FRACTION:.0%} of the smallest ranked RelMSE {smallest:.3g}; raising to {following} spp")
         spp = following
+    full_seconds = pair.seconds
+    region_stop = ""
+    raising = config.reference_cap > config.ref_spp  # a fixed reference spp (cap = start) is never raised
+    if raising and not (smallest > 0 and pair.floor() <= FLOOR_FRACTION * smallest):
+        pair, smallest, region_stop = _add_region_passes(runner, scene, source, pair, outputs)
     scene.reference = pair.mean()
     scene.reference_spp = spp
+    scene.reference_region = pair.region.as_list() if pair.region is not None else None
+    scene.region_spp = pair.region_spp
     scene.floor = {layer: pair.floor(layer) for layer in pair.first}
     scene.smallest = smallest
     scene.capped = not (smallest > 0 and scene.floor["total"] <= FLOOR_FRACTION * smallest)
     if scene.capped:
-        scene.cap_reason = (f"the spp cap ({config.reference_cap} spp each)" if spp >= config.reference_cap else
-                            f"the time budget ({config.ref_seconds:g} s of new reference rendering per scene; "
-                            f"{2 * spp} spp were recorded at {pair.seconds:.0f} s)")
+        full_stop = _full_stop_reason(config, spp, full_seconds)
+        scene.cap_reason = full_stop + (f"; {region_stop}" if region_stop else "")
     scene.reference_seconds = pair.seconds
     return pair
+
+
+def _full_stop_reason(config: EvalConfig, spp: int, seconds: float) -> str:
+    """Why the full passes stopped at ``spp`` (only read when the floor criterion is not met)."""
+    if spp >= config.reference_cap or config.ref_seconds is None:
+        return f"the spp cap ({config.reference_cap} spp each)"
+    return (f"the time budget ({config.ref_seconds:g} s of new reference rendering per scene; "
+            f"{2 * spp} spp were recorded at {seconds:.0f} s)")
+
+
+def _add_region_passes(runner: _Runner, scene: SceneRun, source: ReferenceSource, pair: ReferencePair,
+                       outputs: list[_Output]) -> tuple[ReferencePair, float, str]:
+    """Where the full passes stopped with the floor over FLOOR_FRACTION of the smallest ranked RelMSE: region
+    passes over the rectangle the pilot places (evaluation/region.py), as many as the floor inside it is
+    predicted to need (it falls as 1 / the spp there; :data:`RAISE_MARGIN` more), at most the spp cap more per
+    reference, and within what is left of the time budget (pilot included; cached passes cost nothing).
+    Returns the pair, the smallest ranked RelMSE against it, and why the passes stopped short (or "")."""
+    config = runner.config
+    base, spp = config.ref_spp, pair.spp
+    per_pass = pair.seconds / (2 * spp / base) if pair.seconds > 0 else math.nan  # one full pass, recorded
+    budget = config.ref_seconds
+    pilots = source.pilot_passes_to_render()
+    if budget is not None and pilots:
+        pilot_cost = pilots * per_pass
+        if not pilot_cost <= budget - source.rendered_seconds:  # NaN (no timing recorded) does not fit either
+            return pair, _smallest_ranked(outputs, pair), "no region passes: their pilot does not fit the time budget"
+    region = source.region()
+    fraction = region.fraction(scene.width, scene.height)
+    cap = config.reference_cap // base
+    count = 0
+    smallest = _smallest_ranked(outputs, pair)
+    while True:
+        target = FLOOR_FRACTION * smallest
+        floor = pair.floor()
+        if smallest > 0 and floor <= target:
+            return pair, smallest, ""
+        outside, inside = pair.floor_split(region)
+        goal = target / RAISE_MARGIN - outside
+        if smallest > 0 and goal > 0 and inside > 0:
+            wanted = math.ceil(((spp + count * base) * inside / goal - spp) / base)
+        else:
+            wanted = cap  # the rectangle alone cannot reach the target: as far as the cap allows
+        wanted = min(cap, max(wanted, count + 1))
+        if wanted <= count:
+            return pair, smallest, f"region passes at their cap ({cap * base} spp more each in {region.describe()})"
+        if budget is not None:
+            per_region = per_pass * fraction if math.isfinite(per_pass) else math.nan
+            left = budget - source.rendered_seconds
+            missing = np.cumsum([not cached for cached in source.region_cached(wanted)])  # per pass, both refs
+            while wanted > count and not (missing[2 * wanted - 1] == 0 or missing[2 * wanted - 1] * per_region <= left):
+                wanted -= 1
+            if wanted <= count:
+                return pair, smallest, (f"region passes stopped by the time budget at {count * base} spp more "
+                                        f"each in {region.describe()}")
+        runner.log(f"{scene.entry.name}: reference floor {floor:.3g} ({inside:.3g} inside {region.describe()}) is "
+                   f"over {FLOOR_FRACTION:.0%} of the smallest ranked RelMSE {smallest:.3g}; "
+                   f"{wanted * base} spp more each there")
+        count = wanted
+        pair = source.pair(spp, count)
+        smallest = _smallest_ranked(outputs, pair)
 
 
 def _within_time(spp: int, wanted: int, seconds: float, budget: float, step: int | None = None,

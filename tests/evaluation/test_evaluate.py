@@ -443,8 +443,9 @@ def test_rerun_computes_only_what_changed(first_run, monkeypatch):
 
 
 def test_references_are_raised_additively_until_the_floor_criterion_holds(first_run):
-    """A higher cap: the references grow from the cached 16-spp passes (only the new passes are rendered), and
-    stop at the cap when the floor stays over 10 % of the smallest error, with the report's warning. A 32×32
+    """A higher cap: the references grow from the cached 16-spp passes (only the new passes are rendered), then
+    add region passes, and stop at the cap when the floor stays over 10 % of the smallest error, with the
+    report's warning. A 32×32
     frame at 1-2 spp is near the boundary (the floor of two 16-spp references is ~1/8 of a 2-spp error): when the
     criterion already holds at 16 spp nothing is rendered, and that is checked too."""
     root, _ = first_run
@@ -453,10 +454,17 @@ def test_references_are_raised_additively_until_the_floor_criterion_holds(first_
     evaluation = run_evaluation(config, progress=False, log=lambda message: None)
     scene = evaluation.scenes[0]
     assert scene.reference_spp in (16, 32, 64)
-    assert evaluation.computed["references"] == 2 * (scene.reference_spp // 16) - 2  # passes 0 and 1 re-used
+    region_passes = scene.region_spp // 16  # per reference, over the pilot's rectangle (evaluation/region.py)
+    if region_passes:  # only once the full passes stopped at the cap short of the criterion
+        assert scene.reference_spp == 64 and scene.reference_region is not None
+    # passes 0 and 1 re-used; the pilot's 8 passes and both references' region passes are new
+    assert evaluation.computed["references"] == (2 * (scene.reference_spp // 16) - 2
+                                                 + (8 + 2 * region_passes if region_passes else 0))
     text = (root / "report-raise" / "report.md").read_text()
     if scene.capped:
-        assert scene.reference_spp == 64 and "Warning: procedural:90001: the reference spp cap" in text
+        assert scene.reference_spp == 64 and scene.region_spp == 64  # region passes up to the cap more
+        assert "Warning: procedural:90001: the references stopped at 64 spp each (the spp cap" in text
+        assert "region passes at their cap" in text
     else:
         assert scene.floor["total"] <= 0.1 * scene.smallest
     shutil.rmtree(root / "report-raise", ignore_errors=True)

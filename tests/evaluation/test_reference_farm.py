@@ -45,14 +45,16 @@ def test_shards_combine_into_the_cache_one_machine_writes(tmp_path: Path) -> Non
 
     for k in (1, 2):
         reports = render_reference_shard(_config(tmp_path / f"shard{k}", tmp_path), (k, 2), log=lambda m: None)
-        assert reports[0].passes == [k - 1, k + 1, k + 3, k + 5] and reports[0].rendered == 4
+        # 4 full passes and 4 of the 8 pilot passes (which place region passes; evaluation/region.py)
+        assert reports[0].passes == [k - 1, k + 1, k + 3, k + 5] and reports[0].pilots == [k - 1, k + 1, k + 3, k + 5]
+        assert reports[0].rendered == 8
     whole = render_reference_shard(_config(tmp_path / "whole", tmp_path), (1, 1), log=lambda m: None)
-    assert whole[0].rendered == 8
+    assert whole[0].rendered == 16 and whole[0].pilots == list(range(8))
     merged = tmp_path / "merged"
     for k in (1, 2):
         shutil.copytree(tmp_path / f"shard{k}", merged, dirs_exist_ok=True)
     a, b = _passes(merged), _passes(tmp_path / "whole")
-    assert sorted(a) == sorted(b) and len(a) == 8
+    assert sorted(a) == sorted(b) and len(a) == 16 and sum("pilot" in name for name in a) == 8
     for name in a:
         np.testing.assert_array_equal(a[name], b[name])
 
@@ -67,6 +69,7 @@ def test_shards_combine_into_the_cache_one_machine_writes(tmp_path: Path) -> Non
     source.render_pass = refuse
     pair = source.pair(8)
     assert pair.spp == 8 and pair.floor() > 0 and runner.computed["references"] == 0
+    assert source.pilot_passes_to_render() == 0 and source.region().width >= 1  # placed from the shards' pilot
     again = render_reference_shard(config, (1, 1), log=lambda m: None)
     assert again[0].rendered == 0  # everything cached
 
