@@ -84,8 +84,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "until the reference floor is under 10 %% of the scene's smallest ranked RelMSE or "
                         "--ref-spp-cap is reached (default 512; 128 with --quick)")
     p.add_argument("--ref-spp-cap", type=int, default=None,
-                   help="most samples per pixel of each reference (default 4096; 1024 with --quick); "
-                        "equal to --ref-spp: a fixed reference spp")
+                   help="most samples per pixel of each reference in full passes (default 4096; 1024 with "
+                        "--quick); where the floor is still too high there, region passes add up to as many again "
+                        "over the rectangle holding most of it (docs/evaluation.md); equal to --ref-spp: a fixed "
+                        "reference spp, no region passes")
     p.add_argument("--ref-seconds", type=float, default=None,
                    help="budget of new reference rendering per scene (both references together): the reference "
                         "spp is not raised past what is predicted to fit; passes already in the cache cost "
@@ -99,8 +101,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--alpha", type=float, default=None,
                    help=f"screened Poisson data weight for l1/l2 (default {DEFAULT_ALPHA:g})")
     p.add_argument("--references-only", action="store_true",
-                   help="render only the reference passes up to --ref-spp-cap into the cache (no methods, no "
-                        "report; -o is still required and left untouched): a farm's job, see --shard")
+                   help="render only the reference passes up to --ref-spp-cap and the pilot that places region "
+                        "passes into the cache (no methods, no report; -o is still required and left untouched): a "
+                        "farm's job, see --shard")
     p.add_argument("--shard", default=None, metavar="K/N",
                    help="with --references-only: render shard K of N of the passes; copy the N caches' "
                         "evaluate/references/ folders into one and run the evaluation there (cached passes cost no "
