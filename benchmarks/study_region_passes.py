@@ -26,15 +26,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from evaluation.config import load_settings, make_config, resolve_scenes  # noqa: E402
-from evaluation.region import TILE, choose_region  # noqa: E402
-
-
-def _floor_map(first: np.ndarray, second: np.ndarray) -> np.ndarray:
-    """Per pixel, what model.metrics.reference_floor averages (its mean is the floor)."""
-    from model.metrics import RELMSE_EPSILON
-
-    mean = 0.5 * (first.astype(np.float64) + second)
-    return ((first.astype(np.float64) - second) ** 2 / (mean * mean + RELMSE_EPSILON) / 2.0).mean(axis=-1)
+from evaluation.region import TILE, _tile_sums, choose_region, pilot_floor_map  # noqa: E402
 
 
 def _gain(floor: float, reached: float, uniform: float) -> str:
@@ -66,14 +58,13 @@ def main() -> int:
         return 1
     spp = passes * base
     pair = source.pair(spp)
-    floor_map = _floor_map(pair.first["total"], pair.second["total"])
+    # Per pixel, what model.metrics.reference_floor averages: the pilot map of the two references as two passes.
+    floor_map = pilot_floor_map([pair.first["total"], pair.second["total"]])
     floor = float(floor_map.mean())
     print(f"{args.scene}: {spp} spp per reference in full passes ({passes} each), floor {floor:.3g}\n")
 
     h, w = floor_map.shape
-    tiles = np.zeros((-(-h // TILE) * TILE, -(-w // TILE) * TILE))
-    tiles[:h, :w] = floor_map
-    tiles = np.sort(tiles.reshape(tiles.shape[0] // TILE, TILE, -1, TILE).sum(axis=(1, 3)).ravel())[::-1]
+    tiles = np.sort(_tile_sums(floor_map, TILE).ravel())[::-1]
     share = np.cumsum(tiles) / tiles.sum()
     print(f"Concentration: the worst 10 % of {TILE}-pixel tiles hold {share[int(0.1 * len(tiles)) - 1]:.0%} of the "
           f"floor, the worst 25 % {share[int(0.25 * len(tiles)) - 1]:.0%}.\n")

@@ -140,16 +140,14 @@ class ReferenceSource:
     def _entry(self, index: int, stream: str = "pass") -> tuple[int, str, Any]:
         """(seed, key hash, cache path) of pass ``index`` of a seed ``stream``: ``pass`` (the references' full
         passes), ``pilot`` (full passes that only place the region) or ``region`` (crops of the region)."""
-        stream_id = SEED_STREAMS[stream]
-        seed = int(np.random.SeedSequence([int(self.key["seed"]), stream_id, index]).generate_state(1, np.uint32)[0])
-        if stream == "pass":  # the original key (so the passes cached before the other streams existed still count)
-            key = {**self.key, "kind": "reference-pass", "spp": self.base_spp, "pass": index, "pass_seed": seed}
-        else:
-            key = {**self.key, "kind": f"reference-{stream}", "spp": self.base_spp, "pass": index, "pass_seed": seed}
-            if stream == "region":
-                assert self._region is not None
-                key.update(region=self._region.as_list(), region_code=self.region_code)
-        name = f"spp{self.base_spp}-pass{index}" if stream == "pass" else f"spp{self.base_spp}-{stream}{index}"
+        seed = int(np.random.SeedSequence([int(self.key["seed"]), SEED_STREAMS[stream], index])
+                   .generate_state(1, np.uint32)[0])
+        # For ``pass`` this is the key (and name) full passes had before the other streams existed: they still count.
+        key = {**self.key, "kind": f"reference-{stream}", "spp": self.base_spp, "pass": index, "pass_seed": seed}
+        if stream == "region":
+            assert self._region is not None
+            key.update(region=self._region.as_list(), region_code=self.region_code)
+        name = f"spp{self.base_spp}-{stream}{index}"
         path = self.cache.entry("references", self.scene_name, name, key, ".exr")
         return seed, key_hash(key), path
 

@@ -470,7 +470,7 @@ def _converge_references(runner: _Runner, scene: SceneRun, source: ReferenceSour
     region_stop = ""
     raising = config.reference_cap > config.ref_spp  # a fixed reference spp (cap = start) is never raised
     if raising and not (smallest > 0 and pair.floor() <= FLOOR_FRACTION * smallest):
-        pair, smallest, region_stop = _add_region_passes(runner, scene, source, pair, outputs)
+        pair, smallest, region_stop = _add_region_passes(runner, scene, source, pair, smallest, outputs)
     scene.reference = pair.mean()
     scene.reference_spp = spp
     scene.reference_region = pair.region.as_list() if pair.region is not None else None
@@ -494,12 +494,13 @@ def _full_stop_reason(config: EvalConfig, spp: int, seconds: float) -> str:
 
 
 def _add_region_passes(runner: _Runner, scene: SceneRun, source: ReferenceSource, pair: ReferencePair,
-                       outputs: list[_Output]) -> tuple[ReferencePair, float, str]:
+                       smallest: float, outputs: list[_Output]) -> tuple[ReferencePair, float, str]:
     """Where the full passes stopped with the floor over FLOOR_FRACTION of the smallest ranked RelMSE: region
     passes over the rectangle the pilot places (evaluation/region.py), as many as the floor inside it is
     predicted to need (it falls as 1 / the spp there; :data:`RAISE_MARGIN` more), at most the spp cap more per
     reference, and within what is left of the time budget (pilot included; cached passes cost nothing).
-    Returns the pair, the smallest ranked RelMSE against it, and why the passes stopped short (or "")."""
+    ``smallest`` is the smallest ranked RelMSE against ``pair``. Returns the pair, the smallest ranked RelMSE
+    against it, and why the passes stopped short (or "")."""
     config = runner.config
     base, spp = config.ref_spp, pair.spp
     per_pass = pair.seconds / (2 * spp / base) if pair.seconds > 0 else math.nan  # one full pass, recorded
@@ -508,12 +509,11 @@ def _add_region_passes(runner: _Runner, scene: SceneRun, source: ReferenceSource
     if budget is not None and pilots:
         pilot_cost = pilots * per_pass
         if not pilot_cost <= budget - source.rendered_seconds:  # NaN (no timing recorded) does not fit either
-            return pair, _smallest_ranked(outputs, pair), "no region passes: their pilot does not fit the time budget"
+            return pair, smallest, "no region passes: their pilot does not fit the time budget"
     region = source.region()
     fraction = region.fraction(scene.width, scene.height)
     cap = config.reference_cap // base
     count = 0
-    smallest = _smallest_ranked(outputs, pair)
     while True:
         target = FLOOR_FRACTION * smallest
         floor = pair.floor()
