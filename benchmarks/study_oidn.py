@@ -57,24 +57,43 @@ def render(scene: str, cache: Path) -> None:
             print(f"{scene}: reference {seed} ({REF_SPP} spp) in {time.perf_counter() - start:.0f} s", flush=True)
 
 
-def _denoise_frame(frame, setting: str) -> np.ndarray:
+def _denoise_frame(frame, setting: str, runtime: str = "library") -> np.ndarray:
     from model.oidn import shared_denoiser
 
-    denoiser = shared_denoiser(setting)
+    denoiser = shared_denoiser(setting, runtime)
     aux = denoiser.prefilter(frame.features) if frame.features is not None else None
     return sum(denoiser.denoise(layer.base, aux).astype(np.float64) for layer in frame.layers.values())
 
 
-def error(cache: Path, fused_dir: Path | None, fused_prior: str | None = None) -> None:
+def _variants(settings: list[str], runtimes: list[str]) -> list[tuple[str, str, str]]:
+    """(column name, setting, runtime): every setting on the library, and on the onnx runtime where it builds
+    that setting's model (model/oidn_onnx.py), named ``<setting>@onnx``."""
+    from model.oidn import SETTINGS
+    from model.oidn_onnx import weights_for
+
+    out = []
+    for name in settings:
+        for runtime in runtimes:
+            if runtime == "library":
+                out.append((name, name, runtime))
+            elif weights_for(SETTINGS[name].aux, SETTINGS[name].quality) is not None:
+                out.append((f"{name}@{runtime}", name, runtime))
+    return out
+
+
+def error(cache: Path, fused_dir: Path | None, fused_prior: str | None = None, settings: list[str] | None = None,
+          runtimes: list[str] | None = None) -> None:
     """RelMSE (reference noise removed) of every setting on every cached (scene, spp), and its ratio to
     prefiltered-high (the setting before this study). ``fused_prior``: also score the fused models fed that
     setting's OIDN output instead of the prior they were trained on (what switching their prior without
-    retraining would do)."""
+    retraining would do). ``runtimes``: also run each setting on the onnx runtime (``<setting>@onnx``)."""
     from model.frame import read_frame
     from model.metrics import reference_floor, relmse_unbiased
     from model.oidn import SETTINGS
 
-    names = list(SETTINGS)
+    chosen = list(dict.fromkeys(["prefiltered-high", *(settings or SETTINGS)]))
+    variants = _variants(chosen, runtimes or ["library"])
+    names = [v[0] for v in variants]
     results: dict[str, list[float]] = {n: [] for n in names}
     extra: dict[str, list[float]] = {}
     rows = []
@@ -89,8 +108,8 @@ def error(cache: Path, fused_dir: Path | None, fused_prior: str | None = None) -
         for spp in SPPS:
             frame = read_frame(folder / f"gpt-{spp}.exr")
             row = {"frame": f"{folder.name} {spp} spp", "floor": floor}
-            for name in names:
-                value = relmse_unbiased(_denoise_frame(frame, name), r1["total"], r2["total"])
+            for name, setting, runtime in variants:
+                value = relmse_unbiased(_denoise_frame(frame, setting, runtime), r1["total"], r2["total"])
                 results[name].append(value)
                 row[name] = value
             if fused is not None:
@@ -106,12 +125,22 @@ def error(cache: Path, fused_dir: Path | None, fused_prior: str | None = None) -
             rows.append(row)
             print(" ".join(f"{k}={v:.4g}" if isinstance(v, float) else str(v) for k, v in row.items()), flush=True)
     base = results["prefiltered-high"]
-    print(f"\n{len(base)} frames; RelMSE mean, geometric mean of the ratio to prefiltered-high, worst ratio")
-    print("| setting | mean RelMSE | geo. mean ratio | worst ratio |\n|---|---:|---:|---:|")
+
+    def ratios(values: list[float], to: list[float]) -> tuple[float, float, float]:
+        r = [v / b for v, b in zip(values, to, strict=True) if b > 0 and v > 0]
+        geo = math.exp(statistics.fmean(math.log(x) for x in r)) if r else math.nan
+        return geo, min(r, default=math.nan), max(r, default=math.nan)
+
+    print(f"\n{len(base)} frames; RelMSE mean, geometric mean of the ratio to prefiltered-high, worst ratio; for "
+          "an @onnx column also the ratio to the same setting on the library (geo. mean, best, worst frame)")
+    print("| setting | mean RelMSE | geo. mean ratio | worst ratio | / library: geo. | best | worst |\n"
+          "|---|---:|---:|---:|---:|---:|---:|")
     for name, values in [*results.items(), *extra.items()]:
-        ratios = [v / b for v, b in zip(values, base, strict=True) if b > 0 and v > 0]
-        geo = math.exp(statistics.fmean(math.log(r) for r in ratios)) if ratios else math.nan
-        print(f"| {name} | {statistics.fmean(values):.4g} | {geo:.3f} | {max(ratios, default=math.nan):.3f} |")
+        geo, _, worst = ratios(values, base)
+        same = name.split("@")[0]
+        lib = (" | " + " | ".join(f"{x:.4f}" for x in ratios(values, results[same]))
+               if "@" in name and same in results else " | | |")
+        print(f"| {name} | {statistics.fmean(values):.4g} | {geo:.3f} | {worst:.3f}{lib} |")
 
 
 def _fused_with_prior(frame, fused, setting: str, r1: np.ndarray, r2: np.ndarray) -> float:
@@ -120,17 +149,18 @@ def _fused_with_prior(frame, fused, setting: str, r1: np.ndarray, r2: np.ndarray
     from model.metrics import relmse_unbiased
     from model.reconstruct import reconstruct
 
-    trained = oidn.shared_denoiser()
+    key = (oidn.PRIOR_SETTING, oidn.runtime_setting())
+    trained = oidn.shared_denoiser(*key)
     with oidn._shared_lock:
-        oidn._shared[oidn.PRIOR_SETTING] = oidn.Denoiser(setting)
+        oidn._shared[key] = oidn.Denoiser(setting, key[1])
     try:
         return relmse_unbiased(reconstruct(frame, "fused", fused=fused).image, r1, r2)
     finally:
         with oidn._shared_lock:
-            oidn._shared[oidn.PRIOR_SETTING] = trained
+            oidn._shared[key] = trained
 
 
-def timing(width: int, height: int, repeats: int, names: list[str]) -> None:
+def timing(width: int, height: int, repeats: int, names: list[str], runtimes: list[str] | None = None) -> None:
     """Seconds of one two-layer frame per setting at width x height: auxiliary pass + 2 colour filter calls."""
     from model.frame import Features
     from model.oidn import SETTINGS, shared_denoiser
@@ -142,8 +172,8 @@ def timing(width: int, height: int, repeats: int, names: list[str]) -> None:
     print(f"{width}x{height}, medians of {repeats} after a warm-up; load average "
           + " ".join(f"{v:.2f}" for v in os.getloadavg()))
     print("| setting | aux pass s | colour filter s (per layer) | two-layer frame s |\n|---|---:|---:|---:|")
-    for name in names or SETTINGS:
-        denoiser = shared_denoiser(name)
+    for name, setting, runtime in _variants(names or list(SETTINGS), runtimes or ["library"]):
+        denoiser = shared_denoiser(setting, runtime)
         aux = denoiser.prefilter(features)
         denoiser.denoise(layers[0], aux)  # warm-up: filter and weights set up
         aux_t, colour_t = [], []
@@ -168,16 +198,20 @@ def main() -> int:
     parser.add_argument("--fused-prior", help="error: also score fused fed this setting's OIDN output (no retraining)")
     parser.add_argument("--size", default="1280x720", help="time: WIDTHxHEIGHT")
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--settings", default="", help="time: comma-separated subset of settings (default: all)")
+    parser.add_argument("--settings", default="", help="error/time: comma-separated subset of settings (default: all)")
+    parser.add_argument("--runtimes", default="library",
+                        help="error/time: comma-separated OIDN runtimes to compare (library, onnx; model/oidn.py)")
     args = parser.parse_args()
     if args.what == "render":
         for scene in args.scene:
             render(scene, args.cache)
     elif args.what == "error":
-        error(args.cache, args.fused, args.fused_prior)
+        error(args.cache, args.fused, args.fused_prior, [n for n in args.settings.split(",") if n],
+              [r for r in args.runtimes.split(",") if r])
     else:
         width, height = (int(v) for v in args.size.lower().split("x"))
-        timing(width, height, args.repeats, [n for n in args.settings.split(",") if n])
+        timing(width, height, args.repeats, [n for n in args.settings.split(",") if n],
+               [r for r in args.runtimes.split(",") if r])
     return 0
 
 

@@ -25,6 +25,7 @@ does not, so the service starts without it and reports the method as unavailable
 from __future__ import annotations
 
 import importlib.util
+import logging
 import math
 import os
 import threading
@@ -35,6 +36,8 @@ import numpy as np
 
 if TYPE_CHECKING:
     from model.frame import Features
+
+log = logging.getLogger("gradsep.oidn")
 
 #: The albedo/normal prefilter's quality: "fast" (its output scored the same as "high" to 5 digits on 16 dataset
 #: frames; docs/network.md, "The oidn and fused methods").
@@ -86,6 +89,23 @@ METHOD_SETTING = "raw-fast"
 SETTING_ENV = "GRADSEP_OIDN_SETTING"
 
 
+#: Which code runs the colour filter's U-Net (``$GRADSEP_OIDN_RUNTIME``): ``library`` (pyoidn's own CPU kernels,
+#: the default) or ``onnx`` (the same weights on ONNX Runtime, model/oidn_onnx.py, on the provider and precision
+#: ``$GRADSEP_ONNX_PROVIDER`` selects for the networks). Measured on held-out frames (docs/oidn.md, "Runtime"):
+#: the onnx runtime in fp32 reproduces the library and is no faster; in bf16 it is 1.7x faster but its rounding
+#: (amplified by the inverse PU transfer) raises RelMSE 1.04-4x, so the library stays the default.
+RUNTIMES = ("library", "onnx")
+RUNTIME_ENV = "GRADSEP_OIDN_RUNTIME"
+
+
+def runtime_setting() -> str:
+    """``$GRADSEP_OIDN_RUNTIME`` (default ``library``), checked against :data:`RUNTIMES`."""
+    name = os.environ.get(RUNTIME_ENV, "").strip().lower() or "library"
+    if name not in RUNTIMES:
+        raise ValueError(f"${RUNTIME_ENV}={name!r} is not an OIDN runtime; use one of {', '.join(RUNTIMES)}")
+    return name
+
+
 def method_setting() -> str:
     """The ``oidn`` method's setting name: ``$GRADSEP_OIDN_SETTING`` when set, else :data:`METHOD_SETTING`."""
     name = os.environ.get(SETTING_ENV, "").strip() or METHOD_SETTING
@@ -126,7 +146,7 @@ class Denoiser:
     and the filters' weights are set up once.
     """
 
-    def __init__(self, setting: Setting | str = PRIOR_SETTING) -> None:
+    def __init__(self, setting: Setting | str = PRIOR_SETTING, runtime: str | None = None) -> None:
         import pyoidn
 
         if isinstance(setting, str):
@@ -146,6 +166,8 @@ class Denoiser:
         self._device.commit()
         self._check("device creation")
         self._filters: dict[str, Any] = {}
+        self.runtime, self.runtime_reason, unet = _colour_runtime(setting, runtime or runtime_setting())
+        self._unets: dict[str, Any] = {} if unet is None else {unet.model: unet}
 
     # ------------------------------------------------------------------------------------------- plumbing
 
@@ -172,6 +194,11 @@ class Denoiser:
             big = self._run(purpose, padded, np.empty_like(next(iter(padded.values()))), flags, scale)
             output[...] = big[:height, :width]
             return output
+        unet = self._unet(images, flags) if purpose == "color" else None
+        if unet is not None:
+            output[...] = unet.denoise(images["color"], images.get("albedo"), images.get("normal"),
+                                       1.0 if scale is None else scale)
+            return output
         fmt = self._oidn.OIDN_FORMAT_FLOAT3
         flt = self._filter(purpose)
         for name in ("color", "albedo", "normal"):
@@ -190,6 +217,18 @@ class Denoiser:
         flt.execute()
         self._check(f"{purpose} filter execution")
         return output
+
+    def _unet(self, images: dict[str, np.ndarray], flags: dict[str, bool]) -> Any:
+        """The onnx runtime's U-Net for this call's inputs (raw albedo + normal, or colour only), or None when
+        the library runs it (library runtime; clean auxiliary images, which select a model not built here)."""
+        if self.runtime != "onnx" or flags.get("cleanAux"):
+            return None
+        from model.oidn_onnx import OnnxUNet, weights_for
+
+        model = weights_for("raw" if "albedo" in images else "none", self.quality)
+        if model is not None and model not in self._unets:
+            self._unets[model] = OnnxUNet(model)  # under the caller's lock
+        return self._unets.get(model) if model is not None else None
 
     # ----------------------------------------------------------------------------------------------- API
 
@@ -230,12 +269,36 @@ class Denoiser:
             _match_channel_means(out, radiance)
         return out
 
+    def describe(self) -> dict[str, Any]:
+        """What runs the colour filter, for /v1/models and the logs: setting, runtime and (onnx) provider."""
+        info: dict[str, Any] = {"setting": self.setting.name, "runtime": self.runtime, "reason": self.runtime_reason}
+        unets = list(self._unets.values())
+        if unets:
+            info |= {k: v for k, v in unets[0].describe().items() if k != "model"}
+            info["models"] = sorted(self._unets)
+        return info
+
     def close(self) -> None:
         with self._lock:
             for flt in self._filters.values():
                 flt.release()
             self._filters.clear()
             self._device.release()
+
+
+def _colour_runtime(setting: Setting, requested: str) -> tuple[str, str, Any]:
+    """(runtime, why, the OnnxUNet or None) for the colour filter of ``setting`` under ``requested``."""
+    if requested not in RUNTIMES:
+        raise ValueError(f"OIDN runtime must be one of {', '.join(RUNTIMES)}, got {requested!r}")
+    if requested == "library":
+        return "library", "OIDN's own kernels (the default)", None
+    from model import oidn_onnx
+
+    model = oidn_onnx.weights_for(setting.aux, setting.quality)
+    if model is None:
+        return "library", f"setting {setting.name} runs a model the onnx runtime does not build", None
+    unet = oidn_onnx.OnnxUNet(model)
+    return "onnx", f"OIDN's {model} weights on ONNX Runtime ({unet.choice.reason})", unet
 
 
 def _match_channel_means(out: np.ndarray, source: np.ndarray) -> None:
@@ -249,14 +312,16 @@ def _match_channel_means(out: np.ndarray, source: np.ndarray) -> None:
             out[..., c] = source[..., c]
 
 
-_shared: dict[str, Denoiser] = {}
+_shared: dict[tuple[str, str], Denoiser] = {}
 _shared_lock = threading.Lock()
 
 
-def shared_denoiser(setting: str = PRIOR_SETTING) -> Denoiser:
-    """The process-wide :class:`Denoiser` of ``setting`` (created on first use). The default is the fused
-    models' prior; the ``oidn`` method asks for :func:`method_setting`."""
+def shared_denoiser(setting: str = PRIOR_SETTING, runtime: str | None = None) -> Denoiser:
+    """The process-wide :class:`Denoiser` of ``setting`` on ``runtime`` (default :func:`runtime_setting`),
+    created on first use. The default setting is the fused models' prior; the ``oidn`` method asks for
+    :func:`method_setting`."""
+    key = (setting, runtime or runtime_setting())
     with _shared_lock:
-        if setting not in _shared:
-            _shared[setting] = Denoiser(setting)
-        return _shared[setting]
+        if key not in _shared:
+            _shared[key] = Denoiser(setting, key[1])
+        return _shared[key]

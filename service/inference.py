@@ -302,6 +302,14 @@ class Engine:
         kinds = sorted({f"{m.get('provider', '?')}/{m.get('precision', '?')}" for m in self.describe_models()})
         return f"; network inference on {', '.join(kinds)}" if kinds else ""
 
+    def describe_oidn(self) -> dict[str, Any] | None:
+        """The ``oidn`` method's denoiser: setting, runtime and why (None where pyoidn is not installed)."""
+        if not self.oidn:
+            return None
+        from model.oidn import method_setting, shared_denoiser
+
+        return shared_denoiser(method_setting()).describe()
+
     def describe_models(self) -> list[dict[str, Any]]:
         out = []
         for method, models in (("network", self.network), ("fused", self.fused)):

@@ -53,6 +53,9 @@ class Settings(BaseSettings):
         -1, ge=-1, le=256,
         description="OpenEXR's process-wide worker threads for decoding requests and encoding answers "
                     "(line blocks are (de)compressed in parallel): -1 one per core, 0 single-threaded")
+    oidn_runtime: Literal["library", "onnx"] = Field(
+        "library", description="what runs OIDN's colour filter: its own library, or its weights on ONNX Runtime "
+                               "(model/oidn.py; read there from the same variable, validated here at startup)")
     warm_up: bool = Field(True, description="run one small inference per method before reporting ready")
     log_level: Literal["critical", "error", "warning", "info", "debug"] = Field("info")
 

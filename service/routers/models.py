@@ -30,6 +30,9 @@ class ModelsInfo(BaseModel):
                                            "their models are loaded; oidn and fused when pyoidn is installed")
     models: list[dict[str, Any]] = Field(
         description="loaded networks: name, layers, input channels, checksums and export metadata")
+    oidn: dict[str, Any] | None = Field(
+        None, description="the OIDN methods' denoiser: setting, runtime (library or onnx) and why; null without "
+                          "pyoidn")
     limits: Limits
 
 
@@ -39,6 +42,6 @@ async def list_models(engine: Annotated[Engine, Depends(get_engine)]) -> ModelsI
     s = engine.settings
     return ModelsInfo(state=engine.state, default_method=engine.default_method,
                       default_method_plain=engine.default_method_plain, methods=list(engine.methods),
-                      models=engine.describe_models(),
+                      models=engine.describe_models(), oidn=engine.describe_oidn() if engine.state == "ready" else None,
                       limits=Limits(max_body_bytes=s.max_body_bytes, max_pixels=s.max_pixels,
                                     max_values=s.max_values))

@@ -122,6 +122,10 @@ def test_health_readiness_models_and_metrics(poisson_api, transport):
     models = client.get("/v1/models").json()
     assert models["models"] == [] and models["default_method"] == default and models["state"] == "ready"
     assert models["limits"]["max_pixels"] == 8192 * 8192
+    if oidn:  # which code runs the OIDN methods' denoiser, and at which setting
+        assert models["oidn"]["runtime"] == "library" and models["oidn"]["setting"] == "raw-fast"
+    else:
+        assert models["oidn"] is None
     post(client, b"definitely not an exr")
     metrics = client.get("/metrics")
     assert metrics.status_code == 200 and metrics.headers["content-type"].startswith("text/plain")
