@@ -5,6 +5,7 @@ model/oidn_onnx.py).
 
     python benchmarks/study_oidn_runtime.py time                   # 1280x720 layer, medians of --repeats
     python benchmarks/study_oidn_runtime.py error                  # RelMSE on study_oidn.py's cached frames
+    python benchmarks/study_oidn_runtime.py methods                # the OIDN methods on each runtime, same frames
 
 Error: the held-out frames of benchmarks/study_oidn.py (its ``render`` step makes them: procedural seeds 70001-
 70003 and training-range seeds 1001, 1500, G-PT 16 and 64 spp, 320x240, two 1024-spp references), each layer
@@ -106,15 +107,55 @@ def error(setting: str, cache: Path, variants: list[str]) -> None:
         print(f"| {variant} | {statistics.fmean(values):.4g} | {geo:.4f} | {min(r):.4f} | {max(r):.4f} |")
 
 
+def methods(cache: Path, names: list[str], runtimes: list[str]) -> None:
+    """RelMSE of the OIDN methods (as model.reconstruct serves them) with each OIDN runtime on the cached frames,
+    and the ratio of every runtime to the first, per method: what switching the runtime does to what is served
+    (fused's blend model was trained on the library's output)."""
+    from model import oidn
+    from model.frame import read_frame
+    from model.metrics import relmse_unbiased
+    from model.reconstruct import load_fused, reconstruct
+
+    fused = load_fused(Path("models"))
+    scores: dict[tuple[str, str], list[float]] = {(m, r): [] for m in names for r in runtimes}
+    for folder in sorted(p for p in cache.iterdir() if (p / "ref-2.npz").is_file()):
+        r1, r2 = np.load(folder / "ref-1.npz")["total"], np.load(folder / "ref-2.npz")["total"]
+        for spp in SPPS:
+            frame = read_frame(folder / f"gpt-{spp}.exr")
+            row = []
+            for runtime in runtimes:
+                os.environ[oidn.RUNTIME_ENV] = runtime
+                for method in names:
+                    image = reconstruct(frame, method, fused=fused).image
+                    scores[(method, runtime)].append(relmse_unbiased(image, r1, r2))
+                    row.append(f"{method}@{runtime}={scores[(method, runtime)][-1]:.4g}")
+            print(f"{folder.name} {spp} spp " + " ".join(row), flush=True)
+    print(f"\n| method | runtime | mean RelMSE | / {runtimes[0]}: geo. mean | best | worst |\n"
+          "|---|---|---:|---:|---:|---:|")
+    for method in names:
+        base = scores[(method, runtimes[0])]
+        for runtime in runtimes:
+            values = scores[(method, runtime)]
+            r = [v / b for v, b in zip(values, base, strict=True) if v > 0 and b > 0]
+            geo = math.exp(statistics.fmean(math.log(x) for x in r))
+            print(f"| {method} | {runtime} | {statistics.fmean(values):.4g} | {geo:.4f} | {min(r):.4f} | "
+                  f"{max(r):.4f} |")
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("what", choices=("time", "error"))
+    parser.add_argument("what", choices=("time", "error", "methods"))
+    parser.add_argument("--methods", default="oidn,oidn-l1,fused", help="methods: which methods to score")
+    parser.add_argument("--runtimes", default="library,onnx", help="methods: OIDN runtimes, the first the base")
     parser.add_argument("--setting", default="raw-fast", help="an OIDN setting the onnx runtime builds")
     parser.add_argument("--variants", default=",".join(VARIANTS))
     parser.add_argument("--cache", type=Path, default=DEFAULT_CACHE)
     parser.add_argument("--size", default="1280x720")
     parser.add_argument("--repeats", type=int, default=5)
     args = parser.parse_args()
+    if args.what == "methods":
+        methods(args.cache, [m for m in args.methods.split(",") if m], [r for r in args.runtimes.split(",") if r])
+        return 0
     variants = [v for v in args.variants.split(",") if v]
     unknown = sorted(set(variants) - set(VARIANTS))
     if unknown:
