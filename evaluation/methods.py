@@ -104,7 +104,7 @@ FEATURE_SPP = 4
 #: Source files whose changes alter a method's images or scores (part of every result's cache key).
 METHOD_SOURCES: tuple[str, ...] = ("evaluation/methods.py", "model/oidn.py", "model/poisson.py", "model/reconstruct.py",
                                    "model/infer.py", "model/preprocess.py", "model/metrics.py", "model/refine.py",
-                                   "model/kernels.py", "model/policy.py", "model/fused.py")
+                                   "model/kernels.py", "model/policy.py", "model/fused.py", "model/oidn_onnx.py")
 
 
 @dataclass(frozen=True)
@@ -698,11 +698,12 @@ def split_features(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def denoise(color: np.ndarray, albedo: np.ndarray, normal: np.ndarray) -> np.ndarray:
     """Intel Open Image Denoise as model/oidn.py runs it for the ``oidn`` method (one definition): the RT filter
     on HDR input at the method's setting (model.oidn.method_setting: auxiliary images, quality), exact exposure
-    scaling."""
+    scaling, on OIDN's own library whatever ``$GRADSEP_OIDN_RUNTIME`` gives our methods: the baseline is OIDN as
+    its users run it."""
     from model.frame import Features
     from model.oidn import method_setting, shared_denoiser
 
-    denoiser = shared_denoiser(method_setting())
+    denoiser = shared_denoiser(method_setting(), "library")  # the baseline is OIDN as its users run it
     aux = denoiser.prefilter(Features(np.ascontiguousarray(albedo, np.float32),
                                       np.ascontiguousarray(normal, np.float32),
                                       np.zeros(color.shape[:2], np.float32)))

@@ -572,6 +572,20 @@ def _within_time(spp: int, wanted: int, seconds: float, budget: float, step: int
     return best
 
 
+def oidn_key() -> dict[str, str]:
+    """The OIDN choices the environment makes (``$GRADSEP_OIDN_SETTING``, ``$GRADSEP_OIDN_RUNTIME``), in every
+    method's cache key: they change the OIDN methods' images (and so every equal-time budget) without a code
+    change. Empty at the defaults, so results cached before these keys existed stay valid."""
+    from model.oidn import METHOD_SETTING, method_setting, runtime_setting
+
+    key = {}
+    if method_setting() != METHOD_SETTING:
+        key["oidn_setting"] = method_setting()
+    if runtime_setting() != "library":
+        key["oidn_runtime"] = runtime_setting()
+    return key
+
+
 def _evaluate_one(runner: _Runner, spec: MethodSpec, scene: SceneRun, spp: int, frame: Any, seconds: float,
                   frame_tag: str, get_path: Callable[[], PathRenderer], done: dict[str, dict[str, Any]],
                   keys: dict[str, str]) -> _Output | None:
@@ -586,7 +600,7 @@ def _evaluate_one(runner: _Runner, spec: MethodSpec, scene: SceneRun, spp: int, 
         runner.skip_missing(spec.name, missing)
         return None
     key: dict[str, Any] = {"format": RESULT_FORMAT, "method": spec.name, "frame": frame_tag, "models": shas,
-                           "code": runner.method_code}
+                           "code": runner.method_code, **oidn_key()}
     if spec.kind == "poisson":
         key["alpha"] = c.alpha
     ctx = MethodContext(frame=frame, render_seconds=seconds, spp=spp, seed=_derived_seed(c.seed, 3, spp),

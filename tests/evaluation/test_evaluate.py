@@ -562,3 +562,17 @@ def test_time_misses_flags_rows_outside_5_percent():
     misses = time_misses(rows)
     assert len(misses) == 1 and "-28%" in misses[0]
     assert misses[0].endswith("granularity: 9 spp takes 0.72 s, 10 spp 1.1 s")  # the reason is reported
+
+
+def test_oidn_environment_choices_are_part_of_the_result_key(monkeypatch) -> None:
+    """$GRADSEP_OIDN_SETTING / $GRADSEP_OIDN_RUNTIME change the OIDN methods' images without a code change: a
+    run under them must not reuse outputs cached under the defaults (whose keys stay as they were)."""
+    from evaluation.run import oidn_key
+    from model import oidn
+
+    monkeypatch.delenv(oidn.SETTING_ENV, raising=False)
+    monkeypatch.delenv(oidn.RUNTIME_ENV, raising=False)
+    assert oidn_key() == {}
+    monkeypatch.setenv(oidn.SETTING_ENV, "raw-high")
+    monkeypatch.setenv(oidn.RUNTIME_ENV, "onnx")
+    assert oidn_key() == {"oidn_setting": "raw-high", "oidn_runtime": "onnx"}
