@@ -25,7 +25,6 @@ does not, so the service starts without it and reports the method as unavailable
 from __future__ import annotations
 
 import importlib.util
-import logging
 import math
 import os
 import threading
@@ -36,8 +35,6 @@ import numpy as np
 
 if TYPE_CHECKING:
     from model.frame import Features
-
-log = logging.getLogger("gradsep.oidn")
 
 #: The albedo/normal prefilter's quality: "fast" (its output scored the same as "high" to 5 digits on 16 dataset
 #: frames; docs/network.md, "The oidn and fused methods").
@@ -90,10 +87,10 @@ SETTING_ENV = "GRADSEP_OIDN_SETTING"
 
 
 #: Which code runs the colour filter's U-Net (``$GRADSEP_OIDN_RUNTIME``): ``library`` (pyoidn's own CPU kernels,
-#: the default) or ``onnx`` (the same weights on ONNX Runtime, model/oidn_onnx.py, on the provider and precision
-#: ``$GRADSEP_ONNX_PROVIDER`` selects for the networks). Measured on held-out frames (docs/oidn.md, "Runtime"):
-#: the onnx runtime in fp32 reproduces the library and is no faster; in bf16 it is 1.7x faster but its rounding
-#: (amplified by the inverse PU transfer) raises RelMSE 1.04-4x, so the library stays the default.
+#: the default) or ``onnx`` (the same weights on ONNX Runtime, model/oidn_onnx.py, on the provider
+#: ``$GRADSEP_ONNX_PROVIDER`` selects for the networks; on a bf16 CPU in bf16 with the full-resolution level in
+#: fp32). Measured on held-out frames (docs/oidn.md, "Runtime"): 1.34x faster per layer, +0.7 % RelMSE for
+#: ``oidn``, but +1.2-1.3 % (worst frames +5-6 %) and a higher latency for ``oidn-l1`` and ``fused``: opt-in.
 RUNTIMES = ("library", "onnx")
 RUNTIME_ENV = "GRADSEP_OIDN_RUNTIME"
 
