@@ -101,6 +101,10 @@ PRIOR_CHANNELS = slice(3, 6)
 #:   the ``l1`` prior's cost (issue 15: the prior is the bulk of a ``network`` layer's time). Models retrained on it
 #:   (663 steps) were rejected on held-out frames: geo-mean RelMSE 1.20x today's, worst frame 10.8x, where the L2
 #:   solve smears gradient fireflies (docs/network.md, "Retraining on a cheaper prior"); the shipped models stay l1;
+#: * ``l2-clamp`` — the ``l2`` solve on outlier-clamped data (:func:`clamp_outliers`: a base value above
+#:   OUTLIER_CLAMP × the largest of its 8 neighbours, and a gradient above OUTLIER_CLAMP × the largest clamped base
+#:   value around its two pixels, are clamped there): the L2 prior's cost (+~15 ms per 720p layer) without smearing
+#:   isolated fireflies (issue 15, session 12);
 #: * ``l1-mg3x2`` — the robust solve truncated to 3 passes × 2 CG steps with the multigrid preconditioner;
 #: * ``oidn`` — Intel Open Image Denoise run on the layer's base with the frame's prefiltered albedo and normal
 #:   (model/oidn.py), the ``fused`` method.
@@ -111,7 +115,11 @@ POISSON_PRIORS: dict[str, tuple[int, int, str]] = {
     "l1": (PRIOR_IRLS_PASSES, PRIOR_CG_STEPS, PRIOR_PRECONDITIONER),
     "l2": (1, 1, "dct"),
     "l1-mg3x2": (3, 2, "mg"),
+    "l2-clamp": (1, 1, "dct"),
 }
+#: Poisson kinds whose data are outlier-clamped before the solve (:func:`clamp_outliers`), and the factor.
+CLAMPED_PRIORS: frozenset[str] = frozenset({"l2-clamp"})
+OUTLIER_CLAMP = 4.0
 PRIOR_KINDS: tuple[str, ...] = (*POISSON_PRIORS, "oidn")
 #: The kind a model without ``gradsep.prior`` metadata refines (every model exported before kinds existed).
 DEFAULT_PRIOR = "l1"
@@ -282,11 +290,51 @@ def _band_ramp(y0: int, y1: int, height: int, overlap: int) -> np.ndarray:
     return w[:, None, None]
 
 
+def _neighbour_max(image: np.ndarray, centre: bool) -> np.ndarray:
+    """(H, W, C): the largest value of each pixel's 3×3 neighbourhood (edges replicated), with or without itself."""
+    padded = np.pad(image, ((1, 1), (1, 1), (0, 0)), mode="edge")
+    height, width = image.shape[:2]
+    out = None
+    for oy in range(3):
+        for ox in range(3):
+            if (oy, ox) == (1, 1) and not centre:
+                continue
+            view = padded[oy:oy + height, ox:ox + width]
+            out = view.copy() if out is None else np.maximum(out, view, out=out)
+    return out
+
+
+def clamp_outliers(base: np.ndarray, dx: np.ndarray, dy: np.ndarray,
+                   factor: float = OUTLIER_CLAMP) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(base, dx, dy) (H, W, 3) with isolated outliers clamped, new arrays, per channel: a base value to ``factor``
+    × the largest of its 8 neighbours (a firefly is a pixel far above everything around it; a bright region is
+    not clamped), then each gradient to ``factor`` × the largest clamped base value in the 3×3 neighbourhoods of
+    its two pixels (a difference of non-negative values is bounded by the larger one). Scale-invariant (a frame
+    at 1e-8 or 1e9 is clamped alike), and 0 where everything around is black."""
+    from model import kernels
+
+    if kernels.AVAILABLE:
+        out = (np.empty_like(base), np.empty_like(dx), np.empty_like(dy))
+        kernels.clamp_outliers(np.ascontiguousarray(base), np.ascontiguousarray(dx), np.ascontiguousarray(dy),
+                               float(factor), *out)
+        return out
+    factor = np.float32(factor)
+    clamped = np.minimum(base, factor * _neighbour_max(base, centre=False))
+    level = factor * _neighbour_max(clamped, centre=True)
+    bound_x = level.copy()
+    np.maximum(bound_x[:, :-1], level[:, 1:], out=bound_x[:, :-1])
+    bound_y = level
+    np.maximum(bound_y[:-1], level[1:], out=bound_y[:-1])
+    return clamped, np.clip(dx, -bound_x, bound_x), np.clip(dy, -bound_y, bound_y)
+
+
 def _solve_prior(base: np.ndarray, dx: np.ndarray, dy: np.ndarray, kind: str = DEFAULT_PRIOR) -> np.ndarray:
     # every solver setting named: the models were trained on exactly this solve, whatever the l1 method's defaults
     # become. ``l1`` reads the PRIOR_* constants at call time (benchmarks/study_prior.py overrides them).
     passes, steps, preconditioner = ((PRIOR_IRLS_PASSES, PRIOR_CG_STEPS, PRIOR_PRECONDITIONER) if kind == "l1"
                                      else POISSON_PRIORS[kind])
+    if kind in CLAMPED_PRIORS:
+        base, dx, dy = clamp_outliers(base, dx, dy)
     # one pass = solve_l1's pass 0: the exact L2 solve, in the working precision (float32 for α = PRIOR_ALPHA)
     prior, _ = solve_l1(base, dx, dy, PRIOR_ALPHA, iterations=passes, cg_iterations=steps,
                         reg_init=PRIOR_REG_INIT, reg_decay=PRIOR_REG_DECAY, cg_tolerance=PRIOR_CG_TOLERANCE,
@@ -526,6 +574,10 @@ def describe_prior(kind: str = DEFAULT_PRIOR) -> str:
         return (f"L1 screened Poisson (IRLS, {PRIOR_IRLS_PASSES} passes x {PRIOR_CG_STEPS} CG steps) of the whole "
                 f"layer, alpha={PRIOR_ALPHA}, clip [0, max_value], then C")
     passes, steps, preconditioner = POISSON_PRIORS[kind]
+    if kind in CLAMPED_PRIORS:
+        return (f"L2 screened Poisson (exact, DCT) of the whole layer after clamping outliers (base to "
+                f"{OUTLIER_CLAMP:g}x its 8 neighbours' max, gradients to {OUTLIER_CLAMP:g}x the clamped base's 3x3 "
+                f"max), alpha={PRIOR_ALPHA}, clip [0, max_value], then C")
     if passes == 1:
         return f"L2 screened Poisson (exact, DCT) of the whole layer, alpha={PRIOR_ALPHA}, clip [0, max_value], then C"
     return (f"L1 screened Poisson (IRLS, {passes} passes x {steps} CG steps, {preconditioner} preconditioner) of "

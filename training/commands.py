@@ -16,7 +16,7 @@ from model.policy import ILLUMINATION_LAYERS
 
 #: model.preprocess.PRIOR_KINDS, spelled out so the command line parses without importing the solver stack
 #: (tests/training check that the two agree).
-PRIOR_CHOICES = ("l1", "l2", "l1-mg3x2", "oidn")
+PRIOR_CHOICES = ("l1", "l2", "l1-mg3x2", "l2-clamp", "oidn")
 
 if TYPE_CHECKING:
     from training.train import TrainConfig
@@ -83,8 +83,9 @@ def _add_train_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--prior", choices=PRIOR_CHOICES, default=None,
                    help="what the network refines: l1 = truncated L1 Poisson solve (the network method, default); "
                         "l2 = exact L2 screened Poisson solve (DCT, ~1/6 of l1's cost); l1-mg3x2 = L1 truncated to "
-                        "3 passes x 2 multigrid-preconditioned CG steps; oidn = OIDN's denoise at a normalised "
-                        "exposure (the fused method). Recorded in the exported model and used when it is served")
+                        "3 passes x 2 multigrid-preconditioned CG steps; l2-clamp = the l2 solve on outlier-clamped "
+                        "data; oidn = OIDN's denoise at a normalised exposure (the fused method). Recorded in the "
+                        "exported model and used when it is served")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("-o", "--output", required=True, help="run folder (config, checkpoints, log, curves)")
 

@@ -94,7 +94,7 @@ def test_every_kind_solves_its_own_budget(monkeypatch: pytest.MonkeyPatch) -> No
     layer, _ = _frame(16, 16)
     for kind in POISSON:
         preprocess.poisson_prior(layer, kind=kind)
-    assert seen == [(5, 2, "dct"), (1, 1, "dct"), (3, 2, "mg")]
+    assert seen == [(5, 2, "dct"), (1, 1, "dct"), (3, 2, "mg"), (1, 1, "dct")]
 
 
 def test_l2_kind_is_the_exact_screened_poisson_solve() -> None:
@@ -105,6 +105,46 @@ def test_l2_kind_is_the_exact_screened_poisson_solve() -> None:
     got = preprocess.poisson_prior(layer, kind="l2")
     assert np.abs(got - exact).max() <= 1e-4 * float(np.abs(exact).max())
     assert "L2 screened Poisson" in preprocess.describe_preprocessing(prior="l2")["prior"]
+
+
+def test_l2_clamp_kind_is_the_l2_solve_of_the_clamped_data() -> None:
+    """``l2-clamp`` = ``l2`` on clamp_outliers' data: an isolated firefly (and the gradients around it) is clamped
+    to OUTLIER_CLAMP x its neighbourhood before the solve, so the prior does not smear it; a frame without
+    outliers is solved as ``l2``; the clamp is scale-invariant and its compiled and numpy paths agree."""
+    from model import kernels
+    from model.frame import Layer, forward_differences
+
+    yy, xx = np.mgrid[0:24, 0:40].astype(np.float32)
+    smooth = ((1.0 + 0.5 * np.sin(xx / 5.0) * np.cos(yy / 7.0))[..., None] * np.array([0.9, 0.6, 0.3])).astype(
+        np.float32)
+    layer = Layer(smooth, *forward_differences(smooth))
+    assert np.array_equal(preprocess.poisson_prior(layer, kind="l2-clamp"), preprocess.poisson_prior(layer, kind="l2"))
+    base = layer.base.copy()
+    base[20, 20] = 1e4  # a firefly, in the base and (as OIDN's shifted paths would) in its gradients
+    dx, dy = forward_differences(base)
+    hot = Layer(base, dx, dy)
+    smeared = preprocess.poisson_prior(hot, kind="l2")
+    clamped = preprocess.poisson_prior(hot, kind="l2-clamp")
+    around = (slice(16, 25), slice(16, 25))
+    assert smeared[20, 20].max() > 0.9e4  # consistent data: the L2 solve keeps the firefly whole
+    # clamped: the base to 4x its neighbours, each gradient to 4x the clamped base around it
+    assert clamped[around].max() <= preprocess.OUTLIER_CLAMP**2 * layer.base[around].max() * 1.01
+    for scale in (1e-8, 1e9):
+        s = np.float32(scale)
+        out = preprocess.clamp_outliers(base * s, dx * s, dy * s)
+        ref = preprocess.clamp_outliers(base, dx, dy)
+        for a, b in zip(out, ref, strict=True):
+            np.testing.assert_allclose(a / s, b, rtol=1e-5, atol=1e-30)
+    if kernels.AVAILABLE:
+        compiled = preprocess.clamp_outliers(base, dx, dy)
+        kernels.AVAILABLE = False
+        try:
+            plain = preprocess.clamp_outliers(base, dx, dy)
+        finally:
+            kernels.AVAILABLE = True
+        for a, b in zip(compiled, plain, strict=True):
+            np.testing.assert_array_equal(a, b)
+    assert "clamping outliers" in preprocess.describe_preprocessing(prior="l2-clamp")["prior"]
 
 
 def test_unknown_kind_is_an_error_everywhere() -> None:
