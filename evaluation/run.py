@@ -578,12 +578,9 @@ def oidn_key() -> dict[str, str]:
     change. Empty at the defaults, so results cached before these keys existed stay valid."""
     from model.oidn import METHOD_SETTING, method_setting, runtime_setting
 
-    key = {}
-    if method_setting() != METHOD_SETTING:
-        key["oidn_setting"] = method_setting()
-    if runtime_setting() != "library":
-        key["oidn_runtime"] = runtime_setting()
-    return key
+    setting, runtime = method_setting(), runtime_setting()
+    return {**({"oidn_setting": setting} if setting != METHOD_SETTING else {}),
+            **({"oidn_runtime": runtime} if runtime != "library" else {})}
 
 
 def _evaluate_one(runner: _Runner, spec: MethodSpec, scene: SceneRun, spp: int, frame: Any, seconds: float,

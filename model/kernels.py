@@ -285,6 +285,21 @@ if AVAILABLE:
                     z[c, y, x] += zc[c, y // 2, x // 2]
 
     @_compiled
+    def _window_max(image, y, x, c, centre):  # pragma: no cover - compiled
+        """The largest value of channel c in the 3×3 window at (y, x) (edges replicated), with or without itself."""
+        height, width = image.shape[0], image.shape[1]
+        m = image.dtype.type(0.0)
+        for oy in range(-1, 2):
+            yy = min(max(y + oy, 0), height - 1)
+            for ox in range(-1, 2):
+                if oy == 0 and ox == 0 and not centre:
+                    continue
+                xx = min(max(x + ox, 0), width - 1)
+                if image[yy, xx, c] > m:
+                    m = image[yy, xx, c]
+        return m
+
+    @_compiled
     def clamp_outliers(base, dx, dy, factor, out_base, out_dx, out_dy):  # pragma: no cover - compiled
         """model.preprocess.clamp_outliers on (H, W, C) arrays, into the three outputs: base to ``factor`` × its 8
         neighbours' max (edges replicated), then gradients to ``factor`` × the clamped base's 3×3 max around
@@ -294,29 +309,12 @@ if AVAILABLE:
         for y in range(height):
             for x in range(width):
                 for c in range(channels):
-                    m = base.dtype.type(0.0)
-                    for oy in range(-1, 2):
-                        yy = min(max(y + oy, 0), height - 1)
-                        for ox in range(-1, 2):
-                            if oy == 0 and ox == 0:
-                                continue
-                            xx = min(max(x + ox, 0), width - 1)
-                            if base[yy, xx, c] > m:
-                                m = base[yy, xx, c]
-                    v = base[y, x, c]
-                    out_base[y, x, c] = v if v <= f * m else f * m
+                    out_base[y, x, c] = min(base[y, x, c], f * _window_max(base, y, x, c, False))
         level = np.empty((height, width, channels), base.dtype)
         for y in range(height):
             for x in range(width):
                 for c in range(channels):
-                    m = base.dtype.type(0.0)
-                    for oy in range(-1, 2):
-                        yy = min(max(y + oy, 0), height - 1)
-                        for ox in range(-1, 2):
-                            xx = min(max(x + ox, 0), width - 1)
-                            if out_base[yy, xx, c] > m:
-                                m = out_base[yy, xx, c]
-                    level[y, x, c] = f * m
+                    level[y, x, c] = f * _window_max(out_base, y, x, c, True)
         for y in range(height):
             for x in range(width):
                 for c in range(channels):

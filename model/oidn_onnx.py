@@ -95,18 +95,19 @@ class PUTransfer:
 PU = PUTransfer()
 
 # The same transfer fused with the clamps, the layout change and the padding, compiled: the numpy formulation
-# above costs ~0.13 s per 720p layer (a third of the bf16 graph), these kernels a few ms. model.kernels' flag
+# above costs ~0.13 s per 720p layer (a third of the bf16 graph), these kernels a few ms. model.kernels.AVAILABLE
 # (GRADSEP_NUMBA=0, or no numba) selects the numpy path, which the tests compare them with.
-from model.kernels import AVAILABLE as _COMPILED  # noqa: E402
+from model import kernels  # noqa: E402
 
-if _COMPILED:
-    from numba import njit
+if kernels.AVAILABLE:
+    _jit = kernels._compiled
 
-    def _jit(fn):
-        try:
-            return njit(cache=True, fastmath=False, nogil=True)(fn)
-        except RuntimeError:  # no writable cache location
-            return njit(cache=False, fastmath=False, nogil=True)(fn)
+    @_jit
+    def _clip_radiance(v):  # pragma: no cover - compiled
+        """v clamped to [0, float32 max], NaN to 0."""
+        if not v > 0.0:
+            return 0.0
+        return min(v, _F32_MAX)
 
     @_jit
     def _pu_forward(y):  # pragma: no cover - compiled
@@ -132,12 +133,7 @@ if _COMPILED:
         for y in range(height):
             for x in range(width):
                 for c in range(3):
-                    v = float(color[y, x, c]) * scale
-                    if not v > 0.0:  # negative or NaN
-                        v = 0.0
-                    elif v > _F32_MAX:
-                        v = _F32_MAX
-                    out[0, c, y, x] = _pu_forward(v) * norm
+                    out[0, c, y, x] = _pu_forward(_clip_radiance(float(color[y, x, c]) * scale)) * norm
                     if aux:
                         a = float(albedo[y, x, c])
                         out[0, 3 + c, y, x] = 0.0 if not a > 0.0 else min(a, 1.0)
@@ -152,17 +148,8 @@ if _COMPILED:
         for y in range(height):
             for x in range(width):
                 for c in range(3):
-                    v = float(planes[c, y0 + y, x0 + x])
-                    if not v > 0.0:
-                        v = 0.0
-                    elif v > _F32_MAX:
-                        v = _F32_MAX
-                    r = _pu_inverse(v * rcp_norm) * out_scale
-                    if not r > 0.0:
-                        r = 0.0
-                    elif r > _F32_MAX:
-                        r = _F32_MAX
-                    out[oy + y, ox + x, c] = r
+                    v = _clip_radiance(float(planes[c, y0 + y, x0 + x]))
+                    out[oy + y, ox + x, c] = _clip_radiance(_pu_inverse(v * rcp_norm) * out_scale)
         return out
 
 # --------------------------------------------------------------------------------------------------------------
@@ -422,7 +409,6 @@ class OnnxUNet:
 
         self.model = model
         self.weights = read_weights(model, library)
-        self.channels = int(self.weights["enc_conv0.weight"].shape[1]) if "enc_conv0.weight" in self.weights else 0
         settings = settings or SessionSettings()
         choice = choose_provider(settings.provider, ort.get_available_providers(), cpu_flags())
 
@@ -444,6 +430,7 @@ class OnnxUNet:
             choice = ProviderChoice("cpu", "fp32", f"OpenVINO failed on this model ({exc})")
             self.session = session("all", choice.providers())
         self.choice: ProviderChoice = choice
+        self.channels = int(self.weights["enc_conv0.weight"].shape[1])  # the graph checked the layers exist
         log.info("OIDN model %s on ONNX Runtime: %s provider, %s (%s)", model, choice.provider, choice.precision,
                  choice.reason)
 
@@ -456,7 +443,7 @@ class OnnxUNet:
         if want != self.channels:
             raise ValueError(f"OIDN model {self.model} takes {self.channels} input channels, got {want}")
         out = np.empty((height, width, 3), np.float32)
-        compiled = compiled_kernels()
+        compiled = kernels.AVAILABLE
         for tile in plan_tiles(height, width):
             sy0, sy1, sx0, sx1 = tile.src
             cy0, cy1, cx0, cx1 = tile.core
@@ -503,8 +490,3 @@ class OnnxUNet:
     def describe(self) -> dict[str, Any]:
         return {"model": self.model, "provider": self.choice.provider,
                 "precision": self.choice.precision, "provider_reason": self.choice.reason}
-
-
-def compiled_kernels() -> bool:
-    """Whether the compiled pre/post-processing runs (numba present and ``$GRADSEP_NUMBA`` not 0)."""
-    return _COMPILED and os.environ.get("GRADSEP_NUMBA", "1") != "0"
