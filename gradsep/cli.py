@@ -57,10 +57,16 @@ def build_parser(modules: Sequence[str] | None = None) -> argparse.ArgumentParse
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    from model.allocator import configure_malloc
     from model.frame import FrameError  # numpy + OpenEXR: not needed to build the parser
 
     parser = build_parser()
     args = parser.parse_args(argv)
+    try:
+        configure_malloc()  # one malloc arena for the frame-sized work of every command (model/allocator.py)
+    except ValueError as exc:
+        print(f"gradsep {args.command}: error: {exc}", file=sys.stderr)
+        return 2
     try:
         return int(args.func(args) or 0)
     except (CommandError, FrameError) as exc:

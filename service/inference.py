@@ -231,6 +231,10 @@ class Engine:
     def __init__(self, settings: Settings) -> None:
         self.settings = settings
         configure_exr_threads(settings.exr_threads)
+        from model.allocator import configure_malloc
+
+        arenas = configure_malloc(settings.malloc_arenas)  # before the worker threads exist: model/allocator.py
+        log.info("malloc arenas: %s", arenas if arenas is not None else "left as glibc / MALLOC_ARENA_MAX set them")
         self.limits = ReadLimits(max_pixels=settings.max_pixels, max_values=settings.max_values)
         self.network: Any = None
         self.fused: Any = None
