@@ -1,4 +1,4 @@
-"""The C allocator of a reconstructing process: glibc's malloc limited to one arena.
+"""The C allocator of a reconstructing process: glibc's malloc limited to one arena that keeps its memory.
 
 A frame is reconstructed in short-lived worker threads (model/reconstruct.py runs a frame's layers concurrently),
 and every solve allocates frame-sized numpy temporaries. glibc gives threads their own malloc *arenas*; a new
@@ -14,10 +14,19 @@ then fresh pages every frame.
   MALLOC_ARENA_MAX=2 was about the same, 4 was in between; raising the trim/mmap thresholds alone did not help.
 - The service's allocations are few and large (numpy arrays; Python objects use their own allocator), so one
   arena costs no measurable lock contention.
+- Through the service one arena still left 20-28k page faults per request: glibc returns the top of its heap to
+  the kernel once 2x its (adaptive) mmap threshold is free, and maps blocks over that threshold anew every time.
+  So the threshold is fixed at its 64-bit maximum (MMAP_THRESHOLD, 32 MiB: a 2560x1440 RGB float32 image) and the
+  trim threshold raised to TRIM_THRESHOLD: then 0-50 faults per request after the first (oidn-l1 p50 2.005 →
+  2.025 s, network 1.517 → 1.394, l1 1.266 → 1.171 s in one run; `python benchmarks/bench_service.py`). The cost is
+  that the process keeps its high-water mark (RSS 1.9 GiB after a 720p run instead of falling back to 1.5 GiB),
+  still half of the 4.4 GiB peak before.
 
-``$GRADSEP_MALLOC_ARENAS`` sets the limit (default 1; 0 leaves glibc's own default of 8 per core). An operator's
-``MALLOC_ARENA_MAX`` (glibc's own variable, read when the process starts) wins: then nothing is changed here. On a
-C library without ``mallopt`` (musl, macOS) this is a no-op. Call :func:`configure_malloc` once, early, before the
+``$GRADSEP_MALLOC_ARENAS`` sets the arena limit (default 1; 0 leaves glibc's malloc entirely as it is, 8 arenas
+per core and adaptive thresholds). An operator's own glibc variables (``MALLOC_ARENA_MAX``,
+``MALLOC_MMAP_THRESHOLD_``, ``MALLOC_TRIM_THRESHOLD_``, read when the process starts) win, each for its parameter,
+and ``GLIBC_TUNABLES`` naming ``glibc.malloc`` for all three. On a C library without ``mallopt`` (musl, macOS) this
+is a no-op. Call :func:`configure_malloc` once, early, before the
 worker threads exist: arenas already created stay as they are.
 """
 
@@ -32,8 +41,12 @@ log = logging.getLogger(__name__)
 
 ARENAS_ENV = "GRADSEP_MALLOC_ARENAS"
 DEFAULT_ARENAS = 1
-#: glibc's mallopt parameter number for the arena limit (malloc.h M_ARENA_MAX).
-M_ARENA_MAX = -8
+#: glibc's mallopt parameter numbers (malloc.h).
+M_TRIM_THRESHOLD, M_MMAP_THRESHOLD, M_ARENA_MAX = -1, -3, -8
+#: Blocks up to this size come from the heap (glibc's largest allowed on 64-bit: HEAP_MAX_SIZE / 2).
+MMAP_THRESHOLD = 32 * 1024 * 1024
+#: Free memory at the top of the heap is returned to the kernel only beyond this.
+TRIM_THRESHOLD = 1024 * 1024 * 1024
 
 
 def arenas_setting() -> int:
@@ -59,22 +72,30 @@ def _libc() -> ctypes.CDLL | None:
     return libc if hasattr(libc, "mallopt") else None
 
 
+def _operator_set(variable: str) -> bool:
+    """True when the operator configured this glibc malloc parameter themselves."""
+    return bool(os.environ.get(variable, "").strip()) or "glibc.malloc" in os.environ.get("GLIBC_TUNABLES", "")
+
+
 def configure_malloc(arenas: int | None = None) -> int | None:
-    """Limit malloc to ``arenas`` arenas (None: :func:`arenas_setting`); the limit now in force, or None when
-    nothing was changed (0 asked, ``MALLOC_ARENA_MAX`` set by the operator, or no glibc ``mallopt``)."""
+    """Limit malloc to ``arenas`` arenas (None: :func:`arenas_setting`) with fixed mmap/trim thresholds; the arena
+    limit now in force, or None when it was not changed (0 asked, the operator's own setting, or no glibc
+    ``mallopt``)."""
     arenas = arenas_setting() if arenas is None else arenas
     if arenas < 0:
         raise ValueError(f"malloc arenas must be at least 0, got {arenas}")
-    if arenas == 0:
-        return None
-    if os.environ.get("MALLOC_ARENA_MAX", "").strip():
-        log.info("MALLOC_ARENA_MAX=%s is set; malloc arenas left as it says", os.environ["MALLOC_ARENA_MAX"])
-        return None
-    libc = _libc()
+    libc = _libc() if arenas else None
     if libc is None:
         return None
     libc.mallopt.argtypes, libc.mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
-    if libc.mallopt(M_ARENA_MAX, arenas) != 1:
-        log.warning("mallopt(M_ARENA_MAX, %d) failed; malloc arenas left at glibc's default", arenas)
-        return None
-    return arenas
+    applied = None
+    for variable, parameter, value in (("MALLOC_ARENA_MAX", M_ARENA_MAX, arenas),
+                                       ("MALLOC_MMAP_THRESHOLD_", M_MMAP_THRESHOLD, MMAP_THRESHOLD),
+                                       ("MALLOC_TRIM_THRESHOLD_", M_TRIM_THRESHOLD, TRIM_THRESHOLD)):
+        if _operator_set(variable):
+            log.info("%s is set by the operator; left as it says", variable)
+        elif libc.mallopt(parameter, value) != 1:
+            log.warning("mallopt(%d, %d) failed; that malloc parameter keeps glibc's default", parameter, value)
+        elif parameter == M_ARENA_MAX:
+            applied = arenas
+    return applied

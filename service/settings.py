@@ -55,9 +55,10 @@ class Settings(BaseSettings):
                     "(line blocks are (de)compressed in parallel): -1 one per core, 0 single-threaded")
     malloc_arenas: int = Field(
         1, ge=0, le=1024,
-        description="glibc malloc arenas of the process (model/allocator.py): 1 keeps the frame-sized temporaries "
-                    "of the worker threads in one reused arena (measured: 0.3-0.6 s and half the peak RSS saved "
-                    "per 720p frame); 0 keeps glibc's default; an operator's MALLOC_ARENA_MAX wins")
+        description="glibc malloc arenas of the process, with fixed mmap/trim thresholds (model/allocator.py): 1 "
+                    "keeps the frame-sized temporaries of the worker threads in one arena that keeps its memory "
+                    "(no fresh pages per request; half the peak RSS); 0 leaves glibc's malloc as it is; the "
+                    "operator's own MALLOC_* variables win")
     oidn_runtime: Literal["library", "onnx"] = Field(
         "library", description="what runs OIDN's colour filter: its own library, or its weights on ONNX Runtime "
                                "(model/oidn.py; read there from the same variable, validated here at startup)")

@@ -92,3 +92,34 @@ def test_the_cli_refuses_a_bad_setting_with_exit_2() -> None:
                           timeout=120)
     assert proc.returncode == 2
     assert allocator.ARENAS_ENV in proc.stderr and "Traceback" not in proc.stderr
+
+
+# Three 30 MiB blocks at once, freed, three times over: glibc's adaptive thresholds hand the freed top of the heap
+# back to the kernel (fresh pages the next time); the fixed ones keep it in the process, ready for the next frame.
+_KEPT_PROBE = """
+import sys
+sys.path.insert(0, {repo!r})
+import numpy as np
+from model.allocator import configure_malloc
+configure_malloc()
+def rss():
+    return int(next(line for line in open("/proc/self/status") if line.startswith("VmRSS")).split()[1]) // 1024
+base, kept = rss(), []
+for _ in range(3):
+    blocks = [np.ones(30 * 2**20, np.uint8) for _ in range(3)]
+    del blocks
+    kept.append(rss() - base)
+print("kept", *kept)
+"""
+
+
+def _kept_mib(env: dict[str, str]) -> list[int]:
+    out = subprocess.run([sys.executable, "-c", _KEPT_PROBE.format(repo=str(REPO))], env=env, check=True,
+                         capture_output=True, text=True, timeout=120).stdout
+    return [int(v) for v in out.split("kept")[1].split()]
+
+
+@pytest.mark.skipif(not GLIBC, reason="malloc thresholds are glibc's")
+def test_freed_frame_sized_blocks_stay_in_the_process() -> None:
+    assert min(_kept_mib(_env())) >= 85  # all 90 MiB kept for the next frame
+    assert max(_kept_mib(_env(**{allocator.ARENAS_ENV: "0"}))) < 85  # glibc's defaults return (some of) it
