@@ -13,7 +13,9 @@ then fresh pages every frame.
   → 1.83-1.94 s, `network` 1.84-1.87 → 1.33-1.59 s, `fused` 2.97-3.33 → 2.66-3.07 s, and peak RSS 4.4 → 2.0 GiB.
   MALLOC_ARENA_MAX=2 was about the same, 4 was in between; raising the trim/mmap thresholds alone did not help.
 - The service's allocations are few and large (numpy arrays; Python objects use their own allocator), so one
-  arena costs no measurable lock contention.
+  arena costs no measurable lock contention. The other commands were checked too (same session, alternating):
+  - `gradsep render procedural:1 --spp 16` at 640x480 (Dr.Jit's thread pool): 6.9 s against 7.2-7.7 s.
+  - `gradsep train`, one core: 1.08 s per step against 1.14 s.
 - Through the service one arena still left 20-28k page faults per request: glibc returns the top of its heap to
   the kernel once 2x its (adaptive) mmap threshold is free, and maps blocks over that threshold anew every time.
   So the threshold is fixed at its 64-bit maximum (MMAP_THRESHOLD, 32 MiB: a 2560x1440 RGB float32 image) and the
