@@ -53,10 +53,11 @@ def parse_targets(text: str) -> dict[str, float]:
 def measure(source: bytes, method: str, repeats: int, network: Any, fused: Any) -> dict[str, float]:
     """Median wall and process-CPU seconds of run_pipeline(method) over ``repeats`` runs after one warm-up."""
     from model.frame import ReadLimits, read_header
+    from model.policy import DEFAULT_ALPHA
     from service.inference import ReconstructParams, run_pipeline
 
     compression = read_header(source).compression
-    params = ReconstructParams(method=method, alpha=_alpha(), half=False, layers="sum", compression=compression)
+    params = ReconstructParams(method=method, alpha=DEFAULT_ALPHA, half=False, layers="sum", compression=compression)
 
     def once() -> tuple[float, float, dict[str, float]]:
         wall, cpu = time.perf_counter(), time.process_time()
@@ -67,12 +68,6 @@ def measure(source: bytes, method: str, repeats: int, network: Any, fused: Any) 
     runs = [once() for _ in range(repeats)]
     stages = {k: statistics.median(r[2].get(k, 0.0) for r in runs) for k in runs[0][2]}
     return {"wall": statistics.median(r[0] for r in runs), "cpu": statistics.median(r[1] for r in runs), **stages}
-
-
-def _alpha() -> float:
-    from model.policy import DEFAULT_ALPHA
-
-    return DEFAULT_ALPHA
 
 
 def report(rows: dict[str, dict[str, float]], cores: int, targets: dict[str, float]) -> None:

@@ -30,9 +30,7 @@ import json
 import math
 import os
 import shutil
-import statistics
 import sys
-import time
 from pathlib import Path
 from typing import Any
 
@@ -42,6 +40,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
+from bench_oidn import median_seconds  # noqa: E402
 from study_retrained_prior import DEFAULT_CACHE, held_out_scores  # noqa: E402
 
 LAYERS = ("direct", "indirect")
@@ -124,17 +123,9 @@ def quantize(models: Path, out: Path, frames: int, calibration: str, scope: str)
     (out / "int8.json").write_text(json.dumps({"frames": frames, "calibration": calibration, "scope": scope}))
 
 
-def _session(path: Path) -> Any:
-    """An OpenVINO-provider session as model/infer.py opens one (bf16 inference precision on this CPU)."""
-    import onnxruntime as ort
-
-    from model.infer import SessionSettings, choose_provider, cpu_flags
-
-    choice = choose_provider("auto", ort.get_available_providers(), cpu_flags())
-    return ort.InferenceSession(str(path), SessionSettings().options(), providers=choice.providers()), choice
-
-
 def timing(models: Path, candidate: Path, repeats: int) -> dict[str, float]:
+    from model.infer import load_model
+
     rng = np.random.default_rng(0)
     feeds = {"data": rng.random((1, 13, 720, 1280), np.float32),
              "gradient": ((rng.random((1, 6, 720, 1280), np.float32) - 0.5) * 0.1).astype(np.float32)}
@@ -144,18 +135,12 @@ def timing(models: Path, candidate: Path, repeats: int) -> dict[str, float]:
     for name in LAYERS:
         seconds = []
         for folder in (models, candidate):
-            session, choice = _session(folder / f"{name}.onnx")
-            for _ in range(2):
-                session.run(None, feeds)
-            runs = []
-            for _ in range(repeats):
-                start = time.perf_counter()
-                session.run(None, feeds)
-                runs.append(time.perf_counter() - start)
-            seconds.append(statistics.median(runs))
+            model = load_model(folder / f"{name}.onnx", name)  # as the service opens it (provider, precision)
+            model.session.run(None, feeds)  # the first of the two warm-ups; median_seconds runs the second
+            seconds.append(median_seconds(lambda model=model: model.session.run(None, feeds), repeats))
         speedups[name] = seconds[0] / seconds[1]
         print(f"| {name} | {seconds[0]:.3f} s | {seconds[1]:.3f} s | {speedups[name]:.2f}x |", flush=True)
-    print(f"provider: {choice.provider}/{choice.precision}; load at the end {os.getloadavg()[0]:.2f}")
+    print(f"provider: {model.choice.provider}/{model.choice.precision}; load at the end {os.getloadavg()[0]:.2f}")
     return speedups
 
 

@@ -28,8 +28,8 @@ then fresh pages every frame.
 per core and adaptive thresholds). An operator's own glibc variables (``MALLOC_ARENA_MAX``,
 ``MALLOC_MMAP_THRESHOLD_``, ``MALLOC_TRIM_THRESHOLD_``, read when the process starts) win, each for its parameter,
 and ``GLIBC_TUNABLES`` naming ``glibc.malloc`` for all three. On a C library without ``mallopt`` (musl, macOS) this
-is a no-op. Call :func:`configure_malloc` once, early, before the
-worker threads exist: arenas already created stay as they are.
+is a no-op. Call :func:`configure_malloc` once, early, before the worker threads exist: arenas already created
+stay as they are.
 """
 
 from __future__ import annotations
