@@ -32,13 +32,16 @@ import numpy as np
 CACHE_ROOT = Path(os.environ.get("GRADSEP_CACHE", Path.home() / ".cache" / "gradsep"))
 DESIGN_CACHE = CACHE_ROOT / "refine-study"
 VALIDATION_CACHE = CACHE_ROOT / "trust-study"
-#: Rule variants measured beside the shipped constants: (TRUST_RADIUS, TRUST_R_LOW, TRUST_R_HIGH, TRUST_FRAME_R).
+#: Rule variants measured beside the shipped constants: (TRUST_RADIUS, TRUST_R_LOW, TRUST_R_HIGH, TRUST_FRAME_R[,
+#: TRUST_ALPHA_BASE]) (a missing α keeps the shipped one).
 RULES: dict[str, tuple] = {
     "per pixel only (window 7, r 0.1-1)": (3, 0.1, 1.0, None),
     "per pixel only, window 17": (8, 0.1, 1.0, None),
     "per pixel only, r 0.05-0.5": (3, 0.05, 0.5, None),
     "per pixel only, r 0.2-2": (3, 0.2, 2.0, None),
     "per pixel + frame r 0.1-0.3": (3, 0.1, 1.0, (0.1, 0.3)),
+    "shipped, clean-frame alpha 0.2": (3, 0.1, 1.0, (0.05, 0.2), 0.2),
+    "shipped, clean-frame alpha 0.3": (3, 0.1, 1.0, (0.05, 0.2), 0.3),
 }
 
 
@@ -46,13 +49,13 @@ def _rule(constants: tuple | None) -> Callable:
     """f(denoised, layer): model.refine.refine_layer's default (the trust rule), its constants overridden."""
     from model import refine
 
-    names = ("TRUST_RADIUS", "TRUST_R_LOW", "TRUST_R_HIGH", "TRUST_FRAME_R")
+    names = ("TRUST_RADIUS", "TRUST_R_LOW", "TRUST_R_HIGH", "TRUST_FRAME_R", "TRUST_ALPHA_BASE")
 
     def run(denoised, layer):
         if constants is None:
             return refine.refine_layer("direct", denoised, layer)
         saved = {n: getattr(refine, n) for n in names}
-        for n, value in zip(names, constants, strict=True):
+        for n, value in zip(names, constants, strict=False):
             setattr(refine, n, value)
         try:
             return refine.refine_layer("direct", denoised, layer)

@@ -49,7 +49,7 @@ def _cands_path(scene: str, spp: int) -> Path:
 
 def prepare() -> None:
     """Per frame: the baselines' images (through model.reconstruct) and each layer's candidates (every kind of
-    model.fused.CANDIDATES but ``l1``) + network inputs, in a file per candidate format (model.fused.BLEND_FORMAT)."""
+    model.fused.CANDIDATES) + network inputs, in a file per candidate format (model.fused.BLEND_FORMAT)."""
     from model.frame import read_frame
     from model.fused import CANDIDATES, OIDN_SETTING, blend_inputs, layer_candidates
     from model.oidn import shared_denoiser
@@ -58,7 +58,7 @@ def prepare() -> None:
     STUDY_CACHE.mkdir(parents=True, exist_ok=True)
     network = load_network("models")
     den = shared_denoiser(OIDN_SETTING)
-    kinds = tuple(k for k in CANDIDATES if k != "l1")
+    kinds = CANDIDATES
     for scene, spp, path in _frames():
         base_file, cand_file = STUDY_CACHE / f"{scene}-{spp}.npz", _cands_path(scene, spp)
         frame = read_frame(str(path))

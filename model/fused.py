@@ -54,7 +54,7 @@ from model.preprocess import (
 )
 
 #: The candidate kinds a blend model may use (its metadata ``gradsep.candidates`` names its own, in order).
-CANDIDATES: tuple[str, ...] = ("oidn", "refine", "refine-fast", "l1")
+CANDIDATES: tuple[str, ...] = ("oidn", "refine", "refine-fast", "l1", "refine-direct")
 #: The refinement solves of the ``refine`` / ``refine-fast`` candidates: (IRLS passes, CG steps per pass), both
 #: multigrid-preconditioned (model.poisson.solve_l1), α = REFINE_ALPHA. Pinned here, not read from model/refine.py,
 #: because a model is trained on the numbers one solve gives: ``refine`` is the ``oidn-l1`` method's solve as chosen

@@ -47,6 +47,13 @@ def cache_planes(k: int) -> int:
     target base 3."""
     return 9 + 3 * k + 7 + 3
 REL_EPS = 1e-2
+#: Noise2Noise target kinds of the cache (target_image).
+TARGETS = ("base", "l2")
+#: ``train --init-prefer KIND``: that candidate's initial logit (the others 0), so an untrained model is close to
+#: KIND alone (weight e^4 / (e^4 + K − 1): 0.96 for K = 3) and training learns where to leave it.
+INIT_PREFER_LOGIT = 4.0
+#: ``train --loss-weight noise``: keeps a patch with a (nearly) noise-free input from taking all the weight.
+NOISE_WEIGHT_FLOOR = 1e-2
 LAYERS = ("direct", "indirect")
 
 
@@ -68,25 +75,48 @@ def frame_planes(layer: Any, features: Any, target_base: np.ndarray, aux: Any,
     return np.nan_to_num(planes, nan=0.0, posinf=0.0, neginf=0.0)
 
 
-def build_cache(data: Path, out: Path, kinds: tuple[str, ...] = CACHE_CANDIDATES) -> None:
-    """Write out/{layer}/NNNNN.npy for every frame of the Noise2Noise dataset ``data`` (skips existing files)."""
+def target_image(layer: Any, kind: str) -> np.ndarray:
+    """The Noise2Noise target of one layer of the *second* realization: its base (``base``), or its exact L2
+    screened Poisson reconstruction from base + gradients at the product's α (``l2``). Both are unbiased (the L2
+    solve is linear in unbiased inputs, and returns the image itself for consistent ones), and neither depends on
+    the first realization, so the loss's minimiser stays the clean image; the L2 one carries 10-20x less noise
+    (the evaluation's l2 against its input), so the small differences between candidates stand out of the
+    target's own variance sooner."""
+    if kind == "base":
+        return np.asarray(layer.base, np.float32)
+    if kind != "l2":
+        raise SystemExit(f"unknown target kind {kind!r}; expected one of {TARGETS}")
+    from model.poisson import solve_l2
+    from model.policy import DEFAULT_ALPHA
+
+    return solve_l2(layer.base, layer.dx, layer.dy, DEFAULT_ALPHA)
+
+
+def build_cache(data: Path, out: Path, kinds: tuple[str, ...] = CACHE_CANDIDATES,
+                layers: tuple[str, ...] = LAYERS, target: str = "base") -> None:
+    """Write out/{layer}/NNNNN.npy for every frame of the Noise2Noise dataset ``data`` and each of ``layers``
+    (skips existing files); ``target``: the kind of target_image cached beside the candidates."""
     from model.frame import read_frame
     from model.oidn import shared_denoiser
     from training.dataset import load_manifest
 
     manifest = load_manifest(data)
     den = shared_denoiser(OIDN_SETTING)
-    for layer in LAYERS:
+    if not layers or any(layer not in LAYERS for layer in layers):
+        raise SystemExit(f"--layers must be some of {LAYERS}, got {layers}")
+    for layer in layers:
         (out / layer).mkdir(parents=True, exist_ok=True)
     meta = {"version": CACHE_VERSION, "candidates": list(kinds), "oidn_setting": OIDN_SETTING,
             "blend_format": BLEND_FORMAT, "dataset": manifest.sha256, "frames": len(manifest.frames)}
+    if target != "base":  # (caches of base targets keep the metadata they were written with)
+        meta["target"] = target
     if (out / "cache.json").is_file() and json.loads((out / "cache.json").read_text()) != meta:
         raise SystemExit(f"{out} holds a cache of other candidates or code ({(out / 'cache.json').read_text()}); "
                          "use another folder or delete it")
     (out / "cache.json").write_text(json.dumps(meta))
     start = time.monotonic()
     for entry in manifest.frames:
-        paths = {layer: out / layer / f"{entry.index:05d}.npy" for layer in LAYERS}
+        paths = {layer: out / layer / f"{entry.index:05d}.npy" for layer in layers}
         if all(p.is_file() for p in paths.values()) or entry.target is None:
             continue
         frame = read_frame(entry.path, nonfinite="zero")
@@ -97,7 +127,8 @@ def build_cache(data: Path, out: Path, kinds: tuple[str, ...] = CACHE_CANDIDATES
         for layer, path in paths.items():
             if layer not in frame.layers or layer not in other.layers:
                 continue
-            planes = frame_planes(frame.layers[layer], frame.features, other.layers[layer].base, aux, kinds)
+            planes = frame_planes(frame.layers[layer], frame.features, target_image(other.layers[layer], target),
+                                  aux, kinds)
             tmp = path.with_name(path.name + ".tmp.npy")
             np.save(tmp, planes)
             os.replace(tmp, path)
@@ -129,11 +160,23 @@ def tensors(planes: torch.Tensor, kinds: tuple[str, ...],
 
 
 def n2n_loss(weights: torch.Tensor, cands: torch.Tensor, target: torch.Tensor,
-             denominator_source: torch.Tensor) -> torch.Tensor:
-    """mean (Σ w_k c_k − t)² / (sg(mean_rgb(d))² + REL_EPS); ``d`` is a function of the input realization only."""
+             denominator_source: torch.Tensor, base: torch.Tensor | None = None) -> torch.Tensor:
+    """mean (Σ w_k c_k − t)² / (sg(mean_rgb(d))² + REL_EPS); ``d`` is a function of the input realization only.
+
+    ``base`` (the input realization's scaled base, ``--loss-weight noise``): each sample's loss is weighted by
+    1 / (v + NOISE_WEIGHT_FLOOR), normalised to mean 1 over the batch, v = the sample's mean of
+    (base − d)² / (mean_rgb(d)² + REL_EPS): how noisy the input looks against the denoised image. The target's
+    noise is of the same order (the same scene, the same spp), so this is inverse-variance weighting, and it
+    depends on the input realization only: every patch's minimiser is still the clean image."""
     pred = torch.sum(weights.unsqueeze(2) * cands, dim=1)
-    den = denominator_source.detach().mean(dim=1, keepdim=True) ** 2 + REL_EPS
-    return torch.mean((pred - target) ** 2 / den)
+    d = denominator_source.detach()
+    den = d.mean(dim=1, keepdim=True) ** 2 + REL_EPS
+    per_pixel = (pred - target) ** 2 / den
+    if base is None:
+        return torch.mean(per_pixel)
+    noise = torch.mean((base.detach() - d) ** 2 / den, dim=(1, 2, 3))
+    omega = 1.0 / (noise + NOISE_WEIGHT_FLOOR)
+    return torch.mean(per_pixel.mean(dim=(1, 2, 3)) * omega / omega.mean())
 
 
 def sample(maps: list[np.ndarray], batch: int, patch: int, rng: np.random.Generator) -> torch.Tensor:
@@ -195,17 +238,29 @@ def train(args: argparse.Namespace) -> None:
     if meta.get("blend_format") != BLEND_FORMAT or any(k not in cached for k in kinds):
         raise SystemExit(f"{cache} holds candidates {cached} (format {meta.get('blend_format')}); this run needs "
                          f"{kinds} (format {BLEND_FORMAT}): rebuild the cache")
+    if args.init_prefer is not None and args.init_prefer not in kinds:
+        raise SystemExit(f"--init-prefer {args.init_prefer!r} is not one of the run's candidates {kinds}")
     cfg = {"layer": args.layer, "candidates": list(kinds), "patch": args.patch, "batch": args.batch, "lr": args.lr,
            "lr_schedule": args.lr_schedule,
            "seed": args.seed,
            "network": {"width": args.width, "depth": 3, "residual_blocks": args.blocks, "use_attention": True},
            "oidn_setting": OIDN_SETTING, "format": BLEND_FORMAT, "loss": f"n2n relmse eps {REL_EPS}",
            "dataset": meta["dataset"]}
+    if args.init_prefer is not None:
+        cfg["init_prefer"] = args.init_prefer
+    if meta.get("target", "base") != "base":
+        cfg["target"] = meta["target"]
+    if args.loss_weight != "none":
+        cfg["loss_weight"] = args.loss_weight
     if cfg_path.is_file() and json.loads(cfg_path.read_text()) != cfg:
         raise SystemExit(f"{run} holds a different run; use another folder")
     cfg_path.write_text(json.dumps(cfg, indent=2))
     torch.manual_seed(args.seed)
     net = _net(cfg)
+    if "init_prefer" in cfg:  # start at (nearly) that candidate alone instead of the plain average
+        with torch.no_grad():
+            net.head.bias.zero_()
+            net.head.bias[kinds.index(cfg["init_prefer"])] = INIT_PREFER_LOGIT
     opt = torch.optim.Adam(net.parameters(), lr=args.lr)
     step, elapsed = 0, 0.0
     if ckpt.is_file():
@@ -237,7 +292,8 @@ def train(args: argparse.Namespace) -> None:
         rng = np.random.default_rng([args.seed, step])
         planes = sample(maps, args.batch, args.patch, rng)
         data, gradient, cands, target = tensors(planes, kinds, cached)
-        loss = n2n_loss(net(data, gradient), cands, target, cands[:, 0])
+        base = planes[:, 0:3] if cfg.get("loss_weight") == "noise" else None
+        loss = n2n_loss(net(data, gradient), cands, target, cands[:, 0], base)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -315,6 +371,9 @@ def main(argv: list[str] | None = None) -> int:
     c.add_argument("--data", required=True)
     c.add_argument("-o", "--output", required=True)
     c.add_argument("--candidates", default=",".join(CACHE_CANDIDATES), help="the candidate kinds to cache")
+    c.add_argument("--layers", default=",".join(LAYERS), help="the layers to cache")
+    c.add_argument("--target", choices=TARGETS, default="base",
+                   help="the second realization's base, or its L2 Poisson reconstruction (unbiased, less noisy)")
     t = sub.add_parser("train")
     t.add_argument("--cache", required=True)
     t.add_argument("--layer", choices=LAYERS, required=True)
@@ -327,6 +386,10 @@ def main(argv: list[str] | None = None) -> int:
                    help="cosine: the learning rate decays to 0 over --minutes (a constant 1e-3 drifted: the held-out "
                         "error of a 15-min run was above its own 5-min checkpoint's)")
     t.add_argument("--seed", type=int, default=0)
+    t.add_argument("--loss-weight", choices=("none", "noise"), default="none",
+                   help="noise: weight each patch by the inverse of its input's noise (n2n_loss)")
+    t.add_argument("--init-prefer", default=None, metavar="KIND",
+                   help="start near this candidate alone (its logit INIT_PREFER_LOGIT) instead of the plain average")
     t.add_argument("--width", type=int, default=16, help="network width (model/network.py NetworkConfig)")
     t.add_argument("--blocks", type=int, default=4, help="residual blocks at the bottleneck")
     t.add_argument("-o", "--output", required=True)
@@ -336,7 +399,8 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1")))
     if args.cmd == "cache":
-        build_cache(Path(args.data), Path(args.output), tuple(k.strip() for k in args.candidates.split(",")))
+        build_cache(Path(args.data), Path(args.output), tuple(k.strip() for k in args.candidates.split(",")),
+                    tuple(k.strip() for k in args.layers.split(",")), args.target)
     elif args.cmd == "train":
         train(args)
     else:

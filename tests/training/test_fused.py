@@ -4,6 +4,7 @@ exposure invariance; models of another prior kind refused."""
 
 from __future__ import annotations
 
+import json
 import shutil
 from pathlib import Path
 
@@ -194,3 +195,60 @@ def test_a_fixed_layer_is_its_candidate_and_old_formats_are_refused(blend_models
     onnx.save(proto, folder / "indirect.onnx")
     with pytest.raises(ModelError, match="format '1'"):
         load_fused(tmp_path / "models")
+
+
+def test_l2_target_is_unbiased_and_the_image_for_consistent_data() -> None:
+    """The ``l2`` Noise2Noise target (the second realization's L2 Poisson solve): linear in base and gradients,
+    so its mean over noise is the clean image (no reference enters the loss), and for consistent data it is that
+    image itself; ``base`` is the base unchanged; an unknown kind is refused."""
+    from model.frame import Layer, forward_differences
+
+    rng = np.random.default_rng(5)
+    truth = rng.uniform(0.1, 2.0, (20, 24, 3)).astype(np.float32)
+    dx, dy = forward_differences(truth)
+    exact = fused_training.target_image(Layer(truth, dx, dy), "l2")
+    np.testing.assert_allclose(exact, truth, rtol=1e-4, atol=1e-5)
+    noisy = [Layer(truth + rng.normal(0, 0.3, truth.shape).astype(np.float32),
+                   dx + rng.normal(0, 0.1, dx.shape).astype(np.float32),
+                   dy + rng.normal(0, 0.1, dy.shape).astype(np.float32)) for _ in range(400)]
+    mean = np.mean([fused_training.target_image(layer, "l2") for layer in noisy], axis=0)
+    assert np.abs(mean - truth).mean() < 0.02  # the sample mean's own noise: about 0.3 / sqrt(400) / a few
+    one = fused_training.target_image(noisy[0], "l2")
+    assert np.mean((one - truth) ** 2) < 0.5 * np.mean((noisy[0].base - truth) ** 2)  # less noisy than its base
+    np.testing.assert_array_equal(fused_training.target_image(noisy[0], "base"), noisy[0].base)
+    with pytest.raises(SystemExit, match="unknown target kind"):
+        fused_training.target_image(noisy[0], "l1")
+
+
+def test_cache_options_layers_target_and_init_prefer(paired: Path, tmp_path: Path) -> None:
+    """``cache --layers direct --target l2`` writes the direct layer only, records its target kind, and caches
+    the L2 target; ``train --init-prefer KIND`` starts near KIND alone and refuses a kind the run does not use."""
+    out = tmp_path / "cache"
+    fused_training.main(["cache", "--data", str(paired), "-o", str(out), "--candidates", "oidn,refine-direct",
+                         "--layers", "direct", "--target", "l2"])
+    assert not (out / "indirect").exists() and sorted((out / "direct").glob("*.npy"))
+    meta = json.loads((out / "cache.json").read_text())
+    assert meta["target"] == "l2" and meta["candidates"] == ["oidn", "refine-direct"]
+    entry = load_manifest(paired).frames[1]
+    planes = np.load(out / "direct" / f"{entry.index:05d}.npy")
+    target = fused_training.target_image(read_frame(entry.target, nonfinite="zero").layers["direct"], "l2")
+    cached = planes[-3:] / target.transpose(2, 0, 1)  # the target times the input's exposure s, one number
+    assert np.allclose(cached, np.median(cached), rtol=1e-4) and np.median(cached) > 0
+    with pytest.raises(SystemExit, match="--layers"):
+        fused_training.build_cache(paired, tmp_path / "other", layers=("specular",))
+    run = tmp_path / "run"
+    args = ["train", "--cache", str(out), "--layer", "direct", "--candidates", "oidn,refine-direct", "--minutes", "0",
+            "--patch", "32", "--batch", "2", "--width", "4", "--blocks", "1", "-o", str(run)]
+    with pytest.raises(SystemExit, match="--init-prefer"):
+        fused_training.main([*args[:-1], str(tmp_path / "bad"), "--init-prefer", "l1"])
+    fused_training.main([*args, "--init-prefer", "refine-direct"])
+    state = torch.load(run / "checkpoint.pt", weights_only=True)
+    assert state["config"]["init_prefer"] == "refine-direct" and state["config"]["target"] == "l2"
+    net = fused_training._net(state["config"])
+    net.load_state_dict(state["model"])
+    data, gradient, cands, _ = fused_training.tensors(torch.from_numpy(planes)[None], ("oidn", "refine-direct"),
+                                                      ("oidn", "refine-direct"))
+    with torch.no_grad():
+        weights = net(data, gradient)
+    expected = np.exp(fused_training.INIT_PREFER_LOGIT) / (np.exp(fused_training.INIT_PREFER_LOGIT) + 1)
+    np.testing.assert_allclose(weights[0, 1].numpy(), expected, rtol=1e-5)  # zero-weight head: its bias alone
