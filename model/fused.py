@@ -11,7 +11,11 @@ weights over them; the output is the convex blend ``Σ_k w_k · candidate_k``. T
 * ``refine-fast`` -- the same problem solved cheaply (3 passes of 1 V-cycle, a quarter of the time): too rough
   alone, but a candidate the network can weigh;
 * ``l1``          -- the truncated robust Poisson solve of base + gradients the ``network`` method refines
-  (model.preprocess.poisson_prior); kept for studies, not used by the shipped models (it lost badly).
+  (model.preprocess.poisson_prior); kept for studies, not used by the shipped models (it lost badly);
+* ``refine-direct`` -- the ``oidn-l1`` method's refinement with its trust rule (a FIXED_KINDS entry, below), at
+  fused's CG budget: the direct layer's served image; a candidate for studies of a learned direct layer (docs/
+  network.md "Closing the teapot gap"; none shipped). Its settings are read from model/refine.py at call time,
+  so a model trained on it must be retrained whenever the trust rule or the refinement changes.
 
 Per layer (chosen on held-out seeds, docs/network.md "The fused method"): the indirect layer is the learned blend
 of {oidn, refine-fast} (models/fused/indirect.onnx); the direct layer, where no learned blend beat it, is the

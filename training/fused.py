@@ -93,14 +93,16 @@ def target_image(layer: Any, kind: str) -> np.ndarray:
 
 
 def build_cache(data: Path, out: Path, kinds: tuple[str, ...] = CACHE_CANDIDATES,
-                layers: tuple[str, ...] = LAYERS, target: str = "base") -> None:
+                layers: tuple[str, ...] = LAYERS, target: str = "base", extra: tuple[Path, ...] = ()) -> None:
     """Write out/{layer}/NNNNN.npy for every frame of the Noise2Noise dataset ``data`` and each of ``layers``
-    (skips existing files); ``target``: the kind of target_image cached beside the candidates."""
+    (skips existing files); ``target``: the kind of target_image cached beside the candidates. ``extra``: more
+    datasets (other spp, other scenes) cached beside it as x{i}-NNNNN.npy; training samples all files alike."""
     from model.frame import read_frame
     from model.oidn import shared_denoiser
     from training.dataset import load_manifest
 
     manifest = load_manifest(data)
+    extras = [load_manifest(path) for path in extra]
     den = shared_denoiser(OIDN_SETTING)
     if not layers or any(layer not in LAYERS for layer in layers):
         raise SystemExit(f"--layers must be some of {LAYERS}, got {layers}")
@@ -110,13 +112,17 @@ def build_cache(data: Path, out: Path, kinds: tuple[str, ...] = CACHE_CANDIDATES
             "blend_format": BLEND_FORMAT, "dataset": manifest.sha256, "frames": len(manifest.frames)}
     if target != "base":  # (caches of base targets keep the metadata they were written with)
         meta["target"] = target
+    if extras:
+        meta["extra_datasets"] = [m.sha256 for m in extras]
     if (out / "cache.json").is_file() and json.loads((out / "cache.json").read_text()) != meta:
         raise SystemExit(f"{out} holds a cache of other candidates or code ({(out / 'cache.json').read_text()}); "
                          "use another folder or delete it")
     (out / "cache.json").write_text(json.dumps(meta))
     start = time.monotonic()
-    for entry in manifest.frames:
-        paths = {layer: out / layer / f"{entry.index:05d}.npy" for layer in layers}
+    entries = [("", entry, len(manifest.frames)) for entry in manifest.frames]
+    entries += [(f"x{i}-", entry, len(m.frames)) for i, m in enumerate(extras) for entry in m.frames]
+    for prefix, entry, count in entries:
+        paths = {layer: out / layer / f"{prefix}{entry.index:05d}.npy" for layer in layers}
         if all(p.is_file() for p in paths.values()) or entry.target is None:
             continue
         frame = read_frame(entry.path, nonfinite="zero")
@@ -132,7 +138,7 @@ def build_cache(data: Path, out: Path, kinds: tuple[str, ...] = CACHE_CANDIDATES
             tmp = path.with_name(path.name + ".tmp.npy")
             np.save(tmp, planes)
             os.replace(tmp, path)
-        print(f"cache {entry.index + 1}/{len(manifest.frames)} ({time.monotonic() - start:.0f} s)", flush=True)
+        print(f"cache {prefix}{entry.index + 1}/{count} ({time.monotonic() - start:.0f} s)", flush=True)
 
 
 # ------------------------------------------------------------------------------------------------ batches
@@ -372,6 +378,8 @@ def main(argv: list[str] | None = None) -> int:
     c.add_argument("-o", "--output", required=True)
     c.add_argument("--candidates", default=",".join(CACHE_CANDIDATES), help="the candidate kinds to cache")
     c.add_argument("--layers", default=",".join(LAYERS), help="the layers to cache")
+    c.add_argument("--extra-data", action="append", default=[], metavar="DATASET",
+                   help="another Noise2Noise dataset to cache beside --data (repeatable: other spp, other scenes)")
     c.add_argument("--target", choices=TARGETS, default="base",
                    help="the second realization's base, or its L2 Poisson reconstruction (unbiased, less noisy)")
     t = sub.add_parser("train")
@@ -400,7 +408,8 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1")))
     if args.cmd == "cache":
         build_cache(Path(args.data), Path(args.output), tuple(k.strip() for k in args.candidates.split(",")),
-                    tuple(k.strip() for k in args.layers.split(",")), args.target)
+                    tuple(k.strip() for k in args.layers.split(",")), args.target,
+                    tuple(Path(p) for p in args.extra_data))
     elif args.cmd == "train":
         train(args)
     else:

@@ -252,3 +252,46 @@ def test_cache_options_layers_target_and_init_prefer(paired: Path, tmp_path: Pat
         weights = net(data, gradient)
     expected = np.exp(fused_training.INIT_PREFER_LOGIT) / (np.exp(fused_training.INIT_PREFER_LOGIT) + 1)
     np.testing.assert_allclose(weights[0, 1].numpy(), expected, rtol=1e-5)  # zero-weight head: its bias alone
+
+
+def test_noise_weighted_loss_is_inverse_variance_weighting_of_samples() -> None:
+    """``--loss-weight noise``: identical samples weigh alike (the plain loss); otherwise each sample's loss is
+    weighted by 1 / (v + floor), normalised to mean 1, v its input's noise against the denoised candidate: the
+    noisier input weighs less, and the weights come from the input alone (a changed target leaves them)."""
+    rng = torch.Generator().manual_seed(0)
+    clean = torch.rand(1, 3, 8, 8, generator=rng) + 0.5
+    cands = clean[:, None].repeat(2, 2, 1, 1, 1)  # (N=2, K=2, 3, h, w): both candidates the clean image
+    weights = torch.full((2, 2, 8, 8), 0.5)
+    den = clean.mean(dim=1, keepdim=True) ** 2 + fused_training.REL_EPS
+    plain = fused_training.n2n_loss(weights, cands, clean.repeat(2, 1, 1, 1), cands[:, 0])
+    assert float(plain) == 0.0
+    same = clean.repeat(2, 1, 1, 1) + 0.05
+    noisy = torch.cat([clean + 0.01, clean + 1.0])  # sample 1's input is far noisier than sample 0's
+    v = ((noisy - clean) ** 2 / den).mean(dim=(1, 2, 3))
+    w = 1.0 / (v + fused_training.NOISE_WEIGHT_FLOOR)
+    w = w / w.mean()
+    assert float(w[0]) > 1.0 > float(w[1])
+    for scale in (1.0, 2.0):  # two targets: the loss changes, the weights do not
+        target = scale * clean.repeat(2, 1, 1, 1) + 0.1 * torch.randn(2, 3, 8, 8, generator=rng)
+        per = ((target - clean) ** 2 / den).mean(dim=(1, 2, 3))
+        torch.testing.assert_close(fused_training.n2n_loss(weights, cands, target, cands[:, 0], same), per.mean())
+        torch.testing.assert_close(fused_training.n2n_loss(weights, cands, target, cands[:, 0], noisy),
+                                   (per * w).mean())
+
+
+def test_cache_extra_data_is_cached_beside_and_recorded(paired: Path, tmp_path: Path) -> None:
+    """``cache --extra-data D`` adds a second dataset's frames as x0-NNNNN.npy beside the first's (training
+    samples every file of the layer folder), and the cache records both datasets."""
+    other = make_synthetic_dataset(tmp_path / "other", frames=2, width=40, height=32, spp=16, first_seed=7000,
+                                   pairs=True)
+    out = tmp_path / "cache"
+    fused_training.main(["cache", "--data", str(paired), "--extra-data", str(other), "-o", str(out),
+                         "--candidates", "oidn", "--layers", "indirect"])
+    names = sorted(p.name for p in (out / "indirect").glob("*.npy"))
+    first = [n for n in names if not n.startswith("x0-")]
+    extra = [n for n in names if n.startswith("x0-")]
+    assert len(first) == len([e for e in load_manifest(paired).frames if e.target is not None])
+    assert len(extra) == len([e for e in load_manifest(other).frames if e.target is not None]) > 0
+    meta = json.loads((out / "cache.json").read_text())
+    assert meta["dataset"] == load_manifest(paired).sha256 and meta["extra_datasets"] == [load_manifest(other).sha256]
+    assert np.load(out / "indirect" / extra[0]).shape[1:] == (32, 40)
