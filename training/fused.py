@@ -49,6 +49,8 @@ def cache_planes(k: int) -> int:
 REL_EPS = 1e-2
 #: Noise2Noise target kinds of the cache (target_image).
 TARGETS = ("base", "l2")
+#: What the loss divides a layer's error by (cache --normalise): that layer's brightness, or the frame's.
+NORMALISERS = ("layer", "frame")
 #: ``train --init-prefer KIND``: that candidate's initial logit (the others 0), so an untrained model is close to
 #: KIND alone (weight e^4 / (e^4 + K − 1): 0.96 for K = 3) and training learns where to leave it.
 INIT_PREFER_LOGIT = 4.0
@@ -61,9 +63,11 @@ LAYERS = ("direct", "indirect")
 
 
 def frame_planes(layer: Any, features: Any, target_base: np.ndarray, aux: Any,
-                 kinds: tuple[str, ...] = CACHE_CANDIDATES) -> np.ndarray:
+                 kinds: tuple[str, ...] = CACHE_CANDIDATES, rest: np.ndarray | None = None) -> np.ndarray:
     """(cache_planes(K), H, W) float32 for one layer of one frame; the candidates ``kinds`` from
-    model.fused.layer_candidates."""
+    model.fused.layer_candidates. ``rest`` (``cache --normalise frame``): OIDN's image of the frame's other
+    layers, in the frame's units; 3 more planes are appended, the loss's brightness source: OIDN's image of this
+    layer + rest, at the layer's exposure (the frame's brightness, which the product's RelMSE divides by)."""
     from model.fused import layer_candidates
     from model.preprocess import DepthRange, feature_planes, scaled_image
 
@@ -71,8 +75,15 @@ def frame_planes(layer: Any, features: Any, target_base: np.ndarray, aux: Any,
     chw = [np.asarray(x, np.float32).transpose(2, 0, 1) for x in (scaled.base, scaled.dx, scaled.dy, *cands)]
     feats = feature_planes(features, DepthRange.of(features.depth))
     target = scaled_image(target_base, scale).transpose(2, 0, 1)
-    planes = np.concatenate([*chw, feats, target]).astype(np.float32)
+    extra = [] if rest is None else [(cands[0] + scaled_image(rest, scale)).transpose(2, 0, 1)]
+    planes = np.concatenate([*chw, feats, target, *extra]).astype(np.float32)
     return np.nan_to_num(planes, nan=0.0, posinf=0.0, neginf=0.0)
+
+
+def brightness_source(planes: torch.Tensor, cands: torch.Tensor, frame_normalised: bool) -> torch.Tensor:
+    """What n2n_loss divides by: OIDN's image of the layer (the first candidate), or with a frame-normalised
+    cache (its trailing 3 planes) OIDN's image of the whole frame at the layer's exposure."""
+    return planes[:, -3:] if frame_normalised else cands[:, 0]
 
 
 def target_image(layer: Any, kind: str) -> np.ndarray:
@@ -93,10 +104,12 @@ def target_image(layer: Any, kind: str) -> np.ndarray:
 
 
 def build_cache(data: Path, out: Path, kinds: tuple[str, ...] = CACHE_CANDIDATES,
-                layers: tuple[str, ...] = LAYERS, target: str = "base", extra: tuple[Path, ...] = ()) -> None:
+                layers: tuple[str, ...] = LAYERS, target: str = "base", extra: tuple[Path, ...] = (),
+                normalise: str = "layer") -> None:
     """Write out/{layer}/NNNNN.npy for every frame of the Noise2Noise dataset ``data`` and each of ``layers``
     (skips existing files); ``target``: the kind of target_image cached beside the candidates. ``extra``: more
-    datasets (other spp, other scenes) cached beside it as x{i}-NNNNN.npy; training samples all files alike."""
+    datasets (other spp, other scenes) cached beside it as x{i}-NNNNN.npy; training samples all files alike.
+    ``normalise``: ``frame`` caches the frame's brightness for the loss (frame_planes ``rest``)."""
     from model.frame import read_frame
     from model.oidn import shared_denoiser
     from training.dataset import load_manifest
@@ -114,6 +127,10 @@ def build_cache(data: Path, out: Path, kinds: tuple[str, ...] = CACHE_CANDIDATES
         meta["target"] = target
     if extras:
         meta["extra_datasets"] = [m.sha256 for m in extras]
+    if normalise not in NORMALISERS:
+        raise SystemExit(f"--normalise must be one of {NORMALISERS}, got {normalise!r}")
+    if normalise != "layer":
+        meta["normalise"] = normalise
     if (out / "cache.json").is_file() and json.loads((out / "cache.json").read_text()) != meta:
         raise SystemExit(f"{out} holds a cache of other candidates or code ({(out / 'cache.json').read_text()}); "
                          "use another folder or delete it")
@@ -133,8 +150,12 @@ def build_cache(data: Path, out: Path, kinds: tuple[str, ...] = CACHE_CANDIDATES
         for layer, path in paths.items():
             if layer not in frame.layers or layer not in other.layers:
                 continue
+            rest = None
+            if normalise == "frame":
+                rest = sum((den.denoise(frame.layers[o].base, aux) for o in frame.layers if o != layer),
+                           np.zeros_like(frame.layers[layer].base))
             planes = frame_planes(frame.layers[layer], frame.features, target_image(other.layers[layer], target),
-                                  aux, kinds)
+                                  aux, kinds, rest)
             tmp = path.with_name(path.name + ".tmp.npy")
             np.save(tmp, planes)
             os.replace(tmp, path)
@@ -213,7 +234,7 @@ def _net(cfg: dict[str, Any]) -> torch.nn.Module:
 
 @torch.no_grad()
 def validate(net: torch.nn.Module, maps: list[np.ndarray], kinds: tuple[str, ...],
-             cached: tuple[str, ...] = CACHE_CANDIDATES) -> dict[str, float]:
+             cached: tuple[str, ...] = CACHE_CANDIDATES, frame_normalised: bool = False) -> dict[str, float]:
     """Noise2Noise loss on the validation frames (whole frames) for the blend and for each candidate alone:
     the blend earns its place where its value is below every candidate's (all share the target's variance)."""
     net.eval()
@@ -222,11 +243,12 @@ def validate(net: torch.nn.Module, maps: list[np.ndarray], kinds: tuple[str, ...
         planes = torch.from_numpy(np.array(arr))[None]  # a copy: the memory map is read-only
         data, gradient, cands, target = tensors(planes, kinds, cached)
         weights = net(data, gradient)
-        sums["blend"] = sums.get("blend", 0.0) + float(n2n_loss(weights, cands, target, cands[:, 0]))
+        bright = brightness_source(planes, cands, frame_normalised)
+        sums["blend"] = sums.get("blend", 0.0) + float(n2n_loss(weights, cands, target, bright))
         for k, kind in enumerate(kinds):
             one = torch.zeros_like(weights)
             one[:, k] = 1.0
-            sums[kind] = sums.get(kind, 0.0) + float(n2n_loss(one, cands, target, cands[:, 0]))
+            sums[kind] = sums.get(kind, 0.0) + float(n2n_loss(one, cands, target, bright))
     net.train()
     return {k: v / len(maps) for k, v in sums.items()}
 
@@ -258,6 +280,11 @@ def train(args: argparse.Namespace) -> None:
         cfg["target"] = meta["target"]
     if args.loss_weight != "none":
         cfg["loss_weight"] = args.loss_weight
+    frame_normalised = meta.get("normalise") == "frame"
+    if frame_normalised:
+        cfg["normalise"] = "frame"
+        if args.loss_weight != "none":  # its noise proxy compares the layer's base with the layer's own OIDN image
+            raise SystemExit("--loss-weight noise needs a cache normalised per layer (cache --normalise layer)")
     if cfg_path.is_file() and json.loads(cfg_path.read_text()) != cfg:
         raise SystemExit(f"{run} holds a different run; use another folder")
     cfg_path.write_text(json.dumps(cfg, indent=2))
@@ -299,7 +326,7 @@ def train(args: argparse.Namespace) -> None:
         planes = sample(maps, args.batch, args.patch, rng)
         data, gradient, cands, target = tensors(planes, kinds, cached)
         base = planes[:, 0:3] if cfg.get("loss_weight") == "noise" else None
-        loss = n2n_loss(net(data, gradient), cands, target, cands[:, 0], base)
+        loss = n2n_loss(net(data, gradient), cands, target, brightness_source(planes, cands, frame_normalised), base)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -314,7 +341,7 @@ def train(args: argparse.Namespace) -> None:
             save()
             last_save = time.monotonic()
     save()
-    val = validate(net, val_maps, kinds, cached)
+    val = validate(net, val_maps, kinds, cached, frame_normalised)
     record = {"kind": "validation", "step": step, "elapsed": round(elapsed + time.monotonic() - start, 1),
               "n2n_relmse": val}
     with open(run / "log.jsonl", "a") as fh:
@@ -378,6 +405,8 @@ def main(argv: list[str] | None = None) -> int:
     c.add_argument("-o", "--output", required=True)
     c.add_argument("--candidates", default=",".join(CACHE_CANDIDATES), help="the candidate kinds to cache")
     c.add_argument("--layers", default=",".join(LAYERS), help="the layers to cache")
+    c.add_argument("--normalise", choices=NORMALISERS, default="layer",
+                   help="frame: the loss divides by the frame's brightness (all layers' OIDN), as the product's RelMSE")
     c.add_argument("--extra-data", action="append", default=[], metavar="DATASET",
                    help="another Noise2Noise dataset to cache beside --data (repeatable: other spp, other scenes)")
     c.add_argument("--target", choices=TARGETS, default="base",
@@ -409,7 +438,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.cmd == "cache":
         build_cache(Path(args.data), Path(args.output), tuple(k.strip() for k in args.candidates.split(",")),
                     tuple(k.strip() for k in args.layers.split(",")), args.target,
-                    tuple(Path(p) for p in args.extra_data))
+                    tuple(Path(p) for p in args.extra_data), args.normalise)
     elif args.cmd == "train":
         train(args)
     else:

@@ -295,3 +295,30 @@ def test_cache_extra_data_is_cached_beside_and_recorded(paired: Path, tmp_path: 
     meta = json.loads((out / "cache.json").read_text())
     assert meta["dataset"] == load_manifest(paired).sha256 and meta["extra_datasets"] == [load_manifest(other).sha256]
     assert np.load(out / "indirect" / extra[0]).shape[1:] == (32, 40)
+
+
+def test_frame_normalised_cache_divides_by_the_frames_brightness(paired: Path, tmp_path: Path) -> None:
+    """``cache --normalise frame``: each layer's file carries 3 more planes, OIDN's image of the layer plus the
+    other layers' OIDN images at the layer's exposure, and the loss divides by them (brightness_source); the
+    noise-weighted loss, whose proxy is per layer, is refused on such a cache."""
+    out = tmp_path / "cache"
+    fused_training.main(["cache", "--data", str(paired), "-o", str(out), "--candidates", "oidn",
+                         "--normalise", "frame"])
+    assert json.loads((out / "cache.json").read_text())["normalise"] == "frame"
+    entry = load_manifest(paired).frames[1]
+    frame = read_frame(entry.path, nonfinite="zero")
+    den = shared_denoiser(OIDN_SETTING)
+    aux = den.prefilter(frame.features)
+    indirect = den.denoise(frame.layers["indirect"].base, aux)
+    planes = np.load(out / "direct" / f"{entry.index:05d}.npy")
+    assert planes.shape[0] == fused_training.cache_planes(1) + 3
+    _, (oidn,), scale = layer_candidates(frame.layers["direct"], aux, ("oidn",))
+    np.testing.assert_allclose(planes[-3:], (oidn + indirect * scale).transpose(2, 0, 1), rtol=1e-5, atol=1e-6)
+    t = torch.from_numpy(planes)[None]
+    _, _, cands, target = fused_training.tensors(t, ("oidn",), ("oidn",))
+    np.testing.assert_array_equal(target[0].numpy(), planes[-6:-3])  # the target is where it always was
+    np.testing.assert_array_equal(fused_training.brightness_source(t, cands, True)[0].numpy(), planes[-3:])
+    np.testing.assert_array_equal(fused_training.brightness_source(t, cands, False).numpy(), cands[:, 0].numpy())
+    with pytest.raises(SystemExit, match="normalise"):
+        fused_training.main(["train", "--cache", str(out), "--layer", "direct", "--candidates", "oidn",
+                             "--minutes", "0", "--loss-weight", "noise", "-o", str(tmp_path / "run")])
