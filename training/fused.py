@@ -44,7 +44,7 @@ CACHE_VERSION = 2
 
 def cache_planes(k: int) -> int:
     """Planes per cached (frame, layer) with K candidates: base 3, dx 3, dy 3, candidates 3·K, features 7,
-    target base 3."""
+    target 3 (and 3 more, the frame's brightness, in a ``--normalise frame`` cache: brightness_source)."""
     return 9 + 3 * k + 7 + 3
 REL_EPS = 1e-2
 #: Noise2Noise target kinds of the cache (target_image).
@@ -90,9 +90,9 @@ def target_image(layer: Any, kind: str) -> np.ndarray:
     """The Noise2Noise target of one layer of the *second* realization: its base (``base``), or its exact L2
     screened Poisson reconstruction from base + gradients at the product's α (``l2``). Both are unbiased (the L2
     solve is linear in unbiased inputs, and returns the image itself for consistent ones), and neither depends on
-    the first realization, so the loss's minimiser stays the clean image; the L2 one carries 10-20x less noise
-    (the evaluation's l2 against its input), so the small differences between candidates stand out of the
-    target's own variance sooner."""
+    the first realization, so the loss's minimiser stays the clean image; the L2 one carries less noise (the
+    median training frame's direct-layer loss fell 8x, docs/network.md "Closing the teapot gap"), so small
+    differences between candidates stand out of the target's own variance sooner."""
     if kind == "base":
         return np.asarray(layer.base, np.float32)
     if kind != "l2":
