@@ -39,6 +39,8 @@ import ctypes.util
 import logging
 import os
 
+from model.environment import env_int
+
 log = logging.getLogger(__name__)
 
 ARENAS_ENV = "GRADSEP_MALLOC_ARENAS"
@@ -53,16 +55,7 @@ TRIM_THRESHOLD = 1024 * 1024 * 1024
 
 def arenas_setting() -> int:
     """``$GRADSEP_MALLOC_ARENAS`` (≥ 0) or DEFAULT_ARENAS; ValueError naming the variable when it is not."""
-    raw = os.environ.get(ARENAS_ENV, "").strip()
-    if not raw:
-        return DEFAULT_ARENAS
-    try:
-        value = int(raw)
-    except ValueError:
-        raise ValueError(f"${ARENAS_ENV}={raw!r} is not an integer (0 keeps glibc's default)") from None
-    if value < 0:
-        raise ValueError(f"${ARENAS_ENV}={value} must be at least 0 (0 keeps glibc's default)")
-    return value
+    return env_int(ARENAS_ENV, DEFAULT_ARENAS, 0, "0 keeps glibc's default")
 
 
 def _libc() -> ctypes.CDLL | None:

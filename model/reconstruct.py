@@ -39,6 +39,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from model import policy
+from model.environment import env_int
 from model.frame import Features, Frame, Layer
 from model.poisson import solve_l1, solve_l2
 from model.policy import (
@@ -151,17 +152,7 @@ _PIPELINED_METHODS: frozenset[str] = frozenset({*OIDN_METHODS, "fused"})
 
 def layer_threads() -> int:
     """The number of layers reconstructed concurrently: ``$GRADSEP_LAYER_THREADS`` (≥ 1) or the default."""
-    raw = os.environ.get(LAYER_THREADS_ENV, "").strip()
-    if not raw:
-        return DEFAULT_LAYER_THREADS
-    try:
-        value = int(raw)
-    except ValueError:
-        raise ValueError(f"${LAYER_THREADS_ENV}={raw!r} is not an integer (1 runs the layers one after the "
-                         "other)") from None
-    if value < 1:
-        raise ValueError(f"${LAYER_THREADS_ENV}={value} must be at least 1")
-    return value
+    return env_int(LAYER_THREADS_ENV, DEFAULT_LAYER_THREADS, 1, "1 runs the layers one after the other")
 
 
 def _timed(fn: Callable[..., np.ndarray], *args: Any) -> tuple[np.ndarray, float]:

@@ -12,6 +12,7 @@ from typing import Literal
 from pydantic import AliasChoices, Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from model.allocator import DEFAULT_ARENAS
 from model.poisson import MIN_ALPHA
 from model.policy import DEFAULT_ALPHA, DEFAULT_MODELS_DIR, MODELS_ENV
 
@@ -54,7 +55,7 @@ class Settings(BaseSettings):
         description="OpenEXR's process-wide worker threads for decoding requests and encoding answers "
                     "(line blocks are (de)compressed in parallel): -1 one per core, 0 single-threaded")
     malloc_arenas: int = Field(
-        1, ge=0, le=1024,
+        DEFAULT_ARENAS, ge=0, le=1024,
         description="glibc malloc arenas of the process, with fixed mmap/trim thresholds (model/allocator.py): 1 "
                     "keeps the frame-sized temporaries of the worker threads in one arena that keeps its memory "
                     "(no fresh pages per request; half the peak RSS); 0 leaves glibc's malloc as it is; the "

@@ -63,15 +63,17 @@ LAYERS = ("direct", "indirect")
 
 
 def frame_planes(layer: Any, features: Any, target_base: np.ndarray, aux: Any,
-                 kinds: tuple[str, ...] = CACHE_CANDIDATES, rest: np.ndarray | None = None) -> np.ndarray:
+                 kinds: tuple[str, ...] = CACHE_CANDIDATES, rest: np.ndarray | None = None,
+                 denoised: np.ndarray | None = None) -> np.ndarray:
     """(cache_planes(K), H, W) float32 for one layer of one frame; the candidates ``kinds`` from
     model.fused.layer_candidates. ``rest`` (``cache --normalise frame``): OIDN's image of the frame's other
     layers, in the frame's units; 3 more planes are appended, the loss's brightness source: OIDN's image of this
-    layer + rest, at the layer's exposure (the frame's brightness, which the product's RelMSE divides by)."""
+    layer + rest, at the layer's exposure (the frame's brightness, which the product's RelMSE divides by).
+    ``denoised``: the layer's OIDN image when the caller has it (layer_candidates then does not run OIDN)."""
     from model.fused import layer_candidates
     from model.preprocess import DepthRange, feature_planes, scaled_image
 
-    scaled, cands, scale = layer_candidates(layer, aux, kinds)
+    scaled, cands, scale = layer_candidates(layer, aux, kinds, denoised=denoised)
     chw = [np.asarray(x, np.float32).transpose(2, 0, 1) for x in (scaled.base, scaled.dx, scaled.dy, *cands)]
     feats = feature_planes(features, DepthRange.of(features.depth))
     target = scaled_image(target_base, scale).transpose(2, 0, 1)
@@ -147,15 +149,17 @@ def build_cache(data: Path, out: Path, kinds: tuple[str, ...] = CACHE_CANDIDATES
         if frame.features is None:
             continue
         aux = den.prefilter(frame.features)
+        # a frame-normalised cache needs every layer's OIDN image: each is denoised once and shared
+        images = {o: den.denoise(frame.layers[o].base, aux) for o in frame.layers} if normalise == "frame" else {}
         for layer, path in paths.items():
             if layer not in frame.layers or layer not in other.layers:
                 continue
             rest = None
-            if normalise == "frame":
-                rest = sum((den.denoise(frame.layers[o].base, aux) for o in frame.layers if o != layer),
+            if images:
+                rest = sum((image for o, image in images.items() if o != layer),
                            np.zeros_like(frame.layers[layer].base))
             planes = frame_planes(frame.layers[layer], frame.features, target_image(other.layers[layer], target),
-                                  aux, kinds, rest)
+                                  aux, kinds, rest, images.get(layer))
             tmp = path.with_name(path.name + ".tmp.npy")
             np.save(tmp, planes)
             os.replace(tmp, path)
