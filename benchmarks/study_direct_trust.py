@@ -6,6 +6,8 @@ from what the frame carries (base, gradients, OIDN's image; no reference).
     python benchmarks/study_direct_trust.py error                   # design + validation tables (cached frames)
     python benchmarks/study_direct_trust.py error --per-frame       # plus each frame's statistic r and ratios
     python benchmarks/study_direct_trust.py time                    # 1280x720 cost of the rule
+    python benchmarks/study_direct_trust.py twins --cache DIR       # a second realization of each cached frame
+    python benchmarks/study_direct_trust.py noise --caches DIR,...  # frame noise ratio against the best clean alpha
 
 Two frame sets, both procedural seeds outside the evaluation's (90001, 90002) and the training range; nothing here
 reads cbox or the teapot. **Design**: the ``oidn-l1`` study's frames (benchmarks/study_refine.py's cache, seeds
@@ -42,7 +44,14 @@ RULES: dict[str, tuple] = {
     "per pixel + frame r 0.1-0.3": (3, 0.1, 1.0, (0.1, 0.3)),
     "shipped, clean-frame alpha 0.2": (3, 0.1, 1.0, (0.05, 0.2), 0.2),
     "shipped, clean-frame alpha 0.3": (3, 0.1, 1.0, (0.05, 0.2), 0.3),
+    "shipped, clean-frame alpha 0.1": (3, 0.1, 1.0, (0.05, 0.2), 0.1),
 }
+#: Spatially varying α (session 15): on a clean layer (frame weight w_f) each pixel's data weight falls from the
+#: shipped α towards this one as far as its own trust weight allows, α(x) = α_f − (α_f − α_lo)·w_f·w(x), so a
+#: region whose base disagrees with its gradients keeps pinning the solve (a global low α lets its error drift).
+SPATIAL_ALPHAS = (0.2, 0.1)
+#: The seed of the second realization (``twins``); the cached frames are rendered with seed 7.
+TWIN_SEED = 8
 
 
 def _rule(constants: tuple | None) -> Callable:
@@ -77,6 +86,63 @@ def _per_frame(denoised, layer):
     return refine.refine_layer("direct", data, layer, 1.0 - 0.5 * w)
 
 
+def _solve_l1_alpha_map(data, dx, dy, alpha: float, m) -> np.ndarray:
+    """model.poisson.solve_l1's IRLS (mg preconditioner, the refinement's CG rule) with the data term's α
+    multiplied per pixel by ``m`` (H, W): Σ α·m(x)‖I − data‖ + Σ ‖∇I − g‖. The L2 start keeps the scalar α. A
+    study prototype on the solver's private pieces: m ≡ 1 gives refine_layer's solve to float rounding."""
+    from model import poisson, refine
+
+    work = np.float32
+    b, gx, gy = poisson._prepare(data, dx, dy, alpha, work)
+    scale = max(float(np.abs(a).max()) for a in (b, gx, gy)) or 1.0
+    for a in (b, gx, gy):
+        a /= work(scale)
+    m = np.ascontiguousarray(m, work)
+    x = poisson._l2_core(b, gx, gy, alpha)
+
+    class System(poisson._WeightedSystem):
+        def set_weights(self, norms, reg):
+            w0, wx, wy = (1.0 / (n + reg) for n in norms)
+            total = sum(w.sum(dtype=np.float64) for w in (w0, wx, wy))
+            s = self.dtype.type((w0.size + wx.size + wy.size) / total)
+            self.w0, self.wx, self.wy = (np.ascontiguousarray(w * s, self.dtype) for w in (w0, wx, wy))
+            self._a2w0 = np.ascontiguousarray(self.alpha2 * m * m * self.w0, self.dtype)
+            self._aw0 = np.ascontiguousarray(self.alpha * m * self.w0, self.dtype)
+            diag = self._a2w0.astype(np.float64)
+            self._scatter_add(diag, self.wx, self.wy)
+            self._multigrid = poisson._Multigrid(self._a2w0, self.wx, self.wy, self._gx.shape[0], diag)
+
+    def residuals():
+        (e0, ex, ey), (n0, nx, ny) = poisson._residuals_and_norms(x, b, gx, gy, alpha)
+        return (e0 * m, ex, ey), (n0 * m, nx, ny)
+
+    system = System(x.shape, alpha, np.dtype(work), "mg")
+    res, norms = residuals()
+    for k in range(1, refine.REFINE_ITERATIONS):
+        system.set_weights(norms, reg=0.05 * 0.5 ** (k - 1) / scale)
+        delta, _, _ = poisson._pcg(system, system.rhs(*res), refine.REFINE_MAX_CG_STEPS, refine.REFINE_CG_TOLERANCE)
+        x += delta
+        res, norms = residuals()
+    return np.moveaxis(x * scale, 0, -1)
+
+
+def _spatial_rule(alpha_low: float) -> Callable:
+    """f(denoised, layer): the shipped trust rule's data term, solved with a per-pixel α (SPATIAL_ALPHAS)."""
+    from model import refine
+
+    def run(denoised, layer):
+        s = refine.input_scale(denoised)
+        base, prior, dx, dy = (refine.scaled_image(a, s) for a in (layer.base, denoised, layer.dx, layer.dy))
+        maps = refine._disagreement_maps(base, dx, dy)
+        w = refine.trust_weights(base, dx, dy, maps)
+        frame = refine._log_ramp(refine.frame_disagreement(base, prior, dx, dy, maps), *refine.TRUST_FRAME_R)
+        data = (prior + np.maximum(w, np.float32(frame)) * (base - prior)).astype(np.float32)
+        alpha = refine.REFINE_ALPHA - (refine.REFINE_ALPHA - refine.TRUST_ALPHA_BASE) * frame
+        m = 1.0 - (1.0 - alpha_low / alpha) * frame * w[..., 0]
+        return np.clip(_solve_l1_alpha_map(data, dx, dy, alpha, m) / s, 0.0, None).astype(np.float32)
+    return run
+
+
 def variants() -> dict[str, Callable]:
     """name -> f(denoised direct image, direct layer); 'plain refinement' is the ratio's denominator."""
     from model import refine
@@ -91,6 +157,7 @@ def variants() -> dict[str, Callable]:
         "per-frame rule only (design a)": _per_frame,
     }
     out.update({k: _rule(v) for k, v in RULES.items()})
+    out.update({f"spatial alpha {a} (per-pixel trust)": _spatial_rule(a) for a in SPATIAL_ALPHAS})
     return out
 
 
@@ -202,6 +269,67 @@ def _time_one(layer, prior: np.ndarray, repeats: int, median_seconds: Callable, 
           flush=True)
 
 
+def twins(cache: Path) -> None:
+    """Render a second, independent realization (seed TWIN_SEED) of every cached frame as twin-SPP.exr."""
+    from study_refine import SIZE
+
+    from model.frame import write_frame
+    from renderer.render import render_frame
+    from renderer.scene import load_scene
+
+    for folder in sorted(p for p in cache.glob("procedural-*") if p.is_dir()):
+        loaded = load_scene(f"procedural:{folder.name.removeprefix('procedural-')}", width=SIZE[0], height=SIZE[1])
+        for path in sorted(folder.glob("gpt-*.exr")):
+            out = folder / f"twin-{path.stem.removeprefix('gpt-')}.exr"
+            if not out.is_file():
+                write_frame(out, render_frame(loaded, spp=int(path.stem.removeprefix("gpt-")), seed=TWIN_SEED))
+        print(f"{folder}: twins cached", flush=True)
+
+
+def noise(caches: list[Path]) -> None:
+    """Per clean frame (w_f > 0): the frame-wide noise of the direct layer's base and gradients, estimated from the
+    frame and its twin (E(a₁ − a₂)²/2, weighted like frame_disagreement), the α that ratio implies for
+    independent Gaussian noise, √(σ²_g / σ²_b), against how a lower clean-frame α (0.2) does there (direct RelMSE
+    / the shipped rule's). If the noise decided the best α, frames with a small √(σ²_g/σ²_b) would prefer 0.2."""
+    from model import refine
+    from model.frame import read_frame
+    from model.metrics import relmse_unbiased
+    from model.oidn import METHOD_SETTING, Denoiser, input_scale
+    from model.preprocess import scaled_image
+
+    den = Denoiser(METHOD_SETTING)
+    low = _rule((3, 0.1, 1.0, (0.05, 0.2), 0.2))
+    print("| frame | w_f | √(σ²_g/σ²_b) | α 0.2 / shipped (direct) |\n|---|---:|---:|---:|")
+    pairs = []
+    for cache in caches:
+        for label, path, r1, r2 in _frames(cache):
+            twin = path.with_name(path.name.replace("gpt-", "twin-"))
+            if not twin.is_file():
+                continue
+            frame, other = read_frame(str(path)), read_frame(str(twin))
+            layer, layer2 = frame.layers["direct"], other.layers["direct"]
+            denoised = den.denoise(layer.base, den.prefilter(frame.features) if frame.features else None)
+            s = input_scale(denoised)
+            b1, b2, x1, x2, y1, y2, prior = (scaled_image(a, s) for a in (
+                layer.base, layer2.base, layer.dx, layer2.dx, layer.dy, layer2.dy, denoised))
+            wf = refine._log_ramp(refine.frame_disagreement(b1, prior, x1, y1), *refine.TRUST_FRAME_R)
+            if wf == 0.0:
+                continue
+            omega = 1.0 / (np.square(prior.mean(axis=-1)) + np.float32(1e-2))
+            vb = float(np.sum(omega * np.square(b1 - b2).mean(axis=-1)))
+            vg = float(np.sum(omega * (np.square(x1 - x2) + np.square(y1 - y2)).mean(axis=-1))) / 2.0
+            shipped = relmse_unbiased(refine.refine_layer("direct", denoised, layer), r1["direct"], r2["direct"])
+            ratio = relmse_unbiased(low(denoised, layer), r1["direct"], r2["direct"]) / shipped
+            pairs.append((math.sqrt(vg / vb), ratio))
+            print(f"| {cache.name} {label} | {wf:.2f} | {pairs[-1][0]:.3f} | {ratio:.3f} |", flush=True)
+    den.close()
+    if len(pairs) > 2:
+        from scipy.stats import spearmanr
+
+        rho = spearmanr([p[0] for p in pairs], [p[1] for p in pairs])
+        print(f"\n{len(pairs)} clean frames; Spearman rank correlation {rho.statistic:.2f} (p = {rho.pvalue:.2f})")
+
+
 def main() -> int:
     from study_refine import _seeds, render
 
@@ -221,12 +349,20 @@ def main() -> int:
     t.add_argument("--width", type=int, default=1280)
     t.add_argument("--height", type=int, default=720)
     t.add_argument("--repeats", type=int, default=5)
+    w = sub.add_parser("twins", help="a second realization (seed 8) of each cached frame, for `noise`")
+    w.add_argument("--cache", type=Path, default=VALIDATION_CACHE)
+    n = sub.add_parser("noise", help="frame noise ratio against the best clean-frame alpha")
+    n.add_argument("--caches", default=f"{DESIGN_CACHE},{VALIDATION_CACHE}")
     args = parser.parse_args()
     if args.command == "render":
         render(_seeds(args.seeds), [int(s) for s in args.spp.split(",")], args.ref_spp, args.cache)
     elif args.command == "error":
         caches = {"design": args.design_cache, "validation": args.validation_cache}
         error({k: caches[k] for k in args.sets.split(",")}, args.per_frame)
+    elif args.command == "twins":
+        twins(args.cache)
+    elif args.command == "noise":
+        noise([Path(p).expanduser() for p in args.caches.split(",")])
     else:
         time_rule(args.width, args.height, args.repeats)
     return 0

@@ -277,3 +277,38 @@ def test_the_frame_wide_part_of_the_rule() -> None:
     bumpy = flat.copy()
     bumpy[1, 1] = 3.0
     assert frame_disagreement(bumpy, flat, zero, zero) == float("inf")
+
+
+def _study_direct_trust():
+    """benchmarks/study_direct_trust.py as a module (benchmarks/ is not a package)."""
+    import importlib.util
+    import sys
+    from pathlib import Path
+
+    folder = Path(__file__).resolve().parents[2] / "benchmarks"
+    sys.path.insert(0, str(folder))
+    try:
+        spec = importlib.util.spec_from_file_location("study_direct_trust", folder / "study_direct_trust.py")
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+    finally:
+        sys.path.remove(str(folder))
+    return module
+
+
+def test_the_studys_per_pixel_alpha_solve_is_the_refinement_when_alpha_is_uniform() -> None:
+    """docs/network.md design 10 rests on the study's prototype: with a per-pixel α equal everywhere to the rule's
+    own it must be refine_layer's solve, and a lower α_lo must change a clean layer (the prototype does something)."""
+    from model.refine import TRUST_ALPHA_BASE, frame_disagreement, input_scale, scaled_image
+
+    study = _study_direct_trust()
+    truth = _sharp(40, 56, 21)
+    prior = _blur(truth)
+    layer = Layer(_noisy(truth, 0.01, 22), *_gradients(truth, 0.002, 23))
+    s = input_scale(prior)
+    assert frame_disagreement(*(scaled_image(a, s) for a in (layer.base, prior, layer.dx, layer.dy))) < 0.05
+    shipped = refine_layer("direct", prior, layer)
+    same = study._spatial_rule(TRUST_ALPHA_BASE)(prior, layer)  # m ≡ 1 on a clean layer
+    assert np.max(np.abs(same - shipped)) <= 1e-5 * float(shipped.max())
+    lower = study._spatial_rule(0.1)(prior, layer)
+    assert np.max(np.abs(lower - shipped)) > 1e-3 * float(shipped.max())
