@@ -100,6 +100,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="spp of Table 1, the ablation and the crops (default 16 or nearest)")
     p.add_argument("--alpha", type=float, default=None,
                    help=f"screened Poisson data weight for l1/l2 (default {DEFAULT_ALPHA:g})")
+    p.add_argument("--time-seeds", type=int, default=None, metavar="N",
+                   help="seeds per equal-time row (default 1): each seed gets its own time search and render at "
+                        "the budget, the row's metrics are their mean and the report adds the standard error of "
+                        "the RelMSE; one seed's error moves by tens of percent between runs, so claims that one "
+                        "method beats another at equal time want several")
     p.add_argument("--references-only", action="store_true",
                    help="render only the reference passes up to --ref-spp-cap and the pilot that places region "
                         "passes into the cache (no methods, no report; -o is still required and left untouched): a "

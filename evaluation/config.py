@@ -47,6 +47,8 @@ FULL = Preset(320, 240, (1, 2, 4, 8, 16, 32, 64), 512, 4096, 240.0)
 QUICK = Preset(96, 72, (1, 4, 16), 128, 1024, 20.0)
 #: The reference floor must stay under this fraction of the scene's smallest ranked RelMSE.
 FLOOR_FRACTION = 0.1
+#: Most seeds per equal-time row (``--time-seeds``): each one is a full time search and render of the row.
+MAX_TIME_SEEDS = 64
 
 
 @dataclass(frozen=True)
@@ -69,6 +71,7 @@ class EvalConfig:
     quick: bool = False
     ref_spp_cap: int | None = None  # None: ref_spp (a fixed reference spp)
     ref_seconds: float | None = None  # render-time budget of a scene's two references; None: no limit
+    time_seeds: int = 1  # seeds per equal-time row (each its own time search); the row is their mean
 
     @property
     def reference_cap(self) -> int:
@@ -141,6 +144,7 @@ class EvalSettings(BaseSettings):
     max_depth: int | None = None
     table_spp: int | None = None
     alpha: float | None = None
+    time_seeds: int | None = None
 
     @classmethod
     def variable(cls, name: str) -> str:
@@ -225,11 +229,14 @@ def make_config(settings: EvalSettings, *, output: str | Path, scenes: Sequence[
     alpha = DEFAULT_ALPHA if settings.alpha is None else settings.alpha
     if not (math.isfinite(alpha) and alpha > 0):
         raise CommandError(f"--alpha must be a finite number > 0, got {alpha}")
+    time_seeds = _at_least(settings.time_seeds, 1, "--time-seeds") or 1
+    if time_seeds > MAX_TIME_SEEDS:
+        raise CommandError(f"--time-seeds must be <= {MAX_TIME_SEEDS}, got {time_seeds}")
     return EvalConfig(
         scenes=tuple(scenes or ()), spp=spp_list, width=width, height=height, ref_spp=ref_spp, output=Path(output),
         cache_dir=Path(cache) if cache else default_cache_dir(), models_dir=models_dir_from(models),
         methods=parse_methods(settings.methods), seed=seed, max_depth=max_depth, alpha=alpha, table_spp=table_spp,
-        quick=quick, ref_spp_cap=ref_cap, ref_seconds=ref_seconds)
+        quick=quick, ref_spp_cap=ref_cap, ref_seconds=ref_seconds, time_seeds=time_seeds)
 
 
 # ------------------------------------------------------------------------------------------------ scenes

@@ -40,7 +40,8 @@ __all__ = ["CSV_COLUMNS", "losses_of_ours", "write_outputs"]
 CSV_COLUMNS: tuple[str, ...] = (
     "scene", "method", "spp", "method_spp", "width", "height", "render_seconds", "reconstruct_seconds",
     "total_seconds", "relmse", "ssim", "psnr", "flip", "relmse_direct", "relmse_indirect", "target_seconds",
-    "budget_method", "attempts", "feature_spp", "time_note", "gradients", "time_interpolated",
+    "budget_method", "attempts", "feature_spp", "time_note", "gradients", "time_interpolated", "seeds",
+    "relmse_stderr",
 )
 LABELS: dict[str, str] = {m.name: m.label for m in METHODS}
 TABLE1: tuple[tuple[str, str], ...] = (("gpt-primal", "Input"), ("l1", "L1"), ("gradnet", "GradNet-style"),
@@ -116,7 +117,7 @@ def _summary(evaluation: Evaluation) -> dict[str, Any]:
                    "ref_spp": c.ref_spp, "ref_spp_cap": c.reference_cap,
                    "ref_seconds": c.ref_seconds, "seed": c.seed, "max_depth": c.max_depth,
                    "alpha": c.alpha,
-                   "table_spp": c.crop_spp, "methods": list(c.methods), "quick": c.quick,
+                   "table_spp": c.crop_spp, "methods": list(c.methods), "quick": c.quick, "time_seeds": c.time_seeds,
                    "models_dir": str(c.models_dir)},
         "references": {s.entry.name: {"spp_each": s.reference_spp, "sampler": REFERENCE_SAMPLER,
                                       "region": s.reference_region, "region_spp_each": s.region_spp,
@@ -155,6 +156,8 @@ def reproduce_command(c: EvalConfig) -> str:
         env[var("max_depth")] = str(c.max_depth)
     if c.alpha != DEFAULT_ALPHA:
         env[var("alpha")] = f"{c.alpha:g}"
+    if c.time_seeds != 1:
+        env[var("time_seeds")] = str(c.time_seeds)
     args = ["gradsep", "evaluate"]
     if c.scenes:
         args += ["--scenes", *c.scenes]
@@ -426,10 +429,32 @@ def time_interpolations(rows: Sequence[Mapping[str, Any]]) -> list[str]:
 
 
 def _spp_cell(row: Mapping[str, Any]) -> str:
+    if int(row.get("seeds") or 1) > 1:  # the seeds' median spp; * when a seed was interpolated to the budget
+        return f"{row['method_spp']}{'*' if row.get('time_interpolated') else ''}"
     bracket = row.get("time_bracket")
     if row.get("time_interpolated") and isinstance(bracket, list) and len(bracket) == 2:
         return f"{bracket[0]['spp']}–{bracket[1]['spp']}*"
     return str(row["method_spp"])
+
+
+def _stderr(row: Mapping[str, Any]) -> str:
+    """`` ±SE`` after a multi-seed row's mean RelMSE (``--time-seeds``), else nothing."""
+    if int(row.get("seeds") or 1) > 1 and row.get("relmse_stderr") is not None:
+        return f" ±{_fmt(row['relmse_stderr'], 2)}"
+    return ""
+
+
+def _seeds_sentence(rows: Sequence[Mapping[str, Any]]) -> str:
+    """What the equal-time cells are over: one seed, or ``--time-seeds`` N."""
+    seeds = sorted({int(r.get("seeds") or 1) for r in rows if r.get("target_seconds")})
+    if seeds in ([], [1]):
+        return ("Each equal-time cell is one seed: rerunning the same code can move a row's RelMSE by tens of "
+                "percent (`--time-seeds N` averages N). ")
+    return (f"Each equal-time cell is the mean over {'/'.join(map(str, seeds))} seeds (`--time-seeds`), every seed "
+            "with its own time search and render at the budget; its spp is the seeds' median (* when a seed was "
+            "interpolated to the budget), its time their mean, and ±SE the standard error of the mean RelMSE "
+            "(results.json keeps each seed's `seed_relmse`, `seed_spp`, `seed_seconds`); the budget row is the "
+            "G-PT frame's one seed. ")
 
 
 def _search_method(rows: Sequence[Mapping[str, Any]]) -> str:
@@ -459,7 +484,8 @@ def _equal_time(evaluation: Evaluation) -> list[str]:
              "methods). *best G-PT* is the lowest RelMSE of any reconstruction of the same G-PT frame, whatever "
              "its time, and of G-PT+oidn-l1 at equal time: our renderer in `--gradients direct` mode (offsets "
              "`alternate`: one offset per axis, both MIS techniques per pixel pair on half the samples) at the spp "
-             "the budget buys, reconstructed with `oidn-l1`, found like the baselines' spp.", "",
+             "the budget buys, reconstructed with `oidn-l1`, found like the baselines' spp. "
+             + _seeds_sentence(evaluation.rows), "",
              "| Scene | G-PT spp | budget | budget s | budget RelMSE | best G-PT | "
              + " | ".join(label for _, label in EQUAL_TIME) + " |",
              "|---|---:|---|---:|---:|---|" + "---:|" * len(EQUAL_TIME)]
@@ -476,7 +502,7 @@ def _equal_time(evaluation: Evaluation) -> list[str]:
             budget = anchor.get("budget_method") or ""
             values = {m: (float(table[m]["relmse"]) if m in table else None) for m in (budget, *dict(EQUAL_TIME))}
             cells = _bold_best(values, higher=False)
-            parts = [f"{_spp_cell(table[m])} / {_fmt(row_seconds(table[m]), 3)} s / {cells[m]}"
+            parts = [f"{_spp_cell(table[m])} / {_fmt(row_seconds(table[m]), 3)} s / {cells[m]}{_stderr(table[m])}"
                      if m in table else "–" for m, _ in EQUAL_TIME]
             baselines = set(dict(EQUAL_TIME)) - GPT_EQUAL_TIME
             gpt = {m: float(r["relmse"]) for m, r in table.items()

@@ -58,7 +58,10 @@ class Evaluation:
 
 def row_seconds(row: Mapping[str, Any]) -> float:
     """The time a row stands for: its equal-time budget when its metrics were interpolated to it
-    (evaluation.run.interpolated_scores), else its measured total."""
+    (evaluation.run.interpolated_scores), else its measured total; a multi-seed row (evaluation.run.seed_mean):
+    the mean over its seeds of this."""
+    if int(row.get("seeds") or 1) > 1:
+        return float(row["total_seconds"])
     if row.get("time_interpolated") and row.get("target_seconds"):
         return float(row["target_seconds"])
     return float(row["total_seconds"])

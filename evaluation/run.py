@@ -19,6 +19,7 @@ then everything is scored (scores cached per output and reference pair). The pro
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 from collections.abc import Callable, Iterable
@@ -46,7 +47,7 @@ from evaluation.methods import (
 )
 from evaluation.references import RAISE_MARGIN, REFERENCE_SAMPLER, ReferencePair, ReferenceSource, next_reference_spp
 from evaluation.region import Region
-from evaluation.results import Evaluation, SceneRun, machine_summary
+from evaluation.results import Evaluation, SceneRun, machine_summary, row_seconds
 from model.errors import CommandError
 from model.policy import SEPARATED_LAYERS
 from model.progress import ProgressBar
@@ -79,6 +80,9 @@ class _Output:
     layers: dict[str, np.ndarray]
     tag: str
     bracket: list[BracketOutput] = field(default_factory=list)  # see MethodOutput.bracket
+    #: The same equal-time row rendered with the other ``--time-seeds`` seeds (each its own time search); the
+    #: row's metrics are the mean over this output and these (:func:`seed_mean`).
+    replicas: list[_Output] = field(default_factory=list)
 
     def interpolation(self) -> tuple[float, BracketOutput, BracketOutput] | None:
         """(budget, too-fast try, too-slow try) when this row's metrics are interpolated to its budget, else None."""
@@ -212,11 +216,12 @@ class _Runner:
     # ----------------------------------------------------------------------------------------- outputs
 
     def output(self, spec: MethodSpec, scene: SceneRun, spp: int, ctx: MethodContext,
-               key: dict[str, Any]) -> _Output:
+               key: dict[str, Any], replica: int = 0) -> _Output:
         """One method's output on one (scene, spp), from the cache when possible (it does not depend on the
-        references, so raising them re-scores without re-running anything)."""
+        references, so raising them re-scores without re-running anything). ``replica`` k > 0: the k-th extra
+        seed of an equal-time row (``--time-seeds``)."""
         c = self.config
-        stem = f"{spec.name}-{scene.width}x{scene.height}-spp{spp}-seed{c.seed}"
+        stem = f"{spec.name}-{scene.width}x{scene.height}-spp{spp}-seed{c.seed}" + (f"-r{replica}" if replica else "")
         path = self.cache.entry("results", scene.entry.name, stem, key, ".json")
         tag = key_hash(key)
         cached = self.cache.load_json(path)
@@ -263,6 +268,13 @@ class _Runner:
                                     "bracket": brackets})
         self.computed["results"] += 1
         return _Output(spec, spp, row, out.image, layers, tag, list(out.bracket))
+
+    def row(self, output: _Output, scene: SceneRun, pair: ReferencePair) -> dict[str, Any]:
+        """The output's report row: its own row and scores, or with replicas (``--time-seeds``) the mean over
+        the seeds (:func:`seed_mean`)."""
+        if not output.replicas:
+            return {**output.row, **self.score(output, scene, pair)}
+        return seed_mean([{**o.row, **self.score(o, scene, pair)} for o in (output, *output.replicas)])
 
     def score(self, output: _Output, scene: SceneRun, pair: ReferencePair) -> dict[str, Any]:
         """The output's metrics against the pair (:func:`image_scores`; an equal-time row with a bracket:
@@ -314,6 +326,41 @@ def interpolated_scores(target: float, bracket: list[BracketOutput], pair: Refer
     scores["time_interpolated"] = (f"{low.spp} spp ({low.total_seconds:.3g} s, RelMSE {sides[0]['relmse']:.4g}) and "
                                    f"{high.spp} spp ({high.total_seconds:.3g} s, RelMSE {sides[1]['relmse']:.4g})")
     return scores
+
+
+#: Metrics a multi-seed row averages (the others are the first seed's, with the per-seed values beside them).
+SEED_MEAN_METRICS = ("relmse", "ssim", "psnr", "flip", *(f"relmse_{layer}" for layer in SEPARATED_LAYERS))
+
+
+def seed_mean(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """One equal-time row from the same row rendered with several seeds (``--time-seeds``; each row already
+    scored, its own time search): every metric of :data:`SEED_MEAN_METRICS` is the mean over the seeds (None when
+    a seed has none), the time the mean of the seeds' times (:func:`row_seconds`: the budget for a seed
+    interpolated to it), ``method_spp`` the seeds' median. ``seeds``, ``seed_relmse``, ``seed_spp`` and
+    ``seed_seconds`` keep the seeds' own values, ``relmse_stderr`` the standard error of the mean RelMSE (sample
+    standard deviation / √seeds). A seed interpolated to the budget is named in ``time_interpolated``."""
+    import statistics
+
+    first = rows[0]
+    out = dict(first)
+    for name in SEED_MEAN_METRICS:
+        values = [r.get(name) for r in rows]
+        out[name] = (float(np.mean([float(v) for v in values]))
+                     if all(v is not None and math.isfinite(float(v)) for v in values) else None)
+    seconds = [row_seconds(r) for r in rows]
+    relmse = [float(r["relmse"]) for r in rows]
+    out.update({"seeds": len(rows), "seed_relmse": relmse, "seed_spp": [int(r["method_spp"]) for r in rows],
+                "seed_seconds": seconds, "total_seconds": float(np.mean(seconds)),
+                "render_seconds": float(np.mean([float(r["render_seconds"]) for r in rows])),
+                "reconstruct_seconds": float(np.mean([float(r["reconstruct_seconds"]) for r in rows])),
+                "method_spp": int(statistics.median_low([int(r["method_spp"]) for r in rows])),
+                "relmse_stderr": statistics.stdev(relmse) / math.sqrt(len(rows)) if len(rows) > 1 else 0.0})
+    interpolated = [f"seed {k}: {r['time_interpolated']}" for k, r in enumerate(rows) if r.get("time_interpolated")]
+    out.pop("time_interpolated", None)
+    out.pop("time_bracket", None)
+    if interpolated:
+        out["time_interpolated"] = "; ".join(interpolated)
+    return out
 
 
 _MITSUBA: str | None = None
@@ -419,7 +466,7 @@ def _run_scene(runner: _Runner, entry: SceneEntry, loaded: Any, methods: list[Me
     bar.describe(f"{entry.name}: scoring")
     rows = []
     for out in outputs:
-        rows.append({**out.row, **runner.score(out, scene, pair)})
+        rows.append(runner.row(out, scene, pair))
         if out.spp == config.crop_spp and out.spec.name in CROP_METHODS:
             scene.crop_images[out.spec.name] = out.image
     bar.update()
@@ -433,7 +480,10 @@ def _smallest_ranked(outputs: list[_Output], pair: ReferencePair) -> float:
     def relmse(image: np.ndarray) -> float:
         return relmse_unbiased(image, pair.first["total"], pair.second["total"])
 
-    def ranked(o: _Output) -> float:  # the figure the report shows: interpolated as interpolated_scores does
+    def ranked(o: _Output) -> float:  # the figure the report shows: a multi-seed row's mean over its seeds
+        return float(np.mean([one(r) for r in (o, *o.replicas)]))
+
+    def one(o: _Output) -> float:  # interpolated as interpolated_scores does
         interpolation = o.interpolation()
         if interpolation is None:
             return relmse(o.image)
@@ -620,6 +670,10 @@ def _evaluate_one(runner: _Runner, spec: MethodSpec, scene: SceneRun, spp: int, 
 
     try:
         out = runner.output(spec, scene, spp, ctx, key)
+        if spec.kind in EQUAL_TIME_KINDS:  # --time-seeds: the same budget, the other seeds' own searches
+            for k in range(1, c.time_seeds):
+                seeded = dataclasses.replace(ctx, seed=_derived_seed(c.seed, 3, spp, k))
+                out.replicas.append(runner.output(spec, scene, spp, seeded, {**key, "seed": seeded.seed}, k))
     except ModelError as exc:
         raise CommandError(f"{spec.name}: {exc}") from exc
     done[spec.name] = out.row

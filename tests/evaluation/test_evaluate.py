@@ -120,6 +120,51 @@ def test_command_line_flags_win_over_the_environment(monkeypatch):
         config_from_args(_args(alpha=float("nan")))
 
 
+def test_time_seeds_from_the_flag_or_the_environment_with_their_range(monkeypatch):
+    """--time-seeds N (or GRADSEP_EVAL_TIME_SEEDS): 1 by default, refused below 1 and above the cap, and named in
+    the reproduce line only when it is not 1 (the committed reports' lines stay as they were)."""
+    from evaluation.config import MAX_TIME_SEEDS
+    from evaluation.report import reproduce_command
+
+    assert config_from_args(_args()).time_seeds == 1
+    assert "TIME_SEEDS" not in reproduce_command(config_from_args(_args()))
+    assert config_from_args(_args(time_seeds=3)).time_seeds == 3
+    monkeypatch.setenv("GRADSEP_EVAL_TIME_SEEDS", "4")
+    config = config_from_args(_args())
+    assert config.time_seeds == 4 and "GRADSEP_EVAL_TIME_SEEDS=4" in reproduce_command(config)
+    for bad in (0, -2, MAX_TIME_SEEDS + 1):
+        with pytest.raises(CommandError, match="--time-seeds must be"):
+            config_from_args(_args(time_seeds=bad))
+
+
+def test_seed_mean_averages_the_metrics_and_keeps_each_seed():
+    """The multi-seed row: metrics are means over the seeds, the time their mean (an interpolated seed counts at
+    its budget), the spp their median, the standard error of the mean RelMSE from the seeds' spread."""
+    from evaluation.report import _spp_cell, _stderr
+    from evaluation.results import row_seconds
+    from evaluation.run import seed_mean
+
+    def row(relmse, spp, seconds, **more):
+        return {"method": "path", "spp": 16, "method_spp": spp, "relmse": relmse, "ssim": 0.9, "psnr": 30.0,
+                "flip": 0.1, "relmse_direct": None, "relmse_indirect": None, "render_seconds": seconds,
+                "reconstruct_seconds": 0.0, "total_seconds": seconds, "target_seconds": 2.0, **more}
+
+    rows = [row(0.004, 50, 2.02), row(0.002, 48, 1.97),
+            row(0.003, 52, 2.5, time_interpolated="40 spp (1.9 s) and 60 spp (2.6 s)",
+                time_bracket=[{"spp": 40}, {"spp": 60}])]
+    out = seed_mean(rows)
+    assert out["relmse"] == pytest.approx(0.003) and out["ssim"] == pytest.approx(0.9)
+    assert out["relmse_direct"] is None  # a metric no seed has stays empty
+    assert out["seed_relmse"] == [0.004, 0.002, 0.003] and out["seed_spp"] == [50, 48, 52]
+    assert out["method_spp"] == 50 and out["seeds"] == 3
+    assert out["seed_seconds"] == [2.02, 1.97, 2.0]  # the interpolated seed stands at its budget
+    assert row_seconds(out) == pytest.approx((2.02 + 1.97 + 2.0) / 3)
+    assert out["relmse_stderr"] == pytest.approx(0.001 / math.sqrt(3))
+    assert out["time_interpolated"].startswith("seed 2: 40 spp") and "time_bracket" not in out
+    assert _spp_cell(out) == "50*" and _stderr(out) == " ±0.00058"
+    assert _stderr(rows[0]) == "" and seed_mean(rows[:1])["relmse_stderr"] == 0.0
+
+
 def test_environment_is_loaded_once_typed_and_named_in_errors(monkeypatch):
     """GRADSEP_EVAL_* go through one pydantic-settings class: a malformed value names its variable, an empty
     one counts as unset, and the report's reproduce line uses the same names."""
@@ -363,6 +408,38 @@ def test_equal_time_methods_use_the_default_method_as_the_budget(first_run):
             row = by[("gpt-oidn-l1", spp)]
             assert row["gradients"] == "direct" and row["reconstruct_seconds"] > 0
             assert row["relmse_direct"] is not None and row["relmse_indirect"] is not None
+
+
+@pytest.mark.render
+def test_time_seeds_add_seeds_to_the_equal_time_rows_only(first_run):
+    """--time-seeds 2 over the first run's cache: only the equal-time rows' second seeds are computed (the first
+    seed is the single-seed run's own, cached), each such row is the mean of two different seeds, and every other
+    row is unchanged; the report says what its cells are."""
+    import dataclasses
+    import json
+
+    root, first = first_run
+    config = dataclasses.replace(_config(root, "report-seeds"), time_seeds=2)
+    two = run_evaluation(config, progress=False, log=lambda message: None)
+    equal_time = EQUAL_TIME_METHODS & set(_runnable(METHODS))
+    assert two.computed == {"frames": 0, "references": 0, "results": len(equal_time) * len(SPP)}
+    before = {(r["method"], r["spp"]): r for r in first.rows}
+    for r in two.rows:
+        old = before[(r["method"], r["spp"])]
+        if r["method"] not in equal_time:
+            assert r["relmse"] == old["relmse"] and "seeds" not in r
+            continue
+        assert r["seeds"] == 2 and r["seed_relmse"][0] == pytest.approx(old["relmse"])
+        assert r["seed_relmse"][0] != r["seed_relmse"][1]  # another seed, another image
+        assert r["relmse"] == pytest.approx(sum(r["seed_relmse"]) / 2)
+        assert r["relmse_stderr"] == pytest.approx(abs(r["seed_relmse"][0] - r["seed_relmse"][1]) / 2)
+        assert all(s >= 1 for s in r["seed_spp"]) and len(r["seed_seconds"]) == 2
+    summary = json.loads((root / "report-seeds" / "results.json").read_text())
+    assert summary["config"]["time_seeds"] == 2 and "GRADSEP_EVAL_TIME_SEEDS=2" in summary["reproduce"]
+    text = (root / "report-seeds" / "report.md").read_text()
+    assert "mean over 2 seeds" in text and " ±" in text
+    assert "Each equal-time cell is one seed" in (root / "report" / "report.md").read_text()
+    shutil.rmtree(root / "report-seeds", ignore_errors=True)
 
 
 @pytest.mark.render
