@@ -133,12 +133,11 @@ def _spatial_rule(alpha_low: float) -> Callable:
     def run(denoised, layer):
         s = refine.input_scale(denoised)
         base, prior, dx, dy = (refine.scaled_image(a, s) for a in (layer.base, denoised, layer.dx, layer.dy))
-        maps = refine._disagreement_maps(base, dx, dy)
-        w = refine.trust_weights(base, dx, dy, maps)
-        frame = refine._log_ramp(refine.frame_disagreement(base, prior, dx, dy, maps), *refine.TRUST_FRAME_R)
-        data = (prior + np.maximum(w, np.float32(frame)) * (base - prior)).astype(np.float32)
-        alpha = refine.REFINE_ALPHA - (refine.REFINE_ALPHA - refine.TRUST_ALPHA_BASE) * frame
-        m = 1.0 - (1.0 - alpha_low / alpha) * frame * w[..., 0]
+        data, alpha = refine.trusted_data(base, prior, dx, dy)  # the rule itself: its data term and α
+        # its frame weight w_f, from α = REFINE_ALPHA − (REFINE_ALPHA − TRUST_ALPHA_BASE)·w_f
+        span = refine.REFINE_ALPHA - refine.TRUST_ALPHA_BASE
+        frame = (refine.REFINE_ALPHA - alpha) / span if span else 0.0
+        m = 1.0 - (1.0 - alpha_low / alpha) * frame * refine.trust_weights(base, dx, dy)[..., 0]
         return np.clip(_solve_l1_alpha_map(data, dx, dy, alpha, m) / s, 0.0, None).astype(np.float32)
     return run
 
