@@ -68,8 +68,12 @@ DIRECT_VERTICES = 2
 # the feature vertex: a GGX lobe reaches ~100 sr^-1 near alpha 0.05, where reflections are still sharp images.
 NEAR_SPECULAR_PDF = 100.0
 
-# Lanes per pass: bounds the sampler state and the scatter traffic of one kernel launch (~16 B per lane).
-MAX_LANES_PER_PASS = 1 << 22
+# Lanes per pass. A lane's state lives in the kernel's registers, not in memory, so a pass needs only its
+# per-pixel sums; every further pass pays the loop's recording, a launch and the float64 read-back and sum
+# again (~0.5 s per pass for a 1280x720 G-PT frame). 2^26 renders a 1280x720 frame in one pass up to 72 spp;
+# against 2^22 its wall time falls 14-25 % with a lower peak RSS (benchmarks/bench_pass_size.py,
+# docs/renderer.md "Lanes per pass"). The lane index is a UInt32: render_pass refuses 2^32 lanes.
+MAX_LANES_PER_PASS = 1 << 26
 
 # Trace the first vertex before the symbolic loop, where its depth is a literal 0 (see _run_loops; not in the
 # primal-only mode).

@@ -22,6 +22,7 @@ from gradsep.cli import main  # noqa: E402
 from model.errors import CommandError  # noqa: E402
 from model.frame import read_frame, write_frame  # noqa: E402
 from renderer.gpt import (  # noqa: E402
+    MAX_LANES_PER_PASS,
     GptSettings,
     alternate_offsets,
     offset_group,
@@ -885,6 +886,19 @@ def test_passes_give_the_same_estimator(cbox_small):
     assert np.all(np.abs(two_sample_z(np.array(one), np.array(many))) < 4.5)
     assert pass_plan(10, 10, 7, max_lanes=300) == [3, 3, 1]
     assert pass_plan(10, 10, 7, max_lanes=10) == [1] * 7
+
+
+def test_default_pass_plan_renders_production_frames_in_few_passes():
+    """Each pass re-records and re-reads the kernel (~0.5 s at 1280x720, docs/renderer.md "Lanes per pass"), while
+    a lane's state costs no memory: a 1280x720 frame is one pass up to 72 spp, larger frames split evenly, and no
+    pass reaches the UInt32 lane index's 2^32."""
+    assert pass_plan(1280, 720, 16) == [16] and pass_plan(1280, 720, 72) == [72]
+    assert pass_plan(1280, 720, 73) == [72, 1]
+    assert pass_plan(1920, 1080, 64) == [32, 32]
+    assert pass_plan(320, 240, 64) == [64]
+    for w, h, spp in ((1280, 720, 4096), (7680, 4320, 3), (1, 1, 1 << 30)):
+        plan = pass_plan(w, h, spp)
+        assert sum(plan) == spp and max(plan) * w * h <= MAX_LANES_PER_PASS < 1 << 32
 
 
 def test_frame_round_trips_through_the_contract(cbox_small, tmp_path):
