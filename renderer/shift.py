@@ -87,6 +87,7 @@ MIN_HALF_COSINE = 1e-4  # half-vector copy fails where either path's direction g
 DEFAULT_FOLLOW_CURVATURE = 0.5  # move onto a specular vertex where curvature * segment exceeds this (_follows)
 MANIFOLD_STEPS = 5  # Newton steps of the manifold reconnection through a mirror (each one ray cast)
 MANIFOLD_TOLERANCE = 1e-4  # converged where the reflected ray misses its target by this fraction of the path length
+MANIFOLD_LOOP = True  # the Newton steps as a symbolic loop (False: unrolled, the code before session 16; A/B)
 DEFAULT_FOOTPRINT = 0.0  # reconnect only where the segment to the shared vertex is this many times longer than
 #                          the distance between base and offset vertex (see HybridShift; 0 = no such condition)
 
@@ -575,8 +576,8 @@ class HybridShift:
         """:meth:`_through_mirror`'s solve, for the lanes ``ok``; returns the reflected direction in world space."""
         ctx = mi.BSDFContext()
         flags = self.ray_flags(scene)
-        d = dr.normalize(mirror_si.p - origin.p)
-        for _ in range(MANIFOLD_STEPS):
+
+        def newton_step(i: mi.UInt32, d: mi.Vector3f) -> tuple[mi.UInt32, mi.Vector3f]:
             ray = origin.spawn_ray(d)
             si_m = scene.ray_intersect(ray, ray_flags=flags, coherent=False, active=ok)
             tr = mirror_transfer(ray.o, si_m, target, n_t)
@@ -587,7 +588,18 @@ class HybridShift:
             step = ((g22 * h1 - g12 * h2) * tr.e_a + (g11 * h2 - g12 * h1) * tr.e_b) / det
             step *= dr.minimum(1.0, 0.25 / dr.maximum(dr.norm(step), 1e-30))  # at most ~14 degrees per step
             new_d = dr.normalize(tr.direction - step)
-            d = dr.select(ok & si_m.is_valid() & dr.all(dr.isfinite(new_d)), new_d, d)
+            return i + 1, dr.select(ok & si_m.is_valid() & dr.all(dr.isfinite(new_d)), new_d, d)
+
+        d = dr.normalize(mirror_si.p - origin.p)
+        if MANIFOLD_LOOP:
+            # One traced Newton step in a symbolic loop instead of MANIFOLD_STEPS unrolled copies: the same
+            # arithmetic per lane, a fraction of the code to record, hash and compile (docs/renderer.md,
+            # "The manifold solve as a loop").
+            _, d = dr.while_loop(state=(mi.UInt32(0), d), cond=lambda i, _d: i < MANIFOLD_STEPS, body=newton_step,
+                                 label="manifold")
+        else:
+            for _ in range(MANIFOLD_STEPS):
+                _, d = newton_step(mi.UInt32(0), d)
         ray = origin.spawn_ray(d)
         si_m = scene.ray_intersect(ray, ray_flags=flags, coherent=False, active=ok)
         tr = mirror_transfer(ray.o, si_m, target, n_t)

@@ -36,6 +36,7 @@ from renderer.shift import (  # noqa: E402
     HybridShift,
     ReplayShift,
     make_shift,
+    scene_has_curved_mirrors,
 )
 from tests.renderer.scenes import CBOX_GEOMETRY, resolve  # noqa: E402
 
@@ -363,6 +364,35 @@ def test_first_vertex_before_the_loop_is_the_loops_first_iteration(monkeypatch, 
     for key in ("albedo", "normal", "depth"):
         np.testing.assert_array_equal(getattr(peeled, key), getattr(in_loop, key), err_msg=key)
     assert np.abs(peeled.layers["direct"]["base"]).max() > 0
+
+
+@pytest.mark.slow
+def test_manifold_solve_as_a_loop_is_the_unrolled_solve(monkeypatch):
+    """The manifold reconnection's Newton steps run as a symbolic loop (renderer.shift.MANIFOLD_LOOP): less code to
+    record and compile, and the frame bit for bit the one of the unrolled steps (primal, gradients, features). Power:
+    the cbox's mirror ball takes the solve (one Newton step instead of the five changes the gradients). The
+    ``--gradients direct`` mode is not tested here: its frame did not change with one Newton step in a probe
+    (64², 4 spp), as a mirror at x_1 is solved at x_2, past the direct layer's vertices."""
+    import renderer.shift as shift_module
+
+    scene = load_test_scene("cbox")
+    assert scene_has_curved_mirrors(scene)
+    settings = GptSettings(max_depth=SCENE_DEPTHS["cbox"])
+
+    def render(looped: bool, steps: int = shift_module.MANIFOLD_STEPS):
+        monkeypatch.setattr(shift_module, "MANIFOLD_LOOP", looped)
+        monkeypatch.setattr(shift_module, "MANIFOLD_STEPS", steps)
+        return render_gpt(scene, make_shift("hybrid"), settings, SIZE, SIZE, 5, 3)
+
+    looped, unrolled, one_step = render(True), render(False), render(True, 1)
+    assert looped.layers.keys() == unrolled.layers.keys()
+    for layer, images in looped.layers.items():
+        for key, image in images.items():
+            np.testing.assert_array_equal(image, unrolled.layers[layer][key], err_msg=f"{layer} {key}")
+    for key in ("albedo", "normal", "depth"):
+        np.testing.assert_array_equal(getattr(looped, key), getattr(unrolled, key), err_msg=key)
+    assert any(not np.array_equal(image, one_step.layers[layer][key])
+               for layer, images in looped.layers.items() for key, image in images.items() if key != "base")
 
 
 @pytest.mark.slow
