@@ -24,6 +24,14 @@ rounds), measured in the same process; reconstruction time is not part of the bu
 on both G-PT frames; oidn is cheaper, which favours ``primal`` slightly more than shown). The ``cost@spp`` column
 is each mode's CPU time at its chosen spp over `all`'s at the budget, measured on the scored renders (median over
 seeds): ~1.0 when the equal-time split holds, and the check that a split render costs what its parts predict.
+
+``--split-alpha`` (session 16) also scores every split frame a second time, as ``split-F+alpha``: the same frame,
+reconstructed with ``oidn-l1`` whose trust rule has its clean-layer α (TRUST_ALPHA_BASE, the α where the data term
+is the frame's own base) multiplied by N/K. A base of N samples has N/K times less variance than gradients of K, and
+the screened-Poisson α weighs the data term against the gradients by that ratio; the shipped rule assumes N = K.
+(OIDN's image, the data term where the base is not trusted, keeps REFINE_ALPHA: its error is mostly bias, which
+does not fall as 1/N. A one-seed probe that scaled both α made the direct layer worse, 0.00038 against 0.00028 on
+81005.)
 """
 
 from __future__ import annotations
@@ -101,8 +109,21 @@ def budgets(modes: list[str], spp: int, cost: dict[str, float], overhead: float 
     return out
 
 
+def reconstruct_split_aware(frame, factor: float):
+    """``oidn-l1`` with the trust rule's clean-layer α multiplied by ``factor`` (N/K for a split frame)."""
+    import model.refine as refine
+    from model.reconstruct import reconstruct
+
+    saved = refine.TRUST_ALPHA_BASE
+    refine.TRUST_ALPHA_BASE = saved * factor
+    try:
+        return reconstruct(frame, "oidn-l1")
+    finally:
+        refine.TRUST_ALPHA_BASE = saved
+
+
 def study(folder: Path, spec: str, spp: int, seeds: int, rounds: int, modes: list[str],
-          score_all: bool = True, first_seed: int = 2000) -> dict:
+          score_all: bool = True, first_seed: int = 2000, split_alpha: bool = False) -> dict:
     from model.metrics import relmse_unbiased
     from model.reconstruct import reconstruct
     from renderer.render import render_frame
@@ -144,7 +165,8 @@ def study(folder: Path, spec: str, spp: int, seeds: int, rounds: int, modes: lis
         overhead = max(0.0, cost.pop("split-probe") - parts)
     budget = budgets(modes, spp, cost, overhead)
     scored = [m for m in modes if score_all or m != "all"]
-    scores: dict[str, dict[str, list[float]]] = {mode: {"frame": [], "direct": []} for mode in scored}
+    aware = [f"{m}+alpha" for m in scored if split_alpha and split_fraction(m) is not None]
+    scores: dict[str, dict[str, list[float]]] = {mode: {"frame": [], "direct": []} for mode in scored + aware}
     seconds: dict[str, list[float]] = {mode: [] for mode in scored}
     for seed in range(seeds):
         for mode in scored:
@@ -155,10 +177,16 @@ def study(folder: Path, spec: str, spp: int, seeds: int, rounds: int, modes: lis
             result = reconstruct(frame, method)
             scores[mode]["frame"].append(relmse_unbiased(result.image, ref0.total, ref1.total))
             scores[mode]["direct"].append(relmse_unbiased(result.layers["direct"], ref0.direct, ref1.direct))
+            if f"{mode}+alpha" in scores:  # the same frame, the refinement told that its base has N/K more samples
+                result = reconstruct_split_aware(frame, n / k)
+                scores[f"{mode}+alpha"]["frame"].append(relmse_unbiased(result.image, ref0.total, ref1.total))
+                scores[f"{mode}+alpha"]["direct"].append(
+                    relmse_unbiased(result.layers["direct"], ref0.direct, ref1.direct))
     all_seconds = statistics.median(cpu["all"])
     return {"size": f"{width}x{height}", "max_depth": depth, "cost_vs_all": cost, "spp": budget,
             "split_overhead": overhead,
-            "cost_at_spp": {m: statistics.median(v) / all_seconds for m, v in seconds.items()},
+            "cost_at_spp": {m: statistics.median(v) / all_seconds
+                            for m, v in (seconds | {a: seconds[a.removesuffix("+alpha")] for a in aware}).items()},
             "relmse": {m: {k: float(np.mean(v)) for k, v in s.items()} for m, s in scores.items()},
             "per_seed": {m: {k: [float(x) for x in v] for k, v in s.items()} for m, s in scores.items()}}
 
@@ -180,6 +208,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--skip-all", action="store_true",
                         help="time `all` (the budget) but do not score it")
     parser.add_argument("--first-seed", type=int, default=2000, help="render seed of the first scored frame")
+    parser.add_argument("--split-alpha", action="store_true",
+                        help="also score each split frame with the trust rule's alpha times N/K (split-F+alpha)")
     parser.add_argument("--json", default=None, help="also write every scene's numbers (per seed too) here")
     args = parser.parse_args(argv)
     modes = ["all"] + [m for m in args.modes.split(",") if m and m != "all"]
@@ -199,11 +229,11 @@ def main(argv: list[str] | None = None) -> int:
     for item in args.scenes:
         folder, _, spec = item.partition(":")
         out = study(Path(folder), spec, args.spp, args.seeds, args.rounds, modes, score_all=not args.skip_all,
-                    first_seed=args.first_seed)
+                    first_seed=args.first_seed, split_alpha=args.split_alpha)
         results[spec] = out
         for mode in out["relmse"]:
             r = out["relmse"][mode]
-            n, k = out["spp"][mode]
+            n, k = out["spp"][mode.removesuffix("+alpha")]
             cost = out["cost_vs_all"].get(mode)
             spp_text = f"{n} ({k})" if k < n else f"{n}"
             print(f"  {spec:<18} {mode:<16} {f'{cost:.2f}x' if cost else '-':>6} {spp_text:>10} "

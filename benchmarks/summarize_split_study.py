@@ -33,8 +33,9 @@ def main(argv: list[str] | None = None) -> int:
     modes = list(rows[0][1])
     print("frame RelMSE per scene, mean | median over seeds (spp, with gradients)")
     for spec, frame, out in rows:
-        cells = [f"{m} {frame[m].mean():.5f}|{np.median(frame[m]):.5f} ({'/'.join(map(str, out['spp'][m]))})"
-                 for m in modes]
+        # a split-F+alpha mode (--split-alpha) scores the split-F frame: its spp are that frame's
+        cells = [f"{m} {frame[m].mean():.5f}|{np.median(frame[m]):.5f} "
+                 f"({'/'.join(map(str, out['spp'][m.removesuffix('+alpha')]))})" for m in modes]
         print(f"  {spec}: " + "; ".join(cells))
     for label, stat in (("mean", np.mean), ("median", np.median)):
         print(f"per-scene {label} over the best baseline's (geometric mean over {len(rows)} scenes), scenes won:")
