@@ -1,8 +1,12 @@
 """A/B in one process: the manifold solve's Newton steps unrolled or as a symbolic loop (docs/renderer.md, "The
-manifold solve as a loop").
+manifold solve as a loop"); with ``--toggle direct-shift``, the `--gradients direct` mode with or without the solve.
 
     .venv/bin/python benchmarks/ab_manifold_loop.py [--scenes cbox,procedural:90001] [--size 320x240]
         [--spp 1,16] [--modes direct-alternate,all] [--rounds 5] [--cold]
+
+``--toggle direct-shift`` flips ``renderer.gpt.DIRECT_LAYER_SHIFT`` instead (off: the full hybrid shift in the
+direct-gradients mode; on: ``HybridShift.for_direct_layer``, no manifold solve); use it with ``--modes
+direct-alternate``.
 
 ``renderer.shift.MANIFOLD_LOOP`` off (the unrolled code before) and on: the script first checks that both give
 the same frame bit for bit (every channel, one seed), then times warm renders in interleaved rounds and prints per
@@ -60,6 +64,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--spp", default="1,16")
     parser.add_argument("--modes", default="direct-alternate,all")
     parser.add_argument("--rounds", type=int, default=5)
+    parser.add_argument("--toggle", choices=("loop", "direct-shift"), default="loop",
+                        help="the flag the A/B flips: MANIFOLD_LOOP (loop) or DIRECT_LAYER_SHIFT (direct-shift)")
     parser.add_argument("--cold", action="store_true", help="time the first (compiling) frame in fresh processes")
     parser.add_argument("--cold-one", nargs=2, metavar=("SCENE", "LOOP"), help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -80,17 +86,20 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     spps = [int(s) for s in args.spp.split(",")]
 
+    from renderer import gpt
     from renderer import shift as shift_module
     from renderer.render import render_frame
     from renderer.scene import load_scene
     from renderer.shift import scene_has_curved_mirrors
 
+    owner, flag = (shift_module, "MANIFOLD_LOOP") if args.toggle == "loop" else (gpt, "DIRECT_LAYER_SHIFT")
+
     def render(loaded, mode: str, looped: bool, spp: int, seed: int):
-        shift_module.MANIFOLD_LOOP = looped
+        setattr(owner, flag, looped)
         try:
             return render_frame(loaded, spp=spp, seed=seed, **MODES[mode])
         finally:
-            shift_module.MANIFOLD_LOOP = True
+            setattr(owner, flag, True)
 
     for spec in [s.strip() for s in args.scenes.split(",") if s.strip()]:
         loaded = load_scene(resolve_scene(spec), width=w, height=h)
@@ -112,8 +121,9 @@ def main(argv: list[str] | None = None) -> int:
                         times.setdefault((looped, spp), []).append(time.perf_counter() - start)
             cells = ", ".join(f"{spp} spp {statistics.median(times[(False, spp)]):.3f} -> "
                               f"{statistics.median(times[(True, spp)]):.3f} s" for spp in spps)
-            print(f"{spec} {mode} ({w}x{h}, curved mirrors: {mirrors}): bit-identical {same}; first frame "
-                  f"{first[False]:.2f} -> {first[True]:.2f} s; warm median of {args.rounds}: {cells}", flush=True)
+            print(f"{spec} {mode} ({w}x{h}, {flag} off -> on, curved mirrors: {mirrors}): bit-identical {same}; "
+                  f"first frame {first[False]:.2f} -> {first[True]:.2f} s; warm median of {args.rounds}: {cells}",
+                  flush=True)
     return 0
 
 

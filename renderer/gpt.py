@@ -75,6 +75,10 @@ NEAR_SPECULAR_PDF = 100.0
 # docs/renderer.md "Lanes per pass"). The lane index is a UInt32: render_pass refuses 2^32 lanes.
 MAX_LANES_PER_PASS = 1 << 26
 
+# The --gradients direct mode runs the shift's ``for_direct_layer()`` (where it has one: the hybrid shift without
+# its manifold solve, which cannot change a direct-layer event); False keeps the full shift (A/B, tests).
+DIRECT_LAYER_SHIFT = True
+
 # Trace the first vertex before the symbolic loop, where its depth is a literal 0 (see _run_loops; not in the
 # primal-only mode).
 PEEL_FIRST_VERTEX = True
@@ -919,6 +923,8 @@ def render_gpt(scene: mi.Scene, shift: Shift | None, settings: GptSettings, widt
         raise ValueError(f"gradient_spp must be in [1, spp={spp}], got {gradient_spp}")
     if shift is None and k != spp:
         raise ValueError("gradient_spp needs gradients: the primal-only mode traces no offsets")
+    if shift is not None and settings.gradients == "direct" and DIRECT_LAYER_SHIFT:
+        shift = getattr(shift, "for_direct_layer", lambda: shift)()
     plan = [(shift, settings, n) for n in pass_plan(width, height, k, max_lanes)]
     if k < spp:  # the primal-only mode's own settings (what render_frame's gradients="none" passes)
         primal = dataclasses.replace(settings, gradients="all", offsets="all")

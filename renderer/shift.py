@@ -533,6 +533,19 @@ class HybridShift:
         sep2 = dr.squared_norm(a - b) * (self.footprint * self.footprint)
         return at_infinity | ((dr.squared_norm(target - a) > sep2) & (dr.squared_norm(target - b) > sep2))
 
+    def for_direct_layer(self) -> HybridShift:
+        """This shift as the ``--gradients direct`` mode runs it: without the manifold reconnection. There the
+        offsets take their steps at the direct layer's vertices 0 and 1 only, and an offset that waits at a
+        mirror x_1 (the solve's trigger; a mirror found at vertex 0 never waits, as the camera ray's direction is
+        fixed by the pixel) would be solved at x_2, which that mode never reaches; waiting or following at x_1
+        changes no event of the direct layer (the mirror is not an emitter, and the next-event estimate at vertex 1
+        belongs to the indirect layer). So the solve could only cost recording, compilation and masked work
+        (docs/renderer.md, "The manifold solve as a loop"; frames bit for bit equal, tests/renderer/test_gpt.py)."""
+        if not self.manifold:
+            return self
+        return HybridShift(self.footprint, self.half_vector, self.follow_specular, self.follow_curvature,
+                           manifold=False)
+
     def _features(self, scene: mi.Scene) -> tuple[bool, bool, bool]:
         """(half-vector copy, follow, manifold reconnection) compiled for this scene: only the strategies its
         materials and shapes can use (checked once per scene)."""

@@ -371,8 +371,7 @@ def test_manifold_solve_as_a_loop_is_the_unrolled_solve(monkeypatch):
     """The manifold reconnection's Newton steps run as a symbolic loop (renderer.shift.MANIFOLD_LOOP): less code to
     record and compile, and the frame bit for bit the one of the unrolled steps (primal, gradients, features). Power:
     the cbox's mirror ball takes the solve (one Newton step instead of the five changes the gradients). The
-    ``--gradients direct`` mode is not tested here: its frame did not change with one Newton step in a probe
-    (64², 4 spp), as a mirror at x_1 is solved at x_2, past the direct layer's vertices."""
+    ``--gradients direct`` mode does not run the solve at all (the next test)."""
     import renderer.shift as shift_module
 
     scene = load_test_scene("cbox")
@@ -393,6 +392,39 @@ def test_manifold_solve_as_a_loop_is_the_unrolled_solve(monkeypatch):
         np.testing.assert_array_equal(getattr(looped, key), getattr(unrolled, key), err_msg=key)
     assert any(not np.array_equal(image, one_step.layers[layer][key])
                for layer, images in looped.layers.items() for key, image in images.items() if key != "base")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("offsets", ["all", "alternate"])
+def test_direct_gradients_mode_leaves_out_the_manifold_solve(monkeypatch, offsets):
+    """``--gradients direct`` runs the hybrid shift without its manifold solve (renderer.gpt.DIRECT_LAYER_SHIFT,
+    HybridShift.for_direct_layer): a mirror at x_1 would be solved at x_2, past the mode's vertices. The frame is
+    bit for bit the one of the full shift (the cbox's mirror ball is seen directly and reflects the lamp), and the
+    solve is not even traced (power: with the full shift it is)."""
+    import renderer.gpt as gpt
+    import renderer.shift as shift_module
+
+    scene = load_test_scene("cbox")
+    settings = GptSettings(max_depth=SCENE_DEPTHS["cbox"], gradients="direct", offsets=offsets)
+    solves = []
+    solve = shift_module.HybridShift._solve_mirror
+    monkeypatch.setattr(shift_module.HybridShift, "_solve_mirror",
+                        lambda self, *a: solves.append(1) or solve(self, *a))
+
+    def render(leave_out: bool):
+        monkeypatch.setattr(gpt, "DIRECT_LAYER_SHIFT", leave_out)
+        solves.clear()
+        result = render_gpt(scene, make_shift("hybrid"), settings, SIZE, SIZE, 5, 3)
+        return result, len(solves)
+
+    (lean, lean_solves), (full, full_solves) = render(True), render(False)
+    assert lean_solves == 0 and full_solves > 0
+    for layer, images in lean.layers.items():
+        for key, image in images.items():
+            np.testing.assert_array_equal(image, full.layers[layer][key], err_msg=f"{layer} {key}")
+    for key in ("albedo", "normal", "depth"):
+        np.testing.assert_array_equal(getattr(lean, key), getattr(full, key), err_msg=key)
+    assert np.abs(lean.layers["direct"]["dx"]).max() > 0
 
 
 @pytest.mark.slow
