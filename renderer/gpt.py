@@ -804,6 +804,7 @@ def _run_direct_gradient_loops(k: PassKernel, s: LoopState, loop: LoopRunner,
     depth 1 does not, and the next-event estimate at depth 0 needs only ``1 < limit``). In a scene where no ray can
     find emission (point, spot and directional lights only: ``k.hittable`` False) the emission event at depth 1
     is 0 for base and offsets alike, so the offsets stop after vertex 0 (the ``all`` render adds 0 there too).
+    render_gpt hands this mode the shift's ``for_direct_layer()`` where it has one (DIRECT_LAYER_SHIFT).
     """
     shift = k.shift
     assert shift is not None
