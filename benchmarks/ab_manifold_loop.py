@@ -72,6 +72,8 @@ def main(argv: list[str] | None = None) -> int:
     w, h = (int(v) for v in args.size.lower().split("x"))
     if args.cold_one:
         return cold_one(args.cold_one[0], args.cold_one[1] == "1", w, h)
+    if args.cold and args.toggle != "loop":
+        parser.error("--cold times the manifold loop's A/B only (--toggle loop)")
     if args.cold:
         for spec in [s.strip() for s in args.scenes.split(",") if s.strip()]:
             cells = []
