@@ -142,8 +142,168 @@ def _spatial_rule(alpha_low: float) -> Callable:
     return run
 
 
+#: Session 17: two fixes aimed at the L1 solve's own bias on clean layers (the G-PT gradients were checked
+#: unbiased on 81004, docs/network.md): (reg floor c, low-frequency sigma, clean-layer α); each touches only
+#: layers the trust rule calls clean (w_f > 0), a noisy layer stays the shipped refinement bit for bit.
+CLEAN_FIXES: dict[str, tuple[float, float, float]] = {
+    "H1: reg floor 1 x median gradient residual": (1.0, 0.0, 0.5),
+    "H1a2: H1 + clean alpha 0.2": (1.0, 0.0, 0.2),
+    "LF16: + w_f * G16 * (base - I)": (0.0, 16.0, 0.5),
+    "LF16a2: LF16 + clean alpha 0.2": (0.0, 16.0, 0.2),
+}
+
+
+def _solve_l1_reg_floor(data, dx, dy, alpha: float, floor_c: float) -> np.ndarray:
+    """solve_l1's IRLS as the refinement runs it (mg, the CG rule), with each pass's reg floored at ``floor_c``
+    times the median RGB norm of the L2 start's gradient residuals: residuals within the gradients' own noise are
+    weighted alike (L2, unbiased) and only the outliers get L1's down-weighting (a Huber-like norm)."""
+    from model import poisson, refine
+
+    work = np.float32
+    b, gx, gy = poisson._prepare(data, dx, dy, alpha, work)
+    scale = max(float(np.abs(a).max()) for a in (b, gx, gy)) or 1.0
+    for a in (b, gx, gy):
+        a /= work(scale)
+    x = poisson._l2_core(b, gx, gy, alpha)
+    system = poisson._WeightedSystem(x.shape, alpha, np.dtype(work), "mg")
+    res, norms = poisson._residuals_and_norms(x, b, gx, gy, alpha)
+    floor = floor_c * float(np.median(np.concatenate([norms[1].ravel(), norms[2].ravel()])))
+    for k in range(1, refine.REFINE_ITERATIONS):
+        system.set_weights(norms, reg=max(0.05 * 0.5 ** (k - 1) / scale, floor))
+        delta, _, _ = poisson._pcg(system, system.rhs(*res), refine.REFINE_MAX_CG_STEPS, refine.REFINE_CG_TOLERANCE)
+        x += delta
+        res, norms = poisson._residuals_and_norms(x, b, gx, gy, alpha)
+    return np.moveaxis(x * scale, 0, -1)
+
+
+def _clean_fix(floor_c: float, sigma: float, alpha_base: float) -> Callable:
+    """f(denoised, layer): the trust rule at clean-layer α ``alpha_base``, with CLEAN_FIXES' changes on clean
+    layers."""
+    from scipy.ndimage import gaussian_filter
+
+    from model import refine
+
+    def run(denoised, layer):
+        saved = refine.TRUST_ALPHA_BASE
+        refine.TRUST_ALPHA_BASE = alpha_base
+        try:
+            s = refine.input_scale(denoised)
+            base, prior, dx, dy = (refine.scaled_image(a, s) for a in (layer.base, denoised, layer.dx, layer.dy))
+            data, alpha = refine.trusted_data(base, prior, dx, dy)
+            span = refine.REFINE_ALPHA - alpha_base
+            frame = (refine.REFINE_ALPHA - alpha) / span if span else 0.0
+            if frame <= 0.0:
+                return refine.refine_layer("direct", denoised, layer)
+            if floor_c > 0.0:
+                image = _solve_l1_reg_floor(data, dx, dy, alpha, floor_c)
+            else:
+                image = np.asarray(refine.refine_layer("direct", denoised, layer), np.float64) * s
+            if sigma > 0.0:
+                low = gaussian_filter(np.asarray(base, np.float64) - image, sigma=(sigma, sigma, 0), mode="nearest")
+                image = image + frame * low
+        finally:
+            refine.TRUST_ALPHA_BASE = saved
+        return np.clip(image / s, 0.0, None).astype(np.float32)
+    return run
+
+
+#: Session 17, design 13: a lower α only at occlusion boundaries. On the direct-only teapot nearly all of the gap
+#: to ``l1`` sits on its silhouette pixels (1.3 % of the pixels), where the base's noise is the coverage's
+#: (hit or miss per sample) and the gradients carry the edge; the held-out frames that punish a global lower α lose
+#: it at *shading* edges instead (exactly black shadow pixels beside bright ones), which this map leaves alone.
+#: Name -> the α at edge pixels (clean layers only, w_f > 0; elsewhere and on noisy layers the shipped rule).
+EDGE_ALPHAS = {"G02: occlusion edges alpha 0.2": 0.2, "G01: occlusion edges alpha 0.1": 0.1}
+#: What score_set is scoring (the variants that read the frame's features look here).
+_CONTEXT: dict[str, object] = {}
+
+
+def occlusion_edges(depth: np.ndarray, jump: float = 0.1) -> np.ndarray:
+    """(H, W) bool: both pixels of every 4-neighbour pair across an occlusion boundary: one sees nothing (depth
+    0) and the other something, or their depths differ by more than ``jump`` of the nearer."""
+    d = np.asarray(depth, np.float64)
+    edge = np.zeros(d.shape, bool)
+    for a, b in ((d[:, 1:], d[:, :-1]), (d[1:], d[:-1])):
+        miss = (a == 0) != (b == 0)
+        both = (a > 0) & (b > 0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            far = both & (np.abs(a - b) > jump * np.minimum(a, b))
+        e = miss | far
+        if a.shape[1] < d.shape[1]:
+            edge[:, 1:] |= e
+            edge[:, :-1] |= e
+        else:
+            edge[1:] |= e
+            edge[:-1] |= e
+    return edge
+
+
+def _edge_rule(alpha_edge: float) -> Callable:
+    """f(denoised, layer): the shipped trust rule, with the data weight at occlusion-edge pixels lowered to
+    ``alpha_edge`` on a clean layer (per-pixel α: _solve_l1_alpha_map)."""
+    from model import refine
+
+    def run(denoised, layer):
+        features = _CONTEXT.get("features")
+        s = refine.input_scale(denoised)
+        base, prior, dx, dy = (refine.scaled_image(a, s) for a in (layer.base, denoised, layer.dx, layer.dy))
+        data, alpha = refine.trusted_data(base, prior, dx, dy)
+        span = refine.REFINE_ALPHA - refine.TRUST_ALPHA_BASE
+        frame = (refine.REFINE_ALPHA - alpha) / span if span else 0.0
+        if features is None or frame <= 0.0:
+            return refine.refine_layer("direct", denoised, layer)
+        edges = occlusion_edges(features.depth)
+        m = np.where(edges, 1.0 - (1.0 - alpha_edge / alpha) * frame, 1.0)
+        return np.clip(_solve_l1_alpha_map(data, dx, dy, alpha, m) / s, 0.0, None).astype(np.float32)
+    return run
+
+
+#: Session 17, design 14: design 1's lower clean-layer α, except at pixels whose base is exactly 0 (no sample found
+#: light there), which keep the shipped α (or are pinned harder): design 1 loses its held-out frames by leaking the
+#: bright side of a shadow edge into black shadow pixels, where the frame's relative error weighs every unit
+#: 100-fold. Name -> (α elsewhere, the zero pixels' α) on clean layers.
+ZERO_KEEP = {"Z02: alpha 0.2, zero-base pixels keep 0.5": (0.2, 0.5),
+             "Z02p: alpha 0.2, zero-base pixels at 2": (0.2, 2.0)}
+
+
+def _zero_keep_rule(alpha_low: float, alpha_zero: float) -> Callable:
+    """f(denoised, layer): the shipped trust rule, and on a clean layer a per-pixel α falling from the shipped one
+    to ``alpha_low`` (as far as w_f goes), but to ``alpha_zero`` where the base is exactly 0 in every channel."""
+    from model import refine
+
+    def run(denoised, layer):
+        s = refine.input_scale(denoised)
+        base, prior, dx, dy = (refine.scaled_image(a, s) for a in (layer.base, denoised, layer.dx, layer.dy))
+        data, alpha = refine.trusted_data(base, prior, dx, dy)
+        span = refine.REFINE_ALPHA - refine.TRUST_ALPHA_BASE
+        frame = (refine.REFINE_ALPHA - alpha) / span if span else 0.0
+        if frame <= 0.0:
+            return refine.refine_layer("direct", denoised, layer)
+        zero = np.all(np.asarray(layer.base) == 0, axis=-1)
+        target = np.where(zero, alpha_zero, alpha_low) / alpha
+        m = 1.0 - (1.0 - target) * frame
+        return np.clip(_solve_l1_alpha_map(data, dx, dy, alpha, m) / s, 0.0, None).astype(np.float32)
+    return run
+
+
+def _without_clean_map(run: Callable) -> Callable:
+    """``run`` with the rule as it was before session 17 (model.refine.TRUST_ALPHA_CLEAN None: no per-pixel α on
+    clean layers), so that the variants measured against that rule still measure what they did."""
+    from model import refine
+
+    def wrapped(denoised, layer):
+        saved = refine.TRUST_ALPHA_CLEAN
+        refine.TRUST_ALPHA_CLEAN = None
+        try:
+            return run(denoised, layer)
+        finally:
+            refine.TRUST_ALPHA_CLEAN = saved
+    return wrapped
+
+
 def variants() -> dict[str, Callable]:
-    """name -> f(denoised direct image, direct layer); 'plain refinement' is the ratio's denominator."""
+    """name -> f(denoised direct image, direct layer); 'plain refinement' is the ratio's denominator. Every variant
+    but 'trust rule (shipped)' runs on the rule before session 17 (its own changes on top); the Z02p prototype
+    is what the shipped rule became, written out on the solver's internals (the two agree to float rounding)."""
     from model import refine
     from model.poisson import solve_l1
     from model.policy import DEFAULT_ALPHA
@@ -152,11 +312,16 @@ def variants() -> dict[str, Callable]:
         "plain refinement (before)": lambda d, layer: refine.refine_layer("direct", d, layer, refine.REFINE_ALPHA),
         "oidn": lambda d, layer: d,
         "l1 (base + gradients)": lambda d, layer: solve_l1(layer.base, layer.dx, layer.dy, DEFAULT_ALPHA)[0],
-        "trust rule (shipped)": _rule(None),
+        "trust rule before session 17 (no clean-layer alpha map)": _rule(None),
         "per-frame rule only (design a)": _per_frame,
     }
     out.update({k: _rule(v) for k, v in RULES.items()})
     out.update({f"spatial alpha {a} (per-pixel trust)": _spatial_rule(a) for a in SPATIAL_ALPHAS})
+    out.update({k: _clean_fix(*v) for k, v in CLEAN_FIXES.items()})
+    out.update({k: _edge_rule(v) for k, v in EDGE_ALPHAS.items()})
+    out.update({k: _zero_keep_rule(*v) for k, v in ZERO_KEEP.items()})
+    out = {k: _without_clean_map(v) for k, v in out.items()}
+    out["trust rule (shipped)"] = _rule(None)
     return out
 
 
@@ -171,8 +336,16 @@ def _frames(cache: Path):
             yield f"{folder.name.removeprefix('procedural-')} {path.stem.removeprefix('gpt-')} spp", path, r1, r2
 
 
-def score_set(cache: Path, per_frame: bool) -> dict[str, dict[str, list[float]]]:
-    """{'direct'|'frame': {variant: [ratio to the plain refinement per frame]}} over one cache's frames."""
+BASELINE = "plain refinement (before)"
+#: Always scored: the ratios' denominator (--baseline picks it) and the per-frame table's columns.
+ALWAYS = (BASELINE, "oidn", "l1 (base + gradients)", "trust rule (shipped)",
+          "trust rule before session 17 (no clean-layer alpha map)")
+
+
+def score_set(cache: Path, per_frame: bool, only: tuple[str, ...] = (), baseline: str = BASELINE,
+              ) -> dict[str, dict[str, list[float]]]:
+    """{'direct'|'frame': {variant: [ratio to ``baseline`` per frame]}} over one cache's frames; ``only``:
+    substrings of the variants to score beside ALWAYS (empty: all of them)."""
     from model.frame import read_frame
     from model.metrics import relmse_unbiased
     from model.oidn import METHOD_SETTING, Denoiser, input_scale
@@ -180,10 +353,12 @@ def score_set(cache: Path, per_frame: bool) -> dict[str, dict[str, list[float]]]
     from model.refine import frame_disagreement, trust_weights
 
     den = Denoiser(METHOD_SETTING)
-    runs = variants()
+    runs = {k: v for k, v in variants().items()
+            if not only or k in ALWAYS or k == baseline or any(o in k for o in only)}
     ratios: dict[str, dict[str, list[float]]] = {"direct": {}, "frame": {}}
     for label, path, r1, r2 in _frames(cache):
         frame = read_frame(str(path))
+        _CONTEXT["features"] = frame.features
         aux = den.prefilter(frame.features) if frame.features is not None else None
         layer = frame.layers["direct"]
         denoised = den.denoise(layer.base, aux)
@@ -193,7 +368,7 @@ def score_set(cache: Path, per_frame: bool) -> dict[str, dict[str, list[float]]]
             image = run(denoised, layer)
             scores[name] = (relmse_unbiased(image, r1["direct"], r2["direct"]),
                             relmse_unbiased(image + indirect, r1["total"], r2["total"]))
-        before = scores["plain refinement (before)"]
+        before = scores[baseline]
         for name, (d, t) in scores.items():
             ratios["direct"].setdefault(name, []).append(d / before[0])
             ratios["frame"].setdefault(name, []).append(t / before[1])
@@ -214,16 +389,16 @@ def _geo(values: list[float]) -> float:
     return math.exp(sum(math.log(max(v, 1e-12)) for v in values) / len(values))
 
 
-def error(caches: dict[str, Path], per_frame: bool) -> None:
+def error(caches: dict[str, Path], per_frame: bool, only: tuple[str, ...] = (), baseline: str = BASELINE) -> None:
     for set_name, cache in caches.items():
         print(f"\n## {set_name}: {cache}\n")
         if per_frame:
             print("| frame | frame r | mean per-pixel w | plain refinement RelMSE (direct) | rule / plain (direct) | "
                   "oidn / plain | l1 / plain | rule / plain (frame) |\n|---|---:|---:|---:|---:|---:|---:|---:|")
-        ratios = score_set(cache, per_frame)
+        ratios = score_set(cache, per_frame, only, baseline)
         labels = [label for label, *_ in _frames(cache)]
         spps = sorted({int(label.split()[1]) for label in labels})
-        print(f"\n{len(labels)} frames; RelMSE / the plain refinement's (geometric mean, worst, frames better)\n")
+        print(f"\n{len(labels)} frames; RelMSE / {baseline}'s (geometric mean, worst, frames better)\n")
         print("| variant | direct: geo | worst | better | frame: geo | worst | better | "
               + " | ".join(f"frame @{s}" for s in spps) + " |")
         print("|---|" + "---:|" * (6 + len(spps)))
@@ -344,6 +519,9 @@ def main() -> int:
     e.add_argument("--validation-cache", type=Path, default=VALIDATION_CACHE)
     e.add_argument("--sets", default="design,validation")
     e.add_argument("--per-frame", action="store_true")
+    e.add_argument("--only", default="", help="comma-separated substrings: score only these variants (and the "
+                   "ratios' baseline, oidn, l1 and the shipped rule)")
+    e.add_argument("--baseline", default=BASELINE, help="the variant the ratios divide by (default: %(default)s)")
     t = sub.add_parser("time", help="1280x720 cost of the rule")
     t.add_argument("--width", type=int, default=1280)
     t.add_argument("--height", type=int, default=720)
@@ -357,7 +535,8 @@ def main() -> int:
         render(_seeds(args.seeds), [int(s) for s in args.spp.split(",")], args.ref_spp, args.cache)
     elif args.command == "error":
         caches = {"design": args.design_cache, "validation": args.validation_cache}
-        error({k: caches[k] for k in args.sets.split(",")}, args.per_frame)
+        only = tuple(o for o in args.only.split(",") if o)
+        error({k: caches[k] for k in args.sets.split(",")}, args.per_frame, only, args.baseline)
     elif args.command == "twins":
         twins(args.cache)
     elif args.command == "noise":

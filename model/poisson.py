@@ -274,6 +274,17 @@ def _residuals_and_norms(x: np.ndarray, base: np.ndarray, dx: np.ndarray, dy: np
     return tuple(out[:3]), tuple(out[3:])
 
 
+def _mapped(terms: tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...]], data_map: np.ndarray | None,
+            ) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...]]:
+    """(residuals, norms) with the data term's residual and norm multiplied by the per-pixel α factor (in place:
+    the buffers are recomputed every pass)."""
+    if data_map is not None:
+        (e0, _, _), (n0, _, _) = terms
+        e0 *= data_map
+        n0 *= data_map
+    return terms
+
+
 def _norm_c(e: np.ndarray) -> np.ndarray:
     """Per-term norm over channels (‖e‖_RGB): one weight per pixel and term, shared by the channels."""
     return np.sqrt(np.einsum("c...,c...->...", e, e))
@@ -327,9 +338,10 @@ class _WeightedSystem:
         out[..., :-1, :] += wy
         out[..., 1:, :] += wy
 
-    def set_weights(self, norms: tuple[np.ndarray, ...], reg: float) -> None:
+    def set_weights(self, norms: tuple[np.ndarray, ...], reg: float, data_map: np.ndarray | None = None) -> None:
         """IRLS weights w = 1/(‖e‖ + reg), normalised to mean 1 over all terms (as the reference solver), and
-        what the preconditioner needs from them."""
+        what the preconditioner needs from them. ``data_map``: solve_l1's per-pixel factor on α (the data
+        term's norm in ``norms`` already carries it)."""
         if kernels.AVAILABLE and self.dtype == np.float32:
             # fused kernel; the float64 (small-α) path keeps numpy's pairwise sums: its truncated CG amplifies
             # a 1-ulp change of the weights' normalisation to ~1e-5 of the image (measured at α = 1e-3)
@@ -344,6 +356,10 @@ class _WeightedSystem:
             self._aw0 = self.alpha * self.w0
             diag_a = self._a2w0.astype(np.float64)
             self._scatter_add(diag_a, self.wx, self.wy)
+        if data_map is not None:  # α → α·m per pixel: the data term's share of A, of the rhs and of diag(A)
+            mapped = self._a2w0 * (data_map * data_map)
+            diag_a = diag_a + (mapped - self._a2w0)
+            self._a2w0, self._aw0 = mapped, self._aw0 * data_map
         if self.preconditioner == "jacobi":
             self._inv_diag = (1.0 / diag_a).astype(self.dtype)
         elif self.preconditioner == "dct":
@@ -528,6 +544,7 @@ def solve_l1(
     preconditioner: str = "dct",
     dtype=np.float32,
     initial: np.ndarray | None = None,
+    alpha_map: np.ndarray | None = None,
 ) -> tuple[np.ndarray, L1Stats]:
     """L1 screened Poisson reconstruction by IRLS: argmin Σ‖α(I − base)‖ + Σ‖(H_x I − dx, H_y I − dy)‖.
 
@@ -542,8 +559,11 @@ def solve_l1(
     ``"none"`` (the reference's plain CG). Iterates in float32, or float64 when α < FLOAT32_MIN_ALPHA.
     ``initial`` (the shape of ``base``) replaces pass 0's exact L2 solve as the starting iterate: the first
     weights are then taken from its residuals (model/refine.py starts from OIDN's image, which is already close).
+    ``alpha_map`` (H, W), finite and > 0: a per-pixel factor m(x) on the data term's α in the IRLS passes,
+    Σ α·m(x)‖I − base‖ (model/refine.py's trust rule leans on the base more or less per pixel). Pass 0 (the L2
+    start, a DCT solve) keeps the scalar α; an all-ones map gives the solve without it.
     Returns the image (float32 by default) and :class:`L1Stats`. Raises ValueError like :func:`solve_l2` and
-    for non-positive iteration counts or an unknown preconditioner.
+    for non-positive iteration counts, an unknown preconditioner or a bad ``alpha_map``.
     """
     if iterations < 1 or cg_iterations < 1:
         raise ValueError(f"iterations and cg_iterations must be >= 1 (got {iterations}, {cg_iterations})")
@@ -553,6 +573,12 @@ def solve_l1(
         raise ValueError(f"preconditioner must be one of {PRECONDITIONERS}, got {preconditioner!r}")
     start = time.perf_counter()
     ndim = np.ndim(base)
+    if alpha_map is not None:
+        alpha_map = np.asarray(alpha_map)
+        if alpha_map.shape != np.shape(base)[:2]:
+            raise ValueError(f"alpha_map must be (H, W) = {np.shape(base)[:2]}, got {alpha_map.shape}")
+        if not (np.all(np.isfinite(alpha_map)) and np.all(alpha_map > 0)):
+            raise ValueError("alpha_map must be finite and > 0 everywhere")
     alpha = float(alpha)
     work = np.dtype(np.float32 if alpha >= FLOAT32_MIN_ALPHA else np.float64)
     b, gx, gy = _prepare(base, dx, dy, alpha, work.type)  # straight into the working precision: no float64 detour
@@ -569,18 +595,19 @@ def solve_l1(
         (x, _, _) = _prepare(initial, dx, dy, alpha, work.type)
         x /= work.type(scale)
     system = _WeightedSystem(x.shape, alpha, work, preconditioner)
+    data_map = None if alpha_map is None else np.ascontiguousarray(alpha_map, work.type)
 
     buffers: list[np.ndarray] = []
-    residuals, norms = _residuals_and_norms(x, b, gx, gy, alpha, buffers)
+    residuals, norms = _mapped(_residuals_and_norms(x, b, gx, gy, alpha, buffers), data_map)
     stats.cg_iterations.append(0)
     stats.cg_residuals.append(0.0)
     stats.energies.append(_l1_energy(norms) * scale)
 
     for k in range(1, iterations):
-        system.set_weights(norms, reg=reg_init * reg_decay ** (k - 1) / scale)
+        system.set_weights(norms, reg=reg_init * reg_decay ** (k - 1) / scale, data_map=data_map)
         delta, it, rel = _pcg(system, system.rhs(*residuals), cg_iterations, cg_tolerance)
         x += delta
-        residuals, norms = _residuals_and_norms(x, b, gx, gy, alpha, buffers)
+        residuals, norms = _mapped(_residuals_and_norms(x, b, gx, gy, alpha, buffers), data_map)
         stats.cg_iterations.append(it)
         stats.cg_residuals.append(rel)
         stats.energies.append(_l1_energy(norms) * scale)

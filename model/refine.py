@@ -96,6 +96,16 @@ TRUST_FLOOR = 1e-12
 #: the gradients taking over more of the detail (the ``l1`` method's regime). None: no frame-wide part.
 TRUST_FRAME_R: tuple[float, float] | None = (0.05, 0.2)
 TRUST_ALPHA_BASE = 0.5
+#: The clean layer's per-pixel α (issue 14, session 17, design 14 of docs/network.md "Closing the teapot gap"): on a
+#: layer the frame-wide part calls clean (w_f > 0) the data weight falls further, per pixel, from α towards
+#: TRUST_ALPHA_CLEAN (the product's Poisson α, model/policy.py DEFAULT_ALPHA) as far as w_f goes, so the gradients
+#: carry more of the detail; but where the base is exactly 0 (no sample found light: an umbra, the background
+#: behind an object) it rises towards TRUST_ALPHA_ZERO instead, which pins those pixels to their base. A lower α
+#: alone (design 1) leaked the bright side of shadow edges into such black pixels, where a relative error weighs
+#: every unit a hundredfold. Chosen on held-out seeds only (design 81001-81008, validation 84001-84004; the test
+#: seeds 85001-85004 reported). None: no per-pixel α (the rule before).
+TRUST_ALPHA_CLEAN: float | None = 0.2
+TRUST_ALPHA_ZERO = 2.0
 
 _F32_MAX = float(np.finfo(np.float32).max)
 
@@ -166,6 +176,14 @@ def frame_disagreement(base: np.ndarray, prior: np.ndarray, dx: np.ndarray, dy: 
 def trusted_data(base: np.ndarray, prior: np.ndarray, dx: np.ndarray, dy: np.ndarray) -> tuple[np.ndarray, float]:
     """(the trust rule's data term w·base + (1 − w)·prior, its α), all at mean-1 exposure, finite inputs; the
     data term is ``prior`` itself, at REFINE_ALPHA, where the base is nowhere trusted."""
+    data, alpha, _ = trust_terms(base, prior, dx, dy)
+    return data, alpha
+
+
+def trust_terms(base: np.ndarray, prior: np.ndarray, dx: np.ndarray, dy: np.ndarray,
+                ) -> tuple[np.ndarray, float, np.ndarray | None]:
+    """:func:`trusted_data` and the clean layer's per-pixel factor on α (TRUST_ALPHA_CLEAN; solve_l1's
+    ``alpha_map``), None on a layer that is not clean as a whole."""
     maps = _disagreement_maps(base, dx, dy)
     w = trust_weights(base, dx, dy, maps)
     frame = 0.0 if TRUST_FRAME_R is None else _log_ramp(frame_disagreement(base, prior, dx, dy, maps),
@@ -173,9 +191,14 @@ def trusted_data(base: np.ndarray, prior: np.ndarray, dx: np.ndarray, dy: np.nda
     if frame > 0.0:
         w = np.maximum(w, np.float32(frame))
     if not np.any(w > 0):
-        return prior, REFINE_ALPHA
+        return prior, REFINE_ALPHA, None
     alpha = REFINE_ALPHA - (REFINE_ALPHA - TRUST_ALPHA_BASE) * frame
-    return (prior + w * (np.asarray(base, np.float32) - prior)).astype(np.float32), alpha
+    data = (prior + w * (np.asarray(base, np.float32) - prior)).astype(np.float32)
+    if frame <= 0.0 or TRUST_ALPHA_CLEAN is None:
+        return data, alpha, None
+    zero = np.all(np.asarray(base) == 0, axis=-1)
+    target = np.where(zero, TRUST_ALPHA_ZERO, TRUST_ALPHA_CLEAN) / alpha
+    return data, alpha, (1.0 - (1.0 - target) * frame).astype(np.float32)
 
 
 def _cg_budget(cg_steps: int | None, cg_tolerance: float | None) -> dict:
@@ -206,12 +229,14 @@ def refine_layer(name: str, prior: np.ndarray, layer: Layer, alpha: float | None
     scale = input_scale(prior)  # mean 1, as OIDN's own input is normalised; 1.0 for a black prior
     dx, dy = scaled_image(layer.dx, scale), scaled_image(layer.dy, scale)
     data = scaled_image(prior, scale)
+    alpha_map = None
     if alpha is None:  # the trust rule: per pixel, how far the frame's own base is trusted beside OIDN's image
         alpha = REFINE_ALPHA
         if np.all(np.isfinite(layer.base)):  # (the frame policy keeps NaN/Inf out; a direct caller may not)
-            data, alpha = trusted_data(scaled_image(layer.base, scale), data, dx, dy)
+            data, alpha, alpha_map = trust_terms(scaled_image(layer.base, scale), data, dx, dy)
     warm = REFINE_WARM_START if warm_start is None else warm_start
     solved, _ = solve_l1(data, dx, dy, alpha, passes or REFINE_ITERATIONS, **_cg_budget(cg_steps, cg_tolerance),
-                         preconditioner=preconditioner or REFINE_PRECONDITIONER, initial=data if warm else None)
+                         preconditioner=preconditioner or REFINE_PRECONDITIONER, initial=data if warm else None,
+                         alpha_map=alpha_map)
     out = np.asarray(solved, np.float64) / scale
     return np.clip(out, 0.0, _F32_MAX).astype(np.float32)

@@ -340,3 +340,45 @@ def test_l1_initial_iterate_replaces_the_l2_start() -> None:
     assert energy_l1(out, noisy, dx, dy, 1.0) < 0.8 * stats.energies[0]
     with pytest.raises(ValueError, match="shape"):
         solve_l1(noisy, dx, dy, 1.0, 4, initial=start[:-1])
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# A per-pixel α (``alpha_map``: model/refine.py's clean-layer rule)
+# ---------------------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("preconditioner", ["dct", "mg", "jacobi"])
+def test_an_alpha_map_of_ones_is_the_solve_without_one(preconditioner: str) -> None:
+    base, dx, dy = _random_problem(23, 31, 5)
+    plain, _ = solve_l1(base, dx, dy, 0.5, preconditioner=preconditioner)
+    ones, _ = solve_l1(base, dx, dy, 0.5, preconditioner=preconditioner, alpha_map=np.ones((23, 31)))
+    np.testing.assert_allclose(ones, plain, rtol=0, atol=1e-6 * float(np.abs(plain).max()))
+
+
+def test_a_uniform_alpha_map_is_that_alpha_in_the_irls_passes() -> None:
+    """From the same starting iterate, α·m with m ≡ c is the solve at α·c (pass 0, the L2 start, keeps the
+    scalar α, so the start is given; each pass solved to convergence, since the preconditioner is built for the
+    scalar α and a truncated CG would differ by that alone)."""
+    base, dx, dy = _random_problem(20, 26, 6)
+    start = solve_l2(base, dx, dy, 0.5)
+    converged = {"cg_iterations": 400, "cg_tolerance": 1e-9, "dtype": np.float64}
+    mapped, _ = solve_l1(base, dx, dy, 0.5, initial=start, alpha_map=np.full((20, 26), 0.4), **converged)
+    scalar, _ = solve_l1(base, dx, dy, 0.2, initial=start, **converged)
+    np.testing.assert_allclose(mapped, scalar, rtol=0, atol=1e-4 * float(np.abs(scalar).max()))
+
+
+def test_a_large_alpha_map_pins_its_pixels_to_the_base() -> None:
+    base, dx, dy = _random_problem(16, 16, 7)
+    m = np.ones((16, 16))
+    m[4:8, 4:8] = 1e3
+    out, _ = solve_l1(base, dx, dy, 0.2, alpha_map=m)
+    free, _ = solve_l1(base, dx, dy, 0.2)
+    pinned = np.abs(out[4:8, 4:8] - base[4:8, 4:8]).max()
+    assert pinned < 0.02 * np.abs(free[4:8, 4:8] - base[4:8, 4:8]).max()
+
+
+@pytest.mark.parametrize("bad", [np.zeros((8, 9)), np.full((8, 9), np.nan), -np.ones((8, 9)), np.ones((9, 8))])
+def test_a_bad_alpha_map_is_refused(bad: np.ndarray) -> None:
+    base, dx, dy = _random_problem(8, 9, 8)
+    with pytest.raises(ValueError, match="alpha_map"):
+        solve_l1(base, dx, dy, 0.5, alpha_map=bad)

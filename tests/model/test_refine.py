@@ -296,10 +296,14 @@ def _study_direct_trust():
     return module
 
 
-def test_the_studys_per_pixel_alpha_solve_is_the_refinement_when_alpha_is_uniform() -> None:
+def test_the_studys_per_pixel_alpha_solve_is_the_refinement_when_alpha_is_uniform(monkeypatch) -> None:
     """docs/network.md design 10 rests on the study's prototype: with a per-pixel α equal everywhere to the rule's
-    own it must be refine_layer's solve, and a lower α_lo must change a clean layer (the prototype does something)."""
+    own it must be refine_layer's solve (the rule of its time: no clean-layer α map), and a lower α_lo must change a
+    clean layer (the prototype does something)."""
+    from model import refine
     from model.refine import TRUST_ALPHA_BASE, frame_disagreement, input_scale, scaled_image
+
+    monkeypatch.setattr(refine, "TRUST_ALPHA_CLEAN", None)
 
     study = _study_direct_trust()
     truth = _sharp(40, 56, 21)
@@ -312,3 +316,61 @@ def test_the_studys_per_pixel_alpha_solve_is_the_refinement_when_alpha_is_unifor
     assert np.max(np.abs(same - shipped)) <= 1e-5 * float(shipped.max())
     lower = study._spatial_rule(0.1)(prior, layer)
     assert np.max(np.abs(lower - shipped)) > 1e-3 * float(shipped.max())
+
+
+def _shadow_edge(h: int = 32, w: int = 40, noise: float = 0.002, seed: int = 31) -> tuple[np.ndarray, Layer]:
+    """A clean direct layer with an umbra: a bright lit region (radiance ~50) beside pixels of exactly 0 (no sample
+    found light), gradients with a little noise, as a many-spp G-PT layer has. Returns (prior, layer)."""
+    rng = np.random.default_rng(seed)
+    truth = np.full((h, w, 3), 50.0, np.float32) * rng.uniform(0.9, 1.1, (h, w, 1)).astype(np.float32)
+    truth[:, w // 2:] = 0.0
+    dx, dy = _gradients(truth, noise * 50.0, seed + 1)
+    return _blur(truth), Layer(_noisy(truth, 0.01, seed + 2), dx, dy)  # relative noise: the umbra stays 0
+
+
+def test_the_clean_layer_gets_a_per_pixel_alpha_with_zero_pixels_pinned() -> None:
+    from model.refine import (
+        TRUST_ALPHA_BASE,
+        TRUST_ALPHA_CLEAN,
+        TRUST_ALPHA_ZERO,
+        input_scale,
+        scaled_image,
+        trust_terms,
+    )
+
+    prior, layer = _shadow_edge()
+    s = input_scale(prior)
+    data, alpha, m = trust_terms(*(scaled_image(a, s) for a in (layer.base, prior, layer.dx, layer.dy)))
+    assert alpha == TRUST_ALPHA_BASE and m is not None and m.shape == layer.base.shape[:2]
+    zero = np.all(layer.base == 0, axis=-1)
+    np.testing.assert_allclose(m[zero], TRUST_ALPHA_ZERO / alpha, rtol=1e-6)
+    np.testing.assert_allclose(m[~zero], TRUST_ALPHA_CLEAN / alpha, rtol=1e-6)
+    truth = _sharp(32, 40, 32)  # a noisy layer: no frame-wide trust, no map
+    noisy = Layer(_noisy(truth, 1.0, 33), *_gradients(truth, 0.5, 34))
+    prior = _blur(truth)
+    scaled = (scaled_image(a, input_scale(prior)) for a in (noisy.base, prior, noisy.dx, noisy.dy))
+    assert trust_terms(*scaled)[2] is None
+
+
+def test_black_pixels_beside_bright_ones_stay_black_on_a_clean_layer(monkeypatch) -> None:
+    """What the zero-pixel pin is for: a lower clean α alone leaks the bright side of a shadow edge into the umbra
+    (a relative error weighs each unit there a hundredfold)."""
+    from model import refine
+
+    prior, layer = _shadow_edge()
+    umbra = np.s_[:, 20:]
+    shipped = refine_layer("direct", prior, layer)
+    monkeypatch.setattr(refine, "TRUST_ALPHA_ZERO", refine.TRUST_ALPHA_CLEAN)  # design 1: one low α everywhere
+    unpinned = refine_layer("direct", prior, layer)
+    leak, leak_unpinned = float(np.abs(shipped[umbra]).sum()), float(np.abs(unpinned[umbra]).sum())
+    assert leak < 0.5 * leak_unpinned, (leak, leak_unpinned)
+    assert np.all(np.isfinite(shipped)) and np.all(shipped >= 0)
+
+
+def test_the_studys_zero_pixel_prototype_is_the_shipped_rule() -> None:
+    """docs/network.md design 14 was measured with the study's prototype; the shipped rule must be it."""
+    study = _study_direct_trust()
+    prior, layer = _shadow_edge(seed=41)
+    shipped = refine_layer("direct", prior, layer)
+    prototype = study._zero_keep_rule(0.2, 2.0)(prior, layer)
+    assert np.max(np.abs(prototype - shipped)) <= 1e-5 * float(shipped.max())
