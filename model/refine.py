@@ -25,6 +25,8 @@ well the base agrees with the sampled gradients next to the detail they carry, a
 over the whole layer (which also lowers α). OIDN's own error (bias, over-smoothing) dominates a layer that is only
 a little noisy; there the base with its gradients (the ``l1`` method's data) is the better anchor. A noisy layer
 gets the plain refinement above, bit for bit. Callers that pass α (model/fused.py's pinned candidates) keep it.
+On a layer clean as a whole the data weight also varies per pixel (``TRUST_ALPHA_CLEAN``, session 17): lower, so
+the gradients carry more detail, except where the base is exactly 0, which is pinned to it.
 
 The solve runs at a normalised exposure (the layer divided by the mean of OIDN's image), because the IRLS
 regulariser of ``solve_l1`` is an absolute radiance: without it a 1e-6 frame and a 1e6 frame of the same scene
