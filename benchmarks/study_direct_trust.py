@@ -126,17 +126,25 @@ def _solve_l1_alpha_map(data, dx, dy, alpha: float, m) -> np.ndarray:
     return np.moveaxis(x * scale, 0, -1)
 
 
+def _trust_parts(denoised, layer) -> tuple:
+    """What the rule-based variants start from: (s, base, dx, dy, data, α, w_f) at mean-1 exposure (scale s),
+    the trust rule's data term and α, and its frame weight w_f, from α = REFINE_ALPHA − (REFINE_ALPHA −
+    TRUST_ALPHA_BASE)·w_f (the module constants as set when called)."""
+    from model import refine
+
+    s = refine.input_scale(denoised)
+    base, prior, dx, dy = (refine.scaled_image(a, s) for a in (layer.base, denoised, layer.dx, layer.dy))
+    data, alpha = refine.trusted_data(base, prior, dx, dy)
+    span = refine.REFINE_ALPHA - refine.TRUST_ALPHA_BASE
+    return s, base, dx, dy, data, alpha, (refine.REFINE_ALPHA - alpha) / span if span else 0.0
+
+
 def _spatial_rule(alpha_low: float) -> Callable:
     """f(denoised, layer): the shipped trust rule's data term, solved with a per-pixel α (SPATIAL_ALPHAS)."""
     from model import refine
 
     def run(denoised, layer):
-        s = refine.input_scale(denoised)
-        base, prior, dx, dy = (refine.scaled_image(a, s) for a in (layer.base, denoised, layer.dx, layer.dy))
-        data, alpha = refine.trusted_data(base, prior, dx, dy)  # the rule itself: its data term and α
-        # its frame weight w_f, from α = REFINE_ALPHA − (REFINE_ALPHA − TRUST_ALPHA_BASE)·w_f
-        span = refine.REFINE_ALPHA - refine.TRUST_ALPHA_BASE
-        frame = (refine.REFINE_ALPHA - alpha) / span if span else 0.0
+        s, base, dx, dy, data, alpha, frame = _trust_parts(denoised, layer)
         m = 1.0 - (1.0 - alpha_low / alpha) * frame * refine.trust_weights(base, dx, dy)[..., 0]
         return np.clip(_solve_l1_alpha_map(data, dx, dy, alpha, m) / s, 0.0, None).astype(np.float32)
     return run
@@ -187,11 +195,7 @@ def _clean_fix(floor_c: float, sigma: float, alpha_base: float) -> Callable:
         saved = refine.TRUST_ALPHA_BASE
         refine.TRUST_ALPHA_BASE = alpha_base
         try:
-            s = refine.input_scale(denoised)
-            base, prior, dx, dy = (refine.scaled_image(a, s) for a in (layer.base, denoised, layer.dx, layer.dy))
-            data, alpha = refine.trusted_data(base, prior, dx, dy)
-            span = refine.REFINE_ALPHA - alpha_base
-            frame = (refine.REFINE_ALPHA - alpha) / span if span else 0.0
+            s, base, dx, dy, data, alpha, frame = _trust_parts(denoised, layer)
             if frame <= 0.0:
                 return refine.refine_layer("direct", denoised, layer)
             if floor_c > 0.0:
@@ -244,11 +248,7 @@ def _edge_rule(alpha_edge: float) -> Callable:
 
     def run(denoised, layer):
         features = _CONTEXT.get("features")
-        s = refine.input_scale(denoised)
-        base, prior, dx, dy = (refine.scaled_image(a, s) for a in (layer.base, denoised, layer.dx, layer.dy))
-        data, alpha = refine.trusted_data(base, prior, dx, dy)
-        span = refine.REFINE_ALPHA - refine.TRUST_ALPHA_BASE
-        frame = (refine.REFINE_ALPHA - alpha) / span if span else 0.0
+        s, _, dx, dy, data, alpha, frame = _trust_parts(denoised, layer)
         if features is None or frame <= 0.0:
             return refine.refine_layer("direct", denoised, layer)
         edges = occlusion_edges(features.depth)
@@ -271,11 +271,7 @@ def _zero_keep_rule(alpha_low: float, alpha_zero: float) -> Callable:
     from model import refine
 
     def run(denoised, layer):
-        s = refine.input_scale(denoised)
-        base, prior, dx, dy = (refine.scaled_image(a, s) for a in (layer.base, denoised, layer.dx, layer.dy))
-        data, alpha = refine.trusted_data(base, prior, dx, dy)
-        span = refine.REFINE_ALPHA - refine.TRUST_ALPHA_BASE
-        frame = (refine.REFINE_ALPHA - alpha) / span if span else 0.0
+        s, _, dx, dy, data, alpha, frame = _trust_parts(denoised, layer)
         if frame <= 0.0:
             return refine.refine_layer("direct", denoised, layer)
         zero = np.all(np.asarray(layer.base) == 0, axis=-1)

@@ -357,9 +357,11 @@ class _WeightedSystem:
             diag_a = self._a2w0.astype(np.float64)
             self._scatter_add(diag_a, self.wx, self.wy)
         if data_map is not None:  # α → α·m per pixel: the data term's share of A, of the rhs and of diag(A)
-            mapped = self._a2w0 * (data_map * data_map)
-            diag_a = diag_a + (mapped - self._a2w0)
-            self._a2w0, self._aw0 = mapped, self._aw0 * data_map
+            if getattr(self, "_map_sq", None) is None or self._map_source is not data_map:
+                self._map_source, self._map_sq = data_map, data_map * data_map  # m² once per solve, not per pass
+            diag_a += self._a2w0 * (self._map_sq - 1)  # in place: these arrays are rebuilt by the next pass
+            self._a2w0 *= self._map_sq
+            self._aw0 *= data_map
         if self.preconditioner == "jacobi":
             self._inv_diag = (1.0 / diag_a).astype(self.dtype)
         elif self.preconditioner == "dct":
