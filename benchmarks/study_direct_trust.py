@@ -281,6 +281,31 @@ def _zero_keep_rule(alpha_low: float, alpha_zero: float) -> Callable:
     return run
 
 
+#: Session 18, designs 15-17 (fixed before any was scored; docs/network.md "Designs 15-17"): the shipped rule with
+#: model.refine's TRUST_SILHOUETTE mode and/or TRUST_CLEAN_START, the frame's depth passed. Name -> (mode, start).
+SILHOUETTE_DESIGNS = {"S-unpin: silhouette pixels not pinned": ("unpin", False),
+                      "S-band: silhouette band, base data, not pinned": ("band", False),
+                      "C-start: clean layers start at the clean alpha": (None, True),
+                      "C+S: clean start and silhouettes not pinned": ("unpin", True)}
+
+
+def _silhouette_rule(mode: str | None, start: bool) -> Callable:
+    """f(denoised, layer): the shipped rule (model.refine.refine_layer) with TRUST_SILHOUETTE = ``mode`` and
+    TRUST_CLEAN_START = ``start`` for the call, the frame's depth feature passed."""
+    from model import refine
+
+    def run(denoised, layer):
+        features = _CONTEXT.get("features")
+        saved = refine.TRUST_SILHOUETTE, refine.TRUST_CLEAN_START
+        refine.TRUST_SILHOUETTE, refine.TRUST_CLEAN_START = mode, start
+        try:
+            return refine.refine_layer("direct", denoised, layer,
+                                       depth=None if features is None else features.depth)
+        finally:
+            refine.TRUST_SILHOUETTE, refine.TRUST_CLEAN_START = saved
+    return run
+
+
 def _without_clean_map(run: Callable) -> Callable:
     """``run`` with the rule as it was before session 17 (model.refine.TRUST_ALPHA_CLEAN None: no per-pixel α on
     clean layers), so that the variants measured against that rule still measure what they did."""
@@ -318,6 +343,7 @@ def variants() -> dict[str, Callable]:
     out.update({k: _zero_keep_rule(*v) for k, v in ZERO_KEEP.items()})
     out = {k: _without_clean_map(v) for k, v in out.items()}
     out["trust rule (shipped)"] = _rule(None)
+    out.update({k: _silhouette_rule(*v) for k, v in SILHOUETTE_DESIGNS.items()})
     return out
 
 
@@ -510,10 +536,13 @@ def main() -> int:
     r.add_argument("--spp", default="4,16,64,256")
     r.add_argument("--ref-spp", type=int, default=1024)
     r.add_argument("--cache", type=Path, default=VALIDATION_CACHE)
+    r.add_argument("--family", choices=("mixed", "studio"), default="mixed",
+                   help="procedural family: rooms (procedural:SEED) or studio (procedural:studio:SEED)")
     e = sub.add_parser("error", help="the design and validation tables")
     e.add_argument("--design-cache", type=Path, default=DESIGN_CACHE)
     e.add_argument("--validation-cache", type=Path, default=VALIDATION_CACHE)
     e.add_argument("--sets", default="design,validation")
+    e.add_argument("--extra", default="", help="more sets as NAME=DIR,... (e.g. studio=~/.cache/gradsep/studio-design)")
     e.add_argument("--per-frame", action="store_true")
     e.add_argument("--only", default="", help="comma-separated substrings: score only these variants (and the "
                    "ratios' baseline, oidn, l1 and the shipped rule)")
@@ -528,9 +557,10 @@ def main() -> int:
     n.add_argument("--caches", default=f"{DESIGN_CACHE},{VALIDATION_CACHE}")
     args = parser.parse_args()
     if args.command == "render":
-        render(_seeds(args.seeds), [int(s) for s in args.spp.split(",")], args.ref_spp, args.cache)
+        render(_seeds(args.seeds), [int(s) for s in args.spp.split(",")], args.ref_spp, args.cache, args.family)
     elif args.command == "error":
         caches = {"design": args.design_cache, "validation": args.validation_cache}
+        caches |= {n: Path(d).expanduser() for n, _, d in (x.partition("=") for x in args.extra.split(",") if x)}
         only = tuple(o for o in args.only.split(",") if o)
         error({k: caches[k] for k in args.sets.split(",")}, args.per_frame, only, args.baseline)
     elif args.command == "twins":

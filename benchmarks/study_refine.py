@@ -41,16 +41,20 @@ def _seeds(text: str) -> list[int]:
     return out
 
 
-def render(seeds: list[int], spps: list[int], ref_spp: int, cache: Path) -> None:
+def render(seeds: list[int], spps: list[int], ref_spp: int, cache: Path, family: str = "mixed") -> None:
+    """G-PT frames (seed 7) and two independent ``path`` references of procedural:[FAMILY:]SEED into
+    ``cache/procedural-[FAMILY-]SEED``."""
     from model.frame import write_frame
+    from renderer.procedural import ProceduralSpec
     from renderer.reference import render_loaded
     from renderer.render import render_frame
     from renderer.scene import load_scene
 
     for seed in seeds:
-        folder = cache / f"procedural-{seed}"
+        spec = str(ProceduralSpec(seed, family))
+        folder = cache / spec.replace(":", "-")
         folder.mkdir(parents=True, exist_ok=True)
-        loaded = load_scene(f"procedural:{seed}", width=SIZE[0], height=SIZE[1])
+        loaded = load_scene(spec, width=SIZE[0], height=SIZE[1])
         for spp in spps:
             path = folder / f"gpt-{spp}.exr"
             if not path.is_file():
@@ -60,7 +64,7 @@ def render(seeds: list[int], spps: list[int], ref_spp: int, cache: Path) -> None
             if not path.is_file():
                 ref = render_loaded(loaded, spp=ref_spp, seed=ref_seed, tile_spp=None, progress=False)
                 np.savez(path, **{k: np.asarray(v, np.float32) for k, v in ref.images().items()})
-        print(f"procedural:{seed}: cached in {folder}", flush=True)
+        print(f"{spec}: cached in {folder}", flush=True)
 
 
 def _solver(alpha: float, passes: int, layers: frozenset[str], **solver) -> Callable:

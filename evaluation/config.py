@@ -10,13 +10,16 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from evaluation.cache import REPO_ROOT, default_cache_dir, file_sha256, key_hash
 from evaluation.methods import METHODS
 from model.errors import CommandError
+
+if TYPE_CHECKING:
+    from renderer.procedural import ProceduralSpec
 from model.policy import DEFAULT_ALPHA, models_dir_from
 
 #: The command line's --spp default (model/commands.py); with --quick it is replaced by the quick list.
@@ -282,9 +285,9 @@ def resolve_scenes(specs: Sequence[str]) -> tuple[list[SceneEntry], list[str]]:
     from renderer.procedural import parse_procedural  # numpy only: no Mitsuba to resolve the scene list
 
     for spec in specs:
-        seed = parse_procedural(spec)
-        if seed is not None:
-            entries.append(_procedural_entry(seed))
+        procedural = parse_procedural(spec)
+        if procedural is not None:
+            entries.append(_procedural_entry(procedural))
         else:
             xml = _xml_for(Path(spec).expanduser())
             entries.append(SceneEntry(str(xml), scene_label(xml), {"xml": str(xml.resolve()),
@@ -300,10 +303,13 @@ def scene_label(xml: Path) -> str:
     return xml.stem
 
 
-def _procedural_entry(seed: int) -> SceneEntry:
+def _procedural_entry(spec: ProceduralSpec) -> SceneEntry:
     from renderer.procedural import GENERATOR_VERSION
 
-    return SceneEntry(f"procedural:{seed}", f"procedural:{seed}", {"procedural": seed, "generator": GENERATOR_VERSION})
+    identity: dict = {"procedural": spec.seed, "generator": GENERATOR_VERSION}
+    if spec.family != "mixed":  # the mixed family's identity (and so its cache keys) is what it always was
+        identity["family"] = spec.family
+    return SceneEntry(str(spec), str(spec), identity)
 
 
 def _unique_names(entries: list[SceneEntry]) -> list[SceneEntry]:

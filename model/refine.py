@@ -41,7 +41,7 @@ import numpy as np
 
 from model.frame import Layer
 from model.oidn import input_scale
-from model.poisson import solve_l1
+from model.poisson import solve_l1, solve_l2
 from model.preprocess import scaled_image
 
 #: The layers whose gradients refine OIDN's result (the rest keep OIDN's).
@@ -108,6 +108,20 @@ TRUST_ALPHA_BASE = 0.5
 #: seeds 85001-85004 reported). None: no per-pixel α (the rule before).
 TRUST_ALPHA_CLEAN: float | None = 0.2
 TRUST_ALPHA_ZERO = 2.0
+#: Silhouettes against nothing (issue 14, session 18; docs/network.md "Designs 15-17"): on a clean layer, the
+#: pixels on either side of an edge where the camera ray missed everything on one side (the frame's depth 0) and
+#: hit something on the other. There the base's noise is the coverage's (hit or miss per sample), OIDN's image is
+#: blurred across the edge, and a missed pixel's 0 is a sampling accident when the object covers part of it.
+#: None: no special case (the rule before). "unpin": such pixels get TRUST_ALPHA_CLEAN instead of the zero pin;
+#: "base": that, and the data term is the base itself there (the ``l1`` method's data); "band": "base" on the
+#: silhouette grown by one pixel. Needs the frame's depth feature; without it nothing changes.
+TRUST_SILHOUETTE: str | None = None
+SILHOUETTE_MODES = ("unpin", "base", "band")
+#: Start a clean layer's IRLS from the exact L2 solve at the clean per-pixel α (the smallest α·m: that of its
+#: non-black pixels) instead of at the layer's scalar α (solve_l1's pass 0 cannot take a per-pixel map). The
+#: truncated CG of the passes after it (REFINE_MAX_CG_STEPS) moves the image only part of the way from that
+#: start, so the start's α shapes the smooth part of the result. False: the scalar start (the rule before).
+TRUST_CLEAN_START = False
 
 _F32_MAX = float(np.finfo(np.float32).max)
 
@@ -182,10 +196,29 @@ def trusted_data(base: np.ndarray, prior: np.ndarray, dx: np.ndarray, dy: np.nda
     return data, alpha
 
 
+def silhouette_mask(depth: np.ndarray, grow: int = 0) -> np.ndarray:
+    """(H, W) bool: both pixels of every 4-neighbour pair where the camera ray missed (depth 0) on exactly one
+    side, grown by ``grow`` pixels (a (2·grow+1)² square). All False for a frame with no missed pixel."""
+    miss = np.asarray(depth) == 0
+    edge = np.zeros(miss.shape, bool)
+    across_x = miss[:, 1:] != miss[:, :-1]
+    across_y = miss[1:] != miss[:-1]
+    edge[:, 1:] |= across_x
+    edge[:, :-1] |= across_x
+    edge[1:] |= across_y
+    edge[:-1] |= across_y
+    if grow > 0 and edge.any():
+        from scipy.ndimage import maximum_filter
+
+        edge = maximum_filter(edge, size=2 * grow + 1, mode="nearest")
+    return edge
+
+
 def trust_terms(base: np.ndarray, prior: np.ndarray, dx: np.ndarray, dy: np.ndarray,
-                ) -> tuple[np.ndarray, float, np.ndarray | None]:
+                depth: np.ndarray | None = None) -> tuple[np.ndarray, float, np.ndarray | None]:
     """:func:`trusted_data` and the clean layer's per-pixel factor on α (TRUST_ALPHA_CLEAN; solve_l1's
-    ``alpha_map``), None on a layer that is not clean as a whole."""
+    ``alpha_map``), None on a layer that is not clean as a whole. ``depth``: the frame's depth feature, for
+    TRUST_SILHOUETTE."""
     maps = _disagreement_maps(base, dx, dy)
     w = trust_weights(base, dx, dy, maps)
     frame = 0.0 if TRUST_FRAME_R is None else _log_ramp(frame_disagreement(base, prior, dx, dy, maps),
@@ -200,6 +233,13 @@ def trust_terms(base: np.ndarray, prior: np.ndarray, dx: np.ndarray, dy: np.ndar
         return data, alpha, None
     zero = np.all(np.asarray(base) == 0, axis=-1)
     target = np.where(zero, TRUST_ALPHA_ZERO, TRUST_ALPHA_CLEAN) / alpha
+    if TRUST_SILHOUETTE is not None and depth is not None and np.shape(depth) == zero.shape:
+        edge = silhouette_mask(depth, grow=int(TRUST_SILHOUETTE == "band"))
+        if edge.any():
+            target = np.where(edge, TRUST_ALPHA_CLEAN / alpha, target)
+            if TRUST_SILHOUETTE != "unpin":  # the base itself, weighted by how clean the layer is as a whole
+                pull = np.float32(frame) * edge[..., None]
+                data = (data + pull * (np.asarray(base, np.float32) - data)).astype(np.float32)
     return data, alpha, (1.0 - (1.0 - target) * frame).astype(np.float32)
 
 
@@ -216,7 +256,7 @@ def _cg_budget(cg_steps: int | None, cg_tolerance: float | None) -> dict:
 def refine_layer(name: str, prior: np.ndarray, layer: Layer, alpha: float | None = None, *,
                  preconditioner: str | None = None, cg_steps: int | None = None,
                  cg_tolerance: float | None = None, passes: int | None = None,
-                 warm_start: bool | None = None) -> np.ndarray:
+                 warm_start: bool | None = None, depth: np.ndarray | None = None) -> np.ndarray:
     """``prior`` (OIDN's denoise of ``layer.base``) refined by the layer's gradients when ``name`` is one of
     REFINED_LAYERS and the layer carries gradients; otherwise ``prior`` unchanged. float32 (H, W, 3), ≥ 0.
     ``preconditioner``/``cg_steps`` select the solve (None: the module's REFINE_PRECONDITIONER / REFINE_CG_STEPS,
@@ -225,7 +265,8 @@ def refine_layer(name: str, prior: np.ndarray, layer: Layer, alpha: float | None
     ``cg_tolerance`` (None: REFINE_CG_TOLERANCE) in at most REFINE_MAX_CG_STEPS steps; with ``cg_steps`` and no
     ``cg_tolerance`` the solve is the fixed budget of before (solve_l1's default tolerance), bit for bit.
     ``passes`` / ``warm_start``: IRLS passes and the starting iterate (None: REFINE_ITERATIONS /
-    REFINE_WARM_START), for callers that pin their whole solve (model.fused's candidates)."""
+    REFINE_WARM_START), for callers that pin their whole solve (model.fused's candidates). ``depth``: the
+    frame's depth feature (TRUST_SILHOUETTE), if it has one."""
     if name not in REFINED_LAYERS or not layer.has_gradients:
         return prior
     scale = input_scale(prior)  # mean 1, as OIDN's own input is normalised; 1.0 for a black prior
@@ -235,10 +276,13 @@ def refine_layer(name: str, prior: np.ndarray, layer: Layer, alpha: float | None
     if alpha is None:  # the trust rule: per pixel, how far the frame's own base is trusted beside OIDN's image
         alpha = REFINE_ALPHA
         if np.all(np.isfinite(layer.base)):  # (the frame policy keeps NaN/Inf out; a direct caller may not)
-            data, alpha, alpha_map = trust_terms(scaled_image(layer.base, scale), data, dx, dy)
+            data, alpha, alpha_map = trust_terms(scaled_image(layer.base, scale), data, dx, dy, depth)
     warm = REFINE_WARM_START if warm_start is None else warm_start
+    initial = data if warm else None
+    if initial is None and alpha_map is not None and TRUST_CLEAN_START:
+        initial = solve_l2(data, dx, dy, alpha * float(np.min(alpha_map)))  # the non-black pixels' α
     solved, _ = solve_l1(data, dx, dy, alpha, passes or REFINE_ITERATIONS, **_cg_budget(cg_steps, cg_tolerance),
-                         preconditioner=preconditioner or REFINE_PRECONDITIONER, initial=data if warm else None,
+                         preconditioner=preconditioner or REFINE_PRECONDITIONER, initial=initial,
                          alpha_map=alpha_map)
     out = np.asarray(solved, np.float64) / scale
     return np.clip(out, 0.0, _F32_MAX).astype(np.float32)

@@ -9,6 +9,12 @@ facing a wall or the ceiling so that most of the room is lit only indirectly, sm
 spot light) and sometimes an environment light (constant, or a small procedurally painted sky with a sun; nothing
 is downloaded). `docs/dataset.md` documents the distribution.
 
+A second family, ``procedural:studio:SEED``, is the product shot: the same objects, materials and lights, but no
+room, no ground and no sky, so the object cluster hangs in an empty (black) background lit by point, spot and
+small sphere lights. Almost all of its light is direct and its silhouettes are against nothing, the kind of frame
+the room family never makes (scenes with walls everywhere); the held-out studies use it so that a rule for such
+frames is chosen on seeds, not on the shared teapot.
+
 Everything is drawn from ``numpy.random.Generator(PCG64(seed))`` *before* the film size is looked at, so one
 seed gives the same scene at every resolution. The generator first builds a plain *plan* (the Mitsuba dict with
 numpy matrices and arrays in place of Mitsuba objects) that can be compared, hashed and summarised without a
@@ -28,6 +34,9 @@ from renderer.errors import SceneError
 
 GENERATOR_VERSION = 1
 PROCEDURAL_PREFIX = "procedural:"  # a scene spec naming a procedural scene: procedural:SEED
+#: The scene families: "mixed" (rooms and outdoor ground planes: ``procedural:SEED``, what datasets train on) and
+#: "studio" (objects and small lights in an empty background: ``procedural:studio:SEED``).
+FAMILIES = ("mixed", "studio")
 DEFAULT_MAX_DEPTH = 8  # deep enough for glass and multi-bounce indirect light; Russian roulette trims the rest
 _WALLS = ("north", "south", "east", "west")
 
@@ -41,6 +50,7 @@ class ProceduralScene:
     seed: int
     plan: dict[str, Any]
     summary: dict[str, Any] = field(default_factory=dict)
+    family: str = "mixed"
 
     def to_mitsuba(self) -> dict[str, Any]:
         """The dict for ``mi.load_dict`` (needs a Mitsuba variant to be set)."""
@@ -52,13 +62,16 @@ class ProceduralScene:
         room = s["room"]
         if room["kind"] == "outdoor":
             where = "outdoor ground plane"
+        elif room["kind"] == "studio":
+            where = "studio (empty background)"
         else:
             opened = ", ".join(room["open"]) or "none"
             where = f"room {room['size'][0]:.1f}x{room['size'][1]:.1f}x{room['size'][2]:.1f} (open: {opened})"
         objects = ", ".join(f"{n} {k}" for k, n in sorted(s["object_kinds"].items()))
         materials = ", ".join(f"{n} {k}" for k, n in sorted(s["materials"].items()))
         lights = ", ".join(s["lights"])
-        return (f"procedural:{self.seed} (generator v{GENERATOR_VERSION}): {where}; objects: {objects or 'none'}; "
+        return (f"{ProceduralSpec(self.seed, self.family)} (generator v{GENERATOR_VERSION}): {where}; "
+                f"objects: {objects or 'none'}; "
                 f"occluders: {', '.join(s['occluders']) or 'none'}; materials: {materials}; lights: {lights}; "
                 f"camera fov {s['camera']['fov']:.0f} deg")
 
@@ -67,44 +80,68 @@ class ProceduralScene:
 # Public entry points
 # ----------------------------------------------------------------------------------------------------------
 
-def parse_procedural(spec: str) -> int | None:
-    """The seed of a ``procedural:SEED`` scene spec, or None when ``spec`` names no procedural scene (an XML
-    path). The one parser of the spec: scene loading, the dataset and the evaluation all use it. A malformed
-    or negative seed is a SceneError naming the spec."""
+@dataclass(frozen=True)
+class ProceduralSpec:
+    """A parsed ``procedural:[FAMILY:]SEED`` scene spec; ``str()`` gives its canonical spelling."""
+
+    seed: int
+    family: str = "mixed"
+
+    def __str__(self) -> str:
+        middle = "" if self.family == "mixed" else f"{self.family}:"
+        return f"{PROCEDURAL_PREFIX}{middle}{self.seed}"
+
+
+def parse_procedural(spec: str) -> ProceduralSpec | None:
+    """The parsed ``procedural:SEED`` or ``procedural:studio:SEED`` scene spec, or None when ``spec`` names no
+    procedural scene (an XML path). The one parser of the spec: scene loading, the dataset and the evaluation all
+    use it. A malformed or negative seed or an unknown family is a SceneError naming the spec."""
     if not spec.startswith(PROCEDURAL_PREFIX):
         return None
+    family, _, text = spec[len(PROCEDURAL_PREFIX):].rpartition(":")
+    family = family or "mixed"
+    if family not in FAMILIES or (family == "mixed" and ":" in spec[len(PROCEDURAL_PREFIX):]):
+        raise SceneError(f"bad scene {spec!r}: unknown procedural family {family!r} "
+                         f"(expected procedural:SEED or procedural:studio:SEED)")
     try:
-        seed = int(spec[len(PROCEDURAL_PREFIX):])
+        seed = int(text)
     except ValueError:
         raise SceneError(f"bad scene {spec!r}: expected procedural:SEED with an integer seed") from None
     if seed < 0:
         raise SceneError(f"bad scene {spec!r}: the seed must be >= 0")
-    return seed
+    return ProceduralSpec(seed, family)
 
 
-def procedural_scene(seed: int, width: int = 256, height: int = 256, max_depth: int | None = None) -> dict:
-    """The Mitsuba scene dict of ``procedural:SEED`` (for ``mi.load_dict``); deterministic per seed."""
-    return generate(seed, width, height, max_depth).to_mitsuba()
+def procedural_scene(seed: int, width: int = 256, height: int = 256, max_depth: int | None = None,
+                     family: str = "mixed") -> dict:
+    """The Mitsuba scene dict of ``procedural:[FAMILY:]SEED`` (for ``mi.load_dict``); deterministic per seed."""
+    return generate(seed, width, height, max_depth, family).to_mitsuba()
 
 
-def describe(seed: int) -> str:
+def describe(seed: int, family: str = "mixed") -> str:
     """A one-line description of the scene a seed produces (the film size does not change the scene)."""
-    return generate(seed).describe()
+    return generate(seed, family=family).describe()
 
 
-def scene_summary(seed: int) -> dict[str, Any]:
+def scene_summary(seed: int, family: str = "mixed") -> dict[str, Any]:
     """JSON-ready summary of a seed's scene (room, object kinds, materials, lights) for dataset manifests."""
-    return generate(seed).summary
+    return generate(seed, family=family).summary
 
 
-def generate(seed: int, width: int = 256, height: int = 256, max_depth: int | None = None) -> ProceduralScene:
-    """Build the plan of ``procedural:SEED``; validates the arguments with clear errors."""
+def generate(seed: int, width: int = 256, height: int = 256, max_depth: int | None = None,
+             family: str = "mixed") -> ProceduralScene:
+    """Build the plan of ``procedural:[FAMILY:]SEED``; validates the arguments with clear errors. The two
+    families draw from independent streams: a studio seed shares nothing with the mixed scene of that seed."""
     _check_args(seed, width, height, max_depth)
-    rng = np.random.Generator(np.random.PCG64(seed))
+    if family not in FAMILIES:
+        raise ValueError(f"procedural family must be one of {', '.join(FAMILIES)}, got {family!r}")
+    # The mixed family keeps its original stream (its seeds name the same scenes as before the studio family).
+    entropy = seed if family == "mixed" else [seed, FAMILIES.index(family)]
+    rng = np.random.Generator(np.random.PCG64(entropy))
     builder = _Builder(rng)
-    builder.build()
+    builder.build_studio() if family == "studio" else builder.build()
     plan = builder.finish(width, height, DEFAULT_MAX_DEPTH if max_depth is None else max_depth)
-    return ProceduralScene(seed=seed, plan=plan, summary=builder.summary())
+    return ProceduralScene(seed=seed, plan=plan, summary=builder.summary(), family=family)
 
 
 def _check_args(seed: int, width: int, height: int, max_depth: int | None) -> None:
@@ -388,6 +425,75 @@ class _Builder:
         self._objects()
         self._lights()
         self._camera()
+
+    def build_studio(self) -> None:
+        """The studio family: objects and 1-3 small lights (point, spot, sphere) with nothing around them."""
+        rng = self.rng
+        self.kind = "studio"
+        self.exposure = float(np.exp(rng.uniform(np.log(0.15), np.log(1.5))))
+        self.spread = float(rng.uniform(0.3, 1.2))
+        self._objects()
+        if not self.footprints:  # every placement failed (rare): one sphere, so the camera has a subject
+            bsdf, mat = _material(rng, True)
+            self.items["object_00"] = {"type": "sphere", "center": [0.0, 0.5, 0.0], "radius": 0.5, "bsdf": bsdf}
+            self.footprints.append(_Obj(0.0, 0.0, 0.75, 1.0))
+            self._count(self.object_kinds, "sphere")
+            self._count(self.materials, mat)
+        # The cluster's bounding sphere (footprint circles and heights) sets the framing and the lights' distance.
+        centre = np.array([np.mean([o.x for o in self.footprints]), 0.0, np.mean([o.z for o in self.footprints])])
+        centre[1] = 0.5 * max(o.top for o in self.footprints)
+        radius = max(max(math.hypot(o.x - centre[0], o.z - centre[2]) + o.r / 1.5,
+                         abs(o.top - centre[1])) for o in self.footprints)
+        azimuth = self._studio_camera(centre, radius)
+        kinds = [str(rng.choice(["point", "spot", "sphere"], p=[0.5, 0.2, 0.3]))
+                 for _ in range(int(rng.choice([1, 2, 2, 3])))]
+        shares = rng.dirichlet(np.full(len(kinds), 2.0))
+        for i, (kind, share) in enumerate(zip(kinds, shares, strict=True)):
+            # Key, fill and rim lights: from the camera's side up to somewhat behind the cluster.
+            light_azimuth = azimuth + float(rng.uniform(-1.9, 1.9))
+            self._light_studio(f"light_{i}", kind, float(share), centre, radius, light_azimuth, _light_tint(rng))
+            self.lights.append(kind)
+
+    def _studio_camera(self, centre: Vec, radius: float) -> float:
+        """Framing, not a room's viewpoint: the cluster's bounding sphere fills 40-90 % of the view from a random
+        azimuth, level to 50 degrees above; returns the azimuth."""
+        rng = self.rng
+        fov = float(rng.uniform(30.0, 70.0))
+        fill = float(rng.uniform(0.4, 0.9))
+        dist = radius / math.sin(math.radians(0.5 * fov) * fill)
+        azimuth, elevation = float(rng.uniform(0, 2 * np.pi)), float(rng.uniform(0.0, 0.9))
+        origin = centre + dist * np.array([math.cos(elevation) * math.cos(azimuth), math.sin(elevation),
+                                           math.cos(elevation) * math.sin(azimuth)])
+        target = centre + rng.normal(0.0, 0.1 * radius, 3)
+        self.camera = {"fov": fov, "origin": origin, "to_world": _look_at(origin, target, np.array([0, 1.0, 0]))}
+        return azimuth
+
+    def _light_studio(self, name: str, kind: str, share: float, centre: Vec, radius: float, azimuth: float,
+                      tint: np.ndarray) -> None:
+        """A point, spot or small sphere light 1.5-4 cluster radii from the cluster's centre, from level to high
+        above, its intensity set so the cluster's irradiance follows the scene's exposure (E = I / d^2)."""
+        rng = self.rng
+        d = float(rng.uniform(1.5, 4.0)) * max(radius, 0.5)
+        elevation = rng.uniform(-0.2, 1.3)
+        origin = centre + d * np.array([math.cos(elevation) * math.cos(azimuth), math.sin(elevation),
+                                        math.cos(elevation) * math.sin(azimuth)])
+        intensity = share * self.exposure * np.pi * d * d / 0.5  # a diffuse albedo of about 0.5
+        self.keep_out.append((origin, 0.5))
+        if kind == "point":
+            self.items[name] = {"type": "point", "position": [float(x) for x in origin],
+                                "intensity": _rgb(intensity * tint)}
+        elif kind == "spot":
+            cutoff = float(rng.uniform(15.0, 50.0))
+            target = centre + rng.normal(0.0, 0.3, 3)
+            self.items[name] = {"type": "spot", "to_world": _look_at(origin, target, np.array([0, 1.0, 0])
+                                                                     if abs(_unit(target - origin)[1]) < 0.9
+                                                                     else np.array([1.0, 0, 0])),
+                                "cutoff_angle": cutoff, "beam_width": cutoff * float(rng.uniform(0.5, 0.95)),
+                                "intensity": _rgb(intensity * tint)}
+        else:  # a sphere of radius r and radiance L has intensity L * pi * r^2 towards the cluster
+            r = float(rng.uniform(0.04, 0.25))
+            self._emitter_shape(name, {"type": "sphere", "center": [float(x) for x in origin], "radius": r},
+                                intensity / (np.pi * r * r) * tint)
 
     def finish(self, width: int, height: int, max_depth: int) -> dict[str, Any]:
         """Assemble the plan; only here do the film size and depth enter (they do not change the scene)."""

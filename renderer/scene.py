@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from renderer.errors import SceneError
-from renderer.procedural import GENERATOR_VERSION, parse_procedural, procedural_scene
+from renderer.procedural import GENERATOR_VERSION, ProceduralSpec, parse_procedural, procedural_scene
 from renderer.variant import select_variant
 
 SUPPORTED_SENSORS: tuple[str, ...] = ("PerspectiveCamera", "ThinLensCamera")
@@ -95,11 +95,11 @@ def load_scene(spec: str, *, width: int | None = None, height: int | None = None
     if max_depth is not None and (max_depth == 0 or max_depth < -1):
         raise SceneError(f"--max-depth must be -1 (unbounded) or >= 1, got {max_depth}")
 
-    seed = parse_procedural(spec)
-    if seed is not None:
+    procedural = parse_procedural(spec)
+    if procedural is not None:
         if defines:
             raise SceneError("--define applies to XML scenes only; procedural scenes are named by their seed")
-        scene = _load_procedural(seed, width, height, max_depth)
+        scene = _load_procedural(procedural, width, height, max_depth)
     else:
         scene = _load_xml(spec, width, height, defines)
     del mi
@@ -115,17 +115,17 @@ def load_scene(spec: str, *, width: int | None = None, height: int | None = None
                        defines=defines)
 
 
-def _load_procedural(seed: int, width: int | None, height: int | None, max_depth: int | None) -> Any:
+def _load_procedural(spec: ProceduralSpec, width: int | None, height: int | None, max_depth: int | None) -> Any:
     import mitsuba as mi
 
     w = width or (height or DEFAULT_PROCEDURAL_SIZE)
     h = height or (width or DEFAULT_PROCEDURAL_SIZE)
-    scene_dict = procedural_scene(seed, w, h, max_depth)
+    scene_dict = procedural_scene(spec.seed, w, h, max_depth, spec.family)
     force_film_dict(scene_dict, w, h)
     try:
         return mi.load_dict(scene_dict)
     except Exception as exc:
-        raise SceneError(f"procedural scene {seed} failed to load: {_one_line(exc)}") from exc
+        raise SceneError(f"procedural scene {spec} failed to load: {_one_line(exc)}") from exc
 
 
 def force_film_dict(scene_dict: dict[str, Any], width: int, height: int) -> None:

@@ -374,3 +374,57 @@ def test_the_studys_zero_pixel_prototype_is_the_shipped_rule() -> None:
     shipped = refine_layer("direct", prior, layer)
     prototype = study._zero_keep_rule(0.2, 2.0)(prior, layer)
     assert np.max(np.abs(prototype - shipped)) <= 1e-5 * float(shipped.max())
+
+
+def test_the_silhouette_mask_marks_both_sides_of_a_missed_ray_edge() -> None:
+    from model.refine import silhouette_mask
+
+    depth = np.zeros((5, 6), np.float32)
+    depth[1:4, 1:3] = 2.5  # an object; everything else missed
+    mask = silhouette_mask(depth)
+    assert mask[2, 1] and mask[2, 0] and mask[0, 1] and mask[2, 3] and not mask[2, 5] and not mask[4, 5]
+    assert not mask[0, 5]
+    grown = silhouette_mask(depth, grow=1)
+    assert grown[2, 4] and grown.sum() > mask.sum() and np.all(grown[mask])
+    assert not silhouette_mask(np.full((4, 4), 3.0)).any() and not silhouette_mask(np.zeros((4, 4))).any()
+    assert silhouette_mask(np.zeros((1, 1))).shape == (1, 1)
+
+
+def _object_on_nothing(h: int = 32, w: int = 40, seed: int = 51) -> tuple[np.ndarray, Layer, np.ndarray]:
+    """A clean direct layer of an object in front of an empty background: (prior, layer, depth)."""
+    prior, layer = _shadow_edge(h, w, seed=seed)
+    depth = np.where(np.all(layer.base > 0, axis=-1), 3.0, 0.0).astype(np.float32)
+    return prior, layer, depth
+
+
+@pytest.mark.parametrize("mode", ["unpin", "base", "band"])
+def test_a_silhouette_mode_changes_only_the_silhouette_and_needs_the_depth(monkeypatch, mode: str) -> None:
+    from model import refine
+
+    prior, layer, depth = _object_on_nothing()
+    s = refine.input_scale(prior)
+    args = [refine.scaled_image(a, s) for a in (layer.base, prior, layer.dx, layer.dy)]
+    before = refine.trust_terms(*args, depth)
+    monkeypatch.setattr(refine, "TRUST_SILHOUETTE", mode)
+    without_depth = refine.trust_terms(*args)
+    after = refine.trust_terms(*args, depth)
+    assert np.array_equal(without_depth[2], before[2]) and np.array_equal(without_depth[0], before[0])
+    edge = refine.silhouette_mask(depth, grow=int(mode == "band"))
+    changed = after[2] != before[2]
+    assert changed.any() and np.all(edge[changed])
+    np.testing.assert_allclose(after[2][edge], refine.TRUST_ALPHA_CLEAN / after[1], rtol=1e-6)
+    out = refine.refine_layer("direct", prior, layer, depth=depth)
+    assert np.all(np.isfinite(out)) and np.all(out >= 0)
+
+
+def test_the_clean_start_changes_only_clean_layers(monkeypatch) -> None:
+    from model import refine
+
+    prior, layer = _shadow_edge(seed=61)
+    truth = _sharp(32, 40, 62)
+    noisy = Layer(_noisy(truth, 1.0, 63), *_gradients(truth, 0.5, 64))
+    before = [refine_layer("direct", p, la) for p, la in ((prior, layer), (_blur(truth), noisy))]
+    monkeypatch.setattr(refine, "TRUST_CLEAN_START", True)
+    after = [refine_layer("direct", p, la) for p, la in ((prior, layer), (_blur(truth), noisy))]
+    assert not np.array_equal(after[0], before[0]) and np.array_equal(after[1], before[1])
+    assert np.all(np.isfinite(after[0])) and np.all(after[0] >= 0)

@@ -11,6 +11,7 @@ import pytest
 from renderer.errors import SceneError
 from renderer.procedural import (
     GENERATOR_VERSION,
+    ProceduralSpec,
     describe,
     generate,
     parse_procedural,
@@ -40,7 +41,7 @@ def canonical(node: Any) -> Any:
 
 def emitters_of(plan: dict) -> list[str]:
     names = [k for k, v in plan.items() if isinstance(v, dict) and "emitter" in v]
-    names += [k for k, v in plan.items() if isinstance(v, dict) and v.get("type") in ("spot", "constant", "envmap")]
+    names += [k for k, v in plan.items() if isinstance(v, dict) and v.get("type") in ("spot", "point", "constant", "envmap")]
     return names
 
 
@@ -90,12 +91,56 @@ def test_bad_arguments_are_clear_errors(kwargs: dict) -> None:
 # -- distribution ------------------------------------------------------------------------------------------
 
 def test_the_one_spec_parser() -> None:
-    assert parse_procedural("procedural:42") == 42 and parse_procedural("procedural:0") == 0
+    assert parse_procedural("procedural:42") == ProceduralSpec(42) and parse_procedural("procedural:0").seed == 0
+    assert parse_procedural("procedural:studio:7") == ProceduralSpec(7, "studio")
+    assert [str(parse_procedural(s)) for s in ("procedural:42", "procedural:studio:7")] == \
+        ["procedural:42", "procedural:studio:7"]
     assert parse_procedural("scenes/cbox.xml") is None and parse_procedural("procedural.xml") is None
     with pytest.raises(SceneError, match="integer seed"):
         parse_procedural("procedural:x")
     with pytest.raises(SceneError, match="must be >= 0"):
         parse_procedural("procedural:-3")
+    for spec in ("procedural:room:3", "procedural:mixed:3", "procedural::3", "procedural:studio:studio:3"):
+        with pytest.raises(SceneError, match="unknown procedural family"):
+            parse_procedural(spec)
+    with pytest.raises(ValueError, match="family"):
+        generate(3, family="attic")
+
+
+# -- the studio family -----------------------------------------------------------------------------------------
+
+STUDIO_SEEDS = range(200)
+
+
+def test_studio_scenes_have_no_room_ground_or_sky_and_keep_their_seed() -> None:
+    for seed in STUDIO_SEEDS:
+        scene = generate(seed, family="studio")
+        plan = scene.plan
+        assert scene.summary["room"]["kind"] == "studio"
+        assert not any(k.startswith(("floor", "ceiling", "wall_", "environment")) for k in plan), seed
+        assert emitters_of(plan) and all(k.startswith("light_") for k in emitters_of(plan)), seed
+        assert any(k.startswith("object_") for k in plan), seed
+        assert np.isfinite(plan["sensor"]["to_world"]).all()
+        assert describe(seed, "studio").startswith(f"procedural:studio:{seed} ")
+    a, b = generate(9, family="studio"), generate(9, family="studio")
+    assert canonical(a.plan) == canonical(b.plan) and scene_summary(9, "studio") == a.summary
+    assert canonical(a.plan) != canonical(generate(9).plan)  # its own stream, not the mixed seed's
+
+
+def test_studio_camera_frames_the_cluster() -> None:
+    """The objects' centre lies in front of the camera and inside its field of view."""
+    for seed in STUDIO_SEEDS:
+        scene = generate(seed, 64, 64, family="studio")
+        to_world = scene.plan["sensor"]["to_world"]
+        centres = [np.array(v["center"]) if v["type"] == "sphere" else np.asarray(v["to_world"])[:3, 3]
+                   for k, v in scene.plan.items() if k.startswith("object_") and not k.endswith("_cap")
+                   and ("center" in v or "to_world" in v)]
+        if not centres:
+            continue
+        local = np.linalg.inv(to_world) @ np.append(np.mean(centres, axis=0), 1.0)
+        assert local[2] > 0, seed
+        half = np.radians(scene.plan["sensor"]["fov"] / 2)
+        assert abs(local[0] / local[2]) < np.tan(half) * 1.01 and abs(local[1] / local[2]) < np.tan(half) * 1.01
 
 
 def test_every_seed_has_an_emitter_and_a_camera_inside_the_room() -> None:
@@ -149,6 +194,18 @@ def test_describe_names_the_seed_and_its_contents() -> None:
 
 
 # -- Mitsuba -------------------------------------------------------------------------------------------------
+
+@pytest.mark.render
+def test_a_studio_frame_has_an_empty_background() -> None:
+    """Missed camera rays: depth 0 and no light (no sky), beside lit objects."""
+    from renderer.render import render_frame
+
+    frame = render_frame("procedural:studio:3", spp=4, seed=1, width=40, height=30)
+    miss = frame.features.depth == 0
+    assert miss.any() and (~miss).any()
+    total = sum(layer.base for layer in frame.layers.values())
+    assert np.all(total[miss] == 0) and total[~miss].max() > 0 and np.isfinite(total).all()
+
 
 @pytest.mark.render
 @pytest.mark.parametrize("seed", [0, 3, 8, 1000])
