@@ -365,9 +365,10 @@ ALWAYS = (BASELINE, "oidn", "l1 (base + gradients)", "trust rule (shipped)",
 
 
 def score_set(cache: Path, per_frame: bool, only: tuple[str, ...] = (), baseline: str = BASELINE,
-              ) -> dict[str, dict[str, list[float]]]:
-    """{'direct'|'frame': {variant: [ratio to ``baseline`` per frame]}} over one cache's frames; ``only``:
-    substrings of the variants to score beside ALWAYS (empty: all of them)."""
+              ) -> tuple[dict[str, dict[str, list[float]]], list[str]]:
+    """({'direct'|'frame': {variant: [ratio to ``baseline`` per frame]}}, the scored frames' labels) over one
+    cache's frames (those with a nonzero ``baseline`` error); ``only``: substrings of the variants to score beside
+    ALWAYS (empty: all of them)."""
     from model.frame import read_frame
     from model.metrics import relmse_unbiased
     from model.oidn import METHOD_SETTING, Denoiser, input_scale
@@ -378,6 +379,7 @@ def score_set(cache: Path, per_frame: bool, only: tuple[str, ...] = (), baseline
     runs = {k: v for k, v in variants().items()
             if not only or k in ALWAYS or k == baseline or any(o in k for o in only)}
     ratios: dict[str, dict[str, list[float]]] = {"direct": {}, "frame": {}}
+    labels: list[str] = []
     for label, path, r1, r2 in _frames(cache):
         frame = read_frame(str(path))
         _CONTEXT["features"] = frame.features
@@ -391,6 +393,10 @@ def score_set(cache: Path, per_frame: bool, only: tuple[str, ...] = (), baseline
             scores[name] = (relmse_unbiased(image, r1["direct"], r2["direct"]),
                             relmse_unbiased(image + indirect, r1["total"], r2["total"]))
         before = scores[baseline]
+        if not (before[0] > 0 and before[1] > 0):  # a frame with nothing to get wrong (black references)
+            print(f"{label}: skipped, {baseline}'s RelMSE is 0 (direct {before[0]:.3g}, frame {before[1]:.3g})")
+            continue
+        labels.append(label)
         for name, (d, t) in scores.items():
             ratios["direct"].setdefault(name, []).append(d / before[0])
             ratios["frame"].setdefault(name, []).append(t / before[1])
@@ -404,7 +410,7 @@ def score_set(cache: Path, per_frame: bool, only: tuple[str, ...] = (), baseline
                   f"{scores['oidn'][0] / before[0]:.2f} | {scores['l1 (base + gradients)'][0] / before[0]:.2f} | "
                   f"{shipped[1] / before[1]:.3f} |", flush=True)
     den.close()
-    return ratios
+    return ratios, labels
 
 
 def _geo(values: list[float]) -> float:
@@ -417,8 +423,7 @@ def error(caches: dict[str, Path], per_frame: bool, only: tuple[str, ...] = (), 
         if per_frame:
             print("| frame | frame r | mean per-pixel w | plain refinement RelMSE (direct) | rule / plain (direct) | "
                   "oidn / plain | l1 / plain | rule / plain (frame) |\n|---|---:|---:|---:|---:|---:|---:|---:|")
-        ratios = score_set(cache, per_frame, only, baseline)
-        labels = [label for label, *_ in _frames(cache)]
+        ratios, labels = score_set(cache, per_frame, only, baseline)
         spps = sorted({int(label.split()[1]) for label in labels})
         print(f"\n{len(labels)} frames; RelMSE / {baseline}'s (geometric mean, worst, frames better)\n")
         print("| variant | direct: geo | worst | better | frame: geo | worst | better | "
