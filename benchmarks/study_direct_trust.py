@@ -281,28 +281,62 @@ def _zero_keep_rule(alpha_low: float, alpha_zero: float) -> Callable:
     return run
 
 
-#: Session 18, designs 15-17 (fixed before any was scored; docs/network.md "Designs 15-17"): the shipped rule with
-#: model.refine's TRUST_SILHOUETTE mode and/or TRUST_CLEAN_START, the frame's depth passed. Name -> (mode, start).
+#: Session 18, designs 15-18 (fixed before any was scored; docs/network.md "Designs 15-18"). Silhouettes against
+#: nothing: on a clean layer, both pixels of every 4-neighbour pair where the camera ray missed on exactly one side
+#: (the frame's depth 0); "unpin" gives them the clean α instead of the zero pin, "band" does that on the silhouette
+#: grown by one pixel and pulls the data term to the base there (by w_f). "start": model.refine.TRUST_CLEAN_START,
+#: the clean layer's L2 start at its clean α (design 17, adopted: the shipped rule since). Name -> (mode, start).
 SILHOUETTE_DESIGNS = {"S-unpin: silhouette pixels not pinned": ("unpin", False),
                       "S-band: silhouette band, base data, not pinned": ("band", False),
                       "C-start: clean layers start at the clean alpha": (None, True),
                       "C+S: clean start and silhouettes not pinned": ("unpin", True)}
 
 
+def silhouette_mask(depth: np.ndarray, grow: int = 0) -> np.ndarray:
+    """(H, W) bool: both pixels of every 4-neighbour pair where the camera ray missed (depth 0) on exactly one
+    side, grown by ``grow`` pixels (a (2·grow+1)² square); all False for a frame with no missed pixel."""
+    from scipy.ndimage import maximum_filter
+
+    miss = np.asarray(depth) == 0
+    edge = np.zeros(miss.shape, bool)
+    across_x, across_y = miss[:, 1:] != miss[:, :-1], miss[1:] != miss[:-1]
+    edge[:, 1:] |= across_x
+    edge[:, :-1] |= across_x
+    edge[1:] |= across_y
+    edge[:-1] |= across_y
+    return maximum_filter(edge, size=2 * grow + 1, mode="nearest") if grow > 0 and edge.any() else edge
+
+
 def _silhouette_rule(mode: str | None, start: bool) -> Callable:
-    """f(denoised, layer): the shipped rule (model.refine.refine_layer) with TRUST_SILHOUETTE = ``mode`` and
-    TRUST_CLEAN_START = ``start`` for the call, the frame's depth feature passed."""
+    """f(denoised, layer): model.refine.refine_layer with TRUST_CLEAN_START = ``start`` and, for ``mode``, its
+    trust_terms wrapped so that a clean layer's silhouette pixels (the frame's depth) are treated as above."""
     from model import refine
 
-    def run(denoised, layer):
+    original = refine.trust_terms
+
+    def terms(base, prior, dx, dy):
+        data, alpha, m = original(base, prior, dx, dy)
         features = _CONTEXT.get("features")
-        saved = refine.TRUST_SILHOUETTE, refine.TRUST_CLEAN_START
-        refine.TRUST_SILHOUETTE, refine.TRUST_CLEAN_START = mode, start
+        if m is None or features is None:
+            return data, alpha, m
+        edge = silhouette_mask(features.depth, grow=int(mode == "band"))
+        clean = float(np.min(m))  # the clean factor (the zero pin is above it)
+        m = np.where(edge, clean, m).astype(np.float32)
+        if mode == "band":
+            frame = (1.0 - clean) / (1.0 - refine.TRUST_ALPHA_CLEAN / alpha)  # w_f, from m = 1 − (1 − 0.2/α)·w_f
+            pull = np.float32(frame) * edge[..., None]
+            data = (data + pull * (np.asarray(base, np.float32) - data)).astype(np.float32)
+        return data, alpha, m
+
+    def run(denoised, layer):
+        saved = refine.TRUST_CLEAN_START, refine.trust_terms
+        refine.TRUST_CLEAN_START = start
+        if mode is not None:
+            refine.trust_terms = terms
         try:
-            return refine.refine_layer("direct", denoised, layer,
-                                       depth=None if features is None else features.depth)
+            return refine.refine_layer("direct", denoised, layer)
         finally:
-            refine.TRUST_SILHOUETTE, refine.TRUST_CLEAN_START = saved
+            refine.TRUST_CLEAN_START, refine.trust_terms = saved
     return run
 
 
@@ -323,8 +357,9 @@ def _without_clean_map(run: Callable) -> Callable:
 
 def variants() -> dict[str, Callable]:
     """name -> f(denoised direct image, direct layer); 'plain refinement' is the ratio's denominator. Every variant
-    but 'trust rule (shipped)' runs on the rule before session 17 (its own changes on top); the Z02p prototype
-    is what the shipped rule became, written out on the solver's internals (the two agree to float rounding)."""
+    but 'trust rule (shipped)' and session 18's (BEFORE_18, SILHOUETTE_DESIGNS) runs on the rule before session
+    17 (its own changes on top); the Z02p prototype is what session 17's rule became, written out on the solver's
+    internals (the two agree to float rounding)."""
     from model import refine
     from model.poisson import solve_l1
     from model.policy import DEFAULT_ALPHA
@@ -343,6 +378,7 @@ def variants() -> dict[str, Callable]:
     out.update({k: _zero_keep_rule(*v) for k, v in ZERO_KEEP.items()})
     out = {k: _without_clean_map(v) for k, v in out.items()}
     out["trust rule (shipped)"] = _rule(None)
+    out[BEFORE_18] = _silhouette_rule(None, False)
     out.update({k: _silhouette_rule(*v) for k, v in SILHOUETTE_DESIGNS.items()})
     return out
 
@@ -359,6 +395,8 @@ def _frames(cache: Path):
 
 
 BASELINE = "plain refinement (before)"
+#: The rule before session 18's clean start (design 17): the baseline of designs 15-18.
+BEFORE_18 = "trust rule before session 18 (scalar L2 start)"
 #: Always scored: the ratios' denominator (--baseline picks it) and the per-frame table's columns.
 ALWAYS = (BASELINE, "oidn", "l1 (base + gradients)", "trust rule (shipped)",
           "trust rule before session 17 (no clean-layer alpha map)")

@@ -120,27 +120,24 @@ def refine(kind: str, oidn: np.ndarray, scaled: Layer) -> np.ndarray:
                         cg_steps=cg_steps, passes=passes, warm_start=False)
 
 
-def refine_direct(kind: str, oidn: np.ndarray, scaled: Layer, depth: np.ndarray | None = None) -> np.ndarray:
+def refine_direct(kind: str, oidn: np.ndarray, scaled: Layer) -> np.ndarray:
     """A FIXED_KINDS image: OIDN's image refined by the layer's gradients as the oidn-l1 method refines it
-    (``oidn-l1``), or the same at fused's CG budget DIRECT_CG (``refine-direct``). ``depth``: the frame's depth
-    feature, for the trust rule's silhouettes (model.refine.TRUST_SILHOUETTE)."""
+    (``oidn-l1``), or the same at fused's CG budget DIRECT_CG (``refine-direct``)."""
     from model.refine import refine_layer
 
     if kind == "oidn-l1":
-        return refine_layer("direct", oidn, scaled, depth=depth)  # "direct": refine this layer, whatever its name
+        return refine_layer("direct", oidn, scaled)  # "direct": refine this layer, whatever its name
     tolerance, steps = DIRECT_CG
-    return refine_layer("direct", oidn, scaled, cg_steps=steps, cg_tolerance=tolerance, depth=depth)
+    return refine_layer("direct", oidn, scaled, cg_steps=steps, cg_tolerance=tolerance)
 
 
 def layer_candidates(layer: Layer, aux: Any, kinds: tuple[str, ...] = CANDIDATES,
-                     denoiser: Any = None, denoised: np.ndarray | None = None,
-                     depth: np.ndarray | None = None) -> tuple[Layer, list[np.ndarray], float]:
+                     denoiser: Any = None, denoised: np.ndarray | None = None) -> tuple[Layer, list[np.ndarray], float]:
     """(the layer at the normalised exposure, its candidates at that exposure (each (H, W, 3) float32, finite,
     in [0, RADIANCE_MAX]), the scale s). ``aux``: the frame's OIDN features for ``OIDN_SETTING``
     (``denoiser.prefilter(features)``), or None without features. OIDN runs once per layer; every kind is
     computed from that one image. ``denoised``: the layer's OIDN_SETTING image when the caller already has it
-    (a pipeline that denoises the next layer while this one is refined), so OIDN is not run twice. ``depth``: the
-    frame's depth feature, passed to the FIXED_KINDS refinements."""
+    (a pipeline that denoises the next layer while this one is refined), so OIDN is not run twice."""
     from model.oidn import shared_denoiser
 
     unknown = [k for k in kinds if k not in CANDIDATES and k not in FIXED_KINDS]
@@ -159,7 +156,7 @@ def layer_candidates(layer: Layer, aux: Any, kinds: tuple[str, ...] = CANDIDATES
         elif kind in REFINE_SOLVES:
             image = refine(kind, oidn, scaled)
         elif kind in FIXED_KINDS:
-            image = refine_direct(kind, oidn, scaled, depth)
+            image = refine_direct(kind, oidn, scaled)
         else:
             image = poisson_prior(scaled)
         out.append(np.clip(np.nan_to_num(image, nan=0.0, posinf=RADIANCE_MAX, neginf=0.0), 0.0,
@@ -348,11 +345,9 @@ class FusedReconstructor:
 
             aux = shared_denoiser(OIDN_SETTING).prefilter(features)
         if name in self.fixed:  # no network for this layer: its one candidate, back at the frame's exposure
-            _, (image,), scale = layer_candidates(layer, aux, (self.fixed[name],), denoised=denoised,
-                                                  depth=features.depth)
+            _, (image,), scale = layer_candidates(layer, aux, (self.fixed[name],), denoised=denoised)
             return blend(np.ones((1, *image.shape[:2]), np.float32), [image], scale)
         model = self.models[name]
-        scaled, cands, scale = layer_candidates(layer, aux, model.candidates, denoised=denoised,
-                                                depth=features.depth)
+        scaled, cands, scale = layer_candidates(layer, aux, model.candidates, denoised=denoised)
         data, gradient = blend_inputs(scaled, cands, features)
         return blend(model.weights(data, gradient), cands, scale)

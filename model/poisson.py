@@ -547,6 +547,7 @@ def solve_l1(
     dtype=np.float32,
     initial: np.ndarray | None = None,
     alpha_map: np.ndarray | None = None,
+    start_alpha: float | None = None,
 ) -> tuple[np.ndarray, L1Stats]:
     """L1 screened Poisson reconstruction by IRLS: argmin Σ‖α(I − base)‖ + Σ‖(H_x I − dx, H_y I − dy)‖.
 
@@ -563,7 +564,8 @@ def solve_l1(
     weights are then taken from its residuals (model/refine.py starts from OIDN's image, which is already close).
     ``alpha_map`` (H, W), finite and > 0: a per-pixel factor m(x) on the data term's α in the IRLS passes,
     Σ α·m(x)‖I − base‖ (model/refine.py's trust rule leans on the base more or less per pixel). Pass 0 (the L2
-    start, a DCT solve) keeps the scalar α; an all-ones map gives the solve without it.
+    start, a DCT solve) keeps the scalar α, or takes ``start_alpha`` (a DCT solve needs one α: model/refine.py
+    starts a clean layer at its map's clean α); an all-ones map gives the solve without it.
     Returns the image (float32 by default) and :class:`L1Stats`. Raises ValueError like :func:`solve_l2` and
     for non-positive iteration counts, an unknown preconditioner or a bad ``alpha_map``.
     """
@@ -582,7 +584,11 @@ def solve_l1(
         if not (np.all(np.isfinite(alpha_map)) and np.all(alpha_map > 0)):
             raise ValueError("alpha_map must be finite and > 0 everywhere")
     alpha = float(alpha)
-    work = np.dtype(np.float32 if alpha >= FLOAT32_MIN_ALPHA else np.float64)
+    if start_alpha is None:
+        start_alpha = alpha  # (validated with the inputs below)
+    elif not (np.isfinite(start_alpha) and start_alpha >= MIN_ALPHA):
+        raise ValueError(f"start_alpha must be a finite number >= {MIN_ALPHA:g}, got {start_alpha}")
+    work = np.dtype(np.float32 if min(alpha, start_alpha) >= FLOAT32_MIN_ALPHA else np.float64)
     b, gx, gy = _prepare(base, dx, dy, alpha, work.type)  # straight into the working precision: no float64 detour
     stats = L1Stats()
     # IRLS is scale-covariant (inputs × s and reg × s give the solution × s), so iterate on inputs scaled to
@@ -592,7 +598,7 @@ def solve_l1(
     for a in (b, gx, gy):
         a /= work.type(scale)
     if initial is None:
-        x = _l2_core(b, gx, gy, alpha)
+        x = _l2_core(b, gx, gy, start_alpha)
     else:
         (x, _, _) = _prepare(initial, dx, dy, alpha, work.type)
         x /= work.type(scale)

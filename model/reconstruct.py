@@ -206,7 +206,7 @@ def _finish_oidn_layer(name: str, denoised: np.ndarray, layer: Layer, ctx: _Cont
         return denoised
     from model.refine import refine_layer
 
-    return refine_layer(name, denoised, layer, depth=None if ctx.features is None else ctx.features.depth)
+    return refine_layer(name, denoised, layer)
 
 
 def _serves(models: NetworkLike | None, frame: Frame) -> bool:

@@ -382,3 +382,22 @@ def test_a_bad_alpha_map_is_refused(bad: np.ndarray) -> None:
     base, dx, dy = _random_problem(8, 9, 8)
     with pytest.raises(ValueError, match="alpha_map"):
         solve_l1(base, dx, dy, 0.5, alpha_map=bad)
+
+
+def test_start_alpha_sets_the_l2_start_only() -> None:
+    """``start_alpha`` (model/refine.py's clean start): pass 0 alone is the L2 solve at that α; the default is the
+    scalar α bit for bit; a uniform map c with start α·c is the scalar solve at α·c (same start, same passes)."""
+    base, dx, dy = _random_problem(20, 26, 9)
+    default, _ = solve_l1(base, dx, dy, 0.5)
+    same, _ = solve_l1(base, dx, dy, 0.5, start_alpha=0.5)
+    assert np.array_equal(default, same)
+    first, _ = solve_l1(base, dx, dy, 0.5, 1, start_alpha=0.2)
+    np.testing.assert_allclose(first, solve_l2(base, dx, dy, 0.2), rtol=0, atol=1e-5 * float(np.abs(first).max()))
+    assert np.abs(first - solve_l1(base, dx, dy, 0.5, 1)[0]).max() > 1e-3
+    converged = {"cg_iterations": 400, "cg_tolerance": 1e-9, "dtype": np.float64}
+    mapped, _ = solve_l1(base, dx, dy, 0.5, alpha_map=np.full((20, 26), 0.4), start_alpha=0.2, **converged)
+    scalar, _ = solve_l1(base, dx, dy, 0.2, **converged)
+    np.testing.assert_allclose(mapped, scalar, rtol=0, atol=1e-4 * float(np.abs(scalar).max()))
+    for bad in (0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="start_alpha"):
+            solve_l1(base, dx, dy, 0.5, start_alpha=bad)

@@ -41,7 +41,8 @@ def canonical(node: Any) -> Any:
 
 def emitters_of(plan: dict) -> list[str]:
     names = [k for k, v in plan.items() if isinstance(v, dict) and "emitter" in v]
-    names += [k for k, v in plan.items() if isinstance(v, dict) and v.get("type") in ("spot", "point", "constant", "envmap")]
+    names += [k for k, v in plan.items()
+              if isinstance(v, dict) and v.get("type") in ("spot", "point", "constant", "envmap")]
     return names
 
 
