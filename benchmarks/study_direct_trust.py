@@ -340,6 +340,45 @@ def _silhouette_rule(mode: str | None, start: bool) -> Callable:
     return run
 
 
+#: Session 18, round 2 (designs 19-21, fixed before scoring; docs/network.md "Designs 19-21"): on the teapot the
+#: shipped rule differs from ``l1`` by the zero pins and the solve's budget alone. 19: a clean layer solved with
+#: ``l1``'s budget (DCT preconditioner, L1_CG_STEPS steps per pass to 1e-3) instead of the refinement's; 20: the
+#: silhouettes of design 15 unpinned only on a layer clean as a whole (w_f = 1); 21: both.
+ROUND2 = {"R19: clean layers with l1's CG budget": (True, False),
+          "R20: silhouettes unpinned where w_f = 1": (False, True),
+          "R21: R19 + R20": (True, True)}
+
+
+def _round2_rule(l1_budget: bool, full_unpin: bool) -> Callable:
+    from model import refine
+    from model.poisson import L1_CG_STEPS
+
+    original = refine.trust_terms
+
+    def terms(base, prior, dx, dy):
+        data, alpha, m = original(base, prior, dx, dy)
+        features = _CONTEXT.get("features")
+        if m is None or features is None or alpha != refine.TRUST_ALPHA_BASE:  # w_f < 1
+            return data, alpha, m
+        edge = silhouette_mask(features.depth)
+        return data, alpha, np.where(edge, float(np.min(m)), m).astype(np.float32)
+
+    def run(denoised, layer):
+        s = refine.input_scale(denoised)
+        clean = refine.trust_terms(*(refine.scaled_image(a, s) for a in (layer.base, denoised, layer.dx,
+                                                                            layer.dy)))[2] is not None
+        budget = {"preconditioner": "dct", "cg_steps": L1_CG_STEPS, "cg_tolerance": 1e-3} if l1_budget and clean \
+            else {}
+        saved = refine.trust_terms
+        if full_unpin:
+            refine.trust_terms = terms
+        try:
+            return refine.refine_layer("direct", denoised, layer, **budget)
+        finally:
+            refine.trust_terms = saved
+    return run
+
+
 def _without_clean_map(run: Callable) -> Callable:
     """``run`` with the rule as it was before session 17 (model.refine.TRUST_ALPHA_CLEAN None: no per-pixel α on
     clean layers), so that the variants measured against that rule still measure what they did."""
@@ -380,6 +419,7 @@ def variants() -> dict[str, Callable]:
     out["trust rule (shipped)"] = _rule(None)
     out[BEFORE_18] = _silhouette_rule(None, False)
     out.update({k: _silhouette_rule(*v) for k, v in SILHOUETTE_DESIGNS.items()})
+    out.update({k: _round2_rule(*v) for k, v in ROUND2.items()})
     return out
 
 
