@@ -72,7 +72,7 @@ def _references_only(config: EvalConfig, shard_text: str | None) -> int:
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("evaluate", help="error against run time for every method, with plots and tables")
-    p.add_argument("--scenes", nargs="*", default=None, help="XML paths or procedural:SEED")
+    p.add_argument("--scenes", nargs="*", default=None, help="XML paths, procedural:SEED or procedural:studio:SEED")
     p.add_argument("--spp", default=None,
                    help="comma-separated sample counts (default 1,2,4,8,16,32,64; 1,4,16 with --quick)")
     p.add_argument("--quick", action="store_true", help="small CI-sized run (< 10 minutes)")

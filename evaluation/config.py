@@ -265,7 +265,8 @@ def _xml_for(path: Path) -> Path:
             return found[0]
         raise CommandError(f"scene folder {str(path)!r} holds {len(found)} .xml files; name the one to evaluate")
     if not path.is_file():
-        raise CommandError(f"scene {str(path)!r} not found (expected a Mitsuba XML file or procedural:SEED)")
+        raise CommandError(f"scene {str(path)!r} not found (expected a Mitsuba XML file, procedural:SEED or "
+                           "procedural:studio:SEED)")
     return path
 
 

@@ -162,7 +162,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     from renderer.render import OFFSET_CHOICES  # no Mitsuba at import time either
 
     p = sub.add_parser("render", help="render a G-PT frame (base + gradients + features per illumination layer)")
-    p.add_argument("scene", help="Mitsuba 3 XML scene path or procedural:SEED")
+    p.add_argument("scene", help="Mitsuba 3 XML scene path, procedural:SEED or procedural:studio:SEED")
     p.add_argument("--spp", type=int, required=True, help="samples per pixel")
     p.add_argument("--width", type=int, default=None, help="override the scene's film width")
     p.add_argument("--height", type=int, default=None, help="override the scene's film height")
@@ -195,7 +195,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=render_command)
 
     p = sub.add_parser("reference", help="render a reference with Mitsuba's path integrator (R G B + layers)")
-    p.add_argument("scene", help="Mitsuba 3 XML scene path or procedural:SEED")
+    p.add_argument("scene", help="Mitsuba 3 XML scene path, procedural:SEED or procedural:studio:SEED")
     p.add_argument("--spp", type=int, required=True, help="samples per pixel")
     p.add_argument("--width", type=int, default=None)
     p.add_argument("--height", type=int, default=None)
