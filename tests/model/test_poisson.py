@@ -401,3 +401,16 @@ def test_start_alpha_sets_the_l2_start_only() -> None:
     for bad in (0.0, -1.0, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="start_alpha"):
             solve_l1(base, dx, dy, 0.5, start_alpha=bad)
+
+
+@pytest.mark.parametrize("start_alpha", [1e-6, 1e-3, 1e3, 1e6])
+def test_an_extreme_start_alpha_stays_finite_and_starts_where_asked(start_alpha: float) -> None:
+    """Stiff starts (a tiny α takes the float64 path, a huge one pins the start to the base): finite, and pass 0
+    alone is the L2 solve at that α."""
+    base, dx, dy = _random_problem(12, 17, 10)
+    first, _ = solve_l1(base, dx, dy, 0.5, 1, start_alpha=start_alpha)
+    expected = solve_l2(base, dx, dy, start_alpha, dtype=np.float64)
+    assert np.all(np.isfinite(first))
+    np.testing.assert_allclose(first, expected, rtol=0, atol=1e-4 * max(1.0, float(np.abs(expected).max())))
+    out, _ = solve_l1(base, dx, dy, 0.5, start_alpha=start_alpha)
+    assert np.all(np.isfinite(out))
