@@ -17,10 +17,10 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 from evaluation.cache import REPO_ROOT, default_cache_dir, file_sha256, key_hash
 from evaluation.methods import METHODS
 from model.errors import CommandError
+from model.policy import DEFAULT_ALPHA, models_dir_from
 
 if TYPE_CHECKING:
     from renderer.procedural import ProceduralSpec
-from model.policy import DEFAULT_ALPHA, models_dir_from
 
 #: The command line's --spp default (model/commands.py); with --quick it is replaced by the quick list.
 CLI_DEFAULT_SPP = "1,2,4,8,16,32,64"

@@ -1,4 +1,4 @@
-"""Randomized training scenes, each named by an integer seed (`procedural:SEED`).
+"""Randomized scenes, each named by an integer seed (`procedural:SEED`; `procedural:studio:SEED`, below).
 
 The network is trained without ground truth, so its only teacher is the variety of the frames it sees. The
 generator therefore draws from a broad distribution rather than a few hand-made rooms: rooms of random size with
@@ -98,11 +98,11 @@ def parse_procedural(spec: str) -> ProceduralSpec | None:
     use it. A malformed or negative seed or an unknown family is a SceneError naming the spec."""
     if not spec.startswith(PROCEDURAL_PREFIX):
         return None
-    family, _, text = spec[len(PROCEDURAL_PREFIX):].rpartition(":")
-    family = family or "mixed"
-    if family not in FAMILIES or (family == "mixed" and ":" in spec[len(PROCEDURAL_PREFIX):]):
-        raise SceneError(f"bad scene {spec!r}: unknown procedural family {family!r} "
+    named, colon, text = spec[len(PROCEDURAL_PREFIX):].rpartition(":")
+    if colon and (named == "mixed" or named not in FAMILIES):  # the mixed family is spelled without a name
+        raise SceneError(f"bad scene {spec!r}: unknown procedural family {named!r} "
                          f"(expected procedural:SEED or procedural:studio:SEED)")
+    family = named or "mixed"
     try:
         seed = int(text)
     except ValueError:
