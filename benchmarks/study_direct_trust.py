@@ -379,6 +379,48 @@ def _round2_rule(l1_budget: bool, full_unpin: bool) -> Callable:
     return run
 
 
+#: Session 18, round 3 (design 22, fixed before scoring; docs/network.md): a zero pixel's pin only as far as the
+#: base agrees with the sampled gradients around it (3×3 window, the trust rule's r and ramp), so a black pixel that
+#: the gradients say is partly lit (a hard shadow or silhouette edge crossing the pixel, missed by every primal
+#: sample) takes the clean α, and a true umbra (base and gradients agree it is black) stays pinned.
+AGREEING_PIN = "R22: zero pixels pinned as far as base and gradients agree"
+
+
+def _agreeing_pin_rule() -> Callable:
+    from scipy.ndimage import uniform_filter
+
+    from model import refine
+
+    original = refine.trust_terms
+
+    def terms(base, prior, dx, dy):
+        data, alpha, m = original(base, prior, dx, dy)
+        if m is None:
+            return data, alpha, m
+        zero = np.all(np.asarray(base) == 0, axis=-1)
+        if not zero.any():
+            return data, alpha, m
+        residual, signal = refine._disagreement_maps(base, dx, dy)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            r = uniform_filter(residual, 3, mode="nearest") / (uniform_filter(signal, 3, mode="nearest")
+                                                               + np.float32(refine.TRUST_FLOOR))
+            agree = np.log(refine.TRUST_R_HIGH / np.maximum(r, refine.TRUST_FLOOR)) / np.log(
+                refine.TRUST_R_HIGH / refine.TRUST_R_LOW)
+        agree = np.clip(np.nan_to_num(agree, nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0)
+        clean = float(np.min(m))
+        m = np.where(zero, clean + agree * (m - clean), m).astype(np.float32)
+        return data, alpha, m
+
+    def run(denoised, layer):
+        saved = refine.trust_terms
+        refine.trust_terms = terms
+        try:
+            return refine.refine_layer("direct", denoised, layer)
+        finally:
+            refine.trust_terms = saved
+    return run
+
+
 def _without_clean_map(run: Callable) -> Callable:
     """``run`` with the rule as it was before session 17 (model.refine.TRUST_ALPHA_CLEAN None: no per-pixel α on
     clean layers), so that the variants measured against that rule still measure what they did."""
@@ -420,6 +462,7 @@ def variants() -> dict[str, Callable]:
     out[BEFORE_18] = _silhouette_rule(None, False)
     out.update({k: _silhouette_rule(*v) for k, v in SILHOUETTE_DESIGNS.items()})
     out.update({k: _round2_rule(*v) for k, v in ROUND2.items()})
+    out[AGREEING_PIN] = _agreeing_pin_rule()
     return out
 
 
