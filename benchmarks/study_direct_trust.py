@@ -27,6 +27,7 @@ import math
 import os
 import sys
 from collections.abc import Callable
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -281,6 +282,21 @@ def _zero_keep_rule(alpha_low: float, alpha_zero: float) -> Callable:
     return run
 
 
+@contextmanager
+def _settings(**values):
+    """model.refine's module settings (and functions) replaced for the block, restored after."""
+    from model import refine
+
+    saved = {k: getattr(refine, k) for k in values}
+    for k, v in values.items():
+        setattr(refine, k, v)
+    try:
+        yield
+    finally:
+        for k, v in saved.items():
+            setattr(refine, k, v)
+
+
 #: Session 18, designs 15-18 (fixed before any was scored; docs/network.md "Designs 15-18"). Silhouettes against
 #: nothing: on a clean layer, both pixels of every 4-neighbour pair where the camera ray missed on exactly one side
 #: (the frame's depth 0); "unpin" gives them the clean α instead of the zero pin, "band" does that on the silhouette
@@ -328,15 +344,10 @@ def _silhouette_rule(mode: str | None, start: bool) -> Callable:
             data = (data + pull * (np.asarray(base, np.float32) - data)).astype(np.float32)
         return data, alpha, m
 
-    def run(denoised, layer):
-        saved = refine.TRUST_CLEAN_START, refine.trust_terms
-        refine.TRUST_CLEAN_START = start
-        if mode is not None:
-            refine.trust_terms = terms
-        try:
+    def run(denoised, layer):  # (measured with session 17's full zero pin)
+        with _settings(TRUST_CLEAN_START=start, TRUST_PIN_RADIUS=None,
+                       trust_terms=original if mode is None else terms):
             return refine.refine_layer("direct", denoised, layer)
-        finally:
-            refine.TRUST_CLEAN_START, refine.trust_terms = saved
     return run
 
 
@@ -369,13 +380,8 @@ def _round2_rule(l1_budget: bool, full_unpin: bool) -> Callable:
                                                                             layer.dy)))[2] is not None
         budget = {"preconditioner": "dct", "cg_steps": L1_CG_STEPS, "cg_tolerance": 1e-3} if l1_budget and clean \
             else {}
-        saved = refine.trust_terms
-        if full_unpin:
-            refine.trust_terms = terms
-        try:
+        with _settings(TRUST_PIN_RADIUS=None, trust_terms=terms if full_unpin else original):
             return refine.refine_layer("direct", denoised, layer, **budget)
-        finally:
-            refine.trust_terms = saved
     return run
 
 
@@ -411,13 +417,9 @@ def _agreeing_pin_rule() -> Callable:
         m = np.where(zero, clean + agree * (m - clean), m).astype(np.float32)
         return data, alpha, m
 
-    def run(denoised, layer):
-        saved = refine.trust_terms
-        refine.trust_terms = terms
-        try:
+    def run(denoised, layer):  # the prototype on session 17's full pin (what design 22 was measured as)
+        with _settings(TRUST_PIN_RADIUS=None, trust_terms=terms):
             return refine.refine_layer("direct", denoised, layer)
-        finally:
-            refine.trust_terms = saved
     return run
 
 

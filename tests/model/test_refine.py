@@ -325,6 +325,11 @@ def _shadow_edge(h: int = 32, w: int = 40, noise: float = 0.002, seed: int = 31)
     truth = np.full((h, w, 3), 50.0, np.float32) * rng.uniform(0.9, 1.1, (h, w, 1)).astype(np.float32)
     truth[:, w // 2:] = 0.0
     dx, dy = _gradients(truth, noise * 50.0, seed + 1)
+    dark = np.all(truth == 0, axis=-1)  # a G-PT gradient between two umbra pixels is exactly 0 (both samples are)
+    dx[:, :-1][dark[:, :-1] & dark[:, 1:]] = 0.0
+    dy[:-1][dark[:-1] & dark[1:]] = 0.0
+    dx[:, -1] = 0.0  # the frame contract stores 0 past the last column / row
+    dy[-1] = 0.0
     return _blur(truth), Layer(_noisy(truth, 0.01, seed + 2), dx, dy)  # relative noise: the umbra stays 0
 
 
@@ -373,6 +378,7 @@ def test_the_studys_zero_pixel_prototype_is_the_shipped_rule(monkeypatch) -> Non
     from model import refine
 
     monkeypatch.setattr(refine, "TRUST_CLEAN_START", False)
+    monkeypatch.setattr(refine, "TRUST_PIN_RADIUS", None)
     study = _study_direct_trust()
     prior, layer = _shadow_edge(seed=41)
     shipped = refine_layer("direct", prior, layer)
@@ -399,6 +405,7 @@ def test_a_clean_layer_starts_from_the_l2_solve_at_its_clean_alpha(monkeypatch) 
     from model import refine
     from model.poisson import solve_l2
 
+    monkeypatch.setattr(refine, "TRUST_PIN_RADIUS", None)  # the full pin, as design 17 was measured
     prior, layer = _shadow_edge(h=48, w=64, seed=61)
     s = refine.input_scale(prior)
     base, data0, dx, dy = (refine.scaled_image(a, s) for a in (layer.base, prior, layer.dx, layer.dy))
@@ -420,3 +427,30 @@ def test_a_clean_layer_starts_from_the_l2_solve_at_its_clean_alpha(monkeypatch) 
     before = refine_layer("direct", _blur(truth), noisy)
     monkeypatch.setattr(refine, "TRUST_CLEAN_START", True)
     assert np.array_equal(refine_layer("direct", _blur(truth), noisy), before)
+
+
+def test_a_black_pixel_is_pinned_only_where_the_gradients_agree_it_is_black(monkeypatch) -> None:
+    """Design 22 (TRUST_PIN_RADIUS): an umbra (base 0 and gradients 0 around it) stays pinned; a pixel whose base
+    is 0 while the gradients say it is lit (a hard edge crossing it, missed by every primal sample) takes the clean
+    α; the shipped rule is the study's prototype."""
+    from model import refine
+
+    prior, layer = _shadow_edge(h=32, w=40, seed=71)
+    base = layer.base.copy()
+    base[10, 8] = 0.0  # lit, but no primal sample found the light; its gradients (from the truth) say otherwise
+    layer = Layer(base, layer.dx, layer.dy)
+    s = refine.input_scale(prior)
+    _, alpha, m = refine.trust_terms(*(refine.scaled_image(a, s) for a in (base, prior, layer.dx, layer.dy)))
+    clean, frame = float(m.min()), (1.0 - float(m.min())) / (1.0 - refine.TRUST_ALPHA_CLEAN / alpha)
+    assert frame > 0.9  # a clean layer
+    assert m[10, 30] == pytest.approx(1.0 - (1.0 - refine.TRUST_ALPHA_ZERO / alpha) * frame, rel=1e-5)  # umbra
+    assert m[10, 8] <= clean + 0.05 * (m[10, 30] - clean)  # nearly the clean α: not pinned
+    shipped = refine_layer("direct", prior, layer)
+    study = _study_direct_trust()
+    prototype = study._agreeing_pin_rule()(prior, layer)
+    assert np.max(np.abs(prototype - shipped)) <= 1e-5 * float(shipped.max())
+    assert np.all(np.isfinite(shipped)) and np.all(shipped >= 0)
+    assert abs(float(shipped[10, 8].mean()) - 50.0) < 10.0  # filled in from its neighbours, not left black
+    monkeypatch.setattr(refine, "TRUST_PIN_RADIUS", None)  # the full pin: the same pixel pinned like the umbra
+    _, _, full = refine.trust_terms(*(refine.scaled_image(a, s) for a in (base, prior, layer.dx, layer.dy)))
+    assert full[10, 8] == pytest.approx(full[10, 30], rel=1e-6)
