@@ -27,8 +27,8 @@ import math
 import os
 import sys
 from collections.abc import Callable
-from contextlib import contextmanager
 from pathlib import Path
+from unittest import mock
 
 import numpy as np
 
@@ -282,21 +282,6 @@ def _zero_keep_rule(alpha_low: float, alpha_zero: float) -> Callable:
     return run
 
 
-@contextmanager
-def _settings(**values):
-    """model.refine's module settings (and functions) replaced for the block, restored after."""
-    from model import refine
-
-    saved = {k: getattr(refine, k) for k in values}
-    for k, v in values.items():
-        setattr(refine, k, v)
-    try:
-        yield
-    finally:
-        for k, v in saved.items():
-            setattr(refine, k, v)
-
-
 #: Session 18, designs 15-18 (fixed before any was scored; docs/network.md "Designs 15-18"). Silhouettes against
 #: nothing: on a clean layer, both pixels of every 4-neighbour pair where the camera ray missed on exactly one side
 #: (the frame's depth 0); "unpin" gives them the clean α instead of the zero pin, "band" does that on the silhouette
@@ -345,13 +330,13 @@ def _silhouette_rule(mode: str | None, start: bool) -> Callable:
         return data, alpha, m
 
     def run(denoised, layer):  # (measured with session 17's full zero pin)
-        with _settings(TRUST_CLEAN_START=start, TRUST_PIN_RADIUS=None,
-                       trust_terms=original if mode is None else terms):
+        with mock.patch.multiple(refine, TRUST_CLEAN_START=start, TRUST_PIN_RADIUS=None,
+                                 trust_terms=original if mode is None else terms):
             return refine.refine_layer("direct", denoised, layer)
     return run
 
 
-#: Session 18, round 2 (designs 19-21, fixed before scoring; docs/network.md "Designs 19-21"): on the teapot the
+#: Session 18, round 2 (designs 19-21, fixed before scoring; docs/network.md "Designs 15-18"): on the teapot the
 #: shipped rule differs from ``l1`` by the zero pins and the solve's budget alone. 19: a clean layer solved with
 #: ``l1``'s budget (DCT preconditioner, L1_CG_STEPS steps per pass to 1e-3) instead of the refinement's; 20: the
 #: silhouettes of design 15 unpinned only on a layer clean as a whole (w_f = 1); 21: both.
@@ -380,12 +365,13 @@ def _round2_rule(l1_budget: bool, full_unpin: bool) -> Callable:
                                                                             layer.dy)))[2] is not None
         budget = {"preconditioner": "dct", "cg_steps": L1_CG_STEPS, "cg_tolerance": 1e-3} if l1_budget and clean \
             else {}
-        with _settings(TRUST_PIN_RADIUS=None, trust_terms=terms if full_unpin else original):
+        with mock.patch.multiple(refine, TRUST_PIN_RADIUS=None, trust_terms=terms if full_unpin else original):
             return refine.refine_layer("direct", denoised, layer, **budget)
     return run
 
 
-#: Session 18, round 3 (design 22, fixed before scoring; docs/network.md): a zero pixel's pin only as far as the
+#: Session 18, round 3 (design 22, fixed before scoring; docs/network.md "Designs 15-18", round 3; shipped as
+#: model.refine.TRUST_PIN_RADIUS, this prototype reproduces it): a zero pixel's pin only as far as the
 #: base agrees with the sampled gradients around it (3×3 window, the trust rule's r and ramp), so a black pixel that
 #: the gradients say is partly lit (a hard shadow or silhouette edge crossing the pixel, missed by every primal
 #: sample) takes the clean α, and a true umbra (base and gradients agree it is black) stays pinned.
@@ -418,7 +404,7 @@ def _agreeing_pin_rule() -> Callable:
         return data, alpha, m
 
     def run(denoised, layer):  # the prototype on session 17's full pin (what design 22 was measured as)
-        with _settings(TRUST_PIN_RADIUS=None, trust_terms=terms):
+        with mock.patch.multiple(refine, TRUST_PIN_RADIUS=None, trust_terms=terms):
             return refine.refine_layer("direct", denoised, layer)
     return run
 
