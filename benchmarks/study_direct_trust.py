@@ -379,29 +379,18 @@ AGREEING_PIN = "R22: zero pixels pinned as far as base and gradients agree"
 
 
 def _agreeing_pin_rule() -> Callable:
-    from scipy.ndimage import uniform_filter
-
     from model import refine
 
     original = refine.trust_terms
 
     def terms(base, prior, dx, dy):
         data, alpha, m = original(base, prior, dx, dy)
-        if m is None:
-            return data, alpha, m
         zero = np.all(np.asarray(base) == 0, axis=-1)
-        if not zero.any():
+        if m is None or not zero.any():
             return data, alpha, m
-        residual, signal = refine._disagreement_maps(base, dx, dy)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            r = uniform_filter(residual, 3, mode="nearest") / (uniform_filter(signal, 3, mode="nearest")
-                                                               + np.float32(refine.TRUST_FLOOR))
-            agree = np.log(refine.TRUST_R_HIGH / np.maximum(r, refine.TRUST_FLOOR)) / np.log(
-                refine.TRUST_R_HIGH / refine.TRUST_R_LOW)
-        agree = np.clip(np.nan_to_num(agree, nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0)
+        agree = refine.trust_weights(base, dx, dy, radius=1)[..., 0]  # the trust rule's ramp in a 3×3 window
         clean = float(np.min(m))
-        m = np.where(zero, clean + agree * (m - clean), m).astype(np.float32)
-        return data, alpha, m
+        return data, alpha, np.where(zero, clean + agree * (m - clean), m).astype(np.float32)
 
     def run(denoised, layer):  # the prototype on session 17's full pin (what design 22 was measured as)
         with mock.patch.multiple(refine, TRUST_PIN_RADIUS=None, trust_terms=terms):

@@ -139,7 +139,10 @@ def generate(seed: int, width: int = 256, height: int = 256, max_depth: int | No
     entropy = seed if family == "mixed" else [seed, FAMILIES.index(family)]
     rng = np.random.Generator(np.random.PCG64(entropy))
     builder = _Builder(rng)
-    builder.build_studio() if family == "studio" else builder.build()
+    if family == "studio":
+        builder.build_studio()
+    else:
+        builder.build()
     plan = builder.finish(width, height, DEFAULT_MAX_DEPTH if max_depth is None else max_depth)
     return ProceduralScene(seed=seed, plan=plan, summary=builder.summary(), family=family)
 
