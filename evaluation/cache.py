@@ -10,14 +10,20 @@ size, spp, seed) followed by a short hash of *everything* that determines its co
 * results: the frame and reference keys, the method, its parameters, the SHA-256 of every model file it uses
   and the source of the code that runs and scores it.
 
-Editing a renderer file therefore re-renders, a new ``models/direct.onnx`` recomputes ``ours`` only, and a
-changed reference spp re-renders the references and rescores every method but reuses the frames. A cache file
+Source files count by their *code* (:func:`code_sha256`: the syntax tree without docstrings, so comments,
+docstrings and formatting do not count): changing renderer code therefore re-renders, while a comment or docstring
+edit keeps a farm's cached shards valid. A procedural scene counts by its seed, family and the generator's
+``GENERATOR_VERSION`` (not by renderer/procedural.py's source, which also holds the other families: a pinned
+fingerprint test fails when a family's scenes change and the version was not bumped). A new
+``models/direct.onnx`` recomputes ``ours`` only, and a changed reference spp re-renders the references and
+rescores every method but reuses the frames. A cache file
 that cannot be read (truncated by a crash, edited by hand) is treated as missing and recomputed, never trusted.
 Writes are atomic (temporary file + rename), so an interrupted run leaves no half-written entries.
 """
 
 from __future__ import annotations
 
+import ast
 import hashlib
 import io
 import json
@@ -32,7 +38,7 @@ import numpy as np
 
 from model.frame import write_bytes_atomic
 
-__all__ = ["EvalCache", "default_cache_dir", "file_sha256", "key_hash", "slug", "sources_sha256"]
+__all__ = ["EvalCache", "code_sha256", "default_cache_dir", "file_sha256", "key_hash", "slug", "sources_sha256"]
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
@@ -64,14 +70,35 @@ def file_sha256(path: str | os.PathLike[str]) -> str:
     return h.hexdigest()
 
 
+def code_sha256(source: str | bytes) -> str:
+    """SHA-256 of a Python module's code: its syntax tree with every docstring removed, so comments, docstrings,
+    blank lines and formatting do not change it and any change to what the code does does. A file that does not
+    parse (not Python) is hashed as its bytes."""
+    try:
+        tree = ast.parse(source)
+    except (SyntaxError, ValueError):
+        raw = source.encode() if isinstance(source, str) else source
+        return hashlib.sha256(raw).hexdigest()
+    for node in ast.walk(tree):
+        body = getattr(node, "body", None)
+        if (isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and body
+                and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant)
+                and isinstance(body[0].value.value, str)):
+            node.body = body[1:] or [ast.Pass()]
+    return hashlib.sha256(ast.dump(tree, include_attributes=False).encode()).hexdigest()
+
+
 @cache
 def _source_sha256(relative: str) -> str:
     path = REPO_ROOT / relative
-    return file_sha256(path) if path.is_file() else "absent"
+    if not path.is_file():
+        return "absent"
+    return code_sha256(path.read_bytes()) if path.suffix == ".py" else file_sha256(path)
 
 
 def sources_sha256(relatives: Iterable[str]) -> str:
-    """One hash over the given repository source files: code that changes its output invalidates its cache."""
+    """One hash over the given repository source files, each by its code (:func:`code_sha256`): code that changes
+    their output invalidates what they made; a comment or docstring edit does not."""
     return key_hash({rel: _source_sha256(rel) for rel in sorted(relatives)}, length=64)
 
 

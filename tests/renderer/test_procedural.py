@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import hashlib
+import json
 from collections import Counter
 from typing import Any
 
@@ -47,6 +49,41 @@ def emitters_of(plan: dict) -> list[str]:
 
 
 # -- determinism ---------------------------------------------------------------------------------------------
+
+def fingerprint(node: Any) -> str:
+    """A short hash of a plan or Mitsuba dict, floats to 9 significant digits (so a last-ulp difference of another
+    CPU's libm does not count)."""
+    def rounded(n: Any) -> Any:
+        if isinstance(n, dict):
+            return {k: rounded(v) for k, v in n.items()}
+        if isinstance(n, list):
+            return [rounded(v) for v in n]
+        return float(f"{n:.9g}") if isinstance(n, float) else n
+    text = json.dumps(rounded(canonical(node)), sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+#: What each (family, seed) generates at GENERATOR_VERSION 1. The evaluation's cache keys a procedural scene by
+#: seed, family and version, not by this module's source (evaluation/run.py): a change that alters any scene must
+#: bump GENERATOR_VERSION (and then these), or cached frames and references would be reused for another scene.
+PINNED_PLANS = {("mixed", 0): "aa5346b8e33b679c", ("mixed", 1): "96e994b5b5950398", ("mixed", 7): "19c67e3e38c59547",
+                ("mixed", 90001): "86549a5c7c78b975", ("mixed", 90002): "a370ea185bd8d6ca",
+                ("studio", 0): "42da06e460074e6d", ("studio", 86001): "abbf63c208d12161"}
+PINNED_DICTS = {("mixed", 90001): "f10ca45eef1de4ea", ("studio", 86001): "96cb6caa3a3d5dbc"}  # at 64x48
+
+
+def test_scenes_are_pinned_to_the_generator_version() -> None:
+    assert GENERATOR_VERSION == 1, "GENERATOR_VERSION changed: re-pin PINNED_PLANS and PINNED_DICTS to its scenes"
+    got = {key: fingerprint(generate(key[1], family=key[0]).plan) for key in PINNED_PLANS}
+    assert got == PINNED_PLANS, ("a procedural scene changed without a GENERATOR_VERSION bump (the evaluation "
+                                 "cache and datasets key scenes by seed + version)")
+
+
+@pytest.mark.render
+def test_mitsuba_dicts_are_pinned_to_the_generator_version() -> None:
+    got = {key: fingerprint(procedural_scene(key[1], 64, 48, family=key[0])) for key in PINNED_DICTS}
+    assert got == PINNED_DICTS, "the Mitsuba dict of a procedural scene changed without a GENERATOR_VERSION bump"
+
 
 def test_same_seed_same_plan_and_different_seeds_differ() -> None:
     for seed in (0, 7, 123456):
