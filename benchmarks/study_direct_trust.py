@@ -398,6 +398,32 @@ def _agreeing_pin_rule() -> Callable:
     return run
 
 
+#: Session 19, design 23 (fixed before scoring; docs/network.md "Design 23"): the refinement's IRLS regulariser.
+#: solve_l1 weights each residual by 1/(‖e‖ + reg_k), reg_k = reg_init·0.5^(k−1), reg_init 0.05 by default, in the
+#: units of its input: `l1` solves in radiance units, the refinement at mean-1 exposure, so on a dim layer `l1`'s
+#: regulariser is many times the refinement's relative one. name -> (reg_init at mean-1 exposure, clean layers only).
+REG_DESIGNS = {"R23a: clean layers, IRLS reg 0.2": (0.2, True),
+               "R23b: clean layers, IRLS reg 0.5": (0.5, True),
+               "R23c: clean layers, IRLS reg 1.0": (1.0, True),
+               "R23d: every refined layer, IRLS reg 0.5": (0.5, False)}
+
+
+def _reg_rule(reg_init: float, clean_only: bool) -> Callable:
+    from model import refine
+
+    original = refine.solve_l1
+
+    def solve(*args, **kwargs):
+        if not clean_only or kwargs.get("alpha_map") is not None:  # a clean layer carries its α map
+            kwargs["reg_init"] = reg_init
+        return original(*args, **kwargs)
+
+    def run(denoised, layer):
+        with mock.patch.object(refine, "solve_l1", solve):
+            return refine.refine_layer("direct", denoised, layer)
+    return run
+
+
 def _without_clean_map(run: Callable) -> Callable:
     """``run`` with the rule as it was before session 17 (model.refine.TRUST_ALPHA_CLEAN None: no per-pixel α on
     clean layers), so that the variants measured against that rule still measure what they did."""
@@ -440,6 +466,7 @@ def variants() -> dict[str, Callable]:
     out.update({k: _silhouette_rule(*v) for k, v in SILHOUETTE_DESIGNS.items()})
     out.update({k: _round2_rule(*v) for k, v in ROUND2.items()})
     out[AGREEING_PIN] = _agreeing_pin_rule()
+    out.update({k: _reg_rule(*v) for k, v in REG_DESIGNS.items()})
     return out
 
 

@@ -1,0 +1,41 @@
+"""The evaluation cache keys code by what it does: comments, docstrings and formatting do not invalidate a
+farm's cached frames and references, any change to the code does."""
+
+from __future__ import annotations
+
+from evaluation.cache import code_sha256, sources_sha256
+from evaluation.run import REFERENCE_SOURCES, RENDERER_SOURCES
+
+MODULE = '''"""A module."""
+
+def shade(x):
+    """Twice x."""
+    return 2 * x  # doubled
+'''
+
+
+def test_docstrings_comments_and_formatting_do_not_change_the_code_hash() -> None:
+    edited = ('"""A module, documented at length."""\n\n\n'
+              "def shade(x):\n    '''Twice x, said differently.'''\n    # a new comment\n    return 2*x\n")
+    assert code_sha256(edited) == code_sha256(MODULE)
+    no_docstring = "def shade(x):\n    return 2 * x\n"
+    assert code_sha256(no_docstring) == code_sha256(MODULE)
+
+
+def test_any_change_to_the_code_changes_the_hash() -> None:
+    for changed in (MODULE.replace("2 * x", "3 * x"), MODULE.replace("shade", "tint"),
+                    MODULE + "\nLIMIT = 4\n", MODULE.replace("return 2 * x", "y = 2 * x\n    return y")):
+        assert code_sha256(changed) != code_sha256(MODULE), changed
+    # a string that is not a docstring is code
+    assert code_sha256(MODULE.replace("return 2 * x", '"note"\n    return 2 * x')) != code_sha256(MODULE)
+
+
+def test_a_file_that_is_not_python_is_hashed_as_bytes() -> None:
+    assert code_sha256(b"def (:\n") != code_sha256(b"def (: \n")
+
+
+def test_the_generator_is_keyed_by_its_version_not_its_source() -> None:
+    # renderer/procedural.py holds every family: a new family must not invalidate another's cached frames;
+    # tests/renderer/test_procedural.py pins what each version generates instead
+    assert "renderer/procedural.py" not in RENDERER_SOURCES + REFERENCE_SOURCES
+    assert len(sources_sha256(RENDERER_SOURCES)) == 64
