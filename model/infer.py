@@ -70,8 +70,8 @@ MODEL_LAYERS: tuple[str, ...] = ILLUMINATION_LAYERS
 OUTPUT_NAME = "radiance_log"
 _OPT_LEVELS = ("disable", "basic", "extended", "all")
 #: Execution providers ``SessionSettings.provider`` can ask for; "auto" picks (see ``choose_provider``).
-PROVIDERS = ("auto", "openvino", "cpu")
-OPENVINO_EP, CPU_EP = "OpenVINOExecutionProvider", "CPUExecutionProvider"
+PROVIDERS = ("auto", "cuda", "openvino", "cpu")
+CUDA_EP, OPENVINO_EP, CPU_EP = "CUDAExecutionProvider", "OpenVINOExecutionProvider", "CPUExecutionProvider"
 #: CPU flags that give OpenVINO's CPU plugin native bf16 arithmetic (AVX-512 BF16 or AMX).
 BF16_FLAGS = frozenset({"avx512_bf16", "amx_bf16"})
 
@@ -94,10 +94,12 @@ class SessionSettings:
     a service running several inferences side by side may want fewer. Full graph optimisation (operator
     fusion, NCHWc layouts) measured fastest in benchmarks/bench_network.py.
 
-    ``provider`` (env ``GRADSEP_ONNX_PROVIDER``): "auto" runs the OpenVINO execution provider in bf16 when the
-    installed ``onnxruntime`` build has it (the ``onnxruntime-openvino`` distribution) and the CPU has native
-    bf16 (``avx512_bf16``/``amx_bf16`` in /proc/cpuinfo), else ORT's own CPU provider in fp32; "openvino"
-    forces OpenVINO (bf16 where the CPU has it, else fp32); "cpu" forces ORT's CPU provider (fp32).
+    ``provider`` (env ``GRADSEP_ONNX_PROVIDER``): "auto" runs ORT's CUDA provider where the installed build has
+    it (``onnxruntime-gpu`` on a GPU host), else the OpenVINO execution provider in bf16 when the build has it
+    (the ``onnxruntime-openvino`` distribution) and the CPU has native bf16 (``avx512_bf16``/``amx_bf16`` in
+    /proc/cpuinfo), else ORT's own CPU provider in fp32; "cuda" asks for the CUDA provider (the CPU choice where
+    the build lacks it); "openvino" forces OpenVINO (bf16 where the CPU has it, else fp32); "cpu" forces ORT's
+    CPU provider (fp32).
     """
 
     intra_op_threads: int = 0
@@ -143,7 +145,7 @@ def cpu_flags(cpuinfo: str | os.PathLike[str] = "/proc/cpuinfo") -> frozenset[st
 class ProviderChoice:
     """Which execution provider serves, in which precision, and why (reported by /v1/models and logged)."""
 
-    provider: str   # "openvino" or "cpu"
+    provider: str   # "cuda", "openvino" or "cpu"
     precision: str  # "bf16" or "fp32"
     reason: str
 
@@ -151,6 +153,8 @@ class ProviderChoice:
         """The ``providers`` argument of ``InferenceSession``."""
         if self.provider == "cpu":
             return [CPU_EP]
+        if self.provider == "cuda":  # fp32 on the GPU; ORT gives the CPU provider any node CUDA does not take
+            return [(CUDA_EP, {"device_id": 0}), CPU_EP]
         hint = {"bf16": "bf16", "fp32": "f32"}[self.precision]
         config = json.dumps({"CPU": {"INFERENCE_PRECISION_HINT": hint}})
         # The CPU provider stays listed: ORT assigns it any node OpenVINO does not take.
@@ -165,6 +169,12 @@ def choose_provider(requested: str, available: list[str] | tuple[str, ...], flag
     bf16 = sorted(BF16_FLAGS & flags)
     if requested == "cpu":
         return ProviderChoice("cpu", "fp32", "ORT CPU provider requested")
+    if CUDA_EP in available and requested in ("auto", "cuda"):
+        return ProviderChoice("cuda", "fp32", "ORT CUDA provider (onnxruntime-gpu)")
+    if requested == "cuda":
+        log.warning("CUDA provider requested but this onnxruntime build has none (install onnxruntime-gpu); "
+                    "choosing among the CPU providers")
+        requested = "auto"
     if not has_ov:
         why = "this onnxruntime build has no OpenVINO provider (install onnxruntime-openvino)"
         if requested == "openvino":
@@ -347,13 +357,25 @@ def load_model(path: str | os.PathLike[str], name: str, settings: SessionSetting
         if choice.provider == "cpu":
             raise
         log.warning("%s; falling back to the ORT CPU provider", exc)
-        choice = ProviderChoice("cpu", "fp32", f"OpenVINO failed on this model ({exc})")
+        choice = ProviderChoice("cpu", "fp32", f"the {choice.provider} provider failed on this model ({exc})")
         session = _session(path, settings, choice)
+    choice = _served_by(choice, session.get_providers())
     meta = dict(session.get_modelmeta().custom_metadata_map)
     alignment = _check_metadata(path, name, meta)
     log.info("model %s (%s): %s provider, %s (%s)", name, path.name, choice.provider, choice.precision,
              choice.reason)
     return LoadedModel(name, path, _sha256(path), meta, session, alignment, choice)
+
+
+def _served_by(choice: ProviderChoice, session_providers: list[str]) -> ProviderChoice:
+    """``choice`` as the session really runs it: ORT can build a session without the accelerated provider it was
+    given (a CUDA build on a host without a usable GPU), and /v1/models must then say the CPU serves."""
+    wanted = {"cuda": CUDA_EP, "openvino": OPENVINO_EP}.get(choice.provider)
+    if wanted is None or wanted in session_providers:
+        return choice
+    log.warning("ONNX Runtime did not enable the %s provider (session providers: %s); the CPU provider serves",
+                choice.provider, ", ".join(session_providers))
+    return ProviderChoice("cpu", "fp32", f"the {choice.provider} provider was not enabled by ONNX Runtime here")
 
 
 def _session(path: Path, settings: SessionSettings, choice: ProviderChoice) -> onnxruntime.InferenceSession:

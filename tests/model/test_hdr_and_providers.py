@@ -16,6 +16,7 @@ from model.frame import Frame, read_frame
 from model.infer import (
     BF16_FLAGS,
     CPU_EP,
+    CUDA_EP,
     EXPOSURE_MAX,
     EXPOSURE_MIN,
     OPENVINO_EP,
@@ -123,17 +124,38 @@ def test_poisson_methods_keep_the_energy_at_high_exposure(frame: Frame, method: 
     ("openvino", [OPENVINO_EP, CPU_EP], set(), ("openvino", "fp32")),
     ("openvino", [CPU_EP], {"avx512_bf16"}, ("cpu", "fp32")),
     ("cpu", [OPENVINO_EP, CPU_EP], {"avx512_bf16"}, ("cpu", "fp32")),
+    ("auto", [CUDA_EP, OPENVINO_EP, CPU_EP], {"avx512_bf16"}, ("cuda", "fp32")),  # onnxruntime-gpu: the GPU
+    ("cuda", [CUDA_EP, CPU_EP], set(), ("cuda", "fp32")),
+    ("cuda", [OPENVINO_EP, CPU_EP], {"avx512_bf16"}, ("openvino", "bf16")),  # no CUDA build: auto's CPU choice
+    ("cuda", [CPU_EP], set(), ("cpu", "fp32")),
+    ("cpu", [CUDA_EP, CPU_EP], set(), ("cpu", "fp32")),
 ])
 def test_provider_choice(requested: str, available: list[str], flags: set[str], want: tuple[str, str]) -> None:
     choice = choose_provider(requested, available, frozenset(flags))
     assert (choice.provider, choice.precision) == want and choice.reason
     names = [p if isinstance(p, str) else p[0] for p in choice.providers()]
     assert names[-1] == CPU_EP and (OPENVINO_EP in names) == (want[0] == "openvino")
+    assert (CUDA_EP in names) == (want[0] == "cuda")
 
 
 def test_unknown_provider_is_refused() -> None:
     with pytest.raises(ValueError, match="provider"):
-        choose_provider("cuda", [CPU_EP], frozenset())
+        choose_provider("tpu", [CPU_EP], frozenset())
+
+
+@pytest.mark.parametrize(("choice", "session", "want"), [
+    (("cuda", "fp32"), [CUDA_EP, CPU_EP], "cuda"),
+    (("cuda", "fp32"), [CPU_EP], "cpu"),          # a CUDA build on a host without a usable GPU
+    (("openvino", "bf16"), [OPENVINO_EP, CPU_EP], "openvino"),
+    (("openvino", "bf16"), [CPU_EP], "cpu"),
+    (("cpu", "fp32"), [CPU_EP], "cpu"),
+])
+def test_the_reported_provider_is_the_one_the_session_runs(choice: tuple[str, str], session: list[str],
+                                                           want: str) -> None:
+    from model.infer import ProviderChoice, _served_by
+
+    got = _served_by(ProviderChoice(*choice, "asked"), session)
+    assert got.provider == want and (got == ProviderChoice(*choice, "asked")) == (want == choice[0])
 
 
 def test_cpu_flags_reads_cpuinfo(tmp_path: Path) -> None:
