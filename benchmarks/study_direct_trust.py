@@ -424,6 +424,57 @@ def _reg_rule(reg_init: float, clean_only: bool) -> Callable:
     return run
 
 
+#: Session 19, design 24 (fixed before scoring; docs/network.md "Design 24"): a zero pixel keeps its pin only as
+#: far as its own gradients say it is black: q = max(ι, 0) / s from its lit neighbours (implied_ratio), full pin at
+#: q ≤ q_lo, none at q ≥ q_hi, log-linear between. name -> (q_lo, q_hi).
+IMPLIED_DESIGNS = {"R24a: pin kept as far as the implied value says black (0.1, 0.5)": (0.1, 0.5),
+                   "R24b: pin kept as far as the implied value says black (0.2, 0.5)": (0.2, 0.5),
+                   "R24c: pin kept as far as the implied value says black (0.1, 0.3)": (0.1, 0.3)}
+
+
+def implied_ratio(base: np.ndarray, dx: np.ndarray, dy: np.ndarray) -> np.ndarray:
+    """Per pixel, q = max(ι, 0) / s: ι the value its four gradients imply from each neighbour (base(n) ∓ g),
+    weighted by the neighbours' luminance L_n, s = Σ L_n² / Σ L_n; 0 where no neighbour is lit. (H, W) float32."""
+    lum, gx, gy = (np.asarray(a, np.float64).mean(axis=-1) for a in (base, dx, dy))
+    weight = np.zeros_like(lum)
+    value = np.zeros_like(lum)
+    level = np.zeros_like(lum)
+    for w_slice, n_slice, implied in (
+            ((slice(None), slice(None, -1)), (slice(None), slice(1, None)), lum[:, 1:] - gx[:, :-1]),   # right
+            ((slice(None), slice(1, None)), (slice(None), slice(None, -1)), lum[:, :-1] + gx[:, :-1]),  # left
+            ((slice(None, -1), slice(None)), (slice(1, None), slice(None)), lum[1:] - gy[:-1]),         # down
+            ((slice(1, None), slice(None)), (slice(None, -1), slice(None)), lum[:-1] + gy[:-1])):       # up
+        n = lum[n_slice]
+        weight[w_slice] += n
+        value[w_slice] += n * implied
+        level[w_slice] += n * n
+    with np.errstate(invalid="ignore", divide="ignore"):
+        q = np.maximum(value, 0.0) / level
+    return np.nan_to_num(q, nan=0.0, posinf=0.0).astype(np.float32)
+
+
+def _implied_pin_rule(q_lo: float, q_hi: float) -> Callable:
+    from model import refine
+
+    original = refine.trust_terms
+
+    def terms(base, prior, dx, dy):
+        data, alpha, m = original(base, prior, dx, dy)
+        zero = np.all(np.asarray(base) == 0, axis=-1)
+        if m is None or not zero.any():
+            return data, alpha, m
+        q = implied_ratio(base, dx, dy)
+        with np.errstate(divide="ignore"):
+            keep = np.clip(np.log(q_hi / np.maximum(q, 1e-30)) / math.log(q_hi / q_lo), 0.0, 1.0)
+        clean = float(np.min(m))
+        return data, alpha, np.where(zero, clean + keep * (m - clean), m).astype(np.float32)
+
+    def run(denoised, layer):
+        with mock.patch.object(refine, "trust_terms", terms):
+            return refine.refine_layer("direct", denoised, layer)
+    return run
+
+
 def _without_clean_map(run: Callable) -> Callable:
     """``run`` with the rule as it was before session 17 (model.refine.TRUST_ALPHA_CLEAN None: no per-pixel α on
     clean layers), so that the variants measured against that rule still measure what they did."""
@@ -467,6 +518,7 @@ def variants() -> dict[str, Callable]:
     out.update({k: _round2_rule(*v) for k, v in ROUND2.items()})
     out[AGREEING_PIN] = _agreeing_pin_rule()
     out.update({k: _reg_rule(*v) for k, v in REG_DESIGNS.items()})
+    out.update({k: _implied_pin_rule(*v) for k, v in IMPLIED_DESIGNS.items()})
     return out
 
 
