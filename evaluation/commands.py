@@ -105,6 +105,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "the budget, the row's metrics are their mean and the report adds the standard error of "
                         "the RelMSE; one seed's error moves by tens of percent between runs, so claims that one "
                         "method beats another at equal time want several")
+    p.add_argument("--frame-seeds", type=int, default=None, metavar="N",
+                   help="G-PT frames per scene and spp (default 1), each rendered with its own seed: every "
+                        "fixed-spp method runs on each, its row is their mean and the report adds the standard "
+                        "error of the RelMSE (a few-percent difference between methods on one frame can be that "
+                        "frame's luck); the equal-time rows keep the first frame's budget")
     p.add_argument("--references-only", action="store_true",
                    help="render only the reference passes up to --ref-spp-cap and the pilot that places region "
                         "passes into the cache (no methods, no report; -o is still required and left untouched): a "

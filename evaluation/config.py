@@ -52,6 +52,8 @@ QUICK = Preset(96, 72, (1, 4, 16), 128, 1024, 20.0)
 FLOOR_FRACTION = 0.1
 #: Most seeds per equal-time row (``--time-seeds``): each one is a full time search and render of the row.
 MAX_TIME_SEEDS = 64
+#: Most G-PT frames per (scene, spp) (``--frame-seeds``): each one is a render and every fixed-spp method on it.
+MAX_FRAME_SEEDS = 64
 
 
 @dataclass(frozen=True)
@@ -75,6 +77,7 @@ class EvalConfig:
     ref_spp_cap: int | None = None  # None: ref_spp (a fixed reference spp)
     ref_seconds: float | None = None  # render-time budget of a scene's two references; None: no limit
     time_seeds: int = 1  # seeds per equal-time row (each its own time search); the row is their mean
+    frame_seeds: int = 1  # G-PT frames (render seeds) per (scene, spp); a fixed-spp row is the mean over them
 
     @property
     def reference_cap(self) -> int:
@@ -148,6 +151,7 @@ class EvalSettings(BaseSettings):
     table_spp: int | None = None
     alpha: float | None = None
     time_seeds: int | None = None
+    frame_seeds: int | None = None
 
     @classmethod
     def variable(cls, name: str) -> str:
@@ -235,11 +239,14 @@ def make_config(settings: EvalSettings, *, output: str | Path, scenes: Sequence[
     time_seeds = _at_least(settings.time_seeds, 1, "--time-seeds") or 1
     if time_seeds > MAX_TIME_SEEDS:
         raise CommandError(f"--time-seeds must be <= {MAX_TIME_SEEDS}, got {time_seeds}")
+    frame_seeds = _at_least(settings.frame_seeds, 1, "--frame-seeds") or 1
+    if frame_seeds > MAX_FRAME_SEEDS:
+        raise CommandError(f"--frame-seeds must be <= {MAX_FRAME_SEEDS}, got {frame_seeds}")
     return EvalConfig(
         scenes=tuple(scenes or ()), spp=spp_list, width=width, height=height, ref_spp=ref_spp, output=Path(output),
         cache_dir=Path(cache) if cache else default_cache_dir(), models_dir=models_dir_from(models),
         methods=parse_methods(settings.methods), seed=seed, max_depth=max_depth, alpha=alpha, table_spp=table_spp,
-        quick=quick, ref_spp_cap=ref_cap, ref_seconds=ref_seconds, time_seeds=time_seeds)
+        quick=quick, ref_spp_cap=ref_cap, ref_seconds=ref_seconds, time_seeds=time_seeds, frame_seeds=frame_seeds)
 
 
 # ------------------------------------------------------------------------------------------------ scenes

@@ -118,6 +118,7 @@ def _summary(evaluation: Evaluation) -> dict[str, Any]:
                    "ref_seconds": c.ref_seconds, "seed": c.seed, "max_depth": c.max_depth,
                    "alpha": c.alpha,
                    "table_spp": c.crop_spp, "methods": list(c.methods), "quick": c.quick, "time_seeds": c.time_seeds,
+                   "frame_seeds": c.frame_seeds,
                    "models_dir": str(c.models_dir)},
         "references": {s.entry.name: {"spp_each": s.reference_spp, "sampler": REFERENCE_SAMPLER,
                                       "region": s.reference_region, "region_spp_each": s.region_spp,
@@ -158,6 +159,8 @@ def reproduce_command(c: EvalConfig) -> str:
         env[var("alpha")] = f"{c.alpha:g}"
     if c.time_seeds != 1:
         env[var("time_seeds")] = str(c.time_seeds)
+    if c.frame_seeds != 1:
+        env[var("frame_seeds")] = str(c.frame_seeds)
     args = ["gradsep", "evaluate"]
     if c.scenes:
         args += ["--scenes", *c.scenes]
@@ -329,7 +332,7 @@ def _table1(evaluation: Evaluation, spp: int) -> list[str]:
              "scene in bold. "
              "SSIM and PSNR on the display tonemap "
              "against the mean of the two references, RelMSE on linear radiance with the reference noise removed "
-             "(model/metrics.py).", "",
+             "(model/metrics.py). " + _frame_seeds_sentence(evaluation.config.frame_seeds), "",
              "| Scene | Method | " + " | ".join(h for _, h, _ in TABLE1_METRICS) + " |",
              "|---|---|" + "---:|" * len(TABLE1_METRICS)]
     for scene in evaluation.scenes:
@@ -438,10 +441,19 @@ def _spp_cell(row: Mapping[str, Any]) -> str:
 
 
 def _stderr(row: Mapping[str, Any]) -> str:
-    """`` ±SE`` after a multi-seed row's mean RelMSE (``--time-seeds``), else nothing."""
+    """`` ±SE`` after a multi-seed row's mean RelMSE (``--time-seeds``, ``--frame-seeds``), else nothing."""
     if int(row.get("seeds") or 1) > 1 and row.get("relmse_stderr") is not None:
         return f" ±{_fmt(row['relmse_stderr'], 2)}"
     return ""
+
+
+def _frame_seeds_sentence(frame_seeds: int) -> str:
+    """What the fixed-spp cells are over: one G-PT frame, or ``--frame-seeds`` N."""
+    if frame_seeds <= 1:
+        return "Each fixed-spp cell is one G-PT frame (one render seed; `--frame-seeds N` averages N)."
+    return (f"Each fixed-spp cell is the mean over {frame_seeds} G-PT frames, each rendered with its own seed "
+            "(`--frame-seeds`); results.json keeps each frame's `seed_relmse` and the RelMSE's standard error "
+            "(`relmse_stderr`); crops show the first frame, and the equal-time budgets are the first frame's.")
 
 
 def _seeds_sentence(rows: Sequence[Mapping[str, Any]]) -> str:
@@ -613,8 +625,9 @@ def _targets(rows: Sequence[Mapping[str, Any]]) -> list[str]:
 
 def _relmse_tables(evaluation: Evaluation) -> list[str]:
     lines = ["## RelMSE and time by spp, all methods", "",
-             "Cells: RelMSE / total seconds (*: interpolated to the equal-time budget, see Equal time). Per-layer "
-             "RelMSE (direct, indirect) is in results.csv.", ""]
+             "Cells: RelMSE (± its standard error over a multi-seed row's seeds) / total seconds (*: interpolated "
+             "to the equal-time budget, see Equal time). Per-layer RelMSE (direct, indirect) is in results.csv. "
+             + _frame_seeds_sentence(evaluation.config.frame_seeds), ""]
     for scene in evaluation.scenes:
         scene_rows = [r for r in evaluation.rows if r["scene"] == scene.entry.name]
         spps = sorted({int(r["spp"]) for r in scene_rows})
@@ -626,7 +639,8 @@ def _relmse_tables(evaluation: Evaluation) -> list[str]:
             for s in spps:
                 r = next((r for r in scene_rows if r["method"] == method and int(r["spp"]) == s), None)
                 star = "*" if r is not None and r.get("time_interpolated") else ""
-                cells.append("–" if r is None else f"{_fmt(r['relmse'])} / {_fmt(row_seconds(r), 3)} s{star}")
+                cell = f"{_fmt(r['relmse'])}{_stderr(r)} / {_fmt(row_seconds(r), 3)} s{star}" if r else "–"
+                cells.append(cell)
             lines.append(f"| {LABELS.get(method, method)} | " + " | ".join(cells) + " |")
         lines.append("")
     return lines

@@ -83,8 +83,9 @@ class _Output:
     layers: dict[str, np.ndarray]
     tag: str
     bracket: list[BracketOutput] = field(default_factory=list)  # see MethodOutput.bracket
-    #: The same equal-time row rendered with the other ``--time-seeds`` seeds (each its own time search); the
-    #: row's metrics are the mean over this output and these (:func:`seed_mean`).
+    #: The same equal-time row rendered with the other ``--time-seeds`` seeds (each its own time search), or the
+    #: same fixed-spp method on the other ``--frame-seeds`` frames; the row's metrics are the mean over this
+    #: output and these (:func:`seed_mean`).
     replicas: list[_Output] = field(default_factory=list)
 
     def interpolation(self) -> tuple[float, BracketOutput, BracketOutput] | None:
@@ -180,20 +181,23 @@ class _Runner:
 
     # ------------------------------------------------------------------------------------------ frames
 
-    def frame(self, entry: SceneEntry, loaded: Any, spp: int, gradients: str = "all") -> tuple[Any, float, str]:
+    def frame(self, entry: SceneEntry, loaded: Any, spp: int, gradients: str = "all",
+              replica: int = 0) -> tuple[Any, float, str]:
         """The G-PT frame at ``spp`` in render mode ``gradients`` (``all`` or ``direct``: renderer.render), its
         render seconds and cache key hash (rendered when not cached). Both modes use the same seed, so the
-        ``direct`` frame's direct layer is the ``all`` frame's and its indirect base the same primal."""
+        ``direct`` frame's direct layer is the ``all`` frame's and its indirect base the same primal.
+        ``replica`` k > 0: the k-th extra frame of ``--frame-seeds``, rendered with its own seed."""
         from model.frame import FrameError, read_frame, write_frame
         from renderer.render import render_frame
         from renderer.shift import DEFAULT_SHIFT
 
-        seed = _derived_seed(self.config.seed, 2, spp)
+        seed = _derived_seed(self.config.seed, 2, spp, *((replica,) if replica else ()))
         key = {"kind": "gpt-frame", "scene": entry.identity, "size": [loaded.width, loaded.height],
                "max_depth": loaded.max_depth, "spp": spp, "seed": seed, "shift": DEFAULT_SHIFT,
                "gradients": gradients, "code": self.renderer_code, "mitsuba": _mitsuba_id()}
         mode = "" if gradients == "all" else f"-{gradients}"
-        stem = f"{loaded.width}x{loaded.height}-d{loaded.max_depth}-spp{spp}-seed{self.config.seed}{mode}"
+        stem = (f"{loaded.width}x{loaded.height}-d{loaded.max_depth}-spp{spp}-seed{self.config.seed}{mode}"
+                + (f"-r{replica}" if replica else ""))
         path = self.cache.entry("frames", entry.name, stem, key, ".exr")
         tag = key_hash(key)
         if path.is_file():
@@ -222,7 +226,8 @@ class _Runner:
                key: dict[str, Any], replica: int = 0) -> _Output:
         """One method's output on one (scene, spp), from the cache when possible (it does not depend on the
         references, so raising them re-scores without re-running anything). ``replica`` k > 0: the k-th extra
-        seed of an equal-time row (``--time-seeds``)."""
+        seed of an equal-time row (``--time-seeds``) or the method on the k-th extra frame (``--frame-seeds``):
+        the key tells them apart."""
         c = self.config
         stem = f"{spec.name}-{scene.width}x{scene.height}-spp{spp}-seed{c.seed}" + (f"-r{replica}" if replica else "")
         path = self.cache.entry("results", scene.entry.name, stem, key, ".json")
@@ -273,8 +278,8 @@ class _Runner:
         return _Output(spec, spp, row, out.image, layers, tag, list(out.bracket))
 
     def row(self, output: _Output, scene: SceneRun, pair: ReferencePair) -> dict[str, Any]:
-        """The output's report row: its own row and scores, or with replicas (``--time-seeds``) the mean over
-        the seeds (:func:`seed_mean`)."""
+        """The output's report row: its own row and scores, or with replicas (``--time-seeds``,
+        ``--frame-seeds``) the mean over the seeds (:func:`seed_mean`)."""
         if not output.replicas:
             return {**output.row, **self.score(output, scene, pair)}
         return seed_mean([{**o.row, **self.score(o, scene, pair)} for o in (output, *output.replicas)])
@@ -336,8 +341,9 @@ SEED_MEAN_METRICS = ("relmse", "ssim", "psnr", "flip", *(f"relmse_{layer}" for l
 
 
 def seed_mean(rows: list[dict[str, Any]]) -> dict[str, Any]:
-    """One equal-time row from the same row rendered with several seeds (``--time-seeds``; each row already
-    scored, its own time search): every metric of :data:`SEED_MEAN_METRICS` is the mean over the seeds (None when
+    """One row from the same row rendered with several seeds (an equal-time row's ``--time-seeds``, each its own
+    time search; a fixed-spp row's ``--frame-seeds``, each its own G-PT frame; every row already scored): every
+    metric of :data:`SEED_MEAN_METRICS` is the mean over the seeds (None when
     a seed has none), the time the mean of the seeds' times (:func:`row_seconds`: the budget for a seed
     interpolated to it), ``method_spp`` the seeds' median. ``seeds``, ``seed_relmse``, ``seed_spp`` and
     ``seed_seconds`` keep the seeds' own values, ``relmse_stderr`` the standard error of the mean RelMSE (sample
@@ -461,6 +467,12 @@ def _run_scene(runner: _Runner, entry: SceneEntry, loaded: Any, methods: list[Me
             frame, seconds, frame_tag = frames.get(spec.gradients, frames["all"])
             out = _evaluate_one(runner, spec, scene, spp, frame, seconds, frame_tag, get_path, done, keys)
             if out is not None:
+                if spec.kind not in EQUAL_TIME_KINDS:  # --frame-seeds: the method on the other frames too
+                    for k in range(1, config.frame_seeds):
+                        extra = runner.frame(entry, loaded, spp, spec.gradients, replica=k)
+                        more = _evaluate_one(runner, spec, scene, spp, *extra, get_path, done, keys, replica=k)
+                        if more is not None:
+                            out.replicas.append(more)
                 outputs.append(out)
             bar.update()
     bar.describe(f"{entry.name}: references")
@@ -638,8 +650,10 @@ def oidn_key() -> dict[str, str]:
 
 def _evaluate_one(runner: _Runner, spec: MethodSpec, scene: SceneRun, spp: int, frame: Any, seconds: float,
                   frame_tag: str, get_path: Callable[[], PathRenderer], done: dict[str, dict[str, Any]],
-                  keys: dict[str, str]) -> _Output | None:
-    """One method on one frame: skip it (with the reason) when it cannot run, else the cached or new output."""
+                  keys: dict[str, str], replica: int = 0) -> _Output | None:
+    """One method on one frame: skip it (with the reason) when it cannot run, else the cached or new output.
+    ``replica`` k > 0: a fixed-spp method on the k-th extra frame (``--frame-seeds``); it leaves ``done`` and
+    ``keys`` (the equal-time budgets come from the first frame) as they are."""
     c = runner.config
     reason = unavailable(spec)
     if reason is not None:
@@ -672,7 +686,9 @@ def _evaluate_one(runner: _Runner, spec: MethodSpec, scene: SceneRun, spp: int, 
     from model.infer import ModelError
 
     try:
-        out = runner.output(spec, scene, spp, ctx, key)
+        out = runner.output(spec, scene, spp, ctx, key, replica)
+        if replica:
+            return out
         if spec.kind in EQUAL_TIME_KINDS:  # --time-seeds: the same budget, the other seeds' own searches
             for k in range(1, c.time_seeds):
                 seeded = dataclasses.replace(ctx, seed=_derived_seed(c.seed, 3, spp, k))

@@ -137,6 +137,25 @@ def test_time_seeds_from_the_flag_or_the_environment_with_their_range(monkeypatc
             config_from_args(_args(time_seeds=bad))
 
 
+def test_frame_seeds_from_the_flag_or_the_environment_with_their_range(monkeypatch):
+    """--frame-seeds N (or GRADSEP_EVAL_FRAME_SEEDS): 1 by default, refused below 1 and above the cap, and named in
+    the reproduce line only when it is not 1."""
+    from evaluation.config import MAX_FRAME_SEEDS
+    from evaluation.report import reproduce_command
+
+    monkeypatch.delenv("GRADSEP_EVAL_FRAME_SEEDS", raising=False)
+    assert config_from_args(_args()).frame_seeds == 1
+    assert "FRAME_SEEDS" not in reproduce_command(config_from_args(_args()))
+    assert config_from_args(_args(frame_seeds=3)).frame_seeds == 3
+    monkeypatch.setenv("GRADSEP_EVAL_FRAME_SEEDS", "4")
+    config = config_from_args(_args())
+    assert config.frame_seeds == 4 and "GRADSEP_EVAL_FRAME_SEEDS=4" in reproduce_command(config)
+    assert config_from_args(_args(frame_seeds=2)).frame_seeds == 2  # the flag wins
+    for bad in (0, -2, MAX_FRAME_SEEDS + 1):
+        with pytest.raises(CommandError, match="--frame-seeds must be"):
+            config_from_args(_args(frame_seeds=bad))
+
+
 def test_seed_mean_averages_the_metrics_and_keeps_each_seed():
     """The multi-seed row: metrics are means over the seeds, the time their mean (an interpolated seed counts at
     its budget), the spp their median, the standard error of the mean RelMSE from the seeds' spread."""
@@ -411,6 +430,43 @@ def test_equal_time_methods_use_the_default_method_as_the_budget(first_run):
 
 
 @pytest.mark.render
+def test_frame_seeds_add_frames_to_the_fixed_spp_rows_only(first_run):
+    """--frame-seeds 2 over the first run's cache: one more G-PT frame per (spp, render mode) and every fixed-spp
+    method on it are computed; each such row is the mean over two different frames (the first the single-frame
+    run's own), the equal-time rows (their budgets from the first frame) are unchanged, and the report says what
+    its cells are."""
+    import dataclasses
+    import json
+
+    from evaluation.methods import EQUAL_TIME_KINDS, method_by_name
+
+    root, first = first_run
+    config = dataclasses.replace(_config(root, "report-frames"), frame_seeds=2)
+    two = run_evaluation(config, progress=False, log=lambda message: None)
+    fixed = [m for m in _runnable(METHODS) if method_by_name(m).kind not in EQUAL_TIME_KINDS]
+    modes = {"all"} | {method_by_name(m).gradients for m in fixed}
+    assert two.computed == {"frames": len(modes) * len(SPP), "references": 0, "results": len(fixed) * len(SPP)}
+    before = {(r["method"], r["spp"]): r for r in first.rows}
+    for r in two.rows:
+        old = before[(r["method"], r["spp"])]
+        if r["method"] not in fixed:
+            assert r["relmse"] == old["relmse"] and "seeds" not in r
+            continue
+        assert r["seeds"] == 2 and r["seed_relmse"][0] == pytest.approx(old["relmse"])
+        if r["method"] != "gpt-primal" or r["spp"] > 1:
+            assert r["seed_relmse"][0] != r["seed_relmse"][1]  # another frame, another image
+        assert r["relmse"] == pytest.approx(sum(r["seed_relmse"]) / 2)
+        assert r["relmse_stderr"] == pytest.approx(abs(r["seed_relmse"][0] - r["seed_relmse"][1]) / 2)
+        assert r["method_spp"] == r["spp"]
+    summary = json.loads((root / "report-frames" / "results.json").read_text())
+    assert summary["config"]["frame_seeds"] == 2 and "GRADSEP_EVAL_FRAME_SEEDS=2" in summary["reproduce"]
+    text = (root / "report-frames" / "report.md").read_text()
+    assert "mean over 2 G-PT frames" in text and " ±" in text
+    assert "Each fixed-spp cell is one G-PT frame" in (root / "report" / "report.md").read_text()
+    shutil.rmtree(root / "report-frames", ignore_errors=True)
+
+
+@pytest.mark.render
 def test_time_seeds_add_seeds_to_the_equal_time_rows_only(first_run):
     """--time-seeds 2 over the first run's cache: only the equal-time rows' second seeds are computed (the first
     seed is the single-seed run's own, cached), each such row is the mean of two different seeds, and every other
@@ -505,7 +561,8 @@ def test_rerun_computes_only_what_changed(first_run, monkeypatch):
     monkeypatch.undo()
     _blur_model(root / "models" / "direct.onnx", "direct", 5)
     # and a damaged cache entry is recomputed rather than trusted
-    damaged = next(p for p in (root / "cache" / "evaluate" / "results").rglob("l1-*spp1-*.json"))
+    damaged = next(p for p in (root / "cache" / "evaluate" / "results").rglob("l1-*spp1-*.json")
+                   if "-r1-" not in p.name)  # the first frame's, not a --frame-seeds replica's
     damaged.write_text("{ truncated")
     changed = run_evaluation(_config(root), progress=False, log=lambda message: None)
     equal_time = len(EQUAL_TIME_METHODS & set(_runnable(METHODS)))
