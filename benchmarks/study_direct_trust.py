@@ -481,12 +481,8 @@ def _without_clean_map(run: Callable) -> Callable:
     from model import refine
 
     def wrapped(denoised, layer):
-        saved = refine.TRUST_ALPHA_CLEAN
-        refine.TRUST_ALPHA_CLEAN = None
-        try:
+        with mock.patch.object(refine, "TRUST_ALPHA_CLEAN", None):
             return run(denoised, layer)
-        finally:
-            refine.TRUST_ALPHA_CLEAN = saved
     return wrapped
 
 

@@ -24,6 +24,7 @@ import statistics
 import time
 from collections.abc import Callable
 from pathlib import Path
+from unittest import mock
 
 import numpy as np
 
@@ -74,19 +75,14 @@ def _solver(alpha: float, passes: int, layers: frozenset[str], **solver) -> Call
 
     if "cg_steps" in solver and "cg_tolerance" not in solver:  # a fixed budget: no tolerance rule
         solver["cg_tolerance"] = None
-    names = ("REFINE_ITERATIONS", "REFINED_LAYERS", *(f"REFINE_{k.upper()}" for k in solver))
+    settings = {"REFINE_ITERATIONS": passes, "REFINED_LAYERS": layers,
+                **{f"REFINE_{k.upper()}": v for k, v in solver.items()}}
 
     def run(name, denoised, layer):
         if name not in layers:
             return denoised
-        saved = {n: getattr(refine, n) for n in names}
-        for n, value in zip(names, (passes, layers, *solver.values()), strict=True):
-            setattr(refine, n, value)
-        try:
+        with mock.patch.multiple(refine, **settings):
             return refine.refine_layer(name, denoised, layer, alpha)
-        finally:
-            for n, value in saved.items():
-                setattr(refine, n, value)
     return run
 
 
