@@ -285,7 +285,7 @@ def render_report(evaluation: Evaluation) -> str:
         lines += [f"- {loss}" for loss in losses]
     else:
         lines.append("No evaluated method has a lower RelMSE than ours at any scene and spp.")
-    lines += ["", *_table1_losses(evaluation, spp), *_targets(rows)]
+    lines += ["", *_table1_losses(evaluation, spp), *_targets(rows), *_fused_and_equal_time_targets(rows)]
     lines += _relmse_tables(evaluation)
     lines += _notes(evaluation)
     return "\n".join(lines) + "\n"
@@ -620,6 +620,51 @@ def _targets(rows: Sequence[Mapping[str, Any]]) -> list[str]:
                 lines.append(f"- {scene}, {spp} spp: ours {o:.4g}, L1 {l1:.4g}, input {p:.4g}: {verdict}")
     if not found:
         lines.append("- not checked (needs ours, L1 and the input at 16 or 64 spp)")
+    return [*lines, ""]
+
+
+#: Issue 14's first target: ``fused`` below each of these on every scene at 16 and 64 spp.
+FUSED_RIVALS: tuple[str, ...] = ("oidn", "l1", "ours")
+
+
+def _ratio_cell(value: float, rival: float) -> str:
+    ratio = value / rival if rival > 0 else math.inf
+    return f"{_fmt(value)} / {_fmt(rival)} = {ratio:.3f}×"
+
+
+def _fused_and_equal_time_targets(rows: Sequence[Mapping[str, Any]]) -> list[str]:
+    """Issue 14's targets from the rows, at 16 and 64 spp: ``fused`` below ``oidn``, ``l1`` and ``ours`` (the
+    paper's network) per scene; at equal time, the best G-PT row within ±5 % of the budget (the budget method's own
+    row and G-PT+oidn-l1) below path + OIDN, and (stretch) below separated path + OIDN per layer."""
+    lines = ["Targets of issue 14 (RelMSE, per scene, at 16 and 64 spp; a multi-seed row counts by its mean):", ""]
+    found = False
+    for scene in dict.fromkeys(str(r["scene"]) for r in rows):
+        for spp in (16, 64):
+            table = _by_method((r for r in rows if r["scene"] == scene), spp)
+            if "fused" in table and all(m in table for m in FUSED_RIVALS):
+                found = True
+                best = min(FUSED_RIVALS, key=lambda m: float(table[m]["relmse"]))
+                fused, rival = float(table["fused"]["relmse"]), float(table[best]["relmse"])
+                verdict = "below all three" if fused < rival else "**not below**"
+                lines.append(f"- {scene}, {spp} spp: `fused` against the best of "
+                             f"{', '.join(f'`{m}`' for m in FUSED_RIVALS)} (`{best}`): "
+                             f"{_ratio_cell(fused, rival)} ({verdict})")
+            budget = next((str(r.get("budget_method")) for r in table.values() if r.get("budget_method")), None)
+            candidates = {m: float(table[m]["relmse"]) for m in (budget, *GPT_EQUAL_TIME)
+                          if m in table and table[m].get("relmse") is not None}
+            if candidates and "path-oidn" in table:
+                found = True
+                best = min(candidates, key=candidates.__getitem__)
+                words = []
+                for baseline in ("path-oidn", "path-sep-oidn"):
+                    if baseline in table:
+                        value = float(table[baseline]["relmse"])
+                        below = "below" if candidates[best] < value else "**not below**"
+                        words.append(f"{below} `{baseline}` ({_ratio_cell(candidates[best], value)})")
+                lines.append(f"- {scene}, {spp} spp, equal time: the best G-PT row (`{best}`) is "
+                             + "; ".join(words))
+    if not found:
+        lines.append("- not checked (needs fused, oidn, l1 and ours, or the equal-time rows, at 16 or 64 spp)")
     return [*lines, ""]
 
 

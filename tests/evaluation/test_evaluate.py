@@ -710,3 +710,26 @@ def test_oidn_environment_choices_are_part_of_the_result_key(monkeypatch) -> Non
     monkeypatch.setenv(oidn.SETTING_ENV, "raw-high")
     monkeypatch.setenv(oidn.RUNTIME_ENV, "onnx")
     assert oidn_key() == {"oidn_setting": "raw-high", "oidn_runtime": "onnx"}
+
+
+def test_issue14_targets_are_read_from_the_rows():
+    """The report's issue-14 lines: fused against the best of oidn/l1/ours, and at equal time the best G-PT row
+    within the budget (the budget method's own row, G-PT+oidn-l1) against path + OIDN and the separated baseline;
+    a scene without the methods is 'not checked'."""
+    from evaluation.report import _fused_and_equal_time_targets
+
+    def row(method, spp, relmse, **extra):
+        return {"scene": "s", "method": method, "spp": spp, "relmse": relmse, **extra}
+
+    rows = [row("oidn", 16, 3.0), row("l1", 16, 2.0), row("ours", 16, 4.0), row("fused", 16, 2.2),
+            row("oidn-l1", 16, 1.5), row("gpt-oidn-l1", 16, 1.2, budget_method="oidn-l1"),
+            row("path-oidn", 16, 1.4, budget_method="oidn-l1"), row("path-sep-oidn", 16, 1.1, budget_method="oidn-l1"),
+            row("oidn", 64, 3.0), row("l1", 64, 2.0), row("ours", 64, 4.0), row("fused", 64, 1.0)]
+    text = "\n".join(_fused_and_equal_time_targets(rows))
+    assert ("s, 16 spp: `fused` against the best of `oidn`, `l1`, `ours` (`l1`): 2.2 / 2 = 1.100× (**not below**)"
+            in text)
+    assert "s, 64 spp: `fused`" in text and "0.500× (below all three)" in text
+    equal = next(line for line in text.splitlines() if "equal time" in line)
+    assert "(`gpt-oidn-l1`) is below `path-oidn` (1.2 / 1.4 = 0.857×)" in equal
+    assert "**not below** `path-sep-oidn` (1.2 / 1.1 = 1.091×)" in equal
+    assert "not checked" in "\n".join(_fused_and_equal_time_targets([row("l1", 16, 1.0)]))
