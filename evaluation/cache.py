@@ -73,7 +73,8 @@ def file_sha256(path: str | os.PathLike[str]) -> str:
 def code_sha256(source: str | bytes) -> str:
     """SHA-256 of a Python module's code: its syntax tree with every docstring removed, so comments, docstrings,
     blank lines and formatting do not change it and any change to what the code does does. A file that does not
-    parse (not Python) is hashed as its bytes."""
+    parse (not Python) is hashed as its bytes. The tree's dump depends on the Python version (3.12 added node
+    fields), so, like the Mitsuba version in the keys, a farm's workers sharing a cache run one image."""
     try:
         tree = ast.parse(source)
     except (SyntaxError, ValueError):
