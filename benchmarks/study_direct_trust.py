@@ -378,7 +378,9 @@ def _round2_rule(l1_budget: bool, full_unpin: bool) -> Callable:
 AGREEING_PIN = "R22: zero pixels pinned as far as base and gradients agree"
 
 
-def _agreeing_pin_rule() -> Callable:
+def _scaled_pin(keep: Callable) -> Callable:
+    """model.refine.trust_terms with each exactly-black pixel's pin (its α factor above the clean layer's) scaled by
+    ``keep(base, dx, dy)`` (H, W) in [0, 1]: the shape of designs 22 and 24."""
     from model import refine
 
     original = refine.trust_terms
@@ -388,9 +390,16 @@ def _agreeing_pin_rule() -> Callable:
         zero = np.all(np.asarray(base) == 0, axis=-1)
         if m is None or not zero.any():
             return data, alpha, m
-        agree = refine.trust_weights(base, dx, dy, radius=1)[..., 0]  # the trust rule's ramp in a 3×3 window
         clean = float(np.min(m))
-        return data, alpha, np.where(zero, clean + agree * (m - clean), m).astype(np.float32)
+        return data, alpha, np.where(zero, clean + keep(base, dx, dy) * (m - clean), m).astype(np.float32)
+    return terms
+
+
+def _agreeing_pin_rule() -> Callable:
+    from model import refine
+
+    # the trust rule's ramp in a 3×3 window
+    terms = _scaled_pin(lambda base, dx, dy: refine.trust_weights(base, dx, dy, radius=1)[..., 0])
 
     def run(denoised, layer):  # the prototype on session 17's full pin (what design 22 was measured as)
         with mock.patch.multiple(refine, TRUST_PIN_RADIUS=None, trust_terms=terms):
@@ -456,18 +465,11 @@ def implied_ratio(base: np.ndarray, dx: np.ndarray, dy: np.ndarray) -> np.ndarra
 def _implied_pin_rule(q_lo: float, q_hi: float) -> Callable:
     from model import refine
 
-    original = refine.trust_terms
+    def keep(base, dx, dy):  # 1 at q ≤ q_lo, 0 at q ≥ q_hi, log-linear between
+        q = np.maximum(implied_ratio(base, dx, dy), 1e-30)
+        return np.clip(np.log(q_hi / q) / math.log(q_hi / q_lo), 0.0, 1.0)
 
-    def terms(base, prior, dx, dy):
-        data, alpha, m = original(base, prior, dx, dy)
-        zero = np.all(np.asarray(base) == 0, axis=-1)
-        if m is None or not zero.any():
-            return data, alpha, m
-        q = implied_ratio(base, dx, dy)
-        with np.errstate(divide="ignore"):
-            keep = np.clip(np.log(q_hi / np.maximum(q, 1e-30)) / math.log(q_hi / q_lo), 0.0, 1.0)
-        clean = float(np.min(m))
-        return data, alpha, np.where(zero, clean + keep * (m - clean), m).astype(np.float32)
+    terms = _scaled_pin(keep)
 
     def run(denoised, layer):
         with mock.patch.object(refine, "trust_terms", terms):
