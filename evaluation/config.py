@@ -177,6 +177,14 @@ def _at_least(value: int | None, minimum: int, flag: str) -> int | None:
     return value
 
 
+def _seed_count(value: int | None, flag: str, cap: int) -> int:
+    """A seeds-per-row option: 1 when not given, else 1..``cap`` (a CommandError naming ``flag`` otherwise)."""
+    count = _at_least(value, 1, flag) or 1
+    if count > cap:
+        raise CommandError(f"{flag} must be <= {cap}, got {count}")
+    return count
+
+
 def _reference_budget(settings: EvalSettings, preset: Preset) -> tuple[int, int, float | None]:
     """(starting spp, spp cap, seconds or None = no limit) of each scene's references."""
     ref_spp = _at_least(settings.ref_spp, 1, "--ref-spp") or preset.ref_spp
@@ -236,12 +244,8 @@ def make_config(settings: EvalSettings, *, output: str | Path, scenes: Sequence[
     alpha = DEFAULT_ALPHA if settings.alpha is None else settings.alpha
     if not (math.isfinite(alpha) and alpha > 0):
         raise CommandError(f"--alpha must be a finite number > 0, got {alpha}")
-    time_seeds = _at_least(settings.time_seeds, 1, "--time-seeds") or 1
-    if time_seeds > MAX_TIME_SEEDS:
-        raise CommandError(f"--time-seeds must be <= {MAX_TIME_SEEDS}, got {time_seeds}")
-    frame_seeds = _at_least(settings.frame_seeds, 1, "--frame-seeds") or 1
-    if frame_seeds > MAX_FRAME_SEEDS:
-        raise CommandError(f"--frame-seeds must be <= {MAX_FRAME_SEEDS}, got {frame_seeds}")
+    time_seeds = _seed_count(settings.time_seeds, "--time-seeds", MAX_TIME_SEEDS)
+    frame_seeds = _seed_count(settings.frame_seeds, "--frame-seeds", MAX_FRAME_SEEDS)
     return EvalConfig(
         scenes=tuple(scenes or ()), spp=spp_list, width=width, height=height, ref_spp=ref_spp, output=Path(output),
         cache_dir=Path(cache) if cache else default_cache_dir(), models_dir=models_dir_from(models),
