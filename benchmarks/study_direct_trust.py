@@ -477,6 +477,56 @@ def _implied_pin_rule(q_lo: float, q_hi: float) -> Callable:
     return run
 
 
+#: Session 20, design 25 (docs/network.md "Design 25"; model/fused.py CLEAN_AVERAGE, shipped in ``fused``): on a
+#: clean layer (w_f > 0) the shipped refinement is averaged with the ``network`` method's image (models/direct.onnx)
+#: where the two agree: + ½·w_f·g(ρ)·(net − refined), ρ the pixel's relative squared difference at the mean-1
+#: exposure (box-filtered over a (2·window+1)² window for window > 0), g log-linear from 1 at lo to 0 at hi.
+#: name -> (lo, hi, window), None: ungated. The first entry is the shipped design; the rest the design-set grid it
+#: was chosen from (all windows with ε 1e-4 gave the same as ε 1e-2 to 3 digits and are not listed).
+CLEAN_AVERAGE_DESIGNS: dict[str, tuple[float, float, int] | None] = {
+    "R25: clean layer averaged with the network where they agree (0.01, 0.1)": (0.01, 0.1, 0),
+    "R25 grid: (0.001, 0.01)": (0.001, 0.01, 0),
+    "R25 grid: (0.003, 0.03)": (0.003, 0.03, 0),
+    "R25 grid: window 1, (0.001, 0.01)": (0.001, 0.01, 1),
+    "R25 grid: window 1, (0.01, 0.1)": (0.01, 0.1, 1),
+    "R25 grid: window 3, (0.001, 0.01)": (0.001, 0.01, 3),
+    "R25 grid: window 3, (0.01, 0.1)": (0.01, 0.1, 3),
+    "R25 grid: ungated (½·w_f everywhere)": None,
+}
+_NETWORK: dict[str, object] = {}
+
+
+def _clean_average_rule(gate: tuple[float, float, int] | None) -> Callable:
+    from scipy.ndimage import uniform_filter
+
+    from model import fused, refine
+    from model.infer import NetworkReconstructor
+    from model.oidn import input_scale
+
+    def run(denoised, layer):
+        refined = refine.refine_layer("direct", denoised, layer)
+        clean = refine.clean_weight(denoised, layer)
+        if clean <= 0.0:
+            return refined
+        if "net" not in _NETWORK:
+            _NETWORK["net"] = NetworkReconstructor.load(Path(__file__).resolve().parents[1] / "models")
+        net = _NETWORK["net"].reconstruct_layer("direct", layer, _CONTEXT["features"])
+        s = input_scale(denoised)
+        if gate is None:
+            g = np.ones(refined.shape[:2], np.float32)
+        elif gate[2] == 0:
+            g = fused.agreement_weights(refined, net, s, gate[:2])
+        else:
+            a, b = refined.astype(np.float64) * s, net.astype(np.float64) * s
+            size = 2 * gate[2] + 1
+            num = uniform_filter(np.mean((a - b) ** 2, -1), size, mode="nearest")
+            den = uniform_filter(np.mean(((a + b) / 2) ** 2, -1), size, mode="nearest") + fused.CLEAN_AVERAGE_EPSILON
+            lo, hi = gate[:2]
+            g = np.clip(np.log(hi / np.maximum(num / den, 1e-300)) / math.log(hi / lo), 0.0, 1.0)
+        return refined + (0.5 * clean * g)[..., None].astype(np.float32) * (net - refined)
+    return run
+
+
 def _without_clean_map(run: Callable) -> Callable:
     """``run`` with the rule as it was before session 17 (model.refine.TRUST_ALPHA_CLEAN None: no per-pixel α on
     clean layers), so that the variants measured against that rule still measure what they did."""
@@ -517,6 +567,7 @@ def variants() -> dict[str, Callable]:
     out[AGREEING_PIN] = _agreeing_pin_rule()
     out.update({k: _reg_rule(*v) for k, v in REG_DESIGNS.items()})
     out.update({k: _implied_pin_rule(*v) for k, v in IMPLIED_DESIGNS.items()})
+    out.update({k: _clean_average_rule(v) for k, v in CLEAN_AVERAGE_DESIGNS.items()})
     return out
 
 

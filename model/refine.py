@@ -227,6 +227,18 @@ def trust_terms(base: np.ndarray, prior: np.ndarray, dx: np.ndarray, dy: np.ndar
     return data, alpha, (1.0 - (1.0 - target) * frame).astype(np.float32)
 
 
+def clean_weight(prior: np.ndarray, layer: Layer) -> float:
+    """The frame-wide weight w_f in [0, 1] the trust rule gives this layer (TRUST_FRAME_R): 1 for a layer clean as
+    a whole, 0 for a noisy one, a layer without gradients, a base that is not finite or no frame-wide part.
+    ``prior``: OIDN's image of the layer at the frame's exposure (refine_layer's). model.fused's clean-layer
+    average (design 25) reads it: how far a second, gradient-domain estimate may be averaged in."""
+    if TRUST_FRAME_R is None or not layer.has_gradients or not np.all(np.isfinite(layer.base)):
+        return 0.0
+    scale = input_scale(prior)
+    r = frame_disagreement(*(scaled_image(a, scale) for a in (layer.base, prior, layer.dx, layer.dy)))
+    return _log_ramp(r, *TRUST_FRAME_R)
+
+
 def _cg_budget(cg_steps: int | None, cg_tolerance: float | None) -> dict:
     """solve_l1's CG keywords for refine_layer's arguments (module settings read at call time)."""
     if cg_steps is not None:  # the pinned fixed budget; a tolerance only if one is asked for
