@@ -527,6 +527,36 @@ def _clean_average_rule(gate: tuple[float, float, int] | None) -> Callable:
     return run
 
 
+#: Design 25's follow-ups (session 20, not shipped): the same per-pixel gate (0.01, 0.1), with the ``l1`` method's
+#: image as a third estimate (⅓ each, each gated against the refinement), or ⅔ of the weight on the network.
+CLEAN_AVERAGE_FOLLOWUPS = ("R25 follow-up: three-way with l1 (1/3 each)", "R25 follow-up: network weight 2/3")
+
+
+def _clean_average_followup(name: str) -> Callable:
+    from model import fused, refine
+    from model.infer import NetworkReconstructor
+    from model.oidn import input_scale
+    from model.poisson import solve_l1
+    from model.policy import DEFAULT_ALPHA
+
+    def run(denoised, layer):
+        refined = refine.refine_layer("direct", denoised, layer)
+        clean = refine.clean_weight(denoised, layer)
+        if clean <= 0.0:
+            return refined
+        if "net" not in _NETWORK:
+            _NETWORK["net"] = NetworkReconstructor.load(Path(__file__).resolve().parents[1] / "models")
+        net = _NETWORK["net"].reconstruct_layer("direct", layer, _CONTEXT["features"])
+        s = input_scale(denoised)
+        g_net = fused.agreement_weights(refined, net, s, (0.01, 0.1))[..., None]
+        if "three-way" not in name:
+            return refined + np.float32(2 / 3 * clean) * g_net * (net - refined)
+        l1 = solve_l1(layer.base, layer.dx, layer.dy, DEFAULT_ALPHA)[0]
+        g_l1 = fused.agreement_weights(refined, l1, s, (0.01, 0.1))[..., None]
+        return refined + np.float32(clean / 3) * (g_net * (net - refined) + g_l1 * (l1 - refined))
+    return run
+
+
 def _without_clean_map(run: Callable) -> Callable:
     """``run`` with the rule as it was before session 17 (model.refine.TRUST_ALPHA_CLEAN None: no per-pixel α on
     clean layers), so that the variants measured against that rule still measure what they did."""
@@ -568,6 +598,7 @@ def variants() -> dict[str, Callable]:
     out.update({k: _reg_rule(*v) for k, v in REG_DESIGNS.items()})
     out.update({k: _implied_pin_rule(*v) for k, v in IMPLIED_DESIGNS.items()})
     out.update({k: _clean_average_rule(v) for k, v in CLEAN_AVERAGE_DESIGNS.items()})
+    out.update({k: _clean_average_followup(k) for k in CLEAN_AVERAGE_FOLLOWUPS})
     return out
 
 

@@ -253,7 +253,14 @@ def _time(fn, repeats: int) -> tuple[float, float]:
 
 
 def _frame(kind: str):
-    """The 1280x720 frame to time: ``tiled`` (a held-out render tiled) or ``synthetic`` (bench_service.py's)."""
+    """The 1280x720 frame to time: ``tiled`` (a held-out render tiled), ``synthetic`` (bench_service.py's) or the
+    path of an EXR frame (e.g. a held-out studio render at 1280x720, whose direct layer is clean as a whole: the
+    tiled frame's seams make its direct layer disagree with its gradients, so it never runs the clean-layer
+    average)."""
+    if kind not in ("tiled", "synthetic"):
+        from model.frame import read_frame
+
+        return read_frame(kind)
     if kind == "tiled":
         from study_fused import _tiled_frame
 
@@ -278,17 +285,21 @@ def timing(names: list[str], repeats: int, frame_kind: str) -> None:
     lay = frame.layers
     print(f"load {os.getloadavg()[0]:.2f}")
     import model.fused as fused_mod
-    from model.refine import REFINE_CG_TOLERANCE, REFINE_MAX_CG_STEPS
+    from model.refine import REFINE_CG_TOLERANCE, REFINE_MAX_CG_STEPS, clean_weight
 
-    shipped_cg = fused_mod.DIRECT_CG
-    for method in ("oidn", "oidn-l1", "fused", "fused (before)"):
-        # "fused (before)": the direct layer at the oidn-l1 method's CG budget, as fused ran before this study
+    shipped_cg, shipped_average = fused_mod.DIRECT_CG, fused_mod.CLEAN_AVERAGE
+    print(f"direct layer's clean weight w_f: {clean_weight(den.denoise(lay['direct'].base, aux), lay['direct']):.2f} "
+          "(> 0: fused runs the clean-layer average's network on it)")
+    for method in ("oidn", "oidn-l1", "fused", "fused (before)", "fused (no clean average)"):
+        # "fused (before)": the direct layer at the oidn-l1 method's CG budget, as fused ran before this study;
+        # "fused (no clean average)": without design 25's network on a clean direct layer (session 20)
         fused_mod.DIRECT_CG = (REFINE_CG_TOLERANCE, REFINE_MAX_CG_STEPS) if method == "fused (before)" else shipped_cg
+        fused_mod.CLEAN_AVERAGE = None if method == "fused (no clean average)" else shipped_average
         name = method.split()[0]
         try:
             w, c = _time(lambda m=name: reconstruct(frame, m, fused=fused), repeats)
         finally:
-            fused_mod.DIRECT_CG = shipped_cg
+            fused_mod.DIRECT_CG, fused_mod.CLEAN_AVERAGE = shipped_cg, shipped_average
         print(f"reconstruct {method}: wall {w:.3f} s, cpu {c:.3f} s", flush=True)
     dn = {n: den.denoise(lay[n].base, aux) for n in lay}
     w, c = _time(lambda: den.denoise(lay["indirect"].base, aux), repeats)
@@ -312,8 +323,9 @@ def main() -> int:
     t = sub.add_parser("time")
     t.add_argument("--variants", default="before,shipped,oidn-l1,d8s2,fast2x1,net/2")
     t.add_argument("--repeats", type=int, default=3)
-    t.add_argument("--frame", choices=("tiled", "synthetic"), default="tiled",
-                   help="a held-out render tiled to 1280x720, or bench_service.py's synthetic frame")
+    t.add_argument("--frame", default="tiled",
+                   help="tiled (a held-out render tiled to 1280x720), synthetic (bench_service.py's frame) or the "
+                        "path of an EXR frame")
     args = p.parse_args()
     names = [n for n in args.variants.split(",") if n]
     unknown = [n for n in names if n not in VARIANTS]

@@ -63,6 +63,7 @@ render time is the renderer's own (``gradsep.render_seconds``), which includes i
 from __future__ import annotations
 
 import math
+import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -132,6 +133,18 @@ class MethodSpec:
         if self.kind != "network":
             return ()
         return tuple(layers) if self.separated else ("color",)
+
+    def optional_model_files(self, layers: tuple[str, ...]) -> tuple[str, ...]:
+        """Model files (relative to the models folder) this method reads when they are there and does without
+        otherwise: ``fused``'s clean-layer average reads the ``network`` method's direct model (model/fused.py
+        CLEAN_AVERAGE_MODEL). Their checksums join the result's cache key; their absence skips nothing."""
+        if self.kind != "fused":
+            return ()
+        from model.fused import CLEAN_AVERAGE, CLEAN_AVERAGE_MODEL, FIXED_LAYERS
+
+        if CLEAN_AVERAGE is None or "direct" not in layers or "direct" not in FIXED_LAYERS:
+            return ()
+        return (os.path.normpath(Path(self.models or "") / CLEAN_AVERAGE_MODEL),)
 
 
 ABLATION_VARIANTS: tuple[tuple[str, bool, bool], ...] = (

@@ -141,6 +141,10 @@ class _Runner:
                 missing.append(str(self.config.models_dir / relative))
             else:
                 shas[relative] = sha
+        for relative in spec.optional_model_files(layers):  # read when present (fused's clean-layer average)
+            sha = self._model_sha(relative)
+            if sha is not None:
+                shas[relative] = sha
         return shas, missing
 
     def skip(self, method: str, reasons: Iterable[str]) -> None:

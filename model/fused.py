@@ -19,8 +19,11 @@ weights over them; the output is the convex blend ``Σ_k w_k · candidate_k``. T
 
 Per layer (chosen on held-out seeds, docs/network.md "The fused method"): the indirect layer is the learned blend
 of {oidn, refine-fast} (models/fused/indirect.onnx); the direct layer, where no learned blend beat it, is the
-``oidn-l1`` method's refinement alone at a cheaper CG budget (``FIXED_LAYERS``, ``DIRECT_CG``), so the network runs
-once per frame.
+``oidn-l1`` method's refinement alone at a cheaper CG budget (``FIXED_LAYERS``, ``DIRECT_CG``), so the blend network
+runs once per frame. Where that direct layer is clean as a whole (the trust rule's frame weight), it is averaged with
+a second, independent gradient-domain estimate, the ``network`` method's image (the paper's network on its
+truncated-L1 prior), wherever the two agree (``CLEAN_AVERAGE``, design 25 of docs/network.md); a noisy layer runs
+no network there.
 
 A convex blend cannot leave the hull of its candidates: it never invents energy, never rings below 0 (every
 candidate is >= 0), and an untrained model (zero head) returns their plain average. The weights are computed
@@ -100,7 +103,7 @@ FIXED_LAYERS: dict[str, str] = {"direct": "refine-direct"}
 #: by more than noise one of them is biased (on some rooms the network's image is 10-40x worse) and the refinement
 #: stays. Chosen on held-out procedural seeds by a rule written before validation (design sets room 81001-81008,
 #: studio 86001-86008; validation 84001-84004, studio 88001-88008; veto sets 85001-85004, studio 87001-87004,
-#: 89001-89004 and the fresh room 92001-92006 / studio 93001-93016), never on the evaluation's scenes. A noisy layer
+#: 89001-89004 and the fresh room 92001-92006 / studio 93001-93008), never on the evaluation's scenes. A noisy layer
 #: (w_f = 0, most rooms) runs no network: its image is the refinement alone, bit for bit. None: no average.
 CLEAN_AVERAGE: tuple[float, float] | None = (0.01, 0.1)
 CLEAN_AVERAGE_WEIGHT = 0.5
@@ -218,8 +221,8 @@ def agreement_weights(refined: np.ndarray, second: np.ndarray, scale: float,
                       thresholds: tuple[float, float]) -> np.ndarray:
     """g(ρ) of CLEAN_AVERAGE, (H, W) float32 in [0, 1]: 1 where the two images agree to within ``thresholds[0]``
     of their relative squared difference ρ (at exposure ``scale``), 0 from ``thresholds[1]`` on, log-linear
-    between. Finite inputs; a pixel where either is 0 and the other is not gets ρ ≥ the far end only if the
-    difference is large against CLEAN_AVERAGE_EPSILON."""
+    between. Finite inputs. CLEAN_AVERAGE_EPSILON (at the mean-1 exposure, as RelMSE's ε) keeps ρ finite where both
+    are black (ρ = 0: they agree) and lets two dark pixels count as agreeing unless they differ by more than it."""
     a = np.asarray(refined, np.float64) * scale
     b = np.asarray(second, np.float64) * scale
     rho = np.mean(np.square(a - b), axis=-1) / (np.mean(np.square(0.5 * (a + b)), axis=-1) + CLEAN_AVERAGE_EPSILON)
@@ -348,7 +351,9 @@ def _load_second(path: Path, layers: set[str]) -> Any:
 
 
 class FusedReconstructor:
-    """The ``fused`` method's per-layer blend models (models/fused/{direct,indirect,color}.onnx)."""
+    """The ``fused`` method's per-layer blend models (models/fused/{direct,indirect,color}.onnx), the layers served
+    by one candidate (FIXED_LAYERS), and the ``network`` model (models/direct.onnx) their clean-layer average reads
+    (CLEAN_AVERAGE; absent: those layers are their candidate alone)."""
 
     needs_aux = True
     oidn_setting = OIDN_SETTING

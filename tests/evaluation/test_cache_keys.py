@@ -3,6 +3,8 @@ farm's cached frames and references, any change to the code does."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from evaluation.cache import code_sha256, sources_sha256
 from evaluation.run import REFERENCE_SOURCES, RENDERER_SOURCES
 
@@ -39,3 +41,33 @@ def test_the_generator_is_keyed_by_its_version_not_its_source() -> None:
     # tests/renderer/test_procedural.py pins what each version generates instead
     assert "renderer/procedural.py" not in RENDERER_SOURCES + REFERENCE_SOURCES
     assert len(sources_sha256(RENDERER_SOURCES)) == 64
+
+
+def test_fused_results_are_keyed_by_the_network_model_its_clean_layer_average_reads(tmp_path: Path) -> None:
+    """fused reads models/direct.onnx on clean direct layers (model/fused.py CLEAN_AVERAGE): a new network model
+    must recompute fused's results, and a models folder without it must still run fused (nothing missing)."""
+    from evaluation.config import EvalConfig
+    from evaluation.methods import METHODS
+    from evaluation.run import _Runner
+
+    models = tmp_path / "models"
+    (models / "fused").mkdir(parents=True)
+    (models / "fused" / "indirect.onnx").write_bytes(b"blend")
+    config = EvalConfig(scenes=("cbox",), spp=(1,), width=12, height=10, ref_spp=2, output=tmp_path / "report",
+                        cache_dir=tmp_path / "cache", models_dir=models, methods=("fused",), seed=0, max_depth=None,
+                        alpha=0.2, table_spp=None, quick=False, ref_spp_cap=8, ref_seconds=None)
+    fused = next(m for m in METHODS if m.name == "fused")
+
+    def shas() -> dict[str, str]:
+        files, missing = _Runner(config, False, lambda m: None).model_files(fused, ("direct", "indirect"))
+        assert missing == []
+        return files
+
+    without = shas()
+    assert set(without) == {"fused/indirect.onnx"}
+    (models / "direct.onnx").write_bytes(b"network v1")
+    first = shas()
+    assert set(first) == {"fused/indirect.onnx", "direct.onnx"}
+    (models / "direct.onnx").write_bytes(b"network v2")
+    assert shas()["direct.onnx"] != first["direct.onnx"]
+    assert _Runner(config, False, lambda m: None).model_files(fused, ("indirect",))[0] == without  # no direct layer

@@ -61,6 +61,20 @@ def test_models_endpoint_lists_the_shipped_models_and_their_provider(serve):
             assert len(model["sha256"]) == 64 and model["provider_reason"]
 
 
+def test_fused_lists_the_network_model_its_clean_layer_average_reads(serve):
+    """fused's direct layer reads models/direct.onnx on clean layers (model/fused.py CLEAN_AVERAGE): /v1/models
+    says so, with the same file and checksum the network method serves."""
+    pytest.importorskip("pyoidn")
+    with serve(create_app(settings(models_dir=MODELS))) as client:
+        info = client.get("/v1/models").json()
+        if "fused" not in info["methods"]:
+            pytest.skip("no fused models in this checkout")
+        second = [m for m in info["models"] if m["method"] == "fused" and "role" in m]
+        assert [(m["name"], m["file"]) for m in second] == [("direct", "direct.onnx")]
+        network = [m for m in info["models"] if m["method"] == "network" and m["name"] == "direct"]
+        assert network and network[0]["sha256"] == second[0]["sha256"]
+
+
 def test_network_beats_the_input_on_the_example(serve, example):
     reference = _reference()
     noisy = read_frame(EXAMPLE).combined().base
