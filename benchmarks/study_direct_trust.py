@@ -496,11 +496,29 @@ CLEAN_AVERAGE_DESIGNS: dict[str, tuple[float, float, int] | None] = {
 _NETWORK: dict[str, object] = {}
 
 
-def _clean_average_rule(gate: tuple[float, float, int] | None) -> Callable:
+#: Session 20, design 26 (docs/network.md "Design 26"): design 25 with another second estimate, a direct network
+#: of the same architecture and recipe trained on studio-family pairs. name -> the model file (relative to the
+#: repository; ``$GRADSEP_STUDY_SECOND`` overrides it, for a model not yet copied into models/).
+SECOND_MODELS: dict[str, str] = {
+    "R26: clean average with a studio-trained second network": "models/fused/clean-direct.onnx"}
+
+
+def _second_network(path: str | None) -> object:
+    """The ``network`` reconstructor of the second estimate: models/ (the shipped direct model) or one file."""
+    from model.infer import NetworkReconstructor, load_model
+
+    key = path or "models"
+    if key not in _NETWORK:
+        root = Path(__file__).resolve().parents[1]
+        _NETWORK[key] = (NetworkReconstructor.load(root / "models") if path is None
+                         else NetworkReconstructor({"direct": load_model(root / path, "direct")}))
+    return _NETWORK[key]
+
+
+def _clean_average_rule(gate: tuple[float, float, int] | None, model: str | None = None) -> Callable:
     from scipy.ndimage import uniform_filter
 
     from model import fused, refine
-    from model.infer import NetworkReconstructor
     from model.oidn import input_scale
 
     def run(denoised, layer):
@@ -508,9 +526,7 @@ def _clean_average_rule(gate: tuple[float, float, int] | None) -> Callable:
         clean = refine.clean_weight(denoised, layer)
         if clean <= 0.0:
             return refined
-        if "net" not in _NETWORK:
-            _NETWORK["net"] = NetworkReconstructor.load(Path(__file__).resolve().parents[1] / "models")
-        net = _NETWORK["net"].reconstruct_layer("direct", layer, _CONTEXT["features"])
+        net = _second_network(model).reconstruct_layer("direct", layer, _CONTEXT["features"])
         s = input_scale(denoised)
         if gate is None:
             g = np.ones(refined.shape[:2], np.float32)
@@ -534,7 +550,6 @@ CLEAN_AVERAGE_FOLLOWUPS = ("R25 follow-up: three-way with l1 (1/3 each)", "R25 f
 
 def _clean_average_followup(name: str) -> Callable:
     from model import fused, refine
-    from model.infer import NetworkReconstructor
     from model.oidn import input_scale
     from model.poisson import solve_l1
     from model.policy import DEFAULT_ALPHA
@@ -544,9 +559,7 @@ def _clean_average_followup(name: str) -> Callable:
         clean = refine.clean_weight(denoised, layer)
         if clean <= 0.0:
             return refined
-        if "net" not in _NETWORK:
-            _NETWORK["net"] = NetworkReconstructor.load(Path(__file__).resolve().parents[1] / "models")
-        net = _NETWORK["net"].reconstruct_layer("direct", layer, _CONTEXT["features"])
+        net = _second_network(None).reconstruct_layer("direct", layer, _CONTEXT["features"])
         s = input_scale(denoised)
         g_net = fused.agreement_weights(refined, net, s, (0.01, 0.1))[..., None]
         if "three-way" not in name:
@@ -599,6 +612,8 @@ def variants() -> dict[str, Callable]:
     out.update({k: _implied_pin_rule(*v) for k, v in IMPLIED_DESIGNS.items()})
     out.update({k: _clean_average_rule(v) for k, v in CLEAN_AVERAGE_DESIGNS.items()})
     out.update({k: _clean_average_followup(k) for k in CLEAN_AVERAGE_FOLLOWUPS})
+    out.update({k: _clean_average_rule((0.01, 0.1, 0), os.environ.get("GRADSEP_STUDY_SECOND", v))
+                for k, v in SECOND_MODELS.items()})
     return out
 
 

@@ -142,7 +142,8 @@ def dataset_command(args: argparse.Namespace) -> int:
     """Handler of `gradsep dataset`."""
     from renderer.dataset import MANIFEST_NAME, PARTS_DIR, DatasetError, finished_frames, make_job, run_dataset
 
-    job = make_job(args.count, args.spp, args.size, args.shard, args.first_seed, args.max_depth, args.pairs)
+    job = make_job(args.count, args.spp, args.size, args.shard, args.first_seed, args.max_depth, args.pairs,
+                   args.family)
     root = Path(args.output)
     if root.exists() and not root.is_dir():
         raise DatasetError(f"output {root} exists and is not a folder")
@@ -228,5 +229,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--pairs", action="store_true",
                    help="also render an independent second realization of every frame (another sampler seed): "
                         "the Noise2Noise targets `gradsep train` uses when present")
+    p.add_argument("--family", default="mixed", choices=("mixed", "studio"),
+                   help="procedural family: mixed (rooms, procedural:SEED; the default) or studio (objects and "
+                        "lights in an empty background, procedural:studio:SEED)")
     p.add_argument("-o", "--output", required=True, help="dataset folder")
     p.set_defaults(func=dataset_command)

@@ -65,7 +65,7 @@ class FrameRecord:
     """One finished frame, as stored in a manifest part and in manifest.json."""
 
     file: str                  # relative to the dataset folder, e.g. "frames/proc_001000.exr"
-    seed: int                  # procedural scene seed (scene "procedural:<seed>")
+    seed: int                  # procedural scene seed (scene "procedural:<seed>", or "procedural:<family>:<seed>")
     spp: int
     render_seconds: float
     layers: list[str]          # illumination layers present, e.g. ["direct", "indirect"]
@@ -106,6 +106,7 @@ class Manifest:
     max_depth: int | None = None               # None: the procedural generator's default
     generator_version: int = 0
     pairs: bool = False                        # every frame has an independent second realization (target)
+    family: str = "mixed"                      # the procedural family (renderer.procedural.FAMILIES)
     version: int = MANIFEST_VERSION
     root: Path | None = field(default=None, compare=False)  # the dataset folder (when loaded from disk)
 
@@ -114,7 +115,8 @@ class Manifest:
         missing = [s for s in range(self.first_seed, self.first_seed + self.count) if s not in done]
         return {"version": self.version, "spp": self.spp, "size": list(self.size), "count": self.count,
                 "first_seed": self.first_seed, "max_depth": self.max_depth,
-                "generator_version": self.generator_version, "pairs": self.pairs, "complete": not missing,
+                "generator_version": self.generator_version, "pairs": self.pairs,
+                **({"family": self.family} if self.family != "mixed" else {}), "complete": not missing,
                 "missing": len(missing), "hash": manifest_hash(self),
                 "frames": [asdict(f) for f in self.frames]}
 
@@ -144,6 +146,8 @@ def manifest_hash(manifest: Manifest | str | os.PathLike[str]) -> str:
                    for f in sorted(m.frames, key=lambda f: f.seed)]}
     if m.pairs:  # only then, so the hash of a dataset without pairs is what it always was
         content["pairs"] = True
+    if m.family != "mixed":  # likewise: the room family's datasets keep their hash
+        content["family"] = m.family
     text = json.dumps(content, sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(text.encode()).hexdigest()
 
@@ -193,7 +197,8 @@ def _manifest_from_json(data: Any, where: str) -> Manifest:
                         frames=sorted(frames, key=lambda f: f.seed), count=int(data.get("count", len(frames))),
                         first_seed=int(data.get("first_seed", min((f.seed for f in frames), default=0))),
                         max_depth=None if data.get("max_depth") is None else int(data["max_depth"]),
-                        generator_version=int(data.get("generator_version", 0)), pairs=bool(data.get("pairs", False)))
+                        generator_version=int(data.get("generator_version", 0)), pairs=bool(data.get("pairs", False)),
+                        family=str(data.get("family", "mixed")))
     except (KeyError, TypeError, ValueError) as exc:
         raise DatasetError(f"{where}: malformed manifest ({exc})") from None
 
@@ -216,6 +221,7 @@ class Job:
     shards: int
     generator_version: int
     pairs: bool = False
+    family: str = "mixed"  # the procedural family of the scenes (renderer.procedural.FAMILIES)
 
     @property
     def shard_name(self) -> str:
@@ -226,7 +232,15 @@ class Job:
                   "max_depth": self.max_depth, "generator_version": self.generator_version}
         if self.pairs:  # only then, so folders rendered before --pairs existed stay compatible
             params["pairs"] = True
+        if self.family != "mixed":  # likewise for folders rendered before --family existed
+            params["family"] = self.family
         return params
+
+    def scene(self, seed: int) -> str:
+        """The scene spec of frame ``seed``: ``procedural:SEED`` (rooms) or ``procedural:FAMILY:SEED``."""
+        from renderer.procedural import ProceduralSpec
+
+        return str(ProceduralSpec(seed, self.family))
 
     def seeds(self) -> list[int]:
         """This shard's frames: i, i+n, i+2n, ... of the whole dataset, as scene seeds."""
@@ -271,7 +285,8 @@ def _merge_parts(root: Path) -> Manifest:
     return Manifest(spp=int(params["spp"]), size=(int(params["size"][0]), int(params["size"][1])),
                     frames=[by_seed[s] for s in sorted(by_seed)], count=count,
                     first_seed=int(params["first_seed"]), max_depth=params["max_depth"],
-                    generator_version=int(params["generator_version"]), pairs=bool(params.get("pairs", False)))
+                    generator_version=int(params["generator_version"]), pairs=bool(params.get("pairs", False)),
+                    family=str(params.get("family", "mixed")))
 
 
 def merge_manifest(root: str | os.PathLike[str]) -> Manifest:
@@ -316,7 +331,9 @@ def _check_compatible(root: Path, job: Job) -> None:
     for path, data in _read_parts(root):
         if data["params"] != job.params():
             theirs, ours = data["params"], job.params()
-            diff = ", ".join(f"{k} {theirs.get(k)!r} (this run: {ours[k]!r})" for k in ours if theirs.get(k) != ours[k])
+            keys = [*ours, *(k for k in theirs if k not in ours)]  # a key only one side has (pairs, family) too
+            diff = ", ".join(f"{k} {theirs.get(k)!r} (this run: {ours.get(k)!r})" for k in keys
+                             if theirs.get(k) != ours.get(k))
             raise DatasetError(f"{root} already holds frames rendered with other settings ({path.name}: {diff}); "
                                "use a new folder or the same settings")
 
@@ -409,7 +426,7 @@ def _render_to(root: Path, rel: str, job: Job, seed: int, sampler_seed: int) -> 
     from model.frame import write_frame
     from renderer.render import render_frame
 
-    frame = render_frame(f"procedural:{seed}", spp=job.spp, seed=sampler_seed, width=job.width, height=job.height,
+    frame = render_frame(job.scene(seed), spp=job.spp, seed=sampler_seed, width=job.width, height=job.height,
                          max_depth=job.max_depth)
     write_frame(root / rel, frame)  # atomic: temp file + rename
     return frame, (root / rel).read_bytes()
@@ -453,10 +470,12 @@ def parse_shard(text: str) -> tuple[int, int]:
 
 
 def make_job(count: int, spp: int, size: str, shard: str, first_seed: int, max_depth: int | None,
-             pairs: bool = False) -> Job:
+             pairs: bool = False, family: str = "mixed") -> Job:
     """Validate the command's options into a :class:`Job`."""
-    from renderer.procedural import GENERATOR_VERSION
+    from renderer.procedural import FAMILIES, GENERATOR_VERSION
 
+    if family not in FAMILIES:
+        raise DatasetError(f"--family must be one of {', '.join(FAMILIES)}, got {family!r}")
     if count < 1:
         raise DatasetError(f"--count must be a positive integer, got {count}")
     if spp < 1:
@@ -468,4 +487,4 @@ def make_job(count: int, spp: int, size: str, shard: str, first_seed: int, max_d
     w, h = parse_size(size)
     i, n = parse_shard(shard)
     return Job(count=count, spp=spp, width=w, height=h, first_seed=first_seed, max_depth=max_depth, shard=i,
-               shards=n, generator_version=GENERATOR_VERSION, pairs=pairs)
+               shards=n, generator_version=GENERATOR_VERSION, pairs=pairs, family=family)

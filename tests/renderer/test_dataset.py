@@ -38,7 +38,7 @@ def counting_renderer(monkeypatch: pytest.MonkeyPatch) -> list[int]:
     calls: list[int] = []
 
     def fake(spec: str, *, spp: int, seed: int, width: int, height: int, max_depth: int | None) -> Frame:
-        scene_seed = int(spec.split(":")[1])
+        scene_seed = int(spec.rsplit(":", 1)[1])  # procedural:SEED or procedural:FAMILY:SEED
         calls.append(scene_seed)
         rng = np.random.default_rng(scene_seed)
         zero = np.zeros((height, width, 3), np.float32)
@@ -268,6 +268,26 @@ def test_settings_cannot_be_mixed_in_one_folder(tmp_path: Path, counting_rendere
     assert counting_renderer == [1000, 1001]
     run_dataset(tmp_path, job(count=1), progress=False)  # a shorter rerun does not shrink it
     assert load_manifest(tmp_path).count == 2 and counting_renderer == [1000, 1001]
+
+
+def test_the_studio_family_renders_its_scenes_and_is_recorded(tmp_path: Path, counting_renderer: list[int],
+                                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    import renderer.render
+
+    specs: list[str] = []
+    fake = renderer.render.render_frame
+    monkeypatch.setattr(renderer.render, "render_frame", lambda spec, **kw: (specs.append(spec), fake(spec, **kw))[1])
+    studio = run_dataset(tmp_path / "s", make_job(2, 2, "8x8", "0/1", 1000, None, family="studio"), progress=False)
+    assert specs == ["procedural:studio:1000", "procedural:studio:1001"]
+    assert studio.family == "studio" and load_manifest(tmp_path / "s").family == "studio"
+    rooms = run_dataset(tmp_path / "r", make_job(2, 2, "8x8", "0/1", 1000, None), progress=False)
+    assert specs[2:] == ["procedural:1000", "procedural:1001"] and rooms.family == "mixed"
+    assert "family" not in json.loads((tmp_path / "r" / "manifest.json").read_text())  # room folders as before
+    assert manifest_hash(studio) != manifest_hash(rooms)  # the same pixels (the fake), another family
+    with pytest.raises(DatasetError, match="family 'studio' \\(this run: None\\)"):  # one family per folder
+        run_dataset(tmp_path / "s", make_job(2, 2, "8x8", "0/1", 1000, None), progress=False)
+    with pytest.raises(DatasetError, match="--family"):
+        make_job(2, 2, "8x8", "0/1", 1000, None, family="attic")
 
 
 def test_max_depth_two_records_direct_only(tmp_path: Path, counting_renderer: list[int]) -> None:
