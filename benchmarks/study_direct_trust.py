@@ -496,9 +496,11 @@ CLEAN_AVERAGE_DESIGNS: dict[str, tuple[float, float, int] | None] = {
 _NETWORK: dict[str, object] = {}
 
 
-#: Session 20, design 26 (docs/network.md "Design 26"): design 25 with another second estimate, a direct network
-#: of the same architecture and recipe trained on studio-family pairs. name -> the model file (relative to the
-#: repository; ``$GRADSEP_STUDY_SECOND`` overrides it, for a model not yet copied into models/).
+#: Session 20, design 26 (docs/network.md "Design 26", rejected): design 25 with another second estimate, a direct
+#: network of the same architecture and recipe trained on studio-family pairs. name -> the model file (relative to
+#: the repository; ``$GRADSEP_STUDY_SECOND`` overrides it). Not shipped: the variant is scored only where the file
+#: was made (``gradsep train --data data/n2n16-studio --layer direct --minutes 30 -o runs/s20-studio-direct``, then
+#: ``gradsep export runs/s20-studio-direct -o models/fused/clean-direct.onnx``).
 SECOND_MODELS: dict[str, str] = {
     "R26: clean average with a studio-trained second network": "models/fused/clean-direct.onnx"}
 
@@ -612,8 +614,11 @@ def variants() -> dict[str, Callable]:
     out.update({k: _implied_pin_rule(*v) for k, v in IMPLIED_DESIGNS.items()})
     out.update({k: _clean_average_rule(v) for k, v in CLEAN_AVERAGE_DESIGNS.items()})
     out.update({k: _clean_average_followup(k) for k in CLEAN_AVERAGE_FOLLOWUPS})
-    out.update({k: _clean_average_rule((0.01, 0.1, 0), os.environ.get("GRADSEP_STUDY_SECOND", v))
-                for k, v in SECOND_MODELS.items()})
+    root = Path(__file__).resolve().parents[1]
+    for name, model in SECOND_MODELS.items():  # design 26 was rejected: its model is not shipped, so only where made
+        model = os.environ.get("GRADSEP_STUDY_SECOND", model)
+        if (root / model).is_file():
+            out[name] = _clean_average_rule((0.01, 0.1, 0), model)
     return out
 
 
