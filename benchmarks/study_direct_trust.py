@@ -517,18 +517,27 @@ def _second_network(path: str | None) -> object:
     return _NETWORK[key]
 
 
+def _refined_clean_second(denoised, layer, model: str | None) -> tuple[np.ndarray, float, np.ndarray | None]:
+    """(the shipped refinement, the layer's clean weight w_f, the second network's image or None where w_f = 0)."""
+    from model import refine
+
+    refined = refine.refine_layer("direct", denoised, layer)
+    clean = refine.clean_weight(denoised, layer)
+    if clean <= 0.0:
+        return refined, clean, None
+    return refined, clean, _second_network(model).reconstruct_layer("direct", layer, _CONTEXT["features"])
+
+
 def _clean_average_rule(gate: tuple[float, float, int] | None, model: str | None = None) -> Callable:
     from scipy.ndimage import uniform_filter
 
-    from model import fused, refine
+    from model import fused
     from model.oidn import input_scale
 
     def run(denoised, layer):
-        refined = refine.refine_layer("direct", denoised, layer)
-        clean = refine.clean_weight(denoised, layer)
-        if clean <= 0.0:
+        refined, clean, net = _refined_clean_second(denoised, layer, model)
+        if net is None:
             return refined
-        net = _second_network(model).reconstruct_layer("direct", layer, _CONTEXT["features"])
         s = input_scale(denoised)
         if gate is None:
             g = np.ones(refined.shape[:2], np.float32)
@@ -551,17 +560,15 @@ CLEAN_AVERAGE_FOLLOWUPS = ("R25 follow-up: three-way with l1 (1/3 each)", "R25 f
 
 
 def _clean_average_followup(name: str) -> Callable:
-    from model import fused, refine
+    from model import fused
     from model.oidn import input_scale
     from model.poisson import solve_l1
     from model.policy import DEFAULT_ALPHA
 
     def run(denoised, layer):
-        refined = refine.refine_layer("direct", denoised, layer)
-        clean = refine.clean_weight(denoised, layer)
-        if clean <= 0.0:
+        refined, clean, net = _refined_clean_second(denoised, layer, None)
+        if net is None:
             return refined
-        net = _second_network(None).reconstruct_layer("direct", layer, _CONTEXT["features"])
         s = input_scale(denoised)
         g_net = fused.agreement_weights(refined, net, s, (0.01, 0.1))[..., None]
         if "three-way" not in name:
