@@ -304,6 +304,9 @@ def timing(names: list[str], repeats: int, frame_kind: str) -> None:
     dn = {n: den.denoise(lay[n].base, aux) for n in lay}
     w, c = _time(lambda: den.denoise(lay["indirect"].base, aux), repeats)
     print(f"OIDN one layer ({OIDN_SETTING}): wall {w:.3f} s, cpu {c:.3f} s", flush=True)
+    w, c = _time(lambda: clean_weight(dn["direct"], lay["direct"]), repeats)
+    print(f"clean weight of the direct layer (every fused frame with gradients): wall {w:.3f} s, cpu {c:.3f} s",
+          flush=True)
     for name in names:
         v = VARIANTS[name]
         dw, dc = _time(lambda v=v: direct_image(lay["direct"], dn["direct"], v.direct), repeats)
