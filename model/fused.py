@@ -140,24 +140,28 @@ def refine(kind: str, oidn: np.ndarray, scaled: Layer) -> np.ndarray:
                         cg_steps=cg_steps, passes=passes, warm_start=False)
 
 
-def refine_direct(kind: str, oidn: np.ndarray, scaled: Layer) -> np.ndarray:
+def refine_direct(kind: str, oidn: np.ndarray, scaled: Layer, report: dict[str, float] | None = None,
+                  ) -> np.ndarray:
     """A FIXED_KINDS image: OIDN's image refined by the layer's gradients as the oidn-l1 method refines it
-    (``oidn-l1``), or the same at fused's CG budget DIRECT_CG (``refine-direct``)."""
+    (``oidn-l1``), or the same at fused's CG budget DIRECT_CG (``refine-direct``). ``report``: see
+    model.refine.refine_layer (the trust rule's w_f)."""
     from model.refine import refine_layer
 
     if kind == "oidn-l1":
-        return refine_layer("direct", oidn, scaled)  # "direct": refine this layer, whatever its name
+        return refine_layer("direct", oidn, scaled, report=report)  # "direct": refine this layer, whatever its name
     tolerance, steps = DIRECT_CG
-    return refine_layer("direct", oidn, scaled, cg_steps=steps, cg_tolerance=tolerance)
+    return refine_layer("direct", oidn, scaled, cg_steps=steps, cg_tolerance=tolerance, report=report)
 
 
 def layer_candidates(layer: Layer, aux: Any, kinds: tuple[str, ...] = CANDIDATES,
-                     denoiser: Any = None, denoised: np.ndarray | None = None) -> tuple[Layer, list[np.ndarray], float]:
+                     denoiser: Any = None, denoised: np.ndarray | None = None,
+                     report: dict[str, float] | None = None) -> tuple[Layer, list[np.ndarray], float]:
     """(the layer at the normalised exposure, its candidates at that exposure (each (H, W, 3) float32, finite,
     in [0, RADIANCE_MAX]), the scale s). ``aux``: the frame's OIDN features for ``OIDN_SETTING``
     (``denoiser.prefilter(features)``), or None without features. OIDN runs once per layer; every kind is
     computed from that one image. ``denoised``: the layer's OIDN_SETTING image when the caller already has it
-    (a pipeline that denoises the next layer while this one is refined), so OIDN is not run twice."""
+    (a pipeline that denoises the next layer while this one is refined), so OIDN is not run twice. ``report``:
+    filled by a FIXED_KINDS refinement with the trust rule's w_f (model.refine.refine_layer's ``report``)."""
     from model.oidn import shared_denoiser
 
     unknown = [k for k in kinds if k not in CANDIDATES and k not in FIXED_KINDS]
@@ -176,7 +180,7 @@ def layer_candidates(layer: Layer, aux: Any, kinds: tuple[str, ...] = CANDIDATES
         elif kind in REFINE_SOLVES:
             image = refine(kind, oidn, scaled)
         elif kind in FIXED_KINDS:
-            image = refine_direct(kind, oidn, scaled)
+            image = refine_direct(kind, oidn, scaled, report)
         else:
             image = poisson_prior(scaled)
         out.append(np.clip(np.nan_to_num(image, nan=0.0, posinf=RADIANCE_MAX, neginf=0.0), 0.0,
@@ -430,13 +434,13 @@ class FusedReconstructor:
                 from model.oidn import shared_denoiser
 
                 denoised = shared_denoiser(OIDN_SETTING).denoise(layer.base, aux)
-            _, (image,), scale = layer_candidates(layer, aux, (self.fixed[name],), denoised=denoised)
+            report: dict[str, float] = {}
+            _, (image,), scale = layer_candidates(layer, aux, (self.fixed[name],), denoised=denoised, report=report)
             out = blend(np.ones((1, *image.shape[:2]), np.float32), [image], scale)
             if average:  # a clean layer: averaged with the network's image where the two agree (CLEAN_AVERAGE)
                 from model.oidn import input_scale
-                from model.refine import clean_weight
 
-                clean = clean_weight(denoised, layer)
+                clean = report.get("clean_weight", 0.0)  # the refinement's own w_f (model.refine.clean_weight's)
                 if clean > 0.0:  # a noisy layer runs no network
                     second = self.second.reconstruct_layer(name, layer, features)
                     out = clean_average(out, second, clean, input_scale(denoised))

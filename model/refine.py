@@ -239,6 +239,15 @@ def clean_weight(prior: np.ndarray, layer: Layer) -> float:
     return _log_ramp(r, *TRUST_FRAME_R)
 
 
+def _frame_weight(alpha: float) -> float:
+    """w_f from the α trust_terms chose: the inverse of its α = REFINE_ALPHA − (REFINE_ALPHA − TRUST_ALPHA_BASE)·w_f
+    (exact at w_f = 0 and 1; float rounding between)."""
+    span = REFINE_ALPHA - TRUST_ALPHA_BASE
+    if TRUST_FRAME_R is None or span == 0.0:
+        return 0.0
+    return min(max((REFINE_ALPHA - alpha) / span, 0.0), 1.0)
+
+
 def _cg_budget(cg_steps: int | None, cg_tolerance: float | None) -> dict:
     """solve_l1's CG keywords for refine_layer's arguments (module settings read at call time)."""
     if cg_steps is not None:  # the pinned fixed budget; a tolerance only if one is asked for
@@ -252,7 +261,7 @@ def _cg_budget(cg_steps: int | None, cg_tolerance: float | None) -> dict:
 def refine_layer(name: str, prior: np.ndarray, layer: Layer, alpha: float | None = None, *,
                  preconditioner: str | None = None, cg_steps: int | None = None,
                  cg_tolerance: float | None = None, passes: int | None = None,
-                 warm_start: bool | None = None) -> np.ndarray:
+                 warm_start: bool | None = None, report: dict[str, float] | None = None) -> np.ndarray:
     """``prior`` (OIDN's denoise of ``layer.base``) refined by the layer's gradients when ``name`` is one of
     REFINED_LAYERS and the layer carries gradients; otherwise ``prior`` unchanged. float32 (H, W, 3), ≥ 0.
     ``preconditioner``/``cg_steps`` select the solve (None: the module's REFINE_PRECONDITIONER / REFINE_CG_STEPS,
@@ -261,7 +270,10 @@ def refine_layer(name: str, prior: np.ndarray, layer: Layer, alpha: float | None
     ``cg_tolerance`` (None: REFINE_CG_TOLERANCE) in at most REFINE_MAX_CG_STEPS steps; with ``cg_steps`` and no
     ``cg_tolerance`` the solve is the fixed budget of before (solve_l1's default tolerance), bit for bit.
     ``passes`` / ``warm_start``: IRLS passes and the starting iterate (None: REFINE_ITERATIONS /
-    REFINE_WARM_START), for callers that pin their whole solve (model.fused's candidates)."""
+    REFINE_WARM_START), for callers that pin their whole solve (model.fused's candidates).
+    ``report``: when given, ``report["clean_weight"]`` is set to the layer's w_f as the trust rule computed it here
+    (what :func:`clean_weight` would recompute, to float rounding; 0 wherever the rule did not run), so a caller
+    that needs both does not pay for the frame statistic twice."""
     if name not in REFINED_LAYERS or not layer.has_gradients:
         return prior
     scale = input_scale(prior)  # mean 1, as OIDN's own input is normalised; 1.0 for a black prior
@@ -272,6 +284,8 @@ def refine_layer(name: str, prior: np.ndarray, layer: Layer, alpha: float | None
         alpha = REFINE_ALPHA
         if np.all(np.isfinite(layer.base)):  # (the frame policy keeps NaN/Inf out; a direct caller may not)
             data, alpha, alpha_map = trust_terms(scaled_image(layer.base, scale), data, dx, dy)
+            if report is not None:
+                report["clean_weight"] = _frame_weight(alpha)
     warm = REFINE_WARM_START if warm_start is None else warm_start
     # A clean layer's L2 start at its non-black pixels' α (the map's smallest), not the scalar α.
     start = alpha * float(np.min(alpha_map)) if alpha_map is not None and TRUST_CLEAN_START else None

@@ -141,3 +141,60 @@ def test_the_second_model_loads_from_beside_the_folder_and_a_broken_one_is_named
     broken.write_bytes(b"not an onnx file")
     with pytest.raises(fused.BlendModelError, match="clean-layer average"):
         fused._load_second(broken, {"direct"})
+
+
+def _partly_clean(h: int = 30, w: int = 34, seed: int = 4, noise: float = 0.06) -> Layer:
+    """Exact gradients and a mildly noisy base: a frame-wide r between TRUST_FRAME_R's ends (0 < w_f < 1)."""
+    image = _image(h, w, seed)
+    rng = np.random.default_rng(seed)
+    base = image * (1.0 + noise * rng.standard_normal(image.shape)).astype(np.float32)
+    return Layer(np.maximum(base, 0.0).astype(np.float32), *forward_differences(image))
+
+
+@pytest.mark.parametrize("make", [_exact, _noisy, _partly_clean, lambda: Layer(_image(30, 34, 5))],
+                         ids=["clean", "noisy", "partly clean", "no gradients"])
+def test_the_refinement_reports_the_clean_weight_it_used(make) -> None:
+    """refine_layer's ``report`` carries the w_f its trust rule computed: model.refine.clean_weight's value
+    (fused reads it instead of computing the frame statistic a second time)."""
+    from model.oidn import shared_denoiser
+    from model.refine import refine_layer
+
+    layer, feats = make(), _features(30, 34)
+    den = shared_denoiser(fused.OIDN_SETTING)
+    denoised = den.denoise(layer.base, den.prefilter(feats))
+    report: dict[str, float] = {}
+    refined = refine_layer("direct", denoised, layer, report=report)
+    np.testing.assert_array_equal(refined, refine_layer("direct", denoised, layer))  # the report changes nothing
+    assert report.get("clean_weight", 0.0) == pytest.approx(clean_weight(denoised, layer), abs=1e-9)
+
+
+def test_partly_clean_layer_has_an_intermediate_weight() -> None:
+    """The case above that exercises the ramp between the ends (not only the exact 0 and 1)."""
+    from model.oidn import shared_denoiser
+
+    layer, feats = _partly_clean(), _features(30, 34)
+    den = shared_denoiser(fused.OIDN_SETTING)
+    assert 0.0 < clean_weight(den.denoise(layer.base, den.prefilter(feats)), layer) < 1.0
+
+
+def test_fused_does_not_recompute_the_clean_weight(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The served path takes w_f from the refinement: model.refine.clean_weight is never called, and the average
+    is the one clean_weight's value gives."""
+    from model import refine
+    from model.oidn import input_scale, shared_denoiser
+
+    layer, feats = _partly_clean(), _features(30, 34)
+    aux = shared_denoiser(fused.OIDN_SETTING).prefilter(feats)
+    denoised = shared_denoiser(fused.OIDN_SETTING).denoise(layer.base, aux)
+    expected_weight = clean_weight(denoised, layer)
+    refined = fused.FusedReconstructor({}, fused.FIXED_LAYERS).reconstruct_layer("direct", layer, feats, aux)
+    second = _Second(image=(refined * np.float32(1.02)))
+
+    def forbidden(*args, **kwargs):
+        raise AssertionError("clean_weight recomputed")
+
+    monkeypatch.setattr(refine, "clean_weight", forbidden)
+    got = fused.FusedReconstructor({}, fused.FIXED_LAYERS, second).reconstruct_layer("direct", layer, feats, aux)
+    assert second.calls == 1
+    np.testing.assert_allclose(got, fused.clean_average(refined, second.image, expected_weight,
+                                                         input_scale(denoised)), rtol=1e-6, atol=1e-7)
