@@ -274,6 +274,8 @@ def refine_layer(name: str, prior: np.ndarray, layer: Layer, alpha: float | None
     ``report``: when given, ``report["clean_weight"]`` is set to the layer's w_f as the trust rule computed it here
     (what :func:`clean_weight` would recompute, to float rounding; 0 wherever the rule did not run), so a caller
     that needs both does not pay for the frame statistic twice."""
+    if report is not None:
+        report["clean_weight"] = 0.0  # until the trust rule says otherwise
     if name not in REFINED_LAYERS or not layer.has_gradients:
         return prior
     scale = input_scale(prior)  # mean 1, as OIDN's own input is normalised; 1.0 for a black prior

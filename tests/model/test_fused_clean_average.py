@@ -165,7 +165,7 @@ def test_the_refinement_reports_the_clean_weight_it_used(make) -> None:
     report: dict[str, float] = {}
     refined = refine_layer("direct", denoised, layer, report=report)
     np.testing.assert_array_equal(refined, refine_layer("direct", denoised, layer))  # the report changes nothing
-    assert report.get("clean_weight", 0.0) == pytest.approx(clean_weight(denoised, layer), abs=1e-9)
+    assert report["clean_weight"] == pytest.approx(clean_weight(denoised, layer), abs=1e-9)
 
 
 def test_partly_clean_layer_has_an_intermediate_weight() -> None:
