@@ -95,10 +95,11 @@ def collect(out: Path, sources: list[str]) -> None:
 # ---------------------------------------------------------------------------------------------------- the gate
 
 def _log_rho(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """log10 of design 25's per-pixel disagreement ρ (model.fused.agreement_weights), + 1e-6."""
-    num = np.mean((a - b) ** 2, -1)
-    den = np.mean(((a + b) / 2) ** 2, -1) + 0.01
-    return np.log10(num / den + 1e-6)
+    """log10 of design 25's per-pixel disagreement ρ (model.fused.disagreement) of two images already at the
+    mean-1 exposure, + 1e-6."""
+    from model.fused import disagreement
+
+    return np.log10(disagreement(a, b, 1.0) + 1e-6)
 
 
 def features(z) -> np.ndarray:
@@ -190,11 +191,14 @@ def gated(b: dict, theta, mu, sd):
 
 
 def design25(b: dict):
-    """Design 25 on the kept pixels (its gate from feature 1, log ρ(R, N): 1 at ρ ≤ 0.01, 0 at ρ ≥ 0.1)."""
+    """Design 25 on the kept pixels (model.fused.CLEAN_AVERAGE's gate, from feature 1, log ρ(R, N))."""
     import torch
 
-    g = torch.clamp(-1.0 - b["F"][:, 1], 0.0, 1.0)[:, None]
-    return b["E"][0] + 0.5 * b["wf"] * g * (b["E"][1] - b["E"][0])
+    from model.fused import CLEAN_AVERAGE, CLEAN_AVERAGE_WEIGHT
+
+    low, high = CLEAN_AVERAGE
+    g = torch.clamp((math.log10(high) - b["F"][:, 1]) / math.log10(high / low), 0.0, 1.0)[:, None]
+    return b["E"][0] + CLEAN_AVERAGE_WEIGHT * b["wf"] * g * (b["E"][1] - b["E"][0])
 
 
 def fit(pattern: str, iterations: int, output: Path) -> None:

@@ -221,15 +221,21 @@ def blend(weights: np.ndarray, candidates: list[np.ndarray], scale: float) -> np
     return np.clip(np.nan_to_num(out, nan=0.0, posinf=_F32_MAX, neginf=0.0), 0.0, _F32_MAX).astype(np.float32)
 
 
+def disagreement(refined: np.ndarray, second: np.ndarray, scale: float) -> np.ndarray:
+    """CLEAN_AVERAGE's ρ per pixel, (H, W) float64: the two images' relative squared difference at exposure
+    ``scale``, mean_rgb (a − b)² / (mean_rgb ((a + b)/2)² + CLEAN_AVERAGE_EPSILON). Finite inputs. The ε (at the
+    mean-1 exposure, as RelMSE's) keeps ρ finite where both are black (ρ = 0: they agree) and lets two dark pixels
+    count as agreeing unless they differ by more than it."""
+    a = np.asarray(refined, np.float64) * scale
+    b = np.asarray(second, np.float64) * scale
+    return np.mean(np.square(a - b), axis=-1) / (np.mean(np.square(0.5 * (a + b)), axis=-1) + CLEAN_AVERAGE_EPSILON)
+
+
 def agreement_weights(refined: np.ndarray, second: np.ndarray, scale: float,
                       thresholds: tuple[float, float]) -> np.ndarray:
     """g(ρ) of CLEAN_AVERAGE, (H, W) float32 in [0, 1]: 1 where the two images agree to within ``thresholds[0]``
-    of their relative squared difference ρ (at exposure ``scale``), 0 from ``thresholds[1]`` on, log-linear
-    between. Finite inputs. CLEAN_AVERAGE_EPSILON (at the mean-1 exposure, as RelMSE's ε) keeps ρ finite where both
-    are black (ρ = 0: they agree) and lets two dark pixels count as agreeing unless they differ by more than it."""
-    a = np.asarray(refined, np.float64) * scale
-    b = np.asarray(second, np.float64) * scale
-    rho = np.mean(np.square(a - b), axis=-1) / (np.mean(np.square(0.5 * (a + b)), axis=-1) + CLEAN_AVERAGE_EPSILON)
+    of their :func:`disagreement` ρ (at exposure ``scale``), 0 from ``thresholds[1]`` on, log-linear between."""
+    rho = disagreement(refined, second, scale)
     low, high = thresholds
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         g = np.log(high / np.maximum(rho, 1e-300)) / np.log(high / low)
@@ -430,7 +436,7 @@ class FusedReconstructor:
             aux = shared_denoiser(OIDN_SETTING).prefilter(features)
         if name in self.fixed:  # no blend model for this layer: its one candidate, back at the frame's exposure
             average = self._averages(name) and layer.has_gradients
-            if average and denoised is None:  # the clean weight reads OIDN's image: denoise once, here
+            if average and denoised is None:  # the average's exposure reads OIDN's image: denoise once, here
                 from model.oidn import shared_denoiser
 
                 denoised = shared_denoiser(OIDN_SETTING).denoise(layer.base, aux)
