@@ -579,6 +579,34 @@ def _clean_average_followup(name: str) -> Callable:
     return run
 
 
+#: Session 22, design 28 (docs/network.md "Design 28"): design 25's average with the second estimate passed once
+#: more through OIDN (the frame's aux, the ``oidn`` method's setting). The network's image keeps a residual noise
+#: that the Poisson solve leaves (low-frequency blotches and single-pixel spikes); OIDN, fed the albedo and normal,
+#: may remove what of it the features explain. Variants: which image is re-denoised, and whether the gate compares
+#: the refinement with the re-denoised image or with the network's own.
+OIDN_SECOND_DESIGNS = ("R28: OIDN(network) as the second estimate", "R28: OIDN(network), gated on the network",
+                       "R28: OIDN(network) alone on clean layers")
+
+
+def _oidn_second_rule(name: str) -> Callable:
+    from model import fused
+    from model.oidn import input_scale
+
+    def run(denoised, layer):
+        refined, clean, net = _refined_clean_second(denoised, layer, None)
+        if net is None:
+            return refined
+        den, aux = _CONTEXT["denoiser"], _CONTEXT["aux"]
+        second = np.maximum(den.denoise(net, aux), 0.0).astype(np.float32)
+        if "alone" in name:
+            return refined + np.float32(clean) * (second - refined)
+        s = input_scale(denoised)
+        gated = net if "gated on the network" in name else second
+        g = fused.agreement_weights(refined, gated, s, (0.01, 0.1))[..., None]
+        return refined + np.float32(0.5 * clean) * g * (second - refined)
+    return run
+
+
 def _without_clean_map(run: Callable) -> Callable:
     """``run`` with the rule as it was before session 17 (model.refine.TRUST_ALPHA_CLEAN None: no per-pixel α on
     clean layers), so that the variants measured against that rule still measure what they did."""
@@ -621,6 +649,7 @@ def variants() -> dict[str, Callable]:
     out.update({k: _implied_pin_rule(*v) for k, v in IMPLIED_DESIGNS.items()})
     out.update({k: _clean_average_rule(v) for k, v in CLEAN_AVERAGE_DESIGNS.items()})
     out.update({k: _clean_average_followup(k) for k in CLEAN_AVERAGE_FOLLOWUPS})
+    out.update({k: _oidn_second_rule(k) for k in OIDN_SECOND_DESIGNS})
     root = Path(__file__).resolve().parents[1]
     for name, model in SECOND_MODELS.items():  # design 26 was rejected: its model is not shipped, so only where made
         model = os.environ.get("GRADSEP_STUDY_SECOND", model)
@@ -668,6 +697,7 @@ def score_set(cache: Path, per_frame: bool, only: tuple[str, ...] = (), baseline
         frame = read_frame(str(path))
         _CONTEXT["features"] = frame.features
         aux = den.prefilter(frame.features) if frame.features is not None else None
+        _CONTEXT["denoiser"], _CONTEXT["aux"] = den, aux
         layer = frame.layers["direct"]
         denoised = den.denoise(layer.base, aux)
         indirect = den.denoise(frame.layers["indirect"].base, aux)
