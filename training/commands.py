@@ -37,7 +37,7 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
         extra["alpha"] = args.data_weight
     return TrainConfig(data=args.data, layer=args.layer, output=args.output, network=network,
                        epochs=args.epochs, minutes=args.minutes, seed=args.seed,
-                       prior=getattr(args, "prior", None) or "l1", **extra)
+                       prior=getattr(args, "prior", None) or "l1", init=getattr(args, "init", None), **extra)
 
 
 def train_command(args: argparse.Namespace) -> int:
@@ -86,6 +86,9 @@ def _add_train_arguments(p: argparse.ArgumentParser) -> None:
                         "3 passes x 2 multigrid-preconditioned CG steps; l2-clamp = the l2 solve on outlier-clamped "
                         "data; oidn = OIDN's denoise at a normalised exposure (the fused method). Recorded in the "
                         "exported model and used when it is served")
+    p.add_argument("--init", default=None, metavar="MODEL",
+                   help="start from these weights instead of at random: an exported .onnx (models/direct.onnx) or "
+                        "a run's checkpoint (.pt); its layer, network and prior must match this run's")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("-o", "--output", required=True, help="run folder (config, checkpoints, log, curves)")
 

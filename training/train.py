@@ -89,6 +89,7 @@ class TrainConfig:
     log_every: int = 10
     keep_epoch_checkpoints: int = 3
     prior: str = "l1"                 # what the network refines: model.preprocess.PRIOR_KINDS (l1 = shipped network)
+    init: str | None = None           # start from these weights (an exported .onnx or a run's .pt), not at random
 
     # fields a resumed run may change: everything else must match the run folder's config.json
     RESUMABLE_CHANGES = ("epochs", "minutes", "output", "data", "checkpoint_minutes", "plot_minutes", "log_every",
@@ -448,6 +449,14 @@ class Trainer:
                   f"{p.elapsed / 60:.1f} min spent")
         return True
 
+    def warm_start(self) -> None:
+        """Load ``cfg.init``'s main-network weights (a fresh run only: a resumed run keeps its own)."""
+        if self.cfg.init is None:
+            return
+        state = initial_weights(self.cfg.init, self.cfg)
+        _unwrap(self.model).load_state_dict(state)
+        self._say(f"starting from the weights of {self.cfg.init}")
+
     def save_epoch_snapshot(self) -> None:
         if not self.ctx.main:
             return
@@ -649,13 +658,60 @@ class Trainer:
         return p
 
 
+def initial_weights(path: str | os.PathLike[str], cfg: TrainConfig) -> dict[str, torch.Tensor]:
+    """The main network's state dict from an exported model (``gradsep export``'s .onnx: its initializers carry
+    the parameter names) or a run's checkpoint (.pt, ``last.pt`` or an epoch snapshot), checked against ``cfg``:
+    the same layer, network shape and prior, every parameter present with its shape. A mismatch is a
+    TrainingError naming it, never a partial load."""
+    source = Path(path)
+    if not source.is_file():
+        raise TrainingError(f"--init {source}: no such file")
+    expected = DualBranchNet(cfg.network).state_dict()
+    if source.suffix == ".onnx":
+        import onnx
+        from onnx import numpy_helper
+
+        try:
+            graph = onnx.load(str(source))
+        except Exception as exc:  # noqa: BLE001 - onnx raises several types for a bad file
+            raise TrainingError(f"--init {source}: not a readable ONNX model ({exc})") from exc
+        meta = {p.key: p.value for p in graph.metadata_props}
+        trained = json.loads(meta.get("gradsep.training", "{}"))
+        facts = {"layer": meta.get("gradsep.layer"), "prior": meta.get("gradsep.prior") or trained.get("prior", "l1"),
+                 "network": json.loads(meta.get("gradsep.network", "null"))}
+        state = {i.name: torch.from_numpy(numpy_helper.to_array(i).copy()) for i in graph.graph.initializer
+                 if i.name in expected}
+    else:
+        try:
+            blob = torch.load(source, map_location="cpu", weights_only=True)
+        except Exception as exc:  # noqa: BLE001 - torch raises several types for a bad file
+            raise TrainingError(f"--init {source}: not a readable checkpoint ({exc})") from exc
+        if not isinstance(blob, dict) or not isinstance(blob.get("model"), dict):
+            raise TrainingError(f"--init {source}: a checkpoint holds a 'model' state dict; this file has none")
+        trained = blob.get("config") or {}
+        facts = {"layer": trained.get("layer"), "prior": trained.get("prior", "l1"),
+                 "network": trained.get("network")}
+        state = blob["model"]
+    wanted = {"layer": cfg.layer, "prior": cfg.prior, "network": cfg.network.to_dict()}
+    for name, value in wanted.items():
+        if facts[name] is not None and facts[name] != value:
+            raise TrainingError(f"--init {source}: its {name} is {facts[name]!r}, this run's is {value!r}")
+    missing = [k for k in expected if k not in state]
+    wrong = [k for k in expected if k in state and tuple(state[k].shape) != tuple(expected[k].shape)]
+    if missing or wrong:
+        raise TrainingError(f"--init {source}: does not fit this network ({len(missing)} parameters missing, "
+                            f"{len(wrong)} of another shape; first: {(missing + wrong)[0]})")
+    return {k: state[k] for k in expected}
+
+
 def train(cfg: TrainConfig, quiet: bool = False) -> Progress:
     """Run (or resume) training described by ``cfg``; the library entry point behind `gradsep train`."""
     ctx = setup_distributed()
     try:
         trainer = Trainer(cfg, ctx, quiet=quiet)
         trainer.prepare_data()
-        trainer.try_resume()
+        if not trainer.try_resume():
+            trainer.warm_start()
         trainer.wrap_distributed()
         return trainer.fit()
     finally:

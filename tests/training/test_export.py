@@ -136,3 +136,51 @@ def test_a_run_on_another_prior_trains_exports_and_is_served_with_it(tiny_datase
     assert json.loads(meta["gradsep.training"])["prior"] == "l2"
     rec = load_network(tmp_path / "models")
     assert rec is not None and rec.models["direct"].prior == "l2"
+
+
+@pytest.mark.train
+@pytest.mark.slow
+def test_init_warm_starts_from_an_exported_model_or_a_checkpoint(exported: tuple[Path, Path, dict],
+                                                                   tiny_dataset: Path, tmp_path: Path) -> None:
+    """--init: the exported ONNX's initializers (and a run's checkpoint) load into a fresh run's network, names
+    and shapes checked; a fresh run then starts from them, not at random."""
+    from tests.training.conftest import tiny_config
+    from training.train import initial_weights
+
+    run, onnx_path, _ = exported
+    trained = torch.load(run / "checkpoints" / "last.pt", map_location="cpu", weights_only=True)["model"]
+    cfg = tiny_config(tiny_dataset, tmp_path / "warm", epochs=1, lr=0.0, init=str(onnx_path))
+    for source in (onnx_path, run / "checkpoints" / "last.pt"):
+        state = initial_weights(source, cfg)
+        assert state.keys() == trained.keys()
+        for key, value in trained.items():
+            torch.testing.assert_close(state[key], value)
+    train(cfg, quiet=True)  # lr 0: the run's weights are the init's, unchanged by its epoch
+    warm = torch.load(tmp_path / "warm" / "checkpoints" / "last.pt", map_location="cpu", weights_only=True)
+    for key, value in trained.items():
+        torch.testing.assert_close(warm["model"][key], value)
+    assert json.loads((tmp_path / "warm" / "config.json").read_text())["train"]["init"] == str(onnx_path)
+
+
+@pytest.mark.train
+@pytest.mark.slow
+@pytest.mark.parametrize("change", ["layer", "prior", "missing", "not-a-model"])
+def test_init_refuses_weights_that_do_not_fit(exported: tuple[Path, Path, dict], tiny_dataset: Path,
+                                              tmp_path: Path, change: str) -> None:
+    from tests.training.conftest import tiny_config
+    from training.train import TrainingError, initial_weights
+
+    _, onnx_path, _ = exported
+    overrides: dict[str, object] = {"layer": "indirect"} if change == "layer" else (
+        {"prior": "l2"} if change == "prior" else {})
+    cfg = tiny_config(tiny_dataset, tmp_path / "run", **overrides)
+    source = onnx_path
+    if change == "missing":
+        source = tmp_path / "nothing.onnx"
+    elif change == "not-a-model":
+        source = tmp_path / "junk.onnx"
+        source.write_bytes(b"not an onnx file")
+    with pytest.raises(TrainingError, match="--init") as info:
+        initial_weights(source, cfg)
+    assert {"layer": "indirect", "prior": "'l2'", "missing": "no such file",
+            "not-a-model": "not a readable ONNX"}[change] in str(info.value)
