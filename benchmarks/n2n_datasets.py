@@ -74,7 +74,7 @@ def merge(out: Path, sources: list[Path], keep: set[str] | None = None) -> int:
         raise SystemExit(f"{out}: no frames to write")
     identity = hashlib.sha256(json.dumps([(r["file"], r.get("sha256"), r.get("target_sha256"))
                                          for r in records]).encode()).hexdigest()
-    manifest = {"version": 1, "spp": max(spps) if len(spps) == 1 else 0, "spp_mixed": sorted(spps),
+    manifest = {"version": 1, "spp": next(iter(spps)) if len(spps) == 1 else 0, "spp_mixed": sorted(spps),
                 "size": list(next(iter(sizes))) if len(sizes) == 1 else None, "count": len(records),
                 "pairs": all("target" in r for r in records), "complete": True, "missing": 0, "hash": identity,
                 "merged_from": [str(s) for s in sources], "frames": records}
@@ -88,7 +88,7 @@ def worst_crops(data: Path, layer: str, cache: Path, patch: int, stride: int) ->
     """(worst crop's data term, frame file name) of every usable frame, highest first."""
     import torch
 
-    from model.preprocess import FEATURE_PLANES, LAYER_PLANES, TRANSFER
+    from model.preprocess import FEATURE_PLANES, LAYER_PLANES, MEASURED_PLANES, TRANSFER
     from training.dataset import build_cache, load_manifest
     from training.losses import data_loss
 
@@ -103,8 +103,9 @@ def worst_crops(data: Path, layer: str, cache: Path, patch: int, stride: int) ->
         planes = np.load(path, mmap_mode="r")
         if planes.shape[0] <= LAYER_PLANES + FEATURE_PLANES:
             raise SystemExit(f"{entry.path}: no second realization (render the set with --pairs)")
-        prior = torch.from_numpy(np.array(planes[9:12]))  # the layer planes' prior (model.preprocess.layer_planes)
-        target = torch.from_numpy(np.array(planes[LAYER_PLANES + FEATURE_PLANES:LAYER_PLANES + FEATURE_PLANES + 3]))
+        twin = LAYER_PLANES + FEATURE_PLANES  # the second realization's measured planes start here (its base first)
+        prior = torch.from_numpy(np.array(planes[MEASURED_PLANES:LAYER_PLANES]))  # model.preprocess.layer_planes
+        target = torch.from_numpy(np.array(planes[twin:twin + 3]))
         h, w = prior.shape[-2:]
         p = min(patch, h, w)
         worst = 0.0
