@@ -19,6 +19,7 @@ import numpy as np
 
 from model.frame import read_frame
 from model.metrics import psnr, relmse
+from model.policy import preference_order
 from model.reconstruct import available_methods, load_fused, load_network, reconstruct
 from renderer.reference import load_reference
 
@@ -35,7 +36,7 @@ def main() -> int:
     print(f"{'method':<10} {'RelMSE':>9} {'PSNR dB':>8} {'seconds':>8}")
     primal = frame.combined().base
     print(f"{'input':<10} {relmse(primal, reference):9.4f} {psnr(primal, reference):8.2f} {'-':>8}")
-    methods = sorted(available_methods(frame, network, fused), key=["l2", "l1", "network", "oidn", "fused"].index)
+    methods = sorted(available_methods(frame, network, fused), key=preference_order().index)
     for method in methods:
         start = time.perf_counter()
         result = reconstruct(frame, method, network=network, fused=fused)
