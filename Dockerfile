@@ -10,7 +10,7 @@ FROM python:3.11-slim AS build
 ENV PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1
 WORKDIR /src
 # Only what the serving install needs; renderer/ and training/ stay out (gradsep skips absent command groups).
-COPY pyproject.toml README.md ./
+COPY pyproject.toml setup.py README.md ./
 COPY gradsep/ gradsep/
 COPY model/ model/
 COPY service/ service/

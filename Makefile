@@ -51,6 +51,9 @@ test-serving:
 	$(SERVE_VENV)/bin/pip install -q --upgrade pip
 	$(SERVE_VENV)/bin/pip install -q '.[serve]' pytest pytest-timeout pytest-xdist schemathesis
 	$(SERVE_VENV)/bin/python -c "import importlib.util as u, sys; sys.exit(any(u.find_spec(m) for m in ('torch', 'mitsuba')))"
+	# the install claims the one name gradsep: no generic top-level package (model, service, ...) outside the checkout
+	cd / && $(abspath $(SERVE_VENV))/bin/python -c "import importlib.util as u, sys; \
+	  sys.exit(any(u.find_spec(m) for m in ('model', 'service', 'renderer', 'training', 'evaluation')))"
 	$(SERVE_VENV)/bin/pytest -q -n 2 --timeout=300 tests/service
 
 # The shipped models, by one command (docs/network.md, "Shipped models"): a 120-frame procedural dataset (two
@@ -100,11 +103,11 @@ models: venv system-deps $(DATASET)/manifest.json
 # resumes: re-running with a larger MINUTES_FUSED continues it.
 MINUTES_FUSED    ?= 15
 FUSED_CANDIDATES ?= oidn,refine-fast
-FUSED_PY = OMP_NUM_THREADS=1 taskset -c 0 $(BIN)/python -m training.fused
+FUSED_PY = OMP_NUM_THREADS=1 taskset -c 0 $(BIN)/python -m gradsep.training.fused
 fused-models: venv system-deps $(DATASET)/manifest.json
 	$(BIN)/pip install -q -e '.[test]'
 	mkdir -p $(MODELS_OUT)/fused
-	$(BIN)/python -m training.fused cache --data $(DATASET) -o runs/fused-cache
+	$(BIN)/python -m gradsep.training.fused cache --data $(DATASET) -o runs/fused-cache
 	$(FUSED_PY) train --cache runs/fused-cache --layer indirect --candidates $(FUSED_CANDIDATES) \
 	    --minutes $(MINUTES_FUSED) -o runs/fused-blend-indirect
 	$(FUSED_PY) export runs/fused-blend-indirect -o $(MODELS_OUT)/fused/indirect.onnx

@@ -22,9 +22,9 @@ from benchmarks.bench_render import interleaved_rounds, path_image, resolve_scen
 def main(argv: list[str]) -> int:
     import mitsuba as mi
 
-    from renderer.gpt import render_gpt
-    from renderer.scene import load_scene
-    from renderer.shift import CONNECTED, ConnectedState, HybridShift
+    from gradsep.renderer.gpt import render_gpt
+    from gradsep.renderer.scene import load_scene
+    from gradsep.renderer.shift import CONNECTED, ConnectedState, HybridShift
 
     class OldRule(HybridShift):
         def settled(self, offset):

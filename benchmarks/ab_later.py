@@ -21,9 +21,9 @@ from benchmarks.bench_render import interleaved_rounds, path_image, resolve_scen
 
 
 def main(argv: list[str]) -> int:
-    from renderer import gpt
-    from renderer.scene import load_scene, select_variant
-    from renderer.shift import HybridShift
+    from gradsep.renderer import gpt
+    from gradsep.renderer.scene import load_scene, select_variant
+    from gradsep.renderer.shift import HybridShift
 
     select_variant()
 

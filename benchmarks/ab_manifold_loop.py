@@ -45,9 +45,9 @@ def channels(frame) -> dict[str, np.ndarray]:
 
 def cold_one(spec: str, looped: bool, w: int, h: int) -> int:
     """The first 1-spp frame of a fresh process (prints its seconds)."""
-    from renderer import shift as shift_module
-    from renderer.render import render_frame
-    from renderer.scene import load_scene
+    from gradsep.renderer import shift as shift_module
+    from gradsep.renderer.render import render_frame
+    from gradsep.renderer.scene import load_scene
 
     shift_module.MANIFOLD_LOOP = looped
     loaded = load_scene(spec, width=w, height=h)
@@ -88,11 +88,11 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     spps = [int(s) for s in args.spp.split(",")]
 
-    from renderer import gpt
-    from renderer import shift as shift_module
-    from renderer.render import render_frame
-    from renderer.scene import load_scene
-    from renderer.shift import scene_has_curved_mirrors
+    from gradsep.renderer import gpt
+    from gradsep.renderer import shift as shift_module
+    from gradsep.renderer.render import render_frame
+    from gradsep.renderer.scene import load_scene
+    from gradsep.renderer.shift import scene_has_curved_mirrors
 
     owner, flag = (shift_module, "MANIFOLD_LOOP") if args.toggle == "loop" else (gpt, "DIRECT_LAYER_SHIFT")
 

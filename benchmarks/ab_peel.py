@@ -39,8 +39,8 @@ def main(argv: list[str] | None = None) -> int:
                              "primal-only mode")
     args = parser.parse_args(argv)
 
-    from renderer import gpt
-    from renderer.scene import load_scene, select_variant
+    from gradsep.renderer import gpt
+    from gradsep.renderer.scene import load_scene, select_variant
 
     select_variant()
     for spec in [s.strip() for s in args.scenes.split(",") if s.strip()]:

@@ -52,9 +52,9 @@ def parse_targets(text: str) -> dict[str, float]:
 
 def measure(source: bytes, method: str, repeats: int, network: Any, fused: Any) -> dict[str, float]:
     """Median wall and process-CPU seconds of run_pipeline(method) over ``repeats`` runs after one warm-up."""
-    from model.frame import ReadLimits, read_header
-    from model.policy import DEFAULT_ALPHA
-    from service.inference import ReconstructParams, run_pipeline
+    from gradsep.model.frame import ReadLimits, read_header
+    from gradsep.model.policy import DEFAULT_ALPHA
+    from gradsep.service.inference import ReconstructParams, run_pipeline
 
     compression = read_header(source).compression
     params = ReconstructParams(method=method, alpha=DEFAULT_ALPHA, half=False, layers="sum", compression=compression)
@@ -87,9 +87,9 @@ def report(rows: dict[str, dict[str, float]], cores: int, targets: dict[str, flo
 def main() -> None:
     from bench_service import synthetic_frame
 
-    from model.frame import read_frame
-    from model.reconstruct import available_methods
-    from service.inference import configure_exr_threads, load_fused, load_network
+    from gradsep.model.frame import read_frame
+    from gradsep.model.reconstruct import available_methods
+    from gradsep.service.inference import configure_exr_threads, load_fused, load_network
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--frame", type=Path, help="an EXR frame (default: bench_service.py's synthetic frame)")
@@ -106,7 +106,7 @@ def main() -> None:
         width, height = (int(v) for v in args.size.lower().split("x"))
         source, label = synthetic_frame(height, width), f"synthetic {width}x{height}"
     configure_exr_threads(-1)  # as the service's Engine does, and its malloc arenas (model/allocator.py)
-    from model.allocator import configure_malloc
+    from gradsep.model.allocator import configure_malloc
 
     arenas = configure_malloc()
     models = Path(os.environ.get("GRADSEP_MODELS", REPO / "models"))

@@ -27,9 +27,9 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 from bench_oidn import median_seconds  # noqa: E402
 from bench_service import synthetic_frame  # noqa: E402
 
-from model import preprocess  # noqa: E402
-from model.frame import read_frame  # noqa: E402
-from model.reconstruct import load_network  # noqa: E402
+from gradsep.model import preprocess  # noqa: E402
+from gradsep.model.frame import read_frame  # noqa: E402
+from gradsep.model.reconstruct import load_network  # noqa: E402
 
 
 def main() -> None:

@@ -27,8 +27,8 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 
 from bench_service import synthetic_frame  # noqa: E402
 
-from model.frame import read_frame  # noqa: E402
-from model.reconstruct import LAYER_THREADS_ENV, available_methods, load_fused, load_network, reconstruct  # noqa: E402
+from gradsep.model.frame import read_frame  # noqa: E402
+from gradsep.model.reconstruct import LAYER_THREADS_ENV, available_methods, load_fused, load_network, reconstruct  # noqa: E402
 
 
 def run(frame, method: str, threads: int, network, fused) -> tuple[float, np.ndarray, dict[str, float]]:
@@ -46,12 +46,12 @@ def main() -> None:
     parser.add_argument("--width", type=int, default=1280)
     parser.add_argument("--threads", type=int, default=2, help="the concurrent setting compared with 1")
     parser.add_argument("--all-concurrent", action="store_true",
-                        help="run every method's layers concurrently, not only model.reconstruct.CONCURRENT_METHODS")
+                        help="run every method's layers concurrently, not only the table's concurrent ones")
     args = parser.parse_args()
     if args.all_concurrent:
-        import model.reconstruct
+        import gradsep.model.reconstruct
 
-        model.reconstruct.CONCURRENT_METHODS = frozenset(model.reconstruct.METHODS)
+        gradsep.model.reconstruct.CONCURRENT_METHODS = frozenset(gradsep.model.reconstruct.METHODS)
 
     frame = read_frame(synthetic_frame(args.height, args.width))
     network, fused = load_network(None), load_fused(None)

@@ -34,8 +34,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from model.infer import NetworkReconstructor, SessionSettings, TileSettings  # noqa: E402
-from model.preprocess import DATA_INPUTS, GRADIENT_INPUTS  # noqa: E402
+from gradsep.model.infer import NetworkReconstructor, SessionSettings, TileSettings  # noqa: E402
+from gradsep.model.preprocess import DATA_INPUTS, GRADIENT_INPUTS  # noqa: E402
 
 
 def median_time(fn: Callable[[], object], repeats: int) -> dict[str, float]:
@@ -49,7 +49,7 @@ def median_time(fn: Callable[[], object], repeats: int) -> dict[str, float]:
 
 
 def synthetic_layer(h: int, w: int, seed: int = 0):  # noqa: ANN201 - (Layer, Features)
-    from model.frame import Features, Layer, forward_differences
+    from gradsep.model.frame import Features, Layer, forward_differences
 
     rng = np.random.default_rng(seed)
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
@@ -65,8 +65,8 @@ def export_default_models(folder: Path, attention: bool = True) -> None:
     """Untrained default networks as direct/indirect.onnx (cost does not depend on the weights)."""
     import torch
 
-    from model.network import DualBranchNet, NetworkConfig
-    from training.export import model_metadata, save_onnx, to_onnx
+    from gradsep.model.network import DualBranchNet, NetworkConfig
+    from gradsep.training.export import model_metadata, save_onnx, to_onnx
 
     cfg = NetworkConfig(use_attention=attention)
     for i, layer in enumerate(("direct", "indirect")):
@@ -116,7 +116,7 @@ def bench_torch(h: int, w: int, repeats: int, attention: bool) -> list[dict[str,
         import torch
     except ImportError:
         return []
-    from model.network import DualBranchNet, NetworkConfig
+    from gradsep.model.network import DualBranchNet, NetworkConfig
 
     net = DualBranchNet(NetworkConfig(use_attention=attention)).eval()
     a = net.config.alignment

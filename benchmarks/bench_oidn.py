@@ -33,8 +33,8 @@ def median_seconds(fn: Callable[[], object], repeats: int) -> float:
 def main() -> int:
     import pyoidn
 
-    from model.frame import Features
-    from model.oidn import Denoiser
+    from gradsep.model.frame import Features
+    from gradsep.model.oidn import Denoiser
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--size", default="1280x720", help="WIDTHxHEIGHT")

@@ -33,9 +33,9 @@ def one(spec: str, size: tuple[int, int], spp: int, mode: str, cap: int, rounds:
     import resource
     import time
 
-    from renderer import gpt
-    from renderer.render import render_frame
-    from renderer.scene import load_scene
+    from gradsep.renderer import gpt
+    from gradsep.renderer.render import render_frame
+    from gradsep.renderer.scene import load_scene
 
     defaults = list(gpt.render_gpt.__defaults__ or ())
     # render_gpt(..., seed=0, progress=None, max_lanes=MAX_LANES_PER_PASS, gradient_spp=None)

@@ -34,10 +34,10 @@ import scipy
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from model.frame import forward_differences  # noqa: E402
-from model.metrics import relmse  # noqa: E402
-from model.poisson import L1_CG_STEPS, L1_PASSES, energy_l1, solve_l1, solve_l2  # noqa: E402
-from model.policy import DEFAULT_ALPHA  # noqa: E402
+from gradsep.model.frame import forward_differences  # noqa: E402
+from gradsep.model.metrics import relmse  # noqa: E402
+from gradsep.model.poisson import L1_CG_STEPS, L1_PASSES, energy_l1, solve_l1, solve_l2  # noqa: E402
+from gradsep.model.policy import DEFAULT_ALPHA  # noqa: E402
 
 LAYERS = {"direct": 0.3, "indirect": 0.8, "color": 0.5}  # layer -> relative noise level
 

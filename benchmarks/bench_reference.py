@@ -31,9 +31,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from model.metrics import reference_floor  # noqa: E402
-from renderer.reference import SAMPLERS, pass_seed, render_loaded, sampler_count  # noqa: E402
-from renderer.scene import load_scene  # noqa: E402
+from gradsep.model.metrics import reference_floor  # noqa: E402
+from gradsep.renderer.reference import SAMPLERS, pass_seed, render_loaded, sampler_count  # noqa: E402
+from gradsep.renderer.scene import load_scene  # noqa: E402
 
 
 def _pair(loaded, sampler: str, spp: int, seeds: tuple[int, int]) -> tuple[list, float]:

@@ -104,7 +104,7 @@ def edge_classes(normal: np.ndarray, depth: np.ndarray, albedo: np.ndarray, axis
 
 
 def settings_for(loaded, offsets: str = "all", gradients: str = "all"):
-    from renderer.gpt import GptSettings
+    from gradsep.renderer.gpt import GptSettings
 
     depth = loaded.max_depth
     return GptSettings(max_depth=depth, rr_depth=loaded.rr_depth, indirect=depth < 0 or depth > 2, offsets=offsets,
@@ -117,8 +117,8 @@ def configuration(loaded, name: str):
     GptSettings.offsets) and/or ``direct`` (``hybrid+direct``:
     gradients of the direct layer alone, offsets traced to its vertices only; GptSettings.gradients, `gradsep
     render --gradients direct`)."""
-    from renderer.gpt import GRADIENT_MODES, OFFSET_MODES
-    from renderer.shift import make_shift
+    from gradsep.renderer.gpt import GRADIENT_MODES, OFFSET_MODES
+    from gradsep.renderer.shift import make_shift
 
     shift, *options = name.split("+")
     offsets, gradients = "all", "all"
@@ -138,8 +138,8 @@ def bench_cost(spec: str, size: int, spp: int, repeats: int, shifts: list[str]) 
     no offsets); medians and the ratio of medians, in wall time and in the process's CPU time (user + system of
     all of Dr.Jit's threads: on a loaded machine the wall time also measures how many cores the process got,
     the CPU time much less so)."""
-    from renderer.gpt import render_gpt
-    from renderer.scene import load_scene
+    from gradsep.renderer.gpt import render_gpt
+    from gradsep.renderer.scene import load_scene
 
     loaded = load_scene(spec, width=size, height=size)
     runs = {"path": lambda: path_image(loaded.scene, spp, 1, loaded.max_depth, loaded.rr_depth)}
@@ -183,8 +183,8 @@ def interleaved_rounds(runs: dict[str, Callable[[], object]], rounds: int
 
 
 def bench_frame(spec: str, width: int, height: int, spp: int, repeats: int, shift: str) -> dict:
-    from renderer.render import render_frame
-    from renderer.scene import load_scene
+    from gradsep.renderer.render import render_frame
+    from gradsep.renderer.scene import load_scene
 
     loaded = load_scene(spec, width=width, height=height)
     render_frame(loaded, spp=spp, seed=2, shift=shift)
@@ -201,8 +201,8 @@ def bench_gradients(spec: str, size: int, spp: int, ref_spp: int, seeds: int, sh
     """Issue 4's gradient error for each shift, with what the reference's own noise allows to resolve.
     ``spp_by_shift``: samples per pixel of each configuration (default ``spp``): equal render time when set
     from the measured costs."""
-    from renderer.gpt import render_gpt
-    from renderer.scene import load_scene
+    from gradsep.renderer.gpt import render_gpt
+    from gradsep.renderer.scene import load_scene
 
     loaded = load_scene(spec, width=size, height=size)
     settings = settings_for(loaded)
@@ -379,7 +379,7 @@ def main(argv: list[str] | None = None) -> int:
 
     import mitsuba as mi
 
-    from renderer.scene import select_variant
+    from gradsep.renderer.scene import select_variant
 
     variant = select_variant()
     repeats = args.repeats or (2 if args.quick else 5)

@@ -48,8 +48,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from model.frame import LOSSLESS_COMPRESSIONS, encode_exr, forward_differences, read_frame, rgb_channels  # noqa: E402
-from service.client import upload_body  # noqa: E402
+from gradsep.model.frame import LOSSLESS_COMPRESSIONS, encode_exr, forward_differences, read_frame, rgb_channels  # noqa: E402
+from gradsep.service.client import upload_body  # noqa: E402
 
 #: Table order; any other method the service offers is measured after these.
 METHOD_ORDER = ("l2", "l1", "network", "fused", "oidn")

@@ -17,9 +17,9 @@ from benchmarks.profile_render import kernel_times  # noqa: E402
 
 
 def main(argv: list[str]) -> int:
-    from renderer.gpt import render_gpt
-    from renderer.scene import load_scene
-    from renderer.shift import make_shift
+    from gradsep.renderer.gpt import render_gpt
+    from gradsep.renderer.scene import load_scene
+    from gradsep.renderer.shift import make_shift
 
     first = int(argv[0]) if argv else 1000
     count = int(argv[1]) if len(argv) > 1 else 4

@@ -33,9 +33,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from model.frame import read_frame  # noqa: E402
-from model.metrics import relmse, relmse_unbiased  # noqa: E402
-from model.poisson import solve_l1  # noqa: E402
+from gradsep.model.frame import read_frame  # noqa: E402
+from gradsep.model.metrics import relmse, relmse_unbiased  # noqa: E402
+from gradsep.model.poisson import solve_l1  # noqa: E402
 
 DEFAULT_CONFIGS = (
     "{'preconditioner': 'dct', 'iterations': 20, 'cg_iterations': 4}",

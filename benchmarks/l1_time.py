@@ -24,8 +24,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench_poisson import LAYERS, synthetic_layer  # noqa: E402
 
-from model.metrics import relmse  # noqa: E402
-from model.poisson import fft_workers, solve_l1  # noqa: E402
+from gradsep.model.metrics import relmse  # noqa: E402
+from gradsep.model.poisson import fft_workers, solve_l1  # noqa: E402
 
 
 def main() -> None:

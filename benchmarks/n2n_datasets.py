@@ -42,7 +42,7 @@ def _link(src: Path, dst: Path) -> None:
 def merge(out: Path, sources: list[Path], keep: set[str] | None = None) -> int:
     """Merge dataset folders (or a subset: ``keep`` = the output file names to keep) into ``out``; returns the
     number of frames written."""
-    from training.dataset import load_manifest
+    from gradsep.training.dataset import load_manifest
 
     frames_dir = out / "frames"
     frames_dir.mkdir(parents=True, exist_ok=True)
@@ -88,9 +88,9 @@ def worst_crops(data: Path, layer: str, cache: Path, patch: int, stride: int) ->
     """(worst crop's data term, frame file name) of every usable frame, highest first."""
     import torch
 
-    from model.preprocess import FEATURE_PLANES, LAYER_PLANES, MEASURED_PLANES, TRANSFER
-    from training.dataset import build_cache, load_manifest
-    from training.losses import data_loss
+    from gradsep.model.preprocess import FEATURE_PLANES, LAYER_PLANES, MEASURED_PLANES, TRANSFER
+    from gradsep.training.dataset import build_cache, load_manifest
+    from gradsep.training.losses import data_loss
 
     manifest = load_manifest(data)
     files, warnings = build_cache(manifest, layer, cache, prior="l1")
@@ -147,7 +147,7 @@ def main() -> int:
         dropped = {n for s, n in scores if s > args.drop_above}
         print(f"above {args.drop_above:g}: {len(dropped)} frames: {', '.join(sorted(dropped)) or 'none'}")
         if args.output is not None:
-            from training.dataset import load_manifest
+            from gradsep.training.dataset import load_manifest
 
             manifest = load_manifest(args.data)
             keep = {Path(e.record["file"]).name for e in manifest.frames} - dropped

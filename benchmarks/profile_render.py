@@ -60,8 +60,8 @@ def kernel_times(fn) -> tuple[float, float, float, float]:
 
 def variants(loaded, size: int, spp: int) -> dict:
     """name -> render function, for the stages this scene compiles."""
-    from renderer.gpt import render_gpt
-    from renderer.shift import HybridShift, ReplayShift
+    from gradsep.renderer.gpt import render_gpt
+    from gradsep.renderer.shift import HybridShift, ReplayShift
 
     class OneLoopHybrid(HybridShift):
         settled = None  # not a ConnectingShift: every offset through the full step (as tests/renderer does)
@@ -108,8 +108,8 @@ def offset_statistics(loaded, size: int, spp: int) -> dict:
     import drjit as dr
     import mitsuba as mi
 
-    from renderer.gpt import render_gpt
-    from renderer.shift import CONNECTED, RECENTLY_CONNECTED, HybridShift
+    from gradsep.renderer.gpt import render_gpt
+    from gradsep.renderer.shift import CONNECTED, RECENTLY_CONNECTED, HybridShift
 
     slots = 1024  # counters spread over slots: fewer atomic collisions
     counts = dr.zeros(mi.UInt32, slots * len(COUNTERS))
@@ -149,9 +149,9 @@ def offset_statistics(loaded, size: int, spp: int) -> dict:
 
 
 def fixed_costs(spec: str, size: int, spp: int) -> dict:
-    from renderer.gpt import render_gpt
-    from renderer.scene import load_scene
-    from renderer.shift import HybridShift
+    from gradsep.renderer.gpt import render_gpt
+    from gradsep.renderer.scene import load_scene
+    from gradsep.renderer.shift import HybridShift
 
     start = time.perf_counter()
     loaded = load_scene(spec, width=size, height=size)
@@ -179,7 +179,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", default=None)
     args = parser.parse_args(argv)
 
-    from renderer.scene import select_variant
+    from gradsep.renderer.scene import select_variant
 
     select_variant()
     results = {}

@@ -11,13 +11,13 @@ import glob
 import sys
 from pathlib import Path
 
-from evaluation.config import EvalConfig, resolve_scenes
-from evaluation.run import _Runner
-from model import refine
-from model.frame import read_frame
-from model.metrics import relmse_unbiased
-from model.reconstruct import reconstruct
-from renderer.scene import load_scene
+from gradsep.evaluation.config import EvalConfig, resolve_scenes
+from gradsep.evaluation.run import _Runner
+from gradsep.model import refine
+from gradsep.model.frame import read_frame
+from gradsep.model.metrics import relmse_unbiased
+from gradsep.model.reconstruct import reconstruct
+from gradsep.renderer.scene import load_scene
 
 scene = sys.argv[1] if len(sys.argv) > 1 else "cbox"
 spp = int(sys.argv[2]) if len(sys.argv) > 2 else 64

@@ -45,8 +45,8 @@ def _sources(source: str):
     """(key, frame path, targets) for every frame of one source (see the module docstring)."""
     from study_direct_trust import _frames
 
-    from model.frame import read_frame
-    from renderer.reference import load_reference
+    from gradsep.model.frame import read_frame
+    from gradsep.renderer.reference import load_reference
 
     if "@" in source:
         frame, refs = source.split("@")
@@ -66,9 +66,9 @@ def _sources(source: str):
 def collect(out: Path, sources: list[str]) -> None:
     import study_direct_trust as trust
 
-    from model.frame import read_frame
-    from model.oidn import METHOD_SETTING, Denoiser, input_scale
-    from model.preprocess import poisson_prior
+    from gradsep.model.frame import read_frame
+    from gradsep.model.oidn import METHOD_SETTING, Denoiser, input_scale
+    from gradsep.model.preprocess import poisson_prior
 
     den = Denoiser(METHOD_SETTING)
     out.mkdir(parents=True, exist_ok=True)
@@ -97,7 +97,7 @@ def collect(out: Path, sources: list[str]) -> None:
 def _log_rho(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """log10 of design 25's per-pixel disagreement ρ (model.fused.disagreement) of two images already at the
     mean-1 exposure, + 1e-6."""
-    from model.fused import disagreement
+    from gradsep.model.fused import disagreement
 
     return np.log10(disagreement(a, b, 1.0) + 1e-6)
 
@@ -194,7 +194,7 @@ def design25(b: dict):
     """Design 25 on the kept pixels (model.fused.CLEAN_AVERAGE's gate, from feature 1, log ρ(R, N))."""
     import torch
 
-    from model.fused import CLEAN_AVERAGE, CLEAN_AVERAGE_WEIGHT
+    from gradsep.model.fused import CLEAN_AVERAGE, CLEAN_AVERAGE_WEIGHT
 
     low, high = CLEAN_AVERAGE
     g = torch.clamp((math.log10(high) - b["F"][:, 1]) / math.log10(high / low), 0.0, 1.0)[:, None]

@@ -56,7 +56,7 @@ MODES = {"all": ("all", "oidn-l1", "all"), "direct": ("direct", "oidn-l1", "all"
 def references(folder: Path) -> tuple:
     """Two independent references from the folder's passes (the newest file of each pass index): passes 0..k-1
     averaged against passes k..2k-1, or pass 0 against pass 1."""
-    from renderer.reference import Reference, load_reference
+    from gradsep.renderer.reference import Reference, load_reference
 
     pairs = sorted(folder.glob("ref-*.npz"))  # benchmarks/study_refine.py's held-out cache: two references
     if len(pairs) >= 2:
@@ -111,8 +111,8 @@ def budgets(modes: list[str], spp: int, cost: dict[str, float], overhead: float 
 
 def reconstruct_split_aware(frame, factor: float):
     """``oidn-l1`` with the trust rule's clean-layer α multiplied by ``factor`` (N/K for a split frame)."""
-    import model.refine as refine
-    from model.reconstruct import reconstruct
+    import gradsep.model.refine as refine
+    from gradsep.model.reconstruct import reconstruct
 
     saved = refine.TRUST_ALPHA_BASE
     refine.TRUST_ALPHA_BASE = saved * factor
@@ -124,10 +124,10 @@ def reconstruct_split_aware(frame, factor: float):
 
 def study(folder: Path, spec: str, spp: int, seeds: int, rounds: int, modes: list[str],
           score_all: bool = True, first_seed: int = 2000, split_alpha: bool = False) -> dict:
-    from model.metrics import relmse_unbiased
-    from model.reconstruct import reconstruct
-    from renderer.render import render_frame
-    from renderer.scene import load_scene
+    from gradsep.model.metrics import relmse_unbiased
+    from gradsep.model.reconstruct import reconstruct
+    from gradsep.renderer.render import render_frame
+    from gradsep.renderer.scene import load_scene
 
     ref0, ref1 = references(folder)
     height, width = ref0.total.shape[:2]

@@ -57,7 +57,7 @@ TWIN_SEED = 8
 
 def _rule(constants: tuple | None) -> Callable:
     """f(denoised, layer): model.refine.refine_layer's default (the trust rule), its constants overridden."""
-    from model import refine
+    from gradsep.model import refine
 
     names = ("TRUST_RADIUS", "TRUST_R_LOW", "TRUST_R_HIGH", "TRUST_FRAME_R", "TRUST_ALPHA_BASE")
 
@@ -78,7 +78,7 @@ def _rule(constants: tuple | None) -> Callable:
 def _per_frame(denoised, layer):
     """Design (a): the refinement of w·base + (1 − w)·OIDN with one w per frame (the frame-wide r of
     model.refine.frame_disagreement, log-linear from 1 at 0.1 to 0 at 0.3), α = 1 − 0.5·w."""
-    from model import refine
+    from gradsep.model import refine
 
     s = refine.input_scale(denoised)
     r = refine.frame_disagreement(*(refine.scaled_image(a, s) for a in (layer.base, denoised, layer.dx, layer.dy)))
@@ -88,10 +88,10 @@ def _per_frame(denoised, layer):
 
 
 def _solve_l1_alpha_map(data, dx, dy, alpha: float, m) -> np.ndarray:
-    """model.poisson.solve_l1's IRLS (mg preconditioner, the refinement's CG rule) with the data term's α
+    """gradsep.model.poisson.solve_l1's IRLS (mg preconditioner, the refinement's CG rule) with the data term's α
     multiplied per pixel by ``m`` (H, W): Σ α·m(x)‖I − data‖ + Σ ‖∇I − g‖. The L2 start keeps the scalar α. A
     study prototype on the solver's private pieces: m ≡ 1 gives refine_layer's solve to float rounding."""
-    from model import poisson, refine
+    from gradsep.model import poisson, refine
 
     work = np.float32
     b, gx, gy = poisson._prepare(data, dx, dy, alpha, work)
@@ -131,7 +131,7 @@ def _trust_parts(denoised, layer) -> tuple:
     """What the rule-based variants start from: (s, base, dx, dy, data, α, w_f) at mean-1 exposure (scale s),
     the trust rule's data term and α, and its frame weight w_f, from α = REFINE_ALPHA − (REFINE_ALPHA −
     TRUST_ALPHA_BASE)·w_f (the module constants as set when called)."""
-    from model import refine
+    from gradsep.model import refine
 
     s = refine.input_scale(denoised)
     base, prior, dx, dy = (refine.scaled_image(a, s) for a in (layer.base, denoised, layer.dx, layer.dy))
@@ -142,7 +142,7 @@ def _trust_parts(denoised, layer) -> tuple:
 
 def _spatial_rule(alpha_low: float) -> Callable:
     """f(denoised, layer): the shipped trust rule's data term, solved with a per-pixel α (SPATIAL_ALPHAS)."""
-    from model import refine
+    from gradsep.model import refine
 
     def run(denoised, layer):
         s, base, dx, dy, data, alpha, frame = _trust_parts(denoised, layer)
@@ -166,7 +166,7 @@ def _solve_l1_reg_floor(data, dx, dy, alpha: float, floor_c: float) -> np.ndarra
     """solve_l1's IRLS as the refinement runs it (mg, the CG rule), with each pass's reg floored at ``floor_c``
     times the median RGB norm of the L2 start's gradient residuals: residuals within the gradients' own noise are
     weighted alike (L2, unbiased) and only the outliers get L1's down-weighting (a Huber-like norm)."""
-    from model import poisson, refine
+    from gradsep.model import poisson, refine
 
     work = np.float32
     b, gx, gy = poisson._prepare(data, dx, dy, alpha, work)
@@ -190,7 +190,7 @@ def _clean_fix(floor_c: float, sigma: float, alpha_base: float) -> Callable:
     layers."""
     from scipy.ndimage import gaussian_filter
 
-    from model import refine
+    from gradsep.model import refine
 
     def run(denoised, layer):
         saved = refine.TRUST_ALPHA_BASE
@@ -245,7 +245,7 @@ def occlusion_edges(depth: np.ndarray, jump: float = 0.1) -> np.ndarray:
 def _edge_rule(alpha_edge: float) -> Callable:
     """f(denoised, layer): the shipped trust rule, with the data weight at occlusion-edge pixels lowered to
     ``alpha_edge`` on a clean layer (per-pixel α: _solve_l1_alpha_map)."""
-    from model import refine
+    from gradsep.model import refine
 
     def run(denoised, layer):
         features = _CONTEXT.get("features")
@@ -269,7 +269,7 @@ ZERO_KEEP = {"Z02: alpha 0.2, zero-base pixels keep 0.5": (0.2, 0.5),
 def _zero_keep_rule(alpha_low: float, alpha_zero: float) -> Callable:
     """f(denoised, layer): the shipped trust rule, and on a clean layer a per-pixel α falling from the shipped one
     to ``alpha_low`` (as far as w_f goes), but to ``alpha_zero`` where the base is exactly 0 in every channel."""
-    from model import refine
+    from gradsep.model import refine
 
     def run(denoised, layer):
         s, _, dx, dy, data, alpha, frame = _trust_parts(denoised, layer)
@@ -311,7 +311,7 @@ def silhouette_mask(depth: np.ndarray, grow: int = 0) -> np.ndarray:
 def _silhouette_rule(mode: str | None, start: bool) -> Callable:
     """f(denoised, layer): model.refine.refine_layer with TRUST_CLEAN_START = ``start`` and, for ``mode``, its
     trust_terms wrapped so that a clean layer's silhouette pixels (the frame's depth) are treated as above."""
-    from model import refine
+    from gradsep.model import refine
 
     original = refine.trust_terms
 
@@ -346,8 +346,8 @@ ROUND2 = {"R19: clean layers with l1's CG budget": (True, False),
 
 
 def _round2_rule(l1_budget: bool, full_unpin: bool) -> Callable:
-    from model import refine
-    from model.poisson import L1_CG_STEPS
+    from gradsep.model import refine
+    from gradsep.model.poisson import L1_CG_STEPS
 
     original = refine.trust_terms
 
@@ -381,7 +381,7 @@ AGREEING_PIN = "R22: zero pixels pinned as far as base and gradients agree"
 def _scaled_pin(keep: Callable) -> Callable:
     """model.refine.trust_terms with each exactly-black pixel's pin (its α factor above the clean layer's) scaled by
     ``keep(base, dx, dy)`` (H, W) in [0, 1]: the shape of designs 22 and 24."""
-    from model import refine
+    from gradsep.model import refine
 
     original = refine.trust_terms
 
@@ -396,7 +396,7 @@ def _scaled_pin(keep: Callable) -> Callable:
 
 
 def _agreeing_pin_rule() -> Callable:
-    from model import refine
+    from gradsep.model import refine
 
     # the trust rule's ramp in a 3×3 window
     terms = _scaled_pin(lambda base, dx, dy: refine.trust_weights(base, dx, dy, radius=1)[..., 0])
@@ -418,7 +418,7 @@ REG_DESIGNS = {"R23a: clean layers, IRLS reg 0.2": (0.2, True),
 
 
 def _reg_rule(reg_init: float, clean_only: bool) -> Callable:
-    from model import refine
+    from gradsep.model import refine
 
     original = refine.solve_l1
 
@@ -463,7 +463,7 @@ def implied_ratio(base: np.ndarray, dx: np.ndarray, dy: np.ndarray) -> np.ndarra
 
 
 def _implied_pin_rule(q_lo: float, q_hi: float) -> Callable:
-    from model import refine
+    from gradsep.model import refine
 
     def keep(base, dx, dy):  # 1 at q ≤ q_lo, 0 at q ≥ q_hi, log-linear between
         q = np.maximum(implied_ratio(base, dx, dy), 1e-30)
@@ -507,7 +507,7 @@ SECOND_MODELS: dict[str, str] = {
 
 def _second_network(path: str | None) -> object:
     """The ``network`` reconstructor of the second estimate: models/ (the shipped direct model) or one file."""
-    from model.infer import NetworkReconstructor, load_model
+    from gradsep.model.infer import NetworkReconstructor, load_model
 
     key = path or "models"
     if key not in _NETWORK:
@@ -519,7 +519,7 @@ def _second_network(path: str | None) -> object:
 
 def _refined_clean_second(denoised, layer, model: str | None) -> tuple[np.ndarray, float, np.ndarray | None]:
     """(the shipped refinement, the layer's clean weight w_f, the second network's image or None where w_f = 0)."""
-    from model import refine
+    from gradsep.model import refine
 
     refined = refine.refine_layer("direct", denoised, layer)
     clean = refine.clean_weight(denoised, layer)
@@ -531,8 +531,8 @@ def _refined_clean_second(denoised, layer, model: str | None) -> tuple[np.ndarra
 def _clean_average_rule(gate: tuple[float, float, int] | None, model: str | None = None) -> Callable:
     from scipy.ndimage import uniform_filter
 
-    from model import fused
-    from model.oidn import input_scale
+    from gradsep.model import fused
+    from gradsep.model.oidn import input_scale
 
     def run(denoised, layer):
         refined, clean, net = _refined_clean_second(denoised, layer, model)
@@ -560,10 +560,10 @@ CLEAN_AVERAGE_FOLLOWUPS = ("R25 follow-up: three-way with l1 (1/3 each)", "R25 f
 
 
 def _clean_average_followup(name: str) -> Callable:
-    from model import fused
-    from model.oidn import input_scale
-    from model.poisson import solve_l1
-    from model.policy import DEFAULT_ALPHA
+    from gradsep.model import fused
+    from gradsep.model.oidn import input_scale
+    from gradsep.model.poisson import solve_l1
+    from gradsep.model.policy import DEFAULT_ALPHA
 
     def run(denoised, layer):
         refined, clean, net = _refined_clean_second(denoised, layer, None)
@@ -589,8 +589,8 @@ OIDN_SECOND_DESIGNS = ("R28: OIDN(network) as the second estimate", "R28: OIDN(n
 
 
 def _oidn_second_rule(name: str) -> Callable:
-    from model import fused
-    from model.oidn import input_scale
+    from gradsep.model import fused
+    from gradsep.model.oidn import input_scale
 
     def run(denoised, layer):
         refined, clean, net = _refined_clean_second(denoised, layer, None)
@@ -610,7 +610,7 @@ def _oidn_second_rule(name: str) -> Callable:
 def _without_clean_map(run: Callable) -> Callable:
     """``run`` with the rule as it was before session 17 (model.refine.TRUST_ALPHA_CLEAN None: no per-pixel α on
     clean layers), so that the variants measured against that rule still measure what they did."""
-    from model import refine
+    from gradsep.model import refine
 
     def wrapped(denoised, layer):
         with mock.patch.object(refine, "TRUST_ALPHA_CLEAN", None):
@@ -623,9 +623,9 @@ def variants() -> dict[str, Callable]:
     but 'trust rule (shipped)' and session 18's (BEFORE_18, SILHOUETTE_DESIGNS) runs on the rule before session
     17 (its own changes on top); the Z02p prototype is what session 17's rule became, written out on the solver's
     internals (the two agree to float rounding)."""
-    from model import refine
-    from model.poisson import solve_l1
-    from model.policy import DEFAULT_ALPHA
+    from gradsep.model import refine
+    from gradsep.model.poisson import solve_l1
+    from gradsep.model.policy import DEFAULT_ALPHA
 
     out: dict[str, Callable] = {
         "plain refinement (before)": lambda d, layer: refine.refine_layer("direct", d, layer, refine.REFINE_ALPHA),
@@ -682,11 +682,11 @@ def score_set(cache: Path, per_frame: bool, only: tuple[str, ...] = (), baseline
     """({'direct'|'frame': {variant: [ratio to ``baseline`` per frame]}}, the scored frames' labels) over one
     cache's frames (those with a nonzero ``baseline`` error); ``only``: substrings of the variants to score beside
     ALWAYS (empty: all of them)."""
-    from model.frame import read_frame
-    from model.metrics import relmse_unbiased
-    from model.oidn import METHOD_SETTING, Denoiser, input_scale
-    from model.preprocess import scaled_image
-    from model.refine import frame_disagreement, trust_weights
+    from gradsep.model.frame import read_frame
+    from gradsep.model.metrics import relmse_unbiased
+    from gradsep.model.oidn import METHOD_SETTING, Denoiser, input_scale
+    from gradsep.model.preprocess import scaled_image
+    from gradsep.model.refine import frame_disagreement, trust_weights
 
     den = Denoiser(METHOD_SETTING)
     runs = {k: v for k, v in variants().items()
@@ -757,7 +757,7 @@ def time_rule(width: int, height: int, repeats: int) -> None:
     sys.path.insert(0, str(Path(__file__).parent))
     from bench_oidn import median_seconds
 
-    from model.frame import Layer, forward_differences
+    from gradsep.model.frame import Layer, forward_differences
 
     rng = np.random.default_rng(0)
     yy, xx = np.mgrid[0:height, 0:width]
@@ -772,7 +772,7 @@ def time_rule(width: int, height: int, repeats: int) -> None:
 
 
 def _time_one(layer, prior: np.ndarray, repeats: int, median_seconds: Callable, label: str) -> None:
-    from model import refine
+    from gradsep.model import refine
 
     s = refine.input_scale(prior)
     base, dx, dy = (refine.scaled_image(a, s) for a in (layer.base, layer.dx, layer.dy))
@@ -788,9 +788,9 @@ def twins(cache: Path) -> None:
     """Render a second, independent realization (seed TWIN_SEED) of every cached frame as twin-SPP.exr."""
     from study_refine import SIZE
 
-    from model.frame import write_frame
-    from renderer.render import render_frame
-    from renderer.scene import load_scene
+    from gradsep.model.frame import write_frame
+    from gradsep.renderer.render import render_frame
+    from gradsep.renderer.scene import load_scene
 
     for folder in sorted(p for p in cache.glob("procedural-*") if p.is_dir()):
         loaded = load_scene(f"procedural:{folder.name.removeprefix('procedural-')}", width=SIZE[0], height=SIZE[1])
@@ -806,11 +806,11 @@ def noise(caches: list[Path]) -> None:
     frame and its twin (E(a₁ − a₂)²/2, weighted like frame_disagreement), the α that ratio implies for
     independent Gaussian noise, √(σ²_g / σ²_b), against how a lower clean-frame α (0.2) does there (direct RelMSE
     / the shipped rule's). If the noise decided the best α, frames with a small √(σ²_g/σ²_b) would prefer 0.2."""
-    from model import refine
-    from model.frame import read_frame
-    from model.metrics import relmse_unbiased
-    from model.oidn import METHOD_SETTING, Denoiser, input_scale
-    from model.preprocess import scaled_image
+    from gradsep.model import refine
+    from gradsep.model.frame import read_frame
+    from gradsep.model.metrics import relmse_unbiased
+    from gradsep.model.oidn import METHOD_SETTING, Denoiser, input_scale
+    from gradsep.model.preprocess import scaled_image
 
     den = Denoiser(METHOD_SETTING)
     low = _rule((3, 0.1, 1.0, (0.05, 0.2), 0.2))

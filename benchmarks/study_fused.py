@@ -42,7 +42,7 @@ def _frames() -> list[tuple[str, int, Path]]:
 
 
 def _cands_path(scene: str, spp: int) -> Path:
-    from model.fused import BLEND_FORMAT
+    from gradsep.model.fused import BLEND_FORMAT
 
     return STUDY_CACHE / f"{scene}-{spp}-cands{BLEND_FORMAT}.npz"
 
@@ -50,10 +50,10 @@ def _cands_path(scene: str, spp: int) -> Path:
 def prepare() -> None:
     """Per frame: the baselines' images (through model.reconstruct) and each layer's candidates (every kind of
     model.fused.CANDIDATES) + network inputs, in a file per candidate format (model.fused.BLEND_FORMAT)."""
-    from model.frame import read_frame
-    from model.fused import CANDIDATES, OIDN_SETTING, blend_inputs, layer_candidates
-    from model.oidn import shared_denoiser
-    from model.reconstruct import load_network, reconstruct
+    from gradsep.model.frame import read_frame
+    from gradsep.model.fused import CANDIDATES, OIDN_SETTING, blend_inputs, layer_candidates
+    from gradsep.model.oidn import shared_denoiser
+    from gradsep.model.reconstruct import load_network, reconstruct
 
     STUDY_CACHE.mkdir(parents=True, exist_ok=True)
     network = load_network("models")
@@ -83,8 +83,8 @@ def _design(spec: str):
     candidate alone, no network: e.g. ``refine``)."""
     import torch
 
-    from model.fused import CANDIDATES
-    from training.fused import _net
+    from gradsep.model.fused import CANDIDATES
+    from gradsep.training.fused import _net
 
     name, _, runs = spec.partition("=")
     nets = {}
@@ -103,7 +103,7 @@ def _design(spec: str):
 def _blend_image(arrays, nets) -> np.ndarray:
     import torch
 
-    from model.fused import blend
+    from gradsep.model.fused import blend
 
     cached = [str(k) for k in arrays["kinds"]]
     total = 0.0
@@ -142,13 +142,13 @@ def _table(scores: dict[str, dict[tuple[str, int], float]], spps: list[int]) -> 
 
 
 def error(designs: list[str], models: str | None, per_frame: bool = False) -> None:
-    from model.frame import read_frame
-    from model.metrics import relmse_unbiased
+    from gradsep.model.frame import read_frame
+    from gradsep.model.metrics import relmse_unbiased
 
     loaded = [_design(spec) for spec in designs]
     fused = None
     if models:
-        from model.reconstruct import load_fused, reconstruct
+        from gradsep.model.reconstruct import load_fused, reconstruct
 
         fused = load_fused(models)
     scores: dict[str, dict[tuple[str, int], float]] = {}
@@ -172,7 +172,7 @@ def error(designs: list[str], models: str | None, per_frame: bool = False) -> No
 
 def _tiled_frame():
     """A held-out frame (procedural-81001, 16 spp) tiled to 1280x720."""
-    from model.frame import Features, Frame, Layer, read_frame
+    from gradsep.model.frame import Features, Frame, Layer, read_frame
 
     small = read_frame(str(_frames()[2][2]))
 
@@ -189,9 +189,9 @@ def _stages(fused, frame, repeats: int) -> None:
     blend (the same functions reconstruct_layer calls, timed one by one)."""
     from bench_oidn import median_seconds  # this script's folder is on sys.path
 
-    from model.fused import OIDN_SETTING, refine
-    from model.oidn import shared_denoiser
-    from model.preprocess import prior_exposure, scaled_image, scaled_layer
+    from gradsep.model.fused import OIDN_SETTING, refine
+    from gradsep.model.oidn import shared_denoiser
+    from gradsep.model.preprocess import prior_exposure, scaled_image, scaled_layer
 
     den = shared_denoiser(OIDN_SETTING)
     aux = den.prefilter(frame.features)
@@ -213,7 +213,7 @@ def _stages(fused, frame, repeats: int) -> None:
 def _network_stages(model, layer, aux, features, repeats: int) -> dict[str, float]:
     from bench_oidn import median_seconds  # this script's folder is on sys.path
 
-    from model.fused import blend, blend_inputs, layer_candidates
+    from gradsep.model.fused import blend, blend_inputs, layer_candidates
 
     scaled, cands, scale = layer_candidates(layer, aux, model.candidates)
     row = {"inputs": median_seconds(lambda: blend_inputs(scaled, cands, features), repeats)}
@@ -228,7 +228,7 @@ def _network_stages(model, layer, aux, features, repeats: int) -> dict[str, floa
 def timing(models: str, repeats: int) -> None:
     """The fused method on a 1280x720 two-layer frame in-process (model.reconstruct.reconstruct), with oidn and
     oidn-l1 as the same-run baselines; medians of ``repeats`` after one warm-up; then the per-stage split."""
-    from model.reconstruct import load_fused, reconstruct
+    from gradsep.model.reconstruct import load_fused, reconstruct
 
     frame = _tiled_frame()
     fused = load_fused(models)

@@ -55,8 +55,8 @@ class Variant:
 
 def _shipped() -> Variant:
     """What model/fused.py serves: the direct refinement at its DIRECT_CG budget (passes: model/refine.py's)."""
-    from model.fused import DIRECT_CG
-    from model.refine import REFINE_ITERATIONS
+    from gradsep.model.fused import DIRECT_CG
+    from gradsep.model.refine import REFINE_ITERATIONS
 
     return Variant(direct=(REFINE_ITERATIONS, *DIRECT_CG))
 
@@ -114,7 +114,7 @@ def _hwc_pool2(x: np.ndarray) -> np.ndarray:
 
 def half_res_denoise(den, color: np.ndarray, features) -> np.ndarray:
     """OIDN on the 2x2-averaged colour with 2x2-averaged albedo and (renormalised) normal, upsampled bilinearly."""
-    from model.frame import Features
+    from gradsep.model.frame import Features
 
     normal = _hwc_pool2(features.normal)
     norm = np.linalg.norm(normal, axis=-1, keepdims=True)
@@ -156,8 +156,8 @@ def weights(model, data: np.ndarray, gradient: np.ndarray, net_scale: int) -> np
 
 def direct_image(layer, denoised: np.ndarray, spec: tuple[int, float, int] | None) -> np.ndarray:
     """The direct layer: OIDN's image refined with ``spec``'s budget (at fused's exposure, then scaled back)."""
-    from model import refine as refine_mod
-    from model.preprocess import prior_exposure, scaled_image, scaled_layer
+    from gradsep.model import refine as refine_mod
+    from gradsep.model.preprocess import prior_exposure, scaled_image, scaled_layer
 
     if spec is None:
         return denoised
@@ -175,9 +175,9 @@ def direct_image(layer, denoised: np.ndarray, spec: tuple[int, float, int] | Non
 
 def indirect_image(layer, denoised: np.ndarray, features, model, variant: Variant) -> np.ndarray:
     """The indirect layer: the blend of {OIDN, refine-fast at ``variant.fast``} with the shipped model."""
-    from model.fused import blend, blend_inputs
-    from model.preprocess import prior_exposure, scaled_image, scaled_layer
-    from model.refine import refine_layer
+    from gradsep.model.fused import blend, blend_inputs
+    from gradsep.model.preprocess import prior_exposure, scaled_image, scaled_layer
+    from gradsep.model.refine import refine_layer
 
     if not variant.blend:
         return denoised
@@ -198,11 +198,11 @@ def _geo(values: list[float]) -> float:
 def error(names: list[str], per_frame: bool) -> None:
     from study_fused import REFINE_CACHE, _frames
 
-    from model.frame import read_frame
-    from model.fused import OIDN_SETTING
-    from model.metrics import relmse_unbiased
-    from model.oidn import shared_denoiser
-    from model.reconstruct import load_fused, reconstruct
+    from gradsep.model.frame import read_frame
+    from gradsep.model.fused import OIDN_SETTING
+    from gradsep.model.metrics import relmse_unbiased
+    from gradsep.model.oidn import shared_denoiser
+    from gradsep.model.reconstruct import load_fused, reconstruct
 
     fused = load_fused("models")
     model = fused.models["indirect"]
@@ -258,7 +258,7 @@ def _frame(kind: str):
     tiled frame's seams make its direct layer disagree with its gradients, so it never runs the clean-layer
     average)."""
     if kind not in ("tiled", "synthetic"):
-        from model.frame import read_frame
+        from gradsep.model.frame import read_frame
 
         return read_frame(kind)
     if kind == "tiled":
@@ -267,15 +267,15 @@ def _frame(kind: str):
         return _tiled_frame()
     from bench_service import synthetic_frame
 
-    from model.frame import read_frame
+    from gradsep.model.frame import read_frame
 
     return read_frame(synthetic_frame(720, 1280))
 
 
 def timing(names: list[str], repeats: int, frame_kind: str) -> None:
-    from model.fused import OIDN_SETTING
-    from model.oidn import shared_denoiser
-    from model.reconstruct import load_fused, reconstruct
+    from gradsep.model.fused import OIDN_SETTING
+    from gradsep.model.oidn import shared_denoiser
+    from gradsep.model.reconstruct import load_fused, reconstruct
 
     frame = _frame(frame_kind)
     fused = load_fused("models")
@@ -284,8 +284,8 @@ def timing(names: list[str], repeats: int, frame_kind: str) -> None:
     aux = den.prefilter(frame.features)
     lay = frame.layers
     print(f"load {os.getloadavg()[0]:.2f}")
-    import model.fused as fused_mod
-    from model.refine import REFINE_CG_TOLERANCE, REFINE_MAX_CG_STEPS, clean_weight
+    import gradsep.model.fused as fused_mod
+    from gradsep.model.refine import REFINE_CG_TOLERANCE, REFINE_MAX_CG_STEPS, clean_weight
 
     shipped_cg, shipped_average = fused_mod.DIRECT_CG, fused_mod.CLEAN_AVERAGE
     print(f"direct layer's clean weight w_f: {clean_weight(den.denoise(lay['direct'].base, aux), lay['direct']):.2f} "

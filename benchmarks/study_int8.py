@@ -49,9 +49,9 @@ GEO_MEAN_MAX, WORST_MAX, SPEEDUP_MIN = 1.01, 1.03, 1.2
 
 def capture_inputs(models: Path, frames: int) -> dict[str, list[tuple[np.ndarray, np.ndarray]]]:
     """The (data, gradient) graph inputs the models see on every 8th training frame of data/n2n16."""
-    from model import infer
-    from model.frame import read_frame
-    from model.reconstruct import load_network
+    from gradsep.model import infer
+    from gradsep.model.frame import read_frame
+    from gradsep.model.reconstruct import load_network
 
     captured: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {name: [] for name in LAYERS}
     network = load_network(models)
@@ -124,7 +124,7 @@ def quantize(models: Path, out: Path, frames: int, calibration: str, scope: str)
 
 
 def timing(models: Path, candidate: Path, repeats: int) -> dict[str, float]:
-    from model.infer import load_model
+    from gradsep.model.infer import load_model
 
     rng = np.random.default_rng(0)
     feeds = {"data": rng.random((1, 13, 720, 1280), np.float32),
@@ -146,7 +146,7 @@ def timing(models: Path, candidate: Path, repeats: int) -> dict[str, float]:
 
 def error(models: Path, candidate: Path, cache: Path) -> dict[str, dict[str, Any]]:
     """Per layer: that layer's int8 model beside the other layer's shipped model, against today's models."""
-    from model.reconstruct import load_network
+    from gradsep.model.reconstruct import load_network
 
     baseline = load_network(models)
     results = {}

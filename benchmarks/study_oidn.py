@@ -35,10 +35,10 @@ def _stem(scene: str) -> str:
 
 def render(scene: str, cache: Path) -> None:
     """The scene's G-PT frames at SPPS and two independent references (seeds 1 and 2), unless cached."""
-    from model.frame import write_frame
-    from renderer.reference import render_loaded
-    from renderer.render import render_frame
-    from renderer.scene import load_scene
+    from gradsep.model.frame import write_frame
+    from gradsep.renderer.reference import render_loaded
+    from gradsep.renderer.render import render_frame
+    from gradsep.renderer.scene import load_scene
 
     folder = cache / _stem(scene)
     folder.mkdir(parents=True, exist_ok=True)
@@ -58,7 +58,7 @@ def render(scene: str, cache: Path) -> None:
 
 
 def _denoise_frame(frame, setting: str, runtime: str = "library") -> np.ndarray:
-    from model.oidn import shared_denoiser
+    from gradsep.model.oidn import shared_denoiser
 
     denoiser = shared_denoiser(setting, runtime)
     aux = denoiser.prefilter(frame.features) if frame.features is not None else None
@@ -68,8 +68,8 @@ def _denoise_frame(frame, setting: str, runtime: str = "library") -> np.ndarray:
 def _variants(settings: list[str], runtimes: list[str]) -> list[tuple[str, str, str]]:
     """(column name, setting, runtime): every setting on the library, and on the onnx runtime where it builds
     that setting's model (model/oidn_onnx.py), named ``<setting>@onnx``."""
-    from model.oidn import SETTINGS
-    from model.oidn_onnx import weights_for
+    from gradsep.model.oidn import SETTINGS
+    from gradsep.model.oidn_onnx import weights_for
 
     out = []
     for name in settings:
@@ -87,9 +87,9 @@ def error(cache: Path, fused_dir: Path | None, fused_prior: str | None = None, s
     prefiltered-high (the setting before this study). ``fused_prior``: also score the fused models fed that
     setting's OIDN output instead of the prior they were trained on (what switching their prior without
     retraining would do). ``runtimes``: also run each setting on the onnx runtime (``<setting>@onnx``)."""
-    from model.frame import read_frame
-    from model.metrics import reference_floor, relmse_unbiased
-    from model.oidn import SETTINGS
+    from gradsep.model.frame import read_frame
+    from gradsep.model.metrics import reference_floor, relmse_unbiased
+    from gradsep.model.oidn import SETTINGS
 
     chosen = list(dict.fromkeys(["prefiltered-high", *(settings or SETTINGS)]))
     variants = _variants(chosen, runtimes or ["library"])
@@ -99,7 +99,7 @@ def error(cache: Path, fused_dir: Path | None, fused_prior: str | None = None, s
     rows = []
     fused = None
     if fused_dir is not None and fused_dir.is_dir():
-        from model.infer import NetworkReconstructor
+        from gradsep.model.infer import NetworkReconstructor
 
         fused = NetworkReconstructor.load(fused_dir)
     for folder in sorted(p for p in cache.iterdir() if (p / "ref-2.npz").is_file()):
@@ -113,7 +113,7 @@ def error(cache: Path, fused_dir: Path | None, fused_prior: str | None = None, s
                 results[name].append(value)
                 row[name] = value
             if fused is not None:
-                from model.reconstruct import reconstruct
+                from gradsep.model.reconstruct import reconstruct
 
                 value = relmse_unbiased(reconstruct(frame, "fused", fused=fused).image, r1["total"], r2["total"])
                 extra.setdefault("fused", []).append(value)
@@ -145,9 +145,9 @@ def error(cache: Path, fused_dir: Path | None, fused_prior: str | None = None, s
 
 def _fused_with_prior(frame, fused, setting: str, r1: np.ndarray, r2: np.ndarray) -> float:
     """The fused method's RelMSE with its prior denoiser swapped for ``setting``'s (restored afterwards)."""
-    from model import oidn
-    from model.metrics import relmse_unbiased
-    from model.reconstruct import reconstruct
+    from gradsep.model import oidn
+    from gradsep.model.metrics import relmse_unbiased
+    from gradsep.model.reconstruct import reconstruct
 
     key = (oidn.PRIOR_SETTING, oidn.runtime_setting())
     trained = oidn.shared_denoiser(*key)
@@ -162,8 +162,8 @@ def _fused_with_prior(frame, fused, setting: str, r1: np.ndarray, r2: np.ndarray
 
 def timing(width: int, height: int, repeats: int, names: list[str], runtimes: list[str] | None = None) -> None:
     """Seconds of one two-layer frame per setting at width x height: auxiliary pass + 2 colour filter calls."""
-    from model.frame import Features
-    from model.oidn import SETTINGS, shared_denoiser
+    from gradsep.model.frame import Features
+    from gradsep.model.oidn import SETTINGS, shared_denoiser
 
     rng = np.random.default_rng(0)
     layers = [rng.gamma(2.0, 0.5, (height, width, 3)).astype(np.float32) for _ in range(2)]

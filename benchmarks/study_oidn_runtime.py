@@ -38,9 +38,9 @@ def denoiser(variant: str, setting: str):
     has bf16); the others pin one provider and precision for the whole graph."""
     import onnxruntime as ort
 
-    from model.infer import ProviderChoice, SessionSettings
-    from model.oidn import SETTINGS, Denoiser
-    from model.oidn_onnx import unet_graph, weights_for
+    from gradsep.model.infer import ProviderChoice, SessionSettings
+    from gradsep.model.oidn import SETTINGS, Denoiser
+    from gradsep.model.oidn_onnx import unet_graph, weights_for
 
     if variant == "library":
         return Denoiser(setting, "library")
@@ -56,7 +56,7 @@ def denoiser(variant: str, setting: str):
 
 
 def timing(setting: str, width: int, height: int, repeats: int, variants: list[str]) -> None:
-    from model.frame import Features
+    from gradsep.model.frame import Features
 
     rng = np.random.default_rng(0)
     layer = rng.gamma(2.0, 0.5, (height, width, 3)).astype(np.float32)
@@ -79,8 +79,8 @@ def timing(setting: str, width: int, height: int, repeats: int, variants: list[s
 
 
 def error(setting: str, cache: Path, variants: list[str]) -> None:
-    from model.frame import read_frame
-    from model.metrics import relmse_unbiased
+    from gradsep.model.frame import read_frame
+    from gradsep.model.metrics import relmse_unbiased
 
     dens = {v: denoiser(v, setting) for v in variants}
     scores: dict[str, list[float]] = {v: [] for v in variants}
@@ -111,10 +111,10 @@ def methods(cache: Path, names: list[str], runtimes: list[str]) -> None:
     """RelMSE of the OIDN methods (as model.reconstruct serves them) with each OIDN runtime on the cached frames,
     and the ratio of every runtime to the first, per method: what switching the runtime does to what is served
     (fused's blend model was trained on the library's output)."""
-    from model import oidn
-    from model.frame import read_frame
-    from model.metrics import relmse_unbiased
-    from model.reconstruct import load_fused, reconstruct
+    from gradsep.model import oidn
+    from gradsep.model.frame import read_frame
+    from gradsep.model.metrics import relmse_unbiased
+    from gradsep.model.reconstruct import load_fused, reconstruct
 
     fused = load_fused(Path("models"))
     scores: dict[tuple[str, str], list[float]] = {(m, r): [] for m in names for r in runtimes}

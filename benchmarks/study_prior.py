@@ -35,7 +35,7 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 
 from bench_oidn import median_seconds  # noqa: E402
 
-from model import preprocess  # noqa: E402
+from gradsep.model import preprocess  # noqa: E402
 
 DEFAULT_CACHE = Path(os.environ.get("GRADSEP_CACHE", Path.home() / ".cache" / "gradsep")) / "refine-study"
 #: The budget the shipped models were trained with (the baseline every other variant is compared with).
@@ -57,7 +57,7 @@ VARIANTS: dict[str, dict[str, Any]] = {
 
 @contextmanager
 def prior_budget(overrides: dict[str, Any]) -> Iterator[None]:
-    """model.preprocess's prior constants set to TRAINED + ``overrides`` within the block."""
+    """gradsep.model.preprocess's prior constants set to TRAINED + ``overrides`` within the block."""
     values = {**TRAINED, **overrides}
     saved = {name: getattr(preprocess, name) for name in values}
     for name, value in values.items():
@@ -82,9 +82,9 @@ def held_out_frames(cache: Path) -> Iterator[tuple[str, int, Path, np.ndarray, n
 
 
 def error(cache: Path, variants: dict[str, dict[str, Any]]) -> None:
-    from model.frame import read_frame
-    from model.metrics import relmse_unbiased
-    from model.reconstruct import load_network
+    from gradsep.model.frame import read_frame
+    from gradsep.model.metrics import relmse_unbiased
+    from gradsep.model.reconstruct import load_network
 
     network = load_network(REPO / "models")
     if network is None:
@@ -118,7 +118,7 @@ def error(cache: Path, variants: dict[str, dict[str, Any]]) -> None:
 def timing(variants: dict[str, dict[str, Any]], repeats: int) -> None:
     from bench_service import synthetic_frame
 
-    from model.frame import read_frame
+    from gradsep.model.frame import read_frame
 
     layer = read_frame(synthetic_frame(720, 1280)).layers["direct"]
     print(f"\nprior solve, 1280x720 direct layer, median of {repeats}, load {os.getloadavg()[0]:.2f}\n")

@@ -45,11 +45,11 @@ def _seeds(text: str) -> list[int]:
 def render(seeds: list[int], spps: list[int], ref_spp: int, cache: Path, family: str = "mixed") -> None:
     """G-PT frames (seed 7) and two independent ``path`` references of procedural:[FAMILY:]SEED into
     ``cache/procedural-[FAMILY-]SEED``."""
-    from model.frame import write_frame
-    from renderer.procedural import ProceduralSpec
-    from renderer.reference import render_loaded
-    from renderer.render import render_frame
-    from renderer.scene import load_scene
+    from gradsep.model.frame import write_frame
+    from gradsep.renderer.procedural import ProceduralSpec
+    from gradsep.renderer.reference import render_loaded
+    from gradsep.renderer.render import render_frame
+    from gradsep.renderer.scene import load_scene
 
     for seed in seeds:
         spec = str(ProceduralSpec(seed, family))
@@ -71,7 +71,7 @@ def render(seeds: list[int], spps: list[int], ref_spp: int, cache: Path, family:
 def _solver(alpha: float, passes: int, layers: frozenset[str], **solver) -> Callable:
     """f(name, denoised, layer): model.refine.refine_layer with its module settings overridden for the call;
     ``solver``: REFINE_CG_STEPS / REFINE_WARM_START / REFINE_PRECONDITIONER (lower-case keys without REFINE_)."""
-    from model import refine
+    from gradsep.model import refine
 
     if "cg_steps" in solver and "cg_tolerance" not in solver:  # a fixed budget: no tolerance rule
         solver["cg_tolerance"] = None
@@ -88,7 +88,7 @@ def _solver(alpha: float, passes: int, layers: frozenset[str], **solver) -> Call
 
 def _variants(setting: str) -> dict[str, Callable]:
     """name -> f(name, denoised, layer) for one layer; 'oidn' is the identity."""
-    from model import refine
+    from gradsep.model import refine
 
     solve = _solver
     direct, both = frozenset({"direct"}), frozenset({"direct", "indirect"})
@@ -105,7 +105,7 @@ def _variants(setting: str) -> dict[str, Callable]:
 def _speed_variants(setting: str) -> dict[str, Callable]:
     """Cheaper solves of the shipped refinement (issue 15): a warm start from OIDN's image instead of the L2
     solve, fewer IRLS passes, fewer CG steps per pass, the multigrid preconditioner."""
-    from model import refine
+    from gradsep.model import refine
 
     solve = _solver
     a, direct = refine.REFINE_ALPHA, refine.REFINED_LAYERS
@@ -125,7 +125,7 @@ def _speed_variants(setting: str) -> dict[str, Callable]:
 def _tolerance_variants(setting: str) -> dict[str, Callable]:
     """Issue 14's convergence rule for the default refinement: per IRLS pass, V-cycle-preconditioned CG until the
     relative residual is below a tolerance, with a cap on the steps; against the fixed budgets."""
-    from model import refine
+    from gradsep.model import refine
 
     solve = _solver
     a, direct, passes = refine.REFINE_ALPHA, refine.REFINED_LAYERS, refine.REFINE_ITERATIONS
@@ -144,9 +144,9 @@ FAMILIES = {"design": "_variants", "speed": "_speed_variants", "tolerance": "_to
 
 
 def error(cache: Path, settings: list[str], family: str = "design") -> None:
-    from model.frame import read_frame
-    from model.metrics import relmse_unbiased
-    from model.oidn import Denoiser
+    from gradsep.model.frame import read_frame
+    from gradsep.model.metrics import relmse_unbiased
+    from gradsep.model.oidn import Denoiser
 
     scores: dict[tuple[str, str], list[float]] = {}
     seconds: dict[tuple[str, str], list[float]] = {}
@@ -194,10 +194,10 @@ def convergence(cache: Path, setting: str, rules=CONVERGENCE_RULES) -> None:
     passes, against that converged result's own error: RelMSE(rule, converged) / RelMSE_unbiased(converged, truth)
     per frame. A rule whose ratio is small on every frame has converged where it matters; the mean CG steps per
     pass are its cost. ``rules``: (at most / fixed steps, tolerance or None for the fixed budget)."""
-    from model import refine
-    from model.frame import read_frame
-    from model.metrics import relmse, relmse_unbiased
-    from model.oidn import Denoiser
+    from gradsep.model import refine
+    from gradsep.model.frame import read_frame
+    from gradsep.model.metrics import relmse, relmse_unbiased
+    from gradsep.model.oidn import Denoiser
 
     steps: list[int] = []
     real_solve = refine.solve_l1
@@ -244,7 +244,7 @@ def timing(width: int, height: int, repeats: int, variants: list[str] | None = N
     """The refinement of one 1280x720 direct layer (synthetic noisy HDR data: the solve's cost does not depend
     on content), medians of ``repeats``; ``variants`` ("PASSES:CG:PRECONDITIONER[:warm]", e.g. "8:2:mg") are
     timed in the same run, interleaved with the shipped setting."""
-    from model import refine
+    from gradsep.model import refine
 
     settings = [None, *(variants or [])]
     runs = {v: [] for v in settings}
@@ -260,8 +260,8 @@ def timing(width: int, height: int, repeats: int, variants: list[str] | None = N
 
 
 def _time_refinement(width: int, height: int, variant: str | None) -> float:
-    from model.frame import Layer, forward_differences
-    from model.refine import REFINED_LAYERS
+    from gradsep.model.frame import Layer, forward_differences
+    from gradsep.model.refine import REFINED_LAYERS
 
     rng = np.random.default_rng(0)
     truth = rng.uniform(0.1, 2.0, (height // 16 + 1, width // 16 + 1, 3)).astype(np.float32)
@@ -270,7 +270,7 @@ def _time_refinement(width: int, height: int, variant: str | None) -> float:
     noise = lambda: rng.normal(0, 0.1, truth.shape).astype(np.float32)  # noqa: E731
     layer = Layer(truth + noise(), dx + noise(), dy + noise())
     if variant is None:
-        from model.refine import REFINE_ALPHA, REFINE_ITERATIONS
+        from gradsep.model.refine import REFINE_ALPHA, REFINE_ITERATIONS
 
         run = _solver(REFINE_ALPHA, REFINE_ITERATIONS, REFINED_LAYERS)
     else:

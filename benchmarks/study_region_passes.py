@@ -25,8 +25,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from evaluation.config import load_settings, make_config, resolve_scenes  # noqa: E402
-from evaluation.region import TILE, _tile_sums, choose_region, pilot_floor_map  # noqa: E402
+from gradsep.evaluation.config import load_settings, make_config, resolve_scenes  # noqa: E402
+from gradsep.evaluation.region import TILE, _tile_sums, choose_region, pilot_floor_map  # noqa: E402
 
 
 def _gain(floor: float, reached: float, uniform: float) -> str:
@@ -42,8 +42,8 @@ def main() -> int:
                         help="render one full and one region pass back to back for the per-second comparison")
     args = parser.parse_args()
 
-    from evaluation.run import _Runner
-    from renderer.scene import load_scene
+    from gradsep.evaluation.run import _Runner
+    from gradsep.renderer.scene import load_scene
 
     config = make_config(load_settings(), output="/tmp/study-region", scenes=[args.scene], cache=args.cache)
     entry = resolve_scenes(config.scenes)[0][0]
@@ -104,9 +104,9 @@ def main() -> int:
     # seconds of cached passes come from whatever load they were rendered under and do not compare.
     ratio = None
     if args.time:
-        from evaluation.references import REFERENCE_SAMPLER
-        from evaluation.region import render_region
-        from renderer.reference import render_loaded
+        from gradsep.evaluation.references import REFERENCE_SAMPLER
+        from gradsep.evaluation.region import render_region
+        from gradsep.renderer.reference import render_loaded
 
         full_s = float(render_loaded(loaded, spp=base, seed=987654, tile_spp=None, sampler=REFERENCE_SAMPLER)
                        .metadata["gradsep.render_seconds"])

@@ -39,7 +39,7 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 from bench_oidn import median_seconds  # noqa: E402
 from study_prior import held_out_frames  # noqa: E402
 
-from model import preprocess  # noqa: E402
+from gradsep.model import preprocess  # noqa: E402
 
 DEFAULT_CACHE = Path(os.environ.get("GRADSEP_CACHE", Path.home() / ".cache" / "gradsep")) / "refine-study"
 GEO_MEAN_MAX = 1.03
@@ -53,9 +53,9 @@ def _network_total(network: Any, frame: Any) -> np.ndarray:
 
 def held_out_scores(cache: Path, baseline: Any, candidate: Any) -> list[dict[str, Any]]:
     """One row per held-out frame: its name and the RelMSE (unbiased) of baseline, candidate and l1."""
-    from model.frame import read_frame
-    from model.metrics import relmse_unbiased
-    from model.reconstruct import reconstruct
+    from gradsep.model.frame import read_frame
+    from gradsep.model.metrics import relmse_unbiased
+    from gradsep.model.reconstruct import reconstruct
 
     rows = []
     for scene, spp, path, r1, r2 in held_out_frames(cache):
@@ -102,7 +102,7 @@ def report(rows: list[dict[str, Any]], candidate: Any) -> None:
 def timing(repeats: int) -> None:
     from bench_service import synthetic_frame
 
-    from model.frame import read_frame
+    from gradsep.model.frame import read_frame
 
     layer = read_frame(synthetic_frame(720, 1280)).layers["direct"]
     print(f"\nprior solve, 1280x720 direct layer, median of {repeats}, load {os.getloadavg()[0]:.2f}\n")
@@ -115,7 +115,7 @@ def timing(repeats: int) -> None:
 
 
 def main() -> None:
-    from model.reconstruct import load_network
+    from gradsep.model.reconstruct import load_network
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--candidate", type=Path, required=True, help="folder with the retrained direct/indirect.onnx")

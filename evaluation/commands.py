@@ -8,17 +8,17 @@ import sys
 import time
 from typing import TYPE_CHECKING
 
-from model.errors import CommandError
-from model.policy import DEFAULT_ALPHA, MODELS_ENV
+from gradsep.model.errors import CommandError
+from gradsep.model.policy import DEFAULT_ALPHA, MODELS_ENV
 
 if TYPE_CHECKING:
-    from evaluation.config import EvalConfig
+    from gradsep.evaluation.config import EvalConfig
 
 
 def config_from_args(args: argparse.Namespace) -> EvalConfig:
     """The run's configuration from the parsed flags (a flag not given: its GRADSEP_EVAL_* variable, else the
     preset); a Namespace without some flag counts it as not given."""
-    from evaluation.config import EvalSettings, load_settings, make_config
+    from gradsep.evaluation.config import EvalSettings, load_settings, make_config
 
     settings = load_settings(**{name: getattr(args, name, None) for name in EvalSettings.model_fields})
     return make_config(settings, output=args.output, scenes=getattr(args, "scenes", None) or (),
@@ -28,7 +28,7 @@ def config_from_args(args: argparse.Namespace) -> EvalConfig:
 
 def evaluate_command(args: argparse.Namespace) -> int:
     """``gradsep evaluate``: run the evaluation, print where the outputs are and which methods were skipped."""
-    from evaluation.run import run_evaluation
+    from gradsep.evaluation.run import run_evaluation
 
     config = config_from_args(args)
     shard = getattr(args, "shard", None)
@@ -54,8 +54,8 @@ def evaluate_command(args: argparse.Namespace) -> int:
 
 def _references_only(config: EvalConfig, shard_text: str | None) -> int:
     """``--references-only [--shard K/N]``: render (a shard of) the reference passes up to the cap, no methods."""
-    from evaluation.farm import render_reference_shard
-    from renderer.reference import parse_shard
+    from gradsep.evaluation.farm import render_reference_shard
+    from gradsep.renderer.reference import parse_shard
 
     try:
         shard = parse_shard(shard_text) if shard_text else (1, 1)

@@ -14,13 +14,13 @@ from typing import TYPE_CHECKING, Any
 
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from evaluation.cache import REPO_ROOT, default_cache_dir, file_sha256, key_hash
-from evaluation.methods import METHODS
-from model.errors import CommandError
-from model.policy import DEFAULT_ALPHA, models_dir_from
+from gradsep.evaluation.cache import REPO_ROOT, default_cache_dir, file_sha256, key_hash
+from gradsep.evaluation.methods import METHODS
+from gradsep.model.errors import CommandError
+from gradsep.model.policy import DEFAULT_ALPHA, models_dir_from
 
 if TYPE_CHECKING:
-    from renderer.procedural import ProceduralSpec
+    from gradsep.renderer.procedural import ProceduralSpec
 
 #: The command line's --spp default (model/commands.py); with --quick it is replaced by the quick list.
 CLI_DEFAULT_SPP = "1,2,4,8,16,32,64"
@@ -294,7 +294,7 @@ def resolve_scenes(specs: Sequence[str]) -> tuple[list[SceneEntry], list[str]]:
                 notes.append(f"default scene {shared / rel} not found; evaluated without it")
         specs = [*specs, *DEFAULT_PROCEDURAL]
     entries: list[SceneEntry] = []
-    from renderer.procedural import parse_procedural  # numpy only: no Mitsuba to resolve the scene list
+    from gradsep.renderer.procedural import parse_procedural  # numpy only: no Mitsuba to resolve the scene list
 
     for spec in specs:
         procedural = parse_procedural(spec)
@@ -316,7 +316,7 @@ def scene_label(xml: Path) -> str:
 
 
 def _procedural_entry(spec: ProceduralSpec) -> SceneEntry:
-    from renderer.procedural import GENERATOR_VERSION
+    from gradsep.renderer.procedural import GENERATOR_VERSION
 
     identity: dict = {"procedural": spec.seed, "generator": GENERATOR_VERSION}
     if spec.family != "mixed":  # the mixed family's identity (and so its cache keys) is what it always was

@@ -22,9 +22,9 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from evaluation.config import EvalConfig, resolve_scenes
-from evaluation.region import PILOT_PASSES
-from model.errors import CommandError
+from gradsep.evaluation.config import EvalConfig, resolve_scenes
+from gradsep.evaluation.region import PILOT_PASSES
+from gradsep.model.errors import CommandError
 
 __all__ = ["ShardReport", "render_reference_shard"]
 
@@ -53,8 +53,8 @@ def shard_passes(ref_spp: int, cap: int, shard: tuple[int, int]) -> list[int]:
 def render_reference_shard(config: EvalConfig, shard: tuple[int, int], *, progress: bool | None = None,
                            log: Callable[[str], None] = print) -> list[ShardReport]:
     """Render shard ``(K, N)`` of every configured scene's reference passes up to ``config.reference_cap``."""
-    from evaluation.run import _Runner
-    from renderer.scene import load_scene
+    from gradsep.evaluation.run import _Runner
+    from gradsep.renderer.scene import load_scene
 
     entries, notes = resolve_scenes(config.scenes)
     for note in notes:

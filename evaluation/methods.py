@@ -73,7 +73,7 @@ from typing import Any
 
 import numpy as np
 
-from model.frame import Frame
+from gradsep.model.frame import Frame
 
 __all__ = [
     "ABLATION_VARIANTS",
@@ -127,7 +127,7 @@ class MethodSpec:
     def model_names(self, layers: tuple[str, ...]) -> tuple[str, ...]:
         """The model files (``NAME.onnx``) this method needs for a frame with ``layers``."""
         if self.kind == "fused":  # the layers model.fused serves with one candidate alone need no file
-            from model.fused import FIXED_LAYERS
+            from gradsep.model.fused import FIXED_LAYERS
 
             return tuple(name for name in layers if name not in FIXED_LAYERS)
         if self.kind != "network":
@@ -140,7 +140,7 @@ class MethodSpec:
         CLEAN_AVERAGE_MODEL). Their checksums join the result's cache key; their absence skips nothing."""
         if self.kind != "fused":
             return ()
-        from model.fused import CLEAN_AVERAGE, CLEAN_AVERAGE_MODEL, FIXED_LAYERS
+        from gradsep.model.fused import CLEAN_AVERAGE, CLEAN_AVERAGE_MODEL, FIXED_LAYERS
 
         if CLEAN_AVERAGE is None or "direct" not in layers or "direct" not in FIXED_LAYERS:
             return ()
@@ -184,7 +184,7 @@ EQUAL_TIME_OFFSETS = "alternate"
 def unavailable(spec: MethodSpec) -> str | None:
     """Why ``spec`` cannot run with this code base (None: it can). Model files are checked separately."""
     if spec.kind in ("recon", "fused"):
-        from model.reconstruct import METHODS as RECONSTRUCT_METHODS
+        from gradsep.model.reconstruct import METHODS as RECONSTRUCT_METHODS
 
         wanted = spec.poisson if spec.kind == "recon" else "fused"
         if wanted not in RECONSTRUCT_METHODS:
@@ -209,7 +209,7 @@ def primal_mode_available() -> bool:
     code does not change while the process runs)."""
     import inspect
 
-    from renderer.render import render_frame
+    from gradsep.renderer.render import render_frame
 
     return "gradients" in inspect.signature(render_frame).parameters
 
@@ -219,7 +219,7 @@ def offsets_mode_available() -> bool:
     """Whether the renderer takes ``render_frame(..., offsets=...)`` (``gradsep render --offsets``; asked once)."""
     import inspect
 
-    from renderer.render import render_frame
+    from gradsep.renderer.render import render_frame
 
     return "offsets" in inspect.signature(render_frame).parameters
 
@@ -281,15 +281,15 @@ class NetworkPool:
         folder = folder.resolve()
         if folder not in self._loaded:
             if fused:
-                from model.fused import BlendModelError, FusedReconstructor
-                from model.infer import ModelError
+                from gradsep.model.fused import BlendModelError, FusedReconstructor
+                from gradsep.model.infer import ModelError
 
                 try:
                     self._loaded[folder] = FusedReconstructor.load(folder)
                 except BlendModelError as exc:
                     raise ModelError(str(exc)) from exc
             else:
-                from model.infer import NetworkReconstructor
+                from gradsep.model.infer import NetworkReconstructor
 
                 self._loaded[folder] = NetworkReconstructor.load(folder)
         return self._loaded[folder]
@@ -612,11 +612,11 @@ class PathRenderer:
         in the cost model once calibrated)."""
         start = time.perf_counter()
         if kind == "primal":
-            from renderer.render import render_frame
+            from gradsep.renderer.render import render_frame
 
             output: Any = render_frame(self.loaded, spp=int(spp), seed=int(seed) % (1 << 32), gradients=False)
         elif kind == "gpt-direct":
-            from renderer.render import render_frame
+            from gradsep.renderer.render import render_frame
 
             output = render_frame(self.loaded, spp=int(spp), seed=int(seed) % (1 << 32), gradients="direct",
                                   offsets=EQUAL_TIME_OFFSETS)
@@ -713,8 +713,8 @@ def denoise(color: np.ndarray, albedo: np.ndarray, normal: np.ndarray) -> np.nda
     on HDR input at the method's setting (model.oidn.method_setting: auxiliary images, quality), exact exposure
     scaling, on OIDN's own library whatever ``$GRADSEP_OIDN_RUNTIME`` gives our methods: the baseline is OIDN as
     its users run it."""
-    from model.frame import Features
-    from model.oidn import method_setting, shared_denoiser
+    from gradsep.model.frame import Features
+    from gradsep.model.oidn import method_setting, shared_denoiser
 
     denoiser = shared_denoiser(method_setting(), "library")  # the baseline is OIDN as its users run it
     aux = denoiser.prefilter(Features(np.ascontiguousarray(albedo, np.float32),
@@ -757,7 +757,7 @@ def _run_primal(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
 
 
 def _run_poisson(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
-    from model.reconstruct import reconstruct
+    from gradsep.model.reconstruct import reconstruct
 
     start = time.perf_counter()
     result = reconstruct(ctx.frame, str(spec.poisson), ctx.alpha)
@@ -767,7 +767,7 @@ def _run_poisson(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
 
 
 def _run_network(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
-    from model.reconstruct import reconstruct
+    from gradsep.model.reconstruct import reconstruct
 
     folder = ctx.models_dir / (spec.models or "")
     network = ctx.networks.get(folder)
@@ -796,7 +796,7 @@ def _run_network(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
 
 def _run_recon(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
     """A model.reconstruct method that needs no network object (``oidn``: OIDN per layer of the G-PT frame)."""
-    from model.reconstruct import reconstruct
+    from gradsep.model.reconstruct import reconstruct
 
     def run() -> Any:
         return reconstruct(ctx.frame, str(spec.poisson))
@@ -812,7 +812,7 @@ def _run_recon(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
 def _run_fused(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
     """``reconstruct(frame, "fused", fused=<model.fused.FusedReconstructor of models/fused/>)``; a model of
     another kind there is refused at load (ModelError)."""
-    from model.reconstruct import reconstruct
+    from gradsep.model.reconstruct import reconstruct
 
     folder = ctx.models_dir / str(spec.models)
     fused = ctx.networks.get(folder, fused=True)
@@ -876,7 +876,7 @@ def _run_gpt_equal(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
 def _run_frame_within(spec: MethodSpec, ctx: MethodContext, kind: str, method: str) -> MethodOutput:
     """A Frame-producing renderer ``kind`` + ``reconstruct(frame, method)`` at the spp whose measured total fits
     the budget (:meth:`PathRenderer.render_within`)."""
-    from model.reconstruct import reconstruct
+    from gradsep.model.reconstruct import reconstruct
 
     renderer = ctx.path()
     target = _budget(ctx)

@@ -25,10 +25,10 @@ from typing import Any
 
 import numpy as np
 
-from evaluation.cache import EvalCache, key_hash, sources_sha256
-from evaluation.region import PILOT_PASSES, Region, choose_region, pilot_floor_map
-from model.policy import SEPARATED_LAYERS
-from renderer.reference import DEFAULT_SAMPLER
+from gradsep.evaluation.cache import EvalCache, key_hash, sources_sha256
+from gradsep.evaluation.region import PILOT_PASSES, Region, choose_region, pilot_floor_map
+from gradsep.model.policy import SEPARATED_LAYERS
+from gradsep.renderer.reference import DEFAULT_SAMPLER
 
 __all__ = ["REFERENCE_SAMPLER", "ReferencePair", "ReferenceSource", "next_reference_spp"]
 
@@ -57,13 +57,13 @@ class ReferencePair:
         return (0.5 * (self.first[layer].astype(np.float64) + self.second[layer])).astype(np.float32)
 
     def floor(self, layer: str = "total") -> float:
-        from model.metrics import reference_floor
+        from gradsep.model.metrics import reference_floor
 
         return reference_floor(self.first[layer], self.second[layer])
 
     def floor_split(self, region: Region) -> tuple[float, float]:
         """The total floor split into its parts (outside, inside) ``region``: they add up to :meth:`floor`."""
-        from model.metrics import reference_floor
+        from gradsep.model.metrics import reference_floor
 
         rows, cols = region.slices
         first, second = self.first["total"], self.second["total"]
@@ -164,8 +164,8 @@ class ReferenceSource:
         memo = self._region_passes if stream == "region" else self._passes if stream == "pass" else None
         if memo is not None and index in memo:
             return memo[index]
-        from model.frame import FrameError
-        from renderer.reference import load_reference, write_reference
+        from gradsep.model.frame import FrameError
+        from gradsep.renderer.reference import load_reference, write_reference
 
         seed, tag, path = self._entry(index, stream)
         ref = None

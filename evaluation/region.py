@@ -72,7 +72,7 @@ class Region:
 def pilot_floor_map(passes: Sequence[np.ndarray], epsilon: float | None = None) -> np.ndarray:
     """Per pixel, the floor one pass would have: the passes' sample variance (mean over colour channels) over
     the squared pilot mean + ε, as model.metrics.reference_floor normalises a pixel. (H, W) float64."""
-    from model.metrics import RELMSE_EPSILON
+    from gradsep.model.metrics import RELMSE_EPSILON
 
     if len(passes) < 2:
         raise ValueError(f"a pilot needs at least 2 passes to estimate a variance, got {len(passes)}")
@@ -139,7 +139,7 @@ def render_region(loaded: Any, region: Region, *, spp: int, seed: int, sampler: 
     renderer.reference.render_loaded renders a full pass; a renderer.reference.Reference of the crop's size."""
     import mitsuba as mi
 
-    from renderer.reference import (
+    from gradsep.renderer.reference import (
         _check_split,
         _mean_reference,
         check_sampler,

@@ -22,18 +22,18 @@ from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from evaluation.cache import slug
-from evaluation.config import CROP_METHODS, EvalSettings
-from evaluation.methods import ABLATION_VARIANTS, METHODS
-from evaluation.plots import plot_crops, plot_error_vs_time
-from evaluation.references import REFERENCE_SAMPLER
-from evaluation.results import machine_summary, row_seconds
-from model.frame import write_bytes_atomic
-from model.policy import DEFAULT_ALPHA, MODELS_ENV
+from gradsep.evaluation.cache import slug
+from gradsep.evaluation.config import CROP_METHODS, EvalSettings
+from gradsep.evaluation.methods import ABLATION_VARIANTS, METHODS
+from gradsep.evaluation.plots import plot_crops, plot_error_vs_time
+from gradsep.evaluation.references import REFERENCE_SAMPLER
+from gradsep.evaluation.results import machine_summary, row_seconds
+from gradsep.model.frame import write_bytes_atomic
+from gradsep.model.policy import DEFAULT_ALPHA, MODELS_ENV
 
 if TYPE_CHECKING:
-    from evaluation.config import EvalConfig
-    from evaluation.results import Evaluation
+    from gradsep.evaluation.config import EvalConfig
+    from gradsep.evaluation.results import Evaluation
 
 __all__ = ["CSV_COLUMNS", "losses_of_ours", "write_outputs"]
 
@@ -542,7 +542,7 @@ def _equal_time(evaluation: Evaluation) -> list[str]:
 
 def _floors(evaluation: Evaluation) -> list[str]:
     """The reference floor per scene against the smallest ranked RelMSE, with a warning where the cap was hit."""
-    from evaluation.config import FLOOR_FRACTION
+    from gradsep.evaluation.config import FLOOR_FRACTION
 
     c = evaluation.config
     lines = ["## Reference floor", "",

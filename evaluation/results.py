@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from evaluation.config import EvalConfig, SceneEntry
+from gradsep.evaluation.config import EvalConfig, SceneEntry
 
 __all__ = ["Evaluation", "SceneRun", "machine_summary", "row_seconds"]
 

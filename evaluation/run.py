@@ -29,9 +29,9 @@ from typing import Any
 
 import numpy as np
 
-from evaluation.cache import EvalCache, file_sha256, key_hash, sources_sha256
-from evaluation.config import CROP_METHODS, FLOOR_FRACTION, EvalConfig, SceneEntry, resolve_scenes
-from evaluation.methods import (
+from gradsep.evaluation.cache import EvalCache, file_sha256, key_hash, sources_sha256
+from gradsep.evaluation.config import CROP_METHODS, FLOOR_FRACTION, EvalConfig, SceneEntry, resolve_scenes
+from gradsep.evaluation.methods import (
     EQUAL_TIME_KINDS,
     METHOD_SOURCES,
     BracketOutput,
@@ -45,12 +45,18 @@ from evaluation.methods import (
     run_method,
     unavailable,
 )
-from evaluation.references import RAISE_MARGIN, REFERENCE_SAMPLER, ReferencePair, ReferenceSource, next_reference_spp
-from evaluation.region import Region
-from evaluation.results import Evaluation, SceneRun, machine_summary, row_seconds
-from model.errors import CommandError
-from model.policy import SEPARATED_LAYERS
-from model.progress import ProgressBar
+from gradsep.evaluation.references import (
+    RAISE_MARGIN,
+    REFERENCE_SAMPLER,
+    ReferencePair,
+    ReferenceSource,
+    next_reference_spp,
+)
+from gradsep.evaluation.region import Region
+from gradsep.evaluation.results import Evaluation, SceneRun, machine_summary, row_seconds
+from gradsep.model.errors import CommandError
+from gradsep.model.policy import SEPARATED_LAYERS
+from gradsep.model.progress import ProgressBar
 
 __all__ = ["CROP_METHODS", "Evaluation", "SceneRun", "machine_summary", "run_evaluation"]
 
@@ -163,8 +169,8 @@ class _Runner:
 
     def references(self, entry: SceneEntry, loaded: Any) -> ReferenceSource:
         """The scene's reference passes (cached); see evaluation/references.py."""
-        from evaluation.region import render_region
-        from renderer.reference import render_loaded
+        from gradsep.evaluation.region import render_region
+        from gradsep.renderer.reference import render_loaded
 
         c = self.config
         # The sampler is in the key by name (not only through the reference code's hash), so a cache rendered
@@ -191,9 +197,9 @@ class _Runner:
         render seconds and cache key hash (rendered when not cached). Both modes use the same seed, so the
         ``direct`` frame's direct layer is the ``all`` frame's and its indirect base the same primal.
         ``replica`` k > 0: the k-th extra frame of ``--frame-seeds``, rendered with its own seed."""
-        from model.frame import FrameError, read_frame, write_frame
-        from renderer.render import render_frame
-        from renderer.shift import DEFAULT_SHIFT
+        from gradsep.model.frame import FrameError, read_frame, write_frame
+        from gradsep.renderer.render import render_frame
+        from gradsep.renderer.shift import DEFAULT_SHIFT
 
         seed = _derived_seed(self.config.seed, 2, spp, *((replica,) if replica else ()))
         key = {"kind": "gpt-frame", "scene": entry.identity, "size": [loaded.width, loaded.height],
@@ -308,7 +314,7 @@ class _Runner:
 
 def image_scores(image: np.ndarray, layers: dict[str, np.ndarray], pair: ReferencePair) -> dict[str, Any]:
     """RelMSE (total and per layer) by the product estimator; SSIM, PSNR and FLIP against the pair's mean."""
-    from model.metrics import flip, psnr, relmse_unbiased, ssim
+    from gradsep.model.metrics import flip, psnr, relmse_unbiased, ssim
 
     mean = pair.mean()
     scores: dict[str, Any] = {"relmse": relmse_unbiased(image, pair.first["total"], pair.second["total"]),
@@ -385,7 +391,7 @@ def _mitsuba_id() -> str:
     if _MITSUBA is None:
         import mitsuba as mi
 
-        from renderer.scene import select_variant
+        from gradsep.renderer.scene import select_variant
 
         _MITSUBA = f"{mi.__version__}/{select_variant()}"
     return _MITSUBA
@@ -395,7 +401,7 @@ def _budget_method(rows: dict[str, dict[str, Any]]) -> str | None:
     """The method whose total time is the equal-time budget: the product's default for a G-PT frame (the first
     of model.policy.DEFAULT_PREFERENCE that ran; its ``network`` is the evaluation's ``ours``), else ours, else
     L1 (None: the G-PT render alone)."""
-    from model import policy
+    from gradsep.model import policy
 
     for method in (*policy.DEFAULT_PREFERENCE, "network", "l1"):
         name = "ours" if method == "network" else method
@@ -407,7 +413,7 @@ def _budget_method(rows: dict[str, dict[str, Any]]) -> str | None:
 def run_evaluation(config: EvalConfig, *, progress: bool | None = None,
                    log: Callable[[str], None] | None = None) -> Evaluation:
     """Run the whole evaluation and write every output into ``config.output``; see the module docstring."""
-    from renderer.scene import load_scene
+    from gradsep.renderer.scene import load_scene
 
     entries, notes = resolve_scenes(config.scenes)
     _prepare_output(config.output)
@@ -434,7 +440,7 @@ def run_evaluation(config: EvalConfig, *, progress: bool | None = None,
         bar.close()
     evaluation = Evaluation(config, rows, scenes, runner.skipped, dict(sorted(runner.model_shas.items())),
                             notes, runner.computed)
-    from evaluation.report import write_outputs
+    from gradsep.evaluation.report import write_outputs
 
     evaluation.outputs = write_outputs(evaluation)
     return evaluation
@@ -443,8 +449,8 @@ def run_evaluation(config: EvalConfig, *, progress: bool | None = None,
 def _run_scene(runner: _Runner, entry: SceneEntry, loaded: Any, methods: list[MethodSpec],
                bar: ProgressBar) -> tuple[SceneRun, list[dict[str, Any]]]:
     """One scene: every method's output, then references raised until the floor criterion holds, then scores."""
-    from model.frame import SEPARATED_LAYERS
-    from renderer.render import plan_layers
+    from gradsep.model.frame import SEPARATED_LAYERS
+    from gradsep.renderer.render import plan_layers
 
     config = runner.config
     layers, _ = plan_layers(SEPARATED_LAYERS, loaded.max_depth)
@@ -494,7 +500,7 @@ def _run_scene(runner: _Runner, entry: SceneEntry, loaded: Any, methods: list[Me
 
 def _smallest_ranked(outputs: list[_Output], pair: ReferencePair) -> float:
     """The smallest RelMSE (product estimator) over every row of the scene: each one is ranked by the report."""
-    from model.metrics import relmse_unbiased
+    from gradsep.model.metrics import relmse_unbiased
 
     def relmse(image: np.ndarray) -> float:
         return relmse_unbiased(image, pair.first["total"], pair.second["total"])
@@ -645,7 +651,7 @@ def oidn_key() -> dict[str, str]:
     """The OIDN choices the environment makes (``$GRADSEP_OIDN_SETTING``, ``$GRADSEP_OIDN_RUNTIME``), in every
     method's cache key: they change the OIDN methods' images (and so every equal-time budget) without a code
     change. Empty at the defaults, so results cached before these keys existed stay valid."""
-    from model.oidn import METHOD_SETTING, method_setting, runtime_setting
+    from gradsep.model.oidn import METHOD_SETTING, method_setting, runtime_setting
 
     setting, runtime = method_setting(), runtime_setting()
     return {**({"oidn_setting": setting} if setting != METHOD_SETTING else {}),
@@ -684,10 +690,10 @@ def _evaluate_one(runner: _Runner, spec: MethodSpec, scene: SceneRun, spp: int, 
         if spec.kind in ("sep-oidn", "gpt-equal"):  # our renderer's code renders it
             key["renderer"] = runner.renderer_code
         if spec.kind == "gpt-equal":
-            from evaluation.methods import EQUAL_TIME_OFFSETS
+            from gradsep.evaluation.methods import EQUAL_TIME_OFFSETS
 
             key["offsets"] = EQUAL_TIME_OFFSETS
-    from model.infer import ModelError
+    from gradsep.model.infer import ModelError
 
     try:
         out = runner.output(spec, scene, spp, ctx, key, replica)

@@ -17,11 +17,11 @@ from pathlib import Path
 
 import numpy as np
 
-from model.frame import read_frame
-from model.metrics import psnr, relmse
-from model.policy import preference_order
-from model.reconstruct import available_methods, load_fused, load_network, reconstruct
-from renderer.reference import load_reference
+from gradsep.model.frame import read_frame
+from gradsep.model.metrics import psnr, relmse
+from gradsep.model.policy import preference_order
+from gradsep.model.reconstruct import available_methods, load_fused, load_network, reconstruct
+from gradsep.renderer.reference import load_reference
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent

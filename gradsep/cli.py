@@ -14,8 +14,8 @@ import importlib.util
 import sys
 from collections.abc import Sequence
 
-from model import __version__
-from model.errors import CommandError
+from gradsep.model import __version__
+from gradsep.model.errors import CommandError
 
 
 class CommandModuleError(ImportError):
@@ -23,8 +23,8 @@ class CommandModuleError(ImportError):
 
 
 # Packages whose `commands.register(subparsers)` adds subcommands, in help order.
-COMMAND_MODULES = ("renderer.commands", "training.commands", "model.commands", "evaluation.commands",
-                   "service.commands")
+COMMAND_MODULES = ("gradsep.renderer.commands", "gradsep.training.commands", "gradsep.model.commands",
+                   "gradsep.evaluation.commands", "gradsep.service.commands")
 
 
 def build_parser(modules: Sequence[str] | None = None) -> argparse.ArgumentParser:
@@ -39,9 +39,12 @@ def build_parser(modules: Sequence[str] | None = None) -> argparse.ArgumentParse
     parser.add_argument("--version", action="version", version=f"gradsep {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in COMMAND_MODULES if modules is None else modules:
-        spec = importlib.util.find_spec(name.split(".")[0])
+        try:
+            spec = importlib.util.find_spec(name.rpartition(".")[0] or name)
+        except ModuleNotFoundError:  # a parent package of it is absent too
+            spec = None
         # The whole package is not part of this install. A folder of that name without __init__.py (a
-        # namespace package, e.g. a user's `training/` data folder in the cwd of `python -m gradsep`) is not it.
+        # namespace package) is not it.
         if spec is None or spec.origin is None:
             continue
         try:
@@ -57,8 +60,8 @@ def build_parser(modules: Sequence[str] | None = None) -> argparse.ArgumentParse
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from model.allocator import configure_malloc
-    from model.frame import FrameError  # numpy + OpenEXR: not needed to build the parser
+    from gradsep.model.allocator import configure_malloc
+    from gradsep.model.frame import FrameError  # numpy + OpenEXR: not needed to build the parser
 
     parser = build_parser()
     args = parser.parse_args(argv)

@@ -39,7 +39,7 @@ import ctypes.util
 import logging
 import os
 
-from model.environment import env_int
+from gradsep.model.environment import env_int
 
 log = logging.getLogger(__name__)
 

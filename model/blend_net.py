@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import torch
 
-from model.fused import data_channels
-from model.network import DualBranchTrunk, NetworkConfig
+from gradsep.model.fused import data_channels
+from gradsep.model.network import DualBranchTrunk, NetworkConfig
 
 
 class BlendNet(DualBranchTrunk):

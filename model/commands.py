@@ -13,8 +13,15 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from model.errors import CommandError
-from model.policy import DEFAULT_ALPHA, DEFAULT_PREFERENCE, METHODS, MODELS_ENV, POISSON_METHODS, models_dir_from
+from gradsep.model.errors import CommandError
+from gradsep.model.policy import (
+    DEFAULT_ALPHA,
+    DEFAULT_PREFERENCE,
+    METHODS,
+    MODELS_ENV,
+    POISSON_METHODS,
+    models_dir_from,
+)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -46,7 +53,7 @@ def _check_output(path: Path) -> None:
 
 def _resolve_models(models: str | None, method: str | None) -> tuple[Any, Any]:
     """(network, fused) for the named method (required) or for the default (optional); Nones otherwise."""
-    from model.reconstruct import FUSED_SUBDIR, load_fused, load_network
+    from gradsep.model.reconstruct import FUSED_SUBDIR, load_fused, load_network
 
     folder = models_dir_from(models)
     network = load_network(folder) if method in (None, "network") else None
@@ -66,8 +73,8 @@ def reconstruct_command(args: argparse.Namespace) -> int:
     Bad input raises FrameError/CommandError (the dispatcher prints one line and exits 2) before anything is
     written; the output appears only complete (temporary file + rename).
     """
-    from model.frame import FrameError, read_frame, rgb_channels, write_exr
-    from model.reconstruct import reconstruct
+    from gradsep.model.frame import FrameError, read_frame, rgb_channels, write_exr
+    from gradsep.model.reconstruct import reconstruct
 
     output = Path(args.output)
     alpha = float(args.alpha)

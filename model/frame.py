@@ -37,7 +37,7 @@ from typing import Any, BinaryIO, Literal
 import numpy as np
 import OpenEXR
 
-from model.policy import ILLUMINATION_LAYERS, SEPARATED_LAYERS
+from gradsep.model.policy import ILLUMINATION_LAYERS, SEPARATED_LAYERS
 
 # ---------------------------------------------------------------------------------------------------------------
 # Channel names: data, not code

@@ -46,9 +46,10 @@ from typing import Any
 
 import numpy as np
 
-from model.frame import Features, Layer
-from model.infer import BLEND_PRIOR
-from model.preprocess import (
+from gradsep.model.frame import Features, Layer
+from gradsep.model.infer import BLEND_PRIOR
+from gradsep.model.onnx_session import ProviderChoice
+from gradsep.model.preprocess import (
     RADIANCE_MAX,
     TRANSFER,
     DepthRange,
@@ -132,7 +133,7 @@ def refine(kind: str, oidn: np.ndarray, scaled: Layer) -> np.ndarray:
     """OIDN's image refined by the layer's gradients with the ``kind`` solve of REFINE_SOLVES: the oidn-l1
     refinement (model.refine.refine_layer: the L1 screened Poisson problem with OIDN's image as the data term,
     solved at mean 1) with every setting of the solve pinned here. (H, W, 3) float32, finite."""
-    from model.refine import refine_layer
+    from gradsep.model.refine import refine_layer
 
     passes, cg_steps = REFINE_SOLVES[kind]
     # "direct": refine this layer whatever its name
@@ -145,7 +146,7 @@ def refine_direct(kind: str, oidn: np.ndarray, scaled: Layer, report: dict[str, 
     """A FIXED_KINDS image: OIDN's image refined by the layer's gradients as the oidn-l1 method refines it
     (``oidn-l1``), or the same at fused's CG budget DIRECT_CG (``refine-direct``). ``report``: see
     model.refine.refine_layer (the trust rule's w_f)."""
-    from model.refine import refine_layer
+    from gradsep.model.refine import refine_layer
 
     if kind == "oidn-l1":
         return refine_layer("direct", oidn, scaled, report=report)  # "direct": refine this layer, whatever its name
@@ -162,7 +163,7 @@ def layer_candidates(layer: Layer, aux: Any, kinds: tuple[str, ...] = CANDIDATES
     computed from that one image. ``denoised``: the layer's OIDN_SETTING image when the caller already has it
     (a pipeline that denoises the next layer while this one is refined), so OIDN is not run twice. ``report``:
     filled by a FIXED_KINDS refinement with the trust rule's w_f (model.refine.refine_layer's ``report``)."""
-    from model.oidn import shared_denoiser
+    from gradsep.model.oidn import shared_denoiser
 
     unknown = [k for k in kinds if k not in CANDIDATES and k not in FIXED_KINDS]
     if unknown:
@@ -273,7 +274,7 @@ class BlendModel:
     session: Any
     candidates: tuple[str, ...]
     alignment: int
-    choice: Any = None  # model.infer.ProviderChoice: which execution provider serves it, in which precision
+    choice: ProviderChoice  # which execution provider serves it, in which precision (model.onnx_session)
 
     def weights(self, data: np.ndarray, gradient: np.ndarray) -> np.ndarray:
         """(C, H, W) inputs of any size → (K, H, W) weights (padded to the alignment and cropped back)."""
@@ -307,41 +308,20 @@ def _check(path: Path, name: str, meta: dict[str, str]) -> tuple[tuple[str, ...]
     return kinds, alignment
 
 
-def _session(path: Path, choice: Any) -> Any:
-    import onnxruntime as ort
-
-    from model.infer import SessionSettings
-
-    try:
-        return ort.InferenceSession(str(path), SessionSettings().options(), providers=choice.providers())
-    except Exception as exc:  # ORT's own exception types for corrupt files or a provider that refuses the graph
-        raise BlendModelError(f"{path}: ONNX Runtime cannot load it on the {choice.provider} provider ({exc})") from exc
-
-
 def load_model(path: str | os.PathLike[str], name: str) -> BlendModel:
-    """Open one blend model on the provider the ``network`` method's models use (model.infer.choose_provider:
+    """Open one blend model on the provider the ``network`` method's models use (model.onnx_session.choose_provider:
     OpenVINO in bf16 where the CPU has native bf16, else ORT's CPU provider in fp32; ``GRADSEP_ONNX_PROVIDER``
     overrides), falling back to the CPU provider should the accelerated one fail; BlendModelError when unusable.
     The weights only choose among candidates (the blend itself is float64 numpy), so bf16 moves them by about
     1e-3 at most (benchmarks/study_fused.py time prints the parity)."""
-    import onnxruntime as ort
-
-    from model.infer import ProviderChoice, SessionSettings, choose_provider, cpu_flags
+    from gradsep.model.onnx_session import SessionSettings, graph_session, open_session
 
     path = Path(path)
-    choice = choose_provider(SessionSettings().provider, ort.get_available_providers(), cpu_flags())
-    try:
-        session = _session(path, choice)
-    except BlendModelError as exc:
-        if choice.provider == "cpu":
-            raise
-        log.warning("%s; falling back to the ORT CPU provider", exc)
-        choice = ProviderChoice("cpu", "fp32", f"OpenVINO failed on this model ({exc})")
-        session = _session(path, choice)
+    settings = SessionSettings()
+    session, choice = open_session(graph_session(path, settings), f"fused model {name} ({path.name})", settings,
+                                   BlendModelError, source=str(path))
     meta = dict(session.get_modelmeta().custom_metadata_map)
     kinds, alignment = _check(path, name, meta)
-    log.info("fused model %s (%s): %s provider, %s (%s)", name, path.name, choice.provider, choice.precision,
-             choice.reason)
     return BlendModel(name, path, meta, session, kinds, alignment, choice)
 
 
@@ -351,8 +331,8 @@ def _load_second(path: Path, layers: set[str]) -> Any:
     else None. An unusable file raises BlendModelError naming it."""
     if CLEAN_AVERAGE is None or "direct" not in layers or not path.is_file():
         return None
-    from model.infer import ModelError, NetworkReconstructor
-    from model.infer import load_model as load_network_model
+    from gradsep.model.infer import ModelError, NetworkReconstructor
+    from gradsep.model.infer import load_model as load_network_model
 
     try:
         return NetworkReconstructor({"direct": load_network_model(path.resolve(), "direct")})
@@ -406,9 +386,7 @@ class FusedReconstructor:
                             "candidates": list(m.candidates)},
                  "sha256": hashlib.sha256(m.path.read_bytes()).hexdigest(), "bytes": m.path.stat().st_size,
                  "attention": m.metadata.get("gradsep.attention") == "true", "prior": BLEND_PRIOR,
-                 "alignment": m.alignment, "provider": getattr(m.choice, "provider", "cpu"),
-                 "precision": getattr(m.choice, "precision", "fp32"),
-                 "provider_reason": getattr(m.choice, "reason", "ORT CPU provider"),
+                 "alignment": m.alignment, **m.choice.describe(),
                  "metadata": dict(m.metadata)} for m in self.models.values()] + [
                 {**m.describe(), "role": "clean-layer average (model/fused.py CLEAN_AVERAGE)"}
                 for m in (self.second.models.values() if self.second is not None else ())]
@@ -431,20 +409,20 @@ class FusedReconstructor:
         if features is None:
             raise BlendModelError("the fused method needs the frame's feature channels")
         if aux is None:
-            from model.oidn import shared_denoiser
+            from gradsep.model.oidn import shared_denoiser
 
             aux = shared_denoiser(OIDN_SETTING).prefilter(features)
         if name in self.fixed:  # no blend model for this layer: its one candidate, back at the frame's exposure
             average = self._averages(name) and layer.has_gradients
             if average and denoised is None:  # the average's exposure reads OIDN's image: denoise once, here
-                from model.oidn import shared_denoiser
+                from gradsep.model.oidn import shared_denoiser
 
                 denoised = shared_denoiser(OIDN_SETTING).denoise(layer.base, aux)
             report: dict[str, float] = {}
             _, (image,), scale = layer_candidates(layer, aux, (self.fixed[name],), denoised=denoised, report=report)
             out = blend(np.ones((1, *image.shape[:2]), np.float32), [image], scale)
             if average:  # a clean layer: averaged with the network's image where the two agree (CLEAN_AVERAGE)
-                from model.oidn import input_scale
+                from gradsep.model.oidn import input_scale
 
                 clean = report.get("clean_weight", 0.0)  # the refinement's own w_f (model.refine.clean_weight's)
                 if clean > 0.0:  # a noisy layer runs no network

@@ -25,14 +25,15 @@ import os
 import threading
 import time
 import weakref
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from model.policy import ILLUMINATION_LAYERS
-from model.preprocess import (
+from gradsep.model.onnx_session import ProviderChoice, SessionSettings, graph_session, open_session
+from gradsep.model.policy import ILLUMINATION_LAYERS
+from gradsep.model.preprocess import (
     DATA_INPUTS,
     DEFAULT_PRIOR,
     GRADIENT_INPUTS,
@@ -62,129 +63,17 @@ from model.preprocess import (
 if TYPE_CHECKING:
     import onnxruntime
 
-    from model.frame import Features, Layer
-    from model.oidn import CleanAux
+    from gradsep.model.frame import Features, Layer
+    from gradsep.model.oidn import CleanAux
 
 #: Model files looked for in the models folder, by layer name.
 MODEL_LAYERS: tuple[str, ...] = ILLUMINATION_LAYERS
 OUTPUT_NAME = "radiance_log"
-_OPT_LEVELS = ("disable", "basic", "extended", "all")
-#: Execution providers ``SessionSettings.provider`` can ask for; "auto" picks (see ``choose_provider``).
-PROVIDERS = ("auto", "cuda", "openvino", "cpu")
-CUDA_EP, OPENVINO_EP, CPU_EP = "CUDAExecutionProvider", "OpenVINOExecutionProvider", "CPUExecutionProvider"
-#: CPU flags that give OpenVINO's CPU plugin native bf16 arithmetic (AVX-512 BF16 or AMX).
-BF16_FLAGS = frozenset({"avx512_bf16", "amx_bf16"})
-
 log = logging.getLogger("gradsep.infer")
 
 
 class ModelError(RuntimeError):
     """A model file exists but cannot be served (corrupt, or exported for another layer or preprocessing)."""
-
-
-def _env_provider() -> str:
-    return os.environ.get("GRADSEP_ONNX_PROVIDER", "auto").strip().lower() or "auto"
-
-
-@dataclass(frozen=True)
-class SessionSettings:
-    """ONNX Runtime session options.
-
-    ``intra_op_threads`` 0 lets ORT use one thread per physical core, the fastest setting on the 2-core target;
-    a service running several inferences side by side may want fewer. Full graph optimisation (operator
-    fusion, NCHWc layouts) measured fastest in benchmarks/bench_network.py.
-
-    ``provider`` (env ``GRADSEP_ONNX_PROVIDER``): "auto" runs ORT's CUDA provider where the installed build has
-    it (``onnxruntime-gpu`` on a GPU host), else the OpenVINO execution provider in bf16 when the build has it
-    (the ``onnxruntime-openvino`` distribution) and the CPU has native bf16 (``avx512_bf16``/``amx_bf16`` in
-    /proc/cpuinfo), else ORT's own CPU provider in fp32; "cuda" asks for the CUDA provider (the CPU choice where
-    the build lacks it); "openvino" forces OpenVINO (bf16 where the CPU has it, else fp32); "cpu" forces ORT's
-    CPU provider (fp32).
-    """
-
-    intra_op_threads: int = 0
-    optimization: str = "all"
-    allow_spinning: bool = True  # spinning threads cut latency; turn off to free the CPU between requests
-    memory_arena: bool = True    # ORT's CPU arena: faster allocation, but it keeps its high-water mark
-    provider: str = field(default_factory=_env_provider)
-
-    def options(self) -> onnxruntime.SessionOptions:
-        import onnxruntime as ort
-
-        if self.optimization not in _OPT_LEVELS:
-            raise ValueError(f"optimization must be one of {_OPT_LEVELS}, got {self.optimization!r}")
-        so = ort.SessionOptions()
-        so.graph_optimization_level = {
-            "disable": ort.GraphOptimizationLevel.ORT_DISABLE_ALL,
-            "basic": ort.GraphOptimizationLevel.ORT_ENABLE_BASIC,
-            "extended": ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED,
-            "all": ort.GraphOptimizationLevel.ORT_ENABLE_ALL,
-        }[self.optimization]
-        so.intra_op_num_threads = max(0, int(self.intra_op_threads))
-        so.inter_op_num_threads = 1
-        so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-        so.enable_cpu_mem_arena = self.memory_arena
-        so.add_session_config_entry("session.intra_op.allow_spinning", "1" if self.allow_spinning else "0")
-        so.log_severity_level = 3  # errors only: ORT's warnings about unused initialisers are noise here
-        return so
-
-
-def cpu_flags(cpuinfo: str | os.PathLike[str] = "/proc/cpuinfo") -> frozenset[str]:
-    """The CPU's feature flags (Linux /proc/cpuinfo); empty where that file is missing or unreadable."""
-    try:
-        with open(cpuinfo) as fh:
-            for line in fh:
-                if line.startswith("flags"):
-                    return frozenset(line.partition(":")[2].split())
-    except OSError:
-        pass
-    return frozenset()
-
-
-@dataclass(frozen=True)
-class ProviderChoice:
-    """Which execution provider serves, in which precision, and why (reported by /v1/models and logged)."""
-
-    provider: str   # "cuda", "openvino" or "cpu"
-    precision: str  # "bf16" or "fp32"
-    reason: str
-
-    def providers(self) -> list[Any]:
-        """The ``providers`` argument of ``InferenceSession``."""
-        if self.provider == "cpu":
-            return [CPU_EP]
-        if self.provider == "cuda":  # fp32 on the GPU; ORT gives the CPU provider any node CUDA does not take
-            return [(CUDA_EP, {"device_id": 0}), CPU_EP]
-        hint = {"bf16": "bf16", "fp32": "f32"}[self.precision]
-        config = json.dumps({"CPU": {"INFERENCE_PRECISION_HINT": hint}})
-        # The CPU provider stays listed: ORT assigns it any node OpenVINO does not take.
-        return [(OPENVINO_EP, {"device_type": "CPU", "load_config": config}), CPU_EP]
-
-
-def choose_provider(requested: str, available: list[str] | tuple[str, ...], flags: frozenset[str]) -> ProviderChoice:
-    """Pick the provider and precision for ``requested`` ("auto", "openvino" or "cpu") on this host."""
-    if requested not in PROVIDERS:
-        raise ValueError(f"ONNX provider must be one of {', '.join(PROVIDERS)}, got {requested!r}")
-    has_ov = OPENVINO_EP in available
-    bf16 = sorted(BF16_FLAGS & flags)
-    if requested == "cpu":
-        return ProviderChoice("cpu", "fp32", "ORT CPU provider requested")
-    if CUDA_EP in available and requested in ("auto", "cuda"):
-        return ProviderChoice("cuda", "fp32", "ORT CUDA provider (onnxruntime-gpu)")
-    if requested == "cuda":
-        log.warning("CUDA provider requested but this onnxruntime build has none (install onnxruntime-gpu); "
-                    "choosing among the CPU providers")
-        requested = "auto"
-    if not has_ov:
-        why = "this onnxruntime build has no OpenVINO provider (install onnxruntime-openvino)"
-        if requested == "openvino":
-            log.warning("OpenVINO provider requested but %s; using the CPU provider", why)
-        return ProviderChoice("cpu", "fp32", why)
-    if bf16:
-        return ProviderChoice("openvino", "bf16", f"OpenVINO provider; the CPU has {', '.join(bf16)}")
-    if requested == "openvino":
-        return ProviderChoice("openvino", "fp32", "OpenVINO provider requested; the CPU lacks native bf16")
-    return ProviderChoice("cpu", "fp32", "the CPU lacks native bf16 (no avx512_bf16/amx_bf16)")
 
 
 @dataclass(frozen=True)
@@ -285,9 +174,7 @@ class LoadedModel:
             "attention": self.metadata.get("gradsep.attention") == "true",
             "prior": self.prior,
             "alignment": self.alignment,
-            "provider": self.choice.provider,
-            "precision": self.choice.precision,
-            "provider_reason": self.choice.reason,
+            **self.choice.describe(),
             "metadata": dict(self.metadata),
         }
 
@@ -325,7 +212,7 @@ def _check_metadata(path: Path, name: str, meta: dict[str, str]) -> int:
         problems.append(f"its prior {meta.get('gradsep.prior')!r} is unknown to this version (known: "
                         f"{', '.join(PRIOR_KINDS)}), so it cannot be computed as the model was trained")
     elif meta.get("gradsep.prior") == "oidn":
-        from model import oidn
+        from gradsep.model import oidn
 
         if meta.get("gradsep.exposure") != "prior-mean":
             problems.append("an oidn-prior model must declare gradsep.exposure = prior-mean")
@@ -340,51 +227,15 @@ def _check_metadata(path: Path, name: str, meta: dict[str, str]) -> int:
     return alignment
 
 
-def load_model(path: str | os.PathLike[str], name: str, settings: SessionSettings = SessionSettings()) -> LoadedModel:
-    """Open one exported model for layer ``name``; ModelError when it is unusable.
-
-    The provider is chosen by ``choose_provider``; should the accelerated one fail to build a session for this
-    model, the model is opened again on the CPU provider (logged), so a deployment never loses the network
-    over an optional accelerator.
-    """
-    import onnxruntime as ort
-
-    path = Path(path)
-    choice = choose_provider(settings.provider, ort.get_available_providers(), cpu_flags())
-    try:
-        session = _session(path, settings, choice)
-    except ModelError as exc:
-        if choice.provider == "cpu":
-            raise
-        log.warning("%s; falling back to the ORT CPU provider", exc)
-        choice = ProviderChoice("cpu", "fp32", f"the {choice.provider} provider failed on this model ({exc})")
-        session = _session(path, settings, choice)
-    choice = _served_by(choice, session.get_providers())
+def load_model(path: str | os.PathLike[str], name: str, settings: SessionSettings | None = None) -> LoadedModel:
+    """Open one exported model for layer ``name`` (model.onnx_session: this host's provider, CPU fallback);
+    ModelError when it is unusable."""
+    path, settings = Path(path), settings or SessionSettings()
+    session, choice = open_session(graph_session(path, settings), f"model {name} ({path.name})", settings, ModelError,
+                                   source=str(path))
     meta = dict(session.get_modelmeta().custom_metadata_map)
     alignment = _check_metadata(path, name, meta)
-    log.info("model %s (%s): %s provider, %s (%s)", name, path.name, choice.provider, choice.precision,
-             choice.reason)
     return LoadedModel(name, path, _sha256(path), meta, session, alignment, choice)
-
-
-def _served_by(choice: ProviderChoice, session_providers: list[str]) -> ProviderChoice:
-    """``choice`` as the session really runs it: ORT can build a session without the accelerated provider it was
-    given (a CUDA build on a host without a usable GPU), and /v1/models must then say the CPU serves."""
-    wanted = {"cuda": CUDA_EP, "openvino": OPENVINO_EP}.get(choice.provider)
-    if wanted is None or wanted in session_providers:
-        return choice
-    log.warning("ONNX Runtime did not enable the %s provider (session providers: %s); the CPU provider serves",
-                choice.provider, ", ".join(session_providers))
-    return ProviderChoice("cpu", "fp32", f"the {choice.provider} provider was not enabled by ONNX Runtime here")
-
-
-def _session(path: Path, settings: SessionSettings, choice: ProviderChoice) -> onnxruntime.InferenceSession:
-    import onnxruntime as ort
-
-    try:
-        return ort.InferenceSession(str(path), settings.options(), providers=choice.providers())
-    except Exception as exc:  # ORT raises its own exception types for corrupt or unsupported files
-        raise ModelError(f"{path}: ONNX Runtime cannot load it on the {choice.provider} provider ({exc})") from exc
 
 
 class NetworkReconstructor:
@@ -400,7 +251,7 @@ class NetworkReconstructor:
         self._graph_lock = threading.Lock()
 
     @classmethod
-    def load(cls, models_dir: str | os.PathLike[str], settings: SessionSettings = SessionSettings(),
+    def load(cls, models_dir: str | os.PathLike[str], settings: SessionSettings | None = None,
              tiles: TileSettings = TileSettings()) -> NetworkReconstructor | None:
         """Load every ``{direct,indirect,color}.onnx`` present; None when there is none. A ``fused`` blend model
         is refused (ModelError): model.reconstruct.load_fused opens those."""
@@ -459,7 +310,7 @@ class NetworkReconstructor:
         unlit = unlit_pixels(layer)
         scale = 1.0
         if model.prior == "oidn":  # fused: refine OIDN's denoise at a normalised exposure
-            from model.oidn import shared_denoiser
+            from gradsep.model.oidn import shared_denoiser
 
             aux = aux if aux is not None else shared_denoiser().prefilter(features)
             layer, prior, scale = oidn_prior_inputs(layer, aux)
@@ -558,7 +409,7 @@ def exposure_scale(layer: Layer) -> float:
 
 def _check_inputs(layer: Layer, features: Features | None) -> tuple[int, int]:
     """(H, W) of a consistent layer + features; ChannelError naming the channels otherwise."""
-    from model.frame import FEATURE_CHANNELS, ChannelError
+    from gradsep.model.frame import FEATURE_CHANNELS, ChannelError
 
     if features is None:
         raise ChannelError("the network needs the feature channels, which this frame lacks: "

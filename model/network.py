@@ -28,7 +28,7 @@ import torch.nn.functional as F
 from torch import nn
 
 # Channel names are data, defined with the transform that produces them (numpy-only, so inference shares them).
-from model.preprocess import DATA_INPUTS, FEATURE_INPUTS, GRADIENT_INPUTS, OUTPUTS, PRIOR_CHANNELS
+from gradsep.model.preprocess import DATA_INPUTS, FEATURE_INPUTS, GRADIENT_INPUTS, OUTPUTS, PRIOR_CHANNELS
 
 __all__ = ["DATA_INPUTS", "FEATURE_INPUTS", "GRADIENT_INPUTS", "OUTPUTS", "DualBranchNet", "GBranch",
            "NetworkConfig"]

@@ -34,7 +34,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 if TYPE_CHECKING:
-    from model.frame import Features
+    from gradsep.model.frame import Features
 
 #: The albedo/normal prefilter's quality: "fast" (its output scored the same as "high" to 5 digits on 16 dataset
 #: frames; docs/network.md, "The oidn and fused methods").
@@ -220,7 +220,7 @@ class Denoiser:
         the library runs it (library runtime; clean auxiliary images, which select a model not built here)."""
         if self.runtime != "onnx" or flags.get("cleanAux"):
             return None
-        from model.oidn_onnx import OnnxUNet, weights_for
+        from gradsep.model.oidn_onnx import OnnxUNet, weights_for
 
         model = weights_for("raw" if "albedo" in images else "none", self.quality)
         if model is not None and model not in self._unets:
@@ -289,7 +289,7 @@ def _colour_runtime(setting: Setting, requested: str) -> tuple[str, str, Any]:
         raise ValueError(f"OIDN runtime must be one of {', '.join(RUNTIMES)}, got {requested!r}")
     if requested == "library":
         return "library", "OIDN's own kernels (the default)", None
-    from model import oidn_onnx
+    from gradsep.model import oidn_onnx
 
     model = oidn_onnx.weights_for(setting.aux, setting.quality)
     if model is None:

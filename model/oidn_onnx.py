@@ -8,7 +8,7 @@ In fp32 the graph reproduces the library's output (tested).
 
 It reads the weights of one OIDN model out of the installed ``pyoidn`` library (nothing is downloaded or
 shipped: the weights are the library's own, so they always match the installed version), builds the U-Net as an
-ONNX graph, and runs it with ONNX Runtime on the provider :func:`model.infer.choose_provider` picks (the one the
+ONNX graph, and runs it with ONNX Runtime on the provider :func:`model.onnx_session.choose_provider` picks (the one the
 ``network`` method uses: OpenVINO in bf16 where the CPU has it, else ORT's CPU provider in fp32).
 
 What OIDN does around its network is done here the same way (``RT`` filter, HDR colour, raw albedo/normal):
@@ -36,14 +36,14 @@ import logging
 import math
 import os
 import struct
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 if TYPE_CHECKING:
-    from model.infer import ProviderChoice, SessionSettings
+    from gradsep.model.onnx_session import ProviderChoice, SessionSettings
 
 log = logging.getLogger("gradsep.oidn")
 
@@ -97,7 +97,7 @@ PU = PUTransfer()
 # The same transfer fused with the clamps, the layout change and the padding, compiled: the numpy formulation
 # above costs ~0.13 s per 720p layer (a third of the bf16 graph), these kernels a few ms. model.kernels.AVAILABLE
 # (GRADSEP_NUMBA=0, or no numba) selects the numpy path, which the tests compare them with.
-from model import kernels  # noqa: E402
+from gradsep.model import kernels  # noqa: E402
 
 if kernels.AVAILABLE:
     _jit = kernels._compiled
@@ -388,6 +388,9 @@ class _Split:
     def __init__(self, body: Any, head: Any) -> None:
         self.body, self.head = body, head
 
+    def get_providers(self) -> list[str]:
+        return self.body.get_providers()
+
     def run(self, names: list[str], feeds: dict[str, np.ndarray]) -> list[np.ndarray]:
         skip = self.body.run(["output"], feeds)[0]
         return self.head.run(names, {"input": feeds["input"], "skip": skip})
@@ -396,7 +399,7 @@ class _Split:
 class OnnxUNet:
     """One OIDN model (``rt_hdr_alb_nrm_small``, ...) on ONNX Runtime. Thread-safe (ORT sessions are).
 
-    The provider is :func:`model.infer.choose_provider`'s (``$GRADSEP_ONNX_PROVIDER``). Where that is OpenVINO
+    The provider is :func:`model.onnx_session.choose_provider`'s (``$GRADSEP_ONNX_PROVIDER``). Where that is OpenVINO
     in bf16 the graph runs split (:class:`_Split`: body bf16, full-resolution head fp32, reported as precision
     ``bf16+fp32``); elsewhere whole, in fp32.
     """
@@ -405,34 +408,26 @@ class OnnxUNet:
                  library: str | os.PathLike[str] | None = None) -> None:
         import onnxruntime as ort
 
-        from model.infer import ProviderChoice, SessionSettings, choose_provider, cpu_flags
+        from gradsep.model.onnx_session import ProviderChoice, SessionSettings, open_session
 
         self.model = model
         self.weights = read_weights(model, library)
         settings = settings or SessionSettings()
-        choice = choose_provider(settings.provider, ort.get_available_providers(), cpu_flags())
 
-        def session(part: str, providers: list[Any]) -> Any:
+        def session(part: str, choice: ProviderChoice) -> Any:
             return ort.InferenceSession(unet_graph(self.weights, model, part), settings.options(),
-                                        providers=providers)
+                                        providers=choice.providers())
 
-        try:
+        def build(choice: ProviderChoice) -> Any:
             if (choice.provider, choice.precision) == ("openvino", "bf16"):
-                fp32 = ProviderChoice("openvino", "fp32", choice.reason)
-                self.session: Any = _Split(session("body", choice.providers()), session("head", fp32.providers()))
-                choice = ProviderChoice("openvino", "bf16+fp32", f"{choice.reason}; full-resolution level in fp32")
-            else:
-                self.session = session("all", choice.providers())
-        except Exception as exc:  # noqa: BLE001 -- ORT's own exception types
-            if choice.provider == "cpu":
-                raise
-            log.warning("OIDN model %s: OpenVINO failed (%s); using the ORT CPU provider", model, exc)
-            choice = ProviderChoice("cpu", "fp32", f"OpenVINO failed on this model ({exc})")
-            self.session = session("all", choice.providers())
+                return _Split(session("body", choice), session("head", replace(choice, precision="fp32")))
+            return session("all", choice)
+
+        self.session, choice = open_session(build, f"OIDN model {model} on ONNX Runtime", settings)
+        if isinstance(self.session, _Split):
+            choice = ProviderChoice("openvino", "bf16+fp32", f"{choice.reason}; full-resolution level in fp32")
         self.choice: ProviderChoice = choice
         self.channels = int(self.weights["enc_conv0.weight"].shape[1])  # the graph checked the layers exist
-        log.info("OIDN model %s on ONNX Runtime: %s provider, %s (%s)", model, choice.provider, choice.precision,
-                 choice.reason)
 
     def denoise(self, color: np.ndarray, albedo: np.ndarray | None, normal: np.ndarray | None,
                 input_scale: float) -> np.ndarray:
@@ -488,5 +483,4 @@ class OnnxUNet:
         return np.clip(radiance, 0.0, _F32_MAX, out=radiance)
 
     def describe(self) -> dict[str, Any]:
-        return {"model": self.model, "provider": self.choice.provider,
-                "precision": self.choice.precision, "provider_reason": self.choice.reason}
+        return {"model": self.model, **self.choice.describe()}

@@ -47,8 +47,8 @@ from functools import lru_cache
 import numpy as np
 import scipy.fft
 
-from model import kernels
-from model.policy import DEFAULT_ALPHA
+from gradsep.model import kernels
+from gradsep.model.policy import DEFAULT_ALPHA
 
 __all__ = ["L1_CG_STEPS", "L1_PASSES", "MIN_ALPHA", "L1Stats", "energy_l1", "energy_l2", "solve_l1", "solve_l2"]
 

@@ -32,11 +32,11 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from model.poisson import solve_l1
-from model.policy import DEFAULT_ALPHA
+from gradsep.model.poisson import solve_l1
+from gradsep.model.policy import DEFAULT_ALPHA
 
 if TYPE_CHECKING:  # only for hints; importing model.frame at run time is fine but not needed
-    from model.frame import Features, Layer
+    from gradsep.model.frame import Features, Layer
 
 #: Transfer-function steepness (GradNet's μ).
 MU = 16.0
@@ -311,7 +311,7 @@ def clamp_outliers(base: np.ndarray, dx: np.ndarray, dy: np.ndarray,
     not clamped), then each gradient to ``factor`` × the largest clamped base value in the 3×3 neighbourhoods of
     its two pixels (a difference of non-negative values is bounded by the larger one). Scale-invariant (a frame
     at 1e-8 or 1e9 is clamped alike), and 0 where everything around is black."""
-    from model import kernels
+    from gradsep.model import kernels
 
     if kernels.AVAILABLE:
         out = (np.empty_like(base), np.empty_like(dx), np.empty_like(dy))
@@ -367,7 +367,7 @@ def scaled_image(image: np.ndarray, scale: float) -> np.ndarray:
 
 def scaled_layer(layer: Layer, scale: float) -> Layer:
     """The layer with base and gradients multiplied by ``scale`` (absent gradients stay absent)."""
-    from model.frame import Layer
+    from gradsep.model.frame import Layer
 
     def mul(x: np.ndarray | None) -> np.ndarray | None:
         return None if x is None else scaled_image(x, scale)
@@ -379,7 +379,7 @@ def oidn_prior_inputs(layer: Layer, aux: Any) -> tuple[Layer, np.ndarray, float]
     """What a ``fused`` model (prior ``oidn``) sees, for training and inference alike: (the layer at the
     normalised exposure, OIDN's denoise of its base at that exposure, the scale s). ``aux`` is the frame's
     prefiltered features (model.oidn.Denoiser.prefilter)."""
-    from model.oidn import shared_denoiser
+    from gradsep.model.oidn import shared_denoiser
 
     prior = shared_denoiser().denoise(layer.base, aux)
     scale = prior_exposure(prior)

@@ -38,11 +38,11 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from model import policy
-from model.environment import env_int
-from model.frame import Features, Frame, Layer
-from model.poisson import solve_l1, solve_l2
-from model.policy import (
+from gradsep.model import policy
+from gradsep.model.environment import env_int
+from gradsep.model.frame import Features, Frame, Layer
+from gradsep.model.poisson import solve_l1, solve_l2
+from gradsep.model.policy import (
     DEFAULT_ALPHA,
     GRADIENT_METHODS,
     METHODS,
@@ -163,7 +163,7 @@ def _timed(fn: Callable[..., np.ndarray], *args: Any) -> tuple[np.ndarray, float
 
 def _in_worker(fn: Callable[..., np.ndarray], *args: Any) -> tuple[np.ndarray, float]:
     """:func:`_timed` in a layer thread: its DCTs on one thread (the other layer has the other core)."""
-    from model.poisson import fft_workers
+    from gradsep.model.poisson import fft_workers
 
     with fft_workers(1):
         return _timed(fn, *args)
@@ -185,7 +185,7 @@ def _run_layers(frame: Frame, ctx: _Context) -> dict[str, tuple[np.ndarray, floa
             futures = {name: pool.submit(_in_worker, _reconstruct_layer, name, layer, ctx)
                        for name, layer in frame.layers.items()}
             return {name: future.result() for name, future in futures.items()}
-        from model.refine import REFINED_LAYERS
+        from gradsep.model.refine import REFINED_LAYERS
 
         order = sorted(frame.layers, key=lambda n: n not in REFINED_LAYERS)  # stable: the frame's order otherwise
         pending: dict[str, tuple[Future, float]] = {}
@@ -204,7 +204,7 @@ def _finish_oidn_layer(name: str, denoised: np.ndarray, layer: Layer, ctx: _Cont
     """The second stage of an OIDN method for one layer: nothing for oidn, the gradient refinement for oidn-l1."""
     if ctx.method == "oidn":
         return denoised
-    from model.refine import refine_layer
+    from gradsep.model.refine import refine_layer
 
     return refine_layer(name, denoised, layer)
 
@@ -218,7 +218,7 @@ def available_methods(frame: Frame, network: NetworkLike | None = None, fused: N
                       oidn: bool | None = None) -> list[str]:
     """The methods that can serve this frame: model.policy.DEFAULT_PREFERENCE order, then the rest of METHODS."""
     if oidn is None:
-        from model.oidn import available
+        from gradsep.model.oidn import available
 
         oidn = available()
     usable = {"oidn"} if oidn else set()
@@ -236,7 +236,7 @@ def refinable(frame: Frame) -> bool:
     (model.refine.REFINED_LAYERS: the direct layer) that is present has them. So a frame with the direct layer's
     gradients and a plain indirect layer (``gradsep render --gradients direct``) is served, as is every frame with
     gradients on all layers; the other gradient methods need every layer's gradients."""
-    from model.refine import REFINED_LAYERS
+    from gradsep.model.refine import REFINED_LAYERS
 
     with_gradients = frame.gradient_layers
     return bool(with_gradients) and all(name in with_gradients for name in frame.layers if name in REFINED_LAYERS)
@@ -244,13 +244,13 @@ def refinable(frame: Frame) -> bool:
 
 def missing_gradient_channels(frame: Frame, method: str) -> list[str]:
     """The gradient channels ``method`` needs and this frame lacks (empty: it has what the method needs)."""
-    from model.frame import layer_channels
+    from gradsep.model.frame import layer_channels
 
     if method not in GRADIENT_METHODS or (method == "oidn-l1" and refinable(frame)):
         return []
     needed = list(frame.layers)  # a plain frame: every layer's (as the contract always named them)
     if method == "oidn-l1" and frame.gradient_layers:  # gradients on some layers, but not on the direct layer
-        from model.refine import REFINED_LAYERS
+        from gradsep.model.refine import REFINED_LAYERS
 
         needed = [name for name in frame.layers if name in REFINED_LAYERS]
     return [c for name in needed if name not in frame.gradient_layers for c in layer_channels(name)[3:]]
@@ -265,7 +265,7 @@ def choose_method(frame: Frame, network: NetworkLike | None = None, fused: Netwo
     """
     chosen = policy.default_method(available_methods(frame, network, fused), gradients=bool(frame.gradient_layers))
     if chosen is None:
-        from model.frame import ChannelError
+        from gradsep.model.frame import ChannelError
 
         if frame.gradient_layers:  # gradients on some layers only: oidn and oidn-l1 serve it, both need pyoidn
             raise ChannelError(f"this frame carries gradients only for layer(s) {', '.join(frame.gradient_layers)}; "
@@ -279,7 +279,7 @@ def choose_method(frame: Frame, network: NetworkLike | None = None, fused: Netwo
 
 def _check_method(frame: Frame, method: str, alpha: float, models: NetworkLike | None) -> None:
     """Raise a clear error when ``method`` cannot serve ``frame`` (ChannelError names the channels)."""
-    from model.frame import FEATURE_CHANNELS, ChannelError
+    from gradsep.model.frame import FEATURE_CHANNELS, ChannelError
 
     if method not in METHODS:
         raise ValueError(f"unknown reconstruction method {method!r}; expected one of {', '.join(METHODS)}")
@@ -295,7 +295,7 @@ def _check_method(frame: Frame, method: str, alpha: float, models: NetworkLike |
                            f"for {', '.join(frame.gradient_layers)} (missing {', '.join(missing)}); use method "
                            f"{alternatives}, or send the missing channels", {"missing": missing})
     if method in OIDN_METHODS:
-        from model.oidn import available
+        from gradsep.model.oidn import available
 
         if not available():
             raise ValueError(f"method {method!r} needs pyoidn, which is not installed here (pip install pyoidn)")
@@ -336,7 +336,7 @@ def reconstruct(frame: Frame, method: str | None = None, alpha: float = DEFAULT_
     total = np.zeros(shape, dtype=np.float64)
     needs_aux = method in OIDN_METHODS or bool(getattr(models, "needs_aux", False))
     if needs_aux:
-        from model.oidn import PRIOR_SETTING, method_setting, shared_denoiser
+        from gradsep.model.oidn import PRIOR_SETTING, method_setting, shared_denoiser
 
         # oidn runs at its chosen setting; model sets that use OIDN name the setting they were trained with
         ctx.denoiser = (shared_denoiser(method_setting()) if method in OIDN_METHODS
@@ -362,9 +362,9 @@ FUSED_SUBDIR = "fused"
 
 
 def _load(folder: Path, priors: tuple[str, ...]) -> Any:
-    if not folder.is_dir() or importlib.util.find_spec("model.infer") is None:
+    if not folder.is_dir() or importlib.util.find_spec("gradsep.model.infer") is None:
         return None
-    from model.infer import ModelError, NetworkReconstructor  # type: ignore[import-not-found]
+    from gradsep.model.infer import ModelError, NetworkReconstructor  # type: ignore[import-not-found]
 
     models = NetworkReconstructor.load(folder)
     # a folder of fused blend models loads as model.fused.FusedReconstructor, whose models have no ``prior``
@@ -382,7 +382,7 @@ def load_network(models_dir: str | os.PathLike[str] | None) -> Any:
     module. Same contract as the service's loader: None for a folder without models, an exception for models
     that fail to load. Each model may refine any Poisson prior kind (model.preprocess.POISSON_PRIORS: the one
     its metadata names is what it is fed); models refining OIDN (the ``fused`` kind) are refused."""
-    from model.preprocess import POISSON_PRIORS
+    from gradsep.model.preprocess import POISSON_PRIORS
 
     return _load(models_dir_from(models_dir), tuple(POISSON_PRIORS))
 
@@ -391,13 +391,13 @@ def load_fused(models_dir: str | os.PathLike[str] | None) -> Any:
     """The ``fused`` method's reconstructor (models/fused/*.onnx: per-pixel blend models, model/fused.py), or None
     when the folder has no model or pyoidn is missing. A model of another prior kind there (an ``l1`` network
     model, or the earlier OIDN-residual ``oidn`` models) is refused with ModelError."""
-    from model.oidn import available
+    from gradsep.model.oidn import available
 
     folder = models_dir_from(models_dir) / FUSED_SUBDIR
     if not available() or not folder.is_dir():
         return None
-    from model.fused import BlendModelError, FusedReconstructor
-    from model.infer import ModelError  # type: ignore[import-not-found]
+    from gradsep.model.fused import BlendModelError, FusedReconstructor
+    from gradsep.model.infer import ModelError  # type: ignore[import-not-found]
 
     try:
         return FusedReconstructor.load(folder)

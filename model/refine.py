@@ -41,10 +41,10 @@ import math
 
 import numpy as np
 
-from model.frame import Layer
-from model.oidn import input_scale
-from model.poisson import solve_l1
-from model.preprocess import scaled_image
+from gradsep.model.frame import Layer
+from gradsep.model.oidn import input_scale
+from gradsep.model.poisson import solve_l1
+from gradsep.model.preprocess import scaled_image
 
 #: The layers whose gradients refine OIDN's result (the rest keep OIDN's).
 REFINED_LAYERS: frozenset[str] = frozenset({"direct"})

@@ -12,15 +12,15 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from model.errors import CommandError
-from model.policy import SEPARATED_LAYERS
+from gradsep.model.errors import CommandError
+from gradsep.model.policy import SEPARATED_LAYERS
 
 
 def render_command(args: argparse.Namespace) -> int:
     """`gradsep render`: render a frame and write it atomically to ``args.output``."""
-    from model.frame import write_frame
-    from renderer.render import check_gradient_spp, render_frame
-    from renderer.scene import load_scene, parse_defines
+    from gradsep.model.frame import write_frame
+    from gradsep.renderer.render import check_gradient_spp, render_frame
+    from gradsep.renderer.scene import load_scene, parse_defines
 
     output = Path(args.output)
     if output.suffix.lower() != ".exr":
@@ -67,8 +67,8 @@ def render_command(args: argparse.Namespace) -> int:
 
 def reference_command(args: argparse.Namespace) -> int:
     """Handler of `gradsep reference`: validate, render, write atomically, print a one-line summary."""
-    from renderer.reference import parse_shard, render_reference, write_reference
-    from renderer.scene import parse_defines
+    from gradsep.renderer.reference import parse_shard, render_reference, write_reference
+    from gradsep.renderer.scene import parse_defines
 
     for name in ("spp", "tile_spp", "width", "height"):
         value = getattr(args, name, None)
@@ -108,8 +108,8 @@ def _print_written(out: Path, ref: Any) -> None:
 
 def reference_merge_command(args: argparse.Namespace) -> int:
     """Handler of `gradsep reference-merge`: the N ``--shard K/N`` files of one job -> the job's reference."""
-    from model.frame import FrameError
-    from renderer.reference import load_reference, merge_references, write_reference
+    from gradsep.model.frame import FrameError
+    from gradsep.renderer.reference import load_reference, merge_references, write_reference
 
     out = Path(args.output)
     if out.suffix.lower() != ".exr":
@@ -140,7 +140,7 @@ def _rate(spp: int, shape: tuple[int, ...], seconds: float) -> str:
 
 def dataset_command(args: argparse.Namespace) -> int:
     """Handler of `gradsep dataset`."""
-    from renderer.dataset import MANIFEST_NAME, PARTS_DIR, DatasetError, finished_frames, make_job, run_dataset
+    from gradsep.renderer.dataset import MANIFEST_NAME, PARTS_DIR, DatasetError, finished_frames, make_job, run_dataset
 
     job = make_job(args.count, args.spp, args.size, args.shard, args.first_seed, args.max_depth, args.pairs,
                    args.family)
@@ -159,8 +159,8 @@ def dataset_command(args: argparse.Namespace) -> int:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from renderer.reference import CLI_SAMPLERS, DEFAULT_SAMPLER  # numpy only: no Mitsuba at parser time
-    from renderer.render import OFFSET_CHOICES  # no Mitsuba at import time either
+    from gradsep.renderer.reference import CLI_SAMPLERS, DEFAULT_SAMPLER  # numpy only: no Mitsuba at parser time
+    from gradsep.renderer.render import OFFSET_CHOICES  # no Mitsuba at import time either
 
     p = sub.add_parser("render", help="render a G-PT frame (base + gradients + features per illumination layer)")
     p.add_argument("scene", help="Mitsuba 3 XML scene path, procedural:SEED or procedural:studio:SEED")

@@ -39,9 +39,9 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from model.errors import CommandError
-from model.frame import write_bytes_atomic
-from model.progress import ProgressBar
+from gradsep.model.errors import CommandError
+from gradsep.model.frame import write_bytes_atomic
+from gradsep.model.progress import ProgressBar
 
 MANIFEST_VERSION = 1
 MANIFEST_NAME = "manifest.json"
@@ -238,7 +238,7 @@ class Job:
 
     def scene(self, seed: int) -> str:
         """The scene spec of frame ``seed``: ``procedural:SEED`` (rooms) or ``procedural:FAMILY:SEED``."""
-        from renderer.procedural import ProceduralSpec
+        from gradsep.renderer.procedural import ProceduralSpec
 
         return str(ProceduralSpec(seed, self.family))
 
@@ -423,8 +423,8 @@ def run_dataset(root: str | os.PathLike[str], job: Job, *, progress: bool | None
 
 def _render_to(root: Path, rel: str, job: Job, seed: int, sampler_seed: int) -> tuple[Any, bytes]:
     """Render procedural scene ``seed`` with ``sampler_seed`` into ``root/rel`` (atomically); (frame, file bytes)."""
-    from model.frame import write_frame
-    from renderer.render import render_frame
+    from gradsep.model.frame import write_frame
+    from gradsep.renderer.render import render_frame
 
     frame = render_frame(job.scene(seed), spp=job.spp, seed=sampler_seed, width=job.width, height=job.height,
                          max_depth=job.max_depth)
@@ -472,7 +472,7 @@ def parse_shard(text: str) -> tuple[int, int]:
 def make_job(count: int, spp: int, size: str, shard: str, first_seed: int, max_depth: int | None,
              pairs: bool = False, family: str = "mixed") -> Job:
     """Validate the command's options into a :class:`Job`."""
-    from renderer.procedural import FAMILIES, GENERATOR_VERSION
+    from gradsep.renderer.procedural import FAMILIES, GENERATOR_VERSION
 
     if family not in FAMILIES:
         raise DatasetError(f"--family must be one of {', '.join(FAMILIES)}, got {family!r}")

@@ -3,7 +3,7 @@ procedural generator can all raise it without importing each other)."""
 
 from __future__ import annotations
 
-from model.errors import CommandError
+from gradsep.model.errors import CommandError
 
 __all__ = ["SceneError"]
 

@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from renderer.errors import SceneError
+from gradsep.renderer.errors import SceneError
 
 GENERATOR_VERSION = 1
 PROCEDURAL_PREFIX = "procedural:"  # a scene spec naming a procedural scene: procedural:SEED
@@ -865,6 +865,6 @@ def _to_mitsuba(node: Any, key: str = "") -> Any:
 
 def _ensure_variant() -> None:
     """Pick the project's variant when no caller has yet: renderer.variant owns that choice (CUDA or LLVM)."""
-    from renderer.variant import select_variant
+    from gradsep.renderer.variant import select_variant
 
     select_variant()

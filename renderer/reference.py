@@ -46,10 +46,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from model.progress import ProgressBar
+from gradsep.model.progress import ProgressBar
 
 if TYPE_CHECKING:  # scene.py needs Mitsuba at import time; load_reference must not
-    from renderer.scene import LoadedScene
+    from gradsep.renderer.scene import LoadedScene
 
 # Samples per pass when --tile-spp is not given: about 16 M samples keeps a pass to seconds on a CPU, so the
 # progress bar moves, while a pass is still large enough to keep every core busy. Memory is not the limit on
@@ -79,7 +79,7 @@ class Reference:
 
     def channels(self) -> dict[str, np.ndarray]:
         """Channel name -> (H, W) float32: ``R G B``, ``direct.*`` and, when present, ``indirect.*``."""
-        from model.frame import rgb_channels
+        from gradsep.model.frame import rgb_channels
 
         out = dict(rgb_channels("", self.total))
         out.update(rgb_channels("direct", self.direct))
@@ -149,7 +149,7 @@ def sampler_count(sampler: str, spp: int) -> int:
     """The samples per pixel Mitsuba's ``sampler`` actually renders when asked for ``spp``."""
     import mitsuba as mi
 
-    from renderer.variant import select_variant
+    from gradsep.renderer.variant import select_variant
 
     select_variant()
     if sampler not in SAMPLERS:
@@ -210,7 +210,7 @@ def render_reference(spec: str, *, spp: int, width: int | None = None, height: i
     check_sampler(sampler)
     if shard is not None:
         check_shard(shard)
-    from renderer.scene import load_scene  # box filter, film size, variant, unrenderable scenes refused
+    from gradsep.renderer.scene import load_scene  # box filter, film size, variant, unrenderable scenes refused
 
     loaded = load_scene(spec, width=width, height=height, max_depth=max_depth, defines=dict(defines or {}))
     return render_loaded(loaded, spp=spp, seed=seed, tile_spp=tile_spp, progress=progress, sampler=sampler,
@@ -425,7 +425,7 @@ def _check_positive(name: str, value: int) -> None:
 
 def write_reference(path: str | Path, reference: Reference) -> None:
     """Write ``R G B`` + layers (float32) with the metadata, atomically (model.frame.write_exr)."""
-    from model.frame import write_exr
+    from gradsep.model.frame import write_exr
 
     write_exr(path, reference.channels(), metadata=reference.metadata)
 
@@ -438,7 +438,7 @@ def load_reference(source: str | os.PathLike[str] | bytes) -> Reference:
     """
     import OpenEXR
 
-    from model.frame import RGB, ChannelError, NotExrError, read_header
+    from gradsep.model.frame import RGB, ChannelError, NotExrError, read_header
 
     info = read_header(source)
     names = set(info.channels)

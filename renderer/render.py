@@ -12,10 +12,10 @@ import numbers
 import time
 from collections.abc import Callable, Iterable, Mapping
 
-from model import __version__
-from model.errors import CommandError
-from model.frame import ILLUMINATION_LAYERS, SEPARATED_LAYERS, Features, Frame, Layer
-from renderer.scene import LoadedScene, load_scene
+from gradsep.model import __version__
+from gradsep.model.errors import CommandError
+from gradsep.model.frame import ILLUMINATION_LAYERS, SEPARATED_LAYERS, Features, Frame, Layer
+from gradsep.renderer.scene import LoadedScene, load_scene
 
 
 def parse_layers(text: str | Iterable[str]) -> tuple[str, ...]:
@@ -105,8 +105,8 @@ def render_frame(scene: LoadedScene | str, *, spp: int, seed: int = 0,
     gradients the K G-PT samples' (``render_gpt``). K == ``spp`` is the plain render; a K below ``spp`` is recorded
     as ``gradsep.gradient_spp`` (``gradsep.spp`` stays the bases' sample count).
     """
-    from renderer.gpt import GptSettings, render_gpt
-    from renderer.shift import make_shift  # imports Mitsuba
+    from gradsep.renderer.gpt import GptSettings, render_gpt
+    from gradsep.renderer.shift import make_shift  # imports Mitsuba
 
     if spp < 1:
         raise CommandError(f"--spp must be >= 1, got {spp}")

@@ -23,9 +23,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from renderer.errors import SceneError
-from renderer.procedural import GENERATOR_VERSION, ProceduralSpec, parse_procedural, procedural_scene
-from renderer.variant import select_variant
+from gradsep.renderer.errors import SceneError
+from gradsep.renderer.procedural import GENERATOR_VERSION, ProceduralSpec, parse_procedural, procedural_scene
+from gradsep.renderer.variant import select_variant
 
 SUPPORTED_SENSORS: tuple[str, ...] = ("PerspectiveCamera", "ThinLensCamera")
 DEFAULT_MAX_DEPTH = 6  # Mitsuba's own default for path tracers

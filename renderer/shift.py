@@ -35,7 +35,7 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-from renderer.gpt import OffsetEvents, PathState, Shift, Vertex, VertexSamples, mis_power, trace_vertex
+from gradsep.renderer.gpt import OffsetEvents, PathState, Shift, Vertex, VertexSamples, mis_power, trace_vertex
 
 SHIFT_NAMES: tuple[str, ...] = ("replay", "hybrid")
 

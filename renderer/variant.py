@@ -10,7 +10,7 @@ from __future__ import annotations
 import os
 import threading
 
-from renderer.errors import SceneError
+from gradsep.renderer.errors import SceneError
 
 __all__ = ["CPU_VARIANT", "GPU_VARIANT", "VARIANT_ENV", "select_variant"]
 

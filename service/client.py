@@ -32,7 +32,7 @@ from typing import Any
 
 import httpx
 
-from model.errors import CommandError
+from gradsep.model.errors import CommandError
 
 DEFAULT_URL = "http://127.0.0.1:8000"
 EXIT_OK, EXIT_SERVER_ERROR, EXIT_UNAVAILABLE = 0, 1, 75
@@ -195,7 +195,7 @@ def send_frame(frame: Path, output: Path, *, url: str | None = None, token: str 
     Bad input and 4xx answers raise CommandError (exit 2); an unavailable or failing service returns
     EXIT_UNAVAILABLE / EXIT_SERVER_ERROR after printing one line.
     """
-    from model.frame import write_bytes_atomic
+    from gradsep.model.frame import write_bytes_atomic
 
     _setup_logging()
     url, token = resolve_target(url, token)

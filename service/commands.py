@@ -8,12 +8,12 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from model.policy import METHODS
+from gradsep.model.policy import METHODS
 
 
 def serve_command(args: argparse.Namespace) -> int:
     """`gradsep serve`: run the service under uvicorn with settings validated up front."""
-    from service.serve import serve
+    from gradsep.service.serve import serve
 
     serve(args.host, args.port, args.workers)
     return 0
@@ -22,7 +22,7 @@ def serve_command(args: argparse.Namespace) -> int:
 def client_command(args: argparse.Namespace, *, sleep: Callable[[float], None] = time.sleep) -> int:
     """`gradsep client FRAME -o OUT`: post the frame, write the answer atomically; the exit status of
     service.client.send_frame (0 written, 2 bad input or 4xx, 75 unavailable, 1 service failure)."""
-    from service.client import send_frame
+    from gradsep.service.client import send_frame
 
     params = {"method": args.method, "alpha": args.alpha, "format": args.format, "layers": args.layers}
     return send_frame(Path(args.frame), Path(args.output), url=args.url, token=args.token, params=params,

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from fastapi import Request
 
-from service.inference import Engine
-from service.metrics import ServiceMetrics
+from gradsep.service.inference import Engine
+from gradsep.service.metrics import ServiceMetrics
 
 
 def get_engine(request: Request) -> Engine:

@@ -17,7 +17,7 @@ from pydantic import BaseModel, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.responses import JSONResponse
 
-from model.frame import FrameError
+from gradsep.model.frame import FrameError
 
 
 class ErrorBody(BaseModel):

@@ -24,7 +24,7 @@ import anyio
 import numpy as np
 from anyio.abc import TaskGroup
 
-from model.frame import (
+from gradsep.model.frame import (
     Layer,
     ReadLimits,
     Source,
@@ -33,9 +33,9 @@ from model.frame import (
     read_frame,
     rgb_channels,
 )
-from model.policy import POISSON_METHODS
-from service.errors import ServiceError
-from service.settings import Settings
+from gradsep.model.policy import POISSON_METHODS
+from gradsep.service.errors import ServiceError
+from gradsep.service.settings import Settings
 
 log = logging.getLogger("gradsep.service")
 
@@ -164,7 +164,7 @@ class Outcome:
 
 def reconstruct(frame: Any, method: str | None, alpha: float, network: Any = None, fused: Any = None) -> Any:
     """Indirection to ``model.reconstruct.reconstruct`` (imported on first use; tests may patch this name)."""
-    from model.reconstruct import reconstruct as model_reconstruct
+    from gradsep.model.reconstruct import reconstruct as model_reconstruct
 
     return model_reconstruct(frame, method, alpha, network=network, fused=fused)
 
@@ -231,7 +231,7 @@ class Engine:
     def __init__(self, settings: Settings) -> None:
         self.settings = settings
         configure_exr_threads(settings.exr_threads)
-        from model.allocator import configure_malloc
+        from gradsep.model.allocator import configure_malloc
 
         arenas = configure_malloc(settings.malloc_arenas)  # before the worker threads exist: model/allocator.py
         log.info("malloc arenas: %s", arenas if arenas is not None else "left as glibc / MALLOC_ARENA_MAX set them")
@@ -246,7 +246,7 @@ class Engine:
     @property
     def methods(self) -> tuple[str, ...]:
         """What this replica serves, in model.policy.METHODS order."""
-        from model.policy import METHODS, OIDN_METHODS
+        from gradsep.model.policy import METHODS, OIDN_METHODS
 
         served = {*POISSON_METHODS, *(("network",) if self.network is not None else ()),
                   *(("fused",) if self.fused is not None else ()),
@@ -256,14 +256,14 @@ class Engine:
     @property
     def default_method(self) -> str:
         """The default for a gradient-domain frame with features (the first of DEFAULT_PREFERENCE served)."""
-        from model.policy import default_method
+        from gradsep.model.policy import default_method
 
         return default_method(self.methods, gradients=True) or "l1"
 
     @property
     def default_method_plain(self) -> str | None:
         """The default for a plain frame (no gradients): oidn, or None when OIDN is not installed."""
-        from model.policy import default_method
+        from gradsep.model.policy import default_method
 
         return default_method(self.methods, gradients=False)
 
@@ -277,7 +277,7 @@ class Engine:
         try:
             self.network = await anyio.to_thread.run_sync(load_network, self.settings.models_dir)
             self.fused = await anyio.to_thread.run_sync(load_fused, self.settings.models_dir)
-            from model.oidn import available
+            from gradsep.model.oidn import available
 
             self.oidn = available()
             if self.settings.warm_up:
@@ -310,7 +310,7 @@ class Engine:
         """The ``oidn`` method's denoiser: setting, runtime and why (None where pyoidn is not installed)."""
         if not self.oidn:
             return None
-        from model.oidn import method_setting, shared_denoiser
+        from gradsep.model.oidn import method_setting, shared_denoiser
 
         return shared_denoiser(method_setting()).describe()
 
@@ -329,7 +329,7 @@ def load_network(models_dir: Path) -> Any:
     empty one, or a host without the inference module gives None; models that fail to load raise, because
     serving silently without the network an operator shipped would be worse than not becoming ready.
     """
-    from model.reconstruct import load_network as load
+    from gradsep.model.reconstruct import load_network as load
 
     network = load(models_dir)
     if network is None:
@@ -339,7 +339,7 @@ def load_network(models_dir: Path) -> Any:
 
 def load_fused(models_dir: Path) -> Any:
     """The fused method's reconstructor (models_dir/fused), or None (no such models, or no pyoidn)."""
-    from model.reconstruct import load_fused as load
+    from gradsep.model.reconstruct import load_fused as load
 
     fused = load(models_dir)
     if fused is None:
@@ -349,7 +349,7 @@ def load_fused(models_dir: Path) -> Any:
 
 def warm_up_frame(size: int = 16) -> Any:
     """A small smooth direct + indirect frame with exact gradients (and features, which the network reads)."""
-    from model.frame import Features, Frame
+    from gradsep.model.frame import Features, Frame
 
     y, x = np.mgrid[0:size, 0:size].astype(np.float32) / size
     layers = {}

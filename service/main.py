@@ -8,14 +8,14 @@ from contextlib import asynccontextmanager
 import anyio
 from fastapi import FastAPI
 
-from model import __version__
-from service.errors import install_error_handlers
-from service.inference import Engine
-from service.metrics import ServiceMetrics
-from service.middleware import install_middleware
-from service.openapi import install_docs, install_openapi
-from service.routers import health, metrics, models, reconstruct
-from service.settings import Settings
+from gradsep.model import __version__
+from gradsep.service.errors import install_error_handlers
+from gradsep.service.inference import Engine
+from gradsep.service.metrics import ServiceMetrics
+from gradsep.service.middleware import install_middleware
+from gradsep.service.openapi import install_docs, install_openapi
+from gradsep.service.routers import health, metrics, models, reconstruct
+from gradsep.service.settings import Settings
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:

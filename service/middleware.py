@@ -18,8 +18,8 @@ from typing import Any
 from starlette.datastructures import Headers, MutableHeaders
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from service.errors import body_too_large, error_json
-from service.metrics import ServiceMetrics
+from gradsep.service.errors import body_too_large, error_json
+from gradsep.service.metrics import ServiceMetrics
 
 log = logging.getLogger("gradsep.service")
 

@@ -21,7 +21,7 @@ from fastapi.openapi.utils import get_openapi
 from starlette.responses import HTMLResponse
 from starlette.staticfiles import StaticFiles
 
-from service.middleware import OPEN_PATHS
+from gradsep.service.middleware import OPEN_PATHS
 
 
 def install_openapi(app: FastAPI, *, secured: bool) -> None:

@@ -5,8 +5,8 @@ from __future__ import annotations
 import copy
 from typing import Any
 
-from model.errors import CommandError
-from service.settings import Settings
+from gradsep.model.errors import CommandError
+from gradsep.service.settings import Settings
 
 
 def _settings_or_error() -> Settings:
@@ -42,11 +42,11 @@ def serve(host: str, port: int, workers: int) -> None:
         raise CommandError(f"--port must be between 0 and 65535, got {port}")
     if workers < 1:
         raise CommandError(f"--workers must be at least 1, got {workers}")
-    from service.protocol import http_protocol
+    from gradsep.service.protocol import http_protocol
 
     settings = _settings_or_error()
     uvicorn.run(
-        "service.main:create_app", factory=True, host=host, port=port, workers=workers,
+        "gradsep.service.main:create_app", factory=True, host=host, port=port, workers=workers,
         log_level=settings.log_level, log_config=log_config(settings.log_level),
         access_log=False,  # our own access line (service.middleware) has the request id
         server_header=False,

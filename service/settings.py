@@ -12,9 +12,9 @@ from typing import Literal
 from pydantic import AliasChoices, Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from model.allocator import DEFAULT_ARENAS
-from model.poisson import MIN_ALPHA
-from model.policy import DEFAULT_ALPHA, DEFAULT_MODELS_DIR, MODELS_ENV
+from gradsep.model.allocator import DEFAULT_ARENAS
+from gradsep.model.poisson import MIN_ALPHA
+from gradsep.model.policy import DEFAULT_ALPHA, DEFAULT_MODELS_DIR, MODELS_ENV
 
 MiB = 1024 * 1024
 

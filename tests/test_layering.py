@@ -1,10 +1,13 @@
 """The import layering of docs/architecture.md, checked on the source (every import, lazy ones inside functions
 included, parsed with ast -- nothing is imported):
 
-* ``model/`` is the ground floor: it imports none of renderer/, training/, service/, evaluation/, gradsep/;
-* ``gradsep/`` is the roof: no library module imports it (the error base class and the version live in model/);
-* every package's ``commands.py`` imports only the standard library and the import-light ``model.errors`` /
-  ``model.policy`` at module level, so building the parser needs neither numpy, torch, mitsuba nor FastAPI.
+* ``gradsep.model`` (``model/``) is the ground floor: it imports none of the renderer, training, service,
+  evaluation packages or the command line;
+* the command line (``gradsep.cli``) is the roof: no library module imports it (the error base class and the
+  version live in ``gradsep.model``);
+* every package's ``commands.py`` imports only the standard library and the import-light ``gradsep.model.errors`` /
+  ``gradsep.model.policy`` at module level, so building the parser needs neither numpy, torch, mitsuba nor FastAPI;
+* no import cycle of any length (strongly connected components of the module graph).
 """
 
 from __future__ import annotations
@@ -16,9 +19,12 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
+#: The library's folders; each installs as ``gradsep.<folder>`` (setup.py).
 LIBRARY = ("model", "renderer", "training", "service", "evaluation")
-ABOVE_MODEL = ("renderer", "training", "service", "evaluation", "gradsep")
-COMMAND_MODULE_ALLOWED = ("model.errors", "model.policy")
+#: The command line's modules (the gradsep/ folder): the roof of the graph.
+CLI = "cli"
+ABOVE_MODEL = ("renderer", "training", "service", "evaluation", CLI)
+COMMAND_MODULE_ALLOWED = ("gradsep.model.errors", "gradsep.model.policy")
 
 
 def _is_main_block(node: ast.stmt) -> bool:
@@ -50,20 +56,37 @@ def package_files(package: str) -> list[Path]:
     return sorted((REPO / package).rglob("*.py"))
 
 
+def layer_of(module: str) -> str | None:
+    """The layer a dotted module name belongs to: ``gradsep.model.frame`` -> ``model``, ``gradsep.cli`` and
+    ``gradsep`` itself -> ``cli``; None for anything outside gradsep."""
+    parts = module.split(".")
+    if parts[0] != "gradsep":
+        return None
+    return parts[1] if len(parts) > 1 and parts[1] in LIBRARY else CLI
+
+
+def module_name(path: Path) -> str:
+    """The installed dotted name of a source file: ``model/frame.py`` -> ``gradsep.model.frame``."""
+    return "gradsep." + ".".join(path.relative_to(REPO).with_suffix("").parts).removeprefix("gradsep.") \
+        .removesuffix(".__init__")
+
+
 def violations(package: str, forbidden: tuple[str, ...]) -> list[str]:
     out = []
     for path in package_files(package):
         for name, line, _ in imports(path.read_text()):
-            if name.split(".")[0] in forbidden:
+            if layer_of(name) in forbidden and name != "gradsep":
                 out.append(f"{path.relative_to(REPO)}:{line} imports {name}")
     return sorted(set(out))
 
 
 def test_the_checker_sees_lazy_and_from_imports():
     """The checks below can fail: a lazy import inside a function and a from-import are both found."""
-    source = "import os\nfrom model.frame import Frame\n\ndef f():\n    from gradsep.cli import main\n    return main\n"
+    source = ("import os\nfrom gradsep.model.frame import Frame\n\n"
+              "def f():\n    from gradsep.cli import main\n    return main\n")
     found = imports(source)
-    assert ("gradsep.cli", 5, False) in found and ("model.frame", 2, True) in found and ("os", 1, True) in found
+    assert ("gradsep.cli", 5, False) in found and ("gradsep.model.frame", 2, True) in found
+    assert ("os", 1, True) in found
 
 
 def module_imports() -> dict[str, set[str]]:
@@ -71,18 +94,85 @@ def module_imports() -> dict[str, set[str]]:
     out = {}
     for package in (*LIBRARY, "gradsep"):
         for path in package_files(package):
-            name = ".".join(path.relative_to(REPO).with_suffix("").parts).removesuffix(".__init__")
-            out[name] = {n for n, _, _ in imports(path.read_text(), main_block=False)}
+            out[module_name(path)] = {n for n, _, _ in imports(path.read_text(), main_block=False)}
     return out
 
 
-def test_no_two_modules_import_each_other():
-    """An import loop (even through lazy imports) means neither module can be read or tested alone; the
-    scene/procedural loop (renderer.variant and renderer.errors now hold what both need) must not come back."""
+def import_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Every import cycle, as the strongly connected components of more than one module (or a module importing
+    itself), found with Tarjan's algorithm (iterative: no recursion limit). Edges to modules outside ``graph`` are
+    ignored; a package's ``__init__`` counts as the package name."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    on_stack: set[str] = set()
+    stack: list[str] = []
+    components: list[list[str]] = []
+    counter = 0
+    for root in sorted(graph):
+        if root in index:
+            continue
+        work = [(root, iter(sorted(d for d in graph[root] if d in graph)))]
+        index[root] = low[root] = counter
+        counter += 1
+        stack.append(root)
+        on_stack.add(root)
+        while work:
+            node, children = work[-1]
+            child = next(children, None)
+            if child is not None:
+                if child not in index:
+                    index[child] = low[child] = counter
+                    counter += 1
+                    stack.append(child)
+                    on_stack.add(child)
+                    work.append((child, iter(sorted(d for d in graph[child] if d in graph))))
+                elif child in on_stack:
+                    low[node] = min(low[node], index[child])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[node])
+            if low[node] == index[node]:
+                component = []
+                while True:
+                    member = stack.pop()
+                    on_stack.discard(member)
+                    component.append(member)
+                    if member == node:
+                        break
+                if len(component) > 1 or node in graph[node]:
+                    components.append(sorted(component))
+    return sorted(components)
+
+
+def test_the_cycle_finder_sees_cycles_of_any_length():
+    """A three-module cycle (no two of its modules import each other directly), a self-import and a pair are
+    all found; an acyclic graph with a diamond has none."""
+    three = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a", "os"}}
+    assert import_cycles(three) == [["a", "b", "c"]]
+    assert import_cycles({"a": {"a"}, "b": set()}) == [["a"]]
+    assert import_cycles({"a": {"b"}, "b": {"a"}, "c": {"d"}, "d": {"e"}, "e": {"c"}}) == [["a", "b"],
+                                                                                         ["c", "d", "e"]]
+    assert import_cycles({"a": {"b", "c"}, "b": {"d"}, "c": {"d"}, "d": set()}) == []
+
+
+def test_the_layering_check_fails_on_a_three_module_cycle(tmp_path: Path):
+    """The module-graph check itself (source parsed as in the repository) fails on a synthetic package whose
+    three modules import each other in a ring."""
+    ring = {"x": "y", "y": "z", "z": "x"}
+    graph = {f"gradsep.toy.{a}": {n for n, _, _ in imports(f"from gradsep.toy.{b} import thing\n")}
+             for a, b in ring.items()}
+    assert import_cycles(graph) == [["gradsep.toy.x", "gradsep.toy.y", "gradsep.toy.z"]]
+
+
+def test_no_import_cycles():
+    """An import cycle of any length (even through lazy imports) means none of its modules can be read or tested
+    alone. A package imports its ``__init__``, which is left out: importing ``gradsep.model.frame`` runs
+    ``gradsep/__init__`` and ``model/__init__`` first by Python's rules, not by a cycle of ours."""
     graph = module_imports()
-    mutual = {tuple(sorted((a, b))) for a, deps in graph.items() for b in deps
-              if b in graph and b != a and a in graph[b]}
-    assert mutual == set()
+    packages = {m for m in graph if any(other.startswith(m + ".") for other in graph)}
+    graph = {m: {d for d in deps if d not in packages and d != m} for m, deps in graph.items() if m not in packages}
+    assert import_cycles(graph) == []
 
 
 #: Who may import whom, package by package (docs/architecture.md draws it). gradsep/ loads the packages'
@@ -93,7 +183,7 @@ ALLOWED_LAYERS = {
     "training": {"model"},
     "service": {"model"},
     "evaluation": {"model", "renderer"},
-    "gradsep": {"model"},
+    CLI: {"model"},
 }
 
 
@@ -101,8 +191,8 @@ def test_packages_import_only_the_layers_below_them():
     graph = module_imports()
     found: dict[str, set[str]] = {package: set() for package in ALLOWED_LAYERS}
     for module, deps in graph.items():
-        package = module.split(".")[0]
-        found[package] |= {d.split(".")[0] for d in deps if d.split(".")[0] in ALLOWED_LAYERS} - {package}
+        package = layer_of(module)
+        found[package] |= {layer_of(d) for d in deps if d != "gradsep" and layer_of(d) in ALLOWED_LAYERS} - {package}
     extra = {package: sorted(found[package] - allowed) for package, allowed in ALLOWED_LAYERS.items()
              if found[package] - allowed}
     assert extra == {}
@@ -114,7 +204,7 @@ def test_model_imports_no_package_above_it():
 
 @pytest.mark.parametrize("package", LIBRARY)
 def test_no_library_module_imports_the_command_line(package: str):
-    assert violations(package, ("gradsep",)) == []
+    assert violations(package, (CLI,)) == []
 
 
 @pytest.mark.parametrize("path", sorted(p for package in LIBRARY for p in [REPO / package / "commands.py"]
@@ -131,5 +221,6 @@ def test_every_library_package_has_a_command_module():
     """The CLI's COMMAND_MODULES are exactly the library packages' commands.py (none forgotten, none extra)."""
     from gradsep.cli import COMMAND_MODULES
 
-    assert sorted(COMMAND_MODULES) == sorted(f"{p}.commands" for p in LIBRARY if (REPO / p / "commands.py").is_file())
+    assert sorted(COMMAND_MODULES) == sorted(f"gradsep.{p}.commands" for p in LIBRARY
+                                             if (REPO / p / "commands.py").is_file())
     assert len(COMMAND_MODULES) == len(LIBRARY)

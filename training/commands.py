@@ -11,21 +11,21 @@ import sys
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
-from model.errors import CommandError
-from model.policy import ILLUMINATION_LAYERS
+from gradsep.model.errors import CommandError
+from gradsep.model.policy import ILLUMINATION_LAYERS
 
 #: model.preprocess.PRIOR_KINDS, spelled out so the command line parses without importing the solver stack
 #: (tests/training check that the two agree).
 PRIOR_CHOICES = ("l1", "l2", "l1-mg3x2", "l2-clamp", "oidn")
 
 if TYPE_CHECKING:
-    from training.train import TrainConfig
+    from gradsep.training.train import TrainConfig
 
 
 def config_from_args(args: argparse.Namespace) -> TrainConfig:
     """The typed training configuration of `gradsep train`'s flags (None = the config's default)."""
-    from model.network import NetworkConfig
-    from training.train import TrainConfig
+    from gradsep.model.network import NetworkConfig
+    from gradsep.training.train import TrainConfig
 
     network = NetworkConfig(use_attention=not args.no_attention)
     extra: dict[str, Any] = {}
@@ -42,7 +42,7 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
 
 def train_command(args: argparse.Namespace) -> int:
     """`gradsep train`: bad settings or data become a one-line CommandError."""
-    from training.train import TrainingError, train
+    from gradsep.training.train import TrainingError, train
 
     try:
         cfg = config_from_args(args)
@@ -54,7 +54,7 @@ def train_command(args: argparse.Namespace) -> int:
 
 def export_command(args: argparse.Namespace) -> int:
     """`gradsep export RUN -o OUT.onnx`: export, check ONNX Runtime against PyTorch, print a summary."""
-    from training.export import ExportError, export_run
+    from gradsep.training.export import ExportError, export_run
 
     try:
         summary = export_run(args.run, args.output)
@@ -107,7 +107,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def train_main(argv: Sequence[str] | None = None) -> int:
     """``torchrun -m training.train ARGS``: `gradsep train ARGS` without the command-line package (each torchrun
     worker runs this module); bad input is one line on stderr and exit status 2, as under ``gradsep``."""
-    parser = argparse.ArgumentParser(prog="training.train", description="same as `gradsep train`")
+    parser = argparse.ArgumentParser(prog="gradsep.training.train", description="same as `gradsep train`")
     _add_train_arguments(parser)
     args = parser.parse_args(argv)
     try:

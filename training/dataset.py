@@ -30,9 +30,9 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from model.frame import FrameError, Layer, read_frame
-from model.policy import ILLUMINATION_LAYERS, SEPARATED_LAYERS
-from model.preprocess import (
+from gradsep.model.frame import FrameError, Layer, read_frame
+from gradsep.model.policy import ILLUMINATION_LAYERS, SEPARATED_LAYERS
+from gradsep.model.preprocess import (
     FEATURE_PLANES,
     LAYER_PLANES,
     MEASURED_PLANES,
@@ -204,7 +204,7 @@ def _write_cache_file(entry: FrameEntry, layer: str, target: Path, meta_path: Pa
         return "no feature channels"
     scale = 1.0
     if prior == "oidn":
-        from model.oidn import shared_denoiser
+        from gradsep.model.oidn import shared_denoiser
 
         chosen, prior_image, scale = oidn_prior_inputs(chosen, shared_denoiser().prefilter(frame.features))
         planes_in = layer_planes(chosen, prior=prior_image)

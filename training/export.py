@@ -22,9 +22,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from model.network import DATA_INPUTS, GRADIENT_INPUTS, OUTPUTS, DualBranchNet, NetworkConfig
-from model.preprocess import DEFAULT_PRIOR, PRIOR_KINDS, describe_preprocessing
-from training.train import CHECKPOINT, TrainConfig, code_version
+from gradsep.model.network import DATA_INPUTS, GRADIENT_INPUTS, OUTPUTS, DualBranchNet, NetworkConfig
+from gradsep.model.preprocess import DEFAULT_PRIOR, PRIOR_KINDS, describe_preprocessing
+from gradsep.training.train import CHECKPOINT, TrainConfig, code_version
 
 OPSET = 18
 INPUT_NAMES = ("data", "gradient")

@@ -34,8 +34,16 @@ from typing import Any
 import numpy as np
 import torch
 
-from model.fused import BLEND_FORMAT, BLEND_PRIOR, CANDIDATES, INPUT_NAMES, OIDN_SETTING, OUTPUT_NAME, data_channels
-from model.preprocess import TRANSFER
+from gradsep.model.fused import (
+    BLEND_FORMAT,
+    BLEND_PRIOR,
+    CANDIDATES,
+    INPUT_NAMES,
+    OIDN_SETTING,
+    OUTPUT_NAME,
+    data_channels,
+)
+from gradsep.model.preprocess import TRANSFER
 
 #: The candidate kinds a cache holds unless told otherwise (``cache --candidates``): what the designs use.
 CACHE_CANDIDATES: tuple[str, ...] = ("oidn", "refine", "refine-fast")
@@ -70,8 +78,8 @@ def frame_planes(layer: Any, features: Any, target_base: np.ndarray, aux: Any,
     layers, in the frame's units; 3 more planes are appended, the loss's brightness source: OIDN's image of this
     layer + rest, at the layer's exposure (the frame's brightness, which the product's RelMSE divides by).
     ``denoised``: the layer's OIDN image when the caller has it (layer_candidates then does not run OIDN)."""
-    from model.fused import layer_candidates
-    from model.preprocess import DepthRange, feature_planes, scaled_image
+    from gradsep.model.fused import layer_candidates
+    from gradsep.model.preprocess import DepthRange, feature_planes, scaled_image
 
     scaled, cands, scale = layer_candidates(layer, aux, kinds, denoised=denoised)
     chw = [np.asarray(x, np.float32).transpose(2, 0, 1) for x in (scaled.base, scaled.dx, scaled.dy, *cands)]
@@ -99,8 +107,8 @@ def target_image(layer: Any, kind: str) -> np.ndarray:
         return np.asarray(layer.base, np.float32)
     if kind != "l2":
         raise SystemExit(f"unknown target kind {kind!r}; expected one of {TARGETS}")
-    from model.poisson import solve_l2
-    from model.policy import DEFAULT_ALPHA
+    from gradsep.model.poisson import solve_l2
+    from gradsep.model.policy import DEFAULT_ALPHA
 
     return solve_l2(layer.base, layer.dx, layer.dy, DEFAULT_ALPHA)
 
@@ -112,9 +120,9 @@ def build_cache(data: Path, out: Path, kinds: tuple[str, ...] = CACHE_CANDIDATES
     (skips existing files); ``target``: the kind of target_image cached beside the candidates. ``extra``: more
     datasets (other spp, other scenes) cached beside it as x{i}-NNNNN.npy; training samples all files alike.
     ``normalise``: ``frame`` caches the frame's brightness for the loss (frame_planes ``rest``)."""
-    from model.frame import read_frame
-    from model.oidn import shared_denoiser
-    from training.dataset import load_manifest
+    from gradsep.model.frame import read_frame
+    from gradsep.model.oidn import shared_denoiser
+    from gradsep.training.dataset import load_manifest
 
     manifest = load_manifest(data)
     extras = [load_manifest(path) for path in extra]
@@ -230,8 +238,8 @@ def sample(maps: list[np.ndarray], batch: int, patch: int, rng: np.random.Genera
 
 
 def _net(cfg: dict[str, Any]) -> torch.nn.Module:
-    from model.blend_net import BlendNet
-    from model.network import NetworkConfig
+    from gradsep.model.blend_net import BlendNet
+    from gradsep.model.network import NetworkConfig
 
     return BlendNet(len(cfg["candidates"]), NetworkConfig.from_dict(cfg["network"]))
 
@@ -362,8 +370,8 @@ def export(run_dir: Path, output: Path) -> dict[str, Any]:
     import onnx
     import onnxruntime as ort
 
-    from training.export import OPSET, PARITY_TOLERANCE, save_onnx
-    from training.train import code_version
+    from gradsep.training.export import OPSET, PARITY_TOLERANCE, save_onnx
+    from gradsep.training.train import code_version
 
     state = torch.load(run_dir / "checkpoint.pt", weights_only=True)
     cfg = state["config"]

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from model.preprocess import TRANSFER, LogTransfer
+from gradsep.model.preprocess import TRANSFER, LogTransfer
 
 #: GradNet's edge-stopping sharpness in exp(−k·ΔI²).
 EDGE_SHARPNESS = 9.0

@@ -39,10 +39,16 @@ from torch import nn
 from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader, DistributedSampler, Sampler
 
-from model.network import DualBranchNet, GBranch, NetworkConfig, describe
-from model.preprocess import PREPROCESS_VERSION, PRIOR_CHANNELS, PRIOR_KINDS, describe_preprocessing, network_inputs
-from model.progress import ProgressBar
-from training.dataset import (
+from gradsep.model.network import DualBranchNet, GBranch, NetworkConfig, describe
+from gradsep.model.preprocess import (
+    PREPROCESS_VERSION,
+    PRIOR_CHANNELS,
+    PRIOR_KINDS,
+    describe_preprocessing,
+    network_inputs,
+)
+from gradsep.model.progress import ProgressBar
+from gradsep.training.dataset import (
     TRAINABLE_LAYERS,
     DatasetError,
     PatchDataset,
@@ -51,7 +57,7 @@ from training.dataset import (
     split_frames,
     usable,
 )
-from training.losses import BetaSchedule, gbranch_loss, loss_terms
+from gradsep.training.losses import BetaSchedule, gbranch_loss, loss_terms
 
 #: Paper §4.5: 151 epochs. Used when neither --epochs nor --minutes is given.
 DEFAULT_EPOCHS = 151
@@ -221,7 +227,7 @@ class SkipSampler(Sampler[int]):
 
 def code_version() -> str:
     """gradsep version plus the git commit of this checkout when there is one (for metadata)."""
-    from model import __version__
+    from gradsep.model import __version__
 
     try:
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
@@ -719,6 +725,6 @@ def train(cfg: TrainConfig, quiet: bool = False) -> Progress:
 
 
 if __name__ == "__main__":  # `torchrun -m training.train ...` works as well as `torchrun -m gradsep train ...`
-    from training.commands import train_main
+    from gradsep.training.commands import train_main
 
     sys.exit(train_main(sys.argv[1:]))

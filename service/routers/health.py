@@ -7,9 +7,9 @@ from typing import Annotated
 from fastapi import APIRouter, Depends
 from pydantic import BaseModel, Field
 
-from service.dependencies import get_engine
-from service.errors import ErrorResponse, ServiceError
-from service.inference import Engine
+from gradsep.service.dependencies import get_engine
+from gradsep.service.errors import ErrorResponse, ServiceError
+from gradsep.service.inference import Engine
 
 router = APIRouter(tags=["health"])
 

@@ -7,9 +7,9 @@ from typing import Annotated
 from fastapi import APIRouter, Depends
 from starlette.responses import Response
 
-from service.dependencies import get_metrics
-from service.errors import ErrorResponse
-from service.metrics import ServiceMetrics
+from gradsep.service.dependencies import get_metrics
+from gradsep.service.errors import ErrorResponse
+from gradsep.service.metrics import ServiceMetrics
 
 router = APIRouter(tags=["metrics"])
 

@@ -7,9 +7,9 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Depends
 from pydantic import BaseModel, Field
 
-from service.dependencies import get_engine
-from service.errors import ErrorResponse
-from service.inference import Engine
+from gradsep.service.dependencies import get_engine
+from gradsep.service.errors import ErrorResponse
+from gradsep.service.inference import Engine
 
 router = APIRouter(tags=["models"])
 

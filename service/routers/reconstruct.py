@@ -21,14 +21,14 @@ from fastapi import APIRouter, Depends, Query, Request
 from starlette.datastructures import UploadFile
 from starlette.responses import Response
 
-from model.frame import HeaderInfo, NotExrError, Source, read_header
-from model.poisson import MIN_ALPHA
-from model.policy import DEFAULT_PREFERENCE, METHODS
-from service.dependencies import get_engine, get_metrics
-from service.errors import ErrorResponse, ServiceError
-from service.inference import Engine, ReconstructParams, run_pipeline, server_timing
-from service.metrics import ServiceMetrics
-from service.middleware import request_id_of
+from gradsep.model.frame import HeaderInfo, NotExrError, Source, read_header
+from gradsep.model.poisson import MIN_ALPHA
+from gradsep.model.policy import DEFAULT_PREFERENCE, METHODS
+from gradsep.service.dependencies import get_engine, get_metrics
+from gradsep.service.errors import ErrorResponse, ServiceError
+from gradsep.service.inference import Engine, ReconstructParams, run_pipeline, server_timing
+from gradsep.service.metrics import ServiceMetrics
+from gradsep.service.middleware import request_id_of
 
 router = APIRouter(tags=["reconstruction"])
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from evaluation.cache import code_sha256, sources_sha256
-from evaluation.run import REFERENCE_SOURCES, RENDERER_SOURCES
+from gradsep.evaluation.cache import code_sha256, sources_sha256
+from gradsep.evaluation.run import REFERENCE_SOURCES, RENDERER_SOURCES
 
 MODULE = '''"""A module."""
 
@@ -46,9 +46,9 @@ def test_the_generator_is_keyed_by_its_version_not_its_source() -> None:
 def test_fused_results_are_keyed_by_the_network_model_its_clean_layer_average_reads(tmp_path: Path) -> None:
     """fused reads models/direct.onnx on clean direct layers (model/fused.py CLEAN_AVERAGE): a new network model
     must recompute fused's results, and a models folder without it must still run fused (nothing missing)."""
-    from evaluation.config import EvalConfig
-    from evaluation.methods import METHODS
-    from evaluation.run import _Runner
+    from gradsep.evaluation.config import EvalConfig
+    from gradsep.evaluation.methods import METHODS
+    from gradsep.evaluation.run import _Runner
 
     models = tmp_path / "models"
     (models / "fused").mkdir(parents=True)

@@ -17,8 +17,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from evaluation.commands import config_from_args, evaluate_command
-from evaluation.config import (
+from gradsep.cli import main
+from gradsep.evaluation.commands import config_from_args, evaluate_command
+from gradsep.evaluation.config import (
     QUICK,
     EvalConfig,
     parse_methods,
@@ -27,12 +28,11 @@ from evaluation.config import (
     resolve_scenes,
     table_spp_for,
 )
-from evaluation.methods import CostModel, method_by_name, primal_mode_available, split_features
-from evaluation.plots import select_crop
-from evaluation.report import CSV_COLUMNS, losses_of_ours, time_misses
-from evaluation.run import run_evaluation
-from gradsep.cli import main
-from model.errors import CommandError
+from gradsep.evaluation.methods import CostModel, method_by_name, primal_mode_available, split_features
+from gradsep.evaluation.plots import select_crop
+from gradsep.evaluation.report import CSV_COLUMNS, losses_of_ours, time_misses
+from gradsep.evaluation.run import run_evaluation
+from gradsep.model.errors import CommandError
 
 SCENE = "procedural:90001"
 SPP = (1, 2)
@@ -43,7 +43,7 @@ EQUAL_TIME_METHODS = {"path", "path-oidn", "path-sep-oidn", "gpt-oidn-l1"}
 
 def _runnable(methods) -> tuple[str, ...]:
     """The methods this code base can run (the others are skipped with a stated reason)."""
-    from evaluation.methods import method_by_name, unavailable
+    from gradsep.evaluation.methods import method_by_name, unavailable
 
     return tuple(m for m in methods if unavailable(method_by_name(m)) is None)
 
@@ -123,8 +123,8 @@ def test_command_line_flags_win_over_the_environment(monkeypatch):
 def test_time_seeds_from_the_flag_or_the_environment_with_their_range(monkeypatch):
     """--time-seeds N (or GRADSEP_EVAL_TIME_SEEDS): 1 by default, refused below 1 and above the cap, and named in
     the reproduce line only when it is not 1 (the committed reports' lines stay as they were)."""
-    from evaluation.config import MAX_TIME_SEEDS
-    from evaluation.report import reproduce_command
+    from gradsep.evaluation.config import MAX_TIME_SEEDS
+    from gradsep.evaluation.report import reproduce_command
 
     assert config_from_args(_args()).time_seeds == 1
     assert "TIME_SEEDS" not in reproduce_command(config_from_args(_args()))
@@ -140,8 +140,8 @@ def test_time_seeds_from_the_flag_or_the_environment_with_their_range(monkeypatc
 def test_frame_seeds_from_the_flag_or_the_environment_with_their_range(monkeypatch):
     """--frame-seeds N (or GRADSEP_EVAL_FRAME_SEEDS): 1 by default, refused below 1 and above the cap, and named in
     the reproduce line only when it is not 1."""
-    from evaluation.config import MAX_FRAME_SEEDS
-    from evaluation.report import reproduce_command
+    from gradsep.evaluation.config import MAX_FRAME_SEEDS
+    from gradsep.evaluation.report import reproduce_command
 
     monkeypatch.delenv("GRADSEP_EVAL_FRAME_SEEDS", raising=False)
     assert config_from_args(_args()).frame_seeds == 1
@@ -159,9 +159,9 @@ def test_frame_seeds_from_the_flag_or_the_environment_with_their_range(monkeypat
 def test_seed_mean_averages_the_metrics_and_keeps_each_seed():
     """The multi-seed row: metrics are means over the seeds, the time their mean (an interpolated seed counts at
     its budget), the spp their median, the standard error of the mean RelMSE from the seeds' spread."""
-    from evaluation.report import _spp_cell, _stderr
-    from evaluation.results import row_seconds
-    from evaluation.run import seed_mean
+    from gradsep.evaluation.report import _spp_cell, _stderr
+    from gradsep.evaluation.results import row_seconds
+    from gradsep.evaluation.run import seed_mean
 
     def row(relmse, spp, seconds, **more):
         return {"method": "path", "spp": 16, "method_spp": spp, "relmse": relmse, "ssim": 0.9, "psnr": 30.0,
@@ -187,8 +187,8 @@ def test_seed_mean_averages_the_metrics_and_keeps_each_seed():
 def test_environment_is_loaded_once_typed_and_named_in_errors(monkeypatch):
     """GRADSEP_EVAL_* go through one pydantic-settings class: a malformed value names its variable, an empty
     one counts as unset, and the report's reproduce line uses the same names."""
-    from evaluation.config import EvalSettings, load_settings
-    from evaluation.report import reproduce_command
+    from gradsep.evaluation.config import EvalSettings, load_settings
+    from gradsep.evaluation.report import reproduce_command
 
     monkeypatch.setenv("GRADSEP_EVAL_REF_SPP", "lots")
     with pytest.raises(CommandError, match="GRADSEP_EVAL_REF_SPP: Input should be a valid integer"):
@@ -296,7 +296,7 @@ def _blur_model(path: Path, layer: str, kernel: int) -> None:
     import onnx
     from onnx import TensorProto, helper
 
-    from model.preprocess import DATA_INPUTS, GRADIENT_INPUTS, describe_preprocessing
+    from gradsep.model.preprocess import DATA_INPUTS, GRADIENT_INPUTS, describe_preprocessing
 
     nodes = [
         helper.make_node("Constant", [], ["starts"], value=helper.make_tensor("s", TensorProto.INT64, [1], [0])),
@@ -379,9 +379,9 @@ def test_run_writes_every_output_with_finite_consistent_rows(first_run):
 def test_rows_are_scored_with_the_product_estimator_over_the_cached_references(first_run):
     """The input's RelMSE recomputed from the files in the cache: the row scores what was rendered, against
     both references (the product estimator), and SSIM against their mean."""
-    from model.frame import read_frame
-    from model.metrics import relmse_unbiased, ssim
-    from renderer.reference import load_reference
+    from gradsep.model.frame import read_frame
+    from gradsep.model.metrics import relmse_unbiased, ssim
+    from gradsep.renderer.reference import load_reference
 
     root, evaluation = first_run
     frames = [f for f in sorted((root / "cache" / "evaluate" / "frames").rglob("*spp2-*.exr"))
@@ -406,7 +406,7 @@ def test_rows_are_scored_with_the_product_estimator_over_the_cached_references(f
 def test_equal_time_methods_use_the_default_method_as_the_budget(first_run):
     """The budget is the G-PT frame + the product's default reconstruction (model.policy.DEFAULT_PREFERENCE,
     whose ``network`` is the evaluation's ``ours``): the first of them this run computed."""
-    from model import policy
+    from gradsep.model import policy
 
     _, evaluation = first_run
     by = {(r["method"], r["spp"]): r for r in evaluation.rows}
@@ -438,7 +438,7 @@ def test_frame_seeds_add_frames_to_the_fixed_spp_rows_only(first_run):
     import dataclasses
     import json
 
-    from evaluation.methods import EQUAL_TIME_KINDS, method_by_name
+    from gradsep.evaluation.methods import EQUAL_TIME_KINDS, method_by_name
 
     root, first = first_run
     config = dataclasses.replace(_config(root, "report-frames"), frame_seeds=2)
@@ -503,8 +503,8 @@ def test_oidn_l1_reconstructs_a_direct_gradient_render_with_the_same_image(first
     """oidn-l1 integrates only the direct layer's gradients, so its row reconstructs the `--gradients direct`
     render of the same seed (cheaper: no indirect offsets) and counts that render's time; its image is what the
     method gives on the full frame (same direct layer, same indirect base), to float rounding."""
-    from model.frame import read_frame
-    from model.reconstruct import reconstruct
+    from gradsep.model.frame import read_frame
+    from gradsep.model.reconstruct import reconstruct
 
     root, evaluation = first_run
     if "oidn-l1" not in _runnable(METHODS):
@@ -550,8 +550,8 @@ def test_rerun_computes_only_what_changed(first_run, monkeypatch):
     def no_rendering(*args, **kwargs):
         raise AssertionError("a cached frame or reference was rendered again")
 
-    monkeypatch.setattr("renderer.render.render_frame", no_rendering)
-    monkeypatch.setattr("renderer.reference.render_loaded", no_rendering)
+    monkeypatch.setattr("gradsep.renderer.render.render_frame", no_rendering)
+    monkeypatch.setattr("gradsep.renderer.reference.render_loaded", no_rendering)
     again = run_evaluation(_config(root), progress=False, log=lambda message: None)
     assert again.computed == {"frames": 0, "references": 0, "results": 0}
     assert (root / "report" / "results.csv").read_bytes() == csv_before
@@ -623,7 +623,7 @@ class _ClockedRenderer:
     to model a busy machine; the default cost is a line, others are not (the fitted line then mispredicts)."""
 
     def __init__(self, cost=lambda spp: 0.05 + 0.002 * spp) -> None:
-        from evaluation.methods import PathRenderer
+        from gradsep.evaluation.methods import PathRenderer
 
         self.renderer = PathRenderer.__new__(PathRenderer)  # no Mitsuba: only the budgeting is under test
         self.renderer.max_spp = 100_000
@@ -701,8 +701,8 @@ def test_time_misses_flags_rows_outside_5_percent():
 def test_oidn_environment_choices_are_part_of_the_result_key(monkeypatch) -> None:
     """$GRADSEP_OIDN_SETTING / $GRADSEP_OIDN_RUNTIME change the OIDN methods' images without a code change: a
     run under them must not reuse outputs cached under the defaults (whose keys stay as they were)."""
-    from evaluation.run import oidn_key
-    from model import oidn
+    from gradsep.evaluation.run import oidn_key
+    from gradsep.model import oidn
 
     monkeypatch.delenv(oidn.SETTING_ENV, raising=False)
     monkeypatch.delenv(oidn.RUNTIME_ENV, raising=False)
@@ -716,7 +716,7 @@ def test_issue14_targets_are_read_from_the_rows():
     """The report's issue-14 lines: fused against the best of oidn/l1/ours, and at equal time the best G-PT row
     within the budget (the budget method's own row, G-PT+oidn-l1) against path + OIDN and the separated baseline;
     a scene without the methods is 'not checked'."""
-    from evaluation.report import _fused_and_equal_time_targets
+    from gradsep.evaluation.report import _fused_and_equal_time_targets
 
     def row(method, spp, relmse, **extra):
         return {"scene": "s", "method": method, "spp": spp, "relmse": relmse, **extra}

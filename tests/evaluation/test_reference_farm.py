@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from evaluation.config import EvalConfig
-from evaluation.farm import render_reference_shard, shard_passes
-from model.errors import CommandError
+from gradsep.evaluation.config import EvalConfig
+from gradsep.evaluation.farm import render_reference_shard, shard_passes
+from gradsep.model.errors import CommandError
 
 SCENE = "procedural:3"
 
@@ -31,7 +31,7 @@ def test_shard_passes_deal_the_passes_up_to_the_cap_round_robin() -> None:
 
 
 def _passes(cache: Path) -> dict[str, np.ndarray]:
-    from renderer.reference import load_reference
+    from gradsep.renderer.reference import load_reference
 
     return {p.name: load_reference(p).total for p in sorted((cache / "evaluate" / "references").rglob("*.exr"))}
 
@@ -40,8 +40,8 @@ def _passes(cache: Path) -> dict[str, np.ndarray]:
 def test_shards_combine_into_the_cache_one_machine_writes(tmp_path: Path) -> None:
     """Two shards' caches, copied together, hold the same pass files (names and pixels) as one unsharded run,
     and the evaluation's reference pair at the cap is then built without rendering anything."""
-    from evaluation.run import _Runner
-    from renderer.scene import load_scene
+    from gradsep.evaluation.run import _Runner
+    from gradsep.renderer.scene import load_scene
 
     for k in (1, 2):
         reports = render_reference_shard(_config(tmp_path / f"shard{k}", tmp_path), (k, 2), log=lambda m: None)
@@ -75,7 +75,7 @@ def test_shards_combine_into_the_cache_one_machine_writes(tmp_path: Path) -> Non
 
 
 def _entry():
-    from evaluation.config import resolve_scenes
+    from gradsep.evaluation.config import resolve_scenes
 
     return resolve_scenes([SCENE])[0][0]
 
@@ -83,9 +83,9 @@ def _entry():
 @pytest.mark.render
 def test_reference_cache_key_names_the_sampler(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Passes rendered with another sampler are never re-used: the sampler is part of every pass's key."""
-    import evaluation.run as run
-    from evaluation.run import _Runner
-    from renderer.scene import load_scene
+    import gradsep.evaluation.run as run
+    from gradsep.evaluation.run import _Runner
+    from gradsep.renderer.scene import load_scene
 
     loaded = load_scene(SCENE, width=12, height=10)
     config = _config(tmp_path / "cache", tmp_path)
@@ -114,7 +114,7 @@ def test_software_names_the_distribution_that_provides_a_module(monkeypatch: pyt
     """onnxruntime-openvino installs the `onnxruntime` module: report its version, not "not installed"."""
     from importlib import metadata
 
-    from evaluation.report import software
+    from gradsep.evaluation.report import software
 
     real = metadata.version
 

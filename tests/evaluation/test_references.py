@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from evaluation.references import next_reference_spp
-from model.metrics import RELMSE_EPSILON, reference_floor, relmse, relmse_unbiased
+from gradsep.evaluation.references import next_reference_spp
+from gradsep.model.metrics import RELMSE_EPSILON, reference_floor, relmse, relmse_unbiased
 
 NOISE, ERROR = 0.03, 0.02  # relative: a floor of ~9e-4 against an error of ~4e-4
 
@@ -98,7 +98,7 @@ def test_reference_spp_schedule_in_whole_passes():
 
 
 def test_reference_time_budget_limits_the_raise():
-    from evaluation.run import _within_time
+    from gradsep.evaluation.run import _within_time
 
     # 512 spp took 20 s for both references: 4096 would add 140 s of new rendering
     assert _within_time(512, 4096, seconds=20.0, budget=240.0) == 4096
@@ -111,7 +111,7 @@ def test_reference_time_budget_limits_the_raise():
 
 
 def test_reference_time_budget_counts_only_passes_not_yet_cached():
-    from evaluation.run import _within_time
+    from gradsep.evaluation.run import _within_time
 
     cached = 6  # passes 0..5 are in the cache (a farm's shards or an earlier run): 1536 spp each is free
     to_render = lambda spp: max(0, 2 * spp // 512 - cached)  # noqa: E731
@@ -125,9 +125,9 @@ def test_reference_time_budget_counts_only_passes_not_yet_cached():
 
 def test_reference_source_counts_the_passes_still_to_render(tmp_path):
     """The budget's input: a pass in the cache (written by this or an earlier run, or a farm shard) is not new."""
-    from evaluation.cache import EvalCache
-    from evaluation.references import ReferenceSource
-    from renderer.reference import Reference
+    from gradsep.evaluation.cache import EvalCache
+    from gradsep.evaluation.references import ReferenceSource
+    from gradsep.renderer.reference import Reference
 
     rendered: list[int] = []
 

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from evaluation.region import DESIGN_REDUCTION, Region, choose_region, pilot_floor_map
-from model.metrics import reference_floor, relmse, relmse_unbiased
+from gradsep.evaluation.region import DESIGN_REDUCTION, Region, choose_region, pilot_floor_map
+from gradsep.model.metrics import reference_floor, relmse, relmse_unbiased
 
 
 def test_choose_region_covers_a_hot_spot_tile_aligned():
@@ -83,9 +83,9 @@ HOT = (slice(8, 24), slice(16, 32))  # where the toy scene's variance lives
 
 def _toy_source(tmp_path, truth, noise_in_hot=3.0, noise=0.05, log=None):
     """A ReferenceSource whose passes are ``truth`` + noise (heavy inside HOT), deterministic per seed."""
-    from evaluation.cache import EvalCache
-    from evaluation.references import ReferenceSource
-    from renderer.reference import Reference
+    from gradsep.evaluation.cache import EvalCache
+    from gradsep.evaluation.references import ReferenceSource
+    from gradsep.renderer.reference import Reference
 
     calls = {"pass": [], "region": []}
     scale = np.full((H, W, 1), noise)
@@ -187,9 +187,9 @@ def test_region_references_keep_the_product_estimator_unbiased(tmp_path):
 def test_render_region_matches_the_full_frame_in_expectation():
     """A crop of Mitsuba's film renders the same pixel estimator as the full frame (box filter): same means
     within the noise, and the exact direct <= total split."""
-    from evaluation.region import render_region
-    from renderer.reference import DEFAULT_SAMPLER, render_loaded
-    from renderer.scene import load_scene
+    from gradsep.evaluation.region import render_region
+    from gradsep.renderer.reference import DEFAULT_SAMPLER, render_loaded
+    from gradsep.renderer.scene import load_scene
 
     loaded = load_scene("procedural:90001", width=24, height=16, max_depth=4)
     full = render_loaded(loaded, spp=256, seed=1, tile_spp=None, sampler=DEFAULT_SAMPLER).images()
@@ -214,9 +214,9 @@ def _converge(tmp_path, monkeypatch, smallest, cap=64, ref_seconds=None):
     """evaluation.run._converge_references on the toy source, the smallest ranked RelMSE fixed."""
     from types import SimpleNamespace
 
-    import evaluation.run as run
-    from evaluation.config import EvalConfig, resolve_scenes
-    from evaluation.results import SceneRun
+    import gradsep.evaluation.run as run
+    from gradsep.evaluation.config import EvalConfig, resolve_scenes
+    from gradsep.evaluation.results import SceneRun
 
     monkeypatch.setattr(run, "_smallest_ranked", lambda outputs, pair: smallest)
     config = EvalConfig(scenes=("procedural:1",), spp=(1,), width=W, height=H, ref_spp=4, output=tmp_path / "r",

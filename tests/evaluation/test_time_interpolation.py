@@ -10,12 +10,12 @@ import math
 import numpy as np
 import pytest
 
-from evaluation.config import EvalConfig, SceneEntry
-from evaluation.methods import METHODS, BracketOutput, MethodOutput, TimeSearch, interpolate_at
-from evaluation.references import ReferencePair
-from evaluation.report import row_seconds, time_interpolations, time_misses
-from evaluation.results import SceneRun
-from evaluation.run import _Runner, _smallest_ranked, image_scores, interpolated_scores
+from gradsep.evaluation.config import EvalConfig, SceneEntry
+from gradsep.evaluation.methods import METHODS, BracketOutput, MethodOutput, TimeSearch, interpolate_at
+from gradsep.evaluation.references import ReferencePair
+from gradsep.evaluation.report import row_seconds, time_interpolations, time_misses
+from gradsep.evaluation.results import SceneRun
+from gradsep.evaluation.run import _Runner, _smallest_ranked, image_scores, interpolated_scores
 
 
 def _granular(spp: int) -> tuple[int, float, float]:
@@ -95,7 +95,7 @@ def _runner(tmp_path) -> _Runner:
 
 
 def test_a_bracketed_row_is_cached_with_both_tries_and_scored_at_its_budget(tmp_path, monkeypatch) -> None:
-    import evaluation.run as run
+    import gradsep.evaluation.run as run
 
     rng = np.random.default_rng(1)
     truth = _truth(rng)

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from evaluation.methods import TimeSearch
+from gradsep.evaluation.methods import TimeSearch
 
 
 class FakeTimer:

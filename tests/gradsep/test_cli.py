@@ -16,8 +16,8 @@ from pathlib import Path
 import pytest
 
 from gradsep import cli
-from model.errors import CommandError
-from model.frame import ChannelError
+from gradsep.model.errors import CommandError
+from gradsep.model.frame import ChannelError
 
 REPO = Path(__file__).resolve().parents[2]
 EVERY_COMMAND = ("render", "reference", "dataset", "train", "export", "reconstruct", "evaluate", "serve", "client")
@@ -59,7 +59,7 @@ def test_each_command_has_help_and_a_handler(command: str, capsys: pytest.Captur
 
 
 def test_version(capsys: pytest.CaptureFixture[str]) -> None:
-    from model import __version__
+    from gradsep.model import __version__
 
     with pytest.raises(SystemExit) as info:
         cli.main(["--version"])
@@ -118,8 +118,8 @@ def test_bad_flags_and_no_command_are_usage_errors(capsys) -> None:
 
 def test_a_missing_command_module_of_an_installed_package_is_an_error(monkeypatch) -> None:
     """`model` is installed, `model.no_such_commands` is not: an error, not a silently absent command."""
-    monkeypatch.setattr(cli, "COMMAND_MODULES", (*cli.COMMAND_MODULES, "model.no_such_commands"))
-    with pytest.raises(cli.CommandModuleError, match="model.no_such_commands"):
+    monkeypatch.setattr(cli, "COMMAND_MODULES", (*cli.COMMAND_MODULES, "gradsep.model.no_such_commands"))
+    with pytest.raises(cli.CommandModuleError, match="gradsep.model.no_such_commands"):
         cli.build_parser()
 
 
@@ -146,7 +146,7 @@ def test_a_command_module_without_register_is_an_error(monkeypatch) -> None:
 def test_a_package_left_out_of_the_install_drops_only_its_commands(monkeypatch) -> None:
     """The serving image installs gradsep/, model/ and service/ only (Dockerfile): the other roles' packages are
     absent there, and their commands with them; the rest of the CLI works."""
-    monkeypatch.setattr(cli, "COMMAND_MODULES", ("model.commands", "tests_absent_package_xyz.commands"))
+    monkeypatch.setattr(cli, "COMMAND_MODULES", ("gradsep.model.commands", "tests_absent_package_xyz.commands"))
     parser = cli.build_parser()
     assert parser.parse_args(["reconstruct", "f.exr", "-o", "o.exr"]).command == "reconstruct"
 
@@ -156,7 +156,7 @@ def test_a_same_named_data_folder_is_not_taken_for_a_package(monkeypatch, tmp_pa
     must not try to load commands from it."""
     (tmp_path / "tests_data_folder").mkdir()
     monkeypatch.syspath_prepend(str(tmp_path))
-    monkeypatch.setattr(cli, "COMMAND_MODULES", ("model.commands", "tests_data_folder.commands"))
+    monkeypatch.setattr(cli, "COMMAND_MODULES", ("gradsep.model.commands", "tests_data_folder.commands"))
     assert "reconstruct" in cli.build_parser().format_help()
 
 

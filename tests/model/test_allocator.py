@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from model import allocator
+from gradsep.model import allocator
 
 REPO = Path(__file__).resolve().parents[2]
 GLIBC = sys.platform.startswith("linux") and allocator._libc() is not None and "musl" not in str(
@@ -20,7 +20,7 @@ GLIBC = sys.platform.startswith("linux") and allocator._libc() is not None and "
 _ARENAS_PROBE = """
 import ctypes, os, sys, tempfile, threading
 sys.path.insert(0, {repo!r})
-from model.allocator import configure_malloc
+from gradsep.model.allocator import configure_malloc
 print("limit", configure_malloc())
 barrier = threading.Barrier(8)
 def work():
@@ -100,7 +100,7 @@ _KEPT_PROBE = """
 import sys
 sys.path.insert(0, {repo!r})
 import numpy as np
-from model.allocator import configure_malloc
+from gradsep.model.allocator import configure_malloc
 configure_malloc()
 def rss():
     return int(next(line for line in open("/proc/self/status") if line.startswith("VmRSS")).split()[1]) // 1024

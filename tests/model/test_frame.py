@@ -8,7 +8,7 @@ import numpy as np
 import OpenEXR
 import pytest
 
-from model.frame import (
+from gradsep.model.frame import (
     FEATURE_CHANNELS,
     ChannelError,
     Features,
@@ -299,7 +299,7 @@ def test_write_is_atomic(tmp_path, monkeypatch) -> None:
     def boom(*args, **kwargs):
         raise OSError("disk full")
 
-    monkeypatch.setattr("model.frame.os.replace", boom)
+    monkeypatch.setattr("gradsep.model.frame.os.replace", boom)
     with pytest.raises(OSError):
         write_exr(target, {"R": np.zeros((2, 2), np.float32)})
     assert target.read_bytes() == b"previous"

@@ -13,7 +13,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from model.frame import (
+from gradsep.model.frame import (
     FEATURE_CHANNELS,
     ChannelError,
     NonFiniteError,

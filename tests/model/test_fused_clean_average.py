@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from model import fused
-from model.frame import Features, Layer, forward_differences
-from model.refine import clean_weight
+from gradsep.model import fused
+from gradsep.model.frame import Features, Layer, forward_differences
+from gradsep.model.refine import clean_weight
 
 pytest.importorskip("pyoidn")
 REPO = Path(__file__).resolve().parents[2]
@@ -97,7 +97,7 @@ def test_a_noisy_layer_runs_no_network_and_is_the_refinement_alone() -> None:
 
 
 def test_a_clean_layer_is_averaged_with_the_second_estimate_where_they_agree() -> None:
-    from model.oidn import input_scale, shared_denoiser
+    from gradsep.model.oidn import input_scale, shared_denoiser
 
     layer, feats = _exact(), _features(30, 34)
     aux = shared_denoiser(fused.OIDN_SETTING).prefilter(feats)
@@ -156,8 +156,8 @@ def _partly_clean(h: int = 30, w: int = 34, seed: int = 4, noise: float = 0.06) 
 def test_the_refinement_reports_the_clean_weight_it_used(make) -> None:
     """refine_layer's ``report`` carries the w_f its trust rule computed: model.refine.clean_weight's value
     (fused reads it instead of computing the frame statistic a second time)."""
-    from model.oidn import shared_denoiser
-    from model.refine import refine_layer
+    from gradsep.model.oidn import shared_denoiser
+    from gradsep.model.refine import refine_layer
 
     layer, feats = make(), _features(30, 34)
     den = shared_denoiser(fused.OIDN_SETTING)
@@ -170,7 +170,7 @@ def test_the_refinement_reports_the_clean_weight_it_used(make) -> None:
 
 def test_partly_clean_layer_has_an_intermediate_weight() -> None:
     """The case above that exercises the ramp between the ends (not only the exact 0 and 1)."""
-    from model.oidn import shared_denoiser
+    from gradsep.model.oidn import shared_denoiser
 
     layer, feats = _partly_clean(), _features(30, 34)
     den = shared_denoiser(fused.OIDN_SETTING)
@@ -180,8 +180,8 @@ def test_partly_clean_layer_has_an_intermediate_weight() -> None:
 def test_fused_does_not_recompute_the_clean_weight(monkeypatch: pytest.MonkeyPatch) -> None:
     """The served path takes w_f from the refinement: model.refine.clean_weight is never called, and the average
     is the one clean_weight's value gives."""
-    from model import refine
-    from model.oidn import input_scale, shared_denoiser
+    from gradsep.model import refine
+    from gradsep.model.oidn import input_scale, shared_denoiser
 
     layer, feats = _partly_clean(), _features(30, 34)
     aux = shared_denoiser(fused.OIDN_SETTING).prefilter(feats)

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from model import fused
-from model.frame import Layer, forward_differences
+from gradsep.model import fused
+from gradsep.model.frame import Layer, forward_differences
 
 pytest.importorskip("pyoidn")
 
@@ -24,7 +24,7 @@ def _layer(h: int = 24, w: int = 28, seed: int = 3) -> Layer:
 def test_direct_layer_is_the_refinement_at_the_pinned_cg_budget(monkeypatch: pytest.MonkeyPatch) -> None:
     """The served direct kind solves with DIRECT_CG (relative residual, step cap) per IRLS pass and the oidn-l1
     method's passes, and nothing else: every pass stops within the cap."""
-    import model.refine as refine
+    import gradsep.model.refine as refine
 
     assert fused.FIXED_LAYERS["direct"] == "refine-direct" and "refine-direct" in fused.FIXED_KINDS
     calls: list[dict] = []

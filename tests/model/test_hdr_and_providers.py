@@ -12,23 +12,22 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from model.frame import Frame, read_frame
-from model.infer import (
+from gradsep.model.frame import Frame, read_frame
+from gradsep.model.infer import EXPOSURE_MAX, EXPOSURE_MIN, NetworkReconstructor, exposure_scale
+from gradsep.model.metrics import relmse
+from gradsep.model.onnx_session import (
     BF16_FLAGS,
     CPU_EP,
     CUDA_EP,
-    EXPOSURE_MAX,
-    EXPOSURE_MIN,
     OPENVINO_EP,
-    NetworkReconstructor,
+    ProviderChoice,
     SessionSettings,
     choose_provider,
     cpu_flags,
-    exposure_scale,
+    served_by,
 )
-from model.metrics import relmse
-from model.preprocess import scaled_layer
-from model.reconstruct import reconstruct
+from gradsep.model.preprocess import scaled_layer
+from gradsep.model.reconstruct import reconstruct
 
 ROOT = Path(__file__).resolve().parents[2]
 MODELS = ROOT / "models"
@@ -77,12 +76,11 @@ def test_ordinary_frames_take_the_unscaled_path(frame: Frame, network: NetworkRe
                                                monkeypatch: pytest.MonkeyPatch) -> None:
     """Ordinary frames must give bit-identical output to the code before exposure scaling: the scaled path
     (scaled_layer) is never entered for them."""
-    import model.infer
 
     def refuse(*args: object) -> None:
         raise AssertionError("an ordinary layer was rescaled")
 
-    monkeypatch.setattr(model.infer, "scaled_layer", refuse)
+    monkeypatch.setattr("gradsep.model.infer.scaled_layer", refuse)
     for name, layer in frame.layers.items():
         assert np.isfinite(network.reconstruct_layer(name, layer, frame.features)).all()
 
@@ -152,9 +150,8 @@ def test_unknown_provider_is_refused() -> None:
 ])
 def test_the_reported_provider_is_the_one_the_session_runs(choice: tuple[str, str], session: list[str],
                                                            want: str) -> None:
-    from model.infer import ProviderChoice, _served_by
 
-    got = _served_by(ProviderChoice(*choice, "asked"), session)
+    got = served_by(ProviderChoice(*choice, "asked"), session)
     assert got.provider == want and (got == ProviderChoice(*choice, "asked")) == (want == choice[0])
 
 
@@ -186,7 +183,7 @@ def _accelerated_available() -> bool:
 def test_openvino_bf16_matches_fp32_on_the_example_frame(frame: Frame) -> None:
     """The accelerated provider must not cost accuracy: RelMSE against the 4096 spp reference changes by
     less than 1 % relative to ORT's fp32 CPU provider, and the images agree closely."""
-    from renderer.reference import load_reference
+    from gradsep.renderer.reference import load_reference
 
     reference = load_reference(REFERENCE).total
     fast = NetworkReconstructor.load(MODELS, SessionSettings(provider="openvino"))

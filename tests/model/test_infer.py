@@ -15,16 +15,16 @@ import pytest
 torch = pytest.importorskip("torch")
 pytest.importorskip("onnx")
 
-from model.frame import ChannelError, Features, Layer  # noqa: E402
-from model.infer import (  # noqa: E402
+from gradsep.model.frame import ChannelError, Features, Layer  # noqa: E402
+from gradsep.model.infer import (  # noqa: E402
     ModelError,
     NetworkReconstructor,
     TileSettings,
     _ramp,
     plan_tiles,
 )
-from model.network import DualBranchNet, NetworkConfig  # noqa: E402
-from model.preprocess import (  # noqa: E402
+from gradsep.model.network import DualBranchNet, NetworkConfig  # noqa: E402
+from gradsep.model.preprocess import (  # noqa: E402
     crop_to,
     feature_planes,
     layer_planes,
@@ -33,7 +33,7 @@ from model.preprocess import (  # noqa: E402
     pad_to_alignment,
     unlit_pixels,
 )
-from training.export import model_metadata, save_onnx, to_onnx  # noqa: E402
+from gradsep.training.export import model_metadata, save_onnx, to_onnx  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
 ATTENTION = NetworkConfig(width=4, residual_blocks=1)
@@ -248,7 +248,7 @@ def test_inference_runs_without_torch(models: tuple[Path, dict]) -> None:
 def test_single_window_path_is_the_windowed_pipeline_bit_for_bit(models: tuple[Path, dict], h: int, w: int) -> None:
     """The one-window fast path (planes made once, prior solved from them, inputs written in place, the frame's
     feature planes reused by its next layer) gives exactly what the per-window pipeline gives."""
-    from model.preprocess import DepthRange, poisson_prior
+    from gradsep.model.preprocess import DepthRange, poisson_prior
 
     folder, _ = models
     rec = NetworkReconstructor.load(folder)

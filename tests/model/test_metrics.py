@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from model import metrics
-from model.metrics import all_metrics, flip, psnr, relmse, ssim, tonemap
+from gradsep.model import metrics
+from gradsep.model.metrics import all_metrics, flip, psnr, relmse, ssim, tonemap
 
 
 def test_relmse_hand_computed() -> None:

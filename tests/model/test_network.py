@@ -10,7 +10,7 @@ import pytest
 torch = pytest.importorskip("torch")
 from torch import nn  # noqa: E402
 
-from model.network import (  # noqa: E402
+from gradsep.model.network import (  # noqa: E402
     CBAM,
     DATA_INPUTS,
     FEATURE_INPUTS,
@@ -23,7 +23,7 @@ from model.network import (  # noqa: E402
     Up,
     macs_per_pixel,
 )
-from model.preprocess import PRIOR_CHANNELS, crop_to, pad_to_alignment  # noqa: E402
+from gradsep.model.preprocess import PRIOR_CHANNELS, crop_to, pad_to_alignment  # noqa: E402
 
 TINY = NetworkConfig(width=4, residual_blocks=1, gbranch_width=8)
 

@@ -15,9 +15,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import model.preprocess as preprocess
-from model.frame import Features, Frame, Layer
-from model.reconstruct import CONCURRENT_METHODS, reconstruct
+import gradsep.model.preprocess as preprocess
+from gradsep.model.frame import Features, Frame, Layer
+from gradsep.model.reconstruct import CONCURRENT_METHODS, reconstruct
 
 ROOT = Path(__file__).resolve().parents[2]
 MODELS = ROOT / "models"
@@ -47,7 +47,7 @@ def _frame(h: int = 48, w: int = 64, seed: int = 3) -> Frame:
 
 @pytest.fixture(scope="module")
 def network():
-    from model.infer import NetworkReconstructor
+    from gradsep.model.infer import NetworkReconstructor
 
     if not (MODELS / "direct.onnx").is_file():
         pytest.skip("the shipped models are not in models/")

@@ -8,9 +8,9 @@ import pytest
 
 pytest.importorskip("pyoidn")
 
-from model.frame import ChannelError, Features, Frame, Layer, read_frame, write_frame  # noqa: E402
-from model.oidn import MIN_SIDE, Denoiser, input_scale, shared_denoiser  # noqa: E402
-from model.reconstruct import available_methods, choose_method, reconstruct  # noqa: E402
+from gradsep.model.frame import ChannelError, Features, Frame, Layer, read_frame, write_frame  # noqa: E402
+from gradsep.model.oidn import MIN_SIDE, Denoiser, input_scale, shared_denoiser  # noqa: E402
+from gradsep.model.reconstruct import available_methods, choose_method, reconstruct  # noqa: E402
 
 
 def _image(h: int, w: int, seed: int = 0, noise: float = 0.3) -> np.ndarray:
@@ -139,7 +139,7 @@ def test_oidn_on_a_gradient_frame_ignores_the_gradients() -> None:
 def test_oidn_runs_its_setting_and_fused_keeps_its_trained_prior(monkeypatch) -> None:
     """``oidn`` runs METHOD_SETTING (or $GRADSEP_OIDN_SETTING); the fused models' prior stays PRIOR_SETTING, the
     setting their training cache was made with, whatever ``oidn`` runs (docs/oidn.md)."""
-    from model import oidn
+    from gradsep.model import oidn
 
     assert oidn.PRIOR_SETTING == "prefiltered-high" and oidn.METHOD_SETTING in oidn.SETTINGS
     assert shared_denoiser().setting.name == oidn.PRIOR_SETTING  # what preprocess/infer use for fused

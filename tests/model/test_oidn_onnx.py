@@ -12,10 +12,10 @@ pytest.importorskip("pyoidn")
 pytest.importorskip("onnx")
 pytest.importorskip("elftools")
 
-from model import oidn, oidn_onnx  # noqa: E402
-from model.frame import read_frame  # noqa: E402
-from model.infer import SessionSettings  # noqa: E402
-from model.oidn_onnx import PU, OnnxUNet, WeightsError, parse_tza, plan_tiles, weights_for  # noqa: E402
+from gradsep.model import oidn, oidn_onnx  # noqa: E402
+from gradsep.model.frame import read_frame  # noqa: E402
+from gradsep.model.oidn_onnx import PU, OnnxUNet, WeightsError, parse_tza, plan_tiles, weights_for  # noqa: E402
+from gradsep.model.onnx_session import SessionSettings  # noqa: E402
 
 EXAMPLES = "examples"
 
@@ -117,7 +117,7 @@ def _onnx_denoiser(settings: SessionSettings | None = None) -> oidn.Denoiser:
 
 
 def oidn_features(albedo: np.ndarray, normal: np.ndarray):
-    from model.frame import Features
+    from gradsep.model.frame import Features
 
     return Features(albedo, normal, np.ones(albedo.shape[:2], np.float32))
 
@@ -202,7 +202,7 @@ def test_compiled_and_numpy_pre_post_processing_agree(monkeypatch) -> None:
     color[4, 5] = 1e-7  # and one on its linear branch
     aux = den.prefilter(oidn_features(albedo, normal))
     compiled = den.denoise(color, aux)
-    from model import kernels
+    from gradsep.model import kernels
 
     monkeypatch.setattr(kernels, "AVAILABLE", False)
     plain = den.denoise(color, aux)

@@ -7,9 +7,9 @@ import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spl
 
-from model import kernels
-from model.frame import forward_differences
-from model.poisson import L1_PASSES, MIN_ALPHA, energy_l1, energy_l2, solve_l1, solve_l2
+from gradsep.model import kernels
+from gradsep.model.frame import forward_differences
+from gradsep.model.poisson import L1_PASSES, MIN_ALPHA, energy_l1, energy_l2, solve_l1, solve_l2
 
 
 def _difference_matrix(n: int) -> sp.csr_matrix:
@@ -225,11 +225,11 @@ def test_l1_bad_options_are_rejected() -> None:
         solve_l1(base, dx, dy, preconditioner="ilu")
 
 
-@pytest.mark.skipif(not __import__("model.kernels").kernels.AVAILABLE, reason="numba is not installed")
+@pytest.mark.skipif(not __import__("gradsep.model.kernels").model.kernels.AVAILABLE, reason="numba is not installed")
 @pytest.mark.parametrize("dtype_alpha", [0.2, 1e-3], ids=["float32", "float64"])
 def test_compiled_kernels_match_the_numpy_path(monkeypatch: pytest.MonkeyPatch, dtype_alpha: float) -> None:
     """model.kernels fuses the IRLS inner loop; it must give the numpy formulation's result to rounding."""
-    from model import kernels
+    from gradsep.model import kernels
 
     rng = np.random.default_rng(11)
     truth = rng.random((37, 53, 3))
@@ -263,7 +263,7 @@ needs_numba = pytest.mark.skipif(not kernels.AVAILABLE, reason="numba is not ins
 def _weighted_system(h: int, w: int, alpha: float, spread: float, seed: int = 0):
     """A weighted IRLS system with weights spanning ``spread`` decades (as late IRLS passes produce) and its dense
     matrix A = α² W0 + H_xᵀ Wx H_x + H_yᵀ Wy H_y (pixel order row-major)."""
-    from model.poisson import _WeightedSystem
+    from gradsep.model.poisson import _WeightedSystem
 
     rng = np.random.default_rng(seed)
     norms = tuple(10 ** rng.uniform(-spread / 2, spread / 2, shape) for shape in ((h, w), (h, w - 1), (h - 1, w)))
@@ -303,7 +303,7 @@ def test_multigrid_vcycle_is_symmetric_positive_definite(size: tuple[int, int], 
 @pytest.mark.parametrize("alpha", [1e-4, 0.2, 1e3])
 def test_multigrid_pcg_reaches_the_direct_solution_of_a_stiff_weighted_system(alpha: float) -> None:
     """The mg-preconditioned CG of one IRLS pass against a dense direct solve of the same weighted system."""
-    from model.poisson import _pcg
+    from gradsep.model.poisson import _pcg
 
     system, dense = _weighted_system(13, 17, alpha, spread=4.0, seed=3)
     rhs = np.random.default_rng(4).standard_normal((1, 13, 17))

@@ -16,8 +16,8 @@ import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from model.frame import forward_differences
-from model.poisson import solve_l1, solve_l2
+from gradsep.model.frame import forward_differences
+from gradsep.model.poisson import solve_l1, solve_l2
 
 SETTINGS = settings(max_examples=30, deadline=None, database=None, suppress_health_check=[HealthCheck.too_slow])
 sizes = st.integers(1, 24)

@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from model.frame import Features, Layer
-from model.poisson import solve_l1
-from model.preprocess import (
+from gradsep.model.frame import Features, Layer
+from gradsep.model.poisson import solve_l1
+from gradsep.model.preprocess import (
     DATA_INPUTS,
     DEPTH_MAX,
     GRADIENT_INPUTS,
@@ -65,8 +65,8 @@ class TestTransfer:
         1e6 frame gets when served: model.infer scales such a layer by a power of two into the trained range
         first (issue 15), so its encoded values stay below the clamp (tests/model/test_hdr_and_providers.py
         checks the energy end to end)."""
-        from model.frame import Layer
-        from model.infer import exposure_scale
+        from gradsep.model.frame import Layer
+        from gradsep.model.infer import exposure_scale
 
         x = np.array([-5.0, np.inf], np.float32)
         y = TRANSFER.forward(x)
@@ -255,8 +255,8 @@ class TestAlignment:
 def test_inference_fast_paths_are_bit_identical_to_the_shared_definitions() -> None:
     """network_inputs_numpy, poisson_prior(planes=...) and output_radiance's in-place path compute the very
     numbers of network_inputs / poisson_prior / TRANSFER.inverse (bitwise, signed zeros included)."""
-    from model.frame import Layer
-    from model.preprocess import (
+    from gradsep.model.frame import Layer
+    from gradsep.model.preprocess import (
         layer_planes,
         measured_planes,
         network_inputs,
@@ -290,7 +290,7 @@ def test_inference_fast_paths_are_bit_identical_to_the_shared_definitions() -> N
         assert data.flags.c_contiguous and gradient.flags.c_contiguous
 
     encoded = rng.normal(1.0, 2.0, (3, h, w)).astype(np.float32)
-    from model.preprocess import TRANSFER
+    from gradsep.model.preprocess import TRANSFER
 
     want = np.ascontiguousarray(TRANSFER.inverse(encoded).astype(np.float32).transpose(1, 2, 0))
     assert np.array_equal(bits(output_radiance(encoded)), bits(want))

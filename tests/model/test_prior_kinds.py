@@ -14,11 +14,11 @@ torch = pytest.importorskip("torch")
 pytest.importorskip("onnx")
 
 import model.preprocess as preprocess  # noqa: E402
-from model.frame import Features, Layer  # noqa: E402
-from model.infer import ModelError, NetworkReconstructor  # noqa: E402
-from model.network import DualBranchNet, NetworkConfig  # noqa: E402
-from model.reconstruct import load_network  # noqa: E402
-from training.export import ExportError, model_metadata, prior_metadata, save_onnx, to_onnx  # noqa: E402
+from gradsep.model.frame import Features, Layer  # noqa: E402
+from gradsep.model.infer import ModelError, NetworkReconstructor  # noqa: E402
+from gradsep.model.network import DualBranchNet, NetworkConfig  # noqa: E402
+from gradsep.model.reconstruct import load_network  # noqa: E402
+from gradsep.training.export import ExportError, model_metadata, prior_metadata, save_onnx, to_onnx  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
 TINY = NetworkConfig(width=4, residual_blocks=0, use_attention=False)
@@ -67,7 +67,7 @@ def _frame(h: int = 24, w: int = 40, seed: int = 5) -> tuple[Layer, Features]:
 
 
 def test_the_kinds_are_the_command_lines_choices() -> None:
-    from training.commands import PRIOR_CHOICES
+    from gradsep.training.commands import PRIOR_CHOICES
 
     assert PRIOR_CHOICES == preprocess.PRIOR_KINDS
     assert preprocess.DEFAULT_PRIOR == "l1" and {"l1", "l2", "oidn"} <= set(preprocess.PRIOR_KINDS)
@@ -98,7 +98,7 @@ def test_every_kind_solves_its_own_budget(monkeypatch: pytest.MonkeyPatch) -> No
 
 
 def test_l2_kind_is_the_exact_screened_poisson_solve() -> None:
-    from model.poisson import solve_l2
+    from gradsep.model.poisson import solve_l2
 
     layer, _ = _frame()
     exact = np.clip(solve_l2(layer.base, layer.dx, layer.dy, preprocess.PRIOR_ALPHA), 0, None)
@@ -111,8 +111,8 @@ def test_l2_clamp_kind_is_the_l2_solve_of_the_clamped_data() -> None:
     """``l2-clamp`` = ``l2`` on clamp_outliers' data: an isolated firefly (and the gradients around it) is clamped
     to OUTLIER_CLAMP x its neighbourhood before the solve, so the prior does not smear it; a frame without
     outliers is solved as ``l2``; the clamp is scale-invariant and its compiled and numpy paths agree."""
-    from model import kernels
-    from model.frame import Layer, forward_differences
+    from gradsep.model import kernels
+    from gradsep.model.frame import Layer, forward_differences
 
     yy, xx = np.mgrid[0:24, 0:40].astype(np.float32)
     smooth = ((1.0 + 0.5 * np.sin(xx / 5.0) * np.cos(yy / 7.0))[..., None] * np.array([0.9, 0.6, 0.3])).astype(

@@ -6,7 +6,7 @@ import sys
 
 import pytest
 
-from model.progress import ProgressBar
+from gradsep.model.progress import ProgressBar
 
 
 def test_disabled_bar_is_a_silent_no_op(capsys: pytest.CaptureFixture[str]) -> None:

@@ -12,7 +12,7 @@ import OpenEXR
 import pytest
 
 from gradsep.cli import main
-from model.frame import (
+from gradsep.model.frame import (
     ChannelError,
     Features,
     Frame,
@@ -23,8 +23,8 @@ from model.frame import (
     write_exr,
     write_frame,
 )
-from model.poisson import solve_l1, solve_l2
-from model.reconstruct import METHODS, choose_method, reconstruct
+from gradsep.model.poisson import solve_l1, solve_l2
+from gradsep.model.reconstruct import METHODS, choose_method, reconstruct
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -142,11 +142,11 @@ def test_default_method_is_the_first_preferred_method_that_serves_the_frame(monk
     fused.layers = {"direct"}  # fused models that do not cover the frame are passed over
     assert choose_method(_frame(), network, fused) == "oidn-l1"
     assert reconstruct(_frame(), network=network, fused=fused).method == "oidn-l1"
-    monkeypatch.setattr("model.policy.DEFAULT_PREFERENCE", ("fused", "oidn", "network", "l1"))
+    monkeypatch.setattr("gradsep.model.policy.DEFAULT_PREFERENCE", ("fused", "oidn", "network", "l1"))
     fused.layers = {"direct", "indirect"}
     assert choose_method(_frame(), network, fused) == "fused"  # the order is data: a policy change is one line
     monkeypatch.undo()
-    monkeypatch.setattr("model.oidn.available", lambda: False)  # a host without pyoidn
+    monkeypatch.setattr("gradsep.model.oidn.available", lambda: False)  # a host without pyoidn
     assert choose_method(_frame(), network) == "network"
     network.layers = {"direct"}
     assert choose_method(_frame(), network) == "l1"
@@ -183,7 +183,7 @@ def test_a_frame_with_the_direct_layers_gradients_only(monkeypatch) -> None:
     with pytest.raises(ChannelError) as err:
         reconstruct(other, "oidn-l1")
     assert err.value.details["missing"] == [f"direct.{g}.{c}" for g in ("dx", "dy") for c in "RGB"]
-    monkeypatch.setattr("model.oidn.available", lambda: False)  # a host without pyoidn: nothing serves it
+    monkeypatch.setattr("gradsep.model.oidn.available", lambda: False)  # a host without pyoidn: nothing serves it
     with pytest.raises(ChannelError, match="only for layer"):
         choose_method(mixed, network, fused)
 
@@ -344,7 +344,7 @@ def test_console_command_end_to_end(tmp_path: Path) -> None:
 
 
 def _methods_here() -> list[str]:
-    from model.oidn import available
+    from gradsep.model.oidn import available
 
     shipped_fused = (REPO / "models" / "fused" / "indirect.onnx").is_file()
     return ["l1", "l2", *(["oidn", "oidn-l1"] if available() else []),
@@ -353,14 +353,14 @@ def _methods_here() -> list[str]:
 
 def _shipped_fused(method: str):
     """The shipped fused models for ``fused`` (its pipelined path: OIDN here, the rest in a worker), else None."""
-    from model.reconstruct import load_fused
+    from gradsep.model.reconstruct import load_fused
 
     return load_fused(REPO / "models") if method == "fused" else None
 
 
 @pytest.mark.parametrize("method", _methods_here())
 def test_concurrent_layers_give_the_sequential_result_bit_for_bit(method: str, monkeypatch) -> None:
-    import model.reconstruct as module
+    import gradsep.model.reconstruct as module
 
     monkeypatch.setattr(module, "CONCURRENT_METHODS", frozenset(METHODS))  # the threaded path for every method
     frame = _frame(h=40, w=56, noise=0.1)
@@ -385,7 +385,7 @@ def test_concurrent_layers_run_in_worker_threads_and_keep_errors(monkeypatch) ->
             seen.add(threading.current_thread().name)
             return super().reconstruct_layer(name, layer, features)
 
-    import model.reconstruct as module
+    import gradsep.model.reconstruct as module
 
     monkeypatch.setenv("GRADSEP_LAYER_THREADS", "2")
     monkeypatch.setattr(module, "CONCURRENT_METHODS", frozenset({"network"}))

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from model.frame import Layer, forward_differences
-from model.refine import REFINE_ALPHA, REFINED_LAYERS, refine_layer
+from gradsep.model.frame import Layer, forward_differences
+from gradsep.model.refine import REFINE_ALPHA, REFINED_LAYERS, refine_layer
 
 
 def _sharp(h: int, w: int, seed: int) -> np.ndarray:
@@ -101,10 +101,10 @@ def test_tiny_and_black_frames_stay_finite(shape: tuple[int, int]) -> None:
 def _old_refine(prior: np.ndarray, layer: Layer, preconditioner: str, cg_steps: int) -> np.ndarray:
     """refine_layer's solve as it was before the tolerance rule (issue 14), written out: what the fused models
     were trained on, so a call pinned to (preconditioner, cg_steps) must still give exactly this."""
-    from model import refine
-    from model.oidn import input_scale
-    from model.poisson import solve_l1
-    from model.preprocess import scaled_image
+    from gradsep.model import refine
+    from gradsep.model.oidn import input_scale
+    from gradsep.model.poisson import solve_l1
+    from gradsep.model.preprocess import scaled_image
 
     scale = input_scale(prior)
     data = scaled_image(prior, scale)
@@ -122,7 +122,7 @@ def test_a_pinned_budget_gives_the_fixed_solve_bit_for_bit(preconditioner: str, 
 
 
 def test_the_default_solve_runs_each_pass_to_the_tolerance(monkeypatch: pytest.MonkeyPatch) -> None:
-    from model import refine
+    from gradsep.model import refine
 
     seen = []
     real = refine.solve_l1
@@ -163,7 +163,7 @@ def _gradients(truth: np.ndarray, noise: float, seed: int) -> tuple[np.ndarray, 
 
 def test_a_noiseless_base_and_gradients_come_back_as_the_base() -> None:
     """OIDN's bias must not survive when the frame itself is exact: the rule trusts the base fully."""
-    from model.refine import trust_weights
+    from gradsep.model.refine import trust_weights
 
     truth = _sharp(48, 64, 11)
     prior = _blur(truth)  # OIDN's over-smoothing
@@ -188,7 +188,7 @@ def test_a_slightly_noisy_base_beats_a_biased_prior() -> None:
 def test_a_very_noisy_base_leans_on_oidn() -> None:
     """A base far noisier than its gradients' detail is not mixed in: the plain refinement of OIDN's image, bit
     for bit."""
-    from model.refine import trust_weights
+    from gradsep.model.refine import trust_weights
 
     truth = _sharp(48, 64, 15)
     prior = _blur(truth)
@@ -198,7 +198,7 @@ def test_a_very_noisy_base_leans_on_oidn() -> None:
 
 
 def test_the_weight_falls_with_the_base_noise() -> None:
-    from model.refine import trust_weights
+    from gradsep.model.refine import trust_weights
 
     truth = _sharp(64, 64, 18)
     layer = _layer_of(truth)
@@ -211,7 +211,7 @@ def test_the_weight_falls_with_the_base_noise() -> None:
 
 
 def test_the_weights_on_degenerate_layers() -> None:
-    from model.refine import trust_weights
+    from gradsep.model.refine import trust_weights
 
     flat = np.full((6, 7, 3), 2.0, np.float32)
     zero = np.zeros_like(flat)
@@ -258,7 +258,7 @@ def test_the_rule_is_exposure_invariant(decade: int, sigma: float) -> None:
 def test_the_frame_wide_part_of_the_rule() -> None:
     """A layer clean as a whole is trusted everywhere at the lower α (the l1 method's regime); a noisy one keeps
     OIDN's image as the data term at REFINE_ALPHA; degenerate layers give a finite or infinite r, never NaN."""
-    from model.refine import TRUST_ALPHA_BASE, frame_disagreement, trusted_data
+    from gradsep.model.refine import TRUST_ALPHA_BASE, frame_disagreement, trusted_data
 
     truth = _sharp(48, 64, 24)
     prior = _blur(truth)
@@ -300,8 +300,8 @@ def test_the_studys_per_pixel_alpha_solve_is_the_refinement_when_alpha_is_unifor
     """docs/network.md design 10 rests on the study's prototype: with a per-pixel α equal everywhere to the rule's
     own it must be refine_layer's solve (the rule of its time: no clean-layer α map), and a lower α_lo must change a
     clean layer (the prototype does something)."""
-    from model import refine
-    from model.refine import TRUST_ALPHA_BASE, frame_disagreement, input_scale, scaled_image
+    from gradsep.model import refine
+    from gradsep.model.refine import TRUST_ALPHA_BASE, frame_disagreement, input_scale, scaled_image
 
     monkeypatch.setattr(refine, "TRUST_ALPHA_CLEAN", None)
 
@@ -334,7 +334,7 @@ def _shadow_edge(h: int = 32, w: int = 40, noise: float = 0.002, seed: int = 31)
 
 
 def test_the_clean_layer_gets_a_per_pixel_alpha_with_zero_pixels_pinned() -> None:
-    from model.refine import (
+    from gradsep.model.refine import (
         TRUST_ALPHA_BASE,
         TRUST_ALPHA_CLEAN,
         TRUST_ALPHA_ZERO,
@@ -360,7 +360,7 @@ def test_the_clean_layer_gets_a_per_pixel_alpha_with_zero_pixels_pinned() -> Non
 def test_black_pixels_beside_bright_ones_stay_black_on_a_clean_layer(monkeypatch) -> None:
     """What the zero-pixel pin is for: a lower clean α alone leaks the bright side of a shadow edge into the umbra
     (a relative error weighs each unit there a hundredfold)."""
-    from model import refine
+    from gradsep.model import refine
 
     prior, layer = _shadow_edge()
     umbra = np.s_[:, 20:]
@@ -375,7 +375,7 @@ def test_black_pixels_beside_bright_ones_stay_black_on_a_clean_layer(monkeypatch
 def test_the_studys_zero_pixel_prototype_is_the_shipped_rule(monkeypatch) -> None:
     """docs/network.md design 14 was measured with the study's prototype; the shipped rule must be it (with
     session 17's scalar L2 start, which the prototype has)."""
-    from model import refine
+    from gradsep.model import refine
 
     monkeypatch.setattr(refine, "TRUST_CLEAN_START", False)
     monkeypatch.setattr(refine, "TRUST_PIN_RADIUS", None)
@@ -402,8 +402,8 @@ def test_a_clean_layer_starts_from_the_l2_solve_at_its_clean_alpha(monkeypatch) 
     """Design 17 (TRUST_CLEAN_START): the IRLS of a clean layer starts from the exact L2 solve at the α of its
     non-black pixels (the map's smallest α·m), not at the scalar α; with pass 0 alone the refinement is that L2
     solve. A noisy layer (no map) is unchanged bit for bit, and the study's C-start variant is the shipped rule."""
-    from model import refine
-    from model.poisson import solve_l2
+    from gradsep.model import refine
+    from gradsep.model.poisson import solve_l2
 
     monkeypatch.setattr(refine, "TRUST_PIN_RADIUS", None)  # the full pin, as design 17 was measured
     prior, layer = _shadow_edge(h=48, w=64, seed=61)
@@ -433,7 +433,7 @@ def test_a_black_pixel_is_pinned_only_where_the_gradients_agree_it_is_black(monk
     """Design 22 (TRUST_PIN_RADIUS): an umbra (base 0 and gradients 0 around it) stays pinned; a pixel whose base
     is 0 while the gradients say it is lit (a hard edge crossing it, missed by every primal sample) takes the clean
     α; the shipped rule is the study's prototype."""
-    from model import refine
+    from gradsep.model import refine
 
     prior, layer = _shadow_edge(h=32, w=40, seed=71)
     base = layer.base.copy()

@@ -27,10 +27,10 @@ import numpy as np
 import OpenEXR
 import pytest
 
-import model.reconstruct as reconstruct_module
-from model.frame import Features, Frame, Layer, NonFiniteError, forward_differences, layer_channels, read_frame
-from model.poisson import MIN_ALPHA, energy_l1, solve_l1, solve_l2
-from model.reconstruct import METHODS, reconstruct
+import gradsep.model.reconstruct as reconstruct_module
+from gradsep.model.frame import Features, Frame, Layer, NonFiniteError, forward_differences, layer_channels, read_frame
+from gradsep.model.poisson import MIN_ALPHA, energy_l1, solve_l1, solve_l2
+from gradsep.model.reconstruct import METHODS, reconstruct
 
 REPO = Path(__file__).resolve().parents[2]
 ALPHAS = [1e-4, 1e-2, 0.2, 10.0, 1e3]
@@ -61,7 +61,7 @@ LEARNED_FAST_OIDN = Tolerance(0.05, 0.05, 0.65)
 
 def _tolerance(method: str) -> Tolerance:
     if method in ("oidn", "oidn-l1"):
-        from model.oidn import SETTINGS, method_setting
+        from gradsep.model.oidn import SETTINGS, method_setting
 
         if SETTINGS[method_setting()].quality == "fast":
             return LEARNED_FAST_OIDN
@@ -117,7 +117,7 @@ def _models(method: str) -> dict[str, Any]:
             pytest.skip("no fused models (models/fused/*.onnx) in this checkout")
         return {"fused": _networks["fused"]}
     if method in ("oidn", "oidn-l1"):
-        from model.oidn import available
+        from gradsep.model.oidn import available
 
         if not available():
             pytest.skip("pyoidn is not installed")
@@ -423,7 +423,7 @@ def test_a_failing_backend_is_flagged_not_silently_zeroed(method: str, everywher
 def test_cli_reports_a_failing_solver_in_stderr_and_metadata(tmp_path: Path, monkeypatch, capsys) -> None:
     """The command line must surface the replacement too: a warning line and the output's gradsep.warnings."""
     from gradsep.cli import main
-    from model.frame import write_frame
+    from gradsep.model.frame import write_frame
 
     frame, _ = _exact_frame(8, 9, scale=1.0)
     write_frame(tmp_path / "in.exr", frame)

@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from renderer import dataset as ds
-from renderer.dataset import DatasetError, load_manifest, make_job, manifest_hash, run_dataset
+from gradsep.renderer import dataset as ds
+from gradsep.renderer.dataset import DatasetError, load_manifest, make_job, manifest_hash, run_dataset
 
 SIZE = "32x32"
 
@@ -33,7 +33,7 @@ def rendered(tmp_path_factory: pytest.TempPathFactory) -> Path:
 @pytest.fixture
 def counting_renderer(monkeypatch: pytest.MonkeyPatch) -> list[int]:
     """Replace the G-PT render with a cheap synthetic frame and record which seeds were rendered."""
-    from model.frame import Features, Frame, Layer
+    from gradsep.model.frame import Features, Frame, Layer
 
     calls: list[int] = []
 
@@ -49,9 +49,8 @@ def counting_renderer(monkeypatch: pytest.MonkeyPatch) -> list[int]:
         feats = Features(base.clip(0, 1), np.dstack([zero[..., :2], zero[..., :1] + 1]), zero[..., 0])
         return Frame(layers, feats, {"gradsep.render_seconds": "0.010", "gradsep.spp": str(spp)})
 
-    import renderer.render
 
-    monkeypatch.setattr(renderer.render, "render_frame", fake)
+    monkeypatch.setattr("gradsep.renderer.render.render_frame", fake)
     return calls
 
 
@@ -60,7 +59,7 @@ def counting_renderer(monkeypatch: pytest.MonkeyPatch) -> list[int]:
 @pytest.mark.slow
 @pytest.mark.render
 def test_manifest_content_of_a_real_dataset(rendered: Path) -> None:
-    from model.frame import read_frame
+    from gradsep.model.frame import read_frame
 
     data = json.loads((rendered / "manifest.json").read_text())
     assert data["version"] == 1 and data["spp"] == 2 and data["size"] == [32, 32]
@@ -98,7 +97,7 @@ def test_resume_skips_finished_frames_and_redoes_lost_ones(rendered: Path, tmp_p
 
 @pytest.mark.render
 def test_pairs_are_two_independent_realizations_of_one_frame(tmp_path: Path) -> None:
-    from model.frame import read_frame
+    from gradsep.model.frame import read_frame
 
     manifest = run_dataset(tmp_path, job(count=1, pairs=True), progress=False)
     rec = manifest.frames[0]
@@ -168,21 +167,21 @@ def test_truncated_frame_is_rendered_again_and_refused_by_load_manifest(tmp_path
 
 def test_interrupted_run_keeps_finished_frames(tmp_path: Path, counting_renderer: list[int],
                                                monkeypatch: pytest.MonkeyPatch) -> None:
-    import renderer.render
+    import gradsep.renderer.render
 
-    fake = renderer.render.render_frame
+    fake = gradsep.renderer.render.render_frame
 
     def dies_on_third(spec: str, **kw: object) -> object:
         if spec.endswith(":1002"):
             raise KeyboardInterrupt
         return fake(spec, **kw)
 
-    monkeypatch.setattr(renderer.render, "render_frame", dies_on_third)
+    monkeypatch.setattr("gradsep.renderer.render.render_frame", dies_on_third)
     with pytest.raises(KeyboardInterrupt):
         run_dataset(tmp_path, job(count=4), progress=False)
     data = json.loads((tmp_path / "manifest.json").read_text())  # merged on the way out
     assert [f["seed"] for f in data["frames"]] == [1000, 1001] and data["missing"] == 2
-    monkeypatch.setattr(renderer.render, "render_frame", fake)
+    monkeypatch.setattr("gradsep.renderer.render.render_frame", fake)
     counting_renderer.clear()
     run_dataset(tmp_path, job(count=4), progress=False)
     assert counting_renderer == [1002, 1003]
@@ -215,15 +214,15 @@ def test_concurrent_shards_on_one_folder(tmp_path: Path, counting_renderer: list
     import threading
     import time
 
-    import renderer.render
+    import gradsep.renderer.render
 
-    fake = renderer.render.render_frame
+    fake = gradsep.renderer.render.render_frame
 
     def slow(spec: str, **kw: object) -> object:
         time.sleep(0.01)  # interleave the shards' renders, part writes and merges
         return fake(spec, **kw)
 
-    monkeypatch.setattr(renderer.render, "render_frame", slow)
+    monkeypatch.setattr("gradsep.renderer.render.render_frame", slow)
     monkeypatch.setattr(ds, "MERGE_INTERVAL_S", 0.0)  # merge after every frame: maximal contention
     errors: list[BaseException] = []
 
@@ -272,11 +271,12 @@ def test_settings_cannot_be_mixed_in_one_folder(tmp_path: Path, counting_rendere
 
 def test_the_studio_family_renders_its_scenes_and_is_recorded(tmp_path: Path, counting_renderer: list[int],
                                                              monkeypatch: pytest.MonkeyPatch) -> None:
-    import renderer.render
+    import gradsep.renderer.render
 
     specs: list[str] = []
-    fake = renderer.render.render_frame
-    monkeypatch.setattr(renderer.render, "render_frame", lambda spec, **kw: (specs.append(spec), fake(spec, **kw))[1])
+    fake = gradsep.renderer.render.render_frame
+    monkeypatch.setattr("gradsep.renderer.render.render_frame",
+                        lambda spec, **kw: (specs.append(spec), fake(spec, **kw))[1])
     studio = run_dataset(tmp_path / "s", make_job(2, 2, "8x8", "0/1", 1000, None, family="studio"), progress=False)
     assert specs == ["procedural:studio:1000", "procedural:studio:1001"]
     assert studio.family == "studio" and load_manifest(tmp_path / "s").family == "studio"

@@ -19,9 +19,9 @@ mi = pytest.importorskip("mitsuba")
 dr = pytest.importorskip("drjit")
 
 from gradsep.cli import main  # noqa: E402
-from model.errors import CommandError  # noqa: E402
-from model.frame import read_frame, write_frame  # noqa: E402
-from renderer.gpt import (  # noqa: E402
+from gradsep.model.errors import CommandError  # noqa: E402
+from gradsep.model.frame import read_frame, write_frame  # noqa: E402
+from gradsep.renderer.gpt import (  # noqa: E402
     MAX_LANES_PER_PASS,
     GptSettings,
     alternate_offsets,
@@ -30,9 +30,9 @@ from renderer.gpt import (  # noqa: E402
     render_gpt,
     stratified_sub_pixel,
 )
-from renderer.render import parse_layers, plan_layers, render_frame  # noqa: E402
-from renderer.scene import load_scene, select_variant  # noqa: E402
-from renderer.shift import (  # noqa: E402
+from gradsep.renderer.render import parse_layers, plan_layers, render_frame  # noqa: E402
+from gradsep.renderer.scene import load_scene, select_variant  # noqa: E402
+from gradsep.renderer.shift import (  # noqa: E402
     HybridShift,
     ReplayShift,
     make_shift,
@@ -347,7 +347,7 @@ def test_first_vertex_before_the_loop_is_the_loops_first_iteration(monkeypatch, 
     is a literal and the shift's later-vertex code folds away: the frame is bit for bit the one the loop's first
     iteration gives (primal, both layers' gradients, features), for both shifts and the direct-gradients mode
     (the primal-only mode is not peeled)."""
-    import renderer.gpt as gpt
+    import gradsep.renderer.gpt as gpt
 
     scene, depth = load_test_scene(scene_name), SCENE_DEPTHS[scene_name]
     settings = GptSettings(max_depth=depth, gradients=gradients)
@@ -372,7 +372,7 @@ def test_manifold_solve_as_a_loop_is_the_unrolled_solve(monkeypatch):
     record and compile, and the frame bit for bit the one of the unrolled steps (primal, gradients, features). Power:
     the cbox's mirror ball takes the solve (one Newton step instead of the five changes the gradients). The
     ``--gradients direct`` mode does not run the solve at all (the next test)."""
-    import renderer.shift as shift_module
+    import gradsep.renderer.shift as shift_module
 
     scene = load_test_scene("cbox")
     assert scene_has_curved_mirrors(scene)
@@ -401,8 +401,8 @@ def test_direct_gradients_mode_leaves_out_the_manifold_solve(monkeypatch, offset
     HybridShift.for_direct_layer): a mirror at x_1 would be solved at x_2, past the mode's vertices. The frame is
     bit for bit the one of the full shift (the cbox's mirror ball is seen directly and reflects the lamp), and the
     solve is not even traced (power: with the full shift it is)."""
-    import renderer.gpt as gpt
-    import renderer.shift as shift_module
+    import gradsep.renderer.gpt as gpt
+    import gradsep.renderer.shift as shift_module
 
     scene = load_test_scene("cbox")
     settings = GptSettings(max_depth=SCENE_DEPTHS["cbox"], gradients="direct", offsets=offsets)
@@ -561,7 +561,7 @@ def test_offsets_on_the_base_pixel_give_zero_gradients(monkeypatch, shift, scene
     Replay is exact; the hybrid shift recomputes reconnection directions and may differ by rounding, and its
     manifold reconnection through a mirror solves for the mirror point to ~1e-6 of the path length, which near
     focusing configurations (tiny footprints) leaves Jacobians off by up to ~1e-3 (gradients ~1e-4)."""
-    import renderer.gpt as gpt
+    import gradsep.renderer.gpt as gpt
 
     monkeypatch.setattr(gpt, "SHIFT_OFFSETS", ((0, 0),) * 4)
     scene = load_scene(CBOX, width=16, height=16).scene if scene_name == "cbox" else coarse_room(16, "specular")
@@ -983,8 +983,8 @@ def test_frame_round_trips_through_the_contract(cbox_small, tmp_path):
 
 @pytest.mark.slow
 def test_procedural_frames_record_the_generator_version():
-    pytest.importorskip("renderer.procedural")
-    from renderer.procedural import GENERATOR_VERSION
+    pytest.importorskip("gradsep.renderer.procedural")
+    from gradsep.renderer.procedural import GENERATOR_VERSION
 
     frame = render_frame("procedural:5", spp=1, width=8, height=6, layers="direct")
     assert frame.metadata["gradsep.procedural_version"] == str(GENERATOR_VERSION)
@@ -1039,8 +1039,8 @@ def test_render_command_gradients_direct(tmp_path, capsys):
 def test_render_command_offsets(tmp_path):
     """`--offsets alternate`: the same channels as a full render (both layers' gradients), the same primal, and
     the mode in the metadata (absent for the default `all`); the command's choices are the renderer's modes."""
-    from renderer.gpt import OFFSET_MODES
-    from renderer.render import OFFSET_CHOICES
+    from gradsep.renderer.gpt import OFFSET_MODES
+    from gradsep.renderer.render import OFFSET_CHOICES
 
     assert OFFSET_CHOICES == OFFSET_MODES
     with pytest.raises(CommandError, match="--offsets must be one of"):

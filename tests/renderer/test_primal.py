@@ -14,12 +14,12 @@ import pytest
 mi = pytest.importorskip("mitsuba")
 
 from gradsep.cli import main  # noqa: E402
-from model.errors import CommandError  # noqa: E402
-from model.frame import read_frame, write_frame  # noqa: E402
-from renderer.gpt import GptSettings, render_gpt  # noqa: E402
-from renderer.render import parse_layers, render_frame  # noqa: E402
-from renderer.scene import load_scene  # noqa: E402
-from renderer.shift import ReplayShift  # noqa: E402
+from gradsep.model.errors import CommandError  # noqa: E402
+from gradsep.model.frame import read_frame, write_frame  # noqa: E402
+from gradsep.renderer.gpt import GptSettings, render_gpt  # noqa: E402
+from gradsep.renderer.render import parse_layers, render_frame  # noqa: E402
+from gradsep.renderer.scene import load_scene  # noqa: E402
+from gradsep.renderer.shift import ReplayShift  # noqa: E402
 from tests.renderer.scenes import resolve  # noqa: E402
 from tests.renderer.test_gpt import (  # noqa: E402  the G-PT tests' scenes, loaded once per worker
     SCENE_DEPTHS,
@@ -150,7 +150,7 @@ def test_no_gradients_command(tmp_path, capsys):
 def test_which_scenes_can_skip_the_last_ray():
     """Only a scene lit by delta lights alone (the teapot's point lights) skips the ray after the last next-event
     vertex; an area light (cbox) or an environment (sky) can be found by that ray."""
-    from renderer.gpt import scene_has_hittable_emitters
+    from gradsep.renderer.gpt import scene_has_hittable_emitters
 
     assert not scene_has_hittable_emitters(scene_of("teapot"))
     assert scene_has_hittable_emitters(scene_of("cbox"))

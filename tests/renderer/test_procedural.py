@@ -10,8 +10,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from renderer.errors import SceneError
-from renderer.procedural import (
+from gradsep.renderer.errors import SceneError
+from gradsep.renderer.procedural import (
     GENERATOR_VERSION,
     ProceduralSpec,
     describe,
@@ -236,7 +236,7 @@ def test_describe_names_the_seed_and_its_contents() -> None:
 @pytest.mark.render
 def test_a_studio_frame_has_an_empty_background() -> None:
     """Missed camera rays: depth 0 and no light (no sky), beside lit objects."""
-    from renderer.render import render_frame
+    from gradsep.renderer.render import render_frame
 
     frame = render_frame("procedural:studio:3", spp=4, seed=1, width=40, height=30)
     miss = frame.features.depth == 0
@@ -250,7 +250,7 @@ def test_a_studio_frame_has_an_empty_background() -> None:
 def test_loads_and_renders_finite_nonzero_images(seed: int) -> None:
     import mitsuba as mi
 
-    from renderer.scene import select_variant
+    from gradsep.renderer.scene import select_variant
 
     select_variant()
     scene = mi.load_dict(procedural_scene(seed, 24, 16))

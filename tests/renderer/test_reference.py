@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from renderer.reference import (
+from gradsep.renderer.reference import (
     DEFAULT_SAMPLER,
     MAX_WAVEFRONT,
     SAMPLERS,
@@ -101,8 +101,8 @@ def test_rebuilt_camera_with_the_independent_sampler_renders_bit_identically(spe
     rebuilt sensor renders the very same image (a wrong fov, transform or film would move every pixel)."""
     import mitsuba as mi
 
-    from renderer.reference import sampler_sensor
-    from renderer.scene import load_scene
+    from gradsep.renderer.reference import sampler_sensor
+    from gradsep.renderer.scene import load_scene
 
     loaded = load_scene(spec, width=20, height=14)
     path = mi.load_dict({"type": "path", "max_depth": loaded.max_depth})
@@ -116,8 +116,8 @@ def test_rebuilt_camera_with_the_independent_sampler_renders_bit_identically(spe
 def test_rebuilt_thin_lens_camera_renders_bit_identically() -> None:
     import mitsuba as mi
 
-    from renderer.reference import sampler_sensor
-    from renderer.scene import LoadedScene, load_scene
+    from gradsep.renderer.reference import sampler_sensor
+    from gradsep.renderer.scene import LoadedScene, load_scene
 
     load_scene("procedural:1", width=4, height=4)  # selects the variant
     scene = mi.load_dict({
@@ -233,7 +233,7 @@ def test_passes_are_the_sample_weighted_mean_of_seeded_renders() -> None:
     """5 spp in passes of 2 = (2*pass0 + 2*pass1 + 1*pass2) / 5, each pass Mitsuba's path with its pass seed."""
     import mitsuba as mi
 
-    from renderer.scene import load_scene
+    from gradsep.renderer.scene import load_scene
 
     ref = render_reference(str(CBOX), spp=5, width=16, height=16, tile_spp=2, seed=9, sampler="independent")
     loaded = load_scene(str(CBOX), width=16, height=16)  # its own sensor: cbox.xml's independent sampler
@@ -283,7 +283,7 @@ def test_file_round_trip_and_metadata(tmp_path: Path) -> None:
 
 
 def test_load_reference_names_missing_channels(tmp_path: Path) -> None:
-    from model.frame import ChannelError, NotExrError, write_exr
+    from gradsep.model.frame import ChannelError, NotExrError, write_exr
 
     path = tmp_path / "not-a-ref.exr"
     write_exr(path, {"R": np.zeros((2, 2)), "G": np.zeros((2, 2)), "B": np.zeros((2, 2))})

@@ -16,9 +16,9 @@ import pytest
 mi = pytest.importorskip("mitsuba")
 dr = pytest.importorskip("drjit")
 
-from renderer.gpt import GptSettings, render_gpt  # noqa: E402
-from renderer.scene import select_variant  # noqa: E402
-from renderer.shift import make_shift  # noqa: E402
+from gradsep.renderer.gpt import GptSettings, render_gpt  # noqa: E402
+from gradsep.renderer.scene import select_variant  # noqa: E402
+from gradsep.renderer.shift import make_shift  # noqa: E402
 
 pytestmark = pytest.mark.render
 

@@ -10,8 +10,8 @@ import pytest
 
 mi = pytest.importorskip("mitsuba")
 
-from model.errors import CommandError  # noqa: E402
-from renderer.scene import (  # noqa: E402
+from gradsep.model.errors import CommandError  # noqa: E402
+from gradsep.renderer.scene import (  # noqa: E402
     SceneError,
     force_film_dict,
     integrator_depths,
@@ -169,7 +169,7 @@ def test_integrator_depths():
 
 
 def test_procedural_scenes_load_at_the_requested_size():
-    pytest.importorskip("renderer.procedural")
+    pytest.importorskip("gradsep.renderer.procedural")
     loaded = load_scene("procedural:3", width=24, height=16)
     assert (loaded.width, loaded.height) == (24, 16)
     assert loaded.sensor.film().rfilter().class_name() == "BoxFilter"

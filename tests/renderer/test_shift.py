@@ -15,9 +15,9 @@ import pytest
 mi = pytest.importorskip("mitsuba")
 dr = pytest.importorskip("drjit")
 
-from renderer.gpt import ConnectingShift, GptSettings, render_gpt  # noqa: E402
-from renderer.scene import load_scene, select_variant  # noqa: E402
-from renderer.shift import (  # noqa: E402
+from gradsep.renderer.gpt import ConnectingShift, GptSettings, render_gpt  # noqa: E402
+from gradsep.renderer.scene import load_scene, select_variant  # noqa: E402
+from gradsep.renderer.shift import (  # noqa: E402
     HybridShift,
     _curvature,
     half_vector_shift,
@@ -194,7 +194,7 @@ def test_hybrid_shift_onto_the_same_pixel_is_exact_on_grazing_and_tiny_geometry(
     """The identity test of above on geometry where float32 is tight: a reconnection that spuriously fails (a
     shadow ray caught by the target's own sliver triangle, a grazing Jacobian gone to 0 or inf) or a half-vector
     copy that does not reproduce its base direction leaves a nonzero gradient."""
-    import renderer.gpt as gpt
+    import gradsep.renderer.gpt as gpt
 
     monkeypatch.setattr(gpt, "SHIFT_OFFSETS", ((0, 0),) * 4)
     scene = ROBUSTNESS_SCENES[name](16)

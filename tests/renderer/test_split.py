@@ -18,12 +18,12 @@ import pytest
 mi = pytest.importorskip("mitsuba")
 
 from gradsep.cli import main  # noqa: E402
-from model.errors import CommandError  # noqa: E402
-from model.frame import read_frame  # noqa: E402
-from renderer.gpt import GptSettings, pass_seed, render_gpt, render_pass  # noqa: E402
-from renderer.render import render_frame  # noqa: E402
-from renderer.scene import load_scene  # noqa: E402
-from renderer.shift import make_shift  # noqa: E402
+from gradsep.model.errors import CommandError  # noqa: E402
+from gradsep.model.frame import read_frame  # noqa: E402
+from gradsep.renderer.gpt import GptSettings, pass_seed, render_gpt, render_pass  # noqa: E402
+from gradsep.renderer.render import render_frame  # noqa: E402
+from gradsep.renderer.scene import load_scene  # noqa: E402
+from gradsep.renderer.shift import make_shift  # noqa: E402
 from tests.renderer.scenes import resolve  # noqa: E402
 from tests.renderer.test_gpt import (  # noqa: E402  the G-PT tests' scenes and statistics
     SCENE_DEPTHS,

@@ -16,9 +16,9 @@ import pytest
 import uvicorn
 from fastapi import FastAPI
 
-from service.main import create_app
-from service.protocol import http_protocol
-from service.settings import Settings
+from gradsep.service.main import create_app
+from gradsep.service.protocol import http_protocol
+from gradsep.service.settings import Settings
 
 with warnings.catch_warnings():  # Starlette 1.x nags about httpx in its TestClient; it still works
     warnings.simplefilter("ignore")

@@ -15,7 +15,7 @@ from collections.abc import Iterable
 import numpy as np
 import OpenEXR
 
-from model.frame import FEATURE_GROUPS, encode_exr, forward_differences, rgb_channels
+from gradsep.model.frame import FEATURE_GROUPS, encode_exr, forward_differences, rgb_channels
 
 
 def layer_image(height: int, width: int, seed: int, layer: str) -> np.ndarray:

@@ -11,18 +11,18 @@ import time
 
 from fastapi import FastAPI
 
-import service.inference
-from service.main import create_app
-from service.settings import Settings
+import gradsep.service.inference
+from gradsep.service.main import create_app
+from gradsep.service.settings import Settings
 
 
 def create() -> FastAPI:
-    real = service.inference.reconstruct
+    real = gradsep.service.inference.reconstruct
     delay = float(os.environ.get("GRADSEP_TEST_SLOW_SECONDS", "2"))
 
     def slow(frame, method, alpha, network=None, fused=None):  # noqa: ANN001, ANN202
         time.sleep(delay)
         return real(frame, method, alpha, network=network, fused=fused)
 
-    service.inference.reconstruct = slow
+    gradsep.service.inference.reconstruct = slow
     return create_app(Settings(warm_up=False))

@@ -18,16 +18,16 @@ import numpy as np
 import pytest
 
 from gradsep.cli import main
-from model.errors import CommandError
-from service.client import (
+from gradsep.model.errors import CommandError
+from gradsep.service.client import (
     EXIT_SERVER_ERROR,
     EXIT_UNAVAILABLE,
     RetryPolicy,
     backoff_delay,
     parse_retry_after,
 )
-from service.commands import client_command
-from service.main import create_app
+from gradsep.service.commands import client_command
+from gradsep.service.main import create_app
 from tests.service.conftest import settings, uvicorn_server, wait_ready
 from tests.service.frames import decode, expected_sum, frame_bytes, rgb
 

@@ -11,14 +11,14 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-import service.inference
-from model.reconstruct import choose_method
-from service.main import create_app
+import gradsep.service.inference
+from gradsep.model.reconstruct import choose_method
+from gradsep.service.main import create_app
 from tests.service.conftest import settings, wait_ready
 from tests.service.frames import decode, expected_sum, frame_bytes, rgb
 from tests.service.test_contract import assert_error, post
 
-REAL_RECONSTRUCT = service.inference.reconstruct
+REAL_RECONSTRUCT = gradsep.service.inference.reconstruct
 
 
 class BlockingReconstruction:
@@ -39,7 +39,7 @@ class BlockingReconstruction:
 @pytest.fixture
 def blocker(monkeypatch) -> BlockingReconstruction:
     fake = BlockingReconstruction()
-    monkeypatch.setattr(service.inference, "reconstruct", fake)
+    monkeypatch.setattr(gradsep.service.inference, "reconstruct", fake)
     yield fake
     fake.release.set()  # never leave a worker thread hanging, whatever the test did
 
@@ -117,7 +117,7 @@ def test_not_ready_while_models_load_but_alive(serve, monkeypatch):
         assert loaded.wait(60)
         return None
 
-    monkeypatch.setattr(service.inference, "load_network", slow_load)
+    monkeypatch.setattr(gradsep.service.inference, "load_network", slow_load)
     with serve(create_app(settings()), ready=False) as client:
         try:
             assert client.get("/healthz").status_code == 200
@@ -137,7 +137,7 @@ def test_broken_models_keep_liveness_but_never_ready(serve, monkeypatch):
     def broken(models_dir):
         raise RuntimeError("model.onnx: protobuf parsing failed")
 
-    monkeypatch.setattr(service.inference, "load_network", broken)
+    monkeypatch.setattr(gradsep.service.inference, "load_network", broken)
     with serve(create_app(settings()), ready=False) as client:
         wait_for(lambda: client.get("/readyz").json()["error"]["code"] == "models_failed")
         assert "protobuf parsing failed" in client.get("/readyz").json()["error"]["message"]
@@ -163,8 +163,8 @@ class FakeNetwork:
 
 def test_loaded_network_becomes_the_default_method_without_oidn(serve, monkeypatch):
     network = FakeNetwork()
-    monkeypatch.setattr(service.inference, "load_network", lambda models_dir: network)
-    monkeypatch.setattr("model.oidn.available", lambda: False)  # a replica without pyoidn
+    monkeypatch.setattr(gradsep.service.inference, "load_network", lambda models_dir: network)
+    monkeypatch.setattr("gradsep.model.oidn.available", lambda: False)  # a replica without pyoidn
 
     def reconstruct(frame, method, alpha, network=None, fused=None):
         method = method or choose_method(frame, network)
@@ -175,7 +175,7 @@ def test_loaded_network_becomes_the_default_method_without_oidn(serve, monkeypat
         return SimpleNamespace(image=image, layers={k: v.base for k, v in frame.layers.items()},
                                timings=dict.fromkeys(frame.layers, 0.001), method="network")
 
-    monkeypatch.setattr(service.inference, "reconstruct", reconstruct)
+    monkeypatch.setattr(gradsep.service.inference, "reconstruct", reconstruct)
     with serve(create_app(settings())) as client:
         assert network.warmed == 1
         ready = client.get("/readyz").json()
@@ -195,7 +195,7 @@ def test_loaded_network_becomes_the_default_method_without_oidn(serve, monkeypat
 
 def test_fused_models_are_served_and_the_policy_order_picks_the_default(serve, monkeypatch):
     fused = FakeNetwork()
-    monkeypatch.setattr(service.inference, "load_fused", lambda models_dir: fused)
+    monkeypatch.setattr(gradsep.service.inference, "load_fused", lambda models_dir: fused)
     calls: list[str] = []
 
     def reconstruct(frame, method, alpha, network=None, fused=None):
@@ -207,7 +207,7 @@ def test_fused_models_are_served_and_the_policy_order_picks_the_default(serve, m
         return SimpleNamespace(image=image, layers={k: v.base for k, v in frame.layers.items()},
                                timings=dict.fromkeys(frame.layers, 0.001), method="fused")
 
-    monkeypatch.setattr(service.inference, "reconstruct", reconstruct)
+    monkeypatch.setattr(gradsep.service.inference, "reconstruct", reconstruct)
     with serve(create_app(settings(warm_up=False))) as client:
         ready = client.get("/readyz").json()
         assert ready["methods"] == ["l1", "l2", "oidn", "oidn-l1", "fused"]
@@ -217,7 +217,7 @@ def test_fused_models_are_served_and_the_policy_order_picks_the_default(serve, m
         assert post(client, frame_bytes(seed=9, features=True)).headers["x-reconstruction-method"] == "oidn-l1"
         assert post(client, frame_bytes(seed=9, features=True), {"method": "fused"}).headers[
             "x-reconstruction-method"] == "fused"
-        monkeypatch.setattr("model.policy.DEFAULT_PREFERENCE", ("fused", "oidn", "network", "l1"))
+        monkeypatch.setattr("gradsep.model.policy.DEFAULT_PREFERENCE", ("fused", "oidn", "network", "l1"))
         assert client.get("/readyz").json()["default_method"] == "fused"  # one line of policy changes it
         assert post(client, frame_bytes(seed=9, features=True)).headers["x-reconstruction-method"] == "fused"
         plain = post(client, frame_bytes(seed=9, features=True, gradients=False))
@@ -230,7 +230,7 @@ def test_an_unexpected_failure_is_a_json_500_with_the_request_id(serve, monkeypa
     def crash(frame, method, alpha, network=None, fused=None):
         raise RuntimeError("solver exploded")
 
-    monkeypatch.setattr(service.inference, "reconstruct", crash)
+    monkeypatch.setattr(gradsep.service.inference, "reconstruct", crash)
     with serve(create_app(settings(warm_up=False))) as client:
         response = post(client, frame_bytes(), headers={"X-Request-ID": "req-500"})
         error = assert_error(response, 500, "internal")

@@ -8,7 +8,7 @@ import re
 import numpy as np
 import pytest
 
-from service.main import create_app
+from gradsep.service.main import create_app
 from tests.service.conftest import settings
 from tests.service.frames import (
     channels_bytes,
@@ -175,7 +175,7 @@ def test_multipart_without_frame_field_is_400(poisson_api, transport):
 @TRANSPORT
 def test_huge_declared_image_is_413_from_the_header_without_decoding(poisson_api, transport, monkeypatch):
     decoded = []
-    monkeypatch.setattr("service.inference.read_frame", lambda *a, **k: decoded.append(a) or 1 / 0)
+    monkeypatch.setattr("gradsep.service.inference.read_frame", lambda *a, **k: decoded.append(a) or 1 / 0)
     data = huge_header(frame_bytes(("color",), height=4, width=4))
     assert len(data) < 10_000  # a tiny body: the size can only come from the header
     error = assert_error(post(poisson_api[transport], data), 413, "too_large")
@@ -396,7 +396,7 @@ def _raw_exchange(url: str, request: bytes) -> bytes:
     b"GARBAGE\x01 / HTTP/1.1\r\n\r\n"], ids=["content-length-abc", "content-length-negative", "request-line"])
 def test_requests_uvicorns_parser_rejects_get_the_json_400(parser, request_bytes):
     """These never reach the app: uvicorn's parser answers them; service.protocol makes that answer ours."""
-    from service.protocol import JsonErrorH11Protocol
+    from gradsep.service.protocol import JsonErrorH11Protocol
     from tests.service.conftest import uvicorn_server
 
     http = JsonErrorH11Protocol if parser == "h11" else None
@@ -416,8 +416,8 @@ def test_large_body_streams_intact_through_the_buffered_protocol():
 
     import httpx
 
-    from service.client import upload_body
-    from service.protocol import BODY_HIGH_WATER
+    from gradsep.service.client import upload_body
+    from gradsep.service.protocol import BODY_HIGH_WATER
     from tests.service.conftest import uvicorn_server
 
     seen: dict[str, object] = {}
@@ -467,7 +467,7 @@ def test_docs_page_and_its_assets_are_served_locally(poisson_api, transport):
     ("NO_COMPRESSION", "NO_COMPRESSION"), ("ZIP_COMPRESSION", "ZIP_COMPRESSION"),
     ("PIZ_COMPRESSION", "PIZ_COMPRESSION"), ("PXR24_COMPRESSION", "ZIP_COMPRESSION")])
 def test_answer_compression_follows_the_request_when_lossless(poisson_api, transport, sent, answered):
-    from model.frame import encode_exr, read_header
+    from gradsep.model.frame import encode_exr, read_header
 
     body = encode_exr(frame_channels(), compression=sent) if sent != "PXR24_COMPRESSION" else _lossy(sent)
     response = post(poisson_api[transport], body, {"method": "l2"})
@@ -492,8 +492,8 @@ def test_exr_thread_pool_changes_no_pixel() -> None:
     """GRADSEP_EXR_THREADS: OpenEXR's pool (de)compresses line blocks in parallel; bytes and pixels are the same."""
     import OpenEXR
 
-    from model.frame import encode_exr, read_frame
-    from service.inference import configure_exr_threads
+    from gradsep.model.frame import encode_exr, read_frame
+    from gradsep.service.inference import configure_exr_threads
 
     data = frame_bytes(("direct", "indirect"), height=70, width=90)
     image = {"R": np.random.default_rng(0).random((70, 90), dtype=np.float32)}

@@ -18,7 +18,7 @@ import tomllib
 import pytest
 
 from gradsep.cli import main
-from service.main import create_app
+from gradsep.service.main import create_app
 from tests.service.conftest import REPO, free_port, settings, uvicorn_server
 
 # Packages of the render/train/evaluate roles: a serving host does not have them.
@@ -31,11 +31,11 @@ for name in {blocked!r}:
     sys.modules[name] = None  # any import of it now raises ImportError
 from fastapi.testclient import TestClient
 from gradsep.cli import build_parser
-from service.main import create_app
-from service.settings import Settings
-import service.client
+from gradsep.service.main import create_app
+from gradsep.service.settings import Settings
+import gradsep.service.client
 from tests.service.frames import frame_bytes
-if importlib.util.find_spec("model.infer") is not None:
+if importlib.util.find_spec("gradsep.model.infer") is not None:
     import model.infer  # the network path must be servable too
 build_parser().parse_args(["serve", "--port", "1"])
 with tempfile.TemporaryDirectory() as models:  # an existing but empty models folder
@@ -62,6 +62,24 @@ def test_serving_path_needs_no_torch_mitsuba_or_other_roles_packages():
                          env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin"})
     assert run.returncode == 0, run.stdout + run.stderr
     assert "serving path OK" in run.stdout
+
+
+@pytest.mark.slow
+def test_the_wheel_installs_one_top_level_name(tmp_path):
+    """The distribution claims only ``gradsep``: model/, service/, ... install as gradsep.model, gradsep.service
+    (setup.py), never as generic top-level packages that would collide with a farm tool's own ``model.py``."""
+    import zipfile
+
+    build = subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps",
+                            "-w", str(tmp_path), str(REPO)], capture_output=True, text=True, timeout=300)
+    assert build.returncode == 0, build.stderr
+    (wheel,) = tmp_path.glob("gradsep-*.whl")
+    names = zipfile.ZipFile(wheel).namelist()
+    assert {n.split("/")[0] for n in names} == {"gradsep", wheel.name.split("-")[0] + "-" +
+                                                 wheel.name.split("-")[1] + ".dist-info"}
+    for package in ("model", "service", "renderer", "training", "evaluation"):
+        assert f"gradsep/{package}/__init__.py" in names, package
+    assert "gradsep/service/routers/__init__.py" in names
 
 
 def test_serve_extra_has_what_the_service_imports_and_nothing_heavy():

@@ -23,7 +23,7 @@ from hypothesis import strategies as st
 from schemathesis import GenerationMode
 from schemathesis.specs.openapi.checks import positive_data_acceptance
 
-from service.main import create_app
+from gradsep.service.main import create_app
 from tests.service.conftest import settings as app_settings
 from tests.service.conftest import uvicorn_server, wait_ready
 from tests.service.frames import channels_bytes, decode, expected_sum, frame_channels, rgb

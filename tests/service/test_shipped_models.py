@@ -17,9 +17,9 @@ import numpy as np
 import OpenEXR
 import pytest
 
-from model.frame import encode_exr, read_frame, rgb_channels
-from model.metrics import relmse
-from service.main import create_app
+from gradsep.model.frame import encode_exr, read_frame, rgb_channels
+from gradsep.model.metrics import relmse
+from gradsep.service.main import create_app
 from tests.service.conftest import REPO, rss_bytes, server_process, settings
 from tests.service.frames import decode, frame_bytes, rgb
 

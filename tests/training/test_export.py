@@ -14,10 +14,10 @@ onnx = pytest.importorskip("onnx")
 ort = pytest.importorskip("onnxruntime")
 
 from gradsep.cli import main as cli_main  # noqa: E402
-from model.network import DATA_INPUTS, GRADIENT_INPUTS, DualBranchNet, GBranch, parameter_count  # noqa: E402
-from model.preprocess import PREPROCESS_VERSION  # noqa: E402
-from training.export import PARITY_TOLERANCE, export_run, parity_error, to_onnx  # noqa: E402
-from training.train import TrainConfig, train  # noqa: E402
+from gradsep.model.network import DATA_INPUTS, GRADIENT_INPUTS, DualBranchNet, GBranch, parameter_count  # noqa: E402
+from gradsep.model.preprocess import PREPROCESS_VERSION  # noqa: E402
+from gradsep.training.export import PARITY_TOLERANCE, export_run, parity_error, to_onnx  # noqa: E402
+from gradsep.training.train import TrainConfig, train  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -87,8 +87,8 @@ def test_onnx_runtime_matches_pytorch(exported: tuple[Path, Path, dict], h: int,
 
 @pytest.mark.slow
 def test_no_attention_export_is_flagged() -> None:
-    from model.network import NetworkConfig
-    from training.export import model_metadata
+    from gradsep.model.network import NetworkConfig
+    from gradsep.training.export import model_metadata
 
     cfg = NetworkConfig(width=2, residual_blocks=0, use_attention=False)
     net = DualBranchNet(cfg)
@@ -116,11 +116,11 @@ def test_export_command(exported: tuple[Path, Path, dict], tmp_path: Path,
 @pytest.mark.slow
 def test_a_run_on_another_prior_trains_exports_and_is_served_with_it(tiny_dataset: Path, tmp_path: Path) -> None:
     """--prior l2: the training cache holds the L2 prior, the export records it, and inference solves it."""
-    from model.frame import read_frame
-    from model.preprocess import describe_prior, layer_planes
-    from model.reconstruct import load_network
+    from gradsep.model.frame import read_frame
+    from gradsep.model.preprocess import describe_prior, layer_planes
+    from gradsep.model.reconstruct import load_network
+    from gradsep.training.dataset import load_manifest, select_layer
     from tests.training.conftest import tiny_config
-    from training.dataset import load_manifest, select_layer
 
     torch.set_num_threads(1)
     cfg = tiny_config(tiny_dataset, tmp_path / "run", epochs=1, prior="l2")
@@ -144,8 +144,8 @@ def test_init_warm_starts_from_an_exported_model_or_a_checkpoint(exported: tuple
                                                                    tiny_dataset: Path, tmp_path: Path) -> None:
     """--init: the exported ONNX's initializers (and a run's checkpoint) load into a fresh run's network, names
     and shapes checked; a fresh run then starts from them, not at random."""
+    from gradsep.training.train import initial_weights
     from tests.training.conftest import tiny_config
-    from training.train import initial_weights
 
     run, onnx_path, _ = exported
     trained = torch.load(run / "checkpoints" / "last.pt", map_location="cpu", weights_only=True)["model"]
@@ -167,8 +167,8 @@ def test_init_warm_starts_from_an_exported_model_or_a_checkpoint(exported: tuple
 @pytest.mark.parametrize("change", ["layer", "prior", "missing", "not-a-model"])
 def test_init_refuses_weights_that_do_not_fit(exported: tuple[Path, Path, dict], tiny_dataset: Path,
                                               tmp_path: Path, change: str) -> None:
+    from gradsep.training.train import TrainingError, initial_weights
     from tests.training.conftest import tiny_config
-    from training.train import TrainingError, initial_weights
 
     _, onnx_path, _ = exported
     overrides: dict[str, object] = {"layer": "indirect"} if change == "layer" else (

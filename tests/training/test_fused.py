@@ -14,15 +14,15 @@ import pytest
 torch = pytest.importorskip("torch")
 pytest.importorskip("pyoidn")
 
-from model.frame import read_frame  # noqa: E402
-from model.fused import OIDN_SETTING, blend_inputs, layer_candidates  # noqa: E402
-from model.infer import ModelError  # noqa: E402
-from model.oidn import shared_denoiser  # noqa: E402
-from model.preprocess import FUSED_MEAN  # noqa: E402
-from model.reconstruct import load_fused, load_network, reconstruct  # noqa: E402
-from training import fused as fused_training  # noqa: E402
-from training.dataset import load_manifest  # noqa: E402
-from training.synthetic import make_synthetic_dataset  # noqa: E402
+from gradsep.model.frame import read_frame  # noqa: E402
+from gradsep.model.fused import OIDN_SETTING, blend_inputs, layer_candidates  # noqa: E402
+from gradsep.model.infer import ModelError  # noqa: E402
+from gradsep.model.oidn import shared_denoiser  # noqa: E402
+from gradsep.model.preprocess import FUSED_MEAN  # noqa: E402
+from gradsep.model.reconstruct import load_fused, load_network, reconstruct  # noqa: E402
+from gradsep.training import fused as fused_training  # noqa: E402
+from gradsep.training.dataset import load_manifest  # noqa: E402
+from gradsep.training.synthetic import make_synthetic_dataset  # noqa: E402
 
 CACHED = fused_training.CACHE_CANDIDATES  # the cache's candidates (oidn, refine, refine-fast), in order
 KINDS = ("oidn", "refine-fast")  # the test models' candidates
@@ -136,7 +136,7 @@ def test_models_of_another_prior_kind_are_refused(blend_models: Path, tmp_path: 
 @pytest.mark.slow
 @pytest.mark.parametrize("case", ["black", "1x1", "17x9", "nan-inf", "huge"])
 def test_stiff_frames_stay_finite(blend_models: Path, case: str) -> None:
-    from model.frame import Features, Frame, Layer
+    from gradsep.model.frame import Features, Frame, Layer
 
     fused = load_fused(blend_models)
     h, w = {"1x1": (1, 1), "17x9": (9, 17)}.get(case, (20, 24))
@@ -168,7 +168,7 @@ def test_a_fixed_layer_is_its_candidate_and_old_formats_are_refused(blend_models
     format 1 (trained on the former DCT-solved candidates) is refused rather than fed candidates it never saw."""
     import onnx
 
-    from model.fused import FIXED_LAYERS
+    from gradsep.model.fused import FIXED_LAYERS
 
     folder = tmp_path / "models" / "fused"
     folder.mkdir(parents=True)
@@ -201,7 +201,7 @@ def test_l2_target_is_unbiased_and_the_image_for_consistent_data() -> None:
     """The ``l2`` Noise2Noise target (the second realization's L2 Poisson solve): linear in base and gradients,
     so its mean over noise is the clean image (no reference enters the loss), and for consistent data it is that
     image itself; ``base`` is the base unchanged; an unknown kind is refused."""
-    from model.frame import Layer, forward_differences
+    from gradsep.model.frame import Layer, forward_differences
 
     rng = np.random.default_rng(5)
     truth = rng.uniform(0.1, 2.0, (20, 24, 3)).astype(np.float32)

@@ -8,8 +8,8 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from model.preprocess import TRANSFER  # noqa: E402
-from training.losses import (  # noqa: E402
+from gradsep.model.preprocess import TRANSFER  # noqa: E402
+from gradsep.training.losses import (  # noqa: E402
     BLACK_LEVEL,
     BetaSchedule,
     LossTerms,

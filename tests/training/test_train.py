@@ -14,9 +14,9 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from gradsep.cli import main as cli_main  # noqa: E402
-from model.frame import Features, Frame, Layer, write_frame  # noqa: E402
-from model.preprocess import FEATURE_PLANES, LAYER_PLANES  # noqa: E402
-from training.dataset import (  # noqa: E402
+from gradsep.model.frame import Features, Frame, Layer, write_frame  # noqa: E402
+from gradsep.model.preprocess import FEATURE_PLANES, LAYER_PLANES  # noqa: E402
+from gradsep.training.dataset import (  # noqa: E402
     DatasetError,
     PatchDataset,
     build_cache,
@@ -24,7 +24,7 @@ from training.dataset import (  # noqa: E402
     select_layer,
     split_frames,
 )
-from training.train import Trainer, TrainingError, read_log, train  # noqa: E402
+from gradsep.training.train import Trainer, TrainingError, read_log, train  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -57,7 +57,7 @@ def test_smoke_training_lowers_the_loss(make_config) -> None:
 
 @pytest.mark.train
 def test_paired_training_validates_against_the_prior(tmp_path: Path) -> None:
-    from training.synthetic import make_synthetic_dataset
+    from gradsep.training.synthetic import make_synthetic_dataset
 
     from .conftest import tiny_config
 
@@ -197,9 +197,9 @@ def test_patches_are_deterministic_and_change_with_the_epoch(tiny_dataset: Path,
 
 
 def test_paired_frames_give_independent_targets(tmp_path: Path) -> None:
-    from model.frame import read_frame
-    from model.preprocess import measured_planes
-    from training.synthetic import make_synthetic_dataset
+    from gradsep.model.frame import read_frame
+    from gradsep.model.preprocess import measured_planes
+    from gradsep.training.synthetic import make_synthetic_dataset
 
     root = make_synthetic_dataset(tmp_path / "ds", frames=2, width=24, height=20, pairs=True)
     manifest = load_manifest(root)
@@ -220,7 +220,7 @@ def test_paired_frames_give_independent_targets(tmp_path: Path) -> None:
 
 
 def test_cache_is_reused_and_frames_without_the_layer_are_skipped(tmp_path: Path) -> None:
-    from training.synthetic import make_synthetic_dataset
+    from gradsep.training.synthetic import make_synthetic_dataset
 
     root = make_synthetic_dataset(tmp_path / "ds", frames=2, width=16, height=16)
     one = np.ones((16, 16, 3), np.float32)
@@ -275,7 +275,7 @@ def test_train_command_reports_bad_data_in_one_line(tmp_path: Path, capsys: pyte
 def test_python_dash_m_training_train_is_gradsep_train(tmp_path: Path) -> None:
     """`torchrun -m training.train ARGS` (each worker runs the module) takes `gradsep train`'s flags and reports
     bad input the same way, without the command-line package."""
-    cmd = [sys.executable, "-m", "training.train", "--data", str(tmp_path / "nope"), "--layer", "direct",
+    cmd = [sys.executable, "-m", "gradsep.training.train", "--data", str(tmp_path / "nope"), "--layer", "direct",
            "-o", str(tmp_path / "run")]
     proc = subprocess.run(cmd, env={**os.environ, "PYTHONPATH": str(REPO)}, cwd=REPO, capture_output=True,
                           text=True, timeout=120, check=False)
