@@ -29,14 +29,12 @@ import json
 import math
 import os
 import statistics
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
+#: The checkout; its models/ folder is the default when $GRADSEP_MODELS is unset.
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / "benchmarks"))
 
 DEFAULT_TARGETS = "network=0.8,l1=1.5,fused=2.0,oidn-l1=2.0"
 
@@ -85,14 +83,13 @@ def report(rows: dict[str, dict[str, float]], cores: int, targets: dict[str, flo
 
 
 def main() -> None:
-    from bench_service import synthetic_frame
-
     from gradsep.model.frame import read_frame
     from gradsep.model.reconstruct import available_methods
+    from gradsep.model.synthetic import synthetic_frame
     from gradsep.service.inference import configure_exr_threads, load_fused, load_network
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--frame", type=Path, help="an EXR frame (default: bench_service.py's synthetic frame)")
+    parser.add_argument("--frame", type=Path, help="an EXR frame (default: gradsep.model.synthetic's frame)")
     parser.add_argument("--size", default="1280x720", help="WIDTHxHEIGHT of the synthetic frame")
     parser.add_argument("--methods", default="", help="comma-separated (default: every method the frame allows)")
     parser.add_argument("--repeats", type=int, default=3)

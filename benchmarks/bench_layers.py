@@ -6,8 +6,8 @@
 
 For each method the two settings alternate (1, 2, 1, 2, ...) so that both see the same machine load; the medians,
 their ratio and the largest difference between the two outputs (expected: 0, the same computation) are printed
-with the load average. The frame is bench_service.py's synthetic 1280x720 direct + indirect frame with features.
-Run it under the shared CPU lock (``flock /work/notes/cpu.lock ...``).
+with the load average. The frame is gradsep.model.synthetic's 1280x720 direct + indirect frame with features.
+Run it on an otherwise idle machine.
 """
 
 from __future__ import annotations
@@ -15,20 +15,13 @@ from __future__ import annotations
 import argparse
 import os
 import statistics
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / "benchmarks"))
-
-from bench_service import synthetic_frame  # noqa: E402
-
-from gradsep.model.frame import read_frame  # noqa: E402
-from gradsep.model.reconstruct import LAYER_THREADS_ENV, available_methods, load_fused, load_network, reconstruct  # noqa: E402
+from gradsep.model.frame import read_frame
+from gradsep.model.reconstruct import LAYER_THREADS_ENV, available_methods, load_fused, load_network, reconstruct
+from gradsep.model.synthetic import synthetic_frame
 
 
 def run(frame, method: str, threads: int, network, fused) -> tuple[float, np.ndarray, dict[str, float]]:

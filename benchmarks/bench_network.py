@@ -31,11 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-
-from gradsep.model.infer import NetworkReconstructor, SessionSettings, TileSettings  # noqa: E402
-from gradsep.model.preprocess import DATA_INPUTS, GRADIENT_INPUTS  # noqa: E402
+from gradsep.model.infer import NetworkReconstructor, SessionSettings, TileSettings
+from gradsep.model.preprocess import DATA_INPUTS, GRADIENT_INPUTS
 
 
 def median_time(fn: Callable[[], object], repeats: int) -> dict[str, float]:
@@ -131,22 +128,23 @@ def bench_torch(h: int, w: int, repeats: int, attention: bool) -> list[dict[str,
 
 
 def bench_memory(models: Path, side: int) -> dict[str, object]:
-    """Peak RSS of reconstructing one side×side layer (tiled), in a fresh process so nothing else counts."""
-    code = (
-        f"import resource, sys, time; sys.path.insert(0, {str(REPO)!r})\n"
-        "from benchmarks.bench_network import synthetic_layer\n"
-        "from model.infer import NetworkReconstructor\n"
-        f"layer, features = synthetic_layer({side}, {side})\n"
-        "before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss\n"
-        f"rec = NetworkReconstructor.load({str(models)!r})\n"
-        "t = time.perf_counter(); out = rec.reconstruct_layer('direct', layer, features)\n"
-        "print(before, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, time.perf_counter() - t)\n"
-    )
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
-                          env={**os.environ, "PYTHONPATH": str(REPO)})
+    """Peak RSS of reconstructing one side×side layer (tiled), in a fresh process so nothing else counts: this
+    script again, with the hidden ``--memory-child`` flag."""
+    proc = subprocess.run([sys.executable, __file__, "--memory-child", str(side), "--models", str(models)],
+                          capture_output=True, text=True, check=True)
     before_kb, peak_kb, seconds = proc.stdout.split()
     return {"name": f"memory: {side}x{side} layer, tiled {TileSettings().tile}+{TileSettings().overlap}",
             "peak_rss_gb": int(peak_kb) / 1e6, "inputs_rss_gb": int(before_kb) / 1e6, "seconds": float(seconds)}
+
+
+def memory_child(models: Path, side: int) -> None:
+    """The child of :func:`bench_memory`: prints RSS before, peak RSS (kB) and the layer's seconds."""
+    layer, features = synthetic_layer(side, side)
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    rec = NetworkReconstructor.load(models)
+    t = time.perf_counter()
+    rec.reconstruct_layer("direct", layer, features)
+    print(before, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, time.perf_counter() - t)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -159,7 +157,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-torch", action="store_true", help="skip the PyTorch rows")
     p.add_argument("--memory", action="store_true", help="also measure peak RSS of a 4096x4096 layer")
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    p.add_argument("--memory-child", type=int, default=None, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
+    if args.memory_child is not None:
+        memory_child(args.models, args.memory_child)
+        return 0
     w, h = (int(v) for v in args.size.lower().split("x"))
 
     with tempfile.TemporaryDirectory() as tmp:

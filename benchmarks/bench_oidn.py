@@ -5,8 +5,9 @@
 
 Reports, for a synthetic noisy HDR layer with random albedo/normal: ``pyoidn.denoise`` with the raw (noisy)
 features (OIDN's default mode), the colour filter with prefiltered features (``cleanAux``, the fused prior's
-setting), and the two prefilter passes (albedo, normal) it runs once per frame. Every OIDN setting, the ``oidn``
-method's default among them: benchmarks/study_oidn.py (docs/oidn.md).
+setting), and the two prefilter passes (albedo, normal) it runs once per frame. The ``oidn`` method's own setting
+(``raw-fast``: raw features, quality ``fast``; docs/oidn.md) is timed inside the service's pipeline by
+bench_floor.py's ``oidn`` row.
 """
 
 from __future__ import annotations

@@ -27,17 +27,14 @@ import statistics
 import sys
 import time
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import scipy
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from gradsep.model.frame import forward_differences  # noqa: E402
-from gradsep.model.metrics import relmse  # noqa: E402
-from gradsep.model.poisson import L1_CG_STEPS, L1_PASSES, energy_l1, solve_l1, solve_l2  # noqa: E402
-from gradsep.model.policy import DEFAULT_ALPHA  # noqa: E402
+from gradsep.model.frame import forward_differences
+from gradsep.model.metrics import relmse
+from gradsep.model.poisson import L1_CG_STEPS, L1_PASSES, energy_l1, solve_l1, solve_l2
+from gradsep.model.policy import DEFAULT_ALPHA
 
 LAYERS = {"direct": 0.3, "indirect": 0.8, "color": 0.5}  # layer -> relative noise level
 

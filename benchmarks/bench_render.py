@@ -41,8 +41,6 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
 DEFAULT_SCENES = "cbox,procedural:0,procedural:1"
 
 

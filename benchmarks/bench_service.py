@@ -45,40 +45,15 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+from gradsep.model.frame import LOSSLESS_COMPRESSIONS, encode_exr, read_frame, rgb_channels
+from gradsep.model.synthetic import synthetic_frame
+from gradsep.service.client import upload_body
 
-from gradsep.model.frame import LOSSLESS_COMPRESSIONS, encode_exr, forward_differences, read_frame, rgb_channels  # noqa: E402
-from gradsep.service.client import upload_body  # noqa: E402
+#: The checkout the served subprocess runs from (its code and, by default, its models/).
+REPO = Path(__file__).resolve().parents[1]
 
 #: Table order; any other method the service offers is measured after these.
 METHOD_ORDER = ("l2", "l1", "network", "fused", "oidn")
-
-
-def synthetic_frame(height: int, width: int, seed: int = 0, compression: str | None = None) -> bytes:
-    """A noisy separated frame with features, as EXR bytes (float32, ZIP)."""
-    rng = np.random.default_rng(seed)
-    yy, xx = np.mgrid[0:height, 0:width].astype(np.float32)
-    yy, xx = yy / height, xx / width
-    channels: dict[str, np.ndarray] = {}
-    for layer, noise in (("direct", 0.3), ("indirect", 0.8)):
-        shading = np.stack([0.4 + 0.3 * np.sin(7 * xx + c) * np.cos(5 * yy - c) for c in range(3)], -1)
-        edges = (xx > 0.35) * 0.5 + ((xx - 0.7) ** 2 + (yy - 0.4) ** 2 < 0.03) * 2.0
-        truth = (shading + edges[..., None]) * (1.0 if layer == "direct" else 0.4)
-        dx, dy = forward_differences(truth)
-        fireflies = (rng.random(truth.shape[:2]) < 0.002)[..., None] * rng.exponential(20.0, truth.shape)
-        base = truth * (1 + noise * rng.standard_normal(truth.shape)) + fireflies
-        dx = dx + 0.3 * noise * rng.standard_normal(dx.shape)
-        dy = dy + 0.3 * noise * rng.standard_normal(dy.shape)
-        dx[:, -1], dy[-1] = 0, 0
-        channels.update(rgb_channels(layer, np.maximum(base, 0)))
-        channels.update(rgb_channels(f"{layer}.dx", dx))
-        channels.update(rgb_channels(f"{layer}.dy", dy))
-    normal = np.dstack([np.zeros((height, width, 2), np.float32), np.ones((height, width), np.float32)])
-    channels.update(dict(zip(("albedo.R", "albedo.G", "albedo.B"), np.full((3, height, width), 0.6), strict=True)))
-    channels.update(dict(zip(("normal.X", "normal.Y", "normal.Z"), np.moveaxis(normal, -1, 0), strict=True)))
-    channels["depth.Z"] = 2.0 + yy
-    return encode_exr({k: np.ascontiguousarray(v, np.float32) for k, v in channels.items()}, compression=compression)
 
 
 def free_port() -> int:

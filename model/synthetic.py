@@ -1,0 +1,52 @@
+"""A seeded synthetic G-PT frame as EXR bytes: the one input the latency benchmarks share.
+
+The benchmarks (benchmarks/bench_service.py, bench_floor.py, bench_layers.py) time the service's pipeline on this
+frame so their figures are comparable and need no renderer: a separated frame (``direct`` and ``indirect``, each a
+base with ``dx``/``dy`` gradients) plus albedo/normal/depth features, float32. The content is generic -- smooth
+shading with a step edge and a disc, multiplicative Monte-Carlo-like noise and rare fireflies in the bases, lighter
+noise in the gradients -- and fitted to no scene. It exercises the cost of each method, not its quality (quality
+comes from ``gradsep evaluate`` on rendered frames).
+
+Standard library, numpy and the frame contract only, so a serving host (no torch, no mitsuba) can run it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from gradsep.model.frame import encode_exr, forward_differences, rgb_channels
+
+#: Relative base noise per layer; the indirect layer is the noisier one, as in a rendered frame.
+_LAYER_NOISE: dict[str, float] = {"direct": 0.3, "indirect": 0.8}
+
+
+def synthetic_frame(height: int, width: int, seed: int = 0, compression: str | None = None) -> bytes:
+    """A noisy separated frame with gradients and features, ``height`` x ``width``, as EXR bytes.
+
+    ``compression`` is an OpenEXR compression name (model.frame.LOSSLESS_COMPRESSIONS); None is the frame
+    contract's default. The same ``seed`` gives the same bytes.
+    """
+    if height < 2 or width < 2:
+        raise ValueError(f"a synthetic frame needs at least 2x2 pixels, got {width}x{height}")
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:height, 0:width].astype(np.float32)
+    yy, xx = yy / height, xx / width
+    channels: dict[str, np.ndarray] = {}
+    for layer, noise in _LAYER_NOISE.items():
+        shading = np.stack([0.4 + 0.3 * np.sin(7 * xx + c) * np.cos(5 * yy - c) for c in range(3)], -1)
+        edges = (xx > 0.35) * 0.5 + ((xx - 0.7) ** 2 + (yy - 0.4) ** 2 < 0.03) * 2.0
+        truth = (shading + edges[..., None]) * (1.0 if layer == "direct" else 0.4)
+        dx, dy = forward_differences(truth)
+        fireflies = (rng.random(truth.shape[:2]) < 0.002)[..., None] * rng.exponential(20.0, truth.shape)
+        base = truth * (1 + noise * rng.standard_normal(truth.shape)) + fireflies
+        dx = dx + 0.3 * noise * rng.standard_normal(dx.shape)
+        dy = dy + 0.3 * noise * rng.standard_normal(dy.shape)
+        dx[:, -1], dy[-1] = 0, 0  # the contract: no difference past the last column / row
+        channels.update(rgb_channels(layer, np.maximum(base, 0)))
+        channels.update(rgb_channels(f"{layer}.dx", dx))
+        channels.update(rgb_channels(f"{layer}.dy", dy))
+    normal = np.dstack([np.zeros((height, width, 2), np.float32), np.ones((height, width), np.float32)])
+    channels.update(dict(zip(("albedo.R", "albedo.G", "albedo.B"), np.full((3, height, width), 0.6), strict=True)))
+    channels.update(dict(zip(("normal.X", "normal.Y", "normal.Z"), np.moveaxis(normal, -1, 0), strict=True)))
+    channels["depth.Z"] = 2.0 + yy
+    return encode_exr({k: np.ascontiguousarray(v, np.float32) for k, v in channels.items()}, compression=compression)
