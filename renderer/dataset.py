@@ -1,6 +1,6 @@
 """`gradsep dataset`: procedural G-PT training frames plus a manifest; shardable across a farm, resumable.
 
-Layout of a dataset folder ``DIR`` (docs/dataset.md has the full description)::
+Layout of a dataset folder ``DIR`` (docs/training.md, "Datasets", has the full description)::
 
     DIR/frames/proc_001000.exr           one frame per seed (the frame contract, written atomically)
     DIR/frames/proc_001000.b.exr         with ``--pairs``: an independent second realization of the same frame

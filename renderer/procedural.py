@@ -7,7 +7,7 @@ with diffuse, plastic, rough and smooth conductor and dielectric materials (some
 checkerboard or a small procedural noise bitmap), area lights of varied power and colour (ceiling panels, panels
 facing a wall or the ceiling so that most of the room is lit only indirectly, small bright spheres, sometimes a
 spot light) and sometimes an environment light (constant, or a small procedurally painted sky with a sun; nothing
-is downloaded). `docs/dataset.md` documents the distribution.
+is downloaded). `docs/training.md` documents the distribution.
 
 A second family, ``procedural:studio:SEED``, is the product shot: the same objects, materials and lights, but no
 room, no ground and no sky, so the object cluster hangs in an empty (black) background lit by point, spot and
