@@ -108,3 +108,42 @@ def test_the_log_check_finds_design_round_session_numbers_and_dates() -> None:
     assert log_lines("measured in session 19")
     assert log_lines("on 2026-12-04 at 16:54")
     assert not log_lines("the design: direct and indirect layers, 3 rounds of tests, 1280x720 at 16 spp")
+
+
+def heading_anchors(markdown: str) -> set[str]:
+    """GitHub's anchors of a Markdown file's headings: lower case, punctuation dropped, spaces to hyphens."""
+    anchors = set()
+    in_code = False
+    for line in markdown.splitlines():
+        if line.startswith("```"):
+            in_code = not in_code
+        elif not in_code and (m := re.match(r"#{1,6} (.*)", line)):
+            anchors.add(re.sub(r"[^\w\- ]", "", m.group(1).strip().lower()).replace(" ", "-"))
+    return anchors
+
+
+def broken_links(path: Path) -> list[str]:
+    """The relative links of a Markdown file whose file or heading anchor does not exist."""
+    text = path.read_text(encoding="utf-8")
+    broken = []
+    for target in re.findall(r"\]\(([^)\s]+)\)", text):
+        if re.match(r"[a-z]+:", target):
+            continue  # http(s), mailto: not checked offline
+        file, _, anchor = target.partition("#")
+        resolved = (path.parent / file).resolve() if file else path
+        if not resolved.exists():
+            broken.append(target)
+        elif anchor and resolved.suffix == ".md" and anchor not in heading_anchors(resolved.read_text("utf-8")):
+            broken.append(target)
+    return broken
+
+
+def test_the_anchor_rule_is_githubs() -> None:
+    assert heading_anchors("# The `oidn-l1` method\n## Runtime (2-core CPU)\n```\n# not a heading\n```\n") == {
+        "the-oidn-l1-method", "runtime-2-core-cpu"}
+
+
+@pytest.mark.parametrize("doc", ["README.md", "benchmarks/README.md",
+                                 *sorted(str(p.relative_to(REPO)) for p in (REPO / "docs").glob("*.md"))])
+def test_every_relative_link_resolves(doc: str) -> None:
+    assert not broken_links(REPO / doc), broken_links(REPO / doc)
