@@ -56,7 +56,7 @@ test-serving:
 	  sys.exit(any(u.find_spec(m) for m in ('model', 'service', 'renderer', 'training', 'evaluation')))"
 	$(SERVE_VENV)/bin/pytest -q -n 2 --timeout=300 tests/service
 
-# The shipped models, by one command (docs/network.md, "Shipped models"): a 120-frame procedural dataset (two
+# The shipped models, by one command (docs/training.md, "The shipped models"): a 120-frame procedural dataset (two
 # independent realizations per frame: Noise2Noise targets), then
 # the two layer models side by side (one core and one torch thread each: two single-threaded runs make more
 # steps per minute on 2 cores than one two-threaded run), then the color baseline and the four Fig. 7 ablation
@@ -95,7 +95,7 @@ models: venv system-deps $(DATASET)/manifest.json
 	  done; done ) & p1=$$!; \
 	wait $$p0 && wait $$p1
 
-# The fused method's blend model by one command (docs/network.md, "The fused method"): the same Noise2Noise dataset;
+# The fused method's blend model by one command (docs/training.md, "The fused blend model"): the same Noise2Noise dataset;
 # every training frame's candidates computed once into runs/fused-cache (model.fused.layer_candidates, as inference
 # computes them); then the indirect layer's blend network trained for MINUTES_FUSED on one core and exported. The
 # direct layer has no model: the method serves it with its refine candidate (model.fused.FIXED_LAYERS, chosen on the
