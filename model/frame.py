@@ -733,16 +733,24 @@ def encode_answer(frame: Frame, channels: Mapping[str, np.ndarray], *, half: boo
         if saturated:
             warnings.append(f"{saturated} value(s) above the half-float range saturated at {HALF_MAX:g} "
                             "(ask for format=float / drop --half to keep them)")
-    header = {k: v for k, v in frame.metadata.items() if k not in ANSWER_KEYS}
-    header.update(metadata or {})
+    carried = {k: v for k, v in frame.metadata.items() if k not in ANSWER_KEYS and k not in IMAGE_ATTRIBUTES}
+    own = dict(metadata or {})
     if frame.layout != "gradsep":
-        header["gradsep.channels"] = frame.layout
-    if warnings:
-        header[WARNINGS_ATTRIBUTE] = "; ".join(warnings)[:WARNINGS_LIMIT]
-    else:
-        header.pop(WARNINGS_ATTRIBUTE, None)
-    return encode_exr(out, half=half, metadata=header, compression=compression,
-                      image_attributes=frame.image_attributes)
+        own["gradsep.channels"] = frame.layout
+
+    def encode(carried: Mapping[str, str], image_attributes: Mapping[str, Any]) -> bytes:
+        header = {**carried, **own}
+        if warnings:
+            header[WARNINGS_ATTRIBUTE] = "; ".join(warnings)[:WARNINGS_LIMIT]
+        return encode_exr(out, half=half, metadata=header, compression=compression,
+                          image_attributes=image_attributes)
+
+    try:
+        return encode(carried, frame.image_attributes)
+    except (RuntimeError, TypeError, ValueError) as exc:  # an input attribute OpenEXR reads but will not write
+        warnings.append(f"the input's header attributes could not be written on the answer and were left out "
+                        f"({type(exc).__name__}: {str(exc)[:200]})")
+        return encode({}, {})
 
 
 def verify_exr(data: bytes, limits: ReadLimits = ReadLimits()) -> HeaderInfo:
