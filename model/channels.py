@@ -76,6 +76,14 @@ class ChannelMap:
         """The contract names this file provides, for model.frame's validation."""
         return list(self.sources)
 
+    def warnings(self) -> list[str]:
+        """The warning naming the file's channels this layout does not read (none for gradsep: model.frame's
+        validation names the channels outside the contract)."""
+        if not self.ignored:
+            return []
+        shown = ", ".join(sorted(self.ignored)[:20]) + (", ..." if len(self.ignored) > 20 else "")
+        return [f"ignored {len(self.ignored)} channel(s) outside the {self.layout} layout: {shown}"]
+
 
 def _pick(present: set[str], prefixes: Sequence[str], suffixes: Sequence[str]) -> dict[int, str] | None:
     """The channels ``PREFIX.S`` for every suffix S under the first prefix that has all of them."""

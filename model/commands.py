@@ -95,7 +95,7 @@ def reconstruct_command(args: argparse.Namespace) -> int:
     import OpenEXR
 
     OpenEXR.set_global_thread_count(os.cpu_count() or 1)  # (de)compress line blocks on every core (no pool by default)
-    frame = read_frame(args.frame, nonfinite=args.nonfinite, channels=layout)
+    frame = read_frame(args.frame, nonfinite=args.nonfinite, layout=layout)
     network, fused = _resolve_models(getattr(args, "models", None), args.method)
     try:
         result = reconstruct(frame, args.method, alpha, network=network, fused=fused)

@@ -576,61 +576,42 @@ def map_frame_channels(names: Iterable[str], layout: str = DEFAULT_LAYOUT) -> Ch
 
 
 def read_frame(source: Source, *, limits: ReadLimits = ReadLimits(),
-               nonfinite: NonFinitePolicy = "reject", channels: str = DEFAULT_LAYOUT) -> Frame:
+               nonfinite: NonFinitePolicy = "reject", layout: str = DEFAULT_LAYOUT) -> Frame:
     """Read, check and decode a frame from a path, bytes or a binary stream.
 
-    ``channels`` is the channel layout (model/channels.py: ``auto``, ``gradsep``, ``mitsuba-aov``, ``cycles``,
-    ``cycles:VIEWLAYER``). Non-finite feature values become 0 (as the paper does). Non-finite radiance or
-    gradients are rejected naming the channel and count (``reject``), or replaced with 0 and reported in
-    ``Frame.warnings`` (``zero``). Negative radiance is kept for the solvers and reported with its count (the
-    reconstruction's output is clamped at 0: model/reconstruct.py). A non-finite alpha value becomes 0.
+    Non-finite feature values become 0 (as the paper does). Non-finite radiance or gradients are rejected naming
+    the channel and count (``reject``), or replaced with 0 and reported in ``Frame.warnings`` (``zero``).
+    ``layout`` is the channel layout (model/channels.py: ``auto``, ``gradsep``, ``mitsuba-aov``, ``cycles``,
+    ``cycles:VIEWLAYER``). Negative radiance is kept for the solvers and reported with its count (the
+    reconstruction's output is clamped at 0: model/reconstruct.py). Alpha (``A``) is kept, non-finite values 0.
     """
     if nonfinite not in NONFINITE_POLICIES:
         raise ValueError(f"nonfinite must be one of {NONFINITE_POLICIES}, got {nonfinite!r}")
     info = read_header(source, limits)
-    cmap = map_frame_channels(info.channels, channels)
+    cmap = map_frame_channels(info.channels, layout)  # contract name -> the file's channel
     layers, has_features, warnings = validate_channels(cmap.names)
-    if cmap.ignored:
-        shown = ", ".join(sorted(cmap.ignored)[:20]) + (", ..." if len(cmap.ignored) > 20 else "")
-        warnings.append(f"ignored {len(cmap.ignored)} channel(s) outside the {cmap.layout} layout: {shown}")
+    warnings += cmap.warnings()
     gradients = {layer: has_gradient_channels(cmap.names, layer) for layer in layers}
 
     # OpenEXR's own guard, in case a header trick slips past the check above; process-wide but fixed per config.
     OpenEXR.setMaxImageSize(limits.max_side, limits.max_side)
     exr = _open(source, header_only=False)
     decoded = exr.channels()
-
-    def pixels_of(name: str, stored: str) -> np.ndarray:
-        ch = decoded.get(stored)
-        pixels = None if ch is None else ch.pixels
-        if pixels is None or getattr(pixels, "shape", None) != (info.height, info.width):
-            raise NotExrError(f"truncated or corrupt OpenEXR file (channel {stored} could not be decoded)")
-        if pixels.dtype.kind != "f":
-            raise UnsupportedExrError(f"channel {stored} has integer pixels; expected half or float", [stored])
-        if pixels.dtype == np.float32 and pixels.flags.writeable and pixels.flags.c_contiguous:
-            return pixels  # the decoder's own fresh array: no copy needed (~0.1 s on a 720p frame)
-        return np.array(pixels, dtype=np.float32)  # half -> float32; own, writable copy
-
-    planes: dict[str, np.ndarray] = {}
+    channels: dict[str, np.ndarray] = {}
     wanted = [c for layer in layers for c in layer_channels(layer, gradients[layer])]
     for name in (*wanted, *(FEATURE_CHANNELS if has_features else ())):
-        planes[name] = pixels_of(name, cmap.sources[name])
-    alpha = None
-    if cmap.alpha is not None:
-        alpha = pixels_of(ALPHA, cmap.alpha)
+        channels[name] = _decoded(decoded, cmap.sources[name], info)
+
+    _sanitize(channels, wanted, nonfinite, warnings)
+    for name in FEATURE_CHANNELS if has_features else ():
+        np.nan_to_num(channels[name], copy=False, nan=0.0, posinf=0.0, neginf=0.0)
+    warnings += _negative_radiance_warning(channels, layers)
+    alpha = None if cmap.alpha is None else _decoded(decoded, cmap.alpha, info)
+    if alpha is not None:
         np.nan_to_num(alpha, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
 
-    _sanitize(planes, wanted, nonfinite, warnings)
-    for name in FEATURE_CHANNELS if has_features else ():
-        np.nan_to_num(planes[name], copy=False, nan=0.0, posinf=0.0, neginf=0.0)
-    negative = negative_radiance(planes, [c for layer in layers for c in layer_channels(layer, False)])
-    if negative:
-        listing = ", ".join(f"{n} ({k})" for n, k in negative.items())
-        warnings.append(f"{sum(negative.values())} negative radiance value(s) in {listing}: radiance is "
-                        "non-negative, the output is clamped at 0")
-
     def stack(names: Iterable[str]) -> np.ndarray:
-        return np.stack([planes[n] for n in names], axis=-1)
+        return np.stack([channels[n] for n in names], axis=-1)
 
     frame_layers = {}
     for layer in layers:
@@ -639,9 +620,33 @@ def read_frame(source: Source, *, limits: ReadLimits = ReadLimits(),
                                else Layer(stack(names[0:3])))
     features = None
     if has_features:
-        features = Features(stack(FEATURE_GROUPS["albedo"]), stack(FEATURE_GROUPS["normal"]), planes["depth.Z"])
-    return Frame(frame_layers, features, info.attributes, warnings, alpha, dict(info.image_attributes),
-                 cmap.layout)
+        features = Features(stack(FEATURE_GROUPS["albedo"]), stack(FEATURE_GROUPS["normal"]), channels["depth.Z"])
+    return Frame(frame_layers, features, info.attributes, warnings, alpha=alpha,
+                 image_attributes=dict(info.image_attributes), layout=cmap.layout)
+
+
+def _decoded(decoded: Mapping[str, Any], name: str, info: HeaderInfo) -> np.ndarray:
+    """One decoded channel of the file as a writable float32 (H, W) array, or the error naming it."""
+    ch = decoded.get(name)
+    pixels = None if ch is None else ch.pixels
+    if pixels is None or getattr(pixels, "shape", None) != (info.height, info.width):
+        raise NotExrError(f"truncated or corrupt OpenEXR file (channel {name} could not be decoded)")
+    if pixels.dtype.kind != "f":
+        raise UnsupportedExrError(f"channel {name} has integer pixels; expected half or float", [name])
+    if pixels.dtype == np.float32 and pixels.flags.writeable and pixels.flags.c_contiguous:
+        return pixels  # the decoder's own fresh array: no copy needed (~0.1 s on a 720p frame)
+    return np.array(pixels, dtype=np.float32)  # half -> float32; own, writable copy
+
+
+def _negative_radiance_warning(channels: Mapping[str, np.ndarray], layers: Iterable[str]) -> list[str]:
+    """The negative-radiance policy's warning: how many base values are below 0, per channel (gradients are
+    signed and not counted). The values are kept for the solvers; every output layer is clamped at 0."""
+    negative = negative_radiance(channels, [c for layer in layers for c in layer_channels(layer, False)])
+    if not negative:
+        return []
+    listing = ", ".join(f"{n} ({k})" for n, k in negative.items())
+    return [f"{sum(negative.values())} negative radiance value(s) in {listing}: radiance is non-negative, the "
+            "output is clamped at 0"]
 
 
 # ---------------------------------------------------------------------------------------------------------------

@@ -177,7 +177,8 @@ def run_pipeline(source: Source, params: ReconstructParams, limits: ReadLimits, 
     t0 = time.perf_counter()
     if hasattr(source, "seek"):
         source.seek(0)  # the header check left the stream somewhere past the header
-    frame = read_frame(source, limits=limits, nonfinite=nonfinite, channels=params.channels)  # type: ignore[arg-type]
+    frame = read_frame(source, limits=limits, nonfinite=nonfinite,  # type: ignore[arg-type]
+                       layout=params.channels)
     timings["decode"] = time.perf_counter() - t0
     result = reconstruct(frame, params.method, params.alpha, network=network, fused=fused)
     for layer, seconds in dict(getattr(result, "timings", {}) or {}).items():

@@ -134,8 +134,8 @@ def test_two_view_layers_are_ambiguous_and_one_can_be_named() -> None:
     assert info.value.details["candidates"] == ["cycles:Back.Plate", "cycles:Front"]
     assert "cycles:Back.Plate" in info.value.message and "cycles:Front" in info.value.message
     with pytest.raises(ChannelError, match="several Cycles view layers"):
-        read_frame(data, channels="cycles")
-    assert read_frame(data, channels="cycles:Back.Plate").layout == "cycles:Back.Plate"
+        read_frame(data, layout="cycles")
+    assert read_frame(data, layout="cycles:Back.Plate").layout == "cycles:Back.Plate"
 
 
 def test_a_beauty_beside_a_view_layer_is_ambiguous_and_either_can_be_chosen() -> None:
@@ -144,9 +144,9 @@ def test_a_beauty_beside_a_view_layer_is_ambiguous_and_either_can_be_chosen() ->
     with pytest.raises(ChannelError) as info:
         read_frame(data)
     assert info.value.details["candidates"] == ["mitsuba-aov", "cycles:ViewLayer"]
-    beauty = read_frame(data, channels="mitsuba-aov")
+    beauty = read_frame(data, layout="mitsuba-aov")
     np.testing.assert_array_equal(beauty.layers["color"].base[..., 0], channels["R"])
-    cycles = read_frame(data, channels="cycles")
+    cycles = read_frame(data, layout="cycles")
     np.testing.assert_array_equal(cycles.layers["color"].base[..., 0], channels["ViewLayer.Combined.R"])
 
 
@@ -165,7 +165,7 @@ def test_gradsep_layers_beside_a_top_level_preview_are_a_gradsep_frame() -> None
                                                  ("bogus", "unknown channel layout")])
 def test_a_layout_that_does_not_fit_is_a_422_naming_the_problem(layout: str, message: str) -> None:
     with pytest.raises(ChannelError, match=message) as info:
-        read_frame(encode_exr(frame_channels(("direct",), H, W)), channels=layout)
+        read_frame(encode_exr(frame_channels(("direct",), H, W)), layout=layout)
     assert info.value.status == 422
 
 
