@@ -256,3 +256,24 @@ def test_cli_warns_with_counts_for_half_saturation_negative_radiance_and_replace
     header = OpenEXR.File(str(out), header_only=True).header()
     for needle in ("negative radiance", "non-finite", "saturated at 65504"):
         assert needle in header["gradsep.warnings"]
+
+
+@pytest.mark.slow
+@pytest.mark.render
+def test_a_real_mitsuba_aov_render_is_read_as_color_with_features(tmp_path: Path) -> None:
+    """Mitsuba 3's own output, not a synthetic copy of its names: hdrfilm through the aov integrator."""
+    mi = pytest.importorskip("mitsuba")
+    mi.set_variant("scalar_rgb")
+    scene = mi.load_dict({
+        "type": "scene",
+        "integrator": {"type": "aov", "aovs": "albedo:albedo,nn:sh_normal,dd:depth",
+                       "integrator": {"type": "path"}},
+        "sensor": {"type": "perspective", "film": {"type": "hdrfilm", "width": 8, "height": 6},
+                   "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, 5], target=[0, 0, 0], up=[0, 1, 0])},
+        "sphere": {"type": "sphere"}, "light": {"type": "constant"}})
+    mi.render(scene, spp=4)
+    scene.sensors()[0].film().bitmap().write(str(tmp_path / "aov.exr"))
+    frame = read_frame(tmp_path / "aov.exr")
+    assert frame.layout == "mitsuba-aov" and list(frame.layers) == ["color"] and frame.features is not None
+    assert (frame.height, frame.width) == (6, 8) and float(frame.layers["color"].base.mean()) > 0
+    assert float(frame.features.depth.max()) > 0 and float(frame.features.albedo.max()) > 0
