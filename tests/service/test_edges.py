@@ -139,6 +139,8 @@ def test_docs_are_open_without_the_token_by_default() -> None:
         for path in ("/docs", "/docs/static/swagger-ui-bundle.js", "/openapi.json"):
             assert client.get(path).status_code == 200, path
         assert client.get("/v1/models").status_code == 401
+        for sneaky in ("/docs/static/%2e%2e/%2e%2e/v1/models", "/docs/static/..%2f..%2fmetrics"):
+            assert client.get(sneaky).status_code == 404, sneaky  # the static mount, which refuses traversal
 
 
 def test_docs_can_be_protected() -> None:
