@@ -13,6 +13,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from gradsep.model.channels import DEFAULT_LAYOUT, LAYOUT_CHOICES
 from gradsep.model.errors import CommandError
 from gradsep.model.policy import (
     DEFAULT_ALPHA,
@@ -37,6 +38,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--models", default=None, help=f"folder of exported models (default: ${MODELS_ENV} or models/)")
     p.add_argument("--nonfinite", choices=("reject", "zero"), default="reject",
                    help="policy for NaN/Inf radiance or gradients (features are always zeroed)")
+    p.add_argument("--channels", default=DEFAULT_LAYOUT, metavar="LAYOUT",
+                   help="channel layout of the input: " + ", ".join(LAYOUT_CHOICES) + " or cycles:VIEWLAYER "
+                        "(auto: the one layout the file matches; gradsep's own, a top-level R G B [A] beauty with "
+                        "Mitsuba aov features, or a Blender Cycles multilayer EXR)")
     p.set_defaults(func=reconstruct_command)
 
 
@@ -73,18 +78,24 @@ def reconstruct_command(args: argparse.Namespace) -> int:
     Bad input raises FrameError/CommandError (the dispatcher prints one line and exits 2) before anything is
     written; the output appears only complete (temporary file + rename).
     """
-    from gradsep.model.frame import FrameError, read_frame, rgb_channels, write_exr
+    from gradsep.model.channels import check_layout
+    from gradsep.model.frame import FrameError, encode_answer, read_frame, rgb_channels, write_bytes_atomic
     from gradsep.model.reconstruct import reconstruct
 
     output = Path(args.output)
     alpha = float(args.alpha)
     if not (math.isfinite(alpha) and alpha > 0):
         raise CommandError(f"--alpha must be a finite number > 0, got {args.alpha}")
+    layout = getattr(args, "channels", DEFAULT_LAYOUT)
+    try:
+        check_layout(layout)
+    except ValueError as exc:
+        raise CommandError(f"--channels: {exc}") from None
     _check_output(output)
     import OpenEXR
 
     OpenEXR.set_global_thread_count(os.cpu_count() or 1)  # (de)compress line blocks on every core (no pool by default)
-    frame = read_frame(args.frame, nonfinite=args.nonfinite)
+    frame = read_frame(args.frame, nonfinite=args.nonfinite, layout=layout)
     network, fused = _resolve_models(getattr(args, "models", None), args.method)
     try:
         result = reconstruct(frame, args.method, alpha, network=network, fused=fused)
@@ -103,10 +114,9 @@ def reconstruct_command(args: argparse.Namespace) -> int:
     if method in POISSON_METHODS:
         metadata["gradsep.alpha"] = f"{alpha:g}"
     warnings = [*frame.warnings, *result.warnings]
-    if warnings:
-        metadata["gradsep.warnings"] = "; ".join(warnings)[:2000]
+    data = encode_answer(frame, channels, half=bool(args.half), metadata=metadata, warnings=warnings)
     try:
-        write_exr(output, channels, half=bool(args.half), metadata=metadata)
+        write_bytes_atomic(output, data)
     except OSError as exc:
         raise CommandError(f"cannot write {str(output)!r}: {exc.strerror or exc}") from exc
 

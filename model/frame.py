@@ -8,7 +8,14 @@ A frame is a single-part scanline OpenEXR file (float32 or half, any compression
   three base channels or all nine, so a frame may carry gradients on some layers only, e.g. ``gradsep render
   --gradients direct``: the direct layer's gradients and a plain indirect layer);
 * features: ``albedo.{R,G,B}`` in [0, 1], ``normal.{X,Y,Z}`` unit camera-space normals, ``depth.Z`` distance in
-  scene units (0 where the camera ray missed).
+  scene units (0 where the camera ray missed);
+* optionally ``A``, alpha, carried through to the output unchanged.
+
+Files from other renderers (a single-layer ``R G B [A]`` beauty pass, Mitsuba's aov integrator, a Blender Cycles
+multilayer EXR) are read through a channel layout (model/channels.py) that maps their names onto these.
+
+What a reader keeps of the header and writes on the answer (:func:`encode_answer`): the data window, display
+window, pixel aspect ratio, screen window, chromaticities and every string attribute (``gradsep.*`` and others).
 
 Gradients follow ``dx(x, y) = I(x+1, y) - I(x, y)`` and ``dy(x, y) = I(x, y+1) - I(x, y)`` with ``y`` growing
 downward (row order); the last column of dx and the last row of dy are 0. A frame carries only the layers its
@@ -37,6 +44,7 @@ from typing import Any, BinaryIO, Literal
 import numpy as np
 import OpenEXR
 
+from gradsep.model.channels import ALPHA, DEFAULT_LAYOUT, ChannelMap, LayoutError, map_channels
 from gradsep.model.policy import ILLUMINATION_LAYERS, SEPARATED_LAYERS
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -53,7 +61,7 @@ FEATURE_GROUPS: dict[str, tuple[str, ...]] = {
 }
 FEATURE_CHANNELS: tuple[str, ...] = tuple(c for group in FEATURE_GROUPS.values() for c in group)
 # Prefixes this contract owns: a channel under one of them that is not a contract channel is a producer bug and
-# is rejected; channels outside them (an alpha "A", a renderer's extra AOVs) are ignored with a warning.
+# is rejected; channels outside them (a renderer's extra AOVs) are ignored with a warning; "A" is alpha.
 OWNED_PREFIXES: tuple[str, ...] = (*ILLUMINATION_LAYERS, *FEATURE_GROUPS)
 
 NonFinitePolicy = Literal["reject", "zero"]
@@ -169,8 +177,11 @@ class Frame:
 
     layers: dict[str, Layer]
     features: Features | None = None
-    metadata: dict[str, str] = field(default_factory=dict)
+    metadata: dict[str, str] = field(default_factory=dict)  # the input's string attributes
     warnings: list[str] = field(default_factory=list)
+    alpha: np.ndarray | None = None  # (H, W) float32 "A" of the input, carried through to the output
+    image_attributes: dict[str, Any] = field(default_factory=dict)  # data/display window, aspect...: IMAGE_ATTRIBUTES
+    layout: str = "gradsep"  # the channel layout it was read with (model/channels.py)
 
     @property
     def height(self) -> int:
@@ -212,6 +223,8 @@ class Frame:
             out.update(zip(FEATURE_GROUPS["albedo"], np.moveaxis(f.albedo, -1, 0), strict=True))
             out.update(zip(FEATURE_GROUPS["normal"], np.moveaxis(f.normal, -1, 0), strict=True))
             out["depth.Z"] = f.depth
+        if self.alpha is not None:
+            out[ALPHA] = self.alpha
         return {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in out.items()}
 
 
@@ -253,6 +266,7 @@ class HeaderInfo:
     channels: tuple[str, ...]
     compression: str
     attributes: dict[str, str]
+    image_attributes: dict[str, Any] = field(default_factory=dict)  # IMAGE_ATTRIBUTES present, checked
 
 
 Source = str | os.PathLike[str] | bytes | bytearray | memoryview | BinaryIO
@@ -399,7 +413,47 @@ def _check_budget(width: int, height: int, channels: int, limits: ReadLimits) ->
 
 
 def _string_attributes(header: Mapping[str, Any]) -> dict[str, str]:
-    return {k: v for k, v in header.items() if isinstance(v, str)}
+    return {k: v for k, v in header.items() if isinstance(v, str) and k not in _STRUCTURAL_ATTRIBUTES}
+
+
+#: Typed header attributes an answer carries over from its request, each with the shape of numbers it must have
+#: (values from untrusted files are checked here, so writing them back cannot fail). Where the pixels sit
+#: (data window inside the display window), their shape (pixel aspect ratio, screen window) and their colour
+#: space (chromaticities, white luminance): a compositor places and grades the answer as it did the input.
+IMAGE_ATTRIBUTES: dict[str, tuple[int, ...]] = {
+    "dataWindow": (2, 2), "displayWindow": (2, 2), "pixelAspectRatio": (), "screenWindowCenter": (2,),
+    "screenWindowWidth": (), "chromaticities": (8,), "whiteLuminance": (),
+}
+_INTEGER_ATTRIBUTES = frozenset({"dataWindow", "displayWindow"})
+#: Attributes that describe a file's storage, not its image: never copied (the writer sets its own).
+_STRUCTURAL_ATTRIBUTES = frozenset({"channels", "compression", "type", "lineOrder", "name", "version", "chunkCount",
+                                    "tiles"})
+
+
+def _image_attributes(header: Mapping[str, Any]) -> dict[str, Any]:
+    """The IMAGE_ATTRIBUTES of a header, as tuples or numpy arrays OpenEXR writes back; malformed ones dropped."""
+    out: dict[str, Any] = {}
+    for key, shape in IMAGE_ATTRIBUTES.items():
+        if key not in header:
+            continue
+        try:
+            value = np.asarray(header[key], dtype=np.float64)
+        except (TypeError, ValueError):
+            continue
+        if value.shape != shape or not np.all(np.isfinite(value)):
+            continue
+        if key in _INTEGER_ATTRIBUTES:
+            box = value.astype(np.int64)
+            if np.any(np.abs(box) > 2**30) or np.any(box[1] < box[0]):
+                continue
+            out[key] = (box[0].astype(np.int32), box[1].astype(np.int32))
+        elif shape == ():
+            out[key] = float(value)
+        elif key == "chromaticities":
+            out[key] = tuple(float(v) for v in value)
+        else:
+            out[key] = value.astype(np.float32)
+    return out
 
 
 def read_header(source: Source, limits: ReadLimits = ReadLimits()) -> HeaderInfo:
@@ -426,7 +480,7 @@ def read_header(source: Source, limits: ReadLimits = ReadLimits()) -> HeaderInfo
         raise UnsupportedExrError(f"subsampled channels are not supported: {', '.join(subsampled)}", subsampled)
     compression = header.get("compression")
     return HeaderInfo(width, height, names, getattr(compression, "name", str(compression)),
-                      _string_attributes(header))
+                      _string_attributes(header), _image_attributes(header))
 
 
 def _classify(names: Iterable[str]) -> tuple[list[str], list[str], list[str]]:
@@ -478,7 +532,8 @@ def validate_channels(names: Iterable[str]) -> tuple[list[str], bool, list[str]]
         problems.append(f"missing channels {', '.join(missing)}")
         details["missing"] = missing
     if not layers:
-        problems.append("no illumination layer (expected direct.*, indirect.* or color.* channels)")
+        problems.append("no illumination layer (expected direct.*, indirect.* or color.* channels, a top-level "
+                        "R G B beauty pass, or a Cycles multilayer VIEWLAYER.Combined.R ...; see model/channels.py)")
         details["expected_layers"] = list(ILLUMINATION_LAYERS)
     if "color" in layers and any(layer in layers for layer in SEPARATED_LAYERS):
         problems.append("a frame carries either color.* (unseparated) or direct.*/indirect.* layers, not both")
@@ -504,18 +559,39 @@ def _sanitize(channels: dict[str, np.ndarray], names: Iterable[str], policy: Non
     warnings.append(f"replaced non-finite values with 0 in {listing}")
 
 
+def negative_radiance(channels: Mapping[str, np.ndarray], names: Iterable[str]) -> dict[str, int]:
+    """Per channel, how many values are below 0 (radiance is non-negative; gradients are signed, not counted)."""
+    counts = {n: int(np.count_nonzero(channels[n] < 0)) for n in names}
+    return {n: k for n, k in counts.items() if k}
+
+
+def map_frame_channels(names: Iterable[str], layout: str = DEFAULT_LAYOUT) -> ChannelMap:
+    """The file's channels mapped through ``layout`` (model/channels.py); layout problems are ChannelErrors."""
+    try:
+        return map_channels(list(names), layout)
+    except LayoutError as exc:
+        raise ChannelError(exc.message, exc.details) from None
+    except ValueError as exc:  # an unknown layout name
+        raise ChannelError(str(exc), {"layout": layout}) from None
+
+
 def read_frame(source: Source, *, limits: ReadLimits = ReadLimits(),
-               nonfinite: NonFinitePolicy = "reject") -> Frame:
+               nonfinite: NonFinitePolicy = "reject", layout: str = DEFAULT_LAYOUT) -> Frame:
     """Read, check and decode a frame from a path, bytes or a binary stream.
 
     Non-finite feature values become 0 (as the paper does). Non-finite radiance or gradients are rejected naming
     the channel and count (``reject``), or replaced with 0 and reported in ``Frame.warnings`` (``zero``).
+    ``layout`` is the channel layout (model/channels.py: ``auto``, ``gradsep``, ``mitsuba-aov``, ``cycles``,
+    ``cycles:VIEWLAYER``). Negative radiance is kept for the solvers and reported with its count (the
+    reconstruction's output is clamped at 0: model/reconstruct.py). Alpha (``A``) is kept, non-finite values 0.
     """
     if nonfinite not in NONFINITE_POLICIES:
         raise ValueError(f"nonfinite must be one of {NONFINITE_POLICIES}, got {nonfinite!r}")
     info = read_header(source, limits)
-    layers, has_features, warnings = validate_channels(info.channels)
-    gradients = {layer: has_gradient_channels(info.channels, layer) for layer in layers}
+    cmap = map_frame_channels(info.channels, layout)  # contract name -> the file's channel
+    layers, has_features, warnings = validate_channels(cmap.names)
+    warnings += cmap.warnings()
+    gradients = {layer: has_gradient_channels(cmap.names, layer) for layer in layers}
 
     # OpenEXR's own guard, in case a header trick slips past the check above; process-wide but fixed per config.
     OpenEXR.setMaxImageSize(limits.max_side, limits.max_side)
@@ -524,20 +600,15 @@ def read_frame(source: Source, *, limits: ReadLimits = ReadLimits(),
     channels: dict[str, np.ndarray] = {}
     wanted = [c for layer in layers for c in layer_channels(layer, gradients[layer])]
     for name in (*wanted, *(FEATURE_CHANNELS if has_features else ())):
-        ch = decoded.get(name)
-        pixels = None if ch is None else ch.pixels
-        if pixels is None or getattr(pixels, "shape", None) != (info.height, info.width):
-            raise NotExrError(f"truncated or corrupt OpenEXR file (channel {name} could not be decoded)")
-        if pixels.dtype.kind != "f":
-            raise UnsupportedExrError(f"channel {name} has integer pixels; expected half or float", [name])
-        if pixels.dtype == np.float32 and pixels.flags.writeable and pixels.flags.c_contiguous:
-            channels[name] = pixels  # the decoder's own fresh array: no copy needed (~0.1 s on a 720p frame)
-        else:
-            channels[name] = np.array(pixels, dtype=np.float32)  # half -> float32; own, writable copy
+        channels[name] = _decoded(decoded, cmap.sources[name], info)
 
     _sanitize(channels, wanted, nonfinite, warnings)
     for name in FEATURE_CHANNELS if has_features else ():
         np.nan_to_num(channels[name], copy=False, nan=0.0, posinf=0.0, neginf=0.0)
+    warnings += _negative_radiance_warning(channels, layers)
+    alpha = None if cmap.alpha is None else _decoded(decoded, cmap.alpha, info)
+    if alpha is not None:
+        np.nan_to_num(alpha, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
 
     def stack(names: Iterable[str]) -> np.ndarray:
         return np.stack([channels[n] for n in names], axis=-1)
@@ -550,7 +621,32 @@ def read_frame(source: Source, *, limits: ReadLimits = ReadLimits(),
     features = None
     if has_features:
         features = Features(stack(FEATURE_GROUPS["albedo"]), stack(FEATURE_GROUPS["normal"]), channels["depth.Z"])
-    return Frame(frame_layers, features, info.attributes, warnings)
+    return Frame(frame_layers, features, info.attributes, warnings, alpha=alpha,
+                 image_attributes=dict(info.image_attributes), layout=cmap.layout)
+
+
+def _decoded(decoded: Mapping[str, Any], name: str, info: HeaderInfo) -> np.ndarray:
+    """One decoded channel of the file as a writable float32 (H, W) array, or the error naming it."""
+    ch = decoded.get(name)
+    pixels = None if ch is None else ch.pixels
+    if pixels is None or getattr(pixels, "shape", None) != (info.height, info.width):
+        raise NotExrError(f"truncated or corrupt OpenEXR file (channel {name} could not be decoded)")
+    if pixels.dtype.kind != "f":
+        raise UnsupportedExrError(f"channel {name} has integer pixels; expected half or float", [name])
+    if pixels.dtype == np.float32 and pixels.flags.writeable and pixels.flags.c_contiguous:
+        return pixels  # the decoder's own fresh array: no copy needed (~0.1 s on a 720p frame)
+    return np.array(pixels, dtype=np.float32)  # half -> float32; own, writable copy
+
+
+def _negative_radiance_warning(channels: Mapping[str, np.ndarray], layers: Iterable[str]) -> list[str]:
+    """The negative-radiance policy's warning: how many base values are below 0, per channel (gradients are
+    signed and not counted). The values are kept for the solvers; every output layer is clamped at 0."""
+    negative = negative_radiance(channels, [c for layer in layers for c in layer_channels(layer, False)])
+    if not negative:
+        return []
+    listing = ", ".join(f"{n} ({k})" for n, k in negative.items())
+    return [f"{sum(negative.values())} negative radiance value(s) in {listing}: radiance is non-negative, the "
+            "output is clamped at 0"]
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -573,8 +669,16 @@ def output_compression(requested: str | None) -> str:
     return requested if requested in LOSSLESS_COMPRESSIONS else DEFAULT_COMPRESSION
 
 
+HALF_MAX = 65504.0  # the largest finite half float
+
+
+def half_saturation(channels: Mapping[str, np.ndarray]) -> int:
+    """How many values a half-float answer saturates at ±65504 (finite values beyond half's range)."""
+    return sum(int(np.count_nonzero(np.abs(np.asarray(v, dtype=np.float32)) > HALF_MAX)) for v in channels.values())
+
+
 def _exr_file(channels: Mapping[str, np.ndarray], half: bool, metadata: Mapping[str, str] | None,
-              compression: str | None = None) -> OpenEXR.File:
+              compression: str | None = None, image_attributes: Mapping[str, Any] | None = None) -> OpenEXR.File:
     dtype = np.float16 if half else np.float32
     shapes = {np.shape(v) for v in channels.values()}
     if len(shapes) != 1 or len(next(iter(shapes))) != 2:
@@ -583,21 +687,92 @@ def _exr_file(channels: Mapping[str, np.ndarray], half: bool, metadata: Mapping[
     for name, value in channels.items():
         arr = np.asarray(value)
         if half:  # float32 -> half overflows to Inf above 65504: saturate instead, outputs stay finite
-            arr = np.clip(arr, -65504.0, 65504.0)
+            arr = np.clip(arr, -HALF_MAX, HALF_MAX)
         pixels[name] = np.ascontiguousarray(arr, dtype=dtype)
     header: dict[str, Any] = {"compression": getattr(OpenEXR, output_compression(compression)),
                               "type": OpenEXR.scanlineimage}
+    height, width = next(iter(shapes))
+    for key, value in (image_attributes or {}).items():
+        if key == "dataWindow":  # the pixels decide the window's size; the input decides where it sits
+            lo = np.asarray(value[0], dtype=np.int32)
+            value = (lo, lo + np.array([width - 1, height - 1], dtype=np.int32))
+        header[key] = value
     header.update({k: str(v) for k, v in (metadata or {}).items()})
     return OpenEXR.File(header, pixels)  # OpenEXR mutates both dicts: they are our own copies
 
 
 def encode_exr(channels: Mapping[str, np.ndarray], *, half: bool = False,
-               metadata: Mapping[str, str] | None = None, compression: str | None = None) -> bytes:
+               metadata: Mapping[str, str] | None = None, compression: str | None = None,
+               image_attributes: Mapping[str, Any] | None = None) -> bytes:
     """Encode channels as the bytes of a single-part scanline EXR: ZIP compression, or ``compression`` (an
-    OpenEXR name such as ``"NO_COMPRESSION"``, e.g. the request's) when it is lossless."""
+    OpenEXR name such as ``"NO_COMPRESSION"``, e.g. the request's) when it is lossless. ``image_attributes``:
+    typed header attributes (IMAGE_ATTRIBUTES, e.g. a Frame's) written as well."""
     buffer = io.BytesIO()
-    _exr_file(channels, half, metadata, compression).write(buffer)
+    _exr_file(channels, half, metadata, compression, image_attributes).write(buffer)
     return buffer.getvalue()
+
+
+#: Keys an answer writes itself: the input's values for them are not carried over.
+ANSWER_KEYS = frozenset({"gradsep.method", "gradsep.layers", "gradsep.alpha", "gradsep.warnings",
+                         "gradsep.request_id", "gradsep.source", "gradsep.channels"})
+WARNINGS_ATTRIBUTE = "gradsep.warnings"
+WARNINGS_LIMIT = 2000  # characters of gradsep.warnings in the header
+
+
+def encode_answer(frame: Frame, channels: Mapping[str, np.ndarray], *, half: bool = False,
+                  metadata: Mapping[str, str] | None = None, warnings: list[str] | None = None,
+                  compression: str | None = None) -> bytes:
+    """The EXR of a reconstruction of ``frame``: the one definition the CLI and the service write answers with.
+
+    ``channels`` (R G B, maybe layers) plus the frame's alpha as ``A``; the header carries the frame's image
+    attributes (data window, display window, pixel aspect...) and string attributes, then ``metadata`` (the
+    answer's own ``gradsep.*``), then ``gradsep.warnings``. A half answer that saturates values above 65504 adds a
+    warning naming the count to ``warnings`` (the caller's list, so its header, stderr or HTTP header says so too).
+    """
+    warnings = warnings if warnings is not None else []
+    out = dict(channels)
+    if frame.alpha is not None:
+        out[ALPHA] = frame.alpha
+    if half:
+        saturated = half_saturation(out)
+        if saturated:
+            warnings.append(f"{saturated} value(s) above the half-float range saturated at {HALF_MAX:g} "
+                            "(ask for format=float / drop --half to keep them)")
+    carried = {k: v for k, v in frame.metadata.items() if k not in ANSWER_KEYS and k not in IMAGE_ATTRIBUTES}
+    own = dict(metadata or {})
+    if frame.layout != "gradsep":
+        own["gradsep.channels"] = frame.layout
+
+    def encode(carried: Mapping[str, str], image_attributes: Mapping[str, Any]) -> bytes:
+        header = {**carried, **own}
+        if warnings:
+            header[WARNINGS_ATTRIBUTE] = "; ".join(warnings)[:WARNINGS_LIMIT]
+        return encode_exr(out, half=half, metadata=header, compression=compression,
+                          image_attributes=image_attributes)
+
+    try:
+        return encode(carried, frame.image_attributes)
+    except (RuntimeError, TypeError, ValueError) as exc:  # an input attribute OpenEXR reads but will not write
+        warnings.append(f"the input's header attributes could not be written on the answer and were left out "
+                        f"({type(exc).__name__}: {str(exc)[:200]})")
+        return encode({}, {})
+
+
+def verify_exr(data: bytes, limits: ReadLimits = ReadLimits()) -> HeaderInfo:
+    """Decode every channel of an EXR held in memory; NotExrError (or another FrameError) unless all decode.
+
+    For a client that must not write a truncated or corrupt answer: OpenEXR itself does not raise on a
+    truncated file (it returns no parts), and a file can have a valid header and broken pixel data.
+    """
+    info = read_header(data, limits)
+    exr = _open(data, header_only=False)
+    decoded = exr.channels()
+    for name in info.channels:
+        ch = decoded.get(name)
+        pixels = None if ch is None else ch.pixels
+        if pixels is None or getattr(pixels, "shape", None) != (info.height, info.width):
+            raise NotExrError(f"truncated or corrupt OpenEXR file (channel {name} could not be decoded)")
+    return info
 
 
 def _default_file_mode() -> int:
@@ -633,11 +808,11 @@ def write_bytes_atomic(path: str | os.PathLike[str], data: bytes) -> None:
 
 
 def write_exr(path: str | os.PathLike[str], channels: Mapping[str, np.ndarray], *, half: bool = False,
-              metadata: Mapping[str, str] | None = None) -> None:
+              metadata: Mapping[str, str] | None = None, image_attributes: Mapping[str, Any] | None = None) -> None:
     """Write channels to ``path`` atomically: a killed run never leaves a half-written file."""
-    write_bytes_atomic(path, encode_exr(channels, half=half, metadata=metadata))
+    write_bytes_atomic(path, encode_exr(channels, half=half, metadata=metadata, image_attributes=image_attributes))
 
 
 def write_frame(path: str | os.PathLike[str], frame: Frame, *, half: bool = False) -> None:
-    """Write a frame per the contract, atomically."""
-    write_exr(path, frame.to_channels(), half=half, metadata=frame.metadata)
+    """Write a frame per the contract (its alpha, attributes and image attributes too), atomically."""
+    write_exr(path, frame.to_channels(), half=half, metadata=frame.metadata, image_attributes=frame.image_attributes)

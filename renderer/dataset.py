@@ -377,9 +377,55 @@ def run_dataset(root: str | os.PathLike[str], job: Job, *, progress: bool | None
     """Render this shard's unfinished frames into ``root``; returns the merged manifest afterwards."""
 
     root = Path(root)
+    own_path = part_path(root, job.shard, job.shards)
+    created = [p for p in (root, root / FRAMES_DIR, root / PARTS_DIR, root / MANIFEST_NAME,
+                           own_path.with_suffix(".lock"), root / MERGE_LOCK) if not p.exists()]
+    had_part = own_path.is_file()
+    state = _RunState()
+    try:
+        return _run_dataset(root, job, progress, state)
+    except BaseException:
+        if state.locked and not state.started and not had_part:  # never undo another process's start
+            _undo_start(root, own_path, created)
+        raise
+
+
+@dataclass
+class _RunState:
+    locked: bool = False  # this run holds its shard's lock (so the shard's part is its own)
+    started: bool = False  # this run recorded a finished frame: from then on, nothing is undone
+
+
+def _undo_start(root: Path, own_path: Path, created: list[Path]) -> None:
+    """A run that failed before its first frame removes what it created: its frameless part (so the folder no
+    longer claims its settings and the corrected retry is not refused), then -- only where this run created
+    them and nothing else is left in them -- the merged manifest, the lock files and the folders. Never another
+    shard's file: folders are shared by the shards of a farm, which may be writing into them right now."""
+    with contextlib.suppress(OSError, ValueError, DatasetError):
+        if own_path.is_file() and not _read_json(own_path).get("frames"):
+            own_path.unlink()
+        others = (root / PARTS_DIR).is_dir() and any((root / PARTS_DIR).glob("*.json"))
+        if others:
+            merge_manifest(root)  # the merge without this run's part
+        else:  # no shard has a part here: nobody merges, so this run's manifest and merge lock can go
+            for path in (root / MANIFEST_NAME, root / MERGE_LOCK):
+                if path in created:
+                    path.unlink(missing_ok=True)
+        if own_path.with_suffix(".lock") in created:
+            own_path.with_suffix(".lock").unlink(missing_ok=True)
+        for folder in (root / FRAMES_DIR, root / PARTS_DIR):
+            if folder in created:
+                with contextlib.suppress(OSError):
+                    folder.rmdir()  # only when empty
+        if root in created:
+            root.rmdir()  # only when empty
+
+
+def _run_dataset(root: Path, job: Job, progress: bool | None, state: _RunState) -> Manifest:
     (root / FRAMES_DIR).mkdir(parents=True, exist_ok=True)
     (root / PARTS_DIR).mkdir(exist_ok=True)
     with _flock(part_path(root, job.shard, job.shards).with_suffix(".lock"), blocking=False):
+        state.locked = True
         _check_compatible(root, job)
         own_path = part_path(root, job.shard, job.shards)
         own: list[dict[str, Any]] = []
@@ -411,6 +457,7 @@ def run_dataset(root: str | os.PathLike[str], job: Job, *, progress: bool | None
                 record.finished_at = _dt.datetime.now(_dt.UTC).isoformat(timespec="milliseconds")
                 own.append(asdict(record))
                 _write_part(own_path, job, own, count)  # the frame is finished from here on
+                state.started = True
                 bar.update(1)
                 if time.monotonic() - last_merge > MERGE_INTERVAL_S:
                     merge_manifest(root)

@@ -5,6 +5,8 @@ Behaviour a farm scheduler can rely on:
 * 503 (queue full, not ready) and connection-level failures are retried with exponential backoff and full
   jitter; a 503's ``Retry-After`` is honoured (waited at least, plus up to 20 % jitter so a farm's tasks don't
   return in lockstep). 4xx answers are never retried: the same bytes would be rejected again.
+* The answer is decoded in full (every channel of the EXR) before it is written: a truncated or corrupt answer is
+  a service failure (exit 1, one line), and nothing is written.
 * The output is written atomically (temporary file in the same folder, then rename): a killed task never leaves
   a half-written OUT, and an existing OUT is only replaced by a complete new one.
 * Every request of one invocation carries the same ``X-Request-ID`` and every log line names it, so a farm log
@@ -13,7 +15,7 @@ Behaviour a farm scheduler can rely on:
 Exit status: 0 written; 2 bad input or a 4xx answer (the frame or the request is wrong -- don't retry);
 75 (``EX_TEMPFAIL``) the service stayed unavailable through every retry, or a request timed out, client-side or
 as the service's 504 (retry the task later); 1 the service failed otherwise (a 5xx other than 503 or 504, or an
-answer that is not an EXR).
+answer that is not a complete, decodable EXR).
 """
 
 from __future__ import annotations
@@ -168,6 +170,23 @@ def post_frame(client: httpx.Client, url: str, data: bytes, params: dict[str, An
     raise Unavailable(f"{reason} (gave up after {attempts} attempts)")
 
 
+#: What an answer may declare: far above any service's own limits (the client trusts the size its service chose,
+#: and checks only that every declared pixel decodes).
+ANSWER_LIMITS_PIXELS = 1 << 31
+
+
+def verify_answer(data: bytes) -> None:
+    """Decode every channel of the answer; ServerFailure naming the problem unless the whole EXR decodes."""
+    from gradsep.model.frame import FrameError, ReadLimits, verify_exr
+
+    limits = ReadLimits(max_pixels=ANSWER_LIMITS_PIXELS, max_values=ANSWER_LIMITS_PIXELS * 64, max_side=1 << 24)
+    try:
+        verify_exr(data, limits)
+    except FrameError as exc:
+        raise ServerFailure(f"service answered 200 with an EXR that does not decode ({len(data)} bytes): "
+                            f"{exc.message}") from None
+
+
 def resolve_target(url: str | None, token: str | None) -> tuple[str, str | None]:
     """URL and token: the given value, else GRADSEP_URL / GRADSEP_TOKEN, else the default URL and no token."""
     url = url or os.environ.get("GRADSEP_URL") or DEFAULT_URL
@@ -221,6 +240,7 @@ def send_frame(frame: Path, output: Path, *, url: str | None = None, token: str 
         if not response.content.startswith(EXR_MAGIC):
             raise ServerFailure(f"service answered 200 with a non-EXR body "
                                 f"({response.headers.get('content-type', 'no content type')})")
+        verify_answer(response.content)
     except Unavailable as exc:
         print(f"gradsep client: error: {exc} (request_id={request_id})", file=sys.stderr)
         return EXIT_UNAVAILABLE

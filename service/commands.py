@@ -24,7 +24,8 @@ def client_command(args: argparse.Namespace, *, sleep: Callable[[float], None] =
     service.client.send_frame (0 written, 2 bad input or 4xx, 75 unavailable, 1 service failure)."""
     from gradsep.service.client import send_frame
 
-    params = {"method": args.method, "alpha": args.alpha, "format": args.format, "layers": args.layers}
+    params = {"method": args.method, "alpha": args.alpha, "format": args.format, "layers": args.layers,
+              "channels": getattr(args, "channels", None)}
     return send_frame(Path(args.frame), Path(args.output), url=args.url, token=args.token, params=params,
                       retries=args.retries, timeout=args.timeout, sleep=sleep)
 
@@ -45,6 +46,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--alpha", type=float, default=None)
     p.add_argument("--format", choices=("half", "float"), default=None)
     p.add_argument("--layers", choices=("sum", "all"), default=None)
+    p.add_argument("--channels", default=None, metavar="LAYOUT",
+                   help="channel layout of the frame (auto, gradsep, mitsuba-aov, cycles, cycles:VIEWLAYER; "
+                        "default: the service detects it)")
     p.add_argument("--retries", type=int, default=5, help="retries on 503 and connection errors")
     p.add_argument("--timeout", type=float, default=300.0, help="seconds per request")
     p.add_argument("--token", default=None, help="bearer token (or $GRADSEP_TOKEN)")

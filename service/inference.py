@@ -28,7 +28,7 @@ from gradsep.model.frame import (
     Layer,
     ReadLimits,
     Source,
-    encode_exr,
+    encode_answer,
     forward_differences,
     read_frame,
     rgb_channels,
@@ -151,6 +151,7 @@ class ReconstructParams:
     layers: Literal["sum", "all"]
     request_id: str = "-"
     compression: str | None = None  # the request's EXR compression; the answer reuses it when lossless
+    channels: str = "auto"  # the input's channel layout (model/channels.py)
 
 
 @dataclass
@@ -176,7 +177,8 @@ def run_pipeline(source: Source, params: ReconstructParams, limits: ReadLimits, 
     t0 = time.perf_counter()
     if hasattr(source, "seek"):
         source.seek(0)  # the header check left the stream somewhere past the header
-    frame = read_frame(source, limits=limits, nonfinite=nonfinite)  # type: ignore[arg-type]
+    frame = read_frame(source, limits=limits, nonfinite=nonfinite,  # type: ignore[arg-type]
+                       layout=params.channels)
     timings["decode"] = time.perf_counter() - t0
     result = reconstruct(frame, params.method, params.alpha, network=network, fused=fused)
     for layer, seconds in dict(getattr(result, "timings", {}) or {}).items():
@@ -190,9 +192,8 @@ def run_pipeline(source: Source, params: ReconstructParams, limits: ReadLimits, 
     t1 = time.perf_counter()
     metadata = {"gradsep.method": str(result.method), "gradsep.alpha": f"{params.alpha:g}",
                 "gradsep.request_id": params.request_id, "gradsep.layers": ",".join(frame.layers)}
-    if warnings:
-        metadata["gradsep.warnings"] = "; ".join(warnings)[:2000]
-    body = encode_exr(channels, half=params.half, metadata=metadata, compression=params.compression)
+    body = encode_answer(frame, channels, half=params.half, metadata=metadata, warnings=warnings,
+                         compression=params.compression)
     timings["encode"] = time.perf_counter() - t1
     return Outcome(body, str(result.method), timings, warnings, list(frame.layers))
 

@@ -28,15 +28,19 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             app.state.engine.start(task_group)  # loads models and warms up in the background
             yield
 
+    docs = settings.docs != "off"
     app = FastAPI(title="gradsep", version=__version__, lifespan=lifespan, docs_url=None, redoc_url=None,
+                  openapi_url="/openapi.json" if docs else None,
                   description="Gradient-domain rendering reconstruction with direct/indirect separation.")
     app.state.settings, app.state.metrics, app.state.engine = settings, ServiceMetrics(), Engine(settings)
     app.state.metrics.bind_engine(app.state.engine)
     install_error_handlers(app)
     for module in (health, models, reconstruct, metrics):
         app.include_router(module.router)
-    install_docs(app)  # before the middleware reads the routes: /docs is then a known path for metrics
+    if docs:
+        install_docs(app)  # before the middleware reads the routes: /docs is then a known path for metrics
     install_middleware(app, token=settings.token_value, max_body_bytes=settings.max_body_bytes,
-                       metrics=app.state.metrics)
+                       metrics=app.state.metrics, body_timeout=settings.body_timeout,
+                       open_docs=settings.docs == "open")
     install_openapi(app, secured=settings.token is not None)
     return app

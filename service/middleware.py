@@ -1,24 +1,28 @@
-"""Pure ASGI middleware: request ids, metrics and access logs, bearer auth, and the request body limit.
+"""Pure ASGI middleware: request ids, metrics and access logs, bearer auth, the request body limit and timeout.
 
 Pure ASGI rather than ``BaseHTTPMiddleware`` because the body limit has to wrap ``receive`` (counting bytes as
-they stream in, for chunked bodies with no Content-Length) and because it keeps streaming and cancellation
-semantics intact. Order, outermost first: context (id, metrics, last-resort JSON 500) -> auth -> body limit.
+they stream in, for chunked bodies with no Content-Length; timing out a body that stalls) and because it keeps
+streaming and cancellation semantics intact. Order, outermost first: context (id, metrics, client disconnects
+as 499, last-resort JSON 500) -> auth -> body limit and timeout.
 """
 
 from __future__ import annotations
 
 import hmac
 import logging
+import math
 import re
 import time
 import uuid
 from collections.abc import Collection
 from typing import Any
 
+import anyio
 from starlette.datastructures import Headers, MutableHeaders
+from starlette.requests import ClientDisconnect
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from gradsep.service.errors import body_too_large, error_json
+from gradsep.service.errors import ServiceError, body_too_large, error_json
 from gradsep.service.metrics import ServiceMetrics
 
 log = logging.getLogger("gradsep.service")
@@ -26,6 +30,12 @@ log = logging.getLogger("gradsep.service")
 # A client's id is echoed only when it is a harmless token (no header injection, bounded log lines).
 _REQUEST_ID = re.compile(r"^[A-Za-z0-9._:@/+=-]{1,128}$")
 OPEN_PATHS = frozenset({"/healthz", "/readyz"})
+#: The API docs: open without the token by default (settings.docs), as they hold no secret.
+DOCS_PATHS = frozenset({"/docs", "/openapi.json"})
+DOCS_PREFIX = "/docs/static/"
+#: The status logged and counted for a request whose client went away before it was answered (nginx's
+#: convention; nothing is sent): a client abort is not a server error and must not page anyone as a 5xx.
+CLIENT_CLOSED = 499
 QUIET_PATHS = OPEN_PATHS | {"/metrics"}  # probes and scrapes: access-logged at DEBUG unless they fail
 
 
@@ -59,6 +69,11 @@ class RequestContextMiddleware:
         self.metrics.in_flight.inc()
         try:
             await self.app(scope, receive, send_with_id)
+        except ClientDisconnect:
+            status = CLIENT_CLOSED
+            self.metrics.rejections.labels(reason="client_disconnected").inc()
+            log.info("request %s %s %s: the client disconnected before the request was answered", rid,
+                     scope["method"], scope["path"])
         except Exception:
             log.exception("request %s %s %s failed unexpectedly", rid, scope["method"], scope["path"])
             if started:
@@ -86,14 +101,18 @@ class RequestContextMiddleware:
 
 
 class BearerAuthMiddleware:
-    """When a token is configured, everything but health and readiness needs ``Authorization: Bearer``."""
+    """When a token is configured, everything but health, readiness (and with ``open_docs`` the API docs, their
+    assets and the OpenAPI schema) needs ``Authorization: Bearer``."""
 
-    def __init__(self, app: ASGIApp, token: str | None, metrics: ServiceMetrics) -> None:
-        self.app, self.metrics = app, metrics
+    def __init__(self, app: ASGIApp, token: str | None, metrics: ServiceMetrics, open_docs: bool = True) -> None:
+        self.app, self.metrics, self.open_docs = app, metrics, open_docs
         self.token = token.encode() if token else None
 
+    def _open(self, path: str) -> bool:
+        return path in OPEN_PATHS or (self.open_docs and (path in DOCS_PATHS or path.startswith(DOCS_PREFIX)))
+
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] == "http" and self.token is not None and scope["path"] not in OPEN_PATHS:
+        if scope["type"] == "http" and self.token is not None and not self._open(scope["path"]):
             problem = self._problem(Headers(scope=scope).get("authorization"))
             if problem:
                 response = error_json(401, "unauthorized", problem, None,
@@ -114,14 +133,17 @@ class BearerAuthMiddleware:
 
 
 class BodyLimitMiddleware:
-    """413 for bodies over ``limit`` bytes: at once from Content-Length, else while counting the stream.
+    """413 for bodies over ``limit`` bytes: at once from Content-Length, else while counting the stream; 408 for
+    a body that stalls, no bytes arriving for ``timeout`` seconds.
 
     The count matters for chunked uploads (no Content-Length): the application never buffers more than the
-    limit, because ``receive`` raises as soon as the running total passes it.
+    limit, because ``receive`` raises as soon as the running total passes it. The timeout is per wait, not for
+    the whole body (a large upload on a slow link keeps going while bytes move) and only while the body is
+    incomplete (after it, ``receive`` waits for a disconnect, which may rightly take forever).
     """
 
-    def __init__(self, app: ASGIApp, limit: int, metrics: ServiceMetrics) -> None:
-        self.app, self.limit, self.metrics = app, limit, metrics
+    def __init__(self, app: ASGIApp, limit: int, metrics: ServiceMetrics, timeout: float = math.inf) -> None:
+        self.app, self.limit, self.metrics, self.timeout = app, limit, metrics, timeout
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -140,13 +162,23 @@ class BodyLimitMiddleware:
                 await error_json(err.status, err.code, err.message, err.details,
                                  {"Connection": "close"}, metrics=self.metrics)(scope, receive, send)
                 return
-        received = 0
+        received, complete = 0, False
 
         async def counted_receive() -> Message:
-            nonlocal received
-            message = await receive()
+            nonlocal received, complete
+            if complete:
+                return await receive()
+            try:
+                with anyio.fail_after(self.timeout if math.isfinite(self.timeout) else None):
+                    message = await receive()
+            except TimeoutError:
+                raise ServiceError(
+                    408, "body_timeout", f"the request body stalled: no bytes for {self.timeout:g} s after "
+                    f"{received} bytes", {"body_timeout_seconds": self.timeout, "received_bytes": received},
+                    {"Connection": "close"}) from None
             if message["type"] == "http.request":
                 received += len(message.get("body", b""))
+                complete = not message.get("more_body", False)
                 if received > self.limit:
                     raise body_too_large(self.limit)
             return message
@@ -161,9 +193,10 @@ def _int_or_none(text: str) -> int | None:
         return None
 
 
-def install_middleware(app: Any, *, token: str | None, max_body_bytes: int, metrics: ServiceMetrics) -> None:
+def install_middleware(app: Any, *, token: str | None, max_body_bytes: int, metrics: ServiceMetrics,
+                       body_timeout: float = math.inf, open_docs: bool = True) -> None:
     """Add the stack; Starlette wraps the last added outermost, so add innermost first."""
     known = [getattr(r, "path", "") for r in app.routes]
-    app.add_middleware(BodyLimitMiddleware, limit=max_body_bytes, metrics=metrics)
-    app.add_middleware(BearerAuthMiddleware, token=token, metrics=metrics)
+    app.add_middleware(BodyLimitMiddleware, limit=max_body_bytes, metrics=metrics, timeout=body_timeout)
+    app.add_middleware(BearerAuthMiddleware, token=token, metrics=metrics, open_docs=open_docs)
     app.add_middleware(RequestContextMiddleware, metrics=metrics, known_paths=known)

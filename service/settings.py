@@ -36,8 +36,16 @@ class Settings(BaseSettings):
         8, ge=0, description="requests allowed to wait for an inference slot; beyond that 503 + Retry-After")
     inference_timeout: float = Field(
         300.0, gt=0, description="seconds a request waits for queueing + decode + reconstruction + encode (504)")
+    body_timeout: float = Field(
+        30.0, gt=0, le=3600,
+        description="seconds a request body may stall (no bytes arriving) before the request gets 408 and its "
+                    "connection is closed; a slow upload that keeps moving is not cut")
     token: SecretStr | None = Field(
-        None, description="bearer token; when set every endpoint but /healthz and /readyz requires it (401)")
+        None, description="bearer token; when set every endpoint but /healthz, /readyz and (with docs=open) the "
+                          "API docs requires it (401)")
+    docs: Literal["open", "protected", "off"] = Field(
+        "open", description="/docs, its assets and /openapi.json: open (no token needed: they hold no secret), "
+                            "protected (behind the token like the API), or off (404)")
     models_dir: Path = Field(
         Path(DEFAULT_MODELS_DIR), validation_alias=AliasChoices(MODELS_ENV, "GRADSEP_MODELS_DIR"),
         description=f"folder of exported ONNX models (env {MODELS_ENV}); absent -> Poisson methods only")

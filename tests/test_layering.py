@@ -24,7 +24,8 @@ LIBRARY = ("model", "renderer", "training", "service", "evaluation")
 #: The command line's modules (the gradsep/ folder): the roof of the graph.
 CLI = "cli"
 ABOVE_MODEL = ("renderer", "training", "service", "evaluation", CLI)
-COMMAND_MODULE_ALLOWED = ("gradsep.model.errors", "gradsep.model.policy")
+#: Standard-library-only modules of the contract's names (errors, methods, channel layouts) a parser may read.
+COMMAND_MODULE_ALLOWED = ("gradsep.model.errors", "gradsep.model.policy", "gradsep.model.channels")
 
 
 def _is_main_block(node: ast.stmt) -> bool:
@@ -205,6 +206,15 @@ def test_model_imports_no_package_above_it():
 @pytest.mark.parametrize("package", LIBRARY)
 def test_no_library_module_imports_the_command_line(package: str):
     assert violations(package, (CLI,)) == []
+
+
+def test_the_allowed_modules_are_themselves_standard_library_only():
+    for module in COMMAND_MODULE_ALLOWED:
+        path = REPO / "model" / f"{module.rsplit('.', 1)[1]}.py"
+        heavy = [name for name, _, top in imports(path.read_text()) if top
+                 and name.split(".")[0] not in sys.stdlib_module_names and name not in COMMAND_MODULE_ALLOWED
+                 and not name.startswith(tuple(f"{m}." for m in COMMAND_MODULE_ALLOWED))]
+        assert heavy == [], f"{module} imports at module level: {', '.join(heavy)}"
 
 
 @pytest.mark.parametrize("path", sorted(p for package in LIBRARY for p in [REPO / package / "commands.py"]

@@ -133,8 +133,12 @@ def save_onnx(proto: Any, path: str | os.PathLike[str]) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp")
-    onnx.save_model(proto, tmp, save_as_external_data=False)
-    os.replace(tmp, path)
+    try:
+        onnx.save_model(proto, tmp, save_as_external_data=False)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)  # a failed write leaves no temporary file beside the output
+        raise
     return path
 
 

@@ -267,7 +267,6 @@ def validate(net: torch.nn.Module, maps: list[np.ndarray], kinds: tuple[str, ...
 
 def train(args: argparse.Namespace) -> None:
     run = Path(args.output)
-    run.mkdir(parents=True, exist_ok=True)
     cfg_path, ckpt = run / "config.json", run / "checkpoint.pt"
     kinds = tuple(k.strip() for k in args.candidates.split(","))
     if any(k not in CANDIDATES for k in kinds) or kinds[0] != "oidn":
@@ -299,6 +298,7 @@ def train(args: argparse.Namespace) -> None:
             raise SystemExit("--loss-weight noise needs a cache normalised per layer (cache --normalise layer)")
     if cfg_path.is_file() and json.loads(cfg_path.read_text()) != cfg:
         raise SystemExit(f"{run} holds a different run; use another folder")
+    run.mkdir(parents=True, exist_ok=True)  # only now: a refused start leaves no folder behind
     cfg_path.write_text(json.dumps(cfg, indent=2))
     torch.manual_seed(args.seed)
     net = _net(cfg)

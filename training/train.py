@@ -712,13 +712,19 @@ def initial_weights(path: str | os.PathLike[str], cfg: TrainConfig) -> dict[str,
 
 def train(cfg: TrainConfig, quiet: bool = False) -> Progress:
     """Run (or resume) training described by ``cfg``; the library entry point behind `gradsep train`."""
+    from gradsep.model.cleanup import undone_on_failure
+
     ctx = setup_distributed()
     try:
         trainer = Trainer(cfg, ctx, quiet=quiet)
-        trainer.prepare_data()
-        if not trainer.try_resume():
-            trainer.warm_start()
-        trainer.wrap_distributed()
+        # a start that fails (no usable frames at this patch, a bad --init...) leaves no run folder behind to
+        # refuse the corrected command as "a different run"; rank 0 made the folder, rank 0 undoes it
+        fresh = not (Path(cfg.output) / "config.json").exists()  # a resume that fails keeps its run as it was
+        with undone_on_failure(cfg.output, enabled=ctx.main and fresh):
+            trainer.prepare_data()
+            if not trainer.try_resume():
+                trainer.warm_start()
+            trainer.wrap_distributed()
         return trainer.fit()
     finally:
         teardown_distributed(ctx)

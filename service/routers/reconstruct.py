@@ -21,6 +21,7 @@ from fastapi import APIRouter, Depends, Query, Request
 from starlette.datastructures import UploadFile
 from starlette.responses import Response
 
+from gradsep.model.channels import DEFAULT_LAYOUT, LAYOUT_CHOICES, LAYOUT_PATTERN
 from gradsep.model.frame import HeaderInfo, NotExrError, Source, read_header
 from gradsep.model.poisson import MIN_ALPHA
 from gradsep.model.policy import DEFAULT_PREFERENCE, METHODS
@@ -56,17 +57,24 @@ def _err(description: str, headers: dict[str, Any] | None = None) -> dict[str, A
 
 
 RESPONSES: dict[int | str, dict[str, Any]] = {
-    200: {"description": "the reconstruction as OpenEXR: R G B (plus direct.R ... with layers=all)",
+    200: {"description": "the reconstruction as OpenEXR: R G B (plus A when the frame has alpha, plus direct.R ... "
+                         "with layers=all), with the frame's data window, display window, pixel aspect ratio and "
+                         "string attributes",
           "content": {EXR_MEDIA_TYPE: {"schema": _BINARY}},
           "headers": {"X-Request-ID": {"schema": {"type": "string"}, "description": "echoed or generated"},
                       "Server-Timing": {"schema": {"type": "string"},
                                         "description": "queue, decode, per-layer and encode durations (ms)"},
-                      "X-Reconstruction-Method": {"schema": {"type": "string"}}}},
+                      "X-Reconstruction-Method": {"schema": {"type": "string"}},
+                      "X-Gradsep-Warnings": {"schema": {"type": "string"},
+                                             "description": "what was replaced, clamped or saturated, with counts "
+                                                            "(also in the EXR's gradsep.warnings)"}}},
     400: _err("not an OpenEXR file, corrupt or truncated; unsupported EXR kind; malformed multipart"),
     401: _err("bearer token missing or invalid (only when the service has a token)"),
     413: _err("body over the byte limit, or image over the pixel/value limit (decided from the header)"),
+    408: _err("the request body stalled longer than the service's body timeout"),
     415: _err("content type is not multipart/form-data, image/x-exr or application/octet-stream"),
-    422: _err("invalid parameter; missing or inconsistent channels; no illumination layer; NaN/Inf values"),
+    422: _err("invalid parameter; missing or inconsistent channels; no illumination layer; ambiguous channel "
+              "layout (details.candidates); NaN/Inf values"),
     503: _err("not ready yet, or the inference queue is full; retry after Retry-After seconds",
               {"Retry-After": {"schema": {"type": "integer"}}}),
     504: _err("the inference did not finish within the service's timeout"),
@@ -91,6 +99,10 @@ async def reconstruct_frame(
         alias="format", description="pixel type of the returned EXR")] = "float",
     layers: Annotated[Literal["sum", "all"], Query(
         description="sum: R G B only; all: also each reconstructed layer (direct.R, ...)")] = "sum",
+    channels: Annotated[str, Query(
+        pattern=LAYOUT_PATTERN, description="channel layout of the frame: " + ", ".join(LAYOUT_CHOICES)
+        + " or cycles:VIEWLAYER (auto: the one layout the file matches; ambiguous files get 422 naming the "
+        "candidates)")] = DEFAULT_LAYOUT,
 ) -> Response:
     t_start = time.perf_counter()
     gate = _ready_gate(engine)
@@ -112,7 +124,7 @@ async def reconstruct_frame(
         # no method named: model.reconstruct picks the best method that serves the frame (model.policy)
         params = ReconstructParams(method, alpha if alpha is not None else engine.settings.default_alpha,
                                    output_format == "half", layers, request_id_of(request.scope),
-                                   header.compression)
+                                   header.compression, channels)
         job = partial(run_pipeline, source, params, engine.limits, engine.settings.nonfinite, engine.network,
                       engine.fused)
         try:

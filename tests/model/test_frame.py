@@ -114,9 +114,18 @@ def test_features_are_optional_as_a_whole() -> None:
 
 def test_foreign_channels_are_ignored_with_a_warning() -> None:
     channels = make_frame().to_channels()
-    channels["A"] = np.ones_like(channels["depth.Z"])
+    channels["custom.aov"] = np.ones_like(channels["depth.Z"])
     frame = read_frame(encode_exr(channels))
-    assert any("A" in w for w in frame.warnings)
+    assert any("custom.aov" in w for w in frame.warnings)
+
+
+def test_alpha_is_read_and_written_back() -> None:
+    channels = make_frame().to_channels()
+    channels["A"] = np.linspace(0, 1, channels["depth.Z"].size, dtype=np.float32).reshape(channels["depth.Z"].shape)
+    frame = read_frame(encode_exr(channels))
+    assert frame.warnings == [] and frame.layout == "gradsep"
+    np.testing.assert_array_equal(frame.alpha, channels["A"])
+    np.testing.assert_array_equal(frame.to_channels()["A"], channels["A"])
 
 
 # -- channel validation names every problem --------------------------------------------------------------------

@@ -375,3 +375,65 @@ def test_command_renders_and_reports(tmp_path: Path, counting_renderer: list[int
     (tmp_path / "f").write_text("")
     assert main(["dataset", "--count", "1", "--spp", "1", "-o", str(tmp_path / "f")]) == 2
     assert "not a folder" in capsys.readouterr().err
+
+
+# -- a failed start leaves nothing behind ---------------------------------------------------------------------
+
+def _fails_at(monkeypatch: pytest.MonkeyPatch, seeds: set[int]) -> None:
+    """The (counting) renderer raises for these scene seeds; an empty set restores it."""
+    import gradsep.renderer.render
+
+    fake = getattr(gradsep.renderer.render.render_frame, "unwrapped", gradsep.renderer.render.render_frame)
+
+    def failing(spec: str, **kw: object) -> object:
+        if int(spec.rsplit(":", 1)[1]) in seeds:
+            raise RuntimeError("the renderer failed")
+        return fake(spec, **kw)
+
+    failing.unwrapped = fake  # type: ignore[attr-defined]
+    monkeypatch.setattr("gradsep.renderer.render.render_frame", failing)
+
+
+def _tree(folder: Path) -> list[str]:
+    return sorted(str(p.relative_to(folder)) for p in folder.rglob("*"))
+
+
+def test_a_run_that_fails_before_its_first_frame_leaves_no_folder(tmp_path: Path, counting_renderer: list[int],
+                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    root = tmp_path / "data"
+    _fails_at(monkeypatch, {1000})
+    with pytest.raises(RuntimeError, match="renderer failed"):
+        run_dataset(root, job(), progress=False)
+    assert not root.exists()
+    _fails_at(monkeypatch, set())
+    run_dataset(root, job(spp=4), progress=False)  # the corrected retry, other settings: not refused
+    assert load_manifest(root).spp == 4
+
+
+def test_a_failed_start_in_an_existing_folder_keeps_what_was_there(tmp_path: Path, counting_renderer: list[int],
+                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    (tmp_path / "README").write_text("the user's own file")
+    _fails_at(monkeypatch, {1000})
+    with pytest.raises(RuntimeError):
+        run_dataset(tmp_path, job(), progress=False)
+    assert _tree(tmp_path) == ["README"]
+
+
+def test_a_failed_start_beside_another_shard_removes_only_its_own_part(tmp_path: Path, counting_renderer: list[int],
+                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    run_dataset(tmp_path, job("0/2", count=4), progress=False)
+    before = json.loads((tmp_path / "manifest.json").read_text())
+    _fails_at(monkeypatch, {1001})
+    with pytest.raises(RuntimeError):
+        run_dataset(tmp_path, job("1/2", count=4), progress=False)
+    assert sorted(p.name for p in (tmp_path / "manifest.d").glob("*.json")) == ["shard-0-of-2.json"]
+    after = json.loads((tmp_path / "manifest.json").read_text())
+    assert after["frames"] == before["frames"] and after["hash"] == before["hash"]
+
+
+def test_a_failure_after_the_first_frame_keeps_the_run(tmp_path: Path, counting_renderer: list[int],
+                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    _fails_at(monkeypatch, {1001})
+    with pytest.raises(RuntimeError):
+        run_dataset(tmp_path / "data", job(), progress=False)
+    assert [f.seed for f in load_manifest(tmp_path / "data", check_files=False).frames] == [1000]

@@ -162,6 +162,33 @@ def test_server_failures_exit_1_without_retry(tmp_path, frame, answer):
     assert not (tmp_path / "o.exr").exists()
 
 
+def _truncated(data: bytes) -> bytes:
+    return data[: len(data) - 40]
+
+
+def _corrupt_pixels(data: bytes) -> bytes:
+    """The header intact, the last line block's compressed bytes garbled."""
+    out = bytearray(data)
+    out[-30:] = b"\x00" * 30
+    return bytes(out)
+
+
+@pytest.mark.parametrize("damage", [_truncated, _corrupt_pixels, lambda d: d[:12]], ids=["truncated", "garbled",
+                                                                                         "header-cut"])
+def test_an_answer_that_does_not_decode_exits_1_with_one_line_and_writes_nothing(tmp_path, frame, capsys,
+                                                                                  damage):
+    body = frame_bytes(("color",), height=32, width=32, seed=3)  # several line blocks, so a cut hits pixels
+    answer = (200, {"Content-Type": "image/x-exr", "X-Reconstruction-Method": "l1"}, damage(body))
+    (tmp_path / "o.exr").write_bytes(b"previous result")
+    with scripted_server([answer, OK]) as (url, seen):
+        code = client_command(args_for(frame, tmp_path / "o.exr", url), sleep=lambda s: None)
+    assert code == EXIT_SERVER_ERROR and len(seen) == 1
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and "does not decode" in lines[0], lines
+    assert (tmp_path / "o.exr").read_bytes() == b"previous result"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["frame.exr", "o.exr"]
+
+
 def test_url_and_token_come_from_the_environment(tmp_path, frame, monkeypatch):
     with scripted_server([OK]) as (url, seen):
         monkeypatch.setenv("GRADSEP_URL", url)

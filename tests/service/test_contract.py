@@ -338,11 +338,13 @@ def test_network_without_models_is_422_listing_available_methods(poisson_api, tr
 # --------------------------------------------------------------------------------------------------------------
 
 
-def test_bearer_token_guards_everything_but_health_and_readiness(serve):
+def test_bearer_token_guards_everything_but_health_readiness_and_the_docs(serve):
     with serve(create_app(settings(token="s3cret-token"))) as client:
         assert client.get("/healthz").status_code == 200
         assert client.get("/readyz").status_code == 200
-        for path in ("/v1/models", "/metrics", "/openapi.json", "/docs", "/nothing"):
+        for path in ("/docs", "/docs/static/swagger-ui.css", "/openapi.json"):  # no secret in them (docs=open)
+            assert client.get(path).status_code == 200, path
+        for path in ("/v1/models", "/metrics", "/nothing", "/docsx", "/openapi.json/x"):
             response = client.get(path)
             assert_error(response, 401, "unauthorized")
             assert response.headers["www-authenticate"].startswith("Bearer")

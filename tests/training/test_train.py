@@ -25,6 +25,7 @@ from gradsep.training.dataset import (  # noqa: E402
     split_frames,
 )
 from gradsep.training.train import Trainer, TrainingError, read_log, train  # noqa: E402
+from tests.training.conftest import tiny_config  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -303,3 +304,46 @@ def test_torchrun_two_process_gloo(tiny_dataset: Path, tmp_path: Path) -> None:
     assert "2 process(es)" in proc.stderr
     state = torch.load(out / "checkpoints" / "last.pt", weights_only=True)
     assert not any(k.startswith("module.") for k in state["model"])   # saved unwrapped: export can read it
+
+
+# ------------------------------------------------------------------------------------------- a failed start
+
+
+def _tree(folder: Path) -> list[str]:
+    return sorted(str(p.relative_to(folder)) for p in folder.rglob("*"))
+
+
+def test_a_start_that_fails_leaves_no_run_folder(tmp_path: Path, tiny_dataset: Path,
+                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    """The tiny dataset's 64x48 frames are smaller than the default 128-pixel patch: refused at once, and the
+    run folder it would have made is not left behind (it would refuse the corrected retry as a different run)."""
+    run = tmp_path / "run"
+    rc = cli_main(["train", "--data", str(tiny_dataset), "--layer", "direct", "-o", str(run)])
+    assert rc == 2
+    errors = [line for line in capsys.readouterr().err.splitlines() if "error" in line]
+    assert len(errors) == 1 and "no usable training frames" in errors[0] and "patch 128" in errors[0], errors
+    assert not run.exists()
+
+
+def test_a_failed_start_in_an_existing_folder_removes_only_what_it_made(tmp_path: Path,
+                                                                        tiny_dataset: Path) -> None:
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "notes.txt").write_text("the user's own file")
+    with pytest.raises(DatasetError, match="no usable training frames"):
+        train(tiny_config(tiny_dataset, run, patch=128), quiet=True)
+    assert _tree(run) == ["notes.txt"]
+
+
+@pytest.mark.train
+def test_the_corrected_retry_after_a_failed_start_just_works(tmp_path: Path, tiny_dataset: Path) -> None:
+    run = tmp_path / "run"
+    with pytest.raises(DatasetError, match="no usable training frames"):
+        train(tiny_config(tiny_dataset, run, patch=128), quiet=True)
+    progress = train(tiny_config(tiny_dataset, run, patch=32, epochs=1), quiet=True)
+    assert progress.epoch == 1 and (run / "config.json").is_file()
+    # a refused resume of that run keeps the run exactly as it was
+    before = {p: p.stat().st_mtime_ns for p in run.rglob("*")}
+    with pytest.raises(TrainingError, match="different run"):
+        train(tiny_config(tiny_dataset, run, patch=32, epochs=2, seed=7), quiet=True)
+    assert {p: p.stat().st_mtime_ns for p in run.rglob("*")} == before

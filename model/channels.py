@@ -1,0 +1,215 @@
+"""Channel layouts: the one definition of how another renderer's EXR channels map onto the frame contract.
+
+A *layout* says which channel of a file holds which contract channel (``color.R``, ``albedo.G``, ``normal.X``,
+``depth.Z``...) and which holds alpha. Reading maps a file's channels through its layout, then validates and
+decodes the mapped names as usual (model/frame.py), so every layout gets the same checks, errors and policies.
+
+* ``gradsep`` -- the contract itself (docs/frame-format.md): ``direct.*``, ``indirect.*`` or ``color.*`` layers,
+  ``albedo.*``/``normal.*``/``depth.Z`` features, and a top-level ``A`` as alpha. A top-level ``R G B`` beside
+  the layers is a preview (the renderer's references carry one) and is ignored.
+* ``mitsuba-aov`` -- a single-layer beauty pass: top-level ``R G B`` (and ``A``) as the ``color`` layer. That is
+  Mitsuba's ``hdrfilm`` default and most renderers' single-layer output. Features are taken from Mitsuba's
+  ``aov`` integrator channels when present, by the names its documentation uses: albedo ``albedo.{R,G,B}``;
+  normal ``sh_normal``/``nn``/``normal``/``normals``/``geo_normal``/``gn`` ``.{X,Y,Z}`` (the first present);
+  depth ``depth``/``dd`` ``.{T,Z,Y,y}`` (Mitsuba names a one-channel AOV ``NAME.T``).
+* ``cycles`` -- a Blender Cycles multilayer EXR: ``VIEWLAYER.PASS.CHANNEL``. Colour from ``Noisy Image`` when
+  the file has it (Blender's denoiser was on, so ``Combined`` is already denoised), else ``Combined``; alpha from
+  the same pass's ``A``; albedo ``Denoising Albedo.{R,G,B}``; normal ``Denoising Normal.{X,Y,Z}`` (else
+  ``Normal``); depth ``Denoising Depth.Z`` (else ``Depth.Z``). A file with several view layers names one as
+  ``cycles:VIEWLAYER``.
+
+``auto`` (the default everywhere) picks the layout when exactly one matches the file; when several match (a
+Cycles view layer beside a top-level beauty, or two view layers) it refuses with a ChannelError that names the
+candidates, and the caller picks one (``gradsep reconstruct --channels``, the service's ``channels`` query).
+Standard library only: the argument parsers and the service's query validation import the names.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+
+from gradsep.model.policy import ILLUMINATION_LAYERS
+
+#: The layouts a caller may name, and ``auto``; ``cycles:VIEWLAYER`` names one view layer of a Cycles file.
+LAYOUTS: tuple[str, ...] = ("gradsep", "mitsuba-aov", "cycles")
+LAYOUT_CHOICES: tuple[str, ...] = ("auto", *LAYOUTS)
+DEFAULT_LAYOUT = "auto"
+#: The pattern a layout argument must match (the service validates its query parameter with it).
+LAYOUT_PATTERN = r"^(auto|gradsep|mitsuba-aov|cycles(:.{1,200})?)$"
+
+ALPHA = "A"
+_RGB, _XYZ = ("R", "G", "B"), ("X", "Y", "Z")
+#: Feature names of Mitsuba's aov integrator (``aovs="albedo:albedo,nn:sh_normal,dd:depth"``), first match wins.
+_AOV_ALBEDO: tuple[str, ...] = ("albedo",)
+_AOV_NORMAL: tuple[str, ...] = ("sh_normal", "nn", "normal", "normals", "geo_normal", "gn")
+_AOV_DEPTH: tuple[str, ...] = ("depth", "dd")
+_AOV_DEPTH_SUFFIXES: tuple[str, ...] = ("T", "Z", "Y", "y")
+#: Cycles pass names (Blender's render-pass names as a multilayer EXR stores them).
+_CYCLES_COLOR: tuple[str, ...] = ("Noisy Image", "Combined")
+_CYCLES_ALBEDO: tuple[str, ...] = ("Denoising Albedo",)
+_CYCLES_NORMAL: tuple[str, ...] = ("Denoising Normal", "Normal")
+_CYCLES_DEPTH: tuple[str, ...] = ("Denoising Depth", "Depth")
+
+
+class LayoutError(ValueError):
+    """The file matches no layout, several (``candidates``), or not the one asked for. model.frame turns it into
+    its ChannelError (422) so callers see one error type for channel problems."""
+
+    def __init__(self, message: str, details: dict[str, object]) -> None:
+        super().__init__(message)
+        self.message, self.details = message, details
+
+
+@dataclass(frozen=True)
+class ChannelMap:
+    """How one file maps onto the contract: ``sources[contract name] = file channel``."""
+
+    layout: str  # "gradsep", "mitsuba-aov" or "cycles:VIEWLAYER"
+    sources: dict[str, str]
+    alpha: str | None = None  # the file channel carried through as the output's A
+    ignored: tuple[str, ...] = field(default=())  # file channels this layout does not read (a warning names them)
+
+    @property
+    def names(self) -> list[str]:
+        """The contract names this file provides, for model.frame's validation."""
+        return list(self.sources)
+
+    def warnings(self) -> list[str]:
+        """The warning naming the file's channels this layout does not read (none for gradsep: model.frame's
+        validation names the channels outside the contract)."""
+        if not self.ignored:
+            return []
+        shown = ", ".join(sorted(self.ignored)[:20]) + (", ..." if len(self.ignored) > 20 else "")
+        return [f"ignored {len(self.ignored)} channel(s) outside the {self.layout} layout: {shown}"]
+
+
+def _pick(present: set[str], prefixes: Sequence[str], suffixes: Sequence[str]) -> dict[int, str] | None:
+    """The channels ``PREFIX.S`` for every suffix S under the first prefix that has all of them."""
+    for prefix in prefixes:
+        names = [f"{prefix}.{s}" for s in suffixes]
+        if all(n in present for n in names):
+            return dict(enumerate(names))
+    return None
+
+
+def _pick_one(present: set[str], prefixes: Sequence[str], suffixes: Sequence[str]) -> str | None:
+    """The first ``PREFIX.S`` present (a one-channel pass whose channel letter varies by producer)."""
+    return next((f"{p}.{s}" for p in prefixes for s in suffixes if f"{p}.{s}" in present), None)
+
+
+def _features(present: set[str], albedo: Sequence[str], normal: Sequence[str], depth: Sequence[str],
+              depth_suffixes: Sequence[str]) -> dict[str, str]:
+    out: dict[str, str] = {}
+    for group, prefixes, suffixes in (("albedo", albedo, _RGB), ("normal", normal, _XYZ)):
+        found = _pick(present, prefixes, suffixes)
+        if found:
+            out.update({f"{group}.{suffixes[i]}": name for i, name in found.items()})
+    one = _pick_one(present, depth, depth_suffixes)
+    if one:
+        out["depth.Z"] = one
+    return out
+
+
+def _gradsep(names: Sequence[str]) -> ChannelMap:
+    # every name but A passes as is: model.frame's validation names unknown channels and ignores foreign ones
+    return ChannelMap("gradsep", {n: n for n in names if n != ALPHA}, ALPHA if ALPHA in names else None)
+
+
+def _mitsuba(names: Sequence[str]) -> ChannelMap:
+    present = set(names)
+    sources = {f"color.{c}": c for c in _RGB}
+    sources.update(_features(present, _AOV_ALBEDO, _AOV_NORMAL, _AOV_DEPTH, _AOV_DEPTH_SUFFIXES))
+    alpha = ALPHA if ALPHA in present else None
+    used = {*sources.values(), *([alpha] if alpha else [])}
+    return ChannelMap("mitsuba-aov", sources, alpha, tuple(n for n in names if n not in used))
+
+
+def cycles_view_layers(names: Iterable[str]) -> list[str]:
+    """The view layers of a Cycles multilayer file: prefixes ``V`` with a ``V.Combined`` or ``V.Noisy Image``
+    RGB. View-layer names may contain dots, so the pass name is matched from the right."""
+    present = set(names)
+    layers = set()
+    for name in present:
+        for pass_name in _CYCLES_COLOR:
+            m = re.fullmatch(rf"(.+)\.{re.escape(pass_name)}\.R", name)
+            if m and all(f"{m.group(1)}.{pass_name}.{c}" in present for c in _RGB):
+                layers.add(m.group(1))
+    return sorted(layers)
+
+
+def _cycles(names: Sequence[str], view_layer: str) -> ChannelMap:
+    present = set(names)
+    prefix = f"{view_layer}."
+    color = _pick(present, [prefix + p for p in _CYCLES_COLOR], _RGB)
+    if color is None:
+        raise LayoutError(f"no Cycles view layer {view_layer!r} with a Combined or Noisy Image pass",
+                          {"view_layers": cycles_view_layers(names)})
+    sources = {f"color.{c}": color[i] for i, c in enumerate(_RGB)}
+    color_pass = color[0].rsplit(".", 1)[0]
+    alpha = f"{color_pass}.A" if f"{color_pass}.A" in present else None
+    sources.update(_features(present, [prefix + p for p in _CYCLES_ALBEDO], [prefix + p for p in _CYCLES_NORMAL],
+                             [prefix + p for p in _CYCLES_DEPTH], ("Z",)))
+    used = {*sources.values(), *([alpha] if alpha else [])}
+    return ChannelMap(f"cycles:{view_layer}", sources, alpha, tuple(n for n in names if n not in used))
+
+
+def _is_gradsep(names: Sequence[str]) -> bool:
+    return any(n.split(".", 1)[0] in ILLUMINATION_LAYERS and "." in n for n in names)
+
+
+def candidates(names: Sequence[str]) -> list[str]:
+    """Every layout this file matches, as a caller would name it (``cycles:V`` per view layer)."""
+    found = []
+    if _is_gradsep(names):
+        return ["gradsep"]  # the contract's own layers are explicit: a top-level R G B beside them is a preview
+    if all(c in names for c in _RGB):
+        found.append("mitsuba-aov")
+    found += [f"cycles:{v}" for v in cycles_view_layers(names)]
+    return found
+
+
+def check_layout(layout: str) -> str:
+    """``layout`` when it is a valid choice, else a ValueError naming the choices."""
+    if not re.fullmatch(LAYOUT_PATTERN, layout or ""):
+        raise ValueError(f"unknown channel layout {layout!r}; expected one of {', '.join(LAYOUT_CHOICES)} "
+                         "or cycles:VIEWLAYER")
+    return layout
+
+
+def map_channels(names: Sequence[str], layout: str = DEFAULT_LAYOUT) -> ChannelMap:
+    """Map a file's channel names through ``layout`` (``auto``: the one layout the file matches).
+
+    Raises LayoutError when nothing matches, when ``auto`` finds several candidates (named in the message and in
+    ``details["candidates"]``), or when a named layout does not fit the file.
+    """
+    names = list(names)
+    check_layout(layout)
+    found = candidates(names)
+    if layout == "auto":
+        if not found:
+            return _gradsep(names)  # model.frame's validation then says what the contract expected
+        if len(found) > 1:
+            raise LayoutError(
+                f"ambiguous channel layout: the file matches {', '.join(found)}; choose one "
+                "(gradsep reconstruct --channels, or the service's channels query parameter)",
+                {"candidates": found})
+        layout = found[0]
+    if layout == "gradsep":
+        return _gradsep(names)
+    if layout == "mitsuba-aov":
+        if not all(c in names for c in _RGB):
+            raise LayoutError("channel layout mitsuba-aov needs top-level R, G and B channels",
+                              {"expected": list(_RGB), "candidates": found})
+        return _mitsuba(names)
+    view_layers = cycles_view_layers(names)
+    if layout == "cycles":
+        if len(view_layers) != 1:
+            problem = "has no Cycles view layer" if not view_layers else "has several Cycles view layers"
+            raise LayoutError(f"channel layout cycles: the file {problem} (VIEWLAYER.Combined.R ...); "
+                              + (f"name one: {', '.join(f'cycles:{v}' for v in view_layers)}" if view_layers
+                                 else "expected e.g. ViewLayer.Combined.R"),
+                              {"candidates": [f"cycles:{v}" for v in view_layers]})
+        return _cycles(names, view_layers[0])
+    return _cycles(names, layout.split(":", 1)[1])
