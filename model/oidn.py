@@ -33,6 +33,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from gradsep.model.robust import robust_level
+
 if TYPE_CHECKING:
     from gradsep.model.frame import Features
 
@@ -128,11 +130,12 @@ def _finite(x: np.ndarray, lo: float, hi: float) -> np.ndarray:
 
 
 def input_scale(image: np.ndarray) -> float:
-    """s such that mean(image * s) is 1 (exactly the reciprocal, so scaled frames denoise alike); 1.0 if black."""
-    mean = float(np.mean(image, dtype=np.float64)) if image.size else 0.0
-    if not (math.isfinite(mean) and mean > 0.0):
+    """s such that the robust level of ``image * s`` (model.robust.robust_level, a winsorised mean one pixel cannot
+    move) is 1: exactly the reciprocal, so scaled frames denoise alike; 1.0 if black."""
+    level = robust_level(image)
+    if not (math.isfinite(level) and level > 0.0):
         return 1.0
-    return _TARGET_MEAN / mean
+    return _TARGET_MEAN / level
 
 
 class Denoiser:

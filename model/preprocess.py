@@ -34,6 +34,7 @@ import numpy as np
 
 from gradsep.model.poisson import solve_l1
 from gradsep.model.policy import DEFAULT_ALPHA
+from gradsep.model.robust import robust_level
 
 if TYPE_CHECKING:  # only for hints; importing model.frame at run time is fine but not needed
     from gradsep.model.frame import Features, Layer
@@ -124,9 +125,10 @@ PRIOR_KINDS: tuple[str, ...] = (*POISSON_PRIORS, "oidn")
 #: The kind a model without ``gradsep.prior`` metadata refines (every model exported before kinds existed).
 DEFAULT_PRIOR = "l1"
 #: ``fused`` models see every layer at a normalised exposure: base, gradients and prior multiplied by s so that the
-#: prior's mean is FUSED_MEAN (capped so the prior's peak stays below RADIANCE_MAX / FUSED_PEAK_MARGIN), and the
-#: output divided by s. The model is then the same for a frame at 1e-8 or 1e9 radiance, and HDR values are never
-#: clipped by the transfer's range. Stored as ONNX metadata ``gradsep.exposure`` = ``prior-mean``.
+#: prior's robust level (model.robust.robust_level) is FUSED_MEAN (capped so the prior's peak stays below RADIANCE_MAX
+#: / FUSED_PEAK_MARGIN), and the output divided by s. The model is then the same for a frame at 1e-8 or 1e9 radiance,
+#: and HDR values are never clipped by the transfer's range. Stored as ONNX metadata ``gradsep.exposure`` = ``prior-
+#: mean``.
 FUSED_MEAN = 0.5
 FUSED_PEAK_MARGIN = 16.0
 #: Bumped whenever the numbers the network sees change; stored in checkpoints, caches and ONNX metadata.
@@ -343,17 +345,18 @@ def _solve_prior(base: np.ndarray, dx: np.ndarray, dy: np.ndarray, kind: str = D
 
 
 def prior_exposure(prior: np.ndarray) -> float:
-    """The ``fused`` models' exposure s (see FUSED_MEAN): mean(prior·s) = FUSED_MEAN, 1.0 for a black prior.
+    """The ``fused`` models' exposure s (see FUSED_MEAN): robust_level(prior·s) = FUSED_MEAN (model.robust: a
+    winsorised mean one pixel cannot move), 1.0 for a black prior.
 
     Float64 statistics: a 1e9-radiance frame's sum overflows nothing, a 1e-8 one underflows nothing.
     """
     if prior.size == 0:
         return 1.0
-    mean = float(np.mean(prior, dtype=np.float64))
+    level = robust_level(prior)  # one pixel cannot move it; the peak cap binds only on frames of extreme range
     peak = float(np.max(prior))
-    if not (math.isfinite(mean) and mean > 0.0 and math.isfinite(peak)):
+    if not (math.isfinite(level) and level > 0.0 and math.isfinite(peak)):
         return 1.0
-    return min(FUSED_MEAN / mean, RADIANCE_MAX / FUSED_PEAK_MARGIN / peak)
+    return min(FUSED_MEAN / level, RADIANCE_MAX / FUSED_PEAK_MARGIN / peak)
 
 
 _F32_MAX = float(np.finfo(np.float32).max)

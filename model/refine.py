@@ -45,6 +45,7 @@ from gradsep.model.frame import Layer
 from gradsep.model.oidn import input_scale
 from gradsep.model.poisson import solve_l1
 from gradsep.model.preprocess import scaled_image
+from gradsep.model.robust import winsorised_sum
 
 #: The layers whose gradients refine OIDN's result (the rest keep OIDN's).
 REFINED_LAYERS: frozenset[str] = frozenset({"direct"})
@@ -188,8 +189,9 @@ def frame_disagreement(base: np.ndarray, prior: np.ndarray, dx: np.ndarray, dy: 
     ``maps``: _disagreement_maps of the same layer, if the caller has them."""
     residual, signal = maps if maps is not None else _disagreement_maps(base, dx, dy)
     weight = 1.0 / (np.square(np.mean(np.asarray(prior, np.float32), axis=-1)) + np.float32(1e-2))
-    res = float(np.sum(weight * residual, dtype=np.float64))
-    sig = float(np.sum(weight * signal, dtype=np.float64))
+    with np.errstate(over="ignore", invalid="ignore"):  # winsorised: no single pixel's disagreement decides w_f
+        res = winsorised_sum(np.nan_to_num(weight * residual, nan=np.inf))
+        sig = winsorised_sum(np.nan_to_num(weight * signal, nan=np.inf))
     if sig > 0.0 and math.isfinite(sig):
         return res / sig
     return 0.0 if res == 0.0 else math.inf
@@ -278,7 +280,7 @@ def refine_layer(name: str, prior: np.ndarray, layer: Layer, alpha: float | None
         report["clean_weight"] = 0.0  # until the trust rule says otherwise
     if name not in REFINED_LAYERS or not layer.has_gradients:
         return prior
-    scale = input_scale(prior)  # mean 1, as OIDN's own input is normalised; 1.0 for a black prior
+    scale = input_scale(prior)  # robust level 1, as OIDN's own input is normalised; 1.0 for a black prior
     dx, dy = scaled_image(layer.dx, scale), scaled_image(layer.dy, scale)
     data = scaled_image(prior, scale)
     alpha_map = None

@@ -1,0 +1,143 @@
+"""Frame statistics one pixel cannot move, and the split of a layer's extreme outliers.
+
+Every denoising method needs a few numbers about the whole layer (the exposure OIDN and the networks see, the
+level the solvers work at). Taken as a plain mean or a maximum, one firefly moves them, and with them every pixel
+of the output. The statistics here are *robust*: :func:`robust_level` is a winsorised mean, so a single pixel,
+whatever its value, changes it by at most one order statistic's step divided by the pixel count.
+
+Extreme outliers (a pixel far above both its neighbours and the layer's level: a firefly of thousands of times the
+mean, an overflowed sample) are taken out of the base before a method runs, and their excess is added back to the
+method's output at the same pixel (:func:`split_outliers`): the methods' global parts (CG step sizes, attention
+pooling, OIDN's U-Net) never see them, their energy is kept exactly, and their effect ends at their own pixel.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from gradsep.model.frame import Frame
+
+#: The quantile at which :func:`robust_level` winsorises the per-pixel values: the top 0.1 % of the pixels count
+#: as this quantile's value, so no single pixel can move the level by more than one order statistic's step.
+WINSOR_QUANTILE = 0.999
+#: A pixel is an outlier where its luminance (channel mean) exceeds OUTLIER_LOCAL × the largest of its 8
+#: neighbours' *and* OUTLIER_LEVEL × the layer's robust level: far above Monte Carlo noise at the sample counts the
+#: methods serve, so ordinary frames have none and are denoised exactly as without the split.
+OUTLIER_LOCAL = 8.0
+OUTLIER_LEVEL = 64.0
+#: An outlier's excess (its value above the median of its 8 neighbours, per channel) is spread over a Gaussian
+#: footprint of this σ in pixels, truncated at OUTLIER_SPREAD_RADIUS and renormalised at the frame's border, so its
+#: energy is kept exactly and its effect ends OUTLIER_SPREAD_RADIUS pixels from it.
+OUTLIER_SPREAD_SIGMA = 3.5
+OUTLIER_SPREAD_RADIUS = 11
+
+
+def robust_level(image: np.ndarray) -> float:
+    """The winsorised mean (at WINSOR_QUANTILE) of the per-pixel channel mean of ``image`` ((H, W) or (H, W, C)),
+    float64 statistics, non-finite and negative values read as 0. Scales with the image (level(s·x) = s·level(x)
+    up to rounding). 0 for an empty or black image; for an image lit in fewer pixels than the quantile leaves
+    (its winsorised mean is 0) the plain mean of those pixels' values."""
+    values = np.asarray(image, np.float64)
+    if values.ndim == 3:
+        values = values.mean(axis=-1)
+    flat = np.nan_to_num(values.ravel(), nan=0.0, posinf=0.0, neginf=0.0)
+    np.maximum(flat, 0.0, out=flat)
+    if flat.size == 0:
+        return 0.0
+    k = int(WINSOR_QUANTILE * (flat.size - 1))
+    cap = float(np.partition(flat, k)[k])
+    level = float(np.minimum(flat, cap).mean())
+    return level if level > 0.0 else float(flat.mean())
+
+
+def winsorised_sum(values: np.ndarray) -> float:
+    """The float64 sum of ``values`` (≥ 0, finite) with each capped at their WINSOR_QUANTILE: a sum over a layer
+    that no single pixel can dominate."""
+    flat = np.asarray(values, np.float64).ravel()
+    if flat.size == 0:
+        return 0.0
+    k = int(WINSOR_QUANTILE * (flat.size - 1))
+    cap = np.partition(flat, k)[k]
+    return float(np.minimum(flat, cap).sum())
+
+
+def _ring() -> np.ndarray:
+    ring = np.ones((3, 3), bool)
+    ring[1, 1] = False
+    return ring
+
+
+def split_outliers(base: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """(the base with each outlier (OUTLIER_LOCAL / OUTLIER_LEVEL) replaced by the median of its 8 neighbours per
+    channel, the outliers' excess over that median: (H, W, C) float32 ≥ 0, zero elsewhere), or (``base``, None)
+    when the layer has no outlier. Finite (H, W, C) input (model.frame's policy makes it so)."""
+    image = np.asarray(base, np.float32)
+    if image.ndim != 3 or image.size == 0:
+        return base, None
+    lum = image.mean(axis=-1)
+    level = np.float32(OUTLIER_LEVEL * robust_level(image))
+    mask = lum > level
+    if not mask.any():
+        return base, None
+    from scipy.ndimage import maximum_filter, median_filter
+
+    # "mirror" borders: a pixel's own value never counts among the neighbours of an edge or corner pixel
+    with np.errstate(over="ignore"):
+        mask &= lum > np.float32(OUTLIER_LOCAL) * maximum_filter(lum, footprint=_ring(), mode="mirror")
+    if not mask.any():
+        return base, None
+    ys, xs = np.nonzero(mask)
+    inlier = image.copy()
+    excess = np.zeros_like(image)
+    for c in range(image.shape[-1]):
+        value = image[ys, xs, c]
+        local = np.minimum(median_filter(image[..., c], footprint=_ring(), mode="mirror")[ys, xs], value)
+        inlier[ys, xs, c] = local  # set, not subtracted: value − excess would cancel catastrophically at 1e30
+        excess[ys, xs, c] = (value.astype(np.float64) - local).astype(np.float32)
+    return inlier, excess
+
+
+def split_frame(frame: Frame) -> tuple[Frame, dict[str, np.ndarray]]:
+    """(``frame`` with every layer's base outliers replaced (:func:`split_outliers`), each such layer's excess by
+    name); ``frame`` itself and {} when no layer has an outlier. Gradients and features are kept as they are."""
+    from dataclasses import replace
+
+    from gradsep.model.frame import Layer
+
+    layers, excess = dict(frame.layers), {}
+    for name, layer in frame.layers.items():
+        inlier, extra = split_outliers(layer.base)
+        if extra is not None:
+            layers[name], excess[name] = Layer(inlier, layer.dx, layer.dy), extra
+    if not excess:
+        return frame, {}
+    return replace(frame, layers=layers), excess
+
+
+def outlier_count(excess: np.ndarray) -> int:
+    """The number of outlier pixels an excess image carries."""
+    return int(np.count_nonzero(np.any(excess > 0, axis=-1)))
+
+
+def spread(excess: np.ndarray) -> np.ndarray:
+    """``excess`` spread over each outlier's Gaussian footprint (OUTLIER_SPREAD_SIGMA, truncated at
+    OUTLIER_SPREAD_RADIUS), each footprint renormalised to its part inside the frame so the sum of ``excess`` is
+    kept exactly (to rounding): (H, W, C) float64."""
+    from scipy.ndimage import gaussian_filter
+
+    blur = {"sigma": OUTLIER_SPREAD_SIGMA, "mode": "constant", "truncate": OUTLIER_SPREAD_RADIUS / OUTLIER_SPREAD_SIGMA}
+    inside = gaussian_filter(np.ones(excess.shape[:2]), **blur)  # each footprint's mass inside the frame
+    source = np.asarray(excess, np.float64) / inside[..., None]
+    return np.stack([gaussian_filter(source[..., c], **blur) for c in range(excess.shape[-1])], axis=-1)
+
+
+def add_excess(image: np.ndarray, excess: np.ndarray | None) -> np.ndarray:
+    """``image`` (a denoised layer) with the outliers' ``excess`` added back over their footprints
+    (:func:`spread`), float64 sum clipped to float32's range; ``image`` itself when ``excess`` is None."""
+    if excess is None:
+        return image
+    total = np.asarray(image, np.float64) + spread(excess)
+    return np.clip(total, 0.0, float(np.finfo(np.float32).max)).astype(np.float32)
