@@ -77,16 +77,15 @@ def split_outliers(base: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
     image = np.asarray(base, np.float32)
     if image.ndim != 3 or image.size == 0:
         return base, None
-    lum = image.mean(axis=-1)
-    level = np.float32(OUTLIER_LEVEL * robust_level(image))
+    lum = image.mean(axis=-1, dtype=np.float64)
+    level = OUTLIER_LEVEL * robust_level(image)
     mask = lum > level
     if not mask.any():
         return base, None
     from scipy.ndimage import maximum_filter, median_filter
 
     # "mirror" borders: a pixel's own value never counts among the neighbours of an edge or corner pixel
-    with np.errstate(over="ignore"):
-        mask &= lum > np.float32(OUTLIER_LOCAL) * maximum_filter(lum, footprint=_ring(), mode="mirror")
+    mask &= lum > OUTLIER_LOCAL * maximum_filter(lum, footprint=_ring(), mode="mirror")
     if not mask.any():
         return base, None
     ys, xs = np.nonzero(mask)
@@ -141,3 +140,18 @@ def add_excess(image: np.ndarray, excess: np.ndarray | None) -> np.ndarray:
         return image
     total = np.asarray(image, np.float64) + spread(excess)
     return np.clip(total, 0.0, float(np.finfo(np.float32).max)).astype(np.float32)
+
+
+def far_agreement(image: np.ndarray, reference: np.ndarray, where: tuple[int, int], radius: float,
+                  tolerance: float = 0.01, epsilon: float = 1e-3) -> tuple[float, float]:
+    """How far a change at pixel ``where`` reached from ``reference`` to ``image`` ((H, W, C) each): (the fraction of
+    the pixels farther than ``radius`` from it whose every channel is within ``tolerance`` · (|reference| +
+    ``epsilon`` · the reference's mean), the largest distance of a pixel outside that bound, 0 if none)."""
+    ref = np.asarray(reference, np.float64)
+    bad = np.any(np.abs(np.asarray(image, np.float64) - ref) > tolerance * (np.abs(ref) + epsilon * ref.mean()),
+                 axis=-1)
+    yy, xx = np.mgrid[0:ref.shape[0], 0:ref.shape[1]]
+    distance = np.hypot(yy - where[0], xx - where[1])
+    far = distance > radius
+    fraction = 1.0 - np.count_nonzero(bad & far) / max(np.count_nonzero(far), 1)
+    return fraction, float(distance[bad].max()) if bad.any() else 0.0
