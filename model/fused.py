@@ -138,7 +138,7 @@ def refine(kind: str, oidn: np.ndarray, scaled: Layer) -> np.ndarray:
     passes, cg_steps = REFINE_SOLVES[kind]
     # "direct": refine this layer whatever its name
     return refine_layer("direct", oidn, scaled, REFINE_ALPHA, preconditioner=REFINE_PRECONDITIONER,
-                        cg_steps=cg_steps, passes=passes, warm_start=False)
+                        cg_steps=cg_steps, passes=passes)
 
 
 def refine_direct(kind: str, oidn: np.ndarray, scaled: Layer, report: dict[str, float] | None = None,

@@ -279,45 +279,6 @@ def test_the_frame_wide_part_of_the_rule() -> None:
     assert frame_disagreement(bumpy, flat, zero, zero) == float("inf")
 
 
-def _study_direct_trust():
-    """benchmarks/study_direct_trust.py as a module (benchmarks/ is not a package)."""
-    import importlib.util
-    import sys
-    from pathlib import Path
-
-    folder = Path(__file__).resolve().parents[2] / "benchmarks"
-    sys.path.insert(0, str(folder))
-    try:
-        spec = importlib.util.spec_from_file_location("study_direct_trust", folder / "study_direct_trust.py")
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-    finally:
-        sys.path.remove(str(folder))
-    return module
-
-
-def test_the_studys_per_pixel_alpha_solve_is_the_refinement_when_alpha_is_uniform(monkeypatch) -> None:
-    """docs/network.md design 10 rests on the study's prototype: with a per-pixel α equal everywhere to the rule's
-    own it must be refine_layer's solve (the rule of its time: no clean-layer α map), and a lower α_lo must change a
-    clean layer (the prototype does something)."""
-    from gradsep.model import refine
-    from gradsep.model.refine import TRUST_ALPHA_BASE, frame_disagreement, input_scale, scaled_image
-
-    monkeypatch.setattr(refine, "TRUST_ALPHA_CLEAN", None)
-
-    study = _study_direct_trust()
-    truth = _sharp(40, 56, 21)
-    prior = _blur(truth)
-    layer = Layer(_noisy(truth, 0.01, 22), *_gradients(truth, 0.002, 23))
-    s = input_scale(prior)
-    assert frame_disagreement(*(scaled_image(a, s) for a in (layer.base, prior, layer.dx, layer.dy))) < 0.05
-    shipped = refine_layer("direct", prior, layer)
-    same = study._spatial_rule(TRUST_ALPHA_BASE)(prior, layer)  # m ≡ 1 on a clean layer
-    assert np.max(np.abs(same - shipped)) <= 1e-5 * float(shipped.max())
-    lower = study._spatial_rule(0.1)(prior, layer)
-    assert np.max(np.abs(lower - shipped)) > 1e-3 * float(shipped.max())
-
-
 def _shadow_edge(h: int = 32, w: int = 40, noise: float = 0.002, seed: int = 31) -> tuple[np.ndarray, Layer]:
     """A clean direct layer with an umbra: a bright lit region (radiance ~50) beside pixels of exactly 0 (no sample
     found light), gradients with a little noise, as a many-spp G-PT layer has. Returns (prior, layer)."""
@@ -365,74 +326,42 @@ def test_black_pixels_beside_bright_ones_stay_black_on_a_clean_layer(monkeypatch
     prior, layer = _shadow_edge()
     umbra = np.s_[:, 20:]
     shipped = refine_layer("direct", prior, layer)
-    monkeypatch.setattr(refine, "TRUST_ALPHA_ZERO", refine.TRUST_ALPHA_CLEAN)  # design 1: one low α everywhere
+    monkeypatch.setattr(refine, "TRUST_ALPHA_ZERO", refine.TRUST_ALPHA_CLEAN)  # one low α everywhere
     unpinned = refine_layer("direct", prior, layer)
     leak, leak_unpinned = float(np.abs(shipped[umbra]).sum()), float(np.abs(unpinned[umbra]).sum())
     assert leak < 0.5 * leak_unpinned, (leak, leak_unpinned)
     assert np.all(np.isfinite(shipped)) and np.all(shipped >= 0)
 
 
-def test_the_studys_zero_pixel_prototype_is_the_shipped_rule(monkeypatch) -> None:
-    """docs/network.md design 14 was measured with the study's prototype; the shipped rule must be it (with
-    session 17's scalar L2 start, which the prototype has)."""
-    from gradsep.model import refine
-
-    monkeypatch.setattr(refine, "TRUST_CLEAN_START", False)
-    monkeypatch.setattr(refine, "TRUST_PIN_RADIUS", None)
-    study = _study_direct_trust()
-    prior, layer = _shadow_edge(seed=41)
-    shipped = refine_layer("direct", prior, layer)
-    prototype = study._zero_keep_rule(0.2, 2.0)(prior, layer)
-    assert np.max(np.abs(prototype - shipped)) <= 1e-5 * float(shipped.max())
-
-
-def test_the_studys_silhouette_mask_marks_both_sides_of_a_missed_ray_edge() -> None:
-    """docs/network.md designs 15, 16 and 18 (measured, not adopted) rest on this mask."""
-    silhouette_mask = _study_direct_trust().silhouette_mask
-    depth = np.zeros((5, 6), np.float32)
-    depth[1:4, 1:3] = 2.5  # an object; everything else missed
-    mask = silhouette_mask(depth)
-    assert mask[2, 1] and mask[2, 0] and mask[0, 1] and mask[2, 3] and not mask[2, 5] and not mask[4, 5]
-    grown = silhouette_mask(depth, grow=1)
-    assert grown[2, 4] and grown.sum() > mask.sum() and np.all(grown[mask])
-    assert not silhouette_mask(np.full((4, 4), 3.0)).any() and not silhouette_mask(np.zeros((4, 4))).any()
-
-
 def test_a_clean_layer_starts_from_the_l2_solve_at_its_clean_alpha(monkeypatch) -> None:
-    """Design 17 (TRUST_CLEAN_START): the IRLS of a clean layer starts from the exact L2 solve at the α of its
-    non-black pixels (the map's smallest α·m), not at the scalar α; with pass 0 alone the refinement is that L2
-    solve. A noisy layer (no map) is unchanged bit for bit, and the study's C-start variant is the shipped rule."""
+    """The IRLS of a clean layer starts from the exact L2 solve at the α of its non-black pixels (the map's smallest
+    α·m), not at the scalar α: with pass 0 alone the refinement is that L2 solve. A noisy layer (no map) starts
+    from its scalar α."""
     from gradsep.model import refine
     from gradsep.model.poisson import solve_l2
 
-    monkeypatch.setattr(refine, "TRUST_PIN_RADIUS", None)  # the full pin, as design 17 was measured
     prior, layer = _shadow_edge(h=48, w=64, seed=61)
     s = refine.input_scale(prior)
     base, data0, dx, dy = (refine.scaled_image(a, s) for a in (layer.base, prior, layer.dx, layer.dy))
     data, alpha, m = refine.trust_terms(base, data0, dx, dy)
     assert m is not None and alpha * float(m.min()) == pytest.approx(refine.TRUST_ALPHA_CLEAN)
-    shipped = refine_layer("direct", prior, layer)
-    study = _study_direct_trust()
-    assert np.array_equal(study._silhouette_rule(None, True)(prior, layer), shipped)
     monkeypatch.setattr(refine, "REFINE_ITERATIONS", 1)  # pass 0 only: the start itself
-    starts = []
-    for start, a in ((True, refine.TRUST_ALPHA_CLEAN), (False, alpha)):
-        monkeypatch.setattr(refine, "TRUST_CLEAN_START", start)
-        starts.append(np.clip(solve_l2(data, dx, dy, a, dtype=np.float64) / s, 0, None))
-        np.testing.assert_allclose(refine_layer("direct", prior, layer), starts[-1], rtol=1e-4, atol=1e-4)
-    assert np.abs(starts[0] - starts[1]).max() > 1e-2  # the two starts differ well beyond that tolerance
-    monkeypatch.setattr(refine, "REFINE_ITERATIONS", 8)
+    start = np.clip(solve_l2(data, dx, dy, refine.TRUST_ALPHA_CLEAN, dtype=np.float64) / s, 0, None)
+    np.testing.assert_allclose(refine_layer("direct", prior, layer), start, rtol=1e-4, atol=1e-4)
+    scalar = np.clip(solve_l2(data, dx, dy, alpha, dtype=np.float64) / s, 0, None)
+    assert np.abs(start - scalar).max() > 1e-2  # the scalar start is well beyond that tolerance
     truth = _sharp(32, 40, 62)
     noisy = Layer(_noisy(truth, 1.0, 63), *_gradients(truth, 0.5, 64))
-    before = refine_layer("direct", _blur(truth), noisy)
-    monkeypatch.setattr(refine, "TRUST_CLEAN_START", True)
-    assert np.array_equal(refine_layer("direct", _blur(truth), noisy), before)
+    prior = _blur(truth)
+    s = refine.input_scale(prior)
+    scaled = [refine.scaled_image(a, s) for a in (prior, noisy.dx, noisy.dy)]
+    want = np.clip(solve_l2(*scaled, refine.REFINE_ALPHA, dtype=np.float64) / s, 0, None)
+    np.testing.assert_allclose(refine_layer("direct", prior, noisy), want, rtol=1e-4, atol=1e-4)
 
 
-def test_a_black_pixel_is_pinned_only_where_the_gradients_agree_it_is_black(monkeypatch) -> None:
-    """Design 22 (TRUST_PIN_RADIUS): an umbra (base 0 and gradients 0 around it) stays pinned; a pixel whose base
-    is 0 while the gradients say it is lit (a hard edge crossing it, missed by every primal sample) takes the clean
-    α; the shipped rule is the study's prototype."""
+def test_a_black_pixel_is_pinned_only_where_the_gradients_agree_it_is_black() -> None:
+    """An umbra (base 0 and gradients 0 around it) stays pinned; a pixel whose base is 0 while the gradients say it
+    is lit (a hard edge crossing it, missed by every primal sample) takes the clean α and is filled in."""
     from gradsep.model import refine
 
     prior, layer = _shadow_edge(h=32, w=40, seed=71)
@@ -446,11 +375,5 @@ def test_a_black_pixel_is_pinned_only_where_the_gradients_agree_it_is_black(monk
     assert m[10, 30] == pytest.approx(1.0 - (1.0 - refine.TRUST_ALPHA_ZERO / alpha) * frame, rel=1e-5)  # umbra
     assert m[10, 8] <= clean + 0.05 * (m[10, 30] - clean)  # nearly the clean α: not pinned
     shipped = refine_layer("direct", prior, layer)
-    study = _study_direct_trust()
-    prototype = study._agreeing_pin_rule()(prior, layer)
-    assert np.max(np.abs(prototype - shipped)) <= 1e-5 * float(shipped.max())
     assert np.all(np.isfinite(shipped)) and np.all(shipped >= 0)
     assert abs(float(shipped[10, 8].mean()) - 50.0) < 10.0  # filled in from its neighbours, not left black
-    monkeypatch.setattr(refine, "TRUST_PIN_RADIUS", None)  # the full pin: the same pixel pinned like the umbra
-    _, _, full = refine.trust_terms(*(refine.scaled_image(a, s) for a in (base, prior, layer.dx, layer.dy)))
-    assert full[10, 8] == pytest.approx(full[10, 30], rel=1e-6)
