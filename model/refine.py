@@ -93,7 +93,7 @@ def _forward_differences(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _disagreement_maps(base: np.ndarray, dx: np.ndarray, dy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per pixel, RGB means: (‖∇base − g‖², ‖g‖²), float32 (H, W), for one layer at mean-1 exposure (float32 is
+    """Per pixel, RGB means: (‖∇base − g‖², ‖g‖²), float32 (H, W), for one layer at level-1 exposure (float32 is
     ample there; an overflow gives inf, which the rule reads as "do not trust")."""
     b = np.asarray(base, np.float32)
     g_x, g_y = np.asarray(dx, np.float32), np.asarray(dy, np.float32)
@@ -136,9 +136,10 @@ def _log_ramp(r: float, low: float, high: float) -> float:
 
 def frame_disagreement(base: np.ndarray, prior: np.ndarray, dx: np.ndarray, dy: np.ndarray,
                        maps: tuple[np.ndarray, np.ndarray] | None = None) -> float:
-    """The frame-wide r (TRUST_FRAME_R) at mean-1 exposure: Σ ω‖∇base − g‖² / Σ ω‖g‖², ω = 1/(lum(prior)² +
-    0.01); 0 for an exact (or flat, agreeing) layer, inf when the gradients are all zero but the base is not.
-    ``maps``: _disagreement_maps of the same layer, if the caller has them."""
+    """The frame-wide r (TRUST_FRAME_R) at level-1 exposure: Σ ω‖∇base − g‖² / Σ ω‖g‖² (winsorised sums, so no
+    single pixel decides it), ω = 1/(lum(prior)² + 0.01); 0 for an exact (or flat, agreeing) layer, inf when the
+    gradients are all zero but the base is not. ``maps``: _disagreement_maps of the same layer, if the caller has
+    them."""
     residual, signal = maps if maps is not None else _disagreement_maps(base, dx, dy)
     weight = 1.0 / (np.square(np.mean(np.asarray(prior, np.float32), axis=-1)) + np.float32(1e-2))
     with np.errstate(over="ignore", invalid="ignore"):  # winsorised: no single pixel's disagreement decides w_f
@@ -150,7 +151,7 @@ def frame_disagreement(base: np.ndarray, prior: np.ndarray, dx: np.ndarray, dy: 
 
 
 def trusted_data(base: np.ndarray, prior: np.ndarray, dx: np.ndarray, dy: np.ndarray) -> tuple[np.ndarray, float]:
-    """(the trust rule's data term w·base + (1 − w)·prior, its α), all at mean-1 exposure, finite inputs; the
+    """(the trust rule's data term w·base + (1 − w)·prior, its α), all at level-1 exposure, finite inputs; the
     data term is ``prior`` itself, at REFINE_ALPHA, where the base is nowhere trusted."""
     data, alpha, _ = trust_terms(base, prior, dx, dy)
     return data, alpha
