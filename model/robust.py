@@ -1,14 +1,18 @@
 """Frame statistics one pixel cannot move, and the split of a layer's extreme outliers.
 
 Every denoising method needs a few numbers about the whole layer (the exposure OIDN and the networks see, the
-level the solvers work at). Taken as a plain mean or a maximum, one firefly moves them, and with them every pixel
-of the output. The statistics here are *robust*: :func:`robust_level` is a winsorised mean, so a single pixel,
-whatever its value, changes it by at most one order statistic's step divided by the pixel count.
+level the solvers work at, the trust rule's frame weight). Taken as a plain mean, a sum or a maximum, one firefly
+moves them, and with them every pixel of the output. The statistics here are *robust*: :func:`robust_level` is a
+winsorised mean and :func:`winsorised_sum` a winsorised sum, so a single pixel, whatever its value, counts as the
+99.9th percentile at most: it moves the level by at most that percentile over the pixel count.
 
-Extreme outliers (a pixel far above both its neighbours and the layer's level: a firefly of thousands of times the
-mean, an overflowed sample) are taken out of the base before a method runs, and their excess is added back to the
-method's output at the same pixel (:func:`split_outliers`): the methods' global parts (CG step sizes, attention
-pooling, OIDN's U-Net) never see them, their energy is kept exactly, and their effect ends at their own pixel.
+Extreme outliers (a pixel far above both its 8 neighbours and the layer's level: a firefly of a hundred times the
+mean or more, an overflowed sample) are taken out of the base before a denoising method runs (:func:`split_frame`,
+called by model.reconstruct for every method but the screened Poisson ones): each is replaced by the median of its
+neighbours, and its excess is added back to the method's output over a small Gaussian footprint around it
+(:func:`add_excess`). The methods' non-local parts (OIDN's U-Net, the networks' attention pooling, the CG step sizes
+of the solves) never see it, its energy is kept exactly, and its effect ends at the footprint's edge
+(OUTLIER_SPREAD_RADIUS pixels along each axis).
 """
 
 from __future__ import annotations
@@ -30,7 +34,8 @@ OUTLIER_LOCAL = 8.0
 OUTLIER_LEVEL = 64.0
 #: An outlier's excess (its value above the median of its 8 neighbours, per channel) is spread over a Gaussian
 #: footprint of this σ in pixels, truncated at OUTLIER_SPREAD_RADIUS and renormalised at the frame's border, so its
-#: energy is kept exactly and its effect ends OUTLIER_SPREAD_RADIUS pixels from it.
+#: energy is kept exactly and its effect ends OUTLIER_SPREAD_RADIUS pixels from it along each axis (the footprint
+#: is a square: at most 11·√2 ≈ 15.6 px away).
 OUTLIER_SPREAD_SIGMA = 3.5
 OUTLIER_SPREAD_RADIUS = 11
 
