@@ -1,4 +1,4 @@
-"""The ``fused`` method (issue 14): a per-pixel learned blend of gradient-domain and denoised candidates.
+"""The ``fused`` method: a per-pixel learned blend of gradient-domain and denoised candidates.
 
 The paper's dual-branch CBAM network (model/blend_net.py: the same encoders, bottleneck, decoder and attention
 as model/network.py) sees K *candidate* reconstructions of a layer side by side and predicts, per pixel, softmax
@@ -11,24 +11,22 @@ weights over them; the output is the convex blend ``Σ_k w_k · candidate_k``. T
 * ``refine-fast`` -- the same problem solved cheaply (3 passes of 1 V-cycle, a quarter of the time): too rough
   alone, but a candidate the network can weigh;
 * ``l1``          -- the truncated robust Poisson solve of base + gradients the ``network`` method refines
-  (model.preprocess.poisson_prior); kept for studies, not used by the shipped models (it lost badly);
+  (model.preprocess.poisson_prior); not used by the shipped models;
 * ``refine-direct`` -- the ``oidn-l1`` method's refinement with its trust rule (a FIXED_KINDS entry, below), at
-  fused's CG budget: the direct layer's served image; a candidate for studies of a learned direct layer (docs/
-  network.md "Closing the teapot gap"; none shipped). Its settings are read from model/refine.py at call time,
+  fused's CG budget: the direct layer's served image. Its settings are read from model/refine.py at call time,
   so a model trained on it must be retrained whenever the trust rule or the refinement changes.
 
-Per layer (chosen on held-out seeds, docs/network.md "The fused method"): the indirect layer is the learned blend
+Per layer (chosen on held-out seeds): the indirect layer is the learned blend
 of {oidn, refine-fast} (models/fused/indirect.onnx); the direct layer, where no learned blend beat it, is the
 ``oidn-l1`` method's refinement alone at a cheaper CG budget (``FIXED_LAYERS``, ``DIRECT_CG``), so the blend network
 runs once per frame. Where that direct layer is clean as a whole (the trust rule's frame weight), it is averaged with
 a second, independent gradient-domain estimate, the ``network`` method's image (the paper's network on its
-truncated-L1 prior), wherever the two agree (``CLEAN_AVERAGE``, design 25 of docs/network.md); a noisy layer runs
-no network there.
+truncated-L1 prior), wherever the two agree (``CLEAN_AVERAGE``); a noisy layer runs no network there.
 
 A convex blend cannot leave the hull of its candidates: it never invents energy, never rings below 0 (every
 candidate is >= 0), and an untrained model (zero head) returns their plain average. The weights are computed
-from the layer at a normalised exposure (base, gradients and candidates multiplied by s with mean(s·OIDN) =
-FUSED_MEAN, model.preprocess.prior_exposure), and the blend is taken of the frame's own candidates, so the
+from the layer at a normalised exposure (base, gradients and candidates multiplied by s with the robust level of
+s·OIDN at FUSED_MEAN, model.preprocess.prior_exposure), and the blend is taken of the frame's own candidates, so the
 method is the same for a frame at 1e-8 or 1e9 radiance and HDR values are never clipped.
 
 This module is numpy + ONNX Runtime only (inference); the same ``layer_candidates``/``blend_inputs`` build the
@@ -65,9 +63,9 @@ from gradsep.model.preprocess import (
 CANDIDATES: tuple[str, ...] = ("oidn", "refine", "refine-fast", "l1", "refine-direct")
 #: The refinement solves of the ``refine`` / ``refine-fast`` candidates: (IRLS passes, CG steps per pass), both
 #: multigrid-preconditioned (model.poisson.solve_l1), α = REFINE_ALPHA. Pinned here, not read from model/refine.py,
-#: because a model is trained on the numbers one solve gives: ``refine`` is the ``oidn-l1`` method's solve as chosen
-#: on the held-out study (8 passes of 2 V-cycles, 0.9 s per 1280x720 layer), ``refine-fast`` the cheap one
-#: (3 passes of 1 V-cycle, 0.21 s; alone 3-7 % worse than ``refine`` on that study, here the network weighs it).
+#: because a model is trained on the numbers one solve gives: ``refine`` is 8 passes of 2 V-cycles (0.9 s per
+#: 1280x720 layer), ``refine-fast`` the cheap one (3 passes of 1 V-cycle, 0.21 s; worse alone, a candidate the
+#: network weighs).
 REFINE_SOLVES: dict[str, tuple[int, int]] = {"refine": (8, 2), "refine-fast": (3, 1)}
 REFINE_PRECONDITIONER = "mg"
 REFINE_ALPHA = 1.0
@@ -79,33 +77,24 @@ OIDN_SETTING = "raw-fast"
 #: either, so unlike the candidates they need not be pinned to a training run.
 FIXED_KINDS: tuple[str, ...] = ("oidn-l1", "refine-direct")
 #: The CG budget of ``refine-direct``: each IRLS pass stops at a relative residual of 0.1 or after 4 V-cycle-
-#: preconditioned steps, where the oidn-l1 method allowed 8 (model.refine.REFINE_CG_TOLERANCE / REFINE_MAX_CG_STEPS;
-#: its later passes all hit that cap on real renders; since this study the oidn-l1 method uses the same cap, so the
-#: two kinds solve alike until one of them is re-budgeted). Chosen on the held-out frames (seeds 81001-81008,
-#: benchmarks/study_fused_speed.py, docs/network.md "fused's speed"), with the trust rule: the fused frame's RelMSE
-#: 1.000x the full solve's (geometric mean), worst frame 1.008x, at 28 instead of 51 CG steps on the 1280x720
-#: render (direct refinement about half the CPU). Looser budgets lost a frame by 3-27 % (tolerance 0.2 or a
-#: 3-step cap; procedural:81004 at 64 spp), and fewer IRLS passes far more (5 passes: 1.10x, worst 2.7x).
+#: preconditioned steps (the same as model.refine.REFINE_CG_TOLERANCE / REFINE_MAX_CG_STEPS today, kept apart so
+#: either can be re-budgeted alone). Looser budgets lost frames on held-out renders.
 DIRECT_CG: tuple[float, int] = (0.1, 4)
 #: Layers the method serves with one candidate alone, no network, unless the models folder has a model for them.
-#: The direct layer is OIDN refined by its gradients (the oidn-l1 method's refinement at DIRECT_CG): on the
-#: held-out study (docs/network.md "The fused method") every learned blend for it was worse than that candidate
-#: alone (blend of oidn + refine: 1.01x refine's RelMSE on average, worst 1.36x; of oidn + refine-fast: 1.18x,
-#: worst 3.9x), while the indirect layer's blend of oidn + refine-fast earns 5 % (no fixed weighting of the two
-#: does: a plain 25/75 average is 2.7x worse at worst). So the network runs where it pays, and once per frame.
+#: The direct layer is OIDN refined by its gradients (the oidn-l1 method's refinement at DIRECT_CG): on held-out
+#: frames every learned blend for it was worse than that candidate alone, while the indirect layer's blend of
+#: oidn + refine-fast beats any fixed weighting of the two. So the network runs where it pays, and once per frame.
 FIXED_LAYERS: dict[str, str] = {"direct": "refine-direct"}
-#: The clean-layer average (issue 14, session 20, design 25 of docs/network.md): on a direct layer the trust rule
+#: The clean-layer average: on a direct layer the trust rule
 #: calls clean as a whole (model.refine.clean_weight w_f > 0), the served refinement is averaged with a second,
 #: independent gradient-domain estimate, the ``network`` method's image (the paper's network on its truncated-L1
 #: prior, models/direct.onnx), wherever the two agree: out = refined + CLEAN_AVERAGE_WEIGHT·w_f·g(ρ)·(net −
 #: refined), ρ per pixel = mean_rgb (a − b)² / (mean_rgb ((a + b)/2)² + CLEAN_AVERAGE_EPSILON) of the two at the
-#: refinement's mean-1 exposure, g = 1 at ρ ≤ CLEAN_AVERAGE[0], 0 at ρ ≥ CLEAN_AVERAGE[1], log-linear between.
+#: refinement's normalised exposure, g = 1 at ρ ≤ CLEAN_AVERAGE[0], 0 at ρ ≥ CLEAN_AVERAGE[1], log-linear between.
 #: Two estimates with partly independent errors average to a lower one where both are right; where they disagree
-#: by more than noise one of them is biased (on some rooms the network's image is 10-40x worse) and the refinement
-#: stays. Chosen on held-out procedural seeds by a rule written before validation (design sets room 81001-81008,
-#: studio 86001-86008; validation 84001-84004, studio 88001-88008; veto sets 85001-85004, studio 87001-87004,
-#: 89001-89004 and the fresh room 92001-92006 / studio 93001-93008), never on the evaluation's scenes. A noisy layer
-#: (w_f = 0, most rooms) runs no network: its image is the refinement alone, bit for bit. None: no average.
+#: by more than noise one of them is biased and the refinement stays. Chosen on held-out procedural frames, never on
+#: the evaluation's scenes. A noisy layer (w_f = 0) runs no network: its image is the refinement alone, bit for bit.
+#: None: no average.
 CLEAN_AVERAGE: tuple[float, float] | None = (0.01, 0.1)
 CLEAN_AVERAGE_WEIGHT = 0.5
 CLEAN_AVERAGE_EPSILON = 0.01
@@ -132,13 +121,13 @@ def data_channels(k: int) -> int:
 def refine(kind: str, oidn: np.ndarray, scaled: Layer) -> np.ndarray:
     """OIDN's image refined by the layer's gradients with the ``kind`` solve of REFINE_SOLVES: the oidn-l1
     refinement (model.refine.refine_layer: the L1 screened Poisson problem with OIDN's image as the data term,
-    solved at mean 1) with every setting of the solve pinned here. (H, W, 3) float32, finite."""
+    solved at robust level 1) with every setting of the solve pinned here. (H, W, 3) float32, finite."""
     from gradsep.model.refine import refine_layer
 
     passes, cg_steps = REFINE_SOLVES[kind]
     # "direct": refine this layer whatever its name
     return refine_layer("direct", oidn, scaled, REFINE_ALPHA, preconditioner=REFINE_PRECONDITIONER,
-                        cg_steps=cg_steps, passes=passes, warm_start=False)
+                        cg_steps=cg_steps, passes=passes)
 
 
 def refine_direct(kind: str, oidn: np.ndarray, scaled: Layer, report: dict[str, float] | None = None,
@@ -170,7 +159,7 @@ def layer_candidates(layer: Layer, aux: Any, kinds: tuple[str, ...] = CANDIDATES
         raise BlendModelError(f"unknown candidate kind(s) {unknown}; expected some of {', '.join(CANDIDATES)}")
     if denoised is None:
         den = denoiser or shared_denoiser(OIDN_SETTING)
-        denoised = den.denoise(layer.base, aux)  # scale-invariant: OIDN's input is normalised to mean 1
+        denoised = den.denoise(layer.base, aux)  # scale-invariant: OIDN's input is normalised to robust level 1
     scale = prior_exposure(denoised)
     scaled = scaled_layer(layer, scale)
     oidn = scaled_image(denoised, scale)
@@ -225,7 +214,7 @@ def blend(weights: np.ndarray, candidates: list[np.ndarray], scale: float) -> np
 def disagreement(refined: np.ndarray, second: np.ndarray, scale: float) -> np.ndarray:
     """CLEAN_AVERAGE's ρ per pixel, (H, W) float64: the two images' relative squared difference at exposure
     ``scale``, mean_rgb (a − b)² / (mean_rgb ((a + b)/2)² + CLEAN_AVERAGE_EPSILON). Finite inputs. The ε (at the
-    mean-1 exposure, as RelMSE's) keeps ρ finite where both are black (ρ = 0: they agree) and lets two dark pixels
+    level-1 exposure, as RelMSE's) keeps ρ finite where both are black (ρ = 0: they agree) and lets two dark pixels
     count as agreeing unless they differ by more than it."""
     a = np.asarray(refined, np.float64) * scale
     b = np.asarray(second, np.float64) * scale
@@ -246,7 +235,7 @@ def agreement_weights(refined: np.ndarray, second: np.ndarray, scale: float,
 def clean_average(refined: np.ndarray, second: np.ndarray, clean: float, scale: float) -> np.ndarray:
     """CLEAN_AVERAGE's image at the frame's exposure: ``refined`` + CLEAN_AVERAGE_WEIGHT·``clean``·g(ρ)·(``second``
     − ``refined``), (H, W, 3) float32, finite, ≥ 0 (a convex mix of two non-negative images, weights ≤ 1/2).
-    ``clean``: the layer's w_f; ``scale``: the refinement's mean-1 exposure (model.oidn.input_scale of OIDN's
+    ``clean``: the layer's w_f; ``scale``: the refinement's level-1 exposure (model.oidn.input_scale of OIDN's
     image). ``refined`` itself where CLEAN_AVERAGE is None, w_f is 0 or ``second`` is not finite."""
     if CLEAN_AVERAGE is None or not clean > 0.0 or not np.all(np.isfinite(second)):
         return refined
@@ -313,7 +302,7 @@ def load_model(path: str | os.PathLike[str], name: str) -> BlendModel:
     OpenVINO in bf16 where the CPU has native bf16, else ORT's CPU provider in fp32; ``GRADSEP_ONNX_PROVIDER``
     overrides), falling back to the CPU provider should the accelerated one fail; BlendModelError when unusable.
     The weights only choose among candidates (the blend itself is float64 numpy), so bf16 moves them by about
-    1e-3 at most (benchmarks/study_fused.py time prints the parity)."""
+    1e-3 at most (measured)."""
     from gradsep.model.onnx_session import SessionSettings, graph_session, open_session
 
     path = Path(path)

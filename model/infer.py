@@ -59,6 +59,7 @@ from gradsep.model.preprocess import (
     unlit_pixels,
     with_prior,
 )
+from gradsep.model.robust import robust_level
 
 if TYPE_CHECKING:
     import onnxruntime
@@ -291,20 +292,24 @@ class NetworkReconstructor:
         ``aux``: the frame's OIDN-prefiltered features (model.oidn.Denoiser.prefilter), for models refining an
         OIDN prior; computed here when None, so pass it to share it between a frame's layers.
 
-        For a Poisson-prior model, a layer whose exposure lies outside the range the models were trained on runs
-        scaled by the power of two ``exposure_scale`` picks and is scaled back (exact in floating point), so a
-        sun at 1e9 or a dim frame at 1e-8 keeps its energy instead of clipping at RADIANCE_MAX or vanishing under
-        the network's offsets; ordinary frames (scale 1) are untouched. (OIDN-prior models normalise their
-        exposure themselves, below.)
+        A Poisson-prior model always runs on the layer scaled to the exposure it was trained at (its robust level
+        at NETWORK_LEVEL, :func:`exposure_scale`) and its output is scaled back, so the method is the same for a
+        frame at 1e-8 or 1e9 radiance and no frame-level decision depends on a single pixel. (OIDN-prior models
+        normalise their exposure themselves, below.)
         """
         if name not in self.models:
             raise KeyError(f"no model for layer {name!r}; loaded: {', '.join(sorted(self.models)) or 'none'}")
-        height, width = _check_inputs(layer, features)
+        _check_inputs(layer, features)
         if self.models[name].prior != "oidn":
             exposure = exposure_scale(layer)
-            if exposure != 1.0:  # the scaled layer's own scale is 1 (tested), so this recurses exactly once
-                scaled = self.reconstruct_layer(name, scaled_layer(layer, 1.0 / exposure), features, aux)
-                return scaled_image(scaled, exposure)
+            if exposure != 1.0:
+                return scaled_image(self._reconstruct(name, scaled_layer(layer, 1.0 / exposure), features, aux),
+                                    exposure)
+        return self._reconstruct(name, layer, features, aux)
+
+    def _reconstruct(self, name: str, layer: Layer, features: Features | None, aux: CleanAux | None) -> np.ndarray:
+        """:meth:`reconstruct_layer` of a layer already at the model's exposure."""
+        height, width = np.shape(layer.base)[:2]
         assert features is not None  # _check_inputs raised otherwise
         model = self.models[name]
         unlit = unlit_pixels(layer)
@@ -379,32 +384,20 @@ class NetworkReconstructor:
         return output_radiance(crop_to(encoded, h, w), fallback=window_prior)
 
 
-#: The exposure range the shipped models were trained on, as the 99.9th percentile of a layer's base radiance:
-#: the procedural training frames span 0.10-309 (direct) and 0.15-6.5 (indirect), the cbox example 1.2-18.
-#: Inside [EXPOSURE_MIN, EXPOSURE_MAX] a layer runs as it is; outside, it is scaled so the level lands near 1.
-EXPOSURE_MIN = 2.0**-8
-EXPOSURE_MAX = 2.0**11
-
-
-def exposure_level(layer: Layer) -> float:
-    """The 99.9th percentile of the layer's finite base values on every 3rd row and column (a robust peak:
-    fireflies do not move it; the subsample keeps it at ~1 ms for 720p); its maximum when that is 0."""
-    sample = np.nan_to_num(np.asarray(layer.base, np.float32)[::3, ::3].ravel(), nan=0.0, posinf=0.0, neginf=0.0)
-    if sample.size == 0:
-        return 0.0
-    k = int(0.999 * (sample.size - 1))
-    level = float(np.partition(sample, k)[k])
-    return level if level > 0 else float(sample.max())
+#: The exposure a Poisson-prior model runs at: each layer is scaled so that its robust level (model.robust.
+#: robust_level, a winsorised mean one pixel cannot move) is this value, and the output is scaled back. The shipped
+#: models keep a layer's energy best around it (tests/model/test_stability.py, every decade 1e-8 .. 1e9).
+NETWORK_LEVEL = 0.5
 
 
 def exposure_scale(layer: Layer) -> float:
-    """The power of two to divide the layer by before inference (and multiply the output by): 1.0 inside the
-    trained exposure range, else 2^round(log2(level)), which brings the level into [0.7, 1.4]. A power of two,
-    so scaling is exact and ordinary frames give bit-identical results. 1.0 for a black layer."""
-    level = exposure_level(layer)
-    if level <= 0.0 or EXPOSURE_MIN <= level <= EXPOSURE_MAX:
+    """The factor to divide the layer by before inference (and multiply the output by): robust_level(base) /
+    NETWORK_LEVEL; 1.0 for a black layer. Continuous in every pixel, so a firefly moves it by at most one order
+    statistic's step over the pixel count."""
+    level = robust_level(layer.base)
+    if not (level > 0.0 and np.isfinite(level)):
         return 1.0
-    return float(2.0 ** round(np.log2(level)))
+    return level / NETWORK_LEVEL
 
 
 def _check_inputs(layer: Layer, features: Features | None) -> tuple[int, int]:

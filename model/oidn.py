@@ -15,9 +15,10 @@ target, and selectable with ``$GRADSEP_OIDN_SETTING``. The auxiliary images are 
 reused for every layer.
 
 Numerics: inputs are sanitised (NaN → 0, ±Inf → the largest finite float32 / 0, radiance clamped ≥ 0), and the
-colour filter is given an explicit ``inputScale`` (the reciprocal of the layer's mean, a power of two) rather
-than OIDN's autoexposure, so a frame scaled by 1e-8 or 1e9 is denoised exactly as the same frame at unit
-exposure (up to float rounding): the result scales with the input. A layer with no light is returned black
+colour filter is given an explicit ``inputScale``, the reciprocal of the layer's robust level (model/robust.py: a
+winsorised mean, where OIDN's own autoexposure takes a log-average that one firefly moves), so a frame scaled by
+1e-8 or 1e9 is denoised as the same frame at unit exposure (up to float rounding), the result scales with the
+input, and no single pixel sets the exposure of the rest. A layer with no light is returned black
 without running the filter. This module needs ``pyoidn`` (the ``evaluate`` and ``serve`` extras); importing it
 does not, so the service starts without it and reports the method as unavailable.
 """
@@ -33,6 +34,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from gradsep.model.robust import robust_level
+
 if TYPE_CHECKING:
     from gradsep.model.frame import Features
 
@@ -40,8 +43,8 @@ if TYPE_CHECKING:
 #: frames; docs/network.md, "The oidn and fused methods").
 AUX_QUALITY = "fast"
 _F32_MAX = float(np.finfo(np.float32).max)
-#: The exposure the colour filter sees: the layer scaled so its mean radiance is about 1 (OIDN's HDR models are
-#: trained around that), by a power of two so the scaling itself is exact.
+#: The exposure the colour filter sees: the layer scaled so its robust level is 1 (OIDN's HDR models are trained
+#: around that).
 _TARGET_MEAN = 1.0
 #: OIDN's U-Net loses energy on images a few pixels across (a constant 1×1 image comes back at 23 %, 2×2 at
 #: 92 %, measured): smaller images are mirror-padded to this many pixels per side and cropped back, and their
@@ -128,11 +131,12 @@ def _finite(x: np.ndarray, lo: float, hi: float) -> np.ndarray:
 
 
 def input_scale(image: np.ndarray) -> float:
-    """s such that mean(image * s) is 1 (exactly the reciprocal, so scaled frames denoise alike); 1.0 if black."""
-    mean = float(np.mean(image, dtype=np.float64)) if image.size else 0.0
-    if not (math.isfinite(mean) and mean > 0.0):
+    """s such that the robust level of ``image * s`` (model.robust.robust_level, a winsorised mean one pixel cannot
+    move) is 1: exactly the reciprocal, so scaled frames denoise alike; 1.0 if black."""
+    level = robust_level(image)
+    if not (math.isfinite(level) and level > 0.0):
         return 1.0
-    return _TARGET_MEAN / mean
+    return _TARGET_MEAN / level
 
 
 class Denoiser:

@@ -519,11 +519,9 @@ def _pcg(
 
 PRECONDITIONERS = ("dct", "mg", "jacobi", "none")
 #: IRLS passes of the ``l1`` method (pass 0, the exact L2 start, included) and DCT-PCG steps per pass. The
-#: reference solver's preset runs 20 passes of 50 plain CG steps. 10 x 4 (issue 15, round 1) became 8 x 2 in
-#: round 3: 0.47x the time of a 720p layer at the same mean RelMSE on 64 held-out rendered layers (geometric-mean
-#: ratio 0.914; 35 layers >10 % better, 9 >10 % worse, worst 2.3x on high-contrast direct layers) and the same
-#: RelMSE on the synthetic benchmark frame (docs/poisson.md "Round 3", benchmarks/l1_budgets.py --study). The
-#: truncated CG regularises: more steps or passes are not uniformly better on rendered frames.
+#: reference solver's preset runs 20 passes of 50 plain CG steps; this budget reached the same mean RelMSE on
+#: held-out rendered layers at a fraction of the time. The truncated CG regularises: more steps or passes are not
+#: uniformly better on rendered frames.
 L1_PASSES = 8
 L1_CG_STEPS = 2
 # IRLS iterates in float32 (half the memory traffic, 3-4x faster DCTs) unless α is small: the constant mode's

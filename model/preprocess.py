@@ -34,6 +34,7 @@ import numpy as np
 
 from gradsep.model.poisson import solve_l1
 from gradsep.model.policy import DEFAULT_ALPHA
+from gradsep.model.robust import robust_level
 
 if TYPE_CHECKING:  # only for hints; importing model.frame at run time is fine but not needed
     from gradsep.model.frame import Features, Layer
@@ -46,18 +47,12 @@ RADIANCE_MAX = 65504.0
 #: Depth clamp before per-frame normalisation (GradNet's 1e5): a far-away sky hit must not squash the rest.
 DEPTH_MAX = 1.0e5
 #: The Poisson prior the network refines: α as the `l1`/`l2` methods, and a truncated IRLS (5 passes of at most
-#: 2 CG steps; the `l1` method ran 10 × 4 when the models were trained, 8 × 2 since issue 15's round 3), about 1/4
-#: of that cost. On held-out procedural frames the
-#: truncated solve scored the same or lower RelMSE than the converged one (docs/network.md).
+#: 2 CG steps), which scored the same or lower RelMSE than the converged solve on held-out procedural frames.
 PRIOR_ALPHA = DEFAULT_ALPHA
 PRIOR_IRLS_PASSES = 5
 PRIOR_CG_STEPS = 2
-#: Inference uses exactly this budget for ``l1`` models, as they were trained (issue 15 looked for a cheaper one to
-#: serve faster: benchmarks/study_prior.py, the network's output on 32 held-out frames (procedural 81001-81008,
-#: 1-64 spp) against 1024-spp references. Rule: geometric-mean RelMSE within 1 % of this budget's and no frame
-#: > 3 % worse. Every cheaper budget failed it: 4x2 worst frame +23 %, 3x2 +76 %, 5x1 +106 %, 3x2 multigrid
-#: +46 % (geo mean -7 %), L2 only +1114 %; a looser CG tolerance (1e-1) changes nothing because 2 steps never reach it.)
-#: The rest of the prior's solve, pinned (model.poisson.solve_l1's defaults when the models were trained).
+#: Inference uses exactly this budget for ``l1`` models, as they were trained (every cheaper budget served a worse
+#: image on held-out frames). The rest of the prior's solve is pinned to what the models were trained with.
 PRIOR_REG_INIT = 0.05
 PRIOR_REG_DECAY = 0.5
 PRIOR_CG_TOLERANCE = 1e-3
@@ -98,13 +93,11 @@ PRIOR_CHANNELS = slice(3, 6)
 #: * ``l1`` — the truncated robust Poisson solve above (PRIOR_IRLS_PASSES × PRIOR_CG_STEPS, DCT-preconditioned): the
 #:   shipped ``network`` models (the paper's method as published here);
 #: * ``l2`` — the exact screened-Poisson (L2) solve, DCT, the IRLS's pass 0 alone in the working precision: ~1/5 of
-#:   the ``l1`` prior's cost (issue 15: the prior is the bulk of a ``network`` layer's time). Models retrained on it
-#:   (663 steps) were rejected on held-out frames: geo-mean RelMSE 1.20x today's, worst frame 10.8x, where the L2
-#:   solve smears gradient fireflies (docs/network.md, "Retraining on a cheaper prior"); the shipped models stay l1;
+#:   the ``l1`` prior's cost, but the L2 solve smears gradient fireflies into the prior;
 #: * ``l2-clamp`` — the ``l2`` solve on outlier-clamped data (:func:`clamp_outliers`: a base value above
 #:   OUTLIER_CLAMP × the largest of its 8 neighbours, and a gradient above OUTLIER_CLAMP × the largest clamped base
 #:   value around its two pixels, are clamped there): the L2 prior's cost (+~15 ms per 720p layer) without smearing
-#:   isolated fireflies (issue 15, session 12);
+#:   isolated fireflies;
 #: * ``l1-mg3x2`` — the robust solve truncated to 3 passes × 2 CG steps with the multigrid preconditioner;
 #: * ``oidn`` — Intel Open Image Denoise run on the layer's base with the frame's prefiltered albedo and normal
 #:   (model/oidn.py), the ``fused`` method.
@@ -124,9 +117,10 @@ PRIOR_KINDS: tuple[str, ...] = (*POISSON_PRIORS, "oidn")
 #: The kind a model without ``gradsep.prior`` metadata refines (every model exported before kinds existed).
 DEFAULT_PRIOR = "l1"
 #: ``fused`` models see every layer at a normalised exposure: base, gradients and prior multiplied by s so that the
-#: prior's mean is FUSED_MEAN (capped so the prior's peak stays below RADIANCE_MAX / FUSED_PEAK_MARGIN), and the
-#: output divided by s. The model is then the same for a frame at 1e-8 or 1e9 radiance, and HDR values are never
-#: clipped by the transfer's range. Stored as ONNX metadata ``gradsep.exposure`` = ``prior-mean``.
+#: prior's robust level (model.robust.robust_level) is FUSED_MEAN (capped so the prior's peak stays below RADIANCE_MAX
+#: / FUSED_PEAK_MARGIN), and the output divided by s. The model is then the same for a frame at 1e-8 or 1e9 radiance,
+#: and HDR values are never clipped by the transfer's range. Stored as ONNX metadata ``gradsep.exposure`` = ``prior-
+#: mean``.
 FUSED_MEAN = 0.5
 FUSED_PEAK_MARGIN = 16.0
 #: Bumped whenever the numbers the network sees change; stored in checkpoints, caches and ONNX metadata.
@@ -330,9 +324,7 @@ def clamp_outliers(base: np.ndarray, dx: np.ndarray, dy: np.ndarray,
 
 def _solve_prior(base: np.ndarray, dx: np.ndarray, dy: np.ndarray, kind: str = DEFAULT_PRIOR) -> np.ndarray:
     # every solver setting named: the models were trained on exactly this solve, whatever the l1 method's defaults
-    # become. ``l1`` reads the PRIOR_* constants at call time (benchmarks/study_prior.py overrides them).
-    passes, steps, preconditioner = ((PRIOR_IRLS_PASSES, PRIOR_CG_STEPS, PRIOR_PRECONDITIONER) if kind == "l1"
-                                     else POISSON_PRIORS[kind])
+    passes, steps, preconditioner = POISSON_PRIORS[kind]
     if kind in CLAMPED_PRIORS:
         base, dx, dy = clamp_outliers(base, dx, dy)
     # one pass = solve_l1's pass 0: the exact L2 solve, in the working precision (float32 for α = PRIOR_ALPHA)
@@ -343,17 +335,18 @@ def _solve_prior(base: np.ndarray, dx: np.ndarray, dy: np.ndarray, kind: str = D
 
 
 def prior_exposure(prior: np.ndarray) -> float:
-    """The ``fused`` models' exposure s (see FUSED_MEAN): mean(prior·s) = FUSED_MEAN, 1.0 for a black prior.
+    """The ``fused`` models' exposure s (see FUSED_MEAN): robust_level(prior·s) = FUSED_MEAN (model.robust: a
+    winsorised mean one pixel cannot move), 1.0 for a black prior.
 
     Float64 statistics: a 1e9-radiance frame's sum overflows nothing, a 1e-8 one underflows nothing.
     """
     if prior.size == 0:
         return 1.0
-    mean = float(np.mean(prior, dtype=np.float64))
+    level = robust_level(prior)  # one pixel cannot move it; the peak cap binds only on frames of extreme range
     peak = float(np.max(prior))
-    if not (math.isfinite(mean) and mean > 0.0 and math.isfinite(peak)):
+    if not (math.isfinite(level) and level > 0.0 and math.isfinite(peak)):
         return 1.0
-    return min(FUSED_MEAN / mean, RADIANCE_MAX / FUSED_PEAK_MARGIN / peak)
+    return min(FUSED_MEAN / level, RADIANCE_MAX / FUSED_PEAK_MARGIN / peak)
 
 
 _F32_MAX = float(np.finfo(np.float32).max)

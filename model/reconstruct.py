@@ -51,6 +51,7 @@ from gradsep.model.policy import (
     POISSON_METHODS,
     models_dir_from,
 )
+from gradsep.model.robust import add_excess, outlier_count, split_frame
 
 __all__ = [
     "METHODS",
@@ -328,6 +329,8 @@ def reconstruct(frame: Frame, method: str | None = None, alpha: float = DEFAULT_
     method = method or choose_method(frame, network, fused)
     models = fused if method == "fused" else network if method == "network" else None
     _check_method(frame, method, alpha, models)
+    # the denoising methods never see a layer's extreme outliers: their excess is spread back near them below
+    frame, excess = (frame, {}) if method in POISSON_METHODS else split_frame(frame)
     ctx = _Context(method, alpha, models, frame.features)
     shape = (frame.height, frame.width, 3)
     layers: dict[str, np.ndarray] = {}
@@ -347,6 +350,10 @@ def reconstruct(frame: Frame, method: str | None = None, alpha: float = DEFAULT_
         timings["features"] = time.perf_counter() - start
     for name, (image, seconds) in _run_layers(frame, ctx).items():
         timings[name] = seconds
+        if name in excess:
+            image = add_excess(image, excess[name])
+            warnings.append(f"layer {name}: {outlier_count(excess[name])} outlier pixel(s) kept out of the {method} "
+                            "denoiser; their energy was spread over a few pixels around each")
         layers[name] = _sanitise(name, image, shape, warnings)
     for name in frame.layers:  # summed in the frame's order whatever order the layers finished in
         total += layers[name]

@@ -21,6 +21,7 @@ from gradsep.model.infer import (  # noqa: E402
     NetworkReconstructor,
     TileSettings,
     _ramp,
+    exposure_scale,
     plan_tiles,
 )
 from gradsep.model.network import DualBranchNet, NetworkConfig  # noqa: E402
@@ -31,6 +32,7 @@ from gradsep.model.preprocess import (  # noqa: E402
     network_inputs,
     output_radiance,
     pad_to_alignment,
+    scaled_layer,
     unlit_pixels,
 )
 from gradsep.training.export import model_metadata, save_onnx, to_onnx  # noqa: E402
@@ -103,7 +105,8 @@ def test_matches_the_pytorch_pipeline(models: tuple[Path, dict], h: int, w: int)
         out = rec.reconstruct_layer(name, layer, features)
         assert out.shape == (h, w, 3) and out.dtype == np.float32
         assert np.all(np.isfinite(out)) and out.min() >= 0
-        ref = _torch_reference(nets[name], layer, features)
+        exposure = exposure_scale(layer)  # the network runs at its trained exposure and is scaled back
+        ref = exposure * _torch_reference(nets[name], scaled_layer(layer, 1.0 / exposure), features)
         assert np.abs(out - ref).max() <= 1e-4 * max(float(np.abs(ref).max()), 1e-6)
 
 
@@ -120,7 +123,8 @@ def test_unlit_pixels_stay_black(tmp_path: Path) -> None:
         arr[:, 12:] = 0.0                        # right half: nothing measured
     layer.dx[:, 11] = 0.0                        # the term linking column 11 to column 12
     out = NetworkReconstructor.load(tmp_path).reconstruct_layer("direct", layer, features)
-    ref = _torch_reference(net, layer, features)
+    exposure = exposure_scale(layer)
+    ref = exposure * _torch_reference(net, scaled_layer(layer, 1.0 / exposure), features)
     assert np.all(out[:, 12:] == 0) and ref[:, 12:].min() > 0          # the raw network output is not black
     assert np.abs(out[:, :12] - ref[:, :12]).max() <= 1e-4 * float(ref.max())
     mask = unlit_pixels(layer)
@@ -256,7 +260,7 @@ def test_single_window_path_is_the_windowed_pipeline_bit_for_bit(models: tuple[P
     layer.base[0, 0] = np.nan  # hostile values go through the same sanitising in both paths
     layer.dx[-1, 0] = -np.inf
     for name in ("direct", "indirect", "direct"):  # the second and third calls reuse the cached feature planes
-        fast = rec.reconstruct_layer(name, layer, features)
+        fast = rec._reconstruct(name, layer, features, None)  # at the layer's own exposure, as the windows below
         model = rec.models[name]
         slow = rec._run_window(model, layer, features, DepthRange.of(features.depth), poisson_prior(layer),
                                (0, h, 0, w))
@@ -266,4 +270,4 @@ def test_single_window_path_is_the_windowed_pipeline_bit_for_bit(models: tuple[P
     expected = rec._run_window(rec.models["direct"], layer, other, DepthRange.of(other.depth), poisson_prior(layer),
                                (0, h, 0, w))
     expected[unlit_pixels(layer)] = 0.0
-    assert np.array_equal(rec.reconstruct_layer("direct", layer, other), expected)
+    assert np.array_equal(rec._reconstruct("direct", layer, other, None), expected)

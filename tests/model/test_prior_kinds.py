@@ -15,7 +15,7 @@ pytest.importorskip("onnx")
 
 import model.preprocess as preprocess  # noqa: E402
 from gradsep.model.frame import Features, Layer  # noqa: E402
-from gradsep.model.infer import ModelError, NetworkReconstructor  # noqa: E402
+from gradsep.model.infer import ModelError, NetworkReconstructor, exposure_scale  # noqa: E402
 from gradsep.model.network import DualBranchNet, NetworkConfig  # noqa: E402
 from gradsep.model.reconstruct import load_network  # noqa: E402
 from gradsep.training.export import ExportError, model_metadata, prior_metadata, save_onnx, to_onnx  # noqa: E402
@@ -167,7 +167,8 @@ def test_kind_round_trips_from_export_metadata_to_the_served_prior(graph, kind: 
         assert json.loads(entry["metadata"]["gradsep.preprocessing"])["prior"] == preprocess.describe_prior(kind)
         assert ("gradsep.prior" in entry["metadata"]) == (kind != "l1")
     layer, features = _frame()
-    priors = {k: preprocess.poisson_prior(layer, kind=k) for k in POISSON}
+    s = exposure_scale(layer)  # the network runs at its trained exposure (the L1 priors' regulariser is absolute)
+    priors = {k: s * preprocess.poisson_prior(preprocess.scaled_layer(layer, 1.0 / s), kind=k) for k in POISSON}
     out = rec.reconstruct_layer("direct", layer, features)
     # untrained: the output is C⁻¹(C(prior)) of the model's own kind (up to float32 rounding of the transfer) ...
     scale = float(priors[kind].max())

@@ -1,0 +1,177 @@
+"""Frame statistics one pixel cannot move, and the split of a layer's extreme outliers.
+
+Every denoising method needs a few numbers about the whole layer (the exposure OIDN and the networks see, the
+level the solvers work at, the trust rule's frame weight). Taken as a plain mean, a sum or a maximum, one firefly
+moves them, and with them every pixel of the output. The statistics here are *robust*: :func:`robust_level` is a
+winsorised mean and :func:`winsorised_sum` a winsorised sum, so a single pixel, whatever its value, counts as the
+99.9th percentile at most: it moves the level by at most that percentile over the pixel count.
+
+Extreme outliers (a pixel far above both its 8 neighbours and the layer's level: a firefly of a hundred times the
+mean or more, an overflowed sample) are taken out of the base before a denoising method runs (:func:`split_frame`,
+called by model.reconstruct for every method but the screened Poisson ones): each is replaced by the median of its
+neighbours, and its excess is added back to the method's output over a small Gaussian footprint around it
+(:func:`add_excess`). The methods' non-local parts (OIDN's U-Net, the networks' attention pooling, the CG step sizes
+of the solves) never see it, its energy is kept exactly, and its effect ends at the footprint's edge
+(OUTLIER_SPREAD_RADIUS pixels along each axis).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from gradsep.model.frame import Frame
+
+#: The quantile at which :func:`robust_level` winsorises the per-pixel values: the top 0.1 % of the pixels count
+#: as this quantile's value, so no single pixel can move the level by more than one order statistic's step.
+WINSOR_QUANTILE = 0.999
+#: A pixel is an outlier where its luminance (channel mean) exceeds OUTLIER_LOCAL × the largest of its 8
+#: neighbours' *and* OUTLIER_LEVEL × the layer's robust level: far above Monte Carlo noise at the sample counts the
+#: methods serve, so ordinary frames have none and are denoised exactly as without the split.
+OUTLIER_LOCAL = 8.0
+OUTLIER_LEVEL = 64.0
+#: An outlier's excess (its value above the median of its 8 neighbours, per channel) is spread over a Gaussian
+#: footprint of this σ in pixels, truncated at OUTLIER_SPREAD_RADIUS and renormalised at the frame's border, so its
+#: energy is kept exactly and its effect ends OUTLIER_SPREAD_RADIUS pixels from it along each axis (the footprint
+#: is a square: at most 11·√2 ≈ 15.6 px away).
+OUTLIER_SPREAD_SIGMA = 3.5
+OUTLIER_SPREAD_RADIUS = 11
+
+
+def channel_mean(image: np.ndarray) -> np.ndarray:
+    """The per-pixel mean over the channels of (H, W, C) ``image`` (an (H, W) image as it is), a new float64 array
+    (summed channel by channel: several times faster than a float64 reduction over a short last axis)."""
+    values = np.asarray(image)
+    if values.ndim != 3:
+        return np.array(values, np.float64)
+    total = values[..., 0].astype(np.float64)
+    for c in range(1, values.shape[-1]):
+        total += values[..., c]
+    total /= values.shape[-1]
+    return total
+
+
+def robust_level(image: np.ndarray) -> float:
+    """The winsorised mean (at WINSOR_QUANTILE) of the per-pixel channel mean of ``image`` ((H, W) or (H, W, C)),
+    float64 statistics, non-finite and negative values read as 0. Scales with the image (level(s·x) = s·level(x)
+    up to rounding). 0 for an empty or black image; for an image lit in fewer pixels than the quantile leaves
+    (its winsorised mean is 0) the plain mean of those pixels' values."""
+    flat = channel_mean(image).ravel()
+    flat[~np.isfinite(flat)] = 0.0
+    np.maximum(flat, 0.0, out=flat)
+    if flat.size == 0:
+        return 0.0
+    k = int(WINSOR_QUANTILE * (flat.size - 1))
+    cap = float(np.partition(flat, k)[k])
+    level = float(np.minimum(flat, cap).mean())
+    return level if level > 0.0 else float(flat.mean())
+
+
+def winsorised_sum(values: np.ndarray) -> float:
+    """The float64 sum of ``values`` (≥ 0, finite) with each capped at their WINSOR_QUANTILE: a sum over a layer
+    that no single pixel can dominate."""
+    flat = np.asarray(values, np.float64).ravel()
+    if flat.size == 0:
+        return 0.0
+    k = int(WINSOR_QUANTILE * (flat.size - 1))
+    cap = np.partition(flat, k)[k]
+    return float(np.minimum(flat, cap).sum())
+
+
+#: The 8 neighbours of a pixel, as (row, column) offsets.
+_RING = np.array([(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if (dy, dx) != (0, 0)])
+
+
+def _neighbours(ys: np.ndarray, xs: np.ndarray, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, columns), each (n, 8): the 8 neighbours of the pixels (ys, xs), mirrored at the frame's border (the
+    pixel itself never counts among an edge or corner pixel's neighbours, except on a 1-pixel-wide axis)."""
+    def mirror(v: np.ndarray, size: int) -> np.ndarray:
+        v = np.abs(v)
+        return np.clip(np.where(v >= size, 2 * (size - 1) - v, v), 0, size - 1)
+
+    return mirror(ys[:, None] + _RING[:, 0], height), mirror(xs[:, None] + _RING[:, 1], width)
+
+
+def split_outliers(base: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """(the base with each outlier (OUTLIER_LOCAL / OUTLIER_LEVEL) replaced by the (upper) median of its 8 neighbours
+    per channel, the outliers' excess over that median: (H, W, C) float32 ≥ 0, zero elsewhere), or (``base``, None)
+    when the layer has no outlier. Finite (H, W, C) input (model.frame's policy makes it so)."""
+    image = np.asarray(base, np.float32)
+    if image.ndim != 3 or image.size == 0:
+        return base, None
+    lum = channel_mean(image)
+    ys, xs = np.nonzero(lum > OUTLIER_LEVEL * robust_level(image))
+    if ys.size == 0:
+        return base, None
+    rows, cols = _neighbours(ys, xs, *lum.shape)
+    keep = lum[ys, xs] > OUTLIER_LOCAL * lum[rows, cols].max(axis=1)
+    if not keep.any():
+        return base, None
+    ys, xs, rows, cols = ys[keep], xs[keep], rows[keep], cols[keep]
+    value = image[ys, xs]  # (n, C)
+    local = np.minimum(np.sort(image[rows, cols], axis=1)[:, _RING.shape[0] // 2], value)
+    inlier = image.copy()
+    inlier[ys, xs] = local  # set, not subtracted: value − excess would cancel catastrophically at 1e30
+    excess = np.zeros_like(image)
+    excess[ys, xs] = (value.astype(np.float64) - local).astype(np.float32)
+    return inlier, excess
+
+
+def split_frame(frame: Frame) -> tuple[Frame, dict[str, np.ndarray]]:
+    """(``frame`` with every layer's base outliers replaced (:func:`split_outliers`), each such layer's excess by
+    name); ``frame`` itself and {} when no layer has an outlier. Gradients and features are kept as they are."""
+    from dataclasses import replace
+
+    from gradsep.model.frame import Layer
+
+    layers, excess = dict(frame.layers), {}
+    for name, layer in frame.layers.items():
+        inlier, extra = split_outliers(layer.base)
+        if extra is not None:
+            layers[name], excess[name] = Layer(inlier, layer.dx, layer.dy), extra
+    if not excess:
+        return frame, {}
+    return replace(frame, layers=layers), excess
+
+
+def outlier_count(excess: np.ndarray) -> int:
+    """The number of outlier pixels an excess image carries."""
+    return int(np.count_nonzero(np.any(excess > 0, axis=-1)))
+
+
+def spread(excess: np.ndarray) -> np.ndarray:
+    """``excess`` spread over each outlier's Gaussian footprint (OUTLIER_SPREAD_SIGMA, truncated at
+    OUTLIER_SPREAD_RADIUS), each footprint renormalised to its part inside the frame so the sum of ``excess`` is
+    kept exactly (to rounding): (H, W, C) float64."""
+    from scipy.ndimage import gaussian_filter
+
+    blur = {"sigma": OUTLIER_SPREAD_SIGMA, "mode": "constant", "truncate": OUTLIER_SPREAD_RADIUS / OUTLIER_SPREAD_SIGMA}
+    inside = gaussian_filter(np.ones(excess.shape[:2]), **blur)  # each footprint's mass inside the frame
+    source = np.asarray(excess, np.float64) / inside[..., None]
+    return np.stack([gaussian_filter(source[..., c], **blur) for c in range(excess.shape[-1])], axis=-1)
+
+
+def add_excess(image: np.ndarray, excess: np.ndarray | None) -> np.ndarray:
+    """``image`` (a denoised layer) with the outliers' ``excess`` added back over their footprints
+    (:func:`spread`), float64 sum clipped to float32's range; ``image`` itself when ``excess`` is None."""
+    if excess is None:
+        return image
+    total = np.asarray(image, np.float64) + spread(excess)
+    return np.clip(total, 0.0, float(np.finfo(np.float32).max)).astype(np.float32)
+
+
+def far_agreement(image: np.ndarray, reference: np.ndarray, where: tuple[int, int], radius: float,
+                  tolerance: float = 0.01, epsilon: float = 1e-3) -> tuple[float, float]:
+    """How far a change at pixel ``where`` reached from ``reference`` to ``image`` ((H, W, C) each): (the fraction of
+    the pixels farther than ``radius`` from it whose every channel is within ``tolerance`` · (|reference| +
+    ``epsilon`` · the reference's mean), the largest distance of a pixel outside that bound, 0 if none)."""
+    ref = np.asarray(reference, np.float64)
+    bad = np.any(np.abs(np.asarray(image, np.float64) - ref) > tolerance * (np.abs(ref) + epsilon * ref.mean()),
+                 axis=-1)
+    yy, xx = np.mgrid[0:ref.shape[0], 0:ref.shape[1]]
+    distance = np.hypot(yy - where[0], xx - where[1])
+    far = distance > radius
+    fraction = 1.0 - np.count_nonzero(bad & far) / max(np.count_nonzero(far), 1)
+    return fraction, float(distance[bad].max()) if bad.any() else 0.0

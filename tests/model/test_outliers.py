@@ -1,0 +1,170 @@
+"""Fireflies stay local: a single-pixel outlier of 1e2 to 1e30 times a layer's mean, at a corner, an edge or the
+centre of a rendered frame, changes no more than 0.1 % of the pixels farther than 16 px from it by more than 1 %
+(relative, with an ε of 1e-3 of the frame's mean), for every denoising method; and the robust statistics behind it.
+
+Frames: the committed example (examples/cbox-16spp.exr) and a procedural scene (tests/data/procedural-4242-16spp.exr,
+``gradsep render procedural:4242 --spp 16 --width 96 --height 72 --seed 7``), both 16 spp, direct and indirect layers.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+import gradsep.model.reconstruct as reconstruct_module
+from gradsep.model.frame import Frame, Layer, read_frame
+from gradsep.model.robust import (
+    OUTLIER_SPREAD_RADIUS,
+    add_excess,
+    far_agreement,
+    robust_level,
+    split_frame,
+    split_outliers,
+    winsorised_sum,
+)
+
+REPO = Path(__file__).resolve().parents[2]
+FRAMES = {"cbox": REPO / "examples" / "cbox-16spp.exr",
+          "procedural": REPO / "tests" / "data" / "procedural-4242-16spp.exr"}
+DENOISERS = ("oidn-l1", "oidn", "fused", "network")
+#: The contract: beyond NEAR pixels, at least KEPT of the pixels within 1 % of the output without the outlier.
+NEAR, KEPT = 16.0, 0.999
+
+_cache: dict[str, Any] = {}
+
+
+def _frame(name: str) -> Frame:
+    if name not in _cache:
+        _cache[name] = read_frame(FRAMES[name])
+    return _cache[name]
+
+
+def _models(method: str) -> dict[str, Any]:
+    """``reconstruct``'s keyword arguments for ``method``, or a skip naming what this machine lacks."""
+    if method in ("oidn", "oidn-l1", "fused") and importlib.util.find_spec("pyoidn") is None:
+        pytest.skip("pyoidn is not installed")
+    if method in ("network", "fused") and importlib.util.find_spec("onnxruntime") is None:
+        pytest.skip("onnxruntime is not installed")
+    if method == "network":
+        if "network" not in _cache:
+            _cache["network"] = reconstruct_module.load_network(REPO / "models")
+        if _cache["network"] is None:
+            pytest.skip("no network models in models/")
+        return {"network": _cache["network"]}
+    if method == "fused":
+        if "fused" not in _cache:
+            _cache["fused"] = reconstruct_module.load_fused(REPO / "models")
+        if _cache["fused"] is None:
+            pytest.skip("no fused models in models/fused/")
+        return {"fused": _cache["fused"]}
+    return {}
+
+
+def _reconstruct(frame: Frame, method: str) -> Any:
+    return reconstruct_module.reconstruct(frame, method, **_models(method))
+
+
+def _with_firefly(frame: Frame, layer: str, where: tuple[int, int], times: float) -> Frame:
+    """``frame`` with ``times`` × the layer's mean added to every channel of one pixel of its base."""
+    old = frame.layers[layer]
+    base = old.base.copy()
+    base[where] += np.float32(min(times * float(old.base.mean(dtype=np.float64)), 3e38))
+    return Frame({**frame.layers, layer: Layer(base, old.dx, old.dy)}, frame.features)
+
+
+def _position(frame: Frame, name: str) -> tuple[int, int]:
+    return {"corner": (0, 0), "edge": (frame.height // 2, frame.width - 1),
+            "centre": (frame.height // 2, frame.width // 2)}[name]
+
+
+def _check(frame_name: str, method: str, cases: list[tuple[str, str, float]]) -> None:
+    frame = _frame(frame_name)
+    reference = _reconstruct(frame, method)
+    assert not reference.warnings  # an ordinary frame has no outlier: it is denoised as it always was
+    for layer, position, times in cases:
+        where = _position(frame, position)
+        result = _reconstruct(_with_firefly(frame, layer, where, times), method)
+        assert np.isfinite(result.image).all()
+        kept, reach = far_agreement(result.image, reference.image, where, NEAR)
+        assert kept >= KEPT, (f"{method} on {frame_name}: a {times:g}x firefly in the {layer} layer's {position} "
+                              f"changed {100 * (1 - kept):.2f} % of the far pixels by > 1 %, up to {reach:.0f} px away")
+        assert any("outlier" in w for w in result.warnings)  # handled, and reported
+
+
+@pytest.mark.parametrize("frame_name", list(FRAMES))
+@pytest.mark.parametrize("method", DENOISERS)
+def test_a_firefly_changes_nothing_far_from_it(method: str, frame_name: str) -> None:
+    _check(frame_name, method, [("direct", "centre", 1e2), ("direct", "edge", 1e6), ("indirect", "corner", 1e30)])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("frame_name", list(FRAMES))
+@pytest.mark.parametrize("method", DENOISERS)
+def test_a_firefly_changes_nothing_far_from_it_every_position_and_size(method: str, frame_name: str) -> None:
+    _check(frame_name, method, [(layer, position, times) for layer in ("direct", "indirect")
+                                for position in ("corner", "edge", "centre") for times in (1e2, 1e4, 1e8, 1e30)])
+
+
+# ------------------------------------------------------------------------------------------- the statistics
+
+
+def test_the_level_is_the_mean_of_an_ordinary_frame_and_scales_with_it() -> None:
+    for layer in _frame("procedural").layers.values():
+        level = robust_level(layer.base)
+        assert level == pytest.approx(float(layer.base.mean(dtype=np.float64)), rel=0.05)
+        for k in (1e-30, 1e-8, 1e9, 1e30):
+            assert robust_level(layer.base * np.float32(k)) == pytest.approx(k * level, rel=1e-5)
+
+
+def test_one_value_moves_the_level_and_a_sum_by_one_capped_value_at_most() -> None:
+    rng = np.random.default_rng(0)
+    image = rng.random((64, 64, 3)).astype(np.float32)
+    flat = image.mean(axis=-1, dtype=np.float64)
+    cap = float(np.quantile(flat, 0.999))
+    for value in (1e3, 1e30, np.inf, np.nan):
+        hit = image.copy()
+        hit[5, 7] = value
+        assert abs(robust_level(hit) - robust_level(image)) <= 2 * cap / flat.size
+        values = flat.copy()
+        values[5, 7] = value if np.isfinite(value) else 1e300
+        assert abs(winsorised_sum(values) - winsorised_sum(flat)) <= 2 * cap
+    assert robust_level(np.zeros((4, 4, 3))) == 0.0 and robust_level(np.zeros((0, 3))) == 0.0
+    sparse = np.zeros((100, 100, 3), np.float32)
+    sparse[3, 4] = 2.0  # lit in fewer pixels than the quantile leaves: the plain mean of the light
+    assert robust_level(sparse) == pytest.approx(2.0 / 1e4)
+
+
+@pytest.mark.parametrize("times", [1e2, 1e8, 1e30, 3e38])
+@pytest.mark.parametrize("where", [(0, 0), (0, 20), (17, 31), (20, 20)])
+def test_the_split_replaces_an_outlier_by_its_neighbours_and_keeps_its_energy(where: tuple[int, int],
+                                                                             times: float) -> None:
+    rng = np.random.default_rng(1)
+    base = (0.5 + rng.random((21, 32, 3))).astype(np.float32)
+    hit = base.copy()
+    hit[where] = np.float32(min(times, 3e38))
+    inlier, excess = split_outliers(hit)
+    assert excess is not None and np.count_nonzero(excess.any(axis=-1)) == 1
+    assert np.array_equal(np.delete(inlier.reshape(-1, 3), where[0] * 32 + where[1], 0),
+                          np.delete(base.reshape(-1, 3), where[0] * 32 + where[1], 0))
+    assert inlier[where].max() <= base.max() and np.isfinite(inlier).all()
+    back = add_excess(inlier, excess)  # the excess spread back, its sum kept, nothing beyond its footprint
+    assert back.astype(np.float64).sum() == pytest.approx(hit.astype(np.float64).sum(), rel=1e-5)
+    yy, xx = np.mgrid[0:21, 0:32]
+    outside = np.maximum(np.abs(yy - where[0]), np.abs(xx - where[1])) > OUTLIER_SPREAD_RADIUS
+    assert np.array_equal(back[outside], inlier[outside])
+
+
+def test_ordinary_frames_have_no_outliers_and_are_left_alone() -> None:
+    for name in FRAMES:
+        frame = _frame(name)
+        same, excess = split_frame(frame)
+        assert same is frame and excess == {}
+    smooth = np.full((8, 8, 3), 0.5, np.float32)
+    assert split_outliers(smooth)[1] is None
+    light = smooth.copy()
+    light[2:5, 2:5] = 1e4  # a bright region, not an outlier: its neighbours are as bright
+    assert split_outliers(light)[1] is None
