@@ -254,27 +254,28 @@ def _check_method(frame: Frame, method: Method, alpha: float, models: LoadedMode
     if method.alpha and not (math.isfinite(alpha) and alpha > 0):
         raise ValueError(f"alpha must be a finite number > 0, got {alpha}")
     missing = missing_gradient_channels(frame, name)
+    groups = missing_feature_groups(frame, name)
+    features = [c for g in groups for c in FEATURE_GROUPS[g]]
+    # everything the frame lacks is named at once, so a producer fixes it in one go
+    also = (f"; it also needs the feature group(s) {', '.join(groups)} ({', '.join(features)})" if groups else "")
+    details = {"missing": [*missing, *features], **({"missing_feature_groups": groups} if groups else {})}
     alternatives = " or ".join(_gradients_met(frame)) or "another method"
     if missing and not frame.gradient_layers:
         raise ChannelError(f"method {name!r} integrates gradients, which this frame lacks (a plain path-traced "
-                           f"frame); use method {alternatives}, or send the L.dx.* / L.dy.* channels",
-                           {"missing": missing})
+                           f"frame){also}; use method {alternatives}, or send the L.dx.* / L.dy.* channels", details)
     if missing:
         raise ChannelError(f"method {name!r} integrates the gradients of every layer; this frame carries them only "
-                           f"for {', '.join(frame.gradient_layers)} (missing {', '.join(missing)}); use method "
-                           f"{alternatives}, or send the missing channels", {"missing": missing})
+                           f"for {', '.join(frame.gradient_layers)} (missing {', '.join(missing)}){also}; use "
+                           f"method {alternatives}, or send the missing channels", details)
     absent = models.missing(method)
     if absent:
         raise ValueError(f"method {name!r} needs " + ", ".join(table.MODEL_SETS[n].description for n in absent)
                          + ", which " + ("is" if len(absent) == 1 else "are") + " not available here; use "
                          + (", ".join(n for n in available_methods(frame, models)) or "another method"))
-    groups = missing_feature_groups(frame, name)
     if groups:
-        channels = [c for g in groups for c in FEATURE_GROUPS[g]]
         raise ChannelError(f"method {name!r} needs the feature group(s) {', '.join(groups)} (channels "
-                           f"{', '.join(channels)}), which this frame lacks; send them, or use a method that "
-                           "does without: " + (", ".join(available_methods(frame, models)) or "none here"),
-                           {"missing": channels, "missing_feature_groups": groups})
+                           f"{', '.join(features)}), which this frame lacks; send them, or use a method that "
+                           "does without: " + (", ".join(available_methods(frame, models)) or "none here"), details)
     unserved = _unserved_layers(method, models, frame)
     if unserved:
         served = sorted(set(frame.layers) - set(unserved))
