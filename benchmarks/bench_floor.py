@@ -17,8 +17,8 @@ needs whatever the schedule, so
 * "cores for T" is ``ceil(CPU / T)``: a lower bound on the cores at this speed that a latency target T can need
   (the same work, perfectly split; more if part of it stays serial).
 
-Targets (``--targets``, seconds): the issues' p50 targets for the 1280x720 two-layer frame (issue 15: network 0.8,
-l1 1.5, fused 2.0; issue 14: the default oidn-l1 2.0). The models are the service's (``$GRADSEP_MODELS`` or
+Targets (``--targets``, seconds): the p50 targets for the 1280x720 two-layer frame (network 0.8, l1 1.5,
+fused 2.0, the default oidn-l1 2.0). The models are the service's (``$GRADSEP_MODELS`` or
 models/), on the provider it would pick. Run under the shared CPU lock, nothing else running.
 """
 

@@ -607,8 +607,8 @@ def _table1_losses(evaluation: Evaluation, spp: int) -> list[str]:
 
 
 def _targets(rows: Sequence[Mapping[str, Any]]) -> list[str]:
-    """Issue 5's quality target at 16 and 64 spp: RelMSE(ours) < RelMSE(L1) < RelMSE(G-PT primal)."""
-    lines = ["Quality target of issue 5 (RelMSE ours < L1 < input, per scene):", ""]
+    """The paper's quality ordering at 16 and 64 spp: RelMSE(ours) < RelMSE(L1) < RelMSE(G-PT primal)."""
+    lines = ["Quality target (RelMSE ours < L1 < input, per scene):", ""]
     found = False
     for scene in dict.fromkeys(str(r["scene"]) for r in rows):
         for spp in (16, 64):
@@ -623,7 +623,7 @@ def _targets(rows: Sequence[Mapping[str, Any]]) -> list[str]:
     return [*lines, ""]
 
 
-#: Issue 14's first target: ``fused`` below each of these on every scene at 16 and 64 spp.
+#: The fused method's target: below each of these on every scene at 16 and 64 spp.
 FUSED_RIVALS: tuple[str, ...] = ("oidn", "l1", "ours")
 
 
@@ -633,10 +633,12 @@ def _ratio_cell(value: float, rival: float) -> str:
 
 
 def _fused_and_equal_time_targets(rows: Sequence[Mapping[str, Any]]) -> list[str]:
-    """Issue 14's targets from the rows, at 16 and 64 spp: ``fused`` below ``oidn``, ``l1`` and ``ours`` (the
-    paper's network) per scene; at equal time, the best G-PT row within ±5 % of the budget (the budget method's own
-    row and G-PT+oidn-l1) below path + OIDN, and (stretch) below separated path + OIDN per layer."""
-    lines = ["Targets of issue 14 (RelMSE, per scene, at 16 and 64 spp; a multi-seed row counts by its mean):", ""]
+    """The fused and equal-time targets from the rows, at 16 and 64 spp: ``fused`` below ``oidn``, ``l1`` and
+    ``ours`` (the paper's network) per scene; at equal time, the best G-PT row within ±5 % of the budget (the
+    budget method's own row and G-PT+oidn-l1) below path + OIDN, and (stretch) below separated path + OIDN per
+    layer."""
+    lines = ["Fused and equal-time targets (RelMSE, per scene, at 16 and 64 spp; a multi-seed row counts by its "
+             "mean):", ""]
     found = False
     for scene in dict.fromkeys(str(r["scene"]) for r in rows):
         for spp in (16, 64):
