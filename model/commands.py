@@ -52,9 +52,11 @@ def _resolve_models(models: str | None, method: str | None) -> Any:
     loaded = table.LoadedModels.load(folder, wanted)
     for name in loaded.missing(table.get(method)) if method is not None else ():
         model_set = table.MODEL_SETS[name]
-        where = f" in {str(folder / model_set.folder)!r}" if model_set.folder is not None else ""
-        raise CommandError(f"--method {method} needs {model_set.description}, but none was found{where} "
-                           f"(set --models or ${MODELS_ENV}, or use another --method)")
+        if model_set.folder is None:  # a runtime library, not a models folder
+            raise CommandError(f"--method {method} needs {model_set.description}, which is not installed here")
+        raise CommandError(f"--method {method} needs {model_set.description}, but none was found in "
+                           f"{str(folder / model_set.folder)!r} (set --models or ${MODELS_ENV}, or use another "
+                           "--method)")
     return loaded
 
 

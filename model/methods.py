@@ -19,7 +19,7 @@ import importlib
 import os
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Literal
 
 from gradsep.model.policy import FEATURE_GROUPS
@@ -60,7 +60,7 @@ MODEL_SETS: dict[str, ModelSet] = {
     "fused": ModelSet("fused", "gradsep.model.reconstruct:load_fused",
                       "the per-layer blend networks, models/fused/*.onnx (needs pyoidn)", folder="fused"),
     "oidn": ModelSet("oidn", "gradsep.model.reconstruct:load_oidn",
-                     "Intel Open Image Denoise (the pyoidn package)"),
+                     "Intel Open Image Denoise (pip install pyoidn)"),
 }
 
 
@@ -82,7 +82,6 @@ class Method:
     preference: int | None = None
     alpha: bool = False  # takes the screened Poisson data weight ``alpha``
     denoiser: DenoiserSetting | None = None  # runs OIDN on each layer's base first (needs the ``oidn`` set)
-    extra: dict[str, Any] = field(default_factory=dict, compare=False)
 
     def __post_init__(self) -> None:
         problems = []

@@ -155,3 +155,22 @@ def test_a_replaced_declaration_is_restored() -> None:
     with table.registered(dataclasses.replace(original, preference=0)):
         assert table.default_preference()[0] == "l2"
     assert table.get("l2") is original and table.names()[2] == "l2"
+
+
+def test_the_cli_names_a_missing_model_set(tmp_path: Path, capsys, monkeypatch) -> None:
+    from gradsep.cli import main
+    from gradsep.model.frame import write_frame
+
+    frame = tmp_path / "frame.exr"
+    write_frame(frame, Frame({"color": Layer(np.full((8, 10, 3), 0.25, np.float32))}))
+    out = tmp_path / "out.exr"
+    assert main(["reconstruct", str(frame), "--method", "fused", "--models", str(tmp_path), "-o", str(out)]) == 2
+    assert f"needs the per-layer blend networks, models/fused/*.onnx (needs pyoidn), but none was found in " \
+           f"'{tmp_path / 'fused'}'" in capsys.readouterr().err
+    monkeypatch.setattr("gradsep.model.oidn.available", lambda: False)
+    assert main(["reconstruct", str(frame), "--method", "oidn", "-o", str(out)]) == 2
+    assert "needs Intel Open Image Denoise (pip install pyoidn), which is not installed here" in capsys.readouterr().err
+    assert main(["reconstruct", str(frame), "-o", str(out)]) == 2  # the default: nothing serves a plain frame
+    assert "no reconstruction method can serve this frame here: oidn (needs Intel Open Image Denoise" in \
+        capsys.readouterr().err
+    assert not out.exists()
