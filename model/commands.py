@@ -24,7 +24,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("-o", "--output", required=True, help="output .exr (R G B, plus layers with --layers)")
     p.add_argument("--method", choices=table.names(), default=None,
                    help="reconstruction method (" + table.help_text() + ")")
-    p.add_argument("--alpha", type=float, default=DEFAULT_ALPHA, help="screened Poisson data weight (l1/l2)")
+    p.add_argument("--alpha", type=float, default=DEFAULT_ALPHA, help="screened Poisson data weight (methods "
+                   + "/".join(m.name for m in table.methods() if m.alpha) + ")")
     p.add_argument("--half", action="store_true", help="write half floats instead of float32")
     p.add_argument("--layers", action="store_true", help="also write each reconstructed layer (direct.R, ...)")
     p.add_argument("--models", default=None, help=f"folder of exported models (default: ${MODELS_ENV} or models/)")

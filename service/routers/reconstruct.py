@@ -76,6 +76,7 @@ def build_router() -> APIRouter:
     OpenAPI schema and its validation) is the table of methods as it stands then (model/methods.py)."""
     router = APIRouter(tags=["reconstruction"])
     method_names = Literal[table.names()]  # type: ignore[valid-type]
+    alpha_methods = "/".join(m.name for m in table.methods() if m.alpha)
 
     @router.post("/v1/reconstruct", response_class=Response, responses=RESPONSES,
                  openapi_extra={"requestBody": REQUEST_BODY},
@@ -91,7 +92,7 @@ def build_router() -> APIRouter:
                                                               for m in table.methods()))] = None,
         alpha: Annotated[float | None, Query(
             ge=MIN_ALPHA, le=1000, allow_inf_nan=False,
-            description=f"screened Poisson data weight (l1/l2), in [{MIN_ALPHA:g}, 1000]")] = None,
+            description=f"screened Poisson data weight (methods {alpha_methods}), in [{MIN_ALPHA:g}, 1000]")] = None,
         output_format: Annotated[Literal["half", "float"], Query(
             alias="format", description="pixel type of the returned EXR")] = "float",
         layers: Annotated[Literal["sum", "all"], Query(
@@ -107,9 +108,10 @@ async def _reconstruct(request: Request, engine: Engine, metrics: ServiceMetrics
     t_start = time.perf_counter()
     gate = _ready_gate(engine)
     if method is not None and method not in engine.methods:
-        raise ServiceError(422, "method_unavailable", f"method {method!r} is not available on this replica "
-                           f"(its models or package are not installed); available: {', '.join(engine.methods)}",
-                           {"available": list(engine.methods)})
+        needs = ", ".join(table.MODEL_SETS[n].description for n in engine.models.missing(table.get(method)))
+        raise ServiceError(422, "method_unavailable", f"method {method!r} is not available on this replica (it "
+                           f"needs {needs or 'models this replica has not loaded'}); available: "
+                           f"{', '.join(engine.methods)}", {"available": list(engine.methods)})
     media = _media_type(request)
     if gate.full:  # shed load before buffering anything; drain so the client reads our answer cleanly
         async for _ in request.stream():
