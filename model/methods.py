@@ -267,7 +267,7 @@ register(Method(
     "l2", "screened Poisson solve with an L2 data term (linear, one DCT solve)", f"{_BUILTIN}:l2_layer",
     gradients="all", alpha=True))
 register(Method(
-    "oidn", "Intel Open Image Denoise on each layer; the method for a plain frame", f"{_BUILTIN}:oidn_layer",
+    "oidn", "Intel Open Image Denoise on each layer (the method for a plain frame)", f"{_BUILTIN}:oidn_layer",
     gradients="none", uses=("albedo", "normal"), models=("oidn",), preference=2, denoiser="method"))
 register(Method(
     "oidn-l1", "oidn, then the direct layer refined by its gradients (L1 solve on OIDN's image)",
