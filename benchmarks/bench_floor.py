@@ -17,8 +17,8 @@ needs whatever the schedule, so
 * "cores for T" is ``ceil(CPU / T)``: a lower bound on the cores at this speed that a latency target T can need
   (the same work, perfectly split; more if part of it stays serial).
 
-Targets (``--targets``, seconds): the issues' p50 targets for the 1280x720 two-layer frame (issue 15: network 0.8,
-l1 1.5, fused 2.0; issue 14: the default oidn-l1 2.0). The models are the service's (``$GRADSEP_MODELS`` or
+Targets (``--targets``, seconds): the p50 targets for the 1280x720 two-layer frame (network 0.8, l1 1.5,
+fused 2.0, the default oidn-l1 2.0). The models are the service's (``$GRADSEP_MODELS`` or
 models/), on the provider it would pick. Run under the shared CPU lock, nothing else running.
 """
 
@@ -48,7 +48,7 @@ def parse_targets(text: str) -> dict[str, float]:
     return out
 
 
-def measure(source: bytes, method: str, repeats: int, network: Any, fused: Any) -> dict[str, float]:
+def measure(source: bytes, method: str, repeats: int, models: Any) -> dict[str, float]:
     """Median wall and process-CPU seconds of run_pipeline(method) over ``repeats`` runs after one warm-up."""
     from gradsep.model.frame import ReadLimits, read_header
     from gradsep.model.policy import DEFAULT_ALPHA
@@ -59,7 +59,7 @@ def measure(source: bytes, method: str, repeats: int, network: Any, fused: Any) 
 
     def once() -> tuple[float, float, dict[str, float]]:
         wall, cpu = time.perf_counter(), time.process_time()
-        outcome = run_pipeline(source, params, ReadLimits(), "reject", network, fused)
+        outcome = run_pipeline(source, params, ReadLimits(), "reject", models)
         return time.perf_counter() - wall, time.process_time() - cpu, outcome.timings
 
     once()
@@ -86,7 +86,7 @@ def main() -> None:
     from gradsep.model.frame import read_frame
     from gradsep.model.reconstruct import available_methods
     from gradsep.model.synthetic import synthetic_frame
-    from gradsep.service.inference import configure_exr_threads, load_fused, load_network
+    from gradsep.service.inference import configure_exr_threads, load_models
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--frame", type=Path, help="an EXR frame (default: gradsep.model.synthetic's frame)")
@@ -107,9 +107,9 @@ def main() -> None:
 
     arenas = configure_malloc()
     models = Path(os.environ.get("GRADSEP_MODELS", REPO / "models"))
-    network, fused = load_network(models), load_fused(models)
+    loaded = load_models(models)
     frame = read_frame(source)
-    offered = available_methods(frame, network, fused)
+    offered = available_methods(frame, loaded)
     methods = [m.strip() for m in args.methods.split(",") if m.strip()] or list(offered)
     missing = [m for m in methods if m not in offered]
     if missing:
@@ -119,7 +119,7 @@ def main() -> None:
     print(f"{label}: {w}x{h}, layers {', '.join(frame.layers)}, {len(source) / 1e6:.1f} MB; {cores} CPUs, "
           f"load average {' '.join(f'{v:.2f}' for v in os.getloadavg())}; malloc arenas "
           f"{arenas if arenas is not None else 'as glibc or MALLOC_ARENA_MAX set them'}; medians of {args.repeats}\n")
-    rows = {m: measure(source, m, args.repeats, network, fused) for m in methods}
+    rows = {m: measure(source, m, args.repeats, loaded) for m in methods}
     report(rows, cores, parse_targets(args.targets))
     import resource
 

@@ -2,7 +2,7 @@
 
     python benchmarks/bench_layers.py                           # 1280x720 two-layer frame, every method served here
     python benchmarks/bench_layers.py --methods l1,network --repeats 5
-    python benchmarks/bench_layers.py --all-concurrent        # also the methods kept sequential (CONCURRENT_METHODS)
+    python benchmarks/bench_layers.py --all-concurrent        # also the methods the table schedules sequentially
 
 For each method the two settings alternate (1, 2, 1, 2, ...) so that both see the same machine load; the medians,
 their ratio and the largest difference between the two outputs (expected: 0, the same computation) are printed
@@ -13,21 +13,23 @@ Run it on an otherwise idle machine.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import statistics
 import time
 
 import numpy as np
 
+from gradsep.model import methods as table
 from gradsep.model.frame import read_frame
-from gradsep.model.reconstruct import LAYER_THREADS_ENV, available_methods, load_fused, load_network, reconstruct
+from gradsep.model.reconstruct import LAYER_THREADS_ENV, available_methods, reconstruct
 from gradsep.model.synthetic import synthetic_frame
 
 
-def run(frame, method: str, threads: int, network, fused) -> tuple[float, np.ndarray, dict[str, float]]:
+def run(frame, method: str, threads: int, models) -> tuple[float, np.ndarray, dict[str, float]]:
     os.environ[LAYER_THREADS_ENV] = str(threads)
     start = time.perf_counter()
-    result = reconstruct(frame, method, network=network, fused=fused)
+    result = reconstruct(frame, method, models=models)
     return time.perf_counter() - start, result.image, result.timings
 
 
@@ -41,23 +43,23 @@ def main() -> None:
     parser.add_argument("--all-concurrent", action="store_true",
                         help="run every method's layers concurrently, not only the table's concurrent ones")
     args = parser.parse_args()
-    if args.all_concurrent:
-        import gradsep.model.reconstruct
-
-        gradsep.model.reconstruct.CONCURRENT_METHODS = frozenset(gradsep.model.reconstruct.METHODS)
+    if args.all_concurrent:  # the sequential methods of the table, measured as if they were concurrent
+        for spec in table.methods():
+            if spec.schedule == "sequential":
+                table.register(dataclasses.replace(spec, schedule="concurrent"), replace=True)
 
     frame = read_frame(synthetic_frame(args.height, args.width))
-    network, fused = load_network(None), load_fused(None)
-    methods = [m for m in args.methods.split(",") if m] or available_methods(frame, network, fused)
+    models = table.LoadedModels.load(None)
+    methods = [m for m in args.methods.split(",") if m] or available_methods(frame, models)
     print(f"{args.width}x{args.height}, {list(frame.layers)}, load {os.getloadavg()[0]:.2f}")
     print("method   | 1 thread (s) | concurrent (s) | ratio | max |diff| | layer seconds (1 / concurrent)")
     for method in methods:
-        run(frame, method, 1, network, fused)  # warm-up: first-call costs (compilation, plans, sessions)
+        run(frame, method, 1, models)  # warm-up: first-call costs (compilation, plans, sessions)
         times: dict[int, list[float]] = {1: [], args.threads: []}
         images, layer_times = {}, {}
         for _ in range(args.repeats):
             for threads in (1, args.threads):
-                seconds, images[threads], layer_times[threads] = run(frame, method, threads, network, fused)
+                seconds, images[threads], layer_times[threads] = run(frame, method, threads, models)
                 times[threads].append(seconds)
         seq, con = statistics.median(times[1]), statistics.median(times[args.threads])
         diff = float(np.max(np.abs(images[1] - images[args.threads])))

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from gradsep.model.frame import Frame, Layer, read_frame
+from gradsep.model.methods import LoadedModels
 from gradsep.model.reconstruct import load_fused, load_network, reconstruct
 from gradsep.model.robust import far_agreement
 
@@ -47,7 +48,7 @@ def main() -> None:
     print(f"{args.frame}: {frame.width}x{frame.height}, firefly in the {args.layer} layer (mean {mean:.4g})")
     print(f"{'method':8s} {'where':6s} {'times':>7s} {'kept beyond':>12s} {'reach px':>9s} {'changed':>8s}")
     for method in args.methods.split(","):
-        kwargs = {method: models[method]} if method in models else {}
+        kwargs = {"models": LoadedModels(**{method: models[method]})} if method in models else {}
         if method in models and models[method] is None:
             print(f"{method:8s} skipped: no models")
             continue

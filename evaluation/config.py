@@ -8,14 +8,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from gradsep.evaluation.cache import REPO_ROOT, default_cache_dir, file_sha256, key_hash
-from gradsep.evaluation.methods import METHODS
+from gradsep.evaluation.methods import evaluated_methods
 from gradsep.model.errors import CommandError
 from gradsep.model.policy import DEFAULT_ALPHA, models_dir_from
 
@@ -26,9 +26,19 @@ if TYPE_CHECKING:
 CLI_DEFAULT_SPP = "1,2,4,8,16,32,64"
 DEFAULT_PROCEDURAL: tuple[str, ...] = ("procedural:90001", "procedural:90002")  # training starts at seed 1000
 SHARED_SCENES: tuple[str, ...] = ("cbox/cbox.xml", "teapot/teapot.xml")
-#: Methods whose images the crop comparison shows, in its order (the reference comes last).
-CROP_METHODS: tuple[str, ...] = ("gpt-primal", "l1", "gradnet", "ours", "oidn", "oidn-l1", "fused", "path-oidn",
-                                 "path-sep-oidn", "gpt-oidn-l1")
+#: The equal-time rows the crop comparison shows after the table's methods.
+_CROP_BASELINES: tuple[str, ...] = ("path-oidn", "path-sep-oidn", "gpt-oidn-l1")
+
+
+def crop_methods() -> tuple[str, ...]:
+    """Methods whose images the crop comparison shows, in its order (the reference comes last): the input, the
+    GradNet-style baseline, each method of the table that the default policy may pick (model/methods.py), then the
+    equal-time rows with OIDN."""
+    from gradsep.evaluation.methods import evaluation_name
+    from gradsep.model import methods as table
+
+    ranked = [m.name for m in table.methods() if m.preference is not None]  # in the table's order
+    return ("gpt-primal", "gradnet", *(evaluation_name(m) for m in ranked), *_CROP_BASELINES)
 
 
 @dataclass(frozen=True)
@@ -68,7 +78,7 @@ class EvalConfig:
     output: Path
     cache_dir: Path
     models_dir: Path
-    methods: tuple[str, ...] = tuple(m.name for m in METHODS)
+    methods: tuple[str, ...] = field(default_factory=lambda: tuple(m.name for m in evaluated_methods()))
     seed: int = 0
     max_depth: int | None = None
     alpha: float = DEFAULT_ALPHA
@@ -202,7 +212,7 @@ def _reference_budget(settings: EvalSettings, preset: Preset) -> tuple[int, int,
 
 def parse_methods(text: str | None) -> tuple[str, ...]:
     """Comma-separated method names (``ablation`` selects the four variants), in the canonical order."""
-    known = [m.name for m in METHODS]
+    known = [m.name for m in evaluated_methods()]
     if not text:
         return tuple(known)
     wanted: set[str] = set()

@@ -4,6 +4,11 @@ Every method produces (image, per-layer images where it has them, render seconds
 
 ==========================  ===============================================================================
 ``gpt-primal``              the G-PT frame's primal image, Σ layers' base: the input every reconstruction sees
+*each method of the table*  ``reconstruct(frame, method)`` for every method of model/methods.py (``l1``,
+                            ``l2``, ``oidn``, ``oidn-l1``, ``fused``, and ``network`` as ``ours``), with the
+                            model sets it needs loaded from the models folder; a method needing only the direct
+                            layer's gradients (``oidn-l1``) reconstructs the ``--gradients direct`` render of
+                            the same seed; skipped, listing the missing files, without its models
 ``l2``, ``l1``              screened Poisson (model.poisson via model.reconstruct), per layer, summed
 ``gradnet``                 the ``color`` model (no separation, no attention: the GradNet-style baseline) run
                             on the frame's combined layer, ``Frame.combined()``
@@ -11,25 +16,20 @@ Every method produces (image, per-layer images where it has them, render seconds
                             ``combined-*`` run ``color.onnx`` on the combined layer, ``separated-*`` run
                             ``direct.onnx`` + ``indirect.onnx`` per layer; ``-attn`` / ``-noattn`` say whether
                             the network has CBAM attention
-``ours``                    the shipped pair ``models/direct.onnx`` + ``models/indirect.onnx`` (separation +
-                            attention), per layer, summed
-``oidn``                    OIDN on each layer of the G-PT frame, summed (``reconstruct(frame, "oidn")``)
-``oidn-l1``                 ``oidn``, then the direct layer refined by its gradients (an L1 screened Poisson
-                            solve with OIDN's image as the data term, model/refine.py;
-                            ``reconstruct(frame, "oidn-l1")``), on the ``--gradients direct`` render of the same
-                            seed (the same direct layer and indirect base; no indirect offsets traced)
+``ours``                    the table's ``network``: the shipped pair ``models/direct.onnx`` +
+                            ``models/indirect.onnx`` (separation + attention), per layer, summed
+``oidn``                    OIDN on each layer of the G-PT frame, summed
+``oidn-l1``                 ``oidn``, then the direct layer refined by its gradients (model/refine.py)
 ``fused``                   the fused blend of ``models/fused/<layer>.onnx`` (the indirect layer's; the direct layer
-                            needs none, model.fused.FIXED_LAYERS) (``reconstruct(frame, "fused",
-                            fused=...)``); skipped, listing the missing files, without them
+                            needs none, model.fused.FIXED_LAYERS)
 ``path``                    Mitsuba's own ``path`` integrator at *equal time* (below)
 ``path-oidn``               ``path`` denoised by Intel Open Image Denoise (model/oidn.py) with albedo and normal
                             from a separate :data:`FEATURE_SPP`-spp feature pass (Mitsuba ``aov``) whose time
                             is counted; equal time
 ``path-sep-oidn``           the renderer's primal-only mode (``render_frame(..., gradients=False)``: G-PT's
                             direct/indirect routing and first-hit features, no offset paths), OIDN on each
-                            layer (``reconstruct(frame, "oidn")``), summed; equal time. A method the code base
-                            cannot run (no such reconstruct method, no primal-only mode, no pyoidn) is skipped
-                            with that reason (:func:`unavailable`)
+                            layer (``reconstruct(frame, "oidn")``), summed; equal time. A method this host
+                            cannot run (no pyoidn) is skipped with that reason (:func:`unavailable`)
 ``gpt-oidn-l1``             G-PT at *equal time*: the ``--gradients direct`` render (offsets
                             :data:`EQUAL_TIME_OFFSETS`) at the spp the budget buys, reconstructed with ``oidn-l1``
                             -- what a farm gets from our renderer + service in the time the baselines are given
@@ -37,7 +37,7 @@ Every method produces (image, per-layer images where it has them, render seconds
 ==========================  ===============================================================================
 
 Equal time: the budget of a G-PT spp is the G-PT render time plus the reconstruction time of the product's default
-method for a G-PT frame (the first of model.policy.DEFAULT_PREFERENCE that was evaluated, ``oidn-l1`` as shipped;
+method for a G-PT frame (the first of the methods table's default preference that was evaluated, ``oidn-l1``;
 ``ours``, then ``l1``, when none was: evaluation.run._budget_method; the report names it). Each equal-time
 renderer's cost on the scene is measured first as ``seconds = overhead + per_spp · spp``, a line fitted to warm
 renders (after an untimed 1-spp render that pays the JIT compilation, which a user rendering a sequence pays once:
@@ -67,17 +67,18 @@ import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from functools import cache
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from gradsep.model import methods as table
 from gradsep.model.frame import Frame
 
 __all__ = [
     "ABLATION_VARIANTS",
-    "METHODS",
+    "EVALUATION_NAMES",
+    "evaluated_methods",
     "MethodContext",
     "MethodOutput",
     "MethodSpec",
@@ -105,7 +106,8 @@ FEATURE_SPP = 4
 #: Source files whose changes alter a method's images or scores (part of every result's cache key).
 METHOD_SOURCES: tuple[str, ...] = ("evaluation/methods.py", "model/oidn.py", "model/poisson.py", "model/reconstruct.py",
                                    "model/infer.py", "model/preprocess.py", "model/metrics.py", "model/refine.py",
-                                   "model/kernels.py", "model/policy.py", "model/fused.py", "model/oidn_onnx.py")
+                                   "model/kernels.py", "model/policy.py", "model/fused.py", "model/oidn_onnx.py",
+                                   "model/methods.py", "model/builtin_methods.py")
 
 
 @dataclass(frozen=True)
@@ -114,9 +116,10 @@ class MethodSpec:
 
     name: str
     label: str
-    kind: str  # primal | poisson | network | recon | fused | path | oidn | sep-oidn | gpt-equal
-    poisson: str | None = None  # poisson: l1 | l2; recon: the model.reconstruct method name
+    kind: str  # primal | recon | network | path | oidn | sep-oidn | gpt-equal
+    method: str | None = None  # recon, gpt-equal: the method of the table (model/methods.py) it runs
     models: str | None = None
+    short: str = ""  # its label in Table 1 and the crops (default: ``label``)
     separated: bool | None = None  # network: per-layer models (True) or the color model on the sum (False)
     attention: bool | None = None  # for the ablation table
     #: G-PT render mode of the frame it reconstructs (``gradsep render --gradients``): ``direct`` for a method
@@ -124,12 +127,19 @@ class MethodSpec:
     #: layer's vertices and its render time (which the equal-time budget counts) is that mode's.
     gradients: str = "all"
 
+    @property
+    def model_sets(self) -> tuple[str, ...]:
+        """The model-folder sets (model.methods.MODEL_SETS) of the table method a ``recon`` row runs."""
+        return table.get(self.method).model_sets if self.kind == "recon" and self.method else ()
+
     def model_names(self, layers: tuple[str, ...]) -> tuple[str, ...]:
         """The model files (``NAME.onnx``) this method needs for a frame with ``layers``."""
-        if self.kind == "fused":  # the layers model.fused serves with one candidate alone need no file
+        if "fused" in self.model_sets:  # the layers model.fused serves with one candidate alone need no file
             from gradsep.model.fused import FIXED_LAYERS
 
             return tuple(name for name in layers if name not in FIXED_LAYERS)
+        if "network" in self.model_sets:
+            return tuple(layers)
         if self.kind != "network":
             return ()
         return tuple(layers) if self.separated else ("color",)
@@ -138,7 +148,7 @@ class MethodSpec:
         """Model files (relative to the models folder) this method reads when they are there and does without
         otherwise: ``fused``'s clean-layer average reads the ``network`` method's direct model (model/fused.py
         CLEAN_AVERAGE_MODEL). Their checksums join the result's cache key; their absence skips nothing."""
-        if self.kind != "fused":
+        if "fused" not in self.model_sets:
             return ()
         from gradsep.model.fused import CLEAN_AVERAGE, CLEAN_AVERAGE_MODEL, FIXED_LAYERS
 
@@ -155,24 +165,55 @@ ABLATION_VARIANTS: tuple[tuple[str, bool, bool], ...] = (
     ("separated-attn", True, True),
 )
 
-METHODS: tuple[MethodSpec, ...] = (
-    MethodSpec("gpt-primal", "Input (G-PT primal)", "primal"),
-    MethodSpec("l2", "L2 Poisson", "poisson", poisson="l2"),
-    MethodSpec("l1", "L1 Poisson", "poisson", poisson="l1"),
-    MethodSpec("gradnet", "GradNet-style (color model)", "network", models="", separated=False, attention=False),
-    *(MethodSpec(f"ablation/{v}", f"Ablation {v}", "network", models=f"ablation/{v}", separated=s, attention=a)
-      for v, s, a in ABLATION_VARIANTS),
-    MethodSpec("oidn", "G-PT + OIDN per layer", "recon", poisson="oidn"),
-    MethodSpec("oidn-l1", "G-PT + OIDN, direct refined by its gradients (L1)", "recon", poisson="oidn-l1",
-               gradients="direct"),
-    MethodSpec("fused", "Fused network", "fused", models="fused"),
-    MethodSpec("ours", "Ours (separated + attention)", "network", models="", separated=True, attention=True),
-    MethodSpec("path", "Mitsuba path (equal time)", "path"),
-    MethodSpec("path-oidn", "Mitsuba path + OIDN (equal time)", "oidn"),
-    MethodSpec("path-sep-oidn", "Separated path + OIDN per layer (equal time)", "sep-oidn"),
-    MethodSpec("gpt-oidn-l1", "G-PT (direct gradients) + oidn-l1 (equal time)", "gpt-equal", poisson="oidn-l1",
-               gradients="direct"),
-)
+#: The evaluation's name of a method of the table where the paper's name differs: the network is "ours".
+EVALUATION_NAMES: dict[str, str] = {"network": "ours"}
+#: (label, short label) of the table's methods in the report; a method without one is labelled by its name and
+#: description.
+_LABELS: dict[str, tuple[str, str]] = {
+    "network": ("Ours (separated + attention)", "Ours"),
+    "l1": ("L1 Poisson", "L1"),
+    "l2": ("L2 Poisson", "L2"),
+    "oidn": ("G-PT + OIDN per layer", "G-PT + OIDN per layer"),
+    "oidn-l1": ("G-PT + OIDN, direct refined by its gradients (L1)", "OIDN + gradients (direct)"),
+    "fused": ("Fused network", "Fused"),
+}
+
+
+def evaluation_name(method: str) -> str:
+    """The row name of the table's method ``method`` (``network`` is ``ours``)."""
+    return EVALUATION_NAMES.get(method, method)
+
+
+def _table_row(method: table.Method) -> MethodSpec:
+    """The row of one method of the table: ``reconstruct(frame, method)`` on the G-PT frame its gradients need."""
+    label, short = _LABELS.get(method.name, (f"{method.name}: {method.description}", method.name))
+    folder = next((table.MODEL_SETS[n].folder for n in method.model_sets), None)
+    network = "network" in method.models
+    return MethodSpec(evaluation_name(method.name), label, "recon", method=method.name,
+                      models=None if folder is None else "" if folder == "." else folder, short=short,
+                      separated=True if network else None, attention=True if network else None,
+                      gradients="direct" if method.gradients == "direct" else "all")
+
+
+def evaluated_methods() -> tuple[MethodSpec, ...]:
+    """Every compared method, in the report's order: the input, each method of the table (model/methods.py, as
+    it stands when called), the paper's baselines and ablations, then the equal-time rows."""
+    return (
+        MethodSpec("gpt-primal", "Input (G-PT primal)", "primal", short="Input"),
+        *(_table_row(m) for m in table.methods()),
+        MethodSpec("gradnet", "GradNet-style (color model)", "network", models="", separated=False, attention=False,
+                   short="GradNet-style"),
+        *(MethodSpec(f"ablation/{v}", f"Ablation {v}", "network", models=f"ablation/{v}", separated=s, attention=a)
+          for v, s, a in ABLATION_VARIANTS),
+        MethodSpec("path", "Mitsuba path (equal time)", "path"),
+        MethodSpec("path-oidn", "Mitsuba path + OIDN (equal time)", "oidn", short="path + OIDN (equal time)"),
+        MethodSpec("path-sep-oidn", "Separated path + OIDN per layer (equal time)", "sep-oidn",
+                   short="sep. path + OIDN per layer (equal time)"),
+        MethodSpec("gpt-oidn-l1", "G-PT (direct gradients) + oidn-l1 (equal time)", "gpt-equal", method="oidn-l1",
+                   gradients="direct", short="G-PT + oidn-l1 (equal time)"),
+    )
+
+
 #: Methods rendered to a time budget rather than reconstructing the G-PT frame.
 EQUAL_TIME_KINDS: tuple[str, ...] = ("path", "oidn", "sep-oidn", "gpt-equal")
 #: Offsets of the equal-time G-PT row's render (``gradsep render --offsets``): ``alternate`` traces one offset per
@@ -182,50 +223,16 @@ EQUAL_TIME_OFFSETS = "alternate"
 
 
 def unavailable(spec: MethodSpec) -> str | None:
-    """Why ``spec`` cannot run with this code base (None: it can). Model files are checked separately."""
-    if spec.kind in ("recon", "fused"):
-        from gradsep.model.reconstruct import METHODS as RECONSTRUCT_METHODS
-
-        wanted = spec.poisson if spec.kind == "recon" else "fused"
-        if wanted not in RECONSTRUCT_METHODS:
-            return (f"model.reconstruct has no {wanted!r} method on this branch (expected "
-                    f"reconstruct(frame, {wanted!r}{', fused=...' if spec.kind == 'fused' else ''}))")
-    if spec.kind in ("oidn", "sep-oidn", "recon", "fused", "gpt-equal"):
-        import importlib.util
-
-        if importlib.util.find_spec("pyoidn") is None:
-            return "pyoidn is not installed (pip install 'gradsep[evaluate]')"
-    if spec.kind == "gpt-equal" and not offsets_mode_available():
-        return "renderer.render.render_frame has no offsets= parameter on this branch"
-    if spec.kind == "sep-oidn" and not primal_mode_available():
-        return ("renderer.render.render_frame has no gradients= parameter: the primal-only render mode "
-                "(issue 13 item 3) is not on this branch")
+    """Why ``spec`` cannot run on this host (None: it can). Model files are checked separately."""
+    needs_oidn = spec.kind in ("oidn", "sep-oidn", "gpt-equal") or (
+        spec.kind == "recon" and "oidn" in table.get(str(spec.method)).models)
+    if needs_oidn and not table.LoadedModels().has("oidn"):
+        return "pyoidn is not installed (pip install 'gradsep[evaluate]')"
     return None
 
 
-@cache
-def primal_mode_available() -> bool:
-    """Whether the renderer has the primal-only mode ``render_frame(..., gradients=False)`` (asked once: the
-    code does not change while the process runs)."""
-    import inspect
-
-    from gradsep.renderer.render import render_frame
-
-    return "gradients" in inspect.signature(render_frame).parameters
-
-
-@cache
-def offsets_mode_available() -> bool:
-    """Whether the renderer takes ``render_frame(..., offsets=...)`` (``gradsep render --offsets``; asked once)."""
-    import inspect
-
-    from gradsep.renderer.render import render_frame
-
-    return "offsets" in inspect.signature(render_frame).parameters
-
-
 def method_by_name(name: str) -> MethodSpec:
-    for spec in METHODS:
+    for spec in evaluated_methods():
         if spec.name == name:
             return spec
     raise KeyError(name)
@@ -275,6 +282,16 @@ class NetworkPool:
     def __init__(self) -> None:
         self._loaded: dict[Path, Any] = {}
         self._warm: set[tuple[Path, str, tuple[int, int]]] = set()
+
+    def loaded(self, models_dir: Path, method: str) -> table.LoadedModels:
+        """The model sets the table's ``method`` needs, each loaded once from ``models_dir`` by its own loader."""
+        sets: dict[str, Any] = {}
+        for name in table.get(method).model_sets:
+            key = (models_dir.resolve() / f"<{name}>")
+            if key not in self._loaded:
+                self._loaded[key] = table.resolve(table.MODEL_SETS[name].loader)(models_dir)
+            sets[name] = self._loaded[key]
+        return table.LoadedModels(**sets)
 
     def get(self, folder: Path, fused: bool = False) -> Any:
         """The folder's network models, or with ``fused`` its fused blend models (model.fused)."""
@@ -744,9 +761,8 @@ class MethodContext:
 
 def run_method(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
     """Run one method; ModelError for a model that exists but cannot be served."""
-    runner = {"primal": _run_primal, "poisson": _run_poisson, "network": _run_network, "recon": _run_recon,
-              "fused": _run_fused, "path": _run_path, "oidn": _run_oidn, "sep-oidn": _run_sep_oidn,
-              "gpt-equal": _run_gpt_equal}[spec.kind]
+    runner = {"primal": _run_primal, "network": _run_network, "recon": _run_recon, "path": _run_path,
+              "oidn": _run_oidn, "sep-oidn": _run_sep_oidn, "gpt-equal": _run_gpt_equal}[spec.kind]
     return runner(spec, ctx)
 
 
@@ -754,16 +770,6 @@ def _run_primal(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
     layers = {name: _sanitise(layer.base) for name, layer in ctx.frame.layers.items()}
     image = _sanitise(sum(layers.values()))
     return MethodOutput(image, layers, ctx.render_seconds, 0.0, ctx.spp)
-
-
-def _run_poisson(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
-    from gradsep.model.reconstruct import reconstruct
-
-    start = time.perf_counter()
-    result = reconstruct(ctx.frame, str(spec.poisson), ctx.alpha)
-    seconds = time.perf_counter() - start
-    return MethodOutput(result.image, result.layers, ctx.render_seconds, seconds, ctx.spp,
-                        extra={"alpha": ctx.alpha}, warnings=list(result.warnings))
 
 
 def _run_network(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
@@ -775,7 +781,7 @@ def _run_network(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
     shape = (frame.height, frame.width)
     if spec.separated:
         def run() -> Any:
-            return reconstruct(frame, "network", network=network)
+            return reconstruct(frame, "network", models=table.LoadedModels(network=network))
 
         ctx.networks.warm_up(folder, run, "separated", shape)
         start = time.perf_counter()
@@ -795,37 +801,25 @@ def _run_network(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
 
 
 def _run_recon(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
-    """A model.reconstruct method that needs no network object (``oidn``: OIDN per layer of the G-PT frame)."""
+    """``reconstruct(frame, method)`` with the model sets the method needs (model/methods.py). A method that needs
+    models or OIDN is run once untimed per frame size first (ONNX Runtime's allocation on a new shape, the OIDN
+    device); a model that exists but cannot be served raises ModelError at load."""
     from gradsep.model.reconstruct import reconstruct
 
-    def run() -> Any:
-        return reconstruct(ctx.frame, str(spec.poisson))
+    method = table.get(str(spec.method))
+    models = ctx.networks.loaded(ctx.models_dir, method.name)
 
-    ctx.networks.warm_up(ctx.models_dir, run, f"recon:{spec.poisson}", (ctx.frame.height, ctx.frame.width))
+    def run() -> Any:
+        return reconstruct(ctx.frame, method.name, ctx.alpha, models)
+
+    if method.models:
+        folder = ctx.models_dir / (spec.models or "")
+        ctx.networks.warm_up(folder, run, f"recon:{method.name}", (ctx.frame.height, ctx.frame.width))
     start = time.perf_counter()
     result = run()
     seconds = time.perf_counter() - start
     return MethodOutput(result.image, result.layers, ctx.render_seconds, seconds, ctx.spp,
-                        warnings=list(result.warnings))
-
-
-def _run_fused(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
-    """``reconstruct(frame, "fused", fused=<model.fused.FusedReconstructor of models/fused/>)``; a model of
-    another kind there is refused at load (ModelError)."""
-    from gradsep.model.reconstruct import reconstruct
-
-    folder = ctx.models_dir / str(spec.models)
-    fused = ctx.networks.get(folder, fused=True)
-
-    def run() -> Any:
-        return reconstruct(ctx.frame, "fused", fused=fused)
-
-    ctx.networks.warm_up(folder, run, "fused", (ctx.frame.height, ctx.frame.width))
-    start = time.perf_counter()
-    result = run()
-    seconds = time.perf_counter() - start
-    return MethodOutput(result.image, result.layers, ctx.render_seconds, seconds, ctx.spp,
-                        warnings=list(result.warnings))
+                        extra={"alpha": ctx.alpha} if method.alpha else {}, warnings=list(result.warnings))
 
 
 def _budget(ctx: MethodContext) -> float:
@@ -868,9 +862,9 @@ def _run_sep_oidn(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
 
 
 def _run_gpt_equal(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
-    """Our G-PT render (``--gradients direct``, :data:`EQUAL_TIME_OFFSETS`) reconstructed with ``spec.poisson``
+    """Our G-PT render (``--gradients direct``, :data:`EQUAL_TIME_OFFSETS`) reconstructed with ``spec.method``
     (``oidn-l1``), render + reconstruction bisected to the budget like the baselines'."""
-    return _run_frame_within(spec, ctx, "gpt-direct", str(spec.poisson))
+    return _run_frame_within(spec, ctx, "gpt-direct", str(spec.method))
 
 
 def _run_frame_within(spec: MethodSpec, ctx: MethodContext, kind: str, method: str) -> MethodOutput:

@@ -25,7 +25,7 @@ from gradsep.evaluation.results import row_seconds
 from gradsep.model.frame import write_bytes_atomic
 from gradsep.model.metrics import tonemap
 
-__all__ = ["METHOD_STYLES", "exposure_for", "plot_crops", "plot_error_vs_time", "select_crop"]
+__all__ = ["METHOD_STYLES", "exposure_for", "plot_crops", "plot_error_vs_time", "select_crop", "style_of"]
 
 _LUMINANCE = np.array([0.2126, 0.7152, 0.0722], dtype=np.float64)
 
@@ -48,6 +48,21 @@ METHOD_STYLES: dict[str, tuple[str, str, str]] = {
     "fused": ("#000000", "-", "*"),
     "gpt-oidn-l1": ("#ff7f0e", "--", "v"),
 }
+
+
+#: Styles of methods without an entry above (a method added to the table), picked by name so each keeps its own.
+_FALLBACK_COLOURS = ("#8dd3c7", "#fb8072", "#80b1d3", "#fdb462", "#b3de69", "#fccde5", "#bc80bd", "#ccebc5")
+_FALLBACK_MARKERS = ("o", "s", "^", "v", "D", "P", "X", "*")
+
+
+def style_of(method: str) -> tuple[str, str, str]:
+    """(colour, line style, marker) of ``method``: its entry in METHOD_STYLES, else one derived from its name."""
+    if method in METHOD_STYLES:
+        return METHOD_STYLES[method]
+    import zlib
+
+    h = zlib.crc32(method.encode())
+    return _FALLBACK_COLOURS[h % len(_FALLBACK_COLOURS)], "-", _FALLBACK_MARKERS[(h >> 8) % len(_FALLBACK_MARKERS)]
 
 
 def _figure(figsize: tuple[float, float]) -> Any:
@@ -84,7 +99,7 @@ def plot_error_vs_time(scene: str, rows: Sequence[Mapping[str, Any]], labels: Ma
         items = sorted(items, key=lambda r: int(r["spp"]))
         x = [max(row_seconds(r), 1e-4) for r in items]  # an interpolated row stands at its budget
         y = [max(float(r["relmse"]), bottom) for r in items]
-        colour, style, marker = METHOD_STYLES.get(method, ("black", "-", "o"))
+        colour, style, marker = style_of(method)
         thin = method.startswith("ablation/")
         ax.plot(x, y, linestyle=style, marker=marker, color=colour, linewidth=1.0 if thin else 1.8,
                 markersize=4 if thin else 6, label=labels.get(method, method))

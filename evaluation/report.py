@@ -23,8 +23,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from gradsep.evaluation.cache import slug
-from gradsep.evaluation.config import CROP_METHODS, EvalSettings
-from gradsep.evaluation.methods import ABLATION_VARIANTS, METHODS
+from gradsep.evaluation.config import EvalSettings, crop_methods
+from gradsep.evaluation.methods import ABLATION_VARIANTS, evaluated_methods
 from gradsep.evaluation.plots import plot_crops, plot_error_vs_time
 from gradsep.evaluation.references import REFERENCE_SAMPLER
 from gradsep.evaluation.results import machine_summary, row_seconds
@@ -43,13 +43,17 @@ CSV_COLUMNS: tuple[str, ...] = (
     "budget_method", "attempts", "feature_spp", "time_note", "gradients", "time_interpolated", "seeds",
     "relmse_stderr",
 )
-LABELS: dict[str, str] = {m.name: m.label for m in METHODS}
-TABLE1: tuple[tuple[str, str], ...] = (("gpt-primal", "Input"), ("l1", "L1"), ("gradnet", "GradNet-style"),
-                                       ("ours", "Ours"), ("oidn", "G-PT + OIDN per layer"),
-                                       ("oidn-l1", "OIDN + gradients (direct)"), ("fused", "Fused"),
-                                       ("path-oidn", "path + OIDN (equal time)"),
-                                       ("path-sep-oidn", "sep. path + OIDN per layer (equal time)"),
-                                       ("gpt-oidn-l1", "G-PT + oidn-l1 (equal time)"))
+def labels() -> dict[str, str]:
+    """Every evaluated method's label (evaluation.methods, which reads the table of methods)."""
+    return {m.name: m.label for m in evaluated_methods()}
+
+
+def table1() -> tuple[tuple[str, str], ...]:
+    """The rows of Table 1, (method, short label): the methods the crops show, in their order."""
+    short = {m.name: m.short or m.label for m in evaluated_methods()}
+    return tuple((name, short.get(name, name)) for name in crop_methods())
+
+
 #: (metric, header, higher is better)
 TABLE1_METRICS: tuple[tuple[str, str, bool], ...] = (("ssim", "SSIM ↑", True), ("relmse", "RelMSE ↓", False),
                                                      ("flip", "FLIP ↓", False), ("psnr", "PSNR dB ↑", True))
@@ -87,11 +91,11 @@ def write_outputs(evaluation: Evaluation) -> dict[str, Path]:
         name = scene.entry.name
         scene_rows = [r for r in evaluation.rows if r["scene"] == name]
         if scene_rows:
-            paths[f"plot:{name}"] = plot_error_vs_time(name, scene_rows, LABELS, out / "plots" / f"{slug(name)}.png",
+            paths[f"plot:{name}"] = plot_error_vs_time(name, scene_rows, labels(), out / "plots" / f"{slug(name)}.png",
                                                        scene.floor.get("total"))
         table = _by_method(scene_rows, evaluation.config.crop_spp)
         metrics = {m: float(r["relmse"]) for m, r in table.items()}
-        paths[f"crop:{name}"] = plot_crops(name, scene.reference, scene.crop_images, CROP_METHODS, _crop_labels(),
+        paths[f"crop:{name}"] = plot_crops(name, scene.reference, scene.crop_images, crop_methods(), _crop_labels(),
                                            metrics, evaluation.config.crop_spp, out / "crops" / f"{slug(name)}.png")
     paths["json"] = out / "results.json"
     write_bytes_atomic(paths["json"], json.dumps(_summary(evaluation), indent=1, default=str).encode())
@@ -101,11 +105,7 @@ def write_outputs(evaluation: Evaluation) -> dict[str, Path]:
 
 
 def _crop_labels() -> dict[str, str]:
-    return {"gpt-primal": "Input (G-PT)", "l1": "L1", "gradnet": "GradNet-style", "ours": "Ours",
-            "oidn": "G-PT + OIDN", "oidn-l1": "OIDN + gradients", "fused": "Fused",
-            "path-oidn": "path + OIDN", "path-sep-oidn": "sep. path + OIDN/layer",
-            "gpt-oidn-l1": "G-PT + oidn-l1 (equal time)",
-            "reference": "Reference (mean of 2)"}
+    return {**dict(table1()), "reference": "Reference (mean of 2)"}
 
 
 def _summary(evaluation: Evaluation) -> dict[str, Any]:
@@ -268,7 +268,7 @@ def render_report(evaluation: Evaluation) -> str:
     for scene in evaluation.scenes:
         lines.append(f"![{scene.entry.name}: RelMSE against time](plots/{slug(scene.entry.name)}.png)")
     lines += ["", f"## Crop comparison ({spp} spp)", "",
-              ", ".join(_crop_labels().get(m, m) for m in CROP_METHODS) + " (equal-time methods at their "
+              ", ".join(_crop_labels().get(m, m) for m in crop_methods()) + " (equal-time methods at their "
               "equal-time spp), and the reference. All panels share one exposure (the reference's "
               "99th-percentile luminance maps to 1), then clip to "
               "[0, 1] and gamma 2.2. The crop is the square window of the reference with the most (smoothed) "
@@ -317,7 +317,7 @@ def _provenance(evaluation: Evaluation) -> list[str]:
     lines += ["", "Skipped methods:", ""]
     if evaluation.skipped:
         for method, reasons in evaluation.skipped.items():
-            lines.append(f"- **{method}** ({LABELS.get(method, method)}): " + "; ".join(reasons))
+            lines.append(f"- **{method}** ({labels().get(method, method)}): " + "; ".join(reasons))
     else:
         lines.append("- none")
     return [*lines, ""]
@@ -339,9 +339,9 @@ def _table1(evaluation: Evaluation, spp: int) -> list[str]:
         table = _by_method((r for r in evaluation.rows if r["scene"] == scene.entry.name), spp)
         cells = {}
         for metric, _, higher in TABLE1_METRICS:
-            values = {m: (float(table[m][metric]) if m in table else None) for m, _ in TABLE1}
+            values = {m: (float(table[m][metric]) if m in table else None) for m, _ in table1()}
             cells[metric] = _bold_best(values, higher)
-        for i, (method, label) in enumerate(TABLE1):
+        for i, (method, label) in enumerate(table1()):
             name = scene.entry.name if i == 0 else ""
             shown = label if method in table else f"{label} (skipped)"
             lines.append(f"| {name} | {shown} | " + " | ".join(cells[m][method] for m, _, _ in TABLE1_METRICS) + " |")
@@ -480,7 +480,7 @@ def _equal_time(evaluation: Evaluation) -> list[str]:
              f"Each equal-time method's spp is {_search_method(evaluation.rows)} until its measured total time "
              "(render, feature pass and denoising) is within ±5 % of the time of the G-PT render + the "
              "reconstruction by the product's default method for a G-PT frame (the first of "
-             "model.policy.DEFAULT_PREFERENCE that ran; ours, then L1, when none did; column *budget*): a line "
+             "the methods table's default preference that ran; ours, then L1, when none did; column *budget*): a line "
              "time = overhead + per-spp cost is fitted to the renders already measured and solved for the budget "
              "(a secant step; bisection of the closest bracket when the line points at a tried spp), tries under "
              "2 s or off the line's prediction by over 15 % are timed three times and their median used, at most "
@@ -595,7 +595,7 @@ def _table1_losses(evaluation: Evaluation, spp: int) -> list[str]:
             continue
         for metric, header, higher in TABLE1_METRICS:
             ours = float(table["ours"][metric])
-            better = [(label, float(table[m][metric])) for m, label in TABLE1 if m != "ours" and m in table
+            better = [(label, float(table[m][metric])) for m, label in table1() if m != "ours" and m in table
                       and (float(table[m][metric]) > ours if higher else float(table[m][metric]) < ours)]
             if better:
                 who = ", ".join(f"{label} {_fmt(v)}" for label, v in better)
@@ -607,8 +607,8 @@ def _table1_losses(evaluation: Evaluation, spp: int) -> list[str]:
 
 
 def _targets(rows: Sequence[Mapping[str, Any]]) -> list[str]:
-    """Issue 5's quality target at 16 and 64 spp: RelMSE(ours) < RelMSE(L1) < RelMSE(G-PT primal)."""
-    lines = ["Quality target of issue 5 (RelMSE ours < L1 < input, per scene):", ""]
+    """The paper's quality ordering at 16 and 64 spp: RelMSE(ours) < RelMSE(L1) < RelMSE(G-PT primal)."""
+    lines = ["Quality target (RelMSE ours < L1 < input, per scene):", ""]
     found = False
     for scene in dict.fromkeys(str(r["scene"]) for r in rows):
         for spp in (16, 64):
@@ -623,7 +623,7 @@ def _targets(rows: Sequence[Mapping[str, Any]]) -> list[str]:
     return [*lines, ""]
 
 
-#: Issue 14's first target: ``fused`` below each of these on every scene at 16 and 64 spp.
+#: The fused method's target: below each of these on every scene at 16 and 64 spp.
 FUSED_RIVALS: tuple[str, ...] = ("oidn", "l1", "ours")
 
 
@@ -633,10 +633,12 @@ def _ratio_cell(value: float, rival: float) -> str:
 
 
 def _fused_and_equal_time_targets(rows: Sequence[Mapping[str, Any]]) -> list[str]:
-    """Issue 14's targets from the rows, at 16 and 64 spp: ``fused`` below ``oidn``, ``l1`` and ``ours`` (the
-    paper's network) per scene; at equal time, the best G-PT row within ±5 % of the budget (the budget method's own
-    row and G-PT+oidn-l1) below path + OIDN, and (stretch) below separated path + OIDN per layer."""
-    lines = ["Targets of issue 14 (RelMSE, per scene, at 16 and 64 spp; a multi-seed row counts by its mean):", ""]
+    """The fused and equal-time targets from the rows, at 16 and 64 spp: ``fused`` below ``oidn``, ``l1`` and
+    ``ours`` (the paper's network) per scene; at equal time, the best G-PT row within ±5 % of the budget (the
+    budget method's own row and G-PT+oidn-l1) below path + OIDN, and (stretch) below separated path + OIDN per
+    layer."""
+    lines = ["Fused and equal-time targets (RelMSE, per scene, at 16 and 64 spp; a multi-seed row counts by its "
+             "mean):", ""]
     found = False
     for scene in dict.fromkeys(str(r["scene"]) for r in rows):
         for spp in (16, 64):
@@ -676,7 +678,7 @@ def _relmse_tables(evaluation: Evaluation) -> list[str]:
     for scene in evaluation.scenes:
         scene_rows = [r for r in evaluation.rows if r["scene"] == scene.entry.name]
         spps = sorted({int(r["spp"]) for r in scene_rows})
-        methods = [m.name for m in METHODS if any(r["method"] == m.name for r in scene_rows)]
+        methods = [m.name for m in evaluated_methods() if any(r["method"] == m.name for r in scene_rows)]
         lines += [f"### {scene.entry.name}", "", "| Method | " + " | ".join(f"{s} spp" for s in spps) + " |",
                   "|---|" + "---:|" * len(spps)]
         for method in methods:
@@ -686,7 +688,7 @@ def _relmse_tables(evaluation: Evaluation) -> list[str]:
                 star = "*" if r is not None and r.get("time_interpolated") else ""
                 cell = f"{_fmt(r['relmse'])}{_stderr(r)} / {_fmt(row_seconds(r), 3)} s{star}" if r else "–"
                 cells.append(cell)
-            lines.append(f"| {LABELS.get(method, method)} | " + " | ".join(cells) + " |")
+            lines.append(f"| {labels().get(method, method)} | " + " | ".join(cells) + " |")
         lines.append("")
     return lines
 

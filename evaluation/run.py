@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 
 from gradsep.evaluation.cache import EvalCache, file_sha256, key_hash, sources_sha256
-from gradsep.evaluation.config import CROP_METHODS, FLOOR_FRACTION, EvalConfig, SceneEntry, resolve_scenes
+from gradsep.evaluation.config import FLOOR_FRACTION, EvalConfig, SceneEntry, crop_methods, resolve_scenes
 from gradsep.evaluation.methods import (
     EQUAL_TIME_KINDS,
     METHOD_SOURCES,
@@ -55,10 +55,11 @@ from gradsep.evaluation.references import (
 from gradsep.evaluation.region import Region
 from gradsep.evaluation.results import Evaluation, SceneRun, machine_summary, row_seconds
 from gradsep.model.errors import CommandError
+from gradsep.model.methods import get as table_method
 from gradsep.model.policy import SEPARATED_LAYERS
 from gradsep.model.progress import ProgressBar
 
-__all__ = ["CROP_METHODS", "Evaluation", "SceneRun", "machine_summary", "run_evaluation"]
+__all__ = ["Evaluation", "SceneRun", "machine_summary", "run_evaluation"]
 
 #: The code that renders a frame / a reference pass (by code, evaluation.cache.code_sha256). Not
 #: renderer/procedural.py: a procedural scene is keyed by its seed, family and GENERATOR_VERSION (evaluation.config),
@@ -399,12 +400,13 @@ def _mitsuba_id() -> str:
 
 def _budget_method(rows: dict[str, dict[str, Any]]) -> str | None:
     """The method whose total time is the equal-time budget: the product's default for a G-PT frame (the first
-    of model.policy.DEFAULT_PREFERENCE that ran; its ``network`` is the evaluation's ``ours``), else ours, else
-    L1 (None: the G-PT render alone)."""
-    from gradsep.model import policy
+    of the methods table's default preference that ran; its ``network`` is the evaluation's ``ours``), else ours,
+    else L1 (None: the G-PT render alone)."""
+    from gradsep.evaluation.methods import evaluation_name
+    from gradsep.model import methods as table
 
-    for method in (*policy.DEFAULT_PREFERENCE, "network", "l1"):
-        name = "ours" if method == "network" else method
+    for method in (*table.default_preference(), "network", "l1"):
+        name = evaluation_name(method)
         if name in rows:
             return name
     return None
@@ -492,7 +494,7 @@ def _run_scene(runner: _Runner, entry: SceneEntry, loaded: Any, methods: list[Me
     rows = []
     for out in outputs:
         rows.append(runner.row(out, scene, pair))
-        if out.spp == config.crop_spp and out.spec.name in CROP_METHODS:
+        if out.spp == config.crop_spp and out.spec.name in crop_methods():
             scene.crop_images[out.spec.name] = out.image
     bar.update()
     return scene, rows
@@ -675,7 +677,7 @@ def _evaluate_one(runner: _Runner, spec: MethodSpec, scene: SceneRun, spp: int, 
         return None
     key: dict[str, Any] = {"format": RESULT_FORMAT, "method": spec.name, "frame": frame_tag, "models": shas,
                            "code": runner.method_code, **oidn_key()}
-    if spec.kind == "poisson":
+    if spec.kind == "recon" and table_method(str(spec.method)).alpha:
         key["alpha"] = c.alpha
     ctx = MethodContext(frame=frame, render_seconds=seconds, spp=spp, seed=_derived_seed(c.seed, 3, spp),
                         alpha=c.alpha, models_dir=c.models_dir, networks=runner.networks, path=get_path)

@@ -18,9 +18,10 @@ from pathlib import Path
 import numpy as np
 
 from gradsep.model.frame import read_frame
+from gradsep.model.methods import LoadedModels
+from gradsep.model.methods import names as method_names
 from gradsep.model.metrics import psnr, relmse
-from gradsep.model.policy import preference_order
-from gradsep.model.reconstruct import available_methods, load_fused, load_network, reconstruct
+from gradsep.model.reconstruct import available_methods, reconstruct, unavailable_reason
 from gradsep.renderer.reference import load_reference
 
 HERE = Path(__file__).resolve().parent
@@ -30,24 +31,22 @@ ROOT = HERE.parent
 def main() -> int:
     frame = read_frame(HERE / "cbox-16spp.exr")
     reference = load_reference(HERE / "cbox-reference.exr").total
-    network, fused = load_network(ROOT / "models"), load_fused(ROOT / "models")
+    models = LoadedModels.load(ROOT / "models")
     print(f"example: {frame.width}x{frame.height} frame, layers {', '.join(frame.layers)}, "
           f"{frame.metadata.get('gradsep.spp', '?')} spp; reference {reference.shape[1]}x{reference.shape[0]}")
     print(f"{'method':<10} {'RelMSE':>9} {'PSNR dB':>8} {'seconds':>8}")
     primal = frame.combined().base
     print(f"{'input':<10} {relmse(primal, reference):9.4f} {psnr(primal, reference):8.2f} {'-':>8}")
-    methods = sorted(available_methods(frame, network, fused), key=preference_order().index)
+    methods = available_methods(frame, models)  # the methods table's default preference, best first
     for method in methods:
         start = time.perf_counter()
-        result = reconstruct(frame, method, network=network, fused=fused)
+        result = reconstruct(frame, method, models=models)
         seconds = time.perf_counter() - start
         image = result.image
         assert np.isfinite(image).all()
         print(f"{method:<10} {relmse(image, reference):9.4f} {psnr(image, reference):8.2f} {seconds:8.2f}")
-    if "network" not in methods:
-        print("(no network models in models/ serve this frame; they did not run)")
-    if "oidn" not in methods:
-        print("(pyoidn is not installed: oidn and fused did not run)")
+    for name in (n for n in method_names() if n not in methods):
+        print(f"({name} did not run: {unavailable_reason(name, frame, models)})")
     return 0
 
 

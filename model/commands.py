@@ -13,26 +13,20 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import gradsep.model.methods as table
 from gradsep.model.channels import DEFAULT_LAYOUT, LAYOUT_CHOICES
 from gradsep.model.errors import CommandError
-from gradsep.model.policy import (
-    DEFAULT_ALPHA,
-    DEFAULT_PREFERENCE,
-    METHODS,
-    MODELS_ENV,
-    POISSON_METHODS,
-    models_dir_from,
-)
+from gradsep.model.policy import DEFAULT_ALPHA, MODELS_ENV, models_dir_from
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("reconstruct", help="reconstruct a frame's illumination layers and write their sum")
     p.add_argument("frame", help="input frame (.exr) per docs/frame-format.md")
     p.add_argument("-o", "--output", required=True, help="output .exr (R G B, plus layers with --layers)")
-    p.add_argument("--method", choices=METHODS, default=None,
-                   help="reconstruction method (default: the best that serves the frame -- "
-                        + " > ".join(DEFAULT_PREFERENCE) + "; a plain frame without gradients gets oidn)")
-    p.add_argument("--alpha", type=float, default=DEFAULT_ALPHA, help="screened Poisson data weight (l1/l2)")
+    p.add_argument("--method", choices=table.names(), default=None,
+                   help="reconstruction method (" + table.help_text() + ")")
+    p.add_argument("--alpha", type=float, default=DEFAULT_ALPHA, help="screened Poisson data weight (methods "
+                   + "/".join(m.name for m in table.methods() if m.alpha) + ")")
     p.add_argument("--half", action="store_true", help="write half floats instead of float32")
     p.add_argument("--layers", action="store_true", help="also write each reconstructed layer (direct.R, ...)")
     p.add_argument("--models", default=None, help=f"folder of exported models (default: ${MODELS_ENV} or models/)")
@@ -56,20 +50,20 @@ def _check_output(path: Path) -> None:
         raise CommandError(f"output folder {str(folder)!r} is not writable")
 
 
-def _resolve_models(models: str | None, method: str | None) -> tuple[Any, Any]:
-    """(network, fused) for the named method (required) or for the default (optional); Nones otherwise."""
-    from gradsep.model.reconstruct import FUSED_SUBDIR, load_fused, load_network
-
+def _resolve_models(models: str | None, method: str | None) -> Any:
+    """The loaded models (model.methods.LoadedModels) of the named method (required: a missing set is an error
+    naming its folder) or of every method (for the default: optional)."""
     folder = models_dir_from(models)
-    network = load_network(folder) if method in (None, "network") else None
-    fused = load_fused(folder) if method in (None, "fused") else None
-    if network is None and method == "network":
-        raise CommandError(f"--method network needs exported models, but none were found in {str(folder)!r} "
-                           f"(set --models or ${MODELS_ENV}, or use --method oidn or l1)")
-    if fused is None and method == "fused":
-        raise CommandError(f"--method fused needs the fused models in {str(folder / FUSED_SUBDIR)!r} and pyoidn; "
-                           f"one of them is missing (set --models or ${MODELS_ENV}, or use --method oidn)")
-    return network, fused
+    wanted = table.get(method).models if method is not None else tuple(table.MODEL_SETS)
+    loaded = table.LoadedModels.load(folder, wanted)
+    for name in loaded.missing(table.get(method)) if method is not None else ():
+        model_set = table.MODEL_SETS[name]
+        if model_set.folder is None:  # a runtime library, not a models folder
+            raise CommandError(f"--method {method} needs {model_set.description}, which is not installed here")
+        raise CommandError(f"--method {method} needs {model_set.description}, but none was found in "
+                           f"{str(folder / model_set.folder)!r} (set --models or ${MODELS_ENV}, or use another "
+                           "--method)")
+    return loaded
 
 
 def reconstruct_command(args: argparse.Namespace) -> int:
@@ -96,9 +90,9 @@ def reconstruct_command(args: argparse.Namespace) -> int:
 
     OpenEXR.set_global_thread_count(os.cpu_count() or 1)  # (de)compress line blocks on every core (no pool by default)
     frame = read_frame(args.frame, nonfinite=args.nonfinite, layout=layout)
-    network, fused = _resolve_models(getattr(args, "models", None), args.method)
+    models = _resolve_models(getattr(args, "models", None), args.method)
     try:
-        result = reconstruct(frame, args.method, alpha, network=network, fused=fused)
+        result = reconstruct(frame, args.method, alpha, models)
     except ValueError as exc:
         if isinstance(exc, FrameError):
             raise
@@ -111,7 +105,7 @@ def reconstruct_command(args: argparse.Namespace) -> int:
             channels.update(rgb_channels(name, image))
     metadata = {"gradsep.method": method, "gradsep.layers": ",".join(result.layers),
                 "gradsep.source": Path(args.frame).name}
-    if method in POISSON_METHODS:
+    if table.get(method).alpha:
         metadata["gradsep.alpha"] = f"{alpha:g}"
     warnings = [*frame.warnings, *result.warnings]
     data = encode_answer(frame, channels, half=bool(args.half), metadata=metadata, warnings=warnings)

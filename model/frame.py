@@ -7,8 +7,9 @@ A frame is a single-part scanline OpenEXR file (float32 or half, any compression
   ``L.dx.{R,G,B}``, ``L.dy.{R,G,B}`` (a plain path-traced frame carries the base alone; each layer has its
   three base channels or all nine, so a frame may carry gradients on some layers only, e.g. ``gradsep render
   --gradients direct``: the direct layer's gradients and a plain indirect layer);
-* features: ``albedo.{R,G,B}`` in [0, 1], ``normal.{X,Y,Z}`` unit camera-space normals, ``depth.Z`` distance in
-  scene units (0 where the camera ray missed);
+* features, three optional groups, each all three (or one) of its channels or none: ``albedo.{R,G,B}`` in
+  [0, 1], ``normal.{X,Y,Z}`` unit camera-space normals, ``depth.Z`` distance in scene units (0 where the camera ray
+  missed). Which method uses or needs which group is declared in model/methods.py;
 * optionally ``A``, alpha, carried through to the output unchanged.
 
 Files from other renderers (a single-layer ``R G B [A]`` beauty pass, Mitsuba's aov integrator, a Blender Cycles
@@ -45,7 +46,7 @@ import numpy as np
 import OpenEXR
 
 from gradsep.model.channels import ALPHA, DEFAULT_LAYOUT, ChannelMap, LayoutError, map_channels
-from gradsep.model.policy import ILLUMINATION_LAYERS, SEPARATED_LAYERS
+from gradsep.model.policy import FEATURE_GROUPS, ILLUMINATION_LAYERS, SEPARATED_LAYERS
 
 # ---------------------------------------------------------------------------------------------------------------
 # Channel names: data, not code
@@ -54,11 +55,7 @@ from gradsep.model.policy import ILLUMINATION_LAYERS, SEPARATED_LAYERS
 # The layer names are the contract's constants (model/policy.py, import-light for the argument parsers).
 RGB: tuple[str, ...] = ("R", "G", "B")
 GRADIENTS: tuple[str, ...] = ("dx", "dy")
-FEATURE_GROUPS: dict[str, tuple[str, ...]] = {
-    "albedo": ("albedo.R", "albedo.G", "albedo.B"),
-    "normal": ("normal.X", "normal.Y", "normal.Z"),
-    "depth": ("depth.Z",),
-}
+# FEATURE_GROUPS (group -> its channels) is a contract constant too (model/policy.py, import-light).
 FEATURE_CHANNELS: tuple[str, ...] = tuple(c for group in FEATURE_GROUPS.values() for c in group)
 # Prefixes this contract owns: a channel under one of them that is not a contract channel is a producer bug and
 # is rejected; channels outside them (a renderer's extra AOVs) are ignored with a warning; "A" is alpha.
@@ -164,11 +161,28 @@ class Layer:
 
 @dataclass
 class Features:
-    """Auxiliary features at the first non-specular vertex, float32."""
+    """Auxiliary features at the first non-specular vertex, float32. Each group is optional (None: the frame does
+    not carry it); a method that needs a group is refused for a frame without it (model/methods.py)."""
 
-    albedo: np.ndarray  # (H, W, 3) in [0, 1]
-    normal: np.ndarray  # (H, W, 3) unit camera-space normals
-    depth: np.ndarray  # (H, W) distance in scene units, 0 where the camera ray missed
+    albedo: np.ndarray | None = None  # (H, W, 3) in [0, 1]
+    normal: np.ndarray | None = None  # (H, W, 3) unit camera-space normals
+    depth: np.ndarray | None = None  # (H, W) distance in scene units, 0 where the camera ray missed
+
+    @property
+    def groups(self) -> tuple[str, ...]:
+        """The groups present, in FEATURE_GROUPS order."""
+        return tuple(g for g in FEATURE_GROUPS if getattr(self, g) is not None)
+
+    def only(self, groups: Iterable[str]) -> Features | None:
+        """These features restricted to ``groups`` (what a method declares it uses); None when none is left."""
+        keep = set(groups)
+        out = Features(**{g: getattr(self, g) if g in keep else None for g in FEATURE_GROUPS})
+        return out if out.groups else None
+
+
+def feature_groups(features: Features | None) -> tuple[str, ...]:
+    """The feature groups a frame carries (``frame.features`` may be None: none)."""
+    return () if features is None else features.groups
 
 
 @dataclass
@@ -218,11 +232,10 @@ class Frame:
             if layer.dx is not None and layer.dy is not None:
                 out.update(rgb_channels(f"{name}.dx", layer.dx))
                 out.update(rgb_channels(f"{name}.dy", layer.dy))
-        if self.features is not None:
-            f = self.features
-            out.update(zip(FEATURE_GROUPS["albedo"], np.moveaxis(f.albedo, -1, 0), strict=True))
-            out.update(zip(FEATURE_GROUPS["normal"], np.moveaxis(f.normal, -1, 0), strict=True))
-            out["depth.Z"] = f.depth
+        for group in feature_groups(self.features):
+            image = getattr(self.features, group)
+            planes = np.moveaxis(image, -1, 0) if image.ndim == 3 else image[None]
+            out.update(zip(FEATURE_GROUPS[group], planes, strict=True))
         if self.alpha is not None:
             out[ALPHA] = self.alpha
         return {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in out.items()}
@@ -508,12 +521,13 @@ def has_gradient_channels(names: Iterable[str], layer: str | None = None) -> boo
     return any(n.split(".")[1:2] in (["dx"], ["dy"]) and n.split(".", 1)[0] in layers for n in names)
 
 
-def validate_channels(names: Iterable[str]) -> tuple[list[str], bool, list[str]]:
-    """Check channel names against the contract; return (layers, has_features, warnings) or raise ChannelError.
+def validate_channels(names: Iterable[str]) -> tuple[list[str], tuple[str, ...], list[str]]:
+    """Check channel names against the contract; return (layers, feature groups, warnings) or raise ChannelError.
 
     Each layer is its three base channels (a plain layer) or, when it has any gradient channel, its nine channels;
-    the layers of one frame may differ (gradients on the direct layer only). Every problem is collected and
-    reported together, naming the channels, so a producer fixes them in one go.
+    the layers of one frame may differ (gradients on the direct layer only). Each feature group is optional and
+    all-or-nothing. Every problem is collected and reported together, naming the channels, so a producer fixes
+    them in one go.
     """
     names = list(names)
     present = set(names)
@@ -525,9 +539,9 @@ def validate_channels(names: Iterable[str]) -> tuple[list[str], bool, list[str]]
         details["unknown"] = sorted(unknown)
     missing = [c for layer in layers for c in layer_channels(layer, has_gradient_channels(names, layer))
                if c not in present]
-    groups = [g for g, chans in FEATURE_GROUPS.items() if any(c in present for c in chans)]
-    if groups:  # features are all-or-nothing: a partial set means the producer dropped something
-        missing += [c for chans in FEATURE_GROUPS.values() for c in chans if c not in present]
+    groups = tuple(g for g, chans in FEATURE_GROUPS.items() if any(c in present for c in chans))
+    # each group is all-or-nothing: albedo.R without albedo.G means the producer dropped a channel
+    missing += [c for g in groups for c in FEATURE_GROUPS[g] if c not in present]
     if missing:
         problems.append(f"missing channels {', '.join(missing)}")
         details["missing"] = missing
@@ -541,7 +555,7 @@ def validate_channels(names: Iterable[str]) -> tuple[list[str], bool, list[str]]
     if problems:
         raise ChannelError("; ".join(problems), details)
     warnings = [f"ignored channels outside the frame contract: {', '.join(sorted(foreign))}"] if foreign else []
-    return layers, bool(groups), warnings
+    return layers, groups, warnings
 
 
 def _sanitize(channels: dict[str, np.ndarray], names: Iterable[str], policy: NonFinitePolicy,
@@ -589,8 +603,9 @@ def read_frame(source: Source, *, limits: ReadLimits = ReadLimits(),
         raise ValueError(f"nonfinite must be one of {NONFINITE_POLICIES}, got {nonfinite!r}")
     info = read_header(source, limits)
     cmap = map_frame_channels(info.channels, layout)  # contract name -> the file's channel
-    layers, has_features, warnings = validate_channels(cmap.names)
+    layers, groups, warnings = validate_channels(cmap.names)
     warnings += cmap.warnings()
+    feature_channels = [c for g in groups for c in FEATURE_GROUPS[g]]
     gradients = {layer: has_gradient_channels(cmap.names, layer) for layer in layers}
 
     # OpenEXR's own guard, in case a header trick slips past the check above; process-wide but fixed per config.
@@ -599,11 +614,11 @@ def read_frame(source: Source, *, limits: ReadLimits = ReadLimits(),
     decoded = exr.channels()
     channels: dict[str, np.ndarray] = {}
     wanted = [c for layer in layers for c in layer_channels(layer, gradients[layer])]
-    for name in (*wanted, *(FEATURE_CHANNELS if has_features else ())):
+    for name in (*wanted, *feature_channels):
         channels[name] = _decoded(decoded, cmap.sources[name], info)
 
     _sanitize(channels, wanted, nonfinite, warnings)
-    for name in FEATURE_CHANNELS if has_features else ():
+    for name in feature_channels:
         np.nan_to_num(channels[name], copy=False, nan=0.0, posinf=0.0, neginf=0.0)
     warnings += _negative_radiance_warning(channels, layers)
     alpha = None if cmap.alpha is None else _decoded(decoded, cmap.alpha, info)
@@ -619,8 +634,9 @@ def read_frame(source: Source, *, limits: ReadLimits = ReadLimits(),
         frame_layers[layer] = (Layer(stack(names[0:3]), stack(names[3:6]), stack(names[6:9])) if gradients[layer]
                                else Layer(stack(names[0:3])))
     features = None
-    if has_features:
-        features = Features(stack(FEATURE_GROUPS["albedo"]), stack(FEATURE_GROUPS["normal"]), channels["depth.Z"])
+    if groups:
+        features = Features(**{g: stack(FEATURE_GROUPS[g]) if len(FEATURE_GROUPS[g]) > 1
+                               else channels[FEATURE_GROUPS[g][0]] for g in groups})
     return Frame(frame_layers, features, info.attributes, warnings, alpha=alpha,
                  image_attributes=dict(info.image_attributes), layout=cmap.layout)
 

@@ -389,7 +389,9 @@ class _Split:
         self.body, self.head = body, head
 
     def get_providers(self) -> list[str]:
-        return self.body.get_providers()
+        """The providers both sessions run on: a part ORT built without the accelerated provider runs on the CPU."""
+        head = set(self.head.get_providers())
+        return [p for p in self.body.get_providers() if p in head]
 
     def run(self, names: list[str], feeds: dict[str, np.ndarray]) -> list[np.ndarray]:
         skip = self.body.run(["output"], feeds)[0]
@@ -424,7 +426,7 @@ class OnnxUNet:
             return session("all", choice)
 
         self.session, choice = open_session(build, f"OIDN model {model} on ONNX Runtime", settings)
-        if isinstance(self.session, _Split):
+        if isinstance(self.session, _Split) and choice.provider == "openvino":  # what serves it, not what was asked
             choice = ProviderChoice("openvino", "bf16+fp32", f"{choice.reason}; full-resolution level in fp32")
         self.choice: ProviderChoice = choice
         self.channels = int(self.weights["enc_conv0.weight"].shape[1])  # the graph checked the layers exist

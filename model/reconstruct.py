@@ -1,21 +1,15 @@
 """The one reconstruction entry point that the CLI, the service and the evaluation all call.
 
 A frame carries one or more illumination layers (``direct``/``indirect``, or ``color`` for a frame rendered
-without separation). Each layer present is reconstructed on its own and the final image is their sum. Nothing
-runs for an absent layer. The methods:
+without separation). Each layer present is reconstructed on its own by the method's layer function and the final
+image is their sum. Nothing runs for an absent layer. The methods, and what each needs of the frame and of the
+loaded models, are the table in model/methods.py; this module checks a frame against a method's declaration,
+shares the per-frame work between layers (OIDN's prefiltered auxiliary images, computed once) and schedules the
+layers as the method declares.
 
-* ``l1``, ``l2`` -- screened Poisson solvers of the base and the gradients (model/poisson.py);
-* ``network`` -- the paper's GradNet-style network with CBAM, refining a truncated L1 solve (models/*.onnx);
-* ``oidn`` -- Intel Open Image Denoise on each layer's base with the frame's albedo/normal (model.oidn's method
-  setting, docs/oidn.md); the one method for a plain path-traced frame (no gradients), and it needs no features;
-* ``oidn-l1`` -- ``oidn``, then the direct layer refined by its gradients: an L1 screened Poisson solve with
-  OIDN's image as the data term (model/refine.py); the indirect layer keeps OIDN's image;
-* ``fused`` -- the paper's network architecture predicting per-pixel convex weights over candidate reconstructions
-  (OIDN's image, its gradient-domain refinement, ...), trained unsupervised (model/fused.py, models/fused/*.onnx).
-
-What a frame does not carry costs nothing: no gradients means no Poisson or network work (only ``oidn``
-applies), no features means OIDN without auxiliary images, and the OIDN prefilter of albedo/normal runs once per
-frame, shared by its layers (where the setting prefilters).
+What a frame does not carry costs nothing: no gradients means no Poisson or network work (only the methods that
+need none apply), and a method sees only the feature groups it declares (``oidn`` with albedo and normal when the
+frame has both, else the colour alone).
 
 Output policy: every reconstructed layer is made finite (NaN/±Inf → 0, with a warning: a solver or network
 that produced them has a bug, and a black pixel is easier to spot than a poisoned downstream average) and
@@ -38,30 +32,26 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from gradsep.model import policy
+from gradsep.model import methods as table
 from gradsep.model.environment import env_int
-from gradsep.model.frame import Features, Frame, Layer
-from gradsep.model.poisson import solve_l1, solve_l2
-from gradsep.model.policy import (
-    DEFAULT_ALPHA,
-    GRADIENT_METHODS,
-    METHODS,
-    MODEL_METHODS,
-    OIDN_METHODS,
-    POISSON_METHODS,
-    models_dir_from,
-)
+from gradsep.model.frame import ChannelError, Features, Frame, Layer, feature_groups
+from gradsep.model.methods import LoadedModels, Method
+from gradsep.model.policy import DEFAULT_ALPHA, FEATURE_GROUPS, models_dir_from
 from gradsep.model.robust import add_excess, outlier_count, split_frame
 
 __all__ = [
-    "METHODS",
+    "LayerContext",
+    "LoadedModels",
     "NetworkLike",
     "Reconstruction",
+    "available_methods",
     "choose_method",
     "load_fused",
     "load_network",
+    "load_oidn",
     "models_dir_from",
     "reconstruct",
+    "unavailable_reason",
 ]
 
 _F32_MAX = float(np.finfo(np.float32).max)
@@ -97,58 +87,26 @@ def _sanitise(name: str, image: np.ndarray, shape: tuple[int, int, int], warning
 
 
 @dataclass
-class _Context:
-    """What one frame's reconstruction shares between its layers."""
+class LayerContext:
+    """What one frame's reconstruction shares between its layers; a method's layer function reads it."""
 
-    method: str
+    method: Method
     alpha: float
-    models: Any  # the NetworkReconstructor of the method (network or fused), or None
-    features: Features | None
-    aux: Any = None  # the OIDN auxiliary features (model.oidn.CleanAux), computed once per frame when needed
-    denoiser: Any = None  # the model.oidn.Denoiser of the method (oidn: its setting; fused: the prior's)
+    models: LoadedModels
+    features: Features | None  # the frame's feature groups that the method uses (None: none of them)
+    aux: Any = None  # OIDN's auxiliary images (model.oidn.CleanAux), computed once per frame when the method runs OIDN
+    denoiser: Any = None  # the model.oidn.Denoiser of a method that runs OIDN
 
 
-def _reconstruct_layer(name: str, layer: Layer, ctx: _Context, denoised: np.ndarray | None = None) -> np.ndarray:
-    """One layer by ``ctx.method``; ``denoised``: the layer's OIDN image when already computed (OIDN methods)."""
-    if ctx.method == "l1":
-        return solve_l1(layer.base, layer.dx, layer.dy, ctx.alpha)[0]
-    if ctx.method == "l2":
-        return solve_l2(layer.base, layer.dx, layer.dy, ctx.alpha)
-    if ctx.method in OIDN_METHODS:
-        if denoised is None:
-            denoised = ctx.denoiser.denoise(layer.base, ctx.aux)
-        return _finish_oidn_layer(name, denoised, layer, ctx)
-    if ctx.method == "fused":  # its candidates start from the layer's OIDN image, denoised here or by the caller
-        return ctx.models.reconstruct_layer(name, layer, ctx.features, ctx.aux, denoised=denoised)
-    if ctx.aux is not None:  # models refining an OIDN prior share the frame's prefiltered features
-        return ctx.models.reconstruct_layer(name, layer, ctx.features, ctx.aux)
-    return ctx.models.reconstruct_layer(name, layer, ctx.features)
-
+#: A method's layer function (model/methods.py ``Method.function``): ``denoised`` is the layer's OIDN image when
+#: the caller already computed it (a pipelined method), else None.
+LayerFunction = Callable[[str, Layer, LayerContext, "np.ndarray | None"], np.ndarray]
 
 #: ``$GRADSEP_LAYER_THREADS``: how many of a frame's layers are reconstructed at once (1: one after the other).
 LAYER_THREADS_ENV = "GRADSEP_LAYER_THREADS"
-#: The default: two layers at once, for the methods where that was measured to pay (CONCURRENT_METHODS).
+#: The default: two layers at once, for the methods whose schedule is concurrent or pipelined (model/methods.py;
+#: the schedules were measured with benchmarks/bench_layers.py, docs/network.md "Serving latency").
 DEFAULT_LAYER_THREADS = 2
-#: Methods whose layers run concurrently. Their solves are independent and most of each runs single-threaded
-#: (the compiled IRLS/multigrid kernels) or releases the GIL (DCTs, OIDN), but the 2 cores are shared, so it only
-#: pays where one layer leaves a core idle. Measured in-process (benchmarks/bench_layers.py, 1280x720, 2 cores,
-#: same-run medians, concurrent / sequential): l1 0.75-0.85 (four runs), oidn-l1 0.95-0.97 (its direct layer's
-#: refinement beside the indirect layer's denoise), l2 1.7-2.3 (two DCTs per layer: thread start-up and contention
-#: outweigh them). network: its prior solve (~0.5 s of a 720p layer) runs on one core, so the other layer's prior
-#: fills the idle one; its ONNX graphs are serialised by NetworkReconstructor's graph lock (one graph already uses
-#: both cores, two at once only contend). Issue 15 (netspeed helper, 2026-12-02, load
-#: ~4, docs/network.md "Serving latency"): through the service, alternating, network p50 2.20/1.95 s sequential
-#: against 2.15/1.74 s concurrent with the lock, and 2.16/1.72 against 1.84/1.87 s in a second hold (medians 2.06
-#: against 1.85 s; before the lock 3.08/2.31 against 1.98/2.08 s; an earlier run without it had seen the opposite,
-#: 1.86/1.69 against 1.93/2.01 s); in-process 0.92, 0.93. Cost: peak RSS 2.0 -> 3.5 GB with two
-#: clients (four prior solves in flight); GRADSEP_LAYER_THREADS=1 gives it back.
-#: fused is pipelined like oidn-l1 (each layer's OIDN image in this thread, the rest of the layer in a worker beside
-#: the next denoise): a probe took a 720p frame from 4.16 to
-#: 2.71 s, same output (fused3 helper, 2026-12-02, load ~4). Every other method runs its layers one after the
-#: other. Output is bit-for-bit the same either way.
-CONCURRENT_METHODS: frozenset[str] = frozenset({"l1", "oidn-l1", "fused", "network"})
-#: Concurrent methods whose layers start from an OIDN image: denoised one after the other, then finished in workers.
-_PIPELINED_METHODS: frozenset[str] = frozenset({*OIDN_METHODS, "fused"})
 
 
 def layer_threads() -> int:
@@ -170,20 +128,20 @@ def _in_worker(fn: Callable[..., np.ndarray], *args: Any) -> tuple[np.ndarray, f
         return _timed(fn, *args)
 
 
-def _run_layers(frame: Frame, ctx: _Context) -> dict[str, tuple[np.ndarray, float]]:
-    """Every layer's (image, seconds), one after the other or (CONCURRENT_METHODS) :func:`layer_threads` at once.
+def _run_layers(frame: Frame, ctx: LayerContext) -> dict[str, tuple[np.ndarray, float]]:
+    """Every layer's (image, seconds), as the method's schedule says.
 
-    Concurrent seconds are each layer's own wall time and overlap. For the OIDN methods and fused the denoiser is one
-    device behind a lock that already uses every core, so the layers are denoised one after the other in this
-    thread, in the frame's order with the refined layers first, and each refinement (the L1 solve of oidn-l1)
-    (or fused's candidates and blend) runs in a worker beside the next layer's denoise; OIDN's own order is
-    therefore fixed."""
+    Concurrent seconds are each layer's own wall time and overlap. A pipelined method's denoiser is one device
+    behind a lock that already uses every core, so its layers are denoised one after the other in this thread, in
+    the frame's order with the refined layers first, and the rest of each layer runs in a worker beside the next
+    layer's denoise; OIDN's own order is therefore fixed. Output is bit-for-bit the same either way."""
+    fn = table.layer_function(ctx.method)
     threads = min(layer_threads(), len(frame.layers))
-    if threads <= 1 or ctx.method not in CONCURRENT_METHODS:
-        return {name: _timed(_reconstruct_layer, name, layer, ctx) for name, layer in frame.layers.items()}
+    if threads <= 1 or ctx.method.schedule == "sequential":
+        return {name: _timed(fn, name, layer, ctx, None) for name, layer in frame.layers.items()}
     with ThreadPoolExecutor(max_workers=threads, thread_name_prefix="gradsep-layer") as pool:
-        if ctx.method not in _PIPELINED_METHODS:
-            futures = {name: pool.submit(_in_worker, _reconstruct_layer, name, layer, ctx)
+        if ctx.method.schedule == "concurrent":
+            futures = {name: pool.submit(_in_worker, fn, name, layer, ctx, None)
                        for name, layer in frame.layers.items()}
             return {name: future.result() for name, future in futures.items()}
         from gradsep.model.refine import REFINED_LAYERS
@@ -193,7 +151,7 @@ def _run_layers(frame: Frame, ctx: _Context) -> dict[str, tuple[np.ndarray, floa
         for name in order:
             layer = frame.layers[name]
             denoised, seconds = _timed(ctx.denoiser.denoise, layer.base, ctx.aux)
-            pending[name] = (pool.submit(_in_worker, _reconstruct_layer, name, layer, ctx, denoised), seconds)
+            pending[name] = (pool.submit(_in_worker, fn, name, layer, ctx, denoised), seconds)
         out = {}
         for name, (future, denoise_seconds) in pending.items():
             image, seconds = future.result()
@@ -201,164 +159,187 @@ def _run_layers(frame: Frame, ctx: _Context) -> dict[str, tuple[np.ndarray, floa
         return out
 
 
-def _finish_oidn_layer(name: str, denoised: np.ndarray, layer: Layer, ctx: _Context) -> np.ndarray:
-    """The second stage of an OIDN method for one layer: nothing for oidn, the gradient refinement for oidn-l1."""
-    if ctx.method == "oidn":
-        return denoised
-    from gradsep.model.refine import refine_layer
-
-    return refine_layer(name, denoised, layer)
+# ------------------------------------------------------------------------------------------------ what serves what
 
 
-def _serves(models: NetworkLike | None, frame: Frame) -> bool:
-    return (models is not None and frame.features is not None
-            and set(frame.layers) <= set(getattr(models, "layers", frame.layers)))
-
-
-def available_methods(frame: Frame, network: NetworkLike | None = None, fused: NetworkLike | None = None,
-                      oidn: bool | None = None) -> list[str]:
-    """The methods that can serve this frame: model.policy.DEFAULT_PREFERENCE order, then the rest of METHODS."""
-    if oidn is None:
-        from gradsep.model.oidn import available
-
-        oidn = available()
-    usable = {"oidn"} if oidn else set()
-    if oidn and refinable(frame):
-        usable.add("oidn-l1")
-    if frame.has_gradients:
-        usable |= {"l1", "l2"}
-        usable |= {"network"} if _serves(network, frame) else set()
-        usable |= {"fused"} if _serves(fused, frame) else set()
-    return [m for m in policy.preference_order() if m in usable]
-
-
-def refinable(frame: Frame) -> bool:
-    """Whether ``oidn-l1`` serves this frame: it carries gradients, and every layer it refines
-    (model.refine.REFINED_LAYERS: the direct layer) that is present has them. So a frame with the direct layer's
-    gradients and a plain indirect layer (``gradsep render --gradients direct``) is served, as is every frame with
-    gradients on all layers; the other gradient methods need every layer's gradients."""
-    from gradsep.model.refine import REFINED_LAYERS
-
-    with_gradients = frame.gradient_layers
-    return bool(with_gradients) and all(name in with_gradients for name in frame.layers if name in REFINED_LAYERS)
+def _as_models(models: LoadedModels | None) -> LoadedModels:
+    return LoadedModels() if models is None else models
 
 
 def missing_gradient_channels(frame: Frame, method: str) -> list[str]:
-    """The gradient channels ``method`` needs and this frame lacks (empty: it has what the method needs)."""
+    """The gradient channels ``method`` needs and this frame lacks (empty: it has what the method needs).
+
+    ``gradients = "direct"`` (``oidn-l1``): a frame with gradients needs them on the layers the method refines
+    (model.refine.REFINED_LAYERS) that it has; a plain frame lacks every layer's, as the contract names them."""
     from gradsep.model.frame import layer_channels
 
-    if method not in GRADIENT_METHODS or (method == "oidn-l1" and refinable(frame)):
+    spec = table.get(method)
+    if spec.gradients == "none":
         return []
-    needed = list(frame.layers)  # a plain frame: every layer's (as the contract always named them)
-    if method == "oidn-l1" and frame.gradient_layers:  # gradients on some layers, but not on the direct layer
+    needed = list(frame.layers)
+    if spec.gradients == "direct" and frame.gradient_layers:
         from gradsep.model.refine import REFINED_LAYERS
 
         needed = [name for name in frame.layers if name in REFINED_LAYERS]
     return [c for name in needed if name not in frame.gradient_layers for c in layer_channels(name)[3:]]
 
 
-def choose_method(frame: Frame, network: NetworkLike | None = None, fused: NetworkLike | None = None) -> str:
-    """The default method for this frame: the first of model.policy.DEFAULT_PREFERENCE that can serve it.
-
-    As shipped: ``oidn`` whenever pyoidn is installed (for a plain frame and a G-PT frame alike), else
-    ``network`` when its models cover the frame's layers and it has features, else ``l1``. Raises ChannelError
-    for a gradient-free frame on a host without OIDN (nothing can serve it).
-    """
-    chosen = policy.default_method(available_methods(frame, network, fused), gradients=bool(frame.gradient_layers))
-    if chosen is None:
-        from gradsep.model.frame import ChannelError
-
-        if frame.gradient_layers:  # gradients on some layers only: oidn and oidn-l1 serve it, both need pyoidn
-            raise ChannelError(f"this frame carries gradients only for layer(s) {', '.join(frame.gradient_layers)}; "
-                               "the methods that serve it (oidn, oidn-l1) need pyoidn, which is not installed here "
-                               "(pip install pyoidn), and the others need every layer's gradients",
-                               {"available_methods": [], "missing": missing_gradient_channels(frame, "l1")})
-        raise ChannelError("this frame has no gradient channels, and the one method for a plain frame (oidn) "
-                           "is not installed here (pip install pyoidn)", {"available_methods": []})
-    return chosen
+def _gradients_met(frame: Frame) -> list[str]:
+    """The methods whose gradient needs this frame meets, in declaration order (for error messages)."""
+    return [name for name in table.names() if not missing_gradient_channels(frame, name)]
 
 
-def _check_method(frame: Frame, method: str, alpha: float, models: NetworkLike | None) -> None:
-    """Raise a clear error when ``method`` cannot serve ``frame`` (ChannelError names the channels)."""
-    from gradsep.model.frame import FEATURE_CHANNELS, ChannelError
+def missing_feature_groups(frame: Frame, method: str) -> list[str]:
+    """The feature groups ``method`` requires and this frame lacks."""
+    have = feature_groups(frame.features)
+    return [g for g in table.get(method).requires if g not in have]
 
-    if method not in METHODS:
-        raise ValueError(f"unknown reconstruction method {method!r}; expected one of {', '.join(METHODS)}")
-    if method in POISSON_METHODS and not (math.isfinite(alpha) and alpha > 0):
-        raise ValueError(f"alpha must be a finite number > 0, got {alpha}")
-    missing = missing_gradient_channels(frame, method)
-    if missing and not frame.gradient_layers:
-        raise ChannelError(f"method {method!r} integrates gradients, which this frame lacks (a plain path-traced "
-                           "frame); use method oidn, or send the L.dx.* / L.dy.* channels", {"missing": missing})
+
+def _unserved_layers(method: Method, models: LoadedModels, frame: Frame) -> list[str]:
+    """Layers of the frame that the method's own loaded models have no model for (model sets with ``layers``)."""
+    for name in method.model_sets:
+        served = getattr(models.get(name), "layers", None)
+        if served is not None:
+            return [layer for layer in frame.layers if layer not in set(served)]
+    return []
+
+
+def _serves(method: Method, frame: Frame, models: LoadedModels) -> bool:
+    return (not models.missing(method) and not missing_gradient_channels(frame, method.name)
+            and not missing_feature_groups(frame, method.name) and not _unserved_layers(method, models, frame))
+
+
+def available_methods(frame: Frame, models: LoadedModels | None = None) -> list[str]:
+    """The methods that can serve this frame with these models, best first (model.methods.preference_order)."""
+    models = _as_models(models)
+    return [name for name in table.preference_order() if _serves(table.get(name), frame, models)]
+
+
+def choose_method(frame: Frame, models: LoadedModels | None = None) -> str:
+    """The default method for this frame: the first of model.methods.default_preference that can serve it.
+
+    Raises ChannelError naming what is missing when nothing can (e.g. a gradient-free frame on a host without
+    OIDN)."""
+    models = _as_models(models)
+    chosen = table.default_method(available_methods(frame, models), gradients=bool(frame.gradient_layers))
+    if chosen is not None:
+        return chosen
+    candidates = [table.get(n) for n in table.default_preference()]
+    if not frame.gradient_layers:
+        candidates = [m for m in candidates if m.gradients == "none"]
+    reasons = [f"{m.name} ({unavailable_reason(m.name, frame, models)})" for m in candidates]
+    raise ChannelError("no reconstruction method can serve this frame here: " + "; ".join(reasons),
+                       {"available_methods": [],
+                        "missing": missing_gradient_channels(frame, "l1") if frame.gradient_layers else []})
+
+
+def unavailable_reason(name: str, frame: Frame, models: LoadedModels | None = None) -> str:
+    """Why method ``name`` cannot serve ``frame`` with these models, in a few words ("" when it can)."""
+    method, models = table.get(name), _as_models(models)
+    missing = models.missing(method)
     if missing:
-        alternatives = "oidn or oidn-l1" if refinable(frame) else "oidn"
-        raise ChannelError(f"method {method!r} integrates the gradients of every layer; this frame carries them only "
-                           f"for {', '.join(frame.gradient_layers)} (missing {', '.join(missing)}); use method "
-                           f"{alternatives}, or send the missing channels", {"missing": missing})
-    if method in OIDN_METHODS:
-        from gradsep.model.oidn import available
+        return "needs " + ", ".join(table.MODEL_SETS[n].description for n in missing)
+    channels = missing_gradient_channels(frame, method.name)
+    if channels:
+        return "needs the gradient channels " + ", ".join(channels)
+    groups = missing_feature_groups(frame, method.name)
+    if groups:
+        return "needs the feature group(s) " + ", ".join(groups)
+    unserved = _unserved_layers(method, models, frame)
+    return "its models do not cover layer(s) " + ", ".join(unserved) if unserved else ""
 
-        if not available():
-            raise ValueError(f"method {method!r} needs pyoidn, which is not installed here (pip install pyoidn)")
-    if method not in MODEL_METHODS:
-        return
-    if models is None:
-        where = "models/fused" if method == "fused" else "models"
-        raise ValueError(f"method {method!r} needs a loaded model set ({where}: none available); use oidn, l1 or l2")
-    if frame.features is None:
-        raise ChannelError(f"the {method} method needs the feature channels, which this frame lacks: "
-                           + ", ".join(FEATURE_CHANNELS), list(FEATURE_CHANNELS))
-    served = set(getattr(models, "layers", frame.layers))
-    unserved = [name for name in frame.layers if name not in served]
+
+def _check_method(frame: Frame, method: Method, alpha: float, models: LoadedModels) -> None:
+    """Raise a clear error when ``method`` cannot serve ``frame`` (ChannelError names the channels or groups)."""
+    name = method.name
+    if method.alpha and not (math.isfinite(alpha) and alpha > 0):
+        raise ValueError(f"alpha must be a finite number > 0, got {alpha}")
+    missing = missing_gradient_channels(frame, name)
+    groups = missing_feature_groups(frame, name)
+    features = [c for g in groups for c in FEATURE_GROUPS[g]]
+    # everything the frame lacks is named at once, so a producer fixes it in one go
+    also = (f"; it also needs the feature group(s) {', '.join(groups)} ({', '.join(features)})" if groups else "")
+    details = {"missing": [*missing, *features], **({"missing_feature_groups": groups} if groups else {})}
+    alternatives = " or ".join(_gradients_met(frame)) or "another method"
+    if missing and not frame.gradient_layers:
+        raise ChannelError(f"method {name!r} integrates gradients, which this frame lacks (a plain path-traced "
+                           f"frame){also}; use method {alternatives}, or send the L.dx.* / L.dy.* channels", details)
+    if missing:
+        raise ChannelError(f"method {name!r} integrates the gradients of every layer; this frame carries them only "
+                           f"for {', '.join(frame.gradient_layers)} (missing {', '.join(missing)}){also}; use "
+                           f"method {alternatives}, or send the missing channels", details)
+    absent = models.missing(method)
+    if absent:
+        raise ValueError(f"method {name!r} needs " + ", ".join(table.MODEL_SETS[n].description for n in absent)
+                         + ", which " + ("is" if len(absent) == 1 else "are") + " not available here; use "
+                         + (", ".join(n for n in available_methods(frame, models)) or "another method"))
+    if groups:
+        raise ChannelError(f"method {name!r} needs the feature group(s) {', '.join(groups)} (channels "
+                           f"{', '.join(features)}), which this frame lacks; send them, or use a method that "
+                           "does without: " + (", ".join(available_methods(frame, models)) or "none here"), details)
+    unserved = _unserved_layers(method, models, frame)
     if unserved:
-        raise ChannelError(f"no {method} model for layer(s) {', '.join(unserved)} (models loaded for: "
-                           f"{', '.join(sorted(served)) or 'none'}); use method oidn, l1 or l2",
-                           {"unserved_layers": unserved, "model_layers": sorted(served)})
+        served = sorted(set(frame.layers) - set(unserved))
+        raise ChannelError(f"no {name} model for layer(s) {', '.join(unserved)} (models loaded for the others: "
+                           f"{', '.join(served) or 'none'}); use method oidn, l1 or l2",
+                           {"unserved_layers": unserved})
+
+
+def _denoiser(method: Method, models: LoadedModels) -> Any:
+    """The OIDN denoiser of a method that runs OIDN: at the ``oidn`` method's setting, or at the one its loaded
+    model was trained with."""
+    from gradsep.model.oidn import PRIOR_SETTING, method_setting, shared_denoiser
+
+    if method.denoiser == "method":
+        return shared_denoiser(method_setting())
+    own = next((models.get(n) for n in method.model_sets), None)
+    return shared_denoiser(getattr(own, "oidn_setting", PRIOR_SETTING))
 
 
 def reconstruct(frame: Frame, method: str | None = None, alpha: float = DEFAULT_ALPHA,
-                network: NetworkLike | None = None, fused: NetworkLike | None = None) -> Reconstruction:
+                models: LoadedModels | None = None) -> Reconstruction:
     """Reconstruct every illumination layer of ``frame`` with ``method`` and sum them.
 
-    ``method`` None picks :func:`choose_method`. ``alpha`` is the screened Poisson data weight (l1/l2 only).
-    ``network`` (models/*.onnx) is required for ``"network"``, ``fused`` (models/fused/*.onnx) for ``"fused"``;
-    both need the frame's feature channels, and every method but ``oidn`` needs its gradients. Raises ValueError
-    for an unknown method, a bad alpha or a missing model set, and :class:`model.frame.ChannelError` for a frame
-    that lacks what the method needs.
+    ``method`` None picks :func:`choose_method`. ``alpha`` is the screened Poisson data weight (methods that take
+    it). ``models`` holds the loaded model sets (model.methods.LoadedModels); None has only the runtimes detected
+    here (OIDN when pyoidn is installed). Raises ValueError for an unknown method, a bad alpha or a missing model
+    set, and :class:`model.frame.ChannelError` for a frame that lacks what the method needs.
     """
-    method = method or choose_method(frame, network, fused)
-    models = fused if method == "fused" else network if method == "network" else None
-    _check_method(frame, method, alpha, models)
-    # the denoising methods never see a layer's extreme outliers: their excess is spread back near them below
-    frame, excess = (frame, {}) if method in POISSON_METHODS else split_frame(frame)
-    ctx = _Context(method, alpha, models, frame.features)
+    models = _as_models(models)
+    spec = table.get(method or choose_method(frame, models))
+    _check_method(frame, spec, alpha, models)
+    # a denoising method never sees a layer's extreme outliers: their excess is spread back near them below
+    frame, excess = split_frame(frame) if spec.split_outliers else (frame, {})
+    features = frame.features.only(spec.uses) if frame.features is not None else None
+    warnings: list[str] = []
+    ctx = LayerContext(spec, alpha, models, features)
     shape = (frame.height, frame.width, 3)
     layers: dict[str, np.ndarray] = {}
     timings: dict[str, float] = {}
-    warnings: list[str] = []
     total = np.zeros(shape, dtype=np.float64)
-    needs_aux = method in OIDN_METHODS or bool(getattr(models, "needs_aux", False))
-    if needs_aux:
-        from gradsep.model.oidn import PRIOR_SETTING, method_setting, shared_denoiser
-
-        # oidn runs at its chosen setting; model sets that use OIDN name the setting they were trained with
-        ctx.denoiser = (shared_denoiser(method_setting()) if method in OIDN_METHODS
-                        else shared_denoiser(getattr(models, "oidn_setting", PRIOR_SETTING)))
-    if needs_aux and frame.features is not None:
-        start = time.perf_counter()
-        ctx.aux = ctx.denoiser.prefilter(frame.features)  # once per frame, shared by every layer
-        timings["features"] = time.perf_counter() - start
+    if spec.denoiser is not None:
+        ctx.denoiser = _denoiser(spec, models)
+        pair = features is not None and features.albedo is not None and features.normal is not None
+        if features is not None and not pair:
+            # OIDN takes a normal only with an albedo, and model.oidn's auxiliary images are the pair
+            warnings.append(f"method {spec.name} uses albedo and normal together; this frame has only "
+                            f"{', '.join(g for g in features.groups if g in ('albedo', 'normal'))}, so OIDN runs "
+                            "on the colour alone")
+        if pair:
+            start = time.perf_counter()
+            ctx.aux = ctx.denoiser.prefilter(features)  # once per frame, shared by every layer
+            timings["features"] = time.perf_counter() - start
     for name, (image, seconds) in _run_layers(frame, ctx).items():
         timings[name] = seconds
         if name in excess:
             image = add_excess(image, excess[name])
-            warnings.append(f"layer {name}: {outlier_count(excess[name])} outlier pixel(s) kept out of the {method} "
+            warnings.append(f"layer {name}: {outlier_count(excess[name])} outlier pixel(s) kept out of the {spec.name} "
                             "denoiser; their energy was spread over a few pixels around each")
         layers[name] = _sanitise(name, image, shape, warnings)
     for name in frame.layers:  # summed in the frame's order whatever order the layers finished in
         total += layers[name]
     image = np.clip(total, 0.0, _F32_MAX).astype(np.float32)
-    return Reconstruction(image, layers, timings, method, warnings)
+    return Reconstruction(image, layers, timings, spec.name, warnings)
 
 
 # ------------------------------------------------------------------------------------------------ models
@@ -382,6 +363,13 @@ def _load(folder: Path, priors: tuple[str, ...]) -> Any:
                          f"(the {'fused' if priors == ('oidn',) else 'network'} method's); re-export into the right "
                          "folder")
     return models
+
+
+def load_oidn(models_dir: str | os.PathLike[str] | None = None) -> bool:
+    """The ``oidn`` model set: whether Intel Open Image Denoise (pyoidn) is installed here (no folder)."""
+    from gradsep.model.oidn import available
+
+    return bool(available())
 
 
 def load_network(models_dir: str | os.PathLike[str] | None) -> Any:

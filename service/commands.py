@@ -8,7 +8,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from gradsep.model.policy import METHODS
+import gradsep.model.methods as table
 
 
 def serve_command(args: argparse.Namespace) -> int:
@@ -41,7 +41,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("frame", help="input frame (.exr)")
     p.add_argument("-o", "--output", required=True, help="output .exr, written atomically")
     p.add_argument("--url", default=None, help="service base URL (default: $GRADSEP_URL or http://127.0.0.1:8000)")
-    p.add_argument("--method", choices=METHODS, default=None,
+    p.add_argument("--method", choices=table.names(), default=None,
                    help="reconstruction method (default: the service picks the best it serves for the frame)")
     p.add_argument("--alpha", type=float, default=None)
     p.add_argument("--format", choices=("half", "float"), default=None)

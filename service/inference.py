@@ -24,6 +24,7 @@ import anyio
 import numpy as np
 from anyio.abc import TaskGroup
 
+from gradsep.model import methods as table
 from gradsep.model.frame import (
     Layer,
     ReadLimits,
@@ -33,7 +34,6 @@ from gradsep.model.frame import (
     read_frame,
     rgb_channels,
 )
-from gradsep.model.policy import POISSON_METHODS
 from gradsep.service.errors import ServiceError
 from gradsep.service.settings import Settings
 
@@ -163,15 +163,15 @@ class Outcome:
     source_layers: list[str]
 
 
-def reconstruct(frame: Any, method: str | None, alpha: float, network: Any = None, fused: Any = None) -> Any:
+def reconstruct(frame: Any, method: str | None, alpha: float, models: table.LoadedModels | None = None) -> Any:
     """Indirection to ``model.reconstruct.reconstruct`` (imported on first use; tests may patch this name)."""
     from gradsep.model.reconstruct import reconstruct as model_reconstruct
 
-    return model_reconstruct(frame, method, alpha, network=network, fused=fused)
+    return model_reconstruct(frame, method, alpha, models)
 
 
 def run_pipeline(source: Source, params: ReconstructParams, limits: ReadLimits, nonfinite: str,
-                 network: Any, fused: Any = None) -> Outcome:
+                 models: table.LoadedModels | None = None) -> Outcome:
     """Decode, reconstruct and encode in the calling (worker) thread; frame problems raise FrameError."""
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
@@ -180,7 +180,7 @@ def run_pipeline(source: Source, params: ReconstructParams, limits: ReadLimits, 
     frame = read_frame(source, limits=limits, nonfinite=nonfinite,  # type: ignore[arg-type]
                        layout=params.channels)
     timings["decode"] = time.perf_counter() - t0
-    result = reconstruct(frame, params.method, params.alpha, network=network, fused=fused)
+    result = reconstruct(frame, params.method, params.alpha, models)
     for layer, seconds in dict(getattr(result, "timings", {}) or {}).items():
         timings[str(layer)] = float(seconds)
     warnings = [*frame.warnings, *(str(w) for w in getattr(result, "warnings", None) or ())]
@@ -237,36 +237,45 @@ class Engine:
         arenas = configure_malloc(settings.malloc_arenas)  # before the worker threads exist: model/allocator.py
         log.info("malloc arenas: %s", arenas if arenas is not None else "left as glibc / MALLOC_ARENA_MAX set them")
         self.limits = ReadLimits(max_pixels=settings.max_pixels, max_values=settings.max_values)
-        self.network: Any = None
-        self.fused: Any = None
-        self.oidn = False
+        self.models = table.LoadedModels(**{name: None for name in table.MODEL_SETS})  # nothing until loaded
         self.state: Literal["loading", "ready", "failed"] = "loading"
         self.failure: str | None = None
         self.gate: InferenceGate | None = None
 
     @property
-    def methods(self) -> tuple[str, ...]:
-        """What this replica serves, in model.policy.METHODS order."""
-        from gradsep.model.policy import METHODS, OIDN_METHODS
+    def network(self) -> Any:
+        """The ``network`` method's loaded models (None: not loaded)."""
+        return self.models.get("network")
 
-        served = {*POISSON_METHODS, *(("network",) if self.network is not None else ()),
-                  *(("fused",) if self.fused is not None else ()),
-                  *(sorted(OIDN_METHODS) if self.oidn else ())}
-        return tuple(m for m in METHODS if m in served)
+    @property
+    def fused(self) -> Any:
+        """The ``fused`` method's loaded models (None: not loaded)."""
+        return self.models.get("fused")
+
+    @property
+    def oidn(self) -> bool:
+        return self.models.has("oidn")
+
+    @property
+    def methods(self) -> tuple[str, ...]:
+        """What this replica serves: the methods of the table (model/methods.py) whose model sets are loaded, in
+        the table's order."""
+        return self.models.serves()
 
     @property
     def default_method(self) -> str:
-        """The default for a gradient-domain frame with features (the first of DEFAULT_PREFERENCE served)."""
-        from gradsep.model.policy import default_method
-
-        return default_method(self.methods, gradients=True) or "l1"
+        """The default for a gradient-domain frame with features (the first served of the default preference)."""
+        return table.default_method(self.methods, gradients=True) or "l1"
 
     @property
     def default_method_plain(self) -> str | None:
-        """The default for a plain frame (no gradients): oidn, or None when OIDN is not installed."""
-        from gradsep.model.policy import default_method
+        """The default for a plain frame (no gradients): the first served method that needs none, or None."""
+        return table.default_method(self.methods, gradients=False)
 
-        return default_method(self.methods, gradients=False)
+    def describe_methods(self) -> list[dict[str, Any]]:
+        """The table of methods as /v1/models shows it: each method's needs and whether this replica serves it."""
+        served = set(self.methods)
+        return [{**m.summary(), "served": m.name in served} for m in table.methods()]
 
     def start(self, task_group: TaskGroup) -> None:
         """Create the gate and load + warm up in the background, so /healthz answers during a long load."""
@@ -276,11 +285,7 @@ class Engine:
 
     async def _load_and_warm_up(self) -> None:
         try:
-            self.network = await anyio.to_thread.run_sync(load_network, self.settings.models_dir)
-            self.fused = await anyio.to_thread.run_sync(load_fused, self.settings.models_dir)
-            from gradsep.model.oidn import available
-
-            self.oidn = available()
+            self.models = await anyio.to_thread.run_sync(load_models, self.settings.models_dir)
             if self.settings.warm_up:
                 started = time.perf_counter()
                 await anyio.to_thread.run_sync(self._warm_up)
@@ -298,9 +303,9 @@ class Engine:
             self.network.warm_up()
         frame = warm_up_frame()
         for method in self.methods:
-            reconstruct(frame, method, self.settings.default_alpha, network=self.network, fused=self.fused)
+            reconstruct(frame, method, self.settings.default_alpha, self.models)
         if "l1" in self.methods:  # below FLOAT32_MIN_ALPHA IRLS runs in float64: compile those kernels now too
-            reconstruct(frame, "l1", 1e-3, network=self.network, fused=self.fused)
+            reconstruct(frame, "l1", 1e-3, self.models)
 
     def _provider_note(self) -> str:
         """`` inference on openvino/bf16`` (one entry per distinct provider/precision of the loaded models)."""
@@ -316,36 +321,27 @@ class Engine:
         return shared_denoiser(method_setting()).describe()
 
     def describe_models(self) -> list[dict[str, Any]]:
+        """Every loaded model, as its model set describes it (provider and precision as the session runs it),
+        with ``method``: the model set it belongs to."""
         out = []
-        for method, models in (("network", self.network), ("fused", self.fused)):
-            if models is not None:
-                out += [{**dict(m), "method": method} for m in models.describe()]
+        for name, models in self.models.loaded().items():
+            describe = getattr(models, "describe", None)
+            if callable(describe):
+                out += [{**dict(m), "method": name} for m in describe()]
         return out
 
 
-def load_network(models_dir: Path) -> Any:
-    """The network reconstructor, or None when there are no models (Poisson methods only).
-
-    Delegates to ``model.reconstruct.load_network`` (one definition for CLI and service): a missing folder, an
-    empty one, or a host without the inference module gives None; models that fail to load raise, because
-    serving silently without the network an operator shipped would be worse than not becoming ready.
-    """
-    from gradsep.model.reconstruct import load_network as load
-
-    network = load(models_dir)
-    if network is None:
-        log.info("no models in %s; serving Poisson methods only", models_dir)
-    return network
-
-
-def load_fused(models_dir: Path) -> Any:
-    """The fused method's reconstructor (models_dir/fused), or None (no such models, or no pyoidn)."""
-    from gradsep.model.reconstruct import load_fused as load
-
-    fused = load(models_dir)
-    if fused is None:
-        log.info("no fused models in %s/fused (or no pyoidn); the fused method is not served", models_dir)
-    return fused
+def load_models(models_dir: Path) -> table.LoadedModels:
+    """Every model set of the table (model.methods.MODEL_SETS) from ``models_dir``, by its own loader: a set that
+    is absent (no folder, no package) is None and its methods are not served; models that fail to load raise,
+    because serving silently without the models an operator shipped would be worse than not becoming ready."""
+    models = table.LoadedModels.load(models_dir)
+    for name, model_set in table.MODEL_SETS.items():
+        if not models.has(name):
+            served = [m.name for m in table.methods() if name in m.models]
+            log.info("%s not available (%s); not served: %s", model_set.description,
+                     models_dir / model_set.folder if model_set.folder else "not installed", ", ".join(served))
+    return models
 
 
 def warm_up_frame(size: int = 16) -> Any:

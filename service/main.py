@@ -35,8 +35,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings, app.state.metrics, app.state.engine = settings, ServiceMetrics(), Engine(settings)
     app.state.metrics.bind_engine(app.state.engine)
     install_error_handlers(app)
-    for module in (health, models, reconstruct, metrics):
-        app.include_router(module.router)
+    for router in (health.router, models.router, reconstruct.build_router(), metrics.router):
+        app.include_router(router)
     if docs:
         install_docs(app)  # before the middleware reads the routes: /docs is then a known path for metrics
     install_middleware(app, token=settings.token_value, max_body_bytes=settings.max_body_bytes,

@@ -5,8 +5,9 @@ included, parsed with ast -- nothing is imported):
   evaluation packages or the command line;
 * the command line (``gradsep.cli``) is the roof: no library module imports it (the error base class and the
   version live in ``gradsep.model``);
-* every package's ``commands.py`` imports only the standard library and the import-light ``gradsep.model.errors`` /
-  ``gradsep.model.policy`` at module level, so building the parser needs neither numpy, torch, mitsuba nor FastAPI;
+* every package's ``commands.py`` imports only the standard library and the import-light ``gradsep.model.errors``,
+  ``gradsep.model.policy`` and ``gradsep.model.methods`` at module level, so building the parser needs neither
+  numpy, torch, mitsuba nor FastAPI;
 * no import cycle of any length (strongly connected components of the module graph).
 """
 
@@ -24,8 +25,9 @@ LIBRARY = ("model", "renderer", "training", "service", "evaluation")
 #: The command line's modules (the gradsep/ folder): the roof of the graph.
 CLI = "cli"
 ABOVE_MODEL = ("renderer", "training", "service", "evaluation", CLI)
-#: Standard-library-only modules of the contract's names (errors, methods, channel layouts) a parser may read.
-COMMAND_MODULE_ALLOWED = ("gradsep.model.errors", "gradsep.model.policy", "gradsep.model.channels")
+#: Standard-library-only modules of the contract's names (errors, policy, methods, channel layouts) a parser may read.
+COMMAND_MODULE_ALLOWED = ("gradsep.model.errors", "gradsep.model.policy", "gradsep.model.methods",
+                          "gradsep.model.channels")
 
 
 def _is_main_block(node: ast.stmt) -> bool:

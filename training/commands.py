@@ -14,9 +14,10 @@ from typing import TYPE_CHECKING, Any
 from gradsep.model.errors import CommandError
 from gradsep.model.policy import ILLUMINATION_LAYERS
 
-#: model.preprocess.PRIOR_KINDS, spelled out so the command line parses without importing the solver stack
-#: (tests/training check that the two agree).
-PRIOR_CHOICES = ("l1", "l2", "l1-mg3x2", "l2-clamp", "oidn")
+#: What a trained network may refine: the truncated L1 Poisson prior every shipped network model refines (a model
+#: without ``gradsep.prior`` metadata refines it too). Spelled out so the command line parses without importing the
+#: solver stack; tests/model/test_prior_kinds.py checks it against model.preprocess and the shipped models.
+PRIOR_CHOICES = ("l1",)
 
 if TYPE_CHECKING:
     from gradsep.training.train import TrainConfig
@@ -81,11 +82,8 @@ def _add_train_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data-weight", type=float, default=None,
                    help="weight of the data term against the gradient term in the loss (default 1, the paper's)")
     p.add_argument("--prior", choices=PRIOR_CHOICES, default=None,
-                   help="what the network refines: l1 = truncated L1 Poisson solve (the network method, default); "
-                        "l2 = exact L2 screened Poisson solve (DCT, ~1/6 of l1's cost); l1-mg3x2 = L1 truncated to "
-                        "3 passes x 2 multigrid-preconditioned CG steps; l2-clamp = the l2 solve on outlier-clamped "
-                        "data; oidn = OIDN's denoise at a normalised exposure (the fused method). Recorded in the "
-                        "exported model and used when it is served")
+                   help="what the network refines: l1 = truncated L1 Poisson solve (the network method's, default). "
+                        "Recorded in the exported model and used when it is served")
     p.add_argument("--init", default=None, metavar="MODEL",
                    help="start from these weights instead of at random: an exported .onnx (models/direct.onnx) or "
                         "a run's checkpoint (.pt); its layer, network and prior must match this run's")

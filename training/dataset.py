@@ -30,8 +30,8 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from gradsep.model.frame import FrameError, Layer, read_frame
-from gradsep.model.policy import ILLUMINATION_LAYERS, SEPARATED_LAYERS
+from gradsep.model.frame import FrameError, Layer, feature_groups, read_frame
+from gradsep.model.policy import FEATURE_GROUPS, ILLUMINATION_LAYERS, SEPARATED_LAYERS
 from gradsep.model.preprocess import (
     FEATURE_PLANES,
     LAYER_PLANES,
@@ -200,8 +200,9 @@ def _write_cache_file(entry: FrameEntry, layer: str, target: Path, meta_path: Pa
     chosen = select_layer(frame.layers, layer)
     if chosen is None:
         return f"no {layer} layer (has {', '.join(frame.layers)})"
-    if frame.features is None:
-        return "no feature channels"
+    missing = [g for g in FEATURE_GROUPS if g not in feature_groups(frame.features)]
+    if missing:  # the network is trained (and later served) with every group
+        return "no feature channels" if frame.features is None else f"no {', '.join(missing)} feature channels"
     scale = 1.0
     if prior == "oidn":
         from gradsep.model.oidn import shared_denoiser

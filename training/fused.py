@@ -120,8 +120,9 @@ def build_cache(data: Path, out: Path, kinds: tuple[str, ...] = CACHE_CANDIDATES
     (skips existing files); ``target``: the kind of target_image cached beside the candidates. ``extra``: more
     datasets (other spp, other scenes) cached beside it as x{i}-NNNNN.npy; training samples all files alike.
     ``normalise``: ``frame`` caches the frame's brightness for the loss (frame_planes ``rest``)."""
-    from gradsep.model.frame import read_frame
+    from gradsep.model.frame import feature_groups, read_frame
     from gradsep.model.oidn import shared_denoiser
+    from gradsep.model.policy import FEATURE_GROUPS
     from gradsep.training.dataset import load_manifest
 
     manifest = load_manifest(data)
@@ -154,7 +155,7 @@ def build_cache(data: Path, out: Path, kinds: tuple[str, ...] = CACHE_CANDIDATES
             continue
         frame = read_frame(entry.path, nonfinite="zero")
         other = read_frame(entry.target, nonfinite="zero")
-        if frame.features is None:
+        if len(feature_groups(frame.features)) < len(FEATURE_GROUPS):  # the blend is trained with every group
             continue
         aux = den.prefilter(frame.features)
         # a frame-normalised cache needs every layer's OIDN image: each is denoised once and shared

@@ -23,11 +23,15 @@ class Limits(BaseModel):
 class ModelsInfo(BaseModel):
     state: str = Field(description="loading, ready or failed")
     default_method: str = Field(description="the method used when a request names none, for a gradient-domain "
-                                            "frame with features (the first served of model/policy.py's "
-                                            "DEFAULT_PREFERENCE; a frame the models do not cover gets the next)")
+                                            "frame with features (the first served of the methods table's default "
+                                            "preference; a frame it cannot serve gets the next that can)")
     default_method_plain: str | None = Field(description="the method for a plain frame without gradients")
-    methods: list[str] = Field(description="methods this replica serves: l1, l2 always; network and fused when "
-                                           "their models are loaded; oidn and fused when pyoidn is installed")
+    methods: list[str] = Field(description="methods this replica serves: those of the methods table whose models "
+                                           "are loaded (see method_table)")
+    method_table: list[dict[str, Any]] = Field(
+        default_factory=list,
+        description="every method of the table: what it needs of a frame (gradients: none, direct or all; feature "
+                    "groups used and required), the model sets it needs, and whether this replica serves it")
     models: list[dict[str, Any]] = Field(
         description="loaded networks: name, layers, input channels, checksums and export metadata")
     oidn: dict[str, Any] | None = Field(
@@ -42,6 +46,7 @@ async def list_models(engine: Annotated[Engine, Depends(get_engine)]) -> ModelsI
     s = engine.settings
     return ModelsInfo(state=engine.state, default_method=engine.default_method,
                       default_method_plain=engine.default_method_plain, methods=list(engine.methods),
+                      method_table=engine.describe_methods(),
                       models=engine.describe_models(), oidn=engine.describe_oidn() if engine.state == "ready" else None,
                       limits=Limits(max_body_bytes=s.max_body_bytes, max_pixels=s.max_pixels,
                                     max_values=s.max_values))

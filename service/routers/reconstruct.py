@@ -10,8 +10,8 @@ own status codes in a fixed order, cheapest first:
   -> decode 400/422 -> reconstruction -> encode.
 """
 
-from __future__ import annotations
-
+# No ``from __future__ import annotations``: build_router's endpoint is annotated with a type made when the app is
+# created (the methods enum), which FastAPI must see as an object, not as a string naming a local.
 import time
 from functools import partial
 from typing import Annotated, Any, Literal
@@ -21,17 +21,15 @@ from fastapi import APIRouter, Depends, Query, Request
 from starlette.datastructures import UploadFile
 from starlette.responses import Response
 
+from gradsep.model import methods as table
 from gradsep.model.channels import DEFAULT_LAYOUT, LAYOUT_CHOICES, LAYOUT_PATTERN
 from gradsep.model.frame import HeaderInfo, NotExrError, Source, read_header
 from gradsep.model.poisson import MIN_ALPHA
-from gradsep.model.policy import DEFAULT_PREFERENCE, METHODS
 from gradsep.service.dependencies import get_engine, get_metrics
 from gradsep.service.errors import ErrorResponse, ServiceError
 from gradsep.service.inference import Engine, ReconstructParams, run_pipeline, server_timing
 from gradsep.service.metrics import ServiceMetrics
 from gradsep.service.middleware import request_id_of
-
-router = APIRouter(tags=["reconstruction"])
 
 RAW_TYPES = ("image/x-exr", "application/octet-stream")
 EXR_MEDIA_TYPE = "image/x-exr"
@@ -81,35 +79,51 @@ RESPONSES: dict[int | str, dict[str, Any]] = {
 }
 
 
-@router.post("/v1/reconstruct", response_class=Response, responses=RESPONSES,
-             openapi_extra={"requestBody": REQUEST_BODY},
-             summary="Reconstruct a frame's illumination layers and return their sum")
-async def reconstruct_frame(
-    request: Request,
-    engine: Annotated[Engine, Depends(get_engine)],
-    metrics: Annotated[ServiceMetrics, Depends(get_metrics)],
-    method: Annotated[Literal[METHODS] | None, Query(  # type: ignore[valid-type]
-        description="reconstruction method; default: the first of " + " > ".join(DEFAULT_PREFERENCE)
-                    + " (model/policy.py) that this replica serves for the frame; a plain frame without gradients "
-                    "gets oidn")] = None,
-    alpha: Annotated[float | None, Query(
-        ge=MIN_ALPHA, le=1000, allow_inf_nan=False,
-        description=f"screened Poisson data weight (l1/l2), in [{MIN_ALPHA:g}, 1000]")] = None,
-    output_format: Annotated[Literal["half", "float"], Query(
-        alias="format", description="pixel type of the returned EXR")] = "float",
-    layers: Annotated[Literal["sum", "all"], Query(
-        description="sum: R G B only; all: also each reconstructed layer (direct.R, ...)")] = "sum",
-    channels: Annotated[str, Query(
-        pattern=LAYOUT_PATTERN, description="channel layout of the frame: " + ", ".join(LAYOUT_CHOICES)
-        + " or cycles:VIEWLAYER (auto: the one layout the file matches; ambiguous files get 422 naming the "
-        "candidates)")] = DEFAULT_LAYOUT,
-) -> Response:
+def build_router() -> APIRouter:
+    """The router of ``POST /v1/reconstruct``, built when an app is created: its ``method`` parameter's enum (in the
+    OpenAPI schema and its validation) is the table of methods as it stands then (model/methods.py)."""
+    router = APIRouter(tags=["reconstruction"])
+    method_names = Literal[table.names()]  # type: ignore[valid-type]
+    alpha_methods = "/".join(m.name for m in table.methods() if m.alpha)
+
+    @router.post("/v1/reconstruct", response_class=Response, responses=RESPONSES,
+                 openapi_extra={"requestBody": REQUEST_BODY},
+                 summary="Reconstruct a frame's illumination layers and return their sum")
+    async def reconstruct_frame(
+        request: Request,
+        engine: Annotated[Engine, Depends(get_engine)],
+        metrics: Annotated[ServiceMetrics, Depends(get_metrics)],
+        method: Annotated[method_names | None, Query(  # type: ignore[valid-type]
+            description="reconstruction method; default: the first of " + " > ".join(table.default_preference())
+                        + " that this replica serves for the frame (a plain frame without gradients gets the "
+                        "first that needs none). " + "; ".join(f"{m.name}: {m.description}"
+                                                              for m in table.methods()))] = None,
+        alpha: Annotated[float | None, Query(
+            ge=MIN_ALPHA, le=1000, allow_inf_nan=False,
+            description=f"screened Poisson data weight (methods {alpha_methods}), in [{MIN_ALPHA:g}, 1000]")] = None,
+        output_format: Annotated[Literal["half", "float"], Query(
+            alias="format", description="pixel type of the returned EXR")] = "float",
+        layers: Annotated[Literal["sum", "all"], Query(
+            description="sum: R G B only; all: also each reconstructed layer (direct.R, ...)")] = "sum",
+        channels: Annotated[str, Query(
+            pattern=LAYOUT_PATTERN, description="channel layout of the frame: " + ", ".join(LAYOUT_CHOICES)
+            + " or cycles:VIEWLAYER (auto: the one layout the file matches; ambiguous files get 422 naming the "
+            "candidates)")] = DEFAULT_LAYOUT,
+    ) -> Response:
+        return await _reconstruct(request, engine, metrics, method, alpha, output_format, layers, channels)
+
+    return router
+
+
+async def _reconstruct(request: Request, engine: Engine, metrics: ServiceMetrics, method: str | None,
+                       alpha: float | None, output_format: str, layers: Any, channels: str) -> Response:
     t_start = time.perf_counter()
     gate = _ready_gate(engine)
     if method is not None and method not in engine.methods:
-        raise ServiceError(422, "method_unavailable", f"method {method!r} is not available on this replica "
-                           f"(its models or package are not installed); available: {', '.join(engine.methods)}",
-                           {"available": list(engine.methods)})
+        needs = ", ".join(table.MODEL_SETS[n].description for n in engine.models.missing(table.get(method)))
+        raise ServiceError(422, "method_unavailable", f"method {method!r} is not available on this replica (it "
+                           f"needs {needs or 'models this replica has not loaded'}); available: "
+                           f"{', '.join(engine.methods)}", {"available": list(engine.methods)})
     media = _media_type(request)
     if gate.full:  # shed load before buffering anything; drain so the client reads our answer cleanly
         async for _ in request.stream():
@@ -125,8 +139,7 @@ async def reconstruct_frame(
         params = ReconstructParams(method, alpha if alpha is not None else engine.settings.default_alpha,
                                    output_format == "half", layers, request_id_of(request.scope),
                                    header.compression, channels)
-        job = partial(run_pipeline, source, params, engine.limits, engine.settings.nonfinite, engine.network,
-                      engine.fused)
+        job = partial(run_pipeline, source, params, engine.limits, engine.settings.nonfinite, engine.models)
         try:
             outcome, queued = await gate.run(job, engine.settings.inference_timeout)
         except ServiceError as exc:

@@ -47,7 +47,7 @@ def test_fused_results_are_keyed_by_the_network_model_its_clean_layer_average_re
     """fused reads models/direct.onnx on clean direct layers (model/fused.py CLEAN_AVERAGE): a new network model
     must recompute fused's results, and a models folder without it must still run fused (nothing missing)."""
     from gradsep.evaluation.config import EvalConfig
-    from gradsep.evaluation.methods import METHODS
+    from gradsep.evaluation.methods import evaluated_methods
     from gradsep.evaluation.run import _Runner
 
     models = tmp_path / "models"
@@ -56,7 +56,7 @@ def test_fused_results_are_keyed_by_the_network_model_its_clean_layer_average_re
     config = EvalConfig(scenes=("cbox",), spp=(1,), width=12, height=10, ref_spp=2, output=tmp_path / "report",
                         cache_dir=tmp_path / "cache", models_dir=models, methods=("fused",), seed=0, max_depth=None,
                         alpha=0.2, table_spp=None, quick=False, ref_spp_cap=8, ref_seconds=None)
-    fused = next(m for m in METHODS if m.name == "fused")
+    fused = next(m for m in evaluated_methods() if m.name == "fused")
 
     def shas() -> dict[str, str]:
         files, missing = _Runner(config, False, lambda m: None).model_files(fused, ("direct", "indirect"))

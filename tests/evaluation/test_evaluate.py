@@ -28,7 +28,7 @@ from gradsep.evaluation.config import (
     resolve_scenes,
     table_spp_for,
 )
-from gradsep.evaluation.methods import CostModel, method_by_name, primal_mode_available, split_features
+from gradsep.evaluation.methods import CostModel, method_by_name, split_features
 from gradsep.evaluation.plots import select_crop
 from gradsep.evaluation.report import CSV_COLUMNS, losses_of_ours, time_misses
 from gradsep.evaluation.run import run_evaluation
@@ -63,7 +63,7 @@ def test_parse_size_and_methods():
     for bad in ("320", "0x5", "axb"):
         with pytest.raises(CommandError):
             parse_size(bad)
-    assert parse_methods("ours,l1") == ("l1", "ours")  # canonical order: ours runs before the equal-time methods
+    assert parse_methods("l1,ours") == ("ours", "l1")  # canonical order: the table's (ours is its network)
     assert len(parse_methods("ablation")) == 4
     with pytest.raises(CommandError, match="unknown method 'nope'"):
         parse_methods("l1,nope")
@@ -113,7 +113,7 @@ def test_command_line_flags_win_over_the_environment(monkeypatch):
     config = config_from_args(_args(spp=None, size="64x48", ref_spp=32, seed=0, methods="ours,l1", models="m",
                                     cache="c", max_depth=3, alpha=0.5, table_spp=4))
     assert (config.width, config.height, config.ref_spp, config.seed) == (64, 48, 32, 0)
-    assert config.methods == ("l1", "ours") and config.max_depth == 3 and config.alpha == 0.5
+    assert config.methods == ("ours", "l1") and config.max_depth == 3 and config.alpha == 0.5
     assert config.spp == (1, 2, 4, 8, 16, 32, 64) and config.crop_spp == 4  # --spp None: the preset's list
     assert str(config.models_dir) == "m" and str(config.cache_dir) == "c"
     with pytest.raises(CommandError, match="--alpha must be"):
@@ -404,14 +404,14 @@ def test_rows_are_scored_with_the_product_estimator_over_the_cached_references(f
 
 @pytest.mark.render
 def test_equal_time_methods_use_the_default_method_as_the_budget(first_run):
-    """The budget is the G-PT frame + the product's default reconstruction (model.policy.DEFAULT_PREFERENCE,
-    whose ``network`` is the evaluation's ``ours``): the first of them this run computed."""
-    from gradsep.model import policy
+    """The budget is the G-PT frame + the product's default reconstruction (the methods table's default
+    preference, whose ``network`` is the evaluation's ``ours``): the first of them this run computed."""
+    from gradsep.model import methods as table
 
     _, evaluation = first_run
     by = {(r["method"], r["spp"]): r for r in evaluation.rows}
     ran = {r["method"] for r in evaluation.rows}
-    budget = next(n for n in ("ours" if m == "network" else m for m in (*policy.DEFAULT_PREFERENCE, "network"))
+    budget = next(n for n in ("ours" if m == "network" else m for m in (*table.default_preference(), "network"))
                   if n in ran)
     for spp in SPP:
         anchor = by[(budget, spp)]
@@ -522,13 +522,11 @@ def test_oidn_l1_reconstructs_a_direct_gradient_render_with_the_same_image(first
 
 
 @pytest.mark.render
-def test_missing_models_and_missing_code_are_skipped_with_the_reason(first_run):
+def test_missing_models_and_packages_are_skipped_with_the_reason(first_run):
     root, evaluation = first_run
     for method in set(METHODS) - set(_runnable(METHODS)):
         assert method in evaluation.skipped and evaluation.skipped[method][0]  # a stated reason, no row
         assert not any(r["method"] == method for r in evaluation.rows)
-    if not primal_mode_available():
-        assert "gradients=" in evaluation.skipped["path-sep-oidn"][0]
     report = (root / "report" / "report.md").read_text()
     for text in ("Table 1", "Ablation (paper Fig. 7)", "Equal time", "Where ours loses", "Skipped methods"):
         assert text in report

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from gradsep.evaluation.config import EvalConfig, SceneEntry
-from gradsep.evaluation.methods import METHODS, BracketOutput, MethodOutput, TimeSearch, interpolate_at
+from gradsep.evaluation.methods import BracketOutput, MethodOutput, TimeSearch, evaluated_methods, interpolate_at
 from gradsep.evaluation.references import ReferencePair
 from gradsep.evaluation.report import row_seconds, time_interpolations, time_misses
 from gradsep.evaluation.results import SceneRun
@@ -110,7 +110,7 @@ def test_a_bracketed_row_is_cached_with_both_tries_and_scored_at_its_budget(tmp_
 
     monkeypatch.setattr(run, "run_method", fake_run)
     runner = _runner(tmp_path)
-    spec = next(m for m in METHODS if m.name == "path")
+    spec = next(m for m in evaluated_methods() if m.name == "path")
     scene = SceneRun(SceneEntry("procedural:1", "procedural-1", {}), 16, 12, 2, ("direct", "indirect"),
                      np.zeros((12, 16, 3), np.float32))
     first = runner.output(spec, scene, 1, None, {"k": 1})

@@ -14,6 +14,7 @@ import pytest
 
 from gradsep.model.frame import Frame, read_frame
 from gradsep.model.infer import NETWORK_LEVEL, NetworkReconstructor, exposure_scale
+from gradsep.model.methods import LoadedModels
 from gradsep.model.metrics import relmse
 from gradsep.model.onnx_session import (
     BF16_FLAGS,
@@ -88,8 +89,8 @@ def test_one_pixel_cannot_move_the_exposure(frame: Frame, where: tuple[int, int]
 @pytest.mark.parametrize("k", [1e-8, 1e4, 1e6, 1e9])
 def test_network_keeps_the_energy_at_any_exposure(frame: Frame, network: NetworkReconstructor, k: float) -> None:
     """Before issue 15 the network clipped each layer at 65504 (a 1e6 frame came back ~1e5x too dark)."""
-    ref = reconstruct(frame, "network", network=network)
-    out = reconstruct(_scaled(frame, k), "network", network=network)
+    ref = reconstruct(frame, "network", models=LoadedModels(network=network))
+    out = reconstruct(_scaled(frame, k), "network", models=LoadedModels(network=network))
     assert np.isfinite(out.image).all() and out.image.min() >= 0
     for name, image in out.layers.items():
         ratio = float(image.mean(dtype=np.float64)) / (k * float(ref.layers[name].mean(dtype=np.float64)))
@@ -189,8 +190,8 @@ def test_openvino_bf16_matches_fp32_on_the_example_frame(frame: Frame) -> None:
     exact = NetworkReconstructor.load(MODELS, SessionSettings(provider="cpu"))
     assert fast is not None and exact is not None
     assert {m["precision"] for m in fast.describe()} == {"bf16"}
-    a = reconstruct(frame, "network", network=fast).image
-    b = reconstruct(frame, "network", network=exact).image
+    a = reconstruct(frame, "network", models=LoadedModels(network=fast)).image
+    b = reconstruct(frame, "network", models=LoadedModels(network=exact)).image
     err_fast, err_exact = relmse(a, reference), relmse(b, reference)
     assert abs(err_fast - err_exact) / err_exact < 0.01, (err_fast, err_exact)
     assert relmse(a, b) < 1e-3

@@ -16,8 +16,9 @@ import numpy as np
 import pytest
 
 import gradsep.model.preprocess as preprocess
+from gradsep.model import methods as table
 from gradsep.model.frame import Features, Frame, Layer
-from gradsep.model.reconstruct import CONCURRENT_METHODS, reconstruct
+from gradsep.model.reconstruct import reconstruct
 
 ROOT = Path(__file__).resolve().parents[2]
 MODELS = ROOT / "models"
@@ -55,14 +56,14 @@ def network():
 
 
 def test_network_layers_are_reconstructed_concurrently() -> None:
-    assert "network" in CONCURRENT_METHODS
+    assert table.get("network").schedule == "concurrent"
 
 
 @needs_models
 def test_concurrent_network_layers_equal_sequential_and_never_overlap_graphs(network, monkeypatch) -> None:
     frame = _frame()
     monkeypatch.setenv("GRADSEP_LAYER_THREADS", "1")
-    sequential = reconstruct(frame, "network", network=network)
+    sequential = reconstruct(frame, "network", models=table.LoadedModels(network=network))
     running, peak, threads = [0], [0], set()
     guard = threading.Lock()
     originals = {name: m.run for name, m in network.models.items()}
@@ -83,7 +84,7 @@ def test_concurrent_network_layers_equal_sequential_and_never_overlap_graphs(net
     for name, m in network.models.items():
         monkeypatch.setattr(m, "run", recording(originals[name]))
     monkeypatch.setenv("GRADSEP_LAYER_THREADS", "2")
-    concurrent = reconstruct(frame, "network", network=network)
+    concurrent = reconstruct(frame, "network", models=table.LoadedModels(network=network))
     assert threads and all(t.startswith("gradsep-layer") for t in threads)  # the layers ran in workers
     assert peak[0] == 1  # the graph lock: one ONNX graph at a time
     for name in sequential.layers:

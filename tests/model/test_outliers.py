@@ -17,6 +17,7 @@ import pytest
 
 import gradsep.model.reconstruct as reconstruct_module
 from gradsep.model.frame import Frame, Layer, read_frame
+from gradsep.model.methods import LoadedModels
 from gradsep.model.robust import (
     OUTLIER_SPREAD_RADIUS,
     add_excess,
@@ -54,13 +55,13 @@ def _models(method: str) -> dict[str, Any]:
             _cache["network"] = reconstruct_module.load_network(REPO / "models")
         if _cache["network"] is None:
             pytest.skip("no network models in models/")
-        return {"network": _cache["network"]}
+        return {"models": LoadedModels(network=_cache["network"])}
     if method == "fused":
         if "fused" not in _cache:
             _cache["fused"] = reconstruct_module.load_fused(REPO / "models")
         if _cache["fused"] is None:
             pytest.skip("no fused models in models/fused/")
-        return {"fused": _cache["fused"]}
+        return {"models": LoadedModels(fused=_cache["fused"])}
     return {}
 
 

@@ -66,10 +66,17 @@ def _frame(h: int = 24, w: int = 40, seed: int = 5) -> tuple[Layer, Features]:
     return Layer(base, dx, dy), Features(np.full((h, w, 3), 0.5, np.float32), normal, (1 + yy / h).astype(np.float32))
 
 
-def test_the_kinds_are_the_command_lines_choices() -> None:
+def test_the_command_lines_choices_are_the_shipped_models_priors() -> None:
+    """``gradsep train --prior`` offers what the shipped network models refine, each a kind inference computes."""
+    import onnx
+
     from gradsep.training.commands import PRIOR_CHOICES
 
-    assert PRIOR_CHOICES == preprocess.PRIOR_KINDS
+    assert set(PRIOR_CHOICES) <= set(preprocess.PRIOR_KINDS)
+    shipped = {dict((p.key, p.value) for p in onnx.load(str(path), load_external_data=False).metadata_props).get(
+        "gradsep.prior", preprocess.DEFAULT_PRIOR) for path in (REPO / "models").rglob("*.onnx")
+        if "fused" not in path.parts}
+    assert shipped and shipped <= set(PRIOR_CHOICES), shipped
     assert preprocess.DEFAULT_PRIOR == "l1" and {"l1", "l2", "oidn"} <= set(preprocess.PRIOR_KINDS)
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import subprocess
 import sys
@@ -12,6 +13,7 @@ import OpenEXR
 import pytest
 
 from gradsep.cli import main
+from gradsep.model import methods as table
 from gradsep.model.frame import (
     ChannelError,
     Features,
@@ -23,8 +25,9 @@ from gradsep.model.frame import (
     write_exr,
     write_frame,
 )
+from gradsep.model.methods import LoadedModels
 from gradsep.model.poisson import solve_l1, solve_l2
-from gradsep.model.reconstruct import METHODS, choose_method, reconstruct
+from gradsep.model.reconstruct import choose_method, reconstruct
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -88,9 +91,9 @@ def test_reconstruct_sums_the_layers_each_solved_on_its_own(method: str) -> None
 
 def test_reconstruct_runs_nothing_for_absent_layers() -> None:
     network = HalfBase()
-    result = reconstruct(_frame(layers=("direct",)), "network", network=network)
+    result = reconstruct(_frame(layers=("direct",)), "network", models=LoadedModels(network=network))
     assert network.calls == ["direct"] and list(result.layers) == ["direct"]
-    color = reconstruct(_frame(layers=("color",)), "network", network=network)
+    color = reconstruct(_frame(layers=("color",)), "network", models=LoadedModels(network=network))
     assert network.calls == ["direct", "color"] and list(color.layers) == ["color"]
     np.testing.assert_allclose(color.image, color.layers["color"])
 
@@ -100,7 +103,7 @@ def test_reconstruct_output_is_finite_and_non_negative() -> None:
     bad[0, 0] = np.nan
     bad[1, 1] = np.inf
     bad[2, 2] = 5.0
-    result = reconstruct(_frame(), "network", network=HalfBase(bad))
+    result = reconstruct(_frame(), "network", models=LoadedModels(network=HalfBase(bad)))
     assert np.isfinite(result.image).all() and (result.image >= 0).all()
     assert result.image[2, 2, 0] == 10.0 and result.image[1, 1, 0] == 0.0 and result.image[5, 5, 0] == 0.0
     assert len(result.warnings) == 2 and "direct" in result.warnings[0] and "6 non-finite" in result.warnings[0]
@@ -110,47 +113,48 @@ def test_reconstruct_errors_are_clear() -> None:
     frame = _frame()
     with pytest.raises(ValueError, match="unknown reconstruction method 'l3'"):
         reconstruct(frame, "l3")
-    with pytest.raises(ValueError, match="needs a loaded model set"):
+    with pytest.raises(ValueError, match="needs the per-layer networks, models/"):
         reconstruct(frame, "network")
-    with pytest.raises(ValueError, match="needs a loaded model set"):
+    with pytest.raises(ValueError, match="needs the per-layer blend networks, models/fused"):
         reconstruct(frame, "fused")
-    with pytest.raises(ChannelError, match="feature channels"):
-        reconstruct(_frame(features=False), "network", network=HalfBase())
+    with pytest.raises(ChannelError, match="feature group.*albedo, normal, depth"):
+        reconstruct(_frame(features=False), "network", models=LoadedModels(network=HalfBase()))
     with pytest.raises(ValueError, match="alpha"):
         reconstruct(frame, "l2", alpha=0.0)
     with pytest.raises(RuntimeError, match="shape"):
-        reconstruct(frame, "network", network=HalfBase(np.zeros((2, 2, 3), np.float32)))
-    assert METHODS == ("network", "l1", "l2", "oidn", "oidn-l1", "fused")
+        reconstruct(frame, "network", models=LoadedModels(network=HalfBase(np.zeros((2, 2, 3), np.float32))))
+    assert table.names() == ("network", "l1", "l2", "oidn", "oidn-l1", "fused")
 
 
 def test_network_refuses_layers_it_has_no_model_for() -> None:
     only_direct = HalfBase()
     only_direct.layers = {"direct"}
     with pytest.raises(ChannelError, match="no network model for layer.*indirect") as err:
-        reconstruct(_frame(), "network", network=only_direct)
+        reconstruct(_frame(), "network", models=LoadedModels(network=only_direct))
     assert err.value.details["unserved_layers"] == ["indirect"] and only_direct.calls == []
 
 
 def test_default_method_is_the_first_preferred_method_that_serves_the_frame(monkeypatch) -> None:
     network, fused = HalfBase(), HalfBase()
     network.layers = fused.layers = {"direct", "indirect"}
-    assert choose_method(_frame(), network, fused) == "oidn-l1"  # first in model/policy.py (held-out study)
-    assert choose_method(_frame(), network) == "oidn-l1"  # OIDN (installed here) ranks above the network
-    assert choose_method(_frame(features=False), network, fused) == "oidn-l1"  # features are optional for it
+    both = LoadedModels(network=network, fused=fused)
+    assert choose_method(_frame(), both) == "oidn-l1"  # first in the table's preference (held-out study)
+    assert choose_method(_frame(), LoadedModels(network=network)) == "oidn-l1"  # OIDN (here) ranks above network
+    assert choose_method(_frame(features=False), both) == "oidn-l1"  # features are optional for it
     plain = Frame({n: Layer(layer.base) for n, layer in _frame().layers.items()}, _frame().features)
-    assert choose_method(plain, network, fused) == "oidn"  # oidn-l1 needs gradients
+    assert choose_method(plain, both) == "oidn"  # oidn-l1 needs gradients
     fused.layers = {"direct"}  # fused models that do not cover the frame are passed over
-    assert choose_method(_frame(), network, fused) == "oidn-l1"
-    assert reconstruct(_frame(), network=network, fused=fused).method == "oidn-l1"
-    monkeypatch.setattr("gradsep.model.policy.DEFAULT_PREFERENCE", ("fused", "oidn", "network", "l1"))
+    assert choose_method(_frame(), both) == "oidn-l1"
+    assert reconstruct(_frame(), models=both).method == "oidn-l1"
     fused.layers = {"direct", "indirect"}
-    assert choose_method(_frame(), network, fused) == "fused"  # the order is data: a policy change is one line
-    monkeypatch.undo()
+    with table.registered(dataclasses.replace(table.get("fused"), preference=0)):
+        assert choose_method(_frame(), both) == "fused"  # the order is data: a policy change is one line
+    assert choose_method(_frame(), both) == "oidn-l1"  # and the table is restored
     monkeypatch.setattr("gradsep.model.oidn.available", lambda: False)  # a host without pyoidn
-    assert choose_method(_frame(), network) == "network"
+    assert choose_method(_frame(), LoadedModels(network=network)) == "network"
     network.layers = {"direct"}
-    assert choose_method(_frame(), network) == "l1"
-    assert reconstruct(_frame(), network=network).method == "l1"
+    assert choose_method(_frame(), LoadedModels(network=network)) == "l1"
+    assert reconstruct(_frame(), models=LoadedModels(network=network)).method == "l1"
 
 
 def _direct_gradients_only(frame: Frame) -> Frame:
@@ -166,26 +170,26 @@ def test_a_frame_with_the_direct_layers_gradients_only(monkeypatch) -> None:
     mixed = _direct_gradients_only(full)
     network, fused = HalfBase(), HalfBase()
     network.layers = fused.layers = {"direct", "indirect"}
-    assert choose_method(mixed, network, fused) == "oidn-l1"
+    both = LoadedModels(network=network, fused=fused)
+    assert choose_method(mixed, both) == "oidn-l1"
     result = reconstruct(mixed)
     assert result.method == "oidn-l1"
     np.testing.assert_array_equal(result.image, reconstruct(full, "oidn-l1").image)
     assert not np.array_equal(result.layers["direct"], reconstruct(mixed, "oidn").layers["direct"])
     missing = [f"indirect.{g}.{c}" for g in ("dx", "dy") for c in "RGB"]
-    for method, models in (("l1", None), ("l2", None), ("network", network), ("fused", fused)):
+    for method in ("l1", "l2", "network", "fused"):
         with pytest.raises(ChannelError, match="indirect.dx.R") as err:
-            reconstruct(mixed, method, network=models if method == "network" else None,
-                        fused=models if method == "fused" else None)
+            reconstruct(mixed, method, models=both)
         assert err.value.details["missing"] == missing, method
     # the direct layer without gradients and the indirect with them: oidn-l1 cannot refine, oidn serves it
     other = Frame({"direct": Layer(full.layers["direct"].base), "indirect": full.layers["indirect"]}, full.features)
-    assert choose_method(other, network, fused) == "oidn"
+    assert choose_method(other, both) == "oidn"
     with pytest.raises(ChannelError) as err:
         reconstruct(other, "oidn-l1")
     assert err.value.details["missing"] == [f"direct.{g}.{c}" for g in ("dx", "dy") for c in "RGB"]
     monkeypatch.setattr("gradsep.model.oidn.available", lambda: False)  # a host without pyoidn: nothing serves it
-    with pytest.raises(ChannelError, match="only for layer"):
-        choose_method(mixed, network, fused)
+    with pytest.raises(ChannelError, match=r"oidn-l1 \(needs Intel Open Image Denoise"):
+        choose_method(mixed, LoadedModels(network=network, fused=fused))
 
 
 def test_cli_reconstructs_a_frame_with_the_direct_layers_gradients_only(tmp_path: Path, capsys) -> None:
@@ -360,14 +364,15 @@ def _shipped_fused(method: str):
 
 @pytest.mark.parametrize("method", _methods_here())
 def test_concurrent_layers_give_the_sequential_result_bit_for_bit(method: str, monkeypatch) -> None:
-    import gradsep.model.reconstruct as module
-
-    monkeypatch.setattr(module, "CONCURRENT_METHODS", frozenset(METHODS))  # the threaded path for every method
+    spec = table.get(method)
+    threaded = spec if spec.schedule != "sequential" else dataclasses.replace(spec, schedule="concurrent")
     frame = _frame(h=40, w=56, noise=0.1)
-    monkeypatch.setenv("GRADSEP_LAYER_THREADS", "1")
-    sequential = reconstruct(frame, method, alpha=0.3, fused=_shipped_fused(method))
-    monkeypatch.setenv("GRADSEP_LAYER_THREADS", "2")
-    concurrent = reconstruct(frame, method, alpha=0.3, fused=_shipped_fused(method))
+    models = LoadedModels(fused=_shipped_fused(method))
+    with table.registered(threaded):  # the threaded path for every method
+        monkeypatch.setenv("GRADSEP_LAYER_THREADS", "1")
+        sequential = reconstruct(frame, method, alpha=0.3, models=models)
+        monkeypatch.setenv("GRADSEP_LAYER_THREADS", "2")
+        concurrent = reconstruct(frame, method, alpha=0.3, models=models)
     assert list(concurrent.layers) == list(sequential.layers) == ["direct", "indirect"]
     for name in sequential.layers:
         np.testing.assert_array_equal(concurrent.layers[name], sequential.layers[name])
@@ -385,15 +390,12 @@ def test_concurrent_layers_run_in_worker_threads_and_keep_errors(monkeypatch) ->
             seen.add(threading.current_thread().name)
             return super().reconstruct_layer(name, layer, features)
 
-    import gradsep.model.reconstruct as module
-
     monkeypatch.setenv("GRADSEP_LAYER_THREADS", "2")
-    monkeypatch.setattr(module, "CONCURRENT_METHODS", frozenset({"network"}))
-    result = reconstruct(_frame(), "network", network=Recording())
+    result = reconstruct(_frame(), "network", models=LoadedModels(network=Recording()))
     assert seen and all(n.startswith("gradsep-layer") for n in seen)
     np.testing.assert_array_equal(result.layers["direct"], np.clip(_frame().layers["direct"].base * 0.5, 0, None))
     with pytest.raises(RuntimeError, match="shape"):  # a worker's exception reaches the caller unchanged
-        reconstruct(_frame(), "network", network=HalfBase(np.zeros((2, 2, 3), np.float32)))
+        reconstruct(_frame(), "network", models=LoadedModels(network=HalfBase(np.zeros((2, 2, 3), np.float32))))
 
 
 

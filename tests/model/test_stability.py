@@ -10,8 +10,8 @@ image finite and >= 0 whatever the solver did, so finiteness alone proves nothin
 * warnings: every value the pipeline replaced is reported, and a solver or network that fails (NaN) is flagged in
   ``Reconstruction.warnings`` instead of silently becoming a black layer.
 
-Methods are taken from ``model.reconstruct.METHODS``, so a method added later is covered automatically; one that
-needs models or packages this machine lacks is skipped with the reason. Solver-level solves run under
+Methods are taken from the table of methods (model/methods.py), so a method added later is covered automatically; one
+that needs models or packages this machine lacks is skipped with the reason. Solver-level solves run under
 ``np.errstate(divide/over/invalid="raise")``: a division by zero or an overflow anywhere is a failure even when
 the final image happens to come out finite.
 """
@@ -28,9 +28,13 @@ import OpenEXR
 import pytest
 
 import gradsep.model.reconstruct as reconstruct_module
+from gradsep.model import methods as table
 from gradsep.model.frame import Features, Frame, Layer, NonFiniteError, forward_differences, layer_channels, read_frame
+from gradsep.model.methods import LoadedModels
 from gradsep.model.poisson import MIN_ALPHA, energy_l1, solve_l1, solve_l2
-from gradsep.model.reconstruct import METHODS, reconstruct
+from gradsep.model.reconstruct import reconstruct
+
+METHODS = table.names()
 
 REPO = Path(__file__).resolve().parents[2]
 ALPHAS = [1e-4, 1e-2, 0.2, 10.0, 1e3]
@@ -98,13 +102,13 @@ def _models(method: str) -> dict[str, Any]:
     if method in POISSON:
         return {}
     if method == "network":
-        return {"network": _network()}
+        return {"models": LoadedModels(network=_network())}
     if method == "fused":
         if "fused" not in _networks:
             _networks["fused"] = reconstruct_module.load_fused(REPO / "models")
         if _networks["fused"] is None:
             pytest.skip("no fused models (models/fused/*.onnx) in this checkout")
-        return {"fused": _networks["fused"]}
+        return {"models": LoadedModels(fused=_networks["fused"])}
     if method in ("oidn", "oidn-l1"):
         from gradsep.model.oidn import available
 
@@ -348,39 +352,16 @@ def test_values_near_the_float32_limit_scale_like_small_ones(method: str) -> Non
 
 def _poison_backend(method: str, monkeypatch, bad: np.ndarray | None) -> dict[str, Any]:
     """Make ``method``'s backend return NaN where ``bad`` is True (everywhere when None); returns the keyword
-    arguments for ``reconstruct``. l1/l2 patch the solver reconstruct calls, the network wraps the loaded models,
-    and every other method (oidn, fused, later ones) is patched at the per-layer dispatch."""
+    arguments for ``reconstruct``. Every method is patched at its layer function (the table's ``function``)."""
 
     def poisoned(image: np.ndarray) -> np.ndarray:
         out = np.array(image, dtype=np.float32)
         out[bad if bad is not None else np.ones(out.shape, bool)] = np.nan
         return out
 
-    if method == "l2":
-        real = reconstruct_module.solve_l2
-        monkeypatch.setattr(reconstruct_module, "solve_l2", lambda *a, **k: poisoned(real(*a, **k)))
-        return {}
-    if method == "l1":
-        real1 = reconstruct_module.solve_l1
-
-        def l1(*a, **k):
-            image, stats = real1(*a, **k)
-            return poisoned(image), stats
-        monkeypatch.setattr(reconstruct_module, "solve_l1", l1)
-        return {}
-    kwargs = _models(method)
-    if method == "network":
-        network = kwargs["network"]
-
-        class Poisoned:
-            layers = network.layers
-
-            def reconstruct_layer(self, *args: Any) -> np.ndarray:
-                return poisoned(network.reconstruct_layer(*args))
-        return {"network": Poisoned()}
-    real_layer = reconstruct_module._reconstruct_layer
-    monkeypatch.setattr(reconstruct_module, "_reconstruct_layer", lambda *a, **k: poisoned(real_layer(*a, **k)))
-    return kwargs
+    real = table.layer_function
+    monkeypatch.setattr(table, "layer_function", lambda spec: lambda *a, **k: poisoned(real(spec)(*a, **k)))
+    return _models(method)
 
 
 @pytest.mark.parametrize("everywhere", [False, True], ids=["one-pixel", "whole-layer"])

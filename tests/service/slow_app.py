@@ -20,9 +20,9 @@ def create() -> FastAPI:
     real = gradsep.service.inference.reconstruct
     delay = float(os.environ.get("GRADSEP_TEST_SLOW_SECONDS", "2"))
 
-    def slow(frame, method, alpha, network=None, fused=None):  # noqa: ANN001, ANN202
+    def slow(frame, method, alpha, models=None):  # noqa: ANN001, ANN202
         time.sleep(delay)
-        return real(frame, method, alpha, network=network, fused=fused)
+        return real(frame, method, alpha, models)
 
     gradsep.service.inference.reconstruct = slow
     return create_app(Settings(warm_up=False))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import re
 import threading
 import time
@@ -12,6 +13,7 @@ import numpy as np
 import pytest
 
 import gradsep.service.inference
+from gradsep.model import methods as table
 from gradsep.model.reconstruct import choose_method
 from gradsep.service.main import create_app
 from tests.service.conftest import settings, wait_ready
@@ -29,11 +31,11 @@ class BlockingReconstruction:
         self.entered = threading.Semaphore(0)
         self.calls = 0
 
-    def __call__(self, frame, method, alpha, network=None, fused=None):
+    def __call__(self, frame, method, alpha, models=None):
         self.calls += 1
         self.entered.release()
         assert self.release.wait(60), "test never released the reconstruction"
-        return REAL_RECONSTRUCT(frame, method, alpha, network=network)
+        return REAL_RECONSTRUCT(frame, method, alpha, models)
 
 
 @pytest.fixture
@@ -117,7 +119,7 @@ def test_not_ready_while_models_load_but_alive(serve, monkeypatch):
         assert loaded.wait(60)
         return None
 
-    monkeypatch.setattr(gradsep.service.inference, "load_network", slow_load)
+    monkeypatch.setattr("gradsep.model.reconstruct.load_network", slow_load)
     with serve(create_app(settings()), ready=False) as client:
         try:
             assert client.get("/healthz").status_code == 200
@@ -137,7 +139,7 @@ def test_broken_models_keep_liveness_but_never_ready(serve, monkeypatch):
     def broken(models_dir):
         raise RuntimeError("model.onnx: protobuf parsing failed")
 
-    monkeypatch.setattr(gradsep.service.inference, "load_network", broken)
+    monkeypatch.setattr("gradsep.model.reconstruct.load_network", broken)
     with serve(create_app(settings()), ready=False) as client:
         wait_for(lambda: client.get("/readyz").json()["error"]["code"] == "models_failed")
         assert "protobuf parsing failed" in client.get("/readyz").json()["error"]["message"]
@@ -163,14 +165,14 @@ class FakeNetwork:
 
 def test_loaded_network_becomes_the_default_method_without_oidn(serve, monkeypatch):
     network = FakeNetwork()
-    monkeypatch.setattr(gradsep.service.inference, "load_network", lambda models_dir: network)
+    monkeypatch.setattr("gradsep.model.reconstruct.load_network", lambda models_dir: network)
     monkeypatch.setattr("gradsep.model.oidn.available", lambda: False)  # a replica without pyoidn
 
-    def reconstruct(frame, method, alpha, network=None, fused=None):
-        method = method or choose_method(frame, network)
+    def reconstruct(frame, method, alpha, models=None):
+        method = method or choose_method(frame, models)
         if method != "network" or not set(frame.layers) <= network.layers:  # the real one refuses those
-            return REAL_RECONSTRUCT(frame, method, alpha, network=network)
-        assert isinstance(network, FakeNetwork)
+            return REAL_RECONSTRUCT(frame, method, alpha, models)
+        assert models.get("network") is network
         image = sum(layer.base for layer in frame.layers.values())
         return SimpleNamespace(image=image, layers={k: v.base for k, v in frame.layers.items()},
                                timings=dict.fromkeys(frame.layers, 0.001), method="network")
@@ -195,14 +197,14 @@ def test_loaded_network_becomes_the_default_method_without_oidn(serve, monkeypat
 
 def test_fused_models_are_served_and_the_policy_order_picks_the_default(serve, monkeypatch):
     fused = FakeNetwork()
-    monkeypatch.setattr(gradsep.service.inference, "load_fused", lambda models_dir: fused)
+    monkeypatch.setattr("gradsep.model.reconstruct.load_fused", lambda models_dir: fused)
     calls: list[str] = []
 
-    def reconstruct(frame, method, alpha, network=None, fused=None):
-        method = method or choose_method(frame, network, fused)
+    def reconstruct(frame, method, alpha, models=None):
+        method = method or choose_method(frame, models)
         calls.append(method)
         if method != "fused":
-            return REAL_RECONSTRUCT(frame, method, alpha, network=network, fused=fused)
+            return REAL_RECONSTRUCT(frame, method, alpha, models)
         image = sum(layer.base for layer in frame.layers.values())
         return SimpleNamespace(image=image, layers={k: v.base for k, v in frame.layers.items()},
                                timings=dict.fromkeys(frame.layers, 0.001), method="fused")
@@ -211,15 +213,15 @@ def test_fused_models_are_served_and_the_policy_order_picks_the_default(serve, m
     with serve(create_app(settings(warm_up=False))) as client:
         ready = client.get("/readyz").json()
         assert ready["methods"] == ["l1", "l2", "oidn", "oidn-l1", "fused"]
-        assert ready["default_method"] == "oidn-l1" and ready["default_method_plain"] == "oidn"  # model/policy.py
+        assert ready["default_method"] == "oidn-l1" and ready["default_method_plain"] == "oidn"  # model/methods.py
         models = client.get("/v1/models").json()
         assert models["default_method"] == "oidn-l1" and models["models"][0]["method"] == "fused"
         assert post(client, frame_bytes(seed=9, features=True)).headers["x-reconstruction-method"] == "oidn-l1"
         assert post(client, frame_bytes(seed=9, features=True), {"method": "fused"}).headers[
             "x-reconstruction-method"] == "fused"
-        monkeypatch.setattr("gradsep.model.policy.DEFAULT_PREFERENCE", ("fused", "oidn", "network", "l1"))
-        assert client.get("/readyz").json()["default_method"] == "fused"  # one line of policy changes it
-        assert post(client, frame_bytes(seed=9, features=True)).headers["x-reconstruction-method"] == "fused"
+        with table.registered(dataclasses.replace(table.get("fused"), preference=0)):
+            assert client.get("/readyz").json()["default_method"] == "fused"  # one field of the table changes it
+            assert post(client, frame_bytes(seed=9, features=True)).headers["x-reconstruction-method"] == "fused"
         plain = post(client, frame_bytes(seed=9, features=True, gradients=False))
         assert plain.status_code == 200 and plain.headers["x-reconstruction-method"] == "oidn"
         refused = post(client, frame_bytes(seed=9, features=True, gradients=False), {"method": "l1"})
@@ -227,7 +229,7 @@ def test_fused_models_are_served_and_the_policy_order_picks_the_default(serve, m
 
 
 def test_an_unexpected_failure_is_a_json_500_with_the_request_id(serve, monkeypatch):
-    def crash(frame, method, alpha, network=None, fused=None):
+    def crash(frame, method, alpha, models=None):
         raise RuntimeError("solver exploded")
 
     monkeypatch.setattr(gradsep.service.inference, "reconstruct", crash)

@@ -329,6 +329,7 @@ def test_network_without_models_is_422_listing_available_methods(poisson_api, tr
                          422, "method_unavailable")
     oidn = importlib.util.find_spec("pyoidn") is not None
     assert error["details"] == {"available": ["l1", "l2", "oidn", "oidn-l1"] if oidn else ["l1", "l2"]}
+    assert "it needs the per-layer networks, models/{direct,indirect,color}.onnx" in error["message"]
     fused = assert_error(post(poisson_api[transport], frame_bytes(), {"method": "fused"}), 422, "method_unavailable")
     assert "fused" not in fused["details"]["available"]
 

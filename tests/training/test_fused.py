@@ -17,6 +17,7 @@ pytest.importorskip("pyoidn")
 from gradsep.model.frame import read_frame  # noqa: E402
 from gradsep.model.fused import OIDN_SETTING, blend_inputs, layer_candidates  # noqa: E402
 from gradsep.model.infer import ModelError  # noqa: E402
+from gradsep.model.methods import LoadedModels  # noqa: E402
 from gradsep.model.oidn import shared_denoiser  # noqa: E402
 from gradsep.model.preprocess import FUSED_MEAN  # noqa: E402
 from gradsep.model.reconstruct import load_fused, load_network, reconstruct  # noqa: E402
@@ -99,7 +100,7 @@ def test_blend_models_load_reconstruct_and_are_exposure_invariant(blend_models: 
     assert fused is not None and fused.layers == {"direct", "indirect"} and fused.needs_aux
     assert all(d["prior"] == "blend" and d["inputs"]["candidates"] == list(KINDS) for d in fused.describe())
     frame = read_frame(load_manifest(paired).frames[0].path, nonfinite="zero")
-    result = reconstruct(frame, "fused", fused=fused)
+    result = reconstruct(frame, "fused", models=LoadedModels(fused=fused))
     assert result.method == "fused" and np.isfinite(result.image).all() and result.image.min() >= 0
     base = sum(layer.base for layer in frame.layers.values())
     assert result.image.mean() == pytest.approx(base.mean(), rel=0.25)  # a convex blend keeps the energy
@@ -108,7 +109,7 @@ def test_blend_models_load_reconstruct_and_are_exposure_invariant(blend_models: 
         for layer in scaled.layers.values():
             for a in (layer.base, layer.dx, layer.dy):
                 a *= np.float32(k)
-        out = reconstruct(scaled, "fused", fused=fused).image / k
+        out = reconstruct(scaled, "fused", models=LoadedModels(fused=fused)).image / k
         assert np.abs(out - result.image).max() <= 1e-3 * result.image.max(), k
 
 
@@ -154,7 +155,7 @@ def test_stiff_frames_stay_finite(blend_models: Path, case: str) -> None:
     feats = Features(rng.uniform(0, 1, (h, w, 3)).astype(np.float32),
                      np.tile(np.float32([0, 0, 1]), (h, w, 1)), np.ones((h, w), np.float32))
     frame = Frame({"direct": Layer(base, dx, dy), "indirect": Layer(base.copy(), dx.copy(), dy.copy())}, feats)
-    image = reconstruct(frame, "fused", fused=fused).image
+    image = reconstruct(frame, "fused", models=LoadedModels(fused=fused)).image
     assert image.shape == (h, w, 3) and np.isfinite(image).all() and image.min() >= 0
     if case == "black":
         assert image.max() == 0.0
@@ -176,7 +177,7 @@ def test_a_fixed_layer_is_its_candidate_and_old_formats_are_refused(blend_models
     fused = load_fused(tmp_path / "models")
     assert fused is not None and fused.layers == {"indirect"} | set(FIXED_LAYERS)
     frame = read_frame(load_manifest(paired).frames[0].path, nonfinite="zero")
-    result = reconstruct(frame, "fused", fused=fused)
+    result = reconstruct(frame, "fused", models=LoadedModels(fused=fused))
     assert np.isfinite(result.image).all() and result.image.min() >= 0
     for name, kind in FIXED_LAYERS.items():
         aux = shared_denoiser(OIDN_SETTING).prefilter(frame.features)

@@ -1,0 +1,50 @@
+"""The layer functions of the shipped methods (model/methods.py names them): one illumination layer in, its
+reconstruction out, with the frame's shared context (model.reconstruct.LayerContext).
+
+Each is a thin call into the module that does the work; what a frame must carry was checked by
+model.reconstruct before any of them runs.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from gradsep.model.frame import Layer
+
+if TYPE_CHECKING:
+    from gradsep.model.reconstruct import LayerContext
+
+
+def l1_layer(name: str, layer: Layer, ctx: LayerContext, denoised: np.ndarray | None = None) -> np.ndarray:
+    from gradsep.model.poisson import solve_l1
+
+    return solve_l1(layer.base, layer.dx, layer.dy, ctx.alpha)[0]
+
+
+def l2_layer(name: str, layer: Layer, ctx: LayerContext, denoised: np.ndarray | None = None) -> np.ndarray:
+    from gradsep.model.poisson import solve_l2
+
+    return solve_l2(layer.base, layer.dx, layer.dy, ctx.alpha)
+
+
+def oidn_layer(name: str, layer: Layer, ctx: LayerContext, denoised: np.ndarray | None = None) -> np.ndarray:
+    """OIDN on the layer's base with the frame's auxiliary images (prefiltered once per frame)."""
+    return ctx.denoiser.denoise(layer.base, ctx.aux) if denoised is None else denoised
+
+
+def oidn_l1_layer(name: str, layer: Layer, ctx: LayerContext, denoised: np.ndarray | None = None) -> np.ndarray:
+    """OIDN's image, then (the direct layer) refined by the layer's gradients: model/refine.py."""
+    from gradsep.model.refine import refine_layer
+
+    return refine_layer(name, oidn_layer(name, layer, ctx, denoised), layer)
+
+
+def network_layer(name: str, layer: Layer, ctx: LayerContext, denoised: np.ndarray | None = None) -> np.ndarray:
+    return ctx.models.get("network").reconstruct_layer(name, layer, ctx.features)
+
+
+def fused_layer(name: str, layer: Layer, ctx: LayerContext, denoised: np.ndarray | None = None) -> np.ndarray:
+    """The blend's candidates start from the layer's OIDN image, denoised here or by the caller."""
+    return ctx.models.get("fused").reconstruct_layer(name, layer, ctx.features, ctx.aux, denoised=denoised)
