@@ -96,7 +96,7 @@ models: venv system-deps $(DATASET)/manifest.json
 	wait $$p0 && wait $$p1
 
 # The fused method's blend model by one command (docs/training.md, "The fused blend model"): the same Noise2Noise dataset;
-# every training frame's candidates computed once into runs/fused-cache (model.fused.layer_candidates, as inference
+# every training frame's candidates computed once into runs/fused-cache (gradsep.model.fused.layer_candidates, as inference
 # computes them); then the indirect layer's blend network trained for MINUTES_FUSED on one core and exported. The
 # direct layer has no model: the method serves it with its refine candidate (model.fused.FIXED_LAYERS, chosen on the
 # held-out study). Writes $(MODELS_OUT)/fused/indirect.onnx; copy it to models/fused/ to serve it. The run folder

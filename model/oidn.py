@@ -3,16 +3,16 @@
 OIDN's ``RT`` filter is a pretrained, feature-guided denoiser: it sees one noisy HDR image plus (optionally) the
 albedo and normal of the first visible surface. Used per illumination layer (the direct and the indirect layer
 denoised apart, then summed) it beats denoising their sum, because each layer's noise is more uniform than the
-mix (docs/network.md, "The oidn and fused methods").
+mix.
 
 How OIDN is run is a :class:`Setting` (docs/oidn.md): the auxiliary images (``prefiltered``: albedo and normal
 denoised once per frame by their own filters, OIDN's recipe for noisy features, then ``cleanAux``, which at
 quality ``high`` selects OIDN's large model; ``raw``: the frame's own noisy features, OIDN's default mode, no
 prefilter; ``none``) and the colour filter's quality preset. Two settings matter: the ``fused`` models' prior,
 fixed at :data:`PRIOR_SETTING` (the setting their training cache was made with), and the ``oidn`` method's,
-:data:`METHOD_SETTING`, chosen by the error-against-time study of docs/oidn.md to fit the service's latency
-target, and selectable with ``$GRADSEP_OIDN_SETTING``. The auxiliary images are prepared once per frame and
-reused for every layer.
+:data:`METHOD_SETTING`, chosen by an error-against-time study to fit the service's latency target
+(docs/decisions.md, "OIDN's setting for the oidn method"), and selectable with ``$GRADSEP_OIDN_SETTING``. The
+auxiliary images are prepared once per frame and reused for every layer.
 
 Numerics: inputs are sanitised (NaN → 0, ±Inf → the largest finite float32 / 0, radiance clamped ≥ 0), and the
 colour filter is given an explicit ``inputScale``, the reciprocal of the layer's robust level (model/robust.py: a
@@ -40,7 +40,7 @@ if TYPE_CHECKING:
     from gradsep.model.frame import Features
 
 #: The albedo/normal prefilter's quality: "fast" (its output scored the same as "high" to 5 digits on 16 dataset
-#: frames; docs/network.md, "The oidn and fused methods").
+#: frames).
 AUX_QUALITY = "fast"
 _F32_MAX = float(np.finfo(np.float32).max)
 #: The exposure the colour filter sees: the layer scaled so its robust level is 1 (OIDN's HDR models are trained
@@ -77,7 +77,7 @@ class Setting:
         return f"{self.aux}-{self.quality}"
 
 
-#: Every setting the study in docs/oidn.md measured, by name (``raw-fast``, ``prefiltered-high``, ...).
+#: Every setting (docs/oidn.md), by name (``raw-fast``, ``prefiltered-high``, ...).
 SETTINGS: dict[str, Setting] = {s.name: s for s in (Setting(a, q) for a in ("prefiltered", "raw", "none")
                                                     for q in ("high", "balanced", "fast"))}
 #: The ``fused`` models' prior: the setting their training cache was made with (preprocess.oidn_prior_inputs).

@@ -105,7 +105,7 @@ LayerFunction = Callable[[str, Layer, LayerContext, "np.ndarray | None"], np.nda
 #: ``$GRADSEP_LAYER_THREADS``: how many of a frame's layers are reconstructed at once (1: one after the other).
 LAYER_THREADS_ENV = "GRADSEP_LAYER_THREADS"
 #: The default: two layers at once, for the methods whose schedule is concurrent or pipelined (model/methods.py;
-#: the schedules were measured with benchmarks/bench_layers.py, docs/network.md "Serving latency").
+#: the schedules were measured with benchmarks/bench_layers.py).
 DEFAULT_LAYER_THREADS = 2
 
 

@@ -113,7 +113,7 @@ def error_summary(response: httpx.Response) -> str:
 
 #: The request body is handed to httpx in slices of this size: given one ``bytes`` object, httpcore sends it with
 #: ``buffer = buffer[n:]`` after each partial ``send``, copying the unsent rest every time (quadratic: ~0.15 s of
-#: client CPU for a 66 MB frame on loopback, measured in docs/service.md's Benchmark). Slices of a memoryview
+#: client CPU for a 66 MB frame on loopback, measured). Slices of a memoryview
 #: are copied once each. Same bytes on the wire, with the same Content-Length framing.
 UPLOAD_CHUNK = 1 << 20
 

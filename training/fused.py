@@ -1,9 +1,9 @@
 """Training of the ``fused`` method's blend models (model/fused.py, model/blend_net.py): unsupervised, Noise2Noise.
 
-    python -m training.fused cache  --data data/n2n16 -o runs/fused-cache            # candidates, once (cached)
-    python -m training.fused train  --cache runs/fused-cache --layer direct --candidates oidn,refine \
-                                    --minutes 10 -o runs/fused-blend-direct           # resumable
-    python -m training.fused export runs/fused-blend-direct -o models/fused/direct.onnx
+    python -m gradsep.training.fused cache  --data data/n2n16 -o runs/fused-cache     # candidates, once (cached)
+    python -m gradsep.training.fused train  --cache runs/fused-cache --layer indirect --candidates oidn,refine-fast \
+                                            --minutes 10 -o runs/fused-blend-indirect  # resumable
+    python -m gradsep.training.fused export runs/fused-blend-indirect -o models/fused/indirect.onnx
 
 The cache holds, per frame and layer, at the normalised exposure of model.fused.layer_candidates (computed by that
 very function, as inference does): the layer's base, dx, dy; the candidates it was built for (cache.json); the 7
@@ -101,7 +101,7 @@ def target_image(layer: Any, kind: str) -> np.ndarray:
     screened Poisson reconstruction from base + gradients at the product's α (``l2``). Both are unbiased (the L2
     solve is linear in unbiased inputs, and returns the image itself for consistent ones), and neither depends on
     the first realization, so the loss's minimiser stays the clean image; the L2 one carries less noise (the
-    median training frame's direct-layer loss fell 8x, docs/network.md "Closing the teapot gap"), so small
+    median training frame's direct-layer loss fell 8x), so small
     differences between candidates stand out of the target's own variance sooner."""
     if kind == "base":
         return np.asarray(layer.base, np.float32)
