@@ -1,13 +1,13 @@
-"""OIDN's cost per layer as the ``fused`` prior runs it (model/oidn.py, prefiltered-high), against a plain call.
+"""OIDN's cost per layer with prefiltered features (model/oidn.py, prefiltered-high), against a plain call.
 
     python benchmarks/bench_oidn.py                  # 1280x720, medians of 3 after one warm-up call each
     python benchmarks/bench_oidn.py --size 320x240
 
 Reports, for a synthetic noisy HDR layer with random albedo/normal: ``pyoidn.denoise`` with the raw (noisy)
-features (OIDN's default mode), the colour filter with prefiltered features (``cleanAux``, the fused prior's
-setting), and the two prefilter passes (albedo, normal) it runs once per frame. The ``oidn`` method's own setting
-(``raw-fast``: raw features, quality ``fast``; docs/oidn.md) is timed inside the service's pipeline by
-bench_floor.py's ``oidn`` row.
+features (OIDN's default mode), the colour filter with prefiltered features (``cleanAux``, the
+``prefiltered-high`` setting), and the two prefilter passes (albedo, normal) it runs once per frame. The ``oidn``
+method's own setting (``raw-fast``: raw features, quality ``fast``; docs/oidn.md) is timed inside the service's
+pipeline by bench_floor.py's ``oidn`` row.
 """
 
 from __future__ import annotations
@@ -47,7 +47,7 @@ def main() -> int:
     albedo = rng.uniform(0, 1, (height, width, 3)).astype(np.float32)
     normal = rng.uniform(-1, 1, (height, width, 3)).astype(np.float32)
     features = Features(albedo, normal, np.ones((height, width), np.float32))
-    denoiser = Denoiser()
+    denoiser = Denoiser("prefiltered-high")
     aux = denoiser.prefilter(features)
     rows = [
         ("pyoidn.denoise, raw albedo/normal (one layer)",

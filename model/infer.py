@@ -50,7 +50,6 @@ from gradsep.model.preprocess import (
     measured_planes,
     network_inputs,
     network_inputs_numpy,
-    oidn_prior_inputs,
     output_radiance,
     pad_to_alignment,
     poisson_prior,
@@ -65,7 +64,6 @@ if TYPE_CHECKING:
     import onnxruntime
 
     from gradsep.model.frame import Features, Layer
-    from gradsep.model.oidn import CleanAux
 
 #: Model files looked for in the models folder, by layer name.
 MODEL_LAYERS: tuple[str, ...] = ILLUMINATION_LAYERS
@@ -154,9 +152,8 @@ class LoadedModel:
 
     @property
     def prior(self) -> str:
-        """What the model refines (model.preprocess.PRIOR_KINDS, checked at load): a Poisson prior kind (``l1``,
-        the truncated L1 solve, for models without the key; ``l2``; ``l1-mg3x2``) or ``oidn`` (the ``fused``
-        models). Inference computes exactly this prior for the model."""
+        """What the model refines (model.preprocess.PRIOR_KINDS, checked at load): ``l1``, the truncated L1 Poisson
+        solve, also for a model without the key."""
         return self.metadata.get("gradsep.prior", DEFAULT_PRIOR)
 
     def run(self, data: np.ndarray, gradient: np.ndarray) -> np.ndarray:
@@ -212,13 +209,6 @@ def _check_metadata(path: Path, name: str, meta: dict[str, str]) -> int:
     if meta.get("gradsep.prior", DEFAULT_PRIOR) not in PRIOR_KINDS:
         problems.append(f"its prior {meta.get('gradsep.prior')!r} is unknown to this version (known: "
                         f"{', '.join(PRIOR_KINDS)}), so it cannot be computed as the model was trained")
-    elif meta.get("gradsep.prior") == "oidn":
-        from gradsep.model import oidn
-
-        if meta.get("gradsep.exposure") != "prior-mean":
-            problems.append("an oidn-prior model must declare gradsep.exposure = prior-mean")
-        if not oidn.available():
-            problems.append("its prior is OIDN, but pyoidn is not installed")
     if preprocessing.get("version") != PREPROCESS_VERSION:
         problems.append(f"preprocessing version {preprocessing.get('version')} != {PREPROCESS_VERSION}")
     if alignment < 1:
@@ -266,11 +256,6 @@ class NetworkReconstructor:
         """Layer names this reconstructor can serve."""
         return set(self.models)
 
-    @property
-    def needs_aux(self) -> bool:
-        """True when a model refines an OIDN prior: the caller prefilters the features once per frame."""
-        return any(m.prior == "oidn" for m in self.models.values())
-
     def describe(self) -> list[dict[str, Any]]:
         """One entry per loaded model (name, layer, input channels, sha256, metadata) for /v1/models."""
         return [m.describe() for m in self.models.values()]
@@ -285,56 +270,40 @@ class NetworkReconstructor:
                       np.zeros((len(GRADIENT_INPUTS), side, side), np.float32))
         return time.perf_counter() - start
 
-    def reconstruct_layer(self, name: str, layer: Layer, features: Features | None,
-                          aux: CleanAux | None = None) -> np.ndarray:
+    def reconstruct_layer(self, name: str, layer: Layer, features: Features | None) -> np.ndarray:
         """Reconstruct one illumination layer: (H, W, 3) float32, finite, ≥ 0.
 
-        ``aux``: the frame's OIDN-prefiltered features (model.oidn.Denoiser.prefilter), for models refining an
-        OIDN prior; computed here when None, so pass it to share it between a frame's layers.
-
-        A Poisson-prior model always runs on the layer scaled to the exposure it was trained at (its robust level
-        at NETWORK_LEVEL, :func:`exposure_scale`) and its output is scaled back, so the method is the same for a
-        frame at 1e-8 or 1e9 radiance and no frame-level decision depends on a single pixel. (OIDN-prior models
-        normalise their exposure themselves, below.)
+        The model always runs on the layer scaled to the exposure it was trained at (its robust level at
+        NETWORK_LEVEL, :func:`exposure_scale`) and its output is scaled back, so the method is the same for a
+        frame at 1e-8 or 1e9 radiance and no frame-level decision depends on a single pixel.
         """
         if name not in self.models:
             raise KeyError(f"no model for layer {name!r}; loaded: {', '.join(sorted(self.models)) or 'none'}")
         _check_inputs(layer, features)
-        if self.models[name].prior != "oidn":
-            exposure = exposure_scale(layer)
-            if exposure != 1.0:
-                return scaled_image(self._reconstruct(name, scaled_layer(layer, 1.0 / exposure), features, aux),
-                                    exposure)
-        return self._reconstruct(name, layer, features, aux)
+        exposure = exposure_scale(layer)
+        if exposure != 1.0:
+            return scaled_image(self._reconstruct(name, scaled_layer(layer, 1.0 / exposure), features), exposure)
+        return self._reconstruct(name, layer, features)
 
-    def _reconstruct(self, name: str, layer: Layer, features: Features | None, aux: CleanAux | None) -> np.ndarray:
+    def _reconstruct(self, name: str, layer: Layer, features: Features | None) -> np.ndarray:
         """:meth:`reconstruct_layer` of a layer already at the model's exposure."""
         height, width = np.shape(layer.base)[:2]
         assert features is not None  # _check_inputs raised otherwise
         model = self.models[name]
         unlit = unlit_pixels(layer)
-        scale = 1.0
-        if model.prior == "oidn":  # fused: refine OIDN's denoise at a normalised exposure
-            from gradsep.model.oidn import shared_denoiser
-
-            aux = aux if aux is not None else shared_denoiser().prefilter(features)
-            layer, prior, scale = oidn_prior_inputs(layer, aux)
         plans = plan_tiles(height, width, self.tiles, model.alignment)
         overlap = aligned_size(self.tiles.overlap, model.alignment)
         depth_range = DepthRange.of(features.depth)  # per frame, shared by every window
-        if len(plans) == 1 and model.prior != "oidn":
+        if len(plans) == 1:
             # one window: the measured planes are made once, and the prior is solved from them (no second
             # sanitised, transposed copy of the layer); bit-for-bit what layer_planes(layer, prior=...) gives
             planes = np.empty((LAYER_PLANES, height, width), np.float32)
             measured_planes(layer, out=planes[:MEASURED_PLANES])
-            prior = poisson_prior(layer, planes=planes[:MEASURED_PLANES], kind=model.prior)
+            prior = poisson_prior(layer, planes=planes[:MEASURED_PLANES])
             with_prior(planes, prior)
             result = self._run_planes(model, planes, self._features(features, depth_range))
-        elif len(plans) == 1:
-            result = self._run_window(model, layer, features, depth_range, prior, plans[0].window)
         else:
-            if model.prior != "oidn":
-                prior = poisson_prior(layer, kind=model.prior)  # a global solve: once per layer, cropped per window
+            prior = poisson_prior(layer)  # a global solve: once per layer, cropped per window
             total = np.zeros((height, width, 3), dtype=np.float32)
             weight = np.zeros((height, width, 1), dtype=np.float32)
             for plan in plans:
@@ -345,7 +314,7 @@ class NetworkReconstructor:
                 weight[y0:y1, x0:x1] += w[..., None]
             result = total / weight
         result[unlit] = 0.0             # no measured light: nothing to reconstruct
-        return scaled_image(result, 1.0 / scale) if scale != 1.0 else result
+        return result
 
     def _features(self, features: Features, depth_range: DepthRange) -> np.ndarray:
         """The whole frame's feature planes, made once per frame: a frame's layers are reconstructed one after

@@ -27,7 +27,7 @@ try:  # pragma: no branch - which side runs depends on the host
 except ImportError:  # numpy fallback in model.poisson
     AVAILABLE = False
 
-__all__ = ["AVAILABLE", "cg_update", "clamp_outliers", "residuals_and_norms", "weighted_apply", "weighted_rhs"]
+__all__ = ["AVAILABLE", "cg_update", "residuals_and_norms", "weighted_apply", "weighted_rhs"]
 
 
 if AVAILABLE:
@@ -283,43 +283,3 @@ if AVAILABLE:
             for y in range(height):
                 for x in range(y % 2, width, 2):
                     z[c, y, x] += zc[c, y // 2, x // 2]
-
-    @_compiled
-    def _window_max(image, y, x, c, centre):  # pragma: no cover - compiled
-        """The largest value of channel c in the 3×3 window at (y, x) (edges replicated), with or without itself."""
-        height, width = image.shape[0], image.shape[1]
-        m = image.dtype.type(0.0)
-        for oy in range(-1, 2):
-            yy = min(max(y + oy, 0), height - 1)
-            for ox in range(-1, 2):
-                if oy == 0 and ox == 0 and not centre:
-                    continue
-                xx = min(max(x + ox, 0), width - 1)
-                if image[yy, xx, c] > m:
-                    m = image[yy, xx, c]
-        return m
-
-    @_compiled
-    def clamp_outliers(base, dx, dy, factor, out_base, out_dx, out_dy):  # pragma: no cover - compiled
-        """model.preprocess.clamp_outliers on (H, W, C) arrays, into the three outputs: base to ``factor`` × its 8
-        neighbours' max (edges replicated), then gradients to ``factor`` × the clamped base's 3×3 max around
-        either of their two pixels."""
-        height, width, channels = base.shape
-        f = base.dtype.type(factor)
-        for y in range(height):
-            for x in range(width):
-                for c in range(channels):
-                    out_base[y, x, c] = min(base[y, x, c], f * _window_max(base, y, x, c, False))
-        level = np.empty((height, width, channels), base.dtype)
-        for y in range(height):
-            for x in range(width):
-                for c in range(channels):
-                    level[y, x, c] = f * _window_max(out_base, y, x, c, True)
-        for y in range(height):
-            for x in range(width):
-                for c in range(channels):
-                    bx = level[y, x, c] if x + 1 >= width else max(level[y, x, c], level[y, x + 1, c])
-                    by = level[y, x, c] if y + 1 >= height else max(level[y, x, c], level[y + 1, x, c])
-                    out_dx[y, x, c] = min(max(dx[y, x, c], -bx), bx)
-                    out_dy[y, x, c] = min(max(dy[y, x, c], -by), by)
-        return out_base

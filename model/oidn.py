@@ -1,4 +1,4 @@
-"""Intel Open Image Denoise as a reconstruction method and as the prior of the ``fused`` network.
+"""Intel Open Image Denoise as a reconstruction method and as the first candidate of the ``fused`` blend.
 
 OIDN's ``RT`` filter is a pretrained, feature-guided denoiser: it sees one noisy HDR image plus (optionally) the
 albedo and normal of the first visible surface. Used per illumination layer (the direct and the indirect layer
@@ -8,11 +8,11 @@ mix.
 How OIDN is run is a :class:`Setting` (docs/oidn.md): the auxiliary images (``prefiltered``: albedo and normal
 denoised once per frame by their own filters, OIDN's recipe for noisy features, then ``cleanAux``, which at
 quality ``high`` selects OIDN's large model; ``raw``: the frame's own noisy features, OIDN's default mode, no
-prefilter; ``none``) and the colour filter's quality preset. Two settings matter: the ``fused`` models' prior,
-fixed at :data:`PRIOR_SETTING` (the setting their training cache was made with), and the ``oidn`` method's,
-:data:`METHOD_SETTING`, chosen by an error-against-time study to fit the service's latency target
-(docs/decisions.md, "OIDN's setting for the oidn method"), and selectable with ``$GRADSEP_OIDN_SETTING``. The
-auxiliary images are prepared once per frame and reused for every layer.
+prefilter; ``none``) and the colour filter's quality preset. The ``oidn`` method's setting, :data:`METHOD_SETTING`,
+was chosen by an error-against-time study to fit the service's latency target (docs/decisions.md, "OIDN's setting
+for the oidn method"), and is selectable with ``$GRADSEP_OIDN_SETTING``; the ``fused`` blend models name the
+setting they were trained with (model/fused.py ``OIDN_SETTING``). The auxiliary images are prepared once per frame
+and reused for every layer.
 
 Numerics: inputs are sanitised (NaN → 0, ±Inf → the largest finite float32 / 0, radiance clamped ≥ 0), and the
 colour filter is given an explicit ``inputScale``, the reciprocal of the layer's robust level (model/robust.py: a
@@ -80,9 +80,6 @@ class Setting:
 #: Every setting (docs/oidn.md), by name (``raw-fast``, ``prefiltered-high``, ...).
 SETTINGS: dict[str, Setting] = {s.name: s for s in (Setting(a, q) for a in ("prefiltered", "raw", "none")
                                                     for q in ("high", "balanced", "fast"))}
-#: The ``fused`` models' prior: the setting their training cache was made with (preprocess.oidn_prior_inputs).
-#: Fixed: a fused model refines exactly this OIDN output, so changing it would need retraining.
-PRIOR_SETTING = "prefiltered-high"
 #: The ``oidn`` method's setting (and so the served default's and the evaluation's OIDN baselines'): chosen
 #: by error against time on held-out frames (docs/oidn.md); ``$GRADSEP_OIDN_SETTING`` selects another one.
 METHOD_SETTING = "raw-fast"
@@ -147,7 +144,7 @@ class Denoiser:
     and the filters' weights are set up once.
     """
 
-    def __init__(self, setting: Setting | str = PRIOR_SETTING, runtime: str | None = None) -> None:
+    def __init__(self, setting: Setting | str = METHOD_SETTING, runtime: str | None = None) -> None:
         import pyoidn
 
         if isinstance(setting, str):
@@ -317,10 +314,9 @@ _shared: dict[tuple[str, str], Denoiser] = {}
 _shared_lock = threading.Lock()
 
 
-def shared_denoiser(setting: str = PRIOR_SETTING, runtime: str | None = None) -> Denoiser:
+def shared_denoiser(setting: str = METHOD_SETTING, runtime: str | None = None) -> Denoiser:
     """The process-wide :class:`Denoiser` of ``setting`` on ``runtime`` (default :func:`runtime_setting`),
-    created on first use. The default setting is the fused models' prior; the ``oidn`` method asks for
-    :func:`method_setting`."""
+    created on first use. The ``oidn`` method asks for :func:`method_setting` (``$GRADSEP_OIDN_SETTING`` honoured)."""
     key = (setting, runtime or runtime_setting())
     with _shared_lock:
         if key not in _shared:

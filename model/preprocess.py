@@ -85,42 +85,17 @@ OUTPUTS: tuple[str, ...] = ("R", "G", "B")
 FEATURE_INPUTS: tuple[str, ...] = DATA_INPUTS[6:]
 #: Where C(prior) sits in the data input: the network predicts a correction to it (model/network.py).
 PRIOR_CHANNELS = slice(3, 6)
-#: What C(prior) is, a property of each model chosen when it is trained (``gradsep train --prior``), stored as ONNX
-#: metadata ``gradsep.prior`` and used at inference from the loaded model's metadata (model/infer.py), so every model
-#: is served with the prior it was trained on. A model without the key is ``l1``; a model naming a kind not listed
-#: here is refused at load.
-#:
-#: * ``l1`` — the truncated robust Poisson solve above (PRIOR_IRLS_PASSES × PRIOR_CG_STEPS, DCT-preconditioned): the
-#:   shipped ``network`` models (the paper's method as published here);
-#: * ``l2`` — the exact screened-Poisson (L2) solve, DCT, the IRLS's pass 0 alone in the working precision: ~1/5 of
-#:   the ``l1`` prior's cost, but the L2 solve smears gradient fireflies into the prior;
-#: * ``l2-clamp`` — the ``l2`` solve on outlier-clamped data (:func:`clamp_outliers`: a base value above
-#:   OUTLIER_CLAMP × the largest of its 8 neighbours, and a gradient above OUTLIER_CLAMP × the largest clamped base
-#:   value around its two pixels, are clamped there): the L2 prior's cost (+~15 ms per 720p layer) without smearing
-#:   isolated fireflies;
-#: * ``l1-mg3x2`` — the robust solve truncated to 3 passes × 2 CG steps with the multigrid preconditioner;
-#: * ``oidn`` — Intel Open Image Denoise run on the layer's base with the frame's prefiltered albedo and normal
-#:   (model/oidn.py), the ``fused`` method.
-#:
-#: POISSON_PRIORS maps each Poisson kind to its solve_l1 budget (passes, CG steps, preconditioner); the rest of the
-#: solve (α, reg schedule, CG tolerance) is the PRIOR_* constants above for all of them.
-POISSON_PRIORS: dict[str, tuple[int, int, str]] = {
-    "l1": (PRIOR_IRLS_PASSES, PRIOR_CG_STEPS, PRIOR_PRECONDITIONER),
-    "l2": (1, 1, "dct"),
-    "l1-mg3x2": (3, 2, "mg"),
-    "l2-clamp": (1, 1, "dct"),
-}
-#: Poisson kinds whose data are outlier-clamped before the solve (:func:`clamp_outliers`), and the factor.
-CLAMPED_PRIORS: frozenset[str] = frozenset({"l2-clamp"})
-OUTLIER_CLAMP = 4.0
-PRIOR_KINDS: tuple[str, ...] = (*POISSON_PRIORS, "oidn")
+#: What C(prior) is, stored as ONNX metadata ``gradsep.prior`` (absent on the shipped models): the truncated robust
+#: Poisson solve above (PRIOR_IRLS_PASSES x PRIOR_CG_STEPS, DCT-preconditioned), kind ``l1``. A model naming any
+#: other kind is refused at load (model/infer.py): this code could not compute the prior it was trained on.
+PRIOR_KINDS: tuple[str, ...] = ("l1",)
 #: The kind a model without ``gradsep.prior`` metadata refines (every model exported before kinds existed).
 DEFAULT_PRIOR = "l1"
-#: ``fused`` models see every layer at a normalised exposure: base, gradients and prior multiplied by s so that the
-#: prior's robust level (model.robust.robust_level) is FUSED_MEAN (capped so the prior's peak stays below RADIANCE_MAX
-#: / FUSED_PEAK_MARGIN), and the output divided by s. The model is then the same for a frame at 1e-8 or 1e9 radiance,
-#: and HDR values are never clipped by the transfer's range. Stored as ONNX metadata ``gradsep.exposure`` = ``prior-
-#: mean``.
+#: The ``fused`` blend models see every layer at a normalised exposure: base, gradients and candidates multiplied by s
+#: so that OIDN's image's robust level (model.robust.robust_level) is FUSED_MEAN (capped so its peak stays below
+#: RADIANCE_MAX / FUSED_PEAK_MARGIN), and the blend divided by s (model/fused.py; ONNX metadata ``gradsep.exposure``
+#: = ``oidn-mean``). The model is then the same for a frame at 1e-8 or 1e9 radiance, and HDR values are never
+#: clipped by the transfer's range.
 FUSED_MEAN = 0.5
 FUSED_PEAK_MARGIN = 16.0
 #: Bumped whenever the numbers the network sees change; stored in checkpoints, caches and ONNX metadata.
@@ -232,7 +207,7 @@ def _channels_first(dst: np.ndarray, src: np.ndarray, lo: float, hi: float) -> N
 
 
 def poisson_prior(layer: Layer, band_rows: int = PRIOR_BAND_ROWS, band_overlap: int = PRIOR_BAND_OVERLAP,
-                  planes: np.ndarray | None = None, kind: str = DEFAULT_PRIOR) -> np.ndarray:
+                  planes: np.ndarray | None = None) -> np.ndarray:
     """(h, w, 3) float32: a robust screened Poisson reconstruction of the whole layer (model.poisson.solve_l1,
     α = PRIOR_ALPHA, PRIOR_IRLS_PASSES passes of PRIOR_CG_STEPS CG steps) from its sanitised planes, clipped
     to [0, RADIANCE_MAX].
@@ -245,11 +220,7 @@ def poisson_prior(layer: Layer, band_rows: int = PRIOR_BAND_ROWS, band_overlap: 
     ``planes``: the whole layer's ``measured_planes`` when the caller has them (inference does): the same
     sanitised numbers, already channels-first, so the solver copies them contiguously instead of transposing
     three sanitised copies of its own (the result is bit-for-bit the same).
-
-    ``kind``: which Poisson prior (a key of POISSON_PRIORS): the one the model being fed was trained on.
     """
-    if kind not in POISSON_PRIORS:
-        raise ValueError(f"unknown Poisson prior kind {kind!r}; known: {', '.join(POISSON_PRIORS)}")
     height, width = layer.base.shape[:2]
     if planes is not None:
         if planes.shape[0] < MEASURED_PLANES or planes.shape[1:] != (height, width):
@@ -260,7 +231,7 @@ def poisson_prior(layer: Layer, band_rows: int = PRIOR_BAND_ROWS, band_overlap: 
         dx = _finite(layer.dx, -RADIANCE_MAX, RADIANCE_MAX)
         dy = _finite(layer.dy, -RADIANCE_MAX, RADIANCE_MAX)
     if height <= band_rows + 2 * band_overlap:
-        return _solve_prior(base, dx, dy, kind)
+        return _solve_prior(base, dx, dy)
     out = np.zeros((height, width, 3), np.float32)
     weight = np.zeros((height, 1, 1), np.float32)
     for core in range(0, height, band_rows):
@@ -268,7 +239,7 @@ def poisson_prior(layer: Layer, band_rows: int = PRIOR_BAND_ROWS, band_overlap: 
         band_dy = dy[y0:y1].copy()
         band_dy[-1] = 0.0  # the band's last row has no neighbour below inside the band (as the contract's)
         w = _band_ramp(y0, y1, height, band_overlap)
-        out[y0:y1] += _solve_prior(base[y0:y1], dx[y0:y1], band_dy, kind) * w
+        out[y0:y1] += _solve_prior(base[y0:y1], dx[y0:y1], band_dy) * w
         weight[y0:y1] += w
     return out / weight
 
@@ -284,53 +255,11 @@ def _band_ramp(y0: int, y1: int, height: int, overlap: int) -> np.ndarray:
     return w[:, None, None]
 
 
-def _neighbour_max(image: np.ndarray, centre: bool) -> np.ndarray:
-    """(H, W, C): the largest value of each pixel's 3×3 neighbourhood (edges replicated), with or without itself."""
-    padded = np.pad(image, ((1, 1), (1, 1), (0, 0)), mode="edge")
-    height, width = image.shape[:2]
-    out = None
-    for oy in range(3):
-        for ox in range(3):
-            if (oy, ox) == (1, 1) and not centre:
-                continue
-            view = padded[oy:oy + height, ox:ox + width]
-            out = view.copy() if out is None else np.maximum(out, view, out=out)
-    return out
-
-
-def clamp_outliers(base: np.ndarray, dx: np.ndarray, dy: np.ndarray,
-                   factor: float = OUTLIER_CLAMP) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(base, dx, dy) (H, W, 3) with isolated outliers clamped, new arrays, per channel: a base value to ``factor``
-    × the largest of its 8 neighbours (a firefly is a pixel far above everything around it; a bright region is
-    not clamped), then each gradient to ``factor`` × the largest clamped base value in the 3×3 neighbourhoods of
-    its two pixels (a difference of non-negative values is bounded by the larger one). Scale-invariant (a frame
-    at 1e-8 or 1e9 is clamped alike), and 0 where everything around is black."""
-    from gradsep.model import kernels
-
-    if kernels.AVAILABLE:
-        out = (np.empty_like(base), np.empty_like(dx), np.empty_like(dy))
-        kernels.clamp_outliers(np.ascontiguousarray(base), np.ascontiguousarray(dx), np.ascontiguousarray(dy),
-                               float(factor), *out)
-        return out
-    factor = np.float32(factor)
-    clamped = np.minimum(base, factor * _neighbour_max(base, centre=False))
-    level = factor * _neighbour_max(clamped, centre=True)
-    bound_x = level.copy()
-    np.maximum(bound_x[:, :-1], level[:, 1:], out=bound_x[:, :-1])
-    bound_y = level
-    np.maximum(bound_y[:-1], level[1:], out=bound_y[:-1])
-    return clamped, np.clip(dx, -bound_x, bound_x), np.clip(dy, -bound_y, bound_y)
-
-
-def _solve_prior(base: np.ndarray, dx: np.ndarray, dy: np.ndarray, kind: str = DEFAULT_PRIOR) -> np.ndarray:
+def _solve_prior(base: np.ndarray, dx: np.ndarray, dy: np.ndarray) -> np.ndarray:
     # every solver setting named: the models were trained on exactly this solve, whatever the l1 method's defaults
-    passes, steps, preconditioner = POISSON_PRIORS[kind]
-    if kind in CLAMPED_PRIORS:
-        base, dx, dy = clamp_outliers(base, dx, dy)
-    # one pass = solve_l1's pass 0: the exact L2 solve, in the working precision (float32 for α = PRIOR_ALPHA)
-    prior, _ = solve_l1(base, dx, dy, PRIOR_ALPHA, iterations=passes, cg_iterations=steps,
+    prior, _ = solve_l1(base, dx, dy, PRIOR_ALPHA, iterations=PRIOR_IRLS_PASSES, cg_iterations=PRIOR_CG_STEPS,
                         reg_init=PRIOR_REG_INIT, reg_decay=PRIOR_REG_DECAY, cg_tolerance=PRIOR_CG_TOLERANCE,
-                        preconditioner=preconditioner)
+                        preconditioner=PRIOR_PRECONDITIONER)
     return _sanitise_inplace(prior, 0.0, RADIANCE_MAX)
 
 
@@ -368,17 +297,6 @@ def scaled_layer(layer: Layer, scale: float) -> Layer:
     return Layer(mul(layer.base), mul(layer.dx), mul(layer.dy))  # type: ignore[arg-type]
 
 
-def oidn_prior_inputs(layer: Layer, aux: Any) -> tuple[Layer, np.ndarray, float]:
-    """What a ``fused`` model (prior ``oidn``) sees, for training and inference alike: (the layer at the
-    normalised exposure, OIDN's denoise of its base at that exposure, the scale s). ``aux`` is the frame's
-    prefiltered features (model.oidn.Denoiser.prefilter)."""
-    from gradsep.model.oidn import shared_denoiser
-
-    prior = shared_denoiser().denoise(layer.base, aux)
-    scale = prior_exposure(prior)
-    return scaled_layer(layer, scale), scaled_image(prior, scale), scale
-
-
 def unlit_pixels(layer: Layer) -> np.ndarray:
     """(h, w) bool: pixels with no measured light in the layer — base 0 in every channel and every gradient
     term that touches the pixel (dx to its left and right neighbours, dy to those above and below) 0.
@@ -402,13 +320,12 @@ def _all_channels_zero(image: np.ndarray) -> np.ndarray:
     return out
 
 
-def layer_planes(layer: Layer, window: Window | None = None, prior: np.ndarray | None = None,
-                 kind: str = DEFAULT_PRIOR) -> np.ndarray:
+def layer_planes(layer: Layer, window: Window | None = None, prior: np.ndarray | None = None) -> np.ndarray:
     """(12, h, w) float32: base R G B, dx R G B, dy R G B, prior R G B, linear, finite, base and prior ≥ 0,
-    all within ±RADIANCE_MAX. ``prior`` is the whole layer's ``poisson_prior`` (computed here, of ``kind``, when
+    all within ±RADIANCE_MAX. ``prior`` is the whole layer's ``poisson_prior`` (computed here when
     None)."""
     if prior is None:
-        prior = poisson_prior(layer, kind=kind)
+        prior = poisson_prior(layer)
     out = np.empty((LAYER_PLANES, *_crop(layer.base, window).shape[:2]), dtype=np.float32)
     _measured_into(out, layer, window)
     _channels_first(out[9:12], _crop(prior, window), 0.0, RADIANCE_MAX)
@@ -558,28 +475,14 @@ def crop_to(x: np.ndarray, height: int, width: int) -> np.ndarray:
     return x[..., :height, :width]
 
 
-def describe_prior(kind: str = DEFAULT_PRIOR) -> str:
-    """The ``prior`` entry of ``describe_preprocessing`` for a Poisson prior kind (``l1``'s text is unchanged since
-    the shipped models were exported, so their metadata stays true)."""
-    if kind not in POISSON_PRIORS:
-        raise ValueError(f"unknown Poisson prior kind {kind!r}; known: {', '.join(POISSON_PRIORS)}")
-    if kind == "l1":
-        return (f"L1 screened Poisson (IRLS, {PRIOR_IRLS_PASSES} passes x {PRIOR_CG_STEPS} CG steps) of the whole "
-                f"layer, alpha={PRIOR_ALPHA}, clip [0, max_value], then C")
-    passes, steps, preconditioner = POISSON_PRIORS[kind]
-    if kind in CLAMPED_PRIORS:
-        return (f"L2 screened Poisson (exact, DCT) of the whole layer after clamping outliers (base to "
-                f"{OUTLIER_CLAMP:g}x its 8 neighbours' max, gradients to {OUTLIER_CLAMP:g}x the clamped base's 3x3 "
-                f"max), alpha={PRIOR_ALPHA}, clip [0, max_value], then C")
-    if passes == 1:
-        return f"L2 screened Poisson (exact, DCT) of the whole layer, alpha={PRIOR_ALPHA}, clip [0, max_value], then C"
-    return (f"L1 screened Poisson (IRLS, {passes} passes x {steps} CG steps, {preconditioner} preconditioner) of "
-            f"the whole layer, alpha={PRIOR_ALPHA}, clip [0, max_value], then C")
+def describe_prior() -> str:
+    """The ``prior`` entry of ``describe_preprocessing`` (the text in the shipped models' metadata)."""
+    return (f"L1 screened Poisson (IRLS, {PRIOR_IRLS_PASSES} passes x {PRIOR_CG_STEPS} CG steps) of the whole "
+            f"layer, alpha={PRIOR_ALPHA}, clip [0, max_value], then C")
 
 
-def describe_preprocessing(transfer: LogTransfer = TRANSFER, prior: str = DEFAULT_PRIOR) -> dict[str, Any]:
-    """The constants that define the input transform, for ONNX metadata and config.json (``prior``: the Poisson
-    prior kind the model refines; ``oidn`` models describe the l1 text, as they always have)."""
+def describe_preprocessing(transfer: LogTransfer = TRANSFER) -> dict[str, Any]:
+    """The constants that define the input transform, for ONNX metadata and config.json."""
     return {
         "version": PREPROCESS_VERSION,
         "transfer": "log1p(mu*x)/log1p(mu); gradients sign(g)*C(|g|)",
@@ -588,7 +491,7 @@ def describe_preprocessing(transfer: LogTransfer = TRANSFER, prior: str = DEFAUL
         "albedo": "clip [0,1]",
         "normal": "clip [-1,1] * 0.5 + 0.5",
         "depth": "clip [0, depth_max], per-frame min-max to [0,1]",
-        "prior": describe_prior(prior if prior in POISSON_PRIORS else DEFAULT_PRIOR),
+        "prior": describe_prior(),
         "nonfinite": "0",
         "padding": "reflect, bottom/right, to the network alignment",
     }

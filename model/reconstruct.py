@@ -27,7 +27,6 @@ import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
@@ -287,13 +286,11 @@ def _check_method(frame: Frame, method: Method, alpha: float, models: LoadedMode
 
 def _denoiser(method: Method, models: LoadedModels) -> Any:
     """The OIDN denoiser of a method that runs OIDN: at the ``oidn`` method's setting, or at the one its loaded
-    model was trained with."""
-    from gradsep.model.oidn import PRIOR_SETTING, method_setting, shared_denoiser
+    model was trained with (its ``oidn_setting``; the ``oidn`` method's where it names none)."""
+    from gradsep.model.oidn import method_setting, shared_denoiser
 
-    if method.denoiser == "method":
-        return shared_denoiser(method_setting())
-    own = next((models.get(n) for n in method.model_sets), None)
-    return shared_denoiser(getattr(own, "oidn_setting", PRIOR_SETTING))
+    own = next((models.get(n) for n in method.model_sets), None) if method.denoiser == "model" else None
+    return shared_denoiser(getattr(own, "oidn_setting", None) or method_setting())
 
 
 def reconstruct(frame: Frame, method: str | None = None, alpha: float = DEFAULT_ALPHA,
@@ -349,22 +346,6 @@ def reconstruct(frame: Frame, method: str | None = None, alpha: float = DEFAULT_
 FUSED_SUBDIR = "fused"
 
 
-def _load(folder: Path, priors: tuple[str, ...]) -> Any:
-    if not folder.is_dir() or importlib.util.find_spec("gradsep.model.infer") is None:
-        return None
-    from gradsep.model.infer import ModelError, NetworkReconstructor  # type: ignore[import-not-found]
-
-    models = NetworkReconstructor.load(folder)
-    # a folder of fused blend models loads as model.fused.FusedReconstructor, whose models have no ``prior``
-    wrong = [m.path.name for m in (models.models.values() if models else ())
-             if getattr(m, "prior", "blend") not in priors]
-    if wrong:
-        raise ModelError(f"{folder}: {', '.join(wrong)} refine a different prior than {' or '.join(priors)} "
-                         f"(the {'fused' if priors == ('oidn',) else 'network'} method's); re-export into the right "
-                         "folder")
-    return models
-
-
 def load_oidn(models_dir: str | os.PathLike[str] | None = None) -> bool:
     """The ``oidn`` model set: whether Intel Open Image Denoise (pyoidn) is installed here (no folder)."""
     from gradsep.model.oidn import available
@@ -375,17 +356,19 @@ def load_oidn(models_dir: str | os.PathLike[str] | None = None) -> bool:
 def load_network(models_dir: str | os.PathLike[str] | None) -> Any:
     """The ``network`` method's reconstructor (models/*.onnx), or None when there are no models or no inference
     module. Same contract as the service's loader: None for a folder without models, an exception for models
-    that fail to load. Each model may refine any Poisson prior kind (model.preprocess.POISSON_PRIORS: the one
-    its metadata names is what it is fed); models refining OIDN (the ``fused`` kind) are refused."""
-    from gradsep.model.preprocess import POISSON_PRIORS
+    that fail to load (model.infer refuses a model of any prior but ``l1``, and a fused blend model)."""
+    folder = models_dir_from(models_dir)
+    if not folder.is_dir() or importlib.util.find_spec("gradsep.model.infer") is None:
+        return None
+    from gradsep.model.infer import NetworkReconstructor  # type: ignore[import-not-found]
 
-    return _load(models_dir_from(models_dir), tuple(POISSON_PRIORS))
+    return NetworkReconstructor.load(folder)
 
 
 def load_fused(models_dir: str | os.PathLike[str] | None) -> Any:
     """The ``fused`` method's reconstructor (models/fused/*.onnx: per-pixel blend models, model/fused.py), or None
     when the folder has no model or pyoidn is missing. A model of another prior kind there (an ``l1`` network
-    model, or the earlier OIDN-residual ``oidn`` models) is refused with ModelError."""
+    model) is refused with ModelError."""
     from gradsep.model.oidn import available
 
     folder = models_dir_from(models_dir) / FUSED_SUBDIR

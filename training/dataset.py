@@ -41,8 +41,6 @@ from gradsep.model.preprocess import (
     feature_planes,
     layer_planes,
     measured_planes,
-    oidn_prior_inputs,
-    scaled_layer,
 )
 
 TRAINABLE_LAYERS = ILLUMINATION_LAYERS  # a network per layer; color = the unseparated baseline
@@ -146,12 +144,10 @@ def select_layer(frame_layers: dict[str, Layer], layer: str) -> Layer | None:
 # ---------------------------------------------------------------------------------------------------------------
 
 
-def _cache_key(entry: FrameEntry, layer: str, prior: str) -> dict[str, Any]:
+def _cache_key(entry: FrameEntry, layer: str) -> dict[str, Any]:
     st = entry.path.stat()
     key = {"format": CACHE_FORMAT, "preprocess": PREPROCESS_VERSION, "layer": layer,
            "source": str(entry.path), "size": st.st_size, "mtime_ns": st.st_mtime_ns}
-    if prior != "l1":  # keys of l1 caches stay as before, so existing caches remain valid
-        key["prior"] = prior
     if entry.target is not None:
         tt = entry.target.stat()
         key |= {"target": str(entry.target), "target_size": tt.st_size, "target_mtime_ns": tt.st_mtime_ns}
@@ -159,14 +155,8 @@ def _cache_key(entry: FrameEntry, layer: str, prior: str) -> dict[str, Any]:
 
 
 def build_cache(manifest: Manifest, layer: str, cache_dir: Path,
-                progress: Callable[[int, int], None] | None = None,
-                prior: str = "l1") -> tuple[list[Path | None], list[str]]:
+                progress: Callable[[int, int], None] | None = None) -> tuple[list[Path | None], list[str]]:
     """Decode every frame once into ``cache_dir/NNNNN.npy`` (19 or 28, H, W) float32; reuse valid files.
-
-    ``prior``: what the layer planes' prior is (model.preprocess.PRIOR_KINDS): a Poisson kind (``l1``, the shipped
-    network method's, ``l2``, ``l1-mg3x2``: model.preprocess.POISSON_PRIORS) or ``oidn`` (the fused method: OIDN's
-    denoise of the base with the prefiltered features, and every plane — base, gradients, prior and the target's —
-    at the normalised exposure of model.preprocess.prior_exposure).
 
     Returns one path per manifest frame (None when the frame cannot be used for ``layer``) and the warnings
     explaining each skipped frame.
@@ -177,11 +167,11 @@ def build_cache(manifest: Manifest, layer: str, cache_dir: Path,
     for entry in manifest.frames:
         target = cache_dir / f"{entry.index:05d}.npy"
         meta_path = target.with_suffix(".json")
-        key = _cache_key(entry, layer, prior)
+        key = _cache_key(entry, layer)
         if target.is_file() and meta_path.is_file() and json.loads(meta_path.read_text()) == key:
             paths.append(target)
         else:
-            reason = _write_cache_file(entry, layer, target, meta_path, key, prior)
+            reason = _write_cache_file(entry, layer, target, meta_path, key)
             paths.append(None if reason else target)
             if reason:
                 warnings.append(f"{entry.path.name}: skipped ({reason})")
@@ -190,8 +180,7 @@ def build_cache(manifest: Manifest, layer: str, cache_dir: Path,
     return paths, warnings
 
 
-def _write_cache_file(entry: FrameEntry, layer: str, target: Path, meta_path: Path, key: dict[str, Any],
-                      prior: str = "l1") -> str:
+def _write_cache_file(entry: FrameEntry, layer: str, target: Path, meta_path: Path, key: dict[str, Any]) -> str:
     """Write one cache file atomically; return why the frame is unusable, or "" on success."""
     try:
         frame = read_frame(entry.path, nonfinite="zero")
@@ -203,15 +192,7 @@ def _write_cache_file(entry: FrameEntry, layer: str, target: Path, meta_path: Pa
     missing = [g for g in FEATURE_GROUPS if g not in feature_groups(frame.features)]
     if missing:  # the network is trained (and later served) with every group
         return "no feature channels" if frame.features is None else f"no {', '.join(missing)} feature channels"
-    scale = 1.0
-    if prior == "oidn":
-        from gradsep.model.oidn import shared_denoiser
-
-        chosen, prior_image, scale = oidn_prior_inputs(chosen, shared_denoiser().prefilter(frame.features))
-        planes_in = layer_planes(chosen, prior=prior_image)
-    else:
-        planes_in = layer_planes(chosen, kind=prior)
-    parts = [planes_in, feature_planes(frame.features, DepthRange.of(frame.features.depth))]
+    parts = [layer_planes(chosen), feature_planes(frame.features, DepthRange.of(frame.features.depth))]
     if entry.target is not None:
         try:
             other = read_frame(entry.target, nonfinite="zero")
@@ -220,7 +201,7 @@ def _write_cache_file(entry: FrameEntry, layer: str, target: Path, meta_path: Pa
         second = select_layer(other.layers, layer)
         if second is None or (other.height, other.width) != (frame.height, frame.width):
             return f"target {entry.target.name} has no matching {layer} layer of {frame.width}x{frame.height}"
-        parts.append(measured_planes(scaled_layer(second, scale) if scale != 1.0 else second))
+        parts.append(measured_planes(second))
     planes = np.concatenate(parts)
     tmp = target.with_name(target.name + ".tmp.npy")
     np.save(tmp, planes.astype(np.float32, copy=False))

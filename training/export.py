@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from gradsep.model.network import DATA_INPUTS, GRADIENT_INPUTS, OUTPUTS, DualBranchNet, NetworkConfig
-from gradsep.model.preprocess import DEFAULT_PRIOR, PRIOR_KINDS, describe_preprocessing
+from gradsep.model.preprocess import describe_preprocessing
 from gradsep.training.train import CHECKPOINT, TrainConfig, code_version
 
 OPSET = 18
@@ -38,16 +38,15 @@ class ExportError(RuntimeError):
     """The run folder cannot be exported; the message says why."""
 
 
-def model_metadata(network: NetworkConfig, layer: str, extra: dict[str, Any] | None = None,
-                   prior: str = DEFAULT_PRIOR) -> dict[str, str]:
-    """The ``gradsep.*`` metadata_props: string values (JSON where structured), as ONNX requires. ``prior``: the
-    kind the model refines, described in ``gradsep.preprocessing`` (``gradsep.prior`` itself comes in ``extra``)."""
+def model_metadata(network: NetworkConfig, layer: str, extra: dict[str, Any] | None = None) -> dict[str, str]:
+    """The ``gradsep.*`` metadata_props: string values (JSON where structured), as ONNX requires. No
+    ``gradsep.prior`` key: the model refines the ``l1`` prior, which a model without the key refines."""
     meta = {
         "gradsep.format": FORMAT_VERSION,
         "gradsep.layer": layer,
         "gradsep.inputs": json.dumps({"data": list(DATA_INPUTS), "gradient": list(GRADIENT_INPUTS)}),
         "gradsep.outputs": json.dumps({OUTPUT_NAME: list(OUTPUTS), "domain": "log transfer (preprocessing)"}),
-        "gradsep.preprocessing": json.dumps(describe_preprocessing(prior=prior)),
+        "gradsep.preprocessing": json.dumps(describe_preprocessing()),
         "gradsep.alignment": str(network.alignment),
         "gradsep.network": json.dumps(network.to_dict()),
         "gradsep.attention": "true" if network.use_attention else "false",
@@ -56,17 +55,6 @@ def model_metadata(network: NetworkConfig, layer: str, extra: dict[str, Any] | N
     for key, value in (extra or {}).items():
         meta[f"gradsep.{key}"] = value if isinstance(value, str) else json.dumps(value)
     return meta
-
-
-def prior_metadata(prior: str) -> dict[str, str]:
-    """The ``gradsep.prior`` (and, for ``oidn``, ``gradsep.exposure``) entries of a model trained on ``prior``
-    (without the ``gradsep.`` prefix): none for ``l1``, so l1 models keep their metadata as before (no key means
-    l1); model/infer.py serves each model with the prior named here."""
-    if prior not in PRIOR_KINDS:
-        raise ExportError(f"unknown prior kind {prior!r}; known: {', '.join(PRIOR_KINDS)}")
-    if prior == DEFAULT_PRIOR:
-        return {}
-    return {"prior": prior, "exposure": "prior-mean"} if prior == "oidn" else {"prior": prior}
 
 
 def _sample_inputs(network: NetworkConfig, batch: int = 2) -> tuple[torch.Tensor, torch.Tensor]:
@@ -174,8 +162,7 @@ def export_run(run_dir: str | os.PathLike[str], output: str | os.PathLike[str]) 
         "trained_minutes": f"{progress.get('elapsed', 0.0) / 60:.2f}",
         "run_code_version": run_json.get("code_version", ""),
     }
-    extra |= prior_metadata(cfg.prior)
-    proto = to_onnx(model, model_metadata(cfg.network, cfg.layer, extra, prior=cfg.prior))
+    proto = to_onnx(model, model_metadata(cfg.network, cfg.layer, extra))
     err = parity_error(model, proto)
     if not err < PARITY_TOLERANCE:
         raise ExportError(f"ONNX Runtime disagrees with PyTorch (relative error {err:.2e} >= "

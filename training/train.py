@@ -94,7 +94,7 @@ class TrainConfig:
     plot_minutes: float = 2.0          # redraw losses.png at an epoch end at most this often (and at the end)
     log_every: int = 10
     keep_epoch_checkpoints: int = 3
-    prior: str = "l1"                 # what the network refines: model.preprocess.PRIOR_KINDS (l1 = shipped network)
+    prior: str = "l1"                 # what the network refines: model.preprocess.PRIOR_KINDS (only l1)
     init: str | None = None           # start from these weights (an exported .onnx or a run's .pt), not at random
 
     # fields a resumed run may change: everything else must match the run folder's config.json
@@ -254,7 +254,7 @@ def prepare_run_dir(cfg: TrainConfig, manifest_sha256: str) -> dict[str, Any]:
     run = Path(cfg.output)
     (run / "checkpoints").mkdir(parents=True, exist_ok=True)
     path = run / "config.json"
-    fresh = {"train": cfg.to_dict(), "preprocessing": describe_preprocessing(prior=cfg.prior),
+    fresh = {"train": cfg.to_dict(), "preprocessing": describe_preprocessing(),
              "dataset_manifest_sha256": manifest_sha256, "code_version": code_version(),
              "torch": torch.__version__}
     if path.is_file():
@@ -382,12 +382,11 @@ class Trainer:
         if ctx.main:
             prepare_run_dir(cfg, manifest.sha256)
             self._say(f"dataset {cfg.data}: {len(manifest.frames)} frames; building the {cfg.layer} cache")
-            _, warnings = build_cache(manifest, cfg.layer, self.run / "cache", prior=cfg.prior)
+            _, warnings = build_cache(manifest, cfg.layer, self.run / "cache")
             for w in warnings:
                 self._say(f"warning: {w}")
         ctx.barrier()
-        files, warnings = build_cache(manifest, cfg.layer, self.run / "cache",  # all valid now: no decoding
-                                      prior=cfg.prior)
+        files, warnings = build_cache(manifest, cfg.layer, self.run / "cache")  # all valid now: no decoding
         train_idx, val_idx = split_frames(len(files), cfg.seed, cfg.val_fraction)
         train_files, notes = usable(files, train_idx, cfg.patch)
         val_files, val_notes = usable(files, val_idx, cfg.patch)

@@ -260,7 +260,7 @@ def test_single_window_path_is_the_windowed_pipeline_bit_for_bit(models: tuple[P
     layer.base[0, 0] = np.nan  # hostile values go through the same sanitising in both paths
     layer.dx[-1, 0] = -np.inf
     for name in ("direct", "indirect", "direct"):  # the second and third calls reuse the cached feature planes
-        fast = rec._reconstruct(name, layer, features, None)  # at the layer's own exposure, as the windows below
+        fast = rec._reconstruct(name, layer, features)  # at the layer's own exposure, as the windows below
         model = rec.models[name]
         slow = rec._run_window(model, layer, features, DepthRange.of(features.depth), poisson_prior(layer),
                                (0, h, 0, w))
@@ -270,4 +270,4 @@ def test_single_window_path_is_the_windowed_pipeline_bit_for_bit(models: tuple[P
     expected = rec._run_window(rec.models["direct"], layer, other, DepthRange.of(other.depth), poisson_prior(layer),
                                (0, h, 0, w))
     expected[unlit_pixels(layer)] = 0.0
-    assert np.array_equal(rec._reconstruct("direct", layer, other, None), expected)
+    assert np.array_equal(rec._reconstruct("direct", layer, other), expected)

@@ -110,11 +110,11 @@ def test_the_prior_is_solved_with_the_pinned_budget(monkeypatch) -> None:
 @needs_models
 def test_the_served_prior_is_the_one_the_shipped_models_were_exported_with(network) -> None:
     """Changing the inference prior without retraining and re-exporting changes what the models see: the
-    metadata each loaded model carries (and /v1/models reports) must describe the prior this code solves for the
-    kind the model names (``gradsep.prior``, ``l1`` when absent)."""
+    metadata each loaded model carries (and /v1/models reports) must describe the prior this code solves (``l1``,
+    the kind a model without ``gradsep.prior`` refines)."""
     assert (f"{preprocess.PRIOR_IRLS_PASSES} passes x {preprocess.PRIOR_CG_STEPS} CG steps"
             in preprocess.describe_preprocessing()["prior"])
     for entry in network.describe():
         exported = json.loads(entry["metadata"]["gradsep.preprocessing"])
-        assert exported["prior"] == preprocess.describe_prior(entry["prior"]), entry["name"]
+        assert entry["prior"] == "l1" and exported["prior"] == preprocess.describe_prior(), entry["name"]
         assert exported["version"] == preprocess.PREPROCESS_VERSION

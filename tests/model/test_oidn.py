@@ -35,7 +35,7 @@ def _plain(h: int = 40, w: int = 56, features: bool = True, scale: float = 1.0) 
 
 def test_oidn_denoises_towards_the_clean_image() -> None:
     noisy, clean = _image(64, 64, seed=1)
-    out = shared_denoiser().denoise(noisy)
+    out = shared_denoiser("prefiltered-high").denoise(noisy)
     err_in, err_out = np.mean((noisy - clean) ** 2), np.mean((out - clean) ** 2)
     assert err_out < 0.3 * err_in, (err_in, err_out)
     assert out.mean() == pytest.approx(noisy.mean(), rel=0.05)  # energy kept
@@ -61,7 +61,7 @@ def test_tiny_and_odd_sizes_keep_their_energy(shape: tuple[int, int]) -> None:
     rng = np.random.default_rng(h * 100 + w)
     for value in (1.0, 3.5e5):
         image = (value * rng.uniform(0.2, 1.0, (h, w, 3))).astype(np.float32)
-        out = shared_denoiser().denoise(image)
+        out = shared_denoiser("prefiltered-high").denoise(image)
         assert out.shape == (h, w, 3) and np.isfinite(out).all()
         rel = 1e-5 if min(h, w) < MIN_SIDE else 0.05
         for c in range(3):
@@ -69,7 +69,7 @@ def test_tiny_and_odd_sizes_keep_their_energy(shape: tuple[int, int]) -> None:
 
 
 def test_black_and_nonfinite_inputs() -> None:
-    d = shared_denoiser()
+    d = shared_denoiser("prefiltered-high")
     assert not d.denoise(np.zeros((8, 9, 3), np.float32)).any()          # black in, black out (no filter run)
     bad = np.ones((24, 24, 3), np.float32)
     bad[3, 4] = np.nan
@@ -136,13 +136,11 @@ def test_oidn_on_a_gradient_frame_ignores_the_gradients() -> None:
 # ------------------------------------------------------------------------------------------- settings
 
 
-def test_oidn_runs_its_setting_and_fused_keeps_its_trained_prior(monkeypatch) -> None:
-    """``oidn`` runs METHOD_SETTING (or $GRADSEP_OIDN_SETTING); the fused models' prior stays PRIOR_SETTING, the
-    setting their training cache was made with, whatever ``oidn`` runs (docs/oidn.md)."""
+def test_oidn_runs_its_setting(monkeypatch) -> None:
+    """``oidn`` runs METHOD_SETTING (the default denoiser's), or $GRADSEP_OIDN_SETTING (docs/oidn.md)."""
     from gradsep.model import oidn
 
-    assert oidn.PRIOR_SETTING == "prefiltered-high" and oidn.METHOD_SETTING in oidn.SETTINGS
-    assert shared_denoiser().setting.name == oidn.PRIOR_SETTING  # what preprocess/infer use for fused
+    assert oidn.METHOD_SETTING in oidn.SETTINGS and shared_denoiser().setting.name == oidn.METHOD_SETTING
     used = []
     real = Denoiser.denoise
     monkeypatch.setattr(Denoiser, "denoise", lambda self, *a: used.append(self.setting.name) or real(self, *a))

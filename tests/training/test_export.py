@@ -114,32 +114,6 @@ def test_export_command(exported: tuple[Path, Path, dict], tmp_path: Path,
 
 @pytest.mark.train
 @pytest.mark.slow
-def test_a_run_on_another_prior_trains_exports_and_is_served_with_it(tiny_dataset: Path, tmp_path: Path) -> None:
-    """--prior l2: the training cache holds the L2 prior, the export records it, and inference solves it."""
-    from gradsep.model.frame import read_frame
-    from gradsep.model.preprocess import describe_prior, layer_planes
-    from gradsep.model.reconstruct import load_network
-    from gradsep.training.dataset import load_manifest, select_layer
-    from tests.training.conftest import tiny_config
-
-    torch.set_num_threads(1)
-    cfg = tiny_config(tiny_dataset, tmp_path / "run", epochs=1, prior="l2")
-    train(cfg, quiet=True)
-    entry = load_manifest(str(tiny_dataset)).frames[0]
-    cached = np.load(tmp_path / "run" / "cache" / f"{entry.index:05d}.npy")
-    frame = read_frame(entry.path, nonfinite="zero")
-    np.testing.assert_array_equal(cached[:12], layer_planes(select_layer(frame.layers, "direct"), kind="l2"))
-    export_run(cfg.output, tmp_path / "models" / "direct.onnx")
-    meta = {p.key: p.value for p in onnx.load(tmp_path / "models" / "direct.onnx").metadata_props}
-    assert meta["gradsep.prior"] == "l2" and "gradsep.exposure" not in meta
-    assert json.loads(meta["gradsep.preprocessing"])["prior"] == describe_prior("l2")
-    assert json.loads(meta["gradsep.training"])["prior"] == "l2"
-    rec = load_network(tmp_path / "models")
-    assert rec is not None and rec.models["direct"].prior == "l2"
-
-
-@pytest.mark.train
-@pytest.mark.slow
 def test_init_warm_starts_from_an_exported_model_or_a_checkpoint(exported: tuple[Path, Path, dict],
                                                                    tiny_dataset: Path, tmp_path: Path) -> None:
     """--init: the exported ONNX's initializers (and a run's checkpoint) load into a fresh run's network, names
