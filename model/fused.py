@@ -5,16 +5,14 @@ as model/network.py) sees K *candidate* reconstructions of a layer side by side 
 weights over them; the output is the convex blend ``Σ_k w_k · candidate_k``. The candidates (``CANDIDATES``):
 
 * ``oidn``        -- OIDN's denoise of the base with the frame's albedo/normal (the ``oidn`` method's setting,
-  ``OIDN_SETTING``: raw features, quality fast), computed once per layer; every other kind starts from it;
-* ``refine``      -- that image refined by the layer's gradients: the L1 screened Poisson solve with OIDN's image
-  as the data term (model/refine.py explains it), 8 IRLS passes of 2 multigrid V-cycles (the ``oidn-l1`` solve);
-* ``refine-fast`` -- the same problem solved cheaply (3 passes of 1 V-cycle, a quarter of the time): too rough
-  alone, but a candidate the network can weigh;
-* ``l1``          -- the truncated robust Poisson solve of base + gradients the ``network`` method refines
-  (model.preprocess.poisson_prior); not used by the shipped models;
-* ``refine-direct`` -- the ``oidn-l1`` method's refinement with its trust rule (a FIXED_KINDS entry, below), at
-  fused's CG budget: the direct layer's served image. Its settings are read from model/refine.py at call time,
-  so a model trained on it must be retrained whenever the trust rule or the refinement changes.
+  ``OIDN_SETTING``: raw features, quality fast), computed once per layer; the other kind starts from it;
+* ``refine-fast`` -- that image refined by the layer's gradients: the L1 screened Poisson solve with OIDN's image
+  as the data term (model/refine.py explains it), solved cheaply (3 IRLS passes of 1 multigrid V-cycle): too
+  rough alone, but a candidate the network can weigh.
+
+The direct layer's served image is no blend candidate but the ``refine-direct`` kind (FIXED_KINDS, below): the
+``oidn-l1`` method's refinement with its trust rule, at fused's CG budget, its settings read from model/refine.py
+at call time.
 
 Per layer (chosen on held-out seeds): the indirect layer is the learned blend
 of {oidn, refine-fast} (models/fused/indirect.onnx); the direct layer, where no learned blend beat it, is the
@@ -53,29 +51,26 @@ from gradsep.model.preprocess import (
     DepthRange,
     aligned_size,
     feature_planes,
-    poisson_prior,
     prior_exposure,
     scaled_image,
     scaled_layer,
 )
 
 #: The candidate kinds a blend model may use (its metadata ``gradsep.candidates`` names its own, in order).
-CANDIDATES: tuple[str, ...] = ("oidn", "refine", "refine-fast", "l1", "refine-direct")
-#: The refinement solves of the ``refine`` / ``refine-fast`` candidates: (IRLS passes, CG steps per pass), both
-#: multigrid-preconditioned (model.poisson.solve_l1), α = REFINE_ALPHA. Pinned here, not read from model/refine.py,
-#: because a model is trained on the numbers one solve gives: ``refine`` is 8 passes of 2 V-cycles (0.9 s per
-#: 1280x720 layer), ``refine-fast`` the cheap one (3 passes of 1 V-cycle, 0.21 s; worse alone, a candidate the
-#: network weighs).
-REFINE_SOLVES: dict[str, tuple[int, int]] = {"refine": (8, 2), "refine-fast": (3, 1)}
+CANDIDATES: tuple[str, ...] = ("oidn", "refine-fast")
+#: The refinement solve of the ``refine-fast`` candidate: (IRLS passes, CG steps per pass), multigrid-preconditioned
+#: (model.poisson.solve_l1), α = REFINE_ALPHA. Pinned here, not read from model/refine.py, because a model is
+#: trained on the numbers one solve gives (3 passes of 1 V-cycle, 0.21 s per 1280x720 layer).
+REFINE_SOLVES: dict[str, tuple[int, int]] = {"refine-fast": (3, 1)}
 REFINE_PRECONDITIONER = "mg"
 REFINE_ALPHA = 1.0
-#: The OIDN setting of the ``oidn``/``refine`` candidates (model.oidn.SETTINGS): the ``oidn`` method's default.
+#: The OIDN setting every candidate starts from (model.oidn.SETTINGS): the ``oidn`` method's default.
 OIDN_SETTING = "raw-fast"
-#: Kinds a layer served without a network may use besides CANDIDATES: ``oidn-l1`` is that method's own refinement
-#: (model.refine.refine_layer with its settings read at call time); ``refine-direct`` is the same refinement (its
-#: data weight, preconditioner and passes: model/refine.py) at fused's own CG budget, DIRECT_CG. No model consumes
-#: either, so unlike the candidates they need not be pinned to a training run.
-FIXED_KINDS: tuple[str, ...] = ("oidn-l1", "refine-direct")
+#: The kind a layer served without a network may use besides CANDIDATES: ``refine-direct``, the ``oidn-l1``
+#: method's refinement (model.refine.refine_layer: its data weight, preconditioner and passes, read at call time) at
+#: fused's own CG budget, DIRECT_CG. No model consumes it, so unlike the candidates it need not be pinned to a
+#: training run.
+FIXED_KINDS: tuple[str, ...] = ("refine-direct",)
 #: The CG budget of ``refine-direct``: each IRLS pass stops at a relative residual of 0.1 or after 4 V-cycle-
 #: preconditioned steps (the same as model.refine.REFINE_CG_TOLERANCE / REFINE_MAX_CG_STEPS today, kept apart so
 #: either can be re-budgeted alone). Looser budgets lost frames on held-out renders.
@@ -130,15 +125,11 @@ def refine(kind: str, oidn: np.ndarray, scaled: Layer) -> np.ndarray:
                         cg_steps=cg_steps, passes=passes)
 
 
-def refine_direct(kind: str, oidn: np.ndarray, scaled: Layer, report: dict[str, float] | None = None,
-                  ) -> np.ndarray:
-    """A FIXED_KINDS image: OIDN's image refined by the layer's gradients as the oidn-l1 method refines it
-    (``oidn-l1``), or the same at fused's CG budget DIRECT_CG (``refine-direct``). ``report``: see
-    model.refine.refine_layer (the trust rule's w_f)."""
+def refine_direct(oidn: np.ndarray, scaled: Layer, report: dict[str, float] | None = None) -> np.ndarray:
+    """The ``refine-direct`` image: OIDN's image refined by the layer's gradients as the oidn-l1 method refines it,
+    at fused's CG budget DIRECT_CG. ``report``: see model.refine.refine_layer (the trust rule's w_f)."""
     from gradsep.model.refine import refine_layer
 
-    if kind == "oidn-l1":
-        return refine_layer("direct", oidn, scaled, report=report)  # "direct": refine this layer, whatever its name
     tolerance, steps = DIRECT_CG
     return refine_layer("direct", oidn, scaled, cg_steps=steps, cg_tolerance=tolerance, report=report)
 
@@ -169,10 +160,8 @@ def layer_candidates(layer: Layer, aux: Any, kinds: tuple[str, ...] = CANDIDATES
             image = oidn
         elif kind in REFINE_SOLVES:
             image = refine(kind, oidn, scaled)
-        elif kind in FIXED_KINDS:
-            image = refine_direct(kind, oidn, scaled, report)
         else:
-            image = poisson_prior(scaled)
+            image = refine_direct(oidn, scaled, report)
         out.append(np.clip(np.nan_to_num(image, nan=0.0, posinf=RADIANCE_MAX, neginf=0.0), 0.0,
                            RADIANCE_MAX).astype(np.float32))
     return scaled, out, scale
@@ -334,7 +323,6 @@ class FusedReconstructor:
     by one candidate (FIXED_LAYERS), and the ``network`` model (models/direct.onnx) their clean-layer average reads
     (CLEAN_AVERAGE; absent: those layers are their candidate alone)."""
 
-    needs_aux = True
     oidn_setting = OIDN_SETTING
 
     def __init__(self, models: dict[str, BlendModel], fixed: dict[str, str] | None = None,

@@ -45,8 +45,6 @@ from gradsep.model.fused import (
 )
 from gradsep.model.preprocess import TRANSFER
 
-#: The candidate kinds a cache holds unless told otherwise (``cache --candidates``): what the designs use.
-CACHE_CANDIDATES: tuple[str, ...] = ("oidn", "refine", "refine-fast")
 CACHE_VERSION = 2
 
 
@@ -71,7 +69,7 @@ LAYERS = ("direct", "indirect")
 
 
 def frame_planes(layer: Any, features: Any, target_base: np.ndarray, aux: Any,
-                 kinds: tuple[str, ...] = CACHE_CANDIDATES, rest: np.ndarray | None = None,
+                 kinds: tuple[str, ...] = CANDIDATES, rest: np.ndarray | None = None,
                  denoised: np.ndarray | None = None) -> np.ndarray:
     """(cache_planes(K), H, W) float32 for one layer of one frame; the candidates ``kinds`` from
     model.fused.layer_candidates. ``rest`` (``cache --normalise frame``): OIDN's image of the frame's other
@@ -113,7 +111,7 @@ def target_image(layer: Any, kind: str) -> np.ndarray:
     return solve_l2(layer.base, layer.dx, layer.dy, DEFAULT_ALPHA)
 
 
-def build_cache(data: Path, out: Path, kinds: tuple[str, ...] = CACHE_CANDIDATES,
+def build_cache(data: Path, out: Path, kinds: tuple[str, ...] = CANDIDATES,
                 layers: tuple[str, ...] = LAYERS, target: str = "base", extra: tuple[Path, ...] = (),
                 normalise: str = "layer") -> None:
     """Write out/{layer}/NNNNN.npy for every frame of the Noise2Noise dataset ``data`` and each of ``layers``
@@ -186,7 +184,7 @@ def split(files: list[Path], seed: int = 0) -> tuple[list[Path], list[Path]]:
 
 
 def tensors(planes: torch.Tensor, kinds: tuple[str, ...],
-            cached: tuple[str, ...] = CACHE_CANDIDATES) -> tuple[torch.Tensor, ...]:
+            cached: tuple[str, ...] = CANDIDATES) -> tuple[torch.Tensor, ...]:
     """(data, gradient, candidates (N, K, 3, h, w), target (N, 3, h, w)) of the candidates ``kinds`` from
     cached (N, cache_planes(len(cached)), h, w) planes holding the candidates ``cached``."""
     idx = [cached.index(k) for k in kinds]
@@ -247,7 +245,7 @@ def _net(cfg: dict[str, Any]) -> torch.nn.Module:
 
 @torch.no_grad()
 def validate(net: torch.nn.Module, maps: list[np.ndarray], kinds: tuple[str, ...],
-             cached: tuple[str, ...] = CACHE_CANDIDATES, frame_normalised: bool = False) -> dict[str, float]:
+             cached: tuple[str, ...] = CANDIDATES, frame_normalised: bool = False) -> dict[str, float]:
     """Noise2Noise loss on the validation frames (whole frames) for the blend and for each candidate alone:
     the blend earns its place where its value is below every candidate's (all share the target's variance)."""
     net.eval()
@@ -416,7 +414,7 @@ def main(argv: list[str] | None = None) -> int:
     c = sub.add_parser("cache")
     c.add_argument("--data", required=True)
     c.add_argument("-o", "--output", required=True)
-    c.add_argument("--candidates", default=",".join(CACHE_CANDIDATES), help="the candidate kinds to cache")
+    c.add_argument("--candidates", default=",".join(CANDIDATES), help="the candidate kinds to cache")
     c.add_argument("--layers", default=",".join(LAYERS), help="the layers to cache")
     c.add_argument("--normalise", choices=NORMALISERS, default="layer",
                    help="frame: the loss divides by the frame's brightness (all layers' OIDN), as the product's RelMSE")
@@ -427,7 +425,7 @@ def main(argv: list[str] | None = None) -> int:
     t = sub.add_parser("train")
     t.add_argument("--cache", required=True)
     t.add_argument("--layer", choices=LAYERS, required=True)
-    t.add_argument("--candidates", default="oidn,refine")
+    t.add_argument("--candidates", default=",".join(CANDIDATES), help="the candidate kinds the blend weighs")
     t.add_argument("--minutes", type=float, required=True, help="total budget of the run (resumed runs included)")
     t.add_argument("--patch", type=int, default=64)
     t.add_argument("--batch", type=int, default=8)

@@ -49,12 +49,15 @@ def test_direct_layer_is_the_refinement_at_the_pinned_cg_budget(monkeypatch: pyt
 
 def test_direct_budget_is_cheaper_than_and_close_to_the_oidn_l1_solve() -> None:
     """refine-direct is oidn-l1's refinement at fused's own CG budget: a nearby image (the same one while both
-    budgets are equal, as since the oidn-l1 cap became 4 steps), from the same OIDN pass (the other kinds are
-    unchanged: oidn-l1 stays the method's own solve)."""
+    budgets are equal, as since the oidn-l1 cap became 4 steps), from the same OIDN pass."""
+    from gradsep.model.refine import refine_layer
+
     layer = _layer(40, 48, seed=7)
-    _, (oidn, cheap, full), _ = fused.layer_candidates(layer, None, ("oidn", "refine-direct", "oidn-l1"))
+    scaled, (oidn, cheap), _ = fused.layer_candidates(layer, None, ("oidn", "refine-direct"))
+    full = refine_layer("direct", oidn, scaled)  # the oidn-l1 method's own solve of the same layer
     assert not np.array_equal(cheap, oidn)
     rel = np.abs(cheap - full).mean() / full.mean()
     assert rel < 0.05, rel
-    with pytest.raises(fused.BlendModelError, match="unknown candidate kind"):
-        fused.layer_candidates(layer, None, ("refine-directly",))
+    for unknown in ("refine-directly", "oidn-l1", "refine", "l1"):  # not candidates (any more)
+        with pytest.raises(fused.BlendModelError, match="unknown candidate kind"):
+            fused.layer_candidates(layer, None, (unknown,))

@@ -25,7 +25,7 @@ from gradsep.training import fused as fused_training  # noqa: E402
 from gradsep.training.dataset import load_manifest  # noqa: E402
 from gradsep.training.synthetic import make_synthetic_dataset  # noqa: E402
 
-CACHED = fused_training.CACHE_CANDIDATES  # the cache's candidates (oidn, refine, refine-fast), in order
+CACHED = fused_training.CANDIDATES  # the cache's candidates (oidn, refine-fast), in order
 KINDS = ("oidn", "refine-fast")  # the test models' candidates
 
 pytestmark = pytest.mark.train
@@ -73,9 +73,9 @@ def test_cache_holds_what_inference_computes(paired: Path, cache: Path) -> None:
     np.testing.assert_allclose(t_grad[0].numpy(), gradient, rtol=1e-6, atol=1e-6)
     other = read_frame(entry.target, nonfinite="zero").layers["indirect"].base  # the N2N target, scaled by s
     np.testing.assert_allclose(target[0].numpy(), (other * scale).transpose(2, 0, 1), rtol=1e-5, atol=1e-7)
-    # the candidate subset a design uses is read from the same planes, in its order
-    sub = fused_training.tensors(torch.from_numpy(planes)[None], ("oidn", "refine-fast"), CACHED)[2]
-    np.testing.assert_array_equal(sub[0, 1].numpy(), planes[15:18])
+    # a candidate subset is read from the same planes, in its order
+    sub = fused_training.tensors(torch.from_numpy(planes)[None], ("refine-fast",), CACHED)[2]
+    np.testing.assert_array_equal(sub[0, 0].numpy(), planes[12:15])
     assert planes.shape[0] == fused_training.cache_planes(len(CACHED))
 
 
@@ -97,7 +97,7 @@ def test_flip_augmentation_keeps_gradients_consistent() -> None:
 @pytest.mark.slow
 def test_blend_models_load_reconstruct_and_are_exposure_invariant(blend_models: Path, paired: Path) -> None:
     fused = load_fused(blend_models)
-    assert fused is not None and fused.layers == {"direct", "indirect"} and fused.needs_aux
+    assert fused is not None and fused.layers == {"direct", "indirect"}
     assert all(d["prior"] == "blend" and d["inputs"]["candidates"] == list(KINDS) for d in fused.describe())
     frame = read_frame(load_manifest(paired).frames[0].path, nonfinite="zero")
     result = reconstruct(frame, "fused", models=LoadedModels(fused=fused))
@@ -124,7 +124,7 @@ def test_models_of_another_prior_kind_are_refused(blend_models: Path, tmp_path: 
     proto = onnx.load(blend_models / "fused" / "direct.onnx")
     for prop in proto.metadata_props:
         if prop.key == "gradsep.prior":
-            prop.value = "oidn"  # the earlier OIDN-residual fused models
+            prop.value = "oidn"  # a kind no fused model has
     onnx.save(proto, wrong / "direct.onnx")
     with pytest.raises(ModelError, match="prior kind 'oidn'"):
         load_fused(tmp_path / "models")
@@ -183,12 +183,9 @@ def test_a_fixed_layer_is_its_candidate_and_old_formats_are_refused(blend_models
         aux = shared_denoiser(OIDN_SETTING).prefilter(frame.features)
         _, (image,), scale = layer_candidates(frame.layers[name], aux, (kind,))
         np.testing.assert_allclose(result.layers[name], image / scale, rtol=1e-6, atol=1e-7)
-    if FIXED_LAYERS.get("direct") == "oidn-l1":  # the same image oidn-l1 gives, up to float32 rounding of exposures
-        oidn_l1 = reconstruct(frame, "oidn-l1").layers["direct"]
-        np.testing.assert_allclose(result.layers["direct"], oidn_l1, rtol=1e-3, atol=1e-4 * oidn_l1.max())
-    elif FIXED_LAYERS.get("direct") == "refine-direct":  # oidn-l1's refinement solved less far: close to it
-        oidn_l1 = reconstruct(frame, "oidn-l1").layers["direct"]
-        assert np.abs(result.layers["direct"] - oidn_l1).mean() < 0.05 * oidn_l1.mean()
+    assert FIXED_LAYERS == {"direct": "refine-direct"}  # oidn-l1's refinement solved less far: close to it
+    oidn_l1 = reconstruct(frame, "oidn-l1").layers["direct"]
+    assert np.abs(result.layers["direct"] - oidn_l1).mean() < 0.05 * oidn_l1.mean()
     proto = onnx.load(folder / "indirect.onnx")
     for prop in proto.metadata_props:
         if prop.key == "gradsep.format":
@@ -225,11 +222,11 @@ def test_cache_options_layers_target_and_init_prefer(paired: Path, tmp_path: Pat
     """``cache --layers direct --target l2`` writes the direct layer only, records its target kind, and caches
     the L2 target; ``train --init-prefer KIND`` starts near KIND alone and refuses a kind the run does not use."""
     out = tmp_path / "cache"
-    fused_training.main(["cache", "--data", str(paired), "-o", str(out), "--candidates", "oidn,refine-direct",
+    fused_training.main(["cache", "--data", str(paired), "-o", str(out), "--candidates", "oidn,refine-fast",
                          "--layers", "direct", "--target", "l2"])
     assert not (out / "indirect").exists() and sorted((out / "direct").glob("*.npy"))
     meta = json.loads((out / "cache.json").read_text())
-    assert meta["target"] == "l2" and meta["candidates"] == ["oidn", "refine-direct"]
+    assert meta["target"] == "l2" and meta["candidates"] == ["oidn", "refine-fast"]
     entry = load_manifest(paired).frames[1]
     planes = np.load(out / "direct" / f"{entry.index:05d}.npy")
     target = fused_training.target_image(read_frame(entry.target, nonfinite="zero").layers["direct"], "l2")
@@ -238,17 +235,17 @@ def test_cache_options_layers_target_and_init_prefer(paired: Path, tmp_path: Pat
     with pytest.raises(SystemExit, match="--layers"):
         fused_training.build_cache(paired, tmp_path / "other", layers=("specular",))
     run = tmp_path / "run"
-    args = ["train", "--cache", str(out), "--layer", "direct", "--candidates", "oidn,refine-direct", "--minutes", "0",
+    args = ["train", "--cache", str(out), "--layer", "direct", "--candidates", "oidn,refine-fast", "--minutes", "0",
             "--patch", "32", "--batch", "2", "--width", "4", "--blocks", "1", "-o", str(run)]
     with pytest.raises(SystemExit, match="--init-prefer"):
         fused_training.main([*args[:-1], str(tmp_path / "bad"), "--init-prefer", "l1"])
-    fused_training.main([*args, "--init-prefer", "refine-direct"])
+    fused_training.main([*args, "--init-prefer", "refine-fast"])
     state = torch.load(run / "checkpoint.pt", weights_only=True)
-    assert state["config"]["init_prefer"] == "refine-direct" and state["config"]["target"] == "l2"
+    assert state["config"]["init_prefer"] == "refine-fast" and state["config"]["target"] == "l2"
     net = fused_training._net(state["config"])
     net.load_state_dict(state["model"])
-    data, gradient, cands, _ = fused_training.tensors(torch.from_numpy(planes)[None], ("oidn", "refine-direct"),
-                                                      ("oidn", "refine-direct"))
+    data, gradient, cands, _ = fused_training.tensors(torch.from_numpy(planes)[None], ("oidn", "refine-fast"),
+                                                      ("oidn", "refine-fast"))
     with torch.no_grad():
         weights = net(data, gradient)
     expected = np.exp(fused_training.INIT_PREFER_LOGIT) / (np.exp(fused_training.INIT_PREFER_LOGIT) + 1)
