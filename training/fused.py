@@ -50,18 +50,9 @@ CACHE_VERSION = 2
 
 def cache_planes(k: int) -> int:
     """Planes per cached (frame, layer) with K candidates: base 3, dx 3, dy 3, candidates 3·K, features 7,
-    target 3 (and 3 more, the frame's brightness, in a ``--normalise frame`` cache: brightness_source)."""
+    target 3."""
     return 9 + 3 * k + 7 + 3
 REL_EPS = 1e-2
-#: Noise2Noise target kinds of the cache (target_image).
-TARGETS = ("base", "l2")
-#: What the loss divides a layer's error by (cache --normalise): that layer's brightness, or the frame's.
-NORMALISERS = ("layer", "frame")
-#: ``train --init-prefer KIND``: that candidate's initial logit (the others 0), so an untrained model is close to
-#: KIND alone (weight e^4 / (e^4 + K − 1): 0.96 for K = 3) and training learns where to leave it.
-INIT_PREFER_LOGIT = 4.0
-#: ``train --loss-weight noise``: keeps a patch with a (nearly) noise-free input from taking all the weight.
-NOISE_WEIGHT_FLOOR = 1e-2
 LAYERS = ("direct", "indirect")
 
 
@@ -69,12 +60,9 @@ LAYERS = ("direct", "indirect")
 
 
 def frame_planes(layer: Any, features: Any, target_base: np.ndarray, aux: Any,
-                 kinds: tuple[str, ...] = CANDIDATES, rest: np.ndarray | None = None,
-                 denoised: np.ndarray | None = None) -> np.ndarray:
+                 kinds: tuple[str, ...] = CANDIDATES, denoised: np.ndarray | None = None) -> np.ndarray:
     """(cache_planes(K), H, W) float32 for one layer of one frame; the candidates ``kinds`` from
-    model.fused.layer_candidates. ``rest`` (``cache --normalise frame``): OIDN's image of the frame's other
-    layers, in the frame's units; 3 more planes are appended, the loss's brightness source: OIDN's image of this
-    layer + rest, at the layer's exposure (the frame's brightness, which the product's RelMSE divides by).
+    model.fused.layer_candidates, and the second realization's base ``target_base`` at the input's exposure.
     ``denoised``: the layer's OIDN image when the caller has it (layer_candidates then does not run OIDN)."""
     from gradsep.model.fused import layer_candidates
     from gradsep.model.preprocess import DepthRange, feature_planes, scaled_image
@@ -83,41 +71,15 @@ def frame_planes(layer: Any, features: Any, target_base: np.ndarray, aux: Any,
     chw = [np.asarray(x, np.float32).transpose(2, 0, 1) for x in (scaled.base, scaled.dx, scaled.dy, *cands)]
     feats = feature_planes(features, DepthRange.of(features.depth))
     target = scaled_image(target_base, scale).transpose(2, 0, 1)
-    extra = [] if rest is None else [(cands[0] + scaled_image(rest, scale)).transpose(2, 0, 1)]
-    planes = np.concatenate([*chw, feats, target, *extra]).astype(np.float32)
+    planes = np.concatenate([*chw, feats, target]).astype(np.float32)
     return np.nan_to_num(planes, nan=0.0, posinf=0.0, neginf=0.0)
 
 
-def brightness_source(planes: torch.Tensor, cands: torch.Tensor, frame_normalised: bool) -> torch.Tensor:
-    """What n2n_loss divides by: OIDN's image of the layer (the first candidate), or with a frame-normalised
-    cache (its trailing 3 planes) OIDN's image of the whole frame at the layer's exposure."""
-    return planes[:, -3:] if frame_normalised else cands[:, 0]
-
-
-def target_image(layer: Any, kind: str) -> np.ndarray:
-    """The Noise2Noise target of one layer of the *second* realization: its base (``base``), or its exact L2
-    screened Poisson reconstruction from base + gradients at the product's α (``l2``). Both are unbiased (the L2
-    solve is linear in unbiased inputs, and returns the image itself for consistent ones), and neither depends on
-    the first realization, so the loss's minimiser stays the clean image; the L2 one carries less noise (the
-    median training frame's direct-layer loss fell 8x), so small
-    differences between candidates stand out of the target's own variance sooner."""
-    if kind == "base":
-        return np.asarray(layer.base, np.float32)
-    if kind != "l2":
-        raise SystemExit(f"unknown target kind {kind!r}; expected one of {TARGETS}")
-    from gradsep.model.poisson import solve_l2
-    from gradsep.model.policy import DEFAULT_ALPHA
-
-    return solve_l2(layer.base, layer.dx, layer.dy, DEFAULT_ALPHA)
-
-
 def build_cache(data: Path, out: Path, kinds: tuple[str, ...] = CANDIDATES,
-                layers: tuple[str, ...] = LAYERS, target: str = "base", extra: tuple[Path, ...] = (),
-                normalise: str = "layer") -> None:
+                layers: tuple[str, ...] = LAYERS, extra: tuple[Path, ...] = ()) -> None:
     """Write out/{layer}/NNNNN.npy for every frame of the Noise2Noise dataset ``data`` and each of ``layers``
-    (skips existing files); ``target``: the kind of target_image cached beside the candidates. ``extra``: more
-    datasets (other spp, other scenes) cached beside it as x{i}-NNNNN.npy; training samples all files alike.
-    ``normalise``: ``frame`` caches the frame's brightness for the loss (frame_planes ``rest``)."""
+    (skips existing files). ``extra``: more datasets (other spp, other scenes) cached beside it as
+    x{i}-NNNNN.npy; training samples all files alike."""
     from gradsep.model.frame import feature_groups, read_frame
     from gradsep.model.oidn import shared_denoiser
     from gradsep.model.policy import FEATURE_GROUPS
@@ -132,14 +94,8 @@ def build_cache(data: Path, out: Path, kinds: tuple[str, ...] = CANDIDATES,
         (out / layer).mkdir(parents=True, exist_ok=True)
     meta = {"version": CACHE_VERSION, "candidates": list(kinds), "oidn_setting": OIDN_SETTING,
             "blend_format": BLEND_FORMAT, "dataset": manifest.sha256, "frames": len(manifest.frames)}
-    if target != "base":  # (caches of base targets keep the metadata they were written with)
-        meta["target"] = target
     if extras:
         meta["extra_datasets"] = [m.sha256 for m in extras]
-    if normalise not in NORMALISERS:
-        raise SystemExit(f"--normalise must be one of {NORMALISERS}, got {normalise!r}")
-    if normalise != "layer":
-        meta["normalise"] = normalise
     if (out / "cache.json").is_file() and json.loads((out / "cache.json").read_text()) != meta:
         raise SystemExit(f"{out} holds a cache of other candidates or code ({(out / 'cache.json').read_text()}); "
                          "use another folder or delete it")
@@ -156,17 +112,11 @@ def build_cache(data: Path, out: Path, kinds: tuple[str, ...] = CANDIDATES,
         if len(feature_groups(frame.features)) < len(FEATURE_GROUPS):  # the blend is trained with every group
             continue
         aux = den.prefilter(frame.features)
-        # a frame-normalised cache needs every layer's OIDN image: each is denoised once and shared
-        images = {o: den.denoise(frame.layers[o].base, aux) for o in frame.layers} if normalise == "frame" else {}
         for layer, path in paths.items():
             if layer not in frame.layers or layer not in other.layers:
                 continue
-            rest = None
-            if images:
-                rest = sum((image for o, image in images.items() if o != layer),
-                           np.zeros_like(frame.layers[layer].base))
-            planes = frame_planes(frame.layers[layer], frame.features, target_image(other.layers[layer], target),
-                                  aux, kinds, rest, images.get(layer))
+            planes = frame_planes(frame.layers[layer], frame.features, np.asarray(other.layers[layer].base, np.float32),
+                                  aux, kinds)
             tmp = path.with_name(path.name + ".tmp.npy")
             np.save(tmp, planes)
             os.replace(tmp, path)
@@ -198,23 +148,13 @@ def tensors(planes: torch.Tensor, kinds: tuple[str, ...],
 
 
 def n2n_loss(weights: torch.Tensor, cands: torch.Tensor, target: torch.Tensor,
-             denominator_source: torch.Tensor, base: torch.Tensor | None = None) -> torch.Tensor:
-    """mean (Σ w_k c_k − t)² / (sg(mean_rgb(d))² + REL_EPS); ``d`` is a function of the input realization only.
-
-    ``base`` (the input realization's scaled base, ``--loss-weight noise``): each sample's loss is weighted by
-    1 / (v + NOISE_WEIGHT_FLOOR), normalised to mean 1 over the batch, v = the sample's mean of
-    (base − d)² / (mean_rgb(d)² + REL_EPS): how noisy the input looks against the denoised image. The target's
-    noise is of the same order (the same scene, the same spp), so this is inverse-variance weighting, and it
-    depends on the input realization only: every patch's minimiser is still the clean image."""
+             denominator_source: torch.Tensor) -> torch.Tensor:
+    """mean (Σ w_k c_k − t)² / (sg(mean_rgb(d))² + REL_EPS); ``d`` (OIDN's image, the first candidate) is a
+    function of the input realization only."""
     pred = torch.sum(weights.unsqueeze(2) * cands, dim=1)
     d = denominator_source.detach()
     den = d.mean(dim=1, keepdim=True) ** 2 + REL_EPS
-    per_pixel = (pred - target) ** 2 / den
-    if base is None:
-        return torch.mean(per_pixel)
-    noise = torch.mean((base.detach() - d) ** 2 / den, dim=(1, 2, 3))
-    omega = 1.0 / (noise + NOISE_WEIGHT_FLOOR)
-    return torch.mean(per_pixel.mean(dim=(1, 2, 3)) * omega / omega.mean())
+    return torch.mean((pred - target) ** 2 / den)
 
 
 def sample(maps: list[np.ndarray], batch: int, patch: int, rng: np.random.Generator) -> torch.Tensor:
@@ -245,7 +185,7 @@ def _net(cfg: dict[str, Any]) -> torch.nn.Module:
 
 @torch.no_grad()
 def validate(net: torch.nn.Module, maps: list[np.ndarray], kinds: tuple[str, ...],
-             cached: tuple[str, ...] = CANDIDATES, frame_normalised: bool = False) -> dict[str, float]:
+             cached: tuple[str, ...] = CANDIDATES) -> dict[str, float]:
     """Noise2Noise loss on the validation frames (whole frames) for the blend and for each candidate alone:
     the blend earns its place where its value is below every candidate's (all share the target's variance)."""
     net.eval()
@@ -254,7 +194,7 @@ def validate(net: torch.nn.Module, maps: list[np.ndarray], kinds: tuple[str, ...
         planes = torch.from_numpy(np.array(arr))[None]  # a copy: the memory map is read-only
         data, gradient, cands, target = tensors(planes, kinds, cached)
         weights = net(data, gradient)
-        bright = brightness_source(planes, cands, frame_normalised)
+        bright = cands[:, 0]
         sums["blend"] = sums.get("blend", 0.0) + float(n2n_loss(weights, cands, target, bright))
         for k, kind in enumerate(kinds):
             one = torch.zeros_like(weights)
@@ -276,35 +216,21 @@ def train(args: argparse.Namespace) -> None:
     if meta.get("blend_format") != BLEND_FORMAT or any(k not in cached for k in kinds):
         raise SystemExit(f"{cache} holds candidates {cached} (format {meta.get('blend_format')}); this run needs "
                          f"{kinds} (format {BLEND_FORMAT}): rebuild the cache")
-    if args.init_prefer is not None and args.init_prefer not in kinds:
-        raise SystemExit(f"--init-prefer {args.init_prefer!r} is not one of the run's candidates {kinds}")
+    if "target" in meta or "normalise" in meta:
+        raise SystemExit(f"{cache} was made with another target or loss normalisation than this code trains on: "
+                         "rebuild the cache")
     cfg = {"layer": args.layer, "candidates": list(kinds), "patch": args.patch, "batch": args.batch, "lr": args.lr,
-           "lr_schedule": args.lr_schedule,
+           "lr_schedule": "cosine",
            "seed": args.seed,
            "network": {"width": args.width, "depth": 3, "residual_blocks": args.blocks, "use_attention": True},
            "oidn_setting": OIDN_SETTING, "format": BLEND_FORMAT, "loss": f"n2n relmse eps {REL_EPS}",
            "dataset": meta["dataset"]}
-    if args.init_prefer is not None:
-        cfg["init_prefer"] = args.init_prefer
-    if meta.get("target", "base") != "base":
-        cfg["target"] = meta["target"]
-    if args.loss_weight != "none":
-        cfg["loss_weight"] = args.loss_weight
-    frame_normalised = meta.get("normalise") == "frame"
-    if frame_normalised:
-        cfg["normalise"] = "frame"
-        if args.loss_weight != "none":  # its noise proxy compares the layer's base with the layer's own OIDN image
-            raise SystemExit("--loss-weight noise needs a cache normalised per layer (cache --normalise layer)")
     if cfg_path.is_file() and json.loads(cfg_path.read_text()) != cfg:
         raise SystemExit(f"{run} holds a different run; use another folder")
     run.mkdir(parents=True, exist_ok=True)  # only now: a refused start leaves no folder behind
     cfg_path.write_text(json.dumps(cfg, indent=2))
     torch.manual_seed(args.seed)
     net = _net(cfg)
-    if "init_prefer" in cfg:  # start at (nearly) that candidate alone instead of the plain average
-        with torch.no_grad():
-            net.head.bias.zero_()
-            net.head.bias[kinds.index(cfg["init_prefer"])] = INIT_PREFER_LOGIT
     opt = torch.optim.Adam(net.parameters(), lr=args.lr)
     step, elapsed = 0, 0.0
     if ckpt.is_file():
@@ -329,15 +255,14 @@ def train(args: argparse.Namespace) -> None:
 
     running = []
     while elapsed + time.monotonic() - start < budget:
-        if args.lr_schedule == "cosine":  # over the run's time budget, to 0 at its end (resumes continue it)
-            done = min(1.0, (elapsed + time.monotonic() - start) / budget)
-            for group in opt.param_groups:
-                group["lr"] = args.lr * 0.5 * (1.0 + math.cos(math.pi * done))
+        # the learning rate decays to 0 over the run's time budget (cosine; resumes continue it)
+        done = min(1.0, (elapsed + time.monotonic() - start) / budget)
+        for group in opt.param_groups:
+            group["lr"] = args.lr * 0.5 * (1.0 + math.cos(math.pi * done))
         rng = np.random.default_rng([args.seed, step])
         planes = sample(maps, args.batch, args.patch, rng)
         data, gradient, cands, target = tensors(planes, kinds, cached)
-        base = planes[:, 0:3] if cfg.get("loss_weight") == "noise" else None
-        loss = n2n_loss(net(data, gradient), cands, target, brightness_source(planes, cands, frame_normalised), base)
+        loss = n2n_loss(net(data, gradient), cands, target, cands[:, 0])
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -352,7 +277,7 @@ def train(args: argparse.Namespace) -> None:
             save()
             last_save = time.monotonic()
     save()
-    val = validate(net, val_maps, kinds, cached, frame_normalised)
+    val = validate(net, val_maps, kinds, cached)
     record = {"kind": "validation", "step": step, "elapsed": round(elapsed + time.monotonic() - start, 1),
               "n2n_relmse": val}
     with open(run / "log.jsonl", "a") as fh:
@@ -416,12 +341,8 @@ def main(argv: list[str] | None = None) -> int:
     c.add_argument("-o", "--output", required=True)
     c.add_argument("--candidates", default=",".join(CANDIDATES), help="the candidate kinds to cache")
     c.add_argument("--layers", default=",".join(LAYERS), help="the layers to cache")
-    c.add_argument("--normalise", choices=NORMALISERS, default="layer",
-                   help="frame: the loss divides by the frame's brightness (all layers' OIDN), as the product's RelMSE")
     c.add_argument("--extra-data", action="append", default=[], metavar="DATASET",
                    help="another Noise2Noise dataset to cache beside --data (repeatable: other spp, other scenes)")
-    c.add_argument("--target", choices=TARGETS, default="base",
-                   help="the second realization's base, or its L2 Poisson reconstruction (unbiased, less noisy)")
     t = sub.add_parser("train")
     t.add_argument("--cache", required=True)
     t.add_argument("--layer", choices=LAYERS, required=True)
@@ -430,14 +351,7 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument("--patch", type=int, default=64)
     t.add_argument("--batch", type=int, default=8)
     t.add_argument("--lr", type=float, default=1e-3)
-    t.add_argument("--lr-schedule", choices=("constant", "cosine"), default="cosine",
-                   help="cosine: the learning rate decays to 0 over --minutes (a constant 1e-3 drifted: the held-out "
-                        "error of a 15-min run was above its own 5-min checkpoint's)")
     t.add_argument("--seed", type=int, default=0)
-    t.add_argument("--loss-weight", choices=("none", "noise"), default="none",
-                   help="noise: weight each patch by the inverse of its input's noise (n2n_loss)")
-    t.add_argument("--init-prefer", default=None, metavar="KIND",
-                   help="start near this candidate alone (its logit INIT_PREFER_LOGIT) instead of the plain average")
     t.add_argument("--width", type=int, default=16, help="network width (model/network.py NetworkConfig)")
     t.add_argument("--blocks", type=int, default=4, help="residual blocks at the bottleneck")
     t.add_argument("-o", "--output", required=True)
@@ -448,8 +362,7 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1")))
     if args.cmd == "cache":
         build_cache(Path(args.data), Path(args.output), tuple(k.strip() for k in args.candidates.split(",")),
-                    tuple(k.strip() for k in args.layers.split(",")), args.target,
-                    tuple(Path(p) for p in args.extra_data), args.normalise)
+                    tuple(k.strip() for k in args.layers.split(",")), tuple(Path(p) for p in args.extra_data))
     elif args.cmd == "train":
         train(args)
     else:

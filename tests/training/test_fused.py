@@ -195,86 +195,22 @@ def test_a_fixed_layer_is_its_candidate_and_old_formats_are_refused(blend_models
         load_fused(tmp_path / "models")
 
 
-def test_l2_target_is_unbiased_and_the_image_for_consistent_data() -> None:
-    """The ``l2`` Noise2Noise target (the second realization's L2 Poisson solve): linear in base and gradients,
-    so its mean over noise is the clean image (no reference enters the loss), and for consistent data it is that
-    image itself; ``base`` is the base unchanged; an unknown kind is refused."""
-    from gradsep.model.frame import Layer, forward_differences
-
-    rng = np.random.default_rng(5)
-    truth = rng.uniform(0.1, 2.0, (20, 24, 3)).astype(np.float32)
-    dx, dy = forward_differences(truth)
-    exact = fused_training.target_image(Layer(truth, dx, dy), "l2")
-    np.testing.assert_allclose(exact, truth, rtol=1e-4, atol=1e-5)
-    noisy = [Layer(truth + rng.normal(0, 0.3, truth.shape).astype(np.float32),
-                   dx + rng.normal(0, 0.1, dx.shape).astype(np.float32),
-                   dy + rng.normal(0, 0.1, dy.shape).astype(np.float32)) for _ in range(400)]
-    mean = np.mean([fused_training.target_image(layer, "l2") for layer in noisy], axis=0)
-    assert np.abs(mean - truth).mean() < 0.02  # the sample mean's own noise: about 0.3 / sqrt(400) / a few
-    one = fused_training.target_image(noisy[0], "l2")
-    assert np.mean((one - truth) ** 2) < 0.5 * np.mean((noisy[0].base - truth) ** 2)  # less noisy than its base
-    np.testing.assert_array_equal(fused_training.target_image(noisy[0], "base"), noisy[0].base)
-    with pytest.raises(SystemExit, match="unknown target kind"):
-        fused_training.target_image(noisy[0], "l1")
-
-
-def test_cache_options_layers_target_and_init_prefer(paired: Path, tmp_path: Path) -> None:
-    """``cache --layers direct --target l2`` writes the direct layer only, records its target kind, and caches
-    the L2 target; ``train --init-prefer KIND`` starts near KIND alone and refuses a kind the run does not use."""
+def test_cache_layers_option_and_caches_of_removed_options_are_refused(paired: Path, tmp_path: Path) -> None:
+    """``cache --layers direct`` writes the direct layer only; a cache made with a target or loss normalisation
+    this code no longer trains on (recorded in cache.json) is refused by ``train`` rather than misread."""
     out = tmp_path / "cache"
-    fused_training.main(["cache", "--data", str(paired), "-o", str(out), "--candidates", "oidn,refine-fast",
-                         "--layers", "direct", "--target", "l2"])
+    fused_training.main(["cache", "--data", str(paired), "-o", str(out), "--layers", "direct"])
     assert not (out / "indirect").exists() and sorted((out / "direct").glob("*.npy"))
     meta = json.loads((out / "cache.json").read_text())
-    assert meta["target"] == "l2" and meta["candidates"] == ["oidn", "refine-fast"]
-    entry = load_manifest(paired).frames[1]
-    planes = np.load(out / "direct" / f"{entry.index:05d}.npy")
-    target = fused_training.target_image(read_frame(entry.target, nonfinite="zero").layers["direct"], "l2")
-    cached = planes[-3:] / target.transpose(2, 0, 1)  # the target times the input's exposure s, one number
-    assert np.allclose(cached, np.median(cached), rtol=1e-4) and np.median(cached) > 0
+    assert meta["candidates"] == list(fused_training.CANDIDATES) and "target" not in meta
     with pytest.raises(SystemExit, match="--layers"):
         fused_training.build_cache(paired, tmp_path / "other", layers=("specular",))
-    run = tmp_path / "run"
-    args = ["train", "--cache", str(out), "--layer", "direct", "--candidates", "oidn,refine-fast", "--minutes", "0",
-            "--patch", "32", "--batch", "2", "--width", "4", "--blocks", "1", "-o", str(run)]
-    with pytest.raises(SystemExit, match="--init-prefer"):
-        fused_training.main([*args[:-1], str(tmp_path / "bad"), "--init-prefer", "l1"])
-    fused_training.main([*args, "--init-prefer", "refine-fast"])
-    state = torch.load(run / "checkpoint.pt", weights_only=True)
-    assert state["config"]["init_prefer"] == "refine-fast" and state["config"]["target"] == "l2"
-    net = fused_training._net(state["config"])
-    net.load_state_dict(state["model"])
-    data, gradient, cands, _ = fused_training.tensors(torch.from_numpy(planes)[None], ("oidn", "refine-fast"),
-                                                      ("oidn", "refine-fast"))
-    with torch.no_grad():
-        weights = net(data, gradient)
-    expected = np.exp(fused_training.INIT_PREFER_LOGIT) / (np.exp(fused_training.INIT_PREFER_LOGIT) + 1)
-    np.testing.assert_allclose(weights[0, 1].numpy(), expected, rtol=1e-5)  # zero-weight head: its bias alone
-
-
-def test_noise_weighted_loss_is_inverse_variance_weighting_of_samples() -> None:
-    """``--loss-weight noise``: identical samples weigh alike (the plain loss); otherwise each sample's loss is
-    weighted by 1 / (v + floor), normalised to mean 1, v its input's noise against the denoised candidate: the
-    noisier input weighs less, and the weights come from the input alone (a changed target leaves them)."""
-    rng = torch.Generator().manual_seed(0)
-    clean = torch.rand(1, 3, 8, 8, generator=rng) + 0.5
-    cands = clean[:, None].repeat(2, 2, 1, 1, 1)  # (N=2, K=2, 3, h, w): both candidates the clean image
-    weights = torch.full((2, 2, 8, 8), 0.5)
-    den = clean.mean(dim=1, keepdim=True) ** 2 + fused_training.REL_EPS
-    plain = fused_training.n2n_loss(weights, cands, clean.repeat(2, 1, 1, 1), cands[:, 0])
-    assert float(plain) == 0.0
-    same = clean.repeat(2, 1, 1, 1) + 0.05
-    noisy = torch.cat([clean + 0.01, clean + 1.0])  # sample 1's input is far noisier than sample 0's
-    v = ((noisy - clean) ** 2 / den).mean(dim=(1, 2, 3))
-    w = 1.0 / (v + fused_training.NOISE_WEIGHT_FLOOR)
-    w = w / w.mean()
-    assert float(w[0]) > 1.0 > float(w[1])
-    for scale in (1.0, 2.0):  # two targets: the loss changes, the weights do not
-        target = scale * clean.repeat(2, 1, 1, 1) + 0.1 * torch.randn(2, 3, 8, 8, generator=rng)
-        per = ((target - clean) ** 2 / den).mean(dim=(1, 2, 3))
-        torch.testing.assert_close(fused_training.n2n_loss(weights, cands, target, cands[:, 0], same), per.mean())
-        torch.testing.assert_close(fused_training.n2n_loss(weights, cands, target, cands[:, 0], noisy),
-                                   (per * w).mean())
+    args = ["train", "--cache", str(out), "--layer", "direct", "--minutes", "0", "--patch", "32", "--batch", "2",
+            "--width", "4", "--blocks", "1", "-o", str(tmp_path / "run")]
+    (out / "cache.json").write_text(json.dumps({**meta, "target": "l2"}))
+    with pytest.raises(SystemExit, match="rebuild the cache"):
+        fused_training.main(args)
+    assert not (tmp_path / "run").exists()
 
 
 def test_cache_extra_data_is_cached_beside_and_recorded(paired: Path, tmp_path: Path) -> None:
@@ -293,30 +229,3 @@ def test_cache_extra_data_is_cached_beside_and_recorded(paired: Path, tmp_path: 
     meta = json.loads((out / "cache.json").read_text())
     assert meta["dataset"] == load_manifest(paired).sha256 and meta["extra_datasets"] == [load_manifest(other).sha256]
     assert np.load(out / "indirect" / extra[0]).shape[1:] == (32, 40)
-
-
-def test_frame_normalised_cache_divides_by_the_frames_brightness(paired: Path, tmp_path: Path) -> None:
-    """``cache --normalise frame``: each layer's file carries 3 more planes, OIDN's image of the layer plus the
-    other layers' OIDN images at the layer's exposure, and the loss divides by them (brightness_source); the
-    noise-weighted loss, whose proxy is per layer, is refused on such a cache."""
-    out = tmp_path / "cache"
-    fused_training.main(["cache", "--data", str(paired), "-o", str(out), "--candidates", "oidn",
-                         "--normalise", "frame"])
-    assert json.loads((out / "cache.json").read_text())["normalise"] == "frame"
-    entry = load_manifest(paired).frames[1]
-    frame = read_frame(entry.path, nonfinite="zero")
-    den = shared_denoiser(OIDN_SETTING)
-    aux = den.prefilter(frame.features)
-    indirect = den.denoise(frame.layers["indirect"].base, aux)
-    planes = np.load(out / "direct" / f"{entry.index:05d}.npy")
-    assert planes.shape[0] == fused_training.cache_planes(1) + 3
-    _, (oidn,), scale = layer_candidates(frame.layers["direct"], aux, ("oidn",))
-    np.testing.assert_allclose(planes[-3:], (oidn + indirect * scale).transpose(2, 0, 1), rtol=1e-5, atol=1e-6)
-    t = torch.from_numpy(planes)[None]
-    _, _, cands, target = fused_training.tensors(t, ("oidn",), ("oidn",))
-    np.testing.assert_array_equal(target[0].numpy(), planes[-6:-3])  # the target is where it always was
-    np.testing.assert_array_equal(fused_training.brightness_source(t, cands, True)[0].numpy(), planes[-3:])
-    np.testing.assert_array_equal(fused_training.brightness_source(t, cands, False).numpy(), cands[:, 0].numpy())
-    with pytest.raises(SystemExit, match="normalise"):
-        fused_training.main(["train", "--cache", str(out), "--layer", "direct", "--candidates", "oidn",
-                             "--minutes", "0", "--loss-weight", "noise", "-o", str(tmp_path / "run")])
