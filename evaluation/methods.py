@@ -150,9 +150,9 @@ class MethodSpec:
         CLEAN_AVERAGE_MODEL). Their checksums join the result's cache key; their absence skips nothing."""
         if "fused" not in self.model_sets:
             return ()
-        from gradsep.model.fused import CLEAN_AVERAGE, CLEAN_AVERAGE_MODEL, FIXED_LAYERS
+        from gradsep.model.fused import CLEAN_AVERAGE_MODEL, FIXED_LAYERS
 
-        if CLEAN_AVERAGE is None or "direct" not in layers or "direct" not in FIXED_LAYERS:
+        if "direct" not in layers or "direct" not in FIXED_LAYERS:
             return ()
         return (os.path.normpath(Path(self.models or "") / CLEAN_AVERAGE_MODEL),)
 

@@ -4,7 +4,7 @@ A frame is reconstructed in short-lived worker threads (model/reconstruct.py run
 and every solve allocates frame-sized numpy temporaries. glibc gives threads their own malloc *arenas*; a new
 worker thread per frame lands in an arena whose freed memory was handed back to the kernel. Its temporaries are
 then fresh pages every frame.
-- Measured on a 1280x720 frame (2026-12-03): about 30,000 page faults and 0.3-0.6 s of kernel time in the
+- Measured on a 1280x720 frame: about 30,000 page faults and 0.3-0.6 s of kernel time in the
   direct layer's refinement alone (refinement thread CPU 0.8 s → 1.3-1.4 s).
 - This happens once ONNX Runtime / OpenVINO sessions are loaded (the service always loads them), as the
   process's other threads already hold arenas.

@@ -89,8 +89,7 @@ FIXED_LAYERS: dict[str, str] = {"direct": "refine-direct"}
 #: Two estimates with partly independent errors average to a lower one where both are right; where they disagree
 #: by more than noise one of them is biased and the refinement stays. Chosen on held-out procedural frames, never on
 #: the evaluation's scenes. A noisy layer (w_f = 0) runs no network: its image is the refinement alone, bit for bit.
-#: None: no average.
-CLEAN_AVERAGE: tuple[float, float] | None = (0.01, 0.1)
+CLEAN_AVERAGE: tuple[float, float] = (0.01, 0.1)
 CLEAN_AVERAGE_WEIGHT = 0.5
 CLEAN_AVERAGE_EPSILON = 0.01
 #: The network model the clean-layer average reads, beside the fused folder (the ``network`` method's own file).
@@ -225,8 +224,8 @@ def clean_average(refined: np.ndarray, second: np.ndarray, clean: float, scale: 
     """CLEAN_AVERAGE's image at the frame's exposure: ``refined`` + CLEAN_AVERAGE_WEIGHT·``clean``·g(ρ)·(``second``
     − ``refined``), (H, W, 3) float32, finite, ≥ 0 (a convex mix of two non-negative images, weights ≤ 1/2).
     ``clean``: the layer's w_f; ``scale``: the refinement's level-1 exposure (model.oidn.input_scale of OIDN's
-    image). ``refined`` itself where CLEAN_AVERAGE is None, w_f is 0 or ``second`` is not finite."""
-    if CLEAN_AVERAGE is None or not clean > 0.0 or not np.all(np.isfinite(second)):
+    image). ``refined`` itself where w_f is 0 or ``second`` is not finite."""
+    if not clean > 0.0 or not np.all(np.isfinite(second)):
         return refined
     w = np.float32(CLEAN_AVERAGE_WEIGHT * min(clean, 1.0)) * agreement_weights(refined, second, scale, CLEAN_AVERAGE)
     out = refined + w[..., None] * (np.asarray(second, np.float32) - refined)
@@ -305,9 +304,9 @@ def load_model(path: str | os.PathLike[str], name: str) -> BlendModel:
 
 def _load_second(path: Path, layers: set[str]) -> Any:
     """The clean-layer average's network (a model.infer.NetworkReconstructor of ``path``, a ``network`` model for
-    the direct layer) when CLEAN_AVERAGE is on, the file exists and a fixed layer it serves is among ``layers``;
+    the direct layer) when the file exists and a fixed layer it serves is among ``layers``;
     else None. An unusable file raises BlendModelError naming it."""
-    if CLEAN_AVERAGE is None or "direct" not in layers or not path.is_file():
+    if "direct" not in layers or not path.is_file():
         return None
     from gradsep.model.infer import ModelError, NetworkReconstructor
     from gradsep.model.infer import load_model as load_network_model
@@ -348,7 +347,7 @@ class FusedReconstructor:
 
     def _averages(self, name: str) -> bool:
         """Whether the fixed layer ``name`` gets the clean-layer average."""
-        return CLEAN_AVERAGE is not None and self.second is not None and name in self.second.models
+        return self.second is not None and name in self.second.models
 
     @property
     def layers(self) -> set[str]:
