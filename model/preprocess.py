@@ -89,7 +89,7 @@ PRIOR_CHANNELS = slice(3, 6)
 #: Poisson solve above (PRIOR_IRLS_PASSES x PRIOR_CG_STEPS, DCT-preconditioned), kind ``l1``. A model naming any
 #: other kind is refused at load (model/infer.py): this code could not compute the prior it was trained on.
 PRIOR_KINDS: tuple[str, ...] = ("l1",)
-#: The kind a model without ``gradsep.prior`` metadata refines (every model exported before kinds existed).
+#: The kind a model without ``gradsep.prior`` metadata refines (every shipped network model).
 DEFAULT_PRIOR = "l1"
 #: The ``fused`` blend models see every layer at a normalised exposure: base, gradients and candidates multiplied by s
 #: so that OIDN's image's robust level (model.robust.robust_level) is FUSED_MEAN (capped so its peak stays below
