@@ -145,11 +145,15 @@ def test_init_refuses_weights_that_do_not_fit(exported: tuple[Path, Path, dict],
     from tests.training.conftest import tiny_config
 
     _, onnx_path, _ = exported
-    overrides: dict[str, object] = {"layer": "indirect"} if change == "layer" else (
-        {"prior": "l2"} if change == "prior" else {})
+    overrides: dict[str, object] = {"layer": "indirect"} if change == "layer" else {}
     cfg = tiny_config(tiny_dataset, tmp_path / "run", **overrides)
     source = onnx_path
-    if change == "missing":
+    if change == "prior":  # a model refining another prior than this run's (l1, the only kind trained here)
+        proto = onnx.load(onnx_path)
+        onnx.helper.set_model_props(proto, {**{p.key: p.value for p in proto.metadata_props}, "gradsep.prior": "l2"})
+        source = tmp_path / "other-prior.onnx"
+        onnx.save(proto, source)
+    elif change == "missing":
         source = tmp_path / "nothing.onnx"
     elif change == "not-a-model":
         source = tmp_path / "junk.onnx"
