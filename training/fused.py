@@ -334,7 +334,7 @@ def export(run_dir: Path, output: Path) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m training.fused", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog="python -m gradsep.training.fused", description=__doc__.split("\n")[0])
     sub = p.add_subparsers(dest="cmd", required=True)
     c = sub.add_parser("cache")
     c.add_argument("--data", required=True)
