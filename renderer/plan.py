@@ -9,12 +9,13 @@ frame's bases and features average the samples of every pass, and its gradients 
 
 **The pilot** (--gradients auto). Each candidate (:data:`CANDIDATES`) renders a 1-spp warm-up pass (its kernel is
 compiled or loaded here), a warm 1-spp pass (with A: two pass sizes give the per-pass overhead and the cost per
-sample) and a pass ``A`` of ``n`` samples; then a primal pass ``B``. The pilot's passes are sized so that its
+sample) and a pass ``A`` of ``n`` samples; then two primal passes. The pilot's passes are sized so that its
 sampling takes about PILOT_SHARE of the budget. Candidate ``c``'s ``A`` is reconstructed with the method that would
 serve its frame (model.reconstruct's default: ``oidn-l1`` with gradients, ``oidn`` for a plain frame), on a few
-tiles (:func:`tiles`) to bound the cost, and compared with the pooled bases of the 1-spp passes and ``B``:
-independent of every ``A``, with its per-pixel variance from the spread of those passes (renderer/estimate.py),
-and the same for every candidate, so that its noise cancels when they are compared. That gives the
+tiles (:func:`tiles`) to bound the cost, and compared with every pilot pass that is no candidate's ``A``:
+independent of every ``A`` and of each other, so the mean over pairs of passes of ``(R - b_j)(R - b_k)`` estimates
+the reconstruction's squared error with no reference (renderer/estimate.py); the same passes for every candidate,
+so that their noise cancels when candidates are compared. That gives the
 reconstruction's RelMSE at ``n`` samples with no reference; it is carried to the samples the budget buys for ``c``
 (its measured cost per sample) with ``error ~ spp^-exponent`` (:data:`EXPONENTS`, measured on held-out scenes:
 benchmarks/bench_planner.py). The lowest prediction wins.
@@ -36,7 +37,7 @@ import numpy as np
 from gradsep.model.errors import CommandError
 from gradsep.model.frame import Features, Frame, Layer
 from gradsep.renderer.budget import Clock, Deadline, PassCosts, fill_to_deadline
-from gradsep.renderer.estimate import at_budget, estimated_relmse, pooled_mean_and_variance, relative_weights
+from gradsep.renderer.estimate import at_budget, cross_relmse, relative_weights
 from gradsep.renderer.scene import LoadedScene
 
 #: Header keys of a planned frame (all strings, like every ``gradsep.*`` attribute).
@@ -328,11 +329,12 @@ def run_pilot(passes: Passes, budget_spp: Callable[[Assessment], float], *, pilo
             warm_ups.append((base_image(passes.run(c, 1), 1), 1))  # cost (a budget buys few, large passes)
             n -= 1
         pass_a[c.name] = (passes.run(c, n), n)
-    primal = candidate("primal")  # B: the 1-spp passes and this one, independent of every A
-    m = max(1, min(pilot_pass_spp(primal), 4 * PILOT_MAX_SPP, passes.max_spp))
-    warm_ups.append((base_image(passes.run(primal, m), m), m))
-    # One B for every candidate: its noise enters every estimate alike and cancels when they are compared.
-    target, variance = pooled_mean_and_variance(warm_ups)
+    # B: the 1-spp passes and two primal passes, independent of every A; the same for every candidate, so their
+    # noise enters every estimate alike and cancels when candidates are compared
+    primal = candidate("primal")
+    m = max(1, min(pilot_pass_spp(primal), 4 * PILOT_MAX_SPP, passes.max_spp) // 2)
+    for _ in range(2):
+        warm_ups.append((base_image(passes.run(primal, m), m), m))
     assessments = []
     windows = tiles(passes.loaded.width, passes.loaded.height)
     border = TILE_BORDER if len(windows) > 1 else 0
@@ -351,7 +353,7 @@ def run_pilot(passes: Passes, budget_spp: Callable[[Assessment], float], *, pilo
             # RelMSE's weights from the candidates' mean reconstruction: one weight image for all (a candidate
             # weighted by its own image would be favoured by a darkening bias), independent of B
             weights = relative_weights(np.mean([images[name][i] for name in images], axis=0))
-            value, se = estimated_relmse(images[c.name][i], target[ys, xs], variance[ys, xs], weights, border)
+            value, se = cross_relmse(images[c.name][i], [(b[ys, xs], n) for b, n in warm_ups], weights, border)
             errors.append(value)
             errors_se.append(se)
             sizes.append(weights.shape[0] * weights.shape[1])
