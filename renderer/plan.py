@@ -87,9 +87,11 @@ CANDIDATES: tuple[Candidate, ...] = (
 )
 #: Used where no pilot can run (a budget or sample count too small for one): today's `gradsep render` default.
 FALLBACK = "all"
-#: Error-vs-spp exponent of each candidate's reconstruction (RelMSE ~ spp^-exponent), measured on held-out
-#: procedural seeds by benchmarks/bench_planner.py --exponents.
-EXPONENTS: dict[str, float] = {"primal": 0.8, "direct-alternate": 0.8, "all": 0.8}
+#: Error-vs-spp exponent of each candidate's reconstruction (RelMSE ~ spp^-exponent). A denoised frame's error falls
+#: far slower than a raw frame's 1/spp: measured between two budgets (20 s and 40 s at 128x128, 350-3400 spp) on the
+#: held-out procedural:93101, 0.43 (primal + oidn), 0.37 (direct-alternate + oidn-l1), 0.54 (all + oidn-l1)
+#: (benchmarks/bench_planner.py validate); one value for all until more scenes pin each down.
+EXPONENTS: dict[str, float] = {"primal": 0.5, "direct-alternate": 0.5, "all": 0.5}
 
 
 def candidate(name: str) -> Candidate:
@@ -365,7 +367,7 @@ def run_pilot(passes: Passes, budget_spp: Callable[[Assessment], float], *, pilo
     for a in assessments:  # every candidate carried to the budget with the same time left
         a.budget_spp = budget_spp(a)
         floor = max(a.measured_relmse, a.standard_error)  # an estimate lost in B's noise counts as its noise
-        a.predicted_relmse = at_budget(floor, a.pilot_spp, a.budget_spp, EXPONENTS.get(a.name, 0.8))
+        a.predicted_relmse = at_budget(floor, a.pilot_spp, a.budget_spp, EXPONENTS[a.name])
     chosen = min(assessments, key=lambda a: a.predicted_relmse)
     return Plan(candidate(chosen.name), assessments, clock() - start)
 
