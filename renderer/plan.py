@@ -8,17 +8,17 @@ frame's bases and features average the samples of every pass, and its gradients 
 (the ``--gradient-spp`` rule of render_gpt). So the whole pilot is reused in the final frame.
 
 **The pilot** (--gradients auto). Each candidate (:data:`CANDIDATES`) renders a 1-spp warm-up pass (its kernel is
-compiled or loaded here), a warm 1-spp pass (with A: two pass sizes give the per-pass overhead and the cost per
-sample) and a pass ``A`` of ``n`` samples; then two primal passes. The pilot's passes are sized so that its
-sampling takes about PILOT_SHARE of the budget. Candidate ``c``'s ``A`` is reconstructed with the method that would
-serve its frame (model.reconstruct's default: ``oidn-l1`` with gradients, ``oidn`` for a plain frame), on a few
-tiles (:func:`tiles`) to bound the cost, and compared with every pilot pass that is no candidate's ``A``:
-independent of every ``A`` and of each other, so the mean over pairs of passes of ``(R - b_j)(R - b_k)`` estimates
-the reconstruction's squared error with no reference (renderer/estimate.py); the same passes for every candidate,
-so that their noise cancels when candidates are compared. That gives the
-reconstruction's RelMSE at ``n`` samples with no reference; it is carried to the samples the budget buys for ``c``
-(its measured cost per sample) with ``error ~ spp^-exponent`` (:data:`EXPONENTS`, measured on held-out scenes:
-benchmarks/bench_planner.py). The lowest prediction wins.
+compiled or loaded here) and a pass ``A`` of ``n`` samples in two parts of different sizes (two pass sizes give the
+per-pass overhead and the cost per sample); then two primal passes. The pilot's passes are sized so that its
+sampling takes about PILOT_SHARE of the budget. Candidate ``c``'s ``A`` (and A's first part) is reconstructed with
+the method that would serve its frame (model.reconstruct's default: ``oidn-l1`` with gradients, ``oidn`` for a plain
+frame), on a few tiles (:func:`tiles`) to bound the cost, and compared with every pilot pass that is no candidate's
+``A``: independent of every ``A`` and of each other, so the mean over pairs of passes of ``(R - b_j)(R - b_k)``
+estimates the reconstruction's squared error with no reference (renderer/estimate.py); the same passes for every
+candidate, so that their noise cancels when candidates are compared. That gives the reconstruction's RelMSE at
+A's two sample counts; the slope between them (:func:`measured_exponent`; :data:`EXPONENTS` where it cannot be
+read) carries the error at ``n`` to the samples the budget buys for ``c`` (its measured cost per sample) with
+``error ~ spp^-exponent``. The lowest prediction wins.
 
 **The deadline** (renderer/budget.py): passes are sized from their measured cost so that the last one ends, with
 the write still to come, just before ``T``; nothing is started that is predicted to miss it.
@@ -87,10 +87,10 @@ CANDIDATES: tuple[Candidate, ...] = (
 )
 #: Used where no pilot can run (a budget or sample count too small for one): today's `gradsep render` default.
 FALLBACK = "all"
-#: Error-vs-spp exponent of each candidate's reconstruction (RelMSE ~ spp^-exponent). A denoised frame's error falls
-#: far slower than a raw frame's 1/spp: measured between two budgets (20 s and 40 s at 128x128, 350-3400 spp) on the
-#: held-out procedural:93101, 0.43 (primal + oidn), 0.37 (direct-alternate + oidn-l1), 0.54 (all + oidn-l1)
-#: (benchmarks/bench_planner.py validate); one value for all until more scenes pin each down.
+#: Error-vs-spp exponent of each candidate's reconstruction (RelMSE ~ spp^-exponent) where the pilot cannot read its
+#: own (measured_exponent). A denoised frame's error falls far slower than a raw frame's 1/spp: measured between two
+#: budgets (20 s and 40 s at 128x128, 350-3400 spp) on the held-out procedural:93101, 0.43 (primal + oidn), 0.37
+#: (direct-alternate + oidn-l1), 0.54 (all + oidn-l1) (benchmarks/bench_planner.py validate).
 EXPONENTS: dict[str, float] = {"primal": 0.5, "direct-alternate": 0.5, "all": 0.5}
 
 
@@ -252,6 +252,22 @@ def reconstruct_default(frame: Frame) -> tuple[np.ndarray, str]:
 
 # -------------------------------------------------------------------------------------------------- pilot
 
+#: The range a slope measured in the pilot is clipped to (a noisy pair of estimates must not promise a raw
+#: frame's 1/spp, nor no gain at all).
+EXPONENT_RANGE = (0.1, 1.0)
+
+
+def measured_exponent(early: float, early_se: float, n1: int, late: float, late_se: float, n: int,
+                      default: float) -> float:
+    """The error-vs-spp exponent between two estimates of one reconstruction's error, at ``n1`` and ``n`` samples,
+    clipped to EXPONENT_RANGE; ``default`` where either estimate is not above twice its standard error (too noisy
+    to take a ratio of)."""
+    if n <= n1 or early <= 2 * early_se or late <= 2 * late_se:
+        return default
+    slope = math.log(early / late) / math.log(n / n1)
+    return min(max(slope, EXPONENT_RANGE[0]), EXPONENT_RANGE[1])
+
+
 
 @dataclass
 class Assessment:
@@ -263,6 +279,7 @@ class Assessment:
     per_sample: float  # seconds per sample per pixel (warm)
     method: str  # the reconstruction method that serves its frame
     standard_error: float = 0.0  # of measured_relmse (the estimate's noise)
+    exponent: float = 0.5  # of the error-vs-spp law it is carried to the budget with
     budget_spp: float = 0.0
     predicted_relmse: float = math.inf
 
@@ -291,7 +308,8 @@ class Plan:
     def summary(self) -> str:
         if not self.assessments:
             return f"plan {self.chosen.name} ({self.note})"
-        parts = ", ".join(f"{a.name} {a.predicted_relmse:.4g} at {a.budget_spp:.0f} spp" for a in self.assessments)
+        parts = ", ".join(f"{a.name} {a.predicted_relmse:.4g} at {a.budget_spp:.0f} spp (slope {a.exponent:.2f})"
+                          for a in self.assessments)
         return (f"plan {self.chosen.name}: predicted RelMSE {parts} (pilot {self.pilot_seconds:.2f} s, "
                 f"method {self.metadata(()).get(PLAN_METHOD_KEY, '?')})")
 
@@ -318,56 +336,72 @@ def run_pilot(passes: Passes, budget_spp: Callable[[Assessment], float], *, pilo
         if clock() - start + reconstruct_startup() > give_up_after:
             return Plan(candidates[0], [], clock() - start, "the budget is too small for a pilot")
     left = (pilot_seconds or 0.0) - (clock() - start)
-    pass_a: dict[str, tuple[dict[str, np.ndarray], int]] = {}
+
     def pilot_pass_spp(c: Candidate) -> int:  # an equal share of the pilot's time for each A and for B
         if pilot_spp is not None:
             return pilot_spp
         per = passes.kind(c).costs.per_sample
         return int(left / (len(candidates) + 1) / per) if 0 < per < math.inf else 1
 
+    # A in two passes of different sizes, n1 and n - n1: two pass sizes separate the per-pass overhead from the
+    # cost per sample (a budget buys few, large passes), and two sample counts give the error's slope
+    pass_a: dict[str, list[tuple[dict[str, np.ndarray], int]]] = {}
     for c in candidates:
         n = max(1, min(pilot_pass_spp(c), PILOT_MAX_SPP, passes.max_spp))
-        if n >= 3:  # a warm 1-spp pass beside A: two pass sizes separate the per-pass overhead from the per-sample
-            warm_ups.append((base_image(passes.run(c, 1), 1), 1))  # cost (a budget buys few, large passes)
-            n -= 1
-        pass_a[c.name] = (passes.run(c, n), n)
-    # B: the 1-spp passes and two primal passes, independent of every A; the same for every candidate, so their
+        sizes = [max(1, n // 3), n - max(1, n // 3)] if n >= 3 else [n]
+        pass_a[c.name] = [(passes.run(c, k), k) for k in sizes]
+    # B: the warm-ups and two primal passes, independent of every A; the same for every candidate, so their
     # noise enters every estimate alike and cancels when candidates are compared
     primal = candidate("primal")
     m = max(1, min(pilot_pass_spp(primal), 4 * PILOT_MAX_SPP, passes.max_spp) // 2)
     for _ in range(2):
         warm_ups.append((base_image(passes.run(primal, m), m), m))
-    assessments = []
     windows = tiles(passes.loaded.width, passes.loaded.height)
     border = TILE_BORDER if len(windows) > 1 else 0
-    images: dict[str, list[np.ndarray]] = {}
+    # per candidate, the reconstructions (per tile) of A's first pass and of the whole of A
+    images: dict[str, tuple[list[np.ndarray], list[np.ndarray]]] = {}
     methods: dict[str, str] = {}
     for c in candidates:
-        sums_a, n_a = pass_a[c.name]
-        frame_a = sums_frame(sums_a, passes.kind(c).settings, n_a)
-        images[c.name] = []
+        parts = pass_a[c.name]
+        settings = passes.kind(c).settings
+        first = sums_frame(parts[0][0], settings, parts[0][1])
+        whole = sums_frame({k: sum(s[k] for s, _ in parts) for k in parts[0][0]}, settings, sum(k for _, k in parts))
+        images[c.name] = ([], [])
         for window in windows:
-            image, methods[c.name] = reconstruct(crop(frame_a, window))
-            images[c.name].append(image)
-    for c in candidates:
-        errors, errors_se, sizes = [], [], []
+            for slot, frame in zip(images[c.name], (first, whole) if len(parts) > 1 else (first,), strict=False):
+                image, methods[c.name] = reconstruct(crop(frame, window))
+                slot.append(image)
+
+    def estimate(tiles_images: list[np.ndarray]) -> tuple[float, float]:
+        errors, errors_se = [], []
         for i, (ys, xs) in enumerate(windows):
             # RelMSE's weights from the candidates' mean reconstruction: one weight image for all (a candidate
             # weighted by its own image would be favoured by a darkening bias), independent of B
-            weights = relative_weights(np.mean([images[name][i] for name in images], axis=0))
-            value, se = cross_relmse(images[c.name][i], [(b[ys, xs], n) for b, n in warm_ups], weights, border)
+            weights = relative_weights(np.mean([(w or f)[i] for f, w in images.values()], axis=0))
+            value, se = cross_relmse(tiles_images[i], [(b[ys, xs], k) for b, k in warm_ups], weights, border)
             errors.append(value)
             errors_se.append(se)
-            sizes.append(weights.shape[0] * weights.shape[1])
-        w = np.asarray(sizes, dtype=np.float64) / float(np.sum(sizes))
-        measured = float(np.sum(w * np.asarray(errors)))
-        se = float(np.sqrt(np.sum((w * np.asarray(errors_se)) ** 2)))
-        n_a = pass_a[c.name][1]
-        assessments.append(Assessment(c.name, n_a, measured, passes.kind(c).costs.per_sample, methods[c.name], se))
+        share = np.asarray([(ys.stop - ys.start) * (xs.stop - xs.start) for ys, xs in windows], dtype=np.float64)
+        share /= share.sum()
+        return float(np.sum(share * errors)), float(np.sqrt(np.sum((share * np.asarray(errors_se)) ** 2)))
+
+    assessments = []
+    for c in candidates:
+        parts = pass_a[c.name]
+        first, whole = images[c.name]
+        n1, n = parts[0][1], sum(k for _, k in parts)
+        measured, se = estimate(whole or first)
+        exponent = EXPONENTS[c.name]
+        if whole:
+            early, early_se = estimate(first)
+            exponent = measured_exponent(early, early_se, n1, measured, se, n, exponent)
+        a = Assessment(c.name, n, measured, passes.kind(c).costs.per_sample, methods[c.name], se)
+        a.exponent = exponent
+        assessments.append(a)
     for a in assessments:  # every candidate carried to the budget with the same time left
         a.budget_spp = budget_spp(a)
         floor = max(a.measured_relmse, a.standard_error)  # an estimate lost in B's noise counts as its noise
-        a.predicted_relmse = at_budget(floor, a.pilot_spp, a.budget_spp, EXPONENTS[a.name])
+        a.predicted_relmse = at_budget(floor, a.pilot_spp, a.budget_spp, a.exponent)
     chosen = min(assessments, key=lambda a: a.predicted_relmse)
     return Plan(candidate(chosen.name), assessments, clock() - start)
 

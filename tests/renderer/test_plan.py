@@ -218,3 +218,15 @@ def test_seconds_writes_a_frame_with_its_budget_in_the_header(tmp_path, capsys, 
     assert PREDICTED_RELMSE_KEY not in meta  # a fixed plan: no pilot, no prediction
     assert frame.layers["direct"].has_gradients and not frame.layers["indirect"].has_gradients
     assert list(tmp_path.iterdir()) == [out]
+
+
+def test_measured_exponent_reads_the_slope_and_refuses_noise():
+    from gradsep.renderer.plan import EXPONENT_RANGE, measured_exponent
+
+    assert measured_exponent(0.04, 0.001, 4, 0.01, 0.001, 16, 0.5) == pytest.approx(1.0)
+    assert measured_exponent(0.02, 0.001, 4, 0.01, 0.001, 16, 0.5) == pytest.approx(0.5)
+    assert measured_exponent(0.011, 0.001, 4, 0.01, 0.001, 16, 0.5) == EXPONENT_RANGE[0]  # nearly flat: the floor
+    assert measured_exponent(0.009, 0.001, 4, 0.01, 0.001, 16, 0.5) == EXPONENT_RANGE[0]  # rose: noise
+    assert measured_exponent(0.2, 0.001, 4, 0.001, 0.001, 16, 0.5) == 0.5  # the later one is lost in its noise
+    assert measured_exponent(0.04, 0.03, 4, 0.01, 0.001, 16, 0.7) == 0.7
+    assert measured_exponent(0.04, 0.001, 4, 0.01, 0.001, 4, 0.7) == 0.7  # one sample count: no slope
