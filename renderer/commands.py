@@ -28,7 +28,9 @@ def render_command(args: argparse.Namespace) -> int:
         raise CommandError(f"output {args.output} must end in .exr")
     if not output.parent.exists():
         raise CommandError(f"output folder {output.parent} does not exist")
-    gradients = args.gradients or ("none" if args.no_gradients else "auto" if deadline else "all")
+    # all is the default with --seconds too: --gradients auto is opt-in until its validation on held-out scenes
+    # passes (benchmarks/bench_planner.py validate: it chose primal where gradients won)
+    gradients = args.gradients or ("none" if args.no_gradients else "all")
     if args.no_gradients and gradients != "none":
         raise CommandError(f"--no-gradients is --gradients none; it contradicts --gradients {args.gradients}")
     if gradients == "none" and args.shift is not None:
@@ -215,9 +217,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--shift", choices=("hybrid", "replay"), default=None,
                    help="shift mapping: hybrid (reconnection + replay, the default) or replay")
     p.add_argument("--gradients", choices=("all", "direct", "none", "auto"), default=None,
-                   help="which layers carry gradients: auto (the default with --seconds: a pilot predicts each "
-                        "plan's reconstructed error at the budget and picks the lowest; see docs/renderer.md); "
-                        "all (the default with --spp); direct (the direct layer's only: offset "
+                   help="which layers carry gradients: all (the default); auto (a pilot predicts each plan's "
+                        "reconstructed error at the budget, or at --spp, and renders the lowest: experimental, see "
+                        "docs/renderer.md); direct (the direct layer's only: offset "
                         "paths stop after the first visible vertex's light, the indirect layer is a plain primal; "
                         "what the default oidn-l1 method uses); none (primal-only)")
     p.add_argument("--offsets", choices=OFFSET_CHOICES, default="all",
