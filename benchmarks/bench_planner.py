@@ -16,6 +16,18 @@ error-vs-spp exponent of each fixed plan between the two budgets (what renderer.
 are compiled once per scene before the timed runs (a farm re-rendering a scene has them in Dr.Jit's cache); the
 plans of one (scene, budget) run one after the other, so a change of the machine's load falls on all alike. The
 scenes must be held out: never the evaluation's (evaluation/config.py) or the shared ones.
+
+Runs behind the figures reported for the planner (2 shared cores, load 3-9 from other work: wall-time comparisons
+between processes carry that noise; each design's own commit is named in its run's log):
+
+    python benchmarks/bench_planner.py timing --cache /tmp/planner_out/timing             # 320x240 rows
+    python benchmarks/bench_planner.py timing --sizes 1280x720 --cache /tmp/planner_out/timing
+    python benchmarks/bench_planner.py validate --scenes procedural:93101,procedural:93102 --seconds 20,40 \
+        --ref-spp 2048 --cache /tmp/planner_out/val                                       # first estimator
+    python benchmarks/bench_planner.py validate --scenes procedural:93103,procedural:studio:93104,procedural:93105,\
+        procedural:studio:93106 --seconds 20,40 --ref-spp 2048 --cache /tmp/planner_out/val2   # second estimator
+    python benchmarks/bench_planner.py validate --scenes procedural:93107,procedural:studio:93108,procedural:93109,\
+        procedural:studio:93110 --seconds 20,40 --ref-spp 2048 --cache /tmp/planner_out/val3   # + pilot slopes
 """
 
 from __future__ import annotations
