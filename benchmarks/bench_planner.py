@@ -10,6 +10,11 @@
     python benchmarks/bench_planner.py validate [--scenes procedural:93101,...] [--size 128] [--seconds 20,40]
         [--ref-spp 2048] [--cache ~/.cache/gradsep/planner-bench]
 
+    # the estimate alone, in one process: each candidate's pilot reconstruction at 4 and 16 spp, its true RelMSE
+    # (against two references) beside the pilot's reference-free estimate
+    python benchmarks/bench_planner.py estimate --scene procedural:studio:93106 --size 128 --ref-spp 2048 \
+        [--cache ...]
+
 ``validate`` prints per (scene, budget) each plan's spp and measured RelMSE, auto's choice with its predicted
 RelMSE for every candidate (from the auto frame's header), auto against the best fixed plan, and the measured
 error-vs-spp exponent of each fixed plan between the two budgets (what renderer.plan.EXPONENTS assumes). Kernels
@@ -187,6 +192,31 @@ def summary(rows: list[dict], budgets: list[float]) -> None:
         print(f"error-vs-spp exponent of {p}: " + ", ".join(f"{s:.2f}" for s in slopes))
 
 
+def estimate(args: argparse.Namespace) -> None:
+    from gradsep.model.metrics import relmse_unbiased
+    from gradsep.renderer.estimate import cross_relmse, relative_weights
+    from gradsep.renderer.plan import Passes, base_image, candidate, reconstruct_default, sums_frame
+    from gradsep.renderer.reference import load_reference
+    from gradsep.renderer.scene import load_scene
+
+    cache = Path(args.cache).expanduser()
+    cache.mkdir(parents=True, exist_ok=True)
+    r1, r2 = (load_reference(str(reference(args.scene, args.size, args.ref_spp, s, cache))).total for s in (1, 2))
+    scene = load_scene(args.scene, width=args.size, height=args.size)
+    passes = Passes(scene, ("direct", "indirect"), seed=11)
+    batches = [(base_image(passes.run(candidate("primal"), n), n), n) for n in (1, 1, 1, 1, 8, 8)]
+    weights = relative_weights(0.5 * (r1 + r2))
+    print("| candidate | spp | method | true RelMSE | estimate (reference weights) | estimate (own weights) |")
+    print("|---|---:|---|---:|---:|---:|")
+    for name in ("primal", "direct-alternate", "all"):
+        for n in (4, 16):
+            sums = passes.run(candidate(name), n)
+            image, method = reconstruct_default(sums_frame(sums, passes.kind(candidate(name)).settings, n))
+            value, se = cross_relmse(image, batches, weights)
+            print(f"| {name} | {n} | {method} | {relmse_unbiased(image, r1, r2):.3g} | {value:.3g} +- {se:.2g} | "
+                  f"{cross_relmse(image, batches)[0]:.3g} |", flush=True)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="what", required=True)
@@ -202,8 +232,13 @@ def main(argv: list[str] | None = None) -> int:
     v.add_argument("--seconds", default="20,40")
     v.add_argument("--ref-spp", type=int, default=2048)
     v.add_argument("--cache", default=str(Path.home() / ".cache/gradsep/planner-bench"))
+    e = sub.add_parser("estimate")
+    e.add_argument("--scene", default="procedural:studio:93106")
+    e.add_argument("--size", type=int, default=128)
+    e.add_argument("--ref-spp", type=int, default=2048)
+    e.add_argument("--cache", default=str(Path.home() / ".cache/gradsep/planner-bench"))
     args = parser.parse_args(argv)
-    (timing if args.what == "timing" else validate)(args)
+    {"timing": timing, "validate": validate, "estimate": estimate}[args.what](args)
     return 0
 
 
