@@ -196,7 +196,7 @@ def test_seconds_below_the_start_up_cost_after_loading_writes_nothing(tmp_path, 
     refused once the scene is loaded and the first pass measured: exit 2, nothing written."""
     monkeypatch.setattr(budget, "process_age", lambda: 0.0)
     out = tmp_path / "f.exr"
-    assert main(["render", CBOX, *SMALL, "--seconds", "0.02", "--gradients", "all", "-o", str(out)]) == 2
+    assert main(["render", CBOX, *SMALL, "--seconds", "0.02", "-o", str(out)]) == 2
     err = capsys.readouterr().err
     assert "below this machine's start-up cost" in err and err.count("\n") == 1
     assert list(tmp_path.iterdir()) == []
@@ -230,3 +230,14 @@ def test_measured_exponent_reads_the_slope_and_refuses_noise():
     assert measured_exponent(0.2, 0.001, 4, 0.001, 0.001, 16, 0.5) == 0.5  # the later one is lost in its noise
     assert measured_exponent(0.04, 0.03, 4, 0.01, 0.001, 16, 0.7) == 0.7
     assert measured_exponent(0.04, 0.001, 4, 0.01, 0.001, 4, 0.7) == 0.7  # one sample count: no slope
+
+
+@pytest.mark.render
+@pytest.mark.slow
+def test_seconds_renders_the_default_plan_all(tmp_path, monkeypatch):
+    """--gradients auto is opt-in: --seconds alone renders today's default plan (all), with no pilot."""
+    monkeypatch.setattr(budget, "process_age", lambda: 0.0)
+    out = tmp_path / "f.exr"
+    assert main(["render", CBOX, *SMALL, "--seconds", "3", "-o", str(out)]) == 0
+    meta = read_frame(out).metadata
+    assert meta[PLAN_KEY] == "all" and meta["gradsep.gradients"] == "all" and "gradsep.pilot_seconds" not in meta
