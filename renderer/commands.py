@@ -22,11 +22,14 @@ def render_command(args: argparse.Namespace) -> int:
     from gradsep.renderer.render import check_gradient_spp, render_frame
     from gradsep.renderer.scene import load_scene, parse_defines
 
+    deadline = _deadline(args)  # first: the budget counts from the process's start
     output = Path(args.output)
     if output.suffix.lower() != ".exr":
         raise CommandError(f"output {args.output} must end in .exr")
     if not output.parent.exists():
         raise CommandError(f"output folder {output.parent} does not exist")
+    # all is the default with --seconds too: --gradients auto is opt-in until its validation on held-out scenes
+    # passes (benchmarks/bench_planner.py validate: it chose primal where gradients won)
     gradients = args.gradients or ("none" if args.no_gradients else "all")
     if args.no_gradients and gradients != "none":
         raise CommandError(f"--no-gradients is --gradients none; it contradicts --gradients {args.gradients}")
@@ -36,33 +39,67 @@ def render_command(args: argparse.Namespace) -> int:
     if gradients == "none" and args.offsets != "all":
         flag = "--no-gradients" if args.no_gradients else "--gradients none"
         raise CommandError(f"--offsets has no effect with {flag} (no offset paths are traced)")
+    if gradients == "auto" and args.offsets != "all":
+        raise CommandError("--offsets is chosen by the plan with --gradients auto; give --gradients all or direct "
+                           "to set it")
     if args.gradient_spp is not None:
         if gradients == "none":
             flag = "--no-gradients" if args.no_gradients else "--gradients none"
             raise CommandError(f"--gradient-spp has no effect with {flag} (no offset paths are traced)")
+        if deadline is not None or gradients == "auto":
+            raise CommandError("--gradient-spp needs --spp and a fixed --gradients (all or direct)")
         if args.spp >= 1:  # checked before the scene loads (a bad --spp: render_frame's error)
             check_gradient_spp(args.gradient_spp, args.spp, gradients)
+    if deadline is None and args.spp < 1:
+        raise CommandError(f"--spp must be >= 1, got {args.spp}")
+    if deadline is not None and deadline.left() <= 0:
+        from gradsep.renderer.plan import startup_error
+
+        raise startup_error(deadline.seconds, deadline.elapsed())
     scene = load_scene(args.scene, width=args.width, height=args.height, max_depth=args.max_depth,
                        defines=parse_defines(args.define))
     show = sys.stderr.isatty()
 
     def progress(done: int, total: int) -> None:
         if show:
-            print(f"\rgradsep render: {done}/{total} spp", end="", file=sys.stderr, flush=True)
+            of = f"/{total}" if total else ""
+            print(f"\rgradsep render: {done}{of} spp", end="", file=sys.stderr, flush=True)
 
-    frame = render_frame(scene, spp=args.spp, seed=args.seed, layers=args.layers, shift=args.shift,
-                         progress=progress, gradients=gradients, offsets=args.offsets,
-                         gradient_spp=args.gradient_spp)
+    if deadline is None and gradients != "auto":
+        frame = render_frame(scene, spp=args.spp, seed=args.seed, layers=args.layers, shift=args.shift,
+                             progress=progress, gradients=gradients, offsets=args.offsets,
+                             gradient_spp=args.gradient_spp)
+        plan_text = ""
+    else:
+        from gradsep.renderer.render import render_planned_frame
+
+        frame, plan_text = render_planned_frame(scene, deadline=deadline, spp=None if deadline else args.spp,
+                                                seed=args.seed, layers=args.layers, shift=args.shift,
+                                                gradients=gradients, offsets=args.offsets, progress=progress)
     if show:
         print(file=sys.stderr)
     write_frame(output, frame)
     for note in frame.warnings:
         print(f"gradsep render: note: {note}", file=sys.stderr)
+    spp = frame.metadata["gradsep.spp"]
     split = frame.metadata.get("gradsep.gradient_spp")
-    spp_text = f"{args.spp} spp ({split} with gradients)" if split else f"{args.spp} spp"
-    print(f"{output}: {frame.width}x{frame.height}, {spp_text}, layers {', '.join(frame.layers)}, "
-          f"{frame.metadata['gradsep.render_seconds']} s")
+    spp_text = f"{spp} spp ({split} with gradients)" if split else f"{spp} spp"
+    took = (f"{deadline.elapsed():.2f} s of {deadline.seconds:g} s" if deadline
+            else f"{frame.metadata['gradsep.render_seconds']} s")
+    print(f"{output}: {frame.width}x{frame.height}, {spp_text}, layers {', '.join(frame.layers)}, {took}"
+          + (f"; {plan_text}" if plan_text else ""))
     return 0
+
+
+def _deadline(args: argparse.Namespace) -> Any:
+    """``--seconds`` as a renderer.budget.Deadline counted from the process's start, or None with ``--spp``."""
+    if (args.seconds is None) == (args.spp is None):
+        raise CommandError("give exactly one of --spp (samples per pixel) or --seconds (a wall-time budget)")
+    if args.seconds is None:
+        return None
+    from gradsep.renderer.budget import Deadline, check_seconds, process_age
+
+    return Deadline(check_seconds(args.seconds), spent=process_age())
 
 
 def reference_command(args: argparse.Namespace) -> int:
@@ -164,7 +201,11 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     p = sub.add_parser("render", help="render a G-PT frame (base + gradients + features per illumination layer)")
     p.add_argument("scene", help="Mitsuba 3 XML scene path, procedural:SEED or procedural:studio:SEED")
-    p.add_argument("--spp", type=int, required=True, help="samples per pixel")
+    p.add_argument("--spp", type=int, default=None, help="samples per pixel (or --seconds)")
+    p.add_argument("--seconds", default=None, metavar="T",
+                   help="render the best frame this machine makes in T seconds of wall time for the whole command "
+                        "(process start, scene load, kernel compile, passes, write), stopping at pass granularity; "
+                        "instead of --spp. The header records the spp, the plan and the time spent")
     p.add_argument("--width", type=int, default=None, help="override the scene's film width")
     p.add_argument("--height", type=int, default=None, help="override the scene's film height")
     p.add_argument("--max-depth", type=int, default=None,
@@ -175,8 +216,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "color alone renders the unseparated image")
     p.add_argument("--shift", choices=("hybrid", "replay"), default=None,
                    help="shift mapping: hybrid (reconnection + replay, the default) or replay")
-    p.add_argument("--gradients", choices=("all", "direct", "none"), default=None,
-                   help="which layers carry gradients: all (the default); direct (the direct layer's only: offset "
+    p.add_argument("--gradients", choices=("all", "direct", "none", "auto"), default=None,
+                   help="which layers carry gradients: all (the default); auto (a pilot predicts each plan's "
+                        "reconstructed error at the budget, or at --spp, and renders the lowest: experimental, see "
+                        "docs/renderer.md); direct (the direct layer's only: offset "
                         "paths stop after the first visible vertex's light, the indirect layer is a plain primal; "
                         "what the default oidn-l1 method uses); none (primal-only)")
     p.add_argument("--offsets", choices=OFFSET_CHOICES, default="all",

@@ -943,6 +943,14 @@ def render_gpt(scene: mi.Scene, shift: Shift | None, settings: GptSettings, widt
     return _finish(totals, settings, spp, len(plan), k)
 
 
+def finish(totals: dict[str, np.ndarray], settings: GptSettings, spp: int, passes: int,
+           gradient_spp: int | None = None) -> GptResult:
+    """Added :func:`render_pass` sums -> a GptResult (what render_gpt returns): the bases and features are sums over
+    ``spp`` samples, the gradients (where ``totals`` has them) over ``gradient_spp`` (default ``spp``). For callers
+    that run the passes themselves (renderer/plan.py: passes of several plans, sized to a deadline)."""
+    return _finish(totals, settings, spp, passes, gradient_spp)
+
+
 def _finish(t: dict[str, np.ndarray], settings: GptSettings, spp: int, passes: int,
             gradient_spp: int | None = None) -> GptResult:
     """Per-pixel sums -> means; the two one-sided gradient estimates -> dx, dy per the frame contract. The

@@ -15,6 +15,7 @@ from collections.abc import Callable, Iterable, Mapping
 from gradsep.model import __version__
 from gradsep.model.errors import CommandError
 from gradsep.model.frame import ILLUMINATION_LAYERS, SEPARATED_LAYERS, Features, Frame, Layer
+from gradsep.renderer.budget import Deadline
 from gradsep.renderer.scene import LoadedScene, load_scene
 
 
@@ -178,3 +179,67 @@ def render_metadata(scene: LoadedScene, *, spp: int, seed: int, shift: str, laye
         "gradsep.mitsuba_version": str(mi.__version__),
     }
     return meta
+
+
+def render_planned_frame(scene: LoadedScene, *, deadline: Deadline | None, spp: int | None, seed: int = 0,
+                         layers: str | Iterable[str] = SEPARATED_LAYERS, shift: str | None = None,
+                         gradients: str = "auto", offsets: str = "all",
+                         progress: Callable[[int, int], None] | None = None) -> tuple[Frame, str]:
+    """`gradsep render --seconds T` and/or ``--gradients auto`` (renderer/plan.py): the frame, rendered to the
+    ``deadline`` (renderer.budget.Deadline) or to ``spp`` samples, with the given plan (``gradients`` and
+    ``offsets`` as for :func:`render_frame`) or the plan a pilot chooses (``gradients`` ``auto``), and a one-line
+    summary of the plan. The metadata is :func:`render_metadata`'s plus the plan's keys (renderer.plan)."""
+    from gradsep.renderer.plan import (
+        BUDGET_KEY,
+        ELAPSED_KEY,
+        PLAN_KEY,
+        PLAN_LAYERS_KEY,
+        Candidate,
+        plan_layers_text,
+        render_planned,
+    )
+    from gradsep.renderer.shift import make_shift  # imports Mitsuba
+
+    if not 0 <= seed < 2**32:
+        raise CommandError(f"--seed must be in [0, 2^32), got {seed}")
+    if offsets not in OFFSET_CHOICES:
+        raise CommandError(f"--offsets must be one of {', '.join(OFFSET_CHOICES)}, got {offsets!r}")
+    wanted, notes = plan_layers(parse_layers(layers), scene.max_depth)
+    fixed = None
+    if gradients != "auto":
+        mode = gradients_mode(gradients)
+        if mode == "none" and offsets != "all":
+            raise CommandError("--offsets has no effect without gradients (no offset paths are traced)")
+        if mode == "direct" and "direct" not in wanted:
+            raise CommandError(f"--gradients direct needs the separated direct layer; --layers {','.join(wanted)} "
+                               "has none (use --gradients all or none)")
+        name = "primal" if mode == "none" else mode if offsets == "all" else f"{mode}-{offsets}"
+        fixed = Candidate(name, mode, offsets if mode != "none" else "all")
+    try:
+        shift_name = make_shift(shift).name
+    except ValueError as exc:
+        raise CommandError(str(exc)) from None
+    start = time.perf_counter()
+    planned = render_planned(scene, wanted, seed=seed, shift=shift, fixed=fixed, deadline=deadline, spp=spp,
+                             progress=progress)
+    seconds = time.perf_counter() - start
+    chosen = planned.candidate
+    metadata = render_metadata(scene, spp=planned.spp, seed=seed,
+                               shift=shift_name if chosen.gradients != "none" else "none", layers=wanted,
+                               seconds=seconds, passes=planned.passes, gradients=chosen.gradients)
+    if chosen.gradients != "none" and chosen.offsets != "all":
+        metadata["gradsep.offsets"] = chosen.offsets
+    if 0 < planned.gradient_spp < planned.spp:
+        metadata["gradsep.gradient_spp"] = str(planned.gradient_spp)
+    metadata.update({PLAN_KEY: chosen.name, PLAN_LAYERS_KEY: plan_layers_text(chosen, wanted)})
+    summary = f"plan {chosen.name}"
+    if planned.plan is not None:
+        metadata.update(planned.plan.metadata(wanted))
+        summary = planned.plan.summary()
+    if deadline is not None:
+        metadata[BUDGET_KEY] = f"{deadline.seconds:g}"
+        metadata[ELAPSED_KEY] = f"{deadline.elapsed():.3f}"
+    frame = planned.frame
+    frame.metadata = metadata
+    frame.warnings = notes + frame.warnings
+    return frame, summary

@@ -1,0 +1,246 @@
+"""The render planner's figures (renderer/plan.py): `gradsep render --seconds T` against its budget, and
+`--gradients auto` against every fixed plan at equal wall time on held-out scenes.
+
+    # the deadline: wall time of the whole command (a subprocess, as a farm runs it) against T
+    python benchmarks/bench_planner.py timing [--scenes procedural:93101] [--sizes 320x240,1280x720]
+        [--seconds 5,10,20] [--plans auto,all]
+
+    # the choice and the prediction: each plan rendered with --seconds T, reconstructed with its default method,
+    # RelMSE against two independent `gradsep reference` renders (the floor removed: relmse_unbiased)
+    python benchmarks/bench_planner.py validate [--scenes procedural:93101,...] [--size 128] [--seconds 20,40]
+        [--ref-spp 2048] [--cache ~/.cache/gradsep/planner-bench]
+
+    # the estimate alone, in one process: each candidate's pilot reconstruction at 4 and 16 spp, its true RelMSE
+    # (against two references) beside the pilot's reference-free estimate
+    python benchmarks/bench_planner.py estimate --scene procedural:studio:93106 --size 128 --ref-spp 2048 \
+        [--cache ...]
+
+``validate`` prints per (scene, budget) each plan's spp and measured RelMSE, auto's choice with its predicted
+RelMSE for every candidate (from the auto frame's header), auto against the best fixed plan, and the measured
+error-vs-spp exponent of each fixed plan between the two budgets (what renderer.plan.EXPONENTS assumes). Kernels
+are compiled once per scene before the timed runs (a farm re-rendering a scene has them in Dr.Jit's cache); the
+plans of one (scene, budget) run one after the other, so a change of the machine's load falls on all alike. The
+scenes must be held out: never the evaluation's (evaluation/config.py) or the shared ones.
+
+Runs behind the figures reported for the planner (2 shared cores, load 3-9 from other work: wall-time comparisons
+between processes carry that noise; each design's own commit is named in its run's log):
+
+    python benchmarks/bench_planner.py timing --cache /tmp/planner_out/timing             # 320x240 rows
+    python benchmarks/bench_planner.py timing --sizes 1280x720 --cache /tmp/planner_out/timing
+    python benchmarks/bench_planner.py validate --scenes procedural:93101,procedural:93102 --seconds 20,40 \
+        --ref-spp 2048 --cache /tmp/planner_out/val                                       # first estimator
+    python benchmarks/bench_planner.py validate --scenes procedural:93103,procedural:studio:93104,procedural:93105,\
+        procedural:studio:93106 --seconds 20,40 --ref-spp 2048 --cache /tmp/planner_out/val2   # second estimator
+    python benchmarks/bench_planner.py validate --scenes procedural:93107,procedural:studio:93108,procedural:93109,\
+        procedural:studio:93110 --seconds 20,40 --ref-spp 2048 --cache /tmp/planner_out/val3   # + pilot slopes
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+FIXED = {"primal": ["--gradients", "none"], "direct-alternate": ["--gradients", "direct", "--offsets", "alternate"],
+         "all": ["--gradients", "all"]}
+PLANS = {"auto": ["--gradients", "auto"], **FIXED}
+
+
+def gradsep(*args: str) -> tuple[float, str]:
+    """Run the gradsep CLI in a fresh process; returns its wall time and stdout (raises on failure)."""
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    start = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-m", "gradsep", *args], capture_output=True, text=True, env=env)
+    wall = time.perf_counter() - start
+    if proc.returncode != 0:
+        raise RuntimeError(f"gradsep {' '.join(args)}: exit {proc.returncode}: {proc.stderr.strip()[-400:]}")
+    return wall, proc.stdout.strip()
+
+
+def size_args(size: str) -> list[str]:
+    w, _, h = size.partition("x")
+    return ["--width", w, "--height", h or w]
+
+
+def warm_kernels(scene: str, out: Path) -> None:
+    for plan in FIXED.values():
+        gradsep("render", scene, "--width", "16", "--height", "16", "--spp", "1", *plan, "-o", str(out))
+
+
+def timing(args: argparse.Namespace) -> None:
+    out = Path(args.cache) / "timing.exr"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    print("| scene | size | plan | T (s) | wall (s) | wall / T | spp | chosen |")
+    print("|---|---|---|---:|---:|---:|---:|---|")
+    for scene in args.scenes.split(","):
+        warm_kernels(scene, out)
+        for size in args.sizes.split(","):
+            for seconds in args.seconds.split(","):
+                for plan in args.plans.split(","):
+                    out.unlink(missing_ok=True)
+                    try:
+                        wall, _ = gradsep("render", scene, *size_args(size), "--seconds", seconds, *PLANS[plan],
+                                          "-o", str(out))
+                    except RuntimeError as exc:  # a budget below the start-up cost is refused (exit 2, no file)
+                        print(f"| {scene} | {size} | {plan} | {seconds} | refused | | | {str(exc)[-160:]} |")
+                        assert not out.exists()
+                        continue
+                    meta = header(out)
+                    print(f"| {scene} | {size} | {plan} | {seconds} | {wall:.2f} | {wall / float(seconds):.3f} | "
+                          f"{meta['gradsep.spp']} | {meta.get('gradsep.plan', '')} |", flush=True)
+
+
+def header(path: Path) -> dict[str, str]:
+    from gradsep.model.frame import read_frame
+
+    return dict(read_frame(path).metadata)
+
+
+def reference(scene: str, size: int, spp: int, seed: int, cache: Path) -> Path:
+    path = cache / f"ref-{scene.replace(':', '_')}-{size}-{spp}-{seed}.exr"
+    if not path.exists():
+        gradsep("reference", scene, "--width", str(size), "--height", str(size), "--spp", str(spp), "--seed",
+                str(seed), "-o", str(path))
+    return path
+
+
+def measured_relmse(frame_path: Path, refs: tuple[Path, Path]) -> float:
+    from gradsep.model.frame import read_frame
+    from gradsep.model.metrics import relmse_unbiased
+    from gradsep.model.reconstruct import reconstruct
+    from gradsep.renderer.reference import load_reference
+
+    image = reconstruct(read_frame(frame_path)).image
+    r1, r2 = (load_reference(str(p)).total for p in refs)
+    return relmse_unbiased(image, r1, r2)
+
+
+def validate(args: argparse.Namespace) -> None:
+    from gradsep.model.metrics import reference_floor
+    from gradsep.renderer.reference import load_reference
+
+    cache = Path(args.cache).expanduser()
+    cache.mkdir(parents=True, exist_ok=True)
+    budgets = [float(s) for s in args.seconds.split(",")]
+    rows = []
+    for scene in args.scenes.split(","):
+        refs = (reference(scene, args.size, args.ref_spp, 1, cache),
+                reference(scene, args.size, args.ref_spp, 2, cache))
+        floor = reference_floor(*(load_reference(str(p)).total for p in refs))
+        warm_kernels(scene, cache / "warm.exr")
+        for seconds in budgets:
+            row = {"scene": scene, "seconds": seconds, "floor": floor, "plans": {}}
+            for plan, flags in PLANS.items():
+                out = cache / f"frame-{scene.replace(':', '_')}-{seconds:g}-{plan}.exr"
+                wall, _ = gradsep("render", scene, "--width", str(args.size), "--height", str(args.size),
+                                  "--seconds", f"{seconds:g}", "--seed", "7", *flags, "-o", str(out))
+                meta = header(out)
+                row["plans"][plan] = {"wall": wall, "spp": int(meta["gradsep.spp"]),
+                                      "relmse": measured_relmse(out, refs), "plan": meta.get("gradsep.plan"),
+                                      "predicted": meta.get("gradsep.predicted_relmse"),
+                                      "candidates": meta.get("gradsep.plan_candidates"),
+                                      "pilot": meta.get("gradsep.pilot_seconds")}
+            rows.append(row)
+            print_row(row)
+            (cache / "validate.json").write_text(json.dumps(rows, indent=1))
+    summary(rows, budgets)
+
+
+def print_row(row: dict) -> None:
+    plans = row["plans"]
+    auto = plans["auto"]
+    best = min(FIXED, key=lambda p: plans[p]["relmse"])
+    cells = ", ".join(f"{p} {plans[p]['relmse']:.4g} ({plans[p]['spp']} spp, {plans[p]['wall']:.1f} s)" for p in FIXED)
+    print(f"{row['scene']} T={row['seconds']:g}: auto chose {auto['plan']} -> {auto['relmse']:.4g} ({auto['spp']} spp, "
+          f"{auto['wall']:.1f} s, pilot {auto['pilot']} s); fixed: {cells}; best fixed {best}; "
+          f"auto / best {auto['relmse'] / plans[best]['relmse']:.3f}; predicted {auto['predicted']} "
+          f"(candidates {auto['candidates']}); reference floor {row['floor']:.2g}", flush=True)
+
+
+def summary(rows: list[dict], budgets: list[float]) -> None:
+    print("\n| scene | T (s) | auto's plan | auto / best fixed | predicted / measured (auto) | "
+          + " | ".join(f"{p} / best" for p in FIXED) + " |")
+    print("|---|---:|---|---:|---:|" + "---:|" * len(FIXED))
+    ratios, within = [], 0
+    for row in rows:
+        plans = row["plans"]
+        best = min(plans[p]["relmse"] for p in FIXED)
+        auto = plans["auto"]
+        pred = float(auto["predicted"]) if auto["predicted"] else math.nan
+        ratio = pred / auto["relmse"] if auto["relmse"] > 0 else math.nan
+        within += 1 / 1.5 <= ratio <= 1.5
+        ratios.append(auto["relmse"] / best)
+        print(f"| {row['scene']} | {row['seconds']:g} | {auto['plan']} | {auto['relmse'] / best:.3f} | {ratio:.2f} | "
+              + " | ".join(f"{plans[p]['relmse'] / best:.3f}" for p in FIXED) + " |")
+    geo = math.exp(sum(math.log(r) for r in ratios) / len(ratios))
+    print(f"\nauto / best fixed: geometric mean {geo:.3f}, worst {max(ratios):.3f}; prediction within 1.5x of the "
+          f"measured RelMSE on {within} of {len(rows)} frames")
+    for p in FIXED:  # measured exponent between the two budgets, per scene
+        slopes = []
+        for scene in dict.fromkeys(r["scene"] for r in rows):
+            pair = [r["plans"][p] for r in rows if r["scene"] == scene]
+            lo, hi = (pair[0], pair[-1]) if len(pair) >= 2 else (None, None)
+            if lo and hi and lo["relmse"] > 0 and hi["relmse"] > 0 and hi["spp"] > lo["spp"]:
+                slopes.append(math.log(lo["relmse"] / hi["relmse"]) / math.log(hi["spp"] / lo["spp"]))
+        print(f"error-vs-spp exponent of {p}: " + ", ".join(f"{s:.2f}" for s in slopes))
+
+
+def estimate(args: argparse.Namespace) -> None:
+    from gradsep.model.metrics import relmse_unbiased
+    from gradsep.renderer.estimate import cross_relmse, relative_weights
+    from gradsep.renderer.plan import Passes, base_image, candidate, reconstruct_default, sums_frame
+    from gradsep.renderer.reference import load_reference
+    from gradsep.renderer.scene import load_scene
+
+    cache = Path(args.cache).expanduser()
+    cache.mkdir(parents=True, exist_ok=True)
+    r1, r2 = (load_reference(str(reference(args.scene, args.size, args.ref_spp, s, cache))).total for s in (1, 2))
+    scene = load_scene(args.scene, width=args.size, height=args.size)
+    passes = Passes(scene, ("direct", "indirect"), seed=11)
+    batches = [(base_image(passes.run(candidate("primal"), n), n), n) for n in (1, 1, 1, 1, 8, 8)]
+    weights = relative_weights(0.5 * (r1 + r2))
+    print("| candidate | spp | method | true RelMSE | estimate (reference weights) | estimate (own weights) |")
+    print("|---|---:|---|---:|---:|---:|")
+    for name in ("primal", "direct-alternate", "all"):
+        for n in (4, 16):
+            sums = passes.run(candidate(name), n)
+            image, method = reconstruct_default(sums_frame(sums, passes.kind(candidate(name)).settings, n))
+            value, se = cross_relmse(image, batches, weights)
+            print(f"| {name} | {n} | {method} | {relmse_unbiased(image, r1, r2):.3g} | {value:.3g} +- {se:.2g} | "
+                  f"{cross_relmse(image, batches)[0]:.3g} |", flush=True)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="what", required=True)
+    t = sub.add_parser("timing")
+    t.add_argument("--scenes", default="procedural:93101")
+    t.add_argument("--sizes", default="320x240,1280x720")
+    t.add_argument("--seconds", default="5,10,20")
+    t.add_argument("--plans", default="auto,all")
+    t.add_argument("--cache", default=str(Path.home() / ".cache/gradsep/planner-bench"))
+    v = sub.add_parser("validate")
+    v.add_argument("--scenes", default="procedural:93101,procedural:93102,procedural:93103,procedural:studio:93104")
+    v.add_argument("--size", type=int, default=128)
+    v.add_argument("--seconds", default="20,40")
+    v.add_argument("--ref-spp", type=int, default=2048)
+    v.add_argument("--cache", default=str(Path.home() / ".cache/gradsep/planner-bench"))
+    e = sub.add_parser("estimate")
+    e.add_argument("--scene", default="procedural:studio:93106")
+    e.add_argument("--size", type=int, default=128)
+    e.add_argument("--ref-spp", type=int, default=2048)
+    e.add_argument("--cache", default=str(Path.home() / ".cache/gradsep/planner-bench"))
+    args = parser.parse_args(argv)
+    {"timing": timing, "validate": validate, "estimate": estimate}[args.what](args)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

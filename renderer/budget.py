@@ -1,0 +1,158 @@
+"""Wall-time budgets for `gradsep render --seconds T`: the deadline, the cost model of render passes, and how many
+samples the next pass may take.
+
+Standard library only (no Mitsuba, no numpy), and every clock is injectable, so the budget logic is unit-tested
+against a fake clock (tests/renderer/test_budget.py); renderer/plan.py drives the real passes with it.
+
+The budget is the whole command's: it counts from the process's start (interpreter, imports), not from when the
+render begins, because that is the wall time a farm sees. A render pass cannot be interrupted (one compiled
+kernel), so the deadline is kept by not starting a pass that is predicted to end after it: the next pass's
+duration is predicted from the passes already measured in this process, and its size shrinks as the deadline
+nears so that the frame ends close to it.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from gradsep.model.errors import CommandError
+
+Clock = Callable[[], float]
+
+#: The largest share of the time left that one pass may take while more than a few samples still fit: a pass
+#: measured 20 % slower than predicted (a shared machine's swing) then overruns by at most a tenth of the time left.
+PASS_SHARE = 0.5
+#: The most a pass may grow over the largest warm pass measured: the prediction is refreshed at each size.
+PASS_GROWTH = 4
+#: Safety factor on the predicted cost of the pass that would end the frame (its overrun is not recoverable).
+LAST_PASS_MARGIN = 1.15
+
+
+def check_seconds(value: object) -> float:
+    """``--seconds``: a finite number > 0, else a one-line user error."""
+    try:
+        seconds = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise CommandError(f"--seconds must be a number of seconds, got {value!r}") from None
+    if not math.isfinite(seconds) or seconds <= 0:
+        raise CommandError(f"--seconds must be a finite number > 0, got {value}")
+    return seconds
+
+
+def process_age(clock: Clock = time.monotonic) -> float:
+    """Seconds since this process started (Linux: /proc/self/stat against the boot clock); 0 where unknown.
+
+    ``clock`` must be CLOCK_MONOTONIC-like: on Linux the process start time is in clock ticks since boot, read
+    against CLOCK_BOOTTIME (which, unlike monotonic, counts suspend; the two agree on a machine that never slept)."""
+    try:
+        with open("/proc/self/stat") as fh:
+            fields = fh.read().rsplit(")", 1)[1].split()
+        start_ticks = int(fields[19])  # field 22 of proc(5), counted from the state field (3)
+        started = start_ticks / os.sysconf("SC_CLK_TCK")
+        age = time.clock_gettime(time.CLOCK_BOOTTIME) - started
+    except (OSError, ValueError, IndexError, AttributeError):
+        return 0.0
+    return max(0.0, age) if math.isfinite(age) else 0.0
+
+
+@dataclass
+class Deadline:
+    """A wall-time budget of ``seconds`` that started ``spent`` seconds before it was made (process start-up)."""
+
+    seconds: float
+    spent: float = 0.0
+    clock: Clock = time.monotonic
+    start: float = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.start = self.clock() - self.spent
+
+    def elapsed(self) -> float:
+        return self.clock() - self.start
+
+    def left(self) -> float:
+        return self.seconds - self.elapsed()
+
+
+@dataclass
+class PassCosts:
+    """Measured wall time of the warm render passes of one kind, as ``overhead + per_sample * spp``.
+
+    A kind's first pass compiles its kernel (or loads it from Dr.Jit's cache), so it is recorded apart
+    (:meth:`first`) and predicts later passes only until a warm pass has been measured. ``overhead`` is the fixed
+    cost of a pass (recording, launch, read-back); where it is not known (0) the whole pass time is charged per
+    sample, which overestimates small passes: safe for a deadline. The per-sample cost is the largest of the
+    recent rates, so a machine that slows down is followed at once.
+    """
+
+    overhead: float = 0.0  # fitted from warm passes of two sizes or more (fitted_overhead)
+    warm: list[tuple[int, float]] = field(default_factory=list)  # (spp, seconds) of the last warm passes
+    first_pass: tuple[int, float] | None = None  # (spp, seconds) of the compiling pass
+
+    def first(self, spp: int, seconds: float) -> None:
+        self.first_pass = (int(spp), float(seconds))
+
+    def record(self, spp: int, seconds: float) -> None:
+        self.warm = [*self.warm[-3:], (int(spp), float(seconds))]
+        self.overhead = fitted_overhead(self.warm, self.overhead)
+
+    @property
+    def per_sample(self) -> float:
+        if self.warm:
+            return max(max(seconds - self.overhead, 0.0) / spp for spp, seconds in self.warm)
+        if self.first_pass is not None:
+            return self.first_pass[1] / self.first_pass[0]
+        return math.inf
+
+    def predict(self, spp: int) -> float:
+        return self.overhead + self.per_sample * spp
+
+
+def fitted_overhead(passes: list[tuple[int, float]], default: float = 0.0) -> float:
+    """The fixed cost per pass from warm passes of different sizes (least squares of ``seconds = a + b spp``),
+    clipped to [0, half the smallest pass's time] (timing noise on a shared machine can make the fitted line flat,
+    which would call every pass overhead and make more samples look free); ``default`` while every pass has the
+    same size."""
+    sizes = {spp for spp, _ in passes}
+    if len(sizes) < 2:
+        return default
+    n = len(passes)
+    mean_x = sum(s for s, _ in passes) / n
+    mean_y = sum(t for _, t in passes) / n
+    sxx = sum((s - mean_x) ** 2 for s, _ in passes)
+    slope = sum((s - mean_x) * (t - mean_y) for s, t in passes) / sxx
+    return min(max(mean_y - slope * mean_x, 0.0), 0.5 * min(t for _, t in passes))
+
+
+def next_pass_spp(left: float, reserve: float, costs: PassCosts, max_spp: int) -> int:
+    """Samples per pixel for the next pass, or 0 to stop: the pass must end, with ``reserve`` seconds (writing the
+    frame) still left, before the deadline. While much time is left a pass takes at most PASS_SHARE of it, so the
+    prediction is refreshed before the pass that ends the frame; that last pass is sized with LAST_PASS_MARGIN.
+    A pass is at most PASS_GROWTH times the largest warm pass measured."""
+    usable = left - reserve
+    per = costs.per_sample
+    if not (usable > 0 and per > 0 and math.isfinite(per)):
+        return 0
+    fits = math.floor((usable / LAST_PASS_MARGIN - costs.overhead) / per)
+    if fits < 1:
+        return 0
+    share = math.floor((usable * PASS_SHARE - costs.overhead) / per)
+    spp = fits if share < max(2, fits // 4) else share  # a few samples left: take them all in one pass
+    if costs.warm:
+        spp = min(spp, PASS_GROWTH * max(n for n, _ in costs.warm))
+    return max(1, min(spp, max_spp))
+
+
+def fill_to_deadline(deadline: Deadline, costs: PassCosts, reserve: Callable[[], float], max_spp: int,
+                     run: Callable[[int], None]) -> int:
+    """Run passes (``run(spp)``, which records its own time in ``costs``) while :func:`next_pass_spp` finds one
+    that fits before ``deadline`` with ``reserve()`` seconds left; returns the samples rendered."""
+    done = 0
+    while (spp := next_pass_spp(deadline.left(), reserve(), costs, max_spp)) > 0:
+        run(spp)
+        done += spp
+    return done

@@ -1,0 +1,517 @@
+"""The render planner: `gradsep render --seconds T` (a frame to a wall-time budget) and `--gradients auto` (which
+layers trace gradients, and with which offsets, chosen per scene from a pilot).
+
+**Passes.** A frame is the sum of render passes (renderer.gpt.render_pass: one compiled kernel, ``spp`` samples
+of every pixel, each pass its own random stream ``pass_seed(seed, i)``). Passes of different plans mix: every
+plan's base path is the same unbiased path tracer (the primal-only mode's bases and features are G-PT's), so the
+frame's bases and features average the samples of every pass, and its gradients those of the chosen plan's passes
+(the ``--gradient-spp`` rule of render_gpt). So the whole pilot is reused in the final frame.
+
+**The pilot** (--gradients auto). Each candidate (:data:`CANDIDATES`) renders a 1-spp warm-up pass (its kernel is
+compiled or loaded here) and a pass ``A`` of ``n`` samples in two parts of different sizes (two pass sizes give the
+per-pass overhead and the cost per sample); then two primal passes. The pilot's passes are sized so that its
+sampling takes about PILOT_SHARE of the budget. Candidate ``c``'s ``A`` (and A's first part) is reconstructed with
+the method that would serve its frame (model.reconstruct's default: ``oidn-l1`` with gradients, ``oidn`` for a plain
+frame), on a few tiles (:func:`tiles`) to bound the cost, and compared with every pilot pass that is no candidate's
+``A``: independent of every ``A`` and of each other, so the mean over pairs of passes of ``(R - b_j)(R - b_k)``
+estimates the reconstruction's squared error with no reference (renderer/estimate.py); the same passes for every
+candidate, so that their noise cancels when candidates are compared. That gives the reconstruction's RelMSE at
+A's two sample counts; the slope between them (:func:`measured_exponent`; :data:`EXPONENTS` where it cannot be
+read) carries the error at ``n`` to the samples the budget buys for ``c`` (its measured cost per sample) with
+``error ~ spp^-exponent``. The lowest prediction wins.
+
+**The deadline** (renderer/budget.py): passes are sized from their measured cost so that the last one ends, with
+the write still to come, just before ``T``; nothing is started that is predicted to miss it.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from gradsep.model.errors import CommandError
+from gradsep.model.frame import Features, Frame, Layer
+from gradsep.renderer.budget import Clock, Deadline, PassCosts, fill_to_deadline
+from gradsep.renderer.estimate import at_budget, cross_relmse, relative_weights
+from gradsep.renderer.scene import LoadedScene
+
+#: Header keys of a planned frame (all strings, like every ``gradsep.*`` attribute).
+PLAN_KEY = "gradsep.plan"  # the chosen candidate's name
+PLAN_LAYERS_KEY = "gradsep.plan_layers"  # per layer: what traces gradients, e.g. "direct=alternate,indirect=none"
+PREDICTED_RELMSE_KEY = "gradsep.predicted_relmse"  # the chosen plan's predicted RelMSE after reconstruction
+CANDIDATES_KEY = "gradsep.plan_candidates"  # every candidate's prediction, "name=value,..."
+PLAN_METHOD_KEY = "gradsep.plan_method"  # the reconstruction method the prediction is for
+BUDGET_KEY = "gradsep.budget_seconds"  # --seconds
+PILOT_SECONDS_KEY = "gradsep.pilot_seconds"  # wall time of the pilot (its kernels, passes, reconstructions)
+ELAPSED_KEY = "gradsep.elapsed_seconds"  # the command's wall time when the frame was encoded (from process start)
+
+#: Share of the budget the pilot's sampling may take (kernel compilation and its reconstructions come on top).
+PILOT_SHARE = 0.1
+#: The pilot gives up (no candidate is assessed; FALLBACK is rendered) when its warm-ups -- one compile per
+#: candidate -- took more than this share of the budget.
+PILOT_GIVE_UP = 0.3
+#: What the first reconstruction in a process costs before its work (importing pyoidn, which brings torch, and
+#: creating the OIDN device): ~1.1 s + ~0.8 s measured on the 2-core development machine. Counted against the
+#: pilot's share before it is paid, so that a budget too small for it falls back instead of overrunning.
+RECONSTRUCT_STARTUP = 2.0
+#: The interpreter's exit after the frame is written (part of the command's wall time): ~0.1 s after rendering
+#: alone, ~0.5 s once the reconstruction libraries are loaded (torch, numba, OIDN), measured on the same machine.
+EXIT_SECONDS = (0.1, 0.5)
+#: The most samples one pilot pass ``A`` takes (a long budget needs no longer pilot to rank the candidates).
+PILOT_MAX_SPP = 16
+#: Tiles the pilot reconstructs (side, count) and the border of each left out of the estimate.
+TILE = 128
+TILE_COUNT = 4
+TILE_BORDER = 8
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One render plan: which layers trace gradients (``--gradients``) and which offsets (``--offsets``)."""
+
+    name: str
+    gradients: str  # renderer.render.GRADIENT_CHOICES
+    offsets: str = "all"  # renderer.render.OFFSET_CHOICES
+
+
+#: The plans the pilot compares (small on purpose: each costs a kernel compile and a reconstruction).
+CANDIDATES: tuple[Candidate, ...] = (
+    Candidate("primal", "none"),
+    Candidate("direct-alternate", "direct", "alternate"),
+    Candidate("all", "all"),
+)
+#: Used where no pilot can run (a budget or sample count too small for one): today's `gradsep render` default.
+FALLBACK = "all"
+#: Error-vs-spp exponent of each candidate's reconstruction (RelMSE ~ spp^-exponent) where the pilot cannot read its
+#: own (measured_exponent). A denoised frame's error falls far slower than a raw frame's 1/spp: measured between two
+#: budgets (20 s and 40 s at 128x128, 350-3400 spp) on the held-out procedural:93101, 0.43 (primal + oidn), 0.37
+#: (direct-alternate + oidn-l1), 0.54 (all + oidn-l1) (benchmarks/bench_planner.py validate).
+EXPONENTS: dict[str, float] = {"primal": 0.5, "direct-alternate": 0.5, "all": 0.5}
+
+
+def candidate(name: str) -> Candidate:
+    for c in CANDIDATES:
+        if c.name == name:
+            return c
+    raise CommandError(f"unknown plan {name!r}; expected one of {', '.join(c.name for c in CANDIDATES)}")
+
+
+def plan_layers_text(c: Candidate, layers: tuple[str, ...]) -> str:
+    """``direct=alternate,indirect=none``: what each layer of the frame traces (its offsets, or none)."""
+    def traced(layer: str) -> str:
+        if c.gradients == "none" or (c.gradients == "direct" and layer != "direct"):
+            return "none"
+        return c.offsets
+    return ",".join(f"{layer}={traced(layer)}" for layer in layers)
+
+
+def applicable(layers: tuple[str, ...]) -> tuple[Candidate, ...]:
+    """The candidates a frame of these layers can use (``direct`` gradients need the separated direct layer)."""
+    return tuple(c for c in CANDIDATES if c.gradients != "direct" or "direct" in layers)
+
+
+# ------------------------------------------------------------------------------------------------- passes
+
+
+@dataclass
+class _Kind:
+    settings: object  # renderer.gpt.GptSettings
+    shift: object  # renderer.gpt.Shift or None
+    costs: PassCosts = field(default_factory=PassCosts)
+
+
+class Passes:
+    """Runs render passes of any candidate on one scene and keeps their sums for the final frame."""
+
+    def __init__(self, loaded: LoadedScene, layers: tuple[str, ...], seed: int, shift: str | None = None,
+                 clock: Clock = time.monotonic) -> None:
+        from gradsep.renderer.gpt import MAX_LANES_PER_PASS
+
+        self.loaded, self.layers, self.seed, self.shift_name, self.clock = loaded, layers, seed, shift, clock
+        self.max_spp = max(1, MAX_LANES_PER_PASS // (loaded.width * loaded.height))
+        self.kinds: dict[str, _Kind] = {}
+        self.index = 0  # passes so far: the next pass's seed stream
+        self.bases: dict[str, np.ndarray] | None = None  # base and feature sums over every pass
+        self.spp = 0
+        self.gradients: dict[str, tuple[dict[str, np.ndarray], int]] = {}  # candidate -> (gradient sums, spp)
+
+    def kind(self, c: Candidate) -> _Kind:
+        if c.name not in self.kinds:
+            from gradsep.renderer.gpt import DIRECT_LAYER_SHIFT, GptSettings
+            from gradsep.renderer.shift import make_shift
+
+            color = self.layers == ("color",)
+            settings = GptSettings(max_depth=self.loaded.max_depth, rr_depth=self.loaded.rr_depth,
+                                   direct=color or "direct" in self.layers,
+                                   indirect=color or "indirect" in self.layers, separate=not color,
+                                   gradients="direct" if c.gradients == "direct" else "all",
+                                   offsets=c.offsets if c.gradients != "none" else "all")
+            shift = None
+            if c.gradients != "none":
+                try:
+                    shift = make_shift(self.shift_name)
+                except ValueError as exc:
+                    raise CommandError(str(exc)) from None
+                if c.gradients == "direct" and DIRECT_LAYER_SHIFT:
+                    shift = getattr(shift, "for_direct_layer", lambda: shift)()
+            self.kinds[c.name] = _Kind(settings, shift)
+        return self.kinds[c.name]
+
+    def run(self, c: Candidate, spp: int) -> dict[str, np.ndarray]:
+        """Render one pass of ``spp`` samples with ``c``, add it to the frame, record its cost; returns its sums."""
+        from gradsep.renderer.gpt import pass_seed, render_pass
+
+        kind = self.kind(c)
+        first = kind.costs.first_pass is None
+        start = self.clock()
+        sums = render_pass(self.loaded.scene, kind.shift, kind.settings, self.loaded.width, self.loaded.height,
+                           spp, pass_seed(self.seed, self.index))
+        seconds = self.clock() - start
+        (kind.costs.first if first else kind.costs.record)(spp, seconds)
+        self.index += 1
+        grads = {k: v for k, v in sums.items() if ".grad" in k}
+        shared = {k: v for k, v in sums.items() if ".grad" not in k}
+        self.bases = shared if self.bases is None else {k: v + shared[k] for k, v in self.bases.items()}
+        self.spp += spp
+        if grads:
+            have, n = self.gradients.get(c.name, ({}, 0))
+            self.gradients[c.name] = ({k: v + have.get(k, 0.0) for k, v in grads.items()}, n + spp)
+        return sums
+
+    def frame_result(self, c: Candidate):  # -> renderer.gpt.GptResult
+        """The frame so far as ``c``'s frame: every pass's bases and features, ``c``'s passes' gradients."""
+        from gradsep.renderer.gpt import finish
+
+        assert self.bases is not None, "no pass rendered"
+        grads, k = self.gradients.get(c.name, ({}, 0))
+        return finish({**self.bases, **grads}, self.kind(c).settings, self.spp, self.index, k or None)
+
+
+def sums_frame(sums: dict[str, np.ndarray], settings: object, spp: int) -> Frame:
+    """One pass's sums as a Frame (what the pilot reconstructs)."""
+    from gradsep.renderer.gpt import finish
+
+    r = finish(sums, settings, spp, 1)
+    return Frame(layers={name: Layer(v["base"], v.get("dx"), v.get("dy")) for name, v in r.layers.items()},
+                 features=Features(r.albedo, r.normal, r.depth))
+
+
+def base_image(sums: dict[str, np.ndarray], spp: int) -> np.ndarray:
+    """The pass's mean radiance summed over its layers (the image the reconstruction is judged on)."""
+    return sum(v for k, v in sums.items() if k.endswith(".base")) / spp
+
+
+def tiles(width: int, height: int, side: int = TILE, count: int = TILE_COUNT) -> list[tuple[slice, slice]]:
+    """The windows the pilot reconstructs: the whole frame when it is small, else ``count`` tiles of ``side``
+    centred in the frame's quadrants (spread over the frame, away from its edges)."""
+    if width * height <= count * side * side or width < 2 * side or height < 2 * side:
+        return [(slice(0, height), slice(0, width))]
+    out = []
+    for fy in (0.25, 0.75):
+        for fx in (0.25, 0.75):
+            y0 = min(max(0, round(fy * height - side / 2)), height - side)
+            x0 = min(max(0, round(fx * width - side / 2)), width - side)
+            out.append((slice(y0, y0 + side), slice(x0, x0 + side)))
+    return out[:count]
+
+
+def crop(frame: Frame, window: tuple[slice, slice]) -> Frame:
+    ys, xs = window
+
+    def cut(a: np.ndarray | None) -> np.ndarray | None:
+        return None if a is None else np.ascontiguousarray(a[ys, xs])
+
+    f = frame.features
+    features = None if f is None else Features(cut(f.albedo), cut(f.normal), cut(f.depth))
+    return Frame(layers={n: Layer(cut(v.base), cut(v.dx), cut(v.dy)) for n, v in frame.layers.items()},
+                 features=features)
+
+
+def reconstruct_startup() -> float:
+    """RECONSTRUCT_STARTUP while this process has not reconstructed yet, else 0."""
+    return 0.0 if "pyoidn" in sys.modules else RECONSTRUCT_STARTUP
+
+
+def exit_seconds() -> float:
+    """The interpreter's predicted exit time (EXIT_SECONDS) given what this process has loaded."""
+    return EXIT_SECONDS[1] if "pyoidn" in sys.modules else EXIT_SECONDS[0]
+
+
+def reconstruct_default(frame: Frame) -> tuple[np.ndarray, str]:
+    """The one call into the reconstruction library: the default method that would serve this frame."""
+    from gradsep.model.reconstruct import reconstruct
+
+    result = reconstruct(frame)
+    return result.image, result.method
+
+
+# -------------------------------------------------------------------------------------------------- pilot
+
+#: The range a slope measured in the pilot is clipped to (a noisy pair of estimates must not promise a raw
+#: frame's 1/spp, nor no gain at all).
+EXPONENT_RANGE = (0.1, 1.0)
+
+
+def measured_exponent(early: float, early_se: float, n1: int, late: float, late_se: float, n: int,
+                      default: float) -> float:
+    """The error-vs-spp exponent between two estimates of one reconstruction's error, at ``n1`` and ``n`` samples,
+    clipped to EXPONENT_RANGE; ``default`` where either estimate is not above twice its standard error (too noisy
+    to take a ratio of)."""
+    if n <= n1 or early <= 2 * early_se or late <= 2 * late_se:
+        return default
+    slope = math.log(early / late) / math.log(n / n1)
+    return min(max(slope, EXPONENT_RANGE[0]), EXPONENT_RANGE[1])
+
+
+
+@dataclass
+class Assessment:
+    """What the pilot measured of one candidate."""
+
+    name: str
+    pilot_spp: int  # samples of its pass A
+    measured_relmse: float  # estimated RelMSE of A's reconstruction (at pilot_spp)
+    per_sample: float  # seconds per sample per pixel (warm)
+    method: str  # the reconstruction method that serves its frame
+    standard_error: float = 0.0  # of measured_relmse (the estimate's noise)
+    exponent: float = 0.5  # of the error-vs-spp law it is carried to the budget with
+    budget_spp: float = 0.0
+    predicted_relmse: float = math.inf
+
+
+@dataclass
+class Plan:
+    """The pilot's decision."""
+
+    chosen: Candidate
+    assessments: list[Assessment]
+    pilot_seconds: float
+    note: str = ""
+
+    def predicted(self) -> float:
+        return next((a.predicted_relmse for a in self.assessments if a.name == self.chosen.name), math.nan)
+
+    def metadata(self, layers: tuple[str, ...]) -> dict[str, str]:
+        meta = {PLAN_KEY: self.chosen.name, PLAN_LAYERS_KEY: plan_layers_text(self.chosen, layers),
+                PILOT_SECONDS_KEY: f"{self.pilot_seconds:.3f}"}
+        if self.assessments:
+            meta[PREDICTED_RELMSE_KEY] = f"{self.predicted():.6g}"
+            meta[CANDIDATES_KEY] = ",".join(f"{a.name}={a.predicted_relmse:.6g}" for a in self.assessments)
+            meta[PLAN_METHOD_KEY] = next(a.method for a in self.assessments if a.name == self.chosen.name)
+        return meta
+
+    def summary(self) -> str:
+        if not self.assessments:
+            return f"plan {self.chosen.name} ({self.note})"
+        parts = ", ".join(f"{a.name} {a.predicted_relmse:.4g} at {a.budget_spp:.0f} spp (slope {a.exponent:.2f})"
+                          for a in self.assessments)
+        return (f"plan {self.chosen.name}: predicted RelMSE {parts} (pilot {self.pilot_seconds:.2f} s, "
+                f"method {self.metadata(()).get(PLAN_METHOD_KEY, '?')})")
+
+
+def run_pilot(passes: Passes, budget_spp: Callable[[Assessment], float], *, pilot_seconds: float | None = None,
+              pilot_spp: int | None = None, give_up_after: float = math.inf,
+              after_first: Callable[[], None] | None = None,
+              reconstruct: Callable[[Frame], tuple[np.ndarray, str]] = reconstruct_default) -> Plan:
+    """Render and assess every applicable candidate (see the module's docstring). Pass A takes ``pilot_spp``
+    samples, or as many as ``pilot_seconds`` of sampling buys each candidate (at most PILOT_MAX_SPP).
+    ``budget_spp`` says how many samples the rest of the budget buys a candidate, given its measured cost. When
+    the warm-ups alone took more than ``give_up_after`` seconds, no candidate is assessed and the plan is FALLBACK.
+    ``after_first`` runs after the first pass (the caller's start-up check). Every pass stays in ``passes``."""
+    clock = passes.clock
+    start = clock()
+    # FALLBACK first: a pilot that gives up after its first warm-up has compiled what it falls back to
+    candidates = tuple(sorted(applicable(passes.layers), key=lambda c: c.name != FALLBACK))
+    # warm-ups: compile (or load) each kernel; their samples join the frame and every candidate's B
+    warm_ups: list[tuple[np.ndarray, int]] = []
+    for c in candidates:
+        warm_ups.append((base_image(passes.run(c, 1), 1), 1))
+        if after_first is not None and len(warm_ups) == 1:
+            after_first()
+        if clock() - start + reconstruct_startup() > give_up_after:
+            return Plan(candidates[0], [], clock() - start, "the budget is too small for a pilot")
+    left = (pilot_seconds or 0.0) - (clock() - start)
+
+    def pilot_pass_spp(c: Candidate) -> int:  # an equal share of the pilot's time for each A and for B
+        if pilot_spp is not None:
+            return pilot_spp
+        per = passes.kind(c).costs.per_sample
+        return int(left / (len(candidates) + 1) / per) if 0 < per < math.inf else 1
+
+    # A in two passes of different sizes, n1 and n - n1: two pass sizes separate the per-pass overhead from the
+    # cost per sample (a budget buys few, large passes), and two sample counts give the error's slope
+    pass_a: dict[str, list[tuple[dict[str, np.ndarray], int]]] = {}
+    for c in candidates:
+        n = max(1, min(pilot_pass_spp(c), PILOT_MAX_SPP, passes.max_spp))
+        sizes = [max(1, n // 3), n - max(1, n // 3)] if n >= 3 else [n]
+        pass_a[c.name] = [(passes.run(c, k), k) for k in sizes]
+    # B: the warm-ups and two primal passes, independent of every A; the same for every candidate, so their
+    # noise enters every estimate alike and cancels when candidates are compared
+    primal = candidate("primal")
+    m = max(1, min(pilot_pass_spp(primal), 4 * PILOT_MAX_SPP, passes.max_spp) // 2)
+    for _ in range(2):
+        warm_ups.append((base_image(passes.run(primal, m), m), m))
+    windows = tiles(passes.loaded.width, passes.loaded.height)
+    border = TILE_BORDER if len(windows) > 1 else 0
+    # per candidate, the reconstructions (per tile) of A's first pass and of the whole of A
+    images: dict[str, tuple[list[np.ndarray], list[np.ndarray]]] = {}
+    methods: dict[str, str] = {}
+    for c in candidates:
+        parts = pass_a[c.name]
+        settings = passes.kind(c).settings
+        first = sums_frame(parts[0][0], settings, parts[0][1])
+        whole = sums_frame({k: sum(s[k] for s, _ in parts) for k in parts[0][0]}, settings, sum(k for _, k in parts))
+        images[c.name] = ([], [])
+        for window in windows:
+            for slot, frame in zip(images[c.name], (first, whole) if len(parts) > 1 else (first,), strict=False):
+                image, methods[c.name] = reconstruct(crop(frame, window))
+                slot.append(image)
+
+    def estimate(tiles_images: list[np.ndarray]) -> tuple[float, float]:
+        errors, errors_se = [], []
+        for i, (ys, xs) in enumerate(windows):
+            # RelMSE's weights from the candidates' mean reconstruction: one weight image for all (a candidate
+            # weighted by its own image would be favoured by a darkening bias), independent of B
+            weights = relative_weights(np.mean([(w or f)[i] for f, w in images.values()], axis=0))
+            value, se = cross_relmse(tiles_images[i], [(b[ys, xs], k) for b, k in warm_ups], weights, border)
+            errors.append(value)
+            errors_se.append(se)
+        share = np.asarray([(ys.stop - ys.start) * (xs.stop - xs.start) for ys, xs in windows], dtype=np.float64)
+        share /= share.sum()
+        return float(np.sum(share * errors)), float(np.sqrt(np.sum((share * np.asarray(errors_se)) ** 2)))
+
+    assessments = []
+    for c in candidates:
+        parts = pass_a[c.name]
+        first, whole = images[c.name]
+        n1, n = parts[0][1], sum(k for _, k in parts)
+        measured, se = estimate(whole or first)
+        exponent = EXPONENTS[c.name]
+        if whole:
+            early, early_se = estimate(first)
+            exponent = measured_exponent(early, early_se, n1, measured, se, n, exponent)
+        a = Assessment(c.name, n, measured, passes.kind(c).costs.per_sample, methods[c.name], se)
+        a.exponent = exponent
+        assessments.append(a)
+    for a in assessments:  # every candidate carried to the budget with the same time left
+        a.budget_spp = budget_spp(a)
+        floor = max(a.measured_relmse, a.standard_error)  # an estimate lost in B's noise counts as its noise
+        a.predicted_relmse = at_budget(floor, a.pilot_spp, a.budget_spp, a.exponent)
+    chosen = min(assessments, key=lambda a: a.predicted_relmse)
+    return Plan(candidate(chosen.name), assessments, clock() - start)
+
+
+# ------------------------------------------------------------------------------------------- the frame
+
+
+def write_seconds(frame: Frame, rows: int = 16, margin: float = 1.5) -> float:
+    """Predicted seconds to encode and write ``frame``: a ``rows``-row slice is encoded here and scaled to the
+    frame's height (the EXR encoder's cost is linear in the rows), with a margin."""
+    from gradsep.model.frame import encode_exr
+
+    window = (slice(0, min(rows, frame.height)), slice(0, frame.width))
+    start = time.perf_counter()
+    encode_exr(crop(frame, window).to_channels())
+    seconds = time.perf_counter() - start
+    return margin * seconds * frame.height / window[0].stop + 0.05
+
+
+def as_frame(result: object) -> Frame:
+    """A renderer.gpt.GptResult as a Frame (no metadata yet)."""
+    layers = {name: Layer(base=v["base"], dx=v.get("dx"), dy=v.get("dy"))
+              for name, v in result.layers.items()}  # type: ignore[attr-defined]
+    features = Features(result.albedo, result.normal, result.depth)  # type: ignore[attr-defined]
+    return Frame(layers=layers, features=features, warnings=list(result.warnings))  # type: ignore[attr-defined]
+
+
+def startup_error(seconds: float, needed: float) -> CommandError:
+    return CommandError(f"--seconds {seconds:g} is below this machine's start-up cost: process start, scene load, "
+                        f"kernel compile, one 1-spp pass and the write took {needed:.2f} s here; give more time")
+
+
+@dataclass
+class Planned:
+    """A rendered frame and how it was planned."""
+
+    frame: Frame
+    candidate: Candidate
+    plan: Plan | None  # None: a fixed plan (no pilot)
+    spp: int
+    gradient_spp: int  # samples that traced the chosen plan's gradients (0 for a plain frame)
+    passes: int
+
+
+def render_planned(loaded: LoadedScene, layers: tuple[str, ...], *, seed: int, shift: str | None,
+                   fixed: Candidate | None, deadline: Deadline | None = None, spp: int | None = None,
+                   progress: Callable[[int, int], None] | None = None,
+                   clock: Clock = time.monotonic) -> Planned:
+    """Render ``loaded`` to a deadline (``deadline``) or to ``spp`` samples, with the ``fixed`` plan or (None) the
+    plan a pilot chooses. Raises CommandError (nothing rendered is kept) when the deadline cannot fit one pass
+    and the write. The frame's metadata is the caller's (renderer.render.render_metadata) plus :meth:`Plan.metadata`."""
+    if (deadline is None) == (spp is None):
+        raise ValueError("give a deadline or a sample count, not both")
+    passes = Passes(loaded, layers, seed, shift, clock)
+    write = 0.0  # predicted seconds to encode and write the frame, measured after its first pass
+
+    def reserve() -> float:  # what must be left when the last pass ends: the write and the interpreter's exit
+        return write + exit_seconds()
+
+    def after_first() -> None:  # the start-up check: one pass done, its frame must still be writable in time
+        nonlocal write
+        first = next(iter(passes.kinds))
+        write = write_seconds(as_frame(passes.frame_result(candidate(first) if fixed is None else fixed)))
+        if deadline is not None and deadline.left() < reserve():
+            raise startup_error(deadline.seconds, deadline.elapsed() + reserve())
+
+    plan = None
+    if fixed is None:
+        def budget_spp(a: Assessment) -> float:
+            if deadline is None:
+                return float(spp)  # type: ignore[arg-type]
+            return passes.spp + max(0.0, deadline.left() - reserve()) / a.per_sample
+
+        if deadline is not None:
+            plan = run_pilot(passes, budget_spp, pilot_seconds=PILOT_SHARE * deadline.seconds,
+                             give_up_after=PILOT_GIVE_UP * deadline.seconds, after_first=after_first)
+        else:
+            n = pilot_spp_for(spp, len(applicable(layers)))  # type: ignore[arg-type]
+            if n:
+                plan = run_pilot(passes, budget_spp, pilot_spp=n, after_first=after_first)
+            else:
+                plan = Plan(candidate(FALLBACK), [], 0.0, f"{spp} spp is too few for a pilot")
+        chosen = plan.chosen
+    else:
+        chosen = fixed
+    if deadline is None:
+        target = int(spp)  # type: ignore[arg-type]
+        while passes.spp < target:
+            passes.run(chosen, min(passes.max_spp, target - passes.spp))
+            if passes.index == 1:
+                after_first()
+            if progress is not None:
+                progress(passes.spp, target)
+    else:
+        if passes.index == 0:  # no pilot: the first pass compiles the kernel and is the start-up check
+            passes.run(chosen, 1)
+            after_first()
+        def run(n: int) -> None:
+            passes.run(chosen, n)
+            if progress is not None:
+                progress(passes.spp, 0)
+
+        fill_to_deadline(deadline, passes.kind(chosen).costs, reserve, passes.max_spp, run)
+    result = passes.frame_result(chosen)
+    k = passes.gradients.get(chosen.name, ({}, 0))[1]
+    return Planned(as_frame(result), chosen, plan, passes.spp, k if chosen.gradients != "none" else 0, passes.index)
+
+
+def pilot_spp_for(spp: int, count: int) -> int:
+    """Pass A's samples in a pilot of a ``spp``-sample frame (--spp with --gradients auto): the warm-ups and A
+    passes of all ``count`` candidates take at most a quarter of the frame's samples; 0: too few for a pilot."""
+    n = min(PILOT_MAX_SPP, (spp // 4 - count) // count)
+    return n if n >= 1 else 0

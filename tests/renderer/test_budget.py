@@ -1,0 +1,139 @@
+"""The time-budget logic of `gradsep render --seconds` (renderer/budget.py) against a fake clock: no Mitsuba."""
+
+from __future__ import annotations
+
+import math
+import random
+
+import pytest
+
+from gradsep.model.errors import CommandError
+from gradsep.renderer.budget import (
+    LAST_PASS_MARGIN,
+    PASS_GROWTH,
+    Deadline,
+    PassCosts,
+    check_seconds,
+    fill_to_deadline,
+    fitted_overhead,
+    next_pass_spp,
+    process_age,
+)
+
+
+class FakeClock:
+    def __init__(self, now: float = 100.0) -> None:
+        self.now = now
+
+    def __call__(self) -> float:
+        return self.now
+
+
+@pytest.mark.parametrize("value", ["0", "-1", "nan", "inf", "-inf", "abc", "", None, 0, -0.5, math.nan])
+def test_bad_seconds_are_one_line_user_errors(value: object) -> None:
+    with pytest.raises(CommandError) as err:
+        check_seconds(value)
+    assert "--seconds" in str(err.value) and "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize(("value", "expected"), [("5", 5.0), ("0.25", 0.25), (12, 12.0), ("1e2", 100.0)])
+def test_good_seconds(value: object, expected: float) -> None:
+    assert check_seconds(value) == expected
+
+
+def test_deadline_counts_what_was_spent_before_it() -> None:
+    clock = FakeClock()
+    d = Deadline(10.0, spent=1.5, clock=clock)
+    assert d.elapsed() == pytest.approx(1.5) and d.left() == pytest.approx(8.5)
+    clock.now += 9.0
+    assert d.left() == pytest.approx(-0.5)
+
+
+def test_process_age_is_this_process() -> None:
+    age = process_age()
+    assert 0.0 <= age < 7 * 24 * 3600  # the test process started before this call, not before the machine
+
+
+def test_fitted_overhead_recovers_a_line_and_is_clipped() -> None:
+    assert fitted_overhead([(1, 0.3), (5, 1.1), (9, 1.9)]) == pytest.approx(0.1)
+    assert fitted_overhead([(4, 1.0), (4, 1.2)], default=0.05) == 0.05  # one size: nothing to separate
+    # a flat line (timing noise) would call everything overhead: at most half the smallest pass
+    assert fitted_overhead([(1, 1.0), (8, 1.0)]) == pytest.approx(0.5)
+    assert fitted_overhead([(1, 0.1), (8, 2.0)]) == 0.0  # a negative intercept is no overhead
+
+
+def test_pass_costs_use_the_first_pass_only_until_a_warm_one() -> None:
+    costs = PassCosts()
+    assert costs.per_sample == math.inf
+    costs.first(1, 3.0)  # compiling
+    assert costs.per_sample == pytest.approx(3.0)
+    costs.record(1, 0.3)
+    costs.record(4, 0.9)
+    assert costs.overhead == pytest.approx(0.1)
+    assert costs.per_sample == pytest.approx(0.2)
+    assert costs.predict(10) == pytest.approx(2.1)
+    costs.record(4, 1.7)  # the machine slowed down: the slowest recent rate wins
+    assert costs.per_sample > 0.3
+
+
+def test_next_pass_spp_stops_when_nothing_fits() -> None:
+    costs = PassCosts(warm=[(1, 0.5)])
+    assert next_pass_spp(0.4, 0.0, costs, 100) == 0
+    assert next_pass_spp(2.0, 1.8, costs, 100) == 0
+    assert next_pass_spp(-1.0, 0.0, costs, 100) == 0
+    assert next_pass_spp(10.0, 0.0, PassCosts(), 100) == 0  # no measured cost: never start blind
+
+
+def test_next_pass_spp_shares_the_time_and_caps_growth_and_lanes() -> None:
+    costs = PassCosts(warm=[(10, 1.0)])  # 0.1 s per sample
+    n = next_pass_spp(100.0, 0.0, costs, 10_000)
+    assert n == PASS_GROWTH * 10  # growth-limited, not the 500 that half the time would buy
+    costs = PassCosts(warm=[(100, 10.0)])
+    assert next_pass_spp(100.0, 0.0, costs, 10_000) == 400  # half of the time left at most: 500 > growth 400
+    assert next_pass_spp(100.0, 0.0, costs, 64) == 64  # the lanes-per-pass cap
+    # the last few samples are taken in one pass, with the safety margin
+    costs = PassCosts(warm=[(1, 1.0)])
+    assert next_pass_spp(3.0, 0.0, costs, 100) == math.floor(3.0 / LAST_PASS_MARGIN)
+
+
+def _simulate(seconds: float, per: float, overhead: float, slow: float = 1.0, jitter: float = 0.0,
+              seed: int = 0, first: float = 2.0) -> tuple[float, int]:
+    """A budgeted render against a fake clock: one compiling pass, then fill_to_deadline, then a write."""
+    rng = random.Random(seed)
+    clock = FakeClock()
+    deadline = Deadline(seconds, spent=0.5, clock=clock)  # 0.5 s of process start-up
+    costs = PassCosts()
+    write = 0.2
+
+    def run(spp: int) -> None:
+        took = (overhead + per * spp) * slow * (1.0 + rng.uniform(-jitter, jitter))
+        clock.now += took
+        costs.record(spp, took)
+
+    clock.now += first
+    costs.first(1, first)
+    spp = 1 + fill_to_deadline(deadline, costs, lambda: write, 10_000, run)
+    clock.now += write
+    return deadline.elapsed(), spp
+
+
+@pytest.mark.parametrize(("seconds", "per", "overhead"), [(5.0, 0.01, 0.02), (5.0, 0.3, 0.05), (30.0, 0.05, 0.1),
+                                                          (60.0, 1.0, 0.2), (10.0, 0.9, 0.0)])
+def test_a_steady_machine_ends_within_ten_percent_of_the_budget_never_after(seconds: float, per: float,
+                                                                         overhead: float) -> None:
+    elapsed, spp = _simulate(seconds, per, overhead)
+    assert 0.9 * seconds <= elapsed <= seconds
+    assert spp > 1
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_a_noisy_machine_ends_within_ten_percent(seed: int) -> None:
+    """Every pass +-20 % off its prediction (a shared machine): the frame still ends within 10 % of T."""
+    elapsed, _ = _simulate(20.0, 0.08, 0.05, jitter=0.2, seed=seed)
+    assert 0.9 * 20.0 <= elapsed <= 1.1 * 20.0
+
+
+def test_a_machine_that_slows_down_is_followed() -> None:
+    """The warm passes run 1.5x slower than the compiling pass suggested: the next passes shrink."""
+    elapsed, _ = _simulate(20.0, 0.08, 0.05, slow=1.5, first=0.2)
+    assert 0.9 * 20.0 <= elapsed <= 1.1 * 20.0

@@ -1,0 +1,243 @@
+"""The render planner (renderer/plan.py): `gradsep render --seconds T` and `--gradients auto`.
+
+The deadline logic itself is tested against a fake clock in test_budget.py and the error estimate on synthetic
+images in test_estimate.py; here: the command's bad input (exit 2, one line, no file), the passes of several
+plans merged into one frame, the pilot's choice with a stand-in reconstruction whose errors are known, the
+header, and the layers a scene without indirect light plans. Timing targets are benchmarks/bench_planner.py's.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from gradsep.cli import main
+from gradsep.model.frame import Frame, read_frame
+from gradsep.renderer import budget
+from gradsep.renderer.plan import (
+    CANDIDATES,
+    PLAN_KEY,
+    PREDICTED_RELMSE_KEY,
+    applicable,
+    candidate,
+    pilot_spp_for,
+    plan_layers_text,
+    tiles,
+)
+from tests.renderer.scenes import resolve
+
+CBOX = str(resolve("cbox"))
+SMALL = ["--width", "16", "--height", "12"]
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    (["--spp", "4", "--seconds", "5"], "exactly one of --spp"),
+    ([], "exactly one of --spp"),
+    (["--seconds", "0"], "--seconds must be a finite number > 0"),
+    (["--seconds", "-3"], "--seconds must be a finite number > 0"),
+    (["--seconds", "nan"], "--seconds must be a finite number > 0"),
+    (["--seconds", "inf"], "--seconds must be a finite number > 0"),
+    (["--seconds", "soon"], "--seconds must be a number"),
+    (["--seconds", "0.001"], "below this machine's start-up cost"),  # the process is older than that already
+    (["--seconds", "5", "--gradient-spp", "2", "--gradients", "all"], "--gradient-spp needs --spp"),
+    (["--spp", "8", "--gradients", "auto", "--offsets", "pair"], "--offsets is chosen by the plan"),
+    (["--spp", "0", "--gradients", "auto"], "--spp must be >= 1"),
+])
+def test_bad_input_is_one_line_exit_2_and_no_file(tmp_path, capsys, args, message):
+    out = tmp_path / "f.exr"
+    assert main(["render", CBOX, *SMALL, *args, "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1
+    assert not out.exists() and list(tmp_path.iterdir()) == []
+
+
+def test_tiles_cover_small_frames_whole_and_spread_over_large_ones():
+    assert tiles(64, 48) == [(slice(0, 48), slice(0, 64))]
+    windows = tiles(1280, 720)
+    assert len(windows) == 4
+    for ys, xs in windows:
+        assert ys.stop - ys.start == 128 and xs.stop - xs.start == 128
+        assert 0 <= ys.start and ys.stop <= 720 and 0 <= xs.start and xs.stop <= 1280
+    assert len({(w[0].start, w[1].start) for w in windows}) == 4
+
+
+def test_candidates_and_their_layers():
+    assert {c.name for c in applicable(("direct", "indirect"))} == {c.name for c in CANDIDATES}
+    assert "direct-alternate" not in {c.name for c in applicable(("color",))}
+    assert plan_layers_text(candidate("direct-alternate"), ("direct", "indirect")) == "direct=alternate,indirect=none"
+    assert plan_layers_text(candidate("primal"), ("direct",)) == "direct=none"
+    assert plan_layers_text(candidate("all"), ("direct", "indirect")) == "direct=all,indirect=all"
+    assert pilot_spp_for(4, 3) == 0 and pilot_spp_for(64, 3) >= 1
+    n = pilot_spp_for(256, 3)
+    assert 3 * (n + 1) + n <= 256 // 4 + n  # warm-ups, A passes and B within about a quarter of the frame
+
+
+# --------------------------------------------------------------------------------------------- rendering
+
+mi = pytest.importorskip("mitsuba")
+
+
+@pytest.fixture(scope="module")
+def small():
+    from gradsep.renderer.scene import load_scene
+
+    return load_scene(CBOX, width=16, height=12, max_depth=5)
+
+
+@pytest.mark.render
+def test_passes_of_one_plan_are_render_gpt_bit_for_bit(small):
+    from gradsep.renderer.gpt import GptSettings, render_gpt
+    from gradsep.renderer.plan import Passes
+    from gradsep.renderer.shift import make_shift
+
+    passes = Passes(small, ("direct", "indirect"), seed=5)
+    passes.run(candidate("all"), 3)
+    mine = passes.frame_result(candidate("all"))
+    ref = render_gpt(small.scene, make_shift("hybrid"), GptSettings(max_depth=5), 16, 12, 3, seed=5)
+    for layer in ("direct", "indirect"):
+        for key in ("base", "dx", "dy"):
+            np.testing.assert_array_equal(mine.layers[layer][key], ref.layers[layer][key])
+    np.testing.assert_array_equal(mine.albedo, ref.albedo)
+
+
+@pytest.mark.render
+def test_passes_of_several_plans_share_bases_and_keep_their_own_gradients(small):
+    from gradsep.renderer.plan import Passes
+
+    passes = Passes(small, ("direct", "indirect"), seed=1)
+    primal = passes.run(candidate("primal"), 2)
+    direct = passes.run(candidate("direct-alternate"), 1)
+    full = passes.run(candidate("all"), 3)
+    assert passes.spp == 6 and passes.index == 3
+    r = passes.frame_result(candidate("all"))
+    expected = (primal["direct.base"] + direct["direct.base"] + full["direct.base"]) / 6
+    np.testing.assert_allclose(r.layers["direct"]["base"], expected.astype(np.float32), rtol=1e-6)
+    assert passes.gradients["all"][1] == 3 and passes.gradients["direct-alternate"][1] == 1
+    assert "dx" in r.layers["indirect"]  # from the all passes alone
+    d = passes.frame_result(candidate("direct-alternate"))
+    assert "dx" in d.layers["direct"] and "dx" not in d.layers["indirect"]
+    p = passes.frame_result(candidate("primal"))
+    assert all("dx" not in v for v in p.layers.values())
+
+
+@pytest.mark.render
+def test_the_pilot_picks_the_candidate_whose_reconstruction_is_right():
+    """A stand-in reconstruction: a frame with every layer's gradients (``all``) comes back as the truth (a
+    512-spp render), the others 20 % too dark. At equal samples (--spp) the pilot must pick ``all``, and the
+    differences of its reference-free estimates must be the true differences: B's noise is common to them all and
+    cancels (each estimate alone carries it, see its standard error)."""
+    from gradsep.model.metrics import relmse
+    from gradsep.renderer.plan import Passes, run_pilot
+    from gradsep.renderer.render import render_frame
+    from gradsep.renderer.scene import load_scene
+
+    scene = load_scene(CBOX, width=48, height=36, max_depth=5)
+    truth = render_frame(scene, spp=512, seed=99, gradients="none").combined().base
+
+    def fake(frame: Frame) -> tuple[np.ndarray, str]:
+        return (truth if frame.has_gradients else 0.8 * truth), "fake"
+
+    passes = Passes(scene, ("direct", "indirect"), seed=3)
+    plan = run_pilot(passes, lambda a: 64.0, pilot_spp=8, reconstruct=fake)
+    assert plan.chosen.name == "all"
+    by_name = {a.name: a for a in plan.assessments}
+    assert set(by_name) == {"primal", "direct-alternate", "all"}
+    mean = 0.8 + 0.2 / 3  # the estimate's weights come from the candidates' mean image
+    true_difference = relmse(0.8 * truth / mean, truth / mean)
+    for name in ("primal", "direct-alternate"):
+        difference = by_name[name].measured_relmse - by_name["all"].measured_relmse
+        assert difference == pytest.approx(true_difference, rel=0.25)
+    assert all(math.isfinite(a.predicted_relmse) and a.predicted_relmse >= 0 for a in plan.assessments)
+    assert passes.spp == 3 * (1 + 1 + 7) + 8  # per candidate warm-up, timing pass and A (7 spp); then B (8 spp)
+    meta = plan.metadata(("direct", "indirect"))
+    assert meta[PLAN_KEY] == "all" and float(meta[PREDICTED_RELMSE_KEY]) == pytest.approx(
+        by_name["all"].predicted_relmse, rel=1e-5)
+
+
+@pytest.mark.render
+def test_no_indirect_light_plans_no_indirect_layer(small):
+    from gradsep.renderer.render import render_planned_frame
+    from gradsep.renderer.scene import load_scene
+
+    direct_only = load_scene(CBOX, width=16, height=12, max_depth=2)
+    frame, _ = render_planned_frame(direct_only, deadline=None, spp=3, gradients="all")
+    assert tuple(frame.layers) == ("direct",)
+    assert frame.metadata["gradsep.plan_layers"] == "direct=all"
+    assert frame.metadata["gradsep.spp"] == "3" and frame.metadata["gradsep.layers"] == "direct"
+
+
+@pytest.mark.render
+@pytest.mark.slow
+def test_auto_with_spp_renders_exactly_the_samples_and_records_the_plan(small):
+    from gradsep.renderer.render import render_planned_frame
+
+    frame, summary = render_planned_frame(small, deadline=None, spp=48, seed=2, gradients="auto")
+    meta = frame.metadata
+    assert meta["gradsep.spp"] == "48"
+    assert meta[PLAN_KEY] in {c.name for c in CANDIDATES} and meta[PLAN_KEY] in summary
+    predicted = {k: float(v) for k, v in (p.split("=") for p in meta["gradsep.plan_candidates"].split(","))}
+    assert set(predicted) == {c.name for c in CANDIDATES}
+    assert all(math.isfinite(v) and v >= 0 for v in predicted.values())
+    assert float(meta[PREDICTED_RELMSE_KEY]) == pytest.approx(predicted[meta[PLAN_KEY]], rel=1e-5)
+    assert meta[PREDICTED_RELMSE_KEY] and meta["gradsep.plan_method"] in ("oidn", "oidn-l1")
+    if meta[PLAN_KEY] == "primal":
+        assert meta["gradsep.gradients"] == "none" and not frame.gradient_layers
+    else:
+        assert 0 < int(meta["gradsep.gradient_spp"]) < 48
+    for layer in frame.layers.values():
+        assert np.isfinite(layer.base).all()
+
+
+@pytest.mark.render
+def test_seconds_below_the_start_up_cost_after_loading_writes_nothing(tmp_path, capsys, monkeypatch):
+    """With the process's own start-up not counted, a budget that one pass and the write cannot fit is still
+    refused once the scene is loaded and the first pass measured: exit 2, nothing written."""
+    monkeypatch.setattr(budget, "process_age", lambda: 0.0)
+    out = tmp_path / "f.exr"
+    assert main(["render", CBOX, *SMALL, "--seconds", "0.02", "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "below this machine's start-up cost" in err and err.count("\n") == 1
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.render
+@pytest.mark.slow
+def test_seconds_writes_a_frame_with_its_budget_in_the_header(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(budget, "process_age", lambda: 0.0)
+    out = tmp_path / "f.exr"
+    assert main(["render", CBOX, *SMALL, "--seconds", "4", "--gradients", "direct", "--offsets", "alternate",
+                 "-o", str(out)]) == 0
+    assert "of 4 s" in capsys.readouterr().out
+    frame = read_frame(out)
+    meta = frame.metadata
+    assert meta["gradsep.budget_seconds"] == "4" and float(meta["gradsep.elapsed_seconds"]) > 0
+    assert meta[PLAN_KEY] == "direct-alternate" and meta["gradsep.offsets"] == "alternate"
+    assert int(meta["gradsep.spp"]) >= 2 and int(meta["gradsep.passes"]) >= 2
+    assert PREDICTED_RELMSE_KEY not in meta  # a fixed plan: no pilot, no prediction
+    assert frame.layers["direct"].has_gradients and not frame.layers["indirect"].has_gradients
+    assert list(tmp_path.iterdir()) == [out]
+
+
+def test_measured_exponent_reads_the_slope_and_refuses_noise():
+    from gradsep.renderer.plan import EXPONENT_RANGE, measured_exponent
+
+    assert measured_exponent(0.04, 0.001, 4, 0.01, 0.001, 16, 0.5) == pytest.approx(1.0)
+    assert measured_exponent(0.02, 0.001, 4, 0.01, 0.001, 16, 0.5) == pytest.approx(0.5)
+    assert measured_exponent(0.011, 0.001, 4, 0.01, 0.001, 16, 0.5) == EXPONENT_RANGE[0]  # nearly flat: the floor
+    assert measured_exponent(0.009, 0.001, 4, 0.01, 0.001, 16, 0.5) == EXPONENT_RANGE[0]  # rose: noise
+    assert measured_exponent(0.2, 0.001, 4, 0.001, 0.001, 16, 0.5) == 0.5  # the later one is lost in its noise
+    assert measured_exponent(0.04, 0.03, 4, 0.01, 0.001, 16, 0.7) == 0.7
+    assert measured_exponent(0.04, 0.001, 4, 0.01, 0.001, 4, 0.7) == 0.7  # one sample count: no slope
+
+
+@pytest.mark.render
+@pytest.mark.slow
+def test_seconds_renders_the_default_plan_all(tmp_path, monkeypatch):
+    """--gradients auto is opt-in: --seconds alone renders today's default plan (all), with no pilot."""
+    monkeypatch.setattr(budget, "process_age", lambda: 0.0)
+    out = tmp_path / "f.exr"
+    assert main(["render", CBOX, *SMALL, "--seconds", "3", "-o", str(out)]) == 0
+    meta = read_frame(out).metadata
+    assert meta[PLAN_KEY] == "all" and meta["gradsep.gradients"] == "all" and "gradsep.pilot_seconds" not in meta
