@@ -46,8 +46,6 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
 FIXED = {"primal": ["--gradients", "none"], "direct-alternate": ["--gradients", "direct", "--offsets", "alternate"],
          "all": ["--gradients", "all"]}
 PLANS = {"auto": ["--gradients", "auto"], **FIXED}
