@@ -733,6 +733,11 @@ ANSWER_KEYS = frozenset({"gradsep.method", "gradsep.layers", "gradsep.alpha", "g
                          "gradsep.request_id", "gradsep.source", "gradsep.channels"})
 WARNINGS_ATTRIBUTE = "gradsep.warnings"
 WARNINGS_LIMIT = 2000  # characters of gradsep.warnings in the header
+#: A planned render's predicted RelMSE after reconstruction with ``PLAN_METHOD_KEY`` (renderer/plan.py writes
+#: both). An answer carries the prediction only when it was reconstructed with that method: for another method
+#: it would state some other method's error.
+PREDICTED_RELMSE_KEY = "gradsep.predicted_relmse"
+PLAN_METHOD_KEY = "gradsep.plan_method"
 
 
 def encode_answer(frame: Frame, channels: Mapping[str, np.ndarray], *, half: bool = False,
@@ -756,6 +761,8 @@ def encode_answer(frame: Frame, channels: Mapping[str, np.ndarray], *, half: boo
                             "(ask for format=float / drop --half to keep them)")
     carried = {k: v for k, v in frame.metadata.items() if k not in ANSWER_KEYS and k not in IMAGE_ATTRIBUTES}
     own = dict(metadata or {})
+    if PREDICTED_RELMSE_KEY in carried and own.get("gradsep.method") != carried.get(PLAN_METHOD_KEY):
+        del carried[PREDICTED_RELMSE_KEY]
     if frame.layout != "gradsep":
         own["gradsep.channels"] = frame.layout
 

@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from gradsep.model.errors import CommandError
-from gradsep.model.frame import Features, Frame, Layer
+from gradsep.model.frame import PLAN_METHOD_KEY, PREDICTED_RELMSE_KEY, Features, Frame, Layer
 from gradsep.renderer.budget import Clock, Deadline, PassCosts, fill_to_deadline
 from gradsep.renderer.estimate import at_budget, cross_relmse, relative_weights
 from gradsep.renderer.scene import LoadedScene
@@ -43,9 +43,7 @@ from gradsep.renderer.scene import LoadedScene
 #: Header keys of a planned frame (all strings, like every ``gradsep.*`` attribute).
 PLAN_KEY = "gradsep.plan"  # the chosen candidate's name
 PLAN_LAYERS_KEY = "gradsep.plan_layers"  # per layer: what traces gradients, e.g. "direct=alternate,indirect=none"
-PREDICTED_RELMSE_KEY = "gradsep.predicted_relmse"  # the chosen plan's predicted RelMSE after reconstruction
 CANDIDATES_KEY = "gradsep.plan_candidates"  # every candidate's prediction, "name=value,..."
-PLAN_METHOD_KEY = "gradsep.plan_method"  # the reconstruction method the prediction is for
 BUDGET_KEY = "gradsep.budget_seconds"  # --seconds
 PILOT_SECONDS_KEY = "gradsep.pilot_seconds"  # wall time of the pilot (its kernels, passes, reconstructions)
 ELAPSED_KEY = "gradsep.elapsed_seconds"  # the command's wall time when the frame was encoded (from process start)

@@ -277,3 +277,16 @@ def test_a_real_mitsuba_aov_render_is_read_as_color_with_features(tmp_path: Path
     assert frame.layout == "mitsuba-aov" and list(frame.layers) == ["color"] and frame.features is not None
     assert (frame.height, frame.width) == (6, 8) and float(frame.layers["color"].base.mean()) > 0
     assert float(frame.features.depth.max()) > 0 and float(frame.features.albedo.max()) > 0
+
+
+@pytest.mark.parametrize("method, kept", [("oidn-l1", True), ("l2", False)])
+def test_a_planned_frames_predicted_error_is_carried_only_for_its_method(method: str, kept: bool) -> None:
+    """A planned render's gradsep.predicted_relmse predicts the error of gradsep.plan_method's reconstruction: an
+    answer made with that method carries it, an answer made with another method does not (it would be wrong)."""
+    header = {"gradsep.predicted_relmse": "0.0123", "gradsep.plan_method": "oidn-l1", "gradsep.plan": "all"}
+    frame = read_frame(_exr(_beauty(alpha=False), header))
+    answer = OpenEXR.File(io.BytesIO(encode_answer(frame, rgb_channels("", frame.layers["color"].base),
+                                                   metadata={"gradsep.method": method})), header_only=True)
+    out = answer.header()
+    assert ("gradsep.predicted_relmse" in out) is kept
+    assert out["gradsep.plan"] == "all" and out["gradsep.plan_method"] == "oidn-l1"
