@@ -6,8 +6,8 @@ With ``b_j`` independent unbiased estimates of the image (render passes), each i
 unbiased estimate of the reconstruction's squared error, bias included, with no variance to subtract (the same
 idea as model.metrics.relmse_unbiased with two references). Averaged over every pair of passes, weighted by
 their sample counts (:func:`cross_relmse`). A firefly in one pass meets only the other passes' independent noise,
-so it weighs far less than in ``(R - B)^2`` less an estimated variance of ``B`` (the first design: heavy tails made
-that difference too noisy to read at pilot sample counts).
+so it weighs far less than in ``(R - B)^2`` less an estimated variance of ``B`` (an estimator of that form was
+tried: heavy tails made that difference too noisy to read at pilot sample counts).
 
 Weighted like RelMSE (model.metrics.relmse: ``1 / (I^2 + eps)`` per channel) with ``I`` taken from the
 reconstructions, since no reference exists.

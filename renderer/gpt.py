@@ -71,12 +71,12 @@ NEAR_SPECULAR_PDF = 100.0
 # Lanes per pass. A lane's state lives in the kernel's registers, not in memory, so a pass needs only its
 # per-pixel sums; every further pass pays the loop's recording, a launch and the float64 read-back and sum
 # again (~0.5 s per pass for a 1280x720 G-PT frame). 2^26 renders a 1280x720 frame in one pass up to 72 spp;
-# against 2^22 its wall time falls 14-25 % with a lower peak RSS (benchmarks/bench_pass_size.py,
-# docs/renderer.md "Lanes per pass"). The lane index is a UInt32: render_pass refuses 2^32 lanes.
+# against 2^22 its wall time falls 14-25 % with a lower peak RSS (docs/decisions.md, "Lanes per pass"). The lane
+# index is a UInt32: render_pass refuses 2^32 lanes.
 MAX_LANES_PER_PASS = 1 << 26
 
 # The --gradients direct mode runs the shift's ``for_direct_layer()`` (where it has one: the hybrid shift without
-# its manifold solve, which cannot change a direct-layer event); False keeps the full shift (A/B, tests).
+# its manifold solve, which cannot change a direct-layer event); False keeps the full shift (to compare, and tests).
 DIRECT_LAYER_SHIFT = True
 
 # Trace the first vertex before the symbolic loop, where its depth is a literal 0 (see _run_loops; not in the
@@ -754,7 +754,7 @@ def _run_loops(k: PassKernel, s: LoopState) -> LoopState:
         return state
 
     # The primal-only mode's loop is not peeled: its small body gains nothing and the larger kernel measured
-    # 5-10 % slower (benchmarks/ab_peel.py, docs/renderer.md).
+    # 5-10 % slower (the peel itself: docs/decisions.md, "Tracing the first vertex before the loop").
     peel = PEEL_FIRST_VERTEX and shift is not None
 
     def full_step(off: Any, v: Vertex, depth: mi.UInt32, samples: VertexSamples) -> tuple[Any, OffsetEvents]:

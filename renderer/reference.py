@@ -21,10 +21,10 @@ lets a progress bar advance.
 The sampler (``--sampler``, :data:`DEFAULT_SAMPLER`): each pass draws its samples from one Mitsuba sampler
 seeded with the pass seed. A stratified sampler (``multijitter``) spreads a pass's samples over each pixel's
 first dimensions instead of drawing them independently, which lowers the variance of a pass at the same cost
-(measured per CPU-second on held-out procedural scenes: docs/evaluation.md, "Reference sampler"); passes with
-different seeds are still independent (each permutation and jitter is hashed from its seed), which is all the
-pass averaging, the two-reference product estimator and sharding rely on. Every sampler renders an unbiased
-estimate of the same image, so the choice changes the noise, not the expectation. The sensor is rebuilt with
+(measured per CPU-second on held-out procedural scenes: docs/evaluation.md, "Reference sampler and reference
+farms"); passes with different seeds are still independent (each permutation and jitter is hashed from its seed),
+which is all the pass averaging, the two-reference product estimator and sharding rely on. Every sampler renders
+an unbiased estimate of the same image, so the choice changes the noise, not the expectation. The sensor is rebuilt with
 the chosen sampler (:func:`sampler_sensor`) so a scene file's own ``<sampler>`` no longer decides.
 
 Sharding (``--shard K/N``): a job's passes are dealt round-robin to N shards, shard K renders passes
@@ -57,14 +57,14 @@ if TYPE_CHECKING:  # scene.py needs Mitsuba at import time; load_reference must 
 PASS_SAMPLE_BUDGET = 1 << 24
 MAX_WAVEFRONT = (1 << 32) - 1  # Mitsuba's limit on samples per launch (32-bit sample index)
 
-# Mitsuba samplers a reference may use. ``independent`` draws every sample independently (the behaviour before
-# issue 13's sampler study); the others stratify a pass's samples per pixel. Chosen by measured floor per
-# CPU-second on held-out procedural scenes (docs/evaluation.md, "Reference sampler"; benchmarks/bench_reference.py).
+# Mitsuba samplers a reference may use. ``independent`` draws every sample independently; the others stratify a
+# pass's samples per pixel. Chosen by measured floor per CPU-second on held-out procedural scenes
+# (docs/decisions.md, "The references' sampler"; docs/evaluation.md, "Reference sampler and reference farms").
 SAMPLERS: tuple[str, ...] = ("independent", "multijitter", "stratified", "ldsampler", "orthogonal")
 DEFAULT_SAMPLER = "multijitter"
 # What `gradsep reference --sampler` offers: not ldsampler, whose two references of a scene agreed with each
 # other but sat 0.45 % above every other sampler's image mean on two held-out scenes (a bias or a correlation
-# between seeds; either breaks the product estimator), measured by benchmarks/bench_reference.py.
+# between seeds; either breaks the product estimator), measured when the default sampler was chosen.
 CLI_SAMPLERS: tuple[str, ...] = tuple(s for s in SAMPLERS if s != "ldsampler")
 
 

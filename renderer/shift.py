@@ -5,7 +5,7 @@ its primary ray, ``step`` advances it by one base-path vertex and returns the of
 vertex's two events together with the MIS weights of the pixel pair, ``scale``/``kill`` apply the base path's
 Russian roulette. The integrator never looks inside an offset state: :class:`ReplayShift` and
 :class:`HybridShift` (reconnection at rough vertices, moving onto curved specular ones, half-vector copy at glossy
-ones, replay elsewhere; issue 4)
+ones, replay elsewhere)
 are interchangeable; the hybrid shift also implements :class:`renderer.gpt.ConnectingShift`, which lets the
 integrator carry connected offsets cheaply.
 
@@ -87,16 +87,15 @@ MIN_HALF_COSINE = 1e-4  # half-vector copy fails where either path's direction g
 DEFAULT_FOLLOW_CURVATURE = 0.5  # move onto a specular vertex where curvature * segment exceeds this (_follows)
 MANIFOLD_STEPS = 5  # Newton steps of the manifold reconnection through a mirror (each one ray cast)
 MANIFOLD_TOLERANCE = 1e-4  # converged where the reflected ray misses its target by this fraction of the path length
-MANIFOLD_LOOP = True  # the Newton steps as a symbolic loop (False: unrolled, the code before session 16; A/B)
+MANIFOLD_LOOP = True  # the Newton steps as a symbolic loop (False: unrolled, kept to compare; docs/decisions.md)
 DEFAULT_FOOTPRINT = 0.0  # reconnect only where the segment to the shared vertex is this many times longer than
 #                          the distance between base and offset vertex (see HybridShift; 0 = no such condition)
 
 
 def _rough(flags: mi.UInt32) -> mi.Bool:
     """A vertex a reconnection may start or end at: its BSDF (``flags``) has a non-delta lobe. Mitsuba exposes
-    no roughness; delta lobes are the specular ones, every other lobe is treated as rough, as the issue's
-    classification by lobe type asks (the reference implementation's threshold, roughness 0.001, is nearly the
-    same line)."""
+    no roughness; delta lobes are the specular ones, every other lobe is treated as rough: a classification by
+    lobe type (the reference implementation's threshold, roughness 0.001, is nearly the same line)."""
     return mi.has_flag(flags, mi.BSDFFlags.Smooth)
 
 
@@ -540,7 +539,8 @@ class HybridShift:
         fixed by the pixel) would be solved at x_2, which that mode never reaches; waiting or following at x_1
         changes no event of the direct layer (the mirror is not an emitter, and the next-event estimate at vertex 1
         belongs to the indirect layer). So the solve could only cost recording, compilation and masked work
-        (docs/renderer.md, "The manifold solve as a loop"; frames bit for bit equal, tests/renderer/test_gpt.py)."""
+        (docs/decisions.md, "The manifold solve as a symbolic loop"; frames bit for bit equal,
+        tests/renderer/test_gpt.py)."""
         if not self.manifold:
             return self
         return HybridShift(self.footprint, self.half_vector, self.follow_specular, self.follow_curvature,
@@ -606,8 +606,8 @@ class HybridShift:
         d = dr.normalize(mirror_si.p - origin.p)
         if MANIFOLD_LOOP:
             # One traced Newton step in a symbolic loop instead of MANIFOLD_STEPS unrolled copies: the same
-            # arithmetic per lane, a fraction of the code to record, hash and compile (docs/renderer.md,
-            # "The manifold solve as a loop").
+            # arithmetic per lane, a fraction of the code to record, hash and compile (docs/decisions.md,
+            # "The manifold solve as a symbolic loop").
             _, d = dr.while_loop(state=(mi.UInt32(0), d), cond=lambda i, _d: i < MANIFOLD_STEPS, body=newton_step,
                                  label="manifold")
         else:
