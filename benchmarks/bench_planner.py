@@ -33,6 +33,26 @@ between processes carry that noise; each design's own commit is named in its run
         procedural:studio:93106 --seconds 20,40 --ref-spp 2048 --cache /tmp/planner_out/val2   # second estimator
     python benchmarks/bench_planner.py validate --scenes procedural:93107,procedural:studio:93108,procedural:93109,\
         procedural:studio:93110 --seconds 20,40 --ref-spp 2048 --cache /tmp/planner_out/val3   # + pilot slopes
+
+The racing pilot (today's) was validated on copies of those three caches with only the auto frames deleted (a
+frame already in a cache is not rendered again: its row comes from the cache's validate.json), so its auto
+frames meet the fixed frames of the runs above (rendered earlier, under load 3-9; the racing runs saw load ~2):
+
+    cp -r /tmp/planner_out/val /tmp/race/val; rm /tmp/race/val/frame-*-auto.exr         # likewise val2, val3
+    python benchmarks/bench_planner.py validate --scenes procedural:93101,procedural:93102 --seconds 20,40 \
+        --ref-spp 2048 --cache /tmp/race/val                       # val2's and val3's scenes into their copies
+
+Auto / best fixed plan over the 20 (scene, budget) frames: geometric mean 1.084 (one-shot pilot on the same
+frames: 4.007), worst 8.31 (procedural:studio:93110 at 40 s, where auto chose `all`, the best fixed plan, whose
+fixed frame scored 8.3x better: that scene's RelMSE swings from frame to frame); auto better than before on 18 of
+20. The choice alone, scored with the fixed frames of the plan chosen (the same run and load for every plan):
+1.175x the best (before 3.067x), worst 4.67x (procedural:studio:93108 at 40 s: direct-alternate, best all), the
+best plan chosen on 10 of 20 frames (before 4). Per frame (auto / best, before -> racing, racing's choice):
+93101 1.43->0.72 primal, 1.03->0.44 direct-alternate; 93102 1.34->1.06 primal, 1.37->0.78 primal; 93103 0.96->0.91
+primal, 1.00->0.87 primal; studio:93104 2.67->2.79 all, 6.31->0.47 all; 93105 2.42->0.78 direct-alternate,
+2.79->1.05 direct-alternate; studio:93106 2.70->1.88, 3.88->1.83 direct-alternate; 93107 5.87->0.93, 1.67->1.14
+direct-alternate; studio:93108 20.1->0.98 all, 4.53->2.24 direct-alternate; 93109 1.65->1.40 primal, 1.94->0.88
+direct-alternate; studio:93110 16874->0.28 direct-alternate, 7.61->8.31 all (20 s, 40 s).
 """
 
 from __future__ import annotations
@@ -128,6 +148,11 @@ def validate(args: argparse.Namespace) -> None:
     cache.mkdir(parents=True, exist_ok=True)
     budgets = [float(s) for s in args.seconds.split(",")]
     rows = []
+    # a frame already in the cache is not rendered again: its row is taken from the cache's validate.json (so a
+    # new design re-renders only what was deleted, e.g. the auto frames of a copy of the cache)
+    path = cache / "validate.json"
+    old = json.loads(path.read_text()) if path.exists() else []
+    cached = {(r["scene"], r["seconds"], p): v for r in old for p, v in r["plans"].items()}
     for scene in args.scenes.split(","):
         refs = (reference(scene, args.size, args.ref_spp, 1, cache),
                 reference(scene, args.size, args.ref_spp, 2, cache))
@@ -137,6 +162,9 @@ def validate(args: argparse.Namespace) -> None:
             row = {"scene": scene, "seconds": seconds, "floor": floor, "plans": {}}
             for plan, flags in PLANS.items():
                 out = cache / f"frame-{scene.replace(':', '_')}-{seconds:g}-{plan}.exr"
+                if out.exists() and (scene, seconds, plan) in cached:
+                    row["plans"][plan] = cached[scene, seconds, plan]
+                    continue
                 wall, _ = gradsep("render", scene, "--width", str(args.size), "--height", str(args.size),
                                   "--seconds", f"{seconds:g}", "--seed", "7", *flags, "-o", str(out))
                 meta = header(out)

@@ -7,18 +7,23 @@ plan's base path is the same unbiased path tracer (the primal-only mode's bases 
 frame's bases and features average the samples of every pass, and its gradients those of the chosen plan's passes
 (the ``--gradient-spp`` rule of render_gpt). So the whole pilot is reused in the final frame.
 
-**The pilot** (--gradients auto). Each candidate (:data:`CANDIDATES`) renders a 1-spp warm-up pass (its kernel is
-compiled or loaded here) and a pass ``A`` of ``n`` samples in two parts of different sizes (two pass sizes give the
-per-pass overhead and the cost per sample); then two primal passes. The pilot's passes are sized so that its
-sampling takes about PILOT_SHARE of the budget. Candidate ``c``'s ``A`` (and A's first part) is reconstructed with
-the method that would serve its frame (model.reconstruct's default: ``oidn-l1`` with gradients, ``oidn`` for a plain
-frame), on a few tiles (:func:`tiles`) to bound the cost, and compared with every pilot pass that is no candidate's
-``A``: independent of every ``A`` and of each other, so the mean over pairs of passes of ``(R - b_j)(R - b_k)``
-estimates the reconstruction's squared error with no reference (renderer/estimate.py); the same passes for every
-candidate, so that their noise cancels when candidates are compared. That gives the reconstruction's RelMSE at
-A's two sample counts; the slope between them (:func:`measured_exponent`; :data:`EXPONENTS` where it cannot be
-read) carries the error at ``n`` to the samples the budget buys for ``c`` (its measured cost per sample) with
-``error ~ spp^-exponent``. The lowest prediction wins.
+**The pilot** (--gradients auto) is a race. Each candidate (:data:`CANDIDATES`) renders a 1-spp warm-up pass (its
+kernel is compiled or loaded here). Then rounds: each surviving candidate renders ``n`` more samples, and so does
+a primal pass ``B`` (the first round's ``n`` sized so that the candidates and B take about PILOT_SHARE of the
+budget, at most PILOT_MAX_SPP; ``n`` doubles each round). After each round every survivor's race passes so far
+(``N`` samples) are reconstructed with the method that would serve its frame (model.reconstruct's default:
+``oidn-l1`` with gradients, ``oidn`` for a plain frame), on a few tiles (:func:`tiles`) to bound the cost, and
+compared with the warm-ups and B passes: independent of every candidate's race passes and of each other, so the
+mean over pairs of passes of ``(R - b_j)(R - b_k)`` estimates the reconstruction's squared error with no
+reference (renderer/estimate.py); the same passes for every candidate, so that their noise cancels when
+candidates are compared. That error, at the candidate's *current* samples, is carried to the samples the rest
+of the budget buys it (its measured cost per sample) with ``error ~ spp^-exponent``, the exponent measured
+between its last two rounds (:func:`measured_exponent`; :data:`EXPONENTS` in the first round). From the second
+round on, a candidate whose prediction is worse than the best one's by more than their combined standard errors
+leaves the race (:func:`eliminate`). The race ends when one candidate survives, or before a round that would take
+it past RACE_SHARE of the budget (of the frame's samples with --spp); the lowest prediction wins and the rest of
+the budget is its passes. The law is measured late and carried only over what is left because it differs by
+method (primal + oidn flattens, G-PT + oidn-l1 keeps falling; docs/renderer.md "The render planner").
 
 **The deadline** (renderer/budget.py): passes are sized from their measured cost so that the last one ends, with
 the write still to come, just before ``T``; nothing is started that is predicted to miss it.
@@ -48,8 +53,12 @@ BUDGET_KEY = "gradsep.budget_seconds"  # --seconds
 PILOT_SECONDS_KEY = "gradsep.pilot_seconds"  # wall time of the pilot (its kernels, passes, reconstructions)
 ELAPSED_KEY = "gradsep.elapsed_seconds"  # the command's wall time when the frame was encoded (from process start)
 
-#: Share of the budget the pilot's sampling may take (kernel compilation and its reconstructions come on top).
+#: Share of the budget the race's first round may take (kernel compilation and its reconstructions come on top).
 PILOT_SHARE = 0.1
+#: Share of the budget (of the frame's samples with --spp) after which the race stops: the leader takes the rest.
+RACE_SHARE = 0.35
+#: The most rounds a race runs (each doubles its passes: the first round's samples times 2^MAX_ROUNDS in all).
+MAX_ROUNDS = 12
 #: The pilot gives up (no candidate is assessed; FALLBACK is rendered) when its warm-ups -- one compile per
 #: candidate -- took more than this share of the budget.
 PILOT_GIVE_UP = 0.3
@@ -60,7 +69,7 @@ RECONSTRUCT_STARTUP = 2.0
 #: The interpreter's exit after the frame is written (part of the command's wall time): ~0.1 s after rendering
 #: alone, ~0.5 s once the reconstruction libraries are loaded (torch, numba, OIDN), measured on the same machine.
 EXIT_SECONDS = (0.1, 0.5)
-#: The most samples one pilot pass ``A`` takes (a long budget needs no longer pilot to rank the candidates).
+#: The most samples of the race's first round (later rounds double them while the race's share allows).
 PILOT_MAX_SPP = 16
 #: Tiles the pilot reconstructs (side, count) and the border of each left out of the estimate.
 TILE = 128
@@ -269,17 +278,18 @@ def measured_exponent(early: float, early_se: float, n1: int, late: float, late_
 
 @dataclass
 class Assessment:
-    """What the pilot measured of one candidate."""
+    """What the race measured of one candidate (at its last round)."""
 
     name: str
-    pilot_spp: int  # samples of its pass A
-    measured_relmse: float  # estimated RelMSE of A's reconstruction (at pilot_spp)
+    pilot_spp: int  # samples of its race passes so far
+    measured_relmse: float  # estimated RelMSE of their reconstruction (at pilot_spp)
     per_sample: float  # seconds per sample per pixel (warm)
     method: str  # the reconstruction method that serves its frame
     standard_error: float = 0.0  # of measured_relmse (the estimate's noise)
     exponent: float = 0.5  # of the error-vs-spp law it is carried to the budget with
     budget_spp: float = 0.0
     predicted_relmse: float = math.inf
+    predicted_se: float = 0.0  # of predicted_relmse (the estimate's noise carried to the budget)
 
 
 @dataclass
@@ -308,100 +318,119 @@ class Plan:
             return f"plan {self.chosen.name} ({self.note})"
         parts = ", ".join(f"{a.name} {a.predicted_relmse:.4g} at {a.budget_spp:.0f} spp (slope {a.exponent:.2f})"
                           for a in self.assessments)
-        return (f"plan {self.chosen.name}: predicted RelMSE {parts} (pilot {self.pilot_seconds:.2f} s, "
+        return (f"plan {self.chosen.name}: predicted RelMSE {parts} (pilot {self.pilot_seconds:.2f} s, {self.note}, "
                 f"method {self.metadata(()).get(PLAN_METHOD_KEY, '?')})")
 
 
+def eliminate(assessments: list[Assessment]) -> list[Assessment]:
+    """The candidates still in the race: the best prediction and every one not worse than it by more than their
+    combined standard errors (:attr:`Assessment.predicted_se`)."""
+    best = min(assessments, key=lambda a: a.predicted_relmse)
+    return [a for a in assessments if a is best
+            or a.predicted_relmse - best.predicted_relmse <= math.hypot(a.predicted_se, best.predicted_se)]
+
+
 def run_pilot(passes: Passes, budget_spp: Callable[[Assessment], float], *, pilot_seconds: float | None = None,
-              pilot_spp: int | None = None, give_up_after: float = math.inf,
-              after_first: Callable[[], None] | None = None,
+              pilot_spp: int | None = None, race_seconds: float = math.inf, race_spp: float = math.inf,
+              give_up_after: float = math.inf, after_first: Callable[[], None] | None = None,
               reconstruct: Callable[[Frame], tuple[np.ndarray, str]] = reconstruct_default) -> Plan:
-    """Render and assess every applicable candidate (see the module's docstring). Pass A takes ``pilot_spp``
-    samples, or as many as ``pilot_seconds`` of sampling buys each candidate (at most PILOT_MAX_SPP).
-    ``budget_spp`` says how many samples the rest of the budget buys a candidate, given its measured cost. When
-    the warm-ups alone took more than ``give_up_after`` seconds, no candidate is assessed and the plan is FALLBACK.
-    ``after_first`` runs after the first pass (the caller's start-up check). Every pass stays in ``passes``."""
+    """Race every applicable candidate (see the module's docstring). The first round's passes take ``pilot_spp``
+    samples, or as many as ``pilot_seconds`` of sampling buys each candidate (at most PILOT_MAX_SPP); each later
+    round doubles them, while the race (since its start) is predicted to stay within ``race_seconds`` and its
+    passes within ``race_spp`` samples of the frame. ``budget_spp`` says how many samples the rest of the budget
+    buys a candidate, given its measured cost. When the warm-ups alone took more than ``give_up_after`` seconds,
+    no candidate is assessed and the plan is FALLBACK. ``after_first`` runs after the first pass (the caller's
+    start-up check). Every pass stays in ``passes``."""
     clock = passes.clock
     start = clock()
     # FALLBACK first: a pilot that gives up after its first warm-up has compiled what it falls back to
     candidates = tuple(sorted(applicable(passes.layers), key=lambda c: c.name != FALLBACK))
-    # warm-ups: compile (or load) each kernel; their samples join the frame and every candidate's B
-    warm_ups: list[tuple[np.ndarray, int]] = []
+    # warm-ups: compile (or load) each kernel; their samples join the frame and B
+    batches: list[tuple[np.ndarray, int]] = []
     for c in candidates:
-        warm_ups.append((base_image(passes.run(c, 1), 1), 1))
-        if after_first is not None and len(warm_ups) == 1:
+        batches.append((base_image(passes.run(c, 1), 1), 1))
+        if after_first is not None and len(batches) == 1:
             after_first()
         if clock() - start + reconstruct_startup() > give_up_after:
             return Plan(candidates[0], [], clock() - start, "the budget is too small for a pilot")
     left = (pilot_seconds or 0.0) - (clock() - start)
-
-    def pilot_pass_spp(c: Candidate) -> int:  # an equal share of the pilot's time for each A and for B
-        if pilot_spp is not None:
-            return pilot_spp
-        per = passes.kind(c).costs.per_sample
-        return int(left / (len(candidates) + 1) / per) if 0 < per < math.inf else 1
-
-    # A in two passes of different sizes, n1 and n - n1: two pass sizes separate the per-pass overhead from the
-    # cost per sample (a budget buys few, large passes), and two sample counts give the error's slope
-    pass_a: dict[str, list[tuple[dict[str, np.ndarray], int]]] = {}
-    for c in candidates:
-        n = max(1, min(pilot_pass_spp(c), PILOT_MAX_SPP, passes.max_spp))
-        sizes = [max(1, n // 3), n - max(1, n // 3)] if n >= 3 else [n]
-        pass_a[c.name] = [(passes.run(c, k), k) for k in sizes]
-    # B: the warm-ups and two primal passes, independent of every A; the same for every candidate, so their
-    # noise enters every estimate alike and cancels when candidates are compared
+    if pilot_spp is not None:
+        n = pilot_spp
+    else:  # an equal share of the first round's time for each candidate and for B
+        pers = [passes.kind(c).costs.per_sample for c in candidates]
+        n = min(int(left / (len(candidates) + 1) / per) if 0 < per < math.inf else 1 for per in pers)
+    n = max(1, min(n, PILOT_MAX_SPP))
     primal = candidate("primal")
-    m = max(1, min(pilot_pass_spp(primal), 4 * PILOT_MAX_SPP, passes.max_spp) // 2)
-    for _ in range(2):
-        warm_ups.append((base_image(passes.run(primal, m), m), m))
     windows = tiles(passes.loaded.width, passes.loaded.height)
     border = TILE_BORDER if len(windows) > 1 else 0
-    # per candidate, the reconstructions (per tile) of A's first pass and of the whole of A
-    images: dict[str, tuple[list[np.ndarray], list[np.ndarray]]] = {}
-    methods: dict[str, str] = {}
-    for c in candidates:
-        parts = pass_a[c.name]
-        settings = passes.kind(c).settings
-        first = sums_frame(parts[0][0], settings, parts[0][1])
-        whole = sums_frame({k: sum(s[k] for s, _ in parts) for k in parts[0][0]}, settings, sum(k for _, k in parts))
-        images[c.name] = ([], [])
-        for window in windows:
-            for slot, frame in zip(images[c.name], (first, whole) if len(parts) > 1 else (first,), strict=False):
+    share = np.asarray([(ys.stop - ys.start) * (xs.stop - xs.start) for ys, xs in windows], dtype=np.float64)
+    share /= share.sum()
+    totals: dict[str, tuple[dict[str, np.ndarray], int]] = {}  # per candidate: the sums of its race passes
+    latest: dict[str, Assessment] = {}
+    alive = list(candidates)
+
+    def render(c: Candidate, spp: int) -> dict[str, np.ndarray]:  # one round's samples, in passes of max_spp
+        out: dict[str, np.ndarray] = {}
+        while spp > 0:
+            k = min(spp, passes.max_spp)
+            sums = passes.run(c, k)
+            out = {key: v + out.get(key, 0.0) for key, v in sums.items()}
+            spp -= k
+        return out
+
+    rounds = 0
+    while True:
+        # each survivor's passes, then B's: a primal pass as large, independent of every candidate's passes and
+        # the same for every candidate, so that its noise enters every estimate alike and cancels in comparisons
+        for c in alive:
+            sums = render(c, n)
+            have, k = totals.get(c.name, ({}, 0))
+            totals[c.name] = ({key: v + have.get(key, 0.0) for key, v in sums.items()}, k + n)
+        batches.append((base_image(render(primal, n), n), n))
+        images: dict[str, list[np.ndarray]] = {}
+        methods: dict[str, str] = {}
+        for c in alive:
+            sums, k = totals[c.name]
+            frame = sums_frame(sums, passes.kind(c).settings, k)
+            images[c.name] = []
+            for window in windows:
                 image, methods[c.name] = reconstruct(crop(frame, window))
-                slot.append(image)
-
-    def estimate(tiles_images: list[np.ndarray]) -> tuple[float, float]:
-        errors, errors_se = [], []
-        for i, (ys, xs) in enumerate(windows):
-            # RelMSE's weights from the candidates' mean reconstruction: one weight image for all (a candidate
-            # weighted by its own image would be favoured by a darkening bias), independent of B
-            weights = relative_weights(np.mean([(w or f)[i] for f, w in images.values()], axis=0))
-            value, se = cross_relmse(tiles_images[i], [(b[ys, xs], k) for b, k in warm_ups], weights, border)
-            errors.append(value)
-            errors_se.append(se)
-        share = np.asarray([(ys.stop - ys.start) * (xs.stop - xs.start) for ys, xs in windows], dtype=np.float64)
-        share /= share.sum()
-        return float(np.sum(share * errors)), float(np.sqrt(np.sum((share * np.asarray(errors_se)) ** 2)))
-
-    assessments = []
-    for c in candidates:
-        parts = pass_a[c.name]
-        first, whole = images[c.name]
-        n1, n = parts[0][1], sum(k for _, k in parts)
-        measured, se = estimate(whole or first)
-        exponent = EXPONENTS[c.name]
-        if whole:
-            early, early_se = estimate(first)
-            exponent = measured_exponent(early, early_se, n1, measured, se, n, exponent)
-        a = Assessment(c.name, n, measured, passes.kind(c).costs.per_sample, methods[c.name], se)
-        a.exponent = exponent
-        assessments.append(a)
-    for a in assessments:  # every candidate carried to the budget with the same time left
-        a.budget_spp = budget_spp(a)
-        floor = max(a.measured_relmse, a.standard_error)  # an estimate lost in B's noise counts as its noise
-        a.predicted_relmse = at_budget(floor, a.pilot_spp, a.budget_spp, a.exponent)
-    chosen = min(assessments, key=lambda a: a.predicted_relmse)
-    return Plan(candidate(chosen.name), assessments, clock() - start)
+                images[c.name].append(image)
+        for c in alive:
+            errors, errors_se = [], []
+            for i, (ys, xs) in enumerate(windows):
+                # RelMSE's weights from the survivors' mean reconstruction: one weight image for all (a candidate
+                # weighted by its own image would be favoured by a darkening bias), independent of B
+                weights = relative_weights(np.mean([im[i] for im in images.values()], axis=0))
+                value, se = cross_relmse(images[c.name][i], [(b[ys, xs], k) for b, k in batches], weights, border)
+                errors.append(value)
+                errors_se.append(se)
+            value = float(np.sum(share * errors))
+            se = float(np.sqrt(np.sum((share * np.asarray(errors_se)) ** 2)))
+            k = totals[c.name][1]
+            a = Assessment(c.name, k, value, passes.kind(c).costs.per_sample, methods[c.name], se)
+            prev = latest.get(c.name)
+            a.exponent = EXPONENTS[c.name] if prev is None else measured_exponent(
+                prev.measured_relmse, prev.standard_error, prev.pilot_spp, value, se, k, EXPONENTS[c.name])
+            latest[c.name] = a
+        for c in alive:  # carried to the budget over the factor that is left, with the same time left for all
+            a = latest[c.name]
+            a.budget_spp = budget_spp(a)
+            floor = max(a.measured_relmse, a.standard_error)  # an estimate lost in B's noise counts as its noise
+            a.predicted_relmse = at_budget(floor, a.pilot_spp, a.budget_spp, a.exponent)
+            a.predicted_se = at_budget(a.standard_error, a.pilot_spp, a.budget_spp, a.exponent)
+        if rounds >= 1:  # the first round's law is assumed (EXPONENTS), not measured: no elimination on it
+            names = {a.name for a in eliminate([latest[c.name] for c in alive])}
+            alive = [c for c in alive if c.name in names]
+        rounds += 1
+        n *= 2
+        cost = sum(passes.kind(c).costs.predict(n) for c in (*alive, primal))
+        if (len(alive) == 1 or rounds >= MAX_ROUNDS or clock() - start + cost > race_seconds
+                or passes.spp + n * (len(alive) + 1) > race_spp):
+            break
+    chosen = min((latest[c.name] for c in alive), key=lambda a: a.predicted_relmse)
+    return Plan(candidate(chosen.name), [latest[c.name] for c in candidates], clock() - start,
+                f"{rounds} rounds")
 
 
 # ------------------------------------------------------------------------------------------- the frame
@@ -475,11 +504,13 @@ def render_planned(loaded: LoadedScene, layers: tuple[str, ...], *, seed: int, s
 
         if deadline is not None:
             plan = run_pilot(passes, budget_spp, pilot_seconds=PILOT_SHARE * deadline.seconds,
+                             race_seconds=RACE_SHARE * deadline.seconds,
                              give_up_after=PILOT_GIVE_UP * deadline.seconds, after_first=after_first)
         else:
             n = pilot_spp_for(spp, len(applicable(layers)))  # type: ignore[arg-type]
             if n:
-                plan = run_pilot(passes, budget_spp, pilot_spp=n, after_first=after_first)
+                plan = run_pilot(passes, budget_spp, pilot_spp=n, race_spp=RACE_SHARE * spp,  # type: ignore[operator]
+                                 after_first=after_first)
             else:
                 plan = Plan(candidate(FALLBACK), [], 0.0, f"{spp} spp is too few for a pilot")
         chosen = plan.chosen
@@ -509,7 +540,8 @@ def render_planned(loaded: LoadedScene, layers: tuple[str, ...], *, seed: int, s
 
 
 def pilot_spp_for(spp: int, count: int) -> int:
-    """Pass A's samples in a pilot of a ``spp``-sample frame (--spp with --gradients auto): the warm-ups and A
-    passes of all ``count`` candidates take at most a quarter of the frame's samples; 0: too few for a pilot."""
+    """The race's first round's samples in a ``spp``-sample frame (--spp with --gradients auto): the warm-ups and
+    first passes of all ``count`` candidates take at most a quarter of the frame's samples; 0: too few for a
+    pilot. Later rounds stop at RACE_SHARE of the frame's samples."""
     n = min(PILOT_MAX_SPP, (spp // 4 - count) // count)
     return n if n >= 1 else 0

@@ -140,7 +140,7 @@ def test_the_pilot_picks_the_candidate_whose_reconstruction_is_right():
         return (truth if frame.has_gradients else 0.8 * truth), "fake"
 
     passes = Passes(scene, ("direct", "indirect"), seed=3)
-    plan = run_pilot(passes, lambda a: 64.0, pilot_spp=8, reconstruct=fake)
+    plan = run_pilot(passes, lambda a: 256.0, pilot_spp=8, race_spp=100, reconstruct=fake)
     assert plan.chosen.name == "all"
     by_name = {a.name: a for a in plan.assessments}
     assert set(by_name) == {"primal", "direct-alternate", "all"}
@@ -148,9 +148,9 @@ def test_the_pilot_picks_the_candidate_whose_reconstruction_is_right():
     true_difference = relmse(0.8 * truth / mean, truth / mean)
     for name in ("primal", "direct-alternate"):
         difference = by_name[name].measured_relmse - by_name["all"].measured_relmse
-        assert difference == pytest.approx(true_difference, rel=0.25)
+        assert difference == pytest.approx(true_difference, rel=0.3)  # B's noise: 1.03-1.26x over seeds 3-6
     assert all(math.isfinite(a.predicted_relmse) and a.predicted_relmse >= 0 for a in plan.assessments)
-    assert passes.spp == 3 * (1 + 1 + 7) + 8  # per candidate warm-up, timing pass and A (7 spp); then B (8 spp)
+    assert passes.spp == 3 + 4 * (8 + 16)  # warm-ups; two rounds (8, 16 spp) of every candidate and of B
     meta = plan.metadata(("direct", "indirect"))
     assert meta[PLAN_KEY] == "all" and float(meta[PREDICTED_RELMSE_KEY]) == pytest.approx(
         by_name["all"].predicted_relmse, rel=1e-5)
