@@ -141,16 +141,44 @@ def outlier_count(excess: np.ndarray) -> int:
     return int(np.count_nonzero(np.any(excess > 0, axis=-1)))
 
 
+#: Above this many outliers in a layer, :func:`spread` filters the whole frame at once instead of adding a patch per
+#: outlier (both give the same image to rounding; the patches are cheaper while outliers are few, as they are).
+SPREAD_PATCH_LIMIT = 4096
+
+
+def _spread_kernel() -> np.ndarray:
+    """The 1-D footprint: scipy.ndimage.gaussian_filter's kernel for OUTLIER_SPREAD_SIGMA truncated at
+    OUTLIER_SPREAD_RADIUS (normalised to sum 1)."""
+    radius = int(OUTLIER_SPREAD_RADIUS + 0.5)
+    x = np.arange(-radius, radius + 1, dtype=np.float64)
+    k = np.exp(-0.5 * (x / OUTLIER_SPREAD_SIGMA) ** 2)
+    return k / k.sum()
+
+
 def spread(excess: np.ndarray) -> np.ndarray:
     """``excess`` spread over each outlier's Gaussian footprint (OUTLIER_SPREAD_SIGMA, truncated at
     OUTLIER_SPREAD_RADIUS), each footprint renormalised to its part inside the frame so the sum of ``excess`` is
-    kept exactly (to rounding): (H, W, C) float64."""
-    from scipy.ndimage import gaussian_filter
+    kept exactly (to rounding): (H, W, C) float64. The footprint is separable, so a patch per outlier costs a few
+    hundred multiply-adds; only a layer with very many outliers is filtered whole."""
+    ys, xs = np.nonzero(np.any(excess != 0, axis=-1))
+    height, width = excess.shape[:2]
+    if ys.size > SPREAD_PATCH_LIMIT:
+        from scipy.ndimage import gaussian_filter
 
-    blur = {"sigma": OUTLIER_SPREAD_SIGMA, "mode": "constant", "truncate": OUTLIER_SPREAD_RADIUS / OUTLIER_SPREAD_SIGMA}
-    inside = gaussian_filter(np.ones(excess.shape[:2]), **blur)  # each footprint's mass inside the frame
-    source = np.asarray(excess, np.float64) / inside[..., None]
-    return np.stack([gaussian_filter(source[..., c], **blur) for c in range(excess.shape[-1])], axis=-1)
+        blur = {"sigma": OUTLIER_SPREAD_SIGMA, "mode": "constant",
+                "truncate": OUTLIER_SPREAD_RADIUS / OUTLIER_SPREAD_SIGMA}
+        inside = gaussian_filter(np.ones(excess.shape[:2]), **blur)  # each footprint's mass inside the frame
+        source = np.asarray(excess, np.float64) / inside[..., None]
+        return np.stack([gaussian_filter(source[..., c], **blur) for c in range(excess.shape[-1])], axis=-1)
+    k = _spread_kernel()
+    r = k.size // 2
+    out = np.zeros(excess.shape, np.float64)
+    for y, x in zip(ys.tolist(), xs.tolist(), strict=True):
+        y0, y1, x0, x1 = max(y - r, 0), min(y + r + 1, height), max(x - r, 0), min(x + r + 1, width)
+        ky, kx = k[y0 - y + r:y1 - y + r], k[x0 - x + r:x1 - x + r]
+        weights = np.outer(ky, kx) / (ky.sum() * kx.sum())  # renormalised to the footprint's part in the frame
+        out[y0:y1, x0:x1] += weights[..., None] * excess[y, x].astype(np.float64)
+    return out
 
 
 def add_excess(image: np.ndarray, excess: np.ndarray | None) -> np.ndarray:

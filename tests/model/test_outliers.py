@@ -169,3 +169,19 @@ def test_ordinary_frames_have_no_outliers_and_are_left_alone() -> None:
     light = smooth.copy()
     light[2:5, 2:5] = 1e4  # a bright region, not an outlier: its neighbours are as bright
     assert split_outliers(light)[1] is None
+
+
+@pytest.mark.parametrize("shape, count", [((1, 1, 3), 1), ((5, 7, 3), 4), ((40, 56, 3), 60)])
+def test_spreading_by_patches_equals_filtering_the_whole_frame(shape, count, monkeypatch) -> None:
+    """spread() adds one separable patch per outlier while they are few and filters the whole frame when they are
+    many: the two give the same image to rounding, footprints cut by the border included, and keep the excess."""
+    from gradsep.model import robust
+
+    rng = np.random.default_rng(count)
+    excess = np.zeros(shape, np.float32)
+    excess[rng.integers(0, shape[0], count), rng.integers(0, shape[1], count)] = rng.uniform(1, 1e6, (count, 3))
+    patches = robust.spread(excess)
+    monkeypatch.setattr(robust, "SPREAD_PATCH_LIMIT", -1)
+    whole = robust.spread(excess)
+    np.testing.assert_allclose(patches, whole, rtol=1e-12, atol=1e-9 * float(whole.max()))
+    np.testing.assert_allclose(patches.sum(axis=(0, 1)), excess.astype(np.float64).sum(axis=(0, 1)), rtol=1e-12)
