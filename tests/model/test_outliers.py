@@ -8,7 +8,6 @@ Frames: the committed example (examples/cbox-16spp.exr) and a procedural scene (
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 from typing import Any
 
@@ -17,7 +16,6 @@ import pytest
 
 import gradsep.model.reconstruct as reconstruct_module
 from gradsep.model.frame import Frame, Layer, read_frame
-from gradsep.model.methods import LoadedModels
 from gradsep.model.robust import (
     OUTLIER_SPREAD_RADIUS,
     add_excess,
@@ -27,6 +25,7 @@ from gradsep.model.robust import (
     split_outliers,
     winsorised_sum,
 )
+from tests.model.shipped import models_for
 
 REPO = Path(__file__).resolve().parents[2]
 FRAMES = {"cbox": REPO / "examples" / "cbox-16spp.exr",
@@ -44,29 +43,8 @@ def _frame(name: str) -> Frame:
     return _cache[name]
 
 
-def _models(method: str) -> dict[str, Any]:
-    """``reconstruct``'s keyword arguments for ``method``, or a skip naming what this machine lacks."""
-    if method in ("oidn", "oidn-l1", "fused") and importlib.util.find_spec("pyoidn") is None:
-        pytest.skip("pyoidn is not installed")
-    if method in ("network", "fused") and importlib.util.find_spec("onnxruntime") is None:
-        pytest.skip("onnxruntime is not installed")
-    if method == "network":
-        if "network" not in _cache:
-            _cache["network"] = reconstruct_module.load_network(REPO / "models")
-        if _cache["network"] is None:
-            pytest.skip("no network models in models/")
-        return {"models": LoadedModels(network=_cache["network"])}
-    if method == "fused":
-        if "fused" not in _cache:
-            _cache["fused"] = reconstruct_module.load_fused(REPO / "models")
-        if _cache["fused"] is None:
-            pytest.skip("no fused models in models/fused/")
-        return {"models": LoadedModels(fused=_cache["fused"])}
-    return {}
-
-
 def _reconstruct(frame: Frame, method: str) -> Any:
-    return reconstruct_module.reconstruct(frame, method, **_models(method))
+    return reconstruct_module.reconstruct(frame, method, models=models_for(method))
 
 
 def _with_firefly(frame: Frame, layer: str, where: tuple[int, int], times: float) -> Frame:

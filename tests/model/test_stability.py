@@ -18,7 +18,6 @@ the final image happens to come out finite.
 
 from __future__ import annotations
 
-import importlib.util
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -27,12 +26,11 @@ import numpy as np
 import OpenEXR
 import pytest
 
-import gradsep.model.reconstruct as reconstruct_module
 from gradsep.model import methods as table
 from gradsep.model.frame import Features, Frame, Layer, NonFiniteError, forward_differences, layer_channels, read_frame
-from gradsep.model.methods import LoadedModels
 from gradsep.model.poisson import MIN_ALPHA, energy_l1, solve_l1, solve_l2
 from gradsep.model.reconstruct import reconstruct
+from tests.model.shipped import models_for
 
 METHODS = table.names()
 
@@ -82,39 +80,9 @@ DECADES = range(-8, 10)
 # ------------------------------------------------------------------------------------------ methods and frames
 
 
-_networks: dict[str, Any] = {}
-
-
-def _network() -> Any:
-    """The shipped models (models/*.onnx) loaded once per worker, or a skip naming what is missing."""
-    if "net" not in _networks:
-        if importlib.util.find_spec("onnxruntime") is None:
-            pytest.skip("onnxruntime is not installed")
-        missing = [n for n in ("direct.onnx", "indirect.onnx", "color.onnx") if not (REPO / "models" / n).is_file()]
-        if missing:
-            pytest.skip(f"shipped models missing: {', '.join(missing)}")
-        _networks["net"] = reconstruct_module.load_network(REPO / "models")
-    return _networks["net"]
-
-
 def _models(method: str) -> dict[str, Any]:
     """The keyword arguments ``reconstruct`` needs for ``method``, or a skip naming what this machine lacks."""
-    if method in POISSON:
-        return {}
-    if method == "network":
-        return {"models": LoadedModels(network=_network())}
-    if method == "fused":
-        if "fused" not in _networks:
-            _networks["fused"] = reconstruct_module.load_fused(REPO / "models")
-        if _networks["fused"] is None:
-            pytest.skip("no fused models (models/fused/*.onnx) in this checkout")
-        return {"models": LoadedModels(fused=_networks["fused"])}
-    if method in ("oidn", "oidn-l1"):
-        from gradsep.model.oidn import available
-
-        if not available():
-            pytest.skip("pyoidn is not installed")
-    return {}
+    return {"models": models_for(method)}
 
 
 def _run(frame: Frame, method: str, alpha: float = 0.2) -> Any:
