@@ -66,8 +66,10 @@ import sys
 import time
 from pathlib import Path
 
+#: The fixed pipelines auto is judged against (issue 39): separated primal + oidn per layer, G-PT direct/alternate
+#: + oidn-l1, G-PT all + the default method, and primal + oidn on the unseparated sum.
 FIXED = {"primal": ["--gradients", "none"], "direct-alternate": ["--gradients", "direct", "--offsets", "alternate"],
-         "all": ["--gradients", "all"]}
+         "all": ["--gradients", "all"], "primal-sum": ["--gradients", "none", "--layers", "color"]}
 PLANS = {"auto": ["--gradients", "auto"], **FIXED}
 
 
@@ -121,9 +123,13 @@ def header(path: Path) -> dict[str, str]:
     return dict(read_frame(path).metadata)
 
 
-def reference(scene: str, size: int, spp: int, seed: int, cache: Path) -> Path:
+def reference(scene: str, size: int, spp: int, seed: int, cache: Path, render: bool = True) -> Path | None:
+    """The cached reference (``gradsep reference``) of ``scene``; rendered when missing unless ``render`` is False
+    (then None: the frames are scored on a later run, e.g. while the references render elsewhere)."""
     path = cache / f"ref-{scene.replace(':', '_')}-{size}-{spp}-{seed}.exr"
     if not path.exists():
+        if not render:
+            return None
         gradsep("reference", scene, "--width", str(size), "--height", str(size), "--spp", str(spp), "--seed",
                 str(seed), "-o", str(path))
     return path
@@ -140,82 +146,101 @@ def measured_relmse(frame_path: Path, refs: tuple[Path, Path]) -> float:
     return relmse_unbiased(image, r1, r2)
 
 
+def family(scene: str) -> str:
+    return scene.rsplit(":", 1)[0]
+
+
 def validate(args: argparse.Namespace) -> None:
+    """Render every plan of every (scene, budget, seed) back to back (plan order rotated per seed, so that a drift
+    of the machine's load falls on every plan alike), score the frames whose references exist, and print the
+    targets' summary. A frame already in the cache (``validate.json`` and its EXR) is not rendered again."""
     from gradsep.model.metrics import reference_floor
     from gradsep.renderer.reference import load_reference
 
     cache = Path(args.cache).expanduser()
     cache.mkdir(parents=True, exist_ok=True)
     budgets = [float(s) for s in args.seconds.split(",")]
-    rows = []
-    # a frame already in the cache is not rendered again: its row is taken from the cache's validate.json (so a
-    # new design re-renders only what was deleted, e.g. the auto frames of a copy of the cache)
+    seeds = [7 + i for i in range(args.seeds)]
     path = cache / "validate.json"
-    old = json.loads(path.read_text()) if path.exists() else []
-    cached = {(r["scene"], r["seconds"], p): v for r in old for p, v in r["plans"].items()}
-    for scene in args.scenes.split(","):
-        refs = (reference(scene, args.size, args.ref_spp, 1, cache),
-                reference(scene, args.size, args.ref_spp, 2, cache))
-        floor = reference_floor(*(load_reference(str(p)).total for p in refs))
-        warm_kernels(scene, cache / "warm.exr")
-        for seconds in budgets:
-            row = {"scene": scene, "seconds": seconds, "floor": floor, "plans": {}}
-            for plan, flags in PLANS.items():
-                out = cache / f"frame-{scene.replace(':', '_')}-{seconds:g}-{plan}.exr"
-                if out.exists() and (scene, seconds, plan) in cached:
-                    row["plans"][plan] = cached[scene, seconds, plan]
-                    continue
-                wall, _ = gradsep("render", scene, "--width", str(args.size), "--height", str(args.size),
-                                  "--seconds", f"{seconds:g}", "--seed", "7", *flags, "-o", str(out))
-                meta = header(out)
-                row["plans"][plan] = {"wall": wall, "spp": int(meta["gradsep.spp"]),
-                                      "relmse": measured_relmse(out, refs), "plan": meta.get("gradsep.plan"),
-                                      "predicted": meta.get("gradsep.predicted_relmse"),
-                                      "candidates": meta.get("gradsep.plan_candidates"),
-                                      "pilot": meta.get("gradsep.pilot_seconds")}
-            rows.append(row)
-            print_row(row)
-            (cache / "validate.json").write_text(json.dumps(rows, indent=1))
-    summary(rows, budgets)
+    rows: dict[str, dict] = json.loads(path.read_text()) if path.exists() else {}
+    plans = list(PLANS)
+    scenes = args.scenes.split(",")
+    warmed: set[str] = set()
+    for i, seed in enumerate(seeds):  # seed-major: a run cut short still has every scene at the first seeds
+        for scene in scenes:
+            for seconds in budgets:
+                for plan in plans[i % len(plans):] + plans[:i % len(plans)]:
+                    key = f"{scene}|{seconds:g}|{seed}|{plan}"
+                    out = cache / f"frame-{scene.replace(':', '_')}-{seconds:g}-{seed}-{plan}.exr"
+                    if key in rows and out.exists():
+                        continue
+                    if scene not in warmed:
+                        warm_kernels(scene, cache / "warm.exr")
+                        warmed.add(scene)
+                    wall, _ = gradsep("render", scene, "--width", str(args.size), "--height", str(args.size),
+                                      "--seconds", f"{seconds:g}", "--seed", str(seed), *PLANS[plan], "-o", str(out))
+                    meta = header(out)
+                    rows[key] = {"scene": scene, "seconds": seconds, "seed": seed, "plan": plan, "wall": wall,
+                                 "spp": int(meta["gradsep.spp"]), "chosen": meta.get("gradsep.plan"),
+                                 "predicted": meta.get("gradsep.predicted_relmse"),
+                                 "candidates": meta.get("gradsep.plan_candidates"),
+                                 "pilot": meta.get("gradsep.pilot_seconds"), "trace": meta.get("gradsep.plan_trace"),
+                                 "load": os.getloadavg()[0], "file": out.name}
+                    path.write_text(json.dumps(rows, indent=1))
+                    print(f"{key}: {wall:.1f} s, {rows[key]['spp']} spp, plan {rows[key]['chosen']}", flush=True)
+    floors: dict[str, float] = {}
+    for scene in scenes:  # score what the references allow
+        refs = [reference(scene, args.size, args.ref_spp, s, cache, render=not args.no_references) for s in (1, 2)]
+        if None in refs:
+            print(f"{scene}: references not there yet; its frames are not scored", flush=True)
+            continue
+        totals = [load_reference(str(p)).total for p in refs]
+        floors[scene] = reference_floor(*totals)
+        for row in rows.values():
+            if row["scene"] == scene and "relmse" not in row:
+                row["relmse"] = measured_relmse(cache / row["file"], tuple(refs))  # type: ignore[arg-type]
+                path.write_text(json.dumps(rows, indent=1))
+    summary([r for r in rows.values() if r["scene"] in floors and r["seconds"] in budgets], floors)
 
 
-def print_row(row: dict) -> None:
-    plans = row["plans"]
-    auto = plans["auto"]
-    best = min(FIXED, key=lambda p: plans[p]["relmse"])
-    cells = ", ".join(f"{p} {plans[p]['relmse']:.4g} ({plans[p]['spp']} spp, {plans[p]['wall']:.1f} s)" for p in FIXED)
-    print(f"{row['scene']} T={row['seconds']:g}: auto chose {auto['plan']} -> {auto['relmse']:.4g} ({auto['spp']} spp, "
-          f"{auto['wall']:.1f} s, pilot {auto['pilot']} s); fixed: {cells}; best fixed {best}; "
-          f"auto / best {auto['relmse'] / plans[best]['relmse']:.3f}; predicted {auto['predicted']} "
-          f"(candidates {auto['candidates']}); reference floor {row['floor']:.2g}", flush=True)
-
-
-def summary(rows: list[dict], budgets: list[float]) -> None:
-    print("\n| scene | T (s) | auto's plan | auto / best fixed | predicted / measured (auto) | "
-          + " | ".join(f"{p} / best" for p in FIXED) + " |")
-    print("|---|---:|---|---:|---:|" + "---:|" * len(FIXED))
-    ratios, within = [], 0
-    for row in rows:
-        plans = row["plans"]
-        best = min(plans[p]["relmse"] for p in FIXED)
-        auto = plans["auto"]
-        pred = float(auto["predicted"]) if auto["predicted"] else math.nan
-        ratio = pred / auto["relmse"] if auto["relmse"] > 0 else math.nan
-        within += 1 / 1.5 <= ratio <= 1.5
-        ratios.append(auto["relmse"] / best)
-        print(f"| {row['scene']} | {row['seconds']:g} | {auto['plan']} | {auto['relmse'] / best:.3f} | {ratio:.2f} | "
-              + " | ".join(f"{plans[p]['relmse'] / best:.3f}" for p in FIXED) + " |")
-    geo = math.exp(sum(math.log(r) for r in ratios) / len(ratios))
-    print(f"\nauto / best fixed: geometric mean {geo:.3f}, worst {max(ratios):.3f}; prediction within 1.5x of the "
-          f"measured RelMSE on {within} of {len(rows)} frames")
-    for p in FIXED:  # measured exponent between the two budgets, per scene
-        slopes = []
-        for scene in dict.fromkeys(r["scene"] for r in rows):
-            pair = [r["plans"][p] for r in rows if r["scene"] == scene]
-            lo, hi = (pair[0], pair[-1]) if len(pair) >= 2 else (None, None)
-            if lo and hi and lo["relmse"] > 0 and hi["relmse"] > 0 and hi["spp"] > lo["spp"]:
-                slopes.append(math.log(lo["relmse"] / hi["relmse"]) / math.log(hi["spp"] / lo["spp"]))
-        print(f"error-vs-spp exponent of {p}: " + ", ".join(f"{s:.2f}" for s in slopes))
+def summary(rows: list[dict], floors: dict[str, float]) -> None:
+    """The issue's targets over the scored frames: auto against the best fixed plan of the same (scene, budget,
+    seed), the choice alone (the fixed frame of the plan auto chose against the best), each fixed plan against the
+    best, per family and overall (geometric means, worst, frames above 1.05x), and the prediction's accuracy."""
+    groups: dict[tuple, dict[str, dict]] = {}
+    for r in rows:
+        if "relmse" in r:
+            groups.setdefault((r["scene"], r["seconds"], r["seed"]), {})[r["plan"]] = r
+    complete = {k: g for k, g in groups.items() if set(g) == set(PLANS)}
+    print("\n| scene | T (s) | seed | auto chose | auto / best | chosen plan's frame / best | predicted / measured |"
+          " best fixed | " + " | ".join(f"{p} / best" for p in FIXED) + " | floor / best |")
+    print("|---|---:|---:|---|---:|---:|---:|---|" + "---:|" * (len(FIXED) + 1))
+    stats: dict[str, dict[str, list[float]]] = {}
+    for (scene, seconds, seed), g in sorted(complete.items()):
+        best_plan = min(FIXED, key=lambda p: g[p]["relmse"])
+        best = max(g[best_plan]["relmse"], 1e-30)
+        auto = g["auto"]
+        chosen = g[auto["chosen"]]["relmse"] / best if auto["chosen"] in g else math.nan
+        pred = float(auto["predicted"]) / auto["relmse"] if auto["predicted"] and auto["relmse"] > 0 else math.nan
+        ratios = {"auto": auto["relmse"] / best, "choice": chosen, **{p: g[p]["relmse"] / best for p in FIXED}}
+        for fam in (family(scene), "all"):
+            st = stats.setdefault(fam, {})
+            for name, v in ratios.items():
+                st.setdefault(name, []).append(v)
+            st.setdefault("prediction", []).append(pred)
+        print(f"| {scene} | {seconds:g} | {seed} | {auto['chosen']} | {ratios['auto']:.3f} | {chosen:.3f} | "
+              f"{pred:.2f} | {best_plan} | " + " | ".join(f"{ratios[p]:.3f}" for p in FIXED)
+              + f" | {floors[scene] / best:.3f} |")
+    print()
+    for fam, st in stats.items():
+        def geo(v: list[float]) -> float:
+            v = [x for x in v if x > 0 and math.isfinite(x)]
+            return math.exp(sum(map(math.log, v)) / len(v)) if v else math.nan
+        parts = [f"{name} geo {geo(v):.3f} worst {max(v):.3f} >1.05x on {sum(x > 1.05 for x in v)}/{len(v)}"
+                 for name, v in st.items() if name != "prediction"]
+        pred = st["prediction"]
+        inside = sum(1 / 1.5 <= x <= 1.5 for x in pred)
+        print(f"{fam}: " + "; ".join(parts) + f"; prediction within 1.5x on {inside}/{len(pred)}")
 
 
 def estimate(args: argparse.Namespace) -> None:
@@ -253,10 +278,14 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument("--plans", default="auto,all")
     t.add_argument("--cache", default=str(Path.home() / ".cache/gradsep/planner-bench"))
     v = sub.add_parser("validate")
-    v.add_argument("--scenes", default="procedural:93101,procedural:93102,procedural:93103,procedural:studio:93104")
-    v.add_argument("--size", type=int, default=128)
-    v.add_argument("--seconds", default="20,40")
-    v.add_argument("--ref-spp", type=int, default=2048)
+    v.add_argument("--scenes", default=",".join([f"procedural:{s}" for s in range(93201, 93209)]
+                                                + [f"procedural:studio:{s}" for s in range(93201, 93209)]))
+    v.add_argument("--size", type=int, default=192)
+    v.add_argument("--seconds", default="20")
+    v.add_argument("--seeds", type=int, default=3, help="render seeds per (scene, budget)")
+    v.add_argument("--ref-spp", type=int, default=4096)
+    v.add_argument("--no-references", action="store_true",
+                   help="do not render missing references (score only the scenes whose references exist)")
     v.add_argument("--cache", default=str(Path.home() / ".cache/gradsep/planner-bench"))
     e = sub.add_parser("estimate")
     e.add_argument("--scene", default="procedural:studio:93106")

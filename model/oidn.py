@@ -28,6 +28,7 @@ from __future__ import annotations
 import importlib.util
 import math
 import os
+import sys
 import threading
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -136,6 +137,28 @@ def input_scale(image: np.ndarray) -> float:
     return _TARGET_MEAN / level
 
 
+_import_lock = threading.Lock()
+
+
+def import_pyoidn() -> Any:
+    """``import pyoidn`` without the PyTorch it would import for its optional tensor interface, which gradsep never
+    uses (it passes numpy arrays): importing torch takes 1-2 s of a render budget (`gradsep render --seconds`
+    reconstructs in its pilot) and of a service's start. Where torch is already imported, nothing changes; where
+    it is not, pyoidn sees it as unavailable (its numpy interface is unaffected) and torch stays importable."""
+    if "pyoidn" in sys.modules or "torch" in sys.modules:
+        import pyoidn
+
+        return pyoidn
+    with _import_lock:
+        sys.modules["torch"] = None  # type: ignore[assignment]  # makes `import torch` raise ImportError
+        try:
+            import pyoidn
+        finally:
+            if sys.modules.get("torch", 0) is None:
+                del sys.modules["torch"]
+    return pyoidn
+
+
 class Denoiser:
     """One OIDN device and its three filters (albedo prefilter, normal prefilter, HDR colour), run as ``setting``.
 
@@ -145,7 +168,7 @@ class Denoiser:
     """
 
     def __init__(self, setting: Setting | str = METHOD_SETTING, runtime: str | None = None) -> None:
-        import pyoidn
+        pyoidn = import_pyoidn()
 
         if isinstance(setting, str):
             if setting not in SETTINGS:

@@ -10,8 +10,8 @@ frame's bases and features average the samples of every pass, and its gradients 
 **The pilot** (--gradients auto) is a race. Each candidate (:data:`CANDIDATES`) renders a 1-spp warm-up pass (its
 kernel is compiled or loaded here). Then rounds: each surviving candidate renders ``n`` more samples, and so does
 a primal pass ``B`` (the first round's ``n`` sized so that the candidates and B take about PILOT_SHARE of the
-budget, at most PILOT_MAX_SPP; ``n`` doubles each round). After each round every survivor's race passes so far
-(``N`` samples) are reconstructed with the method that would serve its frame (model.reconstruct's default:
+budget, at most PILOT_MAX_SPP; ``n`` grows ROUND_GROWTH-fold each round). After each round every survivor's race
+passes so far (``N`` samples) are reconstructed with the method that would serve its frame (model.reconstruct's default:
 ``oidn-l1`` with gradients, ``oidn`` for a plain frame), on a few tiles (:func:`tiles`) to bound the cost, and
 compared with the warm-ups and B passes: independent of every candidate's race passes and of each other, so the
 mean over pairs of passes of ``(R - b_j)(R - b_k)`` estimates the reconstruction's squared error with no
@@ -31,6 +31,7 @@ the write still to come, just before ``T``; nothing is started that is predicted
 
 from __future__ import annotations
 
+import json
 import math
 import sys
 import time
@@ -52,24 +53,32 @@ CANDIDATES_KEY = "gradsep.plan_candidates"  # every candidate's prediction, "nam
 BUDGET_KEY = "gradsep.budget_seconds"  # --seconds
 PILOT_SECONDS_KEY = "gradsep.pilot_seconds"  # wall time of the pilot (its kernels, passes, reconstructions)
 ELAPSED_KEY = "gradsep.elapsed_seconds"  # the command's wall time when the frame was encoded (from process start)
+#: The race round by round (JSON: per round, each surviving candidate's samples, estimated RelMSE, its standard
+#: error, seconds per sample and the samples the budget buys it): why the plan was chosen, for a farm to read.
+TRACE_KEY = "gradsep.plan_trace"
 
 #: Share of the budget the race's first round may take (kernel compilation and its reconstructions come on top).
 PILOT_SHARE = 0.1
 #: Share of the budget (of the frame's samples with --spp) after which the race stops: the leader takes the rest.
 RACE_SHARE = 0.35
-#: The most rounds a race runs (each doubles its passes: the first round's samples times 2^MAX_ROUNDS in all).
+#: Each round's passes are this many times the last round's: far enough apart that the pilot reads each plan's
+#: cost per sample apart from its fixed cost per pass (pass_cost; 1 spp of a G-PT pass is ~20 % of its time on a
+#: 192x192 frame), and its error at two clearly different sample counts (measured_exponent).
+ROUND_GROWTH = 4
+#: The most rounds a race runs.
 MAX_ROUNDS = 12
 #: The pilot gives up (no candidate is assessed; FALLBACK is rendered) when its warm-ups -- one compile per
 #: candidate -- took more than this share of the budget.
 PILOT_GIVE_UP = 0.3
-#: What the first reconstruction in a process costs before its work (importing pyoidn, which brings torch, and
-#: creating the OIDN device): ~1.1 s + ~0.8 s measured on the 2-core development machine. Counted against the
+#: What the first reconstruction in a process costs before its work (importing pyoidn -- without torch:
+#: model.oidn.import_pyoidn -- and the reconstruction modules, creating the OIDN device and its filters, loading
+#: the compiled kernels): ~0.2 s + ~0.6 s measured on the 2-core development machine. Counted against the
 #: pilot's share before it is paid, so that a budget too small for it falls back instead of overrunning.
-RECONSTRUCT_STARTUP = 2.0
+RECONSTRUCT_STARTUP = 1.0
 #: The interpreter's exit after the frame is written (part of the command's wall time): ~0.1 s after rendering
 #: alone, ~0.5 s once the reconstruction libraries are loaded (torch, numba, OIDN), measured on the same machine.
 EXIT_SECONDS = (0.1, 0.5)
-#: The most samples of the race's first round (later rounds double them while the race's share allows).
+#: The most samples of the race's first round (later rounds grow by ROUND_GROWTH while the race's share allows).
 PILOT_MAX_SPP = 16
 #: Tiles the pilot reconstructs (side, count) and the border of each left out of the estimate.
 TILE = 128
@@ -262,18 +271,46 @@ def reconstruct_default(frame: Frame) -> tuple[np.ndarray, str]:
 #: The range a slope measured in the pilot is clipped to (a noisy pair of estimates must not promise a raw
 #: frame's 1/spp, nor no gain at all).
 EXPONENT_RANGE = (0.1, 1.0)
+#: How far a candidate's error-vs-spp exponent is believed to stray from its EXPONENTS entry before the pilot
+#: measures it (one standard deviation): the measured slope is weighed against that prior by their variances
+#: (:func:`measured_exponent`), so a slope read from two noisy estimates barely moves it and a clear one does.
+EXPONENT_PRIOR_SD = 0.2
+#: Passes the rest of the frame is expected to take (renderer.budget.fill_to_deadline's passes shrink as the
+#: deadline nears): each pays the candidate's fixed cost per pass.
+FINAL_PASSES = 4
 
 
 def measured_exponent(early: float, early_se: float, n1: int, late: float, late_se: float, n: int,
                       default: float) -> float:
-    """The error-vs-spp exponent between two estimates of one reconstruction's error, at ``n1`` and ``n`` samples,
-    clipped to EXPONENT_RANGE; ``default`` where either estimate is not above twice its standard error (too noisy
-    to take a ratio of)."""
-    if n <= n1 or early <= 2 * early_se or late <= 2 * late_se:
+    """The error-vs-spp exponent of one reconstruction from two estimates of its error, at ``n1`` and ``n``
+    samples: the slope between them weighed against the prior ``default`` (standard deviation EXPONENT_PRIOR_SD)
+    by inverse variances, the slope's variance from the estimates' relative standard errors; clipped to
+    EXPONENT_RANGE. ``default`` where either estimate is not above its standard error (no ratio to take)."""
+    if n <= n1 or early <= early_se or late <= late_se:
         return default
     slope = math.log(early / late) / math.log(n / n1)
-    return min(max(slope, EXPONENT_RANGE[0]), EXPONENT_RANGE[1])
+    slope_var = ((early_se / early) ** 2 + (late_se / late) ** 2) / math.log(n / n1) ** 2
+    prior_var = EXPONENT_PRIOR_SD ** 2
+    blended = (default / prior_var + slope / slope_var) / (1 / prior_var + 1 / slope_var)
+    return min(max(blended, EXPONENT_RANGE[0]), EXPONENT_RANGE[1])
 
+
+def pass_cost(warm: list[tuple[int, float]], fallback: float) -> tuple[float, float]:
+    """(fixed seconds per pass, seconds per sample) of one kind of pass, for comparing plans: the least-squares
+    line through its warm passes ``(spp, seconds)`` when they have two sizes or more (the fixed part clipped to
+    [0, 0.95 x the smallest pass]); else no fixed part and ``fallback`` per sample. Unlike the deadline's
+    conservative rate (renderer.budget.PassCosts.per_sample, the largest recent rate), this is the marginal
+    cost: small pilot passes are mostly fixed cost for G-PT (tracing the kernel), which must not be charged to
+    every sample of the final frame's large passes."""
+    if len({spp for spp, _ in warm}) < 2:
+        return 0.0, fallback
+    n = len(warm)
+    mx = sum(x for x, _ in warm) / n
+    my = sum(y for _, y in warm) / n
+    slope = sum((x - mx) * (y - my) for x, y in warm) / sum((x - mx) ** 2 for x, _ in warm)
+    fixed = min(max(my - slope * mx, 0.0), 0.95 * min(y for _, y in warm))
+    per = max((y - fixed) / x for x, y in warm) if slope <= 0 else slope  # a line gone flat or falling: noise
+    return fixed, max(per, 1e-12)
 
 
 @dataclass
@@ -283,13 +320,14 @@ class Assessment:
     name: str
     pilot_spp: int  # samples of its race passes so far
     measured_relmse: float  # estimated RelMSE of their reconstruction (at pilot_spp)
-    per_sample: float  # seconds per sample per pixel (warm)
+    per_sample: float  # seconds per sample of the whole frame (warm, marginal: pass_cost)
     method: str  # the reconstruction method that serves its frame
     standard_error: float = 0.0  # of measured_relmse (the estimate's noise)
     exponent: float = 0.5  # of the error-vs-spp law it is carried to the budget with
     budget_spp: float = 0.0
     predicted_relmse: float = math.inf
     predicted_se: float = 0.0  # of predicted_relmse (the estimate's noise carried to the budget)
+    pass_seconds: float = 0.0  # fixed cost of one of its passes (pass_cost)
 
 
 @dataclass
@@ -300,6 +338,7 @@ class Plan:
     assessments: list[Assessment]
     pilot_seconds: float
     note: str = ""
+    trace: list[list[dict[str, float | str]]] = field(default_factory=list)  # per round: TRACE_KEY's entries
 
     def predicted(self) -> float:
         return next((a.predicted_relmse for a in self.assessments if a.name == self.chosen.name), math.nan)
@@ -311,6 +350,8 @@ class Plan:
             meta[PREDICTED_RELMSE_KEY] = f"{self.predicted():.6g}"
             meta[CANDIDATES_KEY] = ",".join(f"{a.name}={a.predicted_relmse:.6g}" for a in self.assessments)
             meta[PLAN_METHOD_KEY] = next(a.method for a in self.assessments if a.name == self.chosen.name)
+        if self.trace:
+            meta[TRACE_KEY] = json.dumps(self.trace, separators=(",", ":"))
         return meta
 
     def summary(self) -> str:
@@ -320,6 +361,18 @@ class Plan:
                           for a in self.assessments)
         return (f"plan {self.chosen.name}: predicted RelMSE {parts} (pilot {self.pilot_seconds:.2f} s, {self.note}, "
                 f"method {self.metadata(()).get(PLAN_METHOD_KEY, '?')})")
+
+
+def choose(assessments: list[Assessment]) -> Assessment:
+    """The race's winner: FALLBACK (today's default plan, the safest fixed plan on held-out scenes) unless another
+    candidate's prediction is lower by more than their combined standard errors; then the lowest. A race too
+    short to tell the plans apart keeps the default rather than follow noise."""
+    best = min(assessments, key=lambda a: a.predicted_relmse)
+    default = next((a for a in assessments if a.name == FALLBACK), None)
+    if default is None or best is default:
+        return best
+    margin = math.hypot(best.predicted_se, default.predicted_se)
+    return best if default.predicted_relmse - best.predicted_relmse > margin else default
 
 
 def eliminate(assessments: list[Assessment]) -> list[Assessment]:
@@ -336,11 +389,11 @@ def run_pilot(passes: Passes, budget_spp: Callable[[Assessment], float], *, pilo
               reconstruct: Callable[[Frame], tuple[np.ndarray, str]] = reconstruct_default) -> Plan:
     """Race every applicable candidate (see the module's docstring). The first round's passes take ``pilot_spp``
     samples, or as many as ``pilot_seconds`` of sampling buys each candidate (at most PILOT_MAX_SPP); each later
-    round doubles them, while the race (since its start) is predicted to stay within ``race_seconds`` and its
-    passes within ``race_spp`` samples of the frame. ``budget_spp`` says how many samples the rest of the budget
-    buys a candidate, given its measured cost. When the warm-ups alone took more than ``give_up_after`` seconds,
-    no candidate is assessed and the plan is FALLBACK. ``after_first`` runs after the first pass (the caller's
-    start-up check). Every pass stays in ``passes``."""
+    round multiplies them by ROUND_GROWTH, while the race (since its start) is predicted to stay within
+    ``race_seconds`` and its passes within ``race_spp`` samples of the frame. ``budget_spp`` says how many samples
+    the rest of the budget buys a candidate, given its measured cost. When the warm-ups alone took more than
+    ``give_up_after`` seconds, no candidate is assessed and the plan is FALLBACK. ``after_first`` runs after the
+    first pass (the caller's start-up check). Every pass stays in ``passes``."""
     clock = passes.clock
     start = clock()
     # FALLBACK first: a pilot that gives up after its first warm-up has compiled what it falls back to
@@ -379,6 +432,7 @@ def run_pilot(passes: Passes, budget_spp: Callable[[Assessment], float], *, pilo
         return out
 
     rounds = 0
+    trace: list[list[dict[str, float | str]]] = []
     while True:
         # each survivor's passes, then B's: a primal pass as large, independent of every candidate's passes and
         # the same for every candidate, so that its noise enters every estimate alike and cancels in comparisons
@@ -408,7 +462,9 @@ def run_pilot(passes: Passes, budget_spp: Callable[[Assessment], float], *, pilo
             value = float(np.sum(share * errors))
             se = float(np.sqrt(np.sum((share * np.asarray(errors_se)) ** 2)))
             k = totals[c.name][1]
-            a = Assessment(c.name, k, value, passes.kind(c).costs.per_sample, methods[c.name], se)
+            costs = passes.kind(c).costs
+            fixed, per = pass_cost(costs.warm, costs.per_sample)
+            a = Assessment(c.name, k, value, per, methods[c.name], se, pass_seconds=fixed)
             prev = latest.get(c.name)
             a.exponent = EXPONENTS[c.name] if prev is None else measured_exponent(
                 prev.measured_relmse, prev.standard_error, prev.pilot_spp, value, se, k, EXPONENTS[c.name])
@@ -419,18 +475,25 @@ def run_pilot(passes: Passes, budget_spp: Callable[[Assessment], float], *, pilo
             floor = max(a.measured_relmse, a.standard_error)  # an estimate lost in B's noise counts as its noise
             a.predicted_relmse = at_budget(floor, a.pilot_spp, a.budget_spp, a.exponent)
             a.predicted_se = at_budget(a.standard_error, a.pilot_spp, a.budget_spp, a.exponent)
+        trace.append([{"name": c.name, "spp": latest[c.name].pilot_spp,
+                       "relmse": float(f"{latest[c.name].measured_relmse:.4g}"),
+                       "se": float(f"{latest[c.name].standard_error:.3g}"),
+                       "per_sample": float(f"{latest[c.name].per_sample:.4g}"),
+                       "pass_seconds": float(f"{latest[c.name].pass_seconds:.4g}"),
+                       "exponent": round(latest[c.name].exponent, 3),
+                       "budget_spp": round(latest[c.name].budget_spp)} for c in alive])
         if rounds >= 1:  # the first round's law is assumed (EXPONENTS), not measured: no elimination on it
             names = {a.name for a in eliminate([latest[c.name] for c in alive])}
             alive = [c for c in alive if c.name in names]
         rounds += 1
-        n *= 2
+        n *= ROUND_GROWTH
         cost = sum(passes.kind(c).costs.predict(n) for c in (*alive, primal))
         if (len(alive) == 1 or rounds >= MAX_ROUNDS or clock() - start + cost > race_seconds
                 or passes.spp + n * (len(alive) + 1) > race_spp):
             break
-    chosen = min((latest[c.name] for c in alive), key=lambda a: a.predicted_relmse)
+    chosen = choose([latest[c.name] for c in alive])
     return Plan(candidate(chosen.name), [latest[c.name] for c in candidates], clock() - start,
-                f"{rounds} rounds")
+                f"{rounds} rounds", trace)
 
 
 # ------------------------------------------------------------------------------------------- the frame
@@ -500,7 +563,8 @@ def render_planned(loaded: LoadedScene, layers: tuple[str, ...], *, seed: int, s
         def budget_spp(a: Assessment) -> float:
             if deadline is None:
                 return float(spp)  # type: ignore[arg-type]
-            return passes.spp + max(0.0, deadline.left() - reserve()) / a.per_sample
+            usable = deadline.left() - reserve() - FINAL_PASSES * a.pass_seconds
+            return passes.spp + max(0.0, usable) / a.per_sample
 
         if deadline is not None:
             plan = run_pilot(passes, budget_spp, pilot_seconds=PILOT_SHARE * deadline.seconds,

@@ -177,3 +177,17 @@ def test_every_setting_is_exposure_exact_energy_keeping_and_black_safe(name: str
     np.testing.assert_allclose(denoiser.denoise(pixel, None), pixel, rtol=1e-5)
     with pytest.raises(ValueError, match="unknown OIDN setting"):
         Denoiser("fastest")
+
+
+def test_pyoidn_is_imported_without_torch_and_torch_stays_importable():
+    """pyoidn imports torch for an optional tensor interface gradsep never uses; model.oidn.import_pyoidn keeps that
+    1-2 s out of a render budget (fresh interpreter: nothing imported yet)."""
+    import subprocess
+    import sys
+
+    code = ("import sys; from gradsep.model.oidn import import_pyoidn; p = import_pyoidn(); "
+            "assert 'torch' not in sys.modules, 'torch was imported'; p.Device(); "
+            "import importlib.util\nif importlib.util.find_spec('torch') is not None:\n"
+            "    import torch; assert torch.zeros(1).sum().item() == 0\nprint('ok')")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr

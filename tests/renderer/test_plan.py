@@ -220,16 +220,33 @@ def test_seconds_writes_a_frame_with_its_budget_in_the_header(tmp_path, capsys, 
     assert list(tmp_path.iterdir()) == [out]
 
 
-def test_measured_exponent_reads_the_slope_and_refuses_noise():
+def test_measured_exponent_weighs_the_slope_against_the_prior_by_their_noise():
     from gradsep.renderer.plan import EXPONENT_RANGE, measured_exponent
 
-    assert measured_exponent(0.04, 0.001, 4, 0.01, 0.001, 16, 0.5) == pytest.approx(1.0)
-    assert measured_exponent(0.02, 0.001, 4, 0.01, 0.001, 16, 0.5) == pytest.approx(0.5)
-    assert measured_exponent(0.011, 0.001, 4, 0.01, 0.001, 16, 0.5) == EXPONENT_RANGE[0]  # nearly flat: the floor
-    assert measured_exponent(0.009, 0.001, 4, 0.01, 0.001, 16, 0.5) == EXPONENT_RANGE[0]  # rose: noise
+    # precise estimates (1 % standard error): the measured slope (1.0, 0.5) wins over the prior
+    assert measured_exponent(0.04, 0.0004, 4, 0.01, 0.0001, 16, 0.5) == pytest.approx(1.0, abs=0.01)
+    assert measured_exponent(0.04, 0.0004, 4, 0.02, 0.0002, 16, 0.8) == pytest.approx(0.5, abs=0.01)
+    # noisy estimates (40 % standard error over one doubling): the prior barely moves
+    noisy = measured_exponent(0.04, 0.016, 8, 0.01, 0.004, 16, 0.5)
+    assert 0.5 < noisy < 0.6
+    # in between: between the two, nearer the better-measured one
+    mid = measured_exponent(0.04, 0.004, 4, 0.01, 0.001, 16, 0.5)
+    assert 0.75 < mid < 1.0
+    assert measured_exponent(0.011, 0.0001, 4, 0.01, 0.0001, 16, 0.5) == EXPONENT_RANGE[0]  # flat: the floor
     assert measured_exponent(0.2, 0.001, 4, 0.001, 0.001, 16, 0.5) == 0.5  # the later one is lost in its noise
-    assert measured_exponent(0.04, 0.03, 4, 0.01, 0.001, 16, 0.7) == 0.7
+    assert measured_exponent(0.04, 0.05, 4, 0.01, 0.001, 16, 0.7) == 0.7
     assert measured_exponent(0.04, 0.001, 4, 0.01, 0.001, 4, 0.7) == 0.7  # one sample count: no slope
+
+
+def test_pass_cost_separates_the_fixed_cost_of_a_pass_from_its_samples():
+    from gradsep.renderer.plan import pass_cost
+
+    line = [(n, 0.2 + 0.04 * n) for n in (1, 2, 4, 8)]  # G-PT-like: a 1-spp pass is mostly fixed cost
+    fixed, per = pass_cost(line, fallback=0.24)
+    assert fixed == pytest.approx(0.2) and per == pytest.approx(0.04)
+    assert pass_cost([(2, 0.3), (2, 0.31)], fallback=0.155) == (0.0, 0.155)  # one size: no line
+    fixed, per = pass_cost([(1, 0.30), (2, 0.29)], fallback=0.3)  # timing noise made the line fall
+    assert per > 0 and fixed <= 0.95 * 0.29
 
 
 @pytest.mark.render

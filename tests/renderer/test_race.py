@@ -113,3 +113,18 @@ def test_the_race_keeps_to_its_share_of_the_time(monkeypatch):
     run_pilot(passes, lambda a: 10_000.0, pilot_seconds=0.1, race_seconds=2.0, reconstruct=reconstruct)
     assert passes.now <= 2.0
     assert candidate("all").name in {name for name, _ in passes.runs}
+
+
+def test_choose_keeps_the_default_plan_unless_another_is_clearly_better():
+    from gradsep.renderer.plan import FALLBACK, choose
+
+    def a(name, value, se):
+        x = Assessment(name, 8, value, 1e-3, "fake", se)
+        x.predicted_relmse, x.predicted_se = value, se
+        return x
+
+    default = a(FALLBACK, 1.0, 0.2)
+    assert choose([default, a("primal", 0.9, 0.2)]).name == FALLBACK  # 0.1 lower, within hypot 0.28: noise
+    assert choose([default, a("primal", 0.5, 0.2)]).name == "primal"  # 0.5 lower: clearly better
+    assert choose([a("primal", 0.9, 0.2), a("direct-alternate", 0.95, 0.01)]).name == "primal"  # no default left
+    assert choose([a(FALLBACK, 0.5, 0.3), a("primal", 0.9, 0.0)]).name == FALLBACK
