@@ -95,19 +95,23 @@ class Candidate:
     offsets: str = "all"  # renderer.render.OFFSET_CHOICES
 
 
-#: The plans the pilot compares (small on purpose: each costs a kernel compile and a reconstruction).
+#: The plans the pilot compares (small on purpose: each costs a kernel compile and a reconstruction). The pilot
+#: plans for the default method, ``oidn-l1``, which reads the direct layer's gradients only: ``all`` would give it
+#: the direct gradients of ``direct`` (the same estimator: renderer.render.render_frame) at a higher cost, so it is
+#: no candidate. A farm serving a method that reads every layer's gradients renders ``--gradients all``.
 CANDIDATES: tuple[Candidate, ...] = (
     Candidate("primal", "none"),
     Candidate("direct-alternate", "direct", "alternate"),
-    Candidate("all", "all"),
+    Candidate("direct", "direct", "all"),
 )
-#: Used where no pilot can run (a budget or sample count too small for one): today's `gradsep render` default.
-FALLBACK = "all"
+#: Rendered where no pilot can run (a budget or sample count too small for one), and the plan a race keeps unless
+#: another is clearly better (:func:`choose`): the default method's gradients at every offset.
+FALLBACK = "direct"
 #: Error-vs-spp exponent of each candidate's reconstruction (RelMSE ~ spp^-exponent) where the pilot cannot read its
-#: own (measured_exponent). A denoised frame's error falls far slower than a raw frame's 1/spp: measured between two
-#: budgets (20 s and 40 s at 128x128, 350-3400 spp) on the held-out procedural:93101, 0.43 (primal + oidn), 0.37
-#: (direct-alternate + oidn-l1), 0.54 (all + oidn-l1) (benchmarks/bench_planner.py validate).
-EXPONENTS: dict[str, float] = {"primal": 0.5, "direct-alternate": 0.5, "all": 0.5}
+#: own (measured_exponent), and the prior the measured slope is weighed against. A denoised frame's error falls
+#: far slower than a raw frame's 1/spp: measured between two budgets (20 s and 40 s at 128x128, 350-3400 spp) on
+#: procedural:93101, 0.43 (primal + oidn), 0.37 (direct-alternate + oidn-l1), 0.54 (all + oidn-l1).
+EXPONENTS: dict[str, float] = {"primal": 0.5, "direct-alternate": 0.5, "direct": 0.5}
 
 
 def candidate(name: str) -> Candidate:
@@ -364,7 +368,7 @@ class Plan:
 
 
 def choose(assessments: list[Assessment]) -> Assessment:
-    """The race's winner: FALLBACK (today's default plan, the safest fixed plan on held-out scenes) unless another
+    """The race's winner: FALLBACK (the default method's gradients at every offset) unless another
     candidate's prediction is lower by more than their combined standard errors; then the lowest. A race too
     short to tell the plans apart keeps the default rather than follow noise."""
     best = min(assessments, key=lambda a: a.predicted_relmse)

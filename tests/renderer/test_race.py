@@ -19,7 +19,7 @@ from gradsep.renderer.plan import Assessment, candidate, eliminate, run_pilot
 SIDE = 48
 TRUTH = 0.5 + np.random.default_rng(0).random((SIDE, SIDE, 3))
 #: seconds per sample of each candidate (G-PT traces offset paths: dearer than primal)
-PER_SAMPLE = {"primal": 1e-3, "direct-alternate": 2e-3, "all": 3e-3}
+PER_SAMPLE = {"primal": 1e-3, "direct-alternate": 2e-3, "direct": 3e-3}
 
 
 class FakePasses:
@@ -71,40 +71,40 @@ def test_eliminate_keeps_the_best_and_those_within_the_combined_standard_errors(
         x.predicted_relmse, x.predicted_se = value, se
         return x
 
-    best, close, far = a("all", 1.0, 0.3), a("direct-alternate", 1.4, 0.3), a("primal", 1.5, 0.3)
-    assert [x.name for x in eliminate([far, best, close])] == ["all", "direct-alternate"]  # 0.5 > hypot 0.42
-    assert len(eliminate([a("all", 1.0, 0.0), a("primal", 1.0, 0.0)])) == 2  # ties stay
-    assert [x.name for x in eliminate([a("primal", 2.0, 0.0), a("all", 1.0, 0.0)])] == ["all"]
+    best, close, far = a("direct", 1.0, 0.3), a("direct-alternate", 1.4, 0.3), a("primal", 1.5, 0.3)
+    assert [x.name for x in eliminate([far, best, close])] == ["direct", "direct-alternate"]  # 0.5 > hypot 0.42
+    assert len(eliminate([a("direct", 1.0, 0.0), a("primal", 1.0, 0.0)])) == 2  # ties stay
+    assert [x.name for x in eliminate([a("primal", 2.0, 0.0), a("direct", 1.0, 0.0)])] == ["direct"]
 
 
 def test_the_race_follows_the_measured_law_and_drops_a_flattening_candidate(monkeypatch):
-    """Primal is best at pilot samples but flattens (p = 0.1); ``all`` falls as 1/n. The one-shot pilot's
+    """Primal is best at pilot samples but flattens (p = 0.1); ``direct`` falls as 1/n. The one-shot pilot's
     assumed law carried primal's lead ~10x; the race measures each slope between its rounds, drops primal, and
-    stops once ``all`` alone survives (no more pilot passes)."""
+    stops once ``direct`` alone survives (no more pilot passes)."""
     reconstruct = fake_reconstruction(monkeypatch, {"primal": (0.01, 0.1), "direct-alternate": (0.02, 0.5),
-                                                    "all": (0.1, 1.0)})
+                                                    "direct": (0.1, 1.0)})
     passes = FakePasses()
     result = run_pilot(passes, lambda a: 4096.0, pilot_spp=4, race_spp=0.35 * 4096, reconstruct=reconstruct)
-    assert result.chosen.name == "all"
+    assert result.chosen.name == "direct"
     by_name = {a.name: a for a in result.assessments}
-    assert by_name["all"].exponent == pytest.approx(1.0, abs=0.05) and by_name["primal"].exponent < 0.2
-    assert by_name["all"].predicted_relmse < by_name["primal"].predicted_relmse
+    assert by_name["direct"].exponent == pytest.approx(1.0, abs=0.05) and by_name["primal"].exponent < 0.2
+    assert by_name["direct"].predicted_relmse < by_name["primal"].predicted_relmse
     assert result.note == "2 rounds"  # both others dropped after the first slope was read: the race ends
-    assert passes.spp == 3 * (1 + 4 + 8) + 4 + 8  # warm-ups, two rounds of every candidate and of B
+    assert passes.spp == 3 * (1 + 4 + 16) + 4 + 16  # warm-ups, two rounds (4, then 16 spp) of each and of B
     assert all(math.isfinite(a.predicted_relmse) for a in result.assessments)
 
 
 def test_the_race_stops_at_its_share_when_no_candidate_can_be_told_apart(monkeypatch):
-    """Equal laws: nobody is eliminated (their differences are within the estimates' noise), the rounds double
+    """Equal laws: nobody is eliminated (their differences are within the estimates' noise), the rounds grow
     until the next would pass the race's share of the frame, and every pass stays in the frame."""
     reconstruct = fake_reconstruction(monkeypatch, {c: (0.01, 0.5) for c in PER_SAMPLE})
     passes = FakePasses()
     passes.max_spp = 16
     result = run_pilot(passes, lambda a: 2000.0, pilot_spp=4, race_spp=700, reconstruct=reconstruct)
-    sizes = [n for name, n in passes.runs if name == "all"]
-    assert sizes == [1, 4, 8, 16, 16, 16, 16, 16, 16, 16]  # warm-up, then 4, 8, 16, 32, 64 in passes of <= 16
-    assert passes.spp == 3 + 4 * 124 and {a.pilot_spp for a in result.assessments} == {124}  # 128 more: > 700
-    assert result.note == "5 rounds"
+    sizes = [n for name, n in passes.runs if name == "direct"]
+    assert sizes == [1, 4, 16, 16, 16, 16, 16]  # warm-up, then rounds of 4, 16, 64 in passes of <= 16
+    assert passes.spp == 3 + 4 * 84 and {a.pilot_spp for a in result.assessments} == {84}  # 4 x 256 more: > 700
+    assert result.note == "3 rounds"
 
 
 def test_the_race_keeps_to_its_share_of_the_time(monkeypatch):
@@ -112,7 +112,7 @@ def test_the_race_keeps_to_its_share_of_the_time(monkeypatch):
     passes = FakePasses()
     run_pilot(passes, lambda a: 10_000.0, pilot_seconds=0.1, race_seconds=2.0, reconstruct=reconstruct)
     assert passes.now <= 2.0
-    assert candidate("all").name in {name for name, _ in passes.runs}
+    assert candidate("direct").name in {name for name, _ in passes.runs}
 
 
 def test_choose_keeps_the_default_plan_unless_another_is_clearly_better():
