@@ -67,9 +67,11 @@ import time
 from pathlib import Path
 
 #: The fixed pipelines auto is judged against (issue 39): separated primal + oidn per layer, G-PT direct/alternate
-#: + oidn-l1, G-PT all + the default method, and primal + oidn on the unseparated sum.
+#: + oidn-l1, G-PT all + the default method, primal + oidn on the unseparated sum; and G-PT direct (every offset)
+#: + oidn-l1, auto's third candidate, so that each of its choices has a fixed frame of the same run.
 FIXED = {"primal": ["--gradients", "none"], "direct-alternate": ["--gradients", "direct", "--offsets", "alternate"],
-         "all": ["--gradients", "all"], "primal-sum": ["--gradients", "none", "--layers", "color"]}
+         "all": ["--gradients", "all"], "primal-sum": ["--gradients", "none", "--layers", "color"],
+         "direct": ["--gradients", "direct"]}
 PLANS = {"auto": ["--gradients", "auto"], **FIXED}
 
 
