@@ -11,19 +11,20 @@ frame's bases and features average the samples of every pass, and its gradients 
 kernel is compiled or loaded here). Then rounds: each surviving candidate renders ``n`` more samples, and so does
 a primal pass ``B`` (the first round's ``n`` sized so that the candidates and B take about PILOT_SHARE of the
 budget, at most PILOT_MAX_SPP; ``n`` grows ROUND_GROWTH-fold each round). After each round every survivor's race
-passes so far (``N`` samples) are reconstructed with the method that would serve its frame (model.reconstruct's default:
-``oidn-l1`` with gradients, ``oidn`` for a plain frame), on a few tiles (:func:`tiles`) to bound the cost, and
-compared with the warm-ups and B passes: independent of every candidate's race passes and of each other, so the
-mean over pairs of passes of ``(R - b_j)(R - b_k)`` estimates the reconstruction's squared error with no
-reference (renderer/estimate.py); the same passes for every candidate, so that their noise cancels when
+passes so far (``N`` samples) are reconstructed with the method that would serve its frame (model.reconstruct's
+default: ``oidn-l1`` with gradients, ``oidn`` for a plain frame), on a few tiles (:func:`tiles`) to bound the
+cost, and compared with the warm-ups and B passes: independent of every candidate's race passes and of each
+other, so the mean over pairs of passes of ``(R - b_j)(R - b_k)`` estimates the reconstruction's squared error
+with no reference (renderer/estimate.py); the same passes for every candidate, so that their noise cancels when
 candidates are compared. That error, at the candidate's *current* samples, is carried to the samples the rest
-of the budget buys it (its measured cost per sample) with ``error ~ spp^-exponent``, the exponent measured
-between its last two rounds (:func:`measured_exponent`; :data:`EXPONENTS` in the first round). From the second
-round on, a candidate whose prediction is worse than the best one's by more than their combined standard errors
-leaves the race (:func:`eliminate`). The race ends when one candidate survives, or before a round that would take
-it past RACE_SHARE of the budget (of the frame's samples with --spp); the lowest prediction wins and the rest of
-the budget is its passes. The law is measured late and carried only over what is left because it differs by
-method (primal + oidn flattens, G-PT + oidn-l1 keeps falling; docs/renderer.md "The render planner").
+of the budget buys it with ``error ~ spp^-exponent``: its cost is the marginal cost per sample and the fixed
+cost per pass read from its passes of different sizes (:func:`pass_cost`), its exponent the prior EXPONENTS
+weighed against the slope between its last two rounds by their noise (:func:`measured_exponent`). From the
+second round on, a candidate whose prediction is worse than the best one's by more than their combined standard
+errors leaves the race (:func:`eliminate`). The race ends when one candidate survives, or before a round that
+would take it past RACE_SHARE of the budget (of the frame's samples with --spp); FALLBACK wins unless another
+candidate's prediction is lower by more than their combined standard errors (:func:`choose`), and the rest of
+the budget is the winner's passes.
 
 **The deadline** (renderer/budget.py): passes are sized from their measured cost so that the last one ends, with
 the write still to come, just before ``T``; nothing is started that is predicted to miss it.
