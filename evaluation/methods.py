@@ -979,7 +979,8 @@ def _run_gpt_auto(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
         "target_seconds": target, "budget_method": ctx.budget_method, "attempts": 1, "time_search": PLANNED_TIME,
         "time_tries": [(planned.spp, total)], "gradients": chosen.gradients,
         "time_note": _planned_time_note(target, render_seconds, post_seconds, tail, refused,
-                                        assessed.get(chosen.name), chosen.name),
+                                        assessed.get(chosen.name), chosen.name,
+                                        plan.pilot_seconds if plan is not None else 0.0),
         "plan": chosen.name, "plan_layers": plan_layers_text(chosen, layers), "plan_method": result.method,
         "plan_candidates": {name: _finite_or_none(a.predicted_relmse) for name, a in assessed.items()},
         "predicted_relmse": _finite_or_none(predicted),
@@ -998,11 +999,11 @@ def _finite_or_none(value: float) -> float | None:
 
 
 def _planned_time_note(target: float, render: float, post: float, tail: float, refused: str,
-                       chosen: Any, plan: str) -> str:
+                       chosen: Any, plan: str, pilot: float) -> str:
     """Why the planned row's total is outside ±TOLERANCE of ``target`` ("" when it is within): the budget was
     below the planner's start-up (``refused``), the render ended early (pass granularity: the planner starts no
-    pass predicted to end past the deadline) or late (a pass slower than predicted), and/or the reconstruction
-    took other than the ``tail`` reserved for it."""
+    pass predicted to end past the deadline) or late (the ``pilot`` alone ran past it, or a pass was slower than
+    predicted), and/or the reconstruction took other than the ``tail`` reserved for it."""
     total = render + post
     if abs(total / target - 1.0) <= PathRenderer.TOLERANCE:
         return ""
@@ -1016,8 +1017,9 @@ def _planned_time_note(target: float, render: float, post: float, tail: float, r
         parts.append(f"the render stopped {early:.3g} s before the budget less the reconstruction's reserve: the "
                      f"next pass of `{plan}`{per} was predicted not to fit (pass granularity)")
     elif early < -significant:
-        parts.append(f"the render ended {-early:.3g} s past the budget less the reconstruction's reserve (a pass "
-                     "slower than predicted)")
+        why = (f"the pilot alone took {pilot:.3g} s: its warm-ups and first round are not cut short"
+               if pilot > target - tail else "a pass slower than predicted")
+        parts.append(f"the render ended {-early:.3g} s past the budget less the reconstruction's reserve ({why})")
     if abs(post - tail) > significant:
         parts.append(f"the reconstruction took {post:.3g} s against the {tail:.3g} s reserved")
     return "; ".join(parts) or "several small overruns"

@@ -83,6 +83,27 @@ def test_a_planned_row_outside_the_tolerance_is_listed_with_its_reason():
 # ------------------------------------------------------------------------------------------ the row
 
 
+def test_the_planned_rows_time_note_names_what_missed():
+    """Within ±5 %: no note. Else the part that missed: a refused budget, the render stopping a pass short, the
+    pilot or a pass running past the deadline, the reconstruction against its reserve."""
+    from types import SimpleNamespace
+
+    from gradsep.evaluation.methods import _planned_time_note as note
+
+    assert note(2.0, 1.7, 0.25, 0.25, "", None, "all", 0.5) == ""
+    assert note(0.1, 0.5, 0.01, 0.01, "below start-up", None, "all", 0.0) == (
+        "below start-up (render 0.5 s, the refused attempt included)")
+    early = note(2.0, 1.2, 0.25, 0.25, "", SimpleNamespace(per_sample=0.3), "primal", 0.5)
+    assert early.startswith("the render stopped 0.55 s before") and "`primal` (0.3 s per spp)" in early
+    assert "granularity" in early and ";" not in early  # the reconstruction took what was reserved
+    pilot = note(2.0, 2.2, 0.25, 0.25, "", None, "all", 2.1)
+    assert "ended 0.45 s past" in pilot and "the pilot alone took 2.1 s" in pilot
+    slow = note(2.0, 2.2, 0.25, 0.25, "", None, "all", 0.5)
+    assert "a pass slower than predicted" in slow
+    recon = note(2.0, 1.75, 0.6, 0.25, "", None, "all", 0.5)
+    assert recon == "the reconstruction took 0.6 s against the 0.25 s reserved"
+
+
 def test_the_planned_row_is_keyed_by_the_planner_sources():
     """A planner change must recompute the row: its key holds the planner's code, and every file named exists
     (a missing one would hash as "absent" and never change)."""
