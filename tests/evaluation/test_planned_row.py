@@ -80,6 +80,20 @@ def test_a_planned_row_outside_the_tolerance_is_listed_with_its_reason():
     assert "gpt-auto: 1.6 s for a 2 s budget (-20%; 1 try, kept 16 spp): pass granularity" in miss
 
 
+def test_a_planned_row_over_its_budget_does_not_count_as_the_best_g_pt_at_equal_time():
+    """More time than the rows it is compared with: its RelMSE is shown but wins nothing; an early one counts."""
+    from gradsep.evaluation.report import _fused_and_equal_time_targets, over_budget
+
+    late = _auto(16, 0.001, 0.001, total_seconds=2.2)  # budget 2 s: +10 %
+    assert over_budget(late) and not over_budget({**late, "total_seconds": 2.09})
+    assert not over_budget({**late, "total_seconds": 1.2}) and not over_budget(_row("oidn-l1", 16, 0.1))
+    rows = [late, _row("oidn-l1", 16, 0.011), _row("path-oidn", 16, 0.02, budget_method="oidn-l1")]
+    text = "\n".join(_fused_and_equal_time_targets(rows))
+    assert "the best G-PT row (`oidn-l1`)" in text
+    text = "\n".join(_fused_and_equal_time_targets([{**late, "total_seconds": 1.9}, *rows[1:]]))
+    assert "the best G-PT row (`gpt-auto`)" in text
+
+
 # ------------------------------------------------------------------------------------------ the row
 
 
