@@ -362,7 +362,9 @@ def seed_mean(rows: list[dict[str, Any]]) -> dict[str, Any]:
     interpolated to it), ``method_spp`` the seeds' median. ``seeds``, ``seed_relmse``, ``seed_spp`` and
     ``seed_seconds`` keep the seeds' own values, ``relmse_stderr`` the standard error of the mean RelMSE (sample
     standard deviation / √seeds). A seed interpolated to the budget is named in ``time_interpolated``. The planned
-    row (``gpt-auto``) also keeps each seed's ``seed_plan``, ``seed_predicted_relmse`` and ``seed_predicted_note``."""
+    row (``gpt-auto``) also keeps each seed's ``seed_plan``, ``seed_predicted_relmse`` and ``seed_predicted_note``;
+    its ``plan`` is the seeds' plans (``primal/all`` where they differ), its ``predicted_relmse`` their mean (None
+    when a seed has none), like its RelMSE."""
     import statistics
 
     first = rows[0]
@@ -380,9 +382,12 @@ def seed_mean(rows: list[dict[str, Any]]) -> dict[str, Any]:
                 "method_spp": int(statistics.median_low([int(r["method_spp"]) for r in rows])),
                 "relmse_stderr": statistics.stdev(relmse) / math.sqrt(len(rows)) if len(rows) > 1 else 0.0})
     if any("plan" in r for r in rows):  # the planned row: each seed's own plan and prediction
-        out.update({"seed_plan": [r.get("plan") for r in rows],
-                    "seed_predicted_relmse": [r.get("predicted_relmse") for r in rows],
-                    "seed_predicted_note": [r.get("predicted_note") for r in rows]})
+        predicted = [r.get("predicted_relmse") for r in rows]
+        out.update({"seed_plan": [r.get("plan") for r in rows], "seed_predicted_relmse": predicted,
+                    "seed_predicted_note": [r.get("predicted_note") for r in rows],
+                    "plan": "/".join(dict.fromkeys(str(r.get("plan")) for r in rows)),
+                    "predicted_relmse": (float(np.mean(predicted)) if all(p is not None for p in predicted)
+                                         else None)})
     interpolated = [f"seed {k}: {r['time_interpolated']}" for k, r in enumerate(rows) if r.get("time_interpolated")]
     out.pop("time_interpolated", None)
     out.pop("time_bracket", None)

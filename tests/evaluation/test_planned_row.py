@@ -25,7 +25,7 @@ SCENE = "procedural:90001"
 
 def _row(method: str, spp: int, relmse: float, scene: str = "s", **extra) -> dict:
     return {"scene": scene, "method": method, "spp": spp, "relmse": relmse, "method_spp": spp, "total_seconds": 1.0,
-            **extra}
+            "render_seconds": 0.9, "reconstruct_seconds": 0.1, **extra}
 
 
 def _auto(spp: int, relmse: float, predicted: float | None, scene: str = "s", **extra) -> dict:
@@ -92,6 +92,22 @@ def test_a_planned_row_over_its_budget_does_not_count_as_the_best_g_pt_at_equal_
     assert "the best G-PT row (`oidn-l1`)" in text
     text = "\n".join(_fused_and_equal_time_targets([{**late, "total_seconds": 1.9}, *rows[1:]]))
     assert "the best G-PT row (`gpt-auto`)" in text
+
+
+def test_a_multi_seed_planned_row_keeps_each_seeds_plan_and_prediction():
+    from gradsep.evaluation.run import seed_mean
+
+    seeds = [_auto(16, 0.01, 0.012), {**_auto(16, 0.02, None), "predicted_note": "too small"},
+             {**_auto(16, 0.03, 0.02), "plan": "primal"}]
+    row = seed_mean(seeds)
+    assert row["seed_plan"] == ["direct-alternate", "all", "primal"] and row["plan"] == "direct-alternate/all/primal"
+    assert row["seed_predicted_relmse"] == [0.012, None, 0.02] and row["predicted_relmse"] is None
+    assert row["seed_predicted_note"] == [None, "too small", None]
+    assert seed_mean(seeds[::2])["predicted_relmse"] == pytest.approx(0.016)
+    frames = planned_frames(row)
+    assert [(f.label, f.plan, f.predicted, f.note, f.measured) for f in frames] == [
+        ("seed 0", "direct-alternate", 0.012, None, 0.01), ("seed 1", "all", None, "too small", 0.02),
+        ("seed 2", "primal", 0.02, None, 0.03)]
 
 
 # ------------------------------------------------------------------------------------------ the row
