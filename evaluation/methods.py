@@ -34,6 +34,10 @@ Every method produces (image, per-layer images where it has them, render seconds
                             :data:`EQUAL_TIME_OFFSETS`) at the spp the budget buys, reconstructed with ``oidn-l1``
                             -- what a farm gets from our renderer + service in the time the baselines are given
                             (the G-PT rows above are at equal spp, each at its own time)
+``gpt-auto``                G-PT *planned* at equal time: ``gradsep render --seconds T --gradients auto`` in
+                            process (renderer.plan.render_planned: a pilot race picks primal, direct-alternate
+                            or all, then passes fill the deadline), reconstructed with the default method the
+                            frame names (``gradsep.plan_method``); one shot to the budget, see below
 ==========================  ===============================================================================
 
 Equal time: the budget of a G-PT spp is the G-PT render time plus the reconstruction time of the product's default
@@ -55,9 +59,21 @@ report lists every such row with that reason. Such a row with tries on both side
 (evaluation.run.interpolated_scores; the report marks it). The time in the results is the time the kept try actually
 took (the median of its timings), not the prediction.
 
+The planned row (``gpt-auto``) is not searched: it renders once to a :class:`~renderer.budget.Deadline` that starts
+when the row starts and has the whole budget, whose tail (``Deadline.tail``, what must be left when the last pass
+ends) is the measured cost of reconstructing the frame: the slowest of the candidates' default reconstructions,
+each timed like a searched row's post-processing (:meth:`PathRenderer.planner_tail`). Everything it does is charged:
+the pilot (its warm-up passes, race passes and tile reconstructions), the passes that fill the deadline and the
+reconstruction. It keeps one try (``attempts`` 1); a total outside ±5 % records why (``time_note``: pass
+granularity, a pass or the reconstruction slower than predicted, a budget below one pass). Its ``extra`` records
+the plan chosen, each candidate's predicted RelMSE and the chosen one's (``predicted_relmse``; None with
+``predicted_note`` where no pilot ran and the planner fell back to ``all``).
+
 Timings exclude one-time costs on both sides: each network is run once untimed per frame size (ONNX
 Runtime's allocation on a new shape), Mitsuba's kernels are compiled before the timed render. The G-PT
-render time is the renderer's own (``gradsep.render_seconds``), which includes its per-frame tracing.
+render time is the renderer's own (``gradsep.render_seconds``), which includes its per-frame tracing. The planned
+row's kernels (one per candidate) and its reconstruction (on the frame's and the pilot tiles' sizes) are run once
+untimed per scene; its per-frame tracing is timed.
 """
 
 from __future__ import annotations
@@ -91,6 +107,8 @@ __all__ = [
     "TIME_SEARCH",
     "TimeSearch",
     "FEATURE_SPP",
+    "PLANNER_SOURCES",
+    "PLAN_ROW_KEYS",
     "PathRenderer",
     "CostModel",
     "unavailable",
@@ -108,6 +126,12 @@ METHOD_SOURCES: tuple[str, ...] = ("evaluation/methods.py", "model/oidn.py", "mo
                                    "model/infer.py", "model/preprocess.py", "model/metrics.py", "model/refine.py",
                                    "model/kernels.py", "model/policy.py", "model/fused.py", "model/oidn_onnx.py",
                                    "model/methods.py", "model/builtin_methods.py")
+#: The render planner's source files: part of the ``gpt-auto`` row's cache key (with the renderer's), so a planner
+#: change recomputes that row, and only that row.
+PLANNER_SOURCES: tuple[str, ...] = ("renderer/plan.py", "renderer/budget.py", "renderer/estimate.py")
+#: What a ``gpt-auto`` row records of its plan (MethodOutput.extra -> the row; evaluation/report.py reads them).
+PLAN_ROW_KEYS: tuple[str, ...] = ("plan", "plan_layers", "plan_method", "plan_candidates", "predicted_relmse",
+                                  "predicted_note", "pilot_seconds", "plan_note", "gradient_spp")
 
 
 @dataclass(frozen=True)
@@ -116,7 +140,7 @@ class MethodSpec:
 
     name: str
     label: str
-    kind: str  # primal | recon | network | path | oidn | sep-oidn | gpt-equal
+    kind: str  # primal | recon | network | path | oidn | sep-oidn | gpt-equal | gpt-auto
     method: str | None = None  # recon, gpt-equal: the method of the table (model/methods.py) it runs
     models: str | None = None
     short: str = ""  # its label in Table 1 and the crops (default: ``label``)
@@ -211,11 +235,13 @@ def evaluated_methods() -> tuple[MethodSpec, ...]:
                    short="sep. path + OIDN per layer (equal time)"),
         MethodSpec("gpt-oidn-l1", "G-PT (direct gradients) + oidn-l1 (equal time)", "gpt-equal", method="oidn-l1",
                    gradients="direct", short="G-PT + oidn-l1 (equal time)"),
+        MethodSpec("gpt-auto", "G-PT planned (--gradients auto) + default method (equal time)", "gpt-auto",
+                   short="G-PT auto (equal time)"),
     )
 
 
 #: Methods rendered to a time budget rather than reconstructing the G-PT frame.
-EQUAL_TIME_KINDS: tuple[str, ...] = ("path", "oidn", "sep-oidn", "gpt-equal")
+EQUAL_TIME_KINDS: tuple[str, ...] = ("path", "oidn", "sep-oidn", "gpt-equal", "gpt-auto")
 #: Offsets of the equal-time G-PT row's render (``gradsep render --offsets``): ``alternate`` traces one offset per
 #: axis (every pixel pair keeps both MIS techniques on half the samples), so the budget buys more samples; chosen
 #: on held-out procedural scenes, docs/evaluation.md "Equal-time G-PT".
@@ -224,7 +250,7 @@ EQUAL_TIME_OFFSETS = "alternate"
 
 def unavailable(spec: MethodSpec) -> str | None:
     """Why ``spec`` cannot run on this host (None: it can). Model files are checked separately."""
-    needs_oidn = spec.kind in ("oidn", "sep-oidn", "gpt-equal") or (
+    needs_oidn = spec.kind in ("oidn", "sep-oidn", "gpt-equal", "gpt-auto") or (
         spec.kind == "recon" and "oidn" in table.get(str(spec.method)).models)
     if needs_oidn and not table.LoadedModels().has("oidn"):
         return "pyoidn is not installed (pip install 'gradsep[evaluate]')"
@@ -654,6 +680,28 @@ class PathRenderer:
             self.render(kind, 1, 7)
             self._warm.add(kind)
 
+    def planner_tail(self, layers: tuple[str, ...]) -> float:
+        """The planned row's reconstruction time on this scene: the slowest of the planner's candidates' default
+        reconstructions (model.reconstruct's default for the candidate's frame: ``oidn-l1`` with gradients,
+        ``oidn`` for a plain frame; the plan is not known before its pilot), each measured by
+        :meth:`post_seconds` on a 1-spp frame of that candidate. Measured once per scene; the first call also
+        compiles each candidate's kernel and runs the reconstruction once on the pilot's tile size (one-time
+        costs, untimed like every row's)."""
+        from gradsep.model.reconstruct import reconstruct
+        from gradsep.renderer.plan import Passes, applicable, as_frame, crop, tiles
+
+        seconds = []
+        for c in applicable(layers):
+            name = f"gpt-auto:{c.name}"
+            if name not in self._post_seconds:
+                passes = Passes(self.loaded, layers, seed=29)
+                passes.run(c, 1)  # compiles (or loads) the candidate's kernel
+                frame = as_frame(passes.frame_result(c))
+                reconstruct(crop(frame, tiles(frame.width, frame.height)[0]))  # the pilot's tile size
+                self.post_seconds(name, lambda frame=frame: reconstruct(frame))
+            seconds.append(self._post_seconds[name])
+        return max(seconds)
+
     def cost(self, kind: str) -> CostModel:
         """The cost model of ``kind``, measured once per scene after an untimed compile render.
 
@@ -762,7 +810,8 @@ class MethodContext:
 def run_method(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
     """Run one method; ModelError for a model that exists but cannot be served."""
     runner = {"primal": _run_primal, "network": _run_network, "recon": _run_recon, "path": _run_path,
-              "oidn": _run_oidn, "sep-oidn": _run_sep_oidn, "gpt-equal": _run_gpt_equal}[spec.kind]
+              "oidn": _run_oidn, "sep-oidn": _run_sep_oidn, "gpt-equal": _run_gpt_equal,
+              "gpt-auto": _run_gpt_auto}[spec.kind]
     return runner(spec, ctx)
 
 
@@ -883,6 +932,97 @@ def _run_frame_within(spec: MethodSpec, ctx: MethodContext, kind: str, method: s
     return MethodOutput(result.image, result.layers, got.render_seconds, got.post_seconds, got.spp,
                         extra=_equal_time_extra(ctx, target, got, renderer.max_spp), warnings=list(result.warnings),
                         bracket=_bracket_outputs(got, lambda r: (r.image, dict(r.layers))))
+
+
+#: How the planned row meets its budget (recorded per row as ``time_search``, like the searched rows' TIME_SEARCH).
+PLANNED_TIME = "one render to the planner's deadline"
+
+
+def _run_gpt_auto(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
+    """The render planner at equal time: ``render_planned`` (pilot race, then passes) to a deadline that starts
+    now with the whole budget and keeps the measured reconstruction time as its tail, then the default method the
+    frame names. One shot: the measured total is recorded against the budget with the reason of a miss. A budget
+    below the planner's start-up (CommandError: one pass and the reconstruction do not fit) renders 1 spp of the
+    fallback plan regardless, recorded as such; a pilot that gave up records why, with no prediction."""
+    from gradsep.model.errors import CommandError
+    from gradsep.model.frame import PLAN_METHOD_KEY
+    from gradsep.model.reconstruct import reconstruct
+    from gradsep.renderer.budget import Deadline
+    from gradsep.renderer.plan import FALLBACK, candidate, plan_layers_text, render_planned
+
+    renderer = ctx.path()
+    target = _budget(ctx)
+    layers = tuple(ctx.frame.layers)
+    tail = renderer.planner_tail(layers)
+    seed = int(ctx.seed) % (1 << 32)
+    start = time.perf_counter()
+    deadline = Deadline(target, tail=tail)
+    refused = ""
+    try:
+        planned = render_planned(renderer.loaded, layers, seed=seed, shift=None, fixed=None, deadline=deadline)
+    except CommandError:  # not one pass + the reconstruction fit: what `gradsep render --seconds` refuses
+        refused = (f"the budget is below the planner's start-up here (its first pass, then {tail:.3g} s of "
+                   f"reconstruction): 1 spp of `{FALLBACK}` rendered regardless")
+        planned = render_planned(renderer.loaded, layers, seed=seed, shift=None, fixed=candidate(FALLBACK), spp=1)
+    frame, plan = planned.frame, planned.plan
+    frame.metadata = plan.metadata(layers) if plan is not None else {}
+    rendered = time.perf_counter()
+    result = reconstruct(frame, frame.metadata.get(PLAN_METHOD_KEY))
+    done = time.perf_counter()
+    render_seconds, post_seconds = rendered - start, done - rendered
+    total = render_seconds + post_seconds
+
+    chosen = planned.candidate
+    assessed = {a.name: a for a in plan.assessments} if plan is not None else {}
+    predicted = plan.predicted() if assessed else math.nan
+    extra: dict[str, Any] = {
+        "target_seconds": target, "budget_method": ctx.budget_method, "attempts": 1, "time_search": PLANNED_TIME,
+        "time_tries": [(planned.spp, total)], "gradients": chosen.gradients,
+        "time_note": _planned_time_note(target, render_seconds, post_seconds, tail, refused,
+                                        assessed.get(chosen.name), chosen.name,
+                                        plan.pilot_seconds if plan is not None else 0.0),
+        "plan": chosen.name, "plan_layers": plan_layers_text(chosen, layers), "plan_method": result.method,
+        "plan_candidates": {name: _finite_or_none(a.predicted_relmse) for name, a in assessed.items()},
+        "predicted_relmse": _finite_or_none(predicted),
+        "pilot_seconds": plan.pilot_seconds if plan is not None else 0.0,
+        "plan_note": plan.note if plan is not None else "", "gradient_spp": planned.gradient_spp,
+    }
+    if extra["predicted_relmse"] is None:
+        extra["predicted_note"] = (refused or (plan.note if plan is not None and not assessed else "")
+                                   or "the chosen plan's prediction is not finite")
+    return MethodOutput(result.image, result.layers, render_seconds, post_seconds, planned.spp, extra=extra,
+                        warnings=[*frame.warnings, *result.warnings])
+
+
+def _finite_or_none(value: float) -> float | None:
+    return float(value) if math.isfinite(value) else None
+
+
+def _planned_time_note(target: float, render: float, post: float, tail: float, refused: str,
+                       chosen: Any, plan: str, pilot: float) -> str:
+    """Why the planned row's total is outside ±TOLERANCE of ``target`` ("" when it is within): the budget was
+    below the planner's start-up (``refused``), the render ended early (pass granularity: the planner starts no
+    pass predicted to end past the deadline) or late (the ``pilot`` alone ran past it, or a pass was slower than
+    predicted), and/or the reconstruction took other than the ``tail`` reserved for it."""
+    total = render + post
+    if abs(total / target - 1.0) <= PathRenderer.TOLERANCE:
+        return ""
+    if refused:  # the refused attempt's time is in the render's
+        return f"{refused} (render {render:.3g} s, the refused attempt included)"
+    parts = []
+    early = (target - tail) - render  # time the render left unused before the reconstruction's reserve
+    significant = 0.01 * target
+    if early > significant:
+        per = f" ({chosen.per_sample:.3g} s per spp)" if chosen is not None else ""
+        parts.append(f"the render stopped {early:.3g} s before the budget less the reconstruction's reserve: the "
+                     f"next pass of `{plan}`{per} was predicted not to fit (pass granularity)")
+    elif early < -significant:
+        why = (f"the pilot alone took {pilot:.3g} s: its warm-ups and first round are not cut short"
+               if pilot > target - tail else "a pass slower than predicted")
+        parts.append(f"the render ended {-early:.3g} s past the budget less the reconstruction's reserve ({why})")
+    if abs(post - tail) > significant:
+        parts.append(f"the reconstruction took {post:.3g} s against the {tail:.3g} s reserved")
+    return "; ".join(parts) or "several small overruns"
 
 
 def _bracket_outputs(got: Attempt, convert: Callable[[Any], tuple[np.ndarray, dict[str, np.ndarray]]],

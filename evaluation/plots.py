@@ -47,6 +47,7 @@ METHOD_STYLES: dict[str, tuple[str, str, str]] = {
     "oidn-l1": ("#bcbd22", "-", "v"),
     "fused": ("#000000", "-", "*"),
     "gpt-oidn-l1": ("#ff7f0e", "--", "v"),
+    "gpt-auto": ("#1f77b4", "--", "p"),
 }
 
 

@@ -2,7 +2,8 @@
 
 report.md reads top to bottom as: how it was made (command, machine, software, settings, models, skipped
 methods), the paper's Table 1 (input, L1, GradNet-style, ours) and Fig. 7 ablation, the equal-time comparison
-with Mitsuba ``path`` and OIDN, where ours loses, and the full RelMSE-by-spp tables. Nothing in it is written by
+with Mitsuba ``path`` and OIDN, the planner's choice (the ``gpt-auto`` row's plan, predicted against measured
+error), where ours loses, and the full RelMSE-by-spp tables. Nothing in it is written by
 hand: every sentence that compares methods is computed from the rows, so a rerun with other models says what
 is true for those.
 """
@@ -19,6 +20,7 @@ import platform
 import shlex
 import sys
 from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -41,7 +43,7 @@ CSV_COLUMNS: tuple[str, ...] = (
     "scene", "method", "spp", "method_spp", "width", "height", "render_seconds", "reconstruct_seconds",
     "total_seconds", "relmse", "ssim", "psnr", "flip", "relmse_direct", "relmse_indirect", "target_seconds",
     "budget_method", "attempts", "feature_spp", "time_note", "gradients", "time_interpolated", "seeds",
-    "relmse_stderr",
+    "relmse_stderr", "plan", "predicted_relmse",
 )
 def labels() -> dict[str, str]:
     """Every evaluated method's label (evaluation.methods, which reads the table of methods)."""
@@ -260,6 +262,7 @@ def render_report(evaluation: Evaluation) -> str:
     lines += _table1(evaluation, spp)
     lines += _ablation(evaluation, spp)
     lines += _equal_time(evaluation)
+    lines += planner_choice(evaluation.rows)
     lines += ["## Error against time", "",
               "RelMSE against total wall time per frame (render + reconstruction), log–log, one curve per method; "
               "a curve further down-left is better at equal time. Each point is one G-PT spp of the list above; "
@@ -399,12 +402,21 @@ def _ablation_verdicts(evaluation: Evaluation, spp: int) -> list[str]:
     return lines
 
 
-EQUAL_TIME: tuple[tuple[str, str], ...] = (("gpt-oidn-l1", "G-PT+oidn-l1"), ("path", "path"),
+EQUAL_TIME: tuple[tuple[str, str], ...] = (("gpt-oidn-l1", "G-PT+oidn-l1"), ("gpt-auto", "G-PT auto"), ("path", "path"),
                                            ("path-oidn", "path+OIDN"), ("path-sep-oidn", "sep. path+OIDN/layer"))
 #: The equal-time rows that are G-PT methods themselves (counted in *best G-PT*), not baselines.
-GPT_EQUAL_TIME: frozenset[str] = frozenset({"gpt-oidn-l1"})
+GPT_EQUAL_TIME: frozenset[str] = frozenset({"gpt-oidn-l1", "gpt-auto"})
 #: An equal-time row is flagged when its measured total misses its budget by more than this.
 TIME_TOLERANCE = 0.05
+
+
+def over_budget(row: Mapping[str, Any]) -> bool:
+    """An equal-time row that took more than TIME_TOLERANCE over its budget (:func:`row_seconds`: an interpolated
+    row stands for its budget): it does not count as a G-PT result at equal time (*best G-PT*, the equal-time
+    targets), as it had more time than the rows it would be compared with. The planned row, not searched, is the
+    one this happens to (a pilot or a pass running past its deadline)."""
+    target = row.get("target_seconds")
+    return bool(target) and float(target) > 0 and row_seconds(row) > float(target) * (1 + TIME_TOLERANCE)
 
 
 def time_misses(rows: Sequence[Mapping[str, Any]]) -> list[str]:
@@ -418,9 +430,10 @@ def time_misses(rows: Sequence[Mapping[str, Any]]) -> list[str]:
         miss = float(r["total_seconds"]) / float(target) - 1.0
         if abs(miss) > TIME_TOLERANCE:
             reason = r.get("time_note") or "no reason recorded"
+            tries = r.get("attempts", "?")
             out.append(f"{r['scene']}, {r['spp']} spp, {r['method']}: {float(r['total_seconds']):.3g} s for a "
-                       f"{float(target):.3g} s budget ({miss:+.0%}; {r.get('attempts', '?')} tries, kept "
-                       f"{r['method_spp']} spp): {reason}")
+                       f"{float(target):.3g} s budget ({miss:+.0%}; {tries} {'try' if tries == 1 else 'tries'}, "
+                       f"kept {r['method_spp']} spp): {reason}")
     return out
 
 
@@ -471,7 +484,8 @@ def _seeds_sentence(rows: Sequence[Mapping[str, Any]]) -> str:
 
 def _search_method(rows: Sequence[Mapping[str, Any]]) -> str:
     """How the rows' equal-time spp were found (each row records it; cached rows may predate the search)."""
-    methods = sorted({str(r.get("time_search") or "bisected") for r in rows if r.get("target_seconds")})
+    methods = sorted({str(r.get("time_search") or "bisected") for r in rows
+                      if r.get("target_seconds") and "plan" not in r})  # the planned row is not searched
     return " / ".join(methods) or "interpolated on the measured time curve"
 
 
@@ -494,9 +508,13 @@ def _equal_time(evaluation: Evaluation) -> list[str]:
              "(direct and indirect apart, first-hit features, no gradients) with OIDN on each layer. "
              "Cells: spp / seconds / RelMSE; lowest RelMSE per row in bold (budget method and equal-time "
              "methods). *best G-PT* is the lowest RelMSE of any reconstruction of the same G-PT frame, whatever "
-             "its time, and of G-PT+oidn-l1 at equal time: our renderer in `--gradients direct` mode (offsets "
-             "`alternate`: one offset per axis, both MIS techniques per pixel pair on half the samples) at the spp "
-             "the budget buys, reconstructed with `oidn-l1`, found like the baselines' spp. "
+             "its time, and of the G-PT rows at equal time not over their budget by more than 5 %: G-PT+oidn-l1, "
+             "our renderer in `--gradients direct` mode (offsets `alternate`: one offset per axis, both MIS "
+             "techniques per pixel pair on half the samples) at the spp the budget buys, reconstructed with "
+             "`oidn-l1`, found like the baselines' spp; and G-PT auto, `gradsep render --seconds T --gradients "
+             "auto` in process, one render to a deadline of the budget with the measured reconstruction time kept "
+             "free (its pilot, which chooses the plan, charged), then the default method the frame names: not "
+             "searched, so its time is what the planner's deadline gave (see The planner's choice). "
              + _seeds_sentence(evaluation.rows), "",
              "| Scene | G-PT spp | budget | budget s | budget RelMSE | best G-PT | "
              + " | ".join(label for _, label in EQUAL_TIME) + " |",
@@ -518,7 +536,8 @@ def _equal_time(evaluation: Evaluation) -> list[str]:
                      if m in table else "–" for m, _ in EQUAL_TIME]
             baselines = set(dict(EQUAL_TIME)) - GPT_EQUAL_TIME
             gpt = {m: float(r["relmse"]) for m, r in table.items()
-                   if m not in baselines and m not in ("gpt-primal", "path") and r.get("relmse") is not None}
+                   if m not in baselines and m not in ("gpt-primal", "path") and r.get("relmse") is not None
+                   and not over_budget(r)}
             best = min(gpt, key=gpt.__getitem__) if gpt else None
             best_cell = f"{_fmt(gpt[best], 4)} ({best})" if best else "–"
             lines.append(f"| {scene.entry.name} | {spp} | {budget or '–'} | {_fmt(anchor.get('target_seconds'), 3)} | "
@@ -538,6 +557,117 @@ def _equal_time(evaluation: Evaluation) -> list[str]:
                   "the try closer to the budget.", ""]
         lines += [f"- {m}" for m in interpolated]
     return [*lines, ""]
+
+
+#: The planned row's prediction counts as right within this factor of the measured RelMSE (issue 39's target).
+PREDICTION_FACTOR = 1.5
+#: The fixed pipelines the planned row is compared with at equal time (the budget method's row, at the budget's
+#: own time, joins them): G-PT direct/alternate + oidn-l1, path + OIDN on the sum, separated path + OIDN per layer.
+FIXED_EQUAL_TIME: tuple[str, ...] = ("gpt-oidn-l1", "path-oidn", "path-sep-oidn")
+
+
+@dataclass(frozen=True)
+class PlannedFrame:
+    """One frame of a ``gpt-auto`` row (one per seed with ``--time-seeds``): what the planner chose and predicted."""
+
+    label: str  # "" for a single-seed row, else "seed k"
+    plan: str | None
+    predicted: float | None  # the chosen plan's predicted RelMSE; None: no pilot ran (``note`` says why)
+    note: str | None
+    measured: float
+    spp: int
+    seconds: float
+
+    @property
+    def ratio(self) -> float | None:
+        """predicted / measured, or None where either is missing or the measured RelMSE is not positive."""
+        if self.predicted is None or not self.measured > 0:
+            return None
+        return float(self.predicted) / self.measured
+
+
+def planned_frames(row: Mapping[str, Any]) -> list[PlannedFrame]:
+    """The frames of a ``gpt-auto`` row: each seed's of a multi-seed row (evaluation.run.seed_mean keeps them),
+    else the row's own."""
+    if int(row.get("seeds") or 1) > 1 and isinstance(row.get("seed_plan"), list):
+        n = len(row["seed_plan"])
+        notes = row.get("seed_predicted_note") or [None] * n
+        return [PlannedFrame(f"seed {k}", row["seed_plan"][k], row["seed_predicted_relmse"][k], notes[k],
+                             float(row["seed_relmse"][k]), int(row["seed_spp"][k]), float(row["seed_seconds"][k]))
+                for k in range(n)]
+    return [PlannedFrame("", row.get("plan"), row.get("predicted_relmse"), row.get("predicted_note"),
+                         float(row["relmse"]), int(row["method_spp"]), row_seconds(row))]
+
+
+def planner_choice(rows: Sequence[Mapping[str, Any]]) -> list[str]:
+    """The section "The planner's choice": per scene and G-PT spp (budget), the plan the ``gpt-auto`` row chose,
+    each candidate's and the chosen plan's predicted RelMSE against the measured one (within PREDICTION_FACTOR
+    or not), and the row against the best fixed pipeline at equal time; a summary of both, and why a row has no
+    prediction."""
+    planned = [r for r in rows if r["method"] == "gpt-auto"]
+    lines = ["## The planner's choice", ""]
+    if not planned:
+        return [*lines, "The planned row (`gpt-auto`) was not evaluated (see skipped methods).", ""]
+    lines += ["`gpt-auto` is `gradsep render --seconds T --gradients auto` at equal time (T the budget of the "
+              "Equal time section, its pilot charged), reconstructed with the default method the frame names. Its "
+              "pilot predicts, from the frame alone, each candidate plan's RelMSE after reconstruction at the "
+              "samples the rest of the budget buys it, and renders the lowest. *predicted / measured* compares the "
+              "chosen plan's prediction with the RelMSE measured against the references (within "
+              f"{PREDICTION_FACTOR:g}× counts as right); *best fixed* is the lowest RelMSE of the fixed pipelines at "
+              "equal time (the budget method's row on the G-PT frame, "
+              + ", ".join(f"`{m}`" for m in FIXED_EQUAL_TIME) + ") and *auto / best* the planned row against it "
+              "(a multi-seed row by its mean). A frame without a prediction fell back to `all` (listed below with "
+              "why). The candidates' predictions and plan layers are those of the row's first seed.", "",
+              "| Scene | G-PT spp | budget s | auto s | plan | plan layers | spp | pilot s | candidates' predicted "
+              "RelMSE | predicted | measured | predicted / measured | within | best fixed | auto / best |",
+              "|---|---:|---:|---:|---|---|---:|---:|---|---:|---:|---:|---|---|---:|"]
+    frames: list[PlannedFrame] = []
+    missing, ratios = [], []
+    for r in planned:
+        table = {str(o["method"]): o for o in rows if o["scene"] == r["scene"] and int(o["spp"]) == int(r["spp"])}
+        fixed = {m: float(table[m]["relmse"]) for m in (r.get("budget_method"), *FIXED_EQUAL_TIME)
+                 if m in table and table[m].get("relmse") is not None}
+        best = min(fixed, key=fixed.__getitem__) if fixed else None
+        best_cells = "– | –"
+        if best is not None and fixed[best] > 0:
+            ratios.append(float(r["relmse"]) / fixed[best])
+            best_cells = f"{_fmt(fixed[best])} ({best}) | {ratios[-1]:.3f}×"
+        candidates = ", ".join(f"{name} {_fmt(v)}" for name, v in (r.get("plan_candidates") or {}).items()) or "–"
+        for f in planned_frames(r):
+            frames.append(f)
+            scene = f"{r['scene']}{f' ({f.label})' if f.label else ''}"
+            ratio = f.ratio
+            if f.predicted is None:
+                verdict = "no prediction"
+                missing.append(f"{scene}, {r['spp']} spp: {f.note or 'no reason recorded'}")
+            elif ratio is None:
+                verdict = "**no** (measured ≤ 0)"
+            else:
+                verdict = "yes" if _within(ratio) else "**no**"
+            lines.append(f"| {scene} | {r['spp']} | {_fmt(r.get('target_seconds'), 3)} | {_fmt(f.seconds, 3)} | "
+                         f"{f.plan or '–'} | {r.get('plan_layers') or '–'} | {f.spp} | "
+                         f"{_fmt(r.get('pilot_seconds'), 3)} | {candidates} | {_fmt(f.predicted)} | "
+                         f"{_fmt(f.measured)} | {'–' if ratio is None else f'{ratio:.2f}'} | {verdict} | "
+                         f"{best_cells} |")
+    predicted = [f for f in frames if f.predicted is not None]
+    within = sum(f.ratio is not None and _within(f.ratio) for f in predicted)
+    lines += ["", f"The chosen plan's predicted RelMSE is within {PREDICTION_FACTOR:g}× of the measured one on "
+              f"{within} of {len(predicted)} frames with a prediction"
+              + (f" ({within / len(predicted):.0%})" if predicted else "")
+              + f"; {len(frames) - len(predicted)} of {len(frames)} frames have none."]
+    positive = [x for x in ratios if x > 0]  # a measured RelMSE can be <= 0 (below the references' resolution)
+    if positive:
+        geo = math.exp(sum(math.log(x) for x in positive) / len(positive))
+        lines.append(f"Against the best fixed pipeline at equal time: at most 1.05× on "
+                     f"{sum(x <= 1.05 for x in ratios)} of {len(ratios)} rows; geometric mean of auto / best "
+                     f"{_fmt(geo, 3)}× (over the {len(positive)} rows with a positive RelMSE).")
+    if missing:
+        lines += ["", "Frames without a prediction:", "", *(f"- {m}" for m in missing)]
+    return [*lines, ""]
+
+
+def _within(ratio: float) -> bool:
+    return 1 / PREDICTION_FACTOR <= ratio <= PREDICTION_FACTOR
 
 
 def _floors(evaluation: Evaluation) -> list[str]:
@@ -634,9 +764,9 @@ def _ratio_cell(value: float, rival: float) -> str:
 
 def _fused_and_equal_time_targets(rows: Sequence[Mapping[str, Any]]) -> list[str]:
     """The fused and equal-time targets from the rows, at 16 and 64 spp: ``fused`` below ``oidn``, ``l1`` and
-    ``ours`` (the paper's network) per scene; at equal time, the best G-PT row within ±5 % of the budget (the
-    budget method's own row and G-PT+oidn-l1) below path + OIDN, and (stretch) below separated path + OIDN per
-    layer."""
+    ``ours`` (the paper's network) per scene; at equal time, the best G-PT row not over the budget by more than
+    5 % (:func:`over_budget`: the budget method's own row, G-PT+oidn-l1, G-PT auto) below path + OIDN, and
+    (stretch) below separated path + OIDN per layer."""
     lines = ["Fused and equal-time targets (RelMSE, per scene, at 16 and 64 spp; a multi-seed row counts by its "
              "mean):", ""]
     found = False
@@ -653,7 +783,7 @@ def _fused_and_equal_time_targets(rows: Sequence[Mapping[str, Any]]) -> list[str
                              f"{_ratio_cell(fused, rival)} ({verdict})")
             budget = next((str(r.get("budget_method")) for r in table.values() if r.get("budget_method")), None)
             candidates = {m: float(table[m]["relmse"]) for m in (budget, *GPT_EQUAL_TIME)
-                          if m in table and table[m].get("relmse") is not None}
+                          if m in table and table[m].get("relmse") is not None and not over_budget(table[m])}
             if candidates and "path-oidn" in table:
                 found = True
                 best = min(candidates, key=candidates.__getitem__)

@@ -34,6 +34,8 @@ from gradsep.evaluation.config import FLOOR_FRACTION, EvalConfig, SceneEntry, cr
 from gradsep.evaluation.methods import (
     EQUAL_TIME_KINDS,
     METHOD_SOURCES,
+    PLAN_ROW_KEYS,
+    PLANNER_SOURCES,
     BracketOutput,
     MethodContext,
     MethodOutput,
@@ -125,6 +127,7 @@ class _Runner:
         self.renderer_code = sources_sha256(RENDERER_SOURCES)
         self.reference_code = sources_sha256(REFERENCE_SOURCES)
         self.method_code = sources_sha256(METHOD_SOURCES)
+        self.planner_code = sources_sha256(PLANNER_SOURCES)
         self.score_code = sources_sha256(SCORE_SOURCES)
 
     # ------------------------------------------------------------------------------------------ models
@@ -268,7 +271,7 @@ class _Runner:
         }
         row.update({k: v for k, v in out.extra.items()
                     if k in ("target_seconds", "budget_method", "capped", "attempts", "feature_spp",
-                             "time_search", "time_tries", "time_note")})
+                             "time_search", "time_tries", "time_note", "gradients", *PLAN_ROW_KEYS)})
         row["machine"] = machine_summary()
         layers = {n: out.layers[n] for n in SEPARATED_LAYERS if n in out.layers}
         arrays = {"image": out.image, **layers}
@@ -358,7 +361,10 @@ def seed_mean(rows: list[dict[str, Any]]) -> dict[str, Any]:
     a seed has none), the time the mean of the seeds' times (:func:`row_seconds`: the budget for a seed
     interpolated to it), ``method_spp`` the seeds' median. ``seeds``, ``seed_relmse``, ``seed_spp`` and
     ``seed_seconds`` keep the seeds' own values, ``relmse_stderr`` the standard error of the mean RelMSE (sample
-    standard deviation / √seeds). A seed interpolated to the budget is named in ``time_interpolated``."""
+    standard deviation / √seeds). A seed interpolated to the budget is named in ``time_interpolated``. The planned
+    row (``gpt-auto``) also keeps each seed's ``seed_plan``, ``seed_predicted_relmse`` and ``seed_predicted_note``;
+    its ``plan`` is the seeds' plans (``primal/all`` where they differ), its ``predicted_relmse`` their mean (None
+    when a seed has none), like its RelMSE."""
     import statistics
 
     first = rows[0]
@@ -375,6 +381,13 @@ def seed_mean(rows: list[dict[str, Any]]) -> dict[str, Any]:
                 "reconstruct_seconds": float(np.mean([float(r["reconstruct_seconds"]) for r in rows])),
                 "method_spp": int(statistics.median_low([int(r["method_spp"]) for r in rows])),
                 "relmse_stderr": statistics.stdev(relmse) / math.sqrt(len(rows)) if len(rows) > 1 else 0.0})
+    if any("plan" in r for r in rows):  # the planned row: each seed's own plan and prediction
+        predicted = [r.get("predicted_relmse") for r in rows]
+        out.update({"seed_plan": [r.get("plan") for r in rows], "seed_predicted_relmse": predicted,
+                    "seed_predicted_note": [r.get("predicted_note") for r in rows],
+                    "plan": "/".join(dict.fromkeys(str(r.get("plan")) for r in rows)),
+                    "predicted_relmse": (float(np.mean(predicted)) if all(p is not None for p in predicted)
+                                         else None)})
     interpolated = [f"seed {k}: {r['time_interpolated']}" for k, r in enumerate(rows) if r.get("time_interpolated")]
     out.pop("time_interpolated", None)
     out.pop("time_bracket", None)
@@ -689,8 +702,10 @@ def _evaluate_one(runner: _Runner, spec: MethodSpec, scene: SceneRun, spp: int, 
             ctx.budget_seconds, ctx.budget_method = float(done[budget]["total_seconds"]), budget
         key["budget"] = keys.get(budget or "", "render:" + frame_tag)
         key["seed"] = ctx.seed
-        if spec.kind in ("sep-oidn", "gpt-equal"):  # our renderer's code renders it
+        if spec.kind in ("sep-oidn", "gpt-equal", "gpt-auto"):  # our renderer's code renders it
             key["renderer"] = runner.renderer_code
+        if spec.kind == "gpt-auto":  # and the planner plans it
+            key["planner"] = runner.planner_code
         if spec.kind == "gpt-equal":
             from gradsep.evaluation.methods import EQUAL_TIME_OFFSETS
 

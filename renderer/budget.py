@@ -61,11 +61,17 @@ def process_age(clock: Clock = time.monotonic) -> float:
 
 @dataclass
 class Deadline:
-    """A wall-time budget of ``seconds`` that started ``spent`` seconds before it was made (process start-up)."""
+    """A wall-time budget of ``seconds`` that started ``spent`` seconds before it was made (process start-up; 0:
+    it starts now, e.g. when an evaluation row starts).
+
+    ``tail``: the seconds the caller needs after the last render pass, when it knows them -- an in-process caller
+    (the evaluation's ``gpt-auto`` row) reconstructs the frame instead of writing it and exiting. None: the
+    command's own tail, the frame's write and the interpreter's exit (renderer.plan.render_planned)."""
 
     seconds: float
     spent: float = 0.0
     clock: Clock = time.monotonic
+    tail: float | None = None
     start: float = field(init=False)
 
     def __post_init__(self) -> None:

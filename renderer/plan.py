@@ -554,6 +554,8 @@ def render_planned(loaded: LoadedScene, layers: tuple[str, ...], *, seed: int, s
     write = 0.0  # predicted seconds to encode and write the frame, measured after its first pass
 
     def reserve() -> float:  # what must be left when the last pass ends: the write and the interpreter's exit
+        if deadline is not None and deadline.tail is not None:  # an in-process caller's own (Deadline.tail)
+            return deadline.tail
         return write + exit_seconds()
 
     def after_first() -> None:  # the start-up check: one pass done, its frame must still be writable in time

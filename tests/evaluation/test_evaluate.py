@@ -37,8 +37,8 @@ from gradsep.model.errors import CommandError
 SCENE = "procedural:90001"
 SPP = (1, 2)
 METHODS = ("gpt-primal", "l1", "gradnet", "ablation/separated-attn", "oidn", "oidn-l1", "ours", "path",
-           "path-oidn", "path-sep-oidn", "gpt-oidn-l1")
-EQUAL_TIME_METHODS = {"path", "path-oidn", "path-sep-oidn", "gpt-oidn-l1"}
+           "path-oidn", "path-sep-oidn", "gpt-oidn-l1", "gpt-auto")
+EQUAL_TIME_METHODS = {"path", "path-oidn", "path-sep-oidn", "gpt-oidn-l1", "gpt-auto"}
 
 
 def _runnable(methods) -> tuple[str, ...]:
