@@ -948,7 +948,7 @@ def _run_gpt_auto(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
     from gradsep.model.frame import PLAN_METHOD_KEY
     from gradsep.model.reconstruct import reconstruct
     from gradsep.renderer.budget import Deadline
-    from gradsep.renderer.plan import FALLBACK, candidate, plan_layers_text, render_planned
+    from gradsep.renderer.plan import fallback, plan_layers_text, render_planned
 
     renderer = ctx.path()
     target = _budget(ctx)
@@ -962,8 +962,8 @@ def _run_gpt_auto(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
         planned = render_planned(renderer.loaded, layers, seed=seed, shift=None, fixed=None, deadline=deadline)
     except CommandError:  # not one pass + the reconstruction fit: what `gradsep render --seconds` refuses
         refused = (f"the budget is below the planner's start-up here (its first pass, then {tail:.3g} s of "
-                   f"reconstruction): 1 spp of `{FALLBACK}` rendered regardless")
-        planned = render_planned(renderer.loaded, layers, seed=seed, shift=None, fixed=candidate(FALLBACK), spp=1)
+                   f"reconstruction): 1 spp of `{fallback(layers).name}` rendered regardless")
+        planned = render_planned(renderer.loaded, layers, seed=seed, shift=None, fixed=fallback(layers), spp=1)
     frame, plan = planned.frame, planned.plan
     frame.metadata = plan.metadata(layers) if plan is not None else {}
     rendered = time.perf_counter()

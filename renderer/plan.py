@@ -23,8 +23,8 @@ weighed against the slope between its last two rounds by their noise (:func:`mea
 second round on, a candidate whose prediction is worse than the best one's by more than their combined standard
 errors leaves the race (:func:`eliminate`). The race ends when one candidate survives, or before a round that
 would take it past RACE_SHARE of the budget (of the frame's samples with --spp); FALLBACK wins unless another
-candidate's prediction is lower by more than their combined standard errors (:func:`choose`), and the rest of
-the budget is the winner's passes.
+candidate's prediction is lower by more than their combined standard errors (:func:`choose`) after two rounds or
+more (one round has no cost line nor slope to compare by), and the rest of the budget is the winner's passes.
 
 **The deadline** (renderer/budget.py): passes are sized from their measured cost so that the last one ends, with
 the write still to come, just before ``T``; nothing is started that is predicted to miss it.
@@ -104,15 +104,17 @@ CANDIDATES: tuple[Candidate, ...] = (
     Candidate("primal", "none"),
     Candidate("direct-alternate", "direct", "alternate"),
     Candidate("direct", "direct", "all"),
+    Candidate("all", "all"),  # only for an unseparated (colour) frame, whose one layer is all there is
 )
 #: Rendered where no pilot can run (a budget or sample count too small for one), and the plan a race keeps unless
-#: another is clearly better (:func:`choose`): the default method's gradients at every offset.
+#: another is clearly better (:func:`choose`): the default method's gradients at every offset (:func:`fallback`:
+#: ``all`` for an unseparated frame).
 FALLBACK = "direct"
 #: Error-vs-spp exponent of each candidate's reconstruction (RelMSE ~ spp^-exponent) where the pilot cannot read its
 #: own (measured_exponent), and the prior the measured slope is weighed against. A denoised frame's error falls
 #: far slower than a raw frame's 1/spp: measured between two budgets (20 s and 40 s at 128x128, 350-3400 spp) on
 #: procedural:93101, 0.43 (primal + oidn), 0.37 (direct-alternate + oidn-l1), 0.54 (all + oidn-l1).
-EXPONENTS: dict[str, float] = {"primal": 0.5, "direct-alternate": 0.5, "direct": 0.5}
+EXPONENTS: dict[str, float] = {"primal": 0.5, "direct-alternate": 0.5, "direct": 0.5, "all": 0.5}
 
 
 def candidate(name: str) -> Candidate:
@@ -132,8 +134,15 @@ def plan_layers_text(c: Candidate, layers: tuple[str, ...]) -> str:
 
 
 def applicable(layers: tuple[str, ...]) -> tuple[Candidate, ...]:
-    """The candidates a frame of these layers can use (``direct`` gradients need the separated direct layer)."""
-    return tuple(c for c in CANDIDATES if c.gradients != "direct" or "direct" in layers)
+    """The candidates a frame of these layers can use: ``direct`` gradients need the separated direct layer, where
+    ``all`` is no candidate (it would add only indirect gradients, which the default method does not read)."""
+    separated = "direct" in layers
+    return tuple(c for c in CANDIDATES if c.gradients == "none" or (c.gradients == "direct") == separated)
+
+
+def fallback(layers: tuple[str, ...]) -> Candidate:
+    """FALLBACK, or ``all`` for a frame without a separated direct layer."""
+    return candidate(FALLBACK if "direct" in layers else "all")
 
 
 # ------------------------------------------------------------------------------------------------- passes
@@ -369,11 +378,11 @@ class Plan:
 
 
 def choose(assessments: list[Assessment]) -> Assessment:
-    """The race's winner: FALLBACK (the default method's gradients at every offset) unless another
-    candidate's prediction is lower by more than their combined standard errors; then the lowest. A race too
-    short to tell the plans apart keeps the default rather than follow noise."""
+    """The race's winner: the fallback (:func:`fallback`: the default method's gradients at every offset) unless
+    another candidate's prediction is lower by more than their combined standard errors; then the lowest. A race
+    too short to tell the plans apart keeps the default rather than follow noise."""
     best = min(assessments, key=lambda a: a.predicted_relmse)
-    default = next((a for a in assessments if a.name == FALLBACK), None)
+    default = next((a for a in assessments if a.name in (FALLBACK, "all")), None)
     if default is None or best is default:
         return best
     margin = math.hypot(best.predicted_se, default.predicted_se)
@@ -397,12 +406,13 @@ def run_pilot(passes: Passes, budget_spp: Callable[[Assessment], float], *, pilo
     round multiplies them by ROUND_GROWTH, while the race (since its start) is predicted to stay within
     ``race_seconds`` and its passes within ``race_spp`` samples of the frame. ``budget_spp`` says how many samples
     the rest of the budget buys a candidate, given its measured cost. When the warm-ups alone took more than
-    ``give_up_after`` seconds, no candidate is assessed and the plan is FALLBACK. ``after_first`` runs after the
+    ``give_up_after`` seconds, no candidate is assessed and the plan is the fallback. ``after_first`` runs after the
     first pass (the caller's start-up check). Every pass stays in ``passes``."""
     clock = passes.clock
     start = clock()
-    # FALLBACK first: a pilot that gives up after its first warm-up has compiled what it falls back to
-    candidates = tuple(sorted(applicable(passes.layers), key=lambda c: c.name != FALLBACK))
+    # the fallback first: a pilot that gives up after its first warm-up has compiled what it falls back to
+    default = fallback(passes.layers)
+    candidates = tuple(sorted(applicable(passes.layers), key=lambda c: c.name != default.name))
     # warm-ups: compile (or load) each kernel; their samples join the frame and B
     batches: list[tuple[np.ndarray, int]] = []
     for c in candidates:
@@ -496,7 +506,9 @@ def run_pilot(passes: Passes, budget_spp: Callable[[Assessment], float], *, pilo
         if (len(alive) == 1 or rounds >= MAX_ROUNDS or clock() - start + cost > race_seconds
                 or passes.spp + n * (len(alive) + 1) > race_spp):
             break
-    chosen = choose([latest[c.name] for c in alive])
+    # one round reads no cost line (one pass size: G-PT's fixed cost per pass is charged to its samples) and no
+    # slope, so it cannot tell the plans apart fairly: the fallback stands
+    chosen = choose([latest[c.name] for c in alive]) if rounds >= 2 else latest[default.name]
     return Plan(candidate(chosen.name), [latest[c.name] for c in candidates], clock() - start,
                 f"{rounds} rounds", trace)
 
@@ -583,7 +595,7 @@ def render_planned(loaded: LoadedScene, layers: tuple[str, ...], *, seed: int, s
                 plan = run_pilot(passes, budget_spp, pilot_spp=n, race_spp=RACE_SHARE * spp,  # type: ignore[operator]
                                  after_first=after_first)
             else:
-                plan = Plan(candidate(FALLBACK), [], 0.0, f"{spp} spp is too few for a pilot")
+                plan = Plan(fallback(layers), [], 0.0, f"{spp} spp is too few for a pilot")
         chosen = plan.chosen
     else:
         chosen = fixed

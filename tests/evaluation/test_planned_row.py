@@ -16,6 +16,7 @@ from pathlib import Path
 import pytest
 
 from gradsep.evaluation.report import PlannedFrame, planned_frames, planner_choice, time_misses
+from gradsep.renderer.plan import FALLBACK
 
 SCENE = "procedural:90001"
 
@@ -170,11 +171,11 @@ def _run(tiny, budget: float):
 @pytest.mark.render
 def test_a_budget_below_the_planners_start_up_renders_the_fallback_and_says_so(tiny):
     """0.02 s cannot hold the planner's first pass (its per-frame tracing alone takes longer) and the
-    reconstruction: `gradsep render --seconds` refuses that; the row renders 1 spp of `all` regardless, finite,
+    reconstruction: `gradsep render --seconds` refuses that; the row renders 1 spp of the fallback regardless, finite,
     with the overrun's reason and no prediction."""
     out = _run(tiny, 0.02)
     extra = out.extra
-    assert out.method_spp == 1 and extra["plan"] == "all" and extra["attempts"] == 1
+    assert out.method_spp == 1 and extra["plan"] == FALLBACK and extra["attempts"] == 1
     assert extra["predicted_relmse"] is None and extra["plan_candidates"] == {}
     assert "below the planner's start-up" in extra["predicted_note"]
     assert "below the planner's start-up" in extra["time_note"] and "refused attempt included" in extra["time_note"]
@@ -189,7 +190,7 @@ def test_a_pilot_that_gives_up_fills_the_budget_with_the_fallback_and_no_predict
     monkeypatch.setattr(plan, "PILOT_GIVE_UP", 0.0)  # any warm-up is too long: the pilot gives up at once
     out = _run(tiny, 1.0)
     extra = out.extra
-    assert extra["plan"] == "all" and extra["predicted_relmse"] is None
+    assert extra["plan"] == FALLBACK and extra["predicted_relmse"] is None
     assert extra["predicted_note"] == "the budget is too small for a pilot" and extra["plan_candidates"] == {}
     assert out.method_spp >= 1 and extra["pilot_seconds"] > 0 and extra["plan_method"] == "oidn-l1"
     total = out.render_seconds + out.reconstruct_seconds
@@ -219,7 +220,7 @@ def test_a_quick_evaluation_reports_the_plan_and_its_predicted_against_measured_
     section shows its predicted and measured RelMSE."""
     from gradsep.evaluation.config import EvalConfig
     from gradsep.evaluation.run import run_evaluation
-    from gradsep.renderer.plan import CANDIDATES
+    from gradsep.renderer.plan import applicable
 
     config = EvalConfig(scenes=(SCENE,), spp=(4096,), width=32, height=32, ref_spp=16, output=tmp_path / "report",
                         cache_dir=tmp_path / "cache", models_dir=tmp_path / "models",
@@ -227,10 +228,11 @@ def test_a_quick_evaluation_reports_the_plan_and_its_predicted_against_measured_
     evaluation = run_evaluation(config, progress=False, log=lambda message: None)
     row = next(r for r in evaluation.rows if r["method"] == "gpt-auto")
     assert row["budget_method"] == "G-PT render only" and row["target_seconds"] > 2
-    assert row["plan"] in {c.name for c in CANDIDATES} and set(row["plan_candidates"]) == {c.name for c in CANDIDATES}
+    names = {c.name for c in applicable(("direct", "indirect"))}
+    assert row["plan"] in names and set(row["plan_candidates"]) == names
     assert row["predicted_relmse"] == row["plan_candidates"][row["plan"]] > 0
     assert row["pilot_seconds"] > 0 and row["method_spp"] > 16 and math.isfinite(row["relmse"])
-    assert row["gradients"] == {"primal": "none", "direct-alternate": "direct", "all": "all"}[row["plan"]]
+    assert row["gradients"] == {"primal": "none", "direct-alternate": "direct", "direct": "direct"}[row["plan"]]
     report = (tmp_path / "report" / "report.md").read_text()
     miss = abs(row["total_seconds"] / row["target_seconds"] - 1) > 0.05
     assert not miss or (row["time_note"] and row["time_note"] in report)

@@ -23,6 +23,7 @@ from gradsep.renderer.plan import (
     Candidate,
     applicable,
     candidate,
+    fallback,
     pilot_spp_for,
     plan_layers_text,
     tiles,
@@ -65,8 +66,12 @@ def test_tiles_cover_small_frames_whole_and_spread_over_large_ones():
 
 
 def test_candidates_and_their_layers():
-    assert {c.name for c in applicable(("direct", "indirect"))} == {c.name for c in CANDIDATES}
-    assert "direct-alternate" not in {c.name for c in applicable(("color",))}
+    assert {c.name for c in applicable(("direct", "indirect"))} == {"primal", "direct-alternate", "direct"}
+    assert {c.name for c in applicable(("direct",))} == {"primal", "direct-alternate", "direct"}
+    assert {c.name for c in applicable(("color",))} == {"primal", "all"}  # no direct layer to trace alone
+    assert {c.name for c in applicable(("indirect",))} == {"primal", "all"}
+    assert fallback(("direct", "indirect")).name == "direct" and fallback(("color",)).name == "all"
+    assert {c.name for c in CANDIDATES} == {"primal", "direct-alternate", "direct", "all"}
     assert plan_layers_text(candidate("direct-alternate"), ("direct", "indirect")) == "direct=alternate,indirect=none"
     assert plan_layers_text(candidate("primal"), ("direct",)) == "direct=none"
     assert plan_layers_text(candidate("direct"), ("direct", "indirect")) == "direct=all,indirect=none"
@@ -179,7 +184,7 @@ def test_auto_with_spp_renders_exactly_the_samples_and_records_the_plan(small):
     assert meta["gradsep.spp"] == "48"
     assert meta[PLAN_KEY] in {c.name for c in CANDIDATES} and meta[PLAN_KEY] in summary
     predicted = {k: float(v) for k, v in (p.split("=") for p in meta["gradsep.plan_candidates"].split(","))}
-    assert set(predicted) == {c.name for c in CANDIDATES}
+    assert set(predicted) == {c.name for c in applicable(("direct", "indirect"))}
     assert all(math.isfinite(v) and v >= 0 for v in predicted.values())
     assert float(meta[PREDICTED_RELMSE_KEY]) == pytest.approx(predicted[meta[PLAN_KEY]], rel=1e-5)
     assert meta[PREDICTED_RELMSE_KEY] and meta["gradsep.plan_method"] in ("oidn", "oidn-l1")
