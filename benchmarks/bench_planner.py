@@ -91,9 +91,11 @@ def size_args(size: str) -> list[str]:
     return ["--width", w, "--height", h or w]
 
 
-def warm_kernels(scene: str, out: Path) -> None:
+def warm_kernels(scene: str, out: Path, size: tuple[str, str] = ("16", "16")) -> None:
+    """Compile every plan's kernels for ``scene`` at ``size`` (Dr.Jit's kernel cache is keyed by the frame size
+    too: a kernel compiled at another size is compiled again), so that no timed render pays a compilation."""
     for plan in FIXED.values():
-        gradsep("render", scene, "--width", "16", "--height", "16", "--spp", "1", *plan, "-o", str(out))
+        gradsep("render", scene, "--width", size[0], "--height", size[1], "--spp", "1", *plan, "-o", str(out))
 
 
 def timing(args: argparse.Namespace) -> None:
@@ -102,8 +104,8 @@ def timing(args: argparse.Namespace) -> None:
     print("| scene | size | plan | T (s) | wall (s) | wall / T | spp | chosen |")
     print("|---|---|---|---:|---:|---:|---:|---|")
     for scene in args.scenes.split(","):
-        warm_kernels(scene, out)
         for size in args.sizes.split(","):
+            warm_kernels(scene, out, tuple(size_args(size)[1::2]))  # type: ignore[arg-type]
             for seconds in args.seconds.split(","):
                 for plan in args.plans.split(","):
                     out.unlink(missing_ok=True)
@@ -177,7 +179,7 @@ def validate(args: argparse.Namespace) -> None:
                     if key in rows and out.exists():
                         continue
                     if scene not in warmed:
-                        warm_kernels(scene, cache / "warm.exr")
+                        warm_kernels(scene, cache / "warm.exr", (str(args.size), str(args.size)))
                         warmed.add(scene)
                     wall, _ = gradsep("render", scene, "--width", str(args.size), "--height", str(args.size),
                                       "--seconds", f"{seconds:g}", "--seed", str(seed), *PLANS[plan], "-o", str(out))
