@@ -61,6 +61,7 @@ import argparse
 import json
 import math
 import os
+import statistics
 import subprocess
 import sys
 import time
@@ -71,9 +72,13 @@ FIXED = {"primal": ["--gradients", "none"], "direct-alternate": ["--gradients", 
 PLANS = {"auto": ["--gradients", "auto"], **FIXED}
 
 
-def gradsep(*args: str) -> tuple[float, str]:
-    """Run the gradsep CLI in a fresh process; returns its wall time and stdout (raises on failure)."""
-    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def gradsep(*args: str, checkout: Path = ROOT) -> tuple[float, str]:
+    """Run the gradsep CLI of ``checkout`` (a source tree) in a fresh process; returns its wall time and stdout
+    (raises on failure)."""
+    env = dict(os.environ, PYTHONPATH=str(checkout))
     start = time.perf_counter()
     proc = subprocess.run([sys.executable, "-m", "gradsep", *args], capture_output=True, text=True, env=env)
     wall = time.perf_counter() - start
@@ -87,32 +92,59 @@ def size_args(size: str) -> list[str]:
     return ["--width", w, "--height", h or w]
 
 
-def warm_kernels(scene: str, out: Path) -> None:
+def warm_kernels(scene: str, out: Path, checkout: Path = ROOT) -> None:
     for plan in FIXED.values():
-        gradsep("render", scene, "--width", "16", "--height", "16", "--spp", "1", *plan, "-o", str(out))
+        gradsep("render", scene, "--width", "16", "--height", "16", "--spp", "1", *plan, "-o", str(out),
+                checkout=checkout)
 
 
 def timing(args: argparse.Namespace) -> None:
+    """Each (scene, size, T, plan, checkout) cell ``--repeats`` times; every repeat runs all cells once, in turn, so
+    that a change of the machine's load falls on every cell (and every checkout) alike. One row per run (with the
+    1-minute load average when it started), then the median, min and max of wall / T per cell."""
     out = Path(args.cache) / "timing.exr"
     out.parent.mkdir(parents=True, exist_ok=True)
-    print("| scene | size | plan | T (s) | wall (s) | wall / T | spp | chosen |")
-    print("|---|---|---|---:|---:|---:|---:|---|")
-    for scene in args.scenes.split(","):
-        warm_kernels(scene, out)
-        for size in args.sizes.split(","):
-            for seconds in args.seconds.split(","):
-                for plan in args.plans.split(","):
-                    out.unlink(missing_ok=True)
-                    try:
-                        wall, _ = gradsep("render", scene, *size_args(size), "--seconds", seconds, *PLANS[plan],
-                                          "-o", str(out))
-                    except RuntimeError as exc:  # a budget below the start-up cost is refused (exit 2, no file)
-                        print(f"| {scene} | {size} | {plan} | {seconds} | refused | | | {str(exc)[-160:]} |")
-                        assert not out.exists()
-                        continue
-                    meta = header(out)
-                    print(f"| {scene} | {size} | {plan} | {seconds} | {wall:.2f} | {wall / float(seconds):.3f} | "
-                          f"{meta['gradsep.spp']} | {meta.get('gradsep.plan', '')} |", flush=True)
+    checkouts = [Path(c).resolve() for c in args.checkouts.split(",")] if args.checkouts else [ROOT]
+    label = {c: (c.name if len(checkouts) > 1 else "") for c in checkouts}
+    cells = [(scene, size, seconds, plan, c) for scene in args.scenes.split(",") for size in args.sizes.split(",")
+             for seconds in args.seconds.split(",") for plan in args.plans.split(",") for c in checkouts]
+    for scene in dict.fromkeys(cell[0] for cell in cells):
+        for c in checkouts:
+            warm_kernels(scene, out, c)
+    print("| repeat | scene | size | plan | checkout | T (s) | load | wall (s) | wall / T | spp | chosen |")
+    print("|---:|---|---|---|---|---:|---:|---:|---:|---:|---|")
+    results: dict[tuple, list[float]] = {cell: [] for cell in cells}
+    loads: list[float] = []
+    for repeat in range(args.repeats):
+        for cell in cells:
+            scene, size, seconds, plan, c = cell
+            out.unlink(missing_ok=True)
+            load = os.getloadavg()[0]
+            loads.append(load)
+            where = f"| {repeat} | {scene} | {size} | {plan} | {label[c]} | {seconds} | {load:.2f} |"
+            try:
+                wall, _ = gradsep("render", scene, *size_args(size), "--seconds", seconds, *PLANS[plan],
+                                  "-o", str(out), checkout=c)
+            except RuntimeError as exc:  # a budget below the start-up cost is refused (exit 2, no file)
+                print(f"{where} refused | | | {str(exc)[-160:]} |", flush=True)
+                assert not out.exists()
+                continue
+            meta = header(out)
+            results[cell].append(wall / float(seconds))
+            print(f"{where} {wall:.2f} | {wall / float(seconds):.3f} | {meta['gradsep.spp']} | "
+                  f"{meta.get('gradsep.plan', '')} |", flush=True)
+    print(f"\nload (1-minute average) during the runs: median {statistics.median(loads):.2f}, "
+          f"{min(loads):.2f}-{max(loads):.2f} (2 cores)\n")
+    print("| scene | size | plan | checkout | T (s) | runs | median wall / T | min | max | past T |")
+    print("|---|---|---|---|---:|---:|---:|---:|---:|---:|")
+    for cell, ratios in results.items():
+        scene, size, seconds, plan, c = cell
+        if not ratios:
+            print(f"| {scene} | {size} | {plan} | {label[c]} | {seconds} | 0 | refused | | | |")
+            continue
+        print(f"| {scene} | {size} | {plan} | {label[c]} | {seconds} | {len(ratios)} | "
+              f"{statistics.median(ratios):.3f} | {min(ratios):.3f} | {max(ratios):.3f} | "
+              f"{sum(r > 1.0 for r in ratios)} |")
 
 
 def header(path: Path) -> dict[str, str]:
@@ -251,6 +283,8 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument("--sizes", default="320x240,1280x720")
     t.add_argument("--seconds", default="5,10,20")
     t.add_argument("--plans", default="auto,all")
+    t.add_argument("--repeats", type=int, default=3)
+    t.add_argument("--checkouts", default="", help="source trees to time side by side (default: this one)")
     t.add_argument("--cache", default=str(Path.home() / ".cache/gradsep/planner-bench"))
     v = sub.add_parser("validate")
     v.add_argument("--scenes", default="procedural:93101,procedural:93102,procedural:93103,procedural:studio:93104")

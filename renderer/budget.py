@@ -156,3 +156,58 @@ def fill_to_deadline(deadline: Deadline, costs: PassCosts, reserve: Callable[[],
         run(spp)
         done += spp
     return done
+
+
+# ------------------------------------------------------------------------------------------------- the filler
+
+#: Passes of the frame's plan stop up to one pass short of the deadline, and at 1280x720 one 1-spp G-PT pass is
+#: ~2.5 s (2 shared cores). That gap is filled with passes of a cheaper kind (renderer/plan.py: primal passes, whose
+#: samples every plan's bases absorb). The filler's kernel costs a compile (or cache load) first: 0.15-0.4 s measured
+#: after a G-PT kernel, so it is warmed up only where the plan's passes are coarse: a 1-spp pass of at least
+#: FILLER_MIN_PASS seconds and FILLER_SHARE of the budget (at 320x240 a G-PT pass is ~0.25 s: nothing to gain).
+FILLER_MIN_PASS = 0.5
+FILLER_SHARE = 0.02
+
+
+def filler_pays(costs: PassCosts, seconds: float) -> bool:
+    """Whether the plan's warm passes (``costs``) are coarse enough in a ``seconds`` budget to warm up a filler."""
+    if not costs.warm:
+        return False
+    return costs.predict(1) >= max(FILLER_MIN_PASS, FILLER_SHARE * seconds)
+
+
+def filler_warmup_fits(left: float, reserve: float, costs: PassCosts) -> bool:
+    """Whether the filler's first (compiling) 1-spp pass surely ends before the deadline: it is bounded by the plan's
+    own first pass (``costs.first_pass``), whose kernel is larger, whose sample costs more, and which also paid the
+    process's one-time set-up (the JIT back end, the scene's upload)."""
+    if costs.first_pass is None:
+        return False
+    return left - reserve >= LAST_PASS_MARGIN * costs.first_pass[1]
+
+
+def fill_with_filler(deadline: Deadline, costs: PassCosts, run: Callable[[int], None], filler: PassCosts | None,
+                     run_filler: Callable[[int], None], reserve: Callable[[], float], max_spp: int) -> int:
+    """:func:`fill_to_deadline` with the plan's passes (``run``, costs ``costs``), then the gap too small for one more
+    of them with the filler's cheaper passes (``run_filler``, costs ``filler``; None: no filler); returns the
+    samples rendered. A cold filler's kernel is warmed up (one 1-spp pass) after the plan's first warm pass where
+    :func:`filler_pays`, so that the gap's passes are sized from measured costs; else at the gap, where
+    :func:`filler_warmup_fits`."""
+    done = 0
+
+    def warm_up() -> None:
+        nonlocal done
+        run_filler(1)
+        done += 1
+
+    def plan_pass(spp: int) -> None:
+        run(spp)
+        if (filler is not None and filler.first_pass is None and filler_pays(costs, deadline.seconds)
+                and filler_warmup_fits(deadline.left(), reserve(), costs)):
+            warm_up()
+
+    done += fill_to_deadline(deadline, costs, reserve, max_spp, plan_pass)
+    if filler is None:
+        return done
+    if filler.first_pass is None and filler_warmup_fits(deadline.left(), reserve(), costs):
+        warm_up()
+    return done + fill_to_deadline(deadline, filler, reserve, max_spp, run_filler)

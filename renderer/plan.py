@@ -41,7 +41,7 @@ import numpy as np
 
 from gradsep.model.errors import CommandError
 from gradsep.model.frame import PLAN_METHOD_KEY, PREDICTED_RELMSE_KEY, Features, Frame, Layer
-from gradsep.renderer.budget import Clock, Deadline, PassCosts, fill_to_deadline
+from gradsep.renderer.budget import Clock, Deadline, PassCosts, fill_with_filler
 from gradsep.renderer.estimate import at_budget, cross_relmse, relative_weights
 from gradsep.renderer.scene import LoadedScene
 
@@ -66,9 +66,10 @@ PILOT_GIVE_UP = 0.3
 #: creating the OIDN device): ~1.1 s + ~0.8 s measured on the 2-core development machine. Counted against the
 #: pilot's share before it is paid, so that a budget too small for it falls back instead of overrunning.
 RECONSTRUCT_STARTUP = 2.0
-#: The interpreter's exit after the frame is written (part of the command's wall time): ~0.1 s after rendering
-#: alone, ~0.5 s once the reconstruction libraries are loaded (torch, numba, OIDN), measured on the same machine.
-EXIT_SECONDS = (0.1, 0.5)
+#: The interpreter's exit after the frame is written (part of the command's wall time): 0.05-0.13 s after
+#: rendering alone, 0.57-0.63 s once the reconstruction libraries are loaded (torch's teardown alone is 0.3 s),
+#: measured on 2 shared cores (load ~3); with a 1.2 margin.
+EXIT_SECONDS = (0.15, 0.75)
 #: The most samples of the race's first round (later rounds double them while the race's share allows).
 PILOT_MAX_SPP = 16
 #: Tiles the pilot reconstructs (side, count) and the border of each left out of the estimate.
@@ -92,6 +93,10 @@ CANDIDATES: tuple[Candidate, ...] = (
     Candidate("direct-alternate", "direct", "alternate"),
     Candidate("all", "all"),
 )
+#: What fills the end of a --seconds frame whose plan traces gradients, in the gap too small for one more pass of
+#: the plan: primal passes (their samples join the bases, as the --gradient-spp rule's; the gradients keep the
+#: plan's passes' samples). A 1-spp primal pass costs ~1/4 of an `all` pass (1280x720, 2 shared cores).
+FILLER = "primal"
 #: Used where no pilot can run (a budget or sample count too small for one): today's `gradsep render` default.
 FALLBACK = "all"
 #: Error-vs-spp exponent of each candidate's reconstruction (RelMSE ~ spp^-exponent) where the pilot cannot read its
@@ -178,25 +183,40 @@ class Passes:
         start = self.clock()
         sums = render_pass(self.loaded.scene, kind.shift, kind.settings, self.loaded.width, self.loaded.height,
                            spp, pass_seed(self.seed, self.index))
+        # added in place into the frame's own sums (a 1280x720 frame's are ~200 MB of float64: adding into new
+        # arrays cost 0.3 s a pass); the first pass's are copied, the caller's ``sums`` stay the pass's own
+        if self.bases is None:
+            self.bases = {k: v.copy() for k, v in sums.items() if ".grad" not in k}
+        else:
+            for k, total in self.bases.items():
+                np.add(total, sums[k], out=total)
+        grads = {k: v for k, v in sums.items() if ".grad" in k}
+        if grads:
+            have, n = self.gradients.get(c.name, (None, 0))
+            if have is None:
+                have = {k: v.copy() for k, v in grads.items()}
+            else:
+                for k, total in have.items():
+                    np.add(total, grads[k], out=total)
+            self.gradients[c.name] = (have, n + spp)
+        # the pass's cost includes adding it to the frame: what the deadline must budget for each pass
         seconds = self.clock() - start
         (kind.costs.first if first else kind.costs.record)(spp, seconds)
         self.index += 1
-        grads = {k: v for k, v in sums.items() if ".grad" in k}
-        shared = {k: v for k, v in sums.items() if ".grad" not in k}
-        self.bases = shared if self.bases is None else {k: v + shared[k] for k, v in self.bases.items()}
         self.spp += spp
-        if grads:
-            have, n = self.gradients.get(c.name, ({}, 0))
-            self.gradients[c.name] = ({k: v + have.get(k, 0.0) for k, v in grads.items()}, n + spp)
         return sums
 
-    def frame_result(self, c: Candidate):  # -> renderer.gpt.GptResult
-        """The frame so far as ``c``'s frame: every pass's bases and features, ``c``'s passes' gradients."""
+    def frame_result(self, c: Candidate, window: tuple[slice, slice] | None = None):  # -> renderer.gpt.GptResult
+        """The frame so far as ``c``'s frame: every pass's bases and features, ``c``'s passes' gradients; only its
+        ``window`` (rows, columns) when given (what :func:`write_seconds` times)."""
         from gradsep.renderer.gpt import finish
 
         assert self.bases is not None, "no pass rendered"
         grads, k = self.gradients.get(c.name, ({}, 0))
-        return finish({**self.bases, **grads}, self.kind(c).settings, self.spp, self.index, k or None)
+        sums = {**self.bases, **grads}
+        if window is not None:
+            sums = {key: v[window] for key, v in sums.items()}
+        return finish(sums, self.kind(c).settings, self.spp, self.index, k or None)
 
 
 def sums_frame(sums: dict[str, np.ndarray], settings: object, spp: int) -> Frame:
@@ -436,16 +456,37 @@ def run_pilot(passes: Passes, budget_spp: Callable[[Assessment], float], *, pilo
 # ------------------------------------------------------------------------------------------- the frame
 
 
-def write_seconds(frame: Frame, rows: int = 16, margin: float = 1.5) -> float:
-    """Predicted seconds to encode and write ``frame``: a ``rows``-row slice is encoded here and scaled to the
-    frame's height (the EXR encoder's cost is linear in the rows), with a margin."""
+#: The write is predicted from WRITE_BANDS bands of WRITE_ROWS rows spread over the frame's height (content, and
+#: so the encoder's cost, differs by region), with a margin for a shared machine's swings, plus the file's
+#: creation, fsync and rename (WRITE_FIXED). Measured at 1280x720 on 2 shared cores: the bands' prediction within
+#: 10 % of the write in one process, but single-thread speed swings up to 2x within seconds under load: hence the
+#: margin, and a second measurement near the end (WRITE_REMEASURE).
+WRITE_ROWS = 16
+WRITE_BANDS = 3
+WRITE_MARGIN = 1.5
+WRITE_FIXED = 0.05
+#: The write is measured again once the time left is below this many predicted writes (the frame's last passes).
+WRITE_REMEASURE = 5.0
+
+
+def write_seconds(band: Callable[[tuple[slice, slice]], Frame], width: int, height: int, rows: int = WRITE_ROWS,
+                  bands: int = WRITE_BANDS, margin: float = WRITE_MARGIN) -> float:
+    """Predicted seconds from the last pass's end to the frame on disk: assembling the frame from the passes' sums
+    (``band(window)``: the frame of one window of rows), its channels, and their EXR encoding. Each of ``bands``
+    bands of ``rows`` rows spread over the height is assembled and encoded after one untimed warm-up (the first
+    encode in a process pays a one-time set-up: 2x a later one), and the time is scaled to the frame's height
+    (the encoder and the assembly are linear in the rows)."""
     from gradsep.model.frame import encode_exr
 
-    window = (slice(0, min(rows, frame.height)), slice(0, frame.width))
+    rows = max(1, min(rows, height))
+    starts = sorted({round(f * (height - rows)) for f in np.linspace(0.0, 1.0, max(1, bands))})
+    windows = [(slice(y, y + rows), slice(0, width)) for y in starts]
+    encode_exr(band((slice(0, 1), slice(0, width))).to_channels())  # warm-up
     start = time.perf_counter()
-    encode_exr(crop(frame, window).to_channels())
+    for window in windows:
+        encode_exr(band(window).to_channels())
     seconds = time.perf_counter() - start
-    return margin * seconds * frame.height / window[0].stop + 0.05
+    return margin * seconds * height / (rows * len(windows)) + WRITE_FIXED
 
 
 def as_frame(result: object) -> Frame:
@@ -483,15 +524,27 @@ def render_planned(loaded: LoadedScene, layers: tuple[str, ...], *, seed: int, s
     if (deadline is None) == (spp is None):
         raise ValueError("give a deadline or a sample count, not both")
     passes = Passes(loaded, layers, seed, shift, clock)
-    write = 0.0  # predicted seconds to encode and write the frame, measured after its first pass
+    write = 0.0  # predicted seconds to assemble, encode and write the frame, measured after its first pass
+    remeasured = False
+    written: list[Candidate] = []  # the plan whose frame is written: the first pass's, then the chosen one
+
+    def measure_write() -> float:
+        return write_seconds(lambda window: as_frame(passes.frame_result(written[-1], window)), loaded.width,
+                             loaded.height)
 
     def reserve() -> float:  # what must be left when the last pass ends: the write and the interpreter's exit
+        nonlocal write, remeasured
+        if deadline is not None and write > 0 and not remeasured and deadline.left() < WRITE_REMEASURE * write:
+            # the end is near: measured again, at the machine's load of now (a shared machine's single-thread
+            # speed swings 2x within seconds) and on the plan's frame
+            remeasured = True
+            write = measure_write()
         return write + exit_seconds()
 
     def after_first() -> None:  # the start-up check: one pass done, its frame must still be writable in time
         nonlocal write
-        first = next(iter(passes.kinds))
-        write = write_seconds(as_frame(passes.frame_result(candidate(first) if fixed is None else fixed)))
+        written.append(candidate(next(iter(passes.kinds))) if fixed is None else fixed)
+        write = measure_write()
         if deadline is not None and deadline.left() < reserve():
             raise startup_error(deadline.seconds, deadline.elapsed() + reserve())
 
@@ -516,6 +569,7 @@ def render_planned(loaded: LoadedScene, layers: tuple[str, ...], *, seed: int, s
         chosen = plan.chosen
     else:
         chosen = fixed
+    written.append(chosen)
     if deadline is None:
         target = int(spp)  # type: ignore[arg-type]
         while passes.spp < target:
@@ -528,12 +582,17 @@ def render_planned(loaded: LoadedScene, layers: tuple[str, ...], *, seed: int, s
         if passes.index == 0:  # no pilot: the first pass compiles the kernel and is the start-up check
             passes.run(chosen, 1)
             after_first()
-        def run(n: int) -> None:
-            passes.run(chosen, n)
+        # the chosen plan's passes, then primal passes in the gap too small for one more of them (FILLER)
+        filler = candidate(FILLER)
+
+        def run(n: int, c: Candidate = chosen) -> None:
+            passes.run(c, n)
             if progress is not None:
                 progress(passes.spp, 0)
 
-        fill_to_deadline(deadline, passes.kind(chosen).costs, reserve, passes.max_spp, run)
+        fill_with_filler(deadline, passes.kind(chosen).costs, run,
+                         passes.kind(filler).costs if chosen.gradients != "none" else None,
+                         lambda n: run(n, filler), reserve, passes.max_spp)
     result = passes.frame_result(chosen)
     k = passes.gradients.get(chosen.name, ({}, 0))[1]
     return Planned(as_frame(result), chosen, plan, passes.spp, k if chosen.gradients != "none" else 0, passes.index)
