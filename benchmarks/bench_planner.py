@@ -15,6 +15,10 @@
     python benchmarks/bench_planner.py estimate --scene procedural:studio:93106 --size 128 --ref-spp 2048 \
         [--cache ...]
 
+    # a plain-frame plan's cost per sample against Mitsuba's `path` (same scene, size, spp, depth, box filter)
+    python benchmarks/bench_planner.py cost [--scenes procedural:93201,procedural:studio:93201]
+        [--sizes 320x240,1280x720] [--spp 16] [--repeats 5]
+
 ``validate`` prints per (scene, budget) each plan's spp and measured RelMSE, auto's choice with its predicted
 RelMSE for every candidate (from the auto frame's header), auto against the best fixed plan, and the measured
 error-vs-spp exponent of each fixed plan between the two budgets (what renderer.plan.EXPONENTS assumes). Kernels
@@ -275,6 +279,45 @@ def estimate(args: argparse.Namespace) -> None:
                   f"{cross_relmse(image, batches)[0]:.3g} |", flush=True)
 
 
+def cost(args: argparse.Namespace) -> None:
+    """A plain-frame plan's cost per sample against Mitsuba's `path`: the planner's primal passes (what
+    ``--seconds T --gradients none`` and a pilot's ``primal`` choice render: renderer.plan.render_planned with the
+    fixed plan ``primal``, passes split by MAX_LANES_PER_PASS, added into the frame's sums, the frame assembled),
+    ``render --no-gradients`` (render_frame) beside them, and `path` (mi.render) at the same scene, size, spp, max
+    depth and box filter; interleaved rounds (benchmarks/bench_render.py), wall and CPU time (every thread)."""
+    print("| scene | size | spp | max depth | runs | path wall / CPU (s) | planner primal wall / CPU (s) | "
+          "planner / path (wall) | planner / path (CPU, median of rounds) | --no-gradients / path (CPU) |")
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|")
+    for scene in args.scenes.split(","):
+        for size in args.sizes.split(","):
+            cost_row(scene, size, args.spp, args.repeats)
+    print(f"\nload (1-minute average) at the end: {os.getloadavg()[0]:.2f} (2 cores)")
+
+
+def cost_row(scene: str, size: str, spp: int, repeats: int) -> None:
+    from benchmarks.bench_render import interleaved_rounds, path_image
+    from gradsep.renderer.plan import candidate, render_planned
+    from gradsep.renderer.render import plan_layers, render_frame
+    from gradsep.renderer.scene import load_scene
+
+    w, _, h = size.partition("x")
+    loaded = load_scene(scene, width=int(w), height=int(h or w))
+    layers, _ = plan_layers(("direct", "indirect"), loaded.max_depth)
+    runs = {
+        "path": lambda: path_image(loaded.scene, spp, 1, loaded.max_depth, loaded.rr_depth),
+        "planner": lambda: render_planned(loaded, layers, seed=1, shift=None, fixed=candidate("primal"), spp=spp),
+        "no-gradients": lambda: render_frame(loaded, spp=spp, seed=1, layers=layers, gradients=False),
+    }
+    wall, cpu = interleaved_rounds(runs, repeats)
+    med = {k: statistics.median(v) for k, v in wall.items()}
+    cmed = {k: statistics.median(v) for k, v in cpu.items()}
+    # the median of per-round ratios: each round's runs are back to back, so a load change between rounds cancels
+    ratio = {k: statistics.median(c / b for c, b in zip(cpu[k], cpu["path"], strict=True)) for k in runs}
+    print(f"| {scene} | {size} | {spp} | {loaded.max_depth} | {repeats} | {med['path']:.3f} / {cmed['path']:.3f} | "
+          f"{med['planner']:.3f} / {cmed['planner']:.3f} | {med['planner'] / med['path']:.3f} | "
+          f"{ratio['planner']:.3f} | {ratio['no-gradients']:.3f} |", flush=True)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="what", required=True)
@@ -297,8 +340,13 @@ def main(argv: list[str] | None = None) -> int:
     e.add_argument("--size", type=int, default=128)
     e.add_argument("--ref-spp", type=int, default=2048)
     e.add_argument("--cache", default=str(Path.home() / ".cache/gradsep/planner-bench"))
+    c = sub.add_parser("cost")
+    c.add_argument("--scenes", default="procedural:93201,procedural:studio:93201")
+    c.add_argument("--sizes", default="320x240,1280x720")
+    c.add_argument("--spp", type=int, default=16)
+    c.add_argument("--repeats", type=int, default=5)
     args = parser.parse_args(argv)
-    {"timing": timing, "validate": validate, "estimate": estimate}[args.what](args)
+    {"timing": timing, "validate": validate, "estimate": estimate, "cost": cost}[args.what](args)
     return 0
 
 

@@ -26,7 +26,8 @@ the budget is its passes. The law is measured late and carried only over what is
 method (primal + oidn flattens, G-PT + oidn-l1 keeps falling; docs/renderer.md "The render planner").
 
 **The deadline** (renderer/budget.py): passes are sized from their measured cost so that the last one ends, with
-the write still to come, just before ``T``; nothing is started that is predicted to miss it.
+the write still to come, just before ``T``; nothing is started that is predicted to miss it. A plan that traces
+gradients leaves a gap up to one of its passes wide; primal passes (FILLER), which the bases absorb, fill it.
 """
 
 from __future__ import annotations
