@@ -152,6 +152,7 @@ class Passes:
         self.bases: dict[str, np.ndarray] | None = None  # base and feature sums over every pass
         self.spp = 0
         self.gradients: dict[str, tuple[dict[str, np.ndarray], int]] = {}  # candidate -> (gradient sums, spp)
+        self._owned: list[np.ndarray] = []  # the sums arrays this object made (the others are a pass's own)
 
     def kind(self, c: Candidate) -> _Kind:
         if c.name not in self.kinds:
@@ -184,28 +185,32 @@ class Passes:
         start = self.clock()
         sums = render_pass(self.loaded.scene, kind.shift, kind.settings, self.loaded.width, self.loaded.height,
                            spp, pass_seed(self.seed, self.index))
-        # added in place into the frame's own sums (a 1280x720 frame's are ~200 MB of float64: adding into new
-        # arrays cost 0.3 s a pass); the first pass's are copied, the caller's ``sums`` stay the pass's own
-        if self.bases is None:
-            self.bases = {k: v.copy() for k, v in sums.items() if ".grad" not in k}
-        else:
-            for k, total in self.bases.items():
-                np.add(total, sums[k], out=total)
+        self.bases = self._added(self.bases, {k: v for k, v in sums.items() if ".grad" not in k})
         grads = {k: v for k, v in sums.items() if ".grad" in k}
         if grads:
             have, n = self.gradients.get(c.name, (None, 0))
-            if have is None:
-                have = {k: v.copy() for k, v in grads.items()}
-            else:
-                for k, total in have.items():
-                    np.add(total, grads[k], out=total)
-            self.gradients[c.name] = (have, n + spp)
+            self.gradients[c.name] = (self._added(have, grads), n + spp)
         # the pass's cost includes adding it to the frame: what the deadline must budget for each pass
         seconds = self.clock() - start
         (kind.costs.first if first else kind.costs.record)(spp, seconds)
         self.index += 1
         self.spp += spp
         return sums
+
+    def _added(self, total: dict[str, np.ndarray] | None, sums: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """``total + sums``: the first pass's arrays as they are (a frame of one pass copies nothing), new arrays at
+        the second (a pass's own sums are never written to: the caller may hold them), in place from then on (a
+        1280x720 frame's sums are ~200 MB of float64: new arrays at every pass cost 0.3 s a pass)."""
+        if total is None:
+            return sums
+        first = next(iter(total.values()))
+        if not any(first is mine for mine in self._owned):
+            total = {k: v + sums[k] for k, v in total.items()}
+            self._owned.extend(total.values())
+            return total
+        for k, v in total.items():
+            np.add(v, sums[k], out=v)
+        return total
 
     def frame_result(self, c: Candidate, window: tuple[slice, slice] | None = None):  # -> renderer.gpt.GptResult
         """The frame so far as ``c``'s frame: every pass's bases and features, ``c``'s passes' gradients; only its
@@ -535,9 +540,10 @@ def render_planned(loaded: LoadedScene, layers: tuple[str, ...], *, seed: int, s
 
     def reserve() -> float:  # what must be left when the last pass ends: the write and the interpreter's exit
         nonlocal write, remeasured
-        if deadline is not None and write > 0 and not remeasured and deadline.left() < WRITE_REMEASURE * write:
-            # the end is near: measured again, at the machine's load of now (a shared machine's single-thread
-            # speed swings 2x within seconds) and on the plan's frame
+        if (deadline is not None and len(written) > 1 and not remeasured
+                and deadline.left() < WRITE_REMEASURE * write):
+            # the frame's last passes (the plan is chosen): measured again, at the machine's load of now (a shared
+            # machine's single-thread speed swings 2x within seconds) and on the plan's frame
             remeasured = True
             write = measure_write()
         return write + exit_seconds()
@@ -545,8 +551,10 @@ def render_planned(loaded: LoadedScene, layers: tuple[str, ...], *, seed: int, s
     def after_first() -> None:  # the start-up check: one pass done, its frame must still be writable in time
         nonlocal write
         written.append(candidate(next(iter(passes.kinds))) if fixed is None else fixed)
+        if deadline is None:  # a sample count: no deadline to keep
+            return
         write = measure_write()
-        if deadline is not None and deadline.left() < reserve():
+        if deadline.left() < reserve():
             raise startup_error(deadline.seconds, deadline.elapsed() + reserve())
 
     plan = None
