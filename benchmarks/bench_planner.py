@@ -15,7 +15,8 @@
     python benchmarks/bench_planner.py estimate --scene procedural:studio:93106 --size 128 --ref-spp 2048 \
         [--cache ...]
 
-    # a plain-frame plan's cost per sample against Mitsuba's `path` (same scene, size, spp, depth, box filter)
+    # a plain-frame plan's cost against Mitsuba's `path` (same scene, size, spp, depth, box filter): a whole frame
+    # and the marginal cost of a sample (frames of spp and 2 spp)
     python benchmarks/bench_planner.py cost [--scenes procedural:93201,procedural:studio:93201]
         [--sizes 320x240,1280x720] [--spp 16] [--repeats 5]
 
@@ -284,10 +285,13 @@ def cost(args: argparse.Namespace) -> None:
     ``--seconds T --gradients none`` and a pilot's ``primal`` choice render: renderer.plan.render_planned with the
     fixed plan ``primal``, passes split by MAX_LANES_PER_PASS, added into the frame's sums, the frame assembled),
     ``render --no-gradients`` (render_frame) beside them, and `path` (mi.render) at the same scene, size, spp, max
-    depth and box filter; interleaved rounds (benchmarks/bench_render.py), wall and CPU time (every thread)."""
-    print("| scene | size | spp | max depth | runs | path wall / CPU (s) | planner primal wall / CPU (s) | "
-          "planner / path (wall) | planner / path (CPU, median of rounds) | --no-gradients / path (CPU) |")
-    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|")
+    depth and box filter; interleaved rounds (benchmarks/bench_render.py), CPU time of every thread (wall time
+    beside it). Two figures: a whole frame of ``--spp`` samples (per-frame costs included: reading the sums back,
+    assembling the frame), and the marginal cost of a sample, from frames of ``--spp`` and twice as many (what a
+    budget's further samples cost; the issue's "cost per sample")."""
+    print("| scene | size | spp | max depth | runs | path wall / CPU (s) | planner wall / CPU (s) | "
+          "planner / path: frame (wall) | frame (CPU) | marginal sample (CPU) | --no-gradients / path: frame (CPU) |")
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for scene in args.scenes.split(","):
         for size in args.sizes.split(","):
             cost_row(scene, size, args.spp, args.repeats)
@@ -303,19 +307,25 @@ def cost_row(scene: str, size: str, spp: int, repeats: int) -> None:
     w, _, h = size.partition("x")
     loaded = load_scene(scene, width=int(w), height=int(h or w))
     layers, _ = plan_layers(("direct", "indirect"), loaded.max_depth)
-    runs = {
-        "path": lambda: path_image(loaded.scene, spp, 1, loaded.max_depth, loaded.rr_depth),
-        "planner": lambda: render_planned(loaded, layers, seed=1, shift=None, fixed=candidate("primal"), spp=spp),
-        "no-gradients": lambda: render_frame(loaded, spp=spp, seed=1, layers=layers, gradients=False),
-    }
+
+    def path(n: int):
+        return lambda: path_image(loaded.scene, n, 1, loaded.max_depth, loaded.rr_depth)
+
+    def planner(n: int):
+        return lambda: render_planned(loaded, layers, seed=1, shift=None, fixed=candidate("primal"), spp=n)
+
+    runs = {"path": path(spp), "path2": path(2 * spp), "planner": planner(spp), "planner2": planner(2 * spp),
+            "no-gradients": lambda: render_frame(loaded, spp=spp, seed=1, layers=layers, gradients=False)}
     wall, cpu = interleaved_rounds(runs, repeats)
     med = {k: statistics.median(v) for k, v in wall.items()}
     cmed = {k: statistics.median(v) for k, v in cpu.items()}
-    # the median of per-round ratios: each round's runs are back to back, so a load change between rounds cancels
+    # medians of per-round ratios: each round's runs are back to back, so a load change between rounds cancels
     ratio = {k: statistics.median(c / b for c, b in zip(cpu[k], cpu["path"], strict=True)) for k in runs}
+    marginal = statistics.median((p2 - p1) / (q2 - q1) for p1, p2, q1, q2 in
+                                 zip(cpu["planner"], cpu["planner2"], cpu["path"], cpu["path2"], strict=True))
     print(f"| {scene} | {size} | {spp} | {loaded.max_depth} | {repeats} | {med['path']:.3f} / {cmed['path']:.3f} | "
           f"{med['planner']:.3f} / {cmed['planner']:.3f} | {med['planner'] / med['path']:.3f} | "
-          f"{ratio['planner']:.3f} | {ratio['no-gradients']:.3f} |", flush=True)
+          f"{ratio['planner']:.3f} | {marginal:.3f} | {ratio['no-gradients']:.3f} |", flush=True)
 
 
 def main(argv: list[str] | None = None) -> int:
