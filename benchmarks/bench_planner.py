@@ -285,8 +285,8 @@ def cost(args: argparse.Namespace) -> None:
     ``--seconds T --gradients none`` and a pilot's ``primal`` choice render: renderer.plan.render_planned with the
     fixed plan ``primal``, passes split by MAX_LANES_PER_PASS, added into the frame's sums, the frame assembled),
     ``render --no-gradients`` (render_frame) beside them, and `path` (mi.render) at the same scene, size, spp, max
-    depth and box filter; interleaved rounds (benchmarks/bench_render.py), CPU time of every thread (wall time
-    beside it). Two figures: a whole frame of ``--spp`` samples (per-frame costs included: reading the sums back,
+    depth and box filter; interleaved rounds (as benchmarks/bench_render.py's), CPU time of every thread (wall
+    time beside it). Two figures: a whole frame of ``--spp`` samples (per-frame costs included: reading the sums back,
     assembling the frame), and the marginal cost of a sample, from frames of ``--spp`` and twice as many (what a
     budget's further samples cost; the issue's "cost per sample")."""
     print("| scene | size | spp | max depth | runs | path wall / CPU (s) | planner wall / CPU (s) | "
@@ -299,24 +299,36 @@ def cost(args: argparse.Namespace) -> None:
 
 
 def cost_row(scene: str, size: str, spp: int, repeats: int) -> None:
-    from benchmarks.bench_render import interleaved_rounds, path_image
+    import mitsuba as mi
+    import numpy as np
+
     from gradsep.renderer.plan import candidate, render_planned
     from gradsep.renderer.render import plan_layers, render_frame
     from gradsep.renderer.scene import load_scene
 
     w, _, h = size.partition("x")
-    loaded = load_scene(scene, width=int(w), height=int(h or w))
+    loaded = load_scene(scene, width=int(w), height=int(h or w))  # the box filter, as every gradsep render
     layers, _ = plan_layers(("direct", "indirect"), loaded.max_depth)
+    integrator = mi.load_dict({"type": "path", "max_depth": loaded.max_depth, "rr_depth": loaded.rr_depth})
 
     def path(n: int):
-        return lambda: path_image(loaded.scene, n, 1, loaded.max_depth, loaded.rr_depth)
+        return lambda: np.array(mi.render(loaded.scene, integrator=integrator, spp=n, seed=1))
 
     def planner(n: int):
         return lambda: render_planned(loaded, layers, seed=1, shift=None, fixed=candidate("primal"), spp=n)
 
     runs = {"path": path(spp), "path2": path(2 * spp), "planner": planner(spp), "planner2": planner(2 * spp),
             "no-gradients": lambda: render_frame(loaded, spp=spp, seed=1, layers=layers, gradients=False)}
-    wall, cpu = interleaved_rounds(runs, repeats)
+    for run in runs.values():  # warm-up: kernels compiled or loaded
+        run()
+    wall: dict[str, list[float]] = {k: [] for k in runs}
+    cpu: dict[str, list[float]] = {k: [] for k in runs}
+    for _ in range(repeats):
+        for k, run in runs.items():
+            start, start_cpu = time.perf_counter(), time.process_time()
+            run()
+            wall[k].append(time.perf_counter() - start)
+            cpu[k].append(time.process_time() - start_cpu)
     med = {k: statistics.median(v) for k, v in wall.items()}
     cmed = {k: statistics.median(v) for k, v in cpu.items()}
     # medians of per-round ratios: each round's runs are back to back, so a load change between rounds cancels
