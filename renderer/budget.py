@@ -167,13 +167,21 @@ def fill_to_deadline(deadline: Deadline, costs: PassCosts, reserve: Callable[[],
 #: FILLER_MIN_PASS seconds and FILLER_SHARE of the budget (at 320x240 a G-PT pass is ~0.25 s: nothing to gain).
 FILLER_MIN_PASS = 0.5
 FILLER_SHARE = 0.02
+#: Before any warm pass, the plan's compiling 1-spp pass alone says its passes are coarse when it took this long
+#: (at 1280x720 2.5-5.5 s, at 320x240 0.4-1.8 s on 2 shared cores): the filler is then warmed up at once, while the
+#: time left surely holds it (waiting for a warm pass can leave no room: at T = 10 s a 1280x720 frame ended at
+#: 0.75 T, with the gap of a whole pass). Below it, the first warm pass decides (FILLER_MIN_PASS).
+FILLER_EARLY_PASS = 2.0
 
 
 def filler_pays(costs: PassCosts, seconds: float) -> bool:
-    """Whether the plan's warm passes (``costs``) are coarse enough in a ``seconds`` budget to warm up a filler."""
-    if not costs.warm:
-        return False
-    return costs.predict(1) >= max(FILLER_MIN_PASS, FILLER_SHARE * seconds)
+    """Whether the plan's passes (``costs``) are coarse enough in a ``seconds`` budget to warm up a filler: its warm
+    1-spp pass, or before one its compiling pass (FILLER_EARLY_PASS)."""
+    if costs.warm:
+        return costs.predict(1) >= max(FILLER_MIN_PASS, FILLER_SHARE * seconds)
+    if costs.first_pass is not None:
+        return costs.first_pass[1] / costs.first_pass[0] >= max(FILLER_EARLY_PASS, FILLER_SHARE * seconds)
+    return False
 
 
 def filler_warmup_fits(left: float, reserve: float, costs: PassCosts) -> bool:
@@ -189,9 +197,9 @@ def fill_with_filler(deadline: Deadline, costs: PassCosts, run: Callable[[int], 
                      run_filler: Callable[[int], None], reserve: Callable[[], float], max_spp: int) -> int:
     """:func:`fill_to_deadline` with the plan's passes (``run``, costs ``costs``), then the gap too small for one more
     of them with the filler's cheaper passes (``run_filler``, costs ``filler``; None: no filler); returns the
-    samples rendered. A cold filler's kernel is warmed up (one 1-spp pass) after the plan's first warm pass where
-    :func:`filler_pays`, so that the gap's passes are sized from measured costs; else at the gap, where
-    :func:`filler_warmup_fits`."""
+    samples rendered. A cold filler's kernel is warmed up (one 1-spp pass) as soon as :func:`filler_pays` -- before
+    the plan's passes, or after its first warm pass -- so that the gap's passes are sized from measured costs; else
+    at the gap; always only where :func:`filler_warmup_fits`."""
     done = 0
 
     def warm_up() -> None:
@@ -199,12 +207,16 @@ def fill_with_filler(deadline: Deadline, costs: PassCosts, run: Callable[[int], 
         run_filler(1)
         done += 1
 
-    def plan_pass(spp: int) -> None:
-        run(spp)
+    def maybe_warm_up() -> None:
         if (filler is not None and filler.first_pass is None and filler_pays(costs, deadline.seconds)
                 and filler_warmup_fits(deadline.left(), reserve(), costs)):
             warm_up()
 
+    def plan_pass(spp: int) -> None:
+        run(spp)
+        maybe_warm_up()
+
+    maybe_warm_up()
     done += fill_to_deadline(deadline, costs, reserve, max_spp, plan_pass)
     if filler is None:
         return done

@@ -144,7 +144,9 @@ def test_a_machine_that_slows_down_is_followed() -> None:
 
 
 def test_a_filler_is_warmed_up_only_for_coarse_passes_and_only_where_it_surely_fits() -> None:
-    assert not filler_pays(PassCosts(), 20.0)  # no warm pass yet: nothing known
+    assert not filler_pays(PassCosts(), 20.0)  # no pass yet: nothing known
+    assert not filler_pays(PassCosts(first_pass=(1, 1.5)), 20.0)  # a compiling pass at 320x240, under load
+    assert filler_pays(PassCosts(first_pass=(1, 3.0)), 20.0)  # 1280x720: coarse already before a warm pass
     assert not filler_pays(PassCosts(warm=[(1, 0.25)]), 20.0)  # 320x240 G-PT: fine-grained already
     assert filler_pays(PassCosts(warm=[(1, 2.5)]), 20.0)  # 1280x720 G-PT: a pass is 12 % of the budget
     assert not filler_pays(PassCosts(warm=[(1, 2.5)]), 600.0)  # ... but 0.4 % of ten minutes
@@ -182,7 +184,7 @@ def _simulate_filled(seconds: float, per: float, filler_per: float, *, filler: b
     return deadline.elapsed(), done["plan"], done["filler"]
 
 
-@pytest.mark.parametrize("seconds", [20.0, 25.0, 40.0, 60.0])
+@pytest.mark.parametrize("seconds", [12.0, 20.0, 25.0, 40.0, 60.0])
 def test_a_cheaper_filler_closes_the_gap_a_coarse_plan_leaves(seconds: float) -> None:
     """At 1280x720 a G-PT pass is ~2.5 s per sample and a primal one ~0.6 s: the plan alone stops up to a pass
     short of T; with the filler the frame ends within 6 % of T, never after it, and the plan keeps its samples."""
