@@ -197,9 +197,9 @@ def fill_with_filler(deadline: Deadline, costs: PassCosts, run: Callable[[int], 
                      run_filler: Callable[[int], None], reserve: Callable[[], float], max_spp: int) -> int:
     """:func:`fill_to_deadline` with the plan's passes (``run``, costs ``costs``), then the gap too small for one more
     of them with the filler's cheaper passes (``run_filler``, costs ``filler``; None: no filler); returns the
-    samples rendered. A cold filler's kernel is warmed up (one 1-spp pass) as soon as :func:`filler_pays` -- before
-    the plan's passes, or after its first warm pass -- so that the gap's passes are sized from measured costs; else
-    at the gap; always only where :func:`filler_warmup_fits`."""
+    samples rendered. A cold filler's kernel is warmed up (a 1-spp pass, and a warm one where it fits) as soon as
+    :func:`filler_pays` -- before the plan's passes, or after its first warm pass -- so that the gap's passes are
+    sized from measured costs; else at the gap; always only where :func:`filler_warmup_fits`."""
     done = 0
 
     def warm_up() -> None:
@@ -211,6 +211,10 @@ def fill_with_filler(deadline: Deadline, costs: PassCosts, run: Callable[[int], 
         if (filler is not None and filler.first_pass is None and filler_pays(costs, deadline.seconds)
                 and filler_warmup_fits(deadline.left(), reserve(), costs)):
             warm_up()
+            # and one warm pass, while there is time: the compiling pass overstates a pass (at 1280x720 a primal
+            # pass took 1.1 s compiling, 0.55 s warm), which would leave the gap unfilled; its sample is the frame's
+            if deadline.left() - reserve() >= LAST_PASS_MARGIN * filler.first_pass[1]:  # type: ignore[index]
+                warm_up()
 
     def plan_pass(spp: int) -> None:
         run(spp)

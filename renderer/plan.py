@@ -531,19 +531,23 @@ def render_planned(loaded: LoadedScene, layers: tuple[str, ...], *, seed: int, s
         raise ValueError("give a deadline or a sample count, not both")
     passes = Passes(loaded, layers, seed, shift, clock)
     write = 0.0  # predicted seconds to assemble, encode and write the frame, measured after its first pass
+    measured_at = 0  # passes.index when it was measured (0: never)
     remeasured = False
     written: list[Candidate] = []  # the plan whose frame is written: the first pass's, then the chosen one
 
     def measure_write() -> float:
+        nonlocal measured_at
+        measured_at = passes.index
         return write_seconds(lambda window: as_frame(passes.frame_result(written[-1], window)), loaded.width,
                              loaded.height)
 
     def reserve() -> float:  # what must be left when the last pass ends: the write and the interpreter's exit
         nonlocal write, remeasured
-        if (deadline is not None and len(written) > 1 and not remeasured
+        if (deadline is not None and len(written) > 1 and not remeasured and passes.index > measured_at
                 and deadline.left() < WRITE_REMEASURE * write):
-            # the frame's last passes (the plan is chosen): measured again, at the machine's load of now (a shared
-            # machine's single-thread speed swings 2x within seconds) and on the plan's frame
+            # the frame's last passes (the plan is chosen, a pass since the last measurement): measured again, at
+            # the machine's load of now (a shared machine's single-thread speed swings 2x within seconds) and on the
+            # plan's frame
             remeasured = True
             write = measure_write()
         return write + exit_seconds()
