@@ -58,6 +58,35 @@ primal, 1.00->0.87 primal; studio:93104 2.67->2.79 all, 6.31->0.47 all; 93105 2.
 2.79->1.05 direct-alternate; studio:93106 2.70->1.88, 3.88->1.83 direct-alternate; 93107 5.87->0.93, 1.67->1.14
 direct-alternate; studio:93108 20.1->0.98 all, 4.53->2.24 direct-alternate; 93109 1.65->1.40 primal, 1.94->0.88
 direct-alternate; studio:93110 16874->0.28 direct-alternate, 7.61->8.31 all (20 s, 40 s).
+
+The deadline with primal filler passes, the write predicted from three bands and measured again near the end (this
+tree as /tmp/dl/new, d6f0358 as /tmp/dl/base, both `git archive | tar -x`; 2 shared cores, load 5.2-7.6 from other
+work, so one run of a cell may get half the machine another got):
+
+    python benchmarks/bench_planner.py timing --sizes 1280x720,320x240 --seconds 10,20 --plans all,auto \
+        --repeats 3 --checkouts /tmp/dl/base,/tmp/dl/new --cache /tmp/dl/timing5
+
+Median wall / T (3 runs each, none past T), new against d6f0358: 1280x720 all 0.760 (0.679-0.906) against 0.788 at
+T = 10 s, 0.951 (0.948-0.960) against 0.939 at 20 s; auto 0.906 against 0.777 at 10 s, 0.948 against 0.941 at
+20 s; 320x240 all 0.970, 0.988 (0.971, 0.987 before), auto 0.955, 0.980 (0.981, 0.990). A 1280x720 run at 10 s
+that ends near 0.7 T rendered its compiling pass alone: under this load that pass took 3-5 s, and no filler
+kernel surely fits after it. At T = 5 s a 1280x720 frame is one pass (0.72-0.82 T) or refused.
+
+A plain-frame plan against `path` (2 shared cores, load ~5.9 from other work; CPU time, medians of 5 interleaved
+rounds), planner / path for a whole 8-spp frame and for a further sample (frames of 8 and 16 spp):
+
+    python benchmarks/bench_planner.py cost --scenes procedural:93201,procedural:studio:93201 \
+        --sizes 320x240,1280x720 --spp 8 --repeats 5
+
+procedural:93201: frame 1.15 (320x240), 1.22 (1280x720); a further sample 0.94, 0.98. procedural:studio:93201:
+frame 1.20, 1.50; a further sample 0.83, 0.63 (a cheap scene: 0.05 s and 0.45 s per `path` frame, so the difference
+of two frames is noisy). `render --no-gradients`: frame 1.14-1.17. Dr.Jit's kernel history (JitFlag.KernelHistory)
+puts the primal kernel's execution at `path`'s (1280x720, 16 spp: 0.85-0.90 s against 0.89-0.94 s on the studio,
+7.6-7.8 s against 7.6 s on 93201): the per-frame excess is outside the kernel, reading the 15 channels of sums
+back as float64 and assembling the frame (renderer/gpt.py `_pixel_sums`, `_finish`), which `--no-gradients` pays
+alike. At 16 spp (4 rounds, load ~5) the whole frame was 1.08, 1.09, 1.22, 1.30 here and 1.14, 1.13, 1.24, 1.54
+at d6f0358, which assembled the frame once more after its first pass for a write estimate that a sample count does
+not need.
 """
 
 from __future__ import annotations
