@@ -15,6 +15,11 @@
     python benchmarks/bench_planner.py estimate --scene procedural:studio:93106 --size 128 --ref-spp 2048 \
         [--cache ...]
 
+    # a plain-frame plan's cost against Mitsuba's `path` (same scene, size, spp, depth, box filter): a whole frame
+    # and the marginal cost of a sample (frames of spp and 2 spp)
+    python benchmarks/bench_planner.py cost [--scenes procedural:93201,procedural:studio:93201]
+        [--sizes 320x240,1280x720] [--spp 16] [--repeats 5]
+
 ``validate`` prints per (scene, budget) each plan's spp and measured RelMSE, auto's choice with its predicted
 RelMSE for every candidate (from the auto frame's header), auto against the best fixed plan, and the measured
 error-vs-spp exponent of each fixed plan between the two budgets (what renderer.plan.EXPONENTS assumes). Kernels
@@ -53,6 +58,35 @@ primal, 1.00->0.87 primal; studio:93104 2.67->2.79 all, 6.31->0.47 all; 93105 2.
 2.79->1.05 direct-alternate; studio:93106 2.70->1.88, 3.88->1.83 direct-alternate; 93107 5.87->0.93, 1.67->1.14
 direct-alternate; studio:93108 20.1->0.98 all, 4.53->2.24 direct-alternate; 93109 1.65->1.40 primal, 1.94->0.88
 direct-alternate; studio:93110 16874->0.28 direct-alternate, 7.61->8.31 all (20 s, 40 s).
+
+The deadline with primal filler passes, the write predicted from three bands and measured again near the end (this
+tree as /tmp/dl/new, d6f0358 as /tmp/dl/base, both `git archive | tar -x`; 2 shared cores, load 5.2-7.6 from other
+work, so one run of a cell may get half the machine another got):
+
+    python benchmarks/bench_planner.py timing --sizes 1280x720,320x240 --seconds 10,20 --plans all,auto \
+        --repeats 3 --checkouts /tmp/dl/base,/tmp/dl/new --cache /tmp/dl/timing5
+
+Median wall / T (3 runs each, none past T), new against d6f0358: 1280x720 all 0.760 (0.679-0.906) against 0.788 at
+T = 10 s, 0.951 (0.948-0.960) against 0.939 at 20 s; auto 0.906 against 0.777 at 10 s, 0.948 against 0.941 at
+20 s; 320x240 all 0.970, 0.988 (0.971, 0.987 before), auto 0.955, 0.980 (0.981, 0.990). A 1280x720 run at 10 s
+that ends near 0.7 T rendered its compiling pass alone: under this load that pass took 3-5 s, and no filler
+kernel surely fits after it. At T = 5 s a 1280x720 frame is one pass (0.72-0.82 T) or refused.
+
+A plain-frame plan against `path` (2 shared cores, load ~5.9 from other work; CPU time, medians of 5 interleaved
+rounds), planner / path for a whole 8-spp frame and for a further sample (frames of 8 and 16 spp):
+
+    python benchmarks/bench_planner.py cost --scenes procedural:93201,procedural:studio:93201 \
+        --sizes 320x240,1280x720 --spp 8 --repeats 5
+
+procedural:93201: frame 1.15 (320x240), 1.22 (1280x720); a further sample 0.94, 0.98. procedural:studio:93201:
+frame 1.20, 1.50; a further sample 0.83, 0.63 (a cheap scene: 0.05 s and 0.45 s per `path` frame, so the difference
+of two frames is noisy). `render --no-gradients`: frame 1.14-1.17. Dr.Jit's kernel history (JitFlag.KernelHistory)
+puts the primal kernel's execution at `path`'s (1280x720, 16 spp: 0.85-0.90 s against 0.89-0.94 s on the studio,
+7.6-7.8 s against 7.6 s on 93201): the per-frame excess is outside the kernel, reading the 15 channels of sums
+back as float64 and assembling the frame (renderer/gpt.py `_pixel_sums`, `_finish`), which `--no-gradients` pays
+alike. At 16 spp (4 rounds, load ~5) the whole frame was 1.08, 1.09, 1.22, 1.30 here and 1.14, 1.13, 1.24, 1.54
+at d6f0358, which assembled the frame once more after its first pass for a write estimate that a sample count does
+not need.
 """
 
 from __future__ import annotations
@@ -61,6 +95,7 @@ import argparse
 import json
 import math
 import os
+import statistics
 import subprocess
 import sys
 import time
@@ -75,9 +110,13 @@ FIXED = {"primal": ["--gradients", "none"], "direct-alternate": ["--gradients", 
 PLANS = {"auto": ["--gradients", "auto"], **FIXED}
 
 
-def gradsep(*args: str) -> tuple[float, str]:
-    """Run the gradsep CLI in a fresh process; returns its wall time and stdout (raises on failure)."""
-    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def gradsep(*args: str, checkout: Path = ROOT) -> tuple[float, str]:
+    """Run the gradsep CLI of ``checkout`` (a source tree) in a fresh process; returns its wall time and stdout
+    (raises on failure)."""
+    env = dict(os.environ, PYTHONPATH=str(checkout))
     start = time.perf_counter()
     proc = subprocess.run([sys.executable, "-m", "gradsep", *args], capture_output=True, text=True, env=env)
     wall = time.perf_counter() - start
@@ -91,34 +130,62 @@ def size_args(size: str) -> list[str]:
     return ["--width", w, "--height", h or w]
 
 
-def warm_kernels(scene: str, out: Path, size: tuple[str, str] = ("16", "16")) -> None:
+def warm_kernels(scene: str, out: Path, size: tuple[str, str] = ("16", "16"), checkout: Path = ROOT) -> None:
     """Compile every plan's kernels for ``scene`` at ``size`` (Dr.Jit's kernel cache is keyed by the frame size
     too: a kernel compiled at another size is compiled again), so that no timed render pays a compilation."""
     for plan in FIXED.values():
-        gradsep("render", scene, "--width", size[0], "--height", size[1], "--spp", "1", *plan, "-o", str(out))
+        gradsep("render", scene, "--width", size[0], "--height", size[1], "--spp", "1", *plan, "-o", str(out),
+                checkout=checkout)
 
 
 def timing(args: argparse.Namespace) -> None:
+    """Each (scene, size, T, plan, checkout) cell ``--repeats`` times; every repeat runs all cells once, in turn, so
+    that a change of the machine's load falls on every cell (and every checkout) alike. One row per run (with the
+    1-minute load average when it started), then the median, min and max of wall / T per cell."""
     out = Path(args.cache) / "timing.exr"
     out.parent.mkdir(parents=True, exist_ok=True)
-    print("| scene | size | plan | T (s) | wall (s) | wall / T | spp | chosen |")
-    print("|---|---|---|---:|---:|---:|---:|---|")
-    for scene in args.scenes.split(","):
+    checkouts = [Path(c).resolve() for c in args.checkouts.split(",")] if args.checkouts else [ROOT]
+    label = {c: (c.name if len(checkouts) > 1 else "") for c in checkouts}
+    cells = [(scene, size, seconds, plan, c) for scene in args.scenes.split(",") for size in args.sizes.split(",")
+             for seconds in args.seconds.split(",") for plan in args.plans.split(",") for c in checkouts]
+    for scene in dict.fromkeys(cell[0] for cell in cells):
         for size in args.sizes.split(","):
-            warm_kernels(scene, out, tuple(size_args(size)[1::2]))  # type: ignore[arg-type]
-            for seconds in args.seconds.split(","):
-                for plan in args.plans.split(","):
-                    out.unlink(missing_ok=True)
-                    try:
-                        wall, _ = gradsep("render", scene, *size_args(size), "--seconds", seconds, *PLANS[plan],
-                                          "-o", str(out))
-                    except RuntimeError as exc:  # a budget below the start-up cost is refused (exit 2, no file)
-                        print(f"| {scene} | {size} | {plan} | {seconds} | refused | | | {str(exc)[-160:]} |")
-                        assert not out.exists()
-                        continue
-                    meta = header(out)
-                    print(f"| {scene} | {size} | {plan} | {seconds} | {wall:.2f} | {wall / float(seconds):.3f} | "
-                          f"{meta['gradsep.spp']} | {meta.get('gradsep.plan', '')} |", flush=True)
+            for c in checkouts:
+                warm_kernels(scene, out, tuple(size_args(size)[1::2]), c)  # type: ignore[arg-type]
+    print("| repeat | scene | size | plan | checkout | T (s) | load | wall (s) | wall / T | spp | chosen |")
+    print("|---:|---|---|---|---|---:|---:|---:|---:|---:|---|")
+    results: dict[tuple, list[float]] = {cell: [] for cell in cells}
+    loads: list[float] = []
+    for repeat in range(args.repeats):
+        for cell in cells:
+            scene, size, seconds, plan, c = cell
+            out.unlink(missing_ok=True)
+            load = os.getloadavg()[0]
+            loads.append(load)
+            where = f"| {repeat} | {scene} | {size} | {plan} | {label[c]} | {seconds} | {load:.2f} |"
+            try:
+                wall, _ = gradsep("render", scene, *size_args(size), "--seconds", seconds, *PLANS[plan],
+                                  "-o", str(out), checkout=c)
+            except RuntimeError as exc:  # a budget below the start-up cost is refused (exit 2, no file)
+                print(f"{where} refused | | | {str(exc)[-160:]} |", flush=True)
+                assert not out.exists()
+                continue
+            meta = header(out)
+            results[cell].append(wall / float(seconds))
+            print(f"{where} {wall:.2f} | {wall / float(seconds):.3f} | {meta['gradsep.spp']} | "
+                  f"{meta.get('gradsep.plan', '')} |", flush=True)
+    print(f"\nload (1-minute average) during the runs: median {statistics.median(loads):.2f}, "
+          f"{min(loads):.2f}-{max(loads):.2f} (2 cores)\n")
+    print("| scene | size | plan | checkout | T (s) | runs | median wall / T | min | max | past T |")
+    print("|---|---|---|---|---:|---:|---:|---:|---:|---:|")
+    for cell, ratios in results.items():
+        scene, size, seconds, plan, c = cell
+        if not ratios:
+            print(f"| {scene} | {size} | {plan} | {label[c]} | {seconds} | 0 | refused | | | |")
+            continue
+        print(f"| {scene} | {size} | {plan} | {label[c]} | {seconds} | {len(ratios)} | "
+              f"{statistics.median(ratios):.3f} | {min(ratios):.3f} | {max(ratios):.3f} | "
+              f"{sum(r > 1.0 for r in ratios)} |")
 
 
 def header(path: Path) -> dict[str, str]:
@@ -272,6 +339,66 @@ def estimate(args: argparse.Namespace) -> None:
                   f"{cross_relmse(image, batches)[0]:.3g} |", flush=True)
 
 
+def cost(args: argparse.Namespace) -> None:
+    """A plain-frame plan's cost per sample against Mitsuba's `path`: the planner's primal passes (what
+    ``--seconds T --gradients none`` and a pilot's ``primal`` choice render: renderer.plan.render_planned with the
+    fixed plan ``primal``, passes split by MAX_LANES_PER_PASS, added into the frame's sums, the frame assembled),
+    ``render --no-gradients`` (render_frame) beside them, and `path` (mi.render) at the same scene, size, spp, max
+    depth and box filter; interleaved rounds (as benchmarks/bench_render.py's), CPU time of every thread (wall
+    time beside it). Two figures: a whole frame of ``--spp`` samples (per-frame costs included: reading the sums back,
+    assembling the frame), and the marginal cost of a sample, from frames of ``--spp`` and twice as many (what a
+    budget's further samples cost; the issue's "cost per sample")."""
+    print("| scene | size | spp | max depth | runs | path wall / CPU (s) | planner wall / CPU (s) | "
+          "planner / path: frame (wall) | frame (CPU) | marginal sample (CPU) | --no-gradients / path: frame (CPU) |")
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    for scene in args.scenes.split(","):
+        for size in args.sizes.split(","):
+            cost_row(scene, size, args.spp, args.repeats)
+    print(f"\nload (1-minute average) at the end: {os.getloadavg()[0]:.2f} (2 cores)")
+
+
+def cost_row(scene: str, size: str, spp: int, repeats: int) -> None:
+    import mitsuba as mi
+    import numpy as np
+
+    from gradsep.renderer.plan import candidate, render_planned
+    from gradsep.renderer.render import plan_layers, render_frame
+    from gradsep.renderer.scene import load_scene
+
+    w, _, h = size.partition("x")
+    loaded = load_scene(scene, width=int(w), height=int(h or w))  # the box filter, as every gradsep render
+    layers, _ = plan_layers(("direct", "indirect"), loaded.max_depth)
+    integrator = mi.load_dict({"type": "path", "max_depth": loaded.max_depth, "rr_depth": loaded.rr_depth})
+
+    def path(n: int):
+        return lambda: np.array(mi.render(loaded.scene, integrator=integrator, spp=n, seed=1))
+
+    def planner(n: int):
+        return lambda: render_planned(loaded, layers, seed=1, shift=None, fixed=candidate("primal"), spp=n)
+
+    runs = {"path": path(spp), "path2": path(2 * spp), "planner": planner(spp), "planner2": planner(2 * spp),
+            "no-gradients": lambda: render_frame(loaded, spp=spp, seed=1, layers=layers, gradients=False)}
+    for run in runs.values():  # warm-up: kernels compiled or loaded
+        run()
+    wall: dict[str, list[float]] = {k: [] for k in runs}
+    cpu: dict[str, list[float]] = {k: [] for k in runs}
+    for _ in range(repeats):
+        for k, run in runs.items():
+            start, start_cpu = time.perf_counter(), time.process_time()
+            run()
+            wall[k].append(time.perf_counter() - start)
+            cpu[k].append(time.process_time() - start_cpu)
+    med = {k: statistics.median(v) for k, v in wall.items()}
+    cmed = {k: statistics.median(v) for k, v in cpu.items()}
+    # medians of per-round ratios: each round's runs are back to back, so a load change between rounds cancels
+    ratio = {k: statistics.median(c / b for c, b in zip(cpu[k], cpu["path"], strict=True)) for k in runs}
+    marginal = statistics.median((p2 - p1) / (q2 - q1) for p1, p2, q1, q2 in
+                                 zip(cpu["planner"], cpu["planner2"], cpu["path"], cpu["path2"], strict=True))
+    print(f"| {scene} | {size} | {spp} | {loaded.max_depth} | {repeats} | {med['path']:.3f} / {cmed['path']:.3f} | "
+          f"{med['planner']:.3f} / {cmed['planner']:.3f} | {med['planner'] / med['path']:.3f} | "
+          f"{ratio['planner']:.3f} | {marginal:.3f} | {ratio['no-gradients']:.3f} |", flush=True)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="what", required=True)
@@ -280,6 +407,8 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument("--sizes", default="320x240,1280x720")
     t.add_argument("--seconds", default="5,10,20")
     t.add_argument("--plans", default="auto,all")
+    t.add_argument("--repeats", type=int, default=3)
+    t.add_argument("--checkouts", default="", help="source trees to time side by side (default: this one)")
     t.add_argument("--cache", default=str(Path.home() / ".cache/gradsep/planner-bench"))
     v = sub.add_parser("validate")
     v.add_argument("--scenes", default=",".join([f"procedural:{s}" for s in range(93201, 93209)]
@@ -296,8 +425,13 @@ def main(argv: list[str] | None = None) -> int:
     e.add_argument("--size", type=int, default=128)
     e.add_argument("--ref-spp", type=int, default=2048)
     e.add_argument("--cache", default=str(Path.home() / ".cache/gradsep/planner-bench"))
+    c = sub.add_parser("cost")
+    c.add_argument("--scenes", default="procedural:93201,procedural:studio:93201")
+    c.add_argument("--sizes", default="320x240,1280x720")
+    c.add_argument("--spp", type=int, default=16)
+    c.add_argument("--repeats", type=int, default=5)
     args = parser.parse_args(argv)
-    {"timing": timing, "validate": validate, "estimate": estimate}[args.what](args)
+    {"timing": timing, "validate": validate, "estimate": estimate, "cost": cost}[args.what](args)
     return 0
 
 

@@ -162,3 +162,74 @@ def fill_to_deadline(deadline: Deadline, costs: PassCosts, reserve: Callable[[],
         run(spp)
         done += spp
     return done
+
+
+# ------------------------------------------------------------------------------------------------- the filler
+
+#: Passes of the frame's plan stop up to one pass short of the deadline, and at 1280x720 one 1-spp G-PT pass is
+#: ~2.5 s (2 shared cores). That gap is filled with passes of a cheaper kind (renderer/plan.py: primal passes, whose
+#: samples every plan's bases absorb). The filler's kernel costs a compile (or cache load) first: 0.15-0.4 s measured
+#: after a G-PT kernel, so it is warmed up only where the plan's passes are coarse: a 1-spp pass of at least
+#: FILLER_MIN_PASS seconds and FILLER_SHARE of the budget (at 320x240 a G-PT pass is ~0.25 s: nothing to gain).
+FILLER_MIN_PASS = 0.5
+FILLER_SHARE = 0.02
+#: Before any warm pass, the plan's compiling 1-spp pass alone says its passes are coarse when it took this long
+#: (at 1280x720 2.5-5.5 s, at 320x240 0.4-1.8 s on 2 shared cores): the filler is then warmed up at once, while the
+#: time left surely holds it (waiting for a warm pass can leave no room: at T = 10 s a 1280x720 frame ended at
+#: 0.75 T, with the gap of a whole pass). Below it, the first warm pass decides (FILLER_MIN_PASS).
+FILLER_EARLY_PASS = 2.0
+
+
+def filler_pays(costs: PassCosts, seconds: float) -> bool:
+    """Whether the plan's passes (``costs``) are coarse enough in a ``seconds`` budget to warm up a filler: its warm
+    1-spp pass, or before one its compiling pass (FILLER_EARLY_PASS)."""
+    if costs.warm:
+        return costs.predict(1) >= max(FILLER_MIN_PASS, FILLER_SHARE * seconds)
+    if costs.first_pass is not None:
+        return costs.first_pass[1] / costs.first_pass[0] >= max(FILLER_EARLY_PASS, FILLER_SHARE * seconds)
+    return False
+
+
+def filler_warmup_fits(left: float, reserve: float, costs: PassCosts) -> bool:
+    """Whether the filler's first (compiling) 1-spp pass surely ends before the deadline: it is bounded by the plan's
+    own first pass (``costs.first_pass``), whose kernel is larger, whose sample costs more, and which also paid the
+    process's one-time set-up (the JIT back end, the scene's upload)."""
+    if costs.first_pass is None:
+        return False
+    return left - reserve >= LAST_PASS_MARGIN * costs.first_pass[1]
+
+
+def fill_with_filler(deadline: Deadline, costs: PassCosts, run: Callable[[int], None], filler: PassCosts | None,
+                     run_filler: Callable[[int], None], reserve: Callable[[], float], max_spp: int) -> int:
+    """:func:`fill_to_deadline` with the plan's passes (``run``, costs ``costs``), then the gap too small for one more
+    of them with the filler's cheaper passes (``run_filler``, costs ``filler``; None: no filler); returns the
+    samples rendered. A cold filler's kernel is warmed up (a 1-spp pass, and a warm one where it fits) as soon as
+    :func:`filler_pays` -- before the plan's passes, or after its first warm pass -- so that the gap's passes are
+    sized from measured costs; else at the gap; always only where :func:`filler_warmup_fits`."""
+    done = 0
+
+    def warm_up() -> None:
+        nonlocal done
+        run_filler(1)
+        done += 1
+
+    def maybe_warm_up() -> None:
+        if (filler is not None and filler.first_pass is None and filler_pays(costs, deadline.seconds)
+                and filler_warmup_fits(deadline.left(), reserve(), costs)):
+            warm_up()
+            # and one warm pass, while there is time: the compiling pass overstates a pass (at 1280x720 a primal
+            # pass took 1.1 s compiling, 0.55 s warm), which would leave the gap unfilled; its sample is the frame's
+            if deadline.left() - reserve() >= LAST_PASS_MARGIN * filler.first_pass[1]:  # type: ignore[index]
+                warm_up()
+
+    def plan_pass(spp: int) -> None:
+        run(spp)
+        maybe_warm_up()
+
+    maybe_warm_up()
+    done += fill_to_deadline(deadline, costs, reserve, max_spp, plan_pass)
+    if filler is None:
+        return done
+    if filler.first_pass is None and filler_warmup_fits(deadline.left(), reserve(), costs):
+        warm_up()
+    return done + fill_to_deadline(deadline, filler, reserve, max_spp, run_filler)

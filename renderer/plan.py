@@ -27,7 +27,8 @@ candidate's prediction is lower by more than their combined standard errors (:fu
 more (one round has no cost line nor slope to compare by), and the rest of the budget is the winner's passes.
 
 **The deadline** (renderer/budget.py): passes are sized from their measured cost so that the last one ends, with
-the write still to come, just before ``T``; nothing is started that is predicted to miss it.
+the write still to come, just before ``T``; nothing is started that is predicted to miss it. A plan that traces
+gradients leaves a gap up to one of its passes wide; primal passes (FILLER), which the bases absorb, fill it.
 """
 
 from __future__ import annotations
@@ -43,7 +44,7 @@ import numpy as np
 
 from gradsep.model.errors import CommandError
 from gradsep.model.frame import PLAN_METHOD_KEY, PREDICTED_RELMSE_KEY, Features, Frame, Layer
-from gradsep.renderer.budget import Clock, Deadline, PassCosts, fill_to_deadline
+from gradsep.renderer.budget import Clock, Deadline, PassCosts, fill_with_filler
 from gradsep.renderer.estimate import at_budget, cross_relmse, relative_weights
 from gradsep.renderer.scene import LoadedScene
 
@@ -76,9 +77,10 @@ PILOT_GIVE_UP = 0.3
 #: the compiled kernels): ~0.2 s + ~0.6 s measured on the 2-core development machine. Counted against the
 #: pilot's share before it is paid, so that a budget too small for it falls back instead of overrunning.
 RECONSTRUCT_STARTUP = 1.0
-#: The interpreter's exit after the frame is written (part of the command's wall time): ~0.1 s after rendering
-#: alone, ~0.5 s once the reconstruction libraries are loaded (torch, numba, OIDN), measured on the same machine.
-EXIT_SECONDS = (0.1, 0.5)
+#: The interpreter's exit after the frame is written (part of the command's wall time): 0.05-0.13 s after
+#: rendering alone (measured on 2 shared cores, load ~3, with a 1.2 margin); the reconstruction libraries add
+#: little now that torch is not imported with them (its teardown alone was 0.3 s: model.oidn.import_pyoidn).
+EXIT_SECONDS = (0.15, 0.3)
 #: The most samples of the race's first round (later rounds grow by ROUND_GROWTH while the race's share allows).
 PILOT_MAX_SPP = 16
 #: Tiles the pilot reconstructs (side, count) and the border of each left out of the estimate.
@@ -106,6 +108,10 @@ CANDIDATES: tuple[Candidate, ...] = (
     Candidate("direct", "direct", "all"),
     Candidate("all", "all"),  # only for an unseparated (colour) frame, whose one layer is all there is
 )
+#: What fills the end of a --seconds frame whose plan traces gradients, in the gap too small for one more pass of
+#: the plan: primal passes (their samples join the bases, as the --gradient-spp rule's; the gradients keep the
+#: plan's passes' samples). A 1-spp primal pass costs ~1/4 of an `all` pass (1280x720, 2 shared cores).
+FILLER = "primal"
 #: Rendered where no pilot can run (a budget or sample count too small for one), and the plan a race keeps unless
 #: another is clearly better (:func:`choose`): the default method's gradients at every offset (:func:`fallback`:
 #: ``all`` for an unseparated frame).
@@ -169,6 +175,7 @@ class Passes:
         self.bases: dict[str, np.ndarray] | None = None  # base and feature sums over every pass
         self.spp = 0
         self.gradients: dict[str, tuple[dict[str, np.ndarray], int]] = {}  # candidate -> (gradient sums, spp)
+        self._owned: list[np.ndarray] = []  # the sums arrays this object made (the others are a pass's own)
 
     def kind(self, c: Candidate) -> _Kind:
         if c.name not in self.kinds:
@@ -201,25 +208,44 @@ class Passes:
         start = self.clock()
         sums = render_pass(self.loaded.scene, kind.shift, kind.settings, self.loaded.width, self.loaded.height,
                            spp, pass_seed(self.seed, self.index))
+        self.bases = self._added(self.bases, {k: v for k, v in sums.items() if ".grad" not in k})
+        grads = {k: v for k, v in sums.items() if ".grad" in k}
+        if grads:
+            have, n = self.gradients.get(c.name, (None, 0))
+            self.gradients[c.name] = (self._added(have, grads), n + spp)
+        # the pass's cost includes adding it to the frame: what the deadline must budget for each pass
         seconds = self.clock() - start
         (kind.costs.first if first else kind.costs.record)(spp, seconds)
         self.index += 1
-        grads = {k: v for k, v in sums.items() if ".grad" in k}
-        shared = {k: v for k, v in sums.items() if ".grad" not in k}
-        self.bases = shared if self.bases is None else {k: v + shared[k] for k, v in self.bases.items()}
         self.spp += spp
-        if grads:
-            have, n = self.gradients.get(c.name, ({}, 0))
-            self.gradients[c.name] = ({k: v + have.get(k, 0.0) for k, v in grads.items()}, n + spp)
         return sums
 
-    def frame_result(self, c: Candidate):  # -> renderer.gpt.GptResult
-        """The frame so far as ``c``'s frame: every pass's bases and features, ``c``'s passes' gradients."""
+    def _added(self, total: dict[str, np.ndarray] | None, sums: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """``total + sums``: the first pass's arrays as they are (a frame of one pass copies nothing), new arrays at
+        the second (a pass's own sums are never written to: the caller may hold them), in place from then on (a
+        1280x720 frame's sums are ~200 MB of float64: new arrays at every pass cost 0.3 s a pass)."""
+        if total is None:
+            return sums
+        first = next(iter(total.values()))
+        if not any(first is mine for mine in self._owned):
+            total = {k: v + sums[k] for k, v in total.items()}
+            self._owned.extend(total.values())
+            return total
+        for k, v in total.items():
+            np.add(v, sums[k], out=v)
+        return total
+
+    def frame_result(self, c: Candidate, window: tuple[slice, slice] | None = None):  # -> renderer.gpt.GptResult
+        """The frame so far as ``c``'s frame: every pass's bases and features, ``c``'s passes' gradients; only its
+        ``window`` (rows, columns) when given (what :func:`write_seconds` times)."""
         from gradsep.renderer.gpt import finish
 
         assert self.bases is not None, "no pass rendered"
         grads, k = self.gradients.get(c.name, ({}, 0))
-        return finish({**self.bases, **grads}, self.kind(c).settings, self.spp, self.index, k or None)
+        sums = {**self.bases, **grads}
+        if window is not None:
+            sums = {key: v[window] for key, v in sums.items()}
+        return finish(sums, self.kind(c).settings, self.spp, self.index, k or None)
 
 
 def sums_frame(sums: dict[str, np.ndarray], settings: object, spp: int) -> Frame:
@@ -516,16 +542,37 @@ def run_pilot(passes: Passes, budget_spp: Callable[[Assessment], float], *, pilo
 # ------------------------------------------------------------------------------------------- the frame
 
 
-def write_seconds(frame: Frame, rows: int = 16, margin: float = 1.5) -> float:
-    """Predicted seconds to encode and write ``frame``: a ``rows``-row slice is encoded here and scaled to the
-    frame's height (the EXR encoder's cost is linear in the rows), with a margin."""
+#: The write is predicted from WRITE_BANDS bands of WRITE_ROWS rows spread over the frame's height (content, and
+#: so the encoder's cost, differs by region), with a margin for a shared machine's swings, plus the file's
+#: creation, fsync and rename (WRITE_FIXED). Measured at 1280x720 on 2 shared cores: the bands' prediction within
+#: 5 % of the write in one process, but under load 3-6 the write took 1.08-1.98x the prediction made seconds
+#: before it: hence the margin, and a second measurement near the end (WRITE_REMEASURE).
+WRITE_ROWS = 16
+WRITE_BANDS = 3
+WRITE_MARGIN = 1.75
+WRITE_FIXED = 0.05
+#: The write is measured again once the time left is below this many predicted writes (the frame's last passes).
+WRITE_REMEASURE = 5.0
+
+
+def write_seconds(band: Callable[[tuple[slice, slice]], Frame], width: int, height: int, rows: int = WRITE_ROWS,
+                  bands: int = WRITE_BANDS, margin: float = WRITE_MARGIN) -> float:
+    """Predicted seconds from the last pass's end to the frame on disk: assembling the frame from the passes' sums
+    (``band(window)``: the frame of one window of rows), its channels, and their EXR encoding. Each of ``bands``
+    bands of ``rows`` rows spread over the height is assembled and encoded after one untimed warm-up (the first
+    encode in a process pays a one-time set-up: 2x a later one), and the time is scaled to the frame's height
+    (the encoder and the assembly are linear in the rows)."""
     from gradsep.model.frame import encode_exr
 
-    window = (slice(0, min(rows, frame.height)), slice(0, frame.width))
+    rows = max(1, min(rows, height))
+    starts = sorted({round(f * (height - rows)) for f in np.linspace(0.0, 1.0, max(1, bands))})
+    windows = [(slice(y, y + rows), slice(0, width)) for y in starts]
+    encode_exr(band((slice(0, 1), slice(0, width))).to_channels())  # warm-up
     start = time.perf_counter()
-    encode_exr(crop(frame, window).to_channels())
+    for window in windows:
+        encode_exr(band(window).to_channels())
     seconds = time.perf_counter() - start
-    return margin * seconds * frame.height / window[0].stop + 0.05
+    return margin * seconds * height / (rows * len(windows)) + WRITE_FIXED
 
 
 def as_frame(result: object) -> Frame:
@@ -563,18 +610,37 @@ def render_planned(loaded: LoadedScene, layers: tuple[str, ...], *, seed: int, s
     if (deadline is None) == (spp is None):
         raise ValueError("give a deadline or a sample count, not both")
     passes = Passes(loaded, layers, seed, shift, clock)
-    write = 0.0  # predicted seconds to encode and write the frame, measured after its first pass
+    write = 0.0  # predicted seconds to assemble, encode and write the frame, measured after its first pass
+    measured_at = 0  # passes.index when it was measured (0: never)
+    remeasured = False
+    written: list[Candidate] = []  # the plan whose frame is written: the first pass's, then the chosen one
+
+    def measure_write() -> float:
+        nonlocal measured_at
+        measured_at = passes.index
+        return write_seconds(lambda window: as_frame(passes.frame_result(written[-1], window)), loaded.width,
+                             loaded.height)
 
     def reserve() -> float:  # what must be left when the last pass ends: the write and the interpreter's exit
+        nonlocal write, remeasured
         if deadline is not None and deadline.tail is not None:  # an in-process caller's own (Deadline.tail)
             return deadline.tail
+        if (deadline is not None and len(written) > 1 and not remeasured and passes.index > measured_at
+                and deadline.left() < WRITE_REMEASURE * write):
+            # the frame's last passes (the plan is chosen, a pass since the last measurement): measured again, at
+            # the machine's load of now (a shared machine's single-thread speed swings 2x within seconds) and on the
+            # plan's frame
+            remeasured = True
+            write = measure_write()
         return write + exit_seconds()
 
     def after_first() -> None:  # the start-up check: one pass done, its frame must still be writable in time
         nonlocal write
-        first = next(iter(passes.kinds))
-        write = write_seconds(as_frame(passes.frame_result(candidate(first) if fixed is None else fixed)))
-        if deadline is not None and deadline.left() < reserve():
+        written.append(candidate(next(iter(passes.kinds))) if fixed is None else fixed)
+        if deadline is None:  # a sample count: no deadline to keep
+            return
+        write = measure_write()
+        if deadline.left() < reserve():
             raise startup_error(deadline.seconds, deadline.elapsed() + reserve())
 
     plan = None
@@ -599,6 +665,7 @@ def render_planned(loaded: LoadedScene, layers: tuple[str, ...], *, seed: int, s
         chosen = plan.chosen
     else:
         chosen = fixed
+    written.append(chosen)
     if deadline is None:
         target = int(spp)  # type: ignore[arg-type]
         while passes.spp < target:
@@ -611,12 +678,17 @@ def render_planned(loaded: LoadedScene, layers: tuple[str, ...], *, seed: int, s
         if passes.index == 0:  # no pilot: the first pass compiles the kernel and is the start-up check
             passes.run(chosen, 1)
             after_first()
-        def run(n: int) -> None:
-            passes.run(chosen, n)
+        # the chosen plan's passes, then primal passes in the gap too small for one more of them (FILLER)
+        filler = candidate(FILLER)
+
+        def run(n: int, c: Candidate = chosen) -> None:
+            passes.run(c, n)
             if progress is not None:
                 progress(passes.spp, 0)
 
-        fill_to_deadline(deadline, passes.kind(chosen).costs, reserve, passes.max_spp, run)
+        fill_with_filler(deadline, passes.kind(chosen).costs, run,
+                         passes.kind(filler).costs if chosen.gradients != "none" else None,
+                         lambda n: run(n, filler), reserve, passes.max_spp)
     result = passes.frame_result(chosen)
     k = passes.gradients.get(chosen.name, ({}, 0))[1]
     return Planned(as_frame(result), chosen, plan, passes.spp, k if chosen.gradients != "none" else 0, passes.index)

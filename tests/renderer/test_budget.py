@@ -9,12 +9,16 @@ import pytest
 
 from gradsep.model.errors import CommandError
 from gradsep.renderer.budget import (
+    FILLER_MIN_PASS,
     LAST_PASS_MARGIN,
     PASS_GROWTH,
     Deadline,
     PassCosts,
     check_seconds,
     fill_to_deadline,
+    fill_with_filler,
+    filler_pays,
+    filler_warmup_fits,
     fitted_overhead,
     next_pass_spp,
     process_age,
@@ -137,3 +141,74 @@ def test_a_machine_that_slows_down_is_followed() -> None:
     """The warm passes run 1.5x slower than the compiling pass suggested: the next passes shrink."""
     elapsed, _ = _simulate(20.0, 0.08, 0.05, slow=1.5, first=0.2)
     assert 0.9 * 20.0 <= elapsed <= 1.1 * 20.0
+
+
+def test_a_filler_is_warmed_up_only_for_coarse_passes_and_only_where_it_surely_fits() -> None:
+    assert not filler_pays(PassCosts(), 20.0)  # no pass yet: nothing known
+    assert not filler_pays(PassCosts(first_pass=(1, 1.5)), 20.0)  # a compiling pass at 320x240, under load
+    assert filler_pays(PassCosts(first_pass=(1, 3.0)), 20.0)  # 1280x720: coarse already before a warm pass
+    assert not filler_pays(PassCosts(warm=[(1, 0.25)]), 20.0)  # 320x240 G-PT: fine-grained already
+    assert filler_pays(PassCosts(warm=[(1, 2.5)]), 20.0)  # 1280x720 G-PT: a pass is 12 % of the budget
+    assert not filler_pays(PassCosts(warm=[(1, 2.5)]), 600.0)  # ... but 0.4 % of ten minutes
+    assert filler_pays(PassCosts(warm=[(1, FILLER_MIN_PASS)]), 1.0)
+    costs = PassCosts(warm=[(1, 2.5)])
+    assert not filler_warmup_fits(100.0, 0.0, costs)  # no compiling pass measured: no bound
+    costs.first(1, 4.0)
+    assert filler_warmup_fits(10.0, 1.0, costs)
+    assert not filler_warmup_fits(5.0, 1.0, costs)  # 4 s x the margin does not fit in 4 s
+
+
+def _simulate_filled(seconds: float, per: float, filler_per: float, *, filler: bool, jitter: float = 0.0,
+                     seed: int = 0) -> tuple[float, int, int]:
+    """A budgeted render of a coarse plan (``per`` s per sample) against a fake clock, the way render_planned runs
+    it: the plan's compiling pass, then its passes, a filler kind (``filler_per``) warmed up after the first warm
+    pass where it pays, and the gap filled with it (``filler``), then the write. Returns (elapsed, plan's samples,
+    filler's samples)."""
+    rng = random.Random(seed)
+    clock = FakeClock()
+    deadline = Deadline(seconds, spent=0.5, clock=clock)
+    plan, extra = PassCosts(), PassCosts()
+    write, done = 0.8, {"plan": 0, "filler": 0}
+
+    def take(costs: PassCosts, name: str, spp: int, rate: float, compile_s: float = 0.0) -> None:
+        took = (0.1 + rate * spp) * (1.0 + rng.uniform(-jitter, jitter))
+        clock.now += took + compile_s
+        (costs.first if compile_s else costs.record)(spp, took + compile_s)
+        done[name] += spp
+
+    take(plan, "plan", 1, per, compile_s=1.5)
+    fill_with_filler(deadline, plan, lambda n: take(plan, "plan", n, per), extra if filler else None,
+                     lambda n: take(extra, "filler", n, filler_per, 0.0 if extra.first_pass else 0.3),
+                     lambda: write, 10_000)
+    clock.now += write
+    return deadline.elapsed(), done["plan"], done["filler"]
+
+
+@pytest.mark.parametrize("seconds", [12.0, 20.0, 25.0, 40.0, 60.0])
+def test_a_cheaper_filler_closes_the_gap_a_coarse_plan_leaves(seconds: float) -> None:
+    """At 1280x720 a G-PT pass is ~2.5 s per sample and a primal one ~0.6 s: the plan alone stops up to a pass
+    short of T; with the filler the frame ends within 6 % of T, never after it, and the plan keeps its samples."""
+    alone, plan_alone, _ = _simulate_filled(seconds, 2.5, 0.6, filler=False)
+    filled, plan_filled, extra = _simulate_filled(seconds, 2.5, 0.6, filler=True)
+    assert 0.94 * seconds <= filled <= seconds
+    assert filled > alone and extra >= 1
+    assert plan_filled >= plan_alone - 1  # the warm-up pass takes at most one plan pass's time
+
+
+@pytest.mark.parametrize("seconds", [8.0, 10.0, 15.0])
+def test_a_filler_too_costly_to_warm_up_safely_is_left_out(seconds: float) -> None:
+    """Where the gap cannot surely hold the filler's compiling pass (bounded by the plan's own), nothing changes."""
+    alone = _simulate_filled(seconds, 2.5, 0.6, filler=False)
+    filled = _simulate_filled(seconds, 2.5, 0.6, filler=True)
+    assert filled[0] <= seconds and filled[0] >= alone[0] and filled[1] >= alone[1] - 1
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_a_filled_frame_on_a_noisy_machine_never_ends_after_the_budget(seed: int) -> None:
+    elapsed, _, _ = _simulate_filled(20.0, 2.5, 0.6, filler=True, jitter=0.1, seed=seed)
+    assert 0.9 * 20.0 <= elapsed <= 20.0
+
+
+def test_no_filler_for_fine_passes() -> None:
+    _, _, extra = _simulate_filled(20.0, 0.05, 0.02, filler=True)
+    assert extra == 0

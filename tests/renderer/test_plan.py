@@ -114,9 +114,12 @@ def test_passes_of_several_plans_share_bases_and_keep_their_own_gradients(small)
 
     passes = Passes(small, ("direct", "indirect"), seed=1)
     primal = passes.run(candidate("primal"), 2)
+    kept = {k: v.copy() for k, v in primal.items()}
     direct = passes.run(candidate("direct-alternate"), 1)
     full = passes.run(Candidate("all", "all"), 3)
     assert passes.spp == 6 and passes.index == 3
+    for k, v in kept.items():  # the frame's sums are added in place, never into a pass's own
+        np.testing.assert_array_equal(primal[k], v)
     r = passes.frame_result(Candidate("all", "all"))
     expected = (primal["direct.base"] + direct["direct.base"] + full["direct.base"]) / 6
     np.testing.assert_allclose(r.layers["direct"]["base"], expected.astype(np.float32), rtol=1e-6)
@@ -264,3 +267,41 @@ def test_seconds_renders_the_default_plan_all(tmp_path, monkeypatch):
     assert main(["render", CBOX, *SMALL, "--seconds", "3", "-o", str(out)]) == 0
     meta = read_frame(out).metadata
     assert meta[PLAN_KEY] == "all" and meta["gradsep.gradients"] == "all" and "gradsep.pilot_seconds" not in meta
+
+
+@pytest.mark.render
+def test_a_coarse_plan_ends_its_deadline_frame_with_primal_passes(small, monkeypatch):
+    """Real 16x12 passes against a fake clock on which a 1-spp `all` pass takes 2.5 s and a primal one 0.6 s (as
+    at 1280x720 on 2 cores): the plan's passes, then primal passes in the gap too small for another of them. Every
+    pass's samples are in the bases, the plan's alone in the gradients, and the frame ends within 6 % of T,
+    never after it."""
+    from gradsep.renderer import gpt, plan
+    from gradsep.renderer.budget import Deadline
+
+    class Clock:
+        now = 100.0
+
+        def __call__(self) -> float:
+            return self.now
+
+    clock, real, compiled = Clock(), gpt.render_pass, set()
+
+    def timed(scene, shift, settings, width, height, spp, seed):
+        sums = real(scene, shift, settings, width, height, spp, seed)
+        kind = shift is not None
+        clock.now += 0.3 + (2.5 if kind else 0.6) * spp + (0.0 if kind in compiled else 1.5 if kind else 0.3)
+        compiled.add(kind)
+        return sums
+
+    monkeypatch.setattr(gpt, "render_pass", timed)
+    monkeypatch.setattr(plan, "write_seconds", lambda *args, **kwargs: 0.8)
+    deadline = Deadline(20.0, spent=0.5, clock=clock)
+    planned = plan.render_planned(small, ("direct", "indirect"), seed=3, shift=None, fixed=Candidate("all", "all"),
+                                  deadline=deadline, clock=clock)
+    end = deadline.elapsed() + 0.8 + plan.exit_seconds()
+    assert 0.94 * 20.0 <= end <= 20.0
+    assert 2 <= planned.gradient_spp < planned.spp  # primal passes filled the end
+    frame = planned.frame
+    assert frame.layers["direct"].has_gradients and frame.layers["indirect"].has_gradients
+    for layer in frame.layers.values():
+        assert np.isfinite(layer.base).all() and np.isfinite(layer.dx).all()
