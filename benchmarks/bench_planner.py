@@ -20,44 +20,21 @@
     python benchmarks/bench_planner.py cost [--scenes procedural:93201,procedural:studio:93201]
         [--sizes 320x240,1280x720] [--spp 16] [--repeats 5]
 
-``validate`` prints per (scene, budget) each plan's spp and measured RelMSE, auto's choice with its predicted
-RelMSE for every candidate (from the auto frame's header), auto against the best fixed plan, and the measured
-error-vs-spp exponent of each fixed plan between the two budgets (what renderer.plan.EXPONENTS assumes). Kernels
-are compiled once per scene before the timed runs (a farm re-rendering a scene has them in Dr.Jit's cache); the
-plans of one (scene, budget) run one after the other, so a change of the machine's load falls on all alike. The
-scenes must be held out: never the evaluation's (evaluation/config.py) or the shared ones.
+``validate`` renders every plan of a (scene, budget, seed) back to back (the order rotated per seed, so that a
+change of the machine's load falls on every plan alike), seed-major, after compiling every plan's kernels at the
+frame's size (Dr.Jit's cache is keyed by it; a farm re-rendering a scene has them cached), then scores the frames
+whose references exist and prints per frame auto's choice, auto / best fixed, the chosen plan's own fixed frame /
+best (the choice alone, free of the pilot's cost), predicted / measured, each fixed plan / best and the reference
+floor / best; then per family the geometric means, worst and frames above 1.05x, and how many predictions are
+within 1.5x. The scenes must be held out: never the evaluation's (evaluation/config.py) or the shared ones, nor
+seeds a design was tuned on.
 
-Runs behind the figures reported for the planner (2 shared cores, load 3-9 from other work: wall-time comparisons
-between processes carry that noise; each design's own commit is named in its run's log):
+The figures in docs/renderer.md ("The render planner", Validation) come from (2 shared cores, load 4-6 from other
+work; references rendered beforehand with `gradsep reference SCENE --width 192 --height 192 --spp 1024 --seed 1`
+and `--seed 2` into the cache, as ``validate`` would have):
 
-    python benchmarks/bench_planner.py timing --cache /tmp/planner_out/timing             # 320x240 rows
-    python benchmarks/bench_planner.py timing --sizes 1280x720 --cache /tmp/planner_out/timing
-    python benchmarks/bench_planner.py validate --scenes procedural:93101,procedural:93102 --seconds 20,40 \
-        --ref-spp 2048 --cache /tmp/planner_out/val                                       # first estimator
-    python benchmarks/bench_planner.py validate --scenes procedural:93103,procedural:studio:93104,procedural:93105,\
-        procedural:studio:93106 --seconds 20,40 --ref-spp 2048 --cache /tmp/planner_out/val2   # second estimator
-    python benchmarks/bench_planner.py validate --scenes procedural:93107,procedural:studio:93108,procedural:93109,\
-        procedural:studio:93110 --seconds 20,40 --ref-spp 2048 --cache /tmp/planner_out/val3   # + pilot slopes
-
-The racing pilot (today's) was validated on copies of those three caches with only the auto frames deleted (a
-frame already in a cache is not rendered again: its row comes from the cache's validate.json), so its auto
-frames meet the fixed frames of the runs above (rendered earlier, under load 3-9; the racing runs saw load ~2):
-
-    cp -r /tmp/planner_out/val /tmp/race/val; rm /tmp/race/val/frame-*-auto.exr         # likewise val2, val3
-    python benchmarks/bench_planner.py validate --scenes procedural:93101,procedural:93102 --seconds 20,40 \
-        --ref-spp 2048 --cache /tmp/race/val                       # val2's and val3's scenes into their copies
-
-Auto / best fixed plan over the 20 (scene, budget) frames: geometric mean 1.084 (one-shot pilot on the same
-frames: 4.007), worst 8.31 (procedural:studio:93110 at 40 s, where auto chose `all`, the best fixed plan, whose
-fixed frame scored 8.3x better: that scene's RelMSE swings from frame to frame); auto better than before on 18 of
-20. The choice alone, scored with the fixed frames of the plan chosen (the same run and load for every plan):
-1.175x the best (before 3.067x), worst 4.67x (procedural:studio:93108 at 40 s: direct-alternate, best all), the
-best plan chosen on 10 of 20 frames (before 4). Per frame (auto / best, before -> racing, racing's choice):
-93101 1.43->0.72 primal, 1.03->0.44 direct-alternate; 93102 1.34->1.06 primal, 1.37->0.78 primal; 93103 0.96->0.91
-primal, 1.00->0.87 primal; studio:93104 2.67->2.79 all, 6.31->0.47 all; 93105 2.42->0.78 direct-alternate,
-2.79->1.05 direct-alternate; studio:93106 2.70->1.88, 3.88->1.83 direct-alternate; 93107 5.87->0.93, 1.67->1.14
-direct-alternate; studio:93108 20.1->0.98 all, 4.53->2.24 direct-alternate; 93109 1.65->1.40 primal, 1.94->0.88
-direct-alternate; studio:93110 16874->0.28 direct-alternate, 7.61->8.31 all (20 s, 40 s).
+    python benchmarks/bench_planner.py validate --size 192 --seconds 20 --seeds 2 --ref-spp 1024 \
+        --cache /work/val/cache --no-references
 
 The deadline with primal filler passes, the write predicted from three bands and measured again near the end (this
 tree as /tmp/dl/new, d6f0358 as /tmp/dl/base, both `git archive | tar -x`; 2 shared cores, load 5.2-7.6 from other
@@ -330,7 +307,7 @@ def estimate(args: argparse.Namespace) -> None:
     weights = relative_weights(0.5 * (r1 + r2))
     print("| candidate | spp | method | true RelMSE | estimate (reference weights) | estimate (own weights) |")
     print("|---|---:|---|---:|---:|---:|")
-    for name in ("primal", "direct-alternate", "all"):
+    for name in ("primal", "direct-alternate", "direct"):
         for n in (4, 16):
             sums = passes.run(candidate(name), n)
             image, method = reconstruct_default(sums_frame(sums, passes.kind(candidate(name)).settings, n))

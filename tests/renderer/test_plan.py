@@ -70,7 +70,7 @@ def test_candidates_and_their_layers():
     assert {c.name for c in applicable(("direct",))} == {"primal", "direct-alternate", "direct"}
     assert {c.name for c in applicable(("color",))} == {"primal", "all"}  # no direct layer to trace alone
     assert {c.name for c in applicable(("indirect",))} == {"primal", "all"}
-    assert fallback(("direct", "indirect")).name == "direct" and fallback(("color",)).name == "all"
+    assert fallback(("direct", "indirect")).name == "direct-alternate" and fallback(("color",)).name == "all"
     assert {c.name for c in CANDIDATES} == {"primal", "direct-alternate", "direct", "all"}
     assert plan_layers_text(candidate("direct-alternate"), ("direct", "indirect")) == "direct=alternate,indirect=none"
     assert plan_layers_text(candidate("primal"), ("direct",)) == "direct=none"

@@ -126,5 +126,5 @@ def test_choose_keeps_the_default_plan_unless_another_is_clearly_better():
     default = a(FALLBACK, 1.0, 0.2)
     assert choose([default, a("primal", 0.9, 0.2)]).name == FALLBACK  # 0.1 lower, within hypot 0.28: noise
     assert choose([default, a("primal", 0.5, 0.2)]).name == "primal"  # 0.5 lower: clearly better
-    assert choose([a("primal", 0.9, 0.2), a("direct-alternate", 0.95, 0.01)]).name == "primal"  # no default left
+    assert choose([a("primal", 0.9, 0.2), a("direct", 0.95, 0.01)]).name == "primal"  # no default left
     assert choose([a(FALLBACK, 0.5, 0.3), a("primal", 0.9, 0.0)]).name == FALLBACK
