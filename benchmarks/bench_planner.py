@@ -33,7 +33,7 @@ The figures in docs/renderer.md ("The render planner", Validation) come from (2 
 work; references rendered beforehand with `gradsep reference SCENE --width 192 --height 192 --spp 1024 --seed 1`
 and `--seed 2` into the cache, as ``validate`` would have):
 
-    python benchmarks/bench_planner.py validate --size 192 --seconds 20 --seeds 2 --ref-spp 1024 \
+    python benchmarks/bench_planner.py validate --size 192 --seconds 20 --seeds 3 --ref-spp 1024 \
         --cache /work/val/cache --no-references
 
 The deadline with primal filler passes, the write predicted from three bands and measured again near the end (this

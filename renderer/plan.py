@@ -114,8 +114,8 @@ CANDIDATES: tuple[Candidate, ...] = (
 FILLER = "primal"
 #: Rendered where no pilot can run (a budget or sample count too small for one), and the plan a race keeps unless
 #: another is clearly better (:func:`choose`; :func:`fallback`: ``all`` for an unseparated frame): the best fixed
-#: plan at equal time on held-out scenes (benchmarks/bench_planner.py validate: 1.07x the best fixed plan's RelMSE
-#: on rooms, 1.32x on studios, geometric means; ``direct`` 1.18x / 1.45x, ``all`` 1.40x / 1.60x).
+#: plan at equal time on held-out scenes (benchmarks/bench_planner.py validate: 1.06x the best fixed plan's RelMSE
+#: on rooms, 1.32x on studios, geometric means; ``direct`` 1.22x / 1.47x, ``all`` 1.38x / 1.52x).
 FALLBACK = "direct-alternate"
 #: Error-vs-spp exponent of each candidate's reconstruction (RelMSE ~ spp^-exponent) where the pilot cannot read its
 #: own (measured_exponent), and the prior the measured slope is weighed against. A denoised frame's error falls
