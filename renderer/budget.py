@@ -118,20 +118,27 @@ class PassCosts:
         return self.overhead + self.per_sample * spp
 
 
-def fitted_overhead(passes: list[tuple[int, float]], default: float = 0.0) -> float:
-    """The fixed cost per pass from warm passes of different sizes (least squares of ``seconds = a + b spp``),
-    clipped to [0, half the smallest pass's time] (timing noise on a shared machine can make the fitted line flat,
-    which would call every pass overhead and make more samples look free); ``default`` while every pass has the
-    same size."""
-    sizes = {spp for spp, _ in passes}
-    if len(sizes) < 2:
-        return default
+def fitted_line(passes: list[tuple[int, float]]) -> tuple[float, float] | None:
+    """The least-squares line ``seconds = intercept + slope * spp`` through passes ``(spp, seconds)``, as
+    (intercept, slope); None while every pass has the same size."""
+    if len({spp for spp, _ in passes}) < 2:
+        return None
     n = len(passes)
     mean_x = sum(s for s, _ in passes) / n
     mean_y = sum(t for _, t in passes) / n
     sxx = sum((s - mean_x) ** 2 for s, _ in passes)
     slope = sum((s - mean_x) * (t - mean_y) for s, t in passes) / sxx
-    return min(max(mean_y - slope * mean_x, 0.0), 0.5 * min(t for _, t in passes))
+    return mean_y - slope * mean_x, slope
+
+
+def fitted_overhead(passes: list[tuple[int, float]], default: float = 0.0) -> float:
+    """The fixed cost per pass from warm passes of different sizes (:func:`fitted_line`'s intercept), clipped to
+    [0, half the smallest pass's time] (timing noise on a shared machine can make the fitted line flat, which would
+    call every pass overhead and make more samples look free); ``default`` while every pass has the same size."""
+    line = fitted_line(passes)
+    if line is None:
+        return default
+    return min(max(line[0], 0.0), 0.5 * min(t for _, t in passes))
 
 
 def next_pass_spp(left: float, reserve: float, costs: PassCosts, max_spp: int) -> int:

@@ -44,7 +44,7 @@ import numpy as np
 
 from gradsep.model.errors import CommandError
 from gradsep.model.frame import PLAN_METHOD_KEY, PREDICTED_RELMSE_KEY, Features, Frame, Layer
-from gradsep.renderer.budget import Clock, Deadline, PassCosts, fill_with_filler
+from gradsep.renderer.budget import Clock, Deadline, PassCosts, fill_with_filler, fitted_line
 from gradsep.renderer.estimate import at_budget, cross_relmse, relative_weights
 from gradsep.renderer.scene import LoadedScene
 
@@ -338,18 +338,16 @@ def measured_exponent(early: float, early_se: float, n1: int, late: float, late_
 
 def pass_cost(warm: list[tuple[int, float]], fallback: float) -> tuple[float, float]:
     """(fixed seconds per pass, seconds per sample) of one kind of pass, for comparing plans: the least-squares
-    line through its warm passes ``(spp, seconds)`` when they have two sizes or more (the fixed part clipped to
-    [0, 0.95 x the smallest pass]); else no fixed part and ``fallback`` per sample. Unlike the deadline's
-    conservative rate (renderer.budget.PassCosts.per_sample, the largest recent rate), this is the marginal
-    cost: small pilot passes are mostly fixed cost for G-PT (tracing the kernel), which must not be charged to
-    every sample of the final frame's large passes."""
-    if len({spp for spp, _ in warm}) < 2:
+    line through its warm passes ``(spp, seconds)`` (renderer.budget.fitted_line) when they have two sizes or more
+    (the fixed part clipped to [0, 0.95 x the smallest pass]); else no fixed part and ``fallback`` per sample.
+    Unlike the deadline's conservative rate (renderer.budget.PassCosts.per_sample, the largest recent rate), this
+    is the marginal cost: small pilot passes are mostly fixed cost for G-PT (tracing the kernel), which must not be
+    charged to every sample of the final frame's large passes."""
+    line = fitted_line(warm)
+    if line is None:
         return 0.0, fallback
-    n = len(warm)
-    mx = sum(x for x, _ in warm) / n
-    my = sum(y for _, y in warm) / n
-    slope = sum((x - mx) * (y - my) for x, y in warm) / sum((x - mx) ** 2 for x, _ in warm)
-    fixed = min(max(my - slope * mx, 0.0), 0.95 * min(y for _, y in warm))
+    intercept, slope = line
+    fixed = min(max(intercept, 0.0), 0.95 * min(y for _, y in warm))
     per = max((y - fixed) / x for x, y in warm) if slope <= 0 else slope  # a line gone flat or falling: noise
     return fixed, max(per, 1e-12)
 
@@ -369,6 +367,13 @@ class Assessment:
     predicted_relmse: float = math.inf
     predicted_se: float = 0.0  # of predicted_relmse (the estimate's noise carried to the budget)
     pass_seconds: float = 0.0  # fixed cost of one of its passes (pass_cost)
+
+    def trace_entry(self) -> dict[str, float | str]:
+        """This round's entry of the race's trace (TRACE_KEY)."""
+        return {"name": self.name, "spp": self.pilot_spp, "relmse": float(f"{self.measured_relmse:.4g}"),
+                "se": float(f"{self.standard_error:.3g}"), "per_sample": float(f"{self.per_sample:.4g}"),
+                "pass_seconds": float(f"{self.pass_seconds:.4g}"), "exponent": round(self.exponent, 3),
+                "budget_spp": round(self.budget_spp)}
 
 
 @dataclass
@@ -404,16 +409,16 @@ class Plan:
                 f"method {self.metadata(()).get(PLAN_METHOD_KEY, '?')})")
 
 
-def choose(assessments: list[Assessment]) -> Assessment:
-    """The race's winner: the fallback (:func:`fallback`: the best fixed plan on held-out scenes) unless
+def choose(assessments: list[Assessment], default: str = FALLBACK) -> Assessment:
+    """The race's winner: ``default`` (the frame's :func:`fallback`: the best fixed plan on held-out scenes) unless
     another candidate's prediction is lower by more than their combined standard errors; then the lowest. A race
     too short to tell the plans apart keeps the default rather than follow noise."""
     best = min(assessments, key=lambda a: a.predicted_relmse)
-    default = next((a for a in assessments if a.name in (FALLBACK, "all")), None)
-    if default is None or best is default:
+    kept = next((a for a in assessments if a.name == default), None)
+    if kept is None or best is kept:
         return best
-    margin = math.hypot(best.predicted_se, default.predicted_se)
-    return best if default.predicted_relmse - best.predicted_relmse > margin else default
+    margin = math.hypot(best.predicted_se, kept.predicted_se)
+    return best if kept.predicted_relmse - best.predicted_relmse > margin else kept
 
 
 def eliminate(assessments: list[Assessment]) -> list[Assessment]:
@@ -517,13 +522,7 @@ def run_pilot(passes: Passes, budget_spp: Callable[[Assessment], float], *, pilo
             floor = max(a.measured_relmse, a.standard_error)  # an estimate lost in B's noise counts as its noise
             a.predicted_relmse = at_budget(floor, a.pilot_spp, a.budget_spp, a.exponent)
             a.predicted_se = at_budget(a.standard_error, a.pilot_spp, a.budget_spp, a.exponent)
-        trace.append([{"name": c.name, "spp": latest[c.name].pilot_spp,
-                       "relmse": float(f"{latest[c.name].measured_relmse:.4g}"),
-                       "se": float(f"{latest[c.name].standard_error:.3g}"),
-                       "per_sample": float(f"{latest[c.name].per_sample:.4g}"),
-                       "pass_seconds": float(f"{latest[c.name].pass_seconds:.4g}"),
-                       "exponent": round(latest[c.name].exponent, 3),
-                       "budget_spp": round(latest[c.name].budget_spp)} for c in alive])
+        trace.append([latest[c.name].trace_entry() for c in alive])
         if rounds >= 1:  # the first round's law is assumed (EXPONENTS), not measured: no elimination on it
             names = {a.name for a in eliminate([latest[c.name] for c in alive])}
             alive = [c for c in alive if c.name in names]
@@ -535,7 +534,7 @@ def run_pilot(passes: Passes, budget_spp: Callable[[Assessment], float], *, pilo
             break
     # one round reads no cost line (one pass size: G-PT's fixed cost per pass is charged to its samples) and no
     # slope, so it cannot tell the plans apart fairly: the fallback stands
-    chosen = choose([latest[c.name] for c in alive]) if rounds >= 2 else latest[default.name]
+    chosen = choose([latest[c.name] for c in alive], default.name) if rounds >= 2 else latest[default.name]
     return Plan(candidate(chosen.name), [latest[c.name] for c in candidates], clock() - start,
                 f"{rounds} rounds", trace)
 
