@@ -337,7 +337,6 @@ def cost(args: argparse.Namespace) -> None:
 def cost_row(scene: str, size: str, spp: int, repeats: int) -> None:
     import mitsuba as mi
     import numpy as np
-    from bench_render import interleaved_rounds  # this folder: the script's own (sys.path[0])
 
     from gradsep.renderer.plan import candidate, render_planned
     from gradsep.renderer.render import plan_layers, render_frame
@@ -356,7 +355,16 @@ def cost_row(scene: str, size: str, spp: int, repeats: int) -> None:
 
     runs = {"path": path(spp), "path2": path(2 * spp), "planner": planner(spp), "planner2": planner(2 * spp),
             "no-gradients": lambda: render_frame(loaded, spp=spp, seed=1, layers=layers, gradients=False)}
-    wall, cpu = interleaved_rounds(runs, repeats)  # a warm-up call each, then rounds of every run in turn
+    for run in runs.values():  # warm-up: kernels compiled or loaded
+        run()
+    wall: dict[str, list[float]] = {k: [] for k in runs}
+    cpu: dict[str, list[float]] = {k: [] for k in runs}
+    for _ in range(repeats):
+        for k, run in runs.items():
+            start, start_cpu = time.perf_counter(), time.process_time()
+            run()
+            wall[k].append(time.perf_counter() - start)
+            cpu[k].append(time.process_time() - start_cpu)
     med = {k: statistics.median(v) for k, v in wall.items()}
     cmed = {k: statistics.median(v) for k, v in cpu.items()}
     # medians of per-round ratios: each round's runs are back to back, so a load change between rounds cancels
