@@ -73,7 +73,14 @@ def reconstruct_command(args: argparse.Namespace) -> int:
     written; the output appears only complete (temporary file + rename).
     """
     from gradsep.model.channels import check_layout
-    from gradsep.model.frame import FrameError, encode_answer, read_frame, rgb_channels, write_bytes_atomic
+    from gradsep.model.frame import (
+        OIDN_SETTING_KEY,
+        FrameError,
+        encode_answer,
+        read_frame,
+        rgb_channels,
+        write_bytes_atomic,
+    )
     from gradsep.model.reconstruct import reconstruct
 
     output = Path(args.output)
@@ -107,6 +114,8 @@ def reconstruct_command(args: argparse.Namespace) -> int:
                 "gradsep.source": Path(args.frame).name}
     if table.get(method).alpha:
         metadata["gradsep.alpha"] = f"{alpha:g}"
+    if result.oidn_setting:
+        metadata[OIDN_SETTING_KEY] = result.oidn_setting
     warnings = [*frame.warnings, *result.warnings]
     data = encode_answer(frame, channels, half=bool(args.half), metadata=metadata, warnings=warnings)
     try:

@@ -728,9 +728,12 @@ def encode_exr(channels: Mapping[str, np.ndarray], *, half: bool = False,
     return buffer.getvalue()
 
 
+#: The OIDN setting (model.oidn.SETTINGS) a render plan asks its frame to be reconstructed with, and, on an answer,
+#: the one that ran (model.oidn.frame_setting).
+OIDN_SETTING_KEY = "gradsep.oidn_setting"
 #: Keys an answer writes itself: the input's values for them are not carried over.
 ANSWER_KEYS = frozenset({"gradsep.method", "gradsep.layers", "gradsep.alpha", "gradsep.warnings",
-                         "gradsep.request_id", "gradsep.source", "gradsep.channels"})
+                         "gradsep.request_id", "gradsep.source", "gradsep.channels", OIDN_SETTING_KEY})
 WARNINGS_ATTRIBUTE = "gradsep.warnings"
 WARNINGS_LIMIT = 2000  # characters of gradsep.warnings in the header
 #: A planned render's predicted RelMSE after reconstruction with ``PLAN_METHOD_KEY`` (renderer/plan.py writes

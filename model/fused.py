@@ -4,8 +4,9 @@ The paper's dual-branch CBAM network (model/blend_net.py: the same encoders, bot
 as model/network.py) sees K *candidate* reconstructions of a layer side by side and predicts, per pixel, softmax
 weights over them; the output is the convex blend ``Σ_k w_k · candidate_k``. The candidates (``CANDIDATES``):
 
-* ``oidn``        -- OIDN's denoise of the base with the frame's albedo/normal (the ``oidn`` method's setting,
-  ``OIDN_SETTING``: raw features, quality fast), computed once per layer; the other kind starts from it;
+* ``oidn``        -- OIDN's denoise of the base with the frame's albedo/normal (``OIDN_SETTING``: raw features,
+  quality fast, the ``level`` exposure the blend models were trained on), computed once per layer; the other
+  kind starts from it;
 * ``refine-fast`` -- that image refined by the layer's gradients: the L1 screened Poisson solve with OIDN's image
   as the data term (model/refine.py explains it), solved cheaply (3 IRLS passes of 1 multigrid V-cycle): too
   rough alone, but a candidate the network can weigh.
@@ -64,8 +65,11 @@ CANDIDATES: tuple[str, ...] = ("oidn", "refine-fast")
 REFINE_SOLVES: dict[str, tuple[int, int]] = {"refine-fast": (3, 1)}
 REFINE_PRECONDITIONER = "mg"
 REFINE_ALPHA = 1.0
-#: The OIDN setting every candidate starts from (model.oidn.SETTINGS): the ``oidn`` method's default.
-OIDN_SETTING = "raw-fast"
+#: The OIDN setting every candidate starts from (model.oidn.SETTINGS): raw features, quality fast, and the ``level``
+#: exposure the shipped blend models were trained on (the ``oidn`` method has since moved to the ``lit`` exposure).
+OIDN_SETTING = "raw-fast-level"
+#: Blend models written before OIDN's settings named their exposure record this setting as ``raw-fast``.
+LEGACY_SETTING_NAMES = {"raw-fast": "raw-fast-level"}
 #: The kind a layer served without a network may use besides CANDIDATES: ``refine-direct``, the ``oidn-l1``
 #: method's refinement (model.refine.refine_layer: its data weight, preconditioner and passes, read at call time) at
 #: fused's own CG budget, DIRECT_CG. No model consumes it, so unlike the candidates it need not be pinned to a
@@ -279,7 +283,8 @@ def _check(path: Path, name: str, meta: dict[str, str]) -> tuple[tuple[str, ...]
         raise BlendModelError(f"{path}: blend model format {meta.get('gradsep.format')!r}, this code reads "
                               f"{BLEND_FORMAT!r} (its candidates are computed differently); retrain it "
                               "(make fused-models)")
-    if meta.get("gradsep.oidn_setting") != OIDN_SETTING:
+    recorded = meta.get("gradsep.oidn_setting")
+    if LEGACY_SETTING_NAMES.get(recorded, recorded) != OIDN_SETTING:
         raise BlendModelError(f"{path}: trained on OIDN setting {meta.get('gradsep.oidn_setting')!r}, this code "
                               f"computes {OIDN_SETTING!r}")
     return kinds, alignment

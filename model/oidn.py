@@ -15,12 +15,13 @@ setting they were trained with (model/fused.py ``OIDN_SETTING``). The auxiliary 
 and reused for every layer.
 
 Numerics: inputs are sanitised (NaN → 0, ±Inf → the largest finite float32 / 0, radiance clamped ≥ 0), and the
-colour filter is given an explicit ``inputScale``, the reciprocal of the layer's robust level (model/robust.py: a
-winsorised mean, where OIDN's own autoexposure takes a log-average that one firefly moves), so a frame scaled by
-1e-8 or 1e9 is denoised as the same frame at unit exposure (up to float rounding), the result scales with the
-input, and no single pixel sets the exposure of the rest. A layer with no light is returned black
-without running the filter. This module needs ``pyoidn`` (the ``evaluate`` and ``serve`` extras); importing it
-does not, so the service starts without it and reports the method as unavailable.
+colour filter is given an explicit ``inputScale`` (the setting's *exposure*, :func:`exposure_scale`): by default
+OIDN's own key, 0.18, over the layer's lit part (model.robust.lit_level: a winsorised mean over OIDN's
+autoexposure bins that are not black), where OIDN's autoexposure takes a log-average that dark corners drag down
+and one firefly moves. So a frame scaled by 1e-8 or 1e9 is denoised as the same frame at unit exposure (up to float
+rounding), the result scales with the input, and no single pixel sets the exposure of the rest. A layer with no
+light is returned black without running the filter. This module needs ``pyoidn`` (the ``evaluate`` and ``serve``
+extras); importing it does not, so the service starts without it and reports the method as unavailable.
 """
 
 from __future__ import annotations
@@ -35,7 +36,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from gradsep.model.robust import robust_level
+from gradsep.model.frame import OIDN_SETTING_KEY
+from gradsep.model.robust import lit_level, robust_level
 
 if TYPE_CHECKING:
     from gradsep.model.frame import Features
@@ -44,9 +46,13 @@ if TYPE_CHECKING:
 #: frames).
 AUX_QUALITY = "fast"
 _F32_MAX = float(np.finfo(np.float32).max)
-#: The exposure the colour filter sees: the layer scaled so its robust level is 1 (OIDN's HDR models are trained
-#: around that).
-_TARGET_MEAN = 1.0
+#: The exposure the colour filter sees (``Setting.exposure``): ``lit`` scales the layer so that the mean luminance of
+#: its lit part (model.robust.lit_level) is OIDN's autoexposure key, 0.18; ``level`` (before 2026-12, kept for the
+#: ``fused`` blend models trained on it) scales it so that its robust level over the whole frame is 1. ``lit`` is the
+#: lower-error one at 16 and 64 spp and at farm budgets, by 2-3x on small objects on black (docs/decisions.md,
+#: "OIDN's exposure"; benchmarks/bench_oidn.py exposure).
+EXPOSURES: dict[str, float] = {"lit": 0.18, "level": 1.0}
+DEFAULT_EXPOSURE = "lit"
 #: OIDN's U-Net loses energy on images a few pixels across (a constant 1×1 image comes back at 23 %, 2×2 at
 #: 92 %, measured): smaller images are mirror-padded to this many pixels per side and cropped back, and their
 #: colour output is rescaled per channel to the input's mean (a coloured 1×1 pixel still moved by 5-16 % after
@@ -72,14 +78,18 @@ class Setting:
     aux: str
     quality: str
     aux_quality: str = AUX_QUALITY
+    exposure: str = DEFAULT_EXPOSURE
 
     @property
     def name(self) -> str:
-        return f"{self.aux}-{self.quality}"
+        suffix = "" if self.exposure == DEFAULT_EXPOSURE else f"-{self.exposure}"
+        return f"{self.aux}-{self.quality}{suffix}"
 
 
-#: Every setting (docs/oidn.md), by name (``raw-fast``, ``prefiltered-high``, ...).
-SETTINGS: dict[str, Setting] = {s.name: s for s in (Setting(a, q) for a in ("prefiltered", "raw", "none")
+#: Every setting (docs/oidn.md), by name (``raw-fast``, ``prefiltered-high``, ...; ``raw-fast-level`` with the
+#: ``level`` exposure).
+SETTINGS: dict[str, Setting] = {s.name: s for s in (Setting(a, q, exposure=e) for e in EXPOSURES
+                                                    for a in ("prefiltered", "raw", "none")
                                                     for q in ("high", "balanced", "fast"))}
 #: The ``oidn`` method's setting (and so the served default's and the evaluation's OIDN baselines'): chosen
 #: by error against time on held-out frames (docs/oidn.md); ``$GRADSEP_OIDN_SETTING`` selects another one.
@@ -102,6 +112,20 @@ def runtime_setting() -> str:
     if name not in RUNTIMES:
         raise ValueError(f"${RUNTIME_ENV}={name!r} is not an OIDN runtime; use one of {', '.join(RUNTIMES)}")
     return name
+
+
+def frame_setting(metadata: dict[str, str]) -> tuple[str, str | None]:
+    """(the setting the ``oidn`` method runs for a frame with header ``metadata``, a warning or None):
+    ``$GRADSEP_OIDN_SETTING`` when set (the operator's choice wins), else the setting the frame's render plan asked
+    for (model.frame.OIDN_SETTING_KEY, renderer.render.reconstruction_setting) when it names one, else
+    :data:`METHOD_SETTING`. A header naming no setting is ignored with a warning, never an error."""
+    if os.environ.get(SETTING_ENV, "").strip():
+        return method_setting(), None
+    asked = str(metadata.get(OIDN_SETTING_KEY, "")).strip()
+    if not asked or asked in SETTINGS:
+        return asked or METHOD_SETTING, None
+    return METHOD_SETTING, (f"the frame asks for OIDN setting {asked[:40]!r} ({OIDN_SETTING_KEY}), which is not one "
+                            f"of {', '.join(SETTINGS)}; ran {METHOD_SETTING}")
 
 
 def method_setting() -> str:
@@ -128,13 +152,24 @@ def _finite(x: np.ndarray, lo: float, hi: float) -> np.ndarray:
     return np.clip(out, lo, hi, out=out)
 
 
+def exposure_scale(image: np.ndarray, exposure: str = DEFAULT_EXPOSURE) -> float:
+    """The colour filter's ``inputScale`` for ``image`` under ``exposure`` (:data:`EXPOSURES`): the key over the
+    layer's lit level (``lit``) or over its robust level (``level``, :func:`input_scale`); 1.0 if black."""
+    if exposure == "level":
+        return input_scale(image)
+    level = lit_level(image)
+    if not (math.isfinite(level) and level > 0.0):
+        return 1.0
+    return EXPOSURES[exposure] / level
+
+
 def input_scale(image: np.ndarray) -> float:
     """s such that the robust level of ``image * s`` (model.robust.robust_level, a winsorised mean one pixel cannot
     move) is 1: exactly the reciprocal, so scaled frames denoise alike; 1.0 if black."""
     level = robust_level(image)
     if not (math.isfinite(level) and level > 0.0):
         return 1.0
-    return _TARGET_MEAN / level
+    return EXPOSURES["level"] / level
 
 
 _import_lock = threading.Lock()
@@ -273,7 +308,7 @@ class Denoiser:
     def denoise(self, color: np.ndarray, aux: CleanAux | None = None) -> np.ndarray:
         """(H, W, 3) float32 HDR radiance → denoised, finite, ≥ 0; ``aux`` from :meth:`prefilter` or None."""
         radiance = _finite(color, 0.0, _F32_MAX)
-        scale = input_scale(radiance)
+        scale = exposure_scale(radiance, self.setting.exposure)
         if scale == 1.0 and not radiance.any():
             return radiance  # no light: nothing to denoise (and OIDN is not asked to invent any)
         images = {"color": radiance}

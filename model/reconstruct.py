@@ -71,6 +71,7 @@ class Reconstruction:
     timings: dict[str, float]  # seconds per layer name
     method: str
     warnings: list[str] = field(default_factory=list)  # non-finite values the output policy replaced
+    oidn_setting: str | None = None  # the OIDN setting that ran (model.oidn.SETTINGS), None if no OIDN ran
 
 
 def _sanitise(name: str, image: np.ndarray, shape: tuple[int, int, int], warnings: list[str]) -> np.ndarray:
@@ -284,13 +285,20 @@ def _check_method(frame: Frame, method: Method, alpha: float, models: LoadedMode
                            {"unserved_layers": unserved})
 
 
-def _denoiser(method: Method, models: LoadedModels) -> Any:
-    """The OIDN denoiser of a method that runs OIDN: at the ``oidn`` method's setting, or at the one its loaded
-    model was trained with (its ``oidn_setting``; the ``oidn`` method's where it names none)."""
-    from gradsep.model.oidn import method_setting, shared_denoiser
+def _denoiser(method: Method, models: LoadedModels, frame: Frame, warnings: list[str]) -> Any:
+    """The OIDN denoiser of a method that runs OIDN: at the one its loaded model was trained with (its
+    ``oidn_setting``), else at the frame's (model.oidn.frame_setting: ``$GRADSEP_OIDN_SETTING``, the setting the
+    frame's render plan asked for, or the ``oidn`` method's)."""
+    from gradsep.model.oidn import frame_setting, shared_denoiser
 
     own = next((models.get(n) for n in method.model_sets), None) if method.denoiser == "model" else None
-    return shared_denoiser(getattr(own, "oidn_setting", None) or method_setting())
+    pinned = getattr(own, "oidn_setting", None)
+    if pinned:
+        return shared_denoiser(pinned)
+    setting, warning = frame_setting(frame.metadata)
+    if warning:
+        warnings.append(warning)
+    return shared_denoiser(setting)
 
 
 def reconstruct(frame: Frame, method: str | None = None, alpha: float = DEFAULT_ALPHA,
@@ -315,7 +323,7 @@ def reconstruct(frame: Frame, method: str | None = None, alpha: float = DEFAULT_
     timings: dict[str, float] = {}
     total = np.zeros(shape, dtype=np.float64)
     if spec.denoiser is not None:
-        ctx.denoiser = _denoiser(spec, models)
+        ctx.denoiser = _denoiser(spec, models, frame, warnings)
         pair = features is not None and features.albedo is not None and features.normal is not None
         if features is not None and not pair:
             # OIDN takes a normal only with an albedo, and model.oidn's auxiliary images are the pair
@@ -336,7 +344,8 @@ def reconstruct(frame: Frame, method: str | None = None, alpha: float = DEFAULT_
     for name in frame.layers:  # summed in the frame's order whatever order the layers finished in
         total += layers[name]
     image = np.clip(total, 0.0, _F32_MAX).astype(np.float32)
-    return Reconstruction(image, layers, timings, spec.name, warnings)
+    setting = ctx.denoiser.setting.name if ctx.denoiser is not None else None
+    return Reconstruction(image, layers, timings, spec.name, warnings, setting)
 
 
 # ------------------------------------------------------------------------------------------------ models

@@ -17,6 +17,7 @@ of the solves) never see it, its energy is kept exactly, and its effect ends at 
 
 from __future__ import annotations
 
+import math
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -67,6 +68,57 @@ def robust_level(image: np.ndarray) -> float:
     cap = float(np.partition(flat, k)[k])
     level = float(np.minimum(flat, cap).mean())
     return level if level > 0.0 else float(flat.mean())
+
+
+#: OIDN's autoexposure conventions (its ``core/autoexposure.h``): luminance averaged over bins of at most this many
+#: pixels a side, and bins darker than LIT_FRACTION are left out. OIDN's threshold is an absolute 1e-8; here it is
+#: relative to the frame's robust level, so that the level scales exactly with the image.
+LIT_BIN = 16
+LIT_FRACTION = 1e-8
+_LUMINANCE = (0.2126, 0.7152, 0.0722)
+
+
+def luminance(image: np.ndarray) -> np.ndarray:
+    """Rec. 709 luminance of (H, W, 3) ``image`` as float64 (an (H, W) image, or one of other channel counts, by its
+    channel mean); non-finite and negative values read as 0."""
+    values = np.asarray(image)
+    if values.ndim == 3 and values.shape[-1] == 3:
+        lum = values[..., 0].astype(np.float64) * _LUMINANCE[0]
+        lum += values[..., 1].astype(np.float64) * _LUMINANCE[1]
+        lum += values[..., 2].astype(np.float64) * _LUMINANCE[2]
+    else:
+        lum = channel_mean(values)
+    lum[~np.isfinite(lum)] = 0.0
+    return np.maximum(lum, 0.0, out=lum)
+
+
+def lit_level(image: np.ndarray) -> float:
+    """The winsorised mean luminance (at WINSOR_QUANTILE) of the *lit* part of ``image``: the pixels of the LIT_BIN
+    bins (OIDN's autoexposure bins) whose mean luminance exceeds LIT_FRACTION x the frame's robust level.
+
+    Unlike :func:`robust_level` it does not count black or near-black regions: a small object on a black background
+    gets the level of the object, not of the frame. One pixel moves it by at most the 99.9th percentile over the
+    lit pixel count (it can light one bin more), and it scales with the image. 0 for an empty or black image."""
+    lum = luminance(image)
+    if lum.size == 0:
+        return 0.0
+    height, width = lum.shape
+    rows = np.array([i * height // -(-height // LIT_BIN) for i in range(-(-height // LIT_BIN))])
+    cols = np.array([j * width // -(-width // LIT_BIN) for j in range(-(-width // LIT_BIN))])
+    sums = np.add.reduceat(np.add.reduceat(lum, rows, axis=0), cols, axis=1)
+    counts = np.outer(np.diff(np.append(rows, height)), np.diff(np.append(cols, width)))
+    bins = sums / counts
+    frame_level = robust_level(lum)  # one pixel cannot move the threshold (the brightest bin, a firefly's, could)
+    if not (math.isfinite(frame_level) and frame_level > 0.0):
+        return 0.0
+    lit_bins = bins > LIT_FRACTION * frame_level
+    row_of = np.searchsorted(rows, np.arange(height), side="right") - 1
+    col_of = np.searchsorted(cols, np.arange(width), side="right") - 1
+    lit = lum[lit_bins[row_of[:, None], col_of[None, :]]]
+    k = int(WINSOR_QUANTILE * (lit.size - 1))
+    cap = float(np.partition(lit, k)[k])
+    level = float(np.minimum(lit, cap).mean())
+    return level if level > 0.0 else float(lit.mean())
 
 
 def winsorised_sum(values: np.ndarray) -> float:

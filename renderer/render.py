@@ -14,7 +14,7 @@ from collections.abc import Callable, Iterable, Mapping
 
 from gradsep.model import __version__
 from gradsep.model.errors import CommandError
-from gradsep.model.frame import ILLUMINATION_LAYERS, SEPARATED_LAYERS, Features, Frame, Layer
+from gradsep.model.frame import ILLUMINATION_LAYERS, OIDN_SETTING_KEY, SEPARATED_LAYERS, Features, Frame, Layer
 from gradsep.renderer.budget import Deadline
 from gradsep.renderer.scene import LoadedScene, load_scene
 
@@ -181,6 +181,32 @@ def render_metadata(scene: LoadedScene, *, spp: int, seed: int, shift: str, laye
     return meta
 
 
+#: The OIDN setting a ``--seconds`` plan asks for (model.frame.OIDN_SETTING_KEY) where its budget makes the extra
+#: denoising cheap: prefiltered features and OIDN's large model. On held-out frames with direct-layer gradients,
+#: served by ``oidn-l1``, it is 0.66-0.81x the RelMSE of the default ``raw-fast`` (geometric means; worst frame
+#: 1.12x; benchmarks/bench_oidn_quality.py, docs/decisions.md "The reconstruction's setting at farm budgets").
+#: A plain frame keeps the default: on ``oidn`` alone it smears a light in view over its neighbours (up to 29x).
+FARM_OIDN_SETTING = "prefiltered-high"
+#: What FARM_OIDN_SETTING costs over ``raw-fast``, seconds per pixel per layer (the prefilter's two passes per
+#: frame included, spread over two layers): measured on the 2-core development machine at 1280x720 by
+#: benchmarks/bench_oidn.py.
+FARM_OIDN_EXTRA_SECONDS = 4.0e-6
+#: FARM_OIDN_SETTING is asked for when its extra time is at most this share of the budget.
+FARM_OIDN_SHARE = 0.1
+
+
+def reconstruction_setting(width: int, height: int, layers: Iterable[str], gradients: str,
+                           seconds: float) -> str | None:
+    """The OIDN setting a frame rendered to a ``seconds`` budget asks for (model.frame.OIDN_SETTING_KEY), or None
+    for the default: FARM_OIDN_SETTING when the frame carries the direct layer's gradients (``oidn-l1`` serves
+    it) and its extra denoising time is at most FARM_OIDN_SHARE of the budget."""
+    layers = list(layers)
+    if gradients not in ("all", "direct") or "direct" not in layers:
+        return None
+    extra = width * height * len(layers) * FARM_OIDN_EXTRA_SECONDS
+    return FARM_OIDN_SETTING if extra <= FARM_OIDN_SHARE * seconds else None
+
+
 def render_planned_frame(scene: LoadedScene, *, deadline: Deadline | None, spp: int | None, seed: int = 0,
                          layers: str | Iterable[str] = SEPARATED_LAYERS, shift: str | None = None,
                          gradients: str = "auto", offsets: str = "all",
@@ -238,6 +264,11 @@ def render_planned_frame(scene: LoadedScene, *, deadline: Deadline | None, spp: 
         summary = planned.plan.summary()
     if deadline is not None:
         metadata[BUDGET_KEY] = f"{deadline.seconds:g}"
+        setting = reconstruction_setting(planned.frame.width, planned.frame.height, wanted, chosen.gradients,
+                                         deadline.seconds)
+        if setting:
+            metadata[OIDN_SETTING_KEY] = setting
+            summary += f"; reconstruct with OIDN {setting}"
         metadata[ELAPSED_KEY] = f"{deadline.elapsed():.3f}"
     frame = planned.frame
     frame.metadata = metadata

@@ -26,6 +26,7 @@ from anyio.abc import TaskGroup
 
 from gradsep.model import methods as table
 from gradsep.model.frame import (
+    OIDN_SETTING_KEY,
     Layer,
     ReadLimits,
     Source,
@@ -192,6 +193,8 @@ def run_pipeline(source: Source, params: ReconstructParams, limits: ReadLimits, 
     t1 = time.perf_counter()
     metadata = {"gradsep.method": str(result.method), "gradsep.alpha": f"{params.alpha:g}",
                 "gradsep.request_id": params.request_id, "gradsep.layers": ",".join(frame.layers)}
+    if getattr(result, "oidn_setting", None):
+        metadata[OIDN_SETTING_KEY] = str(result.oidn_setting)
     body = encode_answer(frame, channels, half=params.half, metadata=metadata, warnings=warnings,
                          compression=params.compression)
     timings["encode"] = time.perf_counter() - t1

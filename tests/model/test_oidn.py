@@ -9,8 +9,9 @@ import pytest
 pytest.importorskip("pyoidn")
 
 from gradsep.model.frame import ChannelError, Features, Frame, Layer, read_frame, write_frame  # noqa: E402
-from gradsep.model.oidn import MIN_SIDE, Denoiser, input_scale, shared_denoiser  # noqa: E402
+from gradsep.model.oidn import MIN_SIDE, SETTINGS, Denoiser, exposure_scale, input_scale, shared_denoiser  # noqa: E402
 from gradsep.model.reconstruct import available_methods, choose_method, reconstruct  # noqa: E402
+from gradsep.model.robust import lit_level  # noqa: E402
 
 
 def _image(h: int, w: int, seed: int = 0, noise: float = 0.3) -> np.ndarray:
@@ -155,7 +156,44 @@ def test_oidn_runs_its_setting(monkeypatch) -> None:
         reconstruct(_plain(), "oidn")
 
 
-@pytest.mark.parametrize("name", ["prefiltered-high", "raw-fast", "none-fast"])
+def test_a_frame_asks_for_its_setting_and_the_answer_records_the_one_that_ran(monkeypatch, tmp_path) -> None:
+    """A render plan's ``gradsep.oidn_setting`` header selects the setting of every OIDN run at the ``oidn``
+    method's setting (oidn, oidn-l1); $GRADSEP_OIDN_SETTING wins over it; a header naming no setting is a warning,
+    not an error; a method without OIDN reports none; the CLI's answer records the setting that ran."""
+    from gradsep.cli import main
+    from gradsep.model import oidn
+    from gradsep.model.frame import OIDN_SETTING_KEY, read_header
+
+    monkeypatch.delenv(oidn.SETTING_ENV, raising=False)
+    used: list[str] = []
+    real = Denoiser.denoise
+    monkeypatch.setattr(Denoiser, "denoise", lambda self, *a: used.append(self.setting.name) or real(self, *a))
+    frame = _plain()
+    frame.metadata[OIDN_SETTING_KEY] = "raw-high"
+    result = reconstruct(frame, "oidn")
+    assert set(used) == {"raw-high"} and result.oidn_setting == "raw-high" and not result.warnings
+    frame.metadata[OIDN_SETTING_KEY] = "sharpest"
+    result = reconstruct(frame, "oidn")
+    assert result.oidn_setting == oidn.METHOD_SETTING
+    assert any("sharpest" in w and oidn.METHOD_SETTING in w for w in result.warnings)
+    monkeypatch.setenv(oidn.SETTING_ENV, "none-fast")
+    frame.metadata[OIDN_SETTING_KEY] = "raw-high"
+    assert reconstruct(frame, "oidn").oidn_setting == "none-fast"
+    monkeypatch.delenv(oidn.SETTING_ENV)
+    noisy, _ = _image(24, 24)
+    gradients = Frame({"direct": Layer(noisy, np.zeros_like(noisy), np.zeros_like(noisy))},
+                      metadata={OIDN_SETTING_KEY: "raw-high"})
+    assert reconstruct(gradients, "oidn-l1").oidn_setting == "raw-high"
+    assert reconstruct(gradients, "l2").oidn_setting is None
+    frame.metadata[OIDN_SETTING_KEY] = "raw-high"
+    write_frame(tmp_path / "in.exr", frame)
+    for method, recorded in (("oidn", "raw-high"), (None, "raw-high")):
+        args = ["reconstruct", str(tmp_path / "in.exr"), "-o", str(tmp_path / "out.exr")]
+        assert main(args + (["--method", method] if method else [])) == 0
+        assert read_header(str(tmp_path / "out.exr")).attributes.get(OIDN_SETTING_KEY) == recorded
+
+
+@pytest.mark.parametrize("name", ["prefiltered-high", "raw-fast", "none-fast", "raw-fast-level"])
 def test_every_setting_is_exposure_exact_energy_keeping_and_black_safe(name: str) -> None:
     """The stability guarantees hold per setting: 1e-8 and 1e9 scale exactly, black stays black, 1x1 keeps its
     energy, and the auxiliary images follow the setting (denoised, passed raw, or none)."""
@@ -177,6 +215,39 @@ def test_every_setting_is_exposure_exact_energy_keeping_and_black_safe(name: str
     np.testing.assert_allclose(denoiser.denoise(pixel, None), pixel, rtol=1e-5)
     with pytest.raises(ValueError, match="unknown OIDN setting"):
         Denoiser("fastest")
+
+
+def test_the_lit_exposure_sets_the_lit_part_to_oidns_key_however_much_black_surrounds_it(monkeypatch) -> None:
+    """``lit`` (the default) gives OIDN the layer scaled so its lit part's mean luminance is 0.18, OIDN's own
+    autoexposure key, whatever the black around it; ``level`` (the fused models') scales the whole frame's robust
+    level to 1. Both settings exist for every aux/quality pair."""
+    rng = np.random.default_rng(5)
+    patch = (0.5 + rng.random((32, 32, 3))).astype(np.float32)
+    padded = np.zeros((160, 160, 3), np.float32)
+    padded[64:96, 48:80] = patch
+    for image in (patch, padded):
+        assert exposure_scale(image) == pytest.approx(0.18 / lit_level(image))
+        assert exposure_scale(image, "level") == input_scale(image)
+    assert exposure_scale(padded) == pytest.approx(exposure_scale(patch), rel=1e-9)
+    assert exposure_scale(padded, "level") > 20 * exposure_scale(patch, "level")  # the black dilutes its level
+    assert SETTINGS["raw-fast"].exposure == "lit" and SETTINGS["raw-fast-level"].exposure == "level"
+    assert {n for n in SETTINGS if n.endswith("-level")} == {n + "-level" for n in SETTINGS if "-level" not in n}
+    seen: list[float] = []
+    denoiser = Denoiser("raw-fast")
+    real_run = denoiser._run
+    monkeypatch.setattr(denoiser, "_run", lambda purpose, images, output, flags, scale=None: (
+        seen.append(scale), real_run(purpose, images, output, flags, scale))[1])
+    denoiser.denoise(padded, None)
+    assert seen == [pytest.approx(exposure_scale(padded))]
+
+
+def test_fused_models_keep_the_exposure_they_were_trained_on() -> None:
+    """The blend models' OIDN candidate runs the ``level`` exposure; a model written before settings named their
+    exposure (``raw-fast``) reads as that setting, so the shipped models stay valid."""
+    from gradsep.model import fused
+
+    assert SETTINGS[fused.OIDN_SETTING].exposure == "level"
+    assert fused.LEGACY_SETTING_NAMES["raw-fast"] == fused.OIDN_SETTING
 
 
 def test_pyoidn_is_imported_without_torch_and_torch_stays_importable():

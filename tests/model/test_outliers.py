@@ -20,6 +20,8 @@ from gradsep.model.robust import (
     OUTLIER_SPREAD_RADIUS,
     add_excess,
     far_agreement,
+    lit_level,
+    luminance,
     robust_level,
     split_frame,
     split_outliers,
@@ -115,6 +117,41 @@ def test_one_value_moves_the_level_and_a_sum_by_one_capped_value_at_most() -> No
     sparse = np.zeros((100, 100, 3), np.float32)
     sparse[3, 4] = 2.0  # lit in fewer pixels than the quantile leaves: the plain mean of the light
     assert robust_level(sparse) == pytest.approx(2.0 / 1e4)
+
+
+def test_the_lit_level_is_the_level_of_the_lit_part_and_scales_with_the_image() -> None:
+    """A small object on black has the level of the object (OIDN's exposure bins that are black do not count),
+    the level scales exactly with the image, and black, empty and non-finite input read as no light."""
+    rng = np.random.default_rng(3)
+    patch = (0.5 + rng.random((32, 48, 3))).astype(np.float32)
+    frame = np.zeros((192, 160, 3), np.float32)
+    frame[64:96, 32:80] = patch  # aligned with the 16-pixel bins
+    assert lit_level(frame) == pytest.approx(lit_level(patch), rel=1e-12)
+    assert robust_level(frame) < 0.06 * lit_level(frame)  # the whole-frame level counts the black
+    for k in (1e-30, 1e-8, 1e9, 1e30):
+        assert lit_level(frame * np.float32(k)) == pytest.approx(k * lit_level(frame), rel=1e-5)
+    odd = rng.random((17, 23, 3)).astype(np.float32)  # bins of unequal size, as OIDN splits an odd frame
+    assert lit_level(odd) == pytest.approx(float(luminance(odd).mean()), rel=0.01)
+    assert lit_level(np.zeros((4, 4, 3))) == 0.0 and lit_level(np.zeros((0, 0, 3))) == 0.0
+    bad = frame.copy()
+    bad[0, 0], bad[0, 1] = np.nan, -np.inf
+    assert lit_level(bad) == lit_level(frame)
+    assert lit_level(np.ones((1, 1, 3))) == pytest.approx(1.0)
+
+
+def test_one_pixel_moves_the_lit_level_by_little() -> None:
+    """A firefly inside the lit part counts as the 99.9th percentile at most; one in the black adds its bin to
+    the lit part (diluting the level by that bin's share) and no more."""
+    rng = np.random.default_rng(4)
+    frame = np.zeros((192, 192, 3), np.float32)
+    frame[:96, :96] = rng.random((96, 96, 3))
+    level = lit_level(frame)
+    for value in (1e3, 1e30, np.inf):
+        inside, outside = frame.copy(), frame.copy()
+        inside[40, 50] = value
+        outside[150, 150] = value
+        assert abs(lit_level(inside) - level) < 1e-3 * level
+        assert abs(lit_level(outside) - level) < 0.03 * level  # one more 16x16 bin among 36
 
 
 @pytest.mark.parametrize("times", [1e2, 1e8, 1e30, 3e38])

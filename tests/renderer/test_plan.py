@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from gradsep.cli import main
-from gradsep.model.frame import Frame, read_frame
+from gradsep.model.frame import OIDN_SETTING_KEY, Frame, read_frame
 from gradsep.renderer import budget
 from gradsep.renderer.plan import (
     CANDIDATES,
@@ -226,8 +226,30 @@ def test_seconds_writes_a_frame_with_its_budget_in_the_header(tmp_path, capsys, 
     assert meta[PLAN_KEY] == "direct-alternate" and meta["gradsep.offsets"] == "alternate"
     assert int(meta["gradsep.spp"]) >= 2 and int(meta["gradsep.passes"]) >= 2
     assert PREDICTED_RELMSE_KEY not in meta  # a fixed plan: no pilot, no prediction
+    assert meta[OIDN_SETTING_KEY] == "prefiltered-high"  # 16x12 px: the better denoiser is free at 8 s
     assert frame.layers["direct"].has_gradients and not frame.layers["indirect"].has_gradients
     assert list(tmp_path.iterdir()) == [out]
+
+
+def test_a_budget_asks_for_the_better_denoiser_where_it_is_cheap_and_serves_the_frame():
+    """The plan asks for FARM_OIDN_SETTING only for a frame with the direct layer's gradients (oidn-l1 serves it;
+    on a plain frame oidn would halo a light in view) and only where its extra time fits FARM_OIDN_SHARE of T."""
+    from gradsep.renderer.render import (
+        FARM_OIDN_EXTRA_SECONDS,
+        FARM_OIDN_SETTING,
+        FARM_OIDN_SHARE,
+        reconstruction_setting,
+    )
+
+    both = ("direct", "indirect")
+    extra = 1280 * 720 * 2 * FARM_OIDN_EXTRA_SECONDS
+    at = extra / FARM_OIDN_SHARE
+    assert reconstruction_setting(1280, 720, both, "direct", at * 1.01) == FARM_OIDN_SETTING
+    assert reconstruction_setting(1280, 720, both, "all", at * 1.01) == FARM_OIDN_SETTING
+    assert reconstruction_setting(1280, 720, both, "direct", at * 0.99) is None  # a short budget: the default
+    assert reconstruction_setting(1280, 720, both, "none", 1e6) is None  # a plain frame: oidn serves it
+    assert reconstruction_setting(1280, 720, ("indirect",), "all", 1e6) is None  # no direct layer: no oidn-l1
+    assert reconstruction_setting(1280, 720, ("color",), "all", 1e6) is None
 
 
 def test_measured_exponent_weighs_the_slope_against_the_prior_by_their_noise():

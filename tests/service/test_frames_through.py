@@ -115,6 +115,23 @@ def test_an_rgba_beauty_exr_is_served_and_keeps_its_alpha(poisson_api, transport
     assert abs(float(rgb(channels).mean()) / float(np.mean([beauty[c] for c in "RGB"])) - 1) < 0.05
 
 
+@pytest.mark.skipif(not HAS_OIDN, reason="a plain frame is served by oidn (pyoidn, the serve extra)")
+def test_the_oidn_setting_a_frame_asks_for_runs_and_the_answer_names_it(poisson_api, monkeypatch) -> None:
+    """A render plan's ``gradsep.oidn_setting`` selects OIDN's setting; the answer's header names the one that ran;
+    a header naming no setting is a warning and the default runs; a method without OIDN names none."""
+    monkeypatch.delenv("GRADSEP_OIDN_SETTING", raising=False)
+    channels = frame_channels(("direct", "indirect"), 32, 32)
+    plain = frame_channels(("direct", "indirect"), 32, 32, gradients=False)  # served by oidn
+    for asked, ran in (("raw-high", "raw-high"), ("sharpest", "raw-fast")):
+        response = _post(poisson_api["testclient"], _exr(plain, {"gradsep.oidn_setting": asked}))
+        assert response.status_code == 200, response.text
+        assert _answer(response).header()["gradsep.oidn_setting"] == ran
+        assert ("sharpest" in response.headers.get("x-gradsep-warnings", "")) == (asked == "sharpest")
+    response = _post(poisson_api["testclient"], _exr(channels, {"gradsep.oidn_setting": "raw-high"}),
+                     {"method": "l2"})
+    assert response.status_code == 200 and "gradsep.oidn_setting" not in _answer(response).header()
+
+
 def _cycles_exr(view_layers: tuple[str, ...] = ("ViewLayer",), beauty: bool = False) -> bytes:
     rng = np.random.default_rng(5)
     channels: dict[str, np.ndarray] = {}

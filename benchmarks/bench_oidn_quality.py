@@ -1,0 +1,104 @@
+"""OIDN settings (model/oidn.py, docs/oidn.md) compared by RelMSE on rendered frames: exposure, features, quality.
+
+    python benchmarks/bench_oidn_quality.py --scenes procedural:93301,procedural:studio:93301 --size 192 \\
+        --spp 16,64,256 --ref-spp 1024 --settings raw-fast-level,raw-fast,prefiltered-high \\
+        --cache ~/.cache/gradsep/oidn-quality
+
+For every scene and sample count, renders a plain frame (``--no-gradients``) and a direct-gradient frame
+(``--gradients direct --offsets alternate``), reconstructs the first with ``oidn`` and the second with ``oidn-l1``
+under each setting (``$GRADSEP_OIDN_SETTING``), and scores them against two independent ``gradsep reference``
+renders (model.metrics.relmse_unbiased: the references' noise removed in expectation). Prints one row per frame
+and, per family (rooms, studios), sample count, method and setting, the geometric mean and the worst of its
+RelMSE over the first setting's. Frames and references are cached in ``--cache`` under names that say what made
+them, so a second run only reconstructs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import subprocess
+import sys
+from collections import defaultdict
+from pathlib import Path
+
+PIPELINES = {"oidn": ("--no-gradients",), "oidn-l1": ("--gradients", "direct", "--offsets", "alternate")}
+
+
+def gradsep(*args: str) -> None:
+    subprocess.run([sys.executable, "-m", "gradsep", *args], check=True, stdout=subprocess.DEVNULL)
+
+
+def cached_render(cache: Path, scene: str, size: int, spp: int, seed: int, method: str) -> Path:
+    path = cache / f"frame-{scene.replace(':', '_')}-{size}-{spp}-{seed}-{method}.exr"
+    if not path.exists():
+        gradsep("render", scene, "--spp", str(spp), "--width", str(size), "--height", str(size), "--seed", str(seed),
+                *PIPELINES[method], "-o", str(path))
+    return path
+
+
+def cached_reference(cache: Path, scene: str, size: int, spp: int, seed: int) -> Path:
+    path = cache / f"ref-{scene.replace(':', '_')}-{size}-{spp}-{seed}.exr"
+    if not path.exists():
+        gradsep("reference", scene, "--width", str(size), "--height", str(size), "--spp", str(spp), "--seed",
+                str(seed), "-o", str(path))
+    return path
+
+
+def relmse(frame: Path, method: str, setting: str, refs: tuple[object, object]) -> float:
+    from gradsep.model.frame import read_frame
+    from gradsep.model.metrics import relmse_unbiased
+    from gradsep.model.oidn import SETTING_ENV
+    from gradsep.model.reconstruct import reconstruct
+
+    os.environ[SETTING_ENV] = setting
+    return relmse_unbiased(reconstruct(read_frame(frame), method).image, *refs)
+
+
+def main() -> int:
+    from gradsep.renderer.reference import load_reference
+
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scenes", required=True, help="comma-separated scene specs (procedural:SEED, ...)")
+    parser.add_argument("--size", type=int, default=192)
+    parser.add_argument("--spp", default="16,64,256")
+    parser.add_argument("--seed", type=int, default=11, help="the frames' render seed")
+    parser.add_argument("--ref-spp", type=int, default=1024)
+    parser.add_argument("--settings", default="raw-fast-level,raw-fast",
+                        help="OIDN settings (model.oidn.SETTINGS); each is compared with the first")
+    parser.add_argument("--cache", default="~/.cache/gradsep/oidn-quality")
+    args = parser.parse_args()
+    cache = Path(args.cache).expanduser()
+    cache.mkdir(parents=True, exist_ok=True)
+    settings = args.settings.split(",")
+    base, others = settings[0], settings[1:]
+    ratios: dict[tuple[str, int, str, str], list[float]] = defaultdict(list)
+    print(f"| scene | spp | method | {base} RelMSE | " + " | ".join(f"{s} / {base}" for s in others) + " |")
+    print("|---|---:|---|---:|" + "---:|" * len(others))
+    for scene in args.scenes.split(","):
+        refs = tuple(load_reference(str(cached_reference(cache, scene, args.size, args.ref_spp, s))).total
+                     for s in (1, 2))
+        family = "studios" if ":studio:" in scene else "rooms"
+        for spp in (int(s) for s in args.spp.split(",")):
+            for method in PIPELINES:
+                frame = cached_render(cache, scene, args.size, spp, args.seed, method)
+                err = {name: relmse(frame, method, name, refs) for name in settings}
+                row = []
+                for name in others:
+                    ratio = err[name] / err[base] if err[base] > 0 else float("nan")
+                    ratios[(family, spp, method, name)].append(ratio)
+                    row.append(f"{ratio:.3f}")
+                print(f"| {scene} | {spp} | {method} | {err[base]:.4g} | " + " | ".join(row) + " |", flush=True)
+    print(f"\n| family | spp | method | setting | frames | / {base}, geometric mean | worst | lower |")
+    print("|---|---:|---|---|---:|---:|---:|---:|")
+    for (family, spp, method, name), values in sorted(ratios.items()):
+        good = [v for v in values if v > 0 and math.isfinite(v)]
+        geo = math.exp(sum(map(math.log, good)) / len(good)) if good else float("nan")
+        print(f"| {family} | {spp} | {method} | {name} | {len(values)} | {geo:.3f} | {max(values):.3f} | "
+              f"{sum(v < 1 for v in values)} |")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
