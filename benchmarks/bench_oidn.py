@@ -7,7 +7,8 @@ Reports, for a synthetic noisy HDR layer with random albedo/normal: ``pyoidn.den
 features (OIDN's default mode), the colour filter with prefiltered features (``cleanAux``, the
 ``prefiltered-high`` setting), and the two prefilter passes (albedo, normal) it runs once per frame. The ``oidn``
 method's own setting (``raw-fast``: raw features, quality ``fast``; docs/oidn.md) is timed inside the service's
-pipeline by bench_floor.py's ``oidn`` row.
+pipeline by bench_floor.py's ``oidn`` row; here it is timed on a two-layer frame beside ``prefiltered-high``, whose
+extra time per pixel and layer is what a ``--seconds`` plan weighs before asking for it (renderer/render.py).
 """
 
 from __future__ import annotations
@@ -55,9 +56,25 @@ def main() -> int:
         ("colour filter, prefiltered features / cleanAux (one layer)", lambda: denoiser.denoise(image, aux)),
         ("prefilter of albedo + normal (once per frame)", lambda: denoiser.prefilter(features)),
     ]
+    fast = Denoiser("raw-fast")
+
+    def two_layers(den: Denoiser) -> Callable[[], object]:
+        def run() -> None:
+            frame_aux = den.prefilter(features)
+            den.denoise(image, frame_aux)
+            den.denoise(image, frame_aux)
+        return run
+
+    rows += [("raw-fast, a two-layer frame (the oidn method's default)", two_layers(fast)),
+             ("prefiltered-high, a two-layer frame (its prefilter included)", two_layers(denoiser))]
     print(f"{width}x{height}, medians of {args.repeats}; load average {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
+    times = {}
     for label, fn in rows:
-        print(f"{label:<62} {median_seconds(fn, args.repeats):7.3f} s")
+        times[label] = median_seconds(fn, args.repeats)
+        print(f"{label:<62} {times[label]:7.3f} s")
+    extra = (times[rows[-1][0]] - times[rows[-2][0]]) / (2 * width * height)
+    print(f"{'prefiltered-high over raw-fast, per pixel and layer':<62} {extra * 1e6:7.3f} µs "
+          "(renderer/render.py FARM_OIDN_EXTRA_SECONDS)")
     return 0
 
 

@@ -188,9 +188,9 @@ def render_metadata(scene: LoadedScene, *, spp: int, seed: int, shift: str, laye
 #: A plain frame keeps the default: on ``oidn`` alone it smears a light in view over its neighbours (up to 29x).
 FARM_OIDN_SETTING = "prefiltered-high"
 #: What FARM_OIDN_SETTING costs over ``raw-fast``, seconds per pixel per layer (the prefilter's two passes per
-#: frame included, spread over two layers): measured on the 2-core development machine at 1280x720 by
-#: benchmarks/bench_oidn.py.
-FARM_OIDN_EXTRA_SECONDS = 4.0e-6
+#: frame included, spread over two layers): 4.0 s more per 1280x720 two-layer frame (0.87 s against 4.88 s) on the
+#: 2-core AMD EPYC development machine, `python benchmarks/bench_oidn.py --size 1280x720`.
+FARM_OIDN_EXTRA_SECONDS = 2.2e-6
 #: FARM_OIDN_SETTING is asked for when its extra time is at most this share of the budget.
 FARM_OIDN_SHARE = 0.1
 
