@@ -86,6 +86,10 @@ class Method:
     #: (model/robust.py): for methods whose frame-wide statistics, CNN receptive field or solver steps one pixel
     #: could move; the screened Poisson solvers see the frame as it is (their reach is measured, docs/methods.md)
     split_outliers: bool = True
+    #: cap each layer's bright sources (a light in view) before the method and add their excess back in place
+    #: (model.robust.split_sources): for ``oidn``, which smears them; ``oidn-l1``'s refinement restores them from
+    #: the direct layer's gradients itself
+    split_sources: bool = False
 
     def __post_init__(self) -> None:
         problems = []
@@ -119,7 +123,7 @@ class Method:
         return {"name": self.name, "description": self.description, "gradients": self.gradients,
                 "features_used": list(self.uses), "features_required": list(self.requires),
                 "models": list(self.models), "schedule": self.schedule, "preference": self.preference,
-                "alpha": self.alpha, "split_outliers": self.split_outliers}
+                "alpha": self.alpha, "split_outliers": self.split_outliers, "split_sources": self.split_sources}
 
 
 _TABLE: dict[str, Method] = {}
@@ -272,7 +276,8 @@ register(Method(
     gradients="all", alpha=True, split_outliers=False))
 register(Method(
     "oidn", "Intel Open Image Denoise on each layer (the method for a plain frame)", f"{_BUILTIN}:oidn_layer",
-    gradients="none", uses=("albedo", "normal"), models=("oidn",), preference=2, denoiser="method"))
+    gradients="none", uses=("albedo", "normal"), models=("oidn",), preference=2, denoiser="method",
+    split_sources=True))
 register(Method(
     "oidn-l1", "oidn, then the direct layer refined by its gradients (L1 solve on OIDN's image)",
     f"{_BUILTIN}:oidn_l1_layer", gradients="direct", uses=("albedo", "normal"), models=("oidn",),

@@ -36,7 +36,7 @@ from gradsep.model.environment import env_int
 from gradsep.model.frame import ChannelError, Features, Frame, Layer, feature_groups
 from gradsep.model.methods import LoadedModels, Method
 from gradsep.model.policy import DEFAULT_ALPHA, FEATURE_GROUPS, models_dir_from
-from gradsep.model.robust import add_excess, outlier_count, split_frame
+from gradsep.model.robust import add_excess, add_in_place, outlier_count, split_frame, split_sources
 
 __all__ = [
     "LayerContext",
@@ -285,6 +285,18 @@ def _check_method(frame: Frame, method: Method, alpha: float, models: LoadedMode
                            {"unserved_layers": unserved})
 
 
+def _split_sources(frame: Frame) -> tuple[Frame, dict[str, np.ndarray]]:
+    """(``frame`` with each layer's bright sources capped (model.robust.split_sources), their excess by layer)."""
+    from dataclasses import replace
+
+    layers, excess = dict(frame.layers), {}
+    for name, layer in frame.layers.items():
+        capped, extra = split_sources(layer.base)
+        if extra is not None:
+            layers[name], excess[name] = Layer(capped, layer.dx, layer.dy), extra
+    return (replace(frame, layers=layers), excess) if excess else (frame, {})
+
+
 def _denoiser(method: Method, models: LoadedModels, frame: Frame, warnings: list[str]) -> Any:
     """The OIDN denoiser of a method that runs OIDN: at the one its loaded model was trained with (its
     ``oidn_setting``), else at the frame's (model.oidn.frame_setting: ``$GRADSEP_OIDN_SETTING``, the setting the
@@ -315,6 +327,8 @@ def reconstruct(frame: Frame, method: str | None = None, alpha: float = DEFAULT_
     _check_method(frame, spec, alpha, models)
     # a denoising method never sees a layer's extreme outliers: their excess is spread back near them below
     frame, excess = split_frame(frame) if spec.split_outliers else (frame, {})
+    # ... nor a light in view: capped, its excess put back in place below
+    frame, sources = _split_sources(frame) if spec.split_sources else (frame, {})
     features = frame.features.only(spec.uses) if frame.features is not None else None
     warnings: list[str] = []
     ctx = LayerContext(spec, alpha, models, features)
@@ -340,6 +354,10 @@ def reconstruct(frame: Frame, method: str | None = None, alpha: float = DEFAULT_
             image = add_excess(image, excess[name])
             warnings.append(f"layer {name}: {outlier_count(excess[name])} outlier pixel(s) kept out of the {spec.name} "
                             "denoiser; their energy was spread over a few pixels around each")
+        if name in sources:
+            image = add_in_place(image, sources[name])
+            warnings.append(f"layer {name}: {outlier_count(sources[name])} pixel(s) of a bright source (a light in "
+                            f"view) capped for the {spec.name} denoiser and put back in place")
         layers[name] = _sanitise(name, image, shape, warnings)
     for name in frame.layers:  # summed in the frame's order whatever order the layers finished in
         total += layers[name]

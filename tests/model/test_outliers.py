@@ -8,23 +8,28 @@ Frames: the committed example (examples/cbox-16spp.exr) and a procedural scene (
 
 from __future__ import annotations
 
+import importlib.util
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 
+import gradsep.model.methods as table
 import gradsep.model.reconstruct as reconstruct_module
 from gradsep.model.frame import Frame, Layer, read_frame
 from gradsep.model.robust import (
     OUTLIER_SPREAD_RADIUS,
+    SOURCE_LEVEL,
     add_excess,
+    add_in_place,
     far_agreement,
     lit_level,
     luminance,
     robust_level,
     split_frame,
     split_outliers,
+    split_sources,
     winsorised_sum,
 )
 from tests.model.shipped import models_for
@@ -184,6 +189,65 @@ def test_ordinary_frames_have_no_outliers_and_are_left_alone() -> None:
     light = smooth.copy()
     light[2:5, 2:5] = 1e4  # a bright region, not an outlier: its neighbours are as bright
     assert split_outliers(light)[1] is None
+
+
+def test_a_light_in_view_is_capped_and_put_back_in_place_a_lone_firefly_is_not_one() -> None:
+    """split_sources caps a cluster of pixels over SOURCE_LEVEL × the lit level at that luminance (colour kept) and
+    returns the rest as an in-place excess that restores the input exactly; a lone pixel over it is the outlier
+    split's, ordinary frames have none, and scaling the frame scales both parts."""
+    rng = np.random.default_rng(6)
+    base = (0.5 + rng.random((96, 120, 3))).astype(np.float32)  # 6 light pixels are above its 99.9th percentile
+    hit = base.copy()
+    hit[10:12, 14:17] = np.array([3e4, 2e4, 1e4], np.float32)  # a small warm light in view, 2x3 pixels
+    capped, excess = split_sources(hit)
+    assert excess is not None and np.count_nonzero(excess.any(axis=-1)) == 6
+    cap = SOURCE_LEVEL * lit_level(hit)
+    assert luminance(capped[10:12, 14:17]) == pytest.approx(np.full((2, 3), cap), rel=1e-5)
+    ratios = capped[10, 14] / capped[10, 14, 0]
+    np.testing.assert_allclose(ratios, [1.0, 2 / 3, 1 / 3], rtol=1e-5)  # scaled: its colour is kept
+    mask = np.zeros((96, 120), bool)
+    mask[10:12, 14:17] = True
+    assert np.array_equal(capped[~mask], hit[~mask])
+    np.testing.assert_allclose(add_in_place(capped, excess), hit, rtol=1e-6)
+    for k in (1e-8, 1e9):
+        scaled_capped, scaled_excess = split_sources(hit * np.float32(k))
+        np.testing.assert_allclose(scaled_capped, capped * np.float32(k), rtol=1e-5)
+        np.testing.assert_allclose(scaled_excess, excess * np.float32(k), rtol=1e-4)
+    lone = base.copy()
+    lone[5, 5] = 1e6
+    assert split_sources(lone)[1] is None
+    assert split_sources(np.zeros((4, 4, 3), np.float32))[1] is None
+    for name in FRAMES:
+        for layer in _frame(name).layers.values():
+            assert split_sources(layer.base)[1] is None
+
+
+@pytest.mark.skipif(importlib.util.find_spec("pyoidn") is None, reason="oidn needs pyoidn")
+def test_oidn_keeps_a_light_in_view_where_it_is_and_its_reach_does_not_grow_with_it(monkeypatch) -> None:
+    """A 2x2 light of 1e4 or 1e6 × the level on a plain frame: ``oidn`` returns it in place (its energy within 1 %),
+    and the pixels it changes by more than 1 % (beside the output without it) end within 25 px whatever its
+    brightness; without the cap, the 1e6 light reaches across the 96x72 frame. The answer says why."""
+    frame = _frame("procedural")
+    plain = Frame({n: Layer(layer.base) for n, layer in frame.layers.items()}, frame.features)
+    level = float(plain.layers["direct"].base.mean(dtype=np.float64))
+    without = _reconstruct(plain, "oidn")
+
+    def with_light(times: float) -> tuple[Any, np.ndarray]:
+        base = plain.layers["direct"].base.copy()
+        base[10:12, 20:22] = np.float32(times * level)
+        return _reconstruct(Frame({**plain.layers, "direct": Layer(base)}, plain.features), "oidn"), base
+
+    reach = {}
+    for times in (1e4, 1e6):
+        result, base = with_light(times)
+        light = result.layers["direct"][10:12, 20:22].astype(np.float64).sum()
+        assert light == pytest.approx(base[10:12, 20:22].astype(np.float64).sum(), rel=0.01)
+        reach[times] = far_agreement(result.image, without.image, (10, 20), 25.0)
+        assert reach[times][0] == 1.0 and any("bright source" in w for w in result.warnings)
+    assert reach[1e4] == reach[1e6]
+    assert table.get("oidn").split_sources and not table.get("oidn-l1").split_sources
+    monkeypatch.setattr(reconstruct_module, "split_sources", lambda base: (base, None))
+    assert far_agreement(with_light(1e6)[0].image, without.image, (10, 20), 25.0)[1] > 60
 
 
 @pytest.mark.parametrize("shape, count", [((1, 1, 3), 1), ((5, 7, 3), 4), ((40, 56, 3), 60)])
