@@ -376,6 +376,50 @@ def cost_row(scene: str, size: str, spp: int, repeats: int) -> None:
           f"{ratio['planner']:.3f} | {marginal:.3f} | {ratio['no-gradients']:.3f} |", flush=True)
 
 
+def rescore(args: argparse.Namespace) -> None:
+    """Reconstruct ``validate``'s cached frames again with today's code (``--setting`` for the frames with
+    gradients) against the same references, and print, per family and pipeline, today's RelMSE over the recorded
+    one (geometric mean, range) and today's ratio to the best fixed pipeline of each (scene, seed). The frames are
+    not rendered again: the same samples at the same wall time, only the reconstruction is today's."""
+    from gradsep.model.oidn import SETTING_ENV
+
+    cache = Path(args.cache).expanduser()
+    rows: dict[str, dict] = json.loads((cache / "validate.json").read_text())
+    today: dict[str, float] = {}
+    for key, row in rows.items():
+        refs = tuple(cache / f"ref-{row['scene'].replace(':', '_')}-{args.size}-{args.ref_spp}-{s}.exr"
+                     for s in (1, 2))
+        if "relmse" not in row or not (cache / row["file"]).exists() or not all(p.exists() for p in refs):
+            continue
+        plain = row["plan"] in ("primal", "primal-sum") or (row["plan"] == "auto" and row.get("chosen") == "primal")
+        if args.setting and not plain:
+            os.environ[SETTING_ENV] = args.setting
+        else:
+            os.environ.pop(SETTING_ENV, None)
+        today[key] = measured_relmse(cache / row["file"], refs)
+
+    def geo(values: list[float]) -> float:
+        return math.exp(sum(map(math.log, values)) / len(values))
+
+    fixed = ("primal", "direct-alternate", "all", "primal-sum")
+    print(f"setting for frames with gradients: {args.setting or 'the oidn method default'}; {len(today)} frames")
+    print("| family | pipeline | today / recorded RelMSE | range | today / best fixed | worst |")
+    print("|---|---|---:|---:|---:|---:|")
+    groups: dict[tuple[str, str], dict[str, float]] = {}
+    for key, value in today.items():
+        scene, _, seed, plan = key.split("|")
+        groups.setdefault((scene, seed), {})[plan] = value
+    for fam in sorted({family(k.split("|")[0]) for k in today}):
+        for plan in PLANS:
+            change = [today[k] / rows[k]["relmse"] for k in today
+                      if k.endswith("|" + plan) and family(k.split("|")[0]) == fam and rows[k]["relmse"] > 0]
+            best = [g[plan] / min(g[f] for f in fixed) for (scene, _), g in groups.items()
+                    if family(scene) == fam and plan in g and all(f in g for f in fixed)]
+            if change and best:
+                print(f"| {fam} | {plan} | {geo(change):.2f} | {min(change):.2f}-{max(change):.2f} | "
+                      f"{geo(best):.2f} | {max(best):.1f} |")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="what", required=True)
@@ -407,8 +451,14 @@ def main(argv: list[str] | None = None) -> int:
     c.add_argument("--sizes", default="320x240,1280x720")
     c.add_argument("--spp", type=int, default=16)
     c.add_argument("--repeats", type=int, default=5)
+    r = sub.add_parser("rescore")
+    r.add_argument("--setting", default="", help="OIDN setting for the frames with gradients (e.g. "
+                   "prefiltered-high: what a --seconds budget asks for); default: the oidn method's")
+    r.add_argument("--size", type=int, default=192, help="validate's --size")
+    r.add_argument("--ref-spp", type=int, default=1024, help="validate's --ref-spp")
+    r.add_argument("--cache", default=str(Path.home() / ".cache/gradsep/planner-bench"))
     args = parser.parse_args(argv)
-    {"timing": timing, "validate": validate, "estimate": estimate, "cost": cost}[args.what](args)
+    {"timing": timing, "validate": validate, "estimate": estimate, "cost": cost, "rescore": rescore}[args.what](args)
     return 0
 
 
