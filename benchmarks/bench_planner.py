@@ -15,6 +15,10 @@
     python benchmarks/bench_planner.py estimate --scene procedural:studio:93106 --size 128 --ref-spp 2048 \
         [--cache ...]
 
+    # validate's cached frames through today's reconstruction (same samples, same wall time): today / recorded
+    # RelMSE and today / best fixed, per family and pipeline; --setting for the frames with gradients
+    python benchmarks/bench_planner.py rescore [--setting prefiltered-high] [--cache ...]
+
     # a plain-frame plan's cost against Mitsuba's `path` (same scene, size, spp, depth, box filter): a whole frame
     # and the marginal cost of a sample (frames of spp and 2 spp)
     python benchmarks/bench_planner.py cost [--scenes procedural:93201,procedural:studio:93201]
