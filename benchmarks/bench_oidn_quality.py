@@ -6,7 +6,8 @@
 
 For every scene and sample count, renders a plain frame (``--no-gradients``) and a direct-gradient frame
 (``--gradients direct --offsets alternate``), reconstructs the first with ``oidn`` and the second with ``oidn-l1``
-under each setting (``$GRADSEP_OIDN_SETTING``), and scores them against two independent ``gradsep reference``
+under each setting (``$GRADSEP_OIDN_SETTING``; with ``--sum`` also ``oidn`` on the sum of the plain frame's
+layers), and scores them against two independent ``gradsep reference``
 renders (model.metrics.relmse_unbiased: the references' noise removed in expectation). Prints one row per frame
 and, per family (rooms, studios), sample count, method and setting, the geometric mean and the worst of its
 RelMSE over the first setting's. Frames and references are cached in ``--cache`` under names that say what made
@@ -46,14 +47,20 @@ def cached_reference(cache: Path, scene: str, size: int, spp: int, seed: int) ->
     return path
 
 
-def relmse(frame: Path, method: str, setting: str, refs: tuple[object, object]) -> float:
-    from gradsep.model.frame import read_frame
+def relmse(frame: Path, method: str, setting: str, refs: tuple[object, object], summed: bool = False) -> float:
+    """RelMSE of ``frame`` reconstructed with ``method`` at OIDN ``setting``; ``summed``: its layers added into one
+    unseparated ``color`` layer first (OIDN on the sum instead of per layer)."""
+    from gradsep.model.frame import Frame, Layer, read_frame
     from gradsep.model.metrics import relmse_unbiased
     from gradsep.model.oidn import SETTING_ENV
     from gradsep.model.reconstruct import reconstruct
 
     os.environ[SETTING_ENV] = setting
-    return relmse_unbiased(reconstruct(read_frame(frame), method).image, *refs)
+    loaded = read_frame(frame)
+    if summed:
+        total = sum(layer.base.astype("float64") for layer in loaded.layers.values())
+        loaded = Frame({"color": Layer(total.astype("float32"))}, loaded.features, metadata=loaded.metadata)
+    return relmse_unbiased(reconstruct(loaded, method).image, *refs)
 
 
 def main() -> int:
@@ -67,12 +74,16 @@ def main() -> int:
     parser.add_argument("--ref-spp", type=int, default=1024)
     parser.add_argument("--settings", default="raw-fast-level,raw-fast",
                         help="OIDN settings (model.oidn.SETTINGS); each is compared with the first")
+    parser.add_argument("--sum", action="store_true",
+                        help="also run oidn on the sum of the plain frame's layers (one column per setting)")
     parser.add_argument("--cache", default="~/.cache/gradsep/oidn-quality")
     args = parser.parse_args()
     cache = Path(args.cache).expanduser()
     cache.mkdir(parents=True, exist_ok=True)
     settings = args.settings.split(",")
     base, others = settings[0], settings[1:]
+    summed = [f"{name} on the sum" for name in settings] if args.sum else []
+    others = others + summed
     ratios: dict[tuple[str, int, str, str], list[float]] = defaultdict(list)
     print(f"| scene | spp | method | {base} RelMSE | " + " | ".join(f"{s} / {base}" for s in others) + " |")
     print("|---|---:|---|---:|" + "---:|" * len(others))
@@ -84,8 +95,14 @@ def main() -> int:
             for method in PIPELINES:
                 frame = cached_render(cache, scene, args.size, spp, args.seed, method)
                 err = {name: relmse(frame, method, name, refs) for name in settings}
+                if method == "oidn":
+                    err |= {name: relmse(frame, method, name.removesuffix(" on the sum"), refs, summed=True)
+                            for name in summed}
                 row = []
                 for name in others:
+                    if name not in err:
+                        row.append("–")
+                        continue
                     ratio = err[name] / err[base] if err[base] > 0 else float("nan")
                     ratios[(family, spp, method, name)].append(ratio)
                     row.append(f"{ratio:.3f}")

@@ -2,10 +2,10 @@
 
 OIDN's ``RT`` filter is a pretrained, feature-guided denoiser: it sees one noisy HDR image plus (optionally) the
 albedo and normal of the first visible surface. It is used per illumination layer: the direct and the indirect
-layer are denoised apart, then summed. Each layer's noise is more uniform than the mix, and on held-out rooms this
-is 1.05-1.22× lower in RelMSE than denoising their sum (geometric means at 16 spp to 20 s budgets). On studios,
-small objects on black, the sum is 0.81-0.85× at 64 spp and above, but it ranges from 0.14× to 3.9× by frame, so no
-fixed rule wins.
+layer are denoised apart, then summed. Each layer's noise is more uniform than the mix. On held-out rooms,
+denoising their sum instead is 1.07-1.22× the RelMSE (geometric means at 16, 64 and 256 spp). On studios, small
+objects on black, the sum is 0.81-0.84× at 64 spp and above, but it ranges from 0.14× to 3.9× by frame, so no fixed
+rule wins (benchmarks/bench_oidn_quality.py --sum).
 
 How OIDN is run is a :class:`Setting` (docs/oidn.md): the auxiliary images (``prefiltered``: albedo and normal
 denoised once per frame by their own filters, OIDN's recipe for noisy features, then ``cleanAux``, which at
