@@ -9,6 +9,7 @@ Frames: the committed example (examples/cbox-16spp.exr) and a procedural scene (
 from __future__ import annotations
 
 import importlib.util
+import math
 from pathlib import Path
 from typing import Any
 
@@ -220,6 +221,23 @@ def test_a_light_in_view_is_capped_and_put_back_in_place_a_lone_firefly_is_not_o
     for name in FRAMES:
         for layer in _frame(name).layers.values():
             assert split_sources(layer.base)[1] is None
+
+
+@pytest.mark.parametrize("shape", [(1, 1, 3), (1, 7, 3), (5, 1, 3), (3, 3, 3), (17, 23, 3)])
+@pytest.mark.parametrize("value", [1e4, 1e30, 3.4e38])
+def test_sources_on_tiny_frames_and_at_float32s_top_keep_every_value_finite_and_exact(shape, value) -> None:
+    """Tiny and odd frames, black frames and lights up to float32's largest value: the capped image and its excess
+    are finite and non-negative and add back to the input (float64 sum, clipped at float32's top)."""
+    rng = np.random.default_rng(sum(shape))
+    base = rng.random(shape).astype(np.float32)
+    base[: min(2, shape[0]), : min(2, shape[1])] = np.float32(value)
+    capped, excess = split_sources(base)
+    assert np.isfinite(capped).all() and capped.min() >= 0
+    if excess is not None:
+        assert np.isfinite(excess).all() and excess.min() >= 0
+        np.testing.assert_allclose(add_in_place(capped, excess), base, rtol=1e-6)
+    assert split_sources(np.zeros(shape, np.float32))[1] is None
+    assert lit_level(np.zeros(shape, np.float32)) == 0.0 and math.isfinite(lit_level(base))
 
 
 @pytest.mark.skipif(importlib.util.find_spec("pyoidn") is None, reason="oidn needs pyoidn")
