@@ -51,7 +51,7 @@ from gradsep.renderer.scene import LoadedScene
 #: Header keys of a planned frame (all strings, like every ``gradsep.*`` attribute).
 PLAN_KEY = "gradsep.plan"  # the chosen candidate's name
 PLAN_LAYERS_KEY = "gradsep.plan_layers"  # per layer: what traces gradients, e.g. "direct=alternate,indirect=none"
-CANDIDATES_KEY = "gradsep.plan_candidates"  # every candidate's prediction, "name=value,..."
+CANDIDATES_KEY = "gradsep.plan_candidates"  # each candidate's prediction from its last round, "name=value,..."
 BUDGET_KEY = "gradsep.budget_seconds"  # --seconds
 PILOT_SECONDS_KEY = "gradsep.pilot_seconds"  # wall time of the pilot (its kernels, passes, reconstructions)
 ELAPSED_KEY = "gradsep.elapsed_seconds"  # the command's wall time when the frame was encoded (from process start)
