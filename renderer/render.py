@@ -185,7 +185,7 @@ def render_metadata(scene: LoadedScene, *, spp: int, seed: int, shift: str, laye
 #: denoising cheap: prefiltered features and OIDN's large model. On held-out frames with direct-layer gradients,
 #: served by ``oidn-l1``, it is 0.66-0.81x the RelMSE of the default ``raw-fast`` (geometric means; worst frame
 #: 1.12x; benchmarks/bench_oidn_quality.py, docs/decisions.md "The reconstruction's setting at farm budgets").
-#: A plain frame keeps the default: on ``oidn`` alone it smears a light in view over its neighbours (up to 29x).
+#: A plain frame keeps the default: on ``oidn`` alone it smears a light in view over its neighbours (up to 17x).
 FARM_OIDN_SETTING = "prefiltered-high"
 #: What FARM_OIDN_SETTING costs over ``raw-fast``, seconds per pixel per layer (the prefilter's two passes per
 #: frame included, spread over two layers): 4.0 s more per 1280x720 two-layer frame (0.87 s against 4.88 s) on the
