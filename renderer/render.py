@@ -182,29 +182,45 @@ def render_metadata(scene: LoadedScene, *, spp: int, seed: int, shift: str, laye
 
 
 #: The OIDN setting a ``--seconds`` plan asks for (model.frame.OIDN_SETTING_KEY) where its budget makes the extra
-#: denoising cheap: prefiltered features and OIDN's large model. On held-out frames with direct-layer gradients,
-#: served by ``oidn-l1``, it is 0.66-0.81x the RelMSE of the default ``raw-fast`` (geometric means; worst frame
-#: 1.12x; benchmarks/bench_oidn_quality.py, docs/decisions.md "The reconstruction's setting at farm budgets").
+#: denoising cheap: prefiltered features and OIDN's large model. On held-out frames with direct-layer gradients and
+#: no light in view, served by ``oidn-l1``, it is 0.73x the RelMSE of the default ``raw-fast`` (geometric mean;
+#: worst frame 1.12x; benchmarks/bench_oidn_quality.py, docs/decisions.md "The reconstruction's setting at farm
+#: budgets").
 #: A plain frame keeps the default: on ``oidn`` alone it smears a light in view over its neighbours (up to 17x).
 FARM_OIDN_SETTING = "prefiltered-high"
 #: What FARM_OIDN_SETTING costs over ``raw-fast``, seconds per pixel per layer (the prefilter's two passes per
 #: frame included, spread over two layers): 4.0 s more per 1280x720 two-layer frame (0.87 s against 4.88 s) on the
 #: 2-core AMD EPYC development machine, `python benchmarks/bench_oidn.py --size 1280x720`.
 FARM_OIDN_EXTRA_SECONDS = 2.2e-6
-#: FARM_OIDN_SETTING is asked for when its extra time is at most this share of the budget.
+#: FARM_OIDN_SETTING is asked for when its extra time is at most this share of the budget (and the frame has no
+#: light in view: has_light_in_view).
 FARM_OIDN_SHARE = 0.1
 
 
 def reconstruction_setting(width: int, height: int, layers: Iterable[str], gradients: str,
-                           seconds: float) -> str | None:
+                           seconds: float, light_in_view: bool = False) -> str | None:
     """The OIDN setting a frame rendered to a ``seconds`` budget asks for (model.frame.OIDN_SETTING_KEY), or None
     for the default: FARM_OIDN_SETTING when the frame carries the direct layer's gradients (``oidn-l1`` serves
-    it) and its extra denoising time is at most FARM_OIDN_SHARE of the budget."""
+    it), has no light in view (``light_in_view``: see :func:`has_light_in_view`) and its extra denoising time is
+    at most FARM_OIDN_SHARE of the budget."""
     layers = list(layers)
-    if gradients not in ("all", "direct") or "direct" not in layers:
+    if gradients not in ("all", "direct") or "direct" not in layers or light_in_view:
         return None
     extra = width * height * len(layers) * FARM_OIDN_EXTRA_SECONDS
     return FARM_OIDN_SETTING if extra <= FARM_OIDN_SHARE * seconds else None
+
+
+def has_light_in_view(frame: Frame) -> bool:
+    """Whether the frame's direct layer holds a light in view (model.robust.split_sources, after the outlier
+    split, as ``oidn`` sees it). With one, FARM_OIDN_SETTING gained little on held-out frames (0.93x of
+    ``raw-fast``'s RelMSE) and lost 1.46x on one studio: its large model smears the light."""
+    from gradsep.model.robust import split_outliers, split_sources
+
+    direct = frame.layers.get("direct")
+    if direct is None:
+        return False
+    inlier, _ = split_outliers(direct.base)
+    return split_sources(inlier)[1] is not None
 
 
 def render_planned_frame(scene: LoadedScene, *, deadline: Deadline | None, spp: int | None, seed: int = 0,
@@ -266,6 +282,9 @@ def render_planned_frame(scene: LoadedScene, *, deadline: Deadline | None, spp: 
         metadata[BUDGET_KEY] = f"{deadline.seconds:g}"
         setting = reconstruction_setting(planned.frame.width, planned.frame.height, wanted, chosen.gradients,
                                          deadline.seconds)
+        if setting and has_light_in_view(planned.frame):
+            setting = None
+            summary += "; a light in view: the default OIDN setting"
         if setting:
             metadata[OIDN_SETTING_KEY] = setting
             summary += f"; reconstruct with OIDN {setting}"

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from gradsep.cli import main
-from gradsep.model.frame import OIDN_SETTING_KEY, Frame, read_frame
+from gradsep.model.frame import OIDN_SETTING_KEY, Frame, Layer, read_frame
 from gradsep.renderer import budget
 from gradsep.renderer.plan import (
     CANDIDATES,
@@ -250,6 +250,21 @@ def test_a_budget_asks_for_the_better_denoiser_where_it_is_cheap_and_serves_the_
     assert reconstruction_setting(1280, 720, both, "none", 1e6) is None  # a plain frame: oidn serves it
     assert reconstruction_setting(1280, 720, ("indirect",), "all", 1e6) is None  # no direct layer: no oidn-l1
     assert reconstruction_setting(1280, 720, ("color",), "all", 1e6) is None
+    assert reconstruction_setting(1280, 720, both, "direct", 1e6, light_in_view=True) is None
+
+
+def test_a_light_in_view_is_found_in_the_direct_layer_as_oidn_would_cap_it():
+    from gradsep.renderer.render import has_light_in_view
+
+    rng = np.random.default_rng(2)
+    base = (0.5 + rng.random((64, 80, 3))).astype(np.float32)
+    lit = base.copy()
+    lit[30:32, 40:43] = 1e5  # a 2x3-pixel light
+    lone = base.copy()
+    lone[30, 40] = 1e5  # a firefly: the outlier split's
+    for image, expected in ((base, False), (lit, True), (lone, False)):
+        assert has_light_in_view(Frame({"direct": Layer(image), "indirect": Layer(base)})) == expected
+    assert not has_light_in_view(Frame({"indirect": Layer(lit)}))  # only the direct layer asks for the setting
 
 
 def test_measured_exponent_weighs_the_slope_against_the_prior_by_their_noise():
