@@ -50,9 +50,9 @@ AUX_QUALITY = "fast"
 _F32_MAX = float(np.finfo(np.float32).max)
 #: The exposure the colour filter sees (``Setting.exposure``): ``lit`` scales the layer so that the mean luminance of
 #: its lit part (model.robust.lit_level) is OIDN's autoexposure key, 0.18; ``level`` (before 2026-12, kept for the
-#: ``fused`` blend models trained on it) scales it so that its robust level over the whole frame is 1. ``lit`` is the
-#: lower-error one at 16 and 64 spp and at farm budgets, by 2-3x on small objects on black (docs/decisions.md,
-#: "OIDN's exposure"; benchmarks/bench_oidn.py exposure).
+#: ``fused`` blend models trained on it) scales it so that its robust level over the whole frame is 1. On held-out
+#: frames ``lit`` is 0.51-0.83x the RelMSE on small objects on black and 0.82-0.96x on rooms (``oidn-l1`` at 16 spp:
+#: 1.014x) (docs/decisions.md, "OIDN's exposure"; benchmarks/bench_oidn_quality.py).
 EXPOSURES: dict[str, float] = {"lit": 0.18, "level": 1.0}
 DEFAULT_EXPOSURE = "lit"
 #: OIDN's U-Net loses energy on images a few pixels across (a constant 1×1 image comes back at 23 %, 2×2 at

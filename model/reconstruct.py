@@ -285,18 +285,6 @@ def _check_method(frame: Frame, method: Method, alpha: float, models: LoadedMode
                            {"unserved_layers": unserved})
 
 
-def _split_sources(frame: Frame) -> tuple[Frame, dict[str, np.ndarray]]:
-    """(``frame`` with each layer's bright sources capped (model.robust.split_sources), their excess by layer)."""
-    from dataclasses import replace
-
-    layers, excess = dict(frame.layers), {}
-    for name, layer in frame.layers.items():
-        capped, extra = split_sources(layer.base)
-        if extra is not None:
-            layers[name], excess[name] = Layer(capped, layer.dx, layer.dy), extra
-    return (replace(frame, layers=layers), excess) if excess else (frame, {})
-
-
 def _denoiser(method: Method, models: LoadedModels, frame: Frame, warnings: list[str]) -> Any:
     """The OIDN denoiser of a method that runs OIDN: at the one its loaded model was trained with (its
     ``oidn_setting``), else at the frame's (model.oidn.frame_setting: ``$GRADSEP_OIDN_SETTING``, the setting the
@@ -328,7 +316,7 @@ def reconstruct(frame: Frame, method: str | None = None, alpha: float = DEFAULT_
     # a denoising method never sees a layer's extreme outliers: their excess is spread back near them below
     frame, excess = split_frame(frame) if spec.split_outliers else (frame, {})
     # ... nor a light in view: capped, its excess put back in place below
-    frame, sources = _split_sources(frame) if spec.split_sources else (frame, {})
+    frame, sources = split_frame(frame, split_sources) if spec.split_sources else (frame, {})
     features = frame.features.only(spec.uses) if frame.features is not None else None
     warnings: list[str] = []
     ctx = LayerContext(spec, alpha, models, features)

@@ -21,6 +21,7 @@ A light in view is not an outlier (its pixels light each other) but OIDN smears 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -110,7 +111,11 @@ def lit_level(image: np.ndarray) -> float:
     Unlike :func:`robust_level` it does not count black or near-black regions: a small object on a black background
     gets the level of the object, not of the frame. One pixel moves it by at most the 99.9th percentile over the
     lit pixel count (it can light one bin more), and it scales with the image. 0 for an empty or black image."""
-    lum = luminance(image)
+    return _lit_level(luminance(image))
+
+
+def _lit_level(lum: np.ndarray) -> float:
+    """:func:`lit_level` of a luminance image ((H, W) float64, finite, ≥ 0)."""
     if lum.size == 0:
         return 0.0
     height, width = lum.shape
@@ -188,10 +193,10 @@ def split_sources(base: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
     image = np.asarray(base, np.float32)
     if image.ndim != 3 or image.size == 0:
         return base, None
-    level = lit_level(image)
+    lum = luminance(image)
+    level = _lit_level(lum)
     if not (math.isfinite(level) and level > 0.0):
         return base, None
-    lum = luminance(image)
     cap = SOURCE_LEVEL * level
     over = lum > cap
     if not over.any():
@@ -218,16 +223,18 @@ def add_in_place(image: np.ndarray, excess: np.ndarray | None) -> np.ndarray:
     return np.clip(total, 0.0, float(np.finfo(np.float32).max)).astype(np.float32)
 
 
-def split_frame(frame: Frame) -> tuple[Frame, dict[str, np.ndarray]]:
-    """(``frame`` with every layer's base outliers replaced (:func:`split_outliers`), each such layer's excess by
-    name); ``frame`` itself and {} when no layer has an outlier. Gradients and features are kept as they are."""
+def split_frame(frame: Frame, split: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray | None]] = split_outliers
+                ) -> tuple[Frame, dict[str, np.ndarray]]:
+    """(``frame`` with every layer's base split by ``split`` (:func:`split_outliers`, or :func:`split_sources`), each
+    such layer's excess by name); ``frame`` itself and {} when no layer has anything to split. Gradients and
+    features are kept as they are."""
     from dataclasses import replace
 
     from gradsep.model.frame import Layer
 
     layers, excess = dict(frame.layers), {}
     for name, layer in frame.layers.items():
-        inlier, extra = split_outliers(layer.base)
+        inlier, extra = split(layer.base)
         if extra is not None:
             layers[name], excess[name] = Layer(inlier, layer.dx, layer.dy), extra
     if not excess:
