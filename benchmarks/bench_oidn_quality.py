@@ -10,8 +10,9 @@ under each setting (``$GRADSEP_OIDN_SETTING``; with ``--sum`` also ``oidn`` on t
 layers), and scores them against two independent ``gradsep reference``
 renders (model.metrics.relmse_unbiased: the references' noise removed in expectation). Prints one row per frame
 and, per family (rooms, studios), sample count, method and setting, the geometric mean and the worst of its
-RelMSE over the first setting's. Frames and references are cached in ``--cache`` under names that say what made
-them, so a second run only reconstructs.
+RelMSE over the first setting's, then the same split by whether the frame's direct layer holds a light in view.
+Frames and references are cached in ``--cache`` under names that say what made them, so a second run only
+reconstructs.
 """
 
 from __future__ import annotations
@@ -64,7 +65,9 @@ def relmse(frame: Path, method: str, setting: str, refs: tuple[object, object], 
 
 
 def main() -> int:
+    from gradsep.model.frame import read_frame
     from gradsep.renderer.reference import load_reference
+    from gradsep.renderer.render import has_light_in_view
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenes", required=True, help="comma-separated scene specs (procedural:SEED, ...)")
@@ -85,6 +88,7 @@ def main() -> int:
     summed = [f"{name} on the sum" for name in settings] if args.sum else []
     others = others + summed
     ratios: dict[tuple[str, int, str, str], list[float]] = defaultdict(list)
+    by_light: dict[tuple[str, str, bool], list[float]] = defaultdict(list)  # (method, setting, a light in view)
     print(f"| scene | spp | method | {base} RelMSE | " + " | ".join(f"{s} / {base}" for s in others) + " |")
     print("|---|---:|---|---:|" + "---:|" * len(others))
     for scene in args.scenes.split(","):
@@ -94,6 +98,7 @@ def main() -> int:
         for spp in (int(s) for s in args.spp.split(",")):
             for method in PIPELINES:
                 frame = cached_render(cache, scene, args.size, spp, args.seed, method)
+                light = has_light_in_view(read_frame(frame))
                 err = {name: relmse(frame, method, name, refs) for name in settings}
                 if method == "oidn":
                     err |= {name: relmse(frame, method, name.removesuffix(" on the sum"), refs, summed=True)
@@ -105,6 +110,7 @@ def main() -> int:
                         continue
                     ratio = err[name] / err[base] if err[base] > 0 else float("nan")
                     ratios[(family, spp, method, name)].append(ratio)
+                    by_light[(method, name, light)].append(ratio)
                     row.append(f"{ratio:.3f}")
                 print(f"| {scene} | {spp} | {method} | {err[base]:.4g} | " + " | ".join(row) + " |", flush=True)
     print(f"\n| family | spp | method | setting | frames | / {base}, geometric mean | worst | lower |")
@@ -114,6 +120,12 @@ def main() -> int:
         geo = math.exp(sum(map(math.log, good)) / len(good)) if good else float("nan")
         print(f"| {family} | {spp} | {method} | {name} | {len(values)} | {geo:.3f} | {max(values):.3f} | "
               f"{sum(v < 1 for v in values)} |")
+    print(f"\nBy whether the direct layer holds a light in view (renderer.render.has_light_in_view):\n\n"
+          f"| method | setting | light in view | frames | / {base}, geometric mean | worst |")
+    print("|---|---|---|---:|---:|---:|")
+    for (method, name, light), values in sorted(by_light.items()):
+        geo = math.exp(sum(math.log(v) for v in values) / len(values))
+        print(f"| {method} | {name} | {'yes' if light else 'no'} | {len(values)} | {geo:.3f} | {max(values):.3f} |")
     return 0
 
 
