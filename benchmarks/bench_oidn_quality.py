@@ -25,6 +25,7 @@ import sys
 from collections import defaultdict
 from pathlib import Path
 
+NO_VARIANCE = " without variance"
 PIPELINES = {"oidn": ("--no-gradients",), "oidn-l1": ("--gradients", "direct", "--offsets", "alternate")}
 
 
@@ -50,17 +51,21 @@ def cached_reference(cache: Path, scene: str, size: int, spp: int, seed: int) ->
 
 def relmse(frame: Path, method: str, setting: str, refs: tuple[object, object], summed: bool = False) -> float:
     """RelMSE of ``frame`` reconstructed with ``method`` at OIDN ``setting``; ``summed``: its layers added into one
-    unseparated ``color`` layer first (OIDN on the sum instead of per layer)."""
-    from gradsep.model.frame import Frame, Layer, read_frame
+    unseparated ``color`` layer first (OIDN on the sum instead of per layer). A setting named ``S without
+    variance`` is ``S`` on the frame with its variance channels dropped (no back-off: model/backoff.py)."""
+    from dataclasses import replace
+
+    from gradsep.model.frame import Frame, read_frame
     from gradsep.model.metrics import relmse_unbiased
     from gradsep.model.oidn import SETTING_ENV
     from gradsep.model.reconstruct import reconstruct
 
-    os.environ[SETTING_ENV] = setting
+    os.environ[SETTING_ENV] = setting.removesuffix(NO_VARIANCE)
     loaded = read_frame(frame)
+    if setting.endswith(NO_VARIANCE):
+        loaded.layers = {name: replace(layer, var=None) for name, layer in loaded.layers.items()}
     if summed:
-        total = sum(layer.base.astype("float64") for layer in loaded.layers.values())
-        loaded = Frame({"color": Layer(total.astype("float32"))}, loaded.features, metadata=loaded.metadata)
+        loaded = Frame({"color": loaded.combined()}, loaded.features, metadata=loaded.metadata)
     return relmse_unbiased(reconstruct(loaded, method).image, *refs)
 
 
@@ -79,11 +84,15 @@ def main() -> int:
                         help="OIDN settings (model.oidn.SETTINGS); each is compared with the first")
     parser.add_argument("--sum", action="store_true",
                         help="also run oidn on the sum of the plain frame's layers (one column per setting)")
+    parser.add_argument("--without-variance", action="store_true",
+                        help="also score every setting on the frames with their variance channels dropped")
     parser.add_argument("--cache", default="~/.cache/gradsep/oidn-quality")
     args = parser.parse_args()
     cache = Path(args.cache).expanduser()
     cache.mkdir(parents=True, exist_ok=True)
     settings = args.settings.split(",")
+    if args.without_variance:
+        settings += [name + NO_VARIANCE for name in settings]
     base, others = settings[0], settings[1:]
     summed = [f"{name} on the sum" for name in settings] if args.sum else []
     others = others + summed

@@ -30,8 +30,12 @@ def l2_layer(name: str, layer: Layer, ctx: LayerContext, denoised: np.ndarray | 
 
 
 def oidn_layer(name: str, layer: Layer, ctx: LayerContext, denoised: np.ndarray | None = None) -> np.ndarray:
-    """OIDN on the layer's base with the frame's auxiliary images (prefiltered once per frame)."""
-    return ctx.denoiser.denoise(layer.base, ctx.aux) if denoised is None else denoised
+    """OIDN on the layer's base with the frame's auxiliary images (prefiltered once per frame), backed off toward
+    the base where the layer's variance channel says it was already converged (model/backoff.py)."""
+    from gradsep.model.backoff import back_off
+
+    image = ctx.denoiser.denoise(layer.base, ctx.aux) if denoised is None else denoised
+    return image if layer.var is None else back_off(layer.base, image, layer.var)
 
 
 def oidn_l1_layer(name: str, layer: Layer, ctx: LayerContext, denoised: np.ndarray | None = None) -> np.ndarray:

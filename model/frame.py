@@ -55,6 +55,12 @@ from gradsep.model.policy import FEATURE_GROUPS, ILLUMINATION_LAYERS, SEPARATED_
 # The layer names are the contract's constants (model/policy.py, import-light for the argument parsers).
 RGB: tuple[str, ...] = ("R", "G", "B")
 GRADIENTS: tuple[str, ...] = ("dx", "dy")
+# A layer's optional variance channel, L.var.Y: the variance of the pixel's mean luminance (model.policy.LUMINANCE),
+# the samples' variance over their count. Always float32 in a file: a half variance would underflow to 0 (read as
+# "noise-free") on dim pixels.
+VARIANCE = "var.Y"
+#: A variance above this reads as this (a capped firefly's); Inf in a file reads as this too.
+VARIANCE_MAX = 1e30
 # FEATURE_GROUPS (group -> its channels) is a contract constant too (model/policy.py, import-light).
 FEATURE_CHANNELS: tuple[str, ...] = tuple(c for group in FEATURE_GROUPS.values() for c in group)
 # Prefixes this contract owns: a channel under one of them that is not a contract channel is a producer bug and
@@ -76,6 +82,18 @@ def layer_channels(layer: str, gradients: bool = True) -> tuple[str, ...]:
         raise ValueError(f"unknown illumination layer {layer!r}; expected one of {ILLUMINATION_LAYERS}")
     base = tuple(f"{layer}.{c}" for c in RGB)
     return (*base, *(f"{layer}.{g}.{c}" for g in GRADIENTS for c in RGB)) if gradients else base
+
+
+def variance_channel(layer: str) -> str:
+    """The optional channel holding the variance of the layer's per-pixel mean luminance: ``L.var.Y``."""
+    if layer not in ILLUMINATION_LAYERS:
+        raise ValueError(f"unknown illumination layer {layer!r}; expected one of {ILLUMINATION_LAYERS}")
+    return f"{layer}.{VARIANCE}"
+
+
+def is_variance_channel(name: str) -> bool:
+    """Whether ``name`` is a layer's variance channel (kept float32 in a half file: see :func:`encode_exr`)."""
+    return name.split(".", 1)[-1] == VARIANCE and name.split(".", 1)[0] in ILLUMINATION_LAYERS
 
 
 def frame_channels(layers: Iterable[str], features: bool = True, gradients: bool = True) -> tuple[str, ...]:
@@ -143,6 +161,7 @@ class Layer:
     base: np.ndarray  # primal radiance I
     dx: np.ndarray | None = None  # I(x+1, y) - I(x, y); last column 0; None for a gradient-free layer
     dy: np.ndarray | None = None  # I(x, y+1) - I(x, y); last row 0; None for a gradient-free layer
+    var: np.ndarray | None = None  # (H, W): the variance of each pixel's mean luminance Y; None: not carried
 
     def __post_init__(self) -> None:
         if (self.dx is None) != (self.dy is None):
@@ -154,9 +173,13 @@ class Layer:
 
     def __add__(self, other: Layer) -> Layer:
         """Layers add channel-wise: gradients are linear, so direct + indirect is the unseparated layer."""
+        var = None
+        if self.var is not None and other.var is not None:
+            # the layers of one sample are correlated: (σa + σb)² bounds the sum's variance from above
+            var = (np.sqrt(self.var) + np.sqrt(other.var)) ** 2
         if self.has_gradients and other.has_gradients:
-            return Layer(self.base + other.base, self.dx + other.dx, self.dy + other.dy)  # type: ignore[operator]
-        return Layer(self.base + other.base)
+            return Layer(self.base + other.base, self.dx + other.dx, self.dy + other.dy, var)  # type: ignore[operator]
+        return Layer(self.base + other.base, var=var)
 
 
 @dataclass
@@ -232,6 +255,8 @@ class Frame:
             if layer.dx is not None and layer.dy is not None:
                 out.update(rgb_channels(f"{name}.dx", layer.dx))
                 out.update(rgb_channels(f"{name}.dy", layer.dy))
+            if layer.var is not None:
+                out[variance_channel(name)] = layer.var
         for group in feature_groups(self.features):
             image = getattr(self.features, group)
             planes = np.moveaxis(image, -1, 0) if image.ndim == 3 else image[None]
@@ -498,7 +523,7 @@ def read_header(source: Source, limits: ReadLimits = ReadLimits()) -> HeaderInfo
 
 def _classify(names: Iterable[str]) -> tuple[list[str], list[str], list[str]]:
     """Split channel names into (layers present, unknown channels under our prefixes, foreign channels)."""
-    known = set(frame_channels(ILLUMINATION_LAYERS))
+    known = {*frame_channels(ILLUMINATION_LAYERS), *map(variance_channel, ILLUMINATION_LAYERS)}
     present_layers = [layer for layer in ILLUMINATION_LAYERS if any(n.startswith(f"{layer}.") for n in names)]
     unknown, foreign = [], []
     for n in names:
@@ -631,14 +656,29 @@ def read_frame(source: Source, *, limits: ReadLimits = ReadLimits(),
     frame_layers = {}
     for layer in layers:
         names = layer_channels(layer, gradients[layer])
-        frame_layers[layer] = (Layer(stack(names[0:3]), stack(names[3:6]), stack(names[6:9])) if gradients[layer]
-                               else Layer(stack(names[0:3])))
+        var = None
+        if variance_channel(layer) in cmap.sources:
+            var = _variance(_decoded(decoded, cmap.sources[variance_channel(layer)], info), layer, warnings)
+        frame_layers[layer] = (Layer(stack(names[0:3]), stack(names[3:6]), stack(names[6:9]), var)
+                               if gradients[layer] else Layer(stack(names[0:3]), var=var))
     features = None
     if groups:
         features = Features(**{g: stack(FEATURE_GROUPS[g]) if len(FEATURE_GROUPS[g]) > 1
                                else channels[FEATURE_GROUPS[g][0]] for g in groups})
     return Frame(frame_layers, features, info.attributes, warnings, alpha=alpha,
                  image_attributes=dict(info.image_attributes), layout=cmap.layout)
+
+
+def _variance(values: np.ndarray, layer: str, warnings: list[str]) -> np.ndarray | None:
+    """A layer's variance channel as read: +Inf and values above VARIANCE_MAX read as VARIANCE_MAX ("very noisy");
+    a channel with NaN or negative values is not a variance, so it is dropped with a warning (the layer is then
+    reconstructed as a frame without one) rather than guessed at."""
+    bad = int(np.count_nonzero(np.isnan(values) | (values < 0)))
+    if bad:
+        warnings.append(f"{variance_channel(layer)} has {bad} NaN or negative value(s): not a variance; ignored "
+                        "(the layer is reconstructed without it)")
+        return None
+    return np.minimum(values, VARIANCE_MAX, out=values)
 
 
 def _decoded(decoded: Mapping[str, Any], name: str, info: HeaderInfo) -> np.ndarray:
@@ -702,6 +742,9 @@ def _exr_file(channels: Mapping[str, np.ndarray], half: bool, metadata: Mapping[
     pixels = {}
     for name, value in channels.items():
         arr = np.asarray(value)
+        if is_variance_channel(name):  # float32 even in a half file: VARIANCE's comment
+            pixels[name] = np.ascontiguousarray(arr, dtype=np.float32)
+            continue
         if half:  # float32 -> half overflows to Inf above 65504: saturate instead, outputs stay finite
             arr = np.clip(arr, -HALF_MAX, HALF_MAX)
         pixels[name] = np.ascontiguousarray(arr, dtype=dtype)

@@ -33,6 +33,8 @@ from functools import lru_cache
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
+from gradsep.model.policy import LUMINANCE
+
 __all__ = ["RELMSE_EPSILON", "all_metrics", "flip", "psnr", "reference_floor", "relmse", "relmse_unbiased", "ssim",
            "tonemap"]
 
@@ -42,7 +44,7 @@ SSIM_SIGMA = 1.5
 SSIM_TRUNCATE = 3.5  # radius int(3.5·1.5 + 0.5) = 5: the 11×11 window of Wang et al.
 SSIM_K1, SSIM_K2 = 0.01, 0.03
 # Rec. 709 / linear-sRGB luminance, the weights HDR-FLIP uses for its exposure range.
-_LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
+_LUMINANCE = np.array(LUMINANCE)
 
 
 def _pair(image: np.ndarray, reference: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

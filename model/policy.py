@@ -25,6 +25,10 @@ FEATURE_GROUPS: dict[str, tuple[str, ...]] = {
     "depth": ("depth.Z",),
 }
 
+#: Rec. 709 luminance weights of linear RGB: the contract's ``Y`` (a layer's variance channel ``L.var.Y`` is the
+#: variance of this weighted sum of ``L.R L.G L.B``), and the weights every metric and exposure rule uses.
+LUMINANCE: tuple[float, float, float] = (0.2126, 0.7152, 0.0722)
+
 #: The screened Poisson data weight (l1/l2, and the network's truncated L1 prior) when none is given.
 DEFAULT_ALPHA: float = 0.2
 

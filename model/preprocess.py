@@ -288,13 +288,14 @@ def scaled_image(image: np.ndarray, scale: float) -> np.ndarray:
 
 
 def scaled_layer(layer: Layer, scale: float) -> Layer:
-    """The layer with base and gradients multiplied by ``scale`` (absent gradients stay absent)."""
+    """The layer with base and gradients multiplied by ``scale`` (absent gradients stay absent), its variance by
+    ``scale²``."""
     from gradsep.model.frame import Layer
 
-    def mul(x: np.ndarray | None) -> np.ndarray | None:
-        return None if x is None else scaled_image(x, scale)
+    def mul(x: np.ndarray | None, by: float = scale) -> np.ndarray | None:
+        return None if x is None else scaled_image(x, by)
 
-    return Layer(mul(layer.base), mul(layer.dx), mul(layer.dy))  # type: ignore[arg-type]
+    return Layer(mul(layer.base), mul(layer.dx), mul(layer.dy), mul(layer.var, scale * scale))  # type: ignore[arg-type]
 
 
 def unlit_pixels(layer: Layer) -> np.ndarray:

@@ -26,6 +26,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from gradsep.model.policy import LUMINANCE
+
 if TYPE_CHECKING:
     from gradsep.model.frame import Frame
 
@@ -86,7 +88,6 @@ def robust_level(image: np.ndarray) -> float:
 #: relative to the frame's robust level, so that the level scales exactly with the image.
 LIT_BIN = 16
 LIT_FRACTION = 1e-8
-_LUMINANCE = (0.2126, 0.7152, 0.0722)
 
 
 def luminance(image: np.ndarray) -> np.ndarray:
@@ -94,7 +95,7 @@ def luminance(image: np.ndarray) -> np.ndarray:
     channel mean); non-finite and negative values read as 0."""
     values = np.asarray(image)
     if values.ndim == 3 and values.shape[-1] == 3:
-        weights = np.array(_LUMINANCE, np.float64)  # float64 scalars: each product is computed in float64
+        weights = np.array(LUMINANCE, np.float64)  # float64 scalars: each product is computed in float64
         lum = values[..., 0] * weights[0]
         lum += values[..., 1] * weights[1]
         lum += values[..., 2] * weights[2]
@@ -226,8 +227,8 @@ def add_in_place(image: np.ndarray, excess: np.ndarray | None) -> np.ndarray:
 def split_frame(frame: Frame, split: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray | None]] = split_outliers
                 ) -> tuple[Frame, dict[str, np.ndarray]]:
     """(``frame`` with every layer's base split by ``split`` (:func:`split_outliers`, or :func:`split_sources`), each
-    such layer's excess by name); ``frame`` itself and {} when no layer has anything to split. Gradients and
-    features are kept as they are."""
+    such layer's excess by name); ``frame`` itself and {} when no layer has anything to split. Gradients, variances
+    and features are kept as they are."""
     from dataclasses import replace
 
     from gradsep.model.frame import Layer
@@ -236,7 +237,7 @@ def split_frame(frame: Frame, split: Callable[[np.ndarray], tuple[np.ndarray, np
     for name, layer in frame.layers.items():
         inlier, extra = split(layer.base)
         if extra is not None:
-            layers[name], excess[name] = Layer(inlier, layer.dx, layer.dy), extra
+            layers[name], excess[name] = Layer(inlier, layer.dx, layer.dy, layer.var), extra
     if not excess:
         return frame, {}
     return replace(frame, layers=layers), excess

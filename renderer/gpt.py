@@ -44,6 +44,14 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from gradsep.model.frame import VARIANCE_MAX
+from gradsep.model.policy import LUMINANCE
+
+# A sample's squared luminance is capped at the contract's VARIANCE_MAX (and so is the variance it feeds): a 1e20
+# firefly squared would overflow float32 to Inf; capped, its pixel still reads as "very noisy", which is what the
+# variance is for.
+SQUARE_CAP = VARIANCE_MAX
+
 # Pixel offsets of the four offset paths, (dx, dy) with y growing downward: right, left, down, up.
 SHIFT_OFFSETS: tuple[tuple[int, int], ...] = ((1, 0), (-1, 0), (0, 1), (0, -1))
 
@@ -383,6 +391,7 @@ def channel_layout(settings: GptSettings, gradients: bool = True) -> dict[str, i
     with_gradients = settings.gradient_layer_names() if gradients else ()
     for layer in settings.layer_names():
         layout[f"{layer}.base"] = 3
+        layout[f"{layer}.sq"] = 1  # the squared luminance of each sample: the layer's per-pixel variance
         for i in range(len(SHIFT_OFFSETS) if layer in with_gradients else 0):
             layout[f"{layer}.grad{i}"] = 3
     layout.update({"albedo": 3, "normal": 3, "depth": 1, "hit": 1, "invalid": 1})
@@ -393,7 +402,8 @@ def channel_layout(settings: GptSettings, gradients: bool = True) -> dict[str, i
 class GptResult:
     """Per-pixel results as float32 numpy arrays (H, W, 3) / (H, W); gradients per the frame contract."""
 
-    layers: dict[str, dict[str, np.ndarray]]  # layer -> {"base", "dx", "dy"} ({"base"} alone without gradients)
+    layers: dict[str, dict[str, np.ndarray]]  # layer -> {"base", "var", "dx", "dy"} (no dx/dy without gradients;
+    #                                            "var" None at 1 spp: mean_variance)
     albedo: np.ndarray
     normal: np.ndarray
     depth: np.ndarray
@@ -838,6 +848,8 @@ def _pixel_sums(settings: GptSettings, s: LoopState, pixel: mi.UInt32, width: in
     values: dict[str, Sequence[mi.Float]] = {}
     for layer, ls in sums.items():
         values[f"{layer}.base"] = [ls.base.x, ls.base.y, ls.base.z]
+        y = LUMINANCE[0] * ls.base.x + LUMINANCE[1] * ls.base.y + LUMINANCE[2] * ls.base.z
+        values[f"{layer}.sq"] = [dr.minimum(y * y, SQUARE_CAP)]
         for i, g in enumerate(ls.grads):
             values[f"{layer}.grad{i}"] = [g.x, g.y, g.z]
     values["albedo"] = [feat.albedo.x * feat.hit, feat.albedo.y * feat.hit, feat.albedo.z * feat.hit]
@@ -953,14 +965,26 @@ def finish(totals: dict[str, np.ndarray], settings: GptSettings, spp: int, passe
     return _finish(totals, settings, spp, passes, gradient_spp)
 
 
+def mean_variance(sums: np.ndarray, squares: np.ndarray, spp: int) -> np.ndarray | None:
+    """The variance of each pixel's mean luminance, from the per-pixel sums of its ``spp`` samples' RGB and
+    squared luminance: the unbiased sample variance over ``spp``, float32 (H, W), or None for one sample (no
+    estimate). Rounding can leave a tiny negative difference for a pixel whose samples are all equal: that is 0."""
+    if spp < 2:
+        return None
+    y = np.asarray(sums, np.float64) @ np.array(LUMINANCE)
+    spread = np.maximum(np.asarray(squares, np.float64)[..., 0] - y * y / spp, 0.0)
+    return np.minimum(spread / (spp * (spp - 1.0)), SQUARE_CAP).astype(np.float32)
+
+
 def _finish(t: dict[str, np.ndarray], settings: GptSettings, spp: int, passes: int,
             gradient_spp: int | None = None) -> GptResult:
     """Per-pixel sums -> means; the two one-sided gradient estimates -> dx, dy per the frame contract. The
     bases and features are sums over ``spp`` samples, the gradients over ``gradient_spp`` (default ``spp``)."""
     layers: dict[str, dict[str, np.ndarray]] = {}
     for layer in settings.layer_names():
+        variance = mean_variance(t[f"{layer}.base"], t[f"{layer}.sq"], spp)
         if f"{layer}.grad0" not in t:  # primal-only render
-            layers[layer] = {"base": (t[f"{layer}.base"] / spp).astype(np.float32)}
+            layers[layer] = {"base": (t[f"{layer}.base"] / spp).astype(np.float32), "var": variance}
             continue
         g = [t[f"{layer}.grad{i}"] for i in range(len(SHIFT_OFFSETS))]  # right, left, down, up
         dx = g[0].copy()
@@ -971,7 +995,7 @@ def _finish(t: dict[str, np.ndarray], settings: GptSettings, spp: int, passes: i
         dy[-1, :] = 0.0
         # fewer offsets per sample: each traced its group with probability 1/groups, so its terms count groups times
         per_axis = (spp if gradient_spp is None else gradient_spp) / OFFSET_GROUPS[settings.offsets]
-        layers[layer] = {"base": (t[f"{layer}.base"] / spp).astype(np.float32),
+        layers[layer] = {"base": (t[f"{layer}.base"] / spp).astype(np.float32), "var": variance,
                          "dx": (dx / per_axis).astype(np.float32), "dy": (dy / per_axis).astype(np.float32)}
     hits = t["hit"][..., 0]
     safe = np.maximum(hits, 1.0)[..., None]

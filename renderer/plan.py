@@ -253,9 +253,9 @@ def sums_frame(sums: dict[str, np.ndarray], settings: object, spp: int) -> Frame
     """One pass's sums as a Frame (what the pilot reconstructs)."""
     from gradsep.renderer.gpt import finish
 
-    r = finish(sums, settings, spp, 1)
-    return Frame(layers={name: Layer(v["base"], v.get("dx"), v.get("dy")) for name, v in r.layers.items()},
-                 features=Features(r.albedo, r.normal, r.depth))
+    frame = as_frame(finish(sums, settings, spp, 1))
+    frame.warnings = []
+    return frame
 
 
 def base_image(sums: dict[str, np.ndarray], spp: int) -> np.ndarray:
@@ -285,7 +285,7 @@ def crop(frame: Frame, window: tuple[slice, slice]) -> Frame:
 
     f = frame.features
     features = None if f is None else Features(cut(f.albedo), cut(f.normal), cut(f.depth))
-    return Frame(layers={n: Layer(cut(v.base), cut(v.dx), cut(v.dy)) for n, v in frame.layers.items()},
+    return Frame(layers={n: Layer(cut(v.base), cut(v.dx), cut(v.dy), cut(v.var)) for n, v in frame.layers.items()},
                  features=features)
 
 
@@ -577,7 +577,7 @@ def write_seconds(band: Callable[[tuple[slice, slice]], Frame], width: int, heig
 
 def as_frame(result: object) -> Frame:
     """A renderer.gpt.GptResult as a Frame (no metadata yet)."""
-    layers = {name: Layer(base=v["base"], dx=v.get("dx"), dy=v.get("dy"))
+    layers = {name: Layer(base=v["base"], dx=v.get("dx"), dy=v.get("dy"), var=v.get("var"))
               for name, v in result.layers.items()}  # type: ignore[attr-defined]
     features = Features(result.albedo, result.normal, result.depth)  # type: ignore[attr-defined]
     return Frame(layers=layers, features=features, warnings=list(result.warnings))  # type: ignore[attr-defined]

@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from gradsep.model.policy import LUMINANCE
 from gradsep.renderer.errors import SceneError
 
 GENERATOR_VERSION = 1
@@ -254,7 +255,7 @@ def _light_tint(rng: np.random.Generator) -> np.ndarray:
     tint = 1.0 + max(t, 0.0) * (warm - 1.0) + max(-t, 0.0) * (cool - 1.0)
     if rng.random() < 0.1:  # an occasional saturated coloured light
         tint = 0.3 + 0.7 * _hsv_to_rgb(rng.random(), rng.uniform(0.4, 0.8), 1.0)
-    return tint / float(tint @ np.array([0.2126, 0.7152, 0.0722]))
+    return tint / float(tint @ np.array(LUMINANCE))
 
 
 def _albedo(rng: np.random.Generator, lo: float = 0.05, hi: float = 0.9) -> np.ndarray:

@@ -14,7 +14,7 @@ from collections.abc import Callable, Iterable, Mapping
 
 from gradsep.model import __version__
 from gradsep.model.errors import CommandError
-from gradsep.model.frame import ILLUMINATION_LAYERS, OIDN_SETTING_KEY, SEPARATED_LAYERS, Features, Frame, Layer
+from gradsep.model.frame import ILLUMINATION_LAYERS, OIDN_SETTING_KEY, SEPARATED_LAYERS, Frame
 from gradsep.renderer.budget import Deadline
 from gradsep.renderer.scene import LoadedScene, load_scene
 
@@ -107,6 +107,7 @@ def render_frame(scene: LoadedScene | str, *, spp: int, seed: int = 0,
     as ``gradsep.gradient_spp`` (``gradsep.spp`` stays the bases' sample count).
     """
     from gradsep.renderer.gpt import GptSettings, render_gpt
+    from gradsep.renderer.plan import as_frame
     from gradsep.renderer.shift import make_shift  # imports Mitsuba
 
     if spp < 1:
@@ -143,15 +144,15 @@ def render_frame(scene: LoadedScene | str, *, spp: int, seed: int = 0,
                         gradient_spp=gradient_spp)
     seconds = time.perf_counter() - start
 
-    frame_layers = {name: Layer(base=v["base"], dx=v.get("dx"), dy=v.get("dy")) for name, v in result.layers.items()}
-    features = Features(albedo=result.albedo, normal=result.normal, depth=result.depth)
     metadata = render_metadata(scene, spp=spp, seed=seed, shift=shift_impl.name if shift_impl else "none",
                                layers=wanted, seconds=seconds, passes=result.passes, gradients=mode)
     if offsets != "all":
         metadata["gradsep.offsets"] = offsets
     if gradient_spp < spp:
         metadata["gradsep.gradient_spp"] = str(gradient_spp)
-    return Frame(layers=frame_layers, features=features, metadata=metadata, warnings=notes + result.warnings)
+    frame = as_frame(result)
+    frame.metadata, frame.warnings = metadata, notes + frame.warnings
+    return frame
 
 
 def render_metadata(scene: LoadedScene, *, spp: int, seed: int, shift: str, layers: tuple[str, ...],

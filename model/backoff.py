@@ -1,0 +1,55 @@
+"""Backing a denoiser off where the input is already converged: the per-pixel blend of a layer's denoised image
+toward its own rendered base, by the layer's variance channel (``L.var.Y``, model/frame.py).
+
+A denoiser cannot tell a converged pixel from a noisy one, so it changes both: on a nearly converged frame, or
+where a light or a smooth wall needs no help, its change is bias, not noise removed. With the variance ``σ²`` of
+the input ``x`` and the denoiser's image ``y``, the blend ``x + w (y − x)`` is the least-squares mix of an
+unbiased estimate with variance ``σ²`` and one with bias ``b``: ``w = σ² / (σ² + b²)``. The bias is estimated
+from the change itself, ``E[(y − x)²] ≈ σ² + b²`` where the denoiser removed the noise; so over a window,
+
+    D = box(Y(y − x)²),   S = box(σ²),   b² = max(D − NOISE_MARGIN · S, 0),   w = S / (S + b²)   (1 where b² = 0),
+
+Y the luminance (model.policy.LUMINANCE). A change within NOISE_MARGIN times the noise reads as noise removed and
+keeps the denoiser's image untouched (w = 1), so a noisy frame is served as before; a change far above the noise
+(a converged pixel, the halo around a light in view) goes back to the input. A firefly has a large variance and
+stays the denoiser's. The window averages the per-pixel variance estimate, which at a few samples is itself
+noisy. WINDOW and NOISE_MARGIN were chosen on held-out procedural rooms and studios 93301-93303 and checked on
+93304-93308 (docs/decisions.md, "Backing OIDN off converged pixels").
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.ndimage import uniform_filter
+
+from gradsep.model.frame import VARIANCE_MAX
+from gradsep.model.policy import LUMINANCE
+
+#: The box window (pixels a side) over which the change and the variance are averaged.
+WINDOW = 7
+#: A change up to this many times the input's variance is read as noise the denoiser removed.
+NOISE_MARGIN = 2.0
+_F32_MAX = float(np.finfo(np.float32).max)
+
+
+def back_off(noisy: np.ndarray, denoised: np.ndarray, variance: np.ndarray) -> np.ndarray:
+    """``denoised`` (H, W, 3) blended toward ``noisy`` (H, W, 3) by the variance (H, W) of ``noisy``'s per-pixel
+    mean luminance, as the module docstring says; float32, finite wherever both images are. Non-finite variances
+    read as VARIANCE_MAX (very noisy: the denoiser's value is kept)."""
+    x = np.asarray(noisy, np.float64)
+    y = np.asarray(denoised, np.float64)
+    if x.shape != y.shape or x.ndim != 3 or x.shape[-1] != 3 or np.shape(variance) != x.shape[:2]:
+        raise ValueError(f"back_off needs (H, W, 3) images and an (H, W) variance, got {x.shape}, {y.shape} and "
+                         f"{np.shape(variance)}")
+    var = np.nan_to_num(np.asarray(variance, np.float64), nan=VARIANCE_MAX, posinf=VARIANCE_MAX)
+    var = np.clip(var, 0.0, VARIANCE_MAX)
+    change = y - x
+    d2 = np.minimum(np.nan_to_num((change @ np.array(LUMINANCE)) ** 2, nan=0.0), VARIANCE_MAX)
+    # uniform_filter sums running windows: rounding can leave tiny negatives, which would flip w's sign
+    spread = np.maximum(uniform_filter(d2, WINDOW, mode="nearest"), 0.0)
+    noise = np.maximum(uniform_filter(var, WINDOW, mode="nearest"), 0.0)
+    bias2 = np.maximum(spread - NOISE_MARGIN * noise, 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        weight = np.where(bias2 > 0.0, noise / (noise + bias2), 1.0)
+    out = x + np.nan_to_num(weight, nan=1.0)[..., None] * change
+    return np.clip(out, -_F32_MAX, _F32_MAX).astype(np.float32)
