@@ -7,14 +7,21 @@ the input ``x`` and the denoiser's image ``y``, the blend ``x + w (y − x)`` is
 unbiased estimate with variance ``σ²`` and one with bias ``b``: ``w = σ² / (σ² + b²)``. The bias is estimated
 from the change itself, ``E[(y − x)²] ≈ σ² + b²`` where the denoiser removed the noise; so over a window,
 
-    D = box(Y(y − x)²),   S = box(σ²),   b² = max(D − NOISE_MARGIN · S, 0),   w = S / (S + b²)   (1 where b² = 0),
+    D = box(Y(y − x)² / m²),   S = box(σ² / m²),   b² = max(D − NOISE_MARGIN · S, 0),   w = S / (S + b²)
 
-Y the luminance (model.policy.LUMINANCE). A change within NOISE_MARGIN times the noise reads as noise removed and
-keeps the denoiser's image untouched (w = 1), so a noisy frame is served as before; a change far above the noise
-(a converged pixel, the halo around a light in view) goes back to the input. A firefly has a large variance and
-stays the denoiser's. The window averages the per-pixel variance estimate, which at a few samples is itself
-noisy. WINDOW and NOISE_MARGIN were chosen on held-out procedural rooms and studios 93301-93303 and checked on
-93304-93308 (docs/decisions.md, "Backing OIDN off converged pixels").
+(w = 1 where b² = 0), Y the luminance (model.policy.LUMINANCE). A change within NOISE_MARGIN times the noise reads
+as noise removed and keeps the denoiser's image untouched, so a noisy frame is served as before; a change far above
+the noise (a converged pixel, the halo around a light in view) goes back to the input. A firefly has a large
+variance and stays the denoiser's. The window averages the per-pixel variance estimate, which at a few samples is
+itself noisy.
+
+The weight is computed twice and the smaller one is used: with ``m = 1`` (absolute terms, where the window's
+brightest pixels weigh most) and with ``m² = Y(y)² + (RELATIVE_FLOOR · lit level of x)²`` (relative terms, as
+RelMSE weighs them). The absolute weight alone misses the halo around a small light in view: the light's edge
+pixels, half covered by an emitter, carry a variance far above their dark neighbours', and a box spreads it over the
+window. The relative weight alone gives back more noise on a few textured frames. WINDOW, NOISE_MARGIN and the rule
+were chosen on held-out procedural rooms and studios 93301-93303 and checked on 93304-93308 (docs/decisions.md,
+"Backing OIDN off converged pixels").
 """
 
 from __future__ import annotations
@@ -24,11 +31,15 @@ from scipy.ndimage import uniform_filter
 
 from gradsep.model.frame import VARIANCE_MAX
 from gradsep.model.policy import LUMINANCE
+from gradsep.model.robust import lit_level
 
 #: The box window (pixels a side) over which the change and the variance are averaged.
 WINDOW = 7
 #: A change up to this many times the input's variance is read as noise the denoiser removed.
 NOISE_MARGIN = 2.0
+#: The relative weight's floor on the denoised luminance, as a fraction of the input's lit level (model/robust.py),
+#: so that black pixels do not divide by zero.
+RELATIVE_FLOOR = 0.01
 _F32_MAX = float(np.finfo(np.float32).max)
 
 
@@ -45,11 +56,19 @@ def back_off(noisy: np.ndarray, denoised: np.ndarray, variance: np.ndarray) -> n
     var = np.clip(var, 0.0, VARIANCE_MAX)
     change = y - x
     d2 = np.minimum(np.nan_to_num((change @ np.array(LUMINANCE)) ** 2, nan=0.0), VARIANCE_MAX)
+    floor = (RELATIVE_FLOOR * lit_level(x)) ** 2
+    scale2 = np.maximum(np.nan_to_num(y @ np.array(LUMINANCE), nan=0.0), 0.0) ** 2 + floor
+    weight = np.minimum(_weight(d2, var), _weight(d2 / scale2, var / scale2)) if floor > 0 else _weight(d2, var)
+    out = x + weight[..., None] * change
+    return np.clip(out, -_F32_MAX, _F32_MAX).astype(np.float32)
+
+
+def _weight(d2: np.ndarray, var: np.ndarray) -> np.ndarray:
+    """The denoiser's per-pixel weight from the squared change and the variance (the module docstring's w)."""
     # uniform_filter sums running windows: rounding can leave tiny negatives, which would flip w's sign
     spread = np.maximum(uniform_filter(d2, WINDOW, mode="nearest"), 0.0)
     noise = np.maximum(uniform_filter(var, WINDOW, mode="nearest"), 0.0)
     bias2 = np.maximum(spread - NOISE_MARGIN * noise, 0.0)
-    with np.errstate(invalid="ignore", divide="ignore"):
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
         weight = np.where(bias2 > 0.0, noise / (noise + bias2), 1.0)
-    out = x + np.nan_to_num(weight, nan=1.0)[..., None] * change
-    return np.clip(out, -_F32_MAX, _F32_MAX).astype(np.float32)
+    return np.nan_to_num(weight, nan=1.0)

@@ -968,12 +968,15 @@ def finish(totals: dict[str, np.ndarray], settings: GptSettings, spp: int, passe
 def mean_variance(sums: np.ndarray, squares: np.ndarray, spp: int) -> np.ndarray | None:
     """The variance of each pixel's mean luminance, from the per-pixel sums of its ``spp`` samples' RGB and
     squared luminance: the unbiased sample variance over ``spp``, float32 (H, W), or None for one sample (no
-    estimate). Rounding can leave a tiny negative difference for a pixel whose samples are all equal: that is 0."""
+    estimate). Rounding can leave a tiny negative difference for a pixel whose samples are all equal: that is 0. A
+    pixel with a sample whose square was capped (SQUARE_CAP) has the largest variance, SQUARE_CAP."""
     if spp < 2:
         return None
     y = np.asarray(sums, np.float64) @ np.array(LUMINANCE)
-    spread = np.maximum(np.asarray(squares, np.float64)[..., 0] - y * y / spp, 0.0)
-    return np.minimum(spread / (spp * (spp - 1.0)), SQUARE_CAP).astype(np.float32)
+    sq = np.asarray(squares, np.float64)[..., 0]
+    spread = np.maximum(sq - y * y / spp, 0.0)
+    var = np.where(sq >= SQUARE_CAP, SQUARE_CAP, np.minimum(spread / (spp * (spp - 1.0)), SQUARE_CAP))
+    return var.astype(np.float32)
 
 
 def _finish(t: dict[str, np.ndarray], settings: GptSettings, spp: int, passes: int,

@@ -10,6 +10,7 @@ import pytest
 
 from gradsep.model.frame import (
     FEATURE_CHANNELS,
+    VARIANCE_MAX,
     ChannelError,
     Features,
     Frame,
@@ -318,3 +319,68 @@ def test_write_is_atomic(tmp_path, monkeypatch) -> None:
 def test_frame_channels_lists_layers_then_features() -> None:
     names = frame_channels(["indirect"])
     assert names[:9] == layer_channels("indirect") and names[9:] == FEATURE_CHANNELS
+
+
+# -- the variance channel ----------------------------------------------------------------------------------------
+
+
+def _with_variance(frame: Frame, seed: int = 1) -> Frame:
+    rng = np.random.default_rng(seed)
+    for layer in frame.layers.values():
+        layer.var = (rng.random(layer.base.shape[:2]) * 1e-9).astype(np.float32)  # below half's smallest value
+    return frame
+
+
+@pytest.mark.parametrize("half", [False, True])
+def test_variance_round_trips_in_float32_even_in_a_half_file(tmp_path, half: bool) -> None:
+    frame = _with_variance(make_frame())
+    path = tmp_path / "v.exr"
+    write_frame(path, frame, half=half)
+    with OpenEXR.File(str(path)) as exr:
+        kinds = {name: ch.pixels.dtype for name, ch in exr.channels().items()}
+    assert kinds["direct.var.Y"] == np.float32 and kinds["indirect.var.Y"] == np.float32
+    assert kinds.get("direct.R", kinds.get("direct")) == (np.float16 if half else np.float32)  # RGB may be grouped
+    back = read_frame(path)
+    for name, layer in frame.layers.items():
+        np.testing.assert_array_equal(back.layers[name].var, layer.var)
+    assert back.warnings == []
+
+
+def test_a_frame_without_variance_reads_as_none() -> None:
+    back = read_frame(encode_exr(make_frame().to_channels()))
+    assert all(layer.var is None for layer in back.layers.values())
+
+
+def test_a_variance_channel_that_is_not_a_variance_is_dropped_with_a_warning() -> None:
+    frame = _with_variance(make_frame())
+    frame.layers["direct"].var[0, 0] = np.nan
+    frame.layers["indirect"].var[1, 1] = -1.0
+    back = read_frame(encode_exr(frame.to_channels()))
+    assert back.layers["direct"].var is None and back.layers["indirect"].var is None
+    text = " ".join(back.warnings)
+    assert "direct.var.Y has 1 NaN or negative" in text and "indirect.var.Y has 1 NaN or negative" in text
+
+
+def test_an_infinite_variance_reads_as_the_cap() -> None:
+    frame = _with_variance(make_frame())
+    frame.layers["direct"].var[2, 3] = np.inf
+    back = read_frame(encode_exr(frame.to_channels()))
+    assert back.layers["direct"].var[2, 3] == np.float32(VARIANCE_MAX) and back.warnings == []
+
+
+def test_a_variance_without_its_layer_or_of_another_kind_is_named() -> None:
+    channels = make_frame(layers=("direct",)).to_channels()
+    channels["indirect.var.Y"] = np.zeros((6, 9), np.float32)
+    with pytest.raises(ChannelError, match="missing channels indirect.R"):
+        read_frame(encode_exr(channels))
+    channels = make_frame(layers=("direct",)).to_channels()
+    channels["direct.var.R"] = np.zeros((6, 9), np.float32)
+    with pytest.raises(ChannelError, match="unknown channels direct.var.R"):
+        read_frame(encode_exr(channels))
+
+
+def test_summed_layers_bound_their_variance_from_above() -> None:
+    a = Layer(np.zeros((2, 2, 3), np.float32), var=np.full((2, 2), 4.0, np.float32))
+    b = Layer(np.zeros((2, 2, 3), np.float32), var=np.full((2, 2), 9.0, np.float32))
+    assert np.all((a + b).var == 25.0)  # (2 + 3)²: the layers of one sample may be correlated
+    assert (a + Layer(np.zeros((2, 2, 3), np.float32))).var is None

@@ -325,9 +325,10 @@ def test_direct_gradients_mode_is_the_full_renders_direct_layer(scene_name, shif
         direct = render_gpt(scene, make_shift(shift), GptSettings(max_depth=depth, offsets=offsets,
                                                                    gradients="direct"), SIZE, SIZE, 5, seed)
         primal = render_gpt(scene, None, GptSettings(max_depth=depth), SIZE, SIZE, 5, seed)
-        assert set(direct.layers["direct"]) == {"base", "dx", "dy"} and set(direct.layers["indirect"]) == {"base"}
+        assert set(direct.layers["direct"]) == {"base", "var", "dx", "dy"}
+        assert set(direct.layers["indirect"]) == {"base", "var"}
         assert np.abs(full.layers["direct"]["dx"]).max() > 0
-        for key in ("base", "dx", "dy"):
+        for key in ("base", "var", "dx", "dy"):
             np.testing.assert_allclose(direct.layers["direct"][key], full.layers["direct"][key], rtol=1e-6,
                                        atol=1e-7, err_msg=f"direct {key}")
         np.testing.assert_allclose(direct.layers["indirect"]["base"], primal.layers["indirect"]["base"], rtol=1e-6,

@@ -51,7 +51,7 @@ def primal_renders(name: str) -> dict[str, np.ndarray]:
     results = [render_gpt(scene, None, GptSettings(max_depth=SCENE_DEPTHS[name]), SIZE, SIZE, SPP, seed)
                for seed in range(SEEDS)]
     for r in results:
-        assert all(set(layer) == {"base"} for layer in r.layers.values())
+        assert all(set(layer) == {"base", "var"} for layer in r.layers.values())
     return {layer: np.stack([r.layers[layer]["base"] for r in results]).astype(np.float64)
             for layer in results[0].layers}
 
@@ -77,6 +77,34 @@ def test_primal_energy_matches_path(name):
         assert np.all(np.abs(two_sample_z(ours["indirect"].mean(axis=(1, 2)), rest)) < 4.5)
     if name == "cbox":
         assert ours["indirect"].mean() > 0.02
+
+
+@pytest.mark.parametrize("gradients", [False, True])
+def test_variance_channel_is_the_variance_of_the_mean(gradients):
+    """Each layer's ``var`` is the variance of its pixel's mean luminance: averaged over the image it matches the
+    spread of that mean over independent seeds, and it is written as ``L.var.Y``. One sample has no estimate."""
+    scene = scene_of("cbox")
+    settings = GptSettings(max_depth=SCENE_DEPTHS["cbox"])
+    shift = ReplayShift() if gradients else None
+    runs = [render_gpt(scene, shift, settings, SIZE, SIZE, SPP, 500 + seed) for seed in range(SEEDS)]
+    weights = np.array([0.2126, 0.7152, 0.0722])
+    for layer in runs[0].layers:
+        means = np.stack([r.layers[layer]["base"] for r in runs]).astype(np.float64) @ weights
+        spread = means.var(axis=0, ddof=1).mean()  # across seeds
+        claimed = np.stack([r.layers[layer]["var"] for r in runs]).astype(np.float64).mean()
+        assert 0.75 < claimed / spread < 1.33, (layer, claimed, spread)
+    one = render_gpt(scene, shift, settings, SIZE, SIZE, 1, 7)
+    assert all(layer["var"] is None for layer in one.layers.values())
+
+
+def test_a_firefly_sample_caps_its_variance():
+    from gradsep.renderer.gpt import SQUARE_CAP, mean_variance
+
+    sums = np.zeros((1, 2, 3))
+    sums[0, 0] = 1e20  # one sample of 1e20 and three of 0: its square overflows float32, the scatter caps it
+    squares = np.array([[[SQUARE_CAP], [0.0]]])
+    var = mean_variance(sums, squares, 4)
+    assert var[0, 0] == np.float32(SQUARE_CAP) and var[0, 1] == 0.0  # very noisy, never 0 or Inf
 
 
 @pytest.mark.parametrize("name", ["cbox", "sky"])
@@ -130,6 +158,8 @@ def test_primal_frame_round_trips_without_gradients(tmp_path):
     for name, layer in frame.layers.items():
         assert not back.layers[name].has_gradients
         np.testing.assert_array_equal(back.layers[name].base, layer.base)
+        np.testing.assert_array_equal(back.layers[name].var, layer.var)
+        assert layer.var.shape == (12, 16) and (layer.var >= 0).all()
     np.testing.assert_array_equal(back.features.albedo, frame.features.albedo)
 
 

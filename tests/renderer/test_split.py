@@ -20,7 +20,7 @@ mi = pytest.importorskip("mitsuba")
 from gradsep.cli import main  # noqa: E402
 from gradsep.model.errors import CommandError  # noqa: E402
 from gradsep.model.frame import read_frame  # noqa: E402
-from gradsep.renderer.gpt import GptSettings, pass_seed, render_gpt, render_pass  # noqa: E402
+from gradsep.renderer.gpt import GptSettings, mean_variance, pass_seed, render_gpt, render_pass  # noqa: E402
 from gradsep.renderer.render import render_frame  # noqa: E402
 from gradsep.renderer.scene import load_scene  # noqa: E402
 from gradsep.renderer.shift import make_shift  # noqa: E402
@@ -96,7 +96,10 @@ def test_split_frame_is_the_spp_weighted_mean(small):
         assert not np.allclose(split.layers[layer]["base"], gpt_only.layers[layer]["base"])
     np.testing.assert_array_equal(split.layers["direct"]["dx"], gpt_only.layers["direct"]["dx"])
     np.testing.assert_array_equal(split.layers["direct"]["dy"], gpt_only.layers["direct"]["dy"])
-    assert set(split.layers["indirect"]) == {"base"}
+    assert set(split.layers["indirect"]) == {"base", "var"}
+    for layer in ("direct", "indirect"):  # the variance is over all N samples too
+        expected = mean_variance(g[f"{layer}.base"] + p[f"{layer}.base"], g[f"{layer}.sq"] + p[f"{layer}.sq"], n)
+        np.testing.assert_allclose(split.layers[layer]["var"], expected, rtol=1e-5, atol=1e-9, err_msg=layer)
     hits = (g["hit"] + p["hit"])[..., 0]
     assert hits.max() > k  # the primal samples' first hits count in the features
     albedo = np.clip((g["albedo"] + p["albedo"]) / np.maximum(hits, 1.0)[..., None], 0.0, 1.0)
