@@ -3,14 +3,15 @@
     python benchmarks/bench_oidn_quality.py --scenes procedural:93301,procedural:studio:93301 --size 192 \\
         --spp 16,64,256 --ref-spp 1024 --settings raw-fast-level,raw-fast,prefiltered-high \\
         --cache ~/.cache/gradsep/oidn-quality
+    python benchmarks/bench_oidn_quality.py --scenes procedural:93301,... --settings raw-fast --without-variance
 
 For every scene and sample count, renders a plain frame (``--no-gradients``) and a direct-gradient frame
 (``--gradients direct --offsets alternate``), reconstructs the first with ``oidn`` and the second with ``oidn-l1``
 under each setting (``$GRADSEP_OIDN_SETTING``; with ``--sum`` also ``oidn`` on the sum of the plain frame's
-layers), and scores them against two independent ``gradsep reference``
-renders (model.metrics.relmse_unbiased: the references' noise removed in expectation). Prints one row per frame
-and, per family (rooms, studios), sample count, method and setting, the geometric mean and the worst of its
-RelMSE over the first setting's, then the same split by whether the frame's direct layer holds a light in view.
+layers; with ``--without-variance`` also on the frames with their variance channels dropped), and scores
+them against two independent ``gradsep reference`` renders (model.metrics.relmse_unbiased: the references' noise
+removed in expectation). Prints one row per frame and, per family (rooms, studios), sample count, method and
+setting, the geometric mean and the worst of its RelMSE over the first setting's, then the same split by whether the frame's direct layer holds a light in view.
 Frames and references are cached in ``--cache`` under names that say what made them, so a second run only
 reconstructs.
 """

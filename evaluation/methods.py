@@ -88,6 +88,7 @@ from typing import Any
 
 import numpy as np
 
+from gradsep.evaluation.cache import REPO_ROOT
 from gradsep.model import methods as table
 from gradsep.model.frame import Frame
 
@@ -121,11 +122,10 @@ MAX_WAVEFRONT = (1 << 32) - 1  # Mitsuba's samples per launch
 #: Samples per pixel of the feature pass that gives ``path-oidn`` its albedo and normal: a production renderer
 #: writes them nearly for free; 4 spp antialiases edges well enough for OIDN, which prefilters them anyway.
 FEATURE_SPP = 4
-#: Source files whose changes alter a method's images or scores (part of every result's cache key).
-METHOD_SOURCES: tuple[str, ...] = ("evaluation/methods.py", "model/oidn.py", "model/poisson.py", "model/reconstruct.py",
-                                   "model/infer.py", "model/preprocess.py", "model/metrics.py", "model/refine.py",
-                                   "model/kernels.py", "model/policy.py", "model/fused.py", "model/oidn_onnx.py",
-                                   "model/methods.py", "model/builtin_methods.py")
+#: Source files whose changes alter a method's images or scores (part of every result's cache key): every module
+#: of model/, so that a helper a method reaches (the exposure rule, the back-off) cannot be left out of the key.
+METHOD_SOURCES: tuple[str, ...] = ("evaluation/methods.py",
+                                   *sorted(f"model/{p.name}" for p in (REPO_ROOT / "model").glob("*.py")))
 #: The render planner's source files: part of the ``gpt-auto`` row's cache key (with the renderer's), so a planner
 #: change recomputes that row, and only that row.
 PLANNER_SOURCES: tuple[str, ...] = ("renderer/plan.py", "renderer/budget.py", "renderer/estimate.py")

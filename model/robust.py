@@ -112,11 +112,11 @@ def lit_level(image: np.ndarray) -> float:
     Unlike :func:`robust_level` it does not count black or near-black regions: a small object on a black background
     gets the level of the object, not of the frame. One pixel moves it by at most the 99.9th percentile over the
     lit pixel count (it can light one bin more), and it scales with the image. 0 for an empty or black image."""
-    return _lit_level(luminance(image))
+    return lit_level_of_luminance(luminance(image))
 
 
-def _lit_level(lum: np.ndarray) -> float:
-    """:func:`lit_level` of a luminance image ((H, W) float64, finite, ≥ 0)."""
+def lit_level_of_luminance(lum: np.ndarray) -> float:
+    """:func:`lit_level` of a luminance image ((H, W) float64, finite, ≥ 0: :func:`luminance`'s)."""
     if lum.size == 0:
         return 0.0
     height, width = lum.shape
@@ -195,7 +195,7 @@ def split_sources(base: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
     if image.ndim != 3 or image.size == 0:
         return base, None
     lum = luminance(image)
-    level = _lit_level(lum)
+    level = lit_level_of_luminance(lum)
     if not (math.isfinite(level) and level > 0.0):
         return base, None
     cap = SOURCE_LEVEL * level
