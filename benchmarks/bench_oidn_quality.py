@@ -11,9 +11,9 @@ under each setting (``$GRADSEP_OIDN_SETTING``; with ``--sum`` also ``oidn`` on t
 layers; with ``--without-variance`` also on the frames with their variance channels dropped), and scores
 them against two independent ``gradsep reference`` renders (model.metrics.relmse_unbiased: the references' noise
 removed in expectation). Prints one row per frame and, per family (rooms, studios), sample count, method and
-setting, the geometric mean and the worst of its RelMSE over the first setting's, then the same split by whether the frame's direct layer holds a light in view.
-Frames and references are cached in ``--cache`` under names that say what made them, so a second run only
-reconstructs.
+setting, the geometric mean and the worst of its RelMSE over the first setting's, then the same split by whether the
+frame's direct layer holds a light in view. Frames and references are cached in ``--cache`` under names that say
+what made them, so a second run only reconstructs.
 """
 
 from __future__ import annotations
