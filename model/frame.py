@@ -6,7 +6,9 @@ A frame is a single-part scanline OpenEXR file (float32 or half, any compression
   separation): the base radiance ``L.R L.G L.B`` and, for a gradient-domain frame, its forward differences
   ``L.dx.{R,G,B}``, ``L.dy.{R,G,B}`` (a plain path-traced frame carries the base alone; each layer has its
   three base channels or all nine, so a frame may carry gradients on some layers only, e.g. ``gradsep render
-  --gradients direct``: the direct layer's gradients and a plain indirect layer);
+  --gradients direct``: the direct layer's gradients and a plain indirect layer), and optionally ``L.var.Y``, the
+  variance of each pixel's mean luminance (float32 even in a half file; the OIDN methods use it to leave converged
+  pixels alone, model/backoff.py);
 * features, three optional groups, each all three (or one) of its channels or none: ``albedo.{R,G,B}`` in
   [0, 1], ``normal.{X,Y,Z}`` unit camera-space normals, ``depth.Z`` distance in scene units (0 where the camera ray
   missed). Which method uses or needs which group is declared in model/methods.py;
@@ -156,7 +158,8 @@ class NonFiniteError(FrameError):
 
 @dataclass
 class Layer:
-    """One illumination layer: float32 arrays of shape (H, W, 3). A plain (primal-only) layer has no gradients."""
+    """One illumination layer: float32 arrays of shape (H, W, 3) (the variance (H, W)). A plain (primal-only) layer
+    has no gradients; a layer from another renderer, or rendered at 1 spp, has no variance."""
 
     base: np.ndarray  # primal radiance I
     dx: np.ndarray | None = None  # I(x+1, y) - I(x, y); last column 0; None for a gradient-free layer
