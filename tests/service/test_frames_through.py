@@ -132,6 +132,22 @@ def test_the_oidn_setting_a_frame_asks_for_runs_and_the_answer_names_it(poisson_
     assert response.status_code == 200 and "gradsep.oidn_setting" not in _answer(response).header()
 
 
+@pytest.mark.skipif(not HAS_OIDN, reason="a plain frame is served by oidn (pyoidn, the serve extra)")
+def test_a_frames_variance_leaves_converged_pixels_alone_and_a_bad_one_is_named(poisson_api) -> None:
+    """``L.var.Y`` of 0 (a converged frame) gives back the input under ``oidn``; a variance with a NaN is ignored
+    with a warning naming the channel, and the frame is denoised as one without variance."""
+    plain = frame_channels(("direct", "indirect"), 32, 32, gradients=False)
+    converged = {**plain, "direct.var.Y": np.zeros((32, 32)), "indirect.var.Y": np.zeros((32, 32))}
+    response = _post(poisson_api["testclient"], _exr(converged))
+    assert response.status_code == 200, response.text
+    got = rgb({k: c.pixels for k, c in _answer(response).channels().items()})
+    np.testing.assert_allclose(got, rgb(plain, "direct") + rgb(plain, "indirect"), rtol=1e-5)
+    bad = {**converged, "direct.var.Y": np.full((32, 32), np.nan)}
+    response = _post(poisson_api["testclient"], _exr(bad))
+    assert response.status_code == 200, response.text
+    assert "direct.var.Y has 1024 NaN or negative value(s)" in response.headers["x-gradsep-warnings"]
+
+
 def _cycles_exr(view_layers: tuple[str, ...] = ("ViewLayer",), beauty: bool = False) -> bytes:
     rng = np.random.default_rng(5)
     channels: dict[str, np.ndarray] = {}
