@@ -43,32 +43,48 @@ RELATIVE_FLOOR = 0.01
 _F32_MAX = float(np.finfo(np.float32).max)
 
 
-def back_off(noisy: np.ndarray, denoised: np.ndarray, variance: np.ndarray) -> np.ndarray:
+def back_off(noisy: np.ndarray, denoised: np.ndarray, variance: np.ndarray,
+             pinned: np.ndarray | None = None) -> np.ndarray:
     """``denoised`` (H, W, 3) blended toward ``noisy`` (H, W, 3) by the variance (H, W) of ``noisy``'s per-pixel
     mean luminance, as the module docstring says; float32, finite wherever both images are. Non-finite variances
-    read as VARIANCE_MAX (very noisy: the denoiser's value is kept)."""
+    read as VARIANCE_MAX (very noisy: the denoiser's value is kept). ``pinned`` (H, W) bool: pixels that come back
+    as ``noisy`` and are left out of every window (a light in view and its rim, model.robust.source_pixels: its
+    edge pixels carry a variance far above their neighbours', which would read as noise over the whole window)."""
     x = np.asarray(noisy, np.float32)
     y = np.asarray(denoised, np.float32)
     if x.shape != y.shape or x.ndim != 3 or x.shape[-1] != 3 or np.shape(variance) != x.shape[:2]:
         raise ValueError(f"back_off needs (H, W, 3) images and an (H, W) variance, got {x.shape}, {y.shape} and "
                          f"{np.shape(variance)}")
+    if pinned is not None and np.shape(pinned) != x.shape[:2]:
+        raise ValueError(f"back_off's pinned mask must be (H, W) = {x.shape[:2]}, got {np.shape(pinned)}")
     var = np.nan_to_num(np.asarray(variance, np.float64), nan=VARIANCE_MAX, posinf=VARIANCE_MAX)
     np.clip(var, 0.0, VARIANCE_MAX, out=var)
     lum_x, lum_y = luminance(x), luminance(y)  # float64, non-finite read as 0
     d2 = np.minimum((lum_y - lum_x) ** 2, VARIANCE_MAX)
+    keep = None
+    if pinned is not None and np.any(pinned):
+        keep = (~np.asarray(pinned, bool)).astype(np.float64)
+        d2 *= keep
+        var *= keep
+        keep = np.maximum(uniform_filter(keep, WINDOW, mode="nearest"), 0.0)  # the kept share of each window
     floor = (RELATIVE_FLOOR * lit_level_of_luminance(lum_x)) ** 2
-    weight = _weight(d2, var)
+    weight = _weight(d2, var, keep)
     if floor > 0:
         scale2 = lum_y * lum_y + floor
-        np.minimum(weight, _weight(d2 / scale2, var / scale2), out=weight)
+        np.minimum(weight, _weight(d2 / scale2, var / scale2, keep), out=weight)
         np.nan_to_num(weight, copy=False, nan=1.0)  # Inf/Inf only past a 1e150 dynamic range: keep the denoiser's
+    if pinned is not None:
+        weight[np.asarray(pinned, bool)] = 0.0
     out = x.astype(np.float64)
     out += weight[..., None] * (y - out)
     return np.clip(out, -_F32_MAX, _F32_MAX).astype(np.float32)
 
 
-def _weight(d2: np.ndarray, var: np.ndarray) -> np.ndarray:
-    """The denoiser's per-pixel weight from the squared change and the variance (the module docstring's w)."""
+def _weight(d2: np.ndarray, var: np.ndarray, keep: np.ndarray | None = None) -> np.ndarray:
+    """The denoiser's per-pixel weight from the squared change and the variance (the module docstring's w); with
+    ``keep`` (the share of each window that is not pinned, whose pixels are 0 in ``d2`` and ``var``) the windows
+    average over their kept pixels only. The ratio of the two averages is all that counts, so both are left as sums
+    over the window and the share cancels; a window with no kept pixel keeps the denoiser's image."""
     # uniform_filter sums running windows: rounding can leave tiny negatives, which would flip w's sign
     spread = np.maximum(uniform_filter(d2, WINDOW, mode="nearest"), 0.0)
     noise = np.maximum(uniform_filter(var, WINDOW, mode="nearest"), 0.0)
@@ -76,5 +92,6 @@ def _weight(d2: np.ndarray, var: np.ndarray) -> np.ndarray:
     bias2 -= NOISE_MARGIN * noise
     weight = np.ones_like(noise)
     # where bias2 > 0 the sum is > 0 and finite (both terms are capped at VARIANCE_MAX before the box)
-    np.divide(noise, noise + bias2, out=weight, where=bias2 > 0.0)
+    usable = bias2 > 0.0 if keep is None else (bias2 > 0.0) & (keep > 1e-9)
+    np.divide(noise, noise + bias2, out=weight, where=usable)
     return weight

@@ -35,7 +35,7 @@ def oidn_layer(name: str, layer: Layer, ctx: LayerContext, denoised: np.ndarray 
     from gradsep.model.backoff import back_off
 
     image = ctx.denoiser.denoise(layer.base, ctx.aux) if denoised is None else denoised
-    return image if layer.var is None else back_off(layer.base, image, layer.var)
+    return image if layer.var is None else back_off(layer.base, image, layer.var, ctx.pinned.get(name))
 
 
 def oidn_l1_layer(name: str, layer: Layer, ctx: LayerContext, denoised: np.ndarray | None = None) -> np.ndarray:

@@ -36,7 +36,7 @@ from gradsep.model.environment import env_int
 from gradsep.model.frame import ChannelError, Features, Frame, Layer, feature_groups
 from gradsep.model.methods import LoadedModels, Method
 from gradsep.model.policy import DEFAULT_ALPHA, FEATURE_GROUPS, models_dir_from
-from gradsep.model.robust import add_excess, add_in_place, outlier_count, split_frame, split_sources
+from gradsep.model.robust import add_excess, add_in_place, outlier_count, source_pixels, split_frame, split_sources
 
 __all__ = [
     "LayerContext",
@@ -96,6 +96,9 @@ class LayerContext:
     features: Features | None  # the frame's feature groups that the method uses (None: none of them)
     aux: Any = None  # OIDN's auxiliary images (model.oidn.CleanAux), computed once per frame when the method runs OIDN
     denoiser: Any = None  # the model.oidn.Denoiser of a method that runs OIDN
+    #: per layer, the pixels of a light in view that were capped and their rim (model.robust.source_pixels): they
+    #: come back as rendered, and the back-off (model/backoff.py) leaves them out of its windows
+    pinned: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 #: A method's layer function (model/methods.py ``Method.function``): ``denoised`` is the layer's OIDN image when
@@ -319,7 +322,8 @@ def reconstruct(frame: Frame, method: str | None = None, alpha: float = DEFAULT_
     frame, sources = split_frame(frame, split_sources) if spec.split_sources else (frame, {})
     features = frame.features.only(spec.uses) if frame.features is not None else None
     warnings: list[str] = []
-    ctx = LayerContext(spec, alpha, models, features)
+    ctx = LayerContext(spec, alpha, models, features,
+                       pinned={name: source_pixels(extra) for name, extra in sources.items()})
     shape = (frame.height, frame.width, 3)
     layers: dict[str, np.ndarray] = {}
     timings: dict[str, float] = {}

@@ -142,3 +142,64 @@ def test_oidn_leaves_a_converged_frame_alone_when_it_carries_its_variance() -> N
     truth = sum(layer.base for layer in converged_frame(None).layers.values())
     np.testing.assert_allclose(with_var.image, truth, rtol=1e-6)
     assert not np.allclose(without.image, truth, rtol=1e-4)  # OIDN alone changes it
+
+
+def test_a_light_in_view_leaves_no_halo_when_its_variance_is_capped_with_it() -> None:
+    """``oidn`` caps a light in view before OIDN (model.robust.split_sources) and scales the capped pixels' variance
+    with them: a light's pixels, half covered by the emitter, carry a variance that, left at its uncapped size, reads
+    as noise over the whole window and keeps OIDN's halo. Around a converged light the answer is the input."""
+    from gradsep.model import oidn
+    from gradsep.model.reconstruct import reconstruct
+
+    if not oidn.available():
+        pytest.skip("OIDN is not installed")
+    h = w = 48
+    base = np.full((h, w, 3), 0.5, np.float32)
+    base[22:25, 22:24] = 2e4  # a 3x2-pixel light
+    var = np.full((h, w), 1e-10, np.float32)
+    var[22:25, 22:24] = (2e4) ** 2 / 4 / 64  # its pixels half covered by the emitter, 64 samples
+    normal = np.zeros((h, w, 3), np.float32)
+    normal[..., 2] = 1
+
+    def answer(variance: np.ndarray | None) -> np.ndarray:
+        frame = Frame({"direct": Layer(base.copy(), var=variance)},
+                      Features(np.full((h, w, 3), 0.5, np.float32), normal, None))
+        return reconstruct(frame, "oidn").image
+
+    ring = np.zeros((h, w), bool)
+    ring[18:29, 18:28] = True
+    ring[22:25, 22:24] = False
+    halo = np.abs(answer(None)[ring] - 0.5).max()
+    assert halo > 1e-2  # OIDN alone spreads the light
+    np.testing.assert_allclose(answer(var)[ring], 0.5, rtol=1e-4)
+    np.testing.assert_allclose(answer(var)[22:25, 22:24], 2e4, rtol=1e-4)
+
+
+def test_a_lights_pinned_pixels_are_its_capped_pixels_and_their_rim() -> None:
+    from gradsep.model.robust import source_pixels
+
+    excess = np.zeros((7, 7, 3), np.float32)
+    excess[3, 3:5, 0] = 1.0
+    pinned = source_pixels(excess)
+    want = np.zeros((7, 7), bool)
+    want[3, 2:6] = True
+    want[2, 3:5] = want[4, 3:5] = True
+    np.testing.assert_array_equal(pinned, want)
+    assert not source_pixels(np.zeros((4, 4, 3))).any()
+
+
+def test_pinned_pixels_come_back_as_rendered_and_stay_out_of_the_windows() -> None:
+    rng = np.random.default_rng(6)
+    noisy = rng.random((20, 20, 3))
+    denoised = noisy + 0.01
+    var = np.full((20, 20), 1.0)  # noisy: the denoiser's image is kept ...
+    pinned = np.zeros((20, 20), bool)
+    pinned[5:8, 5:8] = True
+    out = back_off(noisy, denoised, var, pinned)
+    np.testing.assert_array_equal(out[pinned], noisy[pinned].astype(np.float32))  # ... except where pinned
+    np.testing.assert_allclose(out[~pinned], denoised[~pinned], rtol=1e-6)
+    quiet = np.where(pinned, 1.0, 0.0)  # a pinned pixel's variance does not hide its neighbours' bias
+    out = back_off(noisy, denoised, quiet, pinned)
+    np.testing.assert_allclose(out, noisy, rtol=1e-6)
+    with pytest.raises(ValueError, match="pinned"):
+        back_off(noisy, denoised, var, np.zeros((3, 3), bool))
