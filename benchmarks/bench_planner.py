@@ -16,8 +16,9 @@
         [--cache ...]
 
     # validate's cached frames through today's reconstruction (same samples, same wall time): today / recorded
-    # RelMSE and today / best fixed, per family and pipeline; --setting for the frames with gradients
-    python benchmarks/bench_planner.py rescore [--setting prefiltered-high] [--cache ...]
+    # RelMSE and today / best fixed, per family and pipeline; --setting for the frames with gradients; --against
+    # another validate cache: this cache's frames over its, both reconstructed today
+    python benchmarks/bench_planner.py rescore [--setting prefiltered-high] [--cache ...] [--against CACHE]
 
     # a plain-frame plan's cost against Mitsuba's `path` (same scene, size, spp, depth, box filter): a whole frame
     # and the marginal cost of a sample (frames of spp and 2 spp)
@@ -393,23 +394,13 @@ def rescore(args: argparse.Namespace) -> None:
     """Reconstruct ``validate``'s cached frames again with today's code (``--setting`` for the frames with
     gradients) against the same references, and print, per family and pipeline, today's RelMSE over the recorded
     one (geometric mean, range) and today's ratio to the best fixed pipeline of each (scene, seed). The frames are
-    not rendered again: the same samples at the same wall time, only the reconstruction is today's."""
-    from gradsep.model.oidn import SETTING_ENV
-
+    not rendered again: the same samples at the same wall time, only the reconstruction is today's. With
+    ``--against OTHER`` (another ``validate`` cache of the same scenes, budgets, seeds and references: frames
+    rendered by other code), both caches' frames are reconstructed with today's code and the RelMSE of this cache's
+    frames over the other's is printed per family and pipeline: what the renderer's change did at equal time."""
     cache = Path(args.cache).expanduser()
     rows: dict[str, dict] = json.loads((cache / "validate.json").read_text())
-    today: dict[str, float] = {}
-    for key, row in rows.items():
-        refs = tuple(cache / f"ref-{row['scene'].replace(':', '_')}-{args.size}-{args.ref_spp}-{s}.exr"
-                     for s in (1, 2))
-        if "relmse" not in row or not (cache / row["file"]).exists() or not all(p.exists() for p in refs):
-            continue
-        plain = row["plan"] in ("primal", "primal-sum") or (row["plan"] == "auto" and row.get("chosen") == "primal")
-        if args.setting and not plain:
-            os.environ[SETTING_ENV] = args.setting
-        else:
-            os.environ.pop(SETTING_ENV, None)
-        today[key] = measured_relmse(cache / row["file"], refs)
+    today = _score_today(cache, rows, args)
 
     def geo(values: list[float]) -> float:
         return math.exp(sum(map(math.log, values)) / len(values))
@@ -431,6 +422,40 @@ def rescore(args: argparse.Namespace) -> None:
             if change and best:
                 print(f"| {fam} | {plan} | {geo(change):.2f} | {min(change):.2f}-{max(change):.2f} | "
                       f"{geo(best):.2f} | {max(best):.1f} |")
+    if not args.against:
+        return
+    other_cache = Path(args.against).expanduser()
+    other_rows: dict[str, dict] = json.loads((other_cache / "validate.json").read_text())
+    other = _score_today(other_cache, {k: v for k, v in other_rows.items() if k in today}, args)
+    print(f"\nthis cache's frames over {other_cache}'s, both reconstructed today ({len(other)} pairs)\n")
+    print("| family | pipeline | RelMSE ratio, geometric mean | range | frames |")
+    print("|---|---|---:|---:|---:|")
+    for fam in sorted({family(k.split("|")[0]) for k in other}):
+        for plan in PLANS:
+            ratio = [today[k] / other[k] for k in other if k.endswith("|" + plan)
+                     and family(k.split("|")[0]) == fam and today[k] > 0 and other[k] > 0]
+            if ratio:
+                print(f"| {fam} | {plan} | {geo(ratio):.3f} | {min(ratio):.3f}-{max(ratio):.2f} | {len(ratio)} |")
+
+
+def _score_today(cache: Path, rows: dict[str, dict], args: argparse.Namespace) -> dict[str, float]:
+    """Each scored row's frame in ``cache`` reconstructed with today's code (``--setting`` for the frames with
+    gradients) and its RelMSE against the cache's references, by row key."""
+    from gradsep.model.oidn import SETTING_ENV
+
+    today: dict[str, float] = {}
+    for key, row in rows.items():
+        refs = tuple(cache / f"ref-{row['scene'].replace(':', '_')}-{args.size}-{args.ref_spp}-{s}.exr"
+                     for s in (1, 2))
+        if "relmse" not in row or not (cache / row["file"]).exists() or not all(p.exists() for p in refs):
+            continue
+        plain = row["plan"] in ("primal", "primal-sum") or (row["plan"] == "auto" and row.get("chosen") == "primal")
+        if args.setting and not plain:
+            os.environ[SETTING_ENV] = args.setting
+        else:
+            os.environ.pop(SETTING_ENV, None)
+        today[key] = measured_relmse(cache / row["file"], refs)
+    return today
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -470,6 +495,8 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--size", type=int, default=192, help="validate's --size")
     r.add_argument("--ref-spp", type=int, default=1024, help="validate's --ref-spp")
     r.add_argument("--cache", default=str(Path.home() / ".cache/gradsep/planner-bench"))
+    r.add_argument("--against", default="", help="another validate cache (same scenes, seeds, references): print "
+                   "this cache's RelMSE over its, both reconstructed today")
     args = parser.parse_args(argv)
     {"timing": timing, "validate": validate, "estimate": estimate, "cost": cost, "rescore": rescore}[args.what](args)
     return 0
