@@ -184,9 +184,9 @@ def render_metadata(scene: LoadedScene, *, spp: int, seed: int, shift: str, laye
 
 #: The OIDN setting a ``--seconds`` plan asks for (model.frame.OIDN_SETTING_KEY) where its budget makes the extra
 #: denoising cheap: prefiltered features and OIDN's large model. On held-out frames with direct-layer gradients and
-#: no light in view, served by ``oidn-l1``, it is 0.73x the RelMSE of the default ``raw-fast`` (geometric mean;
-#: worst frame 1.12x; benchmarks/bench_oidn_quality.py, docs/decisions.md "The reconstruction's setting at farm
-#: budgets").
+#: no light in view, served by ``oidn-l1``, it is 0.82x the RelMSE of the default ``raw-fast`` (geometric mean over
+#: frames carrying their variance, worst frame 1.16x; benchmarks/bench_oidn_quality.py, docs/decisions.md "The
+#: reconstruction's setting at farm budgets").
 #: A plain frame keeps the default: on ``oidn`` alone it smears a light in view over its neighbours (up to 17x).
 FARM_OIDN_SETTING = "prefiltered-high"
 #: What FARM_OIDN_SETTING costs over ``raw-fast``, seconds per pixel per layer (the prefilter's two passes per
