@@ -30,10 +30,9 @@ no layer of any frame lost more than 1 % (docs/decisions.md, "Backing OIDN off c
 from __future__ import annotations
 
 import numpy as np
-from scipy.ndimage import uniform_filter
 
 from gradsep.model.frame import VARIANCE_MAX
-from gradsep.model.robust import lit_level_of_luminance, luminance
+from gradsep.model.robust import box_mean, lit_level_of_luminance, luminance
 
 #: The box window (pixels a side) over which the change and the variance are averaged.
 WINDOW = 7
@@ -68,7 +67,7 @@ def back_off(noisy: np.ndarray, denoised: np.ndarray, variance: np.ndarray,
         keep = (~np.asarray(pinned, bool)).astype(np.float64)
         d2 *= keep
         var *= keep
-        keep = np.maximum(uniform_filter(keep, WINDOW, mode="nearest"), 0.0)  # the kept share of each window
+        keep = box_mean(keep, WINDOW)  # the kept share of each window
     floor = (RELATIVE_FLOOR * lit_level_of_luminance(lum_x)) ** 2
     weight = _weight(d2, var, keep)
     if floor > 0:
@@ -87,9 +86,8 @@ def _weight(d2: np.ndarray, var: np.ndarray, keep: np.ndarray | None = None) -> 
     ``keep`` (the share of each window that is not pinned, whose pixels are 0 in ``d2`` and ``var``) the windows
     average over their kept pixels only. The ratio of the two averages is all that counts, so both are left as sums
     over the window and the share cancels; a window with no kept pixel keeps the denoiser's image."""
-    # uniform_filter sums running windows: rounding can leave tiny negatives, which would flip w's sign
-    spread = np.maximum(uniform_filter(d2, WINDOW, mode="nearest"), 0.0)
-    noise = np.maximum(uniform_filter(var, WINDOW, mode="nearest"), 0.0)
+    spread = box_mean(d2, WINDOW)  # sums of non-negative values: non-negative
+    noise = box_mean(var, WINDOW)
     bias2 = spread
     bias2 -= NOISE_MARGIN * noise
     weight = np.ones_like(noise)

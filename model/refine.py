@@ -40,7 +40,7 @@ from gradsep.model.frame import Layer
 from gradsep.model.oidn import input_scale
 from gradsep.model.poisson import solve_l1
 from gradsep.model.preprocess import scaled_image
-from gradsep.model.robust import winsorised_sum
+from gradsep.model.robust import box_mean, winsorised_sum
 
 #: The layers whose gradients refine OIDN's result (the rest keep OIDN's).
 REFINED_LAYERS: frozenset[str] = frozenset({"direct"})
@@ -113,13 +113,11 @@ def trust_weights(base: np.ndarray, dx: np.ndarray, dy: np.ndarray,
     zero gradients), 0 where its disagreement is TRUST_R_HIGH of the gradients' energy or more. Finite inputs.
     ``maps``: _disagreement_maps of the same layer, if the caller has them; ``radius``: the window's (default
     TRUST_RADIUS)."""
-    from scipy.ndimage import uniform_filter
-
     residual, signal = maps if maps is not None else _disagreement_maps(base, dx, dy)
     size = 2 * (TRUST_RADIUS if radius is None else radius) + 1
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-        r = (np.maximum(uniform_filter(residual, size, mode="nearest"), 0.0)
-             / (np.maximum(uniform_filter(signal, size, mode="nearest"), 0.0) + np.float32(TRUST_FLOOR)))
+        # direct sums (robust.box_mean): a firefly's squared gradient must not reach past its own window
+        r = box_mean(residual, size) / (box_mean(signal, size) + np.float32(TRUST_FLOOR))
         w = np.log(np.float32(TRUST_R_HIGH) / np.maximum(r, np.float32(TRUST_FLOOR)))
     w *= np.float32(1.0 / math.log(TRUST_R_HIGH / TRUST_R_LOW))
     return np.clip(np.nan_to_num(w, nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0).astype(np.float32)[..., None]

@@ -90,6 +90,18 @@ LIT_BIN = 16
 LIT_FRACTION = 1e-8
 
 
+def box_mean(image: np.ndarray, size: int) -> np.ndarray:
+    """The ``size`` × ``size`` mean of an (H, W) image (edges repeated), as two direct 1-D sums. Not a running sum
+    (scipy's ``uniform_filter``): once a huge value (a firefly's variance, or its squared gradient) leaves a running
+    sum, the small values behind it are lost to rounding, and the rest of its row or column reads as 0. With direct
+    sums a value reaches only the windows that hold it. The image's dtype is kept."""
+    from scipy.ndimage import correlate1d
+
+    values = np.asarray(image)
+    weights = np.full(size, 1.0 / size, dtype=values.dtype if values.dtype.kind == "f" else np.float64)
+    return correlate1d(correlate1d(values, weights, axis=0, mode="nearest"), weights, axis=1, mode="nearest")
+
+
 def luminance(image: np.ndarray) -> np.ndarray:
     """Rec. 709 luminance of (H, W, 3) ``image`` as float64 (an (H, W) image, or one of other channel counts, by its
     channel mean); non-finite and negative values read as 0."""

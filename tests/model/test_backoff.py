@@ -203,3 +203,18 @@ def test_pinned_pixels_come_back_as_rendered_and_stay_out_of_the_windows() -> No
     np.testing.assert_allclose(out, noisy, rtol=1e-6)
     with pytest.raises(ValueError, match="pinned"):
         back_off(noisy, denoised, var, np.zeros((3, 3), bool))
+
+
+def test_a_firefly_changes_nothing_along_its_row() -> None:
+    """A firefly's huge variance must not leave the window it is in: with a running-sum box filter the small
+    variances behind it were lost to rounding, and the rest of its row read as noise-free and backed off."""
+    rng = np.random.default_rng(7)
+    x = 0.5 + 0.01 * rng.standard_normal((64, 64, 3))
+    y = np.full((64, 64, 3), 0.5)  # a perfect denoiser
+    var = np.full((64, 64), 1e-4 * float(np.sum(np.square(LUMINANCE))))
+    x[30, 5] = 1e10
+    var[30, 5] = 1e20  # the firefly the denoiser removed
+    out = back_off(x, y, var)
+    far = np.ones((64, 64), bool)
+    far[27:34, 2:9] = False  # the firefly's own window
+    np.testing.assert_array_equal(out[far], y[far].astype(np.float32))

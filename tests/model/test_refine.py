@@ -377,3 +377,25 @@ def test_a_black_pixel_is_pinned_only_where_the_gradients_agree_it_is_black() ->
     shipped = refine_layer("direct", prior, layer)
     assert np.all(np.isfinite(shipped)) and np.all(shipped >= 0)
     assert abs(float(shipped[10, 8].mean()) - 50.0) < 10.0  # filled in from its neighbours, not left black
+
+
+@pytest.mark.parametrize("firefly", [1e4, 1e8, 1e20])
+def test_a_gradient_firefly_changes_the_trust_weights_only_near_it(firefly: float) -> None:
+    """The trust rule's windows are direct sums: with a running-sum box filter, a firefly's squared gradient (1e16
+    at 1e8) left float32 rounding behind it and moved the weights along its whole row (by up to 0.6)."""
+    from scipy.ndimage import gaussian_filter
+
+    from gradsep.model.refine import trust_weights
+
+    rng = np.random.default_rng(0)
+    truth = (0.5 + gaussian_filter(rng.random((64, 64, 3)), (1, 1, 0))).astype(np.float32)
+    dx, dy = forward_differences(truth)
+    base = (truth + 0.02 * rng.standard_normal((64, 64, 3))).astype(np.float32)
+    before = trust_weights(base, dx, dy)[..., 0]
+    assert 0.2 < before.mean() < 0.9  # the rule is on its ramp here, where a change would show
+    dx = dx.copy()
+    dx[30, 5] = firefly
+    after = trust_weights(base, dx, dy)[..., 0]
+    far = np.ones((64, 64), bool)
+    far[26:35, 1:10] = False  # the firefly's own windows
+    np.testing.assert_allclose(after[far], before[far], atol=1e-6)
