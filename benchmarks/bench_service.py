@@ -20,9 +20,9 @@ started with ``--concurrency`` inference slots (default 2: one per core); frames
 Peak RSS is the service process's VmHWM (Linux /proc) after all methods ran, children included when it forked.
 
 The frame is synthetic and seeded: direct and indirect layers (smooth shading with edges, Monte-Carlo-like
-multiplicative noise and rare fireflies in the bases, lighter noise in the gradients) plus albedo/normal/depth
-features, written as float32 ZIP EXR. Each method runs ``--warmup`` untimed requests first. Timings on a shared
-machine are noisy: the load average is printed with them.
+multiplicative noise and rare fireflies in the bases, lighter noise in the gradients, each layer's variance as the
+renderer writes it) plus albedo/normal/depth features, written as float32 ZIP EXR. Each method runs ``--warmup``
+untimed requests first. Timings on a shared machine are noisy: the load average is printed with them.
 """
 
 from __future__ import annotations

@@ -2,7 +2,8 @@
 
 The benchmarks (benchmarks/bench_service.py, bench_floor.py, bench_layers.py) time the service's pipeline on this
 frame so their figures are comparable and need no renderer: a separated frame (``direct`` and ``indirect``, each a
-base with ``dx``/``dy`` gradients) plus albedo/normal/depth features, float32. The content is generic -- smooth
+base with ``dx``/``dy`` gradients and its variance, as ``gradsep render`` writes them) plus albedo/normal/depth
+features, float32. The content is generic -- smooth
 shading with a step edge and a disc, multiplicative Monte-Carlo-like noise and rare fireflies in the bases, lighter
 noise in the gradients -- and fitted to no scene. It exercises the cost of each method, not its quality (quality
 comes from ``gradsep evaluate`` on rendered frames).
@@ -14,7 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from gradsep.model.frame import encode_exr, forward_differences, rgb_channels
+from gradsep.model.frame import encode_exr, forward_differences, rgb_channels, variance_channel
+from gradsep.model.policy import LUMINANCE
 
 #: Relative base noise per layer; the indirect layer is the noisier one, as in a rendered frame.
 _LAYER_NOISE: dict[str, float] = {"direct": 0.3, "indirect": 0.8}
@@ -43,6 +45,9 @@ def synthetic_frame(height: int, width: int, seed: int = 0, compression: str | N
         dy = dy + 0.3 * noise * rng.standard_normal(dy.shape)
         dx[:, -1], dy[-1] = 0, 0  # the contract: no difference past the last column / row
         channels.update(rgb_channels(layer, np.maximum(base, 0)))
+        # the variance a renderer would write (L.var.Y): the noise model's, a firefly's as one sample's square
+        weights = np.asarray(LUMINANCE)
+        channels[variance_channel(layer)] = ((noise * truth) ** 2) @ weights**2 + (fireflies @ weights) ** 2
         channels.update(rgb_channels(f"{layer}.dx", dx))
         channels.update(rgb_channels(f"{layer}.dy", dy))
     normal = np.dstack([np.zeros((height, width, 2), np.float32), np.ones((height, width), np.float32)])

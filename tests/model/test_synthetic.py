@@ -16,6 +16,7 @@ def test_the_frame_is_a_valid_separated_frame_with_gradients_and_features() -> N
     for layer in frame.layers.values():
         assert np.all(layer.base >= 0) and np.all(np.isfinite(layer.base))
         assert np.all(layer.dx[:, -1] == 0) and np.all(layer.dy[-1] == 0)
+        assert layer.var is not None and np.all(layer.var >= 0) and np.all(np.isfinite(layer.var))
     # the indirect layer is the noisier one (relative spread of base against its local mean)
     spread = {name: float(np.std(np.diff(layer.base, axis=1)) / np.mean(layer.base))
               for name, layer in frame.layers.items()}
