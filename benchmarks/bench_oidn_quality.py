@@ -50,21 +50,22 @@ def cached_reference(cache: Path, scene: str, size: int, spp: int, seed: int) ->
     return path
 
 
-def relmse(frame: Path, method: str, setting: str, refs: tuple[object, object], summed: bool = False) -> float:
-    """RelMSE of ``frame`` reconstructed with ``method`` at OIDN ``setting``; ``summed``: its layers added into one
-    unseparated ``color`` layer first (OIDN on the sum instead of per layer). A setting named ``S without
+def relmse(frame: object, method: str, setting: str, refs: tuple[object, object], summed: bool = False) -> float:
+    """RelMSE of ``frame`` (a read model.frame.Frame, left unchanged) reconstructed with ``method`` at OIDN
+    ``setting``; ``summed``: its layers added into one unseparated ``color`` layer first (OIDN on the sum instead of
+    per layer). A setting named ``S without
     variance`` is ``S`` on the frame with its variance channels dropped (no back-off: model/backoff.py)."""
     from dataclasses import replace
 
-    from gradsep.model.frame import Frame, read_frame
+    from gradsep.model.frame import Frame
     from gradsep.model.metrics import relmse_unbiased
     from gradsep.model.oidn import SETTING_ENV
     from gradsep.model.reconstruct import reconstruct
 
     os.environ[SETTING_ENV] = setting.removesuffix(NO_VARIANCE)
-    loaded = read_frame(frame)
+    loaded = frame
     if setting.endswith(NO_VARIANCE):
-        loaded.layers = {name: replace(layer, var=None) for name, layer in loaded.layers.items()}
+        loaded = replace(frame, layers={name: replace(layer, var=None) for name, layer in frame.layers.items()})
     if summed:
         loaded = Frame({"color": loaded.combined()}, loaded.features, metadata=loaded.metadata)
     return relmse_unbiased(reconstruct(loaded, method).image, *refs)
@@ -107,8 +108,8 @@ def main() -> int:
         family = "studios" if ":studio:" in scene else "rooms"
         for spp in (int(s) for s in args.spp.split(",")):
             for method in PIPELINES:
-                frame = cached_render(cache, scene, args.size, spp, args.seed, method)
-                light = has_light_in_view(read_frame(frame))
+                frame = read_frame(cached_render(cache, scene, args.size, spp, args.seed, method))  # read once
+                light = has_light_in_view(frame)
                 err = {name: relmse(frame, method, name, refs) for name in settings}
                 if method == "oidn":
                     err |= {name: relmse(frame, method, name.removesuffix(" on the sum"), refs, summed=True)

@@ -216,8 +216,7 @@ def split_sources(base: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         return base, None
     padded = np.pad(over, 1)
     height, width = over.shape
-    lit_neighbours = sum(padded[1 + dy:1 + dy + height, 1 + dx:1 + dx + width]
-                         for dy in (-1, 0, 1) for dx in (-1, 0, 1) if (dy, dx) != (0, 0))
+    lit_neighbours = sum(padded[1 + dy:1 + dy + height, 1 + dx:1 + dx + width] for dy, dx in _RING)
     source = over & (lit_neighbours > 0)
     if not source.any():
         return base, None

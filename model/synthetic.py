@@ -34,6 +34,7 @@ def synthetic_frame(height: int, width: int, seed: int = 0, compression: str | N
     yy, xx = np.mgrid[0:height, 0:width].astype(np.float32)
     yy, xx = yy / height, xx / width
     channels: dict[str, np.ndarray] = {}
+    weights = np.asarray(LUMINANCE)
     for layer, noise in _LAYER_NOISE.items():
         shading = np.stack([0.4 + 0.3 * np.sin(7 * xx + c) * np.cos(5 * yy - c) for c in range(3)], -1)
         edges = (xx > 0.35) * 0.5 + ((xx - 0.7) ** 2 + (yy - 0.4) ** 2 < 0.03) * 2.0
@@ -46,7 +47,6 @@ def synthetic_frame(height: int, width: int, seed: int = 0, compression: str | N
         dx[:, -1], dy[-1] = 0, 0  # the contract: no difference past the last column / row
         channels.update(rgb_channels(layer, np.maximum(base, 0)))
         # the variance a renderer would write (L.var.Y): the noise model's, a firefly's as one sample's square
-        weights = np.asarray(LUMINANCE)
         channels[variance_channel(layer)] = ((noise * truth) ** 2) @ weights**2 + (fireflies @ weights) ** 2
         channels.update(rgb_channels(f"{layer}.dx", dx))
         channels.update(rgb_channels(f"{layer}.dy", dy))
