@@ -438,6 +438,56 @@ def rescore(args: argparse.Namespace) -> None:
                 print(f"| {fam} | {plan} | {geo(ratio):.3f} | {min(ratio):.3f}-{max(ratio):.2f} | {len(ratio)} |")
 
 
+def predict(args: argparse.Namespace) -> None:
+    """The error estimate a farm reads: ``--gradients auto`` frames rendered with ``--seconds T`` (cached), each
+    frame's ``gradsep.predicted_relmse`` (the frame's own check where it ran: renderer/check.py) and the pilot's
+    prediction for the chosen plan (``gradsep.plan_candidates``) against the RelMSE measured with two references,
+    and how many of each are within 1.5x."""
+    cache = Path(args.cache).expanduser()
+    cache.mkdir(parents=True, exist_ok=True)
+    path = cache / "predict.json"
+    rows: dict[str, dict] = json.loads(path.read_text()) if path.exists() else {}
+    scenes = args.scenes.split(",")
+    for seed in [int(s) for s in args.seeds.split(",")]:
+        for scene in scenes:
+            key = f"{scene}|{args.seconds:g}|{seed}"
+            out = cache / f"auto-{scene.replace(':', '_')}-{args.size}-{args.seconds:g}-{seed}.exr"
+            if key not in rows or not out.exists():
+                wall, _ = gradsep("render", scene, "--width", str(args.size), "--height", str(args.size), "--seconds",
+                                  f"{args.seconds:g}", "--seed", str(seed), "--gradients", "auto", "-o", str(out))
+                meta = header(out)
+                pilot = dict(kv.split("=") for kv in meta.get("gradsep.plan_candidates", "").split(",") if kv)
+                rows[key] = {"scene": scene, "seed": seed, "wall": wall, "file": out.name,
+                             "plan": meta.get("gradsep.plan"), "spp": int(meta["gradsep.spp"]),
+                             "predicted": float(meta.get("gradsep.predicted_relmse", "nan")),
+                             "from": meta.get("gradsep.predicted_from"),
+                             "pilot": float(pilot.get(meta.get("gradsep.plan", ""), "nan"))}
+                path.write_text(json.dumps(rows, indent=1))
+            row = rows[key]
+            if "relmse" not in row:
+                refs = [reference(scene, args.size, args.ref_spp, s, cache, render=not args.no_references)
+                        for s in (1, 2)]
+                if None in refs:
+                    continue
+                row["relmse"] = measured_relmse(cache / row["file"], tuple(refs))  # type: ignore[arg-type]
+                path.write_text(json.dumps(rows, indent=1))
+            print(f"{key}: {row['wall']:.1f} s, {row['spp']} spp, plan {row['plan']}, predicted "
+                  f"{row['predicted']:.3g} ({row['from']}), pilot {row['pilot']:.3g}, measured "
+                  f"{row.get('relmse', math.nan):.3g}", flush=True)
+    scored = [r for r in rows.values() if "relmse" in r and r["relmse"] > 0 and r["scene"] in scenes]
+    print("\n| family | frames | frame's estimate / measured: within 1.5x | median | pilot's / measured: within 1.5x"
+          " | median |")
+    print("|---|---:|---:|---:|---:|---:|")
+    for fam in sorted({family(r["scene"]) for r in scored}):
+        rs = [r for r in scored if family(r["scene"]) == fam]
+        cols = []
+        for name in ("predicted", "pilot"):
+            ratios = sorted(r[name] / r["relmse"] for r in rs if math.isfinite(r[name]))
+            inside = sum(1 / 1.5 <= x <= 1.5 for x in ratios)
+            cols.append(f"{inside}/{len(ratios)} | {ratios[len(ratios) // 2]:.2f}" if ratios else "- | -")
+        print(f"| {fam} | {len(rs)} | " + " | ".join(cols) + " |")
+
+
 def _score_today(cache: Path, rows: dict[str, dict], args: argparse.Namespace) -> dict[str, float]:
     """Each scored row's frame in ``cache`` reconstructed with today's code (``--setting`` for the frames with
     gradients) and its RelMSE against the cache's references, by row key."""
@@ -489,6 +539,14 @@ def main(argv: list[str] | None = None) -> int:
     c.add_argument("--sizes", default="320x240,1280x720")
     c.add_argument("--spp", type=int, default=16)
     c.add_argument("--repeats", type=int, default=5)
+    pr = sub.add_parser("predict")
+    pr.add_argument("--scenes", default=",".join(f"procedural:{s}" for s in range(93201, 93209)))
+    pr.add_argument("--size", type=int, default=192)
+    pr.add_argument("--seconds", type=float, default=20.0)
+    pr.add_argument("--seeds", default="10,11")
+    pr.add_argument("--ref-spp", type=int, default=1024)
+    pr.add_argument("--no-references", action="store_true", help="score only the frames whose references exist")
+    pr.add_argument("--cache", default=str(Path.home() / ".cache/gradsep/planner-bench"))
     r = sub.add_parser("rescore")
     r.add_argument("--setting", default="", help="OIDN setting for the frames with gradients (e.g. "
                    "prefiltered-high: what a --seconds budget asks for); default: the oidn method's")
@@ -498,7 +556,8 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--against", default="", help="another validate cache (same scenes, seeds, references): print "
                    "this cache's RelMSE over its, both reconstructed today")
     args = parser.parse_args(argv)
-    {"timing": timing, "validate": validate, "estimate": estimate, "cost": cost, "rescore": rescore}[args.what](args)
+    {"timing": timing, "validate": validate, "estimate": estimate, "cost": cost, "rescore": rescore,
+     "predict": predict}[args.what](args)
     return 0
 
 

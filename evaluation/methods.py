@@ -128,10 +128,12 @@ METHOD_SOURCES: tuple[str, ...] = ("evaluation/methods.py",
                                    *sorted(f"model/{p.name}" for p in (REPO_ROOT / "model").glob("*.py")))
 #: The render planner's source files: part of the ``gpt-auto`` row's cache key (with the renderer's), so a planner
 #: change recomputes that row, and only that row.
-PLANNER_SOURCES: tuple[str, ...] = ("renderer/plan.py", "renderer/budget.py", "renderer/estimate.py")
+PLANNER_SOURCES: tuple[str, ...] = ("renderer/plan.py", "renderer/budget.py", "renderer/estimate.py",
+                                     "renderer/check.py", "renderer/render.py")
 #: What a ``gpt-auto`` row records of its plan (MethodOutput.extra -> the row; evaluation/report.py reads them).
 PLAN_ROW_KEYS: tuple[str, ...] = ("plan", "plan_layers", "plan_method", "plan_candidates", "predicted_relmse",
-                                  "predicted_note", "pilot_seconds", "plan_note", "gradient_spp")
+                                  "predicted_note", "predicted_from", "pilot_seconds", "plan_note",
+                                  "gradient_spp")
 
 
 @dataclass(frozen=True)
@@ -945,27 +947,32 @@ def _run_gpt_auto(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
     below the planner's start-up (CommandError: one pass and the reconstruction do not fit) renders 1 spp of the
     fallback plan regardless, recorded as such; a pilot that gave up records why, with no prediction."""
     from gradsep.model.errors import CommandError
-    from gradsep.model.frame import PLAN_METHOD_KEY
+    from gradsep.model.frame import PLAN_METHOD_KEY, PREDICTED_RELMSE_KEY
     from gradsep.model.reconstruct import reconstruct
     from gradsep.renderer.budget import Deadline
     from gradsep.renderer.plan import fallback, plan_layers_text, render_planned
+    from gradsep.renderer.render import check_budget, frame_check
 
     renderer = ctx.path()
     target = _budget(ctx)
     layers = tuple(ctx.frame.layers)
     tail = renderer.planner_tail(layers)
     seed = int(ctx.seed) % (1 << 32)
+    width, height = renderer.loaded.width, renderer.loaded.height
     start = time.perf_counter()
     deadline = Deadline(target, tail=tail)
     refused = ""
-    try:
-        planned = render_planned(renderer.loaded, layers, seed=seed, shift=None, fixed=None, deadline=deadline)
+    try:  # the frame's own error estimate as the command makes it, with the default OIDN setting (as served here)
+        planned = render_planned(renderer.loaded, layers, seed=seed, shift=None, fixed=None, deadline=deadline,
+                                 check=lambda p: check_budget(p, width, height, layers, target, farm_setting=False))
     except CommandError:  # not one pass + the reconstruction fit: what `gradsep render --seconds` refuses
         refused = (f"the budget is below the planner's start-up here (its first pass, then {tail:.3g} s of "
                    f"reconstruction): 1 spp of `{fallback(layers).name}` rendered regardless")
         planned = render_planned(renderer.loaded, layers, seed=seed, shift=None, fixed=fallback(layers), spp=1)
     frame, plan = planned.frame, planned.plan
     frame.metadata = plan.metadata(layers) if plan is not None else {}
+    if plan is not None and plan.assessments:
+        frame_check(planned, frame.metadata)
     rendered = time.perf_counter()
     result = reconstruct(frame, frame.metadata.get(PLAN_METHOD_KEY))
     done = time.perf_counter()
@@ -974,7 +981,7 @@ def _run_gpt_auto(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
 
     chosen = planned.candidate
     assessed = {a.name: a for a in plan.assessments} if plan is not None else {}
-    predicted = plan.predicted() if assessed else math.nan
+    predicted = float(frame.metadata.get(PREDICTED_RELMSE_KEY, "nan")) if assessed else math.nan
     extra: dict[str, Any] = {
         "target_seconds": target, "budget_method": ctx.budget_method, "attempts": 1, "time_search": PLANNED_TIME,
         "time_tries": [(planned.spp, total)], "gradients": chosen.gradients,
@@ -983,7 +990,7 @@ def _run_gpt_auto(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
                                         plan.pilot_seconds if plan is not None else 0.0),
         "plan": chosen.name, "plan_layers": plan_layers_text(chosen, layers), "plan_method": result.method,
         "plan_candidates": {name: _finite_or_none(a.predicted_relmse) for name, a in assessed.items()},
-        "predicted_relmse": _finite_or_none(predicted),
+        "predicted_relmse": _finite_or_none(predicted), "predicted_from": frame.metadata.get("gradsep.predicted_from"),
         "pilot_seconds": plan.pilot_seconds if plan is not None else 0.0,
         "plan_note": plan.note if plan is not None else "", "gradient_spp": planned.gradient_spp,
     }

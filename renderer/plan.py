@@ -45,6 +45,7 @@ import numpy as np
 from gradsep.model.errors import CommandError
 from gradsep.model.frame import PLAN_METHOD_KEY, PREDICTED_RELMSE_KEY, Features, Frame, Layer
 from gradsep.renderer.budget import Clock, Deadline, PassCosts, fill_with_filler, fitted_line
+from gradsep.renderer.check import Half, Split
 from gradsep.renderer.estimate import at_budget, cross_relmse, relative_weights
 from gradsep.renderer.scene import LoadedScene
 
@@ -166,7 +167,7 @@ class Passes:
     """Runs render passes of any candidate on one scene and keeps their sums for the final frame."""
 
     def __init__(self, loaded: LoadedScene, layers: tuple[str, ...], seed: int, shift: str | None = None,
-                 clock: Clock = time.monotonic) -> None:
+                 clock: Clock = time.monotonic, split: bool = False) -> None:
         from gradsep.renderer.gpt import MAX_LANES_PER_PASS
 
         self.loaded, self.layers, self.seed, self.shift_name, self.clock = loaded, layers, seed, shift, clock
@@ -177,6 +178,8 @@ class Passes:
         self.spp = 0
         self.gradients: dict[str, tuple[dict[str, np.ndarray], int]] = {}  # candidate -> (gradient sums, spp)
         self._owned: list[np.ndarray] = []  # the sums arrays this object made (the others are a pass's own)
+        #: with ``split``: every pass also dealt into groups for the frame's own error estimate (renderer/check.py)
+        self.split: Split | None = Split() if split else None
 
     def kind(self, c: Candidate) -> _Kind:
         if c.name not in self.kinds:
@@ -214,6 +217,8 @@ class Passes:
         if grads:
             have, n = self.gradients.get(c.name, (None, 0))
             self.gradients[c.name] = (self._added(have, grads), n + spp)
+        if self.split is not None:
+            self.split.add(c.name, sums, spp)
         # the pass's cost includes adding it to the frame: what the deadline must budget for each pass
         seconds = self.clock() - start
         (kind.costs.first if first else kind.costs.record)(spp, seconds)
@@ -247,6 +252,24 @@ class Passes:
         if window is not None:
             sums = {key: v[window] for key, v in sums.items()}
         return finish(sums, self.kind(c).settings, self.spp, self.index, k or None)
+
+
+    def halves(self, c: Candidate) -> list[Half] | None:
+        """The frame's two halves as ``c``'s frames, with their samples and the other half's groups
+        (renderer/check.py), or None when the passes were not split or a half lacks samples (or ``c``'s
+        gradients)."""
+        from gradsep.renderer.gpt import finish
+
+        grads, k = self.gradients.get(c.name, ({}, 0))
+        q = self.split
+        if q is None or self.bases is None or not q.ready(c.name, c.gradients != "none", k):
+            return None
+        out = []
+        for i, (sums, n, count, gradient_spp) in enumerate(q.halves(c.name, self.bases, grads, self.spp, k)):
+            frame = as_frame(finish(sums, self.kind(c).settings, n, count, gradient_spp))
+            frame.warnings = []
+            out.append((frame, n, q.batches(i)))
+        return out
 
 
 def sums_frame(sums: dict[str, np.ndarray], settings: object, spp: int) -> Frame:
@@ -367,6 +390,7 @@ class Assessment:
     predicted_relmse: float = math.inf
     predicted_se: float = 0.0  # of predicted_relmse (the estimate's noise carried to the budget)
     pass_seconds: float = 0.0  # fixed cost of one of its passes (pass_cost)
+    reconstruct_rate: float = 0.0  # seconds per pixel of its reconstructions (the frame's check: renderer/check.py)
 
     def trace_entry(self) -> dict[str, float | str]:
         """This round's entry of the race's trace (TRACE_KEY)."""
@@ -490,13 +514,17 @@ def run_pilot(passes: Passes, budget_spp: Callable[[Assessment], float], *, pilo
         batches.append((base_image(render(primal, n), n), n))
         images: dict[str, list[np.ndarray]] = {}
         methods: dict[str, str] = {}
+        rates: dict[str, float] = {}  # seconds per pixel of each survivor's reconstructions (this round's)
         for c in alive:
             sums, k = totals[c.name]
             frame = sums_frame(sums, passes.kind(c).settings, k)
             images[c.name] = []
+            began = time.perf_counter()
             for window in windows:
                 image, methods[c.name] = reconstruct(crop(frame, window))
                 images[c.name].append(image)
+            rates[c.name] = (time.perf_counter() - began) / max(1.0, float(sum(im.shape[0] * im.shape[1]
+                                                                                for im in images[c.name])))
         for c in alive:
             errors, errors_se = [], []
             for i, (ys, xs) in enumerate(windows):
@@ -511,7 +539,8 @@ def run_pilot(passes: Passes, budget_spp: Callable[[Assessment], float], *, pilo
             k = totals[c.name][1]
             costs = passes.kind(c).costs
             fixed, per = pass_cost(costs.warm, costs.per_sample)
-            a = Assessment(c.name, k, value, per, methods[c.name], se, pass_seconds=fixed)
+            a = Assessment(c.name, k, value, per, methods[c.name], se, pass_seconds=fixed,
+                           reconstruct_rate=rates[c.name])
             prev = latest.get(c.name)
             a.exponent = EXPONENTS[c.name] if prev is None else measured_exponent(
                 prev.measured_relmse, prev.standard_error, prev.pilot_spp, value, se, k, EXPONENTS[c.name])
@@ -598,18 +627,25 @@ class Planned:
     spp: int
     gradient_spp: int  # samples that traced the chosen plan's gradients (0 for a plain frame)
     passes: int
+    #: the frame's two halves for its own error estimate (renderer/check.py), with their samples; None: no check
+    halves: list[Half] | None = None
 
 
 def render_planned(loaded: LoadedScene, layers: tuple[str, ...], *, seed: int, shift: str | None,
                    fixed: Candidate | None, deadline: Deadline | None = None, spp: int | None = None,
                    progress: Callable[[int, int], None] | None = None,
-                   clock: Clock = time.monotonic) -> Planned:
+                   clock: Clock = time.monotonic,
+                   check: Callable[[Plan], float | None] | None = None) -> Planned:
     """Render ``loaded`` to a deadline (``deadline``) or to ``spp`` samples, with the ``fixed`` plan or (None) the
     plan a pilot chooses. Raises CommandError (nothing rendered is kept) when the deadline cannot fit one pass
-    and the write. The frame's metadata is the caller's (renderer.render.render_metadata) plus :meth:`Plan.metadata`."""
+    and the write. The frame's metadata is the caller's (renderer.render.render_metadata) plus :meth:`Plan.metadata`.
+    ``check`` (a piloted plan only) says, once the plan is chosen, how many seconds the frame's own error estimate
+    needs after the last pass (renderer/check.py: held back from the passes), or None for no estimate; with one,
+    :attr:`Planned.halves` holds the halves it reconstructs."""
     if (deadline is None) == (spp is None):
         raise ValueError("give a deadline or a sample count, not both")
-    passes = Passes(loaded, layers, seed, shift, clock)
+    passes = Passes(loaded, layers, seed, shift, clock, split=fixed is None and check is not None)
+    held: float | None = None  # seconds held back for the frame's check (None: no check)
     write = 0.0  # predicted seconds to assemble, encode and write the frame, measured after its first pass
     measured_at = 0  # passes.index when it was measured (0: never)
     remeasured = False
@@ -624,7 +660,7 @@ def render_planned(loaded: LoadedScene, layers: tuple[str, ...], *, seed: int, s
     def reserve() -> float:  # what must be left when the last pass ends: the write and the interpreter's exit
         nonlocal write, remeasured
         if deadline is not None and deadline.tail is not None:  # an in-process caller's own (Deadline.tail)
-            return deadline.tail
+            return deadline.tail + (held or 0.0)
         if (deadline is not None and len(written) > 1 and not remeasured and passes.index > measured_at
                 and deadline.left() < WRITE_REMEASURE * write):
             # the frame's last passes (the plan is chosen, a pass since the last measurement): measured again, at
@@ -632,7 +668,7 @@ def render_planned(loaded: LoadedScene, layers: tuple[str, ...], *, seed: int, s
             # plan's frame
             remeasured = True
             write = measure_write()
-        return write + exit_seconds()
+        return write + exit_seconds() + (held or 0.0)
 
     def after_first() -> None:  # the start-up check: one pass done, its frame must still be writable in time
         nonlocal write
@@ -663,6 +699,8 @@ def render_planned(loaded: LoadedScene, layers: tuple[str, ...], *, seed: int, s
             else:
                 plan = Plan(fallback(layers), [], 0.0, f"{spp} spp is too few for a pilot")
         chosen = plan.chosen
+        if check is not None and plan.assessments:
+            held = check(plan)
     else:
         chosen = fixed
     written.append(chosen)
@@ -691,7 +729,8 @@ def render_planned(loaded: LoadedScene, layers: tuple[str, ...], *, seed: int, s
                          lambda n: run(n, filler), reserve, passes.max_spp)
     result = passes.frame_result(chosen)
     k = passes.gradients.get(chosen.name, ({}, 0))[1]
-    return Planned(as_frame(result), chosen, plan, passes.spp, k if chosen.gradients != "none" else 0, passes.index)
+    return Planned(as_frame(result), chosen, plan, passes.spp, k if chosen.gradients != "none" else 0, passes.index,
+                   passes.halves(chosen) if held is not None else None)
 
 
 def pilot_spp_for(spp: int, count: int) -> int:

@@ -11,12 +11,19 @@ from __future__ import annotations
 import numbers
 import time
 from collections.abc import Callable, Iterable, Mapping
+from typing import TYPE_CHECKING
+
+import numpy as np
 
 from gradsep.model import __version__
 from gradsep.model.errors import CommandError
 from gradsep.model.frame import ILLUMINATION_LAYERS, OIDN_SETTING_KEY, SEPARATED_LAYERS, Frame
 from gradsep.renderer.budget import Deadline
+from gradsep.renderer.check import PREDICTED_FROM_KEY, check_frame, check_seconds
 from gradsep.renderer.scene import LoadedScene, load_scene
+
+if TYPE_CHECKING:
+    from gradsep.renderer.plan import Plan, Planned
 
 
 def parse_layers(text: str | Iterable[str]) -> tuple[str, ...]:
@@ -198,6 +205,13 @@ FARM_OIDN_EXTRA_SECONDS = 2.2e-6
 FARM_OIDN_SHARE = 0.1
 
 
+#: The frame's own error estimate (renderer/check.py: two reconstructions at the frame's size) is made when its
+#: predicted time is at most this share of a ``--seconds`` budget; elsewhere the header keeps the pilot's
+#: prediction. At 192x192 it is ~3-5 % of a 20 s budget (OIDN prefiltered-high); a 1280x720 frame needs a minute
+#: or more of budget for it.
+CHECK_SHARE = 0.1
+
+
 def reconstruction_setting(width: int, height: int, layers: Iterable[str], gradients: str,
                            seconds: float, light_in_view: bool = False) -> str | None:
     """The OIDN setting a frame rendered to a ``seconds`` budget asks for (model.frame.OIDN_SETTING_KEY), or None
@@ -222,6 +236,47 @@ def has_light_in_view(frame: Frame) -> bool:
         return False
     inlier, _ = split_outliers(direct.base)
     return split_sources(inlier)[1] is not None
+
+
+def check_budget(plan: Plan, width: int, height: int, layers: Iterable[str], seconds: float | None,
+                 farm_setting: bool = True) -> float | None:
+    """Seconds the frame's own error estimate (renderer/check.py) needs after the last pass, or None where it does
+    not fit CHECK_SHARE of a ``seconds`` budget (no budget: always made). With ``farm_setting`` the frame's
+    reconstruction is the one a budget asks for (:func:`reconstruction_setting`; the pilot's used the default)."""
+    a = next(a for a in plan.assessments if a.name == plan.chosen.name)
+    layers = list(layers)
+    if seconds is None:
+        return check_seconds(a.reconstruct_rate, width * height)
+    farm = farm_setting and reconstruction_setting(width, height, layers, plan.chosen.gradients, seconds)
+    needed = check_seconds(a.reconstruct_rate, width * height, FARM_OIDN_EXTRA_SECONDS * len(layers) if farm else 0)
+    return needed if needed <= CHECK_SHARE * seconds else None
+
+
+def frame_check(planned: Planned, metadata: dict[str, str]) -> str:
+    """The frame's own error estimate (renderer/check.py) into ``metadata`` (the frame's, with its plan method
+    and OIDN setting) as its predicted RelMSE, where the render made its halves; else the pilot's prediction
+    stays. ``gradsep.predicted_from`` says which. Returns the summary's clause."""
+    from gradsep.model.frame import PLAN_METHOD_KEY, PREDICTED_RELMSE_KEY
+    from gradsep.model.reconstruct import reconstruct
+    from gradsep.renderer.plan import EXPONENTS
+
+    plan = planned.plan
+    assert plan is not None
+    if not planned.halves:
+        metadata[PREDICTED_FROM_KEY] = "pilot"
+        return f"predicted RelMSE {plan.predicted():.4g} (the pilot's: no time for the frame's own check)"
+    method = metadata.get(PLAN_METHOD_KEY)
+    exponent = EXPONENTS[plan.chosen.name]
+
+    def served(frame: Frame) -> np.ndarray:  # the half as the service would reconstruct the frame
+        frame.metadata = dict(metadata)
+        return reconstruct(frame, method).image
+
+    result = check_frame(planned.halves, planned.spp, exponent, served)
+    metadata[PREDICTED_RELMSE_KEY] = f"{result.relmse:.6g}"
+    metadata[PREDICTED_FROM_KEY] = "frame"
+    metadata.update(result.metadata())
+    return f"predicted RelMSE {result.relmse:.4g} (the frame's halves, {result.seconds:.2f} s)"
 
 
 def render_planned_frame(scene: LoadedScene, *, deadline: Deadline | None, spp: int | None, seed: int = 0,
@@ -263,8 +318,10 @@ def render_planned_frame(scene: LoadedScene, *, deadline: Deadline | None, spp: 
     except ValueError as exc:
         raise CommandError(str(exc)) from None
     start = time.perf_counter()
-    planned = render_planned(scene, wanted, seed=seed, shift=shift, fixed=fixed, deadline=deadline, spp=spp,
-                             progress=progress)
+    planned = render_planned(
+        scene, wanted, seed=seed, shift=shift, fixed=fixed, deadline=deadline, spp=spp, progress=progress,
+        check=lambda plan: check_budget(plan, scene.width, scene.height, wanted,
+                                        deadline.seconds if deadline is not None else None))
     seconds = time.perf_counter() - start
     chosen = planned.candidate
     metadata = render_metadata(scene, spp=planned.spp, seed=seed,
@@ -289,6 +346,9 @@ def render_planned_frame(scene: LoadedScene, *, deadline: Deadline | None, spp: 
         if setting:
             metadata[OIDN_SETTING_KEY] = setting
             summary += f"; reconstruct with OIDN {setting}"
+    if planned.plan is not None and planned.plan.assessments:
+        summary += "; " + frame_check(planned, metadata)
+    if deadline is not None:
         metadata[ELAPSED_KEY] = f"{deadline.elapsed():.3f}"
     frame = planned.frame
     frame.metadata = metadata

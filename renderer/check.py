@@ -1,0 +1,158 @@
+"""The frame's own error estimate (``gradsep.predicted_relmse`` of a planned frame): the final frame's passes,
+dealt into GROUPS groups as they are rendered, judge each half of the frame against the other half's groups.
+
+The pilot's prediction (renderer/plan.py) is read at a tenth of the frame's samples and carried ~10x in samples
+with an assumed error-vs-spp law; held-out rooms showed it heavy-tailed (within 1.5x of the measured RelMSE on 3
+of 16 frames). Here the estimate is read at the frame's own samples instead:
+
+- every render pass goes to the group with the fewest samples so far (the first half of the groups is half ``A``,
+  the rest half ``B``); ``A``'s sums are kept whole (bases, features, squares and each plan's gradients), ``B``'s
+  are the frame's less ``A``'s, and each group keeps its base image;
+- each half is reconstructed with the method (and OIDN setting) that serves the frame, and its error estimated
+  against the groups of the other half, which are independent of it (renderer.estimate.cross_relmse: no
+  reference, bias included; with k groups the estimate's noise from the groups' own noise is k / (k - 1) of its
+  least, so 2x with two groups and 1.33x with four);
+- each half's estimate is carried from its samples to the frame's with the prior error-vs-spp exponent of the
+  plan (renderer.plan.EXPONENTS: the pilot's slope, read at a tenth of the samples, is too noisy for a factor of
+  two), and the two are averaged.
+
+It costs two reconstructions at the frame's size (:func:`check_seconds` predicts them from the pilot's), so a
+render makes it only where they fit a small share of the budget (renderer.render.CHECK_SHARE); elsewhere the
+header keeps the pilot's prediction, and ``gradsep.predicted_from`` says which it is.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from gradsep.renderer.estimate import at_budget, cross_relmse, relative_weights
+
+#: Header key: where ``gradsep.predicted_relmse`` comes from: ``frame`` (this module) or ``pilot`` (renderer/plan.py).
+PREDICTED_FROM_KEY = "gradsep.predicted_from"
+#: Header key: the check's figures (JSON): per half its samples, estimated RelMSE and standard error, the exponent
+#: it was carried with, and the check's seconds.
+#: Groups the passes are dealt into: half of them make each half of the frame.
+GROUPS = 8
+CHECK_KEY = "gradsep.frame_check"
+#: The check's predicted time is the pilot's reconstruction time per pixel times the frame's pixels, twice (one
+#: per half), times this margin (a shared machine's swings; the pilot's tiles are too small to time exactly).
+CHECK_MARGIN = 1.5
+
+
+class Split:
+    """A frame's passes dealt into GROUPS groups as they are rendered (see the module's docstring)."""
+
+    def __init__(self) -> None:
+        self.spp = [0] * GROUPS
+        self.passes = [0] * GROUPS
+        self.images: list[np.ndarray | None] = [None] * GROUPS  # each group's base image, summed over its samples
+        self.half: dict[str, np.ndarray] | None = None  # half A's bases, features and squares (sums)
+        self.half_gradients: dict[str, tuple[dict[str, np.ndarray], int]] = {}  # plan -> (A's gradient sums, spp)
+
+    def add(self, plan: str, sums: dict[str, np.ndarray], spp: int) -> None:
+        """Deal one pass (its sums over ``spp`` samples, rendered with ``plan``) to the group with the fewest
+        samples. The pass's arrays are never written to."""
+        q = int(np.argmin(self.spp))
+        image = sum(v for k, v in sums.items() if k.endswith(".base"))
+        self.images[q] = image if self.images[q] is None else self.images[q] + image
+        self.spp[q] += spp
+        self.passes[q] += 1
+        if q >= GROUPS // 2:
+            return
+        bases = {k: v for k, v in sums.items() if ".grad" not in k}
+        self.half = _add(self.half, bases)
+        grads = {k: v for k, v in sums.items() if ".grad" in k}
+        if grads:
+            have, n = self.half_gradients.get(plan, (None, 0))
+            self.half_gradients[plan] = (_add(have, grads), n + spp)
+
+    def ready(self, plan: str, gradients: bool, total_gradient_spp: int) -> bool:
+        """Whether both halves can be judged: each half has samples in two groups or more, and with ``gradients``
+        some of ``plan``'s gradient samples."""
+        h = GROUPS // 2
+        if self.half is None or min(sum(n > 0 for n in self.spp[:h]), sum(n > 0 for n in self.spp[h:])) < 2:
+            return False
+        if not gradients:
+            return True
+        a = self.half_gradients.get(plan, ({}, 0))[1]
+        return 0 < a < total_gradient_spp
+
+    def halves(self, plan: str, bases: dict[str, np.ndarray], gradients: dict[str, np.ndarray], spp: int,
+               gradient_spp: int) -> list[tuple[dict[str, np.ndarray], int, int, int | None]]:
+        """Both halves as (sums, spp, passes, gradient spp or None), from the frame's ``bases`` and ``plan``'s
+        ``gradients`` (sums over ``spp`` and ``gradient_spp`` samples)."""
+        assert self.half is not None
+        a_grads, a_n = self.half_gradients.get(plan, ({}, 0))
+        h = GROUPS // 2
+        a_spp, a_passes = sum(self.spp[:h]), sum(self.passes[:h])
+        b_passes = sum(self.passes[h:])
+        half_a = {**self.half, **a_grads}
+        half_b = {k: v - self.half[k] for k, v in bases.items()}
+        half_b.update({k: v - a_grads[k] for k, v in gradients.items()})
+        grad = bool(gradients)
+        return [(half_a, a_spp, a_passes, a_n if grad else None),
+                (half_b, spp - a_spp, b_passes, gradient_spp - a_n if grad else None)]
+
+    def batches(self, half: int) -> list[tuple[np.ndarray, int]]:
+        """The other half's groups that have samples, as mean images with their samples: independent of
+        ``half``."""
+        h = GROUPS // 2
+        others = range(h, GROUPS) if half == 0 else range(h)
+        return [(self.images[q] / self.spp[q], self.spp[q]) for q in others if self.spp[q]]  # type: ignore[operator]
+
+
+def check_seconds(reconstruct_rate: float, pixels: int, extra_per_pixel: float = 0.0) -> float:
+    """Predicted seconds of :func:`check_frame` on a frame of ``pixels``: two reconstructions at the pilot's
+    measured ``reconstruct_rate`` (seconds per pixel) plus ``extra_per_pixel`` (what the frame's OIDN setting adds
+    over the pilot's), with CHECK_MARGIN."""
+    return 2.0 * CHECK_MARGIN * pixels * (max(reconstruct_rate, 0.0) + max(extra_per_pixel, 0.0))
+
+
+def _add(total: dict[str, np.ndarray] | None, sums: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    if total is None:
+        return {k: np.array(v, dtype=np.float64, copy=True) for k, v in sums.items()}
+    for k, v in total.items():
+        np.add(v, sums[k], out=v)
+    return total
+
+
+@dataclass
+class Check:
+    """The frame's own error estimate."""
+
+    relmse: float  # the whole frame's reconstruction, estimated (the halves' carried estimates, averaged)
+    halves: list[tuple[int, float, float]]  # per half: samples, estimated RelMSE of its reconstruction, standard error
+    exponent: float  # error-vs-spp exponent each half's estimate was carried to the frame's samples with
+    seconds: float
+
+    def metadata(self) -> dict[str, str]:
+        return {CHECK_KEY: json.dumps({"halves": [[n, float(f"{e:.4g}"), float(f"{s:.3g}")] for n, e, s in self.halves],
+                                       "exponent": round(self.exponent, 3), "seconds": round(self.seconds, 3)},
+                                      separators=(",", ":"))}
+
+
+#: One half of a frame for :func:`check_frame`: its Frame, its samples, and the other half's groups (mean images
+#: with their samples: :meth:`Split.batches`).
+Half = tuple[Any, int, list[tuple[np.ndarray, int]]]
+
+
+def check_frame(halves: list[Half], spp: int, exponent: float, reconstruct: Callable[[Any], np.ndarray],
+                clock: Callable[[], float] = time.perf_counter) -> Check:
+    """Estimate the frame's reconstructed RelMSE from its two ``halves``, each reconstructed with ``reconstruct``
+    and judged against the other half's groups, then carried to the frame's ``spp`` with ``exponent``. An
+    estimate lost in the other half's noise counts as its noise (as the pilot's: renderer.plan.run_pilot)."""
+    start = clock()
+    figures: list[tuple[int, float, float]] = []
+    carried: list[float] = []
+    for frame, n, batches in halves:
+        image = np.asarray(reconstruct(frame), dtype=np.float64)
+        value, se = cross_relmse(image, batches, relative_weights(image))
+        figures.append((n, value, se))
+        carried.append(at_budget(max(value, se), n, spp, exponent))
+    return Check(float(np.mean(carried)), figures, exponent, clock() - start)

@@ -1,0 +1,133 @@
+"""The frame's own error estimate (renderer/check.py): passes dealt into groups, the two halves of a frame, and
+the estimate itself on images whose error is known. The estimate's accuracy on rendered frames against
+references is benchmarks/bench_planner.py's ``predict``."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from gradsep.model.metrics import RELMSE_EPSILON
+from gradsep.renderer.check import CHECK_MARGIN, GROUPS, Split, check_frame, check_seconds
+from gradsep.renderer.estimate import at_budget
+from tests.renderer.scenes import resolve
+
+
+def fake_pass(rng: np.random.Generator, spp: int, gradients: bool) -> dict[str, np.ndarray]:
+    sums = {"direct.base": rng.random((4, 5, 3)) * spp, "direct.sq": rng.random((4, 5, 1)) * spp,
+            "albedo": rng.random((4, 5, 3)) * spp}
+    if gradients:
+        sums["direct.grad0"] = rng.standard_normal((4, 5, 3)) * spp
+    return sums
+
+
+def test_passes_go_to_the_group_with_fewest_samples_and_the_halves_add_up_to_the_frame():
+    rng = np.random.default_rng(1)
+    q = Split()
+    sizes = [1, 1, 8, 8, 8, 8, 32, 32, 7, 3, 16, 16, 2]
+    # primal passes (False) fill the bases only
+    kinds = [False, True, True, False, True, True, True, True, True, False, True, True, False]
+    total: dict[str, np.ndarray] = {}
+    grads: dict[str, np.ndarray] = {}
+    gradient_spp = 0
+    for spp, g in zip(sizes, kinds, strict=True):
+        before = list(q.spp)
+        sums = fake_pass(rng, spp, g)
+        kept = {k: v.copy() for k, v in sums.items()}
+        q.add("direct", sums, spp)
+        assert all(np.array_equal(sums[k], kept[k]) for k in sums)  # the pass's own arrays are never written
+        target = int(np.argmin(before))
+        assert q.spp[target] == before[target] + spp
+        for k, v in sums.items():
+            (grads if ".grad" in k else total)[k] = (grads if ".grad" in k else total).get(k, 0.0) + v
+        gradient_spp += spp if g else 0
+    assert sum(q.spp) == sum(sizes) and sum(q.passes) == len(sizes)
+    assert q.ready("direct", True, gradient_spp)
+    (a, na, pa, ga), (b, nb, pb, gb) = q.halves("direct", total, grads, sum(sizes), gradient_spp)
+    assert na + nb == sum(sizes) and pa + pb == len(sizes) and ga + gb == gradient_spp and ga > 0 and gb > 0
+    for k in total:
+        np.testing.assert_allclose(a[k] + b[k], total[k], rtol=1e-12)
+    np.testing.assert_allclose(a["direct.grad0"] + b["direct.grad0"], grads["direct.grad0"], rtol=1e-12)
+    h = GROUPS // 2
+    for half, others in ((0, range(h, GROUPS)), (1, range(h))):  # judged against the other half's groups only
+        assert [n for _, n in q.batches(half)] == [q.spp[i] for i in others]
+
+
+def test_a_half_without_samples_or_gradients_is_not_ready():
+    rng = np.random.default_rng(2)
+    q = Split()
+    for _ in range(GROUPS // 2 + 1):
+        q.add("direct", fake_pass(rng, 4, True), 4)
+    assert not q.ready("direct", True, 4 * (GROUPS // 2 + 1))  # half B has one group with samples
+    q.add("primal", fake_pass(rng, 4, False), 4)
+    assert q.ready("primal", False, 0)
+    assert q.ready("direct", True, 4 * (GROUPS // 2 + 1))
+    q2 = Split()
+    for i in range(GROUPS):  # only half B's passes traced gradients
+        q2.add("direct", fake_pass(rng, 4, i >= GROUPS // 2), 4)
+    assert not q2.ready("direct", True, 4 * GROUPS // 2)
+
+
+@pytest.mark.parametrize("scale", [1e-6, 1.0, 1e5])
+def test_the_estimate_finds_a_known_error_at_any_scale(scale):
+    """Quarters of truth + noise; a 'reconstruction' 10 % too bright: the estimate is the reconstruction's
+    RelMSE-weighted error (w = 1 / (R^2 + eps)), carried from each half's samples."""
+    rng = np.random.default_rng(3)
+    truth = (0.5 + rng.random((96, 96, 3))) * scale
+    q = Split()
+    for _ in range(GROUPS):
+        noisy = truth + rng.standard_normal(truth.shape) * 0.05 * truth
+        q.add("primal", {"direct.base": noisy * 16, "direct.sq": np.zeros((96, 96, 1))}, 16)
+    halves = [(object(), 64, q.batches(0)), (object(), 64, q.batches(1))]
+    result = check_frame(halves, 128, 0.5, lambda frame: 1.1 * truth)
+    expected = float(np.mean((0.1 * truth) ** 2 / ((1.1 * truth) ** 2 + RELMSE_EPSILON)))
+    for n, value, se in result.halves:
+        assert n == 64 and value == pytest.approx(expected, rel=0.1) and se < 0.1 * expected
+    assert result.relmse == pytest.approx(np.mean([at_budget(v, 64, 128, 0.5) for _, v, _ in result.halves]))
+    assert result.relmse == pytest.approx(expected * 0.5 ** 0.5, rel=0.1)
+    meta = json.loads(result.metadata()["gradsep.frame_check"])
+    assert [h[0] for h in meta["halves"]] == [64, 64] and meta["exponent"] == 0.5
+
+
+def test_an_exact_reconstruction_counts_as_the_estimates_noise_never_below_zero():
+    rng = np.random.default_rng(4)
+    truth = 0.5 + rng.random((64, 64, 3))
+    q = Split()
+    for _ in range(GROUPS):
+        q.add("primal", {"direct.base": (truth + 0.1 * rng.standard_normal(truth.shape)) * 4,
+                         "direct.sq": np.zeros((64, 64, 1))}, 4)
+    n = 2 * GROUPS
+    result = check_frame([(None, n, q.batches(0)), (None, n, q.batches(1))], 2 * n, 0.5, lambda frame: truth)
+    assert result.relmse > 0 and all(result.relmse <= 3 * se for _, _, se in result.halves)
+
+
+def test_the_check_time_is_two_reconstructions_with_a_margin():
+    assert check_seconds(1e-6, 1000) == pytest.approx(2 * CHECK_MARGIN * 1e-3)
+    assert check_seconds(1e-6, 1000, 1e-6) == pytest.approx(2 * 2 * CHECK_MARGIN * 1e-3)
+    assert check_seconds(-1.0, 1000) == 0.0
+
+
+@pytest.mark.render
+def test_rendered_halves_are_the_frame_split_in_two():
+    """A split render's two halves: their samples make the frame's, and their bases, weighted by samples, are the
+    frame's bases; each half's gradients average only that half's gradient passes."""
+    from gradsep.renderer.plan import Passes, candidate
+    from gradsep.renderer.scene import load_scene
+
+    scene = load_scene(str(resolve("cbox")), width=16, height=12)
+    passes = Passes(scene, ("direct", "indirect"), seed=5, split=True)
+    for c, n in (("direct-alternate", 1), ("primal", 1), ("direct-alternate", 4), ("direct-alternate", 4),
+                 ("primal", 3), ("direct-alternate", 2), ("direct-alternate", 2), ("primal", 1),
+                 ("direct-alternate", 3), ("direct-alternate", 1)):
+        passes.run(candidate(c), n)
+    chosen = candidate("direct-alternate")
+    halves = passes.halves(chosen)
+    assert halves is not None and sum(n for _, n, _ in halves) == passes.spp == 22
+    frame = passes.frame_result(chosen)
+    for layer in ("direct", "indirect"):
+        mixed = sum(n * h.layers[layer].base.astype(np.float64) for h, n, _ in halves) / passes.spp
+        np.testing.assert_allclose(mixed, frame.layers[layer]["base"], rtol=1e-4, atol=1e-6)
+    assert all(h.layers["direct"].has_gradients and not h.layers["indirect"].has_gradients for h, _, _ in halves)
+    assert Passes(scene, ("direct", "indirect"), seed=5).halves(chosen) is None  # not split: no halves
