@@ -5,16 +5,16 @@ The pilot's prediction (renderer/plan.py) is read at a tenth of the frame's samp
 with an assumed error-vs-spp law; held-out rooms showed it heavy-tailed (within 1.5x of the measured RelMSE on 3
 of 16 frames). Here the estimate is read at the frame's own samples instead:
 
-- every render pass goes to the group with the fewest samples so far (the first half of the groups is half ``A``,
-  the rest half ``B``); ``A``'s sums are kept whole (bases, features, squares and each plan's gradients), ``B``'s
-  are the frame's less ``A``'s, and each group keeps its base image;
+- every render pass goes to the half with fewer samples so far, and there to its group with the fewest (the first
+  half of the groups is half ``A``, the rest half ``B``); ``A``'s sums are kept whole (bases, features, squares
+  and each plan's gradients), ``B``'s are the frame's less ``A``'s, and each group keeps its base image;
 - each half is reconstructed with the method (and OIDN setting) that serves the frame, and its error estimated
   against the groups of the other half, which are independent of it (renderer.estimate.cross_relmse: no
   reference, bias included; with k groups the estimate's noise from the groups' own noise is k / (k - 1) of its
   least, so 2x with two groups and 1.33x with four);
-- each half's estimate is carried from its samples to the frame's with the prior error-vs-spp exponent of the
-  plan (renderer.plan.EXPONENTS: the pilot's slope, read at a tenth of the samples, is too noisy for a factor of
-  two), and the two are averaged.
+- each half's estimate is carried from its samples to the frame's (a factor of about two) with the error-vs-spp
+  exponent the pilot read for the plan (its prior weighed against the slope between its rounds:
+  renderer.plan.measured_exponent), and the two are averaged.
 
 It costs two reconstructions at the frame's size (:func:`check_seconds` predicts them from the pilot's), so a
 render makes it only where they fit a small share of the budget (renderer.render.CHECK_SHARE); elsewhere the
@@ -41,8 +41,9 @@ PREDICTED_FROM_KEY = "gradsep.predicted_from"
 GROUPS = 8
 CHECK_KEY = "gradsep.frame_check"
 #: The check's predicted time is the pilot's reconstruction time per pixel times the frame's pixels, twice (one
-#: per half), times this margin (a shared machine's swings; the pilot's tiles are too small to time exactly).
-CHECK_MARGIN = 1.5
+#: per half), times this margin (a shared machine's swings; the pilot's tiles are too small to time exactly: at
+#: 320x240 under load two reconstructions with OIDN prefiltered-high took 1.4x what 1.5 of the tiles' time held).
+CHECK_MARGIN = 2.0
 
 
 class Split:
@@ -56,9 +57,12 @@ class Split:
         self.half_gradients: dict[str, tuple[dict[str, np.ndarray], int]] = {}  # plan -> (A's gradient sums, spp)
 
     def add(self, plan: str, sums: dict[str, np.ndarray], spp: int) -> None:
-        """Deal one pass (its sums over ``spp`` samples, rendered with ``plan``) to the group with the fewest
-        samples. The pass's arrays are never written to."""
-        q = int(np.argmin(self.spp))
+        """Deal one pass (its sums over ``spp`` samples, rendered with ``plan``) to the half with fewer samples
+        (A on a tie), and there to its group with the fewest: the halves stay within one pass of each other even
+        when the frame ends in a few large passes. The pass's arrays are never written to."""
+        h = GROUPS // 2
+        first = 0 if sum(self.spp[:h]) <= sum(self.spp[h:]) else h
+        q = first + int(np.argmin(self.spp[first:first + h]))
         image = sum(v for k, v in sums.items() if k.endswith(".base"))
         self.images[q] = image if self.images[q] is None else self.images[q] + image
         self.spp[q] += spp
@@ -130,10 +134,13 @@ class Check:
     halves: list[tuple[int, float, float]]  # per half: samples, estimated RelMSE of its reconstruction, standard error
     exponent: float  # error-vs-spp exponent each half's estimate was carried to the frame's samples with
     seconds: float
+    predicted_seconds: float | None = None  # what the render held back for it (None: no deadline)
 
     def metadata(self) -> dict[str, str]:
         return {CHECK_KEY: json.dumps({"halves": [[n, float(f"{e:.4g}"), float(f"{s:.3g}")] for n, e, s in self.halves],
-                                       "exponent": round(self.exponent, 3), "seconds": round(self.seconds, 3)},
+                                       "exponent": round(self.exponent, 3), "seconds": round(self.seconds, 3),
+                                       "held_seconds": None if self.predicted_seconds is None
+                                       else round(self.predicted_seconds, 3)},
                                       separators=(",", ":"))}
 
 

@@ -629,6 +629,7 @@ class Planned:
     passes: int
     #: the frame's two halves for its own error estimate (renderer/check.py), with their samples; None: no check
     halves: list[Half] | None = None
+    check_seconds: float | None = None  # what was held back for the check after the last pass
 
 
 def render_planned(loaded: LoadedScene, layers: tuple[str, ...], *, seed: int, shift: str | None,
@@ -730,7 +731,7 @@ def render_planned(loaded: LoadedScene, layers: tuple[str, ...], *, seed: int, s
     result = passes.frame_result(chosen)
     k = passes.gradients.get(chosen.name, ({}, 0))[1]
     return Planned(as_frame(result), chosen, plan, passes.spp, k if chosen.gradients != "none" else 0, passes.index,
-                   passes.halves(chosen) if held is not None else None)
+                   passes.halves(chosen) if held is not None else None, held)
 
 
 def pilot_spp_for(spp: int, count: int) -> int:

@@ -258,7 +258,6 @@ def frame_check(planned: Planned, metadata: dict[str, str]) -> str:
     stays. ``gradsep.predicted_from`` says which. Returns the summary's clause."""
     from gradsep.model.frame import PLAN_METHOD_KEY, PREDICTED_RELMSE_KEY
     from gradsep.model.reconstruct import reconstruct
-    from gradsep.renderer.plan import EXPONENTS
 
     plan = planned.plan
     assert plan is not None
@@ -266,13 +265,14 @@ def frame_check(planned: Planned, metadata: dict[str, str]) -> str:
         metadata[PREDICTED_FROM_KEY] = "pilot"
         return f"predicted RelMSE {plan.predicted():.4g} (the pilot's: no time for the frame's own check)"
     method = metadata.get(PLAN_METHOD_KEY)
-    exponent = EXPONENTS[plan.chosen.name]
+    exponent = next(a.exponent for a in plan.assessments if a.name == plan.chosen.name)
 
     def served(frame: Frame) -> np.ndarray:  # the half as the service would reconstruct the frame
         frame.metadata = dict(metadata)
         return reconstruct(frame, method).image
 
     result = check_frame(planned.halves, planned.spp, exponent, served)
+    result.predicted_seconds = planned.check_seconds
     metadata[PREDICTED_RELMSE_KEY] = f"{result.relmse:.6g}"
     metadata[PREDICTED_FROM_KEY] = "frame"
     metadata.update(result.metadata())

@@ -23,7 +23,7 @@ def fake_pass(rng: np.random.Generator, spp: int, gradients: bool) -> dict[str, 
     return sums
 
 
-def test_passes_go_to_the_group_with_fewest_samples_and_the_halves_add_up_to_the_frame():
+def test_passes_go_to_the_smaller_half_and_its_emptiest_group_and_the_halves_add_up_to_the_frame():
     rng = np.random.default_rng(1)
     q = Split()
     sizes = [1, 1, 8, 8, 8, 8, 32, 32, 7, 3, 16, 16, 2]
@@ -38,12 +38,19 @@ def test_passes_go_to_the_group_with_fewest_samples_and_the_halves_add_up_to_the
         kept = {k: v.copy() for k, v in sums.items()}
         q.add("direct", sums, spp)
         assert all(np.array_equal(sums[k], kept[k]) for k in sums)  # the pass's own arrays are never written
-        target = int(np.argmin(before))
+        h = GROUPS // 2
+        first = 0 if sum(before[:h]) <= sum(before[h:]) else h
+        target = first + int(np.argmin(before[first:first + h]))
         assert q.spp[target] == before[target] + spp
+        assert abs(sum(q.spp[:h]) - sum(q.spp[h:])) <= max(sizes)  # the halves within one pass of each other
         for k, v in sums.items():
             (grads if ".grad" in k else total)[k] = (grads if ".grad" in k else total).get(k, 0.0) + v
         gradient_spp += spp if g else 0
     assert sum(q.spp) == sum(sizes) and sum(q.passes) == len(sizes)
+    big = Split()  # a frame that ends in two large passes: one to each half
+    for spp in (1, 1, 1, 1, 2, 2, 2, 2, 100, 100):
+        big.add("primal", fake_pass(rng, spp, False), spp)
+    assert sum(big.spp[:h]) == sum(big.spp[h:]) == 106
     assert q.ready("direct", True, gradient_spp)
     (a, na, pa, ga), (b, nb, pb, gb) = q.halves("direct", total, grads, sum(sizes), gradient_spp)
     assert na + nb == sum(sizes) and pa + pb == len(sizes) and ga + gb == gradient_spp and ga > 0 and gb > 0
@@ -58,15 +65,16 @@ def test_passes_go_to_the_group_with_fewest_samples_and_the_halves_add_up_to_the
 def test_a_half_without_samples_or_gradients_is_not_ready():
     rng = np.random.default_rng(2)
     q = Split()
-    for _ in range(GROUPS // 2 + 1):
+    for _ in range(3):  # equal passes alternate between the halves: A, B, A
         q.add("direct", fake_pass(rng, 4, True), 4)
-    assert not q.ready("direct", True, 4 * (GROUPS // 2 + 1))  # half B has one group with samples
+    assert not q.ready("direct", True, 12)  # half B has one group with samples
     q.add("primal", fake_pass(rng, 4, False), 4)
     assert q.ready("primal", False, 0)
-    assert q.ready("direct", True, 4 * (GROUPS // 2 + 1))
+    assert q.ready("direct", True, 12)
     q2 = Split()
-    for i in range(GROUPS):  # only half B's passes traced gradients
-        q2.add("direct", fake_pass(rng, 4, i >= GROUPS // 2), 4)
+    for i in range(GROUPS):  # only half B's passes (every second one) traced gradients
+        q2.add("direct", fake_pass(rng, 4, i % 2 == 1), 4)
+    assert sum(q2.spp[:GROUPS // 2]) == sum(q2.spp[GROUPS // 2:])
     assert not q2.ready("direct", True, 4 * GROUPS // 2)
 
 
