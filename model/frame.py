@@ -787,6 +787,13 @@ WARNINGS_LIMIT = 2000  # characters of gradsep.warnings in the header
 #: it would state some other method's error.
 PREDICTED_RELMSE_KEY = "gradsep.predicted_relmse"
 PLAN_METHOD_KEY = "gradsep.plan_method"
+#: Where the prediction comes from (``frame``: the frame's own halves, renderer/check.py; ``pilot``) and the
+#: frame check's figures (JSON: per half its samples, estimated RelMSE and standard error; the error-vs-spp
+#: exponent it was carried with; the check's seconds and what the render held back for it). Both describe
+#: PREDICTED_RELMSE_KEY and travel with it.
+PREDICTED_FROM_KEY = "gradsep.predicted_from"
+CHECK_KEY = "gradsep.frame_check"
+PREDICTION_KEYS = (PREDICTED_RELMSE_KEY, PREDICTED_FROM_KEY, CHECK_KEY)
 
 
 def encode_answer(frame: Frame, channels: Mapping[str, np.ndarray], *, half: bool = False,
@@ -811,7 +818,7 @@ def encode_answer(frame: Frame, channels: Mapping[str, np.ndarray], *, half: boo
     carried = {k: v for k, v in frame.metadata.items() if k not in ANSWER_KEYS and k not in IMAGE_ATTRIBUTES}
     own = dict(metadata or {})
     if PREDICTED_RELMSE_KEY in carried and own.get("gradsep.method") != carried.get(PLAN_METHOD_KEY):
-        del carried[PREDICTED_RELMSE_KEY]
+        carried = {k: v for k, v in carried.items() if k not in PREDICTION_KEYS}
     if frame.layout != "gradsep":
         own["gradsep.channels"] = frame.layout
 

@@ -31,15 +31,11 @@ from typing import Any
 
 import numpy as np
 
+from gradsep.model.frame import CHECK_KEY
 from gradsep.renderer.estimate import at_budget, cross_relmse, relative_weights
 
-#: Header key: where ``gradsep.predicted_relmse`` comes from: ``frame`` (this module) or ``pilot`` (renderer/plan.py).
-PREDICTED_FROM_KEY = "gradsep.predicted_from"
-#: Header key: the check's figures (JSON): per half its samples, estimated RelMSE and standard error, the exponent
-#: it was carried with, and the check's seconds.
 #: Groups the passes are dealt into: half of them make each half of the frame.
 GROUPS = 8
-CHECK_KEY = "gradsep.frame_check"
 #: The check's predicted time is the pilot's reconstruction time per pixel times the frame's pixels, twice (one
 #: per half), times this margin (a shared machine's swings; the pilot's tiles are too small to time exactly: at
 #: 320x240 under load two reconstructions with OIDN prefiltered-high took 1.4x what 1.5 of the tiles' time held).

@@ -17,9 +17,15 @@ import numpy as np
 
 from gradsep.model import __version__
 from gradsep.model.errors import CommandError
-from gradsep.model.frame import ILLUMINATION_LAYERS, OIDN_SETTING_KEY, SEPARATED_LAYERS, Frame
+from gradsep.model.frame import (
+    ILLUMINATION_LAYERS,
+    OIDN_SETTING_KEY,
+    PREDICTED_FROM_KEY,
+    SEPARATED_LAYERS,
+    Frame,
+)
 from gradsep.renderer.budget import Deadline
-from gradsep.renderer.check import PREDICTED_FROM_KEY, check_frame, check_seconds
+from gradsep.renderer.check import check_frame, check_seconds
 from gradsep.renderer.scene import LoadedScene, load_scene
 
 if TYPE_CHECKING:

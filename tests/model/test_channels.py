@@ -283,10 +283,12 @@ def test_a_real_mitsuba_aov_render_is_read_as_color_with_features(tmp_path: Path
 def test_a_planned_frames_predicted_error_is_carried_only_for_its_method(method: str, kept: bool) -> None:
     """A planned render's gradsep.predicted_relmse predicts the error of gradsep.plan_method's reconstruction: an
     answer made with that method carries it, an answer made with another method does not (it would be wrong)."""
-    header = {"gradsep.predicted_relmse": "0.0123", "gradsep.plan_method": "oidn-l1", "gradsep.plan": "all"}
+    header = {"gradsep.predicted_relmse": "0.0123", "gradsep.plan_method": "oidn-l1", "gradsep.plan": "all",
+              "gradsep.predicted_from": "frame", "gradsep.frame_check": '{"halves":[[8,0.01,0.002]]}'}
     frame = read_frame(_exr(_beauty(alpha=False), header))
     answer = OpenEXR.File(io.BytesIO(encode_answer(frame, rgb_channels("", frame.layers["color"].base),
                                                    metadata={"gradsep.method": method})), header_only=True)
     out = answer.header()
     assert ("gradsep.predicted_relmse" in out) is kept
+    assert ("gradsep.predicted_from" in out) is kept and ("gradsep.frame_check" in out) is kept  # they describe it
     assert out["gradsep.plan"] == "all" and out["gradsep.plan_method"] == "oidn-l1"
