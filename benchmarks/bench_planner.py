@@ -20,6 +20,16 @@
     # another validate cache: this cache's frames over its, both reconstructed today
     python benchmarks/bench_planner.py rescore [--setting prefiltered-high] [--cache ...] [--against CACHE]
 
+    # the frame's own error estimate (renderer/check.py): `--gradients auto` frames with --seconds T, their
+    # gradsep.predicted_relmse and the pilot's prediction against the measured RelMSE, and the OIDN setting their
+    # halves chose against the better one measured
+    python benchmarks/bench_planner.py predict [--scenes ...] [--size 192] [--seconds 20] [--seeds 10,11]
+        [--ref-spp 1024] [--cache ...]
+
+    # the OIDN setting a frame's halves choose (raw-fast or prefiltered-high) against the better one measured, at a
+    # fixed sample count, in one process
+    python benchmarks/bench_planner.py choose [--scenes ...] [--plan primal] [--spp 960] [--cache ...]
+
     # a plain-frame plan's cost against Mitsuba's `path` (same scene, size, spp, depth, box filter): a whole frame
     # and the marginal cost of a sample (frames of spp and 2 spp)
     python benchmarks/bench_planner.py cost [--scenes procedural:93201,procedural:studio:93201]
@@ -90,6 +100,7 @@ import statistics
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 #: The fixed pipelines auto is judged against (issue 39): separated primal + oidn per layer, G-PT direct/alternate
@@ -470,6 +481,7 @@ def predict(args: argparse.Namespace) -> None:
                 if None in refs:
                     continue
                 row["relmse"] = measured_relmse(cache / row["file"], tuple(refs))  # type: ignore[arg-type]
+                row.update(_setting_choice(cache / row["file"], tuple(refs)))  # type: ignore[arg-type]
                 path.write_text(json.dumps(rows, indent=1))
             print(f"{key}: {row['wall']:.1f} s, {row['spp']} spp, plan {row['plan']}, predicted "
                   f"{row['predicted']:.3g} ({row['from']}), pilot {row['pilot']:.3g}, measured "
@@ -486,6 +498,107 @@ def predict(args: argparse.Namespace) -> None:
             inside = sum(1 / 1.5 <= x <= 1.5 for x in ratios)
             cols.append(f"{inside}/{len(ratios)} | {ratios[len(ratios) // 2]:.2f}" if ratios else "- | -")
         print(f"| {fam} | {len(rs)} | " + " | ".join(cols) + " |")
+    chose = [r for r in scored if r.get("by_setting")]
+    if chose:
+        print("\nOIDN setting, RelMSE over the better of raw-fast and prefiltered-high per frame (geometric mean, "
+              "worst; frames where the halves compared both):\n")
+        print("| family | frames | as served (the halves' choice) | the fixed rule's | always raw-fast | "
+              "always prefiltered-high | the choice changed the rule's on |")
+        print("|---|---:|---:|---:|---:|---:|---:|")
+        for fam in sorted({family(r["scene"]) for r in chose}):
+            rs = [r for r in chose if family(r["scene"]) == fam]
+
+            def over_best(pick: Callable[[dict], str], rs: list[dict] = rs) -> str:
+                v = [r["by_setting"][pick(r)] / min(r["by_setting"].values()) for r in rs]
+                return f"{math.exp(sum(map(math.log, v)) / len(v)):.3f} ({max(v):.2f})"
+            print(f"| {fam} | {len(rs)} | {over_best(lambda r: r['served_setting'])} | "
+                  f"{over_best(lambda r: r['rule_setting'])} | {over_best(lambda r: 'raw-fast')} | "
+                  f"{over_best(lambda r: 'prefiltered-high')} | "
+                  f"{sum(r['served_setting'] != r['rule_setting'] for r in rs)} |")
+
+
+def choose(args: argparse.Namespace) -> None:
+    """The OIDN setting the frame's halves choose (renderer/check.py) against the better one measured: each scene
+    rendered with ``--plan`` to ``--spp`` samples in ~24 passes dealt into the check's groups, its halves compared
+    with raw-fast and prefiltered-high, then the whole frame reconstructed with both and scored against two
+    references. In one process, at a fixed sample count (the choice, not the budget, is measured here)."""
+    from gradsep.model.frame import OIDN_SETTING_KEY
+    from gradsep.model.metrics import relmse_unbiased
+    from gradsep.model.reconstruct import reconstruct
+    from gradsep.renderer.check import check_frame
+    from gradsep.renderer.plan import Passes, as_frame, candidate
+    from gradsep.renderer.reference import load_reference
+    from gradsep.renderer.scene import load_scene
+
+    cache = Path(args.cache).expanduser()
+    cache.mkdir(parents=True, exist_ok=True)
+    c = candidate(args.plan)
+    method = "oidn" if c.gradients == "none" else "oidn-l1"
+    settings = ("raw-fast", "prefiltered-high")
+
+    def served(setting: str) -> Callable:
+        def run(frame):  # noqa: ANN001, ANN202
+            frame.metadata = {OIDN_SETTING_KEY: setting}
+            return reconstruct(frame, method).image
+        return run
+
+    print("| scene | plan | spp | chosen | better measured | prefiltered-high / raw-fast measured | "
+          "paired difference (prefiltered-high - raw-fast) / its standard error |")
+    print("|---|---|---:|---|---|---:|---:|")
+    hits, ratios = 0, []
+    against_default: dict[str, list[float]] = {}  # per family: the chosen setting's RelMSE over raw-fast's
+    scenes = args.scenes.split(",")
+    for scene in scenes:
+        refs = [reference(scene, args.size, args.ref_spp, s, cache, render=not args.no_references) for s in (1, 2)]
+        if None in refs:
+            continue
+        r1, r2 = (load_reference(str(p)).total for p in refs)
+        loaded = load_scene(scene, width=args.size, height=args.size)
+        passes = Passes(loaded, ("direct", "indirect"), args.seed, split=True)
+        per = max(1, args.spp // 24)
+        while passes.spp < args.spp:
+            passes.run(c, min(per, args.spp - passes.spp))
+        result = check_frame(passes.halves(c), passes.spp, 0.5, {s: served(s) for s in settings})  # type: ignore[arg-type]
+        frame = as_frame(passes.frame_result(c))
+        measured = {}
+        for setting in settings:
+            frame.metadata = {OIDN_SETTING_KEY: setting}
+            measured[setting] = relmse_unbiased(reconstruct(frame, method).image, r1, r2)
+        best = min(measured, key=measured.__getitem__)
+        hits += result.chosen == best
+        ratios.append(measured[result.chosen] / measured[best])
+        against_default.setdefault(family(scene), []).append(measured[result.chosen] / measured["raw-fast"])
+        d, se = result.differences["prefiltered-high"]
+        print(f"| {scene} | {args.plan} | {passes.spp} | {result.chosen} | {best} | "
+              f"{measured['prefiltered-high'] / measured['raw-fast']:.3f} | {d / se:.1f} |", flush=True)
+    if ratios:
+        geo = math.exp(sum(map(math.log, ratios)) / len(ratios))
+        print(f"\nchosen = better on {hits}/{len(ratios)}; chosen / better: geometric mean {geo:.3f}, worst "
+              f"{max(ratios):.3f}")
+        for fam, v in against_default.items():
+            print(f"{fam}: chosen / raw-fast geometric mean {math.exp(sum(map(math.log, v)) / len(v)):.3f} "
+                  f"({min(v):.3f}-{max(v):.3f}), {len(v)} frames")
+
+
+def _setting_choice(frame_path: Path, refs: tuple[Path, Path]) -> dict:
+    """The frame's RelMSE with each OIDN setting its check compared (``$GRADSEP_OIDN_SETTING`` forcing each), the
+    setting it is served with, and the fixed rule's (the check's first option): {} where it compared none."""
+    from gradsep.model.frame import CHECK_KEY, OIDN_SETTING_KEY
+    from gradsep.model.oidn import METHOD_SETTING, SETTING_ENV
+
+    meta = header(frame_path)
+    figures = json.loads(meta.get(CHECK_KEY) or "{}")
+    if "options" not in figures:
+        return {}
+    by_setting = {}
+    for setting in figures["options"]:
+        os.environ[SETTING_ENV] = setting
+        try:
+            by_setting[setting] = measured_relmse(frame_path, refs)
+        finally:
+            os.environ.pop(SETTING_ENV, None)
+    return {"by_setting": by_setting, "rule_setting": next(iter(figures["options"])),
+            "served_setting": meta.get(OIDN_SETTING_KEY) or METHOD_SETTING}
 
 
 def _score_today(cache: Path, rows: dict[str, dict], args: argparse.Namespace) -> dict[str, float]:
@@ -547,6 +660,15 @@ def main(argv: list[str] | None = None) -> int:
     pr.add_argument("--ref-spp", type=int, default=1024)
     pr.add_argument("--no-references", action="store_true", help="score only the frames whose references exist")
     pr.add_argument("--cache", default=str(Path.home() / ".cache/gradsep/planner-bench"))
+    ch = sub.add_parser("choose")
+    ch.add_argument("--scenes", default=",".join(f"procedural:{s}" for s in range(93201, 93209)))
+    ch.add_argument("--plan", default="primal")
+    ch.add_argument("--spp", type=int, default=960)
+    ch.add_argument("--size", type=int, default=192)
+    ch.add_argument("--seed", type=int, default=31)
+    ch.add_argument("--ref-spp", type=int, default=1024)
+    ch.add_argument("--no-references", action="store_true", help="skip the scenes whose references are missing")
+    ch.add_argument("--cache", default=str(Path.home() / ".cache/gradsep/planner-bench"))
     r = sub.add_parser("rescore")
     r.add_argument("--setting", default="", help="OIDN setting for the frames with gradients (e.g. "
                    "prefiltered-high: what a --seconds budget asks for); default: the oidn method's")
@@ -557,7 +679,7 @@ def main(argv: list[str] | None = None) -> int:
                    "this cache's RelMSE over its, both reconstructed today")
     args = parser.parse_args(argv)
     {"timing": timing, "validate": validate, "estimate": estimate, "cost": cost, "rescore": rescore,
-     "predict": predict}[args.what](args)
+     "predict": predict, "choose": choose}[args.what](args)
     return 0
 
 

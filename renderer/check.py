@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from gradsep.model.frame import CHECK_KEY
-from gradsep.renderer.estimate import at_budget, cross_relmse, relative_weights
+from gradsep.renderer.estimate import at_budget, cross_relmse, cross_terms, relative_weights
 
 #: Groups the passes are dealt into: half of them make each half of the frame.
 GROUPS = 8
@@ -107,11 +107,11 @@ class Split:
         return [(self.images[q] / self.spp[q], self.spp[q]) for q in others if self.spp[q]]  # type: ignore[operator]
 
 
-def check_seconds(reconstruct_rate: float, pixels: int, extra_per_pixel: float = 0.0) -> float:
-    """Predicted seconds of :func:`check_frame` on a frame of ``pixels``: two reconstructions at the pilot's
-    measured ``reconstruct_rate`` (seconds per pixel) plus ``extra_per_pixel`` (what the frame's OIDN setting adds
-    over the pilot's), with CHECK_MARGIN."""
-    return 2.0 * CHECK_MARGIN * pixels * (max(reconstruct_rate, 0.0) + max(extra_per_pixel, 0.0))
+def check_seconds(reconstruct_rate: float, pixels: int, extra_per_pixel: float = 0.0, options: int = 1) -> float:
+    """Predicted seconds of :func:`check_frame` on a frame of ``pixels``: each half reconstructed ``options``
+    times at the pilot's measured ``reconstruct_rate`` (seconds per pixel), plus ``extra_per_pixel`` once per
+    half (what a slower OIDN setting among them adds over the pilot's), with CHECK_MARGIN."""
+    return 2.0 * CHECK_MARGIN * pixels * (options * max(reconstruct_rate, 0.0) + max(extra_per_pixel, 0.0))
 
 
 def _add(total: dict[str, np.ndarray] | None, sums: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -123,39 +123,85 @@ def _add(total: dict[str, np.ndarray] | None, sums: dict[str, np.ndarray]) -> di
 
 
 @dataclass
-class Check:
-    """The frame's own error estimate."""
+class Option:
+    """One reconstruction of the frame (e.g. an OIDN setting) as the check judged it."""
 
-    relmse: float  # the whole frame's reconstruction, estimated (the halves' carried estimates, averaged)
+    relmse: float  # the whole frame's, estimated: the halves' estimates carried to its samples, averaged
     halves: list[tuple[int, float, float]]  # per half: samples, estimated RelMSE of its reconstruction, standard error
+
+
+@dataclass
+class Check:
+    """The frame's own error estimate, for each reconstruction it was asked to judge."""
+
+    options: dict[str, Option]  # the frame's own reconstruction first
+    chosen: str  # the option the frame will be reconstructed with
+    #: per other option: its estimate less the first's (averaged over the halves, at the halves' samples, with the
+    #: same weights for both) and that difference's standard error
+    differences: dict[str, tuple[float, float]]
     exponent: float  # error-vs-spp exponent each half's estimate was carried to the frame's samples with
     seconds: float
     predicted_seconds: float | None = None  # what the render held back for it (None: no deadline)
 
+    @property
+    def relmse(self) -> float:
+        return self.options[self.chosen].relmse
+
     def metadata(self) -> dict[str, str]:
-        return {CHECK_KEY: json.dumps({"halves": [[n, float(f"{e:.4g}"), float(f"{s:.3g}")] for n, e, s in self.halves],
-                                       "exponent": round(self.exponent, 3), "seconds": round(self.seconds, 3),
-                                       "held_seconds": None if self.predicted_seconds is None
-                                       else round(self.predicted_seconds, 3)},
-                                      separators=(",", ":"))}
+        def halves(o: Option) -> list[list[float]]:
+            return [[n, float(f"{e:.4g}"), float(f"{s:.3g}")] for n, e, s in o.halves]
+
+        first = next(iter(self.options))
+        figures: dict[str, Any] = {"halves": halves(self.options[first])}
+        if len(self.options) > 1:
+            figures.update({"options": {k: halves(o) for k, o in self.options.items()}, "chosen": self.chosen,
+                            "differences": {k: [float(f"{d:.3g}"), float(f"{e:.3g}")]
+                                            for k, (d, e) in self.differences.items()}})
+        figures.update({"exponent": round(self.exponent, 3), "seconds": round(self.seconds, 3),
+                        "held_seconds": None if self.predicted_seconds is None else round(self.predicted_seconds, 3)})
+        return {CHECK_KEY: json.dumps(figures, separators=(",", ":"))}
 
 
 #: One half of a frame for :func:`check_frame`: its Frame, its samples, and the other half's groups (mean images
 #: with their samples: :meth:`Split.batches`).
 Half = tuple[Any, int, list[tuple[np.ndarray, int]]]
+#: Another option replaces the frame's own reconstruction only when its estimated error is lower by more than
+#: this many standard errors of the paired difference.
+SWITCH_SE = 2.0
 
 
-def check_frame(halves: list[Half], spp: int, exponent: float, reconstruct: Callable[[Any], np.ndarray],
+def check_frame(halves: list[Half], spp: int, exponent: float,
+                reconstruct: Callable[[Any], np.ndarray] | dict[str, Callable[[Any], np.ndarray]],
                 clock: Callable[[], float] = time.perf_counter) -> Check:
     """Estimate the frame's reconstructed RelMSE from its two ``halves``, each reconstructed with ``reconstruct``
     and judged against the other half's groups, then carried to the frame's ``spp`` with ``exponent``. An
-    estimate lost in the other half's noise counts as its noise (as the pilot's: renderer.plan.run_pilot)."""
+    estimate lost in the other half's noise counts as its noise (as the pilot's: renderer.plan.run_pilot).
+
+    With several reconstructions (``reconstruct`` a dict, the frame's own first), each is judged so, and each
+    other one is compared with the first on the same groups with the same weights (the mean of the two
+    reconstructions'), where the groups' own noise cancels (renderer.estimate.cross_terms); the lowest of those
+    whose difference is below the first's by more than SWITCH_SE standard errors is chosen, else the first."""
     start = clock()
-    figures: list[tuple[int, float, float]] = []
-    carried: list[float] = []
-    for frame, n, batches in halves:
-        image = np.asarray(reconstruct(frame), dtype=np.float64)
-        value, se = cross_relmse(image, batches, relative_weights(image))
-        figures.append((n, value, se))
-        carried.append(at_budget(max(value, se), n, spp, exponent))
-    return Check(float(np.mean(carried)), figures, exponent, clock() - start)
+    options = reconstruct if isinstance(reconstruct, dict) else {"": reconstruct}
+    images = {k: [np.asarray(fn(frame), dtype=np.float64) for frame, _, _ in halves] for k, fn in options.items()}
+    judged: dict[str, Option] = {}
+    for k, ims in images.items():
+        figures: list[tuple[int, float, float]] = []
+        carried: list[float] = []
+        for image, (_, n, batches) in zip(ims, halves, strict=True):
+            value, se = cross_relmse(image, batches, relative_weights(image))
+            figures.append((n, value, se))
+            carried.append(at_budget(max(value, se), n, spp, exponent))
+        judged[k] = Option(float(np.mean(carried)), figures)
+    first = next(iter(options))
+    differences: dict[str, tuple[float, float]] = {}
+    for k in list(options)[1:]:
+        diffs = []
+        for a, b, (_, _, batches) in zip(images[k], images[first], halves, strict=True):
+            w = relative_weights(0.5 * (a + b))
+            diffs.append(cross_terms(a, batches, w) - cross_terms(b, batches, w))
+        d = np.concatenate([x.ravel() for x in diffs])
+        differences[k] = (float(np.mean(d)), float(np.std(d) / np.sqrt(max(d.size, 1))))
+    better = [k for k, (d, se) in differences.items() if d < -SWITCH_SE * se]
+    chosen = min(better, key=lambda k: differences[k][0]) if better else first
+    return Check(judged, chosen, differences, exponent, clock() - start)

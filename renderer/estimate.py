@@ -39,6 +39,17 @@ def cross_relmse(reconstruction: np.ndarray, batches: Sequence[tuple[np.ndarray,
     each side are left out (a reconstruction of a crop differs from the full frame's near its edge). The
     standard error takes pixels and channels as independent. The value may come out below 0 where the error is
     small against the batches' noise; the caller floors it."""
+    d = cross_terms(reconstruction, batches, weights)
+    if border:
+        d = d[border:-border or None, border:-border or None]
+    return float(np.mean(d)), float(np.std(d) / np.sqrt(max(d.size, 1)))
+
+
+def cross_terms(reconstruction: np.ndarray, batches: Sequence[tuple[np.ndarray, int]],
+                weights: np.ndarray | None = None) -> np.ndarray:
+    """:func:`cross_relmse`'s per-pixel, per-channel terms (their mean is the estimate). Two reconstructions'
+    terms against the same batches, with the same weights, differ by ``w (R_x^2 - R_y^2 - (R_x - R_y) S1 / N)``:
+    the batches' own noise products cancel, so a difference of two estimates is far less noisy than either."""
     if len(batches) < 2:
         raise ValueError("a reference-free error estimate needs at least two independent batches")
     r = np.asarray(reconstruction, dtype=np.float64)
@@ -51,10 +62,7 @@ def cross_relmse(reconstruction: np.ndarray, batches: Sequence[tuple[np.ndarray,
         s2 += (n * x) ** 2
     total = float(sum(n for _, n in batches))
     pairs = total * total - float(sum(n * n for _, n in batches))
-    d = w * (s1 * s1 - s2) / pairs
-    if border:
-        d = d[border:-border or None, border:-border or None]
-    return float(np.mean(d)), float(np.std(d) / np.sqrt(max(d.size, 1)))
+    return w * (s1 * s1 - s2) / pairs
 
 
 def at_budget(error: float, spp: float, budget_spp: float, exponent: float) -> float:

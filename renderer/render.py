@@ -9,6 +9,7 @@ contract's metadata keys (``gradsep.*``).
 from __future__ import annotations
 
 import numbers
+import os
 import time
 from collections.abc import Callable, Iterable, Mapping
 from typing import TYPE_CHECKING
@@ -24,6 +25,7 @@ from gradsep.model.frame import (
     SEPARATED_LAYERS,
     Frame,
 )
+from gradsep.model.oidn import SETTING_ENV
 from gradsep.renderer.budget import Deadline
 from gradsep.renderer.check import check_frame, check_seconds
 from gradsep.renderer.scene import LoadedScene, load_scene
@@ -244,25 +246,35 @@ def has_light_in_view(frame: Frame) -> bool:
     return split_sources(inlier)[1] is not None
 
 
+def farm_setting_affordable(width: int, height: int, layers: Iterable[str], seconds: float) -> bool:
+    """Whether FARM_OIDN_SETTING's extra denoising time is at most FARM_OIDN_SHARE of a ``seconds`` budget."""
+    return width * height * len(list(layers)) * FARM_OIDN_EXTRA_SECONDS <= FARM_OIDN_SHARE * seconds
+
+
 def check_budget(plan: Plan, width: int, height: int, layers: Iterable[str], seconds: float | None,
-                 farm_setting: bool = True) -> float | None:
+                 farm_setting: bool = True, compare: bool = False) -> float | None:
     """Seconds the frame's own error estimate (renderer/check.py) needs after the last pass, or None where it does
     not fit CHECK_SHARE of a ``seconds`` budget (no budget: always made). With ``farm_setting`` the frame's
-    reconstruction is the one a budget asks for (:func:`reconstruction_setting`; the pilot's used the default)."""
+    reconstruction is the one a budget asks for (:func:`reconstruction_setting`; the pilot's used the default);
+    with ``compare`` the check also reconstructs the halves with the other of the default and FARM_OIDN_SETTING."""
     a = next(a for a in plan.assessments if a.name == plan.chosen.name)
     layers = list(layers)
     if seconds is None:
         return check_seconds(a.reconstruct_rate, width * height)
-    farm = farm_setting and reconstruction_setting(width, height, layers, plan.chosen.gradients, seconds)
-    needed = check_seconds(a.reconstruct_rate, width * height, FARM_OIDN_EXTRA_SECONDS * len(layers) if farm else 0)
+    farm = compare or (farm_setting and reconstruction_setting(width, height, layers, plan.chosen.gradients, seconds))
+    extra = FARM_OIDN_EXTRA_SECONDS * len(layers) if farm else 0.0
+    needed = check_seconds(a.reconstruct_rate, width * height, extra, 2 if compare else 1)
     return needed if needed <= CHECK_SHARE * seconds else None
 
 
-def frame_check(planned: Planned, metadata: dict[str, str]) -> str:
+def frame_check(planned: Planned, metadata: dict[str, str], compare: bool = False) -> str:
     """The frame's own error estimate (renderer/check.py) into ``metadata`` (the frame's, with its plan method
     and OIDN setting) as its predicted RelMSE, where the render made its halves; else the pilot's prediction
-    stays. ``gradsep.predicted_from`` says which. Returns the summary's clause."""
+    stays. ``gradsep.predicted_from`` says which. With ``compare`` the halves are also reconstructed with the
+    other of the default OIDN setting and FARM_OIDN_SETTING, and the frame asks for that one
+    (OIDN_SETTING_KEY) where it is clearly better (renderer.check.check_frame). Returns the summary's clause."""
     from gradsep.model.frame import PLAN_METHOD_KEY, PREDICTED_RELMSE_KEY
+    from gradsep.model.oidn import METHOD_SETTING
     from gradsep.model.reconstruct import reconstruct
 
     plan = planned.plan
@@ -273,16 +285,32 @@ def frame_check(planned: Planned, metadata: dict[str, str]) -> str:
     method = metadata.get(PLAN_METHOD_KEY)
     exponent = next(a.exponent for a in plan.assessments if a.name == plan.chosen.name)
 
-    def served(frame: Frame) -> np.ndarray:  # the half as the service would reconstruct the frame
-        frame.metadata = dict(metadata)
-        return reconstruct(frame, method).image
+    def served(setting: str | None) -> Callable[[Frame], np.ndarray]:  # the half as the service would serve it
+        def run(frame: Frame) -> np.ndarray:
+            frame.metadata = {k: v for k, v in metadata.items() if k != OIDN_SETTING_KEY}
+            if setting != METHOD_SETTING and setting is not None:
+                frame.metadata[OIDN_SETTING_KEY] = setting
+            return reconstruct(frame, method).image
+        return run
 
-    result = check_frame(planned.halves, planned.spp, exponent, served)
+    own = metadata.get(OIDN_SETTING_KEY) or METHOD_SETTING
+    options = {own: served(own)}
+    if compare:
+        other = METHOD_SETTING if own == FARM_OIDN_SETTING else FARM_OIDN_SETTING
+        options[other] = served(other)
+    result = check_frame(planned.halves, planned.spp, exponent, options)
     result.predicted_seconds = planned.check_seconds
+    clause = f"predicted RelMSE {result.relmse:.4g} (the frame's halves, {result.seconds:.2f} s)"
+    if result.chosen != own:
+        if result.chosen == METHOD_SETTING:
+            metadata.pop(OIDN_SETTING_KEY, None)
+        else:
+            metadata[OIDN_SETTING_KEY] = result.chosen
+        clause += f"; its halves chose OIDN {result.chosen} over {own}"
     metadata[PREDICTED_RELMSE_KEY] = f"{result.relmse:.6g}"
     metadata[PREDICTED_FROM_KEY] = "frame"
     metadata.update(result.metadata())
-    return f"predicted RelMSE {result.relmse:.4g} (the frame's halves, {result.seconds:.2f} s)"
+    return clause
 
 
 def render_planned_frame(scene: LoadedScene, *, deadline: Deadline | None, spp: int | None, seed: int = 0,
@@ -323,11 +351,23 @@ def render_planned_frame(scene: LoadedScene, *, deadline: Deadline | None, spp: 
         shift_name = make_shift(shift).name
     except ValueError as exc:
         raise CommandError(str(exc)) from None
+    # with a budget that affords FARM_OIDN_SETTING, the frame's check may also choose between it and the default
+    # (unless the operator fixed the setting: $GRADSEP_OIDN_SETTING wins over the header anyway)
+    compare = (deadline is not None and farm_setting_affordable(scene.width, scene.height, wanted, deadline.seconds)
+               and not os.environ.get(SETTING_ENV, "").strip())
+
+    def check(plan: Plan) -> float | None:
+        nonlocal compare
+        budget = deadline.seconds if deadline is not None else None
+        held = check_budget(plan, scene.width, scene.height, wanted, budget, compare=compare)
+        if held is None and compare:  # no time to compare: the estimate alone, where it fits
+            compare = False
+            held = check_budget(plan, scene.width, scene.height, wanted, budget)
+        return held
+
     start = time.perf_counter()
-    planned = render_planned(
-        scene, wanted, seed=seed, shift=shift, fixed=fixed, deadline=deadline, spp=spp, progress=progress,
-        check=lambda plan: check_budget(plan, scene.width, scene.height, wanted,
-                                        deadline.seconds if deadline is not None else None))
+    planned = render_planned(scene, wanted, seed=seed, shift=shift, fixed=fixed, deadline=deadline, spp=spp,
+                             progress=progress, check=check)
     seconds = time.perf_counter() - start
     chosen = planned.candidate
     metadata = render_metadata(scene, spp=planned.spp, seed=seed,
@@ -353,7 +393,7 @@ def render_planned_frame(scene: LoadedScene, *, deadline: Deadline | None, spp: 
             metadata[OIDN_SETTING_KEY] = setting
             summary += f"; reconstruct with OIDN {setting}"
     if planned.plan is not None and planned.plan.assessments:
-        summary += "; " + frame_check(planned, metadata)
+        summary += "; " + frame_check(planned, metadata, compare=compare and planned.halves is not None)
     if deadline is not None:
         metadata[ELAPSED_KEY] = f"{deadline.elapsed():.3f}"
     frame = planned.frame

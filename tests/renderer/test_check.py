@@ -91,9 +91,10 @@ def test_the_estimate_finds_a_known_error_at_any_scale(scale):
     halves = [(object(), 64, q.batches(0)), (object(), 64, q.batches(1))]
     result = check_frame(halves, 128, 0.5, lambda frame: 1.1 * truth)
     expected = float(np.mean((0.1 * truth) ** 2 / ((1.1 * truth) ** 2 + RELMSE_EPSILON)))
-    for n, value, se in result.halves:
+    for n, value, se in result.options[""].halves:
         assert n == 64 and value == pytest.approx(expected, rel=0.1) and se < 0.1 * expected
-    assert result.relmse == pytest.approx(np.mean([at_budget(v, 64, 128, 0.5) for _, v, _ in result.halves]))
+    assert result.relmse == pytest.approx(np.mean([at_budget(v, 64, 128, 0.5) for _, v, _ in
+                                                   result.options[""].halves]))
     assert result.relmse == pytest.approx(expected * 0.5 ** 0.5, rel=0.1)
     meta = json.loads(result.metadata()["gradsep.frame_check"])
     assert [h[0] for h in meta["halves"]] == [64, 64] and meta["exponent"] == 0.5
@@ -108,7 +109,38 @@ def test_an_exact_reconstruction_counts_as_the_estimates_noise_never_below_zero(
                          "direct.sq": np.zeros((64, 64, 1))}, 4)
     n = 2 * GROUPS
     result = check_frame([(None, n, q.batches(0)), (None, n, q.batches(1))], 2 * n, 0.5, lambda frame: truth)
-    assert result.relmse > 0 and all(result.relmse <= 3 * se for _, _, se in result.halves)
+    assert result.relmse > 0 and all(result.relmse <= 3 * se for _, _, se in result.options[""].halves)
+
+
+def noisy_halves(rng: np.random.Generator, truth: np.ndarray, noise: float, spp: int = 4) -> list:
+    q = Split()
+    for _ in range(GROUPS):
+        sample = truth * (1 + noise * rng.standard_normal(truth.shape))
+        q.add("primal", {"direct.base": sample * spp, "direct.sq": np.zeros(truth.shape[:2] + (1,))}, spp)
+    n = spp * GROUPS // 2
+    return [(None, n, q.batches(0)), (None, n, q.batches(1))]
+
+
+def test_the_better_reconstruction_is_chosen_by_a_paired_difference_free_of_the_groups_noise():
+    """Two reconstructions 10 % and 3 % too bright, judged against groups whose noise (50 % per sample) is far
+    above either error: their paired difference is far less noisy than either estimate, and the better one is
+    chosen whichever is listed first; two equal ones keep the first."""
+    rng = np.random.default_rng(5)
+    truth = 0.5 + rng.random((64, 64, 3))
+    halves = noisy_halves(rng, truth, 0.5)
+    worse, better = (lambda frame: 1.10 * truth), (lambda frame: 1.03 * truth)
+    result = check_frame(halves, 32, 0.5, {"raw-fast": worse, "prefiltered-high": better})
+    assert result.chosen == "prefiltered-high"
+    difference, se = result.differences["prefiltered-high"]
+    expected = float(np.mean(((0.03 * truth) ** 2 - (0.10 * truth) ** 2) / ((1.065 * truth) ** 2 + RELMSE_EPSILON)))
+    assert difference == pytest.approx(expected, rel=0.1) and difference < -10 * se
+    assert result.relmse == result.options["prefiltered-high"].relmse
+    alone = min(s for _, _, s in result.options["raw-fast"].halves)
+    assert se < 0.25 * alone  # the groups' noise products cancel in the difference
+    assert check_frame(halves, 32, 0.5, {"a": better, "b": worse}).chosen == "a"
+    assert check_frame(halves, 32, 0.5, {"a": better, "b": better}).chosen == "a"
+    meta = json.loads(result.metadata()["gradsep.frame_check"])
+    assert meta["chosen"] == "prefiltered-high" and set(meta["options"]) == {"raw-fast", "prefiltered-high"}
 
 
 def test_the_check_time_is_two_reconstructions_with_a_margin():
@@ -139,3 +171,34 @@ def test_rendered_halves_are_the_frame_split_in_two():
         np.testing.assert_allclose(mixed, frame.layers[layer]["base"], rtol=1e-4, atol=1e-6)
     assert all(h.layers["direct"].has_gradients and not h.layers["indirect"].has_gradients for h, _, _ in halves)
     assert Passes(scene, ("direct", "indirect"), seed=5).halves(chosen) is None  # not split: no halves
+
+
+@pytest.mark.render
+@pytest.mark.slow
+@pytest.mark.parametrize("operator_setting", [None, "raw-high"])
+def test_a_budgeted_auto_frame_compares_the_oidn_settings_on_its_halves(monkeypatch, operator_setting):
+    """A --seconds frame whose budget affords prefiltered-high has its halves reconstructed with both it and the
+    default; the header's setting is the one the comparison chose, and the prediction is that setting's. An
+    operator's $GRADSEP_OIDN_SETTING (which wins over the header when serving) leaves nothing to compare."""
+    from gradsep.model.frame import OIDN_SETTING_KEY, PREDICTED_RELMSE_KEY
+    from gradsep.model.oidn import METHOD_SETTING, SETTING_ENV
+    from gradsep.renderer.budget import Deadline
+    from gradsep.renderer.render import render_planned_frame
+    from gradsep.renderer.scene import load_scene
+
+    if operator_setting:
+        monkeypatch.setenv(SETTING_ENV, operator_setting)
+    else:
+        monkeypatch.delenv(SETTING_ENV, raising=False)
+    scene = load_scene(str(resolve("cbox")), width=16, height=12, max_depth=5)
+    frame, summary = render_planned_frame(scene, deadline=Deadline(8.0), spp=None, seed=4, gradients="auto")
+    meta = frame.metadata
+    assert meta["gradsep.predicted_from"] == "frame"
+    check = json.loads(meta["gradsep.frame_check"])
+    if operator_setting:
+        assert "options" not in check
+        return
+    assert set(check["options"]) == {METHOD_SETTING, "prefiltered-high"} and check["chosen"] in check["options"]
+    assert (meta.get(OIDN_SETTING_KEY) or METHOD_SETTING) == check["chosen"]
+    assert all(len(h) == 2 for h in check["options"].values()) and len(check["differences"]) == 1
+    assert float(meta[PREDICTED_RELMSE_KEY]) >= 0 and "the frame's halves" in summary
