@@ -154,8 +154,9 @@ def timing(args: argparse.Namespace) -> None:
         for size in args.sizes.split(","):
             for c in checkouts:
                 warm_kernels(scene, out, tuple(size_args(size)[1::2]), c)  # type: ignore[arg-type]
-    print("| repeat | scene | size | plan | checkout | T (s) | load | wall (s) | wall / T | spp | chosen |")
-    print("|---:|---|---|---|---|---:|---:|---:|---:|---:|---|")
+    print("| repeat | scene | size | plan | checkout | T (s) | load | wall (s) | wall / T | spp | chosen | "
+          "predicted from |")
+    print("|---:|---|---|---|---|---:|---:|---:|---:|---:|---|---|")
     results: dict[tuple, list[float]] = {cell: [] for cell in cells}
     loads: list[float] = []
     for repeat in range(args.repeats):
@@ -175,7 +176,7 @@ def timing(args: argparse.Namespace) -> None:
             meta = header(out)
             results[cell].append(wall / float(seconds))
             print(f"{where} {wall:.2f} | {wall / float(seconds):.3f} | {meta['gradsep.spp']} | "
-                  f"{meta.get('gradsep.plan', '')} |", flush=True)
+                  f"{meta.get('gradsep.plan', '')} | {meta.get('gradsep.predicted_from', '')} |", flush=True)
     print(f"\nload (1-minute average) during the runs: median {statistics.median(loads):.2f}, "
           f"{min(loads):.2f}-{max(loads):.2f} (2 cores)\n")
     print("| scene | size | plan | checkout | T (s) | runs | median wall / T | min | max | past T |")
