@@ -964,7 +964,9 @@ def _run_gpt_auto(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
     refused = ""
     try:  # the frame's own error estimate as the command makes it, with the default OIDN setting (as served here)
         planned = render_planned(renderer.loaded, layers, seed=seed, shift=None, fixed=None, deadline=deadline,
-                                 check=lambda p: check_budget(p, width, height, layers, target, farm_setting=False))
+                                 check=lambda rate, plan, before: check_budget(rate, plan, width, height, layers,
+                                                                               target, farm_setting=False,
+                                                                               before=before))
     except CommandError:  # not one pass + the reconstruction fit: what `gradsep render --seconds` refuses
         refused = (f"the budget is below the planner's start-up here (its first pass, then {tail:.3g} s of "
                    f"reconstruction): 1 spp of `{fallback(layers).name}` rendered regardless")

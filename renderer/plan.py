@@ -636,16 +636,20 @@ def render_planned(loaded: LoadedScene, layers: tuple[str, ...], *, seed: int, s
                    fixed: Candidate | None, deadline: Deadline | None = None, spp: int | None = None,
                    progress: Callable[[int, int], None] | None = None,
                    clock: Clock = time.monotonic,
-                   check: Callable[[Plan], float | None] | None = None) -> Planned:
+                   check: Callable[[float, Candidate, float], float | None] | None = None) -> Planned:
     """Render ``loaded`` to a deadline (``deadline``) or to ``spp`` samples, with the ``fixed`` plan or (None) the
     plan a pilot chooses. Raises CommandError (nothing rendered is kept) when the deadline cannot fit one pass
     and the write. The frame's metadata is the caller's (renderer.render.render_metadata) plus :meth:`Plan.metadata`.
-    ``check`` (a piloted plan only) says, once the plan is chosen, how many seconds the frame's own error estimate
-    needs after the last pass (renderer/check.py: held back from the passes), or None for no estimate; with one,
-    :attr:`Planned.halves` holds the halves it reconstructs."""
+    ``check`` says, given a reconstruction's seconds per pixel, the plan and the seconds it would cost beforehand,
+    how many seconds the frame's own error estimate needs after the last pass (renderer/check.py: held back from
+    the passes), or None for no estimate; with one, :attr:`Planned.halves` holds the halves it reconstructs. It is
+    asked once the plan is chosen, with the pilot's reconstruction rate; for a fixed plan with a deadline, after
+    the first pass, with the rate measured on a tile of it (:func:`reconstruct_rate`), where CHECK_PRIOR_RATE and
+    the reconstruction's start-up say the check could fit."""
     if (deadline is None) == (spp is None):
         raise ValueError("give a deadline or a sample count, not both")
-    passes = Passes(loaded, layers, seed, shift, clock, split=fixed is None and check is not None)
+    passes = Passes(loaded, layers, seed, shift, clock,
+                    split=check is not None and (fixed is None or deadline is not None))
     held: float | None = None  # seconds held back for the frame's check (None: no check)
     write = 0.0  # predicted seconds to assemble, encode and write the frame, measured after its first pass
     measured_at = 0  # passes.index when it was measured (0: never)
@@ -701,7 +705,7 @@ def render_planned(loaded: LoadedScene, layers: tuple[str, ...], *, seed: int, s
                 plan = Plan(fallback(layers), [], 0.0, f"{spp} spp is too few for a pilot")
         chosen = plan.chosen
         if check is not None and plan.assessments:
-            held = check(plan)
+            held = check(next(a for a in plan.assessments if a.name == chosen.name).reconstruct_rate, chosen, 0.0)
     else:
         chosen = fixed
     written.append(chosen)
@@ -717,6 +721,8 @@ def render_planned(loaded: LoadedScene, layers: tuple[str, ...], *, seed: int, s
         if passes.index == 0:  # no pilot: the first pass compiles the kernel and is the start-up check
             passes.run(chosen, 1)
             after_first()
+            if check is not None and check(CHECK_PRIOR_RATE, chosen, reconstruct_startup()) is not None:
+                held = check(reconstruct_rate(as_frame(passes.frame_result(chosen))), chosen, 0.0)
         # the chosen plan's passes, then primal passes in the gap too small for one more of them (FILLER)
         filler = candidate(FILLER)
 
@@ -732,6 +738,28 @@ def render_planned(loaded: LoadedScene, layers: tuple[str, ...], *, seed: int, s
     k = passes.gradients.get(chosen.name, ({}, 0))[1]
     return Planned(as_frame(result), chosen, plan, passes.spp, k if chosen.gradients != "none" else 0, passes.index,
                    passes.halves(chosen) if held is not None else None, held)
+
+
+#: Seconds per pixel a reconstruction is assumed to take before one is measured (a fixed plan's check): the
+#: default method on a two-layer frame took ~1.1e-6 (`oidn-l1`) on the 2-core development machine
+#: (benchmarks/bench_service.py at 1280x720), so 3e-6 leaves room for a slower machine.
+CHECK_PRIOR_RATE = 3e-6
+#: Side of the tile :func:`reconstruct_rate` times.
+RATE_TILE = 64
+
+
+def reconstruct_rate(frame: Frame, reconstruct: Callable[[Frame], tuple[np.ndarray, str]] = reconstruct_default,
+                     side: int = RATE_TILE) -> float:
+    """Seconds per pixel of the default reconstruction of ``frame``, timed on its centre tile (``side`` square, or
+    the whole frame when smaller) after one untimed call on the same tile (the process's first reconstruction
+    pays its start-up: RECONSTRUCT_STARTUP)."""
+    h, w = frame.height, frame.width
+    y0, x0 = max(0, (h - side) // 2), max(0, (w - side) // 2)
+    tile = crop(frame, (slice(y0, min(h, y0 + side)), slice(x0, min(w, x0 + side))))
+    reconstruct(tile)
+    start = time.perf_counter()
+    reconstruct(tile)
+    return (time.perf_counter() - start) / (tile.width * tile.height)
 
 
 def pilot_spp_for(spp: int, count: int) -> int:

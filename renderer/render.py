@@ -31,7 +31,7 @@ from gradsep.renderer.check import check_frame, check_seconds
 from gradsep.renderer.scene import LoadedScene, load_scene
 
 if TYPE_CHECKING:
-    from gradsep.renderer.plan import Plan, Planned
+    from gradsep.renderer.plan import Candidate, Planned
 
 
 def parse_layers(text: str | Iterable[str]) -> tuple[str, ...]:
@@ -251,20 +251,22 @@ def farm_setting_affordable(width: int, height: int, layers: Iterable[str], seco
     return width * height * len(list(layers)) * FARM_OIDN_EXTRA_SECONDS <= FARM_OIDN_SHARE * seconds
 
 
-def check_budget(plan: Plan, width: int, height: int, layers: Iterable[str], seconds: float | None,
-                 farm_setting: bool = True, compare: bool = False) -> float | None:
-    """Seconds the frame's own error estimate (renderer/check.py) needs after the last pass, or None where it does
-    not fit CHECK_SHARE of a ``seconds`` budget (no budget: always made). With ``farm_setting`` the frame's
-    reconstruction is the one a budget asks for (:func:`reconstruction_setting`; the pilot's used the default);
-    with ``compare`` the check also reconstructs the halves with the other of the default and FARM_OIDN_SETTING."""
-    a = next(a for a in plan.assessments if a.name == plan.chosen.name)
+def check_budget(rate: float, plan: Candidate, width: int, height: int, layers: Iterable[str],
+                 seconds: float | None, farm_setting: bool = True, compare: bool = False,
+                 before: float = 0.0) -> float | None:
+    """Seconds the frame's own error estimate (renderer/check.py) needs after the last pass, given a
+    reconstruction's ``rate`` (seconds per pixel), or None where it does not fit CHECK_SHARE of a ``seconds``
+    budget (no budget: always made). With ``farm_setting`` the frame's reconstruction is the one a budget asks for
+    (:func:`reconstruction_setting`; the rate is the default setting's); with ``compare`` the check also
+    reconstructs the halves with the other of the default and FARM_OIDN_SETTING. ``before``: seconds it costs
+    ahead of the passes (a fixed plan's rate measurement), counted against the share."""
     layers = list(layers)
     if seconds is None:
-        return check_seconds(a.reconstruct_rate, width * height)
-    farm = compare or (farm_setting and reconstruction_setting(width, height, layers, plan.chosen.gradients, seconds))
+        return check_seconds(rate, width * height)
+    farm = compare or (farm_setting and reconstruction_setting(width, height, layers, plan.gradients, seconds))
     extra = FARM_OIDN_EXTRA_SECONDS * len(layers) if farm else 0.0
-    needed = check_seconds(a.reconstruct_rate, width * height, extra, 2 if compare else 1)
-    return needed if needed <= CHECK_SHARE * seconds else None
+    needed = check_seconds(rate, width * height, extra, 2 if compare else 1)
+    return needed if needed + before <= CHECK_SHARE * seconds else None
 
 
 def frame_check(planned: Planned, metadata: dict[str, str], compare: bool = False) -> str:
@@ -275,15 +277,21 @@ def frame_check(planned: Planned, metadata: dict[str, str], compare: bool = Fals
     (OIDN_SETTING_KEY) where it is clearly better (renderer.check.check_frame). Returns the summary's clause."""
     from gradsep.model.frame import PLAN_METHOD_KEY, PREDICTED_RELMSE_KEY
     from gradsep.model.oidn import METHOD_SETTING
-    from gradsep.model.reconstruct import reconstruct
+    from gradsep.model.reconstruct import choose_method, reconstruct
+    from gradsep.renderer.plan import EXPONENTS
 
     plan = planned.plan
-    assert plan is not None
     if not planned.halves:
+        assert plan is not None
         metadata[PREDICTED_FROM_KEY] = "pilot"
         return f"predicted RelMSE {plan.predicted():.4g} (the pilot's: no time for the frame's own check)"
-    method = metadata.get(PLAN_METHOD_KEY)
-    exponent = next(a.exponent for a in plan.assessments if a.name == plan.chosen.name)
+    chosen = planned.candidate
+    # the method that serves the frame (a fixed plan's frame names none yet: the default for it, as the service
+    # would choose); the prediction holds for it only (model.frame.encode_answer)
+    method = metadata.get(PLAN_METHOD_KEY) or choose_method(planned.frame)
+    metadata[PLAN_METHOD_KEY] = method
+    exponent = (next(a.exponent for a in plan.assessments if a.name == chosen.name) if plan is not None
+                and plan.assessments else EXPONENTS.get(chosen.name, 0.5))
 
     def served(setting: str | None) -> Callable[[Frame], np.ndarray]:  # the half as the service would serve it
         def run(frame: Frame) -> np.ndarray:
@@ -353,16 +361,19 @@ def render_planned_frame(scene: LoadedScene, *, deadline: Deadline | None, spp: 
         raise CommandError(str(exc)) from None
     # with a budget that affords FARM_OIDN_SETTING, the frame's check may also choose between it and the default
     # (unless the operator fixed the setting: $GRADSEP_OIDN_SETTING wins over the header anyway)
-    compare = (deadline is not None and farm_setting_affordable(scene.width, scene.height, wanted, deadline.seconds)
-               and not os.environ.get(SETTING_ENV, "").strip())
+    can_compare = (deadline is not None
+                   and farm_setting_affordable(scene.width, scene.height, wanted, deadline.seconds)
+                   and not os.environ.get(SETTING_ENV, "").strip())
+    compare = False  # whether the check that was last sized (the one the render holds time for) compares
 
-    def check(plan: Plan) -> float | None:
+    def check(rate: float, plan: Candidate, before: float) -> float | None:
         nonlocal compare
         budget = deadline.seconds if deadline is not None else None
-        held = check_budget(plan, scene.width, scene.height, wanted, budget, compare=compare)
+        compare = can_compare
+        held = check_budget(rate, plan, scene.width, scene.height, wanted, budget, compare=compare, before=before)
         if held is None and compare:  # no time to compare: the estimate alone, where it fits
             compare = False
-            held = check_budget(plan, scene.width, scene.height, wanted, budget)
+            held = check_budget(rate, plan, scene.width, scene.height, wanted, budget, before=before)
         return held
 
     start = time.perf_counter()
@@ -392,7 +403,7 @@ def render_planned_frame(scene: LoadedScene, *, deadline: Deadline | None, spp: 
         if setting:
             metadata[OIDN_SETTING_KEY] = setting
             summary += f"; reconstruct with OIDN {setting}"
-    if planned.plan is not None and planned.plan.assessments:
+    if planned.halves is not None or (planned.plan is not None and planned.plan.assessments):
         summary += "; " + frame_check(planned, metadata, compare=compare and planned.halves is not None)
     if deadline is not None:
         metadata[ELAPSED_KEY] = f"{deadline.elapsed():.3f}"

@@ -202,3 +202,22 @@ def test_a_budgeted_auto_frame_compares_the_oidn_settings_on_its_halves(monkeypa
     assert (meta.get(OIDN_SETTING_KEY) or METHOD_SETTING) == check["chosen"]
     assert all(len(h) == 2 for h in check["options"].values()) and len(check["differences"]) == 1
     assert float(meta[PREDICTED_RELMSE_KEY]) >= 0 and "the frame's halves" in summary
+
+
+def test_the_reconstruction_rate_is_timed_on_the_centre_tile_after_a_warm_up():
+    from gradsep.model.frame import Frame, Layer
+    from gradsep.renderer.plan import reconstruct_rate
+
+    frame = Frame(layers={"direct": Layer(np.ones((100, 130, 3), np.float32))})
+    seen = []
+
+    def fake(tile: Frame) -> tuple[np.ndarray, str]:
+        seen.append(tile.layers["direct"].base.shape)
+        return tile.layers["direct"].base, "oidn"
+
+    rate = reconstruct_rate(frame, fake, side=64)
+    assert seen == [(64, 64, 3), (64, 64, 3)] and 0 < rate < 1
+    small = Frame(layers={"direct": Layer(np.ones((5, 7, 3), np.float32))})
+    seen.clear()
+    reconstruct_rate(small, fake, side=64)
+    assert seen == [(5, 7, 3), (5, 7, 3)]  # a frame under the tile: the whole frame

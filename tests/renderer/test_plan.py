@@ -221,7 +221,11 @@ def test_seconds_below_the_start_up_cost_after_loading_writes_nothing(tmp_path, 
 @pytest.mark.render
 @pytest.mark.slow
 def test_seconds_writes_a_frame_with_its_budget_in_the_header(tmp_path, capsys, monkeypatch):
+    from gradsep.renderer import plan
+
     monkeypatch.setattr(budget, "process_age", lambda: 0.0)
+    # the reconstruction's start-up as if paid (as after another test): the frame's check then fits 8 s
+    monkeypatch.setattr(plan, "reconstruct_startup", lambda: 0.0)
     out = tmp_path / "f.exr"
     # 8 s: the kernel's compile and a second pass fit on a loaded 2-core machine (4 s left 1 pass at load ~6)
     assert main(["render", CBOX, *SMALL, "--seconds", "8", "--gradients", "direct", "--offsets", "alternate",
@@ -232,8 +236,12 @@ def test_seconds_writes_a_frame_with_its_budget_in_the_header(tmp_path, capsys, 
     assert meta["gradsep.budget_seconds"] == "8" and float(meta["gradsep.elapsed_seconds"]) > 0
     assert meta[PLAN_KEY] == "direct-alternate" and meta["gradsep.offsets"] == "alternate"
     assert int(meta["gradsep.spp"]) >= 2 and int(meta["gradsep.passes"]) >= 2
-    assert PREDICTED_RELMSE_KEY not in meta  # a fixed plan: no pilot, no prediction
-    assert meta[OIDN_SETTING_KEY] == "prefiltered-high"  # 16x12 px: the better denoiser is free at 8 s
+    # a fixed plan has no pilot, but a frame this small fits its own check: its estimate and the setting its
+    # halves chose between the rule's prefiltered-high (16x12 px: the better denoiser is free at 8 s) and raw-fast
+    check = json.loads(meta["gradsep.frame_check"])
+    assert meta["gradsep.predicted_from"] == "frame" and float(meta[PREDICTED_RELMSE_KEY]) >= 0
+    assert list(check["options"]) == ["prefiltered-high", "raw-fast"]
+    assert meta.get(OIDN_SETTING_KEY, "raw-fast") == check["chosen"] and meta["gradsep.plan_method"] == "oidn-l1"
     assert frame.layers["direct"].has_gradients and not frame.layers["indirect"].has_gradients
     assert list(tmp_path.iterdir()) == [out]
 
