@@ -72,6 +72,17 @@ class Split:
             have, n = self.half_gradients.get(plan, (None, 0))
             self.half_gradients[plan] = (_add(have, grads), n + spp)
 
+    def add_lump(self, bases: dict[str, np.ndarray], gradients: dict[str, tuple[dict[str, np.ndarray], int]],
+                 spp: int, passes: int) -> None:
+        """Deal the frame so far, ``passes`` passes of ``spp`` samples (``bases``, and each plan's gradient sums
+        with their samples), to half A's first group as one lump: a split started after a pilot, whose passes
+        were rendered before the check was known to fit. Nothing is copied from a split that holds passes."""
+        assert not any(self.spp), "a lump goes into an empty split"
+        self.images[0] = sum(v for k, v in bases.items() if k.endswith(".base"))
+        self.spp[0], self.passes[0] = spp, passes
+        self.half = _add(None, bases)
+        self.half_gradients = {plan: (_add(None, sums), n) for plan, (sums, n) in gradients.items()}
+
     def ready(self, plan: str, gradients: bool, total_gradient_spp: int) -> bool:
         """Whether both halves can be judged: each half has samples in two groups or more, and with ``gradients``
         some of ``plan``'s gradient samples."""

@@ -254,6 +254,15 @@ class Passes:
         return finish(sums, self.kind(c).settings, self.spp, self.index, k or None)
 
 
+    def start_split(self) -> None:
+        """Deal every pass from now on into groups for the frame's own error estimate (renderer/check.py), the
+        passes so far as one lump: splitting costs a copy of the frame's sums (0.5 s at 1280x720), so it starts
+        only once the check is known to fit."""
+        if self.split is None:
+            self.split = Split()
+            if self.bases is not None:
+                self.split.add_lump(self.bases, self.gradients, self.spp, self.index)
+
     def halves(self, c: Candidate) -> list[Half] | None:
         """The frame's two halves as ``c``'s frames, with their samples and the other half's groups
         (renderer/check.py), or None when the passes were not split or a half lacks samples (or ``c``'s
@@ -648,8 +657,7 @@ def render_planned(loaded: LoadedScene, layers: tuple[str, ...], *, seed: int, s
     the reconstruction's start-up say the check could fit."""
     if (deadline is None) == (spp is None):
         raise ValueError("give a deadline or a sample count, not both")
-    passes = Passes(loaded, layers, seed, shift, clock,
-                    split=check is not None and (fixed is None or deadline is not None))
+    passes = Passes(loaded, layers, seed, shift, clock)
     held: float | None = None  # seconds held back for the frame's check (None: no check)
     write = 0.0  # predicted seconds to assemble, encode and write the frame, measured after its first pass
     measured_at = 0  # passes.index when it was measured (0: never)
@@ -706,13 +714,17 @@ def render_planned(loaded: LoadedScene, layers: tuple[str, ...], *, seed: int, s
         chosen = plan.chosen
         if check is not None and plan.assessments:
             held = check(next(a for a in plan.assessments if a.name == chosen.name).reconstruct_rate, chosen, 0.0)
+            if held is not None:
+                passes.start_split()
     else:
         chosen = fixed
     written.append(chosen)
     if deadline is None:
         target = int(spp)  # type: ignore[arg-type]
+        # a split frame's rest in SPLIT_PASSES passes or more, so that each half gets groups of its own
+        step = passes.max_spp if passes.split is None else max(1, -(-(target - passes.spp) // SPLIT_PASSES))
         while passes.spp < target:
-            passes.run(chosen, min(passes.max_spp, target - passes.spp))
+            passes.run(chosen, min(passes.max_spp, step, target - passes.spp))
             if passes.index == 1:
                 after_first()
             if progress is not None:
@@ -723,6 +735,8 @@ def render_planned(loaded: LoadedScene, layers: tuple[str, ...], *, seed: int, s
             after_first()
             if check is not None and check(CHECK_PRIOR_RATE, chosen, reconstruct_startup()) is not None:
                 held = check(reconstruct_rate(as_frame(passes.frame_result(chosen))), chosen, 0.0)
+                if held is not None:
+                    passes.start_split()
         # the chosen plan's passes, then primal passes in the gap too small for one more of them (FILLER)
         filler = candidate(FILLER)
 
@@ -740,6 +754,8 @@ def render_planned(loaded: LoadedScene, layers: tuple[str, ...], *, seed: int, s
                    passes.halves(chosen) if held is not None else None, held)
 
 
+#: The fewest passes the rest of a --spp frame is rendered in once it is split for its check.
+SPLIT_PASSES = 8
 #: Seconds per pixel a reconstruction is assumed to take before one is measured (a fixed plan's check): the
 #: default method on a two-layer frame took ~1.1e-6 (`oidn-l1`) on the 2-core development machine
 #: (benchmarks/bench_service.py at 1280x720), so 3e-6 leaves room for a slower machine.

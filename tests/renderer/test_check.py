@@ -171,6 +171,20 @@ def test_rendered_halves_are_the_frame_split_in_two():
         np.testing.assert_allclose(mixed, frame.layers[layer]["base"], rtol=1e-4, atol=1e-6)
     assert all(h.layers["direct"].has_gradients and not h.layers["indirect"].has_gradients for h, _, _ in halves)
     assert Passes(scene, ("direct", "indirect"), seed=5).halves(chosen) is None  # not split: no halves
+    # a split started after some passes (a pilot's): those passes are one lump in half A
+    late = Passes(scene, ("direct", "indirect"), seed=6)
+    for c, n in (("primal", 1), ("direct-alternate", 1), ("direct-alternate", 4), ("direct", 4)):
+        late.run(candidate(c), n)
+    late.start_split()
+    assert late.split is not None and late.split.spp[0] == 10 and late.split.passes[0] == 4
+    for n in (4, 4, 3, 3, 2, 2, 2, 1):
+        late.run(chosen, n)
+    halves = late.halves(chosen)
+    assert halves is not None and sum(n for _, n, _ in halves) == late.spp == 31
+    frame = late.frame_result(chosen)
+    for layer in ("direct", "indirect"):
+        mixed = sum(n * h.layers[layer].base.astype(np.float64) for h, n, _ in halves) / late.spp
+        np.testing.assert_allclose(mixed, frame.layers[layer]["base"], rtol=1e-4, atol=1e-6)
 
 
 @pytest.mark.render
