@@ -149,6 +149,18 @@ def test_the_check_time_is_two_reconstructions_with_a_margin():
     assert check_seconds(-1.0, 1000) == 0.0
 
 
+def halves_of_the_frame(passes, chosen) -> list:  # noqa: ANN001
+    """``passes``' halves, checked to make its frame: their samples add up to its samples, and their bases,
+    weighted by samples, are its bases."""
+    halves = passes.halves(chosen)
+    assert halves is not None and sum(n for _, n, _ in halves) == passes.spp
+    frame = passes.frame_result(chosen)
+    for layer in ("direct", "indirect"):
+        mixed = sum(n * h.layers[layer].base.astype(np.float64) for h, n, _ in halves) / passes.spp
+        np.testing.assert_allclose(mixed, frame.layers[layer]["base"], rtol=1e-4, atol=1e-6)
+    return halves
+
+
 @pytest.mark.render
 def test_rendered_halves_are_the_frame_split_in_two():
     """A split render's two halves: their samples make the frame's, and their bases, weighted by samples, are the
@@ -163,12 +175,8 @@ def test_rendered_halves_are_the_frame_split_in_two():
                  ("direct-alternate", 3), ("direct-alternate", 1)):
         passes.run(candidate(c), n)
     chosen = candidate("direct-alternate")
-    halves = passes.halves(chosen)
-    assert halves is not None and sum(n for _, n, _ in halves) == passes.spp == 22
-    frame = passes.frame_result(chosen)
-    for layer in ("direct", "indirect"):
-        mixed = sum(n * h.layers[layer].base.astype(np.float64) for h, n, _ in halves) / passes.spp
-        np.testing.assert_allclose(mixed, frame.layers[layer]["base"], rtol=1e-4, atol=1e-6)
+    halves = halves_of_the_frame(passes, chosen)
+    assert passes.spp == 22
     assert all(h.layers["direct"].has_gradients and not h.layers["indirect"].has_gradients for h, _, _ in halves)
     assert Passes(scene, ("direct", "indirect"), seed=5).halves(chosen) is None  # not split: no halves
     # a split started after some passes (a pilot's): those passes are one lump in half A
@@ -179,12 +187,8 @@ def test_rendered_halves_are_the_frame_split_in_two():
     assert late.split is not None and late.split.spp[0] == 10 and late.split.passes[0] == 4
     for n in (4, 4, 3, 3, 2, 2, 2, 1):
         late.run(chosen, n)
-    halves = late.halves(chosen)
-    assert halves is not None and sum(n for _, n, _ in halves) == late.spp == 31
-    frame = late.frame_result(chosen)
-    for layer in ("direct", "indirect"):
-        mixed = sum(n * h.layers[layer].base.astype(np.float64) for h, n, _ in halves) / late.spp
-        np.testing.assert_allclose(mixed, frame.layers[layer]["base"], rtol=1e-4, atol=1e-6)
+    halves_of_the_frame(late, chosen)
+    assert late.spp == 31
 
 
 @pytest.mark.render
