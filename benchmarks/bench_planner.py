@@ -23,8 +23,8 @@
     # the frame's own error estimate (renderer/check.py): `--gradients auto` frames with --seconds T, their
     # gradsep.predicted_relmse and the pilot's prediction against the measured RelMSE, and the OIDN setting their
     # halves chose against the better one measured
-    python benchmarks/bench_planner.py predict [--scenes ...] [--size 192] [--seconds 20] [--seeds 10,11]
-        [--ref-spp 1024] [--cache ...]
+    python benchmarks/bench_planner.py predict [--plan auto] [--scenes ...] [--size 192] [--seconds 20]
+        [--seeds 10,11] [--ref-spp 1024] [--cache ...]
 
     # the OIDN setting a frame's halves choose (raw-fast or prefiltered-high) against the better one measured, at a
     # fixed sample count, in one process
@@ -451,7 +451,7 @@ def rescore(args: argparse.Namespace) -> None:
 
 
 def predict(args: argparse.Namespace) -> None:
-    """The error estimate a farm reads: ``--gradients auto`` frames rendered with ``--seconds T`` (cached), each
+    """The error estimate a farm reads: ``--plan`` (``auto``) frames rendered with ``--seconds T`` (cached), each
     frame's ``gradsep.predicted_relmse`` (the frame's own check where it ran: renderer/check.py) and the pilot's
     prediction for the chosen plan (``gradsep.plan_candidates``) against the RelMSE measured with two references,
     and how many of each are within 1.5x."""
@@ -462,11 +462,11 @@ def predict(args: argparse.Namespace) -> None:
     scenes = args.scenes.split(",")
     for seed in [int(s) for s in args.seeds.split(",")]:
         for scene in scenes:
-            key = f"{scene}|{args.seconds:g}|{seed}"
-            out = cache / f"auto-{scene.replace(':', '_')}-{args.size}-{args.seconds:g}-{seed}.exr"
+            key = f"{scene}|{args.seconds:g}|{seed}" + ("" if args.plan == "auto" else f"|{args.plan}")
+            out = cache / f"{args.plan}-{scene.replace(':', '_')}-{args.size}-{args.seconds:g}-{seed}.exr"
             if key not in rows or not out.exists():
                 wall, _ = gradsep("render", scene, "--width", str(args.size), "--height", str(args.size), "--seconds",
-                                  f"{args.seconds:g}", "--seed", str(seed), "--gradients", "auto", "-o", str(out))
+                                  f"{args.seconds:g}", "--seed", str(seed), *PLANS[args.plan], "-o", str(out))
                 meta = header(out)
                 pilot = dict(kv.split("=") for kv in meta.get("gradsep.plan_candidates", "").split(",") if kv)
                 rows[key] = {"scene": scene, "seed": seed, "wall": wall, "file": out.name,
@@ -657,6 +657,8 @@ def main(argv: list[str] | None = None) -> int:
     pr.add_argument("--scenes", default=",".join(f"procedural:{s}" for s in range(93201, 93209)))
     pr.add_argument("--size", type=int, default=192)
     pr.add_argument("--seconds", type=float, default=20.0)
+    pr.add_argument("--plan", default="auto", choices=sorted(PLANS), help="a fixed plan's frames carry the estimate "
+                    "where their check fits the budget (no pilot: its prediction column is empty)")
     pr.add_argument("--seeds", default="10,11")
     pr.add_argument("--ref-spp", type=int, default=1024)
     pr.add_argument("--no-references", action="store_true", help="score only the frames whose references exist")
