@@ -167,8 +167,7 @@ class Check:
         def halves(o: Option) -> list[list[float]]:
             return [[n, float(f"{e:.4g}"), float(f"{s:.3g}")] for n, e, s in o.halves]
 
-        first = next(iter(self.options))
-        figures: dict[str, Any] = {"halves": halves(self.options[first])}
+        figures: dict[str, Any] = {"halves": halves(self.options[self.chosen])}  # the estimate's, as served
         if len(self.options) > 1:
             figures.update({"options": {k: halves(o) for k, o in self.options.items()}, "chosen": self.chosen,
                             "differences": {k: [float(f"{d:.3g}"), float(f"{e:.3g}")]

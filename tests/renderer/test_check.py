@@ -141,6 +141,7 @@ def test_the_better_reconstruction_is_chosen_by_a_paired_difference_free_of_the_
     assert check_frame(halves, 32, 0.5, {"a": better, "b": better}).chosen == "a"
     meta = json.loads(result.metadata()["gradsep.frame_check"])
     assert meta["chosen"] == "prefiltered-high" and set(meta["options"]) == {"raw-fast", "prefiltered-high"}
+    assert meta["halves"] == meta["options"]["prefiltered-high"]  # the served setting's figures
 
 
 def test_the_check_time_is_two_reconstructions_with_a_margin():
