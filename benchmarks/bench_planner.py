@@ -555,7 +555,8 @@ def choose(args: argparse.Namespace) -> None:
             continue
         r1, r2 = (load_reference(str(p)).total for p in refs)
         loaded = load_scene(scene, width=args.size, height=args.size)
-        passes = Passes(loaded, ("direct", "indirect"), args.seed, split=True)
+        passes = Passes(loaded, ("direct", "indirect"), args.seed)
+        passes.start_split()
         per = max(1, args.spp // 24)
         while passes.spp < args.spp:
             passes.run(c, min(per, args.spp - passes.spp))

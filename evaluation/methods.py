@@ -947,7 +947,7 @@ def _run_gpt_auto(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
     below the planner's start-up (CommandError: one pass and the reconstruction do not fit) renders 1 spp of the
     fallback plan regardless, recorded as such; a pilot that gave up records why, with no prediction."""
     from gradsep.model.errors import CommandError
-    from gradsep.model.frame import PLAN_METHOD_KEY, PREDICTED_RELMSE_KEY
+    from gradsep.model.frame import PLAN_METHOD_KEY, PREDICTED_FROM_KEY, PREDICTED_RELMSE_KEY
     from gradsep.model.reconstruct import reconstruct
     from gradsep.renderer.budget import Deadline
     from gradsep.renderer.plan import fallback, plan_layers_text, render_planned
@@ -992,7 +992,7 @@ def _run_gpt_auto(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
                                         plan.pilot_seconds if plan is not None else 0.0),
         "plan": chosen.name, "plan_layers": plan_layers_text(chosen, layers), "plan_method": result.method,
         "plan_candidates": {name: _finite_or_none(a.predicted_relmse) for name, a in assessed.items()},
-        "predicted_relmse": _finite_or_none(predicted), "predicted_from": frame.metadata.get("gradsep.predicted_from"),
+        "predicted_relmse": _finite_or_none(predicted), "predicted_from": frame.metadata.get(PREDICTED_FROM_KEY),
         "pilot_seconds": plan.pilot_seconds if plan is not None else 0.0,
         "plan_note": plan.note if plan is not None else "", "gradient_spp": planned.gradient_spp,
     }

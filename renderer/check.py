@@ -57,22 +57,21 @@ class Split:
         self.half: dict[str, np.ndarray] | None = None  # half A's bases, features and squares (sums)
         self.half_gradients: dict[str, tuple[dict[str, np.ndarray], int]] = {}  # plan -> (A's gradient sums, spp)
 
-    def add(self, plan: str, sums: dict[str, np.ndarray], spp: int) -> None:
-        """Deal one pass (its sums over ``spp`` samples, rendered with ``plan``) to the half with fewer samples
-        (A on a tie), and there to its group with the fewest: the halves stay within one pass of each other even
-        when the frame ends in a few large passes. The pass's arrays are never written to."""
+    def add(self, plan: str, bases: dict[str, np.ndarray], grads: dict[str, np.ndarray], spp: int) -> None:
+        """Deal one pass (its sums over ``spp`` samples, rendered with ``plan``: ``bases`` with features and
+        squares, and ``grads``, its gradient sums or none) to the half with fewer samples (A on a tie), and there
+        to its group with the fewest: the halves stay within one pass of each other even when the frame ends in a
+        few large passes. The pass's arrays are never written to."""
         h = GROUPS // 2
         first = 0 if sum(self.spp[:h]) <= sum(self.spp[h:]) else h
         q = first + int(np.argmin(self.spp[first:first + h]))
-        image = sum(v for k, v in sums.items() if k.endswith(".base"))
+        image = base_sum(bases)
         self.images[q] = image if self.images[q] is None else self.images[q] + image
         self.spp[q] += spp
         self.passes[q] += 1
-        if q >= GROUPS // 2:
+        if q >= h:
             return
-        bases = {k: v for k, v in sums.items() if ".grad" not in k}
         self.half = _add(self.half, bases)
-        grads = {k: v for k, v in sums.items() if ".grad" in k}
         if grads:
             have, n = self.half_gradients.get(plan, (None, 0))
             self.half_gradients[plan] = (_add(have, grads), n + spp)
@@ -83,7 +82,7 @@ class Split:
         with their samples), to half A's first group as one lump: a split started after a pilot, whose passes
         were rendered before the check was known to fit. Nothing is copied from a split that holds passes."""
         assert not any(self.spp), "a lump goes into an empty split"
-        self.images[0] = sum(v for k, v in bases.items() if k.endswith(".base"))
+        self.images[0] = base_sum(bases)
         self.spp[0], self.passes[0] = spp, passes
         self.half = _add(None, bases)
         self.half_gradients = {plan: (_add(None, sums), n) for plan, (sums, n) in gradients.items()}
@@ -121,6 +120,11 @@ class Split:
         h = GROUPS // 2
         others = range(h, GROUPS) if half == 0 else range(h)
         return [(self.images[q] / self.spp[q], self.spp[q]) for q in others if self.spp[q]]  # type: ignore[operator]
+
+
+def base_sum(sums: dict[str, np.ndarray]) -> np.ndarray:
+    """The radiance summed over a pass's (or passes') layers: its ``L.base`` sums added."""
+    return sum(v for k, v in sums.items() if k.endswith(".base"))  # type: ignore[return-value]
 
 
 def check_seconds(reconstruct_rate: float, pixels: int, extra_per_pixel: float = 0.0, options: int = 1) -> float:

@@ -45,7 +45,7 @@ import numpy as np
 from gradsep.model.errors import CommandError
 from gradsep.model.frame import PLAN_METHOD_KEY, PREDICTED_RELMSE_KEY, Features, Frame, Layer
 from gradsep.renderer.budget import Clock, Deadline, PassCosts, fill_with_filler, fitted_line
-from gradsep.renderer.check import Half, Split
+from gradsep.renderer.check import Half, Split, base_sum
 from gradsep.renderer.estimate import at_budget, cross_relmse, relative_weights
 from gradsep.renderer.scene import LoadedScene
 
@@ -167,7 +167,7 @@ class Passes:
     """Runs render passes of any candidate on one scene and keeps their sums for the final frame."""
 
     def __init__(self, loaded: LoadedScene, layers: tuple[str, ...], seed: int, shift: str | None = None,
-                 clock: Clock = time.monotonic, split: bool = False) -> None:
+                 clock: Clock = time.monotonic) -> None:
         from gradsep.renderer.gpt import MAX_LANES_PER_PASS
 
         self.loaded, self.layers, self.seed, self.shift_name, self.clock = loaded, layers, seed, shift, clock
@@ -178,8 +178,8 @@ class Passes:
         self.spp = 0
         self.gradients: dict[str, tuple[dict[str, np.ndarray], int]] = {}  # candidate -> (gradient sums, spp)
         self._owned: list[np.ndarray] = []  # the sums arrays this object made (the others are a pass's own)
-        #: with ``split``: every pass also dealt into groups for the frame's own error estimate (renderer/check.py)
-        self.split: Split | None = Split() if split else None
+        #: once :meth:`start_split` ran: every pass also dealt into groups for the frame's own error estimate
+        self.split: Split | None = None
 
     def kind(self, c: Candidate) -> _Kind:
         if c.name not in self.kinds:
@@ -212,13 +212,14 @@ class Passes:
         start = self.clock()
         sums = render_pass(self.loaded.scene, kind.shift, kind.settings, self.loaded.width, self.loaded.height,
                            spp, pass_seed(self.seed, self.index))
-        self.bases = self._added(self.bases, {k: v for k, v in sums.items() if ".grad" not in k})
+        bases = {k: v for k, v in sums.items() if ".grad" not in k}
         grads = {k: v for k, v in sums.items() if ".grad" in k}
+        self.bases = self._added(self.bases, bases)
         if grads:
             have, n = self.gradients.get(c.name, (None, 0))
             self.gradients[c.name] = (self._added(have, grads), n + spp)
         if self.split is not None:
-            self.split.add(c.name, sums, spp)
+            self.split.add(c.name, bases, grads, spp)
         # the pass's cost includes adding it to the frame: what the deadline must budget for each pass
         seconds = self.clock() - start
         (kind.costs.first if first else kind.costs.record)(spp, seconds)
@@ -252,7 +253,6 @@ class Passes:
         if window is not None:
             sums = {key: v[window] for key, v in sums.items()}
         return finish(sums, self.kind(c).settings, self.spp, self.index, k or None)
-
 
     def start_split(self) -> None:
         """Deal every pass from now on into groups for the frame's own error estimate (renderer/check.py), the
@@ -292,7 +292,7 @@ def sums_frame(sums: dict[str, np.ndarray], settings: object, spp: int) -> Frame
 
 def base_image(sums: dict[str, np.ndarray], spp: int) -> np.ndarray:
     """The pass's mean radiance summed over its layers (the image the reconstruction is judged on)."""
-    return sum(v for k, v in sums.items() if k.endswith(".base")) / spp
+    return base_sum(sums) / spp
 
 
 def tiles(width: int, height: int, side: int = TILE, count: int = TILE_COUNT) -> list[tuple[slice, slice]]:

@@ -220,6 +220,11 @@ FARM_OIDN_SHARE = 0.1
 CHECK_SHARE = 0.1
 
 
+def farm_setting_affordable(width: int, height: int, layers: Iterable[str], seconds: float) -> bool:
+    """Whether FARM_OIDN_SETTING's extra denoising time is at most FARM_OIDN_SHARE of a ``seconds`` budget."""
+    return width * height * len(list(layers)) * FARM_OIDN_EXTRA_SECONDS <= FARM_OIDN_SHARE * seconds
+
+
 def reconstruction_setting(width: int, height: int, layers: Iterable[str], gradients: str,
                            seconds: float, light_in_view: bool = False) -> str | None:
     """The OIDN setting a frame rendered to a ``seconds`` budget asks for (model.frame.OIDN_SETTING_KEY), or None
@@ -229,8 +234,7 @@ def reconstruction_setting(width: int, height: int, layers: Iterable[str], gradi
     layers = list(layers)
     if gradients not in ("all", "direct") or "direct" not in layers or light_in_view:
         return None
-    extra = width * height * len(layers) * FARM_OIDN_EXTRA_SECONDS
-    return FARM_OIDN_SETTING if extra <= FARM_OIDN_SHARE * seconds else None
+    return FARM_OIDN_SETTING if farm_setting_affordable(width, height, layers, seconds) else None
 
 
 def has_light_in_view(frame: Frame) -> bool:
@@ -244,11 +248,6 @@ def has_light_in_view(frame: Frame) -> bool:
         return False
     inlier, _ = split_outliers(direct.base)
     return split_sources(inlier)[1] is not None
-
-
-def farm_setting_affordable(width: int, height: int, layers: Iterable[str], seconds: float) -> bool:
-    """Whether FARM_OIDN_SETTING's extra denoising time is at most FARM_OIDN_SHARE of a ``seconds`` budget."""
-    return width * height * len(list(layers)) * FARM_OIDN_EXTRA_SECONDS <= FARM_OIDN_SHARE * seconds
 
 
 def check_budget(rate: float, plan: Candidate, width: int, height: int, layers: Iterable[str],

@@ -23,6 +23,12 @@ def fake_pass(rng: np.random.Generator, spp: int, gradients: bool) -> dict[str, 
     return sums
 
 
+def deal(split: Split, plan: str, sums: dict[str, np.ndarray], spp: int) -> None:
+    """One pass's sums to ``split``, its gradient sums apart (as renderer.plan.Passes.run deals them)."""
+    split.add(plan, {k: v for k, v in sums.items() if ".grad" not in k},
+              {k: v for k, v in sums.items() if ".grad" in k}, spp)
+
+
 def test_passes_go_to_the_smaller_half_and_its_emptiest_group_and_the_halves_add_up_to_the_frame():
     rng = np.random.default_rng(1)
     q = Split()
@@ -36,7 +42,7 @@ def test_passes_go_to_the_smaller_half_and_its_emptiest_group_and_the_halves_add
         before = list(q.spp)
         sums = fake_pass(rng, spp, g)
         kept = {k: v.copy() for k, v in sums.items()}
-        q.add("direct", sums, spp)
+        deal(q, "direct", sums, spp)
         assert all(np.array_equal(sums[k], kept[k]) for k in sums)  # the pass's own arrays are never written
         h = GROUPS // 2
         first = 0 if sum(before[:h]) <= sum(before[h:]) else h
@@ -49,7 +55,7 @@ def test_passes_go_to_the_smaller_half_and_its_emptiest_group_and_the_halves_add
     assert sum(q.spp) == sum(sizes) and sum(q.passes) == len(sizes)
     big = Split()  # a frame that ends in two large passes: one to each half
     for spp in (1, 1, 1, 1, 2, 2, 2, 2, 100, 100):
-        big.add("primal", fake_pass(rng, spp, False), spp)
+        deal(big, "primal", fake_pass(rng, spp, False), spp)
     assert sum(big.spp[:h]) == sum(big.spp[h:]) == 106
     assert q.ready("direct", True, gradient_spp)
     (a, na, pa, ga), (b, nb, pb, gb) = q.halves("direct", total, grads, sum(sizes), gradient_spp)
@@ -66,14 +72,14 @@ def test_a_half_without_samples_or_gradients_is_not_ready():
     rng = np.random.default_rng(2)
     q = Split()
     for _ in range(3):  # equal passes alternate between the halves: A, B, A
-        q.add("direct", fake_pass(rng, 4, True), 4)
+        deal(q, "direct", fake_pass(rng, 4, True), 4)
     assert not q.ready("direct", True, 12)  # half B has one group with samples
-    q.add("primal", fake_pass(rng, 4, False), 4)
+    deal(q, "primal", fake_pass(rng, 4, False), 4)
     assert q.ready("primal", False, 0)
     assert q.ready("direct", True, 12)
     q2 = Split()
     for i in range(GROUPS):  # only half B's passes (every second one) traced gradients
-        q2.add("direct", fake_pass(rng, 4, i % 2 == 1), 4)
+        deal(q2, "direct", fake_pass(rng, 4, i % 2 == 1), 4)
     assert sum(q2.spp[:GROUPS // 2]) == sum(q2.spp[GROUPS // 2:])
     assert not q2.ready("direct", True, 4 * GROUPS // 2)
 
@@ -87,7 +93,7 @@ def test_the_estimate_finds_a_known_error_at_any_scale(scale):
     q = Split()
     for _ in range(GROUPS):
         noisy = truth + rng.standard_normal(truth.shape) * 0.05 * truth
-        q.add("primal", {"direct.base": noisy * 16, "direct.sq": np.zeros((96, 96, 1))}, 16)
+        deal(q, "primal", {"direct.base": noisy * 16, "direct.sq": np.zeros((96, 96, 1))}, 16)
     halves = [(object(), 64, q.batches(0)), (object(), 64, q.batches(1))]
     result = check_frame(halves, 128, 0.5, lambda frame: 1.1 * truth)
     expected = float(np.mean((0.1 * truth) ** 2 / ((1.1 * truth) ** 2 + RELMSE_EPSILON)))
@@ -105,7 +111,7 @@ def test_an_exact_reconstruction_counts_as_the_estimates_noise_never_below_zero(
     truth = 0.5 + rng.random((64, 64, 3))
     q = Split()
     for _ in range(GROUPS):
-        q.add("primal", {"direct.base": (truth + 0.1 * rng.standard_normal(truth.shape)) * 4,
+        deal(q, "primal", {"direct.base": (truth + 0.1 * rng.standard_normal(truth.shape)) * 4,
                          "direct.sq": np.zeros((64, 64, 1))}, 4)
     n = 2 * GROUPS
     result = check_frame([(None, n, q.batches(0)), (None, n, q.batches(1))], 2 * n, 0.5, lambda frame: truth)
@@ -116,7 +122,7 @@ def noisy_halves(rng: np.random.Generator, truth: np.ndarray, noise: float, spp:
     q = Split()
     for _ in range(GROUPS):
         sample = truth * (1 + noise * rng.standard_normal(truth.shape))
-        q.add("primal", {"direct.base": sample * spp, "direct.sq": np.zeros(truth.shape[:2] + (1,))}, spp)
+        deal(q, "primal", {"direct.base": sample * spp, "direct.sq": np.zeros(truth.shape[:2] + (1,))}, spp)
     n = spp * GROUPS // 2
     return [(None, n, q.batches(0)), (None, n, q.batches(1))]
 
@@ -170,7 +176,8 @@ def test_rendered_halves_are_the_frame_split_in_two():
     from gradsep.renderer.scene import load_scene
 
     scene = load_scene(str(resolve("cbox")), width=16, height=12)
-    passes = Passes(scene, ("direct", "indirect"), seed=5, split=True)
+    passes = Passes(scene, ("direct", "indirect"), seed=5)
+    passes.start_split()  # from the first pass: no lump
     for c, n in (("direct-alternate", 1), ("primal", 1), ("direct-alternate", 4), ("direct-alternate", 4),
                  ("primal", 3), ("direct-alternate", 2), ("direct-alternate", 2), ("primal", 1),
                  ("direct-alternate", 3), ("direct-alternate", 1)):
