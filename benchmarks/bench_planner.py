@@ -220,6 +220,28 @@ def measured_relmse(frame_path: Path, refs: tuple[Path, Path]) -> float:
     return relmse_unbiased(image, r1, r2)
 
 
+def measurement(frame_path: Path, refs: tuple[Path, Path], block: int = 16) -> dict[str, float]:
+    """The frame's measured RelMSE (its reconstruction against the two references, floor removed), that value's
+    standard error over ``block``-pixel squares (pixels' errors are correlated within a denoiser's footprint) and
+    the references' floor: the measurement is only as sharp as its references, and all runs share them."""
+    import numpy as np
+
+    from gradsep.model.frame import read_frame
+    from gradsep.model.metrics import RELMSE_EPSILON, reference_floor
+    from gradsep.model.reconstruct import reconstruct
+    from gradsep.renderer.reference import load_reference
+
+    image = reconstruct(read_frame(frame_path)).image.astype(np.float64)
+    r1, r2 = (load_reference(str(p)).total.astype(np.float64) for p in refs)
+    mean = 0.5 * (r1 + r2)
+    # model.metrics.relmse_unbiased per pixel, so its mean is that function's value
+    terms = ((image - r1) * (image - r2) / (mean * mean + RELMSE_EPSILON)).mean(axis=-1)
+    h, w = (n // block * block for n in terms.shape)
+    blocks = terms[:h, :w].reshape(h // block, block, w // block, block).mean(axis=(1, 3)).ravel()
+    return {"relmse": float(terms.mean()), "relmse_se": float(blocks.std(ddof=1) / math.sqrt(blocks.size)),
+            "floor": reference_floor(r1, r2)}
+
+
 def family(scene: str) -> str:
     return scene.rsplit(":", 1)[0]
 
@@ -476,21 +498,22 @@ def predict(args: argparse.Namespace) -> None:
                              "pilot": float(pilot.get(meta.get("gradsep.plan", ""), "nan"))}
                 path.write_text(json.dumps(rows, indent=1))
             row = rows[key]
-            if "relmse" not in row:
+            if "relmse_se" not in row or row.get("ref_spp") != args.ref_spp:
                 refs = [reference(scene, args.size, args.ref_spp, s, cache, render=not args.no_references)
                         for s in (1, 2)]
                 if None in refs:
                     continue
-                row["relmse"] = measured_relmse(cache / row["file"], tuple(refs))  # type: ignore[arg-type]
+                row.update(measurement(cache / row["file"], tuple(refs)), ref_spp=args.ref_spp)  # type: ignore[arg-type]
                 row.update(_setting_choice(cache / row["file"], tuple(refs)))  # type: ignore[arg-type]
                 path.write_text(json.dumps(rows, indent=1))
             print(f"{key}: {row['wall']:.1f} s, {row['spp']} spp, plan {row['plan']}, predicted "
                   f"{row['predicted']:.3g} ({row['from']}), pilot {row['pilot']:.3g}, measured "
                   f"{row.get('relmse', math.nan):.3g}", flush=True)
-    scored = [r for r in rows.values() if "relmse" in r and r["relmse"] > 0 and r["scene"] in scenes]
-    print("\n| family | frames | frame's estimate / measured: within 1.5x | median | pilot's / measured: within 1.5x"
-          " | median |")
-    print("|---|---:|---:|---:|---:|---:|")
+    scored = [r for r in rows.values() if "relmse_se" in r and r["relmse"] > 0 and r["scene"] in scenes
+              and r.get("ref_spp") == args.ref_spp]
+    print(f"\n| family | frames | frame's estimate / measured: within 1.5x | median | pilot's / measured: within 1.5x"
+          f" | median | measured: median standard error | {args.ref_spp}-spp references' floor / measured, median |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|")
     for fam in sorted({family(r["scene"]) for r in scored}):
         rs = [r for r in scored if family(r["scene"]) == fam]
         cols = []
@@ -498,6 +521,8 @@ def predict(args: argparse.Namespace) -> None:
             ratios = sorted(r[name] / r["relmse"] for r in rs if math.isfinite(r[name]))
             inside = sum(1 / 1.5 <= x <= 1.5 for x in ratios)
             cols.append(f"{inside}/{len(ratios)} | {ratios[len(ratios) // 2]:.2f}" if ratios else "- | -")
+        cols.append(f"{statistics.median(r['relmse_se'] / r['relmse'] for r in rs):.0%}")
+        cols.append(f"{statistics.median(r['floor'] / r['relmse'] for r in rs):.2g}")
         print(f"| {fam} | {len(rs)} | " + " | ".join(cols) + " |")
     chose = [r for r in scored if r.get("by_setting")]
     if chose:
