@@ -21,8 +21,9 @@
     python benchmarks/bench_planner.py rescore [--setting prefiltered-high] [--cache ...] [--against CACHE]
 
     # the frame's own error estimate (renderer/check.py): `--gradients auto` frames with --seconds T, their
-    # gradsep.predicted_relmse and the pilot's prediction against the measured RelMSE, and the OIDN setting their
-    # halves chose against the better one measured
+    # gradsep.predicted_relmse and the pilot's prediction against the measured RelMSE (with the measurement's own
+    # standard error and the references' floor), the OIDN setting their halves chose against the better one
+    # measured, and `auto` over any fixed plan (--plan P) rendered into the same cache with the same seeds
     python benchmarks/bench_planner.py predict [--plan auto] [--scenes ...] [--size 192] [--seconds 20]
         [--seeds 10,11] [--ref-spp 1024] [--cache ...]
 
@@ -221,9 +222,12 @@ def measured_relmse(frame_path: Path, refs: tuple[Path, Path]) -> float:
 
 
 def measurement(frame_path: Path, refs: tuple[Path, Path], block: int = 16) -> dict[str, float]:
-    """The frame's measured RelMSE (its reconstruction against the two references, floor removed), that value's
-    standard error over ``block``-pixel squares (pixels' errors are correlated within a denoiser's footprint) and
-    the references' floor: the measurement is only as sharp as its references, and all runs share them."""
+    """The frame's measured RelMSE (its reconstruction x against the two references, floor removed), the standard
+    error the references' noise puts on it, and their floor: the measurement is only as sharp as its references,
+    and every run shares them. Per pixel the product (x − r1)(x − r2) is the error e² plus the noise
+    −e(n1 + n2) + n1·n2; half the difference of the squared errors, ((x − r1)² − (x − r2)²) / 2, is zero in
+    expectation with the same variance (2e²σ² + σ⁴ for Gaussian noise), so its mean's spread over ``block``-pixel
+    squares (a denoiser's error is correlated within its footprint) is the measurement's standard error."""
     import numpy as np
 
     from gradsep.model.frame import read_frame
@@ -233,12 +237,12 @@ def measurement(frame_path: Path, refs: tuple[Path, Path], block: int = 16) -> d
 
     image = reconstruct(read_frame(frame_path)).image.astype(np.float64)
     r1, r2 = (load_reference(str(p)).total.astype(np.float64) for p in refs)
-    mean = 0.5 * (r1 + r2)
-    # model.metrics.relmse_unbiased per pixel, so its mean is that function's value
-    terms = ((image - r1) * (image - r2) / (mean * mean + RELMSE_EPSILON)).mean(axis=-1)
-    h, w = (n // block * block for n in terms.shape)
-    blocks = terms[:h, :w].reshape(h // block, block, w // block, block).mean(axis=(1, 3)).ravel()
-    return {"relmse": float(terms.mean()), "relmse_se": float(blocks.std(ddof=1) / math.sqrt(blocks.size)),
+    norm = (0.5 * (r1 + r2)) ** 2 + RELMSE_EPSILON  # model.metrics.relmse_unbiased's, pixel by pixel
+    product = ((image - r1) * (image - r2) / norm).mean(axis=-1)
+    noise = (((image - r1) ** 2 - (image - r2) ** 2) / (2 * norm)).mean(axis=-1)
+    h, w = (n // block * block for n in noise.shape)
+    blocks = noise[:h, :w].reshape(h // block, block, w // block, block).mean(axis=(1, 3)).ravel()
+    return {"relmse": float(product.mean()), "relmse_se": float(np.sqrt(np.mean(blocks**2) / blocks.size)),
             "floor": reference_floor(r1, r2)}
 
 
@@ -509,8 +513,8 @@ def predict(args: argparse.Namespace) -> None:
             print(f"{key}: {row['wall']:.1f} s, {row['spp']} spp, plan {row['plan']}, predicted "
                   f"{row['predicted']:.3g} ({row['from']}), pilot {row['pilot']:.3g}, measured "
                   f"{row.get('relmse', math.nan):.3g}", flush=True)
-    scored = [r for r in rows.values() if "relmse_se" in r and r["relmse"] > 0 and r["scene"] in scenes
-              and r.get("ref_spp") == args.ref_spp]
+    scored = [r for k, r in rows.items() if "relmse_se" in r and r["relmse"] > 0 and r["scene"] in scenes
+              and r.get("ref_spp") == args.ref_spp and (k.split("|")[3:] or ["auto"])[0] == args.plan]
     print(f"\n| family | frames | frame's estimate / measured: within 1.5x | median | pilot's / measured: within 1.5x"
           f" | median | measured: median standard error | {args.ref_spp}-spp references' floor / measured, median |")
     print("|---|---:|---:|---:|---:|---:|---:|---:|")
@@ -524,6 +528,7 @@ def predict(args: argparse.Namespace) -> None:
         cols.append(f"{statistics.median(r['relmse_se'] / r['relmse'] for r in rs):.0%}")
         cols.append(f"{statistics.median(r['floor'] / r['relmse'] for r in rs):.2g}")
         print(f"| {fam} | {len(rs)} | " + " | ".join(cols) + " |")
+    _against_fixed(rows, scenes, args)
     chose = [r for r in scored if r.get("by_setting")]
     if chose:
         print("\nOIDN setting, RelMSE over the better of raw-fast and prefiltered-high per frame (geometric mean, "
@@ -541,6 +546,31 @@ def predict(args: argparse.Namespace) -> None:
                   f"{over_best(lambda r: r['rule_setting'])} | {over_best(lambda r: 'raw-fast')} | "
                   f"{over_best(lambda r: 'prefiltered-high')} | "
                   f"{sum(r['served_setting'] != r['rule_setting'] for r in rs)} |")
+
+
+def _against_fixed(rows: dict[str, dict], scenes: list[str], args: argparse.Namespace) -> None:
+    """`auto` against each fixed plan whose frames of the same (scene, budget, seed) are in the cache, both scored
+    with the same references: the equal-time ratio and what went to samples."""
+    if args.plan != "auto":
+        return
+    pairs: dict[str, list[tuple[dict, dict]]] = {}
+    for key, row in rows.items():
+        parts = key.split("|")
+        auto = rows.get("|".join(parts[:3]))
+        if (len(parts) == 4 and auto and row["scene"] in scenes and float(parts[1]) == args.seconds
+                and all(r.get("ref_spp") == args.ref_spp and "relmse_se" in r for r in (row, auto))):
+            pairs.setdefault(parts[3], []).append((auto, row))
+    if not pairs:
+        return
+    print(f"\n`auto` over a fixed plan at {args.seconds:g} s, same scene and seed (geometric mean, worst):\n")
+    print("| fixed plan | frames | RelMSE ratio | worst | `auto` chose it | `auto`'s spp / the plan's |")
+    print("|---|---:|---:|---:|---:|---:|")
+    for plan, ps in sorted(pairs.items()):
+        ratios = [a["relmse"] / f["relmse"] for a, f in ps]
+        geo = math.exp(sum(map(math.log, ratios)) / len(ratios))
+        spp = statistics.median(a["spp"] / f["spp"] for a, f in ps)
+        print(f"| {plan} | {len(ps)} | {geo:.2f} | {max(ratios):.2f} | {sum(a['plan'] == plan for a, _ in ps)} | "
+              f"{spp:.2f} |")
 
 
 def choose(args: argparse.Namespace) -> None:
