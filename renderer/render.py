@@ -28,6 +28,7 @@ from gradsep.model.frame import (
 from gradsep.model.oidn import SETTING_ENV
 from gradsep.renderer.budget import Deadline
 from gradsep.renderer.check import check_frame, check_seconds
+from gradsep.renderer.estimate import at_budget
 from gradsep.renderer.scene import LoadedScene, load_scene
 
 if TYPE_CHECKING:
@@ -282,8 +283,14 @@ def frame_check(planned: Planned, metadata: dict[str, str], compare: bool = Fals
     plan = planned.plan
     if not planned.halves:
         assert plan is not None
+        # the pilot carried its estimate to the samples it predicted the budget buys; the frame has what it
+        # actually got (a pilot slowed by a load spike predicts far fewer)
+        chosen = next((a for a in plan.assessments if a.name == planned.candidate.name), None)
+        predicted = (plan.predicted() if chosen is None else
+                     at_budget(chosen.predicted_relmse, chosen.budget_spp, planned.spp, chosen.exponent))
+        metadata[PREDICTED_RELMSE_KEY] = f"{predicted:.6g}"
         metadata[PREDICTED_FROM_KEY] = "pilot"
-        return f"predicted RelMSE {plan.predicted():.4g} (the pilot's: no time for the frame's own check)"
+        return f"predicted RelMSE {predicted:.4g} (the pilot's: no time for the frame's own check)"
     chosen = planned.candidate
     # the method that serves the frame (a fixed plan's frame names none yet: the default for it, as the service
     # would choose); the prediction holds for it only (model.frame.encode_answer)

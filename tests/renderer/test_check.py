@@ -250,3 +250,23 @@ def test_the_reconstruction_rate_is_timed_on_the_centre_tile_after_a_warm_up():
     seen.clear()
     reconstruct_rate(small, fake, side=64)
     assert seen == [(5, 7, 3), (5, 7, 3)]  # a frame under the tile: the whole frame
+
+
+def test_without_halves_the_pilots_prediction_is_carried_to_the_samples_the_frame_got():
+    """A pilot slowed by a load spike predicts that the budget buys 49 spp and carries its estimate there; the
+    frame then renders 543. Its header states the error at 543 spp (error ~ spp^-exponent), not at 49."""
+    from gradsep.model.frame import PREDICTED_RELMSE_KEY
+    from gradsep.renderer.plan import Assessment, Plan, Planned, candidate
+    from gradsep.renderer.render import frame_check
+
+    chosen = Assessment("direct-alternate", 1, 0.08, 0.3, "oidn-l1", exponent=0.5, budget_spp=49.0,
+                        predicted_relmse=0.012)
+    other = Assessment("primal", 1, 0.07, 0.1, "oidn", exponent=0.5, budget_spp=131.0, predicted_relmse=0.007)
+    plan = Plan(candidate("direct-alternate"), [chosen, other], pilot_seconds=3.0)
+    meta = plan.metadata(("direct", "indirect"))
+    planned = Planned(frame=None, candidate=candidate("direct-alternate"), plan=plan,  # type: ignore[arg-type]
+                      spp=543, gradient_spp=538, passes=19)
+    summary = frame_check(planned, meta)
+    assert meta["gradsep.predicted_from"] == "pilot" and "the pilot's" in summary
+    assert float(meta[PREDICTED_RELMSE_KEY]) == pytest.approx(at_budget(0.012, 49, 543, 0.5), rel=1e-5)
+    assert float(meta[PREDICTED_RELMSE_KEY]) < 0.004
