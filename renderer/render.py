@@ -286,7 +286,7 @@ def frame_check(planned: Planned, metadata: dict[str, str], compare: bool = Fals
         # the pilot carried its estimate to the samples it predicted the budget buys; the frame has what it
         # actually got (a pilot slowed by a load spike predicts far fewer)
         chosen = next((a for a in plan.assessments if a.name == planned.candidate.name), None)
-        predicted = (plan.predicted() if chosen is None else
+        predicted = (plan.predicted() if chosen is None or not chosen.budget_spp > 0 else
                      at_budget(chosen.predicted_relmse, chosen.budget_spp, planned.spp, chosen.exponent))
         metadata[PREDICTED_RELMSE_KEY] = f"{predicted:.6g}"
         metadata[PREDICTED_FROM_KEY] = "pilot"
