@@ -211,14 +211,7 @@ def reference(scene: str, size: int, spp: int, seed: int, cache: Path, render: b
 
 
 def measured_relmse(frame_path: Path, refs: tuple[Path, Path]) -> float:
-    from gradsep.model.frame import read_frame
-    from gradsep.model.metrics import relmse_unbiased
-    from gradsep.model.reconstruct import reconstruct
-    from gradsep.renderer.reference import load_reference
-
-    image = reconstruct(read_frame(frame_path)).image
-    r1, r2 = (load_reference(str(p)).total for p in refs)
-    return relmse_unbiased(image, r1, r2)
+    return measurement(frame_path, refs)["relmse"]
 
 
 def measurement(frame_path: Path, refs: tuple[Path, Path], block: int = 16) -> dict[str, float]:

@@ -419,8 +419,13 @@ class Plan:
     note: str = ""
     trace: list[list[dict[str, float | str]]] = field(default_factory=list)  # per round: TRACE_KEY's entries
 
+    def assessment(self) -> Assessment | None:
+        """The chosen candidate's assessment (None: the pilot assessed none)."""
+        return next((a for a in self.assessments if a.name == self.chosen.name), None)
+
     def predicted(self) -> float:
-        return next((a.predicted_relmse for a in self.assessments if a.name == self.chosen.name), math.nan)
+        a = self.assessment()
+        return a.predicted_relmse if a is not None else math.nan
 
     def metadata(self, layers: tuple[str, ...]) -> dict[str, str]:
         meta = {PLAN_KEY: self.chosen.name, PLAN_LAYERS_KEY: plan_layers_text(self.chosen, layers),
@@ -428,7 +433,7 @@ class Plan:
         if self.assessments:
             meta[PREDICTED_RELMSE_KEY] = f"{self.predicted():.6g}"
             meta[CANDIDATES_KEY] = ",".join(f"{a.name}={a.predicted_relmse:.6g}" for a in self.assessments)
-            meta[PLAN_METHOD_KEY] = next(a.method for a in self.assessments if a.name == self.chosen.name)
+            meta[PLAN_METHOD_KEY] = self.assessment().method  # type: ignore[union-attr]
         if self.trace:
             meta[TRACE_KEY] = json.dumps(self.trace, separators=(",", ":"))
         return meta
@@ -712,8 +717,9 @@ def render_planned(loaded: LoadedScene, layers: tuple[str, ...], *, seed: int, s
             else:
                 plan = Plan(fallback(layers), [], 0.0, f"{spp} spp is too few for a pilot")
         chosen = plan.chosen
-        if check is not None and plan.assessments:
-            held = check(next(a for a in plan.assessments if a.name == chosen.name).reconstruct_rate, chosen, 0.0)
+        assessed = plan.assessment()
+        if check is not None and assessed is not None:
+            held = check(assessed.reconstruct_rate, chosen, 0.0)
             if held is not None:
                 passes.start_split()
     else:

@@ -285,9 +285,9 @@ def frame_check(planned: Planned, metadata: dict[str, str], compare: bool = Fals
         assert plan is not None
         # the pilot carried its estimate to the samples it predicted the budget buys; the frame has what it
         # actually got (a pilot slowed by a load spike predicts far fewer)
-        chosen = next((a for a in plan.assessments if a.name == planned.candidate.name), None)
-        predicted = (plan.predicted() if chosen is None or not chosen.budget_spp > 0 else
-                     at_budget(chosen.predicted_relmse, chosen.budget_spp, planned.spp, chosen.exponent))
+        assessed = plan.assessment()
+        predicted = (plan.predicted() if assessed is None or not assessed.budget_spp > 0 else
+                     at_budget(assessed.predicted_relmse, assessed.budget_spp, planned.spp, assessed.exponent))
         metadata[PREDICTED_RELMSE_KEY] = f"{predicted:.6g}"
         metadata[PREDICTED_FROM_KEY] = "pilot"
         return f"predicted RelMSE {predicted:.4g} (the pilot's: no time for the frame's own check)"
@@ -296,8 +296,8 @@ def frame_check(planned: Planned, metadata: dict[str, str], compare: bool = Fals
     # would choose); the prediction holds for it only (model.frame.encode_answer)
     method = metadata.get(PLAN_METHOD_KEY) or choose_method(planned.frame)
     metadata[PLAN_METHOD_KEY] = method
-    exponent = (next(a.exponent for a in plan.assessments if a.name == chosen.name) if plan is not None
-                and plan.assessments else EXPONENTS.get(chosen.name, 0.5))
+    assessed = plan.assessment() if plan is not None else None
+    exponent = assessed.exponent if assessed is not None else EXPONENTS.get(chosen.name, 0.5)
 
     def served(setting: str | None) -> Callable[[Frame], np.ndarray]:  # the half as the service would serve it
         def run(frame: Frame) -> np.ndarray:
