@@ -10,20 +10,16 @@
     python benchmarks/bench_planner.py validate [--scenes procedural:93101,...] [--size 128] [--seconds 20,40]
         [--ref-spp 2048] [--cache ~/.cache/gradsep/planner-bench]
 
-    # the estimate alone, in one process: each candidate's pilot reconstruction at 4 and 16 spp, its true RelMSE
-    # (against two references) beside the pilot's reference-free estimate
-    python benchmarks/bench_planner.py estimate --scene procedural:studio:93106 --size 128 --ref-spp 2048 \
-        [--cache ...]
-
     # validate's cached frames through today's reconstruction (same samples, same wall time): today / recorded
     # RelMSE and today / best fixed, per family and pipeline; --setting for the frames with gradients; --against
     # another validate cache: this cache's frames over its, both reconstructed today
     python benchmarks/bench_planner.py rescore [--setting prefiltered-high] [--cache ...] [--against CACHE]
 
     # the frame's own error estimate (renderer/check.py): `--gradients auto` frames with --seconds T, their
-    # gradsep.predicted_relmse and the pilot's prediction against the measured RelMSE (with the measurement's own
-    # standard error and the references' floor), the OIDN setting their halves chose against the better one
-    # measured, and `auto` over any fixed plan (--plan P) rendered into the same cache with the same seeds
+    # gradsep.predicted_relmse and the checkpoint's prediction against the measured RelMSE (with the measurement's
+    # own standard error and the references' floor), the OIDN setting their halves chose against the better one
+    # measured, and `auto` over each fixed plan (--plan P) rendered into the same cache with the same seeds and
+    # over the best of them per frame
     python benchmarks/bench_planner.py predict [--plan auto] [--scenes ...] [--size 192] [--seconds 20]
         [--seeds 10,11] [--ref-spp 1024] [--cache ...]
 
@@ -336,31 +332,6 @@ def summary(rows: list[dict], floors: dict[str, float]) -> None:
         print(f"{fam}: " + "; ".join(parts) + f"; prediction within 1.5x on {inside}/{len(pred)}")
 
 
-def estimate(args: argparse.Namespace) -> None:
-    from gradsep.model.metrics import relmse_unbiased
-    from gradsep.renderer.estimate import cross_relmse, relative_weights
-    from gradsep.renderer.plan import Passes, base_image, candidate, reconstruct_default, sums_frame
-    from gradsep.renderer.reference import load_reference
-    from gradsep.renderer.scene import load_scene
-
-    cache = Path(args.cache).expanduser()
-    cache.mkdir(parents=True, exist_ok=True)
-    r1, r2 = (load_reference(str(reference(args.scene, args.size, args.ref_spp, s, cache))).total for s in (1, 2))
-    scene = load_scene(args.scene, width=args.size, height=args.size)
-    passes = Passes(scene, ("direct", "indirect"), seed=11)
-    batches = [(base_image(passes.run(candidate("primal"), n), n), n) for n in (1, 1, 1, 1, 8, 8)]
-    weights = relative_weights(0.5 * (r1 + r2))
-    print("| candidate | spp | method | true RelMSE | estimate (reference weights) | estimate (own weights) |")
-    print("|---|---:|---|---:|---:|---:|")
-    for name in ("primal", "direct-alternate", "direct"):
-        for n in (4, 16):
-            sums = passes.run(candidate(name), n)
-            image, method = reconstruct_default(sums_frame(sums, passes.kind(candidate(name)).settings, n))
-            value, se = cross_relmse(image, batches, weights)
-            print(f"| {name} | {n} | {method} | {relmse_unbiased(image, r1, r2):.3g} | {value:.3g} +- {se:.2g} | "
-                  f"{cross_relmse(image, batches)[0]:.3g} |", flush=True)
-
-
 def cost(args: argparse.Namespace) -> None:
     """A plain-frame plan's cost per sample against Mitsuba's `path`: the planner's primal passes (what
     ``--seconds T --gradients none`` and a pilot's ``primal`` choice render: renderer.plan.render_planned with the
@@ -471,9 +442,9 @@ def rescore(args: argparse.Namespace) -> None:
 
 def predict(args: argparse.Namespace) -> None:
     """The error estimate a farm reads: ``--plan`` (``auto``) frames rendered with ``--seconds T`` (cached), each
-    frame's ``gradsep.predicted_relmse`` (the frame's own check where it ran: renderer/check.py) and the pilot's
-    prediction for the chosen plan (``gradsep.plan_candidates``) against the RelMSE measured with two references,
-    and how many of each are within 1.5x."""
+    frame's ``gradsep.predicted_relmse`` (the frame's own check where it ran: renderer/check.py) and the
+    checkpoint's prediction for the chosen plan (``gradsep.plan_candidates``) against the RelMSE measured with two
+    references, and how many of each are within 1.5x."""
     cache = Path(args.cache).expanduser()
     cache.mkdir(parents=True, exist_ok=True)
     path = cache / "predict.json"
@@ -508,8 +479,8 @@ def predict(args: argparse.Namespace) -> None:
                   f"{row.get('relmse', math.nan):.3g}", flush=True)
     scored = [r for k, r in rows.items() if "relmse_se" in r and r["relmse"] > 0 and r["scene"] in scenes
               and r.get("ref_spp") == args.ref_spp and (k.split("|")[3:] or ["auto"])[0] == args.plan]
-    print(f"\n| family | frames | frame's estimate / measured: within 1.5x | median | pilot's / measured: within 1.5x"
-          f" | median | measured: median standard error | {args.ref_spp}-spp references' floor / measured, median |")
+    print(f"\n| family | frames | frame's estimate / measured: within 1.5x | median | checkpoint's / measured: "
+          f"within 1.5x | median | measured: median standard error | {args.ref_spp}-spp references' floor / measured, median |")
     print("|---|---:|---:|---:|---:|---:|---:|---:|")
     for fam in sorted({family(r["scene"]) for r in scored}):
         rs = [r for r in scored if family(r["scene"]) == fam]
@@ -564,6 +535,18 @@ def _against_fixed(rows: dict[str, dict], scenes: list[str], args: argparse.Name
         spp = statistics.median(a["spp"] / f["spp"] for a, f in ps)
         print(f"| {plan} | {len(ps)} | {geo:.2f} | {max(ratios):.2f} | {sum(a['plan'] == plan for a, _ in ps)} | "
               f"{spp:.2f} |")
+    if len(pairs) > 1:  # each frame against the best of the fixed plans rendered for its (scene, seed)
+        best: dict[int, tuple[dict, float]] = {}
+        for ps in pairs.values():
+            for a, f in ps:
+                best[id(a)] = (a, min(f["relmse"], best.get(id(a), (a, math.inf))[1]))
+        complete = [(a, b) for a, b in best.values()
+                    if sum(any(x is a for x, _ in ps) for ps in pairs.values()) == len(pairs)]
+        ratios = [a["relmse"] / b for a, b in complete]
+        if ratios:
+            geo = math.exp(sum(map(math.log, ratios)) / len(ratios))
+            print(f"| the best of {', '.join(sorted(pairs))}, per frame | {len(ratios)} | {geo:.2f} | "
+                  f"{max(ratios):.2f} | – | – |")
 
 
 def choose(args: argparse.Namespace) -> None:
@@ -692,11 +675,6 @@ def main(argv: list[str] | None = None) -> int:
     v.add_argument("--no-references", action="store_true",
                    help="do not render missing references (score only the scenes whose references exist)")
     v.add_argument("--cache", default=str(Path.home() / ".cache/gradsep/planner-bench"))
-    e = sub.add_parser("estimate")
-    e.add_argument("--scene", default="procedural:studio:93106")
-    e.add_argument("--size", type=int, default=128)
-    e.add_argument("--ref-spp", type=int, default=2048)
-    e.add_argument("--cache", default=str(Path.home() / ".cache/gradsep/planner-bench"))
     c = sub.add_parser("cost")
     c.add_argument("--scenes", default="procedural:93201,procedural:studio:93201")
     c.add_argument("--sizes", default="320x240,1280x720")
@@ -730,7 +708,7 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--against", default="", help="another validate cache (same scenes, seeds, references): print "
                    "this cache's RelMSE over its, both reconstructed today")
     args = parser.parse_args(argv)
-    {"timing": timing, "validate": validate, "estimate": estimate, "cost": cost, "rescore": rescore,
+    {"timing": timing, "validate": validate, "cost": cost, "rescore": rescore,
      "predict": predict, "choose": choose}[args.what](args)
     return 0
 

@@ -35,9 +35,9 @@ Every method produces (image, per-layer images where it has them, render seconds
                             -- what a farm gets from our renderer + service in the time the baselines are given
                             (the G-PT rows above are at equal spp, each at its own time)
 ``gpt-auto``                G-PT *planned* at equal time: ``gradsep render --seconds T --gradients auto`` in
-                            process (renderer.plan.render_planned: a pilot race picks primal, direct-alternate
-                            or all, then passes fill the deadline), reconstructed with the default method the
-                            frame names (``gradsep.plan_method``); one shot to the budget, see below
+                            process (renderer.plan.render_planned: a checkpoint on the frame's halves keeps
+                            direct-alternate or goes on with primal, passes fill the deadline), reconstructed with
+                            the default method the frame names (``gradsep.plan_method``); one shot, see below
 ==========================  ===============================================================================
 
 Equal time: the budget of a G-PT spp is the G-PT render time plus the reconstruction time of the product's default
@@ -63,11 +63,12 @@ The planned row (``gpt-auto``) is not searched: it renders once to a :class:`~re
 when the row starts and has the whole budget, whose tail (``Deadline.tail``, what must be left when the last pass
 ends) is the measured cost of reconstructing the frame: the slowest of the candidates' default reconstructions,
 each timed like a searched row's post-processing (:meth:`PathRenderer.planner_tail`). Everything it does is charged:
-the pilot (its warm-up passes, race passes and tile reconstructions), the passes that fill the deadline and the
-reconstruction. It keeps one try (``attempts`` 1); a total outside ±5 % records why (``time_note``: pass
-granularity, a pass or the reconstruction slower than predicted, a budget below one pass). Its ``extra`` records
-the plan chosen, each candidate's predicted RelMSE and the chosen one's (``predicted_relmse``; None with
-``predicted_note`` where no pilot ran and the planner fell back to ``all``).
+the checkpoint (its passes, which stay in the frame, and its tile reconstructions), the passes that fill the
+deadline and the reconstruction. It keeps one try (``attempts`` 1); a total outside ±5 % records why
+(``time_note``: pass granularity, a pass or the reconstruction slower than predicted, a budget below one pass).
+Its ``extra`` records the plan chosen, each judged plan's predicted RelMSE and the chosen one's
+(``predicted_relmse``; None with ``predicted_note`` where no checkpoint fitted and the planner rendered its
+fallback).
 
 Timings exclude one-time costs on both sides: each network is run once untimed per frame size (ONNX
 Runtime's allocation on a new shape), Mitsuba's kernels are compiled before the timed render. The G-PT
@@ -941,11 +942,11 @@ PLANNED_TIME = "one render to the planner's deadline"
 
 
 def _run_gpt_auto(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
-    """The render planner at equal time: ``render_planned`` (pilot race, then passes) to a deadline that starts
+    """The render planner at equal time: ``render_planned`` (checkpoint, then passes) to a deadline that starts
     now with the whole budget and keeps the measured reconstruction time as its tail, then the default method the
     frame names. One shot: the measured total is recorded against the budget with the reason of a miss. A budget
     below the planner's start-up (CommandError: one pass and the reconstruction do not fit) renders 1 spp of the
-    fallback plan regardless, recorded as such; a pilot that gave up records why, with no prediction."""
+    fallback plan regardless, recorded as such; a frame without a checkpoint records why, with no prediction."""
     from gradsep.model.errors import CommandError
     from gradsep.model.frame import PLAN_METHOD_KEY, PREDICTED_FROM_KEY, PREDICTED_RELMSE_KEY
     from gradsep.model.reconstruct import reconstruct
@@ -1026,7 +1027,7 @@ def _planned_time_note(target: float, render: float, post: float, tail: float, r
         parts.append(f"the render stopped {early:.3g} s before the budget less the reconstruction's reserve: the "
                      f"next pass of `{plan}`{per} was predicted not to fit (pass granularity)")
     elif early < -significant:
-        why = (f"the pilot alone took {pilot:.3g} s: its warm-ups and first round are not cut short"
+        why = (f"the checkpoint alone took {pilot:.3g} s: its passes and reconstructions are not cut short"
                if pilot > target - tail else "a pass slower than predicted")
         parts.append(f"the render ended {-early:.3g} s past the budget less the reconstruction's reserve ({why})")
     if abs(post - tail) > significant:

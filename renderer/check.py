@@ -1,12 +1,13 @@
 """The frame's own error estimate (``gradsep.predicted_relmse`` of a planned frame): the final frame's passes,
 dealt into GROUPS groups as they are rendered, judge each half of the frame against the other half's groups.
 
-The pilot's prediction (renderer/plan.py) is read at a tenth of the frame's samples and carried ~10x in samples
-with an assumed error-vs-spp law; held-out rooms showed it heavy-tailed (within 1.5x of the measured RelMSE on 3
-of 16 frames). Here the estimate is read at the frame's own samples instead:
+The checkpoint's prediction (renderer/plan.py) is read at a tenth of the frame's samples and carried ~10x in
+samples with an assumed error-vs-spp law; on held-out rooms it was 2-9x the measured RelMSE. Here the estimate is
+read at the frame's own samples instead:
 
-- once the check is known to fit (after the pilot; for a fixed plan after its first pass), the passes so far go
-  to half ``A``'s first group as one lump, and every later pass to the half with fewer samples, there to its group
+- once the check is known to fit (with --gradients auto from the frame's first pass on: the checkpoint judges the
+  plans on these halves; for a fixed plan after its first pass), the passes so far go to half ``A``'s first group
+  as one lump, and every later pass to the half with fewer samples, there to its group
   with the fewest (the first half of the groups is half ``A``, the rest half ``B``); ``A``'s sums are kept whole
   (bases, features, squares and each plan's gradients), ``B``'s are the frame's less ``A``'s, and each group
   keeps its base image;
@@ -14,16 +15,15 @@ of 16 frames). Here the estimate is read at the frame's own samples instead:
   against the groups of the other half, which are independent of it (renderer.estimate.cross_relmse: no
   reference, bias included; with k groups the estimate's noise from the groups' own noise is k / (k - 1) of its
   least, so 2x with two groups and 1.33x with four);
-- each half's estimate is carried from its samples to the frame's (a factor of about two) with the error-vs-spp
-  exponent the pilot read for the plan (its prior weighed against the slope between its rounds:
-  renderer.plan.measured_exponent; a fixed plan's prior, renderer.plan.EXPONENTS), and the two are averaged;
+- each half's estimate is carried from its samples to the frame's (a factor of about two) with the plan's
+  error-vs-spp exponent (renderer.plan.EXPONENTS), and the two are averaged;
 - given several reconstructions (OIDN settings), each is judged so, and their paired difference on the same
   groups, where the groups' noise cancels, chooses between them (:func:`check_frame`).
 
 It costs two reconstructions at the frame's size per option (:func:`check_seconds` predicts them from the
-pilot's, or from a tile a fixed plan times), so a render makes it only where they fit a small share of the budget
-(renderer.render.CHECK_SHARE); elsewhere the header keeps the pilot's prediction, and ``gradsep.predicted_from``
-says which it is.
+checkpoint's, or from a tile a fixed plan times), so a render makes it only where they fit a small share of the
+budget (renderer.render.CHECK_SHARE); elsewhere the header keeps the checkpoint's prediction, and
+``gradsep.predicted_from`` says which it is.
 """
 
 from __future__ import annotations
@@ -194,7 +194,7 @@ def check_frame(halves: list[Half], spp: int, exponent: float,
                 clock: Callable[[], float] = time.perf_counter) -> Check:
     """Estimate the frame's reconstructed RelMSE from its two ``halves``, each reconstructed with ``reconstruct``
     and judged against the other half's groups, then carried to the frame's ``spp`` with ``exponent``. An
-    estimate lost in the other half's noise counts as its noise (as the pilot's: renderer.plan.run_pilot).
+    estimate lost in the other half's noise counts as its noise (as the checkpoint's: renderer.plan.run_checkpoint).
 
     With several reconstructions (``reconstruct`` a dict, the frame's own first), each is judged so, and each
     other one is compared with the first on the same groups with the same weights (the mean of the two

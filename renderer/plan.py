@@ -1,30 +1,24 @@
-"""The render planner: `gradsep render --seconds T` (a frame to a wall-time budget) and `--gradients auto` (which
-layers trace gradients, and with which offsets, chosen per scene from a pilot).
+"""The render planner: `gradsep render --seconds T` (a frame to a wall-time budget) and `--gradients auto` (whether
+the frame traces gradients, chosen per scene at a checkpoint on the frame itself).
 
 **Passes.** A frame is the sum of render passes (renderer.gpt.render_pass: one compiled kernel, ``spp`` samples
 of every pixel, each pass its own random stream ``pass_seed(seed, i)``). Passes of different plans mix: every
 plan's base path is the same unbiased path tracer (the primal-only mode's bases and features are G-PT's), so the
 frame's bases and features average the samples of every pass, and its gradients those of the chosen plan's passes
-(the ``--gradient-spp`` rule of render_gpt). So the whole pilot is reused in the final frame.
+(the ``--gradient-spp`` rule of render_gpt).
 
-**The pilot** (--gradients auto) is a race. Each candidate (:data:`CANDIDATES`) renders a 1-spp warm-up pass (its
-kernel is compiled or loaded here). Then rounds: each surviving candidate renders ``n`` more samples, and so does
-a primal pass ``B`` (the first round's ``n`` sized so that the candidates and B take about PILOT_SHARE of the
-budget, at most PILOT_MAX_SPP; ``n`` grows ROUND_GROWTH-fold each round). After each round every survivor's race
-passes so far (``N`` samples) are reconstructed with the method that would serve its frame (model.reconstruct's
-default: ``oidn-l1`` with gradients, ``oidn`` for a plain frame), on a few tiles (:func:`tiles`) to bound the
-cost, and compared with the warm-ups and B passes: independent of every candidate's race passes and of each
-other, so the mean over pairs of passes of ``(R - b_j)(R - b_k)`` estimates the reconstruction's squared error
-with no reference (renderer/estimate.py); the same passes for every candidate, so that their noise cancels when
-candidates are compared. That error, at the candidate's *current* samples, is carried to the samples the rest
-of the budget buys it with ``error ~ spp^-exponent``: its cost is the marginal cost per sample and the fixed
-cost per pass read from its passes of different sizes (:func:`pass_cost`), its exponent the prior EXPONENTS
-weighed against the slope between its last two rounds by their noise (:func:`measured_exponent`). From the
-second round on, a candidate whose prediction is worse than the best one's by more than their combined standard
-errors leaves the race (:func:`eliminate`). The race ends when one candidate survives, or before a round that
-would take it past RACE_SHARE of the budget (of the frame's samples with --spp); FALLBACK wins unless another
-candidate's prediction is lower by more than their combined standard errors (:func:`choose`) after two rounds or
-more (one round has no cost line nor slope to compare by), and the rest of the budget is the winner's passes.
+**The checkpoint** (--gradients auto: :func:`run_checkpoint`). The frame starts as the fallback plan's
+(FALLBACK, the best fixed plan on held-out scenes), its passes dealt into the frame's two halves
+(renderer/check.py), with one warm primal pass per size for primal's cost. At CHECKPOINT_SHARE of the budget each
+half is reconstructed twice -- with its gradients (``oidn-l1``) and as a plain frame from the same passes' bases
+(``oidn``) -- on a few tiles (:func:`tiles`), and each reconstruction's error is estimated against the other
+half's groups, which are independent of it (renderer/estimate.py: no reference, bias included). Each estimate is
+carried to the samples the rest of the budget buys that plan, with ``error ~ spp^-exponent`` (EXPONENTS) and the
+plan's cost read from its passes (:func:`pass_cost`); the rest of the frame is primal passes only when the paired
+difference of the carried estimates -- same groups, same weights, so the groups' own noise cancels -- says
+primal is lower by more than renderer.check.SWITCH_SE standard errors. Nothing is rendered for the judgement
+alone: every pass so far stays in the frame whichever plan goes on, so the checkpoint costs its reconstructions
+and, where primal wins, the gradients already traced.
 
 **The deadline** (renderer/budget.py): passes are sized from their measured cost so that the last one ends, with
 the write still to come, just before ``T``; nothing is started that is predicted to miss it. A plan that traces
@@ -45,46 +39,35 @@ import numpy as np
 from gradsep.model.errors import CommandError
 from gradsep.model.frame import PLAN_METHOD_KEY, PREDICTED_RELMSE_KEY, Features, Frame, Layer
 from gradsep.renderer.budget import Clock, Deadline, PassCosts, fill_with_filler, fitted_line
-from gradsep.renderer.check import Half, Split, base_sum
-from gradsep.renderer.estimate import at_budget, cross_relmse, relative_weights
+from gradsep.renderer.check import Half, Split
+from gradsep.renderer.estimate import at_budget, cross_terms, relative_weights
 from gradsep.renderer.scene import LoadedScene
 
 #: Header keys of a planned frame (all strings, like every ``gradsep.*`` attribute).
 PLAN_KEY = "gradsep.plan"  # the chosen candidate's name
 PLAN_LAYERS_KEY = "gradsep.plan_layers"  # per layer: what traces gradients, e.g. "direct=alternate,indirect=none"
-CANDIDATES_KEY = "gradsep.plan_candidates"  # each candidate's prediction from its last round, "name=value,..."
+CANDIDATES_KEY = "gradsep.plan_candidates"  # each judged plan's predicted RelMSE at the budget, "name=value,..."
 BUDGET_KEY = "gradsep.budget_seconds"  # --seconds
-PILOT_SECONDS_KEY = "gradsep.pilot_seconds"  # wall time of the pilot (its kernels, passes, reconstructions)
+PILOT_SECONDS_KEY = "gradsep.pilot_seconds"  # wall time up to the checkpoint's choice (its passes stay in the frame)
 ELAPSED_KEY = "gradsep.elapsed_seconds"  # the command's wall time when the frame was encoded (from process start)
-#: The race round by round (JSON: per round, each surviving candidate's samples, estimated RelMSE, its standard
-#: error, seconds per sample and the samples the budget buys it): why the plan was chosen, for a farm to read.
+#: The checkpoint's figures (JSON: its samples, each candidate's estimated RelMSE at the halves' samples with its
+#: standard error, seconds per sample and per pass, exponent and the samples the budget buys it, the paired
+#: difference of the carried estimates with its standard error, and the plan chosen): why, for a farm to read.
 TRACE_KEY = "gradsep.plan_trace"
 
-#: Share of the budget the race's first round may take (kernel compilation and its reconstructions come on top).
+#: The most the checkpoint's own cost (primal's kernel, the reconstructions' start-up and work) may take of the
+#: budget: above it the fallback is rendered with no checkpoint.
 PILOT_SHARE = 0.1
-#: Share of the budget (of the frame's samples with --spp) after which the race stops: the leader takes the rest.
-RACE_SHARE = 0.35
-#: Each round's passes are this many times the last round's: far enough apart that the pilot reads each plan's
-#: cost per sample apart from its fixed cost per pass (pass_cost; 1 spp of a G-PT pass is ~20 % of its time on a
-#: 192x192 frame), and its error at two clearly different sample counts (measured_exponent).
-ROUND_GROWTH = 4
-#: The most rounds a race runs.
-MAX_ROUNDS = 12
-#: The pilot gives up (no candidate is assessed; FALLBACK is rendered) when its warm-ups -- one compile per
-#: candidate -- took more than this share of the budget.
-PILOT_GIVE_UP = 0.3
 #: What the first reconstruction in a process costs before its work (importing pyoidn -- without torch:
 #: model.oidn.import_pyoidn -- and the reconstruction modules, creating the OIDN device and its filters, loading
 #: the compiled kernels): ~0.2 s + ~0.6 s measured on the 2-core development machine. Counted against the
-#: pilot's share before it is paid, so that a budget too small for it falls back instead of overrunning.
+#: checkpoint's share before it is paid, so that a budget too small for it falls back instead of overrunning.
 RECONSTRUCT_STARTUP = 1.0
 #: The interpreter's exit after the frame is written (part of the command's wall time): 0.05-0.13 s after
 #: rendering alone (measured on 2 shared cores, load ~3, with a 1.2 margin); the reconstruction libraries add
 #: little now that torch is not imported with them (its teardown alone was 0.3 s: model.oidn.import_pyoidn).
 EXIT_SECONDS = (0.15, 0.3)
-#: The most samples of the race's first round (later rounds grow by ROUND_GROWTH while the race's share allows).
-PILOT_MAX_SPP = 16
-#: Tiles the pilot reconstructs (side, count) and the border of each left out of the estimate.
+#: Tiles the checkpoint reconstructs (side, count) and the border of each left out of the estimate.
 TILE = 128
 TILE_COUNT = 4
 TILE_BORDER = 8
@@ -99,10 +82,12 @@ class Candidate:
     offsets: str = "all"  # renderer.render.OFFSET_CHOICES
 
 
-#: The plans the pilot compares (small on purpose: each costs a kernel compile and a reconstruction). The pilot
-#: plans for the default method, ``oidn-l1``, which reads the direct layer's gradients only: ``all`` would give it
-#: the direct gradients of ``direct`` (the same estimator: renderer.render.render_frame) at a higher cost, so it is
-#: no candidate. A farm serving a method that reads every layer's gradients renders ``--gradients all``.
+#: The render plans by name (what ``--gradients`` and ``--offsets`` make of a fixed plan). The checkpoint judges the
+#: fallback against ``primal`` (:func:`applicable`); ``direct`` (every offset) and ``all`` are fixed plans: the
+#: default method, ``oidn-l1``, reads only the direct layer's gradients, and an oracle choosing ``direct`` where it
+#: was best was 3 % below one choosing between primal and ``direct-alternate`` on held-out scenes, less than a
+#: third candidate's passes would cost. A farm serving a method that reads every layer's gradients renders
+#: ``--gradients all``.
 CANDIDATES: tuple[Candidate, ...] = (
     Candidate("primal", "none"),
     Candidate("direct-alternate", "direct", "alternate"),
@@ -113,15 +98,15 @@ CANDIDATES: tuple[Candidate, ...] = (
 #: the plan: primal passes (their samples join the bases, as the --gradient-spp rule's; the gradients keep the
 #: plan's passes' samples). A 1-spp primal pass costs ~1/4 of an `all` pass (1280x720, 2 shared cores).
 FILLER = "primal"
-#: Rendered where no pilot can run (a budget or sample count too small for one), and the plan a race keeps unless
-#: another is clearly better (:func:`choose`; :func:`fallback`: ``all`` for an unseparated frame): the best fixed
-#: plan at equal time on held-out scenes (benchmarks/bench_planner.py validate: 1.06x the best fixed plan's RelMSE
-#: on rooms, 1.32x on studios, geometric means; ``direct`` 1.22x / 1.47x, ``all`` 1.38x / 1.52x).
+#: The plan a frame starts with and keeps unless primal is clearly better at the checkpoint (:func:`fallback`:
+#: ``all`` for an unseparated frame), and the plan rendered where no checkpoint fits: the best fixed plan at equal
+#: time on held-out scenes (benchmarks/bench_planner.py validate: 1.06x the best fixed plan's RelMSE on rooms,
+#: 1.32x on studios, geometric means; ``direct`` 1.22x / 1.47x, ``all`` 1.38x / 1.52x).
 FALLBACK = "direct-alternate"
-#: Error-vs-spp exponent of each candidate's reconstruction (RelMSE ~ spp^-exponent) where the pilot cannot read its
-#: own (measured_exponent), and the prior the measured slope is weighed against. A denoised frame's error falls
-#: far slower than a raw frame's 1/spp: measured between two budgets (20 s and 40 s at 128x128, 350-3400 spp) on
-#: procedural:93101, 0.43 (primal + oidn), 0.37 (direct-alternate + oidn-l1), 0.54 (all + oidn-l1).
+#: Error-vs-spp exponent of each plan's reconstruction (RelMSE ~ spp^-exponent) the checkpoint's estimates are
+#: carried to the budget with. A denoised frame's error falls far slower than a raw frame's 1/spp: measured
+#: between two budgets (20 s and 40 s at 128x128, 350-3400 spp) on procedural:93101, 0.43 (primal + oidn), 0.37
+#: (direct-alternate + oidn-l1), 0.54 (all + oidn-l1).
 EXPONENTS: dict[str, float] = {"primal": 0.5, "direct-alternate": 0.5, "direct": 0.5, "all": 0.5}
 
 
@@ -141,11 +126,9 @@ def plan_layers_text(c: Candidate, layers: tuple[str, ...]) -> str:
     return ",".join(f"{layer}={traced(layer)}" for layer in layers)
 
 
-def applicable(layers: tuple[str, ...]) -> tuple[Candidate, ...]:
-    """The candidates a frame of these layers can use: ``direct`` gradients need the separated direct layer, where
-    ``all`` is no candidate (it would add only indirect gradients, which the default method does not read)."""
-    separated = "direct" in layers
-    return tuple(c for c in CANDIDATES if c.gradients == "none" or (c.gradients == "direct") == separated)
+def applicable(layers: tuple[str, ...]) -> tuple[Candidate, Candidate]:
+    """The plans the checkpoint judges for a frame of these layers: its :func:`fallback` and ``primal``."""
+    return fallback(layers), candidate("primal")
 
 
 def fallback(layers: tuple[str, ...]) -> Candidate:
@@ -281,22 +264,8 @@ class Passes:
         return out
 
 
-def sums_frame(sums: dict[str, np.ndarray], settings: object, spp: int) -> Frame:
-    """One pass's sums as a Frame (what the pilot reconstructs)."""
-    from gradsep.renderer.gpt import finish
-
-    frame = as_frame(finish(sums, settings, spp, 1))
-    frame.warnings = []
-    return frame
-
-
-def base_image(sums: dict[str, np.ndarray], spp: int) -> np.ndarray:
-    """The pass's mean radiance summed over its layers (the image the reconstruction is judged on)."""
-    return base_sum(sums) / spp
-
-
 def tiles(width: int, height: int, side: int = TILE, count: int = TILE_COUNT) -> list[tuple[slice, slice]]:
-    """The windows the pilot reconstructs: the whole frame when it is small, else ``count`` tiles of ``side``
+    """The windows the checkpoint reconstructs: the whole frame when it is small, else ``count`` tiles of ``side``
     centred in the frame's quadrants (spread over the frame, away from its edges)."""
     if width * height <= count * side * side or width < 2 * side or height < 2 * side:
         return [(slice(0, height), slice(0, width))]
@@ -339,33 +308,11 @@ def reconstruct_default(frame: Frame) -> tuple[np.ndarray, str]:
     return result.image, result.method
 
 
-# -------------------------------------------------------------------------------------------------- pilot
+# -------------------------------------------------------------------------------------------- checkpoint
 
-#: The range a slope measured in the pilot is clipped to (a noisy pair of estimates must not promise a raw
-#: frame's 1/spp, nor no gain at all).
-EXPONENT_RANGE = (0.1, 1.0)
-#: How far a candidate's error-vs-spp exponent is believed to stray from its EXPONENTS entry before the pilot
-#: measures it (one standard deviation): the measured slope is weighed against that prior by their variances
-#: (:func:`measured_exponent`), so a slope read from two noisy estimates barely moves it and a clear one does.
-EXPONENT_PRIOR_SD = 0.2
 #: Passes the rest of the frame is expected to take (renderer.budget.fill_to_deadline's passes shrink as the
 #: deadline nears): each pays the candidate's fixed cost per pass.
 FINAL_PASSES = 4
-
-
-def measured_exponent(early: float, early_se: float, n1: int, late: float, late_se: float, n: int,
-                      default: float) -> float:
-    """The error-vs-spp exponent of one reconstruction from two estimates of its error, at ``n1`` and ``n``
-    samples: the slope between them weighed against the prior ``default`` (standard deviation EXPONENT_PRIOR_SD)
-    by inverse variances, the slope's variance from the estimates' relative standard errors; clipped to
-    EXPONENT_RANGE. ``default`` where either estimate is not above its standard error (no ratio to take)."""
-    if n <= n1 or early <= early_se or late <= late_se:
-        return default
-    slope = math.log(early / late) / math.log(n / n1)
-    slope_var = ((early_se / early) ** 2 + (late_se / late) ** 2) / math.log(n / n1) ** 2
-    prior_var = EXPONENT_PRIOR_SD ** 2
-    blended = (default / prior_var + slope / slope_var) / (1 / prior_var + 1 / slope_var)
-    return min(max(blended, EXPONENT_RANGE[0]), EXPONENT_RANGE[1])
 
 
 def pass_cost(warm: list[tuple[int, float]], fallback: float) -> tuple[float, float]:
@@ -373,7 +320,7 @@ def pass_cost(warm: list[tuple[int, float]], fallback: float) -> tuple[float, fl
     line through its warm passes ``(spp, seconds)`` (renderer.budget.fitted_line) when they have two sizes or more
     (the fixed part clipped to [0, 0.95 x the smallest pass]); else no fixed part and ``fallback`` per sample.
     Unlike the deadline's conservative rate (renderer.budget.PassCosts.per_sample, the largest recent rate), this
-    is the marginal cost: small pilot passes are mostly fixed cost for G-PT (tracing the kernel), which must not be
+    is the marginal cost: small passes are mostly fixed cost for G-PT (tracing the kernel), which must not be
     charged to every sample of the final frame's large passes."""
     line = fitted_line(warm)
     if line is None:
@@ -386,11 +333,11 @@ def pass_cost(warm: list[tuple[int, float]], fallback: float) -> tuple[float, fl
 
 @dataclass
 class Assessment:
-    """What the race measured of one candidate (at its last round)."""
+    """What the checkpoint measured of one plan."""
 
     name: str
-    pilot_spp: int  # samples of its race passes so far
-    measured_relmse: float  # estimated RelMSE of their reconstruction (at pilot_spp)
+    pilot_spp: int  # samples of each half at the checkpoint (the halves' mean)
+    measured_relmse: float  # estimated RelMSE of a half's reconstruction (at pilot_spp; the halves' mean)
     per_sample: float  # seconds per sample of the whole frame (warm, marginal: pass_cost)
     method: str  # the reconstruction method that serves its frame
     standard_error: float = 0.0  # of measured_relmse (the estimate's noise)
@@ -402,7 +349,7 @@ class Assessment:
     reconstruct_rate: float = 0.0  # seconds per pixel of its reconstructions (the frame's check: renderer/check.py)
 
     def trace_entry(self) -> dict[str, float | str]:
-        """This round's entry of the race's trace (TRACE_KEY)."""
+        """This plan's entry in the checkpoint's figures (TRACE_KEY)."""
         return {"name": self.name, "spp": self.pilot_spp, "relmse": float(f"{self.measured_relmse:.4g}"),
                 "se": float(f"{self.standard_error:.3g}"), "per_sample": float(f"{self.per_sample:.4g}"),
                 "pass_seconds": float(f"{self.pass_seconds:.4g}"), "exponent": round(self.exponent, 3),
@@ -411,16 +358,16 @@ class Assessment:
 
 @dataclass
 class Plan:
-    """The pilot's decision."""
+    """The planner's decision (a checkpoint's, or the fallback where none fitted)."""
 
     chosen: Candidate
     assessments: list[Assessment]
     pilot_seconds: float
     note: str = ""
-    trace: list[list[dict[str, float | str]]] = field(default_factory=list)  # per round: TRACE_KEY's entries
+    trace: dict[str, object] = field(default_factory=dict)  # the checkpoint's figures (TRACE_KEY)
 
     def assessment(self) -> Assessment | None:
-        """The chosen candidate's assessment (None: the pilot assessed none)."""
+        """The chosen plan's assessment (None: no checkpoint judged it)."""
         return next((a for a in self.assessments if a.name == self.chosen.name), None)
 
     def predicted(self) -> float:
@@ -443,143 +390,141 @@ class Plan:
             return f"plan {self.chosen.name} ({self.note})"
         parts = ", ".join(f"{a.name} {a.predicted_relmse:.4g} at {a.budget_spp:.0f} spp (slope {a.exponent:.2f})"
                           for a in self.assessments)
-        return (f"plan {self.chosen.name}: predicted RelMSE {parts} (pilot {self.pilot_seconds:.2f} s, {self.note}, "
-                f"method {self.metadata(()).get(PLAN_METHOD_KEY, '?')})")
+        return (f"plan {self.chosen.name}: predicted RelMSE {parts} (checkpoint {self.pilot_seconds:.2f} s, "
+                f"{self.note}, method {self.metadata(()).get(PLAN_METHOD_KEY, '?')})")
 
 
-def choose(assessments: list[Assessment], default: str = FALLBACK) -> Assessment:
-    """The race's winner: ``default`` (the frame's :func:`fallback`: the best fixed plan on held-out scenes) unless
-    another candidate's prediction is lower by more than their combined standard errors; then the lowest. A race
-    too short to tell the plans apart keeps the default rather than follow noise."""
-    best = min(assessments, key=lambda a: a.predicted_relmse)
-    kept = next((a for a in assessments if a.name == default), None)
-    if kept is None or best is kept:
-        return best
-    margin = math.hypot(best.predicted_se, kept.predicted_se)
-    return best if kept.predicted_relmse - best.predicted_relmse > margin else kept
+#: Share of the budget (of the frame's samples with --spp) rendered with the fallback plan before the checkpoint
+#: judges the candidates on the frame's halves. Those passes stay in the frame whatever the choice.
+CHECKPOINT_SHARE = 0.15
+#: Passes the frame is rendered in up to the checkpoint (each half needs two groups or more: renderer/check.py).
+CHECKPOINT_PASSES = 8
+#: The fewest samples of a --spp frame that get a checkpoint (its passes up to it: 4 of 1 spp, then 4 or more).
+CHECKPOINT_MIN_SPP = 64
+#: Side of the blocks whose means give the checkpoint's paired difference its standard error: a denoiser's errors
+#: are correlated between neighbouring pixels, so single pixels would understate it.
+CHECKPOINT_BLOCK = 8
 
 
-def eliminate(assessments: list[Assessment]) -> list[Assessment]:
-    """The candidates still in the race: the best prediction and every one not worse than it by more than their
-    combined standard errors (:attr:`Assessment.predicted_se`)."""
-    best = min(assessments, key=lambda a: a.predicted_relmse)
-    return [a for a in assessments if a is best
-            or a.predicted_relmse - best.predicted_relmse <= math.hypot(a.predicted_se, best.predicted_se)]
+def block_means(terms: np.ndarray, block: int = CHECKPOINT_BLOCK) -> np.ndarray:
+    """The means of ``terms`` (rows, columns[, channels]) over ``block``-square blocks (the ragged edge left out;
+    the whole array as one block when it is smaller than one)."""
+    h, w = terms.shape[:2]
+    if h < block or w < block:
+        return np.asarray([float(np.mean(terms))])
+    t = terms[:h - h % block, :w - w % block]
+    t = t.reshape(h // block, block, w // block, block, -1)
+    return t.mean(axis=(1, 3, 4)).ravel()
 
 
-def run_pilot(passes: Passes, budget_spp: Callable[[Assessment], float], *, pilot_seconds: float | None = None,
-              pilot_spp: int | None = None, race_seconds: float = math.inf, race_spp: float = math.inf,
-              give_up_after: float = math.inf, after_first: Callable[[], None] | None = None,
-              reconstruct: Callable[[Frame], tuple[np.ndarray, str]] = reconstruct_default) -> Plan:
-    """Race every applicable candidate (see the module's docstring). The first round's passes take ``pilot_spp``
-    samples, or as many as ``pilot_seconds`` of sampling buys each candidate (at most PILOT_MAX_SPP); each later
-    round multiplies them by ROUND_GROWTH, while the race (since its start) is predicted to stay within
-    ``race_seconds`` and its passes within ``race_spp`` samples of the frame. ``budget_spp`` says how many samples
-    the rest of the budget buys a candidate, given its measured cost. When the warm-ups alone took more than
-    ``give_up_after`` seconds, no candidate is assessed and the plan is the fallback. ``after_first`` runs after the
-    first pass (the caller's start-up check). Every pass stays in ``passes``."""
+def run_checkpoint(passes: Passes, budget_spp: Callable[[Assessment], float], *, seconds: float | None = None,
+                   spp: int | None = None, give_up_after: float = math.inf,
+                   after_first: Callable[[], None] | None = None,
+                   reconstruct: Callable[[Frame], tuple[np.ndarray, str]] = reconstruct_default) -> Plan:
+    """Render the fallback plan (:func:`fallback`) for CHECKPOINT_SHARE of the budget (``seconds``) or of the
+    frame's ``spp``, its passes dealt into the frame's halves (renderer/check.py), with one warm primal pass per
+    size for primal's cost; then judge on the halves whether the rest is better spent on the fallback's passes
+    or on primal ones (a plain frame, from the same passes' bases): each half reconstructed both ways, on up to
+    TILE_COUNT tiles, and judged against the other half's groups, each candidate's estimate carried to the
+    samples the rest of the budget buys it; primal replaces the fallback only when the paired difference of the
+    carried estimates (same groups, same weights: the groups' noise cancels) is below zero by more than
+    renderer.check.SWITCH_SE standard errors. Every pass stays in the frame. When the checkpoint's own cost (the
+    primal kernel, the reconstructions) is predicted past ``give_up_after`` seconds, nothing is judged and the
+    fallback is rendered. ``after_first`` runs after the first pass (the caller's start-up check)."""
+    from gradsep.renderer.check import SWITCH_SE
+
     clock = passes.clock
     start = clock()
-    # the fallback first: a pilot that gives up after its first warm-up has compiled what it falls back to
     default = fallback(passes.layers)
-    candidates = tuple(sorted(applicable(passes.layers), key=lambda c: c.name != default.name))
-    # warm-ups: compile (or load) each kernel; their samples join the frame and B
-    batches: list[tuple[np.ndarray, int]] = []
-    for c in candidates:
-        batches.append((base_image(passes.run(c, 1), 1), 1))
-        if after_first is not None and len(batches) == 1:
-            after_first()
-        if clock() - start + reconstruct_startup() > give_up_after:
-            return Plan(candidates[0], [], clock() - start, "the budget is too small for a pilot")
-    left = (pilot_seconds or 0.0) - (clock() - start)
-    if pilot_spp is not None:
-        n = pilot_spp
-    else:  # an equal share of the first round's time for each candidate and for B
-        pers = [passes.kind(c).costs.per_sample for c in candidates]
-        n = min(int(left / (len(candidates) + 1) / per) if 0 < per < math.inf else 1 for per in pers)
-    n = max(1, min(n, PILOT_MAX_SPP))
     primal = candidate("primal")
+    passes.run(default, 1)  # compiles (or loads) the fallback's kernel: the frame's first pass in any case
+    if after_first is not None:
+        after_first()
     windows = tiles(passes.loaded.width, passes.loaded.height)
-    border = TILE_BORDER if len(windows) > 1 else 0
-    share = np.asarray([(ys.stop - ys.start) * (xs.stop - xs.start) for ys, xs in windows], dtype=np.float64)
-    share /= share.sum()
-    totals: dict[str, tuple[dict[str, np.ndarray], int]] = {}  # per candidate: the sums of its race passes
-    latest: dict[str, Assessment] = {}
-    alive = list(candidates)
-
-    def render(c: Candidate, spp: int) -> dict[str, np.ndarray]:  # one round's samples, in passes of max_spp
-        out: dict[str, np.ndarray] = {}
-        while spp > 0:
-            k = min(spp, passes.max_spp)
-            sums = passes.run(c, k)
-            out = {key: v + out.get(key, 0.0) for key, v in sums.items()}
-            spp -= k
-        return out
-
-    rounds = 0
-    trace: list[list[dict[str, float | str]]] = []
+    pixels = sum((ys.stop - ys.start) * (xs.stop - xs.start) for ys, xs in windows)
+    compile_seconds = passes.kind(default).costs.first_pass[1]  # type: ignore[index]
+    # the checkpoint's own cost: primal's kernel (no slower to load than the fallback's) and four reconstructions
+    extra = compile_seconds + reconstruct_startup() + 4 * pixels * CHECK_PRIOR_RATE
+    if clock() - start + extra > give_up_after:
+        return Plan(default, [], clock() - start, "the budget is too small for a checkpoint")
+    passes.start_split()
+    passes.run(primal, 1)  # primal's kernel (the filler's too)
+    for c in (default, primal):  # a warm 1-spp pass of each: its fixed cost per pass apart from its samples
+        passes.run(c, 1)
+    if seconds is not None:
+        left = start + CHECKPOINT_SHARE * seconds - clock()
+        n = max(1, int(left / CHECKPOINT_PASSES / max(passes.kind(default).costs.per_sample, 1e-9)))
+    else:
+        n = max(1, int(CHECKPOINT_SHARE * (spp or 0)) // (CHECKPOINT_PASSES + 4))
+    n = min(n, passes.max_spp)
+    passes.run(primal, n)
+    # the fallback's passes up to the checkpoint, at least four (each half needs two groups), of n and 2n samples
+    # in turn: the last passes of two sizes give its cost line (pass_cost), fixed cost apart from its samples
     while True:
-        # each survivor's passes, then B's: a primal pass as large, independent of every candidate's passes and
-        # the same for every candidate, so that its noise enters every estimate alike and cancels in comparisons
-        for c in alive:
-            sums = render(c, n)
-            have, k = totals.get(c.name, ({}, 0))
-            totals[c.name] = ({key: v + have.get(key, 0.0) for key, v in sums.items()}, k + n)
-        batches.append((base_image(render(primal, n), n), n))
-        images: dict[str, list[np.ndarray]] = {}
-        methods: dict[str, str] = {}
-        rates: dict[str, float] = {}  # seconds per pixel of each survivor's reconstructions (this round's)
-        for c in alive:
-            sums, k = totals[c.name]
-            frame = sums_frame(sums, passes.kind(c).settings, k)
-            images[c.name] = []
-            began = time.perf_counter()
-            for window in windows:
-                image, methods[c.name] = reconstruct(crop(frame, window))
-                images[c.name].append(image)
-            rates[c.name] = (time.perf_counter() - began) / max(1.0, float(sum(im.shape[0] * im.shape[1]
-                                                                                for im in images[c.name])))
-        for c in alive:
-            errors, errors_se = [], []
-            for i, (ys, xs) in enumerate(windows):
-                # RelMSE's weights from the survivors' mean reconstruction: one weight image for all (a candidate
-                # weighted by its own image would be favoured by a darkening bias), independent of B
-                weights = relative_weights(np.mean([im[i] for im in images.values()], axis=0))
-                value, se = cross_relmse(images[c.name][i], [(b[ys, xs], k) for b, k in batches], weights, border)
-                errors.append(value)
-                errors_se.append(se)
-            value = float(np.sum(share * errors))
-            se = float(np.sqrt(np.sum((share * np.asarray(errors_se)) ** 2)))
-            k = totals[c.name][1]
-            costs = passes.kind(c).costs
-            fixed, per = pass_cost(costs.warm, costs.per_sample)
-            a = Assessment(c.name, k, value, per, methods[c.name], se, pass_seconds=fixed,
-                           reconstruct_rate=rates[c.name])
-            prev = latest.get(c.name)
-            a.exponent = EXPONENTS[c.name] if prev is None else measured_exponent(
-                prev.measured_relmse, prev.standard_error, prev.pilot_spp, value, se, k, EXPONENTS[c.name])
-            latest[c.name] = a
-        for c in alive:  # carried to the budget over the factor that is left, with the same time left for all
-            a = latest[c.name]
-            a.budget_spp = budget_spp(a)
-            floor = max(a.measured_relmse, a.standard_error)  # an estimate lost in B's noise counts as its noise
-            a.predicted_relmse = at_budget(floor, a.pilot_spp, a.budget_spp, a.exponent)
-            a.predicted_se = at_budget(a.standard_error, a.pilot_spp, a.budget_spp, a.exponent)
-        trace.append([latest[c.name].trace_entry() for c in alive])
-        if rounds >= 1:  # the first round's law is assumed (EXPONENTS), not measured: no elimination on it
-            names = {a.name for a in eliminate([latest[c.name] for c in alive])}
-            alive = [c for c in alive if c.name in names]
-        rounds += 1
-        n *= ROUND_GROWTH
-        cost = sum(passes.kind(c).costs.predict(n) for c in (*alive, primal))
-        if (len(alive) == 1 or rounds >= MAX_ROUNDS or clock() - start + cost > race_seconds
-                or passes.spp + n * (len(alive) + 1) > race_spp):
-            break
-    # one round reads no cost line (one pass size: G-PT's fixed cost per pass is charged to its samples) and no
-    # slope, so it cannot tell the plans apart fairly: the fallback stands
-    chosen = choose([latest[c.name] for c in alive], default.name) if rounds >= 2 else latest[default.name]
-    return Plan(candidate(chosen.name), [latest[c.name] for c in candidates], clock() - start,
-                f"{rounds} rounds", trace)
+        k = n if passes.index % 2 else min(2 * n, passes.max_spp)
+        if passes.index >= 9:
+            if seconds is not None:
+                if clock() - start + passes.kind(default).costs.predict(k) > CHECKPOINT_SHARE * seconds:
+                    break
+            elif passes.spp + k > CHECKPOINT_SHARE * (spp or 0):
+                break
+        passes.run(default, k)
+    checkpoint_spp = passes.spp
+    halves = {c.name: passes.halves(c) for c in (default, primal)}
+    if any(h is None for h in halves.values()):
+        return Plan(default, [], clock() - start, "the checkpoint's halves were not ready")
+    border = TILE_BORDER if len(windows) > 1 else 0
+    # per plan and half: the block means of its reconstruction's error terms over the tiles (renderer/estimate.py)
+    blocks: dict[str, list[np.ndarray]] = {default.name: [], primal.name: []}
+    carried: list[np.ndarray] = []  # per half: primal's terms less the fallback's, each carried to its budget
+    samples = [halves[default.name][i][1] for i in range(2)]  # type: ignore[index]
+    methods: dict[str, str] = {}
+    seconds_in = {default.name: 0.0, primal.name: 0.0}  # the second half's reconstructions (the first pays start-up)
+    terms: dict[str, list[np.ndarray]] = {}
+    for i in range(2):
+        terms = {default.name: [], primal.name: []}
+        for ys, xs in windows:
+            images = {}
+            for c in (default, primal):
+                began = time.perf_counter()
+                images[c.name], methods[c.name] = reconstruct(crop(halves[c.name][i][0], (ys, xs)))  # type: ignore[index]
+                seconds_in[c.name] += (time.perf_counter() - began) * (i == 1)
+            batches = [(b[ys, xs], k) for b, k in halves[default.name][i][2]]  # type: ignore[index]
+            # the same weights for both (their mean image): the groups' noise cancels in the difference
+            weights = relative_weights(0.5 * (images[default.name] + images[primal.name]))
+            for name, image in images.items():
+                t = cross_terms(image, batches, weights)
+                terms[name].append(block_means(t[border:-border or None, border:-border or None] if border else t))
+        for name in blocks:
+            blocks[name].append(np.concatenate(terms[name]))
+    assessments: dict[str, Assessment] = {}
+    for c in (default, primal):
+        costs = passes.kind(c).costs
+        fixed, per = pass_cost(costs.warm, costs.per_sample)
+        values = [float(np.mean(b)) for b in blocks[c.name]]
+        ses = [float(np.std(b) / np.sqrt(max(b.size, 1))) for b in blocks[c.name]]
+        a = Assessment(c.name, round(float(np.mean(samples))), float(np.mean(values)), per, methods[c.name],
+                       float(np.hypot(*ses)) / 2, pass_seconds=fixed, reconstruct_rate=seconds_in[c.name] / pixels,
+                       exponent=EXPONENTS[c.name])
+        a.budget_spp = budget_spp(a)
+        # each half's estimate carried to the budget (one lost in the other half's noise counts as its noise)
+        a.predicted_relmse = float(np.mean([at_budget(max(v, se), n, a.budget_spp, a.exponent)
+                                            for v, se, n in zip(values, ses, samples, strict=True)]))
+        a.predicted_se = at_budget(a.standard_error, a.pilot_spp, a.budget_spp, a.exponent)
+        assessments[c.name] = a
+    # the paired difference at the budget: primal's terms less the fallback's, each carried to its samples
+    p, d = assessments[primal.name], assessments[default.name]
+    for i, n in enumerate(samples):
+        carried.append(at_budget(1.0, n, p.budget_spp, p.exponent) * blocks[primal.name][i]
+                       - at_budget(1.0, n, d.budget_spp, d.exponent) * blocks[default.name][i])
+    diff = np.concatenate(carried)
+    difference, difference_se = float(np.mean(diff)), float(np.std(diff) / np.sqrt(max(diff.size, 1)))
+    chosen = primal if difference < -SWITCH_SE * difference_se else default
+    trace: dict[str, object] = {"spp": checkpoint_spp, "plans": [a.trace_entry() for a in assessments.values()],
+                                "difference": [float(f"{difference:.4g}"), float(f"{difference_se:.3g}")],
+                                "chosen": chosen.name}
+    return Plan(chosen, [assessments[default.name], assessments[primal.name]], clock() - start,
+                f"checkpoint at {checkpoint_spp} spp", trace)
 
 
 # ------------------------------------------------------------------------------------------- the frame
@@ -637,7 +582,7 @@ class Planned:
 
     frame: Frame
     candidate: Candidate
-    plan: Plan | None  # None: a fixed plan (no pilot)
+    plan: Plan | None  # None: a fixed plan (no checkpoint)
     spp: int
     gradient_spp: int  # samples that traced the chosen plan's gradients (0 for a plain frame)
     passes: int
@@ -652,14 +597,16 @@ def render_planned(loaded: LoadedScene, layers: tuple[str, ...], *, seed: int, s
                    clock: Clock = time.monotonic,
                    check: Callable[[float, Candidate, float], float | None] | None = None) -> Planned:
     """Render ``loaded`` to a deadline (``deadline``) or to ``spp`` samples, with the ``fixed`` plan or (None) the
-    plan a pilot chooses. Raises CommandError (nothing rendered is kept) when the deadline cannot fit one pass
-    and the write. The frame's metadata is the caller's (renderer.render.render_metadata) plus :meth:`Plan.metadata`.
+    plan its checkpoint chooses (:func:`run_checkpoint`). Raises CommandError (nothing rendered is kept) when the
+    deadline cannot fit one pass and the write. The frame's metadata is the caller's
+    (renderer.render.render_metadata) plus :meth:`Plan.metadata`.
+
     ``check`` says, given a reconstruction's seconds per pixel, the plan and the seconds it would cost beforehand,
     how many seconds the frame's own error estimate needs after the last pass (renderer/check.py: held back from
     the passes), or None for no estimate; with one, :attr:`Planned.halves` holds the halves it reconstructs. It is
-    asked once the plan is chosen, with the pilot's reconstruction rate; for a fixed plan with a deadline, after
-    the first pass, with the rate measured on a tile of it (:func:`reconstruct_rate`), where CHECK_PRIOR_RATE and
-    the reconstruction's start-up say the check could fit."""
+    asked once the plan is chosen, with the checkpoint's reconstruction rate; for a fixed plan with a deadline,
+    after the first pass, with the rate measured on a tile of it (:func:`reconstruct_rate`), where
+    CHECK_PRIOR_RATE and the reconstruction's start-up say the check could fit."""
     if (deadline is None) == (spp is None):
         raise ValueError("give a deadline or a sample count, not both")
     passes = Passes(loaded, layers, seed, shift, clock)
@@ -706,16 +653,12 @@ def render_planned(loaded: LoadedScene, layers: tuple[str, ...], *, seed: int, s
             return passes.spp + max(0.0, usable) / a.per_sample
 
         if deadline is not None:
-            plan = run_pilot(passes, budget_spp, pilot_seconds=PILOT_SHARE * deadline.seconds,
-                             race_seconds=RACE_SHARE * deadline.seconds,
-                             give_up_after=PILOT_GIVE_UP * deadline.seconds, after_first=after_first)
+            plan = run_checkpoint(passes, budget_spp, seconds=deadline.seconds,
+                                  give_up_after=PILOT_SHARE * deadline.seconds, after_first=after_first)
+        elif spp >= CHECKPOINT_MIN_SPP:  # type: ignore[operator]
+            plan = run_checkpoint(passes, budget_spp, spp=spp, after_first=after_first)
         else:
-            n = pilot_spp_for(spp, len(applicable(layers)))  # type: ignore[arg-type]
-            if n:
-                plan = run_pilot(passes, budget_spp, pilot_spp=n, race_spp=RACE_SHARE * spp,  # type: ignore[operator]
-                                 after_first=after_first)
-            else:
-                plan = Plan(fallback(layers), [], 0.0, f"{spp} spp is too few for a pilot")
+            plan = Plan(fallback(layers), [], 0.0, f"{spp} spp is too few for a checkpoint")
         chosen = plan.chosen
         assessed = plan.assessment()
         if check is not None and assessed is not None:
@@ -736,7 +679,7 @@ def render_planned(loaded: LoadedScene, layers: tuple[str, ...], *, seed: int, s
             if progress is not None:
                 progress(passes.spp, target)
     else:
-        if passes.index == 0:  # no pilot: the first pass compiles the kernel and is the start-up check
+        if passes.index == 0:  # no checkpoint: the first pass compiles the kernel and is the start-up check
             passes.run(chosen, 1)
             after_first()
             if check is not None and check(CHECK_PRIOR_RATE, chosen, reconstruct_startup()) is not None:
@@ -782,11 +725,3 @@ def reconstruct_rate(frame: Frame, reconstruct: Callable[[Frame], tuple[np.ndarr
     start = time.perf_counter()
     reconstruct(tile)
     return (time.perf_counter() - start) / (tile.width * tile.height)
-
-
-def pilot_spp_for(spp: int, count: int) -> int:
-    """The race's first round's samples in a ``spp``-sample frame (--spp with --gradients auto): the warm-ups and
-    first passes of all ``count`` candidates take at most a quarter of the frame's samples; 0: too few for a
-    pilot. Later rounds stop at RACE_SHARE of the frame's samples."""
-    n = min(PILOT_MAX_SPP, (spp // 4 - count) // count)
-    return n if n >= 1 else 0

@@ -42,9 +42,9 @@ def test_planner_section_compares_each_prediction_with_the_measured_error():
         _auto(16, 0.012, 0.010), _row("oidn-l1", 16, 0.011), _row("gpt-oidn-l1", 16, 0.013),
         _row("path-oidn", 16, 0.02), _row("path-sep-oidn", 16, 0.015), _row("path", 16, 0.001),  # path: not fixed
         _auto(64, 0.003, 0.001), _row("path-sep-oidn", 64, 0.004),
-        _auto(16, 0.05, None, scene="t", predicted_note="the budget is too small for a pilot"),
+        _auto(16, 0.05, None, scene="t", predicted_note="the budget is too small for a checkpoint"),
         _auto(16, 0.025, 0.02, scene="u", seeds=2, seed_plan=["primal", "all"], seed_predicted_relmse=[0.02, None],
-              seed_predicted_note=[None, "the budget is too small for a pilot"], seed_relmse=[0.021, 0.029],
+              seed_predicted_note=[None, "the budget is too small for a checkpoint"], seed_relmse=[0.021, 0.029],
               seed_spp=[100, 50], seed_seconds=[1.9, 2.05]),
     ]
     text = "\n".join(planner_choice(rows))
@@ -63,8 +63,8 @@ def test_planner_section_compares_each_prediction_with_the_measured_error():
     # 0.83 and 0.02 / 0.021 within 1.5x, 0.33 not; t and u's second seed without a prediction
     assert "within 1.5× of the measured one on 2 of 3 frames with a prediction (67%); 2 of 5 frames have none" in text
     assert "at most 1.05× on 1 of 2 rows; geometric mean of auto / best 0.905×" in text
-    assert "- t, 16 spp: the budget is too small for a pilot" in text
-    assert "- u (seed 1), 16 spp: the budget is too small for a pilot" in text
+    assert "- t, 16 spp: the budget is too small for a checkpoint" in text
+    assert "- u (seed 1), 16 spp: the budget is too small for a checkpoint" in text
 
 
 def test_planner_section_without_the_row_says_so_and_a_negative_error_is_not_a_hit():
@@ -184,14 +184,14 @@ def test_a_budget_below_the_planners_start_up_renders_the_fallback_and_says_so(t
 
 
 @pytest.mark.render
-def test_a_pilot_that_gives_up_fills_the_budget_with_the_fallback_and_no_prediction(tiny, monkeypatch):
+def test_a_checkpoint_that_does_not_fit_fills_the_budget_with_the_fallback_and_no_prediction(tiny, monkeypatch):
     from gradsep.renderer import plan
 
-    monkeypatch.setattr(plan, "PILOT_GIVE_UP", 0.0)  # any warm-up is too long: the pilot gives up at once
+    monkeypatch.setattr(plan, "PILOT_SHARE", 0.0)  # no checkpoint fits: the fallback after its first pass
     out = _run(tiny, 1.0)
     extra = out.extra
     assert extra["plan"] == FALLBACK and extra["predicted_relmse"] is None
-    assert extra["predicted_note"] == "the budget is too small for a pilot" and extra["plan_candidates"] == {}
+    assert extra["predicted_note"] == "the budget is too small for a checkpoint" and extra["plan_candidates"] == {}
     assert out.method_spp >= 1 and extra["pilot_seconds"] > 0 and extra["plan_method"] == "oidn-l1"
     total = out.render_seconds + out.reconstruct_seconds
     assert abs(total - 1.0) <= 0.05 or extra["time_note"]  # within the tolerance, or the reason recorded

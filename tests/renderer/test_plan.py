@@ -25,7 +25,6 @@ from gradsep.renderer.plan import (
     applicable,
     candidate,
     fallback,
-    pilot_spp_for,
     plan_layers_text,
     tiles,
 )
@@ -67,18 +66,15 @@ def test_tiles_cover_small_frames_whole_and_spread_over_large_ones():
 
 
 def test_candidates_and_their_layers():
-    assert {c.name for c in applicable(("direct", "indirect"))} == {"primal", "direct-alternate", "direct"}
-    assert {c.name for c in applicable(("direct",))} == {"primal", "direct-alternate", "direct"}
-    assert {c.name for c in applicable(("color",))} == {"primal", "all"}  # no direct layer to trace alone
-    assert {c.name for c in applicable(("indirect",))} == {"primal", "all"}
+    assert [c.name for c in applicable(("direct", "indirect"))] == ["direct-alternate", "primal"]
+    assert [c.name for c in applicable(("direct",))] == ["direct-alternate", "primal"]
+    assert [c.name for c in applicable(("color",))] == ["all", "primal"]  # no direct layer to trace alone
+    assert [c.name for c in applicable(("indirect",))] == ["all", "primal"]
     assert fallback(("direct", "indirect")).name == "direct-alternate" and fallback(("color",)).name == "all"
     assert {c.name for c in CANDIDATES} == {"primal", "direct-alternate", "direct", "all"}
     assert plan_layers_text(candidate("direct-alternate"), ("direct", "indirect")) == "direct=alternate,indirect=none"
     assert plan_layers_text(candidate("primal"), ("direct",)) == "direct=none"
     assert plan_layers_text(candidate("direct"), ("direct", "indirect")) == "direct=all,indirect=none"
-    assert pilot_spp_for(4, 3) == 0 and pilot_spp_for(64, 3) >= 1
-    n = pilot_spp_for(256, 3)
-    assert 3 * (n + 1) + n <= 256 // 4 + n  # warm-ups, A passes and B within about a quarter of the frame
 
 
 # --------------------------------------------------------------------------------------------- rendering
@@ -133,13 +129,13 @@ def test_passes_of_several_plans_share_bases_and_keep_their_own_gradients(small)
 
 
 @pytest.mark.render
-def test_the_pilot_picks_the_candidate_whose_reconstruction_is_right():
+def test_the_checkpoint_judges_the_plans_on_the_frames_own_halves():
     """A stand-in reconstruction: a frame with gradients comes back as the truth (a 512-spp render), a plain one
-    20 % too dark. At equal samples (--spp) the pilot must pick a plan with gradients, and the
-    differences of its reference-free estimates must be the true differences: B's noise is common to them all and
-    cancels (each estimate alone carries it, see its standard error)."""
+    20 % too dark. At equal samples (--spp) the checkpoint must keep the plan with gradients, and the difference of
+    its two reference-free estimates must be the true difference: the halves' groups are common to both
+    reconstructions, so their noise cancels (each estimate alone carries it, see its standard error)."""
     from gradsep.model.metrics import relmse
-    from gradsep.renderer.plan import Passes, run_pilot
+    from gradsep.renderer.plan import CHECKPOINT_SHARE, FALLBACK, Passes, run_checkpoint
     from gradsep.renderer.render import render_frame
     from gradsep.renderer.scene import load_scene
 
@@ -150,20 +146,19 @@ def test_the_pilot_picks_the_candidate_whose_reconstruction_is_right():
         return (truth if frame.layers["direct"].has_gradients else 0.8 * truth), "fake"
 
     passes = Passes(scene, ("direct", "indirect"), seed=3)
-    plan = run_pilot(passes, lambda a: 256.0, pilot_spp=8, race_spp=200, reconstruct=fake)
-    assert plan.chosen.name in ("direct", "direct-alternate")
+    plan = run_checkpoint(passes, lambda a: 1024.0, spp=1024, reconstruct=fake)
+    assert plan.chosen.name == FALLBACK
     by_name = {a.name: a for a in plan.assessments}
-    assert set(by_name) == {"primal", "direct-alternate", "direct"}
-    mean = 0.8 / 3 + 2 / 3  # the estimate's weights come from the candidates' mean image
+    assert set(by_name) == {"primal", FALLBACK}
+    mean = 0.9  # the estimate's weights come from the two reconstructions' mean image
     true_difference = relmse(0.8 * truth / mean, truth / mean)
-    for name in ("direct", "direct-alternate"):
-        difference = by_name["primal"].measured_relmse - by_name[name].measured_relmse
-        assert difference == pytest.approx(true_difference, rel=0.3)  # B's noise cancels in the difference
+    difference = by_name["primal"].measured_relmse - by_name[FALLBACK].measured_relmse
+    assert difference == pytest.approx(true_difference, rel=0.3)  # the groups' noise cancels in the difference
     assert all(math.isfinite(a.predicted_relmse) and a.predicted_relmse >= 0 for a in plan.assessments)
-    assert passes.spp == 3 + 4 * (8 + 32)  # warm-ups; two rounds (8, 32 spp) of every candidate and of B
+    assert passes.spp <= CHECKPOINT_SHARE * 1024 and passes.split is not None
     meta = plan.metadata(("direct", "indirect"))
-    assert meta[PLAN_KEY] == plan.chosen.name and float(meta[PREDICTED_RELMSE_KEY]) == pytest.approx(
-        by_name[plan.chosen.name].predicted_relmse, rel=1e-5)
+    assert meta[PLAN_KEY] == FALLBACK and float(meta[PREDICTED_RELMSE_KEY]) == pytest.approx(
+        by_name[FALLBACK].predicted_relmse, rel=1e-5)
 
 
 @pytest.mark.render
@@ -183,17 +178,17 @@ def test_no_indirect_light_plans_no_indirect_layer(small):
 def test_auto_with_spp_renders_exactly_the_samples_and_records_the_plan(small):
     from gradsep.renderer.render import render_planned_frame
 
-    frame, summary = render_planned_frame(small, deadline=None, spp=48, seed=2, gradients="auto")
+    frame, summary = render_planned_frame(small, deadline=None, spp=64, seed=2, gradients="auto")
     meta = frame.metadata
-    assert meta["gradsep.spp"] == "48"
+    assert meta["gradsep.spp"] == "64"
     assert meta[PLAN_KEY] in {c.name for c in CANDIDATES} and meta[PLAN_KEY] in summary
     predicted = {k: float(v) for k, v in (p.split("=") for p in meta["gradsep.plan_candidates"].split(","))}
     assert set(predicted) == {c.name for c in applicable(("direct", "indirect"))}
     assert all(math.isfinite(v) and v >= 0 for v in predicted.values())
-    # the frame's own estimate from its halves (renderer/check.py) replaces the pilot's, which stays per candidate
+    # the frame's own estimate from its halves (renderer/check.py) replaces the checkpoint's, which stays per plan
     assert meta["gradsep.predicted_from"] == "frame"
     check = json.loads(meta["gradsep.frame_check"])
-    assert [n for n, _, _ in check["halves"]] and sum(n for n, _, _ in check["halves"]) == 48
+    assert [n for n, _, _ in check["halves"]] and sum(n for n, _, _ in check["halves"]) == 64
     predicted_frame = float(meta[PREDICTED_RELMSE_KEY])
     assert math.isfinite(predicted_frame) and predicted_frame >= 0
     assert meta["gradsep.plan_method"] in ("oidn", "oidn-l1")
@@ -201,7 +196,7 @@ def test_auto_with_spp_renders_exactly_the_samples_and_records_the_plan(small):
     if meta[PLAN_KEY] == "primal":
         assert meta["gradsep.gradients"] == "none" and not frame.gradient_layers
     else:
-        assert 0 < int(meta["gradsep.gradient_spp"]) < 48
+        assert 0 < int(meta["gradsep.gradient_spp"]) < 64  # the checkpoint's primal passes are in the bases
     for layer in frame.layers.values():
         assert np.isfinite(layer.base).all()
 
@@ -280,81 +275,3 @@ def test_a_light_in_view_is_found_in_the_direct_layer_as_oidn_would_cap_it():
     for image, expected in ((base, False), (lit, True), (lone, False)):
         assert has_light_in_view(Frame({"direct": Layer(image), "indirect": Layer(base)})) == expected
     assert not has_light_in_view(Frame({"indirect": Layer(lit)}))  # only the direct layer asks for the setting
-
-
-def test_measured_exponent_weighs_the_slope_against_the_prior_by_their_noise():
-    from gradsep.renderer.plan import EXPONENT_RANGE, measured_exponent
-
-    # precise estimates (1 % standard error): the measured slope (1.0, 0.5) wins over the prior
-    assert measured_exponent(0.04, 0.0004, 4, 0.01, 0.0001, 16, 0.5) == pytest.approx(1.0, abs=0.01)
-    assert measured_exponent(0.04, 0.0004, 4, 0.02, 0.0002, 16, 0.8) == pytest.approx(0.5, abs=0.01)
-    # noisy estimates (40 % standard error over one doubling): the prior barely moves
-    noisy = measured_exponent(0.04, 0.016, 8, 0.01, 0.004, 16, 0.5)
-    assert 0.5 < noisy < 0.6
-    # in between: between the two, nearer the better-measured one
-    mid = measured_exponent(0.04, 0.004, 4, 0.01, 0.001, 16, 0.5)
-    assert 0.75 < mid < 1.0
-    assert measured_exponent(0.011, 0.0001, 4, 0.01, 0.0001, 16, 0.5) == EXPONENT_RANGE[0]  # flat: the floor
-    assert measured_exponent(0.2, 0.001, 4, 0.001, 0.001, 16, 0.5) == 0.5  # the later one is lost in its noise
-    assert measured_exponent(0.04, 0.05, 4, 0.01, 0.001, 16, 0.7) == 0.7
-    assert measured_exponent(0.04, 0.001, 4, 0.01, 0.001, 4, 0.7) == 0.7  # one sample count: no slope
-
-
-def test_pass_cost_separates_the_fixed_cost_of_a_pass_from_its_samples():
-    from gradsep.renderer.plan import pass_cost
-
-    line = [(n, 0.2 + 0.04 * n) for n in (1, 2, 4, 8)]  # G-PT-like: a 1-spp pass is mostly fixed cost
-    fixed, per = pass_cost(line, fallback=0.24)
-    assert fixed == pytest.approx(0.2) and per == pytest.approx(0.04)
-    assert pass_cost([(2, 0.3), (2, 0.31)], fallback=0.155) == (0.0, 0.155)  # one size: no line
-    fixed, per = pass_cost([(1, 0.30), (2, 0.29)], fallback=0.3)  # timing noise made the line fall
-    assert per > 0 and fixed <= 0.95 * 0.29
-
-
-@pytest.mark.render
-@pytest.mark.slow
-def test_seconds_renders_the_default_plan_all(tmp_path, monkeypatch):
-    """--gradients auto is opt-in: --seconds alone renders today's default plan (all), with no pilot."""
-    monkeypatch.setattr(budget, "process_age", lambda: 0.0)
-    out = tmp_path / "f.exr"
-    assert main(["render", CBOX, *SMALL, "--seconds", "3", "-o", str(out)]) == 0
-    meta = read_frame(out).metadata
-    assert meta[PLAN_KEY] == "all" and meta["gradsep.gradients"] == "all" and "gradsep.pilot_seconds" not in meta
-
-
-@pytest.mark.render
-def test_a_coarse_plan_ends_its_deadline_frame_with_primal_passes(small, monkeypatch):
-    """Real 16x12 passes against a fake clock on which a 1-spp `all` pass takes 2.5 s and a primal one 0.6 s (as
-    at 1280x720 on 2 cores): the plan's passes, then primal passes in the gap too small for another of them. Every
-    pass's samples are in the bases, the plan's alone in the gradients, and the frame ends within 6 % of T,
-    never after it."""
-    from gradsep.renderer import gpt, plan
-    from gradsep.renderer.budget import Deadline
-
-    class Clock:
-        now = 100.0
-
-        def __call__(self) -> float:
-            return self.now
-
-    clock, real, compiled = Clock(), gpt.render_pass, set()
-
-    def timed(scene, shift, settings, width, height, spp, seed):
-        sums = real(scene, shift, settings, width, height, spp, seed)
-        kind = shift is not None
-        clock.now += 0.3 + (2.5 if kind else 0.6) * spp + (0.0 if kind in compiled else 1.5 if kind else 0.3)
-        compiled.add(kind)
-        return sums
-
-    monkeypatch.setattr(gpt, "render_pass", timed)
-    monkeypatch.setattr(plan, "write_seconds", lambda *args, **kwargs: 0.8)
-    deadline = Deadline(20.0, spent=0.5, clock=clock)
-    planned = plan.render_planned(small, ("direct", "indirect"), seed=3, shift=None, fixed=Candidate("all", "all"),
-                                  deadline=deadline, clock=clock)
-    end = deadline.elapsed() + 0.8 + plan.exit_seconds()
-    assert 0.94 * 20.0 <= end <= 20.0
-    assert 2 <= planned.gradient_spp < planned.spp  # primal passes filled the end
-    frame = planned.frame
-    assert frame.layers["direct"].has_gradients and frame.layers["indirect"].has_gradients
-    for layer in frame.layers.values():
-        assert np.isfinite(layer.base).all() and np.isfinite(layer.dx).all()

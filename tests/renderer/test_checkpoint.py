@@ -1,0 +1,177 @@
+"""The planner's checkpoint (renderer/plan.py run_checkpoint) with fakes: no Mitsuba, no render, no reconstruction
+library.
+
+A fake Passes renders a known image plus Gaussian noise, deals its passes into a real renderer.check.Split and
+charges a fake clock; a fake reconstruction returns the truth off by a known relative error per candidate (a frame
+with gradients is the fallback's, a plain one primal's), so the right choice at the budget is known."""
+
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from gradsep.model.frame import Frame, Layer
+from gradsep.renderer import plan
+from gradsep.renderer.budget import PassCosts
+from gradsep.renderer.check import Split
+from gradsep.renderer.plan import CHECKPOINT_SHARE, FALLBACK, block_means, run_checkpoint
+
+SIDE = 48
+TRUTH = 0.5 + np.random.default_rng(0).random((SIDE, SIDE, 3))
+#: seconds per sample of each plan (G-PT traces offset paths: dearer than primal) and per pass
+PER_SAMPLE = {"primal": 1e-3, "direct-alternate": 2e-3}
+PER_PASS = 0.01
+
+
+class FakePasses:
+    def __init__(self, seed: int = 1) -> None:
+        self.now = 0.0
+        self.clock = lambda: self.now
+        self.layers = ("direct", "indirect")
+        self.loaded = SimpleNamespace(width=SIDE, height=SIDE)
+        self.max_spp = 64
+        self.spp = self.index = 0
+        self.rng = np.random.default_rng(seed)
+        self.kinds: dict[str, SimpleNamespace] = {}
+        self.runs: list[tuple[str, int]] = []
+        self.split: Split | None = None
+        self.bases: dict[str, np.ndarray] = {}
+        self.gradients: dict[str, tuple[dict[str, np.ndarray], int]] = {}
+
+    def kind(self, c):
+        return self.kinds.setdefault(c.name, SimpleNamespace(costs=PassCosts(), settings=c.name))
+
+    def run(self, c, spp: int) -> dict[str, np.ndarray]:
+        costs = self.kind(c).costs
+        seconds = PER_PASS + PER_SAMPLE[c.name] * spp
+        (costs.first if costs.first_pass is None else costs.record)(spp, seconds)
+        self.now += seconds
+        bases = {"direct.base": spp * TRUTH + self.rng.normal(0.0, 0.3 * math.sqrt(spp), TRUTH.shape)}
+        grads = {"direct.dx.grad": np.zeros_like(TRUTH)} if c.gradients != "none" else {}
+        self.bases = {k: v + self.bases.get(k, 0.0) for k, v in bases.items()}
+        if grads:
+            have, n = self.gradients.get(c.name, ({}, 0))
+            self.gradients[c.name] = ({k: v + have.get(k, 0.0) for k, v in grads.items()}, n + spp)
+        if self.split is not None:
+            self.split.add(c.name, bases, grads, spp)
+        self.spp += spp
+        self.index += 1
+        self.runs.append((c.name, spp))
+        return {**bases, **grads}
+
+    def start_split(self) -> None:
+        if self.split is None:
+            self.split = Split()
+            self.split.add_lump(self.bases, self.gradients, self.spp, self.index)
+
+    def halves(self, c):
+        grads, k = self.gradients.get(c.name, ({}, 0))
+        q = self.split
+        if q is None or not q.ready(c.name, c.gradients != "none", k):
+            return None
+        out = []
+        for i, (sums, n, _, _) in enumerate(q.halves(c.name, self.bases, grads, self.spp, k)):
+            base = sums["direct.base"] / n
+            layer = Layer(base, np.zeros_like(base), np.zeros_like(base)) if grads else Layer(base)
+            out.append((Frame(layers={"direct": layer}), n, q.batches(i)))
+        return out
+
+
+def fake_reconstruction(errors: dict[str, float]):
+    """The fallback's frame (with gradients) comes back as ``TRUTH * (1 + errors[FALLBACK])``, a plain one with
+    ``errors["primal"]``: RelMSE about ``e^2`` at any samples (the checkpoint carries it with the prior law)."""
+    def reconstruct(frame: Frame):
+        e = errors[FALLBACK if frame.layers["direct"].has_gradients else "primal"]
+        return TRUTH[: frame.height, : frame.width] * (1 + e), "fake"
+    return reconstruct
+
+
+def budget(seconds: float):
+    """What the rest of a ``seconds`` budget buys a candidate at its measured cost (render_planned's rule)."""
+    return lambda a: seconds / a.per_sample
+
+
+@pytest.mark.parametrize(("errors", "chosen"), [
+    ({FALLBACK: 0.1, "primal": 0.3}, FALLBACK),  # primal's 2x samples cannot make up 9x the error
+    ({FALLBACK: 0.2, "primal": 0.1}, "primal"),  # lower error and cheaper
+    ({FALLBACK: 0.1, "primal": 0.1}, "primal"),  # equal error at equal samples: primal buys twice as many
+    ({FALLBACK: 0.1, "primal": 0.1 * 2 ** 0.25}, FALLBACK),  # primal's samples exactly make up its error: a tie
+])
+def test_the_checkpoint_chooses_by_the_error_each_plan_reaches_at_the_budget(errors, chosen):
+    passes = FakePasses()
+    result = run_checkpoint(passes, budget(10.0), seconds=10.0, reconstruct=fake_reconstruction(errors))
+    assert result.chosen.name == chosen
+    by_name = {a.name: a for a in result.assessments}
+    assert set(by_name) == {FALLBACK, "primal"}
+    mean = 1 + sum(errors.values()) / 2  # the weights come from the two reconstructions' mean image
+    for name, a in by_name.items():
+        relmse = (errors[name] / mean) ** 2
+        assert a.measured_relmse == pytest.approx(relmse, rel=0.02)
+        assert a.per_sample == pytest.approx(PER_SAMPLE[name], rel=1e-6)  # the cost line reads the fixed cost apart
+        assert a.pass_seconds == pytest.approx(PER_PASS, rel=1e-6)
+        assert a.predicted_relmse == pytest.approx(relmse * (a.pilot_spp / a.budget_spp) ** 0.5, rel=0.02)
+    assert "checkpoint at" in result.note and result.trace["chosen"] == chosen
+    assert {e["name"] for e in result.trace["plans"]} == {FALLBACK, "primal"} and len(result.trace["difference"]) == 2
+
+
+def test_the_checkpoint_keeps_to_its_share_and_every_pass_stays_in_the_frame():
+    passes = FakePasses()
+    result = run_checkpoint(passes, budget(20.0), seconds=20.0, reconstruct=fake_reconstruction(
+        {FALLBACK: 0.1, "primal": 0.1}))
+    assert passes.now <= CHECKPOINT_SHARE * 20.0
+    assert passes.spp == sum(n for _, n in passes.runs) and result.pilot_seconds == pytest.approx(passes.now)
+    assert [name for name, _ in passes.runs[:5]] == [FALLBACK, "primal", FALLBACK, "primal", "primal"]
+    assert sum(name == FALLBACK for name, _ in passes.runs) >= 5  # its compiling pass and four of the halves'
+    sizes = {n for name, n in passes.runs[5:]}
+    assert len(sizes) == 2  # two pass sizes: the cost line
+
+
+def test_with_spp_the_checkpoint_takes_its_share_of_the_samples():
+    passes = FakePasses()
+    run_checkpoint(passes, lambda a: 1000.0, spp=1000, reconstruct=fake_reconstruction(
+        {FALLBACK: 0.1, "primal": 0.2}))
+    assert passes.spp <= CHECKPOINT_SHARE * 1000
+
+
+def test_a_budget_too_small_for_the_checkpoint_renders_one_pass_and_judges_nothing():
+    passes = FakePasses()
+    result = run_checkpoint(passes, budget(0.05), seconds=0.05, give_up_after=0.005,
+                            reconstruct=fake_reconstruction({FALLBACK: 0.1, "primal": 0.1}))
+    assert result.chosen.name == FALLBACK and result.assessments == []
+    assert passes.runs == [(FALLBACK, 1)] and passes.split is None
+    assert result.note == "the budget is too small for a checkpoint"
+
+
+def test_an_unseparated_frame_checks_all_against_primal():
+    passes = FakePasses()
+    passes.layers = ("color",)
+    PER_SAMPLE["all"] = 3e-3
+    try:
+        def reconstruct(frame: Frame):
+            e = 0.1 if frame.layers["direct"].has_gradients else 0.3
+            return TRUTH * (1 + e), "fake"
+        result = run_checkpoint(passes, budget(10.0), seconds=10.0, reconstruct=reconstruct)
+    finally:
+        del PER_SAMPLE["all"]
+    assert result.chosen.name == "all" and {a.name for a in result.assessments} == {"all", "primal"}
+
+
+def test_block_means_average_squares_and_keep_small_arrays_whole():
+    t = np.arange(16 * 24 * 3, dtype=np.float64).reshape(16, 24, 3)
+    b = block_means(t, 8)
+    assert b.shape == (6,) and b.mean() == pytest.approx(t.mean())
+    assert block_means(np.ones((5, 5, 3)), 8).tolist() == [1.0]
+    assert block_means(np.ones((17, 9)), 8).shape == (2,)  # the ragged edge left out
+
+
+def test_metadata_of_a_checkpoint_plan_names_the_candidates_and_the_prediction():
+    passes = FakePasses()
+    result = run_checkpoint(passes, budget(10.0), seconds=10.0,
+                            reconstruct=fake_reconstruction({FALLBACK: 0.1, "primal": 0.3}))
+    meta = result.metadata(("direct", "indirect"))
+    assert meta[plan.PLAN_KEY] == FALLBACK and meta[plan.PLAN_LAYERS_KEY] == "direct=alternate,indirect=none"
+    assert set(dict(p.split("=") for p in meta[plan.CANDIDATES_KEY].split(","))) == {FALLBACK, "primal"}
+    assert float(meta[plan.PREDICTED_RELMSE_KEY]) == pytest.approx(result.assessment().predicted_relmse, rel=1e-5)
