@@ -480,7 +480,8 @@ def predict(args: argparse.Namespace) -> None:
     scored = [r for k, r in rows.items() if "relmse_se" in r and r["relmse"] > 0 and r["scene"] in scenes
               and r.get("ref_spp") == args.ref_spp and (k.split("|")[3:] or ["auto"])[0] == args.plan]
     print(f"\n| family | frames | frame's estimate / measured: within 1.5x | median | checkpoint's / measured: "
-          f"within 1.5x | median | measured: median standard error | {args.ref_spp}-spp references' floor / measured, median |")
+          f"within 1.5x | median | measured: median standard error | {args.ref_spp}-spp references' floor / "
+          "measured, median |")
     print("|---|---:|---:|---:|---:|---:|---:|---:|")
     for fam in sorted({family(r["scene"]) for r in scored}):
         rs = [r for r in scored if family(r["scene"]) == fam]
