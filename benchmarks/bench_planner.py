@@ -41,9 +41,17 @@ floor / best; then per family the geometric means, worst and frames above 1.05x,
 within 1.5x. The scenes must be held out: never the evaluation's (evaluation/config.py) or the shared ones, nor
 seeds a design was tuned on.
 
-The figures in docs/renderer.md ("The render planner", Validation) come from (2 shared cores, load 4-6 from other
-work; references rendered beforehand with `gradsep reference SCENE --width 192 --height 192 --spp 1024 --seed 1`
-and `--seed 2` into the cache, as ``validate`` would have):
+The figures in docs/renderer.md ("The render planner", Validation) come from (2-core Intel Xeon, otherwise idle;
+references rendered beforehand with `gradsep reference SCENE --width 192 --height 192 --spp 4096 --seed 1` and
+`--seed 2` into the cache, as ``predict`` would have), the three plans in turn per seed so that a change of the
+machine's load falls on each alike:
+
+    for seed in 21 22; do for plan in auto direct-alternate primal; do
+        python benchmarks/bench_planner.py predict --plan $plan --seconds 20 --seeds $seed --ref-spp 4096 \
+            --cache /work/pred8; done; done
+    python benchmarks/bench_planner.py predict --seconds 20 --seeds 21,22 --ref-spp 4096 --cache /work/pred8
+
+and the earlier fixed pipelines' figures there from (2 shared cores, load 4-6 from other work; 1024-spp references):
 
     python benchmarks/bench_planner.py validate --size 192 --seconds 20 --seeds 3 --ref-spp 1024 \
         --cache /work/val/cache --no-references
@@ -548,6 +556,12 @@ def _against_fixed(rows: dict[str, dict], scenes: list[str], args: argparse.Name
             geo = math.exp(sum(map(math.log, ratios)) / len(ratios))
             print(f"| the best of {', '.join(sorted(pairs))}, per frame | {len(ratios)} | {geo:.2f} | "
                   f"{max(ratios):.2f} | – | – |")
+            best_of = {id(a): b for a, b in complete}
+            print("\nEach fixed plan over the best of them, per frame (geometric mean, worst):\n")
+            print("| fixed plan | frames | RelMSE ratio | worst |\n|---|---:|---:|---:|")
+            for plan, ps in sorted(pairs.items()):
+                rs = [f["relmse"] / best_of[id(a)] for a, f in ps if id(a) in best_of]
+                print(f"| {plan} | {len(rs)} | {math.exp(sum(map(math.log, rs)) / len(rs)):.2f} | {max(rs):.2f} |")
 
 
 def choose(args: argparse.Namespace) -> None:

@@ -414,7 +414,7 @@ def over_budget(row: Mapping[str, Any]) -> bool:
     """An equal-time row that took more than TIME_TOLERANCE over its budget (:func:`row_seconds`: an interpolated
     row stands for its budget): it does not count as a G-PT result at equal time (*best G-PT*, the equal-time
     targets), as it had more time than the rows it would be compared with. The planned row, not searched, is the
-    one this happens to (a pilot or a pass running past its deadline)."""
+    one this happens to (a checkpoint or a pass running past its deadline)."""
     target = row.get("target_seconds")
     return bool(target) and float(target) > 0 and row_seconds(row) > float(target) * (1 + TIME_TOLERANCE)
 
@@ -513,7 +513,7 @@ def _equal_time(evaluation: Evaluation) -> list[str]:
              "techniques per pixel pair on half the samples) at the spp the budget buys, reconstructed with "
              "`oidn-l1`, found like the baselines' spp; and G-PT auto, `gradsep render --seconds T --gradients "
              "auto` in process, one render to a deadline of the budget with the measured reconstruction time kept "
-             "free (its pilot, which chooses the plan, charged), then the default method the frame names: not "
+             "free (its checkpoint, which chooses the plan, charged), then the default method the frame names: not "
              "searched, so its time is what the planner's deadline gave (see The planner's choice). "
              + _seeds_sentence(evaluation.rows), "",
              "| Scene | G-PT spp | budget | budget s | budget RelMSE | best G-PT | "
@@ -572,7 +572,7 @@ class PlannedFrame:
 
     label: str  # "" for a single-seed row, else "seed k"
     plan: str | None
-    predicted: float | None  # the chosen plan's predicted RelMSE; None: no pilot ran (``note`` says why)
+    predicted: float | None  # the chosen plan's predicted RelMSE; None: no checkpoint ran (``note`` says why)
     note: str | None
     measured: float
     spp: int
@@ -601,7 +601,7 @@ def planned_frames(row: Mapping[str, Any]) -> list[PlannedFrame]:
 
 def planner_choice(rows: Sequence[Mapping[str, Any]]) -> list[str]:
     """The section "The planner's choice": per scene and G-PT spp (budget), the plan the ``gpt-auto`` row chose,
-    each candidate's and the chosen plan's predicted RelMSE against the measured one (within PREDICTION_FACTOR
+    each judged plan's and the chosen plan's predicted RelMSE against the measured one (within PREDICTION_FACTOR
     or not), and the row against the best fixed pipeline at equal time; a summary of both, and why a row has no
     prediction."""
     planned = [r for r in rows if r["method"] == "gpt-auto"]
@@ -609,18 +609,20 @@ def planner_choice(rows: Sequence[Mapping[str, Any]]) -> list[str]:
     if not planned:
         return [*lines, "The planned row (`gpt-auto`) was not evaluated (see skipped methods).", ""]
     lines += ["`gpt-auto` is `gradsep render --seconds T --gradients auto` at equal time (T the budget of the "
-              "Equal time section, its pilot charged), reconstructed with the default method the frame names. Its "
-              "pilot predicts, from the frame alone, each candidate plan's RelMSE after reconstruction at the "
-              "samples the rest of the budget buys it, and renders the lowest. *predicted* is the frame's own "
-              "estimate from its two halves (renderer/check.py) where it fits the budget, else the pilot's "
+              "Equal time section, its checkpoint charged), reconstructed with the default method the frame names. "
+              "The frame starts as `direct-alternate`; at a checkpoint its halves predict, from the frame alone, "
+              "each plan's RelMSE after reconstruction at the samples the rest of the budget buys it, and the rest "
+              "is `primal` only where that is clearly lower. *predicted* is the frame's own "
+              "estimate from its two halves (renderer/check.py) where it fits the budget, else the checkpoint's "
               "prediction for the chosen plan. *predicted / measured* compares it with the RelMSE measured "
               "against the references (within "
               f"{PREDICTION_FACTOR:g}× counts as right); *best fixed* is the lowest RelMSE of the fixed pipelines at "
               "equal time (the budget method's row on the G-PT frame, "
               + ", ".join(f"`{m}`" for m in FIXED_EQUAL_TIME) + ") and *auto / best* the planned row against it "
-              "(a multi-seed row by its mean). A frame without a prediction fell back to `all` (listed below with "
-              "why). The candidates' predictions and plan layers are those of the row's first seed.", "",
-              "| Scene | G-PT spp | budget s | auto s | plan | plan layers | spp | pilot s | candidates' predicted "
+              "(a multi-seed row by its mean). A frame without a prediction had no checkpoint: it is "
+              "`direct-alternate` throughout (listed below with why). The plans' predictions and plan layers are "
+              "those of the row's first seed.", "",
+              "| Scene | G-PT spp | budget s | auto s | plan | plan layers | spp | checkpoint s | plans' predicted "
               "RelMSE | predicted | measured | predicted / measured | within | best fixed | auto / best |",
               "|---|---:|---:|---:|---|---|---:|---:|---|---:|---:|---:|---|---|---:|"]
     frames: list[PlannedFrame] = []

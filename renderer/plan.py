@@ -481,6 +481,7 @@ def run_checkpoint(passes: Passes, budget_spp: Callable[[Assessment], float], *,
     methods: dict[str, str] = {}
     seconds_in = {default.name: 0.0, primal.name: 0.0}  # the second half's reconstructions (the first pays start-up)
     terms: dict[str, list[np.ndarray]] = {}
+    judging = clock()
     for i in range(2):
         terms = {default.name: [], primal.name: []}
         for ys, xs in windows:
@@ -520,7 +521,8 @@ def run_checkpoint(passes: Passes, budget_spp: Callable[[Assessment], float], *,
     diff = np.concatenate(carried)
     difference, difference_se = float(np.mean(diff)), float(np.std(diff) / np.sqrt(max(diff.size, 1)))
     chosen = primal if difference < -SWITCH_SE * difference_se else default
-    trace: dict[str, object] = {"spp": checkpoint_spp, "plans": [a.trace_entry() for a in assessments.values()],
+    trace: dict[str, object] = {"spp": checkpoint_spp, "seconds": round(clock() - judging, 3),
+                                "plans": [a.trace_entry() for a in assessments.values()],
                                 "difference": [float(f"{difference:.4g}"), float(f"{difference_se:.3g}")],
                                 "chosen": chosen.name}
     return Plan(chosen, [assessments[default.name], assessments[primal.name]], clock() - start,

@@ -128,7 +128,7 @@ def test_the_planned_rows_time_note_names_what_missed():
     assert early.startswith("the render stopped 0.55 s before") and "`primal` (0.3 s per spp)" in early
     assert "granularity" in early and ";" not in early  # the reconstruction took what was reserved
     pilot = note(2.0, 2.2, 0.25, 0.25, "", None, "all", 2.1)
-    assert "ended 0.45 s past" in pilot and "the pilot alone took 2.1 s" in pilot
+    assert "ended 0.45 s past" in pilot and "the checkpoint alone took 2.1 s" in pilot
     slow = note(2.0, 2.2, 0.25, 0.25, "", None, "all", 0.5)
     assert "a pass slower than predicted" in slow
     recon = note(2.0, 1.75, 0.6, 0.25, "", None, "all", 0.5)
