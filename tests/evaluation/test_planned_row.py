@@ -214,13 +214,17 @@ def test_the_deadline_keeps_its_tail_free_for_the_reconstruction(tiny):
 
 @pytest.mark.slow
 @pytest.mark.render
-def test_a_quick_evaluation_reports_the_plan_and_its_predicted_against_measured_error(tmp_path):
-    """A budget a pilot fits (the 32×32 G-PT frame at 4096 spp: a few seconds): the row chose a plan from three
-    predictions, its time is within ±5 % of the budget or the reason is recorded (and listed), and the report's
-    section shows its predicted and measured RelMSE."""
+def test_a_quick_evaluation_reports_the_plan_and_its_predicted_against_measured_error(tmp_path, monkeypatch):
+    """A budget a checkpoint fits (the 32×32 G-PT frame at 4096 spp: a few seconds; the checkpoint's share of it
+    raised, since under a parallel suite's load the first pass alone can take a tenth of it): the row chose a plan
+    from two predictions, its time is within ±5 % of the budget or the reason is recorded (and listed), and the
+    report's section shows its predicted and measured RelMSE."""
     from gradsep.evaluation.config import EvalConfig
     from gradsep.evaluation.run import run_evaluation
+    from gradsep.renderer import plan
     from gradsep.renderer.plan import applicable
+
+    monkeypatch.setattr(plan, "PILOT_SHARE", 0.5)
 
     config = EvalConfig(scenes=(SCENE,), spp=(4096,), width=32, height=32, ref_spp=16, output=tmp_path / "report",
                         cache_dir=tmp_path / "cache", models_dir=tmp_path / "models",
@@ -230,10 +234,10 @@ def test_a_quick_evaluation_reports_the_plan_and_its_predicted_against_measured_
     assert row["budget_method"] == "G-PT render only" and row["target_seconds"] > 2
     names = {c.name for c in applicable(("direct", "indirect"))}
     assert row["plan"] in names and set(row["plan_candidates"]) == names
-    # the frame's own estimate from its halves where it fits the budget (a 32x32 frame's does), else the pilot's
+    # the frame's own estimate from its halves where it fits the budget (a 32x32 frame's does), else the checkpoint's
     assert row["predicted_from"] == "frame" and row["predicted_relmse"] > 0
     assert row["pilot_seconds"] > 0 and row["method_spp"] > 16 and math.isfinite(row["relmse"])
-    assert row["gradients"] == {"primal": "none", "direct-alternate": "direct", "direct": "direct"}[row["plan"]]
+    assert row["gradients"] == {"primal": "none", "direct-alternate": "direct"}[row["plan"]]
     report = (tmp_path / "report" / "report.md").read_text()
     miss = abs(row["total_seconds"] / row["target_seconds"] - 1) > 0.05
     assert not miss or (row["time_note"] and row["time_note"] in report)
