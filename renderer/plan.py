@@ -422,8 +422,8 @@ def run_checkpoint(passes: Passes, budget_spp: Callable[[Assessment], float], *,
                    after_first: Callable[[], None] | None = None,
                    reconstruct: Callable[[Frame], tuple[np.ndarray, str]] = reconstruct_default) -> Plan:
     """Render the fallback plan (:func:`fallback`) for CHECKPOINT_SHARE of the budget (``seconds``) or of the
-    frame's ``spp``, its passes dealt into the frame's halves (renderer/check.py), with one warm primal pass per
-    size for primal's cost; then judge on the halves whether the rest is better spent on the fallback's passes
+    frame's ``spp``, its passes dealt into the frame's halves (renderer/check.py), with primal passes of two sizes
+    for primal's cost; then judge on the halves whether the rest is better spent on the fallback's passes
     or on primal ones (a plain frame, from the same passes' bases): each half reconstructed both ways, on up to
     TILE_COUNT tiles, and judged against the other half's groups, each candidate's estimate carried to the
     samples the rest of the budget buys it; primal replaces the fallback only when the paired difference of the
@@ -449,19 +449,22 @@ def run_checkpoint(passes: Passes, budget_spp: Callable[[Assessment], float], *,
         return Plan(default, [], clock() - start, "the budget is too small for a checkpoint")
     passes.start_split()
     passes.run(primal, 1)  # primal's kernel (the filler's too)
-    for c in (default, primal):  # a warm 1-spp pass of each: its fixed cost per pass apart from its samples
-        passes.run(c, 1)
+    passes.run(default, 1)  # a warm pass of the fallback: its cost without the compile, to size the passes by
     if seconds is not None:
         left = start + CHECKPOINT_SHARE * seconds - clock()
         n = max(1, int(left / CHECKPOINT_PASSES / max(passes.kind(default).costs.per_sample, 1e-9)))
     else:
         n = max(1, int(CHECKPOINT_SHARE * (spp or 0)) // (CHECKPOINT_PASSES + 4))
-    n = min(n, passes.max_spp)
-    passes.run(primal, n)
-    # the fallback's passes up to the checkpoint, at least four (each half needs two groups), of n and 2n samples
-    # in turn: the last passes of two sizes give its cost line (pass_cost), fixed cost apart from its samples
+    n = max(1, min(n, passes.max_spp // 2))
+    # each plan at two sizes, n and 2n: its cost line (pass_cost) reads its fixed cost per pass (for G-PT, most of
+    # a small pass) apart from its cost per sample, which decides how many samples the budget buys it
+    for k in (n, 2 * n):
+        passes.run(primal, k)
+        passes.run(default, k)
+    # then the fallback's passes, n and 2n samples in turn, up to the checkpoint (two more at least: each half
+    # needs two groups)
     while True:
-        k = n if passes.index % 2 else min(2 * n, passes.max_spp)
+        k = n if passes.index % 2 else 2 * n
         if passes.index >= 9:
             if seconds is not None:
                 if clock() - start + passes.kind(default).costs.predict(k) > CHECKPOINT_SHARE * seconds:

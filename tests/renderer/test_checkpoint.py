@@ -123,10 +123,11 @@ def test_the_checkpoint_keeps_to_its_share_and_every_pass_stays_in_the_frame():
         {FALLBACK: 0.1, "primal": 0.1}))
     assert passes.now <= CHECKPOINT_SHARE * 20.0
     assert passes.spp == sum(n for _, n in passes.runs) and result.pilot_seconds == pytest.approx(passes.now)
-    assert [name for name, _ in passes.runs[:5]] == [FALLBACK, "primal", FALLBACK, "primal", "primal"]
-    assert sum(name == FALLBACK for name, _ in passes.runs) >= 5  # its compiling pass and four of the halves'
-    sizes = {n for name, n in passes.runs[5:]}
-    assert len(sizes) == 2  # two pass sizes: the cost line
+    assert [name for name, _ in passes.runs[:7]] == [FALLBACK, "primal", FALLBACK, "primal", FALLBACK, "primal",
+                                                     FALLBACK]
+    n = passes.runs[3][1]
+    assert n > 1 and [k for _, k in passes.runs[3:7]] == [n, n, 2 * n, 2 * n]  # two sizes of each: the cost lines
+    assert sum(name == FALLBACK for name, _ in passes.runs) >= 6 and {k for _, k in passes.runs[7:]} == {n, 2 * n}
 
 
 def test_with_spp_the_checkpoint_takes_its_share_of_the_samples():
