@@ -51,6 +51,8 @@ machine's load falls on each alike:
             --cache /work/pred8; done; done
     python benchmarks/bench_planner.py predict --seconds 20 --seeds 21,22 --ref-spp 4096 --cache /work/pred8
 
+and, after the checkpoint's primal passes changed, `auto` alone again into a copy of that cache with the fixed
+plans' frames and rows only (/work/pred9): ``predict --plan auto --seconds 20 --seeds 21,22 --ref-spp 4096``.
 and the earlier fixed pipelines' figures there from (2 shared cores, load 4-6 from other work; 1024-spp references):
 
     python benchmarks/bench_planner.py validate --size 192 --seconds 20 --seeds 3 --ref-spp 1024 \
