@@ -645,7 +645,8 @@ def render_planned(loaded: LoadedScene, layers: tuple[str, ...], *, seed: int, s
         written.append(candidate(next(iter(passes.kinds))) if fixed is None else fixed)
         if deadline is None:  # a sample count: no deadline to keep
             return
-        write = measure_write()
+        if deadline.tail is None:  # an in-process caller (Deadline.tail) writes nothing: no write to measure
+            write = measure_write()
         if deadline.left() < reserve():
             raise startup_error(deadline.seconds, deadline.elapsed() + reserve())
 

@@ -212,6 +212,24 @@ def test_the_deadline_keeps_its_tail_free_for_the_reconstruction(tiny):
     assert deadline.left() >= 0.8 * 2.0
 
 
+@pytest.mark.render
+def test_an_in_process_deadline_measures_no_write(tiny, monkeypatch):
+    """The caller of a Deadline with a tail writes nothing, so the planner spends none of the budget timing a write
+    (at the evaluation's sub-second budgets that timing took a third of the time after the first pass)."""
+    from gradsep.renderer import plan
+    from gradsep.renderer.budget import Deadline
+
+    def no_write(*args, **kwargs):
+        raise AssertionError("the write was measured")
+
+    monkeypatch.setattr(plan, "write_seconds", no_write)
+    frame, renderer = tiny
+    for fixed in (plan.candidate("direct-alternate"), None):
+        planned = plan.render_planned(renderer.loaded, tuple(frame.layers), seed=4, shift=None, fixed=fixed,
+                                      deadline=Deadline(1.0, tail=0.2))
+        assert planned.spp >= 1
+
+
 @pytest.mark.slow
 @pytest.mark.render
 def test_a_quick_evaluation_reports_the_plan_and_its_predicted_against_measured_error(tmp_path, monkeypatch):
