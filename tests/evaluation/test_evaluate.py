@@ -731,3 +731,32 @@ def test_issue14_targets_are_read_from_the_rows():
     assert "(`gpt-oidn-l1`) is below `path-oidn` (1.2 / 1.4 = 0.857×)" in equal
     assert "**not below** `path-sep-oidn` (1.2 / 1.1 = 1.091×)" in equal
     assert "not checked" in "\n".join(_fused_and_equal_time_targets([row("l1", 16, 1.0)]))
+
+
+@pytest.mark.render
+def test_scenes_are_validated_up_front_and_evaluated_one_loaded_at_a_time(tmp_path, monkeypatch):
+    """A loaded scene's objects stay registered with Dr.Jit and every render traces its virtual calls over all of
+    them, so while a scene is evaluated no other scene may be alive; a bad scene is still refused before any work."""
+    import gc
+    from types import SimpleNamespace
+
+    from gradsep.evaluation import run
+    from gradsep.evaluation.config import EvalConfig
+    from gradsep.renderer.scene import LoadedScene
+
+    seen: list[tuple[str, int]] = []
+
+    def fake_run_scene(runner, entry, loaded, methods, bar):
+        gc.collect()
+        seen.append((entry.name, sum(isinstance(o, LoadedScene) for o in gc.get_objects())))
+        if len(seen) == 2:
+            raise StopIteration  # nothing is evaluated: the test is about the scenes' lifetimes
+        return SimpleNamespace(), []
+
+    monkeypatch.setattr(run, "_run_scene", fake_run_scene)
+    config = EvalConfig(scenes=("procedural:7", "procedural:8"), spp=(1,), width=8, height=8, ref_spp=1,
+                        output=tmp_path / "out", cache_dir=tmp_path / "cache", models_dir=tmp_path / "models",
+                        methods=("gpt-primal",))
+    with pytest.raises(StopIteration):
+        run.run_evaluation(config, progress=False, log=lambda message: None)
+    assert seen == [("procedural:7", 1), ("procedural:8", 1)]
