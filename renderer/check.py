@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 
 from gradsep.model.frame import CHECK_KEY
-from gradsep.renderer.estimate import at_budget, cross_relmse, cross_terms, relative_weights
+from gradsep.renderer.estimate import at_budget, cross_relmse, cross_terms, mean_and_se, relative_weights
 
 #: Groups the passes are dealt into: half of them make each half of the frame.
 GROUPS = 8
@@ -220,7 +220,7 @@ def check_frame(halves: list[Half], spp: int, exponent: float,
             w = relative_weights(0.5 * (a + b))
             diffs.append(cross_terms(a, batches, w) - cross_terms(b, batches, w))
         d = np.concatenate([x.ravel() for x in diffs])
-        differences[k] = (float(np.mean(d)), float(np.std(d) / np.sqrt(max(d.size, 1))))
+        differences[k] = mean_and_se(d)
     better = [k for k, (d, se) in differences.items() if d < -SWITCH_SE * se]
     chosen = min(better, key=lambda k: differences[k][0]) if better else first
     return Check(judged, chosen, differences, exponent, clock() - start)

@@ -42,7 +42,12 @@ def cross_relmse(reconstruction: np.ndarray, batches: Sequence[tuple[np.ndarray,
     d = cross_terms(reconstruction, batches, weights)
     if border:
         d = d[border:-border or None, border:-border or None]
-    return float(np.mean(d)), float(np.std(d) / np.sqrt(max(d.size, 1)))
+    return mean_and_se(d)
+
+
+def mean_and_se(values: np.ndarray) -> tuple[float, float]:
+    """The mean of ``values`` and its standard error, taking them as independent."""
+    return float(np.mean(values)), float(np.std(values) / np.sqrt(max(values.size, 1)))
 
 
 def cross_terms(reconstruction: np.ndarray, batches: Sequence[tuple[np.ndarray, int]],

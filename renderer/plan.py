@@ -40,7 +40,7 @@ from gradsep.model.errors import CommandError
 from gradsep.model.frame import PLAN_METHOD_KEY, PREDICTED_RELMSE_KEY, Features, Frame, Layer
 from gradsep.renderer.budget import Clock, Deadline, PassCosts, fill_with_filler, fitted_line
 from gradsep.renderer.check import Half, Split
-from gradsep.renderer.estimate import at_budget, cross_terms, relative_weights
+from gradsep.renderer.estimate import at_budget, cross_terms, mean_and_se, relative_weights
 from gradsep.renderer.scene import LoadedScene
 
 #: Header keys of a planned frame (all strings, like every ``gradsep.*`` attribute).
@@ -278,6 +278,12 @@ def tiles(width: int, height: int, side: int = TILE, count: int = TILE_COUNT) ->
     return out[:count]
 
 
+def without_gradients(frame: Frame) -> Frame:
+    """``frame`` as a plain frame: its bases, variances and features, no gradients (what a primal plan's frame of
+    the same passes is: every plan's bases are the same path tracer's)."""
+    return Frame(layers={n: Layer(v.base, var=v.var) for n, v in frame.layers.items()}, features=frame.features)
+
+
 def crop(frame: Frame, window: tuple[slice, slice]) -> Frame:
     ys, xs = window
 
@@ -473,27 +479,27 @@ def run_checkpoint(passes: Passes, budget_spp: Callable[[Assessment], float], *,
                 break
         passes.run(default, k)
     checkpoint_spp = passes.spp
-    halves = {c.name: passes.halves(c) for c in (default, primal)}
-    if any(h is None for h in halves.values()):
+    halves = passes.halves(default)
+    if halves is None:
         return Plan(default, [], clock() - start, "the checkpoint's halves were not ready")
     border = TILE_BORDER if len(windows) > 1 else 0
     # per plan and half: the block means of its reconstruction's error terms over the tiles (renderer/estimate.py)
     blocks: dict[str, list[np.ndarray]] = {default.name: [], primal.name: []}
-    carried: list[np.ndarray] = []  # per half: primal's terms less the fallback's, each carried to its budget
-    samples = [halves[default.name][i][1] for i in range(2)]  # type: ignore[index]
+    samples = [n for _, n, _ in halves]
     methods: dict[str, str] = {}
     seconds_in = {default.name: 0.0, primal.name: 0.0}  # the second half's reconstructions (the first pays start-up)
-    terms: dict[str, list[np.ndarray]] = {}
     judging = clock()
-    for i in range(2):
-        terms = {default.name: [], primal.name: []}
+    for i, (frame, _, groups) in enumerate(halves):
+        # primal's frame of the same passes is the fallback's without its gradients
+        frames = {default.name: frame, primal.name: without_gradients(frame)}
+        terms: dict[str, list[np.ndarray]] = {default.name: [], primal.name: []}
         for ys, xs in windows:
             images = {}
-            for c in (default, primal):
+            for name, f in frames.items():
                 began = time.perf_counter()
-                images[c.name], methods[c.name] = reconstruct(crop(halves[c.name][i][0], (ys, xs)))  # type: ignore[index]
-                seconds_in[c.name] += (time.perf_counter() - began) * (i == 1)
-            batches = [(b[ys, xs], k) for b, k in halves[default.name][i][2]]  # type: ignore[index]
+                images[name], methods[name] = reconstruct(crop(f, (ys, xs)))
+                seconds_in[name] += (time.perf_counter() - began) * (i == 1)
+            batches = [(b[ys, xs], k) for b, k in groups]
             # the same weights for both (their mean image): the groups' noise cancels in the difference
             weights = relative_weights(0.5 * (images[default.name] + images[primal.name]))
             for name, image in images.items():
@@ -505,8 +511,7 @@ def run_checkpoint(passes: Passes, budget_spp: Callable[[Assessment], float], *,
     for c in (default, primal):
         costs = passes.kind(c).costs
         fixed, per = pass_cost(costs.warm, costs.per_sample)
-        values = [float(np.mean(b)) for b in blocks[c.name]]
-        ses = [float(np.std(b) / np.sqrt(max(b.size, 1))) for b in blocks[c.name]]
+        values, ses = zip(*(mean_and_se(b) for b in blocks[c.name]), strict=True)
         a = Assessment(c.name, round(float(np.mean(samples))), float(np.mean(values)), per, methods[c.name],
                        float(np.hypot(*ses)) / 2, pass_seconds=fixed, reconstruct_rate=seconds_in[c.name] / pixels,
                        exponent=EXPONENTS[c.name])
@@ -518,11 +523,9 @@ def run_checkpoint(passes: Passes, budget_spp: Callable[[Assessment], float], *,
         assessments[c.name] = a
     # the paired difference at the budget: primal's terms less the fallback's, each carried to its samples
     p, d = assessments[primal.name], assessments[default.name]
-    for i, n in enumerate(samples):
-        carried.append(at_budget(1.0, n, p.budget_spp, p.exponent) * blocks[primal.name][i]
-                       - at_budget(1.0, n, d.budget_spp, d.exponent) * blocks[default.name][i])
-    diff = np.concatenate(carried)
-    difference, difference_se = float(np.mean(diff)), float(np.std(diff) / np.sqrt(max(diff.size, 1)))
+    difference, difference_se = mean_and_se(np.concatenate([
+        at_budget(1.0, n, p.budget_spp, p.exponent) * tp - at_budget(1.0, n, d.budget_spp, d.exponent) * td
+        for n, tp, td in zip(samples, blocks[primal.name], blocks[default.name], strict=True)]))
     chosen = primal if difference < -SWITCH_SE * difference_se else default
     trace: dict[str, object] = {"spp": checkpoint_spp, "seconds": round(clock() - judging, 3),
                                 "plans": [a.trace_entry() for a in assessments.values()],
