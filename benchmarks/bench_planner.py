@@ -525,45 +525,43 @@ def predict(args: argparse.Namespace) -> None:
 
 def _against_fixed(rows: dict[str, dict], scenes: list[str], args: argparse.Namespace) -> None:
     """`auto` against each fixed plan whose frames of the same (scene, budget, seed) are in the cache, both scored
-    with the same references: the equal-time ratio and what went to samples."""
+    with the same references: the equal-time ratio and what went to samples; with several fixed plans, `auto` and
+    each of them against the best of them per frame (the frames that have them all)."""
     if args.plan != "auto":
         return
-    pairs: dict[str, list[tuple[dict, dict]]] = {}
+    autos: dict[str, dict] = {}  # auto's key -> its row
+    fixed: dict[str, dict[str, dict]] = {}  # auto's key -> fixed plan -> that plan's row of the same frame
     for key, row in rows.items():
         parts = key.split("|")
-        auto = rows.get("|".join(parts[:3]))
+        frame = "|".join(parts[:3])
+        auto = rows.get(frame)
         if (len(parts) == 4 and auto and row["scene"] in scenes and float(parts[1]) == args.seconds
                 and all(r.get("ref_spp") == args.ref_spp and "relmse_se" in r for r in (row, auto))):
-            pairs.setdefault(parts[3], []).append((auto, row))
-    if not pairs:
+            autos[frame] = auto
+            fixed.setdefault(frame, {})[parts[3]] = row
+    plans = sorted({plan for by_plan in fixed.values() for plan in by_plan})
+    if not plans:
         return
+    geo = statistics.geometric_mean
     print(f"\n`auto` over a fixed plan at {args.seconds:g} s, same scene and seed (geometric mean, worst):\n")
     print("| fixed plan | frames | RelMSE ratio | worst | `auto` chose it | `auto`'s spp / the plan's |")
     print("|---|---:|---:|---:|---:|---:|")
-    for plan, ps in sorted(pairs.items()):
+    for plan in plans:
+        ps = [(autos[k], by_plan[plan]) for k, by_plan in fixed.items() if plan in by_plan]
         ratios = [a["relmse"] / f["relmse"] for a, f in ps]
-        geo = math.exp(sum(map(math.log, ratios)) / len(ratios))
         spp = statistics.median(a["spp"] / f["spp"] for a, f in ps)
-        print(f"| {plan} | {len(ps)} | {geo:.2f} | {max(ratios):.2f} | {sum(a['plan'] == plan for a, _ in ps)} | "
-              f"{spp:.2f} |")
-    if len(pairs) > 1:  # each frame against the best of the fixed plans rendered for its (scene, seed)
-        best: dict[int, tuple[dict, float]] = {}
-        for ps in pairs.values():
-            for a, f in ps:
-                best[id(a)] = (a, min(f["relmse"], best.get(id(a), (a, math.inf))[1]))
-        complete = [(a, b) for a, b in best.values()
-                    if sum(any(x is a for x, _ in ps) for ps in pairs.values()) == len(pairs)]
-        ratios = [a["relmse"] / b for a, b in complete]
-        if ratios:
-            geo = math.exp(sum(map(math.log, ratios)) / len(ratios))
-            print(f"| the best of {', '.join(sorted(pairs))}, per frame | {len(ratios)} | {geo:.2f} | "
-                  f"{max(ratios):.2f} | – | – |")
-            best_of = {id(a): b for a, b in complete}
-            print("\nEach fixed plan over the best of them, per frame (geometric mean, worst):\n")
-            print("| fixed plan | frames | RelMSE ratio | worst |\n|---|---:|---:|---:|")
-            for plan, ps in sorted(pairs.items()):
-                rs = [f["relmse"] / best_of[id(a)] for a, f in ps if id(a) in best_of]
-                print(f"| {plan} | {len(rs)} | {math.exp(sum(map(math.log, rs)) / len(rs)):.2f} | {max(rs):.2f} |")
+        print(f"| {plan} | {len(ps)} | {geo(ratios):.2f} | {max(ratios):.2f} | "
+              f"{sum(a['plan'] == plan for a, _ in ps)} | {spp:.2f} |")
+    best = {k: min(r["relmse"] for r in by_plan.values()) for k, by_plan in fixed.items() if len(by_plan) == len(plans)}
+    if len(plans) > 1 and best:
+        ratios = [autos[k]["relmse"] / b for k, b in best.items()]
+        print(f"| the best of {', '.join(plans)}, per frame | {len(ratios)} | {geo(ratios):.2f} | "
+              f"{max(ratios):.2f} | – | – |")
+        print("\nEach fixed plan over the best of them, per frame (geometric mean, worst):\n")
+        print("| fixed plan | frames | RelMSE ratio | worst |\n|---|---:|---:|---:|")
+        for plan in plans:
+            rs = [fixed[k][plan]["relmse"] / b for k, b in best.items()]
+            print(f"| {plan} | {len(rs)} | {geo(rs):.2f} | {max(rs):.2f} |")
 
 
 def choose(args: argparse.Namespace) -> None:
