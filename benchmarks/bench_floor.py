@@ -83,10 +83,10 @@ def report(rows: dict[str, dict[str, float]], cores: int, targets: dict[str, flo
 
 
 def main() -> None:
-    from gradsep.model.frame import read_frame
+    from gradsep.model.frame import configure_exr_threads, read_frame
     from gradsep.model.reconstruct import available_methods
     from gradsep.model.synthetic import synthetic_frame
-    from gradsep.service.inference import configure_exr_threads, load_models
+    from gradsep.service.inference import load_models
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--frame", type=Path, help="an EXR frame (default: gradsep.model.synthetic's frame)")

@@ -76,6 +76,7 @@ def reconstruct_command(args: argparse.Namespace) -> int:
     from gradsep.model.frame import (
         OIDN_SETTING_KEY,
         FrameError,
+        configure_exr_threads,
         encode_answer,
         read_frame,
         rgb_channels,
@@ -93,9 +94,7 @@ def reconstruct_command(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise CommandError(f"--channels: {exc}") from None
     _check_output(output)
-    import OpenEXR
-
-    OpenEXR.set_global_thread_count(os.cpu_count() or 1)  # (de)compress line blocks on every core (no pool by default)
+    configure_exr_threads()
     frame = read_frame(args.frame, nonfinite=args.nonfinite, layout=layout)
     models = _resolve_models(getattr(args, "models", None), args.method)
     try:

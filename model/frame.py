@@ -763,6 +763,18 @@ def _exr_file(channels: Mapping[str, np.ndarray], half: bool, metadata: Mapping[
     return OpenEXR.File(header, pixels)  # OpenEXR mutates both dicts: they are our own copies
 
 
+def configure_exr_threads(count: int = -1) -> int:
+    """Set OpenEXR's process-wide thread pool (-1: one thread per core, 0: single-threaded) and return its size.
+
+    OpenEXR's Python binding defaults to no pool, so a ZIP-compressed frame is encoded and decoded on one core: a
+    1280x720 rendered frame (21 float channels) took 0.68 s to encode alone and 0.39 s with a pool of 2 on 2 cores.
+    Every command that reads or writes frames, and the service, set it once. Pixels are identical.
+    """
+    threads = (os.cpu_count() or 1) if count < 0 else count
+    OpenEXR.set_global_thread_count(threads)
+    return threads
+
+
 def encode_exr(channels: Mapping[str, np.ndarray], *, half: bool = False,
                metadata: Mapping[str, str] | None = None, compression: str | None = None,
                image_attributes: Mapping[str, Any] | None = None) -> bytes:

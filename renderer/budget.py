@@ -183,17 +183,23 @@ FILLER_SHARE = 0.02
 #: Before any warm pass, the plan's compiling 1-spp pass alone says its passes are coarse when it took this long
 #: (at 1280x720 2.5-5.5 s, at 320x240 0.4-1.8 s on 2 shared cores): the filler is then warmed up at once, while the
 #: time left surely holds it (waiting for a warm pass can leave no room: at T = 10 s a 1280x720 frame ended at
-#: 0.75 T, with the gap of a whole pass). Below it, the first warm pass decides (FILLER_MIN_PASS).
+#: 0.75 T, with the gap of a whole pass). So does one of at least FILLER_MIN_PASS that took FILLER_EARLY_SHARE of
+#: the budget: at 1280x720 and T = 5 s a `direct-alternate` compiling pass took 0.55-1.0 s, its warm 2-spp pass 1.0-1.8
+#: s, and the filler, warmed up after it, no longer fitted (the frame ended at 0.77-0.86 T). Below both, the first
+#: warm pass decides (FILLER_MIN_PASS).
 FILLER_EARLY_PASS = 2.0
+FILLER_EARLY_SHARE = 0.1
 
 
 def filler_pays(costs: PassCosts, seconds: float) -> bool:
     """Whether the plan's passes (``costs``) are coarse enough in a ``seconds`` budget to warm up a filler: its warm
-    1-spp pass, or before one its compiling pass (FILLER_EARLY_PASS)."""
+    1-spp pass, or before one its compiling pass (FILLER_EARLY_PASS, FILLER_EARLY_SHARE)."""
     if costs.warm:
         return costs.predict(1) >= max(FILLER_MIN_PASS, FILLER_SHARE * seconds)
     if costs.first_pass is not None:
-        return costs.first_pass[1] / costs.first_pass[0] >= max(FILLER_EARLY_PASS, FILLER_SHARE * seconds)
+        first = costs.first_pass[1] / costs.first_pass[0]
+        return first >= max(FILLER_SHARE * seconds,
+                            min(FILLER_EARLY_PASS, max(FILLER_MIN_PASS, FILLER_EARLY_SHARE * seconds)))
     return False
 
 

@@ -538,28 +538,35 @@ def run_checkpoint(passes: Passes, budget_spp: Callable[[Assessment], float], *,
 # ------------------------------------------------------------------------------------------- the frame
 
 
-#: The write is predicted from WRITE_BANDS bands of WRITE_ROWS rows spread over the frame's height (content, and
-#: so the encoder's cost, differs by region), with a margin for a shared machine's swings, plus the file's
-#: creation, fsync and rename (WRITE_FIXED). Measured at 1280x720 on 2 shared cores: the bands' prediction within
-#: 5 % of the write in one process, but under load 3-6 the write took 1.08-1.98x the prediction made seconds
-#: before it: hence the margin, and a second measurement near the end (WRITE_REMEASURE).
+#: The write is predicted from WRITE_BANDS bands spread over the frame's height (content, and so the encoder's
+#: cost, differs by region), each of WRITE_ROWS rows per thread of OpenEXR's pool (model.frame.configure_exr_threads:
+#: ZIP compresses blocks of 16 rows, one per thread, so a band of one block would time one core), with a margin for
+#: a shared machine's swings, plus the file's creation, fsync and rename (WRITE_FIXED), and a second measurement
+#: near the end (WRITE_REMEASURE). Measured at 1280x720 on 2 cores, otherwise idle: the bands predicted 0.48-0.52 s
+#: and the write took 0.50-0.67 s. Under load 3-6 (single-threaded encoding) it took 1.08-1.98x a prediction made
+#: seconds before; the margin covers most of that, and at T = 5 s an overrun of the worst case is ~5 % of T, while
+#: the earlier 1.75 left ~8 % of T idle on every frame.
 WRITE_ROWS = 16
 WRITE_BANDS = 3
-WRITE_MARGIN = 1.75
+WRITE_MARGIN = 1.35
 WRITE_FIXED = 0.05
 #: The write is measured again once the time left is below this many predicted writes (the frame's last passes).
 WRITE_REMEASURE = 5.0
 
 
-def write_seconds(band: Callable[[tuple[slice, slice]], Frame], width: int, height: int, rows: int = WRITE_ROWS,
+def write_seconds(band: Callable[[tuple[slice, slice]], Frame], width: int, height: int, rows: int | None = None,
                   bands: int = WRITE_BANDS, margin: float = WRITE_MARGIN) -> float:
     """Predicted seconds from the last pass's end to the frame on disk: assembling the frame from the passes' sums
     (``band(window)``: the frame of one window of rows), its channels, and their EXR encoding. Each of ``bands``
-    bands of ``rows`` rows spread over the height is assembled and encoded after one untimed warm-up (the first
-    encode in a process pays a one-time set-up: 2x a later one), and the time is scaled to the frame's height
-    (the encoder and the assembly are linear in the rows)."""
+    bands of ``rows`` rows (default: WRITE_ROWS per thread of OpenEXR's pool) spread over the height is assembled
+    and encoded after one untimed warm-up (the first encode in a process pays a one-time set-up: 2x a later one),
+    and the time is scaled to the frame's height (the encoder and the assembly are linear in the rows)."""
+    import OpenEXR
+
     from gradsep.model.frame import encode_exr
 
+    if rows is None:
+        rows = WRITE_ROWS * max(1, OpenEXR.global_thread_count())
     rows = max(1, min(rows, height))
     starts = sorted({round(f * (height - rows)) for f in np.linspace(0.0, 1.0, max(1, bands))})
     windows = [(slice(y, y + rows), slice(0, width)) for y in starts]

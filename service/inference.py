@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -30,6 +29,7 @@ from gradsep.model.frame import (
     Layer,
     ReadLimits,
     Source,
+    configure_exr_threads,
     encode_answer,
     forward_differences,
     read_frame,
@@ -214,19 +214,6 @@ def _finite(image: np.ndarray, name: str, warnings: list[str]) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------------------------
 # The engine: models, readiness, warm-up
 # ---------------------------------------------------------------------------------------------------------------
-
-
-def configure_exr_threads(count: int) -> int:
-    """Set OpenEXR's process-wide thread pool (-1: one thread per core, 0: single-threaded) and return its size.
-
-    OpenEXR's Python binding defaults to no pool, so a ZIP-compressed 66 MB frame is inflated on one core; with a
-    pool its line blocks are decompressed (and the answer's compressed) in parallel. Pixels are identical.
-    """
-    import OpenEXR
-
-    threads = (os.cpu_count() or 1) if count < 0 else count
-    OpenEXR.set_global_thread_count(threads)
-    return threads
 
 
 class Engine:

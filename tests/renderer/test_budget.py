@@ -147,6 +147,10 @@ def test_a_filler_is_warmed_up_only_for_coarse_passes_and_only_where_it_surely_f
     assert not filler_pays(PassCosts(), 20.0)  # no pass yet: nothing known
     assert not filler_pays(PassCosts(first_pass=(1, 1.5)), 20.0)  # a compiling pass at 320x240, under load
     assert filler_pays(PassCosts(first_pass=(1, 3.0)), 20.0)  # 1280x720: coarse already before a warm pass
+    # a compiling pass of a tenth of a short budget is coarse too (1280x720 `direct-alternate` at T = 5 s) ...
+    assert filler_pays(PassCosts(first_pass=(1, 0.55)), 5.0)
+    assert not filler_pays(PassCosts(first_pass=(1, 0.55)), 10.0)  # ... not at 10 s: its first warm pass decides
+    assert not filler_pays(PassCosts(first_pass=(1, 0.3)), 2.0)  # ... nor under FILLER_MIN_PASS (320x240)
     assert not filler_pays(PassCosts(warm=[(1, 0.25)]), 20.0)  # 320x240 G-PT: fine-grained already
     assert filler_pays(PassCosts(warm=[(1, 2.5)]), 20.0)  # 1280x720 G-PT: a pass is 12 % of the budget
     assert not filler_pays(PassCosts(warm=[(1, 2.5)]), 600.0)  # ... but 0.4 % of ten minutes

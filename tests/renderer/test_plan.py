@@ -27,6 +27,7 @@ from gradsep.renderer.plan import (
     fallback,
     plan_layers_text,
     tiles,
+    write_seconds,
 )
 from tests.renderer.scenes import resolve
 
@@ -63,6 +64,30 @@ def test_tiles_cover_small_frames_whole_and_spread_over_large_ones():
         assert ys.stop - ys.start == 128 and xs.stop - xs.start == 128
         assert 0 <= ys.start and ys.stop <= 720 and 0 <= xs.start and xs.stop <= 1280
     assert len({(w[0].start, w[1].start) for w in windows}) == 4
+
+
+def test_the_write_is_timed_on_bands_that_use_every_thread_of_openexrs_pool():
+    """ZIP encodes blocks of 16 rows, one per thread: a band of one block would time one core of a parallel write."""
+    import OpenEXR
+
+    rng = np.random.default_rng(0)
+    frame = Frame(layers={"color": Layer(base=rng.random((200, 40, 3), dtype=np.float32))})
+    asked: list[int] = []
+
+    def band(window: tuple[slice, slice]) -> Frame:
+        rows = window[0]
+        asked.append(rows.stop - rows.start)
+        return Frame(layers={"color": Layer(base=frame.layers["color"].base[rows])})
+
+    before = OpenEXR.global_thread_count()
+    try:
+        for threads, rows in ((0, 16), (1, 16), (2, 32), (4, 64)):
+            OpenEXR.set_global_thread_count(threads)
+            asked.clear()
+            assert write_seconds(band, 40, 200) > 0
+            assert asked[1:] == [rows] * 3  # after the one-row warm-up
+    finally:
+        OpenEXR.set_global_thread_count(before)
 
 
 def test_candidates_and_their_layers():

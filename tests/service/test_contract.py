@@ -495,8 +495,7 @@ def test_exr_thread_pool_changes_no_pixel() -> None:
     """GRADSEP_EXR_THREADS: OpenEXR's pool (de)compresses line blocks in parallel; bytes and pixels are the same."""
     import OpenEXR
 
-    from gradsep.model.frame import encode_exr, read_frame
-    from gradsep.service.inference import configure_exr_threads
+    from gradsep.model.frame import configure_exr_threads, encode_exr, read_frame
 
     data = frame_bytes(("direct", "indirect"), height=70, width=90)
     image = {"R": np.random.default_rng(0).random((70, 90), dtype=np.float32)}
