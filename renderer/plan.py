@@ -405,6 +405,11 @@ class Plan:
 CHECKPOINT_SHARE = 0.15
 #: Passes the frame is rendered in up to the checkpoint (each half needs two groups or more: renderer/check.py).
 CHECKPOINT_PASSES = 8
+#: The checkpoint's last passes: the rest of its share after the cost lines' passes, in this many passes.
+#: A G-PT pass has a fixed cost (tracing, launch: ~0.06 s at 192x192 on 2 cores, a 2-spp pass's half), so
+#: passes sized from a 1-spp pass's cost (fixed cost counted per sample) were ~20 small ones: 1.6 s of a 20 s
+#: budget went to their fixed costs.
+CHECKPOINT_LAST_PASSES = 4
 #: The fewest samples of a --spp frame that get a checkpoint (its passes up to it: 4 of 1 spp, then 4 or more).
 CHECKPOINT_MIN_SPP = 64
 #: Side of the blocks whose means give the checkpoint's paired difference its standard error: a denoiser's errors
@@ -467,17 +472,26 @@ def run_checkpoint(passes: Passes, budget_spp: Callable[[Assessment], float], *,
     for k in (n, 2 * n):
         passes.run(primal, k)
         passes.run(default, k)
-    # then the fallback's passes, n and 2n samples in turn, up to the checkpoint (two more at least: each half
-    # needs two groups)
-    while True:
-        k = n if passes.index % 2 else 2 * n
-        if passes.index >= 9:
-            if seconds is not None:
-                if clock() - start + passes.kind(default).costs.predict(k) > CHECKPOINT_SHARE * seconds:
-                    break
-            elif passes.spp + k > CHECKPOINT_SHARE * (spp or 0):
-                break
-        passes.run(default, k)
+    # then the rest of the checkpoint's share in CHECKPOINT_LAST_PASSES passes of the fallback, k samples on average,
+    # sized from its cost line (each half gets as many; its groups, two or more each, fill)
+    # (the marginal line, pass_cost: the deadline's rate, which charges part of a 1-spp pass's fixed cost to its
+    # sample, would size them ~3x too small; a checkpoint a little past its share costs only those seconds)
+    fixed, per = pass_cost(passes.kind(default).costs.warm, passes.kind(default).costs.per_sample)
+    count = CHECKPOINT_LAST_PASSES
+    while True:  # more passes (in pairs) only where one pass cannot hold the samples (its lanes: max_spp)
+        if seconds is not None:
+            left = start + CHECKPOINT_SHARE * seconds - clock()
+            k = int((left / count - fixed) / max(per, 1e-9))
+        else:
+            k = int(CHECKPOINT_SHARE * (spp or 0) - passes.spp) // count
+        if 4 * k <= 3 * passes.max_spp or count >= 4 * CHECKPOINT_LAST_PASSES:
+            break
+        count += 2
+    k = max(1, min(k, 3 * passes.max_spp // 4))
+    # in two sizes about k (2k/3 and 4k/3 in turn), so that its cost line still reads its fixed cost apart
+    small = max(1, round(2 * k / 3))
+    for i in range(count):
+        passes.run(default, small if i % 2 == 0 else min(passes.max_spp, max(small + 1, 2 * k - small)))
     checkpoint_spp = passes.spp
     halves = passes.halves(default)
     if halves is None:

@@ -12,6 +12,7 @@ from gradsep.renderer.budget import (
     FILLER_MIN_PASS,
     LAST_PASS_MARGIN,
     PASS_GROWTH,
+    PASS_OVERHEAD_SHARE,
     Deadline,
     PassCosts,
     check_seconds,
@@ -98,6 +99,21 @@ def test_next_pass_spp_shares_the_time_and_caps_growth_and_lanes() -> None:
     # the last few samples are taken in one pass, with the safety margin
     costs = PassCosts(warm=[(1, 1.0)])
     assert next_pass_spp(3.0, 0.0, costs, 100) == math.floor(3.0 / LAST_PASS_MARGIN)
+
+
+def test_passes_whose_fixed_cost_is_a_large_part_of_the_time_left_end_in_one_pass() -> None:
+    """Halving the time left pass after pass pays the fixed cost each time: once it is over PASS_OVERHEAD_SHARE of
+    the time left, the rest is one pass, sized with the margin."""
+    costs = PassCosts()
+    costs.record(8, 0.050)
+    costs.record(16, 0.082)  # 0.018 s per pass + 0.004 s per sample (320x240 in process)
+    assert costs.overhead == pytest.approx(0.018) and costs.per_sample == pytest.approx(0.004)
+    # 0.3 s left: the fixed cost is 6 % of it -> all of it in one pass (without the rule: half of it, 33 spp)
+    over, per = costs.overhead, costs.per_sample
+    assert next_pass_spp(0.3, 0.0, costs, 10_000) == math.floor((0.3 / LAST_PASS_MARGIN - over) / per) == 60
+    # 0.5 s left: 3.6 % -> half the time left, as before
+    assert 0.018 < PASS_OVERHEAD_SHARE * 0.5
+    assert next_pass_spp(0.5, 0.0, costs, 10_000) == math.floor((0.5 * 0.5 - over) / per) == 57
 
 
 def _simulate(seconds: float, per: float, overhead: float, slow: float = 1.0, jitter: float = 0.0,

@@ -17,7 +17,7 @@ from gradsep.model.frame import Frame, Layer
 from gradsep.renderer import plan
 from gradsep.renderer.budget import PassCosts
 from gradsep.renderer.check import Split
-from gradsep.renderer.plan import CHECKPOINT_SHARE, FALLBACK, block_means, run_checkpoint
+from gradsep.renderer.plan import CHECKPOINT_LAST_PASSES, CHECKPOINT_SHARE, FALLBACK, block_means, run_checkpoint
 
 SIDE = 48
 TRUTH = 0.5 + np.random.default_rng(0).random((SIDE, SIDE, 3))
@@ -119,6 +119,7 @@ def test_the_checkpoint_chooses_by_the_error_each_plan_reaches_at_the_budget(err
 
 def test_the_checkpoint_keeps_to_its_share_and_every_pass_stays_in_the_frame():
     passes = FakePasses()
+    passes.max_spp = 4096
     result = run_checkpoint(passes, budget(20.0), seconds=20.0, reconstruct=fake_reconstruction(
         {FALLBACK: 0.1, "primal": 0.1}))
     assert passes.now <= CHECKPOINT_SHARE * 20.0
@@ -127,7 +128,18 @@ def test_the_checkpoint_keeps_to_its_share_and_every_pass_stays_in_the_frame():
                                                      FALLBACK]
     n = passes.runs[3][1]
     assert n > 1 and [k for _, k in passes.runs[3:7]] == [n, n, 2 * n, 2 * n]  # two sizes of each: the cost lines
-    assert sum(name == FALLBACK for name, _ in passes.runs) >= 6 and {k for _, k in passes.runs[7:]} == {n, 2 * n}
+    # then the rest of the share in CHECKPOINT_LAST_PASSES passes of the fallback, in two sizes in turn (its cost
+    # line stays readable), sized from that line: the share is used, not spent on many small passes' fixed costs
+    last = passes.runs[7:]
+    assert len(last) == CHECKPOINT_LAST_PASSES and {name for name, _ in last} == {FALLBACK}
+    small, large = last[0][1], last[1][1]
+    assert [k for _, k in last] == [small, large] * (CHECKPOINT_LAST_PASSES // 2) and small < large
+    assert passes.now >= 0.95 * CHECKPOINT_SHARE * 20.0
+    # where a pass's lanes cannot hold them (max_spp), more passes, in pairs
+    passes = FakePasses()
+    run_checkpoint(passes, budget(20.0), seconds=20.0, reconstruct=fake_reconstruction({FALLBACK: 0.1, "primal": 0.1}))
+    last = passes.runs[7:]
+    assert len(last) > CHECKPOINT_LAST_PASSES and len(last) % 2 == 0 and max(k for _, k in last) <= passes.max_spp
 
 
 def test_with_spp_the_checkpoint_takes_its_share_of_the_samples():
