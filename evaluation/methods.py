@@ -124,8 +124,10 @@ MAX_WAVEFRONT = (1 << 32) - 1  # Mitsuba's samples per launch
 #: writes them nearly for free; 4 spp antialiases edges well enough for OIDN, which prefilters them anyway.
 FEATURE_SPP = 4
 #: Source files whose changes alter a method's images or scores (part of every result's cache key): every module
-#: of model/, so that a helper a method reaches (the exposure rule, the back-off) cannot be left out of the key.
-METHOD_SOURCES: tuple[str, ...] = ("evaluation/methods.py",
+#: of model/, so that a helper a method reaches (the exposure rule, the back-off) cannot be left out of the key,
+#: and evaluation/run.py, which sets the process every row is timed in (what stays loaded: a change there once
+#: made every pass 6x dearer, and cached rows would have kept the old timings).
+METHOD_SOURCES: tuple[str, ...] = ("evaluation/methods.py", "evaluation/run.py",
                                    *sorted(f"model/{p.name}" for p in (REPO_ROOT / "model").glob("*.py")))
 #: The render planner's source files: part of the ``gpt-auto`` row's cache key (with the renderer's), so a planner
 #: change recomputes that row, and only that row.

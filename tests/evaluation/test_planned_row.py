@@ -143,6 +143,8 @@ def test_the_planned_row_is_keyed_by_the_planner_sources():
 
     assert all((REPO_ROOT / f).is_file() for f in PLANNER_SOURCES)
     assert "renderer/plan.py" in PLANNER_SOURCES and not set(PLANNER_SOURCES) & set(METHOD_SOURCES)
+    # every row's timing depends on the process evaluation/run.py sets up (which scenes stay loaded)
+    assert "evaluation/run.py" in METHOD_SOURCES and all((REPO_ROOT / f).is_file() for f in METHOD_SOURCES)
 
 
 @pytest.fixture(scope="module")
