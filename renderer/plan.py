@@ -27,9 +27,11 @@ gradients leaves a gap up to one of its passes wide; primal passes (FILLER), whi
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import sys
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -314,6 +316,32 @@ def reconstruct_default(frame: Frame) -> tuple[np.ndarray, str]:
     return result.image, result.method
 
 
+#: Side of the tile the reconstruction library's start-up is paid on, in the background (warm_reconstruction).
+WARM_TILE = 16
+
+
+def warm_reconstruction(tile: Frame,
+                        reconstruct: Callable[[Frame], tuple[np.ndarray, str]] = reconstruct_default,
+                        ) -> threading.Thread | None:
+    """Pay the reconstruction library's one-time start-up (RECONSTRUCT_STARTUP: its import, OIDN's device and
+    filters) in a background thread, on a small ``tile`` of the frame both ways (with its gradients and as a
+    plain frame), while the checkpoint's passes render: Dr.Jit's kernels and OIDN's set-up run outside the GIL,
+    so on 2 cores a 192x192 checkpoint's first reconstruction fell from 0.54 s to 0.08 s for 0.17 s more of its
+    passes (on more cores the overlap is nearly free). None where it is paid already. The caller joins it before
+    it reconstructs; an error there is left to the caller's own reconstruction to raise, in the foreground."""
+    if "pyoidn" in sys.modules:
+        return None
+
+    def run() -> None:
+        with contextlib.suppress(Exception):
+            for f in (tile, without_gradients(tile)):
+                reconstruct(f)
+
+    thread = threading.Thread(target=run, name="gradsep-reconstruction-warm-up", daemon=True)
+    thread.start()
+    return thread
+
+
 # -------------------------------------------------------------------------------------------- checkpoint
 
 #: Passes the rest of the frame is expected to take (renderer.budget.fill_to_deadline's passes shrink as the
@@ -472,30 +500,45 @@ def run_checkpoint(passes: Passes, budget_spp: Callable[[Assessment], float], *,
     for k in (n, 2 * n):
         passes.run(primal, k)
         passes.run(default, k)
-    # then the rest of the checkpoint's share in CHECKPOINT_LAST_PASSES passes of the fallback, k samples on average,
-    # sized from its cost line (each half gets as many; its groups, two or more each, fill)
-    # (the marginal line, pass_cost: the deadline's rate, which charges part of a 1-spp pass's fixed cost to its
-    # sample, would size them ~3x too small; a checkpoint a little past its share costs only those seconds)
-    fixed, per = pass_cost(passes.kind(default).costs.warm, passes.kind(default).costs.per_sample)
+    # each plan's cost line as these passes read it: what decides how many samples the rest buys each plan
+    lines = {c.name: (list(passes.kind(c).costs.warm), passes.kind(c).costs.per_sample) for c in (default, primal)}
+    # the reconstruction library's start-up, while the last passes render (not before: passes slowed by it would
+    # read a plan's cost high, primal's ~1.5x)
+    warming = None
+    if reconstruct is reconstruct_default:
+        side = (slice(0, min(WARM_TILE, passes.loaded.height)), slice(0, min(WARM_TILE, passes.loaded.width)))
+        warming = warm_reconstruction(as_frame(passes.frame_result(default, side)))
+    # then the rest of the checkpoint's share in CHECKPOINT_LAST_PASSES passes of the fallback (more, in pairs, where
+    # a pass's lanes cannot hold them), each sized as it starts from the time left and the rate of the largest recent
+    # pass, its fixed cost included: an upper bound on the cost per sample that a cost line fitted on passes slowed
+    # by a busy moment cannot undercut (one did: a checkpoint of 8.8 s instead of 3). Every second pass is twice
+    # the size of the one before it (about 2k/3 and 4k/3), so that the fallback's cost line stays readable.
+    costs = passes.kind(default).costs
+
+    def rate() -> float:
+        n, t = max(costs.warm)
+        return t / n
+
+    if seconds is not None:
+        total = (start + CHECKPOINT_SHARE * seconds - clock()) / rate()
+    else:
+        total = CHECKPOINT_SHARE * (spp or 0) - passes.spp
     count = CHECKPOINT_LAST_PASSES
-    while True:  # more passes (in pairs) only where one pass cannot hold the samples (its lanes: max_spp)
-        if seconds is not None:
-            left = start + CHECKPOINT_SHARE * seconds - clock()
-            k = int((left / count - fixed) / max(per, 1e-9))
-        else:
-            k = int(CHECKPOINT_SHARE * (spp or 0) - passes.spp) // count
-        if 4 * k <= 3 * passes.max_spp or count >= 4 * CHECKPOINT_LAST_PASSES:
-            break
+    while total > count * 0.75 * passes.max_spp and count < 4 * CHECKPOINT_LAST_PASSES:
         count += 2
-    k = max(1, min(k, 3 * passes.max_spp // 4))
-    # in two sizes about k (2k/3 and 4k/3 in turn), so that its cost line still reads its fixed cost apart
-    small = max(1, round(2 * k / 3))
     for i in range(count):
-        passes.run(default, small if i % 2 == 0 else min(passes.max_spp, max(small + 1, 2 * k - small)))
+        if seconds is not None:
+            k = (start + CHECKPOINT_SHARE * seconds - clock()) / rate() / (count - i)
+        else:
+            k = (CHECKPOINT_SHARE * (spp or 0) - passes.spp) / (count - i)
+        k *= 2 / 3 if i % 2 == 0 else 1.0  # the pair's first pass the smaller (the second gets what is left)
+        passes.run(default, max(1, min(int(k), passes.max_spp)))
     checkpoint_spp = passes.spp
     halves = passes.halves(default)
     if halves is None:
         return Plan(default, [], clock() - start, "the checkpoint's halves were not ready")
+    if warming is not None:
+        warming.join()
     border = TILE_BORDER if len(windows) > 1 else 0
     # per plan and half: the block means of its reconstruction's error terms over the tiles (renderer/estimate.py)
     blocks: dict[str, list[np.ndarray]] = {default.name: [], primal.name: []}
@@ -523,8 +566,7 @@ def run_checkpoint(passes: Passes, budget_spp: Callable[[Assessment], float], *,
             blocks[name].append(np.concatenate(terms[name]))
     assessments: dict[str, Assessment] = {}
     for c in (default, primal):
-        costs = passes.kind(c).costs
-        fixed, per = pass_cost(costs.warm, costs.per_sample)
+        fixed, per = pass_cost(*lines[c.name])
         values, ses = zip(*(mean_and_se(b) for b in blocks[c.name]), strict=True)
         a = Assessment(c.name, round(float(np.mean(samples))), float(np.mean(values)), per, methods[c.name],
                        float(np.hypot(*ses)) / 2, pass_seconds=fixed, reconstruct_rate=seconds_in[c.name] / pixels,

@@ -27,6 +27,7 @@ from gradsep.renderer.plan import (
     fallback,
     plan_layers_text,
     tiles,
+    warm_reconstruction,
     write_seconds,
 )
 from tests.renderer.scenes import resolve
@@ -88,6 +89,33 @@ def test_the_write_is_timed_on_bands_that_use_every_thread_of_openexrs_pool():
             assert asked[1:] == [rows] * 3  # after the one-row warm-up
     finally:
         OpenEXR.set_global_thread_count(before)
+
+
+def test_the_reconstruction_start_up_is_paid_in_the_background_both_ways_and_only_once(monkeypatch):
+    """The checkpoint's first reconstruction pays the library's start-up: a thread pays it on a small tile, with
+    gradients and as a plain frame, while passes render. An error there is left for the foreground to raise."""
+    import sys
+
+    rng = np.random.default_rng(0)
+    grad = rng.random((16, 16, 3), dtype=np.float32)
+    tile = Frame(layers={"direct": Layer(base=grad, dx=grad, dy=grad)})
+    seen: list[bool] = []
+
+    def fake(frame: Frame):
+        seen.append(frame.layers["direct"].has_gradients)
+        raise RuntimeError("the library failed")  # swallowed in the thread
+
+    monkeypatch.delitem(sys.modules, "pyoidn", raising=False)
+    thread = warm_reconstruction(tile, fake)
+    assert thread is not None
+    thread.join(timeout=10)
+    assert seen == [True]  # the first call raised: the thread stopped there, quietly
+    seen.clear()
+    thread = warm_reconstruction(tile, lambda f: (seen.append(f.layers["direct"].has_gradients), ("", ""))[1])
+    thread.join(timeout=10)
+    assert seen == [True, False]
+    monkeypatch.setitem(sys.modules, "pyoidn", object())
+    assert warm_reconstruction(tile, fake) is None  # paid already
 
 
 def test_candidates_and_their_layers():
