@@ -511,13 +511,13 @@ def run_checkpoint(passes: Passes, budget_spp: Callable[[Assessment], float], *,
     # then the rest of the checkpoint's share in CHECKPOINT_LAST_PASSES passes of the fallback (more, in pairs, where
     # a pass's lanes cannot hold them), each sized as it starts from the time left and the rate of the largest recent
     # pass, its fixed cost included: an upper bound on the cost per sample that a cost line fitted on passes slowed
-    # by a busy moment cannot undercut (one did: a checkpoint of 8.8 s instead of 3). Every second pass is twice
-    # the size of the one before it (about 2k/3 and 4k/3), so that the fallback's cost line stays readable.
+    # by a busy moment cannot undercut (one did: a checkpoint of 8.8 s instead of 3). The passes are a smaller and a
+    # larger in turn (about 2k/3 and 4k/3 for k per pass), so that the fallback's cost line stays readable.
     costs = passes.kind(default).costs
 
     def rate() -> float:
-        n, t = max(costs.warm)
-        return t / n
+        largest, seconds_taken = max(costs.warm)
+        return seconds_taken / largest
 
     if seconds is not None:
         total = (start + CHECKPOINT_SHARE * seconds - clock()) / rate()
