@@ -41,22 +41,34 @@ floor / best; then per family the geometric means, worst and frames above 1.05x,
 within 1.5x. The scenes must be held out: never the evaluation's (evaluation/config.py) or the shared ones, nor
 seeds a design was tuned on.
 
-The figures in docs/renderer.md ("The render planner", Validation) come from (2-core Intel Xeon, otherwise idle;
-references rendered beforehand with `gradsep reference SCENE --width 192 --height 192 --spp 4096 --seed 1` and
-`--seed 2` into the cache, as ``predict`` would have), the three plans in turn per seed so that a change of the
-machine's load falls on each alike:
+The figures in docs/renderer.md ("The render planner", Validation; "The frame's own error estimate") come from
+(2-core Intel Xeon, otherwise idle; 4096-spp references of each scene, seeds 1 and 2, rendered into the cache by
+``predict`` itself or beforehand with `gradsep reference SCENE --width 192 --height 192 --spp 4096 --seed 1` and
+`--seed 2`), each plan in turn into one cache:
 
-    for seed in 21 22; do for plan in auto direct-alternate primal; do
-        python benchmarks/bench_planner.py predict --plan $plan --seconds 20 --seeds $seed --ref-spp 4096 \
-            --cache /work/pred8; done; done
-    python benchmarks/bench_planner.py predict --seconds 20 --seeds 21,22 --ref-spp 4096 --cache /work/pred8
+    for plan in direct-alternate primal auto; do
+        python benchmarks/bench_planner.py predict --plan $plan --seconds 20 --seeds 21,22 --ref-spp 4096 \
+            --cache /work/pred11; done
 
-and, after the checkpoint's primal passes changed, `auto` alone again into a copy of that cache with the fixed
-plans' frames and rows only (/work/pred9): ``predict --plan auto --seconds 20 --seeds 21,22 --ref-spp 4096``.
-and the earlier fixed pipelines' figures there from (2 shared cores, load 4-6 from other work; 1024-spp references):
+(`auto` then once more into the same cache after its entries were removed, with the reconstruction's start-up in
+the background), and on 8 rooms never used before:
+
+    for plan in direct-alternate primal auto; do
+        python benchmarks/bench_planner.py predict --plan $plan --seconds 20 --seeds 31,32 --ref-spp 4096 \
+            --scenes procedural:93301,procedural:93302,procedural:93303,procedural:93304,procedural:93305,\
+procedural:93306,procedural:93307,procedural:93308 --cache /work/pred12; done
+
+The earlier fixed pipelines' figures there come from (2 shared cores, load 4-6 from other work; 1024-spp
+references):
 
     python benchmarks/bench_planner.py validate --size 192 --seconds 20 --seeds 3 --ref-spp 1024 \
         --cache /work/val/cache --no-references
+
+docs/cli.md's `--seconds` timing with `auto` (3 runs per cell, and the 1280x720 T = 5 s cell alone, 5 runs, beside
+`all`):
+
+    python benchmarks/bench_planner.py timing --sizes 320x240,1280x720 --seconds 5,10,20 --plans auto --repeats 3
+    python benchmarks/bench_planner.py timing --sizes 1280x720 --seconds 5 --plans auto,all --repeats 5
 
 The deadline with primal filler passes, the write predicted from three bands and measured again near the end (this
 tree as /tmp/dl/new, d6f0358 as /tmp/dl/base, both `git archive | tar -x`; 2 shared cores, load 5.2-7.6 from other

@@ -61,12 +61,13 @@ def build_parser(modules: Sequence[str] | None = None) -> argparse.ArgumentParse
 
 def main(argv: Sequence[str] | None = None) -> int:
     from gradsep.model.allocator import configure_malloc
-    from gradsep.model.frame import FrameError  # numpy + OpenEXR: not needed to build the parser
+    from gradsep.model.frame import FrameError, configure_exr_threads  # numpy + OpenEXR: not for the parser
 
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
         configure_malloc()  # one malloc arena for the frame-sized work of every command (model/allocator.py)
+        configure_exr_threads()  # every command's EXR encoding and decoding on every core (the service: its setting)
     except ValueError as exc:
         print(f"gradsep {args.command}: error: {exc}", file=sys.stderr)
         return 2

@@ -76,7 +76,6 @@ def reconstruct_command(args: argparse.Namespace) -> int:
     from gradsep.model.frame import (
         OIDN_SETTING_KEY,
         FrameError,
-        configure_exr_threads,
         encode_answer,
         read_frame,
         rgb_channels,
@@ -94,7 +93,6 @@ def reconstruct_command(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise CommandError(f"--channels: {exc}") from None
     _check_output(output)
-    configure_exr_threads()
     frame = read_frame(args.frame, nonfinite=args.nonfinite, layout=layout)
     models = _resolve_models(getattr(args, "models", None), args.method)
     try:

@@ -18,7 +18,7 @@ from gradsep.model.policy import SEPARATED_LAYERS
 
 def render_command(args: argparse.Namespace) -> int:
     """`gradsep render`: render a frame and write it atomically to ``args.output``."""
-    from gradsep.model.frame import configure_exr_threads, write_frame
+    from gradsep.model.frame import write_frame
     from gradsep.renderer.render import check_gradient_spp, render_frame
     from gradsep.renderer.scene import load_scene, parse_defines
 
@@ -56,7 +56,6 @@ def render_command(args: argparse.Namespace) -> int:
         from gradsep.renderer.plan import startup_error
 
         raise startup_error(deadline.seconds, deadline.elapsed())
-    configure_exr_threads()  # the frame's encoding (and its timing, renderer/plan.py write_seconds) on every core
     scene = load_scene(args.scene, width=args.width, height=args.height, max_depth=args.max_depth,
                        defines=parse_defines(args.define))
     show = sys.stderr.isatty()
@@ -105,7 +104,6 @@ def _deadline(args: argparse.Namespace) -> Any:
 
 def reference_command(args: argparse.Namespace) -> int:
     """Handler of `gradsep reference`: validate, render, write atomically, print a one-line summary."""
-    from gradsep.model.frame import configure_exr_threads
     from gradsep.renderer.reference import parse_shard, render_reference, write_reference
     from gradsep.renderer.scene import parse_defines
 
@@ -130,7 +128,6 @@ def reference_command(args: argparse.Namespace) -> int:
                                shard=shard)
     except (ValueError, FileNotFoundError) as exc:
         raise CommandError(str(exc)) from exc
-    configure_exr_threads()
     write_reference(out, ref)
     _print_written(out, ref)
     return 0
@@ -148,7 +145,7 @@ def _print_written(out: Path, ref: Any) -> None:
 
 def reference_merge_command(args: argparse.Namespace) -> int:
     """Handler of `gradsep reference-merge`: the N ``--shard K/N`` files of one job -> the job's reference."""
-    from gradsep.model.frame import FrameError, configure_exr_threads
+    from gradsep.model.frame import FrameError
     from gradsep.renderer.reference import load_reference, merge_references, write_reference
 
     out = Path(args.output)
@@ -168,7 +165,6 @@ def reference_merge_command(args: argparse.Namespace) -> int:
         ref = merge_references(parts)
     except ValueError as exc:
         raise CommandError(str(exc)) from exc
-    configure_exr_threads()
     write_reference(out, ref)
     _print_written(out, ref)
     return 0
@@ -181,7 +177,6 @@ def _rate(spp: int, shape: tuple[int, ...], seconds: float) -> str:
 
 def dataset_command(args: argparse.Namespace) -> int:
     """Handler of `gradsep dataset`."""
-    from gradsep.model.frame import configure_exr_threads
     from gradsep.renderer.dataset import MANIFEST_NAME, PARTS_DIR, DatasetError, finished_frames, make_job, run_dataset
 
     job = make_job(args.count, args.spp, args.size, args.shard, args.first_seed, args.max_depth, args.pairs,
@@ -190,7 +185,6 @@ def dataset_command(args: argparse.Namespace) -> int:
     if root.exists() and not root.is_dir():
         raise DatasetError(f"output {root} exists and is not a folder")
     root.mkdir(parents=True, exist_ok=True)
-    configure_exr_threads()
     before = len(finished_frames(root)) if (root / PARTS_DIR).is_dir() else 0
     manifest = run_dataset(root, job, progress=None)
     mine = set(job.seeds())
