@@ -62,7 +62,10 @@ took (the median of its timings), not the prediction.
 The planned row (``gpt-auto``) is not searched: it renders once to a :class:`~renderer.budget.Deadline` that starts
 when the row starts and has the whole budget, whose tail (``Deadline.tail``, what must be left when the last pass
 ends) is the measured cost of reconstructing the frame: the slowest of the candidates' default reconstructions,
-each timed like a searched row's post-processing (:meth:`PathRenderer.planner_tail`). Everything it does is charged:
+each timed like a searched row's post-processing (:meth:`PathRenderer.planner_tail`). It starts warm, as the
+searched rows do: each plan's pass costs and the reconstruction's rate are measured beforehand, untimed, once per
+scene (:meth:`PathRenderer.planner_priors`, renderer.plan.Priors), so that where no checkpoint fits its first pass
+is sized from them instead of probing with a 1-spp pass. Everything it does is charged:
 the checkpoint (its passes, which stay in the frame, and its tile reconstructions), the passes that fill the
 deadline and the reconstruction. It keeps one try (``attempts`` 1); a total outside ±5 % records why
 (``time_note``: pass granularity, a pass or the reconstruction slower than predicted, a budget below one pass).
@@ -654,6 +657,7 @@ class PathRenderer:
         self._costs: dict[str, CostModel] = {}
         self._post_seconds: dict[str, float] = {}
         self._warm: set[str] = set()
+        self._priors: dict[tuple[str, ...], Any] = {}  # layers -> renderer.plan.Priors (planner_priors)
 
     def render(self, kind: str, spp: int, seed: int) -> tuple[Any, float]:
         """The raw render (an (H, W, C) float32 array, or a Frame for ``primal``) and its wall seconds (recorded
@@ -706,6 +710,38 @@ class PathRenderer:
                 self.post_seconds(name, lambda frame=frame: reconstruct(frame))
             seconds.append(self._post_seconds[name])
         return max(seconds)
+
+    def planner_priors(self, layers: tuple[str, ...]) -> Any:
+        """What the planned row starts from (renderer.plan.Priors), measured once per scene like every searched
+        row's cost model (:meth:`cost`), untimed: each candidate's warm passes, from 1 spp doubling until one takes
+        :data:`CALIBRATION_SECONDS` (each size twice, the faster kept; the last two sizes make its cost line), and
+        the reconstruction's seconds per pixel (:meth:`planner_tail`'s slowest, over the frame's pixels)."""
+        from gradsep.renderer.budget import PassCosts
+        from gradsep.renderer.plan import Passes, Priors, applicable
+
+        if layers not in self._priors:
+            priors = Priors(reconstruct_rate=self.planner_tail(layers) / (self.loaded.width * self.loaded.height))
+            for c in applicable(layers):
+                passes = Passes(self.loaded, layers, seed=37)
+                passes.run(c, 1)  # its kernel (loaded from Dr.Jit's cache: planner_tail compiled it)
+                sizes: list[tuple[int, float]] = []
+                spp = 1
+                while True:
+                    seconds = []
+                    for _ in range(2):
+                        start = time.perf_counter()
+                        passes.run(c, spp)
+                        seconds.append(time.perf_counter() - start)
+                    sizes.append((spp, min(seconds)))
+                    if (min(seconds) >= self.CALIBRATION_SECONDS and len(sizes) >= 2) or spp >= passes.max_spp:
+                        break
+                    spp = min(passes.max_spp, 2 * spp)
+                costs = PassCosts(first_pass=passes.kind(c).costs.first_pass)
+                for size, took in sizes[-2:]:
+                    costs.record(size, took)
+                priors.costs[c.name] = costs
+            self._priors[layers] = priors
+        return self._priors[layers]
 
     def cost(self, kind: str) -> CostModel:
         """The cost model of ``kind``, measured once per scene after an untimed compile render.
@@ -960,6 +996,7 @@ def _run_gpt_auto(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
     target = _budget(ctx)
     layers = tuple(ctx.frame.layers)
     tail = renderer.planner_tail(layers)
+    priors = renderer.planner_priors(layers)
     seed = int(ctx.seed) % (1 << 32)
     width, height = renderer.loaded.width, renderer.loaded.height
     start = time.perf_counter()
@@ -969,7 +1006,8 @@ def _run_gpt_auto(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
         planned = render_planned(renderer.loaded, layers, seed=seed, shift=None, fixed=None, deadline=deadline,
                                  check=lambda rate, plan, before: check_budget(rate, plan, width, height, layers,
                                                                                target, farm_setting=False,
-                                                                               before=before))
+                                                                               before=before),
+                                 priors=priors)
     except CommandError:  # not one pass + the reconstruction fit: what `gradsep render --seconds` refuses
         refused = (f"the budget is below the planner's start-up here (its first pass, then {tail:.3g} s of "
                    f"reconstruction): 1 spp of `{fallback(layers).name}` rendered regardless")

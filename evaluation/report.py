@@ -513,8 +513,10 @@ def _equal_time(evaluation: Evaluation) -> list[str]:
              "techniques per pixel pair on half the samples) at the spp the budget buys, reconstructed with "
              "`oidn-l1`, found like the baselines' spp; and G-PT auto, `gradsep render --seconds T --gradients "
              "auto` in process, one render to a deadline of the budget with the measured reconstruction time kept "
-             "free (its checkpoint, which chooses the plan, charged), then the default method the frame names: not "
-             "searched, so its time is what the planner's deadline gave (see The planner's choice). "
+             "free (its checkpoint, which chooses the plan, charged), starting from each plan's pass costs and "
+             "the reconstruction's rate measured beforehand, untimed, like the searched rows' cost lines, then the "
+             "default method the frame names: not searched, so its time is what the planner's deadline gave (see "
+             "The planner's choice). "
              + _seeds_sentence(evaluation.rows), "",
              "| Scene | G-PT spp | budget | budget s | budget RelMSE | best G-PT | "
              + " | ".join(label for _, label in EQUAL_TIME) + " |",

@@ -40,7 +40,7 @@ import numpy as np
 
 from gradsep.model.errors import CommandError
 from gradsep.model.frame import PLAN_METHOD_KEY, PREDICTED_RELMSE_KEY, Features, Frame, Layer
-from gradsep.renderer.budget import Clock, Deadline, PassCosts, fill_with_filler, fitted_line
+from gradsep.renderer.budget import LAST_PASS_MARGIN, Clock, Deadline, PassCosts, fill_with_filler, fitted_line
 from gradsep.renderer.check import Half, Split
 from gradsep.renderer.estimate import at_budget, cross_terms, mean_and_se, relative_weights
 from gradsep.renderer.scene import LoadedScene
@@ -148,14 +148,34 @@ class _Kind:
     costs: PassCosts = field(default_factory=PassCosts)
 
 
+@dataclass
+class Priors:
+    """What earlier renders in this process measured on the same scene and frame size, for a planner that starts
+    warm (a worker that renders the scene again, the evaluation's planned row after its untimed calibration): no
+    probing pass is spent on what is known.
+
+    ``costs``: per candidate name, its passes' measured cost (warm passes of two sizes or more: their kernel is
+    compiled, so none of its passes is a compiling one); ``reconstruct_rate``: seconds per pixel of the default
+    reconstruction, its start-up paid (what the checkpoint's and the frame check's reconstructions will take)."""
+
+    costs: dict[str, PassCosts] = field(default_factory=dict)
+    reconstruct_rate: float | None = None
+
+    def warm(self, name: str) -> bool:
+        """Whether candidate ``name``'s passes have a measured cost line (a pass can be sized without a probe)."""
+        c = self.costs.get(name)
+        return c is not None and len({spp for spp, _ in c.warm}) >= 2
+
+
 class Passes:
     """Runs render passes of any candidate on one scene and keeps their sums for the final frame."""
 
     def __init__(self, loaded: LoadedScene, layers: tuple[str, ...], seed: int, shift: str | None = None,
-                 clock: Clock = time.monotonic) -> None:
+                 clock: Clock = time.monotonic, priors: Priors | None = None) -> None:
         from gradsep.renderer.gpt import MAX_LANES_PER_PASS
 
         self.loaded, self.layers, self.seed, self.shift_name, self.clock = loaded, layers, seed, shift, clock
+        self.priors = priors
         self.max_spp = max(1, MAX_LANES_PER_PASS // (loaded.width * loaded.height))
         self.kinds: dict[str, _Kind] = {}
         self.index = 0  # passes so far: the next pass's seed stream
@@ -185,7 +205,11 @@ class Passes:
                     raise CommandError(str(exc)) from None
                 if c.gradients == "direct" and DIRECT_LAYER_SHIFT:
                     shift = getattr(shift, "for_direct_layer", lambda: shift)()
-            self.kinds[c.name] = _Kind(settings, shift)
+            kind = _Kind(settings, shift)
+            known = self.priors.costs.get(c.name) if self.priors is not None else None
+            if known is not None:  # a copy: this frame's passes refine it without touching the caller's
+                kind.costs = PassCosts(known.overhead, list(known.warm), known.first_pass)
+            self.kinds[c.name] = kind
         return self.kinds[c.name]
 
     def run(self, c: Candidate, spp: int) -> dict[str, np.ndarray]:
@@ -193,7 +217,7 @@ class Passes:
         from gradsep.renderer.gpt import pass_seed, render_pass
 
         kind = self.kind(c)
-        first = kind.costs.first_pass is None
+        first = kind.costs.first_pass is None and not kind.costs.warm  # a kernel known warm (Priors) compiles nothing
         start = self.clock()
         sums = render_pass(self.loaded.scene, kind.shift, kind.settings, self.loaded.width, self.loaded.height,
                            spp, pass_seed(self.seed, self.index))
@@ -470,22 +494,32 @@ def run_checkpoint(passes: Passes, budget_spp: Callable[[Assessment], float], *,
     renderer.check.SWITCH_SE standard errors. Every pass stays in the frame. When the checkpoint's own cost (the
     primal kernel, the reconstructions) is predicted past ``give_up_after`` seconds, nothing is judged and the
     fallback is rendered. ``after_first`` runs after the first pass (the caller's start-up check)."""
-    from gradsep.renderer.check import SWITCH_SE
+    from gradsep.renderer.check import CHECK_MARGIN, SWITCH_SE
 
     clock = passes.clock
     start = clock()
     default = fallback(passes.layers)
     primal = candidate("primal")
+    windows = tiles(passes.loaded.width, passes.loaded.height)
+    pixels = sum((ys.stop - ys.start) * (xs.stop - xs.start) for ys, xs in windows)
+    priors = passes.priors
+    # the checkpoint's own cost: primal's kernel (no slower to load than the fallback's; nothing where it is known
+    # warm) and four reconstructions (at the rate measured in this process where known, with the check's margin)
+    measured = priors.reconstruct_rate if priors is not None else None
+    rate = CHECK_MARGIN * measured if measured else CHECK_PRIOR_RATE
+    work = reconstruct_startup() + 4 * pixels * rate
+    too_small = "the budget is too small for a checkpoint"
+    if priors is not None and priors.warm(default.name) and priors.warm(primal.name):
+        if work > give_up_after:  # known before any pass: the deadline's first pass is then sized, not a probe
+            return Plan(default, [], clock() - start, too_small)
+        kernel = 0.0
     passes.run(default, 1)  # compiles (or loads) the fallback's kernel: the frame's first pass in any case
     if after_first is not None:
         after_first()
-    windows = tiles(passes.loaded.width, passes.loaded.height)
-    pixels = sum((ys.stop - ys.start) * (xs.stop - xs.start) for ys, xs in windows)
-    compile_seconds = passes.kind(default).costs.first_pass[1]  # type: ignore[index]
-    # the checkpoint's own cost: primal's kernel (no slower to load than the fallback's) and four reconstructions
-    extra = compile_seconds + reconstruct_startup() + 4 * pixels * CHECK_PRIOR_RATE
-    if clock() - start + extra > give_up_after:
-        return Plan(default, [], clock() - start, "the budget is too small for a checkpoint")
+    if not (priors is not None and priors.warm(primal.name)):
+        kernel = passes.kind(default).costs.first_pass[1]  # type: ignore[index]
+    if clock() - start + kernel + work > give_up_after:
+        return Plan(default, [], clock() - start, too_small)
     passes.start_split()
     passes.run(primal, 1)  # primal's kernel (the filler's too)
     passes.run(default, 1)  # a warm pass of the fallback: its cost without the compile, to size the passes by
@@ -666,7 +700,8 @@ def render_planned(loaded: LoadedScene, layers: tuple[str, ...], *, seed: int, s
                    fixed: Candidate | None, deadline: Deadline | None = None, spp: int | None = None,
                    progress: Callable[[int, int], None] | None = None,
                    clock: Clock = time.monotonic,
-                   check: Callable[[float, Candidate, float], float | None] | None = None) -> Planned:
+                   check: Callable[[float, Candidate, float], float | None] | None = None,
+                   priors: Priors | None = None) -> Planned:
     """Render ``loaded`` to a deadline (``deadline``) or to ``spp`` samples, with the ``fixed`` plan or (None) the
     plan its checkpoint chooses (:func:`run_checkpoint`). Raises CommandError (nothing rendered is kept) when the
     deadline cannot fit one pass and the write. The frame's metadata is the caller's
@@ -677,10 +712,17 @@ def render_planned(loaded: LoadedScene, layers: tuple[str, ...], *, seed: int, s
     the passes), or None for no estimate; with one, :attr:`Planned.halves` holds the halves it reconstructs. It is
     asked once the plan is chosen, with the checkpoint's reconstruction rate; for a fixed plan with a deadline,
     after the first pass, with the rate measured on a tile of it (:func:`reconstruct_rate`), where
-    CHECK_PRIOR_RATE and the reconstruction's start-up say the check could fit."""
+    CHECK_PRIOR_RATE and the reconstruction's start-up say the check could fit.
+
+    ``priors``: what earlier renders in this process measured on the scene (:class:`Priors`). With the chosen
+    plan's cost line known and a caller's own tail (Deadline.tail: nothing to write, so no write to measure on a
+    first pass), a deadline without a checkpoint sizes its first pass from that line instead of probing with a
+    1-spp one: at sub-second budgets a pass's fixed cost is most of a small pass (at 320x240 a `direct-alternate`
+    pass costs ~0.02 s whatever its samples, and a deadline that probed got 7-9 spp where one searched call of
+    the same time had 27)."""
     if (deadline is None) == (spp is None):
         raise ValueError("give a deadline or a sample count, not both")
-    passes = Passes(loaded, layers, seed, shift, clock)
+    passes = Passes(loaded, layers, seed, shift, clock, priors)
     held: float | None = None  # seconds held back for the frame's check (None: no check)
     write = 0.0  # predicted seconds to assemble, encode and write the frame, measured after its first pass
     measured_at = 0  # passes.index when it was measured (0: never)
@@ -751,7 +793,17 @@ def render_planned(loaded: LoadedScene, layers: tuple[str, ...], *, seed: int, s
             if progress is not None:
                 progress(passes.spp, target)
     else:
-        if passes.index == 0:  # no checkpoint: the first pass compiles the kernel and is the start-up check
+        known = priors is not None and priors.warm(chosen.name) and deadline.tail is not None
+        if passes.index == 0 and known:  # no checkpoint, the plan's cost known: the start-up check needs no pass
+            costs = passes.kind(chosen).costs
+            if deadline.left() < reserve() + LAST_PASS_MARGIN * costs.predict(1):
+                raise startup_error(deadline.seconds, deadline.elapsed() + reserve() + costs.predict(1))
+            rate = priors.reconstruct_rate if priors is not None else None
+            if check is not None and rate:
+                held = check(rate, chosen, 0.0)
+                if held is not None:
+                    passes.start_split()
+        elif passes.index == 0:  # no checkpoint: the first pass compiles the kernel and is the start-up check
             passes.run(chosen, 1)
             after_first()
             if check is not None and check(CHECK_PRIOR_RATE, chosen, reconstruct_startup()) is not None:

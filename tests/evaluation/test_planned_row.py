@@ -232,6 +232,35 @@ def test_an_in_process_deadline_measures_no_write(tiny, monkeypatch):
         assert planned.spp >= 1
 
 
+@pytest.mark.render
+def test_a_warm_planner_sizes_its_first_pass_from_the_costs_measured_beforehand(tiny, monkeypatch):
+    """The row's priors (measured untimed, like the searched rows' cost models): each candidate's cost line of two
+    warm sizes and the reconstruction's rate. With them no 1-spp probe is spent: the first pass is sized from the
+    line, whether the plan is fixed or the checkpoint is known not to fit before any pass."""
+    from gradsep.renderer import plan
+    from gradsep.renderer.budget import Deadline
+
+    frame, renderer = tiny
+    layers = tuple(frame.layers)
+    priors = renderer.planner_priors(layers)
+    assert renderer.planner_priors(layers) is priors  # measured once per scene
+    assert set(priors.costs) == {c.name for c in plan.applicable(layers)}
+    assert all(priors.warm(name) and c.per_sample > 0 for name, c in priors.costs.items())
+    assert 0 < priors.reconstruct_rate < 1e-3
+    runs: list[tuple[str, int]] = []
+    original = plan.Passes.run
+    monkeypatch.setattr(plan.Passes, "run", lambda self, c, spp: runs.append((c.name, spp)) or original(self, c, spp))
+    monkeypatch.setattr(plan, "PILOT_SHARE", 0.0)  # the checkpoint does not fit, and that is known beforehand
+    for fixed in (plan.candidate(FALLBACK), None):
+        runs.clear()
+        planned = plan.render_planned(renderer.loaded, layers, seed=4, shift=None, fixed=fixed,
+                                      deadline=Deadline(0.5, tail=0.1), priors=priors)
+        assert runs[0][0] == FALLBACK and runs[0][1] > 1 and planned.spp == sum(n for _, n in runs)
+        assert planned.plan is None or planned.plan.note == "the budget is too small for a checkpoint"
+    # the caller's priors are left as they were (the frame refines a copy)
+    assert all(len(c.warm) == 2 for c in priors.costs.values())
+
+
 @pytest.mark.slow
 @pytest.mark.render
 def test_a_quick_evaluation_reports_the_plan_and_its_predicted_against_measured_error(tmp_path, monkeypatch):

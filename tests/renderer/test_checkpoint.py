@@ -16,7 +16,7 @@ import pytest
 from gradsep.model.frame import Frame, Layer
 from gradsep.renderer import plan
 from gradsep.renderer.budget import PassCosts
-from gradsep.renderer.check import Split
+from gradsep.renderer.check import CHECK_MARGIN, Split
 from gradsep.renderer.plan import CHECKPOINT_LAST_PASSES, CHECKPOINT_SHARE, FALLBACK, block_means, run_checkpoint
 
 SIDE = 48
@@ -38,6 +38,7 @@ class FakePasses:
         self.kinds: dict[str, SimpleNamespace] = {}
         self.runs: list[tuple[str, int]] = []
         self.slow: dict[int, float] = {}  # pass index -> how much slower than its cost it runs (a busy moment)
+        self.priors = None  # renderer.plan.Priors: none, like a fresh process
         self.split: Split | None = None
         self.bases: dict[str, np.ndarray] = {}
         self.gradients: dict[str, tuple[dict[str, np.ndarray], int]] = {}
@@ -167,6 +168,39 @@ def test_a_budget_too_small_for_the_checkpoint_renders_one_pass_and_judges_nothi
     assert result.chosen.name == FALLBACK and result.assessments == []
     assert passes.runs == [(FALLBACK, 1)] and passes.split is None
     assert result.note == "the budget is too small for a checkpoint"
+
+
+def known_costs(name: str) -> PassCosts:
+    """A warm cost line of ``name``'s passes, as an earlier render in the process measured it (plan.Priors)."""
+    costs = PassCosts(first_pass=(1, 0.5))
+    for spp in (8, 16):
+        costs.record(spp, PER_PASS + PER_SAMPLE[name] * spp)
+    return costs
+
+
+def test_with_both_plans_known_warm_a_budget_too_small_spends_no_probing_pass(monkeypatch):
+    """Priors (both kernels warm, the reconstruction's rate measured): whether the checkpoint fits is known before
+    any pass, so the deadline's first pass is sized from the cost line instead of being a 1-spp probe."""
+    monkeypatch.setattr(plan, "reconstruct_startup", lambda: 0.0)  # paid already, as in a warm process
+    passes = FakePasses()
+    passes.priors = plan.Priors({name: known_costs(name) for name in PER_SAMPLE}, reconstruct_rate=1e-6)
+    pixels = SIDE * SIDE
+    work = 4 * pixels * 1e-6 * CHECK_MARGIN  # four reconstructions at the measured rate, with the margin
+    result = run_checkpoint(passes, budget(1.0), seconds=1.0, give_up_after=0.9 * work,
+                            reconstruct=fake_reconstruction({FALLBACK: 0.1, "primal": 0.1}))
+    assert result.note == "the budget is too small for a checkpoint" and passes.runs == []
+    # where that work fits, the measured rate (not the prior CHECK_PRIOR_RATE) and no primal compile are charged
+    assert 4 * pixels * plan.CHECK_PRIOR_RATE > 1.2 * work
+    passes = FakePasses()
+    passes.priors = plan.Priors({name: known_costs(name) for name in PER_SAMPLE}, reconstruct_rate=1e-6)
+    result = run_checkpoint(passes, budget(20.0), seconds=20.0, give_up_after=1.1 * work + PER_PASS + 2e-3,
+                            reconstruct=fake_reconstruction({FALLBACK: 0.1, "primal": 0.1}))
+    assert result.assessments and passes.runs[0] == (FALLBACK, 1)
+    # without priors the same share gives up: the prior rate is dearer
+    passes = FakePasses()
+    result = run_checkpoint(passes, budget(20.0), seconds=20.0, give_up_after=1.1 * work + PER_PASS + 2e-3,
+                            reconstruct=fake_reconstruction({FALLBACK: 0.1, "primal": 0.1}))
+    assert not result.assessments and passes.runs == [(FALLBACK, 1)]
 
 
 def test_an_unseparated_frame_checks_all_against_primal():
