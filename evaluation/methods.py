@@ -720,7 +720,9 @@ class PathRenderer:
         from gradsep.renderer.plan import Passes, Priors, applicable
 
         if layers not in self._priors:
-            priors = Priors(reconstruct_rate=self.planner_tail(layers) / (self.loaded.width * self.loaded.height))
+            priors = Priors(reconstruct_rate=self.planner_tail(layers) / (self.loaded.width * self.loaded.height),
+                            reconstruct_seconds={c.name: self._post_seconds[f"gpt-auto:{c.name}"]
+                                                 for c in applicable(layers)})
             for c in applicable(layers):
                 passes = Passes(self.loaded, layers, seed=37)
                 passes.run(c, 1)  # its kernel (loaded from Dr.Jit's cache: planner_tail compiled it)
@@ -1028,7 +1030,7 @@ def _run_gpt_auto(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
     extra: dict[str, Any] = {
         "target_seconds": target, "budget_method": ctx.budget_method, "attempts": 1, "time_search": PLANNED_TIME,
         "time_tries": [(planned.spp, total)], "gradients": chosen.gradients,
-        "time_note": _planned_time_note(target, render_seconds, post_seconds, tail, refused,
+        "time_note": _planned_time_note(target, render_seconds, post_seconds, deadline.tail or tail, refused,
                                         assessed.get(chosen.name), chosen.name,
                                         plan.pilot_seconds if plan is not None else 0.0),
         "plan": chosen.name, "plan_layers": plan_layers_text(chosen, layers), "plan_method": result.method,

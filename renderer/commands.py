@@ -28,9 +28,7 @@ def render_command(args: argparse.Namespace) -> int:
         raise CommandError(f"output {args.output} must end in .exr")
     if not output.parent.exists():
         raise CommandError(f"output folder {output.parent} does not exist")
-    # all is the default with --seconds too: --gradients auto is opt-in until its validation on held-out scenes
-    # passes (benchmarks/bench_planner.py validate: it chose primal where gradients won)
-    gradients = args.gradients or ("none" if args.no_gradients else "all")
+    gradients = default_gradients(args)
     if args.no_gradients and gradients != "none":
         raise CommandError(f"--no-gradients is --gradients none; it contradicts --gradients {args.gradients}")
     if gradients == "none" and args.shift is not None:
@@ -40,8 +38,9 @@ def render_command(args: argparse.Namespace) -> int:
         flag = "--no-gradients" if args.no_gradients else "--gradients none"
         raise CommandError(f"--offsets has no effect with {flag} (no offset paths are traced)")
     if gradients == "auto" and args.offsets != "all":
-        raise CommandError("--offsets is chosen by the plan with --gradients auto; give --gradients all or direct "
-                           "to set it")
+        given = "" if args.gradients else " (the default with --seconds)"
+        raise CommandError(f"--offsets is chosen by the plan with --gradients auto{given}; give --gradients all or "
+                           "direct to set it")
     if args.gradient_spp is not None:
         if gradients == "none":
             flag = "--no-gradients" if args.no_gradients else "--gradients none"
@@ -89,6 +88,18 @@ def render_command(args: argparse.Namespace) -> int:
     print(f"{output}: {frame.width}x{frame.height}, {spp_text}, layers {', '.join(frame.layers)}, {took}"
           + (f"; {plan_text}" if plan_text else ""))
     return 0
+
+
+def default_gradients(args: argparse.Namespace) -> str:
+    """``--gradients`` as given; else ``none`` with ``--no-gradients``, ``auto`` with ``--seconds`` (the plan is
+    chosen per scene within the budget: at equal time on held-out rooms 1.03-1.08x the RelMSE of
+    `direct-alternate`, where `all` is 1.3x on rooms and 1.15x on studios for the default method:
+    benchmarks/bench_planner.py predict, validate) and ``all`` with ``--spp`` (a frame that serves every method)."""
+    if args.gradients:
+        return str(args.gradients)
+    if args.no_gradients:
+        return "none"
+    return "auto" if args.seconds is not None else "all"
 
 
 def _deadline(args: argparse.Namespace) -> Any:
@@ -217,9 +228,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--shift", choices=("hybrid", "replay"), default=None,
                    help="shift mapping: hybrid (reconnection + replay, the default) or replay")
     p.add_argument("--gradients", choices=("all", "direct", "none", "auto"), default=None,
-                   help="which layers carry gradients: all (the default); auto (a pilot predicts each plan's "
-                        "reconstructed error at the budget, or at --spp, and renders the lowest: experimental, see "
-                        "docs/renderer.md); direct (the direct layer's only: offset "
+                   help="which layers carry gradients: auto (the default with --seconds: a checkpoint on the frame's "
+                        "halves predicts each plan's reconstructed error at the budget, or at --spp, and renders "
+                        "the lower, see docs/renderer.md); all (the default with --spp: serves every method); "
+                        "direct (the direct layer's only: offset "
                         "paths stop after the first visible vertex's light, the indirect layer is a plain primal; "
                         "what the default oidn-l1 method uses); none (primal-only)")
     p.add_argument("--offsets", choices=OFFSET_CHOICES, default="all",

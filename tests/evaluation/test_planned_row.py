@@ -189,12 +189,14 @@ def test_a_budget_below_the_planners_start_up_renders_the_fallback_and_says_so(t
 def test_a_checkpoint_that_does_not_fit_fills_the_budget_with_the_fallback_and_no_prediction(tiny, monkeypatch):
     from gradsep.renderer import plan
 
-    monkeypatch.setattr(plan, "PILOT_SHARE", 0.0)  # no checkpoint fits: the fallback after its first pass
+    monkeypatch.setattr(plan, "PILOT_SHARE", 0.0)  # no checkpoint fits: the noise pilot chooses
     out = _run(tiny, 1.0)
     extra = out.extra
-    assert extra["plan"] == FALLBACK and extra["predicted_relmse"] is None
-    assert extra["predicted_note"] == "the budget is too small for a checkpoint" and extra["plan_candidates"] == {}
-    assert out.method_spp >= 1 and extra["pilot_seconds"] > 0 and extra["plan_method"] == "oidn-l1"
+    assert extra["plan"] in (FALLBACK, "primal") and extra["predicted_relmse"] is None
+    assert extra["predicted_note"].startswith("the budget is too small for a checkpoint; the direct layer's share")
+    assert extra["plan_candidates"] == {}
+    assert out.method_spp >= 2 and extra["pilot_seconds"] > 0
+    assert extra["plan_method"] == {"primal": "oidn", FALLBACK: "oidn-l1"}[extra["plan"]]
     total = out.render_seconds + out.reconstruct_seconds
     assert abs(total - 1.0) <= 0.05 or extra["time_note"]  # within the tolerance, or the reason recorded
 
@@ -255,8 +257,12 @@ def test_a_warm_planner_sizes_its_first_pass_from_the_costs_measured_beforehand(
         runs.clear()
         planned = plan.render_planned(renderer.loaded, layers, seed=4, shift=None, fixed=fixed,
                                       deadline=Deadline(0.5, tail=0.1), priors=priors)
-        assert runs[0][0] == FALLBACK and runs[0][1] > 1 and planned.spp == sum(n for _, n in runs)
-        assert planned.plan is None or planned.plan.note == "the budget is too small for a checkpoint"
+        if fixed is None:  # the noise pilot's pass, then the chosen plan's first, sized
+            assert runs[0] == ("primal", plan.NOISE_PILOT_SPP) and runs[1][0] == planned.candidate.name
+            assert planned.plan.note.startswith("the budget is too small for a checkpoint")
+            runs.pop(0)
+        assert runs[0][0] == (fixed or planned.candidate).name and runs[0][1] > 1
+        assert planned.spp == sum(n for _, n in runs) + (plan.NOISE_PILOT_SPP if fixed is None else 0)
     # the caller's priors are left as they were (the frame refines a copy)
     assert all(len(c.warm) == 2 for c in priors.costs.values())
 

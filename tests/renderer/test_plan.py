@@ -47,6 +47,7 @@ SMALL = ["--width", "16", "--height", "12"]
     (["--seconds", "0.001"], "below this machine's start-up cost"),  # the process is older than that already
     (["--seconds", "5", "--gradient-spp", "2", "--gradients", "all"], "--gradient-spp needs --spp"),
     (["--spp", "8", "--gradients", "auto", "--offsets", "pair"], "--offsets is chosen by the plan"),
+    (["--seconds", "5", "--offsets", "pair"], "with --gradients auto (the default with --seconds)"),
     (["--spp", "0", "--gradients", "auto"], "--spp must be >= 1"),
 ])
 def test_bad_input_is_one_line_exit_2_and_no_file(tmp_path, capsys, args, message):
@@ -55,6 +56,23 @@ def test_bad_input_is_one_line_exit_2_and_no_file(tmp_path, capsys, args, messag
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1
     assert not out.exists() and list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize(("args", "gradients"), [
+    (["--seconds", "5"], "auto"),  # a budget: the plan chosen per scene
+    (["--spp", "4"], "all"),  # a sample count: the frame that serves every method
+    (["--seconds", "5", "--gradients", "all"], "all"),
+    (["--seconds", "5", "--no-gradients"], "none"),
+    (["--spp", "4", "--gradients", "auto"], "auto"),
+])
+def test_the_default_plan_is_auto_with_a_budget_and_all_with_a_sample_count(args, gradients):
+    import argparse
+
+    from gradsep.renderer.commands import default_gradients, register
+
+    sub = argparse.ArgumentParser().add_subparsers()
+    register(sub)
+    assert default_gradients(sub.choices["render"].parse_args([CBOX, *args, "-o", "f.exr"])) == gradients
 
 
 def test_tiles_cover_small_frames_whole_and_spread_over_large_ones():
