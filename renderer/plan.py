@@ -112,59 +112,6 @@ FALLBACK = "direct-alternate"
 EXPONENTS: dict[str, float] = {"primal": 0.5, "direct-alternate": 0.5, "direct": 0.5, "all": 0.5}
 
 
-#: The pilot's rule where no checkpoint fits (:func:`noise_choice`): the rest of the frame is primal when the
-#: direct layer carries less than this share of the frame's relative noise. Tracing the direct layer's gradients
-#: pays only where that layer's noise matters: on 8 rooms (procedural:93201-93208, 192x192, two seeds, 4096-spp
-#: references) every share from 0.3 to 0.45 chose as well (0.35 and 0.4 best: 1.05x the better plan per frame at
-#: T = 3 s and 1.01x at 20 s, against `direct-alternate`'s 1.17x and 1.12x); on 8 rooms never used for it
-#: (93301-93308, 20 s) it was 1.03x, against `direct-alternate`'s 1.05x and the checkpoint's 1.14x.
-NOISE_SHARE = 0.4
-#: Side of the box filter that smooths the frame's luminance for :func:`direct_noise_share`'s normalisation.
-NOISE_BLUR = 9
-#: Samples of the pilot's primal pass that measures the noise share (a pixel's variance needs two).
-NOISE_PILOT_SPP = 2
-
-
-def direct_noise_share(sums: dict[str, np.ndarray], spp: int) -> float | None:
-    """The direct layer's share of the frame's relative noise, from a frame's per-pixel sums over ``spp`` samples
-    (bases and squared luminance per layer): sum over pixels of var_direct / (Ybar^2 + eps) over the same of
-    var_direct + var_indirect, Ybar the frame's luminance (both layers) box-filtered over NOISE_BLUR pixels -- a
-    pixel's own mean would hide a firefly's variance behind its own square, and RelMSE weighs by the whole frame's
-    radiance. Stable from 2 spp (held-out rooms: within 0.1 of its value at 64 spp), where a layer's own
-    normalisation drifted from 0.8 to 0.26. None with fewer than two samples or without both layers."""
-    from scipy.ndimage import uniform_filter
-
-    from gradsep.model.metrics import RELMSE_EPSILON
-    from gradsep.renderer.gpt import LUMINANCE, mean_variance
-
-    if spp < 2 or "direct.base" not in sums or "indirect.base" not in sums:
-        return None
-    weights = np.array(LUMINANCE)
-    total = sum(np.asarray(sums[f"{layer}.base"], np.float64) @ weights for layer in ("direct", "indirect")) / spp
-    norm = uniform_filter(total, size=NOISE_BLUR, mode="nearest") ** 2 + RELMSE_EPSILON
-    noise = {layer: float(np.mean(mean_variance(sums[f"{layer}.base"], sums[f"{layer}.sq"], spp) / norm))
-             for layer in ("direct", "indirect")}
-    whole = noise["direct"] + noise["indirect"]
-    return noise["direct"] / whole if whole > 0 and math.isfinite(whole) else None
-
-
-def noise_choice(passes: Passes) -> tuple[Candidate, float | None, str]:
-    """The plan where no checkpoint fits: ``primal`` where the direct layer carries less than NOISE_SHARE of the
-    frame's relative noise (:func:`direct_noise_share`), else the fallback; a frame without both layers keeps the
-    fallback. A primal pass of NOISE_PILOT_SPP samples is rendered first where the frame has fewer than two; it
-    stays in the frame (its samples join every plan's bases). Returns the plan, the share and why."""
-    default = fallback(passes.layers)
-    if default.name != FALLBACK or tuple(passes.layers) != ("direct", "indirect"):
-        return default, None, "one layer: no choice"
-    if passes.spp < NOISE_PILOT_SPP:
-        passes.run(candidate("primal"), NOISE_PILOT_SPP - passes.spp)
-    share = direct_noise_share(passes.bases or {}, passes.spp)
-    if share is None:
-        return default, None, "no noise measured"
-    chosen = candidate("primal") if share < NOISE_SHARE else default
-    return chosen, share, f"the direct layer's share of the noise {share:.2f} (primal below {NOISE_SHARE:g})"
-
-
 def candidate(name: str) -> Candidate:
     for c in CANDIDATES:
         if c.name == name:
@@ -564,20 +511,10 @@ def run_checkpoint(passes: Passes, budget_spp: Callable[[Assessment], float], *,
     measured = priors.reconstruct_rate if priors is not None else None
     rate = CHECK_MARGIN * measured if measured else CHECK_PRIOR_RATE
     work = reconstruct_startup() + 4 * pixels * rate
-
-    def too_small() -> Plan:  # no checkpoint: the plan the noise's share chooses (noise_choice), no prediction
-        first = passes.index == 0
-        chosen, share, why = noise_choice(passes)
-        if first and passes.index > 0 and after_first is not None:
-            after_first()
-        trace: dict[str, object] = {"spp": passes.spp, "chosen": chosen.name}
-        if share is not None:
-            trace["noise_share"] = round(share, 4)
-        return Plan(chosen, [], clock() - start, f"the budget is too small for a checkpoint; {why}", trace)
-
+    too_small = "the budget is too small for a checkpoint"
     if priors is not None and priors.warm(default.name) and priors.warm(primal.name):
         if work > give_up_after:  # known before any pass: the deadline's first pass is then sized, not a probe
-            return too_small()
+            return Plan(default, [], clock() - start, too_small)
         kernel = 0.0
     passes.run(default, 1)  # compiles (or loads) the fallback's kernel: the frame's first pass in any case
     if after_first is not None:
@@ -585,7 +522,7 @@ def run_checkpoint(passes: Passes, budget_spp: Callable[[Assessment], float], *,
     if not (priors is not None and priors.warm(primal.name)):
         kernel = passes.kind(default).costs.first_pass[1]  # type: ignore[index]
     if clock() - start + kernel + work > give_up_after:
-        return too_small()
+        return Plan(default, [], clock() - start, too_small)
     passes.start_split()
     passes.run(primal, 1)  # primal's kernel (the filler's too)
     passes.run(default, 1)  # a warm pass of the fallback: its cost without the compile, to size the passes by
@@ -837,28 +774,14 @@ def render_planned(loaded: LoadedScene, layers: tuple[str, ...], *, seed: int, s
                                   give_up_after=PILOT_SHARE * deadline.seconds, after_first=after_first)
         elif spp >= CHECKPOINT_MIN_SPP:  # type: ignore[operator]
             plan = run_checkpoint(passes, budget_spp, spp=spp, after_first=after_first)
-        elif spp > NOISE_PILOT_SPP:  # type: ignore[operator]
-            began = clock()
-            chosen, share, why = noise_choice(passes)
-            after_first()
-            trace: dict[str, object] = {"spp": passes.spp, "chosen": chosen.name}
-            if share is not None:
-                trace["noise_share"] = round(share, 4)
-            plan = Plan(chosen, [], clock() - began, f"{spp} spp is too few for a checkpoint; {why}", trace)
         else:
             plan = Plan(fallback(layers), [], 0.0, f"{spp} spp is too few for a checkpoint")
         chosen = plan.chosen
         assessed = plan.assessment()
         if check is not None and assessed is not None:
             held = check(assessed.reconstruct_rate, chosen, 0.0)
-        elif check is not None and deadline is not None and passes.index > 0:  # chosen by the noise: as a fixed plan
-            rate = priors.reconstruct_rate if priors is not None else None
-            if rate:
-                held = check(rate, chosen, 0.0)
-            elif check(CHECK_PRIOR_RATE, chosen, reconstruct_startup()) is not None:
-                held = check(reconstruct_rate(as_frame(passes.frame_result(chosen))), chosen, 0.0)
-        if held is not None:
-            passes.start_split()
+            if held is not None:
+                passes.start_split()
     else:
         chosen = fixed
     written.append(chosen)

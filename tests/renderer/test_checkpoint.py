@@ -161,15 +161,13 @@ def test_with_spp_the_checkpoint_takes_its_share_of_the_samples():
     assert passes.spp <= CHECKPOINT_SHARE * 1000
 
 
-def test_a_budget_too_small_for_the_checkpoint_judges_nothing_and_the_noise_pilot_chooses():
-    """The fallback's first pass, then the noise pilot's primal pass (its variance needs two samples); the fake
-    frame has no indirect layer's sums, so no share is measured and the fallback stays."""
+def test_a_budget_too_small_for_the_checkpoint_renders_one_pass_and_judges_nothing():
     passes = FakePasses()
     result = run_checkpoint(passes, budget(0.05), seconds=0.05, give_up_after=0.005,
                             reconstruct=fake_reconstruction({FALLBACK: 0.1, "primal": 0.1}))
     assert result.chosen.name == FALLBACK and result.assessments == []
-    assert passes.runs == [(FALLBACK, 1), ("primal", 1)] and passes.split is None
-    assert result.note == "the budget is too small for a checkpoint; no noise measured"
+    assert passes.runs == [(FALLBACK, 1)] and passes.split is None
+    assert result.note == "the budget is too small for a checkpoint"
 
 
 def known_costs(name: str) -> PassCosts:
@@ -190,8 +188,7 @@ def test_with_both_plans_known_warm_a_budget_too_small_spends_no_probing_pass(mo
     work = 4 * pixels * 1e-6 * CHECK_MARGIN  # four reconstructions at the measured rate, with the margin
     result = run_checkpoint(passes, budget(1.0), seconds=1.0, give_up_after=0.9 * work,
                             reconstruct=fake_reconstruction({FALLBACK: 0.1, "primal": 0.1}))
-    assert result.note.startswith("the budget is too small for a checkpoint")
-    assert passes.runs == [("primal", plan.NOISE_PILOT_SPP)]  # the noise pilot's pass only, no 1-spp probe
+    assert result.note == "the budget is too small for a checkpoint" and passes.runs == []
     # where that work fits, the measured rate (not the prior CHECK_PRIOR_RATE) and no primal compile are charged
     assert 4 * pixels * plan.CHECK_PRIOR_RATE > 1.2 * work
     passes = FakePasses()
@@ -203,7 +200,7 @@ def test_with_both_plans_known_warm_a_budget_too_small_spends_no_probing_pass(mo
     passes = FakePasses()
     result = run_checkpoint(passes, budget(20.0), seconds=20.0, give_up_after=1.1 * work + PER_PASS + 2e-3,
                             reconstruct=fake_reconstruction({FALLBACK: 0.1, "primal": 0.1}))
-    assert not result.assessments and passes.runs == [(FALLBACK, 1), ("primal", 1)]
+    assert not result.assessments and passes.runs == [(FALLBACK, 1)]
 
 
 def test_an_unseparated_frame_checks_all_against_primal():
@@ -236,75 +233,3 @@ def test_metadata_of_a_checkpoint_plan_names_the_candidates_and_the_prediction()
     assert meta[plan.PLAN_KEY] == FALLBACK and meta[plan.PLAN_LAYERS_KEY] == "direct=alternate,indirect=none"
     assert set(dict(p.split("=") for p in meta[plan.CANDIDATES_KEY].split(","))) == {FALLBACK, "primal"}
     assert float(meta[plan.PREDICTED_RELMSE_KEY]) == pytest.approx(result.assessment().predicted_relmse, rel=1e-5)
-
-
-# ------------------------------------------------------------------------------------- the noise pilot
-
-
-def layer_sums(samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(RGB sums, squared-luminance sums) of grey ``samples`` (n, H, W): what a pass adds per layer."""
-    rgb = np.repeat(samples.sum(axis=0)[..., None], 3, axis=2)
-    return rgb, (samples**2).sum(axis=0)[..., None]
-
-
-def noisy_frame(direct_sd: float, indirect_sd: float, spp: int = 16, seed: int = 0) -> dict[str, np.ndarray]:
-    rng = np.random.default_rng(seed)
-    sums = {}
-    for layer, sd in (("direct", direct_sd), ("indirect", indirect_sd)):
-        sums[f"{layer}.base"], sums[f"{layer}.sq"] = layer_sums(0.5 + sd * rng.standard_normal((spp, 32, 32)))
-    return sums
-
-
-@pytest.mark.parametrize(("direct_sd", "indirect_sd"), [(0.1, 0.1), (0.3, 0.1), (0.05, 0.2), (0.0, 0.2)])
-def test_the_direct_layers_share_of_the_noise_is_its_share_of_the_variance(direct_sd, indirect_sd):
-    share = plan.direct_noise_share(noisy_frame(direct_sd, indirect_sd), 16)
-    assert share == pytest.approx(direct_sd**2 / (direct_sd**2 + indirect_sd**2), abs=0.04)
-
-
-def test_a_firefly_counts_against_the_frames_smoothed_radiance_not_its_own_pixel():
-    """One indirect sample of 1e3 in one pixel: normalised by that pixel's own mean (which the firefly raises with
-    it) its relative variance is at most spp; against the frame's smoothed radiance it is the noise it is."""
-    sums = noisy_frame(0.1, 0.0)
-    samples = np.full((16, 32, 32), 0.5)
-    samples[3, 10, 10] = 1e3
-    sums["indirect.base"], sums["indirect.sq"] = layer_sums(samples)
-    assert plan.direct_noise_share(sums, 16) < 0.05
-
-
-def test_no_share_without_two_samples_or_both_layers():
-    sums = noisy_frame(0.1, 0.1)
-    assert plan.direct_noise_share(sums, 1) is None
-    assert plan.direct_noise_share({k: v for k, v in sums.items() if k.startswith("direct")}, 16) is None
-    black = {k: np.zeros_like(v) for k, v in sums.items()}
-    assert plan.direct_noise_share(black, 16) is None  # no noise at all: nothing to choose by
-
-
-class PilotPasses:
-    """What noise_choice needs of renderer.plan.Passes: the frame's sums, its samples and a pass to run."""
-
-    def __init__(self, layers: tuple[str, ...], direct_sd: float, indirect_sd: float) -> None:
-        self.layers, self.spp, self.bases, self.runs = layers, 0, None, []
-        self.frame = noisy_frame(direct_sd, indirect_sd, spp=plan.NOISE_PILOT_SPP)
-
-    def run(self, c, spp: int) -> None:
-        self.runs.append((c.name, spp))
-        self.spp += spp
-        self.bases = self.frame
-
-
-@pytest.mark.parametrize(("direct_sd", "indirect_sd", "chosen"), [
-    (0.05, 0.2, "primal"),  # the indirect layer's noise dominates: direct gradients would not pay
-    (0.3, 0.1, FALLBACK),  # the direct layer's does: they do
-])
-def test_the_noise_pilot_renders_a_primal_pass_and_chooses_by_the_share(direct_sd, indirect_sd, chosen):
-    passes = PilotPasses(("direct", "indirect"), direct_sd, indirect_sd)
-    got, share, why = plan.noise_choice(passes)
-    assert got.name == chosen and passes.runs == [("primal", plan.NOISE_PILOT_SPP)]
-    assert (share < plan.NOISE_SHARE) == (chosen == "primal") and f"{share:.2f}" in why
-
-
-def test_a_one_layer_frame_keeps_the_fallback_without_a_pilot():
-    for layers in (("direct",), ("color",)):
-        passes = PilotPasses(layers, 0.1, 0.1)
-        got, share, why = plan.noise_choice(passes)
-        assert got == plan.fallback(layers) and share is None and passes.runs == []
