@@ -58,6 +58,16 @@ the background), and on 8 rooms never used before:
             --scenes procedural:93301,procedural:93302,procedural:93303,procedural:93304,procedural:93305,\
 procedural:93306,procedural:93307,procedural:93308 --cache /work/pred12; done
 
+The fixed plans at a budget too small for a checkpoint (3 s at 192x192; the 4096-spp references of the runs above
+linked into each cache):
+
+    for plan in direct-alternate primal; do
+        python benchmarks/bench_planner.py predict --plan $plan --seconds 3 --seeds 21,22 --ref-spp 4096 \
+            --cache /work/pred10
+        python benchmarks/bench_planner.py predict --plan $plan --seconds 3 --seeds 31,32 --ref-spp 4096 \
+            --scenes procedural:93301,procedural:93302,procedural:93303,procedural:93304,procedural:93305,\
+procedural:93306,procedural:93307,procedural:93308 --cache /work/pred13; done
+
 The earlier fixed pipelines' figures there come from (2 shared cores, load 4-6 from other work; 1024-spp
 references):
 
