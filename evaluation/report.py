@@ -311,7 +311,8 @@ def _provenance(evaluation: Evaluation) -> list[str]:
              f"- Tables at {c.crop_spp} spp; Poisson α = {c.alpha:g}", "",
              "| scene | spec | max depth | layers |", "|---|---|---|---|"]
     for scene in evaluation.scenes:
-        lines.append(f"| {scene.entry.name} | `{scene.entry.spec}` | {scene.max_depth} | {', '.join(scene.layers)} |")
+        lines.append(f"| {scene.entry.name} | `{display_spec(scene.entry.spec)}` | {scene.max_depth} | "
+                     f"{', '.join(scene.layers)} |")
     lines += ["", f"Models folder `{c.models_dir}`:", ""]
     if evaluation.models:
         lines += [f"- `{name}` sha256 `{sha[:16]}…`" for name, sha in evaluation.models.items()]
@@ -599,6 +600,21 @@ def planned_frames(row: Mapping[str, Any]) -> list[PlannedFrame]:
                 for k in range(n)]
     return [PlannedFrame("", row.get("plan"), row.get("predicted_relmse"), row.get("predicted_note"),
                          float(row["relmse"]), int(row["method_spp"]), row_seconds(row))]
+
+
+def display_spec(spec: str) -> str:
+    """A scene spec as the report shows it: a file in or beside the repository (the shared scenes) relative to the
+    repository's root, e.g. ``../shared/scenes/cbox/cbox.xml``, so that the report does not name this machine's
+    checkout; anything else (``procedural:N``, a file elsewhere) as given."""
+    from gradsep.evaluation.cache import REPO_ROOT
+
+    if ":" in spec and not Path(spec).exists():
+        return spec
+    path = Path(spec).resolve()
+    for root, prefix in ((REPO_ROOT, ""), (REPO_ROOT.parent, "../")):
+        if path.is_relative_to(root):
+            return prefix + path.relative_to(root).as_posix()
+    return spec
 
 
 def planner_choice(rows: Sequence[Mapping[str, Any]]) -> list[str]:
