@@ -610,10 +610,10 @@ def display_spec(spec: str) -> str:
 
     if ":" in spec and not Path(spec).exists():
         return spec
-    path = Path(spec).resolve()
-    for root, prefix in ((REPO_ROOT, ""), (REPO_ROOT.parent, "../")):
-        if path.is_relative_to(root):
-            return prefix + path.relative_to(root).as_posix()
+    for path in (Path(os.path.abspath(spec)), Path(spec).resolve()):  # as given (a linked folder), then resolved
+        for root, prefix in ((REPO_ROOT, ""), (REPO_ROOT.parent, "../")):
+            if path.is_relative_to(root):
+                return prefix + path.relative_to(root).as_posix()
     return spec
 
 

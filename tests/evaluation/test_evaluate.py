@@ -762,13 +762,16 @@ def test_scenes_are_validated_up_front_and_evaluated_one_loaded_at_a_time(tmp_pa
     assert seen == [("procedural:7", 1), ("procedural:8", 1)]
 
 
-def test_the_report_names_scene_files_relative_to_the_repository_not_this_machines_checkout(tmp_path):
-    from gradsep.evaluation.cache import REPO_ROOT
+def test_the_report_names_scene_files_relative_to_the_repository_not_this_machines_checkout(tmp_path, monkeypatch):
+    from gradsep.evaluation import cache
     from gradsep.evaluation.report import display_spec
 
-    beside = REPO_ROOT.parent / "shared" / "scenes" / "cbox" / "cbox.xml"
-    assert display_spec(str(beside)) == "../shared/scenes/cbox/cbox.xml"
-    assert display_spec(str(REPO_ROOT / "examples" / "scene.xml")) == "examples/scene.xml"
+    repo, scenes = tmp_path / "checkout", tmp_path / "elsewhere" / "scenes"
+    repo.mkdir()
+    scenes.mkdir(parents=True)
+    (tmp_path / "shared").symlink_to(scenes.parent)  # a worktree's ../shared, linked to the real folder
+    monkeypatch.setattr(cache, "REPO_ROOT", repo)
+    assert display_spec(str(tmp_path / "shared" / "scenes" / "cbox.xml")) == "../shared/scenes/cbox.xml"
+    assert display_spec(str(repo / "examples" / "scene.xml")) == "examples/scene.xml"
     assert display_spec("procedural:90001") == "procedural:90001"
-    elsewhere = str(tmp_path / "room.xml")
-    assert display_spec(elsewhere) == elsewhere
+    assert display_spec("/nowhere/room.xml") == "/nowhere/room.xml"
