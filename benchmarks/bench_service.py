@@ -45,7 +45,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-from gradsep.model.frame import LOSSLESS_COMPRESSIONS, encode_exr, read_frame, rgb_channels
+from gradsep.model.frame import LOSSLESS_COMPRESSIONS, configure_exr_threads, encode_exr, read_frame, rgb_channels
 from gradsep.model.synthetic import synthetic_frame
 from gradsep.service.client import upload_body
 
@@ -165,8 +165,6 @@ def io_costs(height: int, width: int, repeats: int, compressions: list[str], thr
     (``GRADSEP_EXR_THREADS``; the service's default -1 is one per core), no service."""
     import io
 
-    import OpenEXR
-
     print(f"{width}x{height} direct+indirect frame with features; medians of {repeats}; "
           f"load {os.getloadavg()[0]:.2f}")
     print(f"{'compression':20} {'threads':>7} {'request MB':>10} {'read_frame s':>12} {'encode RGB s':>12} "
@@ -174,7 +172,7 @@ def io_costs(height: int, width: int, repeats: int, compressions: list[str], thr
     for compression in compressions:
         data = synthetic_frame(height, width, compression=compression)
         for threads in thread_counts:
-            OpenEXR.set_global_thread_count((os.cpu_count() or 1) if threads < 0 else threads)
+            configure_exr_threads(threads)
             reads, encodes = [], []
             for _ in range(repeats):
                 t0 = time.perf_counter()

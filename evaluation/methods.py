@@ -726,18 +726,13 @@ class PathRenderer:
             for c in applicable(layers):
                 passes = Passes(self.loaded, layers, seed=37)
                 passes.run(c, 1)  # its kernel (loaded from Dr.Jit's cache: planner_tail compiled it)
-                sizes: list[tuple[int, float]] = []
-                spp = 1
-                while True:
-                    seconds = []
-                    for _ in range(2):
-                        start = time.perf_counter()
-                        passes.run(c, spp)
-                        seconds.append(time.perf_counter() - start)
-                    sizes.append((spp, min(seconds)))
-                    if (min(seconds) >= self.CALIBRATION_SECONDS and len(sizes) >= 2) or spp >= passes.max_spp:
-                        break
-                    spp = min(passes.max_spp, 2 * spp)
+
+                def timed(spp: int, passes: Any = passes, c: Any = c) -> float:
+                    start = time.perf_counter()
+                    passes.run(c, spp)
+                    return time.perf_counter() - start
+
+                sizes = self._calibration(lambda spp: min(timed(spp), timed(spp)), passes.max_spp, growth=2)
                 costs = PassCosts(first_pass=passes.kind(c).costs.first_pass)
                 for size, took in sizes[-2:]:
                     costs.record(size, took)
@@ -754,15 +749,25 @@ class PathRenderer:
         if kind not in self._costs:
             self.warm(kind)
             model = CostModel(self.max_spp)
-            spp = 1
-            while True:
-                seconds = min(self.render(kind, spp, 11)[1], self.render(kind, spp, 13)[1])
+            for spp, seconds in self._calibration(
+                    lambda spp: min(self.render(kind, spp, 11)[1], self.render(kind, spp, 13)[1]), self.max_spp,
+                    growth=4):
                 model.add(spp, seconds)
-                if (seconds >= self.CALIBRATION_SECONDS and len(model.samples) >= 2) or spp >= self.max_spp:
-                    break
-                spp = min(self.max_spp, spp * 4)
             self._costs[kind] = model
         return self._costs[kind]
+
+    def _calibration(self, seconds_at: Callable[[int], float], max_spp: int, growth: int) -> list[tuple[int, float]]:
+        """(spp, seconds) of calibration renders (``seconds_at(spp)``, the caller's timing: the faster of two),
+        from 1 spp growing ``growth``-fold until one takes :data:`CALIBRATION_SECONDS` or more with two sizes
+        measured, or ``max_spp`` is reached."""
+        sizes: list[tuple[int, float]] = []
+        spp = 1
+        while True:
+            seconds = seconds_at(spp)
+            sizes.append((spp, seconds))
+            if (seconds >= self.CALIBRATION_SECONDS and len(sizes) >= 2) or spp >= max_spp:
+                return sizes
+            spp = min(max_spp, spp * growth)
 
     def spp_for(self, kind: str, seconds: float) -> int:
         """The spp of ``kind`` that fits ``seconds``; far extrapolations are checked by a render at a quarter of

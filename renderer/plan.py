@@ -512,15 +512,13 @@ def run_checkpoint(passes: Passes, budget_spp: Callable[[Assessment], float], *,
     rate = CHECK_MARGIN * measured if measured else CHECK_PRIOR_RATE
     work = reconstruct_startup() + 4 * pixels * rate
     too_small = "the budget is too small for a checkpoint"
-    if priors is not None and priors.warm(default.name) and priors.warm(primal.name):
-        if work > give_up_after:  # known before any pass: the deadline's first pass is then sized, not a probe
-            return Plan(default, [], clock() - start, too_small)
-        kernel = 0.0
+    primal_warm = priors is not None and priors.warm(primal.name)
+    if primal_warm and priors.warm(default.name) and work > give_up_after:  # type: ignore[union-attr]
+        return Plan(default, [], clock() - start, too_small)  # known before any pass: the deadline sizes the first
     passes.run(default, 1)  # compiles (or loads) the fallback's kernel: the frame's first pass in any case
     if after_first is not None:
         after_first()
-    if not (priors is not None and priors.warm(primal.name)):
-        kernel = passes.kind(default).costs.first_pass[1]  # type: ignore[index]
+    kernel = 0.0 if primal_warm else passes.kind(default).costs.first_pass[1]  # type: ignore[index]
     if clock() - start + kernel + work > give_up_after:
         return Plan(default, [], clock() - start, too_small)
     passes.start_split()
@@ -803,7 +801,7 @@ def render_planned(loaded: LoadedScene, layers: tuple[str, ...], *, seed: int, s
             costs = passes.kind(chosen).costs
             if deadline.left() < reserve() + LAST_PASS_MARGIN * costs.predict(1):
                 raise startup_error(deadline.seconds, deadline.elapsed() + reserve() + costs.predict(1))
-            rate = priors.reconstruct_rate if priors is not None else None
+            rate = priors.reconstruct_rate  # type: ignore[union-attr]
             if check is not None and rate:
                 held = check(rate, chosen, 0.0)
                 if held is not None:
