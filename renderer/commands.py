@@ -191,18 +191,22 @@ def dataset_command(args: argparse.Namespace) -> int:
     from gradsep.renderer.dataset import MANIFEST_NAME, PARTS_DIR, DatasetError, finished_frames, make_job, run_dataset
 
     job = make_job(args.count, args.spp, args.size, args.shard, args.first_seed, args.max_depth, args.pairs,
-                   args.family)
+                   args.family, args.seconds)
     root = Path(args.output)
     if root.exists() and not root.is_dir():
         raise DatasetError(f"output {root} exists and is not a folder")
-    root.mkdir(parents=True, exist_ok=True)
     before = len(finished_frames(root)) if (root / PARTS_DIR).is_dir() else 0
     manifest = run_dataset(root, job, progress=None)
     mine = set(job.seeds())
     have = sum(1 for f in manifest.frames if f.seed in mine)
     total = sum(1 for f in manifest.frames if job.first_seed <= f.seed < job.first_seed + job.count)
+    budget = ""
+    if job.seconds is not None:
+        spps = sorted(f.spp for f in manifest.frames if f.seed in mine)
+        budget = f", {job.seconds:g} s per frame" + (f" ({spps[0]}-{spps[-1]} spp)" if spps else "")
     print(f"{root}: shard {job.shard_name} has {have}/{len(mine)} frames; dataset {total}/{job.count} "
-          f"({len(manifest.frames) - before:+d} this run); manifest {root / MANIFEST_NAME} hash {manifest.hash[:16]}")
+          f"({len(manifest.frames) - before:+d} this run{budget}); manifest {root / MANIFEST_NAME} "
+          f"hash {manifest.hash[:16]}")
     return 0
 
 
@@ -276,7 +280,11 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     p = sub.add_parser("dataset", help="render N procedural frames plus a manifest (shardable, resumable)")
     p.add_argument("--count", type=int, required=True, help="number of frames in the whole dataset")
-    p.add_argument("--spp", type=int, required=True)
+    p.add_argument("--spp", type=int, default=None, help="samples per pixel of every frame (or --seconds)")
+    p.add_argument("--seconds", default=None, metavar="T",
+                   help="instead of --spp: render each frame (and each --pairs target) in T seconds of wall time, "
+                        "from its scene's load to its file in place, with the render planner of `gradsep render "
+                        "--seconds` and every layer's gradients (what training reads); each record keeps its spp")
     p.add_argument("--size", default="256x256", help="WxH")
     p.add_argument("--first-seed", type=int, default=1000, help="seed of frame 0; frame i uses first-seed + i")
     p.add_argument("--max-depth", type=int, default=None)

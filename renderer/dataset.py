@@ -8,6 +8,10 @@ Layout of a dataset folder ``DIR`` (docs/training.md, "Datasets", has the full d
     DIR/manifest.d/shard-0-of-4.json     what shard 0 of 4 has finished: written only by that shard
     DIR/manifest.json                    all parts merged: what training reads
 
+Frames are rendered to a sample count (``--spp S``) or to a wall-time budget (``--seconds T``: each frame, and
+each pair's second realization, through the render planner of `gradsep render --seconds T`, renderer/plan.py,
+with the plan training reads, DATASET_PLAN; each record keeps the samples its budget bought).
+
 Why it is built this way:
 
 * **Concurrent shards never clobber each other.** A shard writes only its own part file (atomically: temp file
@@ -66,7 +70,7 @@ class FrameRecord:
 
     file: str                  # relative to the dataset folder, e.g. "frames/proc_001000.exr"
     seed: int                  # procedural scene seed (scene "procedural:<seed>", or "procedural:<family>:<seed>")
-    spp: int
+    spp: int                   # the frame's samples (with --seconds: what its budget bought)
     render_seconds: float
     layers: list[str]          # illumination layers present, e.g. ["direct", "indirect"]
     shard: str                 # "i/n" of the job that rendered it
@@ -98,7 +102,7 @@ class FrameRecord:
 class Manifest:
     """A dataset's manifest: render settings and the finished frames, sorted by seed."""
 
-    spp: int
+    spp: int | None                            # None: each frame rendered to ``seconds`` (its spp in its record)
     size: tuple[int, int]                      # (width, height)
     frames: list[FrameRecord]
     count: int = 0                             # frames requested (the largest count any run asked for)
@@ -107,6 +111,7 @@ class Manifest:
     generator_version: int = 0
     pairs: bool = False                        # every frame has an independent second realization (target)
     family: str = "mixed"                      # the procedural family (renderer.procedural.FAMILIES)
+    seconds: float | None = None               # --seconds: each frame's wall-time budget
     version: int = MANIFEST_VERSION
     root: Path | None = field(default=None, compare=False)  # the dataset folder (when loaded from disk)
 
@@ -116,7 +121,8 @@ class Manifest:
         return {"version": self.version, "spp": self.spp, "size": list(self.size), "count": self.count,
                 "first_seed": self.first_seed, "max_depth": self.max_depth,
                 "generator_version": self.generator_version, "pairs": self.pairs,
-                **({"family": self.family} if self.family != "mixed" else {}), "complete": not missing,
+                **({"family": self.family} if self.family != "mixed" else {}),
+                **({"seconds": self.seconds} if self.seconds is not None else {}), "complete": not missing,
                 "missing": len(missing), "hash": manifest_hash(self),
                 "frames": [asdict(f) for f in self.frames]}
 
@@ -148,6 +154,8 @@ def manifest_hash(manifest: Manifest | str | os.PathLike[str]) -> str:
         content["pairs"] = True
     if m.family != "mixed":  # likewise: the room family's datasets keep their hash
         content["family"] = m.family
+    if m.seconds is not None:  # and a dataset rendered to a sample count
+        content["seconds"] = m.seconds
     text = json.dumps(content, sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(text.encode()).hexdigest()
 
@@ -193,14 +201,18 @@ def _manifest_from_json(data: Any, where: str) -> Manifest:
         if not (isinstance(size, list) and len(size) == 2):
             raise ValueError("size must be [width, height]")
         frames = [FrameRecord.from_json(item, where) for item in data["frames"]]
-        return Manifest(spp=int(data["spp"]), size=(int(size[0]), int(size[1])),
+        return Manifest(spp=_optional(data["spp"], int), size=(int(size[0]), int(size[1])),
                         frames=sorted(frames, key=lambda f: f.seed), count=int(data.get("count", len(frames))),
                         first_seed=int(data.get("first_seed", min((f.seed for f in frames), default=0))),
                         max_depth=None if data.get("max_depth") is None else int(data["max_depth"]),
                         generator_version=int(data.get("generator_version", 0)), pairs=bool(data.get("pairs", False)),
-                        family=str(data.get("family", "mixed")))
+                        family=str(data.get("family", "mixed")), seconds=_optional(data.get("seconds"), float))
     except (KeyError, TypeError, ValueError) as exc:
         raise DatasetError(f"{where}: malformed manifest ({exc})") from None
+
+
+def _optional(value: Any, kind: type) -> Any:
+    return None if value is None else kind(value)
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -212,7 +224,7 @@ class Job:
     """The settings of one `gradsep dataset` run (what must agree across the parts of a folder)."""
 
     count: int
-    spp: int
+    spp: int | None  # None: each frame rendered to ``seconds``
     width: int
     height: int
     first_seed: int
@@ -222,6 +234,7 @@ class Job:
     generator_version: int
     pairs: bool = False
     family: str = "mixed"  # the procedural family of the scenes (renderer.procedural.FAMILIES)
+    seconds: float | None = None  # --seconds: each frame's wall-time budget (instead of ``spp``)
 
     @property
     def shard_name(self) -> str:
@@ -234,6 +247,8 @@ class Job:
             params["pairs"] = True
         if self.family != "mixed":  # likewise for folders rendered before --family existed
             params["family"] = self.family
+        if self.seconds is not None:  # and before --seconds
+            params["seconds"] = self.seconds
         return params
 
     def scene(self, seed: int) -> str:
@@ -282,11 +297,11 @@ def _merge_parts(root: Path) -> Manifest:
             old = by_seed.get(rec.seed)
             if old is None or rec.finished_at > old.finished_at:
                 by_seed[rec.seed] = rec
-    return Manifest(spp=int(params["spp"]), size=(int(params["size"][0]), int(params["size"][1])),
+    return Manifest(spp=_optional(params["spp"], int), size=(int(params["size"][0]), int(params["size"][1])),
                     frames=[by_seed[s] for s in sorted(by_seed)], count=count,
                     first_seed=int(params["first_seed"]), max_depth=params["max_depth"],
                     generator_version=int(params["generator_version"]), pairs=bool(params.get("pairs", False)),
-                    family=str(params.get("family", "mixed")))
+                    family=str(params.get("family", "mixed")), seconds=_optional(params.get("seconds"), float))
 
 
 def merge_manifest(root: str | os.PathLike[str]) -> Manifest:
@@ -446,7 +461,7 @@ def _run_dataset(root: Path, job: Job, progress: bool | None, state: _RunState) 
                 rel = frame_file(seed)
                 frame, data = _render_to(root, rel, job, seed, seed % 2**32)
                 record = FrameRecord(
-                    file=rel, seed=seed, spp=job.spp,
+                    file=rel, seed=seed, spp=int(frame.metadata.get("gradsep.spp", job.spp or 0)),
                     render_seconds=float(frame.metadata.get("gradsep.render_seconds", "nan")),
                     layers=list(frame.layers), shard=job.shard_name, sampler_seed=seed % 2**32, bytes=len(data),
                     sha256=hashlib.sha256(data).hexdigest())
@@ -468,13 +483,29 @@ def _run_dataset(root: Path, job: Job, progress: bool | None, state: _RunState) 
     return load_manifest(root, check_files=False)
 
 
-def _render_to(root: Path, rel: str, job: Job, seed: int, sampler_seed: int) -> tuple[Any, bytes]:
-    """Render procedural scene ``seed`` with ``sampler_seed`` into ``root/rel`` (atomically); (frame, file bytes)."""
-    from gradsep.model.frame import write_frame
-    from gradsep.renderer.render import render_frame
+#: The plan of a frame rendered with --seconds: every layer's gradients, what training reads
+#: (model.preprocess.layer_planes) and what a --spp dataset frame has. `auto` may choose a plain frame.
+DATASET_PLAN = "all"
 
-    frame = render_frame(job.scene(seed), spp=job.spp, seed=sampler_seed, width=job.width, height=job.height,
-                         max_depth=job.max_depth)
+
+def _render_to(root: Path, rel: str, job: Job, seed: int, sampler_seed: int) -> tuple[Any, bytes]:
+    """Render procedural scene ``seed`` with ``sampler_seed`` into ``root/rel`` (atomically); (frame, file bytes).
+    With ``job.seconds`` the frame's budget counts from here (its scene's load) to its file in place: the render
+    planner's deadline (renderer/plan.py, as `gradsep render --seconds`), which reserves the write."""
+    from gradsep.model.frame import write_frame
+    from gradsep.renderer import render
+
+    if job.seconds is None:
+        frame = render.render_frame(job.scene(seed), spp=job.spp or 0, seed=sampler_seed, width=job.width,
+                                    height=job.height, max_depth=job.max_depth)
+    else:
+        from gradsep.renderer.budget import Deadline
+        from gradsep.renderer.scene import load_scene
+
+        deadline = Deadline(job.seconds)
+        loaded = load_scene(job.scene(seed), width=job.width, height=job.height, max_depth=job.max_depth)
+        frame, _ = render.render_planned_frame(loaded, deadline=deadline, spp=None, seed=sampler_seed,
+                                               gradients=DATASET_PLAN)
     write_frame(root / rel, frame)  # atomic: temp file + rename
     return frame, (root / rel).read_bytes()
 
@@ -516,16 +547,26 @@ def parse_shard(text: str) -> tuple[int, int]:
     return i, n
 
 
-def make_job(count: int, spp: int, size: str, shard: str, first_seed: int, max_depth: int | None,
-             pairs: bool = False, family: str = "mixed") -> Job:
-    """Validate the command's options into a :class:`Job`."""
+def make_job(count: int, spp: int | None, size: str, shard: str, first_seed: int, max_depth: int | None,
+             pairs: bool = False, family: str = "mixed", seconds: object = None) -> Job:
+    """Validate the command's options into a :class:`Job`: exactly one of ``spp`` and ``seconds``."""
+    from gradsep.renderer.budget import check_seconds
     from gradsep.renderer.procedural import FAMILIES, GENERATOR_VERSION
+
+    if (spp is None) == (seconds is None):
+        raise DatasetError("give exactly one of --spp (samples per pixel) or --seconds (a wall-time budget per frame)")
+    budget = None
+    if seconds is not None:
+        try:
+            budget = check_seconds(seconds)
+        except CommandError as exc:
+            raise DatasetError(str(exc)) from None
 
     if family not in FAMILIES:
         raise DatasetError(f"--family must be one of {', '.join(FAMILIES)}, got {family!r}")
     if count < 1:
         raise DatasetError(f"--count must be a positive integer, got {count}")
-    if spp < 1:
+    if spp is not None and spp < 1:
         raise DatasetError(f"--spp must be a positive integer, got {spp}")
     if first_seed < 0:
         raise DatasetError(f"--first-seed must be non-negative, got {first_seed}")
@@ -534,4 +575,4 @@ def make_job(count: int, spp: int, size: str, shard: str, first_seed: int, max_d
     w, h = parse_size(size)
     i, n = parse_shard(shard)
     return Job(count=count, spp=spp, width=w, height=h, first_seed=first_seed, max_depth=max_depth, shard=i,
-               shards=n, generator_version=GENERATOR_VERSION, pairs=pairs, family=family)
+               shards=n, generator_version=GENERATOR_VERSION, pairs=pairs, family=family, seconds=budget)

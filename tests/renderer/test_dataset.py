@@ -437,3 +437,106 @@ def test_a_failure_after_the_first_frame_keeps_the_run(tmp_path: Path, counting_
     with pytest.raises(RuntimeError):
         run_dataset(tmp_path / "data", job(), progress=False)
     assert [f.seed for f in load_manifest(tmp_path / "data", check_files=False).frames] == [1000]
+
+
+# -- frames rendered to a time budget (--seconds) --------------------------------------------------------------
+
+@pytest.fixture
+def planned_renderer(monkeypatch: pytest.MonkeyPatch) -> list[tuple[int, float, str]]:
+    """Replace the planned render (and the scene load) with a cheap frame whose spp follows the scene seed; record
+    (scene seed, the deadline's budget, the plan asked for) per call."""
+    from gradsep.model.frame import Features, Frame, Layer
+    from gradsep.renderer import render, scene
+
+    calls: list[tuple[int, float, str]] = []
+    monkeypatch.setattr(scene, "load_scene", lambda spec, **kw: (spec, kw))
+
+    def fake(loaded: tuple[str, dict[str, int]], *, deadline: object, spp: int | None, seed: int,
+             gradients: str) -> tuple[Frame, str]:
+        spec, size = loaded
+        scene_seed = int(spec.rsplit(":", 1)[1])
+        calls.append((scene_seed, deadline.seconds, gradients))  # type: ignore[attr-defined]
+        assert spp is None and deadline.left() > 0  # type: ignore[attr-defined]
+        h, w = size["height"], size["width"]
+        ones = np.ones((h, w, 3), np.float32)
+        feats = Features(ones / 2, np.dstack([ones[..., :2] * 0, ones[..., :1]]), ones[..., 0])
+        frame = Frame({"direct": Layer(ones, ones * 0, ones * 0)}, feats,
+                      {"gradsep.render_seconds": "0.5", "gradsep.spp": str(scene_seed % 7 + 3),
+                       "gradsep.budget_seconds": f"{deadline.seconds:g}"})  # type: ignore[attr-defined]
+        return frame, "plan all"
+
+    monkeypatch.setattr(render, "render_planned_frame", fake)
+    return calls
+
+
+def test_seconds_renders_each_frame_to_its_budget_and_records_its_spp(tmp_path: Path,
+                                                                      planned_renderer: list[tuple[int, float, str]],
+                                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    from gradsep.cli import main
+
+    assert main(["dataset", "--count", "3", "--seconds", "2.5", "--size", "8x6", "--pairs",
+                 "-o", str(tmp_path / "d")]) == 0
+    # every frame and every pair's target: its own budget, the plan training reads
+    assert planned_renderer == [(s, 2.5, ds.DATASET_PLAN) for s in (1000, 1000, 1001, 1001, 1002, 1002)]
+    spps = [s % 7 + 3 for s in (1000, 1001, 1002)]
+    assert f"2.5 s per frame ({min(spps)}-{max(spps)} spp)" in capsys.readouterr().out
+    data = json.loads((tmp_path / "d" / "manifest.json").read_text())
+    assert data["seconds"] == 2.5 and data["spp"] is None
+    assert [f["spp"] for f in data["frames"]] == spps
+    manifest = load_manifest(tmp_path / "d")
+    assert manifest.seconds == 2.5 and manifest.spp is None and manifest.hash == data["hash"]
+    # a budgeted dataset is another dataset: no --spp run may add to it, and its hash names the budget
+    with pytest.raises(DatasetError, match="seconds 2.5 \\(this run: None\\)"):
+        run_dataset(tmp_path / "d", make_job(3, 4, "8x6", "0/1", 1000, None, pairs=True), progress=False)
+    manifest.seconds = 3.0
+    assert manifest_hash(manifest) != data["hash"]
+
+
+@pytest.mark.parametrize(("argv", "message"), [
+    ([], "exactly one of --spp"),
+    (["--spp", "2", "--seconds", "5"], "exactly one of --spp"),
+    (["--seconds", "0"], "--seconds must be a finite number > 0"),
+    (["--seconds", "-1"], "--seconds must be a finite number > 0"),
+    (["--seconds", "nan"], "--seconds must be a finite number > 0"),
+    (["--seconds", "inf"], "--seconds must be a finite number > 0"),
+    (["--seconds", "soon"], "--seconds must be a number"),
+])
+def test_command_rejects_a_bad_budget(argv: list[str], message: str, tmp_path: Path,
+                                      capsys: pytest.CaptureFixture[str]) -> None:
+    from gradsep.cli import main
+
+    assert main(["dataset", "--count", "2", "--size", "8x8", *argv, "-o", str(tmp_path / "d")]) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.startswith("gradsep dataset: error:") and err.count("\n") == 1
+    assert not (tmp_path / "d").exists()
+
+
+@pytest.mark.render
+def test_a_budget_below_the_first_frames_start_up_leaves_nothing(tmp_path: Path,
+                                                                capsys: pytest.CaptureFixture[str]) -> None:
+    from gradsep.cli import main
+
+    assert main(["dataset", "--count", "2", "--seconds", "0.02", "--size", "16x12", "-o", str(tmp_path / "d")]) == 2
+    err = capsys.readouterr().err
+    assert "below this machine's start-up cost" in err and err.count("\n") == 1
+    assert not (tmp_path / "d").exists()
+
+
+@pytest.mark.render
+@pytest.mark.slow
+def test_a_real_frame_rendered_to_its_budget(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from gradsep.model.frame import read_frame
+    from gradsep.renderer import plan
+
+    # the reconstruction's start-up as if paid (as after another test): the frame's check then fits 8 s
+    monkeypatch.setattr(plan, "reconstruct_startup", lambda: 0.0)
+    # 8 s: the kernel's compile and a second pass fit on a loaded 2-core machine (test_plan.py's budgeted frame)
+    manifest = run_dataset(tmp_path / "d", make_job(1, None, "16x12", "0/1", 1000, None, seconds="8"), progress=False)
+    (record,) = manifest.frames
+    frame = read_frame(tmp_path / "d" / record.file)
+    meta = frame.metadata
+    assert meta["gradsep.budget_seconds"] == "8" and meta["gradsep.plan"] == ds.DATASET_PLAN
+    assert record.spp == int(meta["gradsep.spp"]) >= 2 and int(meta["gradsep.passes"]) >= 2
+    # what training reads: every layer with its gradients, and the features
+    assert frame.features is not None and all(layer.has_gradients for layer in frame.layers.values())
+    assert manifest.seconds == 8.0 and manifest.spp is None
