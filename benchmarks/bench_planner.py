@@ -487,8 +487,9 @@ def predict(args: argparse.Namespace) -> None:
             key = f"{scene}|{args.seconds:g}|{seed}" + ("" if args.plan == "auto" else f"|{args.plan}")
             out = cache / f"{args.plan}-{scene.replace(':', '_')}-{args.size}-{args.seconds:g}-{seed}.exr"
             if key not in rows or not out.exists():
+                shared = ["--plan-cache", str(Path(args.plan_cache).expanduser())] if args.plan_cache else []
                 wall, _ = gradsep("render", scene, "--width", str(args.size), "--height", str(args.size), "--seconds",
-                                  f"{args.seconds:g}", "--seed", str(seed), *PLANS[args.plan], "-o", str(out))
+                                  f"{args.seconds:g}", "--seed", str(seed), *PLANS[args.plan], *shared, "-o", str(out))
                 meta = header(out)
                 pilot = dict(kv.split("=") for kv in meta.get("gradsep.plan_candidates", "").split(",") if kv)
                 rows[key] = {"scene": scene, "seed": seed, "wall": wall, "file": out.name,
@@ -726,6 +727,8 @@ def main(argv: list[str] | None = None) -> int:
     pr.add_argument("--seeds", default="10,11")
     pr.add_argument("--ref-spp", type=int, default=1024)
     pr.add_argument("--no-references", action="store_true", help="score only the frames whose references exist")
+    pr.add_argument("--plan-cache", default=None, metavar="DIR",
+                    help="render `auto` frames with `--plan-cache DIR` (a shot's frames: the first seed's judge)")
     pr.add_argument("--cache", default=str(Path.home() / ".cache/gradsep/planner-bench"))
     ch = sub.add_parser("choose")
     ch.add_argument("--scenes", default=",".join(f"procedural:{s}" for s in range(93201, 93209)))

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -49,6 +50,7 @@ def render_command(args: argparse.Namespace) -> int:
             raise CommandError("--gradient-spp needs --spp and a fixed --gradients (all or direct)")
         if args.spp >= 1:  # checked before the scene loads (a bad --spp: render_frame's error)
             check_gradient_spp(args.gradient_spp, args.spp, gradients)
+    cache_folder = _plan_cache_folder(args, gradients)
     if deadline is None and args.spp < 1:
         raise CommandError(f"--spp must be >= 1, got {args.spp}")
     if deadline is not None and deadline.left() <= 0:
@@ -72,9 +74,16 @@ def render_command(args: argparse.Namespace) -> int:
     else:
         from gradsep.renderer.render import render_planned_frame
 
+        plan_cache = None
+        if cache_folder is not None:
+            from gradsep.renderer.plancache import CacheFolder, scene_identity
+
+            plan_cache = CacheFolder(cache_folder, f"key:{args.plan_key}" if args.plan_key
+                                     else scene_identity(args.scene, parse_defines(args.define)))
         frame, plan_text = render_planned_frame(scene, deadline=deadline, spp=None if deadline else args.spp,
                                                 seed=args.seed, layers=args.layers, shift=args.shift,
-                                                gradients=gradients, offsets=args.offsets, progress=progress)
+                                                gradients=gradients, offsets=args.offsets, progress=progress,
+                                                plan_cache=plan_cache)
     if show:
         print(file=sys.stderr)
     write_frame(output, frame)
@@ -88,6 +97,24 @@ def render_command(args: argparse.Namespace) -> int:
     print(f"{output}: {frame.width}x{frame.height}, {spp_text}, layers {', '.join(frame.layers)}, {took}"
           + (f"; {plan_text}" if plan_text else ""))
     return 0
+
+
+def _plan_cache_folder(args: argparse.Namespace, gradients: str) -> Path | None:
+    """``--plan-cache`` (else $GRADSEP_PLAN_CACHE) for an ``auto`` frame, checked; None without one. Given on the
+    command line with a fixed plan it is an error (there is no choice to keep); from the environment, a farm-wide
+    setting, it is left unused there."""
+    from gradsep.renderer.plancache import CACHE_ENV, check_folder
+
+    folder = args.plan_cache or os.environ.get(CACHE_ENV, "").strip() or None
+    if args.plan_cache and gradients != "auto":
+        raise CommandError(f"--plan-cache keeps the choice of --gradients auto; it has no effect with --gradients "
+                           f"{gradients}")
+    if args.plan_key is not None and (folder is None or gradients != "auto"):
+        raise CommandError(f"--plan-key names the shot in the plan cache; give --plan-cache DIR (or set {CACHE_ENV}) "
+                           "and --gradients auto")
+    if args.plan_key is not None and not args.plan_key.strip():
+        raise CommandError("--plan-key must not be empty")
+    return check_folder(folder) if folder is not None and gradients == "auto" else None
 
 
 def default_gradients(args: argparse.Namespace) -> str:
@@ -251,6 +278,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "and no gradients (about the cost of a plain path tracer)")
     p.add_argument("-D", "--define", action="append", default=[], metavar="NAME=VALUE",
                    help="override a <default> parameter of the XML scene (repeatable)")
+    p.add_argument("--plan-cache", default=None, metavar="DIR",
+                   help="with --gradients auto: a folder the frames of a shot share (default $GRADSEP_PLAN_CACHE); "
+                        "the first frame's checkpoint writes its choice for this scene, size, layers, budget and "
+                        "CPU, and the next frames render that plan with no checkpoint (docs/renderer.md)")
+    p.add_argument("--plan-key", default=None, metavar="KEY",
+                   help="the shot's name in the plan cache (default: the scene file's content and -D defines, or "
+                        "the procedural spec): frames of one shot whose scene files differ share a decision")
     p.add_argument("-o", "--output", required=True, help="output frame (.exr)")
     p.set_defaults(func=render_command)
 

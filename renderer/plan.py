@@ -52,6 +52,9 @@ CANDIDATES_KEY = "gradsep.plan_candidates"  # each judged plan's predicted RelMS
 BUDGET_KEY = "gradsep.budget_seconds"  # --seconds
 PILOT_SECONDS_KEY = "gradsep.pilot_seconds"  # wall time up to the checkpoint's choice (its passes stay in the frame)
 ELAPSED_KEY = "gradsep.elapsed_seconds"  # the command's wall time when the frame was encoded (from process start)
+#: With --plan-cache (renderer/plancache.py): "read NAME" (the plan an earlier frame judged, no checkpoint here),
+#: "wrote NAME" (this frame's checkpoint judged and shared it), "not written", or "nothing to share: ...".
+PLAN_CACHE_KEY = "gradsep.plan_cache"
 #: The checkpoint's figures (JSON: its samples, each candidate's estimated RelMSE at the halves' samples with its
 #: standard error, seconds per sample and per pass, exponent and the samples the budget buys it, the paired
 #: difference of the carried estimates with its standard error, and the plan chosen): why, for a farm to read.
@@ -451,8 +454,9 @@ class Plan:
             return f"plan {self.chosen.name} ({self.note})"
         parts = ", ".join(f"{a.name} {a.predicted_relmse:.4g} at {a.budget_spp:.0f} spp (slope {a.exponent:.2f})"
                           for a in self.assessments)
-        return (f"plan {self.chosen.name}: predicted RelMSE {parts} (checkpoint {self.pilot_seconds:.2f} s, "
-                f"{self.note}, method {self.metadata(()).get(PLAN_METHOD_KEY, '?')})")
+        where = self.note if self.trace.get("cached") else f"checkpoint {self.pilot_seconds:.2f} s, {self.note}"
+        return (f"plan {self.chosen.name}: predicted RelMSE {parts} ({where}, method "
+                f"{self.metadata(()).get(PLAN_METHOD_KEY, '?')})")
 
 
 #: Share of the budget (of the frame's samples with --spp) rendered with the fallback plan before the checkpoint

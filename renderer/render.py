@@ -22,6 +22,7 @@ from gradsep.model.frame import (
     ILLUMINATION_LAYERS,
     OIDN_SETTING_KEY,
     PREDICTED_FROM_KEY,
+    PREDICTED_RELMSE_KEY,
     SEPARATED_LAYERS,
     Frame,
 )
@@ -33,6 +34,7 @@ from gradsep.renderer.scene import LoadedScene, load_scene
 
 if TYPE_CHECKING:
     from gradsep.renderer.plan import Candidate, Planned
+    from gradsep.renderer.plancache import CacheFolder
 
 
 def parse_layers(text: str | Iterable[str]) -> tuple[str, ...]:
@@ -275,10 +277,11 @@ def frame_check(planned: Planned, metadata: dict[str, str], compare: bool = Fals
     stays. ``gradsep.predicted_from`` says which. With ``compare`` the halves are also reconstructed with the
     other of the default OIDN setting and FARM_OIDN_SETTING, and the frame asks for that one
     (OIDN_SETTING_KEY) where it is clearly better (renderer.check.check_frame). Returns the summary's clause."""
-    from gradsep.model.frame import PLAN_METHOD_KEY, PREDICTED_RELMSE_KEY
+    from gradsep.model.frame import PLAN_METHOD_KEY
     from gradsep.model.oidn import METHOD_SETTING
     from gradsep.model.reconstruct import choose_method, reconstruct
     from gradsep.renderer.plan import EXPONENTS
+    from gradsep.renderer.plancache import FRAME_ESTIMATE
 
     plan = planned.plan
     if not planned.halves:
@@ -286,6 +289,14 @@ def frame_check(planned: Planned, metadata: dict[str, str], compare: bool = Fals
         # the pilot carried its estimate to the samples it predicted the budget buys; the frame has what it
         # actually got (a pilot slowed by a load spike predicts far fewer)
         assessed = plan.assessment()
+        earlier = plan.trace.get(FRAME_ESTIMATE)
+        if earlier and assessed is not None:
+            # a plan from the plan cache: the estimate of the frame that judged it (its own halves), carried from
+            # its samples to this frame's -- the same scene and budget, and far closer than the pilot's
+            predicted = at_budget(earlier["relmse"], earlier["spp"], planned.spp, assessed.exponent)
+            metadata[PREDICTED_RELMSE_KEY] = f"{predicted:.6g}"
+            metadata[PREDICTED_FROM_KEY] = "plan-cache"
+            return f"predicted RelMSE {predicted:.4g} (the judging frame's own, carried to this frame's samples)"
         predicted = (plan.predicted() if assessed is None or not assessed.budget_spp > 0 else
                      at_budget(assessed.predicted_relmse, assessed.budget_spp, planned.spp, assessed.exponent))
         metadata[PREDICTED_RELMSE_KEY] = f"{predicted:.6g}"
@@ -330,14 +341,19 @@ def frame_check(planned: Planned, metadata: dict[str, str], compare: bool = Fals
 def render_planned_frame(scene: LoadedScene, *, deadline: Deadline | None, spp: int | None, seed: int = 0,
                          layers: str | Iterable[str] = SEPARATED_LAYERS, shift: str | None = None,
                          gradients: str = "auto", offsets: str = "all",
-                         progress: Callable[[int, int], None] | None = None) -> tuple[Frame, str]:
+                         progress: Callable[[int, int], None] | None = None,
+                         plan_cache: CacheFolder | None = None) -> tuple[Frame, str]:
     """`gradsep render --seconds T` and/or ``--gradients auto`` (renderer/plan.py): the frame, rendered to the
     ``deadline`` (renderer.budget.Deadline) or to ``spp`` samples, with the given plan (``gradients`` and
     ``offsets`` as for :func:`render_frame`) or the plan a pilot chooses (``gradients`` ``auto``), and a one-line
-    summary of the plan. The metadata is :func:`render_metadata`'s plus the plan's keys (renderer.plan)."""
+    summary of the plan. The metadata is :func:`render_metadata`'s plus the plan's keys (renderer.plan).
+    ``plan_cache`` (``auto`` only; renderer/plancache.py): the plan an earlier frame's checkpoint chose for this
+    scene, frame and budget is rendered as a fixed plan, with no checkpoint; a checkpoint's choice is written
+    there."""
     from gradsep.renderer.plan import (
         BUDGET_KEY,
         ELAPSED_KEY,
+        PLAN_CACHE_KEY,
         PLAN_KEY,
         PLAN_LAYERS_KEY,
         Candidate,
@@ -365,6 +381,15 @@ def render_planned_frame(scene: LoadedScene, *, deadline: Deadline | None, spp: 
         shift_name = make_shift(shift).name
     except ValueError as exc:
         raise CommandError(str(exc)) from None
+    cached = None  # the plan cache's entry for this frame (renderer.plan.Plan), where it has a usable one
+    entry = None
+    if gradients == "auto" and plan_cache is not None:
+        entry = plan_cache.entry(width=scene.width, height=scene.height, layers=wanted, max_depth=scene.max_depth,
+                                 shift=shift_name, seconds=deadline.seconds if deadline is not None else None,
+                                 spp=spp)
+        cached, why = entry.load(wanted)
+        notes += [why] if why else []
+        fixed = cached.chosen if cached is not None else None
     # with a budget that affords FARM_OIDN_SETTING, the frame's check may also choose between it and the default
     # (unless the operator fixed the setting: $GRADSEP_OIDN_SETTING wins over the header anyway)
     can_compare = (deadline is not None
@@ -398,6 +423,9 @@ def render_planned_frame(scene: LoadedScene, *, deadline: Deadline | None, spp: 
         metadata["gradsep.gradient_spp"] = str(planned.gradient_spp)
     metadata.update({PLAN_KEY: chosen.name, PLAN_LAYERS_KEY: plan_layers_text(chosen, wanted)})
     summary = f"plan {chosen.name}"
+    if cached is not None:
+        planned.plan = cached  # rendered as a fixed plan; the header carries the judgement it was chosen by
+        metadata[PLAN_CACHE_KEY] = f"read {entry.path.name}"  # type: ignore[union-attr]
     if planned.plan is not None:
         metadata.update(planned.plan.metadata(wanted))
         summary = planned.plan.summary()
@@ -413,6 +441,17 @@ def render_planned_frame(scene: LoadedScene, *, deadline: Deadline | None, spp: 
             summary += f"; reconstruct with OIDN {setting}"
     if planned.halves is not None or (planned.plan is not None and planned.plan.assessments):
         summary += "; " + frame_check(planned, metadata, compare=compare and planned.halves is not None)
+    if entry is not None and cached is None:  # a checkpoint's choice, and the frame's own estimate, to share
+        if planned.plan is not None and planned.plan.assessments:
+            own = None  # the frame's own estimate, where its halves made one
+            if metadata.get(PREDICTED_FROM_KEY) == "frame":
+                own = (float(metadata[PREDICTED_RELMSE_KEY]), planned.spp)
+            failed = entry.store(planned.plan, seed, own)
+            notes += [failed] if failed else []
+            metadata[PLAN_CACHE_KEY] = "not written" if failed else f"wrote {entry.path.name}"
+        else:
+            metadata[PLAN_CACHE_KEY] = "nothing to share: no checkpoint judged"
+        summary += f"; plan cache: {metadata[PLAN_CACHE_KEY]}"
     if deadline is not None:
         metadata[ELAPSED_KEY] = f"{deadline.elapsed():.3f}"
     frame = planned.frame
