@@ -27,6 +27,10 @@
     # fixed sample count, in one process
     python benchmarks/bench_planner.py choose [--scenes ...] [--plan primal] [--spp 960] [--cache ...]
 
+    # the plan cache on a shot: one frame judges, the others read its choice; their samples against the fixed
+    # plan's, interleaved
+    python benchmarks/bench_planner.py shot [--scenes ...] [--size 192] [--seconds 20] [--seeds 61,62,63]
+
     # a plain-frame plan's cost against Mitsuba's `path` (same scene, size, spp, depth, box filter): a whole frame
     # and the marginal cost of a sample (frames of spp and 2 spp)
     python benchmarks/bench_planner.py cost [--scenes procedural:93201,procedural:studio:93201]
@@ -587,6 +591,45 @@ def _against_fixed(rows: dict[str, dict], scenes: list[str], args: argparse.Name
             print(f"| {plan} | {len(rs)} | {geo(rs):.2f} | {max(rs):.2f} |")
 
 
+def shot(args: argparse.Namespace) -> None:
+    """The plan cache on a shot (`--plan-cache`, renderer/plancache.py): per scene one `auto` frame judges and
+    writes the entry (seed ``--judge-seed``), then per seed, interleaved (the order alternating, so that a drift of
+    the machine's speed falls on both alike), a frame that reads the entry and the fixed plan it names, each with
+    ``--seconds T``. Prints the samples each got: the first frame's and a cached frame's over the fixed plan's of
+    the same seed (medians). A cached frame renders the fixed plan's passes, so at equal samples its RelMSE is that
+    plan's; what it saves is the checkpoint."""
+    cache = Path(args.cache).expanduser()
+    plans = cache / "plans"
+    plans.mkdir(parents=True, exist_ok=True)
+    common = ["--width", str(args.size), "--height", str(args.size), "--seconds", f"{args.seconds:g}"]
+
+    def render(scene: str, seed: int, extra: list[str]) -> dict[str, str]:
+        out = cache / "shot.exr"
+        gradsep("render", scene, *common, "--seed", str(seed), *extra, "-o", str(out))
+        return header(out)
+
+    print("| scene | plan | first frame's spp / the plan's | cached frames' spp / the plan's (median) | seeds |")
+    print("|---|---|---:|---:|---:|")
+    firsts, cached = [], []
+    seeds = [int(s) for s in args.seeds.split(",")]
+    for scene in args.scenes.split(","):
+        first = render(scene, args.judge_seed, ["--plan-cache", str(plans)])
+        plan = first["gradsep.plan"]
+        fixed_first = render(scene, args.judge_seed, PLANS[plan])
+        ratios = []
+        for i, seed in enumerate(seeds):
+            pair = [["--plan-cache", str(plans)], PLANS[plan]]
+            got = [render(scene, seed, extra) for extra in (pair if i % 2 == 0 else pair[::-1])]
+            reads, fixed = got if i % 2 == 0 else got[::-1]
+            assert reads.get("gradsep.plan_cache", "").startswith("read"), reads.get("gradsep.plan_cache")
+            ratios.append(int(reads["gradsep.spp"]) / int(fixed["gradsep.spp"]))
+        firsts.append(int(first["gradsep.spp"]) / int(fixed_first["gradsep.spp"]))
+        cached.append(statistics.median(ratios))
+        print(f"| {scene} | {plan} | {firsts[-1]:.2f} | {cached[-1]:.2f} ({min(ratios):.2f}-{max(ratios):.2f}) | "
+              f"{len(seeds)} |", flush=True)
+    print(f"| all | | {statistics.median(firsts):.2f} | {statistics.median(cached):.2f} | |")
+
+
 def choose(args: argparse.Namespace) -> None:
     """The OIDN setting the frame's halves choose (renderer/check.py) against the better one measured: each scene
     rendered with ``--plan`` to ``--spp`` samples in ~24 passes dealt into the check's groups, its halves compared
@@ -739,6 +782,13 @@ def main(argv: list[str] | None = None) -> int:
     ch.add_argument("--ref-spp", type=int, default=1024)
     ch.add_argument("--no-references", action="store_true", help="skip the scenes whose references are missing")
     ch.add_argument("--cache", default=str(Path.home() / ".cache/gradsep/planner-bench"))
+    sh = sub.add_parser("shot")
+    sh.add_argument("--scenes", default=",".join(f"procedural:{s}" for s in range(93301, 93305)))
+    sh.add_argument("--size", type=int, default=192)
+    sh.add_argument("--seconds", type=float, default=20.0)
+    sh.add_argument("--judge-seed", type=int, default=40, help="the seed of the frame that judges and writes")
+    sh.add_argument("--seeds", default="61,62,63", help="seeds of the frames that read the entry")
+    sh.add_argument("--cache", default=str(Path.home() / ".cache/gradsep/planner-bench-shot"))
     r = sub.add_parser("rescore")
     r.add_argument("--setting", default="", help="OIDN setting for the frames with gradients (e.g. "
                    "prefiltered-high: what a --seconds budget asks for); default: the oidn method's")
@@ -749,7 +799,7 @@ def main(argv: list[str] | None = None) -> int:
                    "this cache's RelMSE over its, both reconstructed today")
     args = parser.parse_args(argv)
     {"timing": timing, "validate": validate, "cost": cost, "rescore": rescore,
-     "predict": predict, "choose": choose}[args.what](args)
+     "predict": predict, "choose": choose, "shot": shot}[args.what](args)
     return 0
 
 
