@@ -62,6 +62,15 @@ the background), and on 8 rooms never used before:
             --scenes procedural:93301,procedural:93302,procedural:93303,procedural:93304,procedural:93305,\
 procedural:93306,procedural:93307,procedural:93308 --cache /work/pred12; done
 
+The plan cache (docs/renderer.md, "A shot's frames share the choice"): the cost, interleaved, and the estimate a
+reading frame carries, on rooms never used for its design (the fixed plans rendered first into the cache, the
+4096-spp references of the run above linked into it):
+
+    python benchmarks/bench_planner.py shot --seconds 20 --seeds 61,62,63 \
+        --scenes procedural:93301,procedural:93303,procedural:93305,procedural:93307 --cache /work/shot15
+    python benchmarks/bench_planner.py predict --plan auto --seconds 20 --seeds 41,31,32 --ref-spp 4096 \
+        --scenes procedural:93301,...,procedural:93308 --cache /work/pred14 --plan-cache /work/pred14/plans
+
 The fixed plans at a budget too small for a checkpoint (3 s at 192x192; the 4096-spp references of the runs above
 linked into each cache):
 

@@ -69,16 +69,6 @@ def row_seconds(row: Mapping[str, Any]) -> float:
 
 def machine_summary() -> str:
     """``CPU model, N logical cores`` (+ GPU variant when Mitsuba runs on CUDA): where a timing was taken."""
-    cpu = ""
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8") as fh:
-            for line in fh:
-                if line.startswith("model name"):
-                    cpu = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    import platform
+    from gradsep.model.environment import cpu_model
 
-    cpu = cpu or platform.processor() or platform.machine()
-    return f"{cpu}, {os.cpu_count()} logical cores"
+    return f"{cpu_model()}, {os.cpu_count()} logical cores"

@@ -1,9 +1,10 @@
-"""Integer settings read from the environment by processes that have no pydantic Settings (the CLI, library
-callers): one parser, so every such variable is refused the same way."""
+"""The process's environment: integer settings read from it by processes that have no pydantic Settings (the CLI,
+library callers: one parser, so every such variable is refused the same way), and the machine's CPU model."""
 
 from __future__ import annotations
 
 import os
+import platform
 
 
 def env_int(variable: str, default: int, minimum: int, hint: str = "") -> int:
@@ -20,3 +21,15 @@ def env_int(variable: str, default: int, minimum: int, hint: str = "") -> int:
     if value < minimum:
         raise ValueError(f"${variable}={value} must be at least {minimum}{note}")
     return value
+
+
+def cpu_model() -> str:
+    """The CPU's model name (Linux: /proc/cpuinfo), else what ``platform`` knows of it."""
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as fh:
+            for line in fh:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()

@@ -64,16 +64,9 @@ def scene_identity(spec: str, defines: dict[str, str] | None = None) -> str:
 
 def cpu_identity() -> str:
     """The machine's CPU model and logical core count: what decides the samples a budget buys each plan."""
-    model = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as fh:
-            for line in fh:
-                if line.startswith("model name"):
-                    model = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    return f"{model} x{os.cpu_count() or 0}"
+    from gradsep.model.environment import cpu_model
+
+    return f"{cpu_model()} x{os.cpu_count() or 0}"
 
 
 def entry_key(scene: str, *, width: int, height: int, layers: tuple[str, ...], max_depth: int, shift: str,
