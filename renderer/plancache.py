@@ -94,24 +94,28 @@ class PlanCache:
     """One entry of the cache folder: :meth:`load` it before the frame, :meth:`store` a checkpoint's plan after."""
 
     def __init__(self, folder: Path, key: dict[str, Any]) -> None:
-        self.folder, self.key = folder, key
+        self.key = key
         name = hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:20]
         self.path = folder / f"plan-{name}.json"
 
-    def load(self, layers: tuple[str, ...]):  # -> tuple[renderer.plan.Plan | None, str | None]
+    def load(self):  # -> tuple[renderer.plan.Plan | None, str | None]
         """(the cached plan, None), (None, None) where there is no entry, or (None, why) where the entry cannot be
         used: the frame judges afresh and replaces it."""
         from gradsep.renderer.plan import Assessment, Plan, applicable
 
-        if not self.path.exists():
-            return None, None
         try:
-            data = json.loads(self.path.read_text())
+            text = self.path.read_text()
+        except FileNotFoundError:
+            return None, None
+        except OSError as exc:
+            return None, f"plan cache entry {self.path.name} not used ({exc}): judged afresh"
+        try:
+            data = json.loads(text)
             if not isinstance(data, dict) or data.get("version") != CACHE_VERSION:
                 raise ValueError(f"not a version {CACHE_VERSION} entry")
             if data.get("key") != self.key:
                 raise ValueError("its key differs from this frame's (a hash collision or an edited file)")
-            judged = {c.name: c for c in applicable(layers)}
+            judged = {c.name: c for c in applicable(tuple(self.key["layers"]))}
             chosen = judged.get(data.get("chosen"))
             if chosen is None:
                 raise ValueError(f"plan {data.get('chosen')!r} is not one this frame can render")
@@ -135,7 +139,7 @@ class PlanCache:
                 if not (math.isfinite(relmse) and relmse >= 0 and spp > 0):
                     raise ValueError("its frame estimate is not usable")
                 trace = {**trace, FRAME_ESTIMATE: {"relmse": relmse, "spp": spp}}
-        except (OSError, ValueError, TypeError, KeyError, AttributeError) as exc:
+        except (ValueError, TypeError, KeyError, AttributeError) as exc:
             return None, f"plan cache entry {self.path.name} not used ({exc}): judged afresh"
         note = f"judged by an earlier frame (plan cache {self.path.name})"
         return Plan(chosen, assessments, 0.0, note, {**trace, "cached": self.path.name}), None

@@ -387,7 +387,7 @@ def render_planned_frame(scene: LoadedScene, *, deadline: Deadline | None, spp: 
         entry = plan_cache.entry(width=scene.width, height=scene.height, layers=wanted, max_depth=scene.max_depth,
                                  shift=shift_name, seconds=deadline.seconds if deadline is not None else None,
                                  spp=spp)
-        cached, why = entry.load(wanted)
+        cached, why = entry.load()
         notes += [why] if why else []
         fixed = cached.chosen if cached is not None else None
     # with a budget that affords FARM_OIDN_SETTING, the frame's check may also choose between it and the default

@@ -52,9 +52,9 @@ def judged(chosen: str = "primal") -> Plan:
 
 def test_an_entry_round_trips_with_the_judging_frames_estimate(tmp_path):
     entry = PlanCache(tmp_path, key())
-    assert entry.load(LAYERS) == (None, None)  # nothing yet: judged here, no note
+    assert entry.load() == (None, None)  # nothing yet: judged here, no note
     assert entry.store(judged("primal"), seed=3, estimate=(4e-4, 1200)) is None
-    plan, note = PlanCache(tmp_path, key()).load(LAYERS)
+    plan, note = PlanCache(tmp_path, key()).load()
     assert note is None and plan is not None
     assert plan.chosen == candidate("primal") and plan.pilot_seconds == 0.0
     assert [a.name for a in plan.assessments] == ["direct-alternate", "primal"]
@@ -114,7 +114,7 @@ def test_an_entry_that_cannot_be_used_is_judged_afresh_with_a_note(tmp_path, con
         data[FRAME_ESTIMATE]["relmse"] = -1.0
     text = content if content[0] in "{[" else json.dumps(data)
     entry.path.write_text(text)
-    plan, note = entry.load(LAYERS)
+    plan, note = entry.load()
     assert plan is None and why in note and entry.path.name in note and "judged afresh" in note  # type: ignore
 
 
