@@ -2,7 +2,7 @@
 
 A *layout* says which channel of a file holds which contract channel (``color.R``, ``albedo.G``, ``normal.X``,
 ``depth.Z``...) and which holds alpha. Reading maps a file's channels through its layout, then validates and
-decodes the mapped names as usual (model/frame.py), so every layout gets the same checks, errors and policies.
+decodes the mapped names as usual (model/exr_read.py), so every layout gets the same checks, errors and policies.
 
 * ``gradsep`` -- the contract itself (docs/frame-format.md): ``direct.*``, ``indirect.*`` or ``color.*`` layers,
   ``albedo.*``/``normal.*``/``depth.Z`` features, and a top-level ``A`` as alpha. A top-level ``R G B`` beside
@@ -54,8 +54,8 @@ _CYCLES_DEPTH: tuple[str, ...] = ("Denoising Depth", "Depth")
 
 
 class LayoutError(ValueError):
-    """The file matches no layout, several (``candidates``), or not the one asked for. model.frame turns it into
-    its ChannelError (422) so callers see one error type for channel problems."""
+    """The file matches no layout, several (``candidates``), or not the one asked for. model.exr_read turns it into
+    a ChannelError (422) so callers see one error type for channel problems."""
 
     def __init__(self, message: str, details: dict[str, object]) -> None:
         super().__init__(message)
@@ -73,11 +73,11 @@ class ChannelMap:
 
     @property
     def names(self) -> list[str]:
-        """The contract names this file provides, for model.frame's validation."""
+        """The contract names this file provides, for model.exr_read's validation."""
         return list(self.sources)
 
     def warnings(self) -> list[str]:
-        """The warning naming the file's channels this layout does not read (none for gradsep: model.frame's
+        """The warning naming the file's channels this layout does not read (none for gradsep: model.exr_read's
         validation names the channels outside the contract)."""
         if not self.ignored:
             return []
@@ -113,7 +113,7 @@ def _features(present: set[str], albedo: Sequence[str], normal: Sequence[str], d
 
 
 def _gradsep(names: Sequence[str]) -> ChannelMap:
-    # every name but A passes as is: model.frame's validation names unknown channels and ignores foreign ones
+    # every name but A passes as is: model.exr_read's validation names unknown channels and ignores foreign ones
     return ChannelMap("gradsep", {n: n for n in names if n != ALPHA}, ALPHA if ALPHA in names else None)
 
 
@@ -189,7 +189,7 @@ def map_channels(names: Sequence[str], layout: str = DEFAULT_LAYOUT) -> ChannelM
     found = candidates(names)
     if layout == "auto":
         if not found:
-            return _gradsep(names)  # model.frame's validation then says what the contract expected
+            return _gradsep(names)  # model.exr_read's validation then says what the contract expected
         if len(found) > 1:
             raise LayoutError(
                 f"ambiguous channel layout: the file matches {', '.join(found)}; choose one "

@@ -73,14 +73,11 @@ def reconstruct_command(args: argparse.Namespace) -> int:
     written; the output appears only complete (temporary file + rename).
     """
     from gradsep.model.channels import check_layout
-    from gradsep.model.frame import (
-        OIDN_SETTING_KEY,
-        FrameError,
-        encode_answer,
-        read_frame,
-        rgb_channels,
-        write_bytes_atomic,
-    )
+    from gradsep.model.errors import FrameError
+    from gradsep.model.exr_read import read_frame
+    from gradsep.model.exr_write import encode_answer, write_bytes_atomic
+    from gradsep.model.frame import rgb_channels
+    from gradsep.model.header_keys import OIDN_SETTING_KEY
     from gradsep.model.reconstruct import reconstruct
 
     output = Path(args.output)

@@ -16,7 +16,7 @@ What the network sees (channel order in model.network.DATA_INPUTS / GRADIENT_INP
 * albedo as is (clipped to [0, 1], the contract's range), normal·0.5 + 0.5 (in [0, 1]), depth clamped to
   [0, DEPTH_MAX] and min-max normalised per frame to [0, 1];
 * non-finite values anywhere → 0 (features always, as the paper does; radiance here too, so a caller that
-  bypassed model.frame's policy still gets finite output).
+  bypassed model.exr_read's policy still gets finite output).
 
 The network predicts C(I) of the reconstruction; ``TRANSFER.inverse`` maps it back, clamped to
 [0, RADIANCE_MAX] so the output is always finite and ≥ 0.

@@ -23,7 +23,8 @@ from starlette.responses import Response
 
 from gradsep.model import methods as table
 from gradsep.model.channels import DEFAULT_LAYOUT, LAYOUT_CHOICES, LAYOUT_PATTERN
-from gradsep.model.frame import HeaderInfo, NotExrError, Source, read_header
+from gradsep.model.errors import NotExrError
+from gradsep.model.exr_read import HeaderInfo, Source, read_header
 from gradsep.model.poisson import MIN_ALPHA
 from gradsep.service.dependencies import get_engine, get_metrics
 from gradsep.service.errors import ErrorResponse, ServiceError

@@ -1,4 +1,4 @@
-"""Channel layouts (model/channels.py) and what an answer carries over (model.frame.encode_answer), through
+"""Channel layouts (model/channels.py) and what an answer carries over (model.exr_write.encode_answer), through
 ``read_frame`` and ``gradsep reconstruct``: frames from other renderers, alpha, header metadata, warnings."""
 
 from __future__ import annotations
@@ -12,14 +12,10 @@ import pytest
 
 from gradsep.cli import main
 from gradsep.model.channels import LAYOUT_CHOICES, candidates, check_layout, map_channels
-from gradsep.model.frame import (
-    ChannelError,
-    encode_answer,
-    encode_exr,
-    read_frame,
-    rgb_channels,
-    write_exr,
-)
+from gradsep.model.errors import ChannelError
+from gradsep.model.exr_read import read_frame
+from gradsep.model.exr_write import encode_answer, encode_exr, write_exr
+from gradsep.model.frame import rgb_channels
 from tests.service.frames import frame_channels
 
 H, W = 12, 16
@@ -217,7 +213,7 @@ def test_write_exr_keeps_a_frames_image_attributes(tmp_path: Path) -> None:
 
 def test_malformed_image_attributes_are_dropped_not_written() -> None:
     """Values from an untrusted header are checked before they are copied: writing them back cannot fail."""
-    from gradsep.model.frame import _image_attributes
+    from gradsep.model.exr_read import _image_attributes
 
     header = {"displayWindow": (np.array([50, 50], np.int32), np.array([0, 0], np.int32)),  # inverted
               "pixelAspectRatio": float("nan"), "screenWindowWidth": "wide", "chromaticities": (0.6, 0.3),

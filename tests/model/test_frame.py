@@ -8,26 +8,18 @@ import numpy as np
 import OpenEXR
 import pytest
 
+from gradsep.model.errors import ChannelError, FrameTooLargeError, NonFiniteError, NotExrError, UnsupportedExrError
+from gradsep.model.exr_read import ReadLimits, read_frame, read_header
+from gradsep.model.exr_write import encode_exr, write_exr, write_frame
 from gradsep.model.frame import (
     FEATURE_CHANNELS,
     VARIANCE_MAX,
-    ChannelError,
     Features,
     Frame,
-    FrameTooLargeError,
     Layer,
-    NonFiniteError,
-    NotExrError,
-    ReadLimits,
-    UnsupportedExrError,
-    encode_exr,
     forward_differences,
     frame_channels,
     layer_channels,
-    read_frame,
-    read_header,
-    write_exr,
-    write_frame,
 )
 
 
@@ -127,6 +119,26 @@ def test_alpha_is_read_and_written_back() -> None:
     assert frame.warnings == [] and frame.layout == "gradsep"
     np.testing.assert_array_equal(frame.alpha, channels["A"])
     np.testing.assert_array_equal(frame.to_channels()["A"], channels["A"])
+
+
+@pytest.mark.parametrize("nonfinite", ["reject", "zero"])
+def test_nonfinite_alpha_becomes_0_and_the_warning_counts_it(nonfinite: str) -> None:
+    """Alpha is not radiance, so no policy rejects it, but every value replaced is reported: three bad values
+    (NaN, +Inf, -Inf) become 0, one warning names the channel and the count, and the other values are kept."""
+    channels = make_frame().to_channels()
+    alpha = np.full_like(channels["depth.Z"], 0.5)
+    alpha[0, 0], alpha[1, 2], alpha[-1, -1] = np.nan, np.inf, -np.inf
+    channels["A"] = alpha
+    frame = read_frame(encode_exr(channels), nonfinite=nonfinite)
+    assert frame.alpha[0, 0] == frame.alpha[1, 2] == frame.alpha[-1, -1] == 0
+    assert np.count_nonzero(frame.alpha == 0.5) == alpha.size - 3
+    assert [w for w in frame.warnings if "alpha" in w] == ["replaced non-finite alpha values with 0 in A (3)"]
+
+
+def test_a_finite_alpha_reads_without_a_warning() -> None:
+    channels = make_frame().to_channels()
+    channels["A"] = np.zeros_like(channels["depth.Z"])
+    assert read_frame(encode_exr(channels)).warnings == []
 
 
 # -- channel validation names every problem --------------------------------------------------------------------
@@ -309,7 +321,7 @@ def test_write_is_atomic(tmp_path, monkeypatch) -> None:
     def boom(*args, **kwargs):
         raise OSError("disk full")
 
-    monkeypatch.setattr("gradsep.model.frame.os.replace", boom)
+    monkeypatch.setattr("gradsep.model.exr_write.os.replace", boom)
     with pytest.raises(OSError):
         write_exr(target, {"R": np.zeros((2, 2), np.float32)})
     assert target.read_bytes() == b"previous"

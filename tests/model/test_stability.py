@@ -27,7 +27,9 @@ import OpenEXR
 import pytest
 
 from gradsep.model import methods as table
-from gradsep.model.frame import Features, Frame, Layer, NonFiniteError, forward_differences, layer_channels, read_frame
+from gradsep.model.errors import NonFiniteError
+from gradsep.model.exr_read import read_frame
+from gradsep.model.frame import Features, Frame, Layer, forward_differences, layer_channels
 from gradsep.model.poisson import MIN_ALPHA, energy_l1, solve_l1, solve_l2
 from gradsep.model.reconstruct import reconstruct
 from tests.model.shipped import models_for
@@ -355,7 +357,7 @@ def test_a_failing_backend_is_flagged_not_silently_zeroed(method: str, everywher
 def test_cli_reports_a_failing_solver_in_stderr_and_metadata(tmp_path: Path, monkeypatch, capsys) -> None:
     """The command line must surface the replacement too: a warning line and the output's gradsep.warnings."""
     from gradsep.cli import main
-    from gradsep.model.frame import write_frame
+    from gradsep.model.exr_write import write_frame
 
     frame, _ = _exact_frame(8, 9, scale=1.0)
     write_frame(tmp_path / "in.exr", frame)
