@@ -29,7 +29,7 @@ from typing import Any, BinaryIO, Literal
 import numpy as np
 import OpenEXR
 
-from gradsep.model.channels import DEFAULT_LAYOUT, ChannelMap, LayoutError, map_channels
+from gradsep.model.channels import DEFAULT_LAYOUT, ChannelMap, LayoutError, expected_text, map_channels
 from gradsep.model.errors import (
     ChannelError,
     FrameTooLargeError,
@@ -340,8 +340,7 @@ def validate_channels(names: Iterable[str]) -> tuple[list[str], tuple[str, ...],
         problems.append(f"missing channels {', '.join(missing)}")
         details["missing"] = missing
     if not layers:
-        problems.append("no illumination layer (expected direct.*, indirect.* or color.* channels, a top-level "
-                        "R G B beauty pass, or a Cycles multilayer VIEWLAYER.Combined.R ...; see model/channels.py)")
+        problems.append(f"no illumination layer (expected {expected_text()}; see model/channels.py)")
         details["expected_layers"] = list(ILLUMINATION_LAYERS)
     if "color" in layers and any(layer in layers for layer in SEPARATED_LAYERS):
         problems.append("a frame carries either color.* (unseparated) or direct.*/indirect.* layers, not both")
