@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from gradsep.model.poisson import solve_l1
+from gradsep.model.poisson import L1Options, solve_l1
 from gradsep.model.policy import DEFAULT_ALPHA
 from gradsep.model.robust import robust_level
 
@@ -255,11 +255,15 @@ def _band_ramp(y0: int, y1: int, height: int, overlap: int) -> np.ndarray:
     return w[:, None, None]
 
 
+def prior_options() -> L1Options:
+    """The prior's IRLS settings, every one named: the models were trained on exactly this solve, whatever the
+    ``l1`` method's defaults (model.poisson.L1Options)."""
+    return L1Options(iterations=PRIOR_IRLS_PASSES, cg_iterations=PRIOR_CG_STEPS, cg_tolerance=PRIOR_CG_TOLERANCE,
+                     reg_init=PRIOR_REG_INIT, reg_decay=PRIOR_REG_DECAY, preconditioner=PRIOR_PRECONDITIONER)
+
+
 def _solve_prior(base: np.ndarray, dx: np.ndarray, dy: np.ndarray) -> np.ndarray:
-    # every solver setting named: the models were trained on exactly this solve, whatever the l1 method's defaults
-    prior, _ = solve_l1(base, dx, dy, PRIOR_ALPHA, iterations=PRIOR_IRLS_PASSES, cg_iterations=PRIOR_CG_STEPS,
-                        reg_init=PRIOR_REG_INIT, reg_decay=PRIOR_REG_DECAY, cg_tolerance=PRIOR_CG_TOLERANCE,
-                        preconditioner=PRIOR_PRECONDITIONER)
+    prior, _ = solve_l1(base, dx, dy, PRIOR_ALPHA, prior_options())
     return _sanitise_inplace(prior, 0.0, RADIANCE_MAX)
 
 
