@@ -181,7 +181,7 @@ class Denoiser:
     """One OIDN device and its three filters (albedo prefilter, normal prefilter, HDR colour), run as ``setting``.
 
     Thread-safe: calls are serialised by a lock (OIDN already uses every core for one image, so running two
-    images at once would not be faster on the 2-core target). Create one per process and reuse it: the device
+    images at once would not be faster on the target's few cores). Create one per process and reuse it: the device
     and the filters' weights are set up once.
     """
 

@@ -13,6 +13,7 @@ from gradsep.model.exr_read import read_frame  # noqa: E402
 from gradsep.model.exr_write import write_frame  # noqa: E402
 from gradsep.model.frame import Features, Frame, Layer  # noqa: E402
 from gradsep.model.oidn import MIN_SIDE, SETTINGS, Denoiser, exposure_scale, input_scale, shared_denoiser  # noqa: E402
+from gradsep.model.oidn import method_setting as oidn_method_setting  # noqa: E402
 from gradsep.model.reconstruct import available_methods, choose_method, reconstruct  # noqa: E402
 from gradsep.model.robust import lit_level  # noqa: E402
 
@@ -232,7 +233,6 @@ def test_the_lit_exposure_sets_the_lit_part_to_oidns_key_however_much_black_surr
         assert exposure_scale(image, "level") == input_scale(image)
     assert exposure_scale(padded) == pytest.approx(exposure_scale(patch), rel=1e-9)
     assert exposure_scale(padded, "level") > 20 * exposure_scale(patch, "level")  # the black dilutes its level
-    assert SETTINGS["raw-fast"].exposure == "lit" and SETTINGS["raw-fast-level"].exposure == "level"
     seen: list[float] = []
     denoiser = Denoiser("raw-fast")
     real_run = denoiser._run
@@ -242,13 +242,23 @@ def test_the_lit_exposure_sets_the_lit_part_to_oidns_key_however_much_black_surr
     assert seen == [pytest.approx(exposure_scale(padded))]
 
 
-def test_fused_models_keep_the_exposure_they_were_trained_on() -> None:
-    """The blend models' OIDN candidate runs the ``level`` exposure; a model written before settings named their
-    exposure (``raw-fast``) reads as that setting, so the shipped models stay valid."""
+def test_the_fused_candidates_denoise_at_the_exposure_they_were_trained_on(monkeypatch) -> None:
+    """The blend models were trained on OIDN's image at the ``level`` exposure (the robust level over the whole
+    frame at 1): their candidates' denoiser gives OIDN exactly that scale, where the ``oidn`` method's gives the
+    lit part's."""
     from gradsep.model import fused
 
-    assert SETTINGS[fused.OIDN_SETTING].exposure == "level"
-    assert fused.LEGACY_SETTING_NAMES["raw-fast"] == fused.OIDN_SETTING
+    rng = np.random.default_rng(6)
+    padded = np.zeros((96, 96, 3), np.float32)
+    padded[32:64, 40:72] = 0.5 + rng.random((32, 32, 3))
+    for name, want in ((fused.OIDN_SETTING, input_scale(padded)), (oidn_method_setting(), exposure_scale(padded))):
+        seen: list[float] = []
+        denoiser = Denoiser(name)
+        real_run = denoiser._run
+        monkeypatch.setattr(denoiser, "_run", lambda purpose, images, output, flags, scale=None, d=real_run, s=seen: (
+            s.append(scale), d(purpose, images, output, flags, scale))[1])
+        denoiser.denoise(padded, None)
+        assert seen == [pytest.approx(want)], name
 
 
 def test_pyoidn_is_imported_without_torch_and_torch_stays_importable():
