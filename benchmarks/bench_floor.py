@@ -50,7 +50,7 @@ def parse_targets(text: str) -> dict[str, float]:
 
 def measure(source: bytes, method: str, repeats: int, models: Any) -> dict[str, float]:
     """Median wall and process-CPU seconds of run_pipeline(method) over ``repeats`` runs after one warm-up."""
-    from gradsep.model.frame import ReadLimits, read_header
+    from gradsep.model.exr_read import ReadLimits, read_header
     from gradsep.model.policy import DEFAULT_ALPHA
     from gradsep.service.inference import ReconstructParams, run_pipeline
 
@@ -83,7 +83,8 @@ def report(rows: dict[str, dict[str, float]], cores: int, targets: dict[str, flo
 
 
 def main() -> None:
-    from gradsep.model.frame import configure_exr_threads, read_frame
+    from gradsep.model.exr_read import read_frame
+    from gradsep.model.exr_write import configure_exr_threads
     from gradsep.model.reconstruct import available_methods
     from gradsep.model.synthetic import synthetic_frame
     from gradsep.service.inference import load_models

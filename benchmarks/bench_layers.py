@@ -21,7 +21,7 @@ import time
 import numpy as np
 
 from gradsep.model import methods as table
-from gradsep.model.frame import read_frame
+from gradsep.model.exr_read import read_frame
 from gradsep.model.reconstruct import LAYER_THREADS_ENV, available_methods, reconstruct
 from gradsep.model.synthetic import synthetic_frame
 

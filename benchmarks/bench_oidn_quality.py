@@ -72,7 +72,7 @@ def relmse(frame: object, method: str, setting: str, refs: tuple[object, object]
 
 
 def main() -> int:
-    from gradsep.model.frame import read_frame
+    from gradsep.model.exr_read import read_frame
     from gradsep.renderer.reference import load_reference
     from gradsep.renderer.render import has_light_in_view
 

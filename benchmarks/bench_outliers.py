@@ -20,7 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from gradsep.model.frame import Frame, Layer, read_frame
+from gradsep.model.exr_read import read_frame
+from gradsep.model.frame import Frame, Layer
 from gradsep.model.methods import LoadedModels
 from gradsep.model.reconstruct import load_fused, load_network, reconstruct
 from gradsep.model.robust import far_agreement

@@ -234,7 +234,7 @@ def timing(args: argparse.Namespace) -> None:
 
 
 def header(path: Path) -> dict[str, str]:
-    from gradsep.model.frame import read_frame
+    from gradsep.model.exr_read import read_frame
 
     return dict(read_frame(path).metadata)
 
@@ -264,7 +264,7 @@ def measurement(frame_path: Path, refs: tuple[Path, Path], block: int = 16) -> d
     squares (a denoiser's error is correlated within its footprint) is the measurement's standard error."""
     import numpy as np
 
-    from gradsep.model.frame import read_frame
+    from gradsep.model.exr_read import read_frame
     from gradsep.model.metrics import RELMSE_EPSILON, reference_floor
     from gradsep.model.reconstruct import reconstruct
     from gradsep.renderer.reference import load_reference
@@ -644,7 +644,7 @@ def choose(args: argparse.Namespace) -> None:
     rendered with ``--plan`` to ``--spp`` samples in ~24 passes dealt into the check's groups, its halves compared
     with raw-fast and prefiltered-high, then the whole frame reconstructed with both and scored against two
     references. In one process, at a fixed sample count (the choice, not the budget, is measured here)."""
-    from gradsep.model.frame import OIDN_SETTING_KEY
+    from gradsep.model.header_keys import OIDN_SETTING_KEY
     from gradsep.model.metrics import relmse_unbiased
     from gradsep.model.reconstruct import reconstruct
     from gradsep.renderer.check import check_frame
@@ -706,7 +706,7 @@ def choose(args: argparse.Namespace) -> None:
 def _setting_choice(frame_path: Path, refs: tuple[Path, Path]) -> dict:
     """The frame's RelMSE with each OIDN setting its check compared (``$GRADSEP_OIDN_SETTING`` forcing each), the
     setting it is served with, and the fixed rule's (the check's first option): {} where it compared none."""
-    from gradsep.model.frame import CHECK_KEY, OIDN_SETTING_KEY
+    from gradsep.model.header_keys import CHECK_KEY, OIDN_SETTING_KEY
     from gradsep.model.oidn import METHOD_SETTING, SETTING_ENV
 
     meta = header(frame_path)

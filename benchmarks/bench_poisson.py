@@ -33,7 +33,7 @@ import scipy
 
 from gradsep.model.frame import forward_differences
 from gradsep.model.metrics import relmse
-from gradsep.model.poisson import L1_CG_STEPS, L1_PASSES, energy_l1, solve_l1, solve_l2
+from gradsep.model.poisson import L1_CG_STEPS, L1_PASSES, L1Options, energy_l1, solve_l1, solve_l2
 from gradsep.model.policy import DEFAULT_ALPHA
 
 LAYERS = {"direct": 0.3, "indirect": 0.8, "color": 0.5}  # layer -> relative noise level
@@ -98,8 +98,8 @@ def run_once(config: dict, layer: SyntheticLayer, alpha: float) -> tuple[np.ndar
     if config["solver"] == "l2":
         image, cg = solve_l2(layer.base, layer.dx, layer.dy, alpha), 0
     else:
-        options = {k: v for k, v in config.items() if k != "solver"}
-        image, stats = solve_l1(layer.base, layer.dx, layer.dy, alpha, **options)
+        options = L1Options(**{k: v for k, v in config.items() if k != "solver"})
+        image, stats = solve_l1(layer.base, layer.dx, layer.dy, alpha, options)
         cg = stats.total_cg_iterations
     return image, time.perf_counter() - start, cg
 

@@ -45,7 +45,9 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-from gradsep.model.frame import LOSSLESS_COMPRESSIONS, configure_exr_threads, encode_exr, read_frame, rgb_channels
+from gradsep.model.exr_read import read_frame
+from gradsep.model.exr_write import LOSSLESS_COMPRESSIONS, configure_exr_threads, encode_exr
+from gradsep.model.frame import rgb_channels
 from gradsep.model.synthetic import synthetic_frame
 from gradsep.service.client import upload_body
 

@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from gradsep.model.frame import write_bytes_atomic
+from gradsep.model.exr_write import write_bytes_atomic
 
 __all__ = ["EvalCache", "code_sha256", "default_cache_dir", "file_sha256", "key_hash", "slug", "sources_sha256"]
 

@@ -824,12 +824,11 @@ def split_features(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def denoise(color: np.ndarray, albedo: np.ndarray, normal: np.ndarray) -> np.ndarray:
     """Intel Open Image Denoise as model/oidn.py runs it for the ``oidn`` method (one definition): the RT filter
     on HDR input at the method's setting (model.oidn.method_setting: auxiliary images, quality), exact exposure
-    scaling, on OIDN's own library whatever ``$GRADSEP_OIDN_RUNTIME`` gives our methods: the baseline is OIDN as
-    its users run it."""
+    scaling."""
     from gradsep.model.frame import Features
     from gradsep.model.oidn import method_setting, shared_denoiser
 
-    denoiser = shared_denoiser(method_setting(), "library")  # the baseline is OIDN as its users run it
+    denoiser = shared_denoiser(method_setting())
     aux = denoiser.prefilter(Features(np.ascontiguousarray(albedo, np.float32),
                                       np.ascontiguousarray(normal, np.float32),
                                       np.zeros(color.shape[:2], np.float32)))
@@ -993,7 +992,7 @@ def _run_gpt_auto(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
     below the planner's start-up (CommandError: one pass and the reconstruction do not fit) renders 1 spp of the
     fallback plan regardless, recorded as such; a frame without a checkpoint records why, with no prediction."""
     from gradsep.model.errors import CommandError
-    from gradsep.model.frame import PLAN_METHOD_KEY, PREDICTED_FROM_KEY, PREDICTED_RELMSE_KEY
+    from gradsep.model.header_keys import PLAN_METHOD_KEY, PREDICTED_FROM_KEY, PREDICTED_RELMSE_KEY
     from gradsep.model.reconstruct import reconstruct
     from gradsep.renderer.budget import Deadline
     from gradsep.renderer.plan import fallback, plan_layers_text, render_planned

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from gradsep.evaluation.results import row_seconds
-from gradsep.model.frame import write_bytes_atomic
+from gradsep.model.exr_write import write_bytes_atomic
 from gradsep.model.metrics import tonemap
 
 __all__ = ["METHOD_STYLES", "exposure_for", "plot_crops", "plot_error_vs_time", "select_crop", "style_of"]

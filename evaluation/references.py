@@ -164,7 +164,7 @@ class ReferenceSource:
         memo = self._region_passes if stream == "region" else self._passes if stream == "pass" else None
         if memo is not None and index in memo:
             return memo[index]
-        from gradsep.model.frame import FrameError
+        from gradsep.model.errors import FrameError
         from gradsep.renderer.reference import load_reference, write_reference
 
         seed, tag, path = self._entry(index, stream)

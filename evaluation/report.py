@@ -30,7 +30,7 @@ from gradsep.evaluation.methods import ABLATION_VARIANTS, evaluated_methods
 from gradsep.evaluation.plots import plot_crops, plot_error_vs_time
 from gradsep.evaluation.references import REFERENCE_SAMPLER
 from gradsep.evaluation.results import machine_summary, row_seconds
-from gradsep.model.frame import write_bytes_atomic
+from gradsep.model.exr_write import write_bytes_atomic
 from gradsep.model.policy import DEFAULT_ALPHA, MODELS_ENV
 
 if TYPE_CHECKING:

@@ -208,7 +208,9 @@ class _Runner:
         render seconds and cache key hash (rendered when not cached). Both modes use the same seed, so the
         ``direct`` frame's direct layer is the ``all`` frame's and its indirect base the same primal.
         ``replica`` k > 0: the k-th extra frame of ``--frame-seeds``, rendered with its own seed."""
-        from gradsep.model.frame import FrameError, read_frame, write_frame
+        from gradsep.model.errors import FrameError
+        from gradsep.model.exr_read import read_frame
+        from gradsep.model.exr_write import write_frame
         from gradsep.renderer.render import render_frame
         from gradsep.renderer.shift import DEFAULT_SHIFT
 
@@ -477,7 +479,7 @@ def run_evaluation(config: EvalConfig, *, progress: bool | None = None,
 def _run_scene(runner: _Runner, entry: SceneEntry, loaded: Any, methods: list[MethodSpec],
                bar: ProgressBar) -> tuple[SceneRun, list[dict[str, Any]]]:
     """One scene: every method's output, then references raised until the floor criterion holds, then scores."""
-    from gradsep.model.frame import SEPARATED_LAYERS
+    from gradsep.model.policy import SEPARATED_LAYERS
     from gradsep.renderer.render import plan_layers
 
     config = runner.config
@@ -676,14 +678,13 @@ def _within_time(spp: int, wanted: int, seconds: float, budget: float, step: int
 
 
 def oidn_key() -> dict[str, str]:
-    """The OIDN choices the environment makes (``$GRADSEP_OIDN_SETTING``, ``$GRADSEP_OIDN_RUNTIME``), in every
-    method's cache key: they change the OIDN methods' images (and so every equal-time budget) without a code
-    change. Empty at the defaults, so results cached before these keys existed stay valid."""
-    from gradsep.model.oidn import METHOD_SETTING, method_setting, runtime_setting
+    """The OIDN choice the environment makes (``$GRADSEP_OIDN_SETTING``), in every method's cache key: it changes
+    the OIDN methods' images (and so every equal-time budget) without a code change. Empty at the default, so
+    results cached before this key existed stay valid."""
+    from gradsep.model.oidn import METHOD_SETTING, method_setting
 
-    setting, runtime = method_setting(), runtime_setting()
-    return {**({"oidn_setting": setting} if setting != METHOD_SETTING else {}),
-            **({"oidn_runtime": runtime} if runtime != "library" else {})}
+    setting = method_setting()
+    return {"oidn_setting": setting} if setting != METHOD_SETTING else {}
 
 
 def _evaluate_one(runner: _Runner, spec: MethodSpec, scene: SceneRun, spp: int, frame: Any, seconds: float,

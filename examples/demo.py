@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gradsep.model.frame import read_frame
+from gradsep.model.exr_read import read_frame
 from gradsep.model.methods import LoadedModels
 from gradsep.model.methods import names as method_names
 from gradsep.model.metrics import psnr, relmse

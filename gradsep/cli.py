@@ -61,7 +61,8 @@ def build_parser(modules: Sequence[str] | None = None) -> argparse.ArgumentParse
 
 def main(argv: Sequence[str] | None = None) -> int:
     from gradsep.model.allocator import configure_malloc
-    from gradsep.model.frame import FrameError, configure_exr_threads  # numpy + OpenEXR: not for the parser
+    from gradsep.model.errors import FrameError  # numpy + OpenEXR: not for the parser
+    from gradsep.model.exr_write import configure_exr_threads
 
     parser = build_parser()
     args = parser.parse_args(argv)

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 import gradsep.model.methods as table
-from gradsep.model.channels import DEFAULT_LAYOUT, LAYOUT_CHOICES
+from gradsep.model.channels import DEFAULT_LAYOUT, choices_text, layouts_text
 from gradsep.model.errors import CommandError
 from gradsep.model.policy import DEFAULT_ALPHA, MODELS_ENV, models_dir_from
 
@@ -33,9 +33,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--nonfinite", choices=("reject", "zero"), default="reject",
                    help="policy for NaN/Inf radiance or gradients (features are always zeroed)")
     p.add_argument("--channels", default=DEFAULT_LAYOUT, metavar="LAYOUT",
-                   help="channel layout of the input: " + ", ".join(LAYOUT_CHOICES) + " or cycles:VIEWLAYER "
-                        "(auto: the one layout the file matches; gradsep's own, a top-level R G B [A] beauty with "
-                        "Mitsuba aov features, or a Blender Cycles multilayer EXR)")
+                   help=f"channel layout of the input: {choices_text()} (auto: the one layout the file matches; "
+                        f"{layouts_text()})")
     p.set_defaults(func=reconstruct_command)
 
 
@@ -73,14 +72,11 @@ def reconstruct_command(args: argparse.Namespace) -> int:
     written; the output appears only complete (temporary file + rename).
     """
     from gradsep.model.channels import check_layout
-    from gradsep.model.frame import (
-        OIDN_SETTING_KEY,
-        FrameError,
-        encode_answer,
-        read_frame,
-        rgb_channels,
-        write_bytes_atomic,
-    )
+    from gradsep.model.errors import FrameError
+    from gradsep.model.exr_read import read_frame
+    from gradsep.model.exr_write import encode_answer, write_bytes_atomic
+    from gradsep.model.frame import rgb_channels
+    from gradsep.model.header_keys import OIDN_SETTING_KEY
     from gradsep.model.reconstruct import reconstruct
 
     output = Path(args.output)

@@ -371,7 +371,8 @@ def exposure_scale(layer: Layer) -> float:
 
 def _check_inputs(layer: Layer, features: Features | None) -> tuple[int, int]:
     """(H, W) of a consistent layer + features; ChannelError naming the channels otherwise."""
-    from gradsep.model.frame import FEATURE_CHANNELS, ChannelError
+    from gradsep.model.errors import ChannelError
+    from gradsep.model.frame import FEATURE_CHANNELS
 
     if features is None:
         raise ChannelError("the network needs the feature channels, which this frame lacks: "

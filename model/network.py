@@ -38,10 +38,10 @@ __all__ = ["DATA_INPUTS", "FEATURE_INPUTS", "GRADIENT_INPUTS", "OUTPUTS", "DualB
 class NetworkConfig:
     """Width and depth of the network; serialised into config.json and the ONNX metadata.
 
-    Defaults: GradNet's layout (3 stages, 4 residual blocks) at half its width. GradNet's own 32/64/128 widths
-    cost ~120 GMAC per 1280×720 layer, about 1 s per layer in ONNX Runtime on the 2-core target machine, which
-    leaves no room for two layers in 2 s; 16/32/64 is ~30 GMAC, ~0.45 s per layer (benchmarks/bench_network.py,
-    docs/network.md), and a smaller network also takes more training steps in a CPU-hour.
+    Defaults: GradNet's layout (3 stages, 4 residual blocks) at half its width: GradNet's own widths cost four
+    times the multiply-adds (:func:`describe` counts them), which leaves no room for two layers in the service's
+    latency target on the target machine (benchmarks/bench_network.py, docs/network.md), and a smaller network
+    also takes more training steps in a CPU-hour.
     """
 
     width: int = 16                 # channels after the first Down; doubled per stage

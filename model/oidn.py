@@ -2,19 +2,18 @@
 
 OIDN's ``RT`` filter is a pretrained, feature-guided denoiser: it sees one noisy HDR image plus (optionally) the
 albedo and normal of the first visible surface. It is used per illumination layer: the direct and the indirect
-layer are denoised apart, then summed. Each layer's noise is more uniform than the mix. On held-out rooms,
-denoising their sum instead is 1.07-1.22× the RelMSE (geometric means at 16, 64 and 256 spp). On studios, small
-objects on black, the sum is 0.81-0.84× at 64 spp and above, but it ranges from 0.14× to 3.9× by frame, so no fixed
-rule wins (benchmarks/bench_oidn_quality.py --sum).
+layer are denoised apart, then summed, because each layer's noise is more uniform than the mix (docs/decisions.md
+has the comparison with denoising the sum).
 
 How OIDN is run is a :class:`Setting` (docs/oidn.md): the auxiliary images (``prefiltered``: albedo and normal
 denoised once per frame by their own filters, OIDN's recipe for noisy features, then ``cleanAux``, which at
 quality ``high`` selects OIDN's large model; ``raw``: the frame's own noisy features, OIDN's default mode, no
-prefilter; ``none``) and the colour filter's quality preset. The ``oidn`` method's setting, :data:`METHOD_SETTING`,
-was chosen by an error-against-time study to fit the service's latency target (docs/decisions.md, "OIDN's setting
-for the oidn method"), and is selectable with ``$GRADSEP_OIDN_SETTING``; the ``fused`` blend models name the
-setting they were trained with (model/fused.py ``OIDN_SETTING``). The auxiliary images are prepared once per frame
-and reused for every layer.
+prefilter), the colour filter's quality preset and the exposure. :data:`SETTINGS` holds the settings something
+runs: the ``oidn`` method's (:data:`METHOD_SETTING`, chosen by an error-against-time study to fit the service's
+latency target: docs/decisions.md, "OIDN's setting for the oidn method"), the one a ``--seconds`` render may ask
+for in its header, and the one the ``fused`` blend models were trained with (model/fused.py ``OIDN_SETTING``).
+``$GRADSEP_OIDN_SETTING`` selects one of them for the ``oidn`` method. The auxiliary images are prepared once per
+frame and reused for every layer.
 
 Numerics: inputs are sanitised (NaN → 0, ±Inf → the largest finite float32 / 0, radiance clamped ≥ 0), and the
 colour filter is given an explicit ``inputScale`` (the setting's *exposure*, :func:`exposure_scale`): by default
@@ -38,27 +37,25 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from gradsep.model.frame import OIDN_SETTING_KEY
+from gradsep.model.header_keys import OIDN_SETTING_KEY
 from gradsep.model.robust import lit_level, robust_level
 
 if TYPE_CHECKING:
     from gradsep.model.frame import Features
 
-#: The albedo/normal prefilter's quality: "fast" (its output scored the same as "high" to 5 digits on 16 dataset
-#: frames).
+#: The albedo/normal prefilter's quality preset (it scored as ``high`` does: docs/decisions.md).
 AUX_QUALITY = "fast"
 _F32_MAX = float(np.finfo(np.float32).max)
 #: The exposure the colour filter sees (``Setting.exposure``): ``lit`` scales the layer so that the mean luminance of
-#: its lit part (model.robust.lit_level) is OIDN's autoexposure key, 0.18; ``level`` (before 2026-12, kept for the
-#: ``fused`` blend models trained on it) scales it so that its robust level over the whole frame is 1. On held-out
-#: frames ``lit`` is 0.51-0.83x the RelMSE on small objects on black and 0.82-0.96x on rooms (``oidn-l1`` at 16 spp:
-#: 1.014x) (docs/decisions.md, "OIDN's exposure"; benchmarks/bench_oidn_quality.py).
+#: its lit part (model.robust.lit_level) is OIDN's autoexposure key, 0.18; ``level`` (kept for the ``fused`` blend
+#: models trained on it) scales it so that its robust level over the whole frame is 1 (docs/decisions.md, "OIDN's
+#: exposure").
 EXPOSURES: dict[str, float] = {"lit": 0.18, "level": 1.0}
 DEFAULT_EXPOSURE = "lit"
-#: OIDN's U-Net loses energy on images a few pixels across (a constant 1×1 image comes back at 23 %, 2×2 at
-#: 92 %, measured): smaller images are mirror-padded to this many pixels per side and cropped back, and their
-#: colour output is rescaled per channel to the input's mean (a coloured 1×1 pixel still moved by 5-16 % after
-#: padding: with no neighbours there is nothing to denoise it with, and the frame's energy is what is kept).
+#: OIDN's U-Net loses energy on images a few pixels across: smaller images are mirror-padded to this many pixels per
+#: side and cropped back, and their colour output is rescaled per channel to the input's mean (padding alone still
+#: moves a coloured 1×1 pixel: with no neighbours there is nothing to denoise it with, and the frame's energy is
+#: what is kept).
 MIN_SIDE = 16
 
 
@@ -71,10 +68,10 @@ def available() -> bool:
 class Setting:
     """How OIDN is run: which auxiliary images the colour filter gets and at which quality preset.
 
-    ``aux``: ``prefiltered`` (albedo and normal denoised once per frame by their own filters, then ``cleanAux``),
-    ``raw`` (the frame's noisy albedo and normal passed as they are: OIDN's default mode, no prefilter) or
-    ``none`` (colour only). ``quality``: the colour filter's preset (high, balanced, fast). OIDN's ``high`` preset
-    with ``cleanAux`` runs its large model, about 2.4x the cost of the same call on raw features (docs/oidn.md).
+    ``aux``: ``prefiltered`` (albedo and normal denoised once per frame by their own filters, then ``cleanAux``)
+    or ``raw`` (the frame's noisy albedo and normal passed as they are: OIDN's default mode, no prefilter).
+    ``quality``: the colour filter's preset (``high`` or ``fast``). OIDN's ``high`` preset with ``cleanAux`` runs its
+    large model, several times the cost of the same call on raw features (docs/oidn.md).
     """
 
     aux: str
@@ -88,38 +85,21 @@ class Setting:
         return f"{self.aux}-{self.quality}{suffix}"
 
 
-#: Every setting (docs/oidn.md), by name (``raw-fast``, ``prefiltered-high``, ...; ``raw-fast-level`` with the
-#: ``level`` exposure).
-SETTINGS: dict[str, Setting] = {s.name: s for s in (Setting(a, q, exposure=e) for e in EXPOSURES
-                                                    for a in ("prefiltered", "raw", "none")
-                                                    for q in ("high", "balanced", "fast"))}
-#: The ``oidn`` method's setting (and so the served default's and the evaluation's OIDN baselines'): chosen
-#: by error against time on held-out frames (docs/oidn.md); ``$GRADSEP_OIDN_SETTING`` selects another one.
+#: The settings something runs, by name (``<aux>-<quality>``, ``-level`` for the ``level`` exposure): the ``oidn``
+#: method's (and so the served default's and the evaluation's OIDN baselines'), the one a ``--seconds`` render may
+#: ask for in its header (renderer.render.FARM_OIDN_SETTING), and the ``fused`` candidates' (model.fused.OIDN_SETTING).
+SETTINGS: dict[str, Setting] = {s.name: s for s in (Setting("raw", "fast"), Setting("prefiltered", "high"),
+                                                    Setting("raw", "fast", exposure="level"))}
+#: The ``oidn`` method's setting: chosen by error against time on held-out frames (docs/oidn.md);
+#: ``$GRADSEP_OIDN_SETTING`` selects another one of :data:`SETTINGS`.
 METHOD_SETTING = "raw-fast"
 SETTING_ENV = "GRADSEP_OIDN_SETTING"
-
-
-#: Which code runs the colour filter's U-Net (``$GRADSEP_OIDN_RUNTIME``): ``library`` (pyoidn's own CPU kernels,
-#: the default) or ``onnx`` (the same weights on ONNX Runtime, model/oidn_onnx.py, on the provider
-#: ``$GRADSEP_ONNX_PROVIDER`` selects for the networks; on a bf16 CPU in bf16 with the full-resolution level in
-#: fp32). Measured on held-out frames (docs/oidn.md, "Runtime"): 1.34x faster per layer, +0.7 % RelMSE for
-#: ``oidn``, but +1.2-1.3 % (worst frames +5-6 %) and a higher latency for ``oidn-l1`` and ``fused``: opt-in.
-RUNTIMES = ("library", "onnx")
-RUNTIME_ENV = "GRADSEP_OIDN_RUNTIME"
-
-
-def runtime_setting() -> str:
-    """``$GRADSEP_OIDN_RUNTIME`` (default ``library``), checked against :data:`RUNTIMES`."""
-    name = os.environ.get(RUNTIME_ENV, "").strip().lower() or "library"
-    if name not in RUNTIMES:
-        raise ValueError(f"${RUNTIME_ENV}={name!r} is not an OIDN runtime; use one of {', '.join(RUNTIMES)}")
-    return name
 
 
 def frame_setting(metadata: dict[str, str]) -> tuple[str, str | None]:
     """(the setting the ``oidn`` method runs for a frame with header ``metadata``, a warning or None):
     ``$GRADSEP_OIDN_SETTING`` when set (the operator's choice wins), else the setting the frame's render plan asked
-    for (model.frame.OIDN_SETTING_KEY, renderer.render.reconstruction_setting) when it names one, else
+    for (model.header_keys.OIDN_SETTING_KEY, renderer.render.reconstruction_setting) when it names one, else
     :data:`METHOD_SETTING`. A header naming no setting is ignored with a warning, never an error."""
     if os.environ.get(SETTING_ENV, "").strip():
         return method_setting(), None
@@ -179,9 +159,10 @@ _import_lock = threading.Lock()
 
 def import_pyoidn() -> Any:
     """``import pyoidn`` without the PyTorch it would import for its optional tensor interface, which gradsep never
-    uses (it passes numpy arrays): importing torch takes 1-2 s of a render budget (`gradsep render --seconds`
-    reconstructs in its pilot) and of a service's start. Where torch is already imported, nothing changes; where
-    it is not, pyoidn sees it as unavailable (its numpy interface is unaffected) and torch stays importable."""
+    uses (it passes numpy arrays): importing torch would spend seconds of a render budget (`gradsep render
+    --seconds` reconstructs in its pilot) and of a service's start. Where torch is already imported, nothing
+    changes; where it is not, pyoidn sees it as unavailable (its numpy interface is unaffected) and torch stays
+    importable."""
     if "pyoidn" in sys.modules or "torch" in sys.modules:
         import pyoidn
 
@@ -200,11 +181,11 @@ class Denoiser:
     """One OIDN device and its three filters (albedo prefilter, normal prefilter, HDR colour), run as ``setting``.
 
     Thread-safe: calls are serialised by a lock (OIDN already uses every core for one image, so running two
-    images at once would not be faster on the 2-core target). Create one per process and reuse it: the device
+    images at once would not be faster on the target's few cores). Create one per process and reuse it: the device
     and the filters' weights are set up once.
     """
 
-    def __init__(self, setting: Setting | str = METHOD_SETTING, runtime: str | None = None) -> None:
+    def __init__(self, setting: Setting | str = METHOD_SETTING) -> None:
         pyoidn = import_pyoidn()
 
         if isinstance(setting, str):
@@ -215,8 +196,7 @@ class Denoiser:
         quality, aux_quality = setting.quality, setting.aux_quality
 
         self._oidn = pyoidn
-        presets = {"high": pyoidn.OIDN_QUALITY_HIGH, "balanced": pyoidn.OIDN_QUALITY_BALANCED,
-                   "fast": pyoidn.OIDN_QUALITY_FAST}
+        presets = {"high": pyoidn.OIDN_QUALITY_HIGH, "fast": pyoidn.OIDN_QUALITY_FAST}
         self._quality = {"color": presets[quality], "albedo": presets[aux_quality], "normal": presets[aux_quality]}
         self.quality, self.aux_quality = quality, aux_quality
         self._lock = threading.Lock()
@@ -224,8 +204,6 @@ class Denoiser:
         self._device.commit()
         self._check("device creation")
         self._filters: dict[str, Any] = {}
-        self.runtime, self.runtime_reason, unet = _colour_runtime(setting, runtime or runtime_setting())
-        self._unets: dict[str, Any] = {} if unet is None else {unet.model: unet}
 
     # ------------------------------------------------------------------------------------------- plumbing
 
@@ -252,11 +230,6 @@ class Denoiser:
             big = self._run(purpose, padded, np.empty_like(next(iter(padded.values()))), flags, scale)
             output[...] = big[:height, :width]
             return output
-        unet = self._unet(images, flags) if purpose == "color" else None
-        if unet is not None:
-            output[...] = unet.denoise(images["color"], images.get("albedo"), images.get("normal"),
-                                       1.0 if scale is None else scale)
-            return output
         fmt = self._oidn.OIDN_FORMAT_FLOAT3
         flt = self._filter(purpose)
         for name in ("color", "albedo", "normal"):
@@ -276,26 +249,12 @@ class Denoiser:
         self._check(f"{purpose} filter execution")
         return output
 
-    def _unet(self, images: dict[str, np.ndarray], flags: dict[str, bool]) -> Any:
-        """The onnx runtime's U-Net for this call's inputs (raw albedo + normal, or colour only), or None when
-        the library runs it (library runtime; clean auxiliary images, which select a model not built here)."""
-        if self.runtime != "onnx" or flags.get("cleanAux"):
-            return None
-        from gradsep.model.oidn_onnx import OnnxUNet, weights_for
-
-        model = weights_for("raw" if "albedo" in images else "none", self.quality)
-        if model is not None and model not in self._unets:
-            self._unets[model] = OnnxUNet(model)  # under the caller's lock
-        return self._unets.get(model) if model is not None else None
-
     # ----------------------------------------------------------------------------------------------- API
 
     def prefilter(self, features: Features) -> CleanAux | None:
         """The frame's auxiliary images for every layer's colour filter, computed once per frame: albedo and
-        normal denoised (setting ``prefiltered``, OIDN's recipe for noisy auxiliary images), sanitised only
-        (``raw``), or None (``none``)."""
-        if self.setting.aux == "none":
-            return None
+        normal denoised (setting ``prefiltered``, OIDN's recipe for noisy auxiliary images) or sanitised only
+        (``raw``)."""
         albedo = _finite(features.albedo, 0.0, 1.0)
         normal = _finite(features.normal, -1.0, 1.0)
         if self.setting.aux == "raw":
@@ -328,13 +287,8 @@ class Denoiser:
         return out
 
     def describe(self) -> dict[str, Any]:
-        """What runs the colour filter, for /v1/models and the logs: setting, runtime and (onnx) provider."""
-        info: dict[str, Any] = {"setting": self.setting.name, "runtime": self.runtime, "reason": self.runtime_reason}
-        unets = list(self._unets.values())
-        if unets:
-            info |= {k: v for k, v in unets[0].describe().items() if k != "model"}
-            info["models"] = sorted(self._unets)
-        return info
+        """What runs the colour filter, for /v1/models and the logs: the setting."""
+        return {"setting": self.setting.name}
 
     def close(self) -> None:
         with self._lock:
@@ -342,21 +296,6 @@ class Denoiser:
                 flt.release()
             self._filters.clear()
             self._device.release()
-
-
-def _colour_runtime(setting: Setting, requested: str) -> tuple[str, str, Any]:
-    """(runtime, why, the OnnxUNet or None) for the colour filter of ``setting`` under ``requested``."""
-    if requested not in RUNTIMES:
-        raise ValueError(f"OIDN runtime must be one of {', '.join(RUNTIMES)}, got {requested!r}")
-    if requested == "library":
-        return "library", "OIDN's own kernels (the default)", None
-    from gradsep.model import oidn_onnx
-
-    model = oidn_onnx.weights_for(setting.aux, setting.quality)
-    if model is None:
-        return "library", f"setting {setting.name} runs a model the onnx runtime does not build", None
-    unet = oidn_onnx.OnnxUNet(model)
-    return "onnx", f"OIDN's {model} weights on ONNX Runtime ({unet.choice.reason})", unet
 
 
 def _match_channel_means(out: np.ndarray, source: np.ndarray) -> None:
@@ -370,15 +309,14 @@ def _match_channel_means(out: np.ndarray, source: np.ndarray) -> None:
             out[..., c] = source[..., c]
 
 
-_shared: dict[tuple[str, str], Denoiser] = {}
+_shared: dict[str, Denoiser] = {}
 _shared_lock = threading.Lock()
 
 
-def shared_denoiser(setting: str = METHOD_SETTING, runtime: str | None = None) -> Denoiser:
-    """The process-wide :class:`Denoiser` of ``setting`` on ``runtime`` (default :func:`runtime_setting`),
-    created on first use. The ``oidn`` method asks for :func:`method_setting` (``$GRADSEP_OIDN_SETTING`` honoured)."""
-    key = (setting, runtime or runtime_setting())
+def shared_denoiser(setting: str = METHOD_SETTING) -> Denoiser:
+    """The process-wide :class:`Denoiser` of ``setting``, created on first use. The ``oidn`` method asks for
+    :func:`method_setting` (``$GRADSEP_OIDN_SETTING`` honoured)."""
     with _shared_lock:
-        if key not in _shared:
-            _shared[key] = Denoiser(setting, key[1])
-        return _shared[key]
+        if setting not in _shared:
+            _shared[setting] = Denoiser(setting)
+        return _shared[setting]

@@ -1,5 +1,5 @@
 """The one ONNX Runtime session loader every model goes through: the network's per-layer models
-(model/infer.py), the fused blend models (model/fused.py) and OIDN's U-Net rebuilt as a graph (model/oidn_onnx.py).
+(model/infer.py) and the fused blend models (model/fused.py).
 
 It picks the execution provider and precision for this host (:func:`choose_provider`), builds the session, falls
 back to ORT's CPU provider when the accelerated one cannot build it, and reports what really serves the session
@@ -95,7 +95,7 @@ class ProviderChoice:
     """Which execution provider serves, in which precision, and why (reported by /v1/models and logged)."""
 
     provider: str   # "cuda", "openvino" or "cpu"
-    precision: str  # "bf16", "fp32" (or "bf16+fp32": OIDN's split graph, model/oidn_onnx.py)
+    precision: str  # "bf16" or "fp32"
     reason: str
 
     def providers(self) -> list[Any]:

@@ -12,27 +12,23 @@ NVIDIA reference solver (Kettunen et al. 2015) α multiplies the *residual*, so 
   involve ``HᵀH``, the 5-point Laplacian with Neumann boundaries, which the orthonormal DCT-II diagonalises
   (Bhat et al. 2008), so the exact solution costs two DCTs per channel: O(N log N).
 * :func:`solve_l1` -- the L1 minimiser by iteratively reweighted least squares (IRLS) following the reference
-  solver's "L1D" preset: a first unweighted pass (solved exactly by :func:`solve_l2`), then reweightings with
-  per-term weights ``w = 1/(‖e‖_RGB + reg)`` normalised to mean 1 and ``reg = reg_init · reg_decay^(k−1)``.
+  solver's "L1D" preset: a first unweighted pass (solved exactly, as :func:`solve_l2` does), then reweightings
+  with per-term weights ``w = 1/(‖e‖_RGB + reg)`` normalised to mean 1 and ``reg = reg_init · reg_decay^(k−1)``.
   Each weighted system is solved by conjugate gradients warm-started from the previous iterate; unlike the
-  reference we precondition CG with the DCT solve of the unweighted system, rescaled to the weights' diagonal:
-  4 such steps per pass reach the image quality the reference gets from 50 unpreconditioned ones, and the default
-  budget of L1_PASSES = 8 passes of L1_CG_STEPS = 2 steps (the reference runs 20 passes) the same mean RelMSE on
-  held-out rendered frames at about a fifth of the old 20 x 4 cost (docs/poisson.md has the measurements).
-  ``preconditioner="mg"`` is an aggregation-multigrid V-cycle instead (compiled kernels): it
-  solves each pass far more exactly per step, which on rendered frames moved the image *further* from the
-  reference (the truncated DCT-PCG regularises), so it stays opt-in.
+  reference we precondition CG with the DCT solve of the unweighted system, rescaled to the weights' diagonal,
+  which needs far fewer steps per pass, so the default budget (:class:`L1Options`: L1_PASSES passes of
+  L1_CG_STEPS steps) is a fraction of the reference's 20 passes of 50 plain steps at the same error on rendered
+  frames (docs/poisson.md has the measurements). ``preconditioner="mg"`` is an aggregation-multigrid V-cycle
+  instead (compiled kernels): it solves each pass far more exactly per step, which on rendered frames moved the
+  image *further* from the reference (the truncated DCT-PCG regularises); model/refine.py runs it.
 
-Precision and tolerances: the L2 closed form is float64 throughout and matches a sparse direct solve to 1e-10
-(at α = 1e-4 the constant mode is scaled by 1/α² = 1e8; its coefficient is computed from exact sums rather than
-from the divergence, whose DC is zero analytically but rounding noise numerically, so the mean stays exact).
-IRLS starts from that float64 solution and iterates in float32 on inputs scaled to max |value| = 1 (no overflow,
-no subnormals), or in float64 when α < FLOAT32_MIN_ALPHA; CG inner products are BLAS dots (~1e-7 relative).
-Exact input data is recovered to ~1e-7 of the image's peak by both solvers. IRLS is run to a fixed budget (as
-the reference), not to convergence: with 4 CG steps per pass the L1 energy lands within ~0.2% of
-the reference preset's on noisy renders; a single outlier of 1e6 in a gradient is reduced ~40x against L2 but
-needs ``cg_iterations`` ≈ 50 to vanish entirely.
-Results are returned as float32 (the frame format's precision) unless ``dtype=np.float64`` is asked for.
+Precision: the L2 closed form is float64 throughout (at α = 1e-4 the constant mode is scaled by 1/α² = 1e8; its
+coefficient is computed from exact sums rather than from the divergence, whose DC is zero analytically but
+rounding noise numerically, so the mean stays exact). IRLS iterates in float32 on inputs scaled to
+max |value| = 1 (no overflow, no subnormals), or in float64 when α < FLOAT32_MIN_ALPHA; CG inner products are
+BLAS dots. IRLS is run to a fixed budget (as the reference), not to convergence, so a single huge outlier in a
+gradient is reduced against L2 but not removed entirely. Results are returned as float32 (the frame format's
+precision) unless ``L1Options(dtype=np.float64)`` (or ``solve_l2(..., dtype=np.float64)``) asks for float64.
 """
 
 from __future__ import annotations
@@ -48,9 +44,11 @@ import numpy as np
 import scipy.fft
 
 from gradsep.model import kernels
+from gradsep.model.multigrid import Multigrid
 from gradsep.model.policy import DEFAULT_ALPHA
 
-__all__ = ["L1_CG_STEPS", "L1_PASSES", "MIN_ALPHA", "L1Stats", "energy_l1", "energy_l2", "solve_l1", "solve_l2"]
+__all__ = ["L1_CG_STEPS", "L1_PASSES", "MIN_ALPHA", "L1Options", "L1Stats", "energy_l1", "energy_l2", "solve_l1",
+           "solve_l2"]
 
 #: Smallest accepted α. Below ~1e-154 α² underflows to 0 in float64 and the constant mode (eigenvalue α²) is
 #: undetermined; well before that the data term stops meaning anything. Down to 1e-12 both solvers still
@@ -260,8 +258,8 @@ def _residuals_and_norms(x: np.ndarray, base: np.ndarray, dx: np.ndarray, dy: np
     """:func:`_residuals` and their per-term RGB norms; one fused pass when the compiled kernels exist.
 
     ``out`` (an empty list the first time) keeps the six output buffers for the next call: IRLS consumes the
-    previous residuals before asking for new ones, and reusing them saves ~45 MB of fresh pages per pass at
-    720p (page faults cost as much as the arithmetic)."""
+    previous residuals before asking for new ones, and reusing them saves a frame's worth of fresh pages per
+    pass."""
     if not kernels.AVAILABLE:
         residuals = _residuals(x, base, dx, dy, alpha)
         return residuals, tuple(_norm_c(e) for e in residuals)
@@ -270,7 +268,7 @@ def _residuals_and_norms(x: np.ndarray, base: np.ndarray, dx: np.ndarray, dy: np
         out = [] if out is None else out
         out += [np.empty_like(x), np.empty((c, h, w - 1), x.dtype), np.empty((c, h - 1, w), x.dtype),
                 np.empty((h, w), x.dtype), np.empty((h, w - 1), x.dtype), np.empty((h - 1, w), x.dtype)]
-    kernels.residuals_and_norms(x, base, dx, dy, alpha, *out)
+    kernels.residuals_and_norms(x, base, dx, dy, alpha, tuple(out[:3]), tuple(out[3:]))
     return tuple(out[:3]), tuple(out[3:])
 
 
@@ -302,7 +300,7 @@ def energy_l1(image: np.ndarray, base: np.ndarray, dx: np.ndarray, dy: np.ndarra
 
 def _dots(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Per-channel inner products of (C, H, W) arrays as (C, 1, 1) float64, via BLAS (fast and, unlike a
-    naive float32 running sum, accurate to ~1e-7 relative on a megapixel)."""
+    naive float32 running sum, accurate on a megapixel)."""
     flat_a, flat_b = a.reshape(a.shape[0], -1), b.reshape(b.shape[0], -1)
     return np.array([float(np.dot(flat_a[c], flat_b[c])) for c in range(a.shape[0])])[:, None, None]
 
@@ -344,7 +342,7 @@ class _WeightedSystem:
         term's norm in ``norms`` already carries it)."""
         if kernels.AVAILABLE and self.dtype == np.float32:
             # fused kernel; the float64 (small-α) path keeps numpy's pairwise sums: its truncated CG amplifies
-            # a 1-ulp change of the weights' normalisation to ~1e-5 of the image (measured at α = 1e-3)
+            # a 1-ulp change of the weights' normalisation far beyond rounding at small α
             diag_a = self._compiled_weights(norms, reg)
         else:
             w0, wx, wy = (1.0 / (n + reg) for n in norms)
@@ -367,7 +365,7 @@ class _WeightedSystem:
         elif self.preconditioner == "dct":
             self._scale = np.sqrt(self._diag_l / diag_a).astype(self.dtype)
         elif self.preconditioner == "mg":
-            self._multigrid = _Multigrid(self._a2w0, self.wx, self.wy, self._gx.shape[0], diag_a)
+            self._multigrid = Multigrid(self._a2w0, self.wx, self.wy, self._gx.shape[0], diag_a)
 
     def _compiled_weights(self, norms: tuple[np.ndarray, ...], reg: float) -> np.ndarray:
         """set_weights in one fused kernel, into arrays kept across passes; returns diag(A)."""
@@ -375,11 +373,11 @@ class _WeightedSystem:
             self._weights = [np.empty_like(n) for n in norms] + [np.empty_like(norms[0]) for _ in range(3)]
             self._diag_l = self._diag_l.astype(self.dtype)
         self.w0, self.wx, self.wy, self._a2w0, self._aw0, diag_a = self._weights
-        kernels.irls_weights(*norms, reg, self.alpha, *self._weights)
+        kernels.irls_weights(tuple(norms), reg, self.alpha, tuple(self._weights))
         return diag_a
 
     def buffer(self, name: str, like: np.ndarray) -> np.ndarray:
-        """A work array shaped like ``like``, kept across IRLS passes (fresh pages cost ~as much as a pass of
+        """A work array shaped like ``like``, kept across IRLS passes (fresh pages cost as much as the pass's
         arithmetic). Callers must be done with the previous pass's content: d is added to x before the next
         pass, and ap/tmp/p are scratch."""
         buffers = self.__dict__.setdefault("_buffers", {})
@@ -435,47 +433,6 @@ class _WeightedSystem:
         return z
 
 
-class _Multigrid:
-    """Aggregation-multigrid V-cycle for one IRLS system (model/kernels.py has the kernels and the why).
-
-    Levels halve each side (2×2 aggregates, Galerkin coarse operators of the same 5-point form) down to 1×1, where
-    the coarse problem, the weighted mean, is solved exactly: the constant mode, whose eigenvalue ~α² makes it the
-    stiff one at small α, is therefore handled exactly. One red-black Gauss-Seidel half-sweep pair before and after
-    each coarse correction. Cost ≈ 4 passes of the fine operator; setup (the hierarchy) ≈ one."""
-
-    def __init__(self, a: np.ndarray, wx: np.ndarray, wy: np.ndarray, channels: int, diag: np.ndarray):
-        self.levels: list[tuple[np.ndarray, ...]] = []
-        idiag = (1.0 / diag).astype(a.dtype)  # the fine level's diagonal is known already
-        while True:
-            height, width = a.shape
-            z = np.empty((channels, height, width), a.dtype)
-            r = np.empty((channels, height, width), a.dtype)
-            self.levels.append((a, wx, wy, idiag, z, r))
-            if height == 1 and width == 1:
-                break
-            a, wx, wy = kernels.mg_coarsen(a, wx, wy)
-            idiag = kernels.mg_inverse_diagonal(a, wx, wy)
-
-    def vcycle(self, r: np.ndarray) -> np.ndarray:
-        z = np.empty_like(r)
-        self._cycle(0, r, z)
-        return z
-
-    def _cycle(self, level: int, r: np.ndarray, z: np.ndarray) -> None:
-        a, wx, wy, idiag, _, _ = self.levels[level]
-        if level == len(self.levels) - 1:  # 1×1: exact
-            np.multiply(r, idiag, out=z)
-            return
-        _, _, _, _, zc, rc = self.levels[level + 1]
-        kernels.mg_jacobi_red(z, r, idiag)
-        kernels.mg_sweep(z, r, wx, wy, idiag, 1)
-        kernels.mg_red_residual_restrict(z, r, a, wx, wy, rc)
-        self._cycle(level + 1, rc, zc)
-        kernels.mg_prolong_red(z, zc)
-        kernels.mg_sweep(z, r, wx, wy, idiag, 1)
-        kernels.mg_sweep(z, r, wx, wy, idiag, 0)
-
-
 def _pcg(
     system: _WeightedSystem, r: np.ndarray, max_iter: int, tol: float
 ) -> tuple[np.ndarray, int, float]:
@@ -524,63 +481,61 @@ PRECONDITIONERS = ("dct", "mg", "jacobi", "none")
 #: uniformly better on rendered frames.
 L1_PASSES = 8
 L1_CG_STEPS = 2
-# IRLS iterates in float32 (half the memory traffic, 3-4x faster DCTs) unless α is small: the constant mode's
-# eigenvalue is ~α², so float32 rounding lets the image mean drift by ~eps32/α² (4e-6 relative at α = 1e-4,
-# 2e-8 at 1e-2, measured); below this threshold the iteration runs in float64.
+# IRLS iterates in float32 (half the memory traffic, faster DCTs) unless α is small: the constant mode's eigenvalue
+# is ~α², so float32 rounding lets the image mean drift by ~eps32/α²; below this threshold the iteration runs in
+# float64.
 FLOAT32_MIN_ALPHA = 1e-2
 
 
-def solve_l1(
-    base: np.ndarray,
-    dx: np.ndarray,
-    dy: np.ndarray,
-    alpha: float = DEFAULT_ALPHA,
-    iterations: int = L1_PASSES,
-    *,
-    reg_init: float = 0.05,
-    reg_decay: float = 0.5,
-    cg_iterations: int = L1_CG_STEPS,
-    cg_tolerance: float = 1e-3,
-    preconditioner: str = "dct",
-    dtype=np.float32,
-    initial: np.ndarray | None = None,
-    alpha_map: np.ndarray | None = None,
-    start_alpha: float | None = None,
-) -> tuple[np.ndarray, L1Stats]:
-    """L1 screened Poisson reconstruction by IRLS: argmin Σ‖α(I − base)‖ + Σ‖(H_x I − dx, H_y I − dy)‖.
+@dataclass(frozen=True)
+class L1Options:
+    """How :func:`solve_l1` runs IRLS; the defaults are the ``l1`` method's budget.
 
     ``iterations`` counts passes as the reference solver does: pass 0 is the unweighted (L2) problem, solved
-    exactly; passes k = 1 … iterations−1 reweight each residual term (the data term and each gradient term,
-    per pixel) by ``1/(‖e‖_RGB + reg_k)``, ``reg_k = reg_init·reg_decay^(k−1)``, normalised to mean 1, and
-    take up to ``cg_iterations`` preconditioned CG steps from the previous iterate, stopping early once the
-    residual fell by ``cg_tolerance``. ``reg`` is in radiance units, as in the reference.
+    exactly; passes k = 1 … iterations−1 reweight each residual term by ``1/(‖e‖_RGB + reg_k)``,
+    ``reg_k = reg_init·reg_decay^(k−1)`` (radiance units, as in the reference), and take up to ``cg_iterations``
+    preconditioned CG steps from the previous iterate, stopping early once the residual fell by ``cg_tolerance``.
+    ``preconditioner``: ``"dct"`` (diagonally rescaled DCT solve, the default), ``"mg"`` (multigrid V-cycle),
+    ``"jacobi"`` or ``"none"`` (the reference's plain CG). ``dtype``: the returned image's (float32 or float64).
+    Raises ValueError for non-positive counts, a bad regularisation schedule or an unknown preconditioner.
+    """
 
-    The channels of an (H, W, C) input share weights (the norm is over channels), so pass a layer's RGB
-    together. ``preconditioner`` is ``"dct"`` (diagonally rescaled DCT solve, the default), ``"jacobi"`` or
-    ``"none"`` (the reference's plain CG). Iterates in float32, or float64 when α < FLOAT32_MIN_ALPHA.
-    ``initial`` (the shape of ``base``) replaces pass 0's exact L2 solve as the starting iterate: the first
-    weights are then taken from its residuals (model/refine.py starts from OIDN's image, which is already close).
+    iterations: int = L1_PASSES
+    cg_iterations: int = L1_CG_STEPS
+    cg_tolerance: float = 1e-3
+    reg_init: float = 0.05
+    reg_decay: float = 0.5
+    preconditioner: str = "dct"
+    dtype: type = np.float32
+
+    def __post_init__(self) -> None:
+        if self.iterations < 1 or self.cg_iterations < 1:
+            raise ValueError(f"iterations and cg_iterations must be >= 1 (got {self.iterations}, "
+                             f"{self.cg_iterations})")
+        if not (self.reg_init > 0 and 0 < self.reg_decay <= 1):
+            raise ValueError(f"need reg_init > 0 and 0 < reg_decay <= 1 (got {self.reg_init}, {self.reg_decay})")
+        if self.preconditioner not in PRECONDITIONERS:
+            raise ValueError(f"preconditioner must be one of {PRECONDITIONERS}, got {self.preconditioner!r}")
+
+
+def solve_l1(base: np.ndarray, dx: np.ndarray, dy: np.ndarray, alpha: float = DEFAULT_ALPHA,
+             options: L1Options = L1Options(), *, alpha_map: np.ndarray | None = None,
+             start_alpha: float | None = None) -> tuple[np.ndarray, L1Stats]:
+    """L1 screened Poisson reconstruction by IRLS: argmin Σ‖α(I − base)‖ + Σ‖(H_x I − dx, H_y I − dy)‖.
+
+    ``options`` (:class:`L1Options`) sets the passes, the CG budget, the reweighting and the output dtype. The
+    channels of an (H, W, C) input share weights (the norm is over channels), so pass a layer's RGB together.
+    Iterates in float32, or float64 when α < FLOAT32_MIN_ALPHA.
     ``alpha_map`` (H, W), finite and > 0: a per-pixel factor m(x) on the data term's α in the IRLS passes,
     Σ α·m(x)‖I − base‖ (model/refine.py's trust rule leans on the base more or less per pixel). Pass 0 (the L2
     start, a DCT solve) keeps the scalar α, or takes ``start_alpha`` (a DCT solve needs one α: model/refine.py
     starts a clean layer at its map's clean α); an all-ones map gives the solve without it.
-    Returns the image (float32 by default) and :class:`L1Stats`. Raises ValueError like :func:`solve_l2` and
-    for non-positive iteration counts, an unknown preconditioner or a bad ``alpha_map``.
+    Returns the image and :class:`L1Stats`. Raises ValueError like :func:`solve_l2` and for a bad ``alpha_map``
+    or ``start_alpha``.
     """
-    if iterations < 1 or cg_iterations < 1:
-        raise ValueError(f"iterations and cg_iterations must be >= 1 (got {iterations}, {cg_iterations})")
-    if not (reg_init > 0 and 0 < reg_decay <= 1):
-        raise ValueError(f"need reg_init > 0 and 0 < reg_decay <= 1 (got {reg_init}, {reg_decay})")
-    if preconditioner not in PRECONDITIONERS:
-        raise ValueError(f"preconditioner must be one of {PRECONDITIONERS}, got {preconditioner!r}")
     start = time.perf_counter()
     ndim = np.ndim(base)
-    if alpha_map is not None:
-        alpha_map = np.asarray(alpha_map)
-        if alpha_map.shape != np.shape(base)[:2]:
-            raise ValueError(f"alpha_map must be (H, W) = {np.shape(base)[:2]}, got {alpha_map.shape}")
-        if not (np.all(np.isfinite(alpha_map)) and np.all(alpha_map > 0)):
-            raise ValueError("alpha_map must be finite and > 0 everywhere")
+    _check_map(alpha_map, np.shape(base)[:2])
     alpha = float(alpha)
     if start_alpha is None:
         start_alpha = alpha  # (validated with the inputs below)
@@ -588,39 +543,57 @@ def solve_l1(
         raise ValueError(f"start_alpha must be a finite number >= {MIN_ALPHA:g}, got {start_alpha}")
     work = np.dtype(np.float32 if min(alpha, start_alpha) >= FLOAT32_MIN_ALPHA else np.float64)
     b, gx, gy = _prepare(base, dx, dy, alpha, work.type)  # straight into the working precision: no float64 detour
-    stats = L1Stats()
     # IRLS is scale-covariant (inputs × s and reg × s give the solution × s), so iterate on inputs scaled to
     # max |value| = 1 with reg scaled alike: float32 can then neither overflow nor go subnormal. The L2 start is
     # linear, so it is solved on the scaled inputs too, in the working precision (its DCTs cost half in float32).
     scale = max(float(np.abs(a).max()) for a in (b, gx, gy)) or 1.0
     for a in (b, gx, gy):
         a /= work.type(scale)
-    if initial is None:
-        x = _l2_core(b, gx, gy, start_alpha)
-    else:
-        (x, _, _) = _prepare(initial, dx, dy, alpha, work.type)
-        x /= work.type(scale)
-    system = _WeightedSystem(x.shape, alpha, work, preconditioner)
+    x = _l2_core(b, gx, gy, start_alpha)
     data_map = None if alpha_map is None else np.ascontiguousarray(alpha_map, work.type)
+    stats = _irls(x, (b, gx, gy), alpha, options, data_map, scale)
+    stats.seconds = time.perf_counter() - start
+    return _finish_l1(x, scale, ndim, options.dtype), stats
 
+
+def _check_map(alpha_map: np.ndarray | None, shape: tuple[int, ...]) -> None:
+    """ValueError unless ``alpha_map`` is None or an (H, W) array, finite and > 0 everywhere."""
+    if alpha_map is None:
+        return
+    alpha_map = np.asarray(alpha_map)
+    if alpha_map.shape != shape:
+        raise ValueError(f"alpha_map must be (H, W) = {shape}, got {alpha_map.shape}")
+    if not (np.all(np.isfinite(alpha_map)) and np.all(alpha_map > 0)):
+        raise ValueError("alpha_map must be finite and > 0 everywhere")
+
+
+def _irls(x: np.ndarray, data: tuple[np.ndarray, np.ndarray, np.ndarray], alpha: float, options: L1Options,
+          data_map: np.ndarray | None, scale: float) -> L1Stats:
+    """The IRLS passes on the scaled problem ``data`` = (base, dx, dy), updating ``x`` (pass 0's image) in place."""
+    b, gx, gy = data
+    system = _WeightedSystem(x.shape, alpha, b.dtype, options.preconditioner)
+    stats = L1Stats()
     buffers: list[np.ndarray] = []
     residuals, norms = _mapped(_residuals_and_norms(x, b, gx, gy, alpha, buffers), data_map)
     stats.cg_iterations.append(0)
     stats.cg_residuals.append(0.0)
     stats.energies.append(_l1_energy(norms) * scale)
-
-    for k in range(1, iterations):
-        system.set_weights(norms, reg=reg_init * reg_decay ** (k - 1) / scale, data_map=data_map)
-        delta, it, rel = _pcg(system, system.rhs(*residuals), cg_iterations, cg_tolerance)
+    for k in range(1, options.iterations):
+        reg = options.reg_init * options.reg_decay ** (k - 1) / scale
+        system.set_weights(norms, reg=reg, data_map=data_map)
+        delta, it, rel = _pcg(system, system.rhs(*residuals), options.cg_iterations, options.cg_tolerance)
         x += delta
         residuals, norms = _mapped(_residuals_and_norms(x, b, gx, gy, alpha, buffers), data_map)
         stats.cg_iterations.append(it)
         stats.cg_residuals.append(rel)
         stats.energies.append(_l1_energy(norms) * scale)
+    stats.iterations = options.iterations
+    return stats
 
-    stats.iterations = iterations
-    stats.seconds = time.perf_counter() - start
+
+def _finish_l1(x: np.ndarray, scale: float, ndim: int, dtype: type) -> np.ndarray:
+    """The scaled iterate back at the input's scale, in the caller's layout and dtype."""
     if np.dtype(dtype) == np.float32 and x.dtype == np.float32 and float(np.abs(x).max()) * scale < _F32_MAX / 2:
-        x *= np.float32(scale)  # the common case: no float64 detour (a copy and two passes over 11 MB at 720p)
-        return _finish(x, ndim, dtype), stats
-    return _finish(x.astype(np.float64) * scale, ndim, dtype), stats
+        x *= np.float32(scale)  # the common case: no float64 detour (a copy and two passes over the image)
+        return _finish(x, ndim, dtype)
+    return _finish(x.astype(np.float64) * scale, ndim, dtype)

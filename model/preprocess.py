@@ -16,7 +16,7 @@ What the network sees (channel order in model.network.DATA_INPUTS / GRADIENT_INP
 * albedo as is (clipped to [0, 1], the contract's range), normal·0.5 + 0.5 (in [0, 1]), depth clamped to
   [0, DEPTH_MAX] and min-max normalised per frame to [0, 1];
 * non-finite values anywhere → 0 (features always, as the paper does; radiance here too, so a caller that
-  bypassed model.frame's policy still gets finite output).
+  bypassed model.exr_read's policy still gets finite output).
 
 The network predicts C(I) of the reconstruction; ``TRANSFER.inverse`` maps it back, clamped to
 [0, RADIANCE_MAX] so the output is always finite and ≥ 0.
@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from gradsep.model.poisson import solve_l1
+from gradsep.model.poisson import L1Options, solve_l1
 from gradsep.model.policy import DEFAULT_ALPHA
 from gradsep.model.robust import robust_level
 
@@ -46,8 +46,8 @@ MU = 16.0
 RADIANCE_MAX = 65504.0
 #: Depth clamp before per-frame normalisation (GradNet's 1e5): a far-away sky hit must not squash the rest.
 DEPTH_MAX = 1.0e5
-#: The Poisson prior the network refines: α as the `l1`/`l2` methods, and a truncated IRLS (5 passes of at most
-#: 2 CG steps), which scored the same or lower RelMSE than the converged solve on held-out procedural frames.
+#: The Poisson prior the network refines: α as the `l1`/`l2` methods, and a truncated IRLS, which scored no worse
+#: than the converged solve on held-out procedural frames (docs/decisions.md).
 PRIOR_ALPHA = DEFAULT_ALPHA
 PRIOR_IRLS_PASSES = 5
 PRIOR_CG_STEPS = 2
@@ -58,11 +58,11 @@ PRIOR_REG_DECAY = 0.5
 PRIOR_CG_TOLERANCE = 1e-3
 PRIOR_PRECONDITIONER = "dct"
 #: Frames taller than this are solved in horizontal bands (each extended by PRIOR_BAND_OVERLAP rows on both
-#: sides, blended linearly where they overlap) so the solver's ~250 bytes per pixel stay bounded: a 4096-wide
-#: band of 1024 + 2·64 rows needs ~1.2 GB instead of ~4 GB for a whole 4096² layer. The screening term
-#: confines a pixel's influence to ~1/α = 5 pixels, but the truncated CG's step sizes and the IRLS weight
-#: normalisation are global, so bands differ from a whole-frame solve by ~0.1 % (tested); frames up to
-#: 1152 rows, every training frame included, are solved whole.
+#: sides, blended linearly where they overlap) so the solver's working memory, proportional to the pixels solved
+#: at once, stays bounded on very large frames. The screening term confines a pixel's influence to ~1/α pixels,
+#: but the truncated CG's step sizes and the IRLS weight normalisation are global, so bands differ slightly from
+#: a whole-frame solve (tests/model/test_preprocess.py bounds it); frames up to PRIOR_BAND_ROWS + 2 ×
+#: PRIOR_BAND_OVERLAP rows, every training frame included, are solved whole.
 PRIOR_BAND_ROWS = 1024
 PRIOR_BAND_OVERLAP = 64
 #: Number of linear planes per layer (base, dx, dy, prior × RGB) and of normalised feature planes.
@@ -255,11 +255,15 @@ def _band_ramp(y0: int, y1: int, height: int, overlap: int) -> np.ndarray:
     return w[:, None, None]
 
 
+def prior_options() -> L1Options:
+    """The prior's IRLS settings, every one named: the models were trained on exactly this solve, whatever the
+    ``l1`` method's defaults (model.poisson.L1Options)."""
+    return L1Options(iterations=PRIOR_IRLS_PASSES, cg_iterations=PRIOR_CG_STEPS, cg_tolerance=PRIOR_CG_TOLERANCE,
+                     reg_init=PRIOR_REG_INIT, reg_decay=PRIOR_REG_DECAY, preconditioner=PRIOR_PRECONDITIONER)
+
+
 def _solve_prior(base: np.ndarray, dx: np.ndarray, dy: np.ndarray) -> np.ndarray:
-    # every solver setting named: the models were trained on exactly this solve, whatever the l1 method's defaults
-    prior, _ = solve_l1(base, dx, dy, PRIOR_ALPHA, iterations=PRIOR_IRLS_PASSES, cg_iterations=PRIOR_CG_STEPS,
-                        reg_init=PRIOR_REG_INIT, reg_decay=PRIOR_REG_DECAY, cg_tolerance=PRIOR_CG_TOLERANCE,
-                        preconditioner=PRIOR_PRECONDITIONER)
+    prior, _ = solve_l1(base, dx, dy, PRIOR_ALPHA, prior_options())
     return _sanitise_inplace(prior, 0.0, RADIANCE_MAX)
 
 
@@ -314,7 +318,7 @@ def unlit_pixels(layer: Layer) -> np.ndarray:
 
 def _all_channels_zero(image: np.ndarray) -> np.ndarray:
     """(h, w) bool: every channel of the pixel is 0. Same as ``np.all(image == 0, axis=-1)``, but one
-    elementwise pass per channel instead of a reduction over a 3-long axis: ~10x faster (2 vs 19 ms at 720p)."""
+    elementwise pass per channel instead of a reduction over a 3-long axis, which numpy runs far more slowly."""
     out = image[..., 0] == 0
     for c in range(1, image.shape[-1]):
         out &= image[..., c] == 0

@@ -33,7 +33,8 @@ import numpy as np
 
 from gradsep.model import methods as table
 from gradsep.model.environment import env_int
-from gradsep.model.frame import ChannelError, Features, Frame, Layer, feature_groups
+from gradsep.model.errors import ChannelError
+from gradsep.model.frame import Features, Frame, Layer, feature_groups
 from gradsep.model.methods import LoadedModels, Method
 from gradsep.model.policy import DEFAULT_ALPHA, FEATURE_GROUPS, models_dir_from
 from gradsep.model.robust import add_excess, add_in_place, outlier_count, source_pixels, split_frame, split_sources
@@ -311,7 +312,7 @@ def reconstruct(frame: Frame, method: str | None = None, alpha: float = DEFAULT_
     ``method`` None picks :func:`choose_method`. ``alpha`` is the screened Poisson data weight (methods that take
     it). ``models`` holds the loaded model sets (model.methods.LoadedModels); None has only the runtimes detected
     here (OIDN when pyoidn is installed). Raises ValueError for an unknown method, a bad alpha or a missing model
-    set, and :class:`model.frame.ChannelError` for a frame that lacks what the method needs.
+    set, and :class:`model.errors.ChannelError` for a frame that lacks what the method needs.
     """
     models = _as_models(models)
     spec = table.get(method or choose_method(frame, models))

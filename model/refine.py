@@ -38,7 +38,7 @@ import numpy as np
 
 from gradsep.model.frame import Layer
 from gradsep.model.oidn import input_scale
-from gradsep.model.poisson import solve_l1
+from gradsep.model.poisson import L1Options, solve_l1
 from gradsep.model.preprocess import scaled_image
 from gradsep.model.robust import box_mean, winsorised_sum
 
@@ -201,7 +201,7 @@ def _frame_weight(alpha: float) -> float:
 
 
 def _cg_budget(cg_steps: int | None, cg_tolerance: float | None) -> dict:
-    """solve_l1's CG keywords for refine_layer's arguments."""
+    """L1Options' CG fields for refine_layer's arguments."""
     if cg_steps is not None:  # the pinned fixed budget; a tolerance only if one is asked for
         return {"cg_iterations": cg_steps} | ({} if cg_tolerance is None else {"cg_tolerance": cg_tolerance})
     return {"cg_iterations": REFINE_MAX_CG_STEPS,
@@ -239,8 +239,8 @@ def refine_layer(name: str, prior: np.ndarray, layer: Layer, alpha: float | None
     # a clean layer's L2 start at its non-black pixels' α (the map's smallest): solve_l1's pass 0, a DCT solve,
     # cannot take a per-pixel map, and the truncated CG passes after it move the image only part of the way
     start = alpha * float(np.min(alpha_map)) if alpha_map is not None else None
-    solved, _ = solve_l1(data, dx, dy, alpha, passes or REFINE_ITERATIONS, **_cg_budget(cg_steps, cg_tolerance),
-                         preconditioner=preconditioner or REFINE_PRECONDITIONER, alpha_map=alpha_map,
-                         start_alpha=start)
+    options = L1Options(passes or REFINE_ITERATIONS, preconditioner=preconditioner or REFINE_PRECONDITIONER,
+                        **_cg_budget(cg_steps, cg_tolerance))
+    solved, _ = solve_l1(data, dx, dy, alpha, options, alpha_map=alpha_map, start_alpha=start)
     out = np.asarray(solved, np.float64) / scale
     return np.clip(out, 0.0, _F32_MAX).astype(np.float32)

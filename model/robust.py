@@ -176,7 +176,7 @@ def _neighbours(ys: np.ndarray, xs: np.ndarray, height: int, width: int) -> tupl
 def split_outliers(base: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
     """(the base with each outlier (OUTLIER_LOCAL / OUTLIER_LEVEL) replaced by the (upper) median of its 8 neighbours
     per channel, the outliers' excess over that median: (H, W, C) float32 ≥ 0, zero elsewhere), or (``base``, None)
-    when the layer has no outlier. Finite (H, W, C) input (model.frame's policy makes it so)."""
+    when the layer has no outlier. Finite (H, W, C) input (model.exr_read's policy makes it so)."""
     image = np.asarray(base, np.float32)
     if image.ndim != 3 or image.size == 0:
         return base, None

@@ -15,7 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from gradsep.model.frame import encode_exr, forward_differences, rgb_channels, variance_channel
+from gradsep.model.exr_write import encode_exr
+from gradsep.model.frame import forward_differences, rgb_channels, variance_channel
 from gradsep.model.policy import LUMINANCE
 
 #: Relative base noise per layer; the indirect layer is the noisier one, as in a rendered frame.
@@ -25,7 +26,7 @@ _LAYER_NOISE: dict[str, float] = {"direct": 0.3, "indirect": 0.8}
 def synthetic_frame(height: int, width: int, seed: int = 0, compression: str | None = None) -> bytes:
     """A noisy separated frame with gradients and features, ``height`` x ``width``, as EXR bytes.
 
-    ``compression`` is an OpenEXR compression name (model.frame.LOSSLESS_COMPRESSIONS); None is the frame
+    ``compression`` is an OpenEXR compression name (model.exr_write.LOSSLESS_COMPRESSIONS); None is the frame
     contract's default. The same ``seed`` gives the same bytes.
     """
     if height < 2 or width < 2:

@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from gradsep.model.frame import CHECK_KEY
+from gradsep.model.header_keys import CHECK_KEY
 from gradsep.renderer.estimate import at_budget, cross_relmse, cross_terms, mean_and_se, relative_weights
 
 #: Groups the passes are dealt into: half of them make each half of the frame.

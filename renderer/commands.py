@@ -19,7 +19,7 @@ from gradsep.model.policy import SEPARATED_LAYERS
 
 def render_command(args: argparse.Namespace) -> int:
     """`gradsep render`: render a frame and write it atomically to ``args.output``."""
-    from gradsep.model.frame import write_frame
+    from gradsep.model.exr_write import write_frame
     from gradsep.renderer.render import check_gradient_spp, render_frame
     from gradsep.renderer.scene import load_scene, parse_defines
 
@@ -183,7 +183,7 @@ def _print_written(out: Path, ref: Any) -> None:
 
 def reference_merge_command(args: argparse.Namespace) -> int:
     """Handler of `gradsep reference-merge`: the N ``--shard K/N`` files of one job -> the job's reference."""
-    from gradsep.model.frame import FrameError
+    from gradsep.model.errors import FrameError
     from gradsep.renderer.reference import load_reference, merge_references, write_reference
 
     out = Path(args.output)

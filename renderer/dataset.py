@@ -44,7 +44,7 @@ from pathlib import Path
 from typing import Any
 
 from gradsep.model.errors import CommandError
-from gradsep.model.frame import write_bytes_atomic
+from gradsep.model.exr_write import write_bytes_atomic
 from gradsep.model.progress import ProgressBar
 
 MANIFEST_VERSION = 1
@@ -492,7 +492,7 @@ def _render_to(root: Path, rel: str, job: Job, seed: int, sampler_seed: int) -> 
     """Render procedural scene ``seed`` with ``sampler_seed`` into ``root/rel`` (atomically); (frame, file bytes).
     With ``job.seconds`` the frame's budget counts from here (its scene's load) to its file in place: the render
     planner's deadline (renderer/plan.py, as `gradsep render --seconds`), which reserves the write."""
-    from gradsep.model.frame import write_frame
+    from gradsep.model.exr_write import write_frame
     from gradsep.renderer import render
 
     if job.seconds is None:

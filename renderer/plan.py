@@ -39,7 +39,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from gradsep.model.errors import CommandError
-from gradsep.model.frame import PLAN_METHOD_KEY, PREDICTED_RELMSE_KEY, Features, Frame, Layer
+from gradsep.model.frame import Features, Frame, Layer
+from gradsep.model.header_keys import PLAN_METHOD_KEY, PREDICTED_RELMSE_KEY
 from gradsep.renderer.budget import LAST_PASS_MARGIN, Clock, Deadline, PassCosts, fill_with_filler, fitted_line
 from gradsep.renderer.check import Half, Split
 from gradsep.renderer.estimate import at_budget, cross_terms, mean_and_se, relative_weights
@@ -634,7 +635,7 @@ def run_checkpoint(passes: Passes, budget_spp: Callable[[Assessment], float], *,
 
 
 #: The write is predicted from WRITE_BANDS bands spread over the frame's height (content, and so the encoder's
-#: cost, differs by region), each of WRITE_ROWS rows per thread of OpenEXR's pool (model.frame.configure_exr_threads:
+#: cost, differs by region), each of WRITE_ROWS rows per thread of OpenEXR's pool (exr_write.configure_exr_threads:
 #: ZIP compresses blocks of 16 rows, one per thread, so a band of one block would time one core), with a margin for
 #: a shared machine's swings, plus the file's creation, fsync and rename (WRITE_FIXED), and a second measurement
 #: near the end (WRITE_REMEASURE). Measured at 1280x720 on 2 cores, otherwise idle: the bands predicted 0.48-0.52 s
@@ -658,7 +659,7 @@ def write_seconds(band: Callable[[tuple[slice, slice]], Frame], width: int, heig
     and the time is scaled to the frame's height (the encoder and the assembly are linear in the rows)."""
     import OpenEXR
 
-    from gradsep.model.frame import encode_exr
+    from gradsep.model.exr_write import encode_exr
 
     if rows is None:
         rows = WRITE_ROWS * max(1, OpenEXR.global_thread_count())

@@ -148,7 +148,7 @@ class PlanCache:
         """Write ``plan`` (renderer.plan.Plan, a checkpoint's: with assessments) as the entry, with the frame's own
         error estimate (RelMSE, at its spp) where it made one; returns a note where it could not be written (the
         frame is kept either way)."""
-        from gradsep.model.frame import write_bytes_atomic
+        from gradsep.model.exr_write import write_bytes_atomic
 
         entry: dict[str, Any] = {
             "version": CACHE_VERSION, "key": self.key, "chosen": plan.chosen.name,

@@ -424,8 +424,8 @@ def _check_positive(name: str, value: int) -> None:
 # ----------------------------------------------------------------------------------------------------------
 
 def write_reference(path: str | Path, reference: Reference) -> None:
-    """Write ``R G B`` + layers (float32) with the metadata, atomically (model.frame.write_exr)."""
-    from gradsep.model.frame import write_exr
+    """Write ``R G B`` + layers (float32) with the metadata, atomically (model.exr_write.write_exr)."""
+    from gradsep.model.exr_write import write_exr
 
     write_exr(path, reference.channels(), metadata=reference.metadata)
 
@@ -438,7 +438,9 @@ def load_reference(source: str | os.PathLike[str] | bytes) -> Reference:
     """
     import OpenEXR
 
-    from gradsep.model.frame import RGB, ChannelError, NotExrError, read_header
+    from gradsep.model.errors import ChannelError, NotExrError
+    from gradsep.model.exr_read import read_header
+    from gradsep.model.frame import RGB
 
     info = read_header(source)
     names = set(info.channels)

@@ -18,15 +18,10 @@ import numpy as np
 
 from gradsep.model import __version__
 from gradsep.model.errors import CommandError
-from gradsep.model.frame import (
-    ILLUMINATION_LAYERS,
-    OIDN_SETTING_KEY,
-    PREDICTED_FROM_KEY,
-    PREDICTED_RELMSE_KEY,
-    SEPARATED_LAYERS,
-    Frame,
-)
+from gradsep.model.frame import Frame
+from gradsep.model.header_keys import OIDN_SETTING_KEY, PREDICTED_FROM_KEY, PREDICTED_RELMSE_KEY
 from gradsep.model.oidn import SETTING_ENV
+from gradsep.model.policy import ILLUMINATION_LAYERS, SEPARATED_LAYERS
 from gradsep.renderer.budget import Deadline
 from gradsep.renderer.check import check_frame, check_seconds
 from gradsep.renderer.estimate import at_budget
@@ -200,7 +195,7 @@ def render_metadata(scene: LoadedScene, *, spp: int, seed: int, shift: str, laye
     return meta
 
 
-#: The OIDN setting a ``--seconds`` plan asks for (model.frame.OIDN_SETTING_KEY) where its budget makes the extra
+#: The OIDN setting a ``--seconds`` plan asks for (model.header_keys.OIDN_SETTING_KEY) where its budget makes the extra
 #: denoising cheap: prefiltered features and OIDN's large model. On held-out frames with direct-layer gradients and
 #: no light in view, served by ``oidn-l1``, it is 0.82x the RelMSE of the default ``raw-fast`` (geometric mean over
 #: frames carrying their variance, worst frame 1.16x; benchmarks/bench_oidn_quality.py, docs/decisions.md "The
@@ -230,7 +225,7 @@ def farm_setting_affordable(width: int, height: int, layers: Iterable[str], seco
 
 def reconstruction_setting(width: int, height: int, layers: Iterable[str], gradients: str,
                            seconds: float, light_in_view: bool = False) -> str | None:
-    """The OIDN setting a frame rendered to a ``seconds`` budget asks for (model.frame.OIDN_SETTING_KEY), or None
+    """The OIDN setting a frame rendered to a ``seconds`` budget asks for (model.header_keys.OIDN_SETTING_KEY), or None
     for the default: FARM_OIDN_SETTING when the frame carries the direct layer's gradients (``oidn-l1`` serves
     it), has no light in view (``light_in_view``: see :func:`has_light_in_view`) and its extra denoising time is
     at most FARM_OIDN_SHARE of the budget."""
@@ -277,7 +272,7 @@ def frame_check(planned: Planned, metadata: dict[str, str], compare: bool = Fals
     stays. ``gradsep.predicted_from`` says which. With ``compare`` the halves are also reconstructed with the
     other of the default OIDN setting and FARM_OIDN_SETTING, and the frame asks for that one
     (OIDN_SETTING_KEY) where it is clearly better (renderer.check.check_frame). Returns the summary's clause."""
-    from gradsep.model.frame import PLAN_METHOD_KEY
+    from gradsep.model.header_keys import PLAN_METHOD_KEY
     from gradsep.model.oidn import METHOD_SETTING
     from gradsep.model.reconstruct import choose_method, reconstruct
     from gradsep.renderer.plan import EXPONENTS
@@ -304,7 +299,7 @@ def frame_check(planned: Planned, metadata: dict[str, str], compare: bool = Fals
         return f"predicted RelMSE {predicted:.4g} (the pilot's: no time for the frame's own check)"
     chosen = planned.candidate
     # the method that serves the frame (a fixed plan's frame names none yet: the default for it, as the service
-    # would choose); the prediction holds for it only (model.frame.encode_answer)
+    # would choose); the prediction holds for it only (model.exr_write.encode_answer)
     method = metadata.get(PLAN_METHOD_KEY) or choose_method(planned.frame)
     metadata[PLAN_METHOD_KEY] = method
     assessed = plan.assessment() if plan is not None else None

@@ -177,7 +177,8 @@ ANSWER_LIMITS_PIXELS = 1 << 31
 
 def verify_answer(data: bytes) -> None:
     """Decode every channel of the answer; ServerFailure naming the problem unless the whole EXR decodes."""
-    from gradsep.model.frame import FrameError, ReadLimits, verify_exr
+    from gradsep.model.errors import FrameError
+    from gradsep.model.exr_read import ReadLimits, verify_exr
 
     limits = ReadLimits(max_pixels=ANSWER_LIMITS_PIXELS, max_values=ANSWER_LIMITS_PIXELS * 64, max_side=1 << 24)
     try:
@@ -214,7 +215,7 @@ def send_frame(frame: Path, output: Path, *, url: str | None = None, token: str 
     Bad input and 4xx answers raise CommandError (exit 2); an unavailable or failing service returns
     EXIT_UNAVAILABLE / EXIT_SERVER_ERROR after printing one line.
     """
-    from gradsep.model.frame import write_bytes_atomic
+    from gradsep.model.exr_write import write_bytes_atomic
 
     _setup_logging()
     url, token = resolve_target(url, token)

@@ -9,6 +9,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import gradsep.model.methods as table
+from gradsep.model.channels import choices_text
 
 
 def serve_command(args: argparse.Namespace) -> int:
@@ -47,8 +48,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--format", choices=("half", "float"), default=None)
     p.add_argument("--layers", choices=("sum", "all"), default=None)
     p.add_argument("--channels", default=None, metavar="LAYOUT",
-                   help="channel layout of the frame (auto, gradsep, mitsuba-aov, cycles, cycles:VIEWLAYER; "
-                        "default: the service detects it)")
+                   help=f"channel layout of the frame ({choices_text()}; default: the service detects it)")
     p.add_argument("--retries", type=int, default=5, help="retries on 503 and connection errors")
     p.add_argument("--timeout", type=float, default=300.0, help="seconds per request")
     p.add_argument("--token", default=None, help="bearer token (or $GRADSEP_TOKEN)")

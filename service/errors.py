@@ -2,7 +2,7 @@
 
 Clients (the render-farm client, curl scripts, contract tests) branch on ``code``; ``message`` is for people and
 ``details`` names what was wrong (channels, limits, parameters). Input problems raised by the frame contract
-(:class:`model.frame.FrameError`) carry their own status and code, so this module maps them without a table.
+(:class:`model.errors.FrameError`) carry their own status and code, so this module maps them without a table.
 Anything unexpected still answers JSON (500 ``internal``, see ``service.middleware``), never a bare text 500.
 """
 
@@ -17,7 +17,7 @@ from pydantic import BaseModel, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.responses import JSONResponse
 
-from gradsep.model.frame import FrameError
+from gradsep.model.errors import FrameError
 
 
 class ErrorBody(BaseModel):

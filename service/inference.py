@@ -24,17 +24,10 @@ import numpy as np
 from anyio.abc import TaskGroup
 
 from gradsep.model import methods as table
-from gradsep.model.frame import (
-    OIDN_SETTING_KEY,
-    Layer,
-    ReadLimits,
-    Source,
-    configure_exr_threads,
-    encode_answer,
-    forward_differences,
-    read_frame,
-    rgb_channels,
-)
+from gradsep.model.exr_read import ReadLimits, Source, read_frame
+from gradsep.model.exr_write import configure_exr_threads, encode_answer
+from gradsep.model.frame import Layer, forward_differences, rgb_channels
+from gradsep.model.header_keys import OIDN_SETTING_KEY
 from gradsep.service.errors import ServiceError
 from gradsep.service.settings import Settings
 
@@ -303,7 +296,7 @@ class Engine:
         return f"; network inference on {', '.join(kinds)}" if kinds else ""
 
     def describe_oidn(self) -> dict[str, Any] | None:
-        """The ``oidn`` method's denoiser: setting, runtime and why (None where pyoidn is not installed)."""
+        """The ``oidn`` method's denoiser: its setting (None where pyoidn is not installed)."""
         if not self.oidn:
             return None
         from gradsep.model.oidn import method_setting, shared_denoiser

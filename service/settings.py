@@ -68,9 +68,6 @@ class Settings(BaseSettings):
                     "keeps the frame-sized temporaries of the worker threads in one arena that keeps its memory "
                     "(no fresh pages per request; half the peak RSS); 0 leaves glibc's malloc as it is; the "
                     "operator's own MALLOC_* variables win")
-    oidn_runtime: Literal["library", "onnx"] = Field(
-        "library", description="what runs OIDN's colour filter: its own library, or its weights on ONNX Runtime "
-                               "(model/oidn.py; read there from the same variable, validated here at startup)")
     warm_up: bool = Field(True, description="run one small inference per method before reporting ready")
     log_level: Literal["critical", "error", "warning", "info", "debug"] = Field("info")
 

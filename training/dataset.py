@@ -30,7 +30,9 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from gradsep.model.frame import FrameError, Layer, feature_groups, read_frame
+from gradsep.model.errors import FrameError
+from gradsep.model.exr_read import read_frame
+from gradsep.model.frame import Layer, feature_groups
 from gradsep.model.policy import FEATURE_GROUPS, ILLUMINATION_LAYERS, SEPARATED_LAYERS
 from gradsep.model.preprocess import (
     FEATURE_PLANES,

@@ -80,7 +80,8 @@ def build_cache(data: Path, out: Path, kinds: tuple[str, ...] = CANDIDATES,
     """Write out/{layer}/NNNNN.npy for every frame of the Noise2Noise dataset ``data`` and each of ``layers``
     (skips existing files). ``extra``: more datasets (other spp, other scenes) cached beside it as
     x{i}-NNNNN.npy; training samples all files alike."""
-    from gradsep.model.frame import feature_groups, read_frame
+    from gradsep.model.exr_read import read_frame
+    from gradsep.model.frame import feature_groups
     from gradsep.model.oidn import shared_denoiser
     from gradsep.model.policy import FEATURE_GROUPS
     from gradsep.training.dataset import load_manifest

@@ -21,7 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from gradsep.model.frame import Features, Frame, Layer, forward_differences, write_frame
+from gradsep.model.exr_write import write_frame
+from gradsep.model.frame import Features, Frame, Layer, forward_differences
 
 
 def _smooth_field(rng: np.random.Generator, h: int, w: int, blobs: int) -> np.ndarray:

@@ -35,8 +35,7 @@ class ModelsInfo(BaseModel):
     models: list[dict[str, Any]] = Field(
         description="loaded networks: name, layers, input channels, checksums and export metadata")
     oidn: dict[str, Any] | None = Field(
-        None, description="the OIDN methods' denoiser: setting, runtime (library or onnx) and why; null without "
-                          "pyoidn")
+        None, description="the OIDN methods' denoiser: its setting (model/oidn.py); null without pyoidn")
     limits: Limits
 
 

@@ -22,8 +22,9 @@ from starlette.datastructures import UploadFile
 from starlette.responses import Response
 
 from gradsep.model import methods as table
-from gradsep.model.channels import DEFAULT_LAYOUT, LAYOUT_CHOICES, LAYOUT_PATTERN
-from gradsep.model.frame import HeaderInfo, NotExrError, Source, read_header
+from gradsep.model.channels import DEFAULT_LAYOUT, choices_text, layout_pattern
+from gradsep.model.errors import NotExrError
+from gradsep.model.exr_read import HeaderInfo, Source, read_header
 from gradsep.model.poisson import MIN_ALPHA
 from gradsep.service.dependencies import get_engine, get_metrics
 from gradsep.service.errors import ErrorResponse, ServiceError
@@ -106,9 +107,8 @@ def build_router() -> APIRouter:
         layers: Annotated[Literal["sum", "all"], Query(
             description="sum: R G B only; all: also each reconstructed layer (direct.R, ...)")] = "sum",
         channels: Annotated[str, Query(
-            pattern=LAYOUT_PATTERN, description="channel layout of the frame: " + ", ".join(LAYOUT_CHOICES)
-            + " or cycles:VIEWLAYER (auto: the one layout the file matches; ambiguous files get 422 naming the "
-            "candidates)")] = DEFAULT_LAYOUT,
+            pattern=layout_pattern(), description=f"channel layout of the frame: {choices_text()} (auto: the one "
+            "layout the file matches; ambiguous files get 422 naming the candidates)")] = DEFAULT_LAYOUT,
     ) -> Response:
         return await _reconstruct(request, engine, metrics, method, alpha, output_format, layers, channels)
 

@@ -379,7 +379,7 @@ def test_run_writes_every_output_with_finite_consistent_rows(first_run):
 def test_rows_are_scored_with_the_product_estimator_over_the_cached_references(first_run):
     """The input's RelMSE recomputed from the files in the cache: the row scores what was rendered, against
     both references (the product estimator), and SSIM against their mean."""
-    from gradsep.model.frame import read_frame
+    from gradsep.model.exr_read import read_frame
     from gradsep.model.metrics import relmse_unbiased, ssim
     from gradsep.renderer.reference import load_reference
 
@@ -503,7 +503,7 @@ def test_oidn_l1_reconstructs_a_direct_gradient_render_with_the_same_image(first
     """oidn-l1 integrates only the direct layer's gradients, so its row reconstructs the `--gradients direct`
     render of the same seed (cheaper: no indirect offsets) and counts that render's time; its image is what the
     method gives on the full frame (same direct layer, same indirect base), to float rounding."""
-    from gradsep.model.frame import read_frame
+    from gradsep.model.exr_read import read_frame
     from gradsep.model.reconstruct import reconstruct
 
     root, evaluation = first_run
@@ -697,17 +697,15 @@ def test_time_misses_flags_rows_outside_5_percent():
 
 
 def test_oidn_environment_choices_are_part_of_the_result_key(monkeypatch) -> None:
-    """$GRADSEP_OIDN_SETTING / $GRADSEP_OIDN_RUNTIME change the OIDN methods' images without a code change: a
-    run under them must not reuse outputs cached under the defaults (whose keys stay as they were)."""
+    """$GRADSEP_OIDN_SETTING changes the OIDN methods' images without a code change: a run under it must not reuse
+    outputs cached under the default (whose keys stay as they were)."""
     from gradsep.evaluation.run import oidn_key
     from gradsep.model import oidn
 
     monkeypatch.delenv(oidn.SETTING_ENV, raising=False)
-    monkeypatch.delenv(oidn.RUNTIME_ENV, raising=False)
     assert oidn_key() == {}
-    monkeypatch.setenv(oidn.SETTING_ENV, "raw-high")
-    monkeypatch.setenv(oidn.RUNTIME_ENV, "onnx")
-    assert oidn_key() == {"oidn_setting": "raw-high", "oidn_runtime": "onnx"}
+    monkeypatch.setenv(oidn.SETTING_ENV, "prefiltered-high")
+    assert oidn_key() == {"oidn_setting": "prefiltered-high"}
 
 
 def test_issue14_targets_are_read_from_the_rows():

@@ -16,8 +16,7 @@ from pathlib import Path
 import pytest
 
 from gradsep import cli
-from gradsep.model.errors import CommandError
-from gradsep.model.frame import ChannelError
+from gradsep.model.errors import ChannelError, CommandError
 
 REPO = Path(__file__).resolve().parents[2]
 EVERY_COMMAND = ("render", "reference", "dataset", "train", "export", "reconstruct", "evaluate", "serve", "client")

@@ -1,4 +1,4 @@
-"""Channel layouts (model/channels.py) and what an answer carries over (model.frame.encode_answer), through
+"""Channel layouts (model/channels.py) and what an answer carries over (model.exr_write.encode_answer), through
 ``read_frame`` and ``gradsep reconstruct``: frames from other renderers, alpha, header metadata, warnings."""
 
 from __future__ import annotations
@@ -11,15 +11,20 @@ import OpenEXR
 import pytest
 
 from gradsep.cli import main
-from gradsep.model.channels import LAYOUT_CHOICES, candidates, check_layout, map_channels
-from gradsep.model.frame import (
-    ChannelError,
-    encode_answer,
-    encode_exr,
-    read_frame,
-    rgb_channels,
-    write_exr,
+from gradsep.model.channels import (
+    LAYOUTS,
+    ChannelMap,
+    Layout,
+    candidates,
+    check_layout,
+    layout_choices,
+    layout_pattern,
+    map_channels,
 )
+from gradsep.model.errors import ChannelError
+from gradsep.model.exr_read import read_frame
+from gradsep.model.exr_write import encode_answer, encode_exr, write_exr
+from gradsep.model.frame import rgb_channels
 from tests.service.frames import frame_channels
 
 H, W = 12, 16
@@ -41,13 +46,57 @@ def _beauty(alpha: bool = True) -> dict[str, np.ndarray]:
     return {c: _plane(0.1, 2.0) for c in ("R", "G", "B", *(("A",) if alpha else ()))}
 
 
-def test_layout_names_and_validation() -> None:
-    assert LAYOUT_CHOICES == ("auto", "gradsep", "mitsuba-aov", "cycles")
-    for good in (*LAYOUT_CHOICES, "cycles:ViewLayer", "cycles:My.Layer"):
+def test_layout_arguments_are_checked_against_the_table() -> None:
+    """Every name of the table and ``auto`` is a valid argument, a row with a qualifier takes NAME:QUALIFIER as
+    well, and anything else is refused naming every form."""
+    for good in (*layout_choices(), "cycles:ViewLayer", "cycles:My.Layer"):
         assert check_layout(good) == good
-    for bad in ("", "cycle", "cycles:", "mitsuba", "AUTO"):
-        with pytest.raises(ValueError, match="unknown channel layout"):
+    for bad in ("", "cycle", "cycles:", "mitsuba", "AUTO", "gradsep:x", "mitsuba-aov:x"):
+        with pytest.raises(ValueError, match="unknown channel layout .*auto, gradsep, mitsuba-aov, cycles or "
+                                             "cycles:VIEWLAYER"):
             check_layout(bad)
+
+
+def _toy_layout() -> Layout:
+    """A renderer whose beauty is ``toy.R toy.G toy.B``: one row, as a new layout would be added."""
+    return Layout("toy-beauty", "a toy renderer's beauty", "a toy.R toy.G toy.B beauty",
+                  lambda names: ["toy-beauty"] if "toy.R" in names else [],
+                  lambda names, _qualifier: ChannelMap("toy-beauty", {f"color.{c}": f"toy.{c}" for c in "RGB"}))
+
+
+def test_a_layout_added_as_one_row_is_read_detected_and_offered_everywhere(monkeypatch) -> None:
+    """The table is the only place a layout is named: a new row is read (by name and by ``auto``), is named in the
+    error for a file that matches nothing, and appears in ``gradsep reconstruct --channels``, ``gradsep client
+    --channels`` and the service's ``channels`` parameter (its pattern and its description)."""
+    from fastapi import FastAPI
+
+    from gradsep.cli import build_parser
+    from gradsep.service.routers.reconstruct import build_router
+
+    monkeypatch.setitem(LAYOUTS, "toy-beauty", _toy_layout())
+    toy = {f"toy.{c}": _plane() for c in "RGB"}
+    for layout in ("toy-beauty", "auto"):
+        frame = read_frame(_exr(toy), layout=layout)
+        assert frame.layout == "toy-beauty" and list(frame.layers) == ["color"]
+        np.testing.assert_array_equal(frame.layers["color"].base[..., 1], toy["toy.G"])
+    with pytest.raises(ChannelError, match="a toy.R toy.G toy.B beauty"):
+        read_frame(_exr({"other": _plane()}))
+    sub = next(a for a in build_parser()._actions if a.dest == "command")
+    for command in ("reconstruct", "client"):
+        option = next(a for a in sub.choices[command]._actions if a.dest == "channels")
+        assert "toy-beauty" in option.help, (command, option.help)
+    app = FastAPI()
+    app.include_router(build_router())
+    params = app.openapi()["paths"]["/v1/reconstruct"]["post"]["parameters"]
+    channels = next(p for p in params if p["name"] == "channels")
+    assert channels["schema"]["pattern"] == layout_pattern() and "toy-beauty" in layout_pattern()
+    assert "toy-beauty" in channels["description"]
+
+
+def test_a_layout_row_needs_a_plain_name() -> None:
+    for bad in ("auto", "Toy", "toy beauty", "", "toy:x"):
+        with pytest.raises(ValueError, match="layout's name"):
+            Layout(bad, "", "", lambda names: [], lambda names, _q: ChannelMap("toy", {}))
 
 
 def test_a_beauty_rgba_exr_is_a_plain_color_frame_and_keeps_its_alpha() -> None:
@@ -217,7 +266,7 @@ def test_write_exr_keeps_a_frames_image_attributes(tmp_path: Path) -> None:
 
 def test_malformed_image_attributes_are_dropped_not_written() -> None:
     """Values from an untrusted header are checked before they are copied: writing them back cannot fail."""
-    from gradsep.model.frame import _image_attributes
+    from gradsep.model.exr_read import _image_attributes
 
     header = {"displayWindow": (np.array([50, 50], np.int32), np.array([0, 0], np.int32)),  # inverted
               "pixelAspectRatio": float("nan"), "screenWindowWidth": "wide", "chromaticities": (0.6, 0.3),

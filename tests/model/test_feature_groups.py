@@ -15,19 +15,10 @@ import OpenEXR
 import pytest
 
 from gradsep.cli import main
-from gradsep.model.frame import (
-    ChannelError,
-    Features,
-    Frame,
-    Layer,
-    encode_exr,
-    forward_differences,
-    read_frame,
-    rgb_channels,
-    validate_channels,
-    write_exr,
-    write_frame,
-)
+from gradsep.model.errors import ChannelError
+from gradsep.model.exr_read import read_frame, validate_channels
+from gradsep.model.exr_write import encode_exr, write_exr, write_frame
+from gradsep.model.frame import Features, Frame, Layer, forward_differences, rgb_channels
 from gradsep.model.methods import LoadedModels
 from gradsep.model.policy import FEATURE_GROUPS
 from gradsep.model.reconstruct import available_methods, choose_method, reconstruct

@@ -13,14 +13,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from gradsep.model.frame import (
-    FEATURE_CHANNELS,
-    ChannelError,
-    NonFiniteError,
-    encode_exr,
-    layer_channels,
-    read_frame,
-)
+from gradsep.model.errors import ChannelError, NonFiniteError
+from gradsep.model.exr_read import read_frame
+from gradsep.model.exr_write import encode_exr
+from gradsep.model.frame import FEATURE_CHANNELS, layer_channels
 from gradsep.model.policy import FEATURE_GROUPS
 from tests.service.frames import channels_bytes
 

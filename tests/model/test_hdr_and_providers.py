@@ -12,7 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gradsep.model.frame import Frame, read_frame
+from gradsep.model.exr_read import read_frame
+from gradsep.model.frame import Frame
 from gradsep.model.infer import NETWORK_LEVEL, NetworkReconstructor, exposure_scale
 from gradsep.model.methods import LoadedModels
 from gradsep.model.metrics import relmse

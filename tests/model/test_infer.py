@@ -15,7 +15,8 @@ import pytest
 torch = pytest.importorskip("torch")
 pytest.importorskip("onnx")
 
-from gradsep.model.frame import ChannelError, Features, Layer  # noqa: E402
+from gradsep.model.errors import ChannelError  # noqa: E402
+from gradsep.model.frame import Features, Layer  # noqa: E402
 from gradsep.model.infer import (  # noqa: E402
     ModelError,
     NetworkReconstructor,

@@ -103,7 +103,8 @@ def test_a_toy_method_reaches_the_cli_the_service_and_reconstruct(tmp_path: Path
     from fastapi.testclient import TestClient
 
     from gradsep.cli import build_parser, main
-    from gradsep.model.frame import encode_exr, rgb_channels
+    from gradsep.model.exr_write import encode_exr
+    from gradsep.model.frame import rgb_channels
     from gradsep.model.reconstruct import available_methods, reconstruct
     from gradsep.service.main import create_app
     from gradsep.service.settings import Settings
@@ -159,7 +160,7 @@ def test_a_replaced_declaration_is_restored() -> None:
 
 def test_the_cli_names_a_missing_model_set(tmp_path: Path, capsys, monkeypatch) -> None:
     from gradsep.cli import main
-    from gradsep.model.frame import write_frame
+    from gradsep.model.exr_write import write_frame
 
     frame = tmp_path / "frame.exr"
     write_frame(frame, Frame({"color": Layer(np.full((8, 10, 3), 0.25, np.float32))}))

@@ -95,16 +95,18 @@ def test_concurrent_network_layers_equal_sequential_and_never_overlap_graphs(net
 def test_the_prior_is_solved_with_the_pinned_budget(monkeypatch) -> None:
     seen: dict = {}
 
-    def spy(base, dx, dy, alpha, **kwargs):
-        seen.update(alpha=alpha, **kwargs)
+    def spy(base, dx, dy, alpha, options):
+        seen.update(alpha=alpha, options=options)
         return np.zeros_like(base), None
 
     monkeypatch.setattr(preprocess, "solve_l1", spy)
     preprocess.poisson_prior(_frame(16, 16).layers["direct"])
-    assert seen == {"alpha": preprocess.PRIOR_ALPHA, "iterations": preprocess.PRIOR_IRLS_PASSES,
-                    "cg_iterations": preprocess.PRIOR_CG_STEPS, "reg_init": preprocess.PRIOR_REG_INIT,
-                    "reg_decay": preprocess.PRIOR_REG_DECAY, "cg_tolerance": preprocess.PRIOR_CG_TOLERANCE,
-                    "preconditioner": preprocess.PRIOR_PRECONDITIONER}
+    options = seen["options"]
+    assert seen["alpha"] == preprocess.PRIOR_ALPHA and (
+        options.iterations, options.cg_iterations, options.reg_init, options.reg_decay, options.cg_tolerance,
+        options.preconditioner) == (
+        preprocess.PRIOR_IRLS_PASSES, preprocess.PRIOR_CG_STEPS, preprocess.PRIOR_REG_INIT,
+        preprocess.PRIOR_REG_DECAY, preprocess.PRIOR_CG_TOLERANCE, preprocess.PRIOR_PRECONDITIONER)
 
 
 @needs_models

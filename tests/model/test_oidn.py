@@ -8,8 +8,12 @@ import pytest
 
 pytest.importorskip("pyoidn")
 
-from gradsep.model.frame import ChannelError, Features, Frame, Layer, read_frame, write_frame  # noqa: E402
+from gradsep.model.errors import ChannelError  # noqa: E402
+from gradsep.model.exr_read import read_frame  # noqa: E402
+from gradsep.model.exr_write import write_frame  # noqa: E402
+from gradsep.model.frame import Features, Frame, Layer  # noqa: E402
 from gradsep.model.oidn import MIN_SIDE, SETTINGS, Denoiser, exposure_scale, input_scale, shared_denoiser  # noqa: E402
+from gradsep.model.oidn import method_setting as oidn_method_setting  # noqa: E402
 from gradsep.model.reconstruct import available_methods, choose_method, reconstruct  # noqa: E402
 from gradsep.model.robust import lit_level  # noqa: E402
 
@@ -148,9 +152,9 @@ def test_oidn_runs_its_setting(monkeypatch) -> None:
     reconstruct(_plain(), "oidn")
     assert set(used) == {oidn.METHOD_SETTING}
     used.clear()
-    monkeypatch.setenv(oidn.SETTING_ENV, "none-high")
+    monkeypatch.setenv(oidn.SETTING_ENV, "prefiltered-high")
     reconstruct(_plain(), "oidn")
-    assert set(used) == {"none-high"}
+    assert set(used) == {"prefiltered-high"}
     monkeypatch.setenv(oidn.SETTING_ENV, "sharpest")
     with pytest.raises(ValueError, match="raw-fast"):  # an unknown setting names the valid ones
         reconstruct(_plain(), "oidn")
@@ -162,48 +166,47 @@ def test_a_frame_asks_for_its_setting_and_the_answer_records_the_one_that_ran(mo
     not an error; a method without OIDN reports none; the CLI's answer records the setting that ran."""
     from gradsep.cli import main
     from gradsep.model import oidn
-    from gradsep.model.frame import OIDN_SETTING_KEY, read_header
+    from gradsep.model.exr_read import read_header
+    from gradsep.model.header_keys import OIDN_SETTING_KEY
 
     monkeypatch.delenv(oidn.SETTING_ENV, raising=False)
     used: list[str] = []
     real = Denoiser.denoise
     monkeypatch.setattr(Denoiser, "denoise", lambda self, *a: used.append(self.setting.name) or real(self, *a))
     frame = _plain()
-    frame.metadata[OIDN_SETTING_KEY] = "raw-high"
+    frame.metadata[OIDN_SETTING_KEY] = "prefiltered-high"
     result = reconstruct(frame, "oidn")
-    assert set(used) == {"raw-high"} and result.oidn_setting == "raw-high" and not result.warnings
+    assert set(used) == {"prefiltered-high"} and result.oidn_setting == "prefiltered-high" and not result.warnings
     frame.metadata[OIDN_SETTING_KEY] = "sharpest"
     result = reconstruct(frame, "oidn")
     assert result.oidn_setting == oidn.METHOD_SETTING
     assert any("sharpest" in w and oidn.METHOD_SETTING in w for w in result.warnings)
-    monkeypatch.setenv(oidn.SETTING_ENV, "none-fast")
-    frame.metadata[OIDN_SETTING_KEY] = "raw-high"
-    assert reconstruct(frame, "oidn").oidn_setting == "none-fast"
+    monkeypatch.setenv(oidn.SETTING_ENV, "raw-fast-level")
+    frame.metadata[OIDN_SETTING_KEY] = "prefiltered-high"
+    assert reconstruct(frame, "oidn").oidn_setting == "raw-fast-level"
     monkeypatch.delenv(oidn.SETTING_ENV)
     noisy, _ = _image(24, 24)
     gradients = Frame({"direct": Layer(noisy, np.zeros_like(noisy), np.zeros_like(noisy))},
-                      metadata={OIDN_SETTING_KEY: "raw-high"})
-    assert reconstruct(gradients, "oidn-l1").oidn_setting == "raw-high"
+                      metadata={OIDN_SETTING_KEY: "prefiltered-high"})
+    assert reconstruct(gradients, "oidn-l1").oidn_setting == "prefiltered-high"
     assert reconstruct(gradients, "l2").oidn_setting is None
-    frame.metadata[OIDN_SETTING_KEY] = "raw-high"
+    frame.metadata[OIDN_SETTING_KEY] = "prefiltered-high"
     write_frame(tmp_path / "in.exr", frame)
-    for method, recorded in (("oidn", "raw-high"), (None, "raw-high")):
+    for method, recorded in (("oidn", "prefiltered-high"), (None, "prefiltered-high")):
         args = ["reconstruct", str(tmp_path / "in.exr"), "-o", str(tmp_path / "out.exr")]
         assert main(args + (["--method", method] if method else [])) == 0
         assert read_header(str(tmp_path / "out.exr")).attributes.get(OIDN_SETTING_KEY) == recorded
 
 
-@pytest.mark.parametrize("name", ["prefiltered-high", "raw-fast", "none-fast", "raw-fast-level"])
+@pytest.mark.parametrize("name", sorted(SETTINGS))
 def test_every_setting_is_exposure_exact_energy_keeping_and_black_safe(name: str) -> None:
     """The stability guarantees hold per setting: 1e-8 and 1e9 scale exactly, black stays black, 1x1 keeps its
-    energy, and the auxiliary images follow the setting (denoised, passed raw, or none)."""
+    energy, and the auxiliary images follow the setting (denoised, or passed raw)."""
     denoiser = Denoiser(name)
     frame = _plain()
     aux = denoiser.prefilter(frame.features)
-    assert (aux is None) == (name.startswith("none"))
-    if aux is not None:
-        assert aux.clean == name.startswith("prefiltered")
-        assert aux.clean or np.array_equal(aux.albedo, frame.features.albedo)
+    assert aux.clean == name.startswith("prefiltered")
+    assert aux.clean or np.array_equal(aux.albedo, frame.features.albedo)
     base = frame.layers["direct"].base
     unit = denoiser.denoise(base, aux)
     for scale in (1e-8, 1e9):
@@ -220,7 +223,7 @@ def test_every_setting_is_exposure_exact_energy_keeping_and_black_safe(name: str
 def test_the_lit_exposure_sets_the_lit_part_to_oidns_key_however_much_black_surrounds_it(monkeypatch) -> None:
     """``lit`` (the default) gives OIDN the layer scaled so its lit part's mean luminance is 0.18, OIDN's own
     autoexposure key, whatever the black around it; ``level`` (the fused models') scales the whole frame's robust
-    level to 1. Both settings exist for every aux/quality pair."""
+    level to 1."""
     rng = np.random.default_rng(5)
     patch = (0.5 + rng.random((32, 32, 3))).astype(np.float32)
     padded = np.zeros((160, 160, 3), np.float32)
@@ -230,8 +233,6 @@ def test_the_lit_exposure_sets_the_lit_part_to_oidns_key_however_much_black_surr
         assert exposure_scale(image, "level") == input_scale(image)
     assert exposure_scale(padded) == pytest.approx(exposure_scale(patch), rel=1e-9)
     assert exposure_scale(padded, "level") > 20 * exposure_scale(patch, "level")  # the black dilutes its level
-    assert SETTINGS["raw-fast"].exposure == "lit" and SETTINGS["raw-fast-level"].exposure == "level"
-    assert {n for n in SETTINGS if n.endswith("-level")} == {n + "-level" for n in SETTINGS if "-level" not in n}
     seen: list[float] = []
     denoiser = Denoiser("raw-fast")
     real_run = denoiser._run
@@ -241,13 +242,23 @@ def test_the_lit_exposure_sets_the_lit_part_to_oidns_key_however_much_black_surr
     assert seen == [pytest.approx(exposure_scale(padded))]
 
 
-def test_fused_models_keep_the_exposure_they_were_trained_on() -> None:
-    """The blend models' OIDN candidate runs the ``level`` exposure; a model written before settings named their
-    exposure (``raw-fast``) reads as that setting, so the shipped models stay valid."""
+def test_the_fused_candidates_denoise_at_the_exposure_they_were_trained_on(monkeypatch) -> None:
+    """The blend models were trained on OIDN's image at the ``level`` exposure (the robust level over the whole
+    frame at 1): their candidates' denoiser gives OIDN exactly that scale, where the ``oidn`` method's gives the
+    lit part's."""
     from gradsep.model import fused
 
-    assert SETTINGS[fused.OIDN_SETTING].exposure == "level"
-    assert fused.LEGACY_SETTING_NAMES["raw-fast"] == fused.OIDN_SETTING
+    rng = np.random.default_rng(6)
+    padded = np.zeros((96, 96, 3), np.float32)
+    padded[32:64, 40:72] = 0.5 + rng.random((32, 32, 3))
+    for name, want in ((fused.OIDN_SETTING, input_scale(padded)), (oidn_method_setting(), exposure_scale(padded))):
+        seen: list[float] = []
+        denoiser = Denoiser(name)
+        real_run = denoiser._run
+        monkeypatch.setattr(denoiser, "_run", lambda purpose, images, output, flags, scale=None, d=real_run, s=seen: (
+            s.append(scale), d(purpose, images, output, flags, scale))[1])
+        denoiser.denoise(padded, None)
+        assert seen == [pytest.approx(want)], name
 
 
 def test_pyoidn_is_imported_without_torch_and_torch_stays_importable():

@@ -18,7 +18,8 @@ import pytest
 
 import gradsep.model.methods as table
 import gradsep.model.reconstruct as reconstruct_module
-from gradsep.model.frame import Frame, Layer, read_frame
+from gradsep.model.exr_read import read_frame
+from gradsep.model.frame import Frame, Layer
 from gradsep.model.robust import (
     OUTLIER_SPREAD_RADIUS,
     SOURCE_LEVEL,

@@ -7,9 +7,8 @@ import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spl
 
-from gradsep.model import kernels
 from gradsep.model.frame import forward_differences
-from gradsep.model.poisson import L1_PASSES, MIN_ALPHA, energy_l1, energy_l2, solve_l1, solve_l2
+from gradsep.model.poisson import L1_PASSES, MIN_ALPHA, L1Options, energy_l1, energy_l2, solve_l1, solve_l2
 
 
 def _difference_matrix(n: int) -> sp.csr_matrix:
@@ -122,7 +121,7 @@ def test_l1_stats_describe_every_pass() -> None:
     rng = np.random.default_rng(2)
     base = image + rng.normal(0, 0.1, image.shape).astype(np.float32)
     dx, dy = forward_differences(image)
-    _, stats = solve_l1(base, dx, dy, iterations=6, cg_iterations=3)
+    _, stats = solve_l1(base, dx, dy, options=L1Options(iterations=6, cg_iterations=3))
     assert stats.iterations == 6
     assert len(stats.cg_iterations) == len(stats.cg_residuals) == len(stats.energies) == 6
     assert stats.cg_iterations[0] == 0 and all(1 <= n <= 3 for n in stats.cg_iterations[1:])
@@ -149,8 +148,8 @@ def test_l1_preconditioners_converge_to_the_same_minimiser(preconditioner: str) 
     base = image + rng.normal(0, 0.2, image.shape).astype(np.float32)
     dx, dy = forward_differences(image)
     kwargs = dict(iterations=8, cg_iterations=400, cg_tolerance=1e-6, dtype=np.float64)
-    ref, _ = solve_l1(base, dx, dy, preconditioner="dct", **kwargs)
-    got, _ = solve_l1(base, dx, dy, preconditioner=preconditioner, **kwargs)
+    ref, _ = solve_l1(base, dx, dy, options=L1Options(preconditioner="dct", **kwargs))
+    got, _ = solve_l1(base, dx, dy, options=L1Options(preconditioner=preconditioner, **kwargs))
     np.testing.assert_allclose(got, ref, atol=1e-4)
 
 
@@ -216,32 +215,11 @@ def test_bad_inputs_are_named(solver: str) -> None:
 
 
 def test_l1_bad_options_are_rejected() -> None:
-    base, dx, dy = _random_problem(4, 4)
-    with pytest.raises(ValueError, match="iterations"):
-        solve_l1(base, dx, dy, iterations=0)
-    with pytest.raises(ValueError, match="reg"):
-        solve_l1(base, dx, dy, reg_init=0.0)
-    with pytest.raises(ValueError, match="preconditioner"):
-        solve_l1(base, dx, dy, preconditioner="ilu")
-
-
-@pytest.mark.skipif(not __import__("gradsep.model.kernels").model.kernels.AVAILABLE, reason="numba is not installed")
-@pytest.mark.parametrize("dtype_alpha", [0.2, 1e-3], ids=["float32", "float64"])
-def test_compiled_kernels_match_the_numpy_path(monkeypatch: pytest.MonkeyPatch, dtype_alpha: float) -> None:
-    """model.kernels fuses the IRLS inner loop; it must give the numpy formulation's result to rounding."""
-    from gradsep.model import kernels
-
-    rng = np.random.default_rng(11)
-    truth = rng.random((37, 53, 3))
-    dx, dy = forward_differences(truth)
-    base = truth * (1 + 0.5 * rng.standard_normal(truth.shape))
-    dx, dy = dx + 0.1 * rng.standard_normal(dx.shape), dy + 0.1 * rng.standard_normal(dy.shape)
-    compiled, stats_c = solve_l1(base, dx, dy, dtype_alpha)
-    monkeypatch.setattr(kernels, "AVAILABLE", False)
-    plain, stats_p = solve_l1(base, dx, dy, dtype_alpha)
-    np.testing.assert_allclose(compiled, plain, rtol=0, atol=2e-5 * np.abs(plain).max())
-    np.testing.assert_allclose(stats_c.energies, stats_p.energies, rtol=1e-4)
-    assert stats_c.cg_iterations == stats_p.cg_iterations
+    for bad, match in (({"iterations": 0}, "iterations"), ({"cg_iterations": 0}, "cg_iterations"),
+                       ({"reg_init": 0.0}, "reg"), ({"reg_decay": 1.5}, "reg_decay"),
+                       ({"preconditioner": "ilu"}, "preconditioner")):
+        with pytest.raises(ValueError, match=match):
+            L1Options(**bad)
 
 
 @pytest.mark.parametrize("size", [(1, 1), (5, 7)])
@@ -255,92 +233,6 @@ def test_solvers_never_modify_their_inputs(size: tuple[int, int]) -> None:
         np.testing.assert_array_equal(a, b)
 
 
-# ------------------------------------------------------------------------------------- multigrid preconditioner
-
-needs_numba = pytest.mark.skipif(not kernels.AVAILABLE, reason="numba is not installed")
-
-
-def _weighted_system(h: int, w: int, alpha: float, spread: float, seed: int = 0):
-    """A weighted IRLS system with weights spanning ``spread`` decades (as late IRLS passes produce) and its dense
-    matrix A = α² W0 + H_xᵀ Wx H_x + H_yᵀ Wy H_y (pixel order row-major)."""
-    from gradsep.model.poisson import _WeightedSystem
-
-    rng = np.random.default_rng(seed)
-    norms = tuple(10 ** rng.uniform(-spread / 2, spread / 2, shape) for shape in ((h, w), (h, w - 1), (h - 1, w)))
-    system = _WeightedSystem((1, h, w), alpha, np.dtype(np.float64), "mg")
-    system.set_weights(norms, reg=1e-12)
-    dense = np.zeros((h * w, h * w))
-    for i in range(h * w):
-        e = np.zeros((1, h, w))
-        e.flat[i] = 1.0
-        dense[:, i] = system.apply(e, np.empty_like(e)).ravel()
-    return system, dense
-
-
-@needs_numba
-@pytest.mark.parametrize("size", [(1, 1), (1, 9), (8, 1), (7, 9), (16, 13)])
-@pytest.mark.parametrize("alpha", [1e-4, 0.2, 1e3])
-def test_multigrid_vcycle_is_symmetric_positive_definite(size: tuple[int, int], alpha: float) -> None:
-    """PCG needs an SPD preconditioner: the V-cycle's matrix, built column by column, must be symmetric (to
-    rounding) with positive eigenvalues, on weights spanning 8 decades, for stiff and odd-sized problems."""
-    h, w = size
-    system, dense = _weighted_system(h, w, alpha, spread=8.0)
-    m = np.zeros((h * w, h * w))
-    for i in range(h * w):
-        e = np.zeros((1, h, w))
-        e.flat[i] = 1.0
-        m[:, i] = system.precondition(e).ravel()
-    np.testing.assert_allclose(m, m.T, rtol=1e-9, atol=1e-9 * np.abs(m).max())
-    assert np.linalg.eigvalsh((m + m.T) / 2).min() > 0
-    # M A's spectrum lies in (0, 1]: the symmetric Gauss-Seidel V-cycle never over-corrects. (Its smallest
-    # eigenvalue is not bounded away from 0 for uncorrelated weights spanning 8 decades, as here: 1e-6 was seen;
-    # IRLS weights are spatially correlated, see docs/poisson.md for the measured convergence.)
-    eig = np.linalg.eigvals(m @ dense).real
-    assert eig.min() > 0 and eig.max() < 1.0 + 1e-6
-
-
-@needs_numba
-@pytest.mark.parametrize("alpha", [1e-4, 0.2, 1e3])
-def test_multigrid_pcg_reaches_the_direct_solution_of_a_stiff_weighted_system(alpha: float) -> None:
-    """The mg-preconditioned CG of one IRLS pass against a dense direct solve of the same weighted system."""
-    from gradsep.model.poisson import _pcg
-
-    system, dense = _weighted_system(13, 17, alpha, spread=4.0, seed=3)
-    rhs = np.random.default_rng(4).standard_normal((1, 13, 17))
-    exact = np.linalg.solve(dense, rhs.ravel())
-    got, iterations, _ = _pcg(system, rhs.copy(), max_iter=200, tol=1e-12)
-    assert iterations < 200
-    np.testing.assert_allclose(got.ravel(), exact, atol=1e-7 * np.abs(exact).max())
-
-
-@needs_numba
-@pytest.mark.parametrize("size", [(1, 1), (1, 17), (15, 1), (9, 14), (33, 20)])
-@pytest.mark.parametrize("alpha", [1e-4, 0.2, 1e3])
-@pytest.mark.parametrize("scale", [1e-8, 1.0, 1e9])
-def test_multigrid_l1_recovers_exact_data(size: tuple[int, int], alpha: float, scale: float) -> None:
-    image = _smooth_image(*size) * np.float32(scale)
-    dx, dy = forward_differences(image)
-    got, _ = solve_l1(image, dx, dy, alpha, preconditioner="mg")
-    assert np.abs(got - image).max() <= 1e-6 * np.abs(image).max()
-
-
-def test_l1_initial_iterate_replaces_the_l2_start() -> None:
-    """``initial`` (the refinement's warm start): from the exact image IRLS stays there, and from anything
-    else it still lowers the L1 energy below the initial's; a wrong shape is named."""
-    rng = np.random.default_rng(3)
-    image = rng.uniform(0.1, 2.0, (24, 31, 3)).astype(np.float32)
-    dx, dy = forward_differences(image)
-    exact, stats = solve_l1(image, dx, dy, 1.0, 4, initial=image)
-    np.testing.assert_allclose(exact, image, atol=1e-5)
-    assert stats.energies[0] == pytest.approx(0.0, abs=1e-3)
-    noisy = image + rng.normal(0, 0.2, image.shape).astype(np.float32)
-    start = noisy + 0.1
-    out, stats = solve_l1(noisy, dx, dy, 1.0, 4, initial=start)
-    assert stats.energies[0] == pytest.approx(energy_l1(start, noisy, dx, dy, 1.0), rel=1e-4)
-    assert energy_l1(out, noisy, dx, dy, 1.0) < 0.8 * stats.energies[0]
-    with pytest.raises(ValueError, match="shape"):
-        solve_l1(noisy, dx, dy, 1.0, 4, initial=start[:-1])
-
 
 # ---------------------------------------------------------------------------------------------------------------
 # A per-pixel α (``alpha_map``: model/refine.py's clean-layer rule)
@@ -350,21 +242,9 @@ def test_l1_initial_iterate_replaces_the_l2_start() -> None:
 @pytest.mark.parametrize("preconditioner", ["dct", "mg", "jacobi"])
 def test_an_alpha_map_of_ones_is_the_solve_without_one(preconditioner: str) -> None:
     base, dx, dy = _random_problem(23, 31, 5)
-    plain, _ = solve_l1(base, dx, dy, 0.5, preconditioner=preconditioner)
-    ones, _ = solve_l1(base, dx, dy, 0.5, preconditioner=preconditioner, alpha_map=np.ones((23, 31)))
+    plain, _ = solve_l1(base, dx, dy, 0.5, L1Options(preconditioner=preconditioner))
+    ones, _ = solve_l1(base, dx, dy, 0.5, L1Options(preconditioner=preconditioner), alpha_map=np.ones((23, 31)))
     np.testing.assert_allclose(ones, plain, rtol=0, atol=1e-6 * float(np.abs(plain).max()))
-
-
-def test_a_uniform_alpha_map_is_that_alpha_in_the_irls_passes() -> None:
-    """From the same starting iterate, α·m with m ≡ c is the solve at α·c (pass 0, the L2 start, keeps the
-    scalar α, so the start is given; each pass solved to convergence, since the preconditioner is built for the
-    scalar α and a truncated CG would differ by that alone)."""
-    base, dx, dy = _random_problem(20, 26, 6)
-    start = solve_l2(base, dx, dy, 0.5)
-    converged = {"cg_iterations": 400, "cg_tolerance": 1e-9, "dtype": np.float64}
-    mapped, _ = solve_l1(base, dx, dy, 0.5, initial=start, alpha_map=np.full((20, 26), 0.4), **converged)
-    scalar, _ = solve_l1(base, dx, dy, 0.2, initial=start, **converged)
-    np.testing.assert_allclose(mapped, scalar, rtol=0, atol=1e-4 * float(np.abs(scalar).max()))
 
 
 def test_a_large_alpha_map_pins_its_pixels_to_the_base() -> None:
@@ -391,12 +271,12 @@ def test_start_alpha_sets_the_l2_start_only() -> None:
     default, _ = solve_l1(base, dx, dy, 0.5)
     same, _ = solve_l1(base, dx, dy, 0.5, start_alpha=0.5)
     assert np.array_equal(default, same)
-    first, _ = solve_l1(base, dx, dy, 0.5, 1, start_alpha=0.2)
+    first, _ = solve_l1(base, dx, dy, 0.5, L1Options(iterations=1), start_alpha=0.2)
     np.testing.assert_allclose(first, solve_l2(base, dx, dy, 0.2), rtol=0, atol=1e-5 * float(np.abs(first).max()))
-    assert np.abs(first - solve_l1(base, dx, dy, 0.5, 1)[0]).max() > 1e-3
-    converged = {"cg_iterations": 400, "cg_tolerance": 1e-9, "dtype": np.float64}
-    mapped, _ = solve_l1(base, dx, dy, 0.5, alpha_map=np.full((20, 26), 0.4), start_alpha=0.2, **converged)
-    scalar, _ = solve_l1(base, dx, dy, 0.2, **converged)
+    assert np.abs(first - solve_l1(base, dx, dy, 0.5, L1Options(iterations=1))[0]).max() > 1e-3
+    converged = L1Options(cg_iterations=400, cg_tolerance=1e-9, dtype=np.float64)
+    mapped, _ = solve_l1(base, dx, dy, 0.5, converged, alpha_map=np.full((20, 26), 0.4), start_alpha=0.2)
+    scalar, _ = solve_l1(base, dx, dy, 0.2, converged)
     np.testing.assert_allclose(mapped, scalar, rtol=0, atol=1e-4 * float(np.abs(scalar).max()))
     for bad in (0.0, -1.0, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="start_alpha"):
@@ -408,7 +288,7 @@ def test_an_extreme_start_alpha_stays_finite_and_starts_where_asked(start_alpha:
     """Stiff starts (a tiny α takes the float64 path, a huge one pins the start to the base): finite, and pass 0
     alone is the L2 solve at that α."""
     base, dx, dy = _random_problem(12, 17, 10)
-    first, _ = solve_l1(base, dx, dy, 0.5, 1, start_alpha=start_alpha)
+    first, _ = solve_l1(base, dx, dy, 0.5, L1Options(iterations=1), start_alpha=start_alpha)
     expected = solve_l2(base, dx, dy, start_alpha, dtype=np.float64)
     assert np.all(np.isfinite(first))
     np.testing.assert_allclose(first, expected, rtol=0, atol=1e-4 * max(1.0, float(np.abs(expected).max())))

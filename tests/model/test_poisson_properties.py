@@ -17,7 +17,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from gradsep.model.frame import forward_differences
-from gradsep.model.poisson import solve_l1, solve_l2
+from gradsep.model.poisson import L1Options, solve_l1, solve_l2
 
 SETTINGS = settings(max_examples=30, deadline=None, database=None, suppress_health_check=[HealthCheck.too_slow])
 sizes = st.integers(1, 24)
@@ -62,7 +62,7 @@ def test_l1_recovers_exact_data_for_any_alpha(h: int, w: int, alpha: float, seed
     """IRLS starts at the exact L2 solution; its reweighting must not move away from a zero-residual answer
     (float32 iterates on inputs scaled to peak 1: ~1e-7 of the peak, docs/poisson.md)."""
     exact = image(h, w, seed, kind)
-    got, stats = solve_l1(exact, *forward_differences(exact), alpha, dtype=np.float64)
+    got, stats = solve_l1(exact, *forward_differences(exact), alpha, L1Options(dtype=np.float64))
     assert np.abs(got - exact).max() <= 1e-6 * exact.max(), f"α={alpha:g}"
     assert np.isfinite(stats.energies).all()
 
@@ -87,8 +87,8 @@ def test_scaling_the_input_scales_the_l1_output(h: int, w: int, alpha: float, se
     relative stopping test can stop one step earlier or later: equal only to ~1 %.)"""
     scale = 2.0**exponent
     base, dx, dy = noisy(h, w, seed, kind)
-    l1, _ = solve_l1(base, dx, dy, alpha, dtype=np.float64)
-    l1s, _ = solve_l1(base * scale, dx * scale, dy * scale, alpha, reg_init=0.05 * scale, dtype=np.float64)
+    l1, _ = solve_l1(base, dx, dy, alpha, L1Options(dtype=np.float64))
+    l1s, _ = solve_l1(base * scale, dx * scale, dy * scale, alpha, L1Options(reg_init=0.05 * scale, dtype=np.float64))
     np.testing.assert_allclose(l1s / scale, l1, rtol=1e-12, atol=1e-12 * np.abs(l1).max())
 
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from gradsep.model.frame import Features, Layer
-from gradsep.model.poisson import solve_l1
+from gradsep.model.poisson import L1Options, solve_l1
 from gradsep.model.preprocess import (
     DATA_INPUTS,
     DEPTH_MAX,
@@ -125,8 +125,8 @@ class TestPlanes:
         layer.dy[:] = rng.normal(0, 0.1, layer.dy.shape).astype(np.float32)
         layer.dx[:, -1] = 0
         layer.dy[-1] = 0
-        expected = np.clip(solve_l1(layer.base, layer.dx, layer.dy, PRIOR_ALPHA, iterations=PRIOR_IRLS_PASSES,
-                                    cg_iterations=PRIOR_CG_STEPS)[0], 0, None)
+        options = L1Options(iterations=PRIOR_IRLS_PASSES, cg_iterations=PRIOR_CG_STEPS)
+        expected = np.clip(solve_l1(layer.base, layer.dx, layer.dy, PRIOR_ALPHA, options)[0], 0, None)
         assert np.allclose(poisson_prior(layer), expected, atol=1e-6)
         layer.base[4, 5, 1] = np.nan                            # sanitised first: NaN → 0, never propagated
         assert np.all(np.isfinite(poisson_prior(layer)))

@@ -14,17 +14,10 @@ import pytest
 
 from gradsep.cli import main
 from gradsep.model import methods as table
-from gradsep.model.frame import (
-    ChannelError,
-    Features,
-    Frame,
-    Layer,
-    forward_differences,
-    layer_channels,
-    read_frame,
-    write_exr,
-    write_frame,
-)
+from gradsep.model.errors import ChannelError
+from gradsep.model.exr_read import read_frame
+from gradsep.model.exr_write import write_exr, write_frame
+from gradsep.model.frame import Features, Frame, Layer, forward_differences, layer_channels
 from gradsep.model.methods import LoadedModels
 from gradsep.model.poisson import solve_l1, solve_l2
 from gradsep.model.reconstruct import choose_method, reconstruct

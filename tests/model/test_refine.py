@@ -103,13 +103,14 @@ def _old_refine(prior: np.ndarray, layer: Layer, preconditioner: str, cg_steps: 
     were trained on, so a call pinned to (preconditioner, cg_steps) must still give exactly this."""
     from gradsep.model import refine
     from gradsep.model.oidn import input_scale
-    from gradsep.model.poisson import solve_l1
+    from gradsep.model.poisson import L1Options, solve_l1
     from gradsep.model.preprocess import scaled_image
 
     scale = input_scale(prior)
     data = scaled_image(prior, scale)
+    options = L1Options(refine.REFINE_ITERATIONS, cg_iterations=cg_steps, preconditioner=preconditioner)
     solved, _ = solve_l1(data, scaled_image(layer.dx, scale), scaled_image(layer.dy, scale), refine.REFINE_ALPHA,
-                         refine.REFINE_ITERATIONS, cg_iterations=cg_steps, preconditioner=preconditioner)
+                         options)
     return np.clip(np.asarray(solved, np.float64) / scale, 0.0, np.finfo(np.float32).max).astype(np.float32)
 
 

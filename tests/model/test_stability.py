@@ -27,8 +27,10 @@ import OpenEXR
 import pytest
 
 from gradsep.model import methods as table
-from gradsep.model.frame import Features, Frame, Layer, NonFiniteError, forward_differences, layer_channels, read_frame
-from gradsep.model.poisson import MIN_ALPHA, energy_l1, solve_l1, solve_l2
+from gradsep.model.errors import NonFiniteError
+from gradsep.model.exr_read import read_frame
+from gradsep.model.frame import Features, Frame, Layer, forward_differences, layer_channels
+from gradsep.model.poisson import MIN_ALPHA, L1Options, energy_l1, solve_l1, solve_l2
 from gradsep.model.reconstruct import reconstruct
 from tests.model.shipped import models_for
 
@@ -120,7 +122,7 @@ def _solve(method: str, base, dx, dy, alpha: float = 0.2, **kwargs) -> np.ndarra
     with np.errstate(divide="raise", over="raise", invalid="raise"):
         if method == "l2":
             return solve_l2(base, dx, dy, alpha, **kwargs)
-        image, stats = solve_l1(base, dx, dy, alpha, **kwargs)
+        image, stats = solve_l1(base, dx, dy, alpha, L1Options(**kwargs))
         assert np.isfinite(stats.energies).all() and np.isfinite(stats.cg_residuals).all()
         return image
 
@@ -256,7 +258,7 @@ def test_l1_exact_data_at_the_smallest_alpha(size: tuple[int, int]) -> None:
     """Exact float32 frame data (gradients rounded to float32, as a renderer writes them) at the smallest accepted
     α (MIN_ALPHA = 1e-8, far below the property tests' 1e-6): the answer must still be the image."""
     image = _smooth(*size, seed=1).astype(np.float32)
-    got, _ = solve_l1(image, *forward_differences(image), MIN_ALPHA, dtype=np.float64)
+    got, _ = solve_l1(image, *forward_differences(image), MIN_ALPHA, L1Options(dtype=np.float64))
     assert np.abs(got - image).max() <= 1e-6 * image.max()
 
 
@@ -286,7 +288,8 @@ def test_single_pixel_firefly_of_1e6(method: str, where: str) -> None:
         assert np.abs(got - image).max() < 0.05 * np.abs(l2 - image).max()
         # ... and given the reference preset's 20 passes and CG steps enough to converge each, IRLS removes it
         # entirely, at every pixel (the default 10 passes stop at a regulariser 256x larger)
-        converged, _ = solve_l1(arrays["base"], arrays["dx"], arrays["dy"], iterations=20, cg_iterations=60)
+        converged, _ = solve_l1(arrays["base"], arrays["dx"], arrays["dy"],
+                                options=L1Options(iterations=20, cg_iterations=60))
         assert _rel(converged, image).max() < 1e-2
         assert abs(converged.astype(np.float64).mean() / image.mean() - 1) < 1e-3
 
@@ -355,7 +358,7 @@ def test_a_failing_backend_is_flagged_not_silently_zeroed(method: str, everywher
 def test_cli_reports_a_failing_solver_in_stderr_and_metadata(tmp_path: Path, monkeypatch, capsys) -> None:
     """The command line must surface the replacement too: a warning line and the output's gradsep.warnings."""
     from gradsep.cli import main
-    from gradsep.model.frame import write_frame
+    from gradsep.model.exr_write import write_frame
 
     frame, _ = _exact_frame(8, 9, scale=1.0)
     write_frame(tmp_path / "in.exr", frame)

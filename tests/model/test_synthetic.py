@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gradsep.model.frame import read_frame
+from gradsep.model.exr_read import read_frame
 from gradsep.model.synthetic import synthetic_frame
 
 

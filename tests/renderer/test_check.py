@@ -201,13 +201,14 @@ def test_rendered_halves_are_the_frame_split_in_two():
 
 @pytest.mark.render
 @pytest.mark.slow
-@pytest.mark.parametrize(("gradients", "operator_setting"), [("none", None), ("none", "raw-high"), ("auto", None)])
+@pytest.mark.parametrize(("gradients", "operator_setting"),
+                         [("none", None), ("none", "prefiltered-high"), ("auto", None)])
 def test_a_budgeted_plain_frame_compares_the_oidn_settings_on_its_halves(monkeypatch, gradients, operator_setting):
     """A plain --seconds frame whose budget affords prefiltered-high has its halves reconstructed with both it and
     the default; the header's setting is the one the comparison chose, and the prediction is that setting's. An
     operator's $GRADSEP_OIDN_SETTING (which wins over the header when serving) leaves nothing to compare, and a
     frame with gradients keeps the rule's setting."""
-    from gradsep.model.frame import OIDN_SETTING_KEY, PREDICTED_RELMSE_KEY
+    from gradsep.model.header_keys import OIDN_SETTING_KEY, PREDICTED_RELMSE_KEY
     from gradsep.model.oidn import METHOD_SETTING, SETTING_ENV
     from gradsep.renderer import plan
     from gradsep.renderer.budget import Deadline
@@ -255,7 +256,7 @@ def test_the_reconstruction_rate_is_timed_on_the_centre_tile_after_a_warm_up():
 def test_without_halves_the_pilots_prediction_is_carried_to_the_samples_the_frame_got():
     """A pilot slowed by a load spike predicts that the budget buys 49 spp and carries its estimate there; the
     frame then renders 543. Its header states the error at 543 spp (error ~ spp^-exponent), not at 49."""
-    from gradsep.model.frame import PREDICTED_RELMSE_KEY
+    from gradsep.model.header_keys import PREDICTED_RELMSE_KEY
     from gradsep.renderer.plan import Assessment, Plan, Planned, candidate
     from gradsep.renderer.render import frame_check
 

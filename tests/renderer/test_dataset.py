@@ -59,7 +59,7 @@ def counting_renderer(monkeypatch: pytest.MonkeyPatch) -> list[int]:
 @pytest.mark.slow
 @pytest.mark.render
 def test_manifest_content_of_a_real_dataset(rendered: Path) -> None:
-    from gradsep.model.frame import read_frame
+    from gradsep.model.exr_read import read_frame
 
     data = json.loads((rendered / "manifest.json").read_text())
     assert data["version"] == 1 and data["spp"] == 2 and data["size"] == [32, 32]
@@ -97,7 +97,7 @@ def test_resume_skips_finished_frames_and_redoes_lost_ones(rendered: Path, tmp_p
 
 @pytest.mark.render
 def test_pairs_are_two_independent_realizations_of_one_frame(tmp_path: Path) -> None:
-    from gradsep.model.frame import read_frame
+    from gradsep.model.exr_read import read_frame
 
     manifest = run_dataset(tmp_path, job(count=1, pairs=True), progress=False)
     rec = manifest.frames[0]
@@ -525,7 +525,7 @@ def test_a_budget_below_the_first_frames_start_up_leaves_nothing(tmp_path: Path,
 @pytest.mark.render
 @pytest.mark.slow
 def test_a_real_frame_rendered_to_its_budget(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    from gradsep.model.frame import read_frame
+    from gradsep.model.exr_read import read_frame
     from gradsep.renderer import plan
 
     # the reconstruction's start-up as if paid (as after another test): the frame's check then fits 8 s

@@ -20,7 +20,8 @@ dr = pytest.importorskip("drjit")
 
 from gradsep.cli import main  # noqa: E402
 from gradsep.model.errors import CommandError  # noqa: E402
-from gradsep.model.frame import read_frame, write_frame  # noqa: E402
+from gradsep.model.exr_read import read_frame  # noqa: E402
+from gradsep.model.exr_write import write_frame  # noqa: E402
 from gradsep.renderer.gpt import (  # noqa: E402
     MAX_LANES_PER_PASS,
     GptSettings,

@@ -15,7 +15,9 @@ import numpy as np
 import pytest
 
 from gradsep.cli import main
-from gradsep.model.frame import OIDN_SETTING_KEY, Frame, Layer, read_frame
+from gradsep.model.exr_read import read_frame
+from gradsep.model.frame import Frame, Layer
+from gradsep.model.header_keys import OIDN_SETTING_KEY
 from gradsep.renderer import budget
 from gradsep.renderer.plan import (
     CANDIDATES,

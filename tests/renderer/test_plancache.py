@@ -14,7 +14,7 @@ import pytest
 
 from gradsep.cli import main
 from gradsep.model.errors import CommandError
-from gradsep.model.frame import read_frame
+from gradsep.model.exr_read import read_frame
 from gradsep.renderer.plan import PLAN_CACHE_KEY, PLAN_KEY, PREDICTED_RELMSE_KEY, Assessment, Plan, candidate
 from gradsep.renderer.plancache import (
     CACHE_ENV,

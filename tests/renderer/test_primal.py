@@ -15,7 +15,8 @@ mi = pytest.importorskip("mitsuba")
 
 from gradsep.cli import main  # noqa: E402
 from gradsep.model.errors import CommandError  # noqa: E402
-from gradsep.model.frame import read_frame, write_frame  # noqa: E402
+from gradsep.model.exr_read import read_frame  # noqa: E402
+from gradsep.model.exr_write import write_frame  # noqa: E402
 from gradsep.renderer.gpt import GptSettings, render_gpt  # noqa: E402
 from gradsep.renderer.render import parse_layers, render_frame  # noqa: E402
 from gradsep.renderer.scene import load_scene  # noqa: E402

@@ -283,7 +283,8 @@ def test_file_round_trip_and_metadata(tmp_path: Path) -> None:
 
 
 def test_load_reference_names_missing_channels(tmp_path: Path) -> None:
-    from gradsep.model.frame import ChannelError, NotExrError, write_exr
+    from gradsep.model.errors import ChannelError, NotExrError
+    from gradsep.model.exr_write import write_exr
 
     path = tmp_path / "not-a-ref.exr"
     write_exr(path, {"R": np.zeros((2, 2)), "G": np.zeros((2, 2)), "B": np.zeros((2, 2))})

@@ -19,7 +19,7 @@ mi = pytest.importorskip("mitsuba")
 
 from gradsep.cli import main  # noqa: E402
 from gradsep.model.errors import CommandError  # noqa: E402
-from gradsep.model.frame import read_frame  # noqa: E402
+from gradsep.model.exr_read import read_frame  # noqa: E402
 from gradsep.renderer.gpt import GptSettings, mean_variance, pass_seed, render_gpt, render_pass  # noqa: E402
 from gradsep.renderer.render import render_frame  # noqa: E402
 from gradsep.renderer.scene import load_scene  # noqa: E402

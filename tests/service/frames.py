@@ -15,7 +15,9 @@ from collections.abc import Iterable
 import numpy as np
 import OpenEXR
 
-from gradsep.model.frame import FEATURE_GROUPS, encode_exr, forward_differences, rgb_channels
+from gradsep.model.exr_write import encode_exr
+from gradsep.model.frame import forward_differences, rgb_channels
+from gradsep.model.policy import FEATURE_GROUPS
 
 
 def layer_image(height: int, width: int, seed: int, layer: str) -> np.ndarray:

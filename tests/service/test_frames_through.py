@@ -76,7 +76,7 @@ def test_negative_radiance_is_a_warning_with_its_count(poisson_api) -> None:
 
 def test_a_whole_negated_frame_says_so() -> None:
     """The audit's case: a negated frame came back black with no word; now the count is the whole frame."""
-    from gradsep.model.frame import read_frame
+    from gradsep.model.exr_read import read_frame
 
     channels = {k: -v for k, v in frame_channels(("color",), 8, 8, gradients=False).items()}
     frame = read_frame(_exr(channels))
@@ -122,12 +122,12 @@ def test_the_oidn_setting_a_frame_asks_for_runs_and_the_answer_names_it(poisson_
     monkeypatch.delenv("GRADSEP_OIDN_SETTING", raising=False)
     channels = frame_channels(("direct", "indirect"), 32, 32)
     plain = frame_channels(("direct", "indirect"), 32, 32, gradients=False)  # served by oidn
-    for asked, ran in (("raw-high", "raw-high"), ("sharpest", "raw-fast")):
+    for asked, ran in (("prefiltered-high", "prefiltered-high"), ("sharpest", "raw-fast")):
         response = _post(poisson_api["testclient"], _exr(plain, {"gradsep.oidn_setting": asked}))
         assert response.status_code == 200, response.text
         assert _answer(response).header()["gradsep.oidn_setting"] == ran
         assert ("sharpest" in response.headers.get("x-gradsep-warnings", "")) == (asked == "sharpest")
-    response = _post(poisson_api["testclient"], _exr(channels, {"gradsep.oidn_setting": "raw-high"}),
+    response = _post(poisson_api["testclient"], _exr(channels, {"gradsep.oidn_setting": "prefiltered-high"}),
                      {"method": "l2"})
     assert response.status_code == 200 and "gradsep.oidn_setting" not in _answer(response).header()
 

@@ -131,7 +131,6 @@ def test_dockerfile_healthcheck_passes_on_a_live_service_and_fails_on_a_dead_one
     ({"GRADSEP_EXR_THREADS": "-2"}, [], "GRADSEP_EXR_THREADS"),
     ({"GRADSEP_MALLOC_ARENAS": "-1"}, [], "GRADSEP_MALLOC_ARENAS"),
     ({"GRADSEP_MALLOC_ARENAS": "many"}, [], "GRADSEP_MALLOC_ARENAS"),
-    ({"GRADSEP_OIDN_RUNTIME": "gpu"}, [], "GRADSEP_OIDN_RUNTIME"),
     ({}, ["--port", "70000"], "--port"),
     ({}, ["--workers", "0"], "--workers"),
 ])

@@ -1,5 +1,5 @@
 """``/v1/models`` reports each loaded model's provider and precision as its ONNX Runtime session really runs it:
-the network's models, the fused blend models (and their clean-layer average) and OIDN's U-Net on ONNX Runtime.
+the network's models and the fused blend models (and their clean-layer average).
 
 ONNX Runtime may build a session without the accelerated provider it was given (model/onnx_session.py
 ``served_by``). Here every session is a stand-in that runs on the CPU and reports the providers a test chooses,
@@ -19,7 +19,8 @@ import pytest
 pytest.importorskip("onnxruntime")
 import onnxruntime as ort  # noqa: E402
 
-from gradsep.model.frame import encode_exr, rgb_channels  # noqa: E402
+from gradsep.model.exr_write import encode_exr  # noqa: E402
+from gradsep.model.frame import rgb_channels  # noqa: E402
 from gradsep.model.onnx_session import CPU_EP, OPENVINO_EP  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
@@ -45,13 +46,9 @@ def _sessions_reporting(providers: list[str]) -> type:
 @pytest.fixture
 def openvino_host(monkeypatch) -> Any:
     """A host where the provider choice is OpenVINO in bf16; returns a setter for what sessions report."""
-    from gradsep.model import oidn
-
     monkeypatch.setattr(ort, "get_available_providers", lambda: [OPENVINO_EP, CPU_EP])
     monkeypatch.setattr("gradsep.model.onnx_session.cpu_flags", lambda *a: frozenset({"avx512_bf16"}))
     monkeypatch.setenv("GRADSEP_ONNX_PROVIDER", "auto")
-    monkeypatch.setenv("GRADSEP_OIDN_RUNTIME", "onnx")
-    monkeypatch.setattr(oidn, "_shared", {})  # a fresh OIDN denoiser (and U-Net sessions) for this host
 
     def report(providers: list[str]) -> None:
         monkeypatch.setattr(ort, "InferenceSession", _sessions_reporting(providers))
@@ -88,19 +85,3 @@ def test_v1_models_reports_what_each_session_runs_on(openvino_host, session: lis
     assert kinds == {"network", "fused"}, kinds
     for model in info["models"]:
         assert (model["provider"], model["precision"]) == want, model
-    assert info["oidn"]["runtime"] == "onnx" and info["oidn"]["models"], info["oidn"]
-    # OIDN's U-Net runs split on OpenVINO bf16 (its full-resolution level in fp32): bf16+fp32 when it really does
-    assert (info["oidn"]["provider"], info["oidn"]["precision"]) == (
-        want if want[0] == "cpu" else ("openvino", "bf16+fp32")), info["oidn"]
-
-
-def test_the_oidn_split_graph_reports_the_cpu_when_a_part_runs_there(openvino_host) -> None:
-    """The split U-Net is two sessions; the provider reported is what both run on."""
-    pytest.importorskip("pyoidn")
-    from gradsep.model.oidn_onnx import OnnxUNet
-
-    openvino_host([CPU_EP])
-    assert OnnxUNet("rt_hdr_small").choice.provider == "cpu"
-    openvino_host([OPENVINO_EP, CPU_EP])
-    assert (OnnxUNet("rt_hdr_small").choice.provider, OnnxUNet("rt_hdr_small").choice.precision) == (
-        "openvino", "bf16+fp32")

@@ -17,7 +17,9 @@ import numpy as np
 import OpenEXR
 import pytest
 
-from gradsep.model.frame import encode_exr, read_frame, rgb_channels
+from gradsep.model.exr_read import read_frame
+from gradsep.model.exr_write import encode_exr
+from gradsep.model.frame import rgb_channels
 from gradsep.model.metrics import relmse
 from gradsep.service.main import create_app
 from tests.service.conftest import REPO, rss_bytes, server_process, settings

@@ -14,7 +14,7 @@ import pytest
 torch = pytest.importorskip("torch")
 pytest.importorskip("pyoidn")
 
-from gradsep.model.frame import read_frame  # noqa: E402
+from gradsep.model.exr_read import read_frame  # noqa: E402
 from gradsep.model.fused import OIDN_SETTING, blend_inputs, layer_candidates  # noqa: E402
 from gradsep.model.infer import ModelError  # noqa: E402
 from gradsep.model.methods import LoadedModels  # noqa: E402

@@ -14,7 +14,8 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from gradsep.cli import main as cli_main  # noqa: E402
-from gradsep.model.frame import Features, Frame, Layer, write_frame  # noqa: E402
+from gradsep.model.exr_write import write_frame  # noqa: E402
+from gradsep.model.frame import Features, Frame, Layer  # noqa: E402
 from gradsep.model.preprocess import FEATURE_PLANES, LAYER_PLANES  # noqa: E402
 from gradsep.training.dataset import (  # noqa: E402
     DatasetError,
@@ -198,7 +199,7 @@ def test_patches_are_deterministic_and_change_with_the_epoch(tiny_dataset: Path,
 
 
 def test_paired_frames_give_independent_targets(tmp_path: Path) -> None:
-    from gradsep.model.frame import read_frame
+    from gradsep.model.exr_read import read_frame
     from gradsep.model.preprocess import measured_planes
     from gradsep.training.synthetic import make_synthetic_dataset
 
