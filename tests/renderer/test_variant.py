@@ -76,7 +76,8 @@ def test_render_without_a_suitable_llvm_refuses_in_one_line(tmp_path: Path) -> N
         "from gradsep.renderer import variant\n"
         "variant._llvm['path'] = None  # as if the search had found no suitable libLLVM\n"
         "from gradsep.cli import main\n"
-        f"sys.exit(main(['render', 'procedural:1', '--spp', '1', '--width', '8', '--height', '8', '-o', {str(out)!r}]))\n"
+        f"sys.exit(main(['render', 'procedural:1', '--spp', '1', '--width', '8', '--height', '8',\n"
+        f"                '-o', {str(out)!r}]))\n"
     )
     env = {**os.environ, "PYTHONPATH": str(ROOT), variant.VARIANT_ENV: variant.CPU_VARIANT}
     result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=300,
