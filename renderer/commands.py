@@ -246,7 +246,7 @@ def dataset_command(args: argparse.Namespace) -> int:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from gradsep.renderer.reference import CLI_SAMPLERS, DEFAULT_SAMPLER  # numpy only: no Mitsuba at parser time
+    from gradsep.renderer.reference import DEFAULT_SAMPLER, SAMPLERS  # numpy only: no Mitsuba at parser time
     from gradsep.renderer.render import OFFSET_CHOICES  # no Mitsuba at import time either
 
     p = sub.add_parser("render", help="render a G-PT frame (base + gradients + features per illumination layer)")
@@ -306,7 +306,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--tile-spp", type=int, default=None,
                    help="samples per pass; passes are averaged so large spp fits in memory")
     p.add_argument("-D", "--define", action="append", default=[], metavar="NAME=VALUE")
-    p.add_argument("--sampler", choices=CLI_SAMPLERS, default=DEFAULT_SAMPLER,
+    p.add_argument("--sampler", choices=SAMPLERS, default=DEFAULT_SAMPLER,
                    help=f"Mitsuba sampler of every pass (default {DEFAULT_SAMPLER}: stratified, lower noise per "
                         "second than independent; all are unbiased)")
     p.add_argument("--shard", default=None, metavar="K/N",

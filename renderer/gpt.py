@@ -67,6 +67,7 @@ SQUARE_CAP = VARIANCE_MAX
 # render_pass refuses 2^32 lanes.
 MAX_LANES_PER_PASS = 1 << 26
 
+
 def _pixel_sums(settings: GptSettings, s: LoopState, pixel: mi.UInt32, width: int, height: int,
                 gradients: bool, offset_targets: list[mi.UInt32] | None = None) -> dict[str, np.ndarray]:
     """Scatter-add every lane's sums and features into per-pixel buffers (one launch, fused with the loops)."""

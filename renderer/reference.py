@@ -59,12 +59,10 @@ MAX_WAVEFRONT = (1 << 32) - 1  # Mitsuba's limit on samples per launch (32-bit s
 # Mitsuba samplers a reference may use. ``independent`` draws every sample independently; the others stratify a
 # pass's samples per pixel. Chosen by measured floor per CPU-second on held-out procedural scenes
 # (docs/decisions.md, "The references' sampler"; docs/evaluation.md, "Reference sampler and reference farms").
-SAMPLERS: tuple[str, ...] = ("independent", "multijitter", "stratified", "ldsampler", "orthogonal")
+# Not ldsampler: its references of a scene sat above every other sampler's image mean (a bias or a correlation
+# between seeds; either breaks the product estimator: docs/decisions.md, "The references' sampler").
+SAMPLERS: tuple[str, ...] = ("independent", "multijitter", "stratified", "orthogonal")
 DEFAULT_SAMPLER = "multijitter"
-# What `gradsep reference --sampler` offers: not ldsampler, whose references of a scene sat above every other
-# sampler's image mean (a bias or a correlation between seeds; either breaks the product estimator:
-# docs/decisions.md, "The references' sampler").
-CLI_SAMPLERS: tuple[str, ...] = tuple(s for s in SAMPLERS if s != "ldsampler")
 
 
 @dataclass
@@ -115,7 +113,7 @@ def plan_passes(spp: int, tile_spp: int, sampler: str = "independent") -> list[i
     A stratified sampler rounds a sample count it cannot stratify (multijitter renders 528 samples when asked
     for 512), which would silently change the spp; so each pass takes the largest count the sampler renders
     exactly, in as few passes as possible (512 in tiles of 256 -> 256 + 256). A ValueError when
-    ``spp`` cannot be split so (ldsampler and orthogonal render at least 4 samples per pixel).
+    ``spp`` cannot be split so (orthogonal renders at least 4 samples per pixel).
     """
     if spp < 1 or tile_spp < 1:
         raise ValueError(f"spp and tile_spp must be positive, got {spp} and {tile_spp}")

@@ -87,8 +87,8 @@ def test_pass_plans_use_counts_the_sampler_renders_exactly(sampler: str) -> None
 
 
 def test_pass_plan_refuses_what_a_sampler_cannot_render_and_unknown_samplers() -> None:
-    with pytest.raises(ValueError, match="ldsampler sampler renders exactly"):
-        plan_passes(6, 6, "ldsampler")  # 4 + 2: ldsampler renders 4 for 2
+    with pytest.raises(ValueError, match="orthogonal sampler renders exactly"):
+        plan_passes(6, 6, "orthogonal")  # 4 + 2: orthogonal renders 4 for 2
     with pytest.raises(ValueError, match="unknown sampler"):
         render_reference("procedural:1", ReferenceJob(spp=1, sampler="sobol"))
 
