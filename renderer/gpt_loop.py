@@ -78,13 +78,13 @@ class LoopState:
     dataclasses: this is the tuple Mitsuba's ``prb.py`` spells out as its loop state). Kettunen et al.'s names:
     the base path x̄ of the lane's pixel and one offset path ȳ per pixel shift."""
 
-    sampler: mi.Sampler
-    depth: mi.UInt32  # index of the vertex this iteration finds (0: the camera ray's hit)
-    base: PathState  # x̄
-    offsets: list[Any]  # ȳ per entry of SHIFT_OFFSETS: the shift's state (first loop) or its summary (second)
-    sums: dict[str, LayerSums]  # per layer: base radiance and one gradient estimate per shift
-    feat: FeatureState  # the feature-vertex search along x̄
-    invalid: mi.Bool  # some event of the lane was not finite (and was zeroed)
+    sampler: mi.Sampler          # the lane's random stream (u)
+    depth: mi.UInt32             # k: the index of the vertex x_k this iteration finds (0: the camera ray's hit)
+    base: PathState              # x̄, the base path
+    offsets: list[Any]           # ȳ per traced pixel shift: the shift's state (first loop) or its summary (second)
+    sums: dict[str, LayerSums]   # per layer: the base path's f(x̄) and one gradient estimate per shift
+    feat: FeatureState           # the feature-vertex search along x̄
+    invalid: mi.Bool             # some event of the lane was not finite (and was zeroed)
 
 
 @dataclass
