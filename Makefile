@@ -41,7 +41,7 @@ test: venv system-deps
 
 # Markers (pyproject.toml): slow (> ~2.5 s of CPU per test, measured with --durations), render (runs Mitsuba),
 # train (trains a torch model). CI runs everything; locally e.g. -m "not slow", -m "not render and not train".
-test-fast: venv
+test-fast: venv system-deps
 	$(BIN)/pip install -q -e '.[test]'
 	$(BIN)/pytest -q -n 2 --timeout=900 -m "not slow"
 

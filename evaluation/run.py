@@ -67,8 +67,10 @@ __all__ = ["Evaluation", "SceneRun", "machine_summary", "run_evaluation"]
 #: The code that renders a frame / a reference pass (by code, evaluation.cache.code_sha256). Not
 #: renderer/procedural.py: a procedural scene is keyed by its seed, family and GENERATOR_VERSION (evaluation.config),
 #: which tests/renderer/test_procedural.py's pinned fingerprints hold to the generator's output.
-RENDERER_SOURCES = ("renderer/gpt.py", "renderer/shift.py", "renderer/render.py", "renderer/scene.py",
-                    "renderer/variant.py", "model/policy.py")
+RENDERER_SOURCES = ("renderer/gpt.py", "renderer/gpt_loop.py", "renderer/gpt_settings.py", "renderer/lanes.py",
+                    "renderer/vertex.py", "renderer/shift_protocol.py", "renderer/shift.py", "renderer/hybrid.py",
+                    "renderer/hybrid_state.py", "renderer/shift_geometry.py", "renderer/manifold.py",
+                    "renderer/render.py", "renderer/scene.py", "renderer/variant.py", "model/policy.py")
 REFERENCE_SOURCES = ("renderer/reference.py", "renderer/scene.py", "renderer/variant.py")
 RESULT_FORMAT = 3  # bump when the cached output/score JSON changes shape
 SCORE_SOURCES = ("model/metrics.py", "evaluation/run.py")

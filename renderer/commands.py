@@ -142,7 +142,7 @@ def _deadline(args: argparse.Namespace) -> Any:
 
 def reference_command(args: argparse.Namespace) -> int:
     """Handler of `gradsep reference`: validate, render, write atomically, print a one-line summary."""
-    from gradsep.renderer.reference import parse_shard, render_reference, write_reference
+    from gradsep.renderer.reference import ReferenceJob, parse_shard, render_reference, write_reference
     from gradsep.renderer.scene import parse_defines
 
     for name in ("spp", "tile_spp", "width", "height"):
@@ -160,10 +160,9 @@ def reference_command(args: argparse.Namespace) -> int:
         raise CommandError(f"output folder {out.parent} does not exist")
     try:
         shard = parse_shard(args.shard) if args.shard else None
-        ref = render_reference(args.scene, spp=args.spp, width=args.width, height=args.height,
-                               max_depth=args.max_depth, seed=args.seed, tile_spp=args.tile_spp,
-                               defines=parse_defines(args.define), progress=None, sampler=args.sampler,
-                               shard=shard)
+        job = ReferenceJob(spp=args.spp, seed=args.seed, tile_spp=args.tile_spp, sampler=args.sampler, shard=shard)
+        ref = render_reference(args.scene, job, width=args.width, height=args.height, max_depth=args.max_depth,
+                               defines=parse_defines(args.define), progress=None)
     except (ValueError, FileNotFoundError) as exc:
         raise CommandError(str(exc)) from exc
     write_reference(out, ref)
@@ -215,10 +214,19 @@ def _rate(spp: int, shape: tuple[int, ...], seconds: float) -> str:
 
 def dataset_command(args: argparse.Namespace) -> int:
     """Handler of `gradsep dataset`."""
-    from gradsep.renderer.dataset import MANIFEST_NAME, PARTS_DIR, DatasetError, finished_frames, make_job, run_dataset
+    from gradsep.renderer.dataset import (
+        MANIFEST_NAME,
+        PARTS_DIR,
+        DatasetError,
+        JobOptions,
+        finished_frames,
+        make_job,
+        run_dataset,
+    )
 
-    job = make_job(args.count, args.spp, args.size, args.shard, args.first_seed, args.max_depth, args.pairs,
-                   args.family, args.seconds)
+    job = make_job(JobOptions(count=args.count, spp=args.spp, size=args.size, shard=args.shard,
+                              first_seed=args.first_seed, max_depth=args.max_depth, pairs=args.pairs,
+                              family=args.family, seconds=args.seconds))
     root = Path(args.output)
     if root.exists() and not root.is_dir():
         raise DatasetError(f"output {root} exists and is not a folder")
@@ -238,7 +246,7 @@ def dataset_command(args: argparse.Namespace) -> int:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from gradsep.renderer.reference import CLI_SAMPLERS, DEFAULT_SAMPLER  # numpy only: no Mitsuba at parser time
+    from gradsep.renderer.reference import DEFAULT_SAMPLER, SAMPLERS  # numpy only: no Mitsuba at parser time
     from gradsep.renderer.render import OFFSET_CHOICES  # no Mitsuba at import time either
 
     p = sub.add_parser("render", help="render a G-PT frame (base + gradients + features per illumination layer)")
@@ -298,7 +306,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--tile-spp", type=int, default=None,
                    help="samples per pass; passes are averaged so large spp fits in memory")
     p.add_argument("-D", "--define", action="append", default=[], metavar="NAME=VALUE")
-    p.add_argument("--sampler", choices=CLI_SAMPLERS, default=DEFAULT_SAMPLER,
+    p.add_argument("--sampler", choices=SAMPLERS, default=DEFAULT_SAMPLER,
                    help=f"Mitsuba sampler of every pass (default {DEFAULT_SAMPLER}: stratified, lower noise per "
                         "second than independent; all are unbiased)")
     p.add_argument("--shard", default=None, metavar="K/N",

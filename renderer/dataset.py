@@ -547,32 +547,47 @@ def parse_shard(text: str) -> tuple[int, int]:
     return i, n
 
 
-def make_job(count: int, spp: int | None, size: str, shard: str, first_seed: int, max_depth: int | None,
-             pairs: bool = False, family: str = "mixed", seconds: object = None) -> Job:
+@dataclass(frozen=True)
+class JobOptions:
+    """`gradsep dataset`'s options as given, before :func:`make_job` validates them into a :class:`Job`."""
+
+    count: int
+    spp: int | None
+    size: str  # WxH
+    shard: str  # i/n
+    first_seed: int
+    max_depth: int | None
+    pairs: bool = False
+    family: str = "mixed"
+    seconds: object = None  # a wall-time budget per frame (instead of ``spp``), checked by renderer.budget
+
+
+def make_job(options: JobOptions) -> Job:
     """Validate the command's options into a :class:`Job`: exactly one of ``spp`` and ``seconds``."""
     from gradsep.renderer.budget import check_seconds
     from gradsep.renderer.procedural import FAMILIES, GENERATOR_VERSION
 
-    if (spp is None) == (seconds is None):
+    o = options
+    if (o.spp is None) == (o.seconds is None):
         raise DatasetError("give exactly one of --spp (samples per pixel) or --seconds (a wall-time budget per frame)")
     budget = None
-    if seconds is not None:
+    if o.seconds is not None:
         try:
-            budget = check_seconds(seconds)
+            budget = check_seconds(o.seconds)
         except CommandError as exc:
             raise DatasetError(str(exc)) from None
 
-    if family not in FAMILIES:
-        raise DatasetError(f"--family must be one of {', '.join(FAMILIES)}, got {family!r}")
-    if count < 1:
-        raise DatasetError(f"--count must be a positive integer, got {count}")
-    if spp is not None and spp < 1:
-        raise DatasetError(f"--spp must be a positive integer, got {spp}")
-    if first_seed < 0:
-        raise DatasetError(f"--first-seed must be non-negative, got {first_seed}")
-    if max_depth is not None and (max_depth == 0 or max_depth < -1):
-        raise DatasetError(f"--max-depth must be -1 (unbounded) or a positive integer, got {max_depth}")
-    w, h = parse_size(size)
-    i, n = parse_shard(shard)
-    return Job(count=count, spp=spp, width=w, height=h, first_seed=first_seed, max_depth=max_depth, shard=i,
-               shards=n, generator_version=GENERATOR_VERSION, pairs=pairs, family=family, seconds=budget)
+    if o.family not in FAMILIES:
+        raise DatasetError(f"--family must be one of {', '.join(FAMILIES)}, got {o.family!r}")
+    if o.count < 1:
+        raise DatasetError(f"--count must be a positive integer, got {o.count}")
+    if o.spp is not None and o.spp < 1:
+        raise DatasetError(f"--spp must be a positive integer, got {o.spp}")
+    if o.first_seed < 0:
+        raise DatasetError(f"--first-seed must be non-negative, got {o.first_seed}")
+    if o.max_depth is not None and (o.max_depth == 0 or o.max_depth < -1):
+        raise DatasetError(f"--max-depth must be -1 (unbounded) or a positive integer, got {o.max_depth}")
+    w, h = parse_size(o.size)
+    i, n = parse_shard(o.shard)
+    return Job(count=o.count, spp=o.spp, width=w, height=h, first_seed=o.first_seed, max_depth=o.max_depth, shard=i,
+               shards=n, generator_version=GENERATOR_VERSION, pairs=o.pairs, family=o.family, seconds=budget)

@@ -195,7 +195,7 @@ class Passes:
 
     def kind(self, c: Candidate) -> _Kind:
         if c.name not in self.kinds:
-            from gradsep.renderer.gpt import DIRECT_LAYER_SHIFT, GptSettings
+            from gradsep.renderer.gpt import GptSettings
             from gradsep.renderer.shift import make_shift
 
             color = self.layers == ("color",)
@@ -210,7 +210,7 @@ class Passes:
                     shift = make_shift(self.shift_name)
                 except ValueError as exc:
                     raise CommandError(str(exc)) from None
-                if c.gradients == "direct" and DIRECT_LAYER_SHIFT:
+                if c.gradients == "direct":
                     shift = getattr(shift, "for_direct_layer", lambda: shift)()
             kind = _Kind(settings, shift)
             known = self.priors.costs.get(c.name) if self.priors is not None else None

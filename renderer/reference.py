@@ -51,21 +51,18 @@ from gradsep.model.progress import ProgressBar
 if TYPE_CHECKING:  # scene.py needs Mitsuba at import time; load_reference must not
     from gradsep.renderer.scene import LoadedScene
 
-# Samples per pass when --tile-spp is not given: about 16 M samples keeps a pass to seconds on a CPU, so the
-# progress bar moves, while a pass is still large enough to keep every core busy. Memory is not the limit on
-# LLVM (a symbolic loop keeps path state in registers): 1280x720 at 16 spp per pass peaks at ~230 MB.
+# Samples per pass when --tile-spp is not given: small enough that the progress bar moves, large enough to keep
+# every core busy. Memory is not the limit on LLVM (a symbolic loop keeps path state in registers).
 PASS_SAMPLE_BUDGET = 1 << 24
 MAX_WAVEFRONT = (1 << 32) - 1  # Mitsuba's limit on samples per launch (32-bit sample index)
 
 # Mitsuba samplers a reference may use. ``independent`` draws every sample independently; the others stratify a
 # pass's samples per pixel. Chosen by measured floor per CPU-second on held-out procedural scenes
 # (docs/decisions.md, "The references' sampler"; docs/evaluation.md, "Reference sampler and reference farms").
-SAMPLERS: tuple[str, ...] = ("independent", "multijitter", "stratified", "ldsampler", "orthogonal")
+# Not ldsampler: its references of a scene sat above every other sampler's image mean (a bias or a correlation
+# between seeds; either breaks the product estimator: docs/decisions.md, "The references' sampler").
+SAMPLERS: tuple[str, ...] = ("independent", "multijitter", "stratified", "orthogonal")
 DEFAULT_SAMPLER = "multijitter"
-# What `gradsep reference --sampler` offers: not ldsampler, whose two references of a scene agreed with each
-# other but sat 0.45 % above every other sampler's image mean on two held-out scenes (a bias or a correlation
-# between seeds; either breaks the product estimator), measured when the default sampler was chosen.
-CLI_SAMPLERS: tuple[str, ...] = tuple(s for s in SAMPLERS if s != "ldsampler")
 
 
 @dataclass
@@ -116,7 +113,7 @@ def plan_passes(spp: int, tile_spp: int, sampler: str = "independent") -> list[i
     A stratified sampler rounds a sample count it cannot stratify (multijitter renders 528 samples when asked
     for 512), which would silently change the spp; so each pass takes the largest count the sampler renders
     exactly, in as few passes as possible (512 in tiles of 256 -> 256 + 256). A ValueError when
-    ``spp`` cannot be split so (ldsampler and orthogonal render at least 4 samples per pixel).
+    ``spp`` cannot be split so (orthogonal renders at least 4 samples per pixel).
     """
     if spp < 1 or tile_spp < 1:
         raise ValueError(f"spp and tile_spp must be positive, got {spp} and {tile_spp}")
@@ -193,28 +190,43 @@ def pass_seed(seed: int, index: int) -> int:
 # Rendering
 # ----------------------------------------------------------------------------------------------------------
 
-def render_reference(spec: str, *, spp: int, width: int | None = None, height: int | None = None,
-                     max_depth: int | None = None, seed: int = 0, tile_spp: int | None = None,
-                     defines: Mapping[str, str] | None = None, progress: bool | None = False,
-                     sampler: str = DEFAULT_SAMPLER, shard: tuple[int, int] | None = None) -> Reference:
+@dataclass(frozen=True)
+class ReferenceJob:
+    """What a reference renders: ``spp`` samples per pixel in passes of ``tile_spp`` (None: the default for the
+    sampler and size), drawn by Mitsuba's ``sampler``, the passes seeded from ``seed``; ``shard`` = (K, N): only
+    shard K (1-based) of N of the job's passes (see :func:`render_loaded`)."""
+
+    spp: int
+    seed: int = 0
+    tile_spp: int | None = None
+    sampler: str = DEFAULT_SAMPLER
+    shard: tuple[int, int] | None = None
+
+    def check(self) -> None:
+        """A ValueError naming what is wrong with the job."""
+        _check_positive("spp", self.spp)
+        if self.tile_spp is not None:
+            _check_positive("tile_spp", self.tile_spp)
+        if self.seed < 0:
+            raise ValueError(f"seed must be non-negative, got {self.seed}")
+        check_sampler(self.sampler)
+        if self.shard is not None:
+            check_shard(self.shard)
+
+
+def render_reference(spec: str, job: ReferenceJob, *, width: int | None = None, height: int | None = None,
+                     max_depth: int | None = None, defines: Mapping[str, str] | None = None,
+                     progress: bool | None = False) -> Reference:
     """Render a reference of ``spec`` with Mitsuba's ``path`` integrator, split into direct and indirect.
 
-    ``progress``: True shows a tqdm bar, None shows it only on a terminal, False hides it. ``shard`` = (K, N):
-    only shard K (1-based) of N of the job's passes (see :func:`render_loaded`).
+    ``progress``: True shows a tqdm bar, None shows it only on a terminal, False hides it.
     """
-    _check_positive("spp", spp)
-    if tile_spp is not None:
-        _check_positive("tile_spp", tile_spp)
-    if seed < 0:
-        raise ValueError(f"seed must be non-negative, got {seed}")
-    check_sampler(sampler)
-    if shard is not None:
-        check_shard(shard)
+    job.check()
     from gradsep.renderer.scene import load_scene  # box filter, film size, variant, unrenderable scenes refused
 
     loaded = load_scene(spec, width=width, height=height, max_depth=max_depth, defines=dict(defines or {}))
-    return render_loaded(loaded, spp=spp, seed=seed, tile_spp=tile_spp, progress=progress, sampler=sampler,
-                         shard=shard)
+    return render_loaded(loaded, spp=job.spp, seed=job.seed, tile_spp=job.tile_spp, progress=progress,
+                         sampler=job.sampler, shard=job.shard)
 
 
 def check_sampler(sampler: str) -> None:
@@ -295,19 +307,7 @@ def render_loaded(loaded: LoadedScene, *, spp: int, seed: int, tile_spp: int | N
 
     check_sampler(sampler)
     depth = loaded.max_depth
-    tile = tile_spp or default_tile_spp(spp, loaded.width, loaded.height, sampler)
-    if shard is not None and tile_spp is None:
-        # Every shard needs passes: at most spp / N samples per pass (a function of the job alone, so all shards
-        # plan the same passes; the merge checks that their tiles agree).
-        tile = max(1, min(tile, spp // shard[1]))
-    if loaded.width * loaded.height * tile > MAX_WAVEFRONT:
-        raise ValueError(f"--tile-spp {tile} at {loaded.width}x{loaded.height} exceeds Mitsuba's 2^32 samples "
-                         f"per pass; use at most {MAX_WAVEFRONT // (loaded.width * loaded.height)}")
-    plan = plan_passes(spp, tile, sampler)
-    mine = list(enumerate(plan)) if shard is None else list(enumerate(plan))[shard[0] - 1::shard[1]]
-    if not mine:
-        raise ValueError(f"shard {shard[0]}/{shard[1]} has no passes: {spp} spp in passes of {tile} make "
-                         f"{len(plan)}; use at most {len(plan)} shards or a smaller --tile-spp")
+    tile, mine = _shard_passes(loaded, spp, tile_spp, sampler, shard)
     split = depth == -1 or depth > 2      # max depth <= 2: nothing but direct light exists
     total_it = mi.load_dict({"type": "path", "max_depth": depth})
     direct_it = mi.load_dict({"type": "path", "max_depth": 2}) if split else None
@@ -343,6 +343,25 @@ def render_loaded(loaded: LoadedScene, *, spp: int, seed: int, tile_spp: int | N
         meta.update({"gradsep.shard": f"{shard[0]}/{shard[1]}", "gradsep.job_spp": str(spp),
                      "gradsep.passes": ",".join(str(i) for i, _ in mine)})
     return _mean_reference(total_sum / samples, None if direct_it is None else direct_sum / samples, meta)
+
+
+def _shard_passes(loaded: LoadedScene, spp: int, tile_spp: int | None, sampler: str,
+                  shard: tuple[int, int] | None) -> tuple[int, list[tuple[int, int]]]:
+    """The job's samples per pass and the (index, samples) of the passes this shard renders (all without one)."""
+    tile = tile_spp or default_tile_spp(spp, loaded.width, loaded.height, sampler)
+    if shard is not None and tile_spp is None:
+        # Every shard needs passes: at most spp / N samples per pass (a function of the job alone, so all shards
+        # plan the same passes; the merge checks that their tiles agree).
+        tile = max(1, min(tile, spp // shard[1]))
+    if loaded.width * loaded.height * tile > MAX_WAVEFRONT:
+        raise ValueError(f"--tile-spp {tile} at {loaded.width}x{loaded.height} exceeds Mitsuba's 2^32 samples "
+                         f"per pass; use at most {MAX_WAVEFRONT // (loaded.width * loaded.height)}")
+    plan = plan_passes(spp, tile, sampler)
+    mine = list(enumerate(plan)) if shard is None else list(enumerate(plan))[shard[0] - 1::shard[1]]
+    if not mine:
+        raise ValueError(f"shard {shard[0]}/{shard[1]} has no passes: {spp} spp in passes of {tile} make "
+                         f"{len(plan)}; use at most {len(plan)} shards or a smaller --tile-spp")
+    return tile, mine
 
 
 def _mean_reference(total_mean: np.ndarray, direct_mean: np.ndarray | None, meta: dict[str, str]) -> Reference:

@@ -71,3 +71,25 @@ def test_fused_results_are_keyed_by_the_network_model_its_clean_layer_average_re
     (models / "direct.onnx").write_bytes(b"network v2")
     assert shas()["direct.onnx"] != first["direct.onnx"]
     assert _Runner(config, False, lambda m: None).model_files(fused, ("indirect",))[0] == without  # no direct layer
+
+
+def test_the_renderer_key_holds_every_module_a_frame_is_rendered_with() -> None:
+    """Every renderer/ module that renderer/render.py's G-PT path imports (renderer/gpt.py, renderer/shift.py and
+    what they import, transitively) is in RENDERER_SOURCES: a change in any of them must invalidate cached frames.
+    The procedural generator is keyed by its version instead (above)."""
+    import ast
+
+    root = Path(__file__).resolve().parents[2]
+    seen: set[str] = set()
+    todo = ["renderer/gpt.py", "renderer/shift.py"]
+    while todo:
+        path = todo.pop()
+        if path in seen:
+            continue
+        seen.add(path)
+        for node in ast.walk(ast.parse((root / path).read_text())):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("gradsep.renderer."):
+                module = "renderer/" + node.module.split(".", 2)[2].replace(".", "/") + ".py"
+                if not module.startswith("renderer/procedural"):
+                    todo.append(module)
+    assert seen - set(RENDERER_SOURCES) == set()

@@ -12,14 +12,14 @@ import numpy as np
 import pytest
 
 from gradsep.renderer import dataset as ds
-from gradsep.renderer.dataset import DatasetError, load_manifest, make_job, manifest_hash, run_dataset
+from gradsep.renderer.dataset import DatasetError, JobOptions, load_manifest, make_job, manifest_hash, run_dataset
 
 SIZE = "32x32"
 
 
 def job(shard: str = "0/1", count: int = 3, spp: int = 2, size: str = SIZE, first_seed: int = 1000,
         max_depth: int | None = None, pairs: bool = False) -> ds.Job:
-    return make_job(count, spp, size, shard, first_seed, max_depth, pairs)
+    return make_job(JobOptions(count, spp, size, shard, first_seed, max_depth, pairs))
 
 
 @pytest.fixture(scope="module")
@@ -277,17 +277,18 @@ def test_the_studio_family_renders_its_scenes_and_is_recorded(tmp_path: Path, co
     fake = gradsep.renderer.render.render_frame
     monkeypatch.setattr("gradsep.renderer.render.render_frame",
                         lambda spec, **kw: (specs.append(spec), fake(spec, **kw))[1])
-    studio = run_dataset(tmp_path / "s", make_job(2, 2, "8x8", "0/1", 1000, None, family="studio"), progress=False)
+    studio_job = make_job(JobOptions(2, 2, "8x8", "0/1", 1000, None, family="studio"))
+    studio = run_dataset(tmp_path / "s", studio_job, progress=False)
     assert specs == ["procedural:studio:1000", "procedural:studio:1001"]
     assert studio.family == "studio" and load_manifest(tmp_path / "s").family == "studio"
-    rooms = run_dataset(tmp_path / "r", make_job(2, 2, "8x8", "0/1", 1000, None), progress=False)
+    rooms = run_dataset(tmp_path / "r", make_job(JobOptions(2, 2, "8x8", "0/1", 1000, None)), progress=False)
     assert specs[2:] == ["procedural:1000", "procedural:1001"] and rooms.family == "mixed"
     assert "family" not in json.loads((tmp_path / "r" / "manifest.json").read_text())  # room folders as before
     assert manifest_hash(studio) != manifest_hash(rooms)  # the same pixels (the fake), another family
     with pytest.raises(DatasetError, match="family 'studio' \\(this run: None\\)"):  # one family per folder
-        run_dataset(tmp_path / "s", make_job(2, 2, "8x8", "0/1", 1000, None), progress=False)
+        run_dataset(tmp_path / "s", make_job(JobOptions(2, 2, "8x8", "0/1", 1000, None)), progress=False)
     with pytest.raises(DatasetError, match="--family"):
-        make_job(2, 2, "8x8", "0/1", 1000, None, family="attic")
+        make_job(JobOptions(2, 2, "8x8", "0/1", 1000, None, family="attic"))
 
 
 def test_max_depth_two_records_direct_only(tmp_path: Path, counting_renderer: list[int]) -> None:
@@ -487,7 +488,7 @@ def test_seconds_renders_each_frame_to_its_budget_and_records_its_spp(tmp_path: 
     assert manifest.seconds == 2.5 and manifest.spp is None and manifest.hash == data["hash"]
     # a budgeted dataset is another dataset: no --spp run may add to it, and its hash names the budget
     with pytest.raises(DatasetError, match="seconds 2.5 \\(this run: None\\)"):
-        run_dataset(tmp_path / "d", make_job(3, 4, "8x6", "0/1", 1000, None, pairs=True), progress=False)
+        run_dataset(tmp_path / "d", make_job(JobOptions(3, 4, "8x6", "0/1", 1000, None, pairs=True)), progress=False)
     manifest.seconds = 3.0
     assert manifest_hash(manifest) != data["hash"]
 
@@ -531,7 +532,8 @@ def test_a_real_frame_rendered_to_its_budget(tmp_path: Path, monkeypatch: pytest
     # the reconstruction's start-up as if paid (as after another test): the frame's check then fits 8 s
     monkeypatch.setattr(plan, "reconstruct_startup", lambda: 0.0)
     # 8 s: the kernel's compile and a second pass fit on a loaded 2-core machine (test_plan.py's budgeted frame)
-    manifest = run_dataset(tmp_path / "d", make_job(1, None, "16x12", "0/1", 1000, None, seconds="8"), progress=False)
+    timed = make_job(JobOptions(1, None, "16x12", "0/1", 1000, None, seconds="8"))
+    manifest = run_dataset(tmp_path / "d", timed, progress=False)
     (record,) = manifest.frames
     frame = read_frame(tmp_path / "d" / record.file)
     meta = frame.metadata

@@ -9,7 +9,6 @@ of renders per scene is shared through module-scoped fixtures, so only a handful
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -22,22 +21,13 @@ from gradsep.cli import main  # noqa: E402
 from gradsep.model.errors import CommandError  # noqa: E402
 from gradsep.model.exr_read import read_frame  # noqa: E402
 from gradsep.model.exr_write import write_frame  # noqa: E402
-from gradsep.renderer.gpt import (  # noqa: E402
-    MAX_LANES_PER_PASS,
-    GptSettings,
-    alternate_offsets,
-    offset_group,
-    pass_plan,
-    render_gpt,
-    stratified_sub_pixel,
-)
+from gradsep.renderer.gpt import MAX_LANES_PER_PASS, GptSettings, pass_plan, render_gpt  # noqa: E402
 from gradsep.renderer.render import parse_layers, plan_layers, render_frame  # noqa: E402
 from gradsep.renderer.scene import load_scene, select_variant  # noqa: E402
 from gradsep.renderer.shift import (  # noqa: E402
     HybridShift,
     ReplayShift,
     make_shift,
-    scene_has_curved_mirrors,
 )
 from tests.renderer.scenes import CBOX_GEOMETRY, resolve  # noqa: E402
 
@@ -341,80 +331,23 @@ def test_direct_gradients_mode_is_the_full_renders_direct_layer(scene_name, shif
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("scene_name", "shift", "gradients"), [
-    ("cbox", "hybrid", "all"), ("cbox", "replay", "all"), ("cbox", "hybrid", "direct"), ("teapot", "hybrid", "all"),
-    ("teapot", "replay", "direct")])
-def test_first_vertex_before_the_loop_is_the_loops_first_iteration(monkeypatch, scene_name, shift, gradients):
-    """The first path vertex is traced before the symbolic loop (renderer.gpt.PEEL_FIRST_VERTEX), where its depth
-    is a literal and the shift's later-vertex code folds away: the frame is bit for bit the one the loop's first
-    iteration gives (primal, both layers' gradients, features), for both shifts and the direct-gradients mode
-    (the primal-only mode is not peeled)."""
-    import gradsep.renderer.gpt as gpt
-
-    scene, depth = load_test_scene(scene_name), SCENE_DEPTHS[scene_name]
-    settings = GptSettings(max_depth=depth, gradients=gradients)
-    results = []
-    for peel in (True, False):
-        monkeypatch.setattr(gpt, "PEEL_FIRST_VERTEX", peel)
-        results.append(render_gpt(scene, make_shift(shift), settings, SIZE, SIZE, 5, 3))
-    peeled, in_loop = results
-    assert peeled.layers.keys() == in_loop.layers.keys()
-    for layer, images in peeled.layers.items():
-        assert images.keys() == in_loop.layers[layer].keys()
-        for key, image in images.items():
-            np.testing.assert_array_equal(image, in_loop.layers[layer][key], err_msg=f"{layer} {key}")
-    for key in ("albedo", "normal", "depth"):
-        np.testing.assert_array_equal(getattr(peeled, key), getattr(in_loop, key), err_msg=key)
-    assert np.abs(peeled.layers["direct"]["base"]).max() > 0
-
-
-@pytest.mark.slow
-def test_manifold_solve_as_a_loop_is_the_unrolled_solve(monkeypatch):
-    """The manifold reconnection's Newton steps run as a symbolic loop (renderer.shift.MANIFOLD_LOOP): less code to
-    record and compile, and the frame bit for bit the one of the unrolled steps (primal, gradients, features). Power:
-    the cbox's mirror ball takes the solve (one Newton step instead of the five changes the gradients). The
-    ``--gradients direct`` mode does not run the solve at all (the next test)."""
-    import gradsep.renderer.shift as shift_module
-
-    scene = load_test_scene("cbox")
-    assert scene_has_curved_mirrors(scene)
-    settings = GptSettings(max_depth=SCENE_DEPTHS["cbox"])
-
-    def render(looped: bool, steps: int = shift_module.MANIFOLD_STEPS):
-        monkeypatch.setattr(shift_module, "MANIFOLD_LOOP", looped)
-        monkeypatch.setattr(shift_module, "MANIFOLD_STEPS", steps)
-        return render_gpt(scene, make_shift("hybrid"), settings, SIZE, SIZE, 5, 3)
-
-    looped, unrolled, one_step = render(True), render(False), render(True, 1)
-    assert looped.layers.keys() == unrolled.layers.keys()
-    for layer, images in looped.layers.items():
-        for key, image in images.items():
-            np.testing.assert_array_equal(image, unrolled.layers[layer][key], err_msg=f"{layer} {key}")
-    for key in ("albedo", "normal", "depth"):
-        np.testing.assert_array_equal(getattr(looped, key), getattr(unrolled, key), err_msg=key)
-    assert any(not np.array_equal(image, one_step.layers[layer][key])
-               for layer, images in looped.layers.items() for key, image in images.items() if key != "base")
-
-
-@pytest.mark.slow
 @pytest.mark.parametrize("offsets", ["all", "alternate"])
 def test_direct_gradients_mode_leaves_out_the_manifold_solve(monkeypatch, offsets):
-    """``--gradients direct`` runs the hybrid shift without its manifold solve (renderer.gpt.DIRECT_LAYER_SHIFT,
-    HybridShift.for_direct_layer): a mirror at x_1 would be solved at x_2, past the mode's vertices. The frame is
-    bit for bit the one of the full shift (the cbox's mirror ball is seen directly and reflects the lamp), and the
-    solve is not even traced (power: with the full shift it is)."""
-    import gradsep.renderer.gpt as gpt
-    import gradsep.renderer.shift as shift_module
+    """``--gradients direct`` runs the hybrid shift without its manifold solve (HybridShift.for_direct_layer): a
+    mirror at x_1 would be solved at x_2, past the mode's vertices. The frame is bit for bit the one of the full
+    shift (the cbox's mirror ball is seen directly and reflects the lamp), and the solve is not even traced
+    (power: with the full shift it is)."""
+    import gradsep.renderer.manifold as manifold
 
     scene = load_test_scene("cbox")
     settings = GptSettings(max_depth=SCENE_DEPTHS["cbox"], gradients="direct", offsets=offsets)
     solves = []
-    solve = shift_module.HybridShift._solve_mirror
-    monkeypatch.setattr(shift_module.HybridShift, "_solve_mirror",
-                        lambda self, *a: solves.append(1) or solve(self, *a))
+    solve = manifold.solve_mirror
+    monkeypatch.setattr(manifold, "solve_mirror", lambda *a: solves.append(1) or solve(*a))
 
     def render(leave_out: bool):
-        monkeypatch.setattr(gpt, "DIRECT_LAYER_SHIFT", leave_out)
+        if not leave_out:  # the full shift: render_gpt hands the mode the shift itself
+            monkeypatch.setattr(HybridShift, "for_direct_layer", lambda self: self)
         solves.clear()
         result = render_gpt(scene, make_shift("hybrid"), settings, SIZE, SIZE, 5, 3)
         return result, len(solves)
@@ -459,47 +392,6 @@ def test_gradients_mode_is_validated():
     assert GptSettings().gradient_layer_names() == ("direct", "indirect")
     with pytest.raises(CommandError, match="--gradients must be one of"):
         render_frame(CBOX, spp=1, width=4, height=4, gradients="sometimes")
-
-
-@pytest.mark.parametrize("groups", [2, 4])
-def test_offset_groups_are_balanced_and_spread(groups):
-    """Each sample traces each group with probability 1/groups (over pixels and passes), and within a pixel the
-    stratified cells are dealt out evenly, every row of the grid holding every group."""
-    select_variant()
-    strata, spp, pixels = 4, 20, 4096
-    pixel = np.repeat(np.arange(pixels), spp)
-    sample = np.tile(np.arange(spp), pixels)
-    group = np.array(offset_group(mi.UInt32(pixel), mi.UInt32(sample), mi.UInt32(strata), mi.UInt32(12345),
-                                  groups)).reshape(pixels, spp)
-    for s in range(spp):
-        counts = np.bincount(group[:, s], minlength=groups) / pixels
-        assert np.all(np.abs(counts - 1 / groups) < 5 * np.sqrt(1 / pixels)), (s, counts)
-    grid = group[:, :strata * strata].reshape(pixels, strata, strata)  # [pixel, row, column]
-    for g in range(groups):
-        assert np.all((grid == g).sum(axis=(1, 2)) == strata * strata // groups)
-        assert np.all((grid == g).any(axis=2))
-
-
-def test_alternate_offsets_pair_neighbours_and_are_balanced():
-    """The "alternate" mode: on every sample, pixel x traces right exactly when pixel x+1 traces left (and y
-    down exactly when y+1 traces up), so each pixel pair gets both MIS techniques on the same samples; over
-    rows/columns and passes each sample traces each direction with probability 1/2; within a pixel each
-    direction's stratified samples cover every row and column of the grid."""
-    select_variant()
-    strata, spp, size = 4, 20, 64
-    y, x, s = np.meshgrid(np.arange(size), np.arange(size), np.arange(spp), indexing="ij")
-    h, v = (np.array(a).reshape(size, size, spp) for a in alternate_offsets(
-        mi.Int32(x.ravel()), mi.Int32(y.ravel()), mi.UInt32(s.ravel()), mi.UInt32(strata), mi.UInt32(777)))
-    assert set(np.unique(h)) == {0, 1} and set(np.unique(v)) == {2, 3}  # SHIFT_OFFSETS: right/left, down/up
-    np.testing.assert_array_equal(h[:, :-1] == 0, h[:, 1:] == 1)  # right at x  <=>  left at x+1
-    np.testing.assert_array_equal(v[:-1, :] == 2, v[1:, :] == 3)  # down at y  <=>  up at y+1
-    for sample in range(spp):  # the random bit per row (column) and pass makes each direction equally likely
-        for axis_choice in (h[:, 0, sample] == 0, v[0, :, sample] == 2):
-            assert abs(axis_choice.mean() - 0.5) < 5 * np.sqrt(0.25 / size), sample
-    grid = h[..., :strata * strata].reshape(size, size, strata, strata)  # [y, x, grid row, grid column]
-    for direction in (0, 1):
-        assert np.all((grid == direction).sum(axis=(2, 3)) == strata * strata // 2)
-        assert np.all((grid == direction).any(axis=3)) and np.all((grid == direction).any(axis=2))
 
 
 def test_alternate_offsets_trace_two_offsets_and_keep_the_primal():
@@ -563,9 +455,11 @@ def test_offsets_on_the_base_pixel_give_zero_gradients(monkeypatch, shift, scene
     Replay is exact; the hybrid shift recomputes reconnection directions and may differ by rounding, and its
     manifold reconnection through a mirror solves for the mirror point to ~1e-6 of the path length, which near
     focusing configurations (tiny footprints) leaves Jacobians off by up to ~1e-3 (gradients ~1e-4)."""
-    import gradsep.renderer.gpt as gpt
+    import gradsep.renderer.gpt_loop as gpt_loop
+    import gradsep.renderer.lanes as lanes
 
-    monkeypatch.setattr(gpt, "SHIFT_OFFSETS", ((0, 0),) * 4)
+    for module in (gpt_loop, lanes):  # where the pixel shifts are read: every lane's, and a group's
+        monkeypatch.setattr(module, "SHIFT_OFFSETS", ((0, 0),) * 4)
     scene = load_scene(CBOX, width=16, height=16).scene if scene_name == "cbox" else coarse_room(16, "specular")
     res = render_gpt(scene, make_shift(shift), GptSettings(max_depth=-1, rr_depth=1, offsets=offsets), 16, 16, 4,
                      seed=7)
@@ -610,19 +504,11 @@ def diffuse_room_dict() -> dict:
 
 MATERIAL_SETS = ("diffuse", "mixed", "glossy", "specular")
 
-# Shift variants: the hybrid shift as shipped, with the length condition on reconnections, with a length
-# condition no segment meets (every glossy vertex copies the half-vector, every diffuse one replays), without
-# the half-vector copy (replay instead), without the follow strategy (replay towards specular vertices), and with
-# its curvature threshold moved: each strategy must be unbiased on its own.
+# Shift variants: the two shifts, and the hybrid shift as the --gradients direct mode runs it (no manifold
+# reconnection: offsets follow at curved mirrors instead), which must be unbiased at every depth too.
 VARIANTS = {
     "replay": ReplayShift,
     "hybrid": HybridShift,
-    "hybrid-footprint": lambda: HybridShift(footprint=4.0),
-    "hybrid-copy": lambda: HybridShift(footprint=1e9),
-    "hybrid-no-copy": lambda: HybridShift(half_vector=False),
-    "hybrid-no-follow": lambda: HybridShift(follow_specular=False),
-    # the follow-or-replay threshold where most segments to the balls cross it: the inverse shift's check at work
-    "hybrid-follow-threshold": lambda: HybridShift(follow_curvature=2.5),
     "hybrid-no-manifold": lambda: HybridShift(manifold=False),
 }
 
@@ -668,10 +554,8 @@ def coarse_room(size: int, materials: str = "mixed"):
 
 @pytest.mark.slow
 @pytest.mark.parametrize(("materials", "variant"), [
-    ("mixed", "replay"), ("mixed", "hybrid"), ("mixed", "hybrid-footprint"), ("mixed", "hybrid-copy"),
-    ("glossy", "replay"), ("glossy", "hybrid"), ("glossy", "hybrid-copy"), ("glossy", "hybrid-no-copy"),
-    ("specular", "replay"), ("specular", "hybrid"), ("specular", "hybrid-no-follow"),
-    ("specular", "hybrid-follow-threshold"), ("specular", "hybrid-no-manifold"),
+    ("mixed", "replay"), ("mixed", "hybrid"), ("glossy", "replay"), ("glossy", "hybrid"),
+    ("specular", "replay"), ("specular", "hybrid"), ("specular", "hybrid-no-manifold"),
 ])
 def test_gradients_unbiased_at_coarse_resolution(materials, variant):
     scene = coarse_room(8, materials)
@@ -698,8 +582,8 @@ def converged_gradients(materials: str, shift: str) -> dict[str, np.ndarray]:
 
 @pytest.mark.slow
 @pytest.mark.parametrize(("materials", "variant"), [
-    ("diffuse", "hybrid"), ("mixed", "hybrid"), ("glossy", "hybrid"), ("glossy", "hybrid-copy"),
-    ("specular", "hybrid"), ("specular", "hybrid-follow-threshold"),
+    ("diffuse", "hybrid"), ("mixed", "hybrid"), ("glossy", "hybrid"), ("specular", "hybrid"),
+    ("specular", "hybrid-no-manifold"),
 ])
 def test_both_shifts_estimate_the_same_gradients(materials, variant):
     """Two unbiased estimators of the same pixel differences must agree: 4x4 pixels at 16k samples each, so
@@ -798,22 +682,6 @@ def test_gradients_unbiased_on_grazing_and_tiny_geometry(name):
         for key, fd in (("dx", fd_x), ("dy", fd_y)):
             est = np.stack([sum(r.layers[layer][key] for layer in r.layers) for r in results]).astype(np.float64)
             assert_matches_reference(est, fd(ref), 2e-3, f"{name} {shift} {key}")
-
-
-@pytest.mark.parametrize("spp", [1, 7, 16, 20])
-def test_sub_pixel_positions_are_stratified(spp):
-    """The pixel's first floor(sqrt(spp))^2 samples fall one per cell of a jittered grid, the rest anywhere in
-    the pixel; every position stays inside the pixel."""
-    select_variant()
-    n = math.isqrt(spp)
-    rng = np.random.default_rng(spp)
-    u = rng.uniform(0, 1, (2, spp))
-    sample = np.arange(spp)
-    pos = np.array(stratified_sub_pixel(mi.Point2f(u[0], u[1]), mi.UInt32(sample), mi.UInt32(n)))
-    assert np.all((pos >= 0) & (pos < 1))
-    cells = np.floor(pos[:, :n * n] * n).astype(int)
-    assert len({(int(x), int(y)) for x, y in cells.T}) == n * n
-    np.testing.assert_allclose(pos[:, n * n:], u[:, n * n:])
 
 
 @pytest.mark.slow

@@ -181,7 +181,7 @@ def test_no_gradients_command(tmp_path, capsys):
 def test_which_scenes_can_skip_the_last_ray():
     """Only a scene lit by delta lights alone (the teapot's point lights) skips the ray after the last next-event
     vertex; an area light (cbox) or an environment (sky) can be found by that ray."""
-    from gradsep.renderer.gpt import scene_has_hittable_emitters
+    from gradsep.renderer.gpt_loop import scene_has_hittable_emitters
 
     assert not scene_has_hittable_emitters(scene_of("teapot"))
     assert scene_has_hittable_emitters(scene_of("cbox"))

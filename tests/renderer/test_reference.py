@@ -12,6 +12,7 @@ from gradsep.renderer.reference import (
     MAX_WAVEFRONT,
     SAMPLERS,
     Reference,
+    ReferenceJob,
     _check_split,
     default_tile_spp,
     load_reference,
@@ -28,6 +29,13 @@ from tests.renderer.scenes import resolve
 CBOX = resolve("cbox").path
 
 pytestmark = pytest.mark.render
+
+
+def reference(spec: str, *, spp: int, seed: int = 0, tile_spp: int | None = None, sampler: str = DEFAULT_SAMPLER,
+              shard: tuple[int, int] | None = None, **scene) -> Reference:
+    """render_reference with the job's fields as keywords (the tests below vary them one at a time)."""
+    return render_reference(spec, ReferenceJob(spp=spp, seed=seed, tile_spp=tile_spp, sampler=sampler, shard=shard),
+                            **scene)
 
 
 # -- pure planning ---------------------------------------------------------------------------------------------
@@ -79,10 +87,10 @@ def test_pass_plans_use_counts_the_sampler_renders_exactly(sampler: str) -> None
 
 
 def test_pass_plan_refuses_what_a_sampler_cannot_render_and_unknown_samplers() -> None:
-    with pytest.raises(ValueError, match="ldsampler sampler renders exactly"):
-        plan_passes(6, 6, "ldsampler")  # 4 + 2: ldsampler renders 4 for 2
+    with pytest.raises(ValueError, match="orthogonal sampler renders exactly"):
+        plan_passes(6, 6, "orthogonal")  # 4 + 2: orthogonal renders 4 for 2
     with pytest.raises(ValueError, match="unknown sampler"):
-        render_reference("procedural:1", spp=1, sampler="sobol")
+        render_reference("procedural:1", ReferenceJob(spp=1, sampler="sobol"))
 
 
 def test_default_tile_for_stratified_samplers_is_a_power_of_four() -> None:
@@ -136,7 +144,7 @@ def test_rebuilt_thin_lens_camera_renders_bit_identically() -> None:
 
 
 def _image_means(spec: str, sampler: str, first_seed: int, count: int = 8) -> np.ndarray:
-    refs = [render_reference(spec, spp=16, width=16, height=16, seed=first_seed + i, sampler=sampler)
+    refs = [reference(spec, spp=16, width=16, height=16, seed=first_seed + i, sampler=sampler)
             for i in range(count)]
     return np.array([[r.total.mean(), r.direct.mean()] for r in refs], dtype=np.float64)
 
@@ -159,9 +167,9 @@ def test_multijitter_passes_with_different_seeds_are_independent() -> None:
     over 8 pairs of 16-spp multijitter passes its mean must be zero within 4 standard errors, while the same
     pass twice (what a seed-blind stratification pattern would give) is many standard errors above zero."""
     spec, size = str(CBOX), dict(width=32, height=32)
-    t1, t2 = (render_reference(spec, spp=1024, seed=s, sampler="independent", **size).total.astype(np.float64)
+    t1, t2 = (reference(spec, spp=1024, seed=s, sampler="independent", **size).total.astype(np.float64)
               for s in (1, 2))
-    passes = [render_reference(spec, spp=16, seed=s, sampler="multijitter", **size).total.astype(np.float64)
+    passes = [reference(spec, spp=16, seed=s, sampler="multijitter", **size).total.astype(np.float64)
               for s in range(10, 26)]
 
     def z(pairs: list[tuple[np.ndarray, np.ndarray]]) -> float:
@@ -177,8 +185,8 @@ def test_multijitter_passes_with_different_seeds_are_independent() -> None:
 def test_sharded_reference_merges_to_the_unsharded_one(tmp_path: Path) -> None:
     """Shards K/N render the job's passes with the job's seeds: merged, they are the unsharded reference."""
     job = dict(spp=20, width=12, height=10, tile_spp=4, seed=3, sampler="multijitter")
-    whole = render_reference("procedural:6", **job)
-    parts = [render_reference("procedural:6", shard=(k, 3), **job) for k in (3, 1, 2)]
+    whole = reference("procedural:6", **job)
+    parts = [reference("procedural:6", shard=(k, 3), **job) for k in (3, 1, 2)]
     assert [p.metadata["gradsep.spp"] for p in parts] == ["4", "8", "8"]  # 5 passes dealt 2/2/1
     for i, part in enumerate(parts):  # through files, as a farm would
         write_reference(tmp_path / f"s{i}.exr", part)
@@ -191,18 +199,18 @@ def test_sharded_reference_merges_to_the_unsharded_one(tmp_path: Path) -> None:
 
 def test_merge_refuses_incomplete_or_mixed_shards() -> None:
     job = dict(spp=8, width=6, height=5, tile_spp=2, seed=3)
-    a, b = (render_reference("procedural:6", shard=(k, 2), **job) for k in (1, 2))
+    a, b = (reference("procedural:6", shard=(k, 2), **job) for k in (1, 2))
     with pytest.raises(ValueError, match="shards 1..2"):
         merge_references([a])
     with pytest.raises(ValueError, match="shards 1..2"):
         merge_references([a, a])
-    other = render_reference("procedural:6", shard=(2, 2), **{**job, "seed": 4})
+    other = reference("procedural:6", shard=(2, 2), **{**job, "seed": 4})
     with pytest.raises(ValueError, match="gradsep.seed differs"):
         merge_references([a, other])
     with pytest.raises(ValueError, match="not a shard"):
-        merge_references([a, render_reference("procedural:6", **job)])
+        merge_references([a, reference("procedural:6", **job)])
     with pytest.raises(ValueError, match="has no passes"):
-        render_reference("procedural:6", shard=(5, 5), **job)  # 4 passes only
+        reference("procedural:6", shard=(5, 5), **job)  # 4 passes only
     assert merge_references([b, a]).metadata["gradsep.spp"] == "8"
 
 
@@ -213,7 +221,7 @@ def test_direct_layer_is_depth_two_light_and_indirect_the_rest(spec: str) -> Non
     render of the scene and the indirect layer what a full-depth render adds to it, within noise. (That
     direct + indirect == total is true by construction and is not what this checks.)"""
     def means(seed: int, **kwargs) -> np.ndarray:  # image means of 6 independent 32-spp renders
-        refs = [render_reference(spec, spp=32, width=24, height=20, tile_spp=32, seed=seed + i, **kwargs)
+        refs = [reference(spec, spp=32, width=24, height=20, tile_spp=32, seed=seed + i, **kwargs)
                 for i in range(6)]
         return np.array([[r.total.mean(), r.direct.mean(), 0.0 if r.indirect is None else r.indirect.mean()]
                          for r in refs], dtype=np.float64)
@@ -235,7 +243,7 @@ def test_passes_are_the_sample_weighted_mean_of_seeded_renders() -> None:
 
     from gradsep.renderer.scene import load_scene
 
-    ref = render_reference(str(CBOX), spp=5, width=16, height=16, tile_spp=2, seed=9, sampler="independent")
+    ref = reference(str(CBOX), spp=5, width=16, height=16, tile_spp=2, seed=9, sampler="independent")
     loaded = load_scene(str(CBOX), width=16, height=16)  # its own sensor: cbox.xml's independent sampler
     path = mi.load_dict({"type": "path", "max_depth": loaded.max_depth})
     passes = [np.array(mi.render(loaded.scene, integrator=path, spp=k, seed=pass_seed(9, i)), dtype=np.float64)
@@ -245,8 +253,8 @@ def test_passes_are_the_sample_weighted_mean_of_seeded_renders() -> None:
 
 
 def test_two_passes_of_k_match_one_pass_of_2k_within_noise() -> None:
-    a = render_reference(str(CBOX), spp=16, width=32, height=32, tile_spp=8, seed=1)
-    b = render_reference(str(CBOX), spp=16, width=32, height=32, seed=1)
+    a = reference(str(CBOX), spp=16, width=32, height=32, tile_spp=8, seed=1)
+    b = reference(str(CBOX), spp=16, width=32, height=32, seed=1)
     assert b.metadata["gradsep.tile_spp"] == "16" and a.metadata["gradsep.tile_spp"] == "8"
     d = (a.total - b.total).astype(np.float64).mean(axis=-1).ravel()  # independent per pixel (box filter)
     assert np.abs(d).max() > 0, "different pass seeds must give different noise"
@@ -255,7 +263,7 @@ def test_two_passes_of_k_match_one_pass_of_2k_within_noise() -> None:
 
 
 def test_max_depth_two_writes_no_indirect_layer(tmp_path: Path) -> None:
-    ref = render_reference("procedural:2", spp=2, width=12, height=10, max_depth=2)
+    ref = reference("procedural:2", spp=2, width=12, height=10, max_depth=2)
     assert ref.indirect is None
     np.testing.assert_array_equal(ref.direct, ref.total)
     out = tmp_path / "direct.exr"
@@ -268,7 +276,7 @@ def test_max_depth_two_writes_no_indirect_layer(tmp_path: Path) -> None:
 
 
 def test_file_round_trip_and_metadata(tmp_path: Path) -> None:
-    ref = render_reference("procedural:6", spp=3, width=10, height=8, tile_spp=2, seed=5)
+    ref = reference("procedural:6", spp=3, width=10, height=8, tile_spp=2, seed=5)
     out = tmp_path / "ref.exr"
     write_reference(out, ref)
     back = load_reference(out)
