@@ -13,7 +13,9 @@ import pytest
 mi = pytest.importorskip("mitsuba")
 
 from gradsep.model.errors import CommandError  # noqa: E402
+from gradsep.renderer.procedural import scene_summary  # noqa: E402
 from gradsep.renderer.scene import (  # noqa: E402
+    _NON_MESH_SHAPES,
     SceneError,
     force_film_dict,
     integrator_depths,
@@ -253,6 +255,15 @@ def test_emitters_come_in_declaration_order_and_meshes_are_still_merged(tmp_path
     assert _emitter_names(load_scene("procedural:7", width=8, height=8).scene) == ["light_1", "light_0", "light_2"]
 
 
+def test_the_non_mesh_shape_plugins_are_not_meshes():
+    """The loader keeps emitting meshes out of Mitsuba's merge by plugin name: a plugin this Mitsuba builds as a
+    mesh (rectangles are meshes) must not be listed as a non-mesh shape, or its area lights go back to the merge."""
+    assert {"sphere", "cylinder", "disk"} <= _NON_MESH_SHAPES
+    for plugin in ("sphere", "cylinder", "disk", "rectangle", "cube"):
+        shape = mi.load_dict({"type": plugin})
+        assert isinstance(shape, mi.Mesh) == (plugin not in _NON_MESH_SHAPES), plugin
+
+
 _RENDER_IN_A_PROCESS = """
 import hashlib
 from gradsep.renderer.render import render_frame
@@ -268,6 +279,8 @@ print(hashlib.sha256(b"".join(frame.layers[name].base.tobytes() for name in sort
 def test_a_seeded_render_is_the_same_in_every_process():
     """Two processes rendering one procedural frame with one seed get the same pixels bit for bit (in one process
     every render agreed even before; the emitter order differed between processes)."""
+    lights = scene_summary(152)["lights"]
+    assert sum(kind in ("ceiling", "wall_wash", "uplight") for kind in lights) >= 2, lights  # area lights on meshes
     repo = Path(__file__).resolve().parents[2]
     env = {**os.environ, "PYTHONPATH": str(repo)}
     outputs = [subprocess.run([sys.executable, "-c", _RENDER_IN_A_PROCESS], env=env, cwd=repo, capture_output=True,
