@@ -17,7 +17,7 @@ from __future__ import annotations
 import re
 import threading
 import xml.etree.ElementTree as ET
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -123,9 +123,68 @@ def _load_procedural(spec: ProceduralSpec, width: int | None, height: int | None
     scene_dict = procedural_scene(spec.seed, w, h, max_depth, spec.family)
     force_film_dict(scene_dict, w, h)
     try:
-        return mi.load_dict(scene_dict)
+        return _instantiate(lambda config: mi.parser.parse_dict(config, scene_dict))
     except Exception as exc:
         raise SceneError(f"procedural scene {spec} failed to load: {_one_line(exc)}") from exc
+
+
+# Shape plugins that are not meshes: Mitsuba's mesh merge keeps them, like every non-shape, in declaration order.
+_NON_MESH_SHAPES = frozenset({"sphere", "cylinder", "disk", "bsplinecurve", "linearcurve", "sdfgrid", "ellipsoids",
+                              "instance", "shapegroup"})
+
+
+def _instantiate(parse: Callable[[Any], Any]) -> Any:
+    """What ``mi.load_dict``/``mi.load_string`` do (``parse(config)`` gives the parser state), with an emitter order
+    that is the same in every process.
+
+    Mitsuba's mesh merge (its ``merge`` shape) lists the meshes it is given in the order of a hash table keyed by
+    object addresses, which differ from process to process, and the scene's emitter list -- so which light a
+    sample picks -- follows the shapes. A mesh carrying an emitter is merged with nothing (its key holds its own
+    emitter), so such meshes are kept out of the merge and listed after the scene's other children in declaration
+    order: the emitters come in Mitsuba's order wherever that was already fixed (the non-mesh ones first, as
+    declared), and the other meshes are merged as before.
+    """
+    import mitsuba as mi
+
+    config = mi.parser.ParserConfig(mi.variant())
+    config.merge_meshes = False  # done below instead
+    state = parse(config)
+    mi.parser.transform_all(config, state)
+    if state.root.type == mi.ObjectType.Scene:
+        root = state.root.props
+        merge = mi.parser.SceneNode()
+        merge.type = mi.ObjectType.Shape
+        merge.props.set_plugin_name("merge")
+        for key in root.keys():
+            kind = _child_kind(state, root, key)
+            if kind == "shape":
+                merge.props[key] = root[key]
+                del root[key]
+            elif kind == "emitting mesh":  # to the end, in declaration order
+                ref = root[key]
+                del root[key]
+                root[key] = ref
+        if merge.props.keys():
+            root["gradsep.merged"] = mi.Properties.ResolvedReference(len(state.nodes))  # no dict key has a dot
+            state.nodes.append(merge)
+    return mi.parser.instantiate(config, state)
+
+
+def _child_kind(state: Any, props: Any, key: str) -> str:
+    """``props[key]`` as a scene child: "shape" (no emitter), "emitting mesh", "emitting shape" or "other"."""
+    import mitsuba as mi
+
+    def node(name: str, owner: Any) -> Any:
+        if owner.type(name) != mi.Properties.Type.ResolvedReference:
+            return None
+        return state.nodes[owner[name].index()]
+
+    shape = node(key, props)
+    if shape is None or shape.type != mi.ObjectType.Shape:
+        return "other"
+    if not any(getattr(node(name, shape.props), "type", None) == mi.ObjectType.Emitter for name in shape.props.keys()):
+        return "shape"
+    return "emitting shape" if shape.props.plugin_name() in _NON_MESH_SHAPES else "emitting mesh"
 
 
 def force_film_dict(scene_dict: dict[str, Any], width: int, height: int) -> None:
@@ -163,7 +222,7 @@ def _load_xml(spec: str, width: int | None, height: int | None, defines: dict[st
     used = {name: value for name, value in defines.items() if f"${name}" in text}
     with _resolver_path(path.resolve().parent):
         try:
-            return mi.load_string(text, **used)
+            return _instantiate(lambda config: mi.parser.parse_string(config, text, **used))
         except Exception as exc:
             raise SceneError(f"{spec} failed to load: {_one_line(exc)}") from exc
 

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -11,7 +13,9 @@ import pytest
 mi = pytest.importorskip("mitsuba")
 
 from gradsep.model.errors import CommandError  # noqa: E402
+from gradsep.renderer.procedural import scene_summary  # noqa: E402
 from gradsep.renderer.scene import (  # noqa: E402
+    _NON_MESH_SHAPES,
     SceneError,
     force_film_dict,
     integrator_depths,
@@ -223,3 +227,64 @@ def test_builtin_scenes_stand_in_for_the_shared_ones():
     means = [np.array(mi.render(load_scene(str(p), width=16, height=16).scene, integrator=path, spp=256, seed=3),
                       dtype=np.float64).mean(axis=(0, 1)) for p in (shared[0], scenes.builtin_path("cbox"))]
     np.testing.assert_allclose(means[1], means[0], rtol=0.03)
+
+
+def _emitter_names(scene: mi.Scene) -> list[str]:
+    return [e.get_shape().id() if e.get_shape() is not None else e.id() for e in scene.emitters()]
+
+
+def test_emitters_come_in_declaration_order_and_meshes_are_still_merged(tmp_path):
+    """Which light a sample picks follows the scene's emitter list. Mitsuba's mesh merge would list meshes -- area
+    lights on rectangles among them -- in an order keyed by object addresses, different in every process; the
+    loader keeps emitting meshes out of it: non-mesh emitters first, then emitting meshes, each as declared. Plain
+    meshes sharing a material are still merged (many small meshes would otherwise slow every render)."""
+    lamps = "".join(f"""
+        <shape type="rectangle" id="lamp{i}">
+            <transform name="to_world"><scale value="0.1"/><translate x="{0.2 * i - 0.5}" y="0.8"/></transform>
+            <emitter type="area"><rgb name="radiance" value="{1 + i}"/></emitter>
+        </shape>""" for i in range(6))
+    body = f"""{lamps[:len(lamps) // 2]}
+        <emitter type="point" id="bulb"><point name="position" x="0" y="1" z="1"/></emitter>
+        <shape type="rectangle"><transform name="to_world"><translate z="-1"/></transform><bsdf type="diffuse"/></shape>
+        <shape type="sphere" id="ball"><float name="radius" value="0.1"/><emitter type="area"/></shape>
+        {lamps[len(lamps) // 2:]}"""
+    loaded = load_scene(str(write_scene(tmp_path, body)), width=8, height=8)
+    assert _emitter_names(loaded.scene) == ["bulb", "ball"] + [f"lamp{i}" for i in range(6)]
+    assert len(loaded.scene.shapes()) == 8  # the two plain rectangles are one mesh, as Mitsuba merges them
+    # procedural:7: a spot light (not a shape) and two emitting rectangles, light_0 and light_2
+    assert _emitter_names(load_scene("procedural:7", width=8, height=8).scene) == ["light_1", "light_0", "light_2"]
+
+
+def test_the_non_mesh_shape_plugins_are_not_meshes():
+    """The loader keeps emitting meshes out of Mitsuba's merge by plugin name: a plugin this Mitsuba builds as a
+    mesh (rectangles are meshes) must not be listed as a non-mesh shape, or its area lights go back to the merge."""
+    assert {"sphere", "cylinder", "disk"} <= _NON_MESH_SHAPES
+    for plugin in ("sphere", "cylinder", "disk", "rectangle", "cube"):
+        shape = mi.load_dict({"type": plugin})
+        assert isinstance(shape, mi.Mesh) == (plugin not in _NON_MESH_SHAPES), plugin
+
+
+_RENDER_IN_A_PROCESS = """
+import hashlib
+from gradsep.renderer.render import render_frame
+from gradsep.renderer.scene import load_scene
+loaded = load_scene("procedural:152", width=12, height=10)  # three emitting rectangles
+frame = render_frame(loaded, spp=2, seed=3, gradients="none")
+print([e.get_shape().id() for e in loaded.scene.emitters()])
+print(hashlib.sha256(b"".join(frame.layers[name].base.tobytes() for name in sorted(frame.layers))).hexdigest())
+"""
+
+
+@pytest.mark.slow
+def test_a_seeded_render_is_the_same_in_every_process():
+    """Two processes rendering one procedural frame with one seed get the same pixels bit for bit (in one process
+    every render agreed even before; the emitter order differed between processes)."""
+    lights = scene_summary(152)["lights"]
+    assert sum(kind in ("ceiling", "wall_wash", "uplight") for kind in lights) >= 2, lights  # area lights on meshes
+    repo = Path(__file__).resolve().parents[2]
+    env = {**os.environ, "PYTHONPATH": str(repo)}
+    outputs = [subprocess.run([sys.executable, "-c", _RENDER_IN_A_PROCESS], env=env, cwd=repo, capture_output=True,
+                              text=True, timeout=300, check=False) for _ in range(2)]
+    for proc in outputs:
+        assert proc.returncode == 0, proc.stderr[-2000:]
+    assert outputs[0].stdout == outputs[1].stdout
