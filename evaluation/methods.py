@@ -134,7 +134,9 @@ METHOD_SOURCES: tuple[str, ...] = ("evaluation/methods.py", "evaluation/run.py",
                                    *sorted(f"model/{p.name}" for p in (REPO_ROOT / "model").glob("*.py")))
 #: The render planner's source files: part of the ``gpt-auto`` row's cache key (with the renderer's), so a planner
 #: change recomputes that row, and only that row.
-PLANNER_SOURCES: tuple[str, ...] = ("renderer/plan.py", "renderer/budget.py", "renderer/estimate.py",
+PLANNER_SOURCES: tuple[str, ...] = ("renderer/planner.py", "renderer/plans.py", "renderer/passes.py",
+                                     "renderer/checkpoint.py", "renderer/frame_budget.py",
+                                     "renderer/reconstruction_cost.py", "renderer/budget.py", "renderer/estimate.py",
                                      "renderer/check.py", "renderer/render.py")
 #: What a ``gpt-auto`` row records of its plan (MethodOutput.extra -> the row; evaluation/report.py reads them).
 PLAN_ROW_KEYS: tuple[str, ...] = ("plan", "plan_layers", "plan_method", "plan_candidates", "predicted_relmse",
@@ -697,7 +699,9 @@ class PathRenderer:
         compiles each candidate's kernel and runs the reconstruction once on the pilot's tile size (one-time
         costs, untimed like every row's)."""
         from gradsep.model.reconstruct import reconstruct
-        from gradsep.renderer.plan import Passes, applicable, as_frame, crop, tiles
+        from gradsep.renderer.checkpoint import tiles
+        from gradsep.renderer.passes import Passes, as_frame, crop
+        from gradsep.renderer.plans import judged_plans as applicable
 
         seconds = []
         for c in applicable(layers):
@@ -717,7 +721,8 @@ class PathRenderer:
         :data:`CALIBRATION_SECONDS` (each size twice, the faster kept; the last two sizes make its cost line), and
         the reconstruction's seconds per pixel (:meth:`planner_tail`'s slowest, over the frame's pixels)."""
         from gradsep.renderer.budget import PassCosts
-        from gradsep.renderer.plan import Passes, Priors, applicable
+        from gradsep.renderer.passes import Passes, Priors
+        from gradsep.renderer.plans import judged_plans as applicable
 
         if layers not in self._priors:
             priors = Priors(reconstruct_rate=self.planner_tail(layers) / (self.loaded.width * self.loaded.height),
@@ -996,8 +1001,10 @@ def _run_gpt_auto(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
     from gradsep.model.frame import PLAN_METHOD_KEY, PREDICTED_FROM_KEY, PREDICTED_RELMSE_KEY
     from gradsep.model.reconstruct import reconstruct
     from gradsep.renderer.budget import Deadline
-    from gradsep.renderer.plan import fallback, plan_layers_text, render_planned
-    from gradsep.renderer.render import check_budget, frame_check
+    from gradsep.renderer.frame_budget import FrameBudget
+    from gradsep.renderer.planner import CheckpointChoice, FixedChoice, PlannerOptions, render_planned
+    from gradsep.renderer.plans import fallback_plan, plan_layers_text
+    from gradsep.renderer.render import FrameCheckSizer, FrameShape, frame_check
 
     renderer = ctx.path()
     target = _budget(ctx)
@@ -1010,16 +1017,15 @@ def _run_gpt_auto(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
     deadline = Deadline(target, tail=tail)
     refused = ""
     try:  # the frame's own error estimate as the command makes it, with the default OIDN setting (as served here)
-        planned = render_planned(renderer.loaded, layers, seed=seed, shift=None, fixed=None, deadline=deadline,
-                                 check=lambda rate, plan, before: check_budget(rate, plan, width, height, layers,
-                                                                               target, farm_setting=False,
-                                                                               before=before),
-                                 priors=priors)
+        sizer = FrameCheckSizer(FrameShape(width, height, layers), target, farm_setting=False)
+        planned = render_planned(renderer.loaded, layers, CheckpointChoice(), FrameBudget(deadline), seed=seed,
+                                 options=PlannerOptions(check=sizer, priors=priors))
     except CommandError:  # not one pass + the reconstruction fit: what `gradsep render --seconds` refuses
         refused = (f"the budget is below the planner's start-up here (its first pass, then {tail:.3g} s of "
-                   f"reconstruction): 1 spp of `{fallback(layers).name}` rendered regardless")
-        planned = render_planned(renderer.loaded, layers, seed=seed, shift=None, fixed=fallback(layers), spp=1)
-    frame, plan = planned.frame, planned.plan
+                   f"reconstruction): 1 spp of `{fallback_plan(layers).name}` rendered regardless")
+        planned = render_planned(renderer.loaded, layers, FixedChoice(fallback_plan(layers)), FrameBudget(spp=1),
+                                 seed=seed)
+    frame, plan = planned.frame, planned.judgement
     frame.metadata = plan.metadata(layers) if plan is not None else {}
     if plan is not None and plan.assessments:
         frame_check(planned, frame.metadata)
@@ -1029,7 +1035,7 @@ def _run_gpt_auto(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
     render_seconds, post_seconds = rendered - start, done - rendered
     total = render_seconds + post_seconds
 
-    chosen = planned.candidate
+    chosen = planned.plan
     assessed = {a.name: a for a in plan.assessments} if plan is not None else {}
     predicted = float(frame.metadata.get(PREDICTED_RELMSE_KEY, "nan")) if assessed else math.nan
     extra: dict[str, Any] = {
