@@ -670,10 +670,10 @@ class PathRenderer:
 
             output: Any = render_frame(self.loaded, spp=int(spp), seed=int(seed) % (1 << 32), gradients=False)
         elif kind == "gpt-direct":
-            from gradsep.renderer.render import render_frame
+            from gradsep.renderer.render import FrameOptions, render_frame
 
             output = render_frame(self.loaded, spp=int(spp), seed=int(seed) % (1 << 32), gradients="direct",
-                                  offsets=EQUAL_TIME_OFFSETS)
+                                  options=FrameOptions(offsets=EQUAL_TIME_OFFSETS))
         else:
             import mitsuba as mi
 

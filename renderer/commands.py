@@ -20,7 +20,7 @@ from gradsep.model.policy import SEPARATED_LAYERS
 def render_command(args: argparse.Namespace) -> int:
     """`gradsep render`: render a frame and write it atomically to ``args.output``."""
     from gradsep.model.frame import write_frame
-    from gradsep.renderer.render import render_frame
+    from gradsep.renderer.render import FrameOptions, render_frame
     from gradsep.renderer.scene import load_scene, parse_defines
 
     deadline = _deadline(args)  # first: the budget counts from the process's start
@@ -49,8 +49,9 @@ def render_command(args: argparse.Namespace) -> int:
 
     if deadline is None and gradients != "auto":
         frame = render_frame(scene, spp=args.spp, seed=args.seed, layers=args.layers, shift=args.shift,
-                             progress=progress, gradients=gradients, offsets=args.offsets,
-                             gradient_spp=args.gradient_spp)
+                             gradients=gradients, options=FrameOptions(offsets=args.offsets,
+                                                                       gradient_spp=args.gradient_spp,
+                                                                       progress=progress))
         plan_text = ""
     else:
         frame, plan_text = _render_planned(args, scene, deadline, gradients, cache_folder, progress)

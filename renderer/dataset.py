@@ -496,8 +496,9 @@ def _render_to(root: Path, rel: str, job: Job, seed: int, sampler_seed: int) -> 
     from gradsep.renderer import render
 
     if job.seconds is None:
-        frame = render.render_frame(job.scene(seed), spp=job.spp or 0, seed=sampler_seed, width=job.width,
-                                    height=job.height, max_depth=job.max_depth)
+        frame = render.render_frame(job.scene(seed), spp=job.spp or 0, seed=sampler_seed,
+                                    options=render.FrameOptions(width=job.width, height=job.height,
+                                                                max_depth=job.max_depth))
     else:
         from gradsep.renderer.budget import Deadline
         from gradsep.renderer.frame_budget import FrameBudget

@@ -98,6 +98,14 @@ def gradients_mode(gradients: bool | str) -> str:
     return gradients
 
 
+def check_offsets(offsets: str, mode: str) -> None:
+    """``--offsets`` checked against OFFSET_CHOICES and the gradients mode."""
+    if offsets not in OFFSET_CHOICES:
+        raise CommandError(f"--offsets must be one of {', '.join(OFFSET_CHOICES)}, got {offsets!r}")
+    if mode == "none" and offsets != "all":
+        raise CommandError("--offsets has no effect without gradients (no offset paths are traced)")
+
+
 def check_gradient_spp(gradient_spp: int | None, spp: int, mode: str) -> int:
     """``--gradient-spp`` checked against ``--spp`` and the gradients mode; None -> ``spp`` (every sample)."""
     if gradient_spp is None:
@@ -112,49 +120,90 @@ def check_gradient_spp(gradient_spp: int | None, spp: int, mode: str) -> int:
     return gradient_spp
 
 
+@dataclass(frozen=True)
+class FrameOptions:
+    """The rest of :func:`render_frame`'s settings.
+
+    ``offsets`` (``--offsets``): which offsets a sample traces, ``GptSettings.offsets`` (``all``, or fewer:
+    ``alternate``, ``pair``, ``single``; the same channels, gradients counted with their inverse probability;
+    recorded as ``gradsep.offsets`` unless ``all``). ``gradient_spp`` K (``--gradient-spp``; default ``spp``): only K
+    of the ``spp`` samples trace offsets, the other ``spp - K`` are primal-only samples; the bases and features are
+    the mean over all ``spp`` samples, the gradients the K G-PT samples' (``render_gpt``). K == ``spp`` is the plain
+    render; a K below ``spp`` is recorded as ``gradsep.gradient_spp`` (``gradsep.spp`` stays the bases' sample
+    count). ``progress(done, spp)`` after each pass. A scene given as a spec is loaded with ``width``, ``height``,
+    ``max_depth`` and ``defines``; ``max_depth`` also overrides a loaded scene's."""
+
+    offsets: str = "all"
+    gradient_spp: int | None = None
+    progress: Callable[[int, int], None] | None = None
+    width: int | None = None
+    height: int | None = None
+    max_depth: int | None = None
+    defines: Mapping[str, str] | None = None
+
+
 def render_frame(scene: LoadedScene | str, *, spp: int, seed: int = 0,
                  layers: str | Iterable[str] = SEPARATED_LAYERS, shift: str | None = None,
-                 max_depth: int | None = None, width: int | None = None, height: int | None = None,
-                 defines: Mapping[str, str] | None = None,
-                 progress: Callable[[int, int], None] | None = None, gradients: bool | str = True,
-                 offsets: str = "all", gradient_spp: int | None = None) -> Frame:
+                 gradients: bool | str = True, options: FrameOptions | None = None) -> Frame:
     """Render one G-PT frame: per requested layer base + dx + dy, features at the first non-specular vertex.
 
-    ``scene`` is a loaded scene or a spec (XML path / ``procedural:SEED``) loaded with ``width``, ``height``,
-    ``max_depth`` and ``defines``. ``max_depth`` given here overrides the loaded scene's. ``layers`` ``color``
-    renders the unseparated image. ``gradients`` (GRADIENT_CHOICES, or True = ``all`` / False = ``none``):
-    ``none`` is the primal-only mode: the same base paths, layers and features, no offset paths; the frame's
-    layers carry no gradients (``dx``/``dy`` None) and ``shift`` is ignored. ``direct`` gives the direct layer
-    its gradients -- the same as an ``all`` render with this seed -- and the indirect layer none (its base is the
-    primal-only render's): the offsets stop after the direct layer's vertices. ``offsets`` (``--offsets``): which
-    offsets a sample traces, ``GptSettings.offsets`` (``all``, or fewer: ``alternate``, ``pair``, ``single``; the
-    same channels, gradients counted with their inverse probability; recorded as ``gradsep.offsets`` unless ``all``).
-    ``gradient_spp`` K (``--gradient-spp``; default ``spp``): only K of the ``spp`` samples trace offsets, the
-    other ``spp - K`` are primal-only samples; the bases and features are the mean over all ``spp`` samples, the
-    gradients the K G-PT samples' (``render_gpt``). K == ``spp`` is the plain render; a K below ``spp`` is recorded
-    as ``gradsep.gradient_spp`` (``gradsep.spp`` stays the bases' sample count).
+    ``scene`` is a loaded scene or a spec (XML path / ``procedural:SEED``, loaded with ``options``). ``layers``
+    ``color`` renders the unseparated image. ``gradients`` (GRADIENT_CHOICES, or True = ``all`` / False =
+    ``none``): ``none`` is the primal-only mode: the same base paths, layers and features, no offset paths; the
+    frame's layers carry no gradients (``dx``/``dy`` None) and ``shift`` is ignored. ``direct`` gives the direct
+    layer its gradients -- the same as an ``all`` render with this seed -- and the indirect layer none (its base is
+    the primal-only render's): the offsets stop after the direct layer's vertices. The offsets, split samples and
+    progress: :class:`FrameOptions`.
     """
-    from gradsep.renderer.gpt import GptSettings, render_gpt
+    from gradsep.renderer.gpt import render_gpt
     from gradsep.renderer.passes import as_frame
-    from gradsep.renderer.shift import make_shift  # imports Mitsuba
 
+    options = options or FrameOptions()
     if spp < 1:
         raise CommandError(f"--spp must be >= 1, got {spp}")
     if not 0 <= seed < 2**32:
         raise CommandError(f"--seed must be in [0, 2^32), got {seed}")
-    if isinstance(scene, str):
-        scene = load_scene(scene, width=width, height=height, max_depth=max_depth, defines=defines)
-    elif max_depth is not None:
-        if max_depth == 0 or max_depth < -1:
-            raise CommandError(f"--max-depth must be -1 (unbounded) or >= 1, got {max_depth}")
-        scene = LoadedScene(scene.scene, scene.spec, scene.width, scene.height, max_depth, scene.rr_depth,
-                            scene.defines)
+    scene = _loaded(scene, options)
     mode = gradients_mode(gradients)
-    if offsets not in OFFSET_CHOICES:
-        raise CommandError(f"--offsets must be one of {', '.join(OFFSET_CHOICES)}, got {offsets!r}")
-    if mode == "none" and offsets != "all":
-        raise CommandError("--offsets has no effect without gradients (no offset paths are traced)")
-    gradient_spp = check_gradient_spp(gradient_spp, spp, mode)
+    check_offsets(options.offsets, mode)
+    gradient_spp = check_gradient_spp(options.gradient_spp, spp, mode)
+    wanted, notes, shift_impl, settings = _frame_settings(scene, layers, shift, mode, options.offsets)
+    start = time.perf_counter()
+    result = render_gpt(scene.scene, shift_impl, settings, scene.width, scene.height, spp, seed, options.progress,
+                        gradient_spp=gradient_spp)
+    seconds = time.perf_counter() - start
+
+    metadata = render_metadata(scene, RenderRecord(spp, seed, shift_impl.name if shift_impl else "none", wanted,
+                                                   seconds, result.passes, mode))
+    if options.offsets != "all":
+        metadata["gradsep.offsets"] = options.offsets
+    if gradient_spp < spp:
+        metadata["gradsep.gradient_spp"] = str(gradient_spp)
+    frame = as_frame(result)
+    frame.metadata, frame.warnings = metadata, notes + frame.warnings
+    return frame
+
+
+def _loaded(scene: LoadedScene | str, options: FrameOptions) -> LoadedScene:
+    """``scene`` loaded (a spec) or with ``options.max_depth`` as its depth limit."""
+    if isinstance(scene, str):
+        return load_scene(scene, width=options.width, height=options.height, max_depth=options.max_depth,
+                          defines=options.defines)
+    max_depth = options.max_depth
+    if max_depth is None:
+        return scene
+    if max_depth == 0 or max_depth < -1:
+        raise CommandError(f"--max-depth must be -1 (unbounded) or >= 1, got {max_depth}")
+    return LoadedScene(scene.scene, scene.spec, scene.width, scene.height, max_depth, scene.rr_depth, scene.defines)
+
+
+def _frame_settings(scene: LoadedScene, layers: str | Iterable[str], shift: str | None, mode: str,
+                    offsets: str) -> tuple[tuple[str, ...], list[str], Any, Any]:
+    """The layers to trace (with notes on those dropped), the shift and the integrator's settings of a frame, or
+    a user error for a combination that cannot be rendered."""
+    from gradsep.renderer.gpt import GptSettings
+    from gradsep.renderer.shift import make_shift  # imports Mitsuba
+
     wanted, notes = plan_layers(parse_layers(layers), scene.max_depth)
     if mode == "direct" and "direct" not in wanted:
         raise CommandError(f"--gradients direct needs the separated direct layer; --layers {','.join(wanted)} "
@@ -167,20 +216,7 @@ def render_frame(scene: LoadedScene | str, *, spp: int, seed: int = 0,
     settings = GptSettings(max_depth=scene.max_depth, rr_depth=scene.rr_depth, direct=color or "direct" in wanted,
                            indirect=color or "indirect" in wanted, separate=not color,
                            gradients="direct" if mode == "direct" else "all", offsets=offsets)
-    start = time.perf_counter()
-    result = render_gpt(scene.scene, shift_impl, settings, scene.width, scene.height, spp, seed, progress,
-                        gradient_spp=gradient_spp)
-    seconds = time.perf_counter() - start
-
-    metadata = render_metadata(scene, RenderRecord(spp, seed, shift_impl.name if shift_impl else "none", wanted,
-                                                   seconds, result.passes, mode))
-    if offsets != "all":
-        metadata["gradsep.offsets"] = offsets
-    if gradient_spp < spp:
-        metadata["gradsep.gradient_spp"] = str(gradient_spp)
-    frame = as_frame(result)
-    frame.metadata, frame.warnings = metadata, notes + frame.warnings
-    return frame
+    return wanted, notes, shift_impl, settings
 
 
 @dataclass(frozen=True)

@@ -38,7 +38,8 @@ def counting_renderer(monkeypatch: pytest.MonkeyPatch) -> list[int]:
 
     calls: list[int] = []
 
-    def fake(spec: str, *, spp: int, seed: int, width: int, height: int, max_depth: int | None) -> Frame:
+    def fake(spec: str, *, spp: int, seed: int, options: Any) -> Frame:
+        width, height, max_depth = options.width, options.height, options.max_depth
         scene_seed = int(spec.rsplit(":", 1)[1])  # procedural:SEED or procedural:FAMILY:SEED
         calls.append(scene_seed)
         rng = np.random.default_rng(scene_seed)
