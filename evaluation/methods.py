@@ -137,7 +137,7 @@ METHOD_SOURCES: tuple[str, ...] = ("evaluation/methods.py", "evaluation/run.py",
 PLANNER_SOURCES: tuple[str, ...] = ("renderer/planner.py", "renderer/plans.py", "renderer/passes.py",
                                      "renderer/checkpoint.py", "renderer/frame_budget.py",
                                      "renderer/reconstruction_cost.py", "renderer/budget.py", "renderer/estimate.py",
-                                     "renderer/check.py", "renderer/render.py")
+                                     "renderer/check.py", "renderer/render.py", "renderer/planned_frame.py")
 #: What a ``gpt-auto`` row records of its plan (MethodOutput.extra -> the row; evaluation/report.py reads them).
 PLAN_ROW_KEYS: tuple[str, ...] = ("plan", "plan_layers", "plan_method", "plan_candidates", "predicted_relmse",
                                   "predicted_note", "predicted_from", "pilot_seconds", "plan_note",
@@ -1002,9 +1002,9 @@ def _run_gpt_auto(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
     from gradsep.model.reconstruct import reconstruct
     from gradsep.renderer.budget import Deadline
     from gradsep.renderer.frame_budget import FrameBudget
+    from gradsep.renderer.planned_frame import FrameCheckSizer, FrameShape, frame_check
     from gradsep.renderer.planner import CheckpointChoice, FixedChoice, PlannerOptions, render_planned
     from gradsep.renderer.plans import fallback_plan, plan_layers_text
-    from gradsep.renderer.render import FrameCheckSizer, FrameShape, frame_check
 
     renderer = ctx.path()
     target = _budget(ctx)

@@ -22,7 +22,7 @@ estimate is read at the frame's own samples instead:
 
 It costs two reconstructions at the frame's size per option (:func:`check_seconds` predicts them from the
 checkpoint's, or from a tile a fixed plan times), so a render makes it only where they fit a small share of the
-budget (renderer.render.CHECK_SHARE); elsewhere the header keeps the checkpoint's prediction, and
+budget (renderer.planned_frame.CHECK_SHARE); elsewhere the header keeps the checkpoint's prediction, and
 ``gradsep.predicted_from`` says which it is.
 """
 

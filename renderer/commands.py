@@ -101,7 +101,7 @@ def _render_planned(args: argparse.Namespace, scene: Any, deadline: Any, gradien
                     progress: Any) -> tuple[Any, str]:
     """`gradsep render --seconds` or ``--gradients auto``: the planned frame and its plan's summary."""
     from gradsep.renderer.frame_budget import FrameBudget
-    from gradsep.renderer.render import PlanRequest, render_planned_frame
+    from gradsep.renderer.planned_frame import PlanRequest, render_planned_frame
     from gradsep.renderer.scene import parse_defines
 
     plan_cache = None

@@ -500,14 +500,15 @@ def _render_to(root: Path, rel: str, job: Job, seed: int, sampler_seed: int) -> 
                                     options=render.FrameOptions(width=job.width, height=job.height,
                                                                 max_depth=job.max_depth))
     else:
+        from gradsep.renderer import planned_frame
         from gradsep.renderer.budget import Deadline
         from gradsep.renderer.frame_budget import FrameBudget
         from gradsep.renderer.scene import load_scene
 
         budget = FrameBudget(Deadline(job.seconds))
         loaded = load_scene(job.scene(seed), width=job.width, height=job.height, max_depth=job.max_depth)
-        frame, _ = render.render_planned_frame(loaded, budget, render.PlanRequest(seed=sampler_seed,
-                                                                                  gradients=DATASET_PLAN))
+        frame, _ = planned_frame.render_planned_frame(loaded, budget, planned_frame.PlanRequest(
+            seed=sampler_seed, gradients=DATASET_PLAN))
     write_frame(root / rel, frame)  # atomic: temp file + rename
     return frame, (root / rel).read_bytes()
 

@@ -448,7 +448,7 @@ def planned_renderer(monkeypatch: pytest.MonkeyPatch) -> list[tuple[int, float, 
     """Replace the planned render (and the scene load) with a cheap frame whose spp follows the scene seed; record
     (scene seed, the deadline's budget, the plan asked for) per call."""
     from gradsep.model.frame import Features, Frame, Layer
-    from gradsep.renderer import render, scene
+    from gradsep.renderer import planned_frame, scene
 
     calls: list[tuple[int, float, str]] = []
     monkeypatch.setattr(scene, "load_scene", lambda spec, **kw: (spec, kw))
@@ -467,7 +467,7 @@ def planned_renderer(monkeypatch: pytest.MonkeyPatch) -> list[tuple[int, float, 
                        "gradsep.budget_seconds": f"{deadline.seconds:g}"})
         return frame, "plan all"
 
-    monkeypatch.setattr(render, "render_planned_frame", fake)
+    monkeypatch.setattr(planned_frame, "render_planned_frame", fake)
     return calls
 
 

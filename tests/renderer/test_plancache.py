@@ -177,7 +177,7 @@ def small():
 @pytest.mark.render
 def test_a_frame_that_reads_an_entry_renders_its_plan_with_no_checkpoint(tmp_path, small):
     from gradsep.renderer.frame_budget import FrameBudget
-    from gradsep.renderer.render import PlanRequest, render_planned_frame
+    from gradsep.renderer.planned_frame import PlanRequest, render_planned_frame
 
     folder = CacheFolder(tmp_path, "key:shot-12")
     entry = folder.entry(FrameKey(16, 12, LAYERS, small.max_depth, "hybrid", None, 64))

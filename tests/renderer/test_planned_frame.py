@@ -1,4 +1,4 @@
-"""Planned frames (renderer/render.py render_planned_frame): the header of a plan, the OIDN setting a budget asks
+"""Planned frames (renderer/planned_frame.py): the header of a plan, the OIDN setting a budget asks
 for, the frame's own error estimate and its sizing, and the layers a scene without indirect light plans."""
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ import pytest
 
 from gradsep.model.frame import PREDICTED_RELMSE_KEY, Frame, Layer
 from gradsep.renderer.estimate import at_budget
+from gradsep.renderer.planned_frame import CHECK_SHARE, FrameCheckSizer, FrameShape, PlanRequest, check_budget
 from gradsep.renderer.plans import PLAN_KEY, PLANS, judged_plans, plan_named
-from gradsep.renderer.render import CHECK_SHARE, FrameCheckSizer, FrameShape, PlanRequest, check_budget
 from tests.renderer.scenes import resolve
 
 CBOX = str(resolve("cbox"))
@@ -41,7 +41,7 @@ def test_a_bad_request_is_a_user_error_before_anything_renders():
     from types import SimpleNamespace
 
     from gradsep.model.errors import CommandError
-    from gradsep.renderer.render import _checked_request
+    from gradsep.renderer.planned_frame import _checked_request
 
     scene = SimpleNamespace(max_depth=5)
     for request, message in ((PlanRequest(seed=-1), "--seed"), (PlanRequest(offsets="three"), "--offsets"),
@@ -54,7 +54,7 @@ def test_a_bad_request_is_a_user_error_before_anything_renders():
 def test_a_budget_asks_for_the_better_denoiser_where_it_is_cheap_and_serves_the_frame():
     """The plan asks for FARM_OIDN_SETTING only for a frame with the direct layer's gradients (oidn-l1 serves it;
     on a plain frame oidn would halo a light in view) and only where its extra time fits FARM_OIDN_SHARE of T."""
-    from gradsep.renderer.render import (
+    from gradsep.renderer.planned_frame import (
         FARM_OIDN_EXTRA_SECONDS,
         FARM_OIDN_SETTING,
         FARM_OIDN_SHARE,
@@ -74,7 +74,7 @@ def test_a_budget_asks_for_the_better_denoiser_where_it_is_cheap_and_serves_the_
 
 
 def test_a_light_in_view_is_found_in_the_direct_layer_as_oidn_would_cap_it():
-    from gradsep.renderer.render import has_light_in_view
+    from gradsep.renderer.planned_frame import has_light_in_view
 
     rng = np.random.default_rng(2)
     base = (0.5 + rng.random((64, 80, 3))).astype(np.float32)
@@ -100,7 +100,7 @@ def small():
 @pytest.mark.render
 def test_no_indirect_light_plans_no_indirect_layer(small):
     from gradsep.renderer.frame_budget import FrameBudget
-    from gradsep.renderer.render import render_planned_frame
+    from gradsep.renderer.planned_frame import render_planned_frame
     from gradsep.renderer.scene import load_scene
 
     direct_only = load_scene(CBOX, width=16, height=12, max_depth=2)
@@ -114,7 +114,7 @@ def test_no_indirect_light_plans_no_indirect_layer(small):
 @pytest.mark.slow
 def test_auto_with_spp_renders_exactly_the_samples_and_records_the_plan(small):
     from gradsep.renderer.frame_budget import FrameBudget
-    from gradsep.renderer.render import render_planned_frame
+    from gradsep.renderer.planned_frame import render_planned_frame
 
     frame, summary = render_planned_frame(small, FrameBudget(spp=64), PlanRequest(seed=2))
     meta = frame.metadata
@@ -152,7 +152,7 @@ def test_a_budgeted_plain_frame_compares_the_oidn_settings_on_its_halves(monkeyp
     from gradsep.renderer import reconstruction_cost
     from gradsep.renderer.budget import Deadline
     from gradsep.renderer.frame_budget import FrameBudget
-    from gradsep.renderer.render import render_planned_frame
+    from gradsep.renderer.planned_frame import render_planned_frame
     from gradsep.renderer.scene import load_scene
 
     monkeypatch.setattr(reconstruction_cost, "reconstruct_startup", lambda: 0.0)  # as if paid: the check fits 8 s
@@ -178,8 +178,8 @@ def test_without_halves_the_pilots_prediction_is_carried_to_the_samples_the_fram
     """A pilot slowed by a load spike predicts that the budget buys 49 spp and carries its estimate there; the
     frame then renders 543. Its header states the error at 543 spp (error ~ spp^-exponent), not at 49."""
     from gradsep.renderer.checkpoint import Assessment, Judgement
+    from gradsep.renderer.planned_frame import frame_check
     from gradsep.renderer.planner import PlannedFrame
-    from gradsep.renderer.render import frame_check
 
     chosen = Assessment("direct-alternate", 1, 0.08, 0.3, "oidn-l1", exponent=0.5, budget_spp=49.0,
                         predicted_relmse=0.012)
