@@ -35,7 +35,7 @@ Every method produces (image, per-layer images where it has them, render seconds
                             -- what a farm gets from our renderer + service in the time the baselines are given
                             (the G-PT rows above are at equal spp, each at its own time)
 ``gpt-auto``                G-PT *planned* at equal time: ``gradsep render --seconds T --gradients auto`` in
-                            process (renderer.plan.render_planned: a checkpoint on the frame's halves keeps
+                            process (renderer.planner.render_planned: a checkpoint on the frame's halves keeps
                             direct-alternate or goes on with primal, passes fill the deadline), reconstructed with
                             the default method the frame names (``gradsep.plan_method``); one shot, see below
 ==========================  ===============================================================================
@@ -64,7 +64,7 @@ when the row starts and has the whole budget, whose tail (``Deadline.tail``, wha
 ends) is the measured cost of reconstructing the frame: the slowest of the candidates' default reconstructions,
 each timed like a searched row's post-processing (:meth:`PathRenderer.planner_tail`). It starts warm, as the
 searched rows do: each plan's pass costs and the reconstruction's rate are measured beforehand, untimed, once per
-scene (:meth:`PathRenderer.planner_priors`, renderer.plan.Priors), so that where no checkpoint fits its first pass
+scene (:meth:`PathRenderer.planner_priors`, renderer.passes.Priors), so that where no checkpoint fits its first pass
 is sized from them instead of probing with a 1-spp pass. Everything it does is charged:
 the checkpoint (its passes, which stay in the frame, and its tile reconstructions), the passes that fill the
 deadline and the reconstruction. It keeps one try (``attempts`` 1); a total outside ±5 % records why
@@ -659,7 +659,7 @@ class PathRenderer:
         self._costs: dict[str, CostModel] = {}
         self._post_seconds: dict[str, float] = {}
         self._warm: set[str] = set()
-        self._priors: dict[tuple[str, ...], Any] = {}  # layers -> renderer.plan.Priors (planner_priors)
+        self._priors: dict[tuple[str, ...], Any] = {}  # layers -> renderer.passes.Priors (planner_priors)
 
     def render(self, kind: str, spp: int, seed: int) -> tuple[Any, float]:
         """The raw render (an (H, W, C) float32 array, or a Frame for ``primal``) and its wall seconds (recorded
@@ -716,7 +716,7 @@ class PathRenderer:
         return max(seconds)
 
     def planner_priors(self, layers: tuple[str, ...]) -> Any:
-        """What the planned row starts from (renderer.plan.Priors), measured once per scene like every searched
+        """What the planned row starts from (renderer.passes.Priors), measured once per scene like every searched
         row's cost model (:meth:`cost`), untimed: each candidate's warm passes, from 1 spp doubling until one takes
         :data:`CALIBRATION_SECONDS` (each size twice, the faster kept; the last two sizes make its cost line), and
         the reconstruction's seconds per pixel (:meth:`planner_tail`'s slowest, over the frame's pixels)."""

@@ -95,9 +95,9 @@ class FrameBudget:
     #: the plans whose frame would be written: the first pass's, then the rendered one (the write is measured
     #: again only once both are known)
     written: list[RenderPlan] = field(default_factory=list)
-    _passes: Passes | None = None
-    _measured_at: int = 0  # the passes' index when the write was measured (0: never)
-    _remeasured: bool = False
+    _passes: Passes | None = field(default=None, init=False, repr=False)
+    _measured_at: int = field(default=0, init=False)  # the passes' index when the write was measured (0: never)
+    _remeasured: bool = field(default=False, init=False)
 
     def __post_init__(self) -> None:
         if (self.deadline is None) == (self.spp is None):

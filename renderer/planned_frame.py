@@ -8,7 +8,7 @@ import os
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -45,7 +45,7 @@ from gradsep.renderer.scene import LoadedScene
 if TYPE_CHECKING:
     from gradsep.renderer.frame_budget import FrameBudget
     from gradsep.renderer.plancache import CacheFolder, PlanCache
-    from gradsep.renderer.planner import PlannedFrame
+    from gradsep.renderer.planner import FixedChoice, PlanChoice, PlannedFrame
 
 
 #: The OIDN setting a ``--seconds`` plan asks for (model.frame.OIDN_SETTING_KEY) where its budget makes the extra
@@ -278,7 +278,8 @@ def render_planned_frame(scene: LoadedScene, budget: FrameBudget, request: PlanR
     return frame, summary
 
 
-def _checked_request(scene: LoadedScene, request: PlanRequest) -> tuple[tuple[str, ...], list[str], Any, str]:
+def _checked_request(scene: LoadedScene,
+                     request: PlanRequest) -> tuple[tuple[str, ...], list[str], PlanChoice, str]:
     """The request checked against the scene: its layers (with notes on those dropped), its plan's choice and the
     shift's name; a user error for a bad request."""
     from gradsep.renderer.planner import CheckpointChoice, FixedChoice
@@ -290,7 +291,7 @@ def _checked_request(scene: LoadedScene, request: PlanRequest) -> tuple[tuple[st
     if request.offsets not in OFFSET_CHOICES:
         raise CommandError(f"--offsets must be one of {', '.join(OFFSET_CHOICES)}, got {request.offsets!r}")
     wanted, notes = plan_layers(parse_layers(request.layers), scene.max_depth)
-    choice: Any = CheckpointChoice()
+    choice: PlanChoice = CheckpointChoice()
     if request.gradients != "auto":
         mode = gradients_mode(request.gradients)
         if mode == "none" and request.offsets != "all":
@@ -307,7 +308,7 @@ def _checked_request(scene: LoadedScene, request: PlanRequest) -> tuple[tuple[st
 
 
 def _cache_entry(plan_cache: CacheFolder, scene: LoadedScene, wanted: tuple[str, ...], shift_name: str,
-                 budget: FrameBudget) -> tuple[PlanCache, Any, str | None]:
+                 budget: FrameBudget) -> tuple[PlanCache, FixedChoice | None, str | None]:
     """The plan cache's entry for this frame, the fixed choice it holds (None: none usable) and why an entry was
     not used."""
     from gradsep.renderer.plancache import FrameKey

@@ -84,7 +84,8 @@ class PlannerRun:
             self.passes.start_split()
         return held
 
-    def run(self, plan: RenderPlan, spp: int, total: int = 0) -> None:
+    def render_pass(self, plan: RenderPlan, spp: int, total: int = 0) -> None:
+        """One pass of ``plan``, then the caller's progress (``total``: the sample count, 0 with a deadline)."""
         self.passes.run(plan, spp)
         if self.options.progress is not None:
             self.options.progress(self.passes.spp, total)
@@ -164,7 +165,7 @@ def _to_sample_count(run: PlannerRun, plan: RenderPlan) -> None:
     passes, target = run.passes, int(run.budget.spp)  # type: ignore[arg-type]
     step = passes.max_spp if passes.split is None else max(1, -(-(target - passes.spp) // SPLIT_PASSES))
     while passes.spp < target:
-        run.run(plan, min(passes.max_spp, step, target - passes.spp), target)
+        run.render_pass(plan, min(passes.max_spp, step, target - passes.spp), target)
         if passes.index == 1:
             run.budget.after_first_pass(plan)
 
@@ -197,6 +198,6 @@ def _fill_to_deadline(run: PlannerRun, plan: RenderPlan) -> None:
     """The plan's passes to the deadline, then primal passes (FILLER) in the gap too small for one more of them."""
     passes, budget = run.passes, run.budget
     filler = plan_named(FILLER)
-    fill_with_filler(budget.deadline, passes.kind(plan).costs, lambda n: run.run(plan, n),  # type: ignore[arg-type]
-                     passes.kind(filler).costs if plan.traces_gradients else None, lambda n: run.run(filler, n),
-                     budget.reserve, passes.max_spp)
+    fill_with_filler(budget.deadline, passes.kind(plan).costs,  # type: ignore[arg-type]
+                     lambda n: run.render_pass(plan, n), passes.kind(filler).costs if plan.traces_gradients else None,
+                     lambda n: run.render_pass(filler, n), budget.reserve, passes.max_spp)
