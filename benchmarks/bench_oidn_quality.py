@@ -73,8 +73,8 @@ def relmse(frame: object, method: str, setting: str, refs: tuple[object, object]
 
 def main() -> int:
     from gradsep.model.exr_read import read_frame
+    from gradsep.renderer.planned_frame import has_light_in_view
     from gradsep.renderer.reference import load_reference
-    from gradsep.renderer.render import has_light_in_view
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenes", required=True, help="comma-separated scene specs (procedural:SEED, ...)")
@@ -131,7 +131,7 @@ def main() -> int:
         geo = math.exp(sum(map(math.log, good)) / len(good)) if good else float("nan")
         print(f"| {family} | {spp} | {method} | {name} | {len(values)} | {geo:.3f} | {max(values):.3f} | "
               f"{sum(v < 1 for v in values)} |")
-    print(f"\nBy whether the direct layer holds a light in view (renderer.render.has_light_in_view):\n\n"
+    print(f"\nBy whether the direct layer holds a light in view (renderer.planned_frame.has_light_in_view):\n\n"
           f"| method | setting | light in view | frames | / {base}, geometric mean | worst |")
     print("|---|---|---|---:|---:|---:|")
     for (method, name, light), values in sorted(by_light.items()):

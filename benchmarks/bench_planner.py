@@ -1,4 +1,4 @@
-"""The render planner's figures (renderer/plan.py): `gradsep render --seconds T` against its budget, and
+"""The render planner's figures (renderer/planner.py): `gradsep render --seconds T` against its budget, and
 `--gradients auto` against every fixed plan at equal wall time on held-out scenes.
 
     # the deadline: wall time of the whole command (a subprocess, as a farm runs it) against T
@@ -379,7 +379,7 @@ def summary(rows: list[dict], floors: dict[str, float]) -> None:
 
 def cost(args: argparse.Namespace) -> None:
     """A plain-frame plan's cost per sample against Mitsuba's `path`: the planner's primal passes (what
-    ``--seconds T --gradients none`` and a pilot's ``primal`` choice render: renderer.plan.render_planned with the
+    ``--seconds T --gradients none`` and a pilot's ``primal`` choice render: renderer.planner.render_planned with the
     fixed plan ``primal``, passes split by MAX_LANES_PER_PASS, added into the frame's sums, the frame assembled),
     ``render --no-gradients`` (render_frame) beside them, and `path` (mi.render) at the same scene, size, spp, max
     depth and box filter; interleaved rounds (as benchmarks/bench_render.py's), CPU time of every thread (wall
@@ -399,7 +399,9 @@ def cost_row(scene: str, size: str, spp: int, repeats: int) -> None:
     import mitsuba as mi
     import numpy as np
 
-    from gradsep.renderer.plan import candidate, render_planned
+    from gradsep.renderer.frame_budget import FrameBudget
+    from gradsep.renderer.planner import FixedChoice, render_planned
+    from gradsep.renderer.plans import plan_named
     from gradsep.renderer.render import plan_layers, render_frame
     from gradsep.renderer.scene import load_scene
 
@@ -412,7 +414,7 @@ def cost_row(scene: str, size: str, spp: int, repeats: int) -> None:
         return lambda: np.array(mi.render(loaded.scene, integrator=integrator, spp=n, seed=1))
 
     def planner(n: int):
-        return lambda: render_planned(loaded, layers, seed=1, shift=None, fixed=candidate("primal"), spp=n)
+        return lambda: render_planned(loaded, layers, FixedChoice(plan_named("primal")), FrameBudget(spp=n), seed=1)
 
     runs = {"path": path(spp), "path2": path(2 * spp), "planner": planner(spp), "planner2": planner(2 * spp),
             "no-gradients": lambda: render_frame(loaded, spp=spp, seed=1, layers=layers, gradients=False)}
@@ -648,13 +650,14 @@ def choose(args: argparse.Namespace) -> None:
     from gradsep.model.metrics import relmse_unbiased
     from gradsep.model.reconstruct import reconstruct
     from gradsep.renderer.check import check_frame
-    from gradsep.renderer.plan import Passes, as_frame, candidate
+    from gradsep.renderer.passes import Passes, as_frame
+    from gradsep.renderer.plans import plan_named
     from gradsep.renderer.reference import load_reference
     from gradsep.renderer.scene import load_scene
 
     cache = Path(args.cache).expanduser()
     cache.mkdir(parents=True, exist_ok=True)
-    c = candidate(args.plan)
+    c = plan_named(args.plan)
     method = "oidn" if c.gradients == "none" else "oidn-l1"
     settings = ("raw-fast", "prefiltered-high")
 

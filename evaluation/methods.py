@@ -35,7 +35,7 @@ Every method produces (image, per-layer images where it has them, render seconds
                             -- what a farm gets from our renderer + service in the time the baselines are given
                             (the G-PT rows above are at equal spp, each at its own time)
 ``gpt-auto``                G-PT *planned* at equal time: ``gradsep render --seconds T --gradients auto`` in
-                            process (renderer.plan.render_planned: a checkpoint on the frame's halves keeps
+                            process (renderer.planner.render_planned: a checkpoint on the frame's halves keeps
                             direct-alternate or goes on with primal, passes fill the deadline), reconstructed with
                             the default method the frame names (``gradsep.plan_method``); one shot, see below
 ==========================  ===============================================================================
@@ -64,7 +64,7 @@ when the row starts and has the whole budget, whose tail (``Deadline.tail``, wha
 ends) is the measured cost of reconstructing the frame: the slowest of the candidates' default reconstructions,
 each timed like a searched row's post-processing (:meth:`PathRenderer.planner_tail`). It starts warm, as the
 searched rows do: each plan's pass costs and the reconstruction's rate are measured beforehand, untimed, once per
-scene (:meth:`PathRenderer.planner_priors`, renderer.plan.Priors), so that where no checkpoint fits its first pass
+scene (:meth:`PathRenderer.planner_priors`, renderer.passes.Priors), so that where no checkpoint fits its first pass
 is sized from them instead of probing with a 1-spp pass. Everything it does is charged:
 the checkpoint (its passes, which stay in the frame, and its tile reconstructions), the passes that fill the
 deadline and the reconstruction. It keeps one try (``attempts`` 1); a total outside ±5 % records why
@@ -134,8 +134,10 @@ METHOD_SOURCES: tuple[str, ...] = ("evaluation/methods.py", "evaluation/run.py",
                                    *sorted(f"model/{p.name}" for p in (REPO_ROOT / "model").glob("*.py")))
 #: The render planner's source files: part of the ``gpt-auto`` row's cache key (with the renderer's), so a planner
 #: change recomputes that row, and only that row.
-PLANNER_SOURCES: tuple[str, ...] = ("renderer/plan.py", "renderer/budget.py", "renderer/estimate.py",
-                                     "renderer/check.py", "renderer/render.py")
+PLANNER_SOURCES: tuple[str, ...] = ("renderer/planner.py", "renderer/plans.py", "renderer/passes.py",
+                                     "renderer/checkpoint.py", "renderer/frame_budget.py",
+                                     "renderer/reconstruction_cost.py", "renderer/budget.py", "renderer/estimate.py",
+                                     "renderer/check.py", "renderer/render.py", "renderer/planned_frame.py")
 #: What a ``gpt-auto`` row records of its plan (MethodOutput.extra -> the row; evaluation/report.py reads them).
 PLAN_ROW_KEYS: tuple[str, ...] = ("plan", "plan_layers", "plan_method", "plan_candidates", "predicted_relmse",
                                   "predicted_note", "predicted_from", "pilot_seconds", "plan_note",
@@ -657,7 +659,7 @@ class PathRenderer:
         self._costs: dict[str, CostModel] = {}
         self._post_seconds: dict[str, float] = {}
         self._warm: set[str] = set()
-        self._priors: dict[tuple[str, ...], Any] = {}  # layers -> renderer.plan.Priors (planner_priors)
+        self._priors: dict[tuple[str, ...], Any] = {}  # layers -> renderer.passes.Priors (planner_priors)
 
     def render(self, kind: str, spp: int, seed: int) -> tuple[Any, float]:
         """The raw render (an (H, W, C) float32 array, or a Frame for ``primal``) and its wall seconds (recorded
@@ -668,10 +670,10 @@ class PathRenderer:
 
             output: Any = render_frame(self.loaded, spp=int(spp), seed=int(seed) % (1 << 32), gradients=False)
         elif kind == "gpt-direct":
-            from gradsep.renderer.render import render_frame
+            from gradsep.renderer.render import FrameOptions, render_frame
 
             output = render_frame(self.loaded, spp=int(spp), seed=int(seed) % (1 << 32), gradients="direct",
-                                  offsets=EQUAL_TIME_OFFSETS)
+                                  options=FrameOptions(offsets=EQUAL_TIME_OFFSETS))
         else:
             import mitsuba as mi
 
@@ -697,7 +699,9 @@ class PathRenderer:
         compiles each candidate's kernel and runs the reconstruction once on the pilot's tile size (one-time
         costs, untimed like every row's)."""
         from gradsep.model.reconstruct import reconstruct
-        from gradsep.renderer.plan import Passes, applicable, as_frame, crop, tiles
+        from gradsep.renderer.checkpoint import tiles
+        from gradsep.renderer.passes import Passes, as_frame, crop
+        from gradsep.renderer.plans import judged_plans as applicable
 
         seconds = []
         for c in applicable(layers):
@@ -712,12 +716,13 @@ class PathRenderer:
         return max(seconds)
 
     def planner_priors(self, layers: tuple[str, ...]) -> Any:
-        """What the planned row starts from (renderer.plan.Priors), measured once per scene like every searched
+        """What the planned row starts from (renderer.passes.Priors), measured once per scene like every searched
         row's cost model (:meth:`cost`), untimed: each candidate's warm passes, from 1 spp doubling until one takes
         :data:`CALIBRATION_SECONDS` (each size twice, the faster kept; the last two sizes make its cost line), and
         the reconstruction's seconds per pixel (:meth:`planner_tail`'s slowest, over the frame's pixels)."""
         from gradsep.renderer.budget import PassCosts
-        from gradsep.renderer.plan import Passes, Priors, applicable
+        from gradsep.renderer.passes import Passes, Priors
+        from gradsep.renderer.plans import judged_plans as applicable
 
         if layers not in self._priors:
             priors = Priors(reconstruct_rate=self.planner_tail(layers) / (self.loaded.width * self.loaded.height),
@@ -995,8 +1000,10 @@ def _run_gpt_auto(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
     from gradsep.model.header_keys import PLAN_METHOD_KEY, PREDICTED_FROM_KEY, PREDICTED_RELMSE_KEY
     from gradsep.model.reconstruct import reconstruct
     from gradsep.renderer.budget import Deadline
-    from gradsep.renderer.plan import fallback, plan_layers_text, render_planned
-    from gradsep.renderer.render import check_budget, frame_check
+    from gradsep.renderer.frame_budget import FrameBudget
+    from gradsep.renderer.planned_frame import FrameCheckSizer, FrameShape, frame_check
+    from gradsep.renderer.planner import CheckpointChoice, FixedChoice, PlannerOptions, render_planned
+    from gradsep.renderer.plans import fallback_plan, plan_layers_text
 
     renderer = ctx.path()
     target = _budget(ctx)
@@ -1009,16 +1016,15 @@ def _run_gpt_auto(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
     deadline = Deadline(target, tail=tail)
     refused = ""
     try:  # the frame's own error estimate as the command makes it, with the default OIDN setting (as served here)
-        planned = render_planned(renderer.loaded, layers, seed=seed, shift=None, fixed=None, deadline=deadline,
-                                 check=lambda rate, plan, before: check_budget(rate, plan, width, height, layers,
-                                                                               target, farm_setting=False,
-                                                                               before=before),
-                                 priors=priors)
+        sizer = FrameCheckSizer(FrameShape(width, height, layers), target, farm_setting=False)
+        planned = render_planned(renderer.loaded, layers, CheckpointChoice(), FrameBudget(deadline), seed=seed,
+                                 options=PlannerOptions(check=sizer, priors=priors))
     except CommandError:  # not one pass + the reconstruction fit: what `gradsep render --seconds` refuses
         refused = (f"the budget is below the planner's start-up here (its first pass, then {tail:.3g} s of "
-                   f"reconstruction): 1 spp of `{fallback(layers).name}` rendered regardless")
-        planned = render_planned(renderer.loaded, layers, seed=seed, shift=None, fixed=fallback(layers), spp=1)
-    frame, plan = planned.frame, planned.plan
+                   f"reconstruction): 1 spp of `{fallback_plan(layers).name}` rendered regardless")
+        planned = render_planned(renderer.loaded, layers, FixedChoice(fallback_plan(layers)), FrameBudget(spp=1),
+                                 seed=seed)
+    frame, plan = planned.frame, planned.judgement
     frame.metadata = plan.metadata(layers) if plan is not None else {}
     if plan is not None and plan.assessments:
         frame_check(planned, frame.metadata)
@@ -1028,7 +1034,7 @@ def _run_gpt_auto(spec: MethodSpec, ctx: MethodContext) -> MethodOutput:
     render_seconds, post_seconds = rendered - start, done - rendered
     total = render_seconds + post_seconds
 
-    chosen = planned.candidate
+    chosen = planned.plan
     assessed = {a.name: a for a in plan.assessments} if plan is not None else {}
     predicted = float(frame.metadata.get(PREDICTED_RELMSE_KEY, "nan")) if assessed else math.nan
     extra: dict[str, Any] = {

@@ -15,7 +15,7 @@ ANSWER_KEYS = frozenset({"gradsep.method", "gradsep.layers", "gradsep.alpha", "g
                          "gradsep.request_id", "gradsep.source", "gradsep.channels", OIDN_SETTING_KEY})
 WARNINGS_ATTRIBUTE = "gradsep.warnings"
 WARNINGS_LIMIT = 2000  # characters of gradsep.warnings in the header
-#: A planned render's predicted RelMSE after reconstruction with ``PLAN_METHOD_KEY`` (renderer/plan.py writes
+#: A planned render's predicted RelMSE after reconstruction with ``PLAN_METHOD_KEY`` (renderer/planned_frame.py writes
 #: both). An answer carries the prediction only when it was reconstructed with that method: for another method
 #: it would state some other method's error.
 PREDICTED_RELMSE_KEY = "gradsep.predicted_relmse"

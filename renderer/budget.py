@@ -2,7 +2,8 @@
 samples the next pass may take.
 
 Standard library only (no Mitsuba, no numpy), and every clock is injectable, so the budget logic is unit-tested
-against a fake clock (tests/renderer/test_budget.py); renderer/plan.py drives the real passes with it.
+against a fake clock (tests/renderer/test_budget.py); renderer/planner.py drives the real passes with it (the
+frame's whole budget, with its write: renderer/frame_budget.py).
 
 The budget is the whole command's: it counts from the process's start (interpreter, imports), not from when the
 render begins, because that is the wall time a farm sees. A render pass cannot be interrupted (one compiled
@@ -23,17 +24,16 @@ from gradsep.model.errors import CommandError
 
 Clock = Callable[[], float]
 
-#: The largest share of the time left that one pass may take while more than a few samples still fit: a pass
-#: measured 20 % slower than predicted (a shared machine's swing) then overruns by at most a tenth of the time left.
+#: The largest share of the time left that one pass may take while more than a few samples still fit: a pass that
+#: runs a fifth slower than predicted (a shared machine's swing) then overruns by at most a tenth of the time left.
 PASS_SHARE = 0.5
 #: The most a pass may grow over the largest warm pass measured: the prediction is refreshed at each size.
 PASS_GROWTH = 4
 #: Safety factor on the predicted cost of the pass that would end the frame (its overrun is not recoverable).
 LAST_PASS_MARGIN = 1.15
 #: Once a pass's fixed cost (tracing the kernel, read-back: PassCosts.overhead) is over this share of the time
-#: left, the rest is one pass: halving the time left pass after pass would pay that cost several times over. At
-#: 320x240 a pass costs ~0.02 s whatever its samples; in a 0.3 s budget a frame of 1, 4, 6, 5, 5 spp passes got
-#: 17-21 spp where one call of 26 spp took 0.12 s.
+#: left, the rest is one pass: halving the time left pass after pass would pay that cost several times over (at
+#: sub-second budgets a small frame's pass is mostly fixed cost: docs/decisions.md).
 PASS_OVERHEAD_SHARE = 0.05
 
 
@@ -71,7 +71,7 @@ class Deadline:
 
     ``tail``: the seconds the caller needs after the last render pass, when it knows them -- an in-process caller
     (the evaluation's ``gpt-auto`` row) reconstructs the frame instead of writing it and exiting. None: the
-    command's own tail, the frame's write and the interpreter's exit (renderer.plan.render_planned)."""
+    command's own tail, the frame's write and the interpreter's exit (renderer.frame_budget.FrameBudget)."""
 
     seconds: float
     spent: float = 0.0
@@ -180,20 +180,18 @@ def fill_to_deadline(deadline: Deadline, costs: PassCosts, reserve: Callable[[],
 
 # ------------------------------------------------------------------------------------------------- the filler
 
-#: Passes of the frame's plan stop up to one pass short of the deadline, and at 1280x720 one 1-spp G-PT pass is
-#: ~2.5 s (2 shared cores). That gap is filled with passes of a cheaper kind (renderer/plan.py: primal passes, whose
-#: samples every plan's bases absorb). The filler's kernel costs a compile (or cache load) first: 0.15-0.4 s measured
-#: after a G-PT kernel, so it is warmed up only where the plan's passes are coarse: a 1-spp pass of at least
-#: FILLER_MIN_PASS seconds and FILLER_SHARE of the budget (at 320x240 a G-PT pass is ~0.25 s: nothing to gain).
+#: Passes of the frame's plan stop up to one pass short of the deadline, and at large frames one 1-spp G-PT pass is
+#: a large share of a budget. That gap is filled with passes of a cheaper kind (renderer/plans.py FILLER: primal
+#: passes, whose samples every plan's bases absorb). The filler's kernel costs a compile (or cache load) first, so
+#: it is warmed up only where the plan's passes are coarse: a 1-spp pass of at least FILLER_MIN_PASS seconds and
+#: FILLER_SHARE of the budget (small frames' passes are fine-grained already: nothing to gain).
 FILLER_MIN_PASS = 0.5
 FILLER_SHARE = 0.02
-#: Before any warm pass, the plan's compiling 1-spp pass alone says its passes are coarse when it took this long
-#: (at 1280x720 2.5-5.5 s, at 320x240 0.4-1.8 s on 2 shared cores): the filler is then warmed up at once, while the
-#: time left surely holds it (waiting for a warm pass can leave no room: at T = 10 s a 1280x720 frame ended at
-#: 0.75 T, with the gap of a whole pass). So does one of at least FILLER_MIN_PASS that took FILLER_EARLY_SHARE of
-#: the budget: at 1280x720 and T = 5 s a `direct-alternate` compiling pass took 0.55-1.0 s, its warm 2-spp pass 1.0-1.8
-#: s, and the filler, warmed up after it, no longer fitted (the frame ended at 0.77-0.86 T). Below both, the first
-#: warm pass decides (FILLER_MIN_PASS).
+#: Before any warm pass, the plan's compiling 1-spp pass alone says its passes are coarse when it took this long:
+#: the filler is then warmed up at once, while the time left surely holds it (waiting for a warm pass can leave no
+#: room, and the frame ends a whole pass short). So does one of at least FILLER_MIN_PASS that took
+#: FILLER_EARLY_SHARE of the budget: at short budgets a filler warmed up after the first warm pass no longer fits
+#: (docs/decisions.md). Below both, the first warm pass decides (FILLER_MIN_PASS).
 FILLER_EARLY_PASS = 2.0
 FILLER_EARLY_SHARE = 0.1
 
@@ -237,8 +235,8 @@ def fill_with_filler(deadline: Deadline, costs: PassCosts, run: Callable[[int], 
         if (filler is not None and filler.first_pass is None and filler_pays(costs, deadline.seconds)
                 and filler_warmup_fits(deadline.left(), reserve(), costs)):
             warm_up()
-            # and one warm pass, while there is time: the compiling pass overstates a pass (at 1280x720 a primal
-            # pass took 1.1 s compiling, 0.55 s warm), which would leave the gap unfilled; its sample is the frame's
+            # and one warm pass, while there is time: the compiling pass overstates a pass (about twice a warm one),
+            # which would leave the gap unfilled; its sample is the frame's
             if deadline.left() - reserve() >= LAST_PASS_MARGIN * filler.first_pass[1]:  # type: ignore[index]
                 warm_up()
 

@@ -1,9 +1,9 @@
 """The frame's own error estimate (``gradsep.predicted_relmse`` of a planned frame): the final frame's passes,
 dealt into GROUPS groups as they are rendered, judge each half of the frame against the other half's groups.
 
-The checkpoint's prediction (renderer/plan.py) is read at a tenth of the frame's samples and carried ~10x in
-samples with an assumed error-vs-spp law; on held-out rooms it was 2-9x the measured RelMSE. Here the estimate is
-read at the frame's own samples instead:
+The checkpoint's prediction (renderer/checkpoint.py) is read at a fraction of the frame's samples and carried far
+in samples with an assumed error-vs-spp law, which read high on held-out rooms (docs/decisions.md). Here the
+estimate is read at the frame's own samples instead:
 
 - once the check is known to fit (with --gradients auto from the frame's first pass on: the checkpoint judges the
   plans on these halves; for a fixed plan after its first pass), the passes so far go to half ``A``'s first group
@@ -16,13 +16,13 @@ read at the frame's own samples instead:
   reference, bias included; with k groups the estimate's noise from the groups' own noise is k / (k - 1) of its
   least, so 2x with two groups and 1.33x with four);
 - each half's estimate is carried from its samples to the frame's (a factor of about two) with the plan's
-  error-vs-spp exponent (renderer.plan.EXPONENTS), and the two are averaged;
+  error-vs-spp exponent (renderer.estimate.ERROR_EXPONENT), and the two are averaged;
 - given several reconstructions (OIDN settings), each is judged so, and their paired difference on the same
   groups, where the groups' noise cancels, chooses between them (:func:`check_frame`).
 
 It costs two reconstructions at the frame's size per option (:func:`check_seconds` predicts them from the
 checkpoint's, or from a tile a fixed plan times), so a render makes it only where they fit a small share of the
-budget (renderer.render.CHECK_SHARE); elsewhere the header keeps the checkpoint's prediction, and
+budget (renderer.planned_frame.CHECK_SHARE); elsewhere the header keeps the checkpoint's prediction, and
 ``gradsep.predicted_from`` says which it is.
 """
 
@@ -42,10 +42,8 @@ from gradsep.renderer.estimate import at_budget, cross_relmse, cross_terms, mean
 #: Groups the passes are dealt into: half of them make each half of the frame.
 GROUPS = 8
 #: The check's predicted time is the pilot's reconstruction time per pixel times the frame's pixels, twice (one
-#: per half), times this margin (a shared machine's swings; the pilot's tiles are too small to time exactly: at
-#: 320x240 under load two reconstructions with OIDN prefiltered-high took 1.4x what 1.5 of the tiles' time held).
-#: (At 192x192 and 20 s on an otherwise idle machine the check used 0.59 s of the 0.99 s held; a margin of 1.5
-#: would also let fixed plans' checks, sized from the priors, fit a tenth of 20 s there: ~15 % of their samples.)
+#: per half), times this margin: a shared machine's swings, and the pilot's tiles are too small to time exactly
+#: (a smaller margin overran under load: docs/decisions.md).
 CHECK_MARGIN = 2.0
 
 
@@ -196,7 +194,7 @@ def check_frame(halves: list[Half], spp: int, exponent: float,
                 clock: Callable[[], float] = time.perf_counter) -> Check:
     """Estimate the frame's reconstructed RelMSE from its two ``halves``, each reconstructed with ``reconstruct``
     and judged against the other half's groups, then carried to the frame's ``spp`` with ``exponent``. An
-    estimate lost in the other half's noise counts as its noise (as the checkpoint's: renderer.plan.run_checkpoint).
+    estimate lost in the other half's noise counts as its noise (as the checkpoint's: renderer/checkpoint.py).
 
     With several reconstructions (``reconstruct`` a dict, the frame's own first), each is judged so, and each
     other one is compared with the first on the same groups with the same weights (the mean of the two

@@ -20,7 +20,7 @@ from gradsep.model.policy import SEPARATED_LAYERS
 def render_command(args: argparse.Namespace) -> int:
     """`gradsep render`: render a frame and write it atomically to ``args.output``."""
     from gradsep.model.exr_write import write_frame
-    from gradsep.renderer.render import check_gradient_spp, render_frame
+    from gradsep.renderer.render import FrameOptions, render_frame
     from gradsep.renderer.scene import load_scene, parse_defines
 
     deadline = _deadline(args)  # first: the budget counts from the process's start
@@ -30,6 +30,49 @@ def render_command(args: argparse.Namespace) -> int:
     if not output.parent.exists():
         raise CommandError(f"output folder {output.parent} does not exist")
     gradients = default_gradients(args)
+    _check_plan_flags(args, gradients, deadline is not None)
+    cache_folder = _plan_cache_folder(args, gradients)
+    if deadline is None and args.spp < 1:
+        raise CommandError(f"--spp must be >= 1, got {args.spp}")
+    if deadline is not None and deadline.left() <= 0:
+        from gradsep.renderer.frame_budget import startup_error
+
+        raise startup_error(deadline.seconds, deadline.elapsed())
+    scene = load_scene(args.scene, width=args.width, height=args.height, max_depth=args.max_depth,
+                       defines=parse_defines(args.define))
+    show = sys.stderr.isatty()
+
+    def progress(done: int, total: int) -> None:
+        if show:
+            of = f"/{total}" if total else ""
+            print(f"\rgradsep render: {done}{of} spp", end="", file=sys.stderr, flush=True)
+
+    if deadline is None and gradients != "auto":
+        frame = render_frame(scene, spp=args.spp, seed=args.seed, layers=args.layers, shift=args.shift,
+                             gradients=gradients, options=FrameOptions(offsets=args.offsets,
+                                                                       gradient_spp=args.gradient_spp,
+                                                                       progress=progress))
+        plan_text = ""
+    else:
+        frame, plan_text = _render_planned(args, scene, deadline, gradients, cache_folder, progress)
+    if show:
+        print(file=sys.stderr)
+    write_frame(output, frame)
+    for note in frame.warnings:
+        print(f"gradsep render: note: {note}", file=sys.stderr)
+    spp = frame.metadata["gradsep.spp"]
+    split = frame.metadata.get("gradsep.gradient_spp")
+    spp_text = f"{spp} spp ({split} with gradients)" if split else f"{spp} spp"
+    took = (f"{deadline.elapsed():.2f} s of {deadline.seconds:g} s" if deadline
+            else f"{frame.metadata['gradsep.render_seconds']} s")
+    print(f"{output}: {frame.width}x{frame.height}, {spp_text}, layers {', '.join(frame.layers)}, {took}"
+          + (f"; {plan_text}" if plan_text else ""))
+    return 0
+
+
+def _check_plan_flags(args: argparse.Namespace, gradients: str, budgeted: bool) -> None:
+    """The flags that shape the plan (``--gradients``, ``--no-gradients``, ``--shift``, ``--offsets``,
+    ``--gradient-spp``) checked against each other and ``--seconds`` (``budgeted``): a one-line user error."""
     if args.no_gradients and gradients != "none":
         raise CommandError(f"--no-gradients is --gradients none; it contradicts --gradients {args.gradients}")
     if gradients == "none" and args.shift is not None:
@@ -46,57 +89,31 @@ def render_command(args: argparse.Namespace) -> int:
         if gradients == "none":
             flag = "--no-gradients" if args.no_gradients else "--gradients none"
             raise CommandError(f"--gradient-spp has no effect with {flag} (no offset paths are traced)")
-        if deadline is not None or gradients == "auto":
+        if budgeted or gradients == "auto":
             raise CommandError("--gradient-spp needs --spp and a fixed --gradients (all or direct)")
         if args.spp >= 1:  # checked before the scene loads (a bad --spp: render_frame's error)
+            from gradsep.renderer.render import check_gradient_spp
+
             check_gradient_spp(args.gradient_spp, args.spp, gradients)
-    cache_folder = _plan_cache_folder(args, gradients)
-    if deadline is None and args.spp < 1:
-        raise CommandError(f"--spp must be >= 1, got {args.spp}")
-    if deadline is not None and deadline.left() <= 0:
-        from gradsep.renderer.plan import startup_error
 
-        raise startup_error(deadline.seconds, deadline.elapsed())
-    scene = load_scene(args.scene, width=args.width, height=args.height, max_depth=args.max_depth,
-                       defines=parse_defines(args.define))
-    show = sys.stderr.isatty()
 
-    def progress(done: int, total: int) -> None:
-        if show:
-            of = f"/{total}" if total else ""
-            print(f"\rgradsep render: {done}{of} spp", end="", file=sys.stderr, flush=True)
+def _render_planned(args: argparse.Namespace, scene: Any, deadline: Any, gradients: str, cache_folder: Path | None,
+                    progress: Any) -> tuple[Any, str]:
+    """`gradsep render --seconds` or ``--gradients auto``: the planned frame and its plan's summary."""
+    from gradsep.renderer.frame_budget import FrameBudget
+    from gradsep.renderer.planned_frame import PlanRequest, render_planned_frame
+    from gradsep.renderer.scene import parse_defines
 
-    if deadline is None and gradients != "auto":
-        frame = render_frame(scene, spp=args.spp, seed=args.seed, layers=args.layers, shift=args.shift,
-                             progress=progress, gradients=gradients, offsets=args.offsets,
-                             gradient_spp=args.gradient_spp)
-        plan_text = ""
-    else:
-        from gradsep.renderer.render import render_planned_frame
+    plan_cache = None
+    if cache_folder is not None:
+        from gradsep.renderer.plancache import CacheFolder, scene_identity
 
-        plan_cache = None
-        if cache_folder is not None:
-            from gradsep.renderer.plancache import CacheFolder, scene_identity
-
-            plan_cache = CacheFolder(cache_folder, f"key:{args.plan_key}" if args.plan_key
-                                     else scene_identity(args.scene, parse_defines(args.define)))
-        frame, plan_text = render_planned_frame(scene, deadline=deadline, spp=None if deadline else args.spp,
-                                                seed=args.seed, layers=args.layers, shift=args.shift,
-                                                gradients=gradients, offsets=args.offsets, progress=progress,
-                                                plan_cache=plan_cache)
-    if show:
-        print(file=sys.stderr)
-    write_frame(output, frame)
-    for note in frame.warnings:
-        print(f"gradsep render: note: {note}", file=sys.stderr)
-    spp = frame.metadata["gradsep.spp"]
-    split = frame.metadata.get("gradsep.gradient_spp")
-    spp_text = f"{spp} spp ({split} with gradients)" if split else f"{spp} spp"
-    took = (f"{deadline.elapsed():.2f} s of {deadline.seconds:g} s" if deadline
-            else f"{frame.metadata['gradsep.render_seconds']} s")
-    print(f"{output}: {frame.width}x{frame.height}, {spp_text}, layers {', '.join(frame.layers)}, {took}"
-          + (f"; {plan_text}" if plan_text else ""))
-    return 0
+        plan_cache = CacheFolder(cache_folder, f"key:{args.plan_key}" if args.plan_key
+                                 else scene_identity(args.scene, parse_defines(args.define)))
+    budget = FrameBudget(deadline) if deadline is not None else FrameBudget(spp=args.spp)
+    request = PlanRequest(seed=args.seed, layers=args.layers, shift=args.shift, gradients=gradients,
+                          offsets=args.offsets)
+    return render_planned_frame(scene, budget, request, progress=progress, plan_cache=plan_cache)
 
 
 def _plan_cache_folder(args: argparse.Namespace, gradients: str) -> Path | None:
@@ -119,9 +136,8 @@ def _plan_cache_folder(args: argparse.Namespace, gradients: str) -> Path | None:
 
 def default_gradients(args: argparse.Namespace) -> str:
     """``--gradients`` as given; else ``none`` with ``--no-gradients``, ``auto`` with ``--seconds`` (the plan is
-    chosen per scene within the budget: at equal time on held-out rooms 1.03-1.08x the RelMSE of
-    `direct-alternate`, where `all` is 1.3x on rooms and 1.15x on studios for the default method:
-    benchmarks/bench_planner.py predict, validate) and ``all`` with ``--spp`` (a frame that serves every method)."""
+    chosen per scene within the budget; docs/decisions.md) and ``all`` with ``--spp`` (a frame that serves every
+    method)."""
     if args.gradients:
         return str(args.gradients)
     if args.no_gradients:
@@ -246,8 +262,13 @@ def dataset_command(args: argparse.Namespace) -> int:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from gradsep.renderer.reference import DEFAULT_SAMPLER, SAMPLERS  # numpy only: no Mitsuba at parser time
-    from gradsep.renderer.render import OFFSET_CHOICES  # no Mitsuba at import time either
+    _add_render_parser(sub)
+    _add_reference_parsers(sub)
+    _add_dataset_parser(sub)
+
+
+def _add_render_parser(sub: argparse._SubParsersAction) -> None:
+    from gradsep.renderer.render import OFFSET_CHOICES  # no Mitsuba at import time
 
     p = sub.add_parser("render", help="render a G-PT frame (base + gradients + features per illumination layer)")
     p.add_argument("scene", help="Mitsuba 3 XML scene path, procedural:SEED or procedural:studio:SEED")
@@ -296,6 +317,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("-o", "--output", required=True, help="output frame (.exr)")
     p.set_defaults(func=render_command)
 
+
+def _add_reference_parsers(sub: argparse._SubParsersAction) -> None:
+    from gradsep.renderer.reference import DEFAULT_SAMPLER, SAMPLERS  # numpy only: no Mitsuba at parser time
+
     p = sub.add_parser("reference", help="render a reference with Mitsuba's path integrator (R G B + layers)")
     p.add_argument("scene", help="Mitsuba 3 XML scene path, procedural:SEED or procedural:studio:SEED")
     p.add_argument("--spp", type=int, required=True, help="samples per pixel")
@@ -320,6 +345,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("-o", "--output", required=True, help="output reference (.exr)")
     p.set_defaults(func=reference_merge_command)
 
+
+def _add_dataset_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("dataset", help="render N procedural frames plus a manifest (shardable, resumable)")
     p.add_argument("--count", type=int, required=True, help="number of frames in the whole dataset")
     p.add_argument("--spp", type=int, default=None, help="samples per pixel of every frame (or --seconds)")

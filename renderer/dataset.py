@@ -9,7 +9,7 @@ Layout of a dataset folder ``DIR`` (docs/training.md, "Datasets", has the full d
     DIR/manifest.json                    all parts merged: what training reads
 
 Frames are rendered to a sample count (``--spp S``) or to a wall-time budget (``--seconds T``: each frame, and
-each pair's second realization, through the render planner of `gradsep render --seconds T`, renderer/plan.py,
+each pair's second realization, through the render planner of `gradsep render --seconds T`, renderer/planner.py,
 with the plan training reads, DATASET_PLAN; each record keeps the samples its budget bought).
 
 Why it is built this way:
@@ -491,21 +491,24 @@ DATASET_PLAN = "all"
 def _render_to(root: Path, rel: str, job: Job, seed: int, sampler_seed: int) -> tuple[Any, bytes]:
     """Render procedural scene ``seed`` with ``sampler_seed`` into ``root/rel`` (atomically); (frame, file bytes).
     With ``job.seconds`` the frame's budget counts from here (its scene's load) to its file in place: the render
-    planner's deadline (renderer/plan.py, as `gradsep render --seconds`), which reserves the write."""
+    planner's deadline (renderer/planner.py, as `gradsep render --seconds`), which reserves the write."""
     from gradsep.model.exr_write import write_frame
     from gradsep.renderer import render
 
     if job.seconds is None:
-        frame = render.render_frame(job.scene(seed), spp=job.spp or 0, seed=sampler_seed, width=job.width,
-                                    height=job.height, max_depth=job.max_depth)
+        frame = render.render_frame(job.scene(seed), spp=job.spp or 0, seed=sampler_seed,
+                                    options=render.FrameOptions(width=job.width, height=job.height,
+                                                                max_depth=job.max_depth))
     else:
+        from gradsep.renderer import planned_frame
         from gradsep.renderer.budget import Deadline
+        from gradsep.renderer.frame_budget import FrameBudget
         from gradsep.renderer.scene import load_scene
 
-        deadline = Deadline(job.seconds)
+        budget = FrameBudget(Deadline(job.seconds))
         loaded = load_scene(job.scene(seed), width=job.width, height=job.height, max_depth=job.max_depth)
-        frame, _ = render.render_planned_frame(loaded, deadline=deadline, spp=None, seed=sampler_seed,
-                                               gradients=DATASET_PLAN)
+        frame, _ = planned_frame.render_planned_frame(loaded, budget, planned_frame.PlanRequest(
+            seed=sampler_seed, gradients=DATASET_PLAN))
     write_frame(root / rel, frame)  # atomic: temp file + rename
     return frame, (root / rel).read_bytes()
 

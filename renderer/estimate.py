@@ -21,6 +21,11 @@ import numpy as np
 
 from gradsep.model.metrics import RELMSE_EPSILON
 
+#: The error-vs-spp law a reconstruction's estimated error is carried to other sample counts with (RelMSE ~
+#: spp^-ERROR_EXPONENT): a denoised frame's error falls far slower than a raw frame's 1/spp. One exponent for every
+#: plan: per-plan exponents, measured, predicted no better (docs/decisions.md).
+ERROR_EXPONENT = 0.5
+
 
 def relative_weights(image: np.ndarray, epsilon: float = RELMSE_EPSILON) -> np.ndarray:
     """RelMSE's per-pixel, per-channel weight ``1 / (I^2 + eps)`` with the (clipped, non-negative) image as I."""

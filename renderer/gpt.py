@@ -52,7 +52,7 @@ from gradsep.renderer.gpt_settings import GRADIENT_MODES, GptResult, GptSettings
 from gradsep.renderer.lanes import OFFSET_GROUPS, OFFSET_MODES, SHIFT_OFFSETS
 from gradsep.renderer.shift_protocol import ConnectingShift, Shift
 
-# The names callers import from here (the entry point and the pass API renderer/plan.py drives).
+# The names callers import from here (the entry point and the pass API renderer/passes.py drives).
 __all__ = ["GRADIENT_MODES", "MAX_LANES_PER_PASS", "OFFSET_MODES", "SQUARE_CAP", "ConnectingShift", "GptResult",
            "GptSettings", "Shift", "finish", "mean_variance", "pass_plan", "pass_seed", "render_gpt", "render_pass"]
 
@@ -190,7 +190,7 @@ def finish(totals: dict[str, np.ndarray], settings: GptSettings, spp: int, passe
            gradient_spp: int | None = None) -> GptResult:
     """Added :func:`render_pass` sums -> a GptResult (what render_gpt returns): the bases and features are sums over
     ``spp`` samples, the gradients (where ``totals`` has them) over ``gradient_spp`` (default ``spp``). For callers
-    that run the passes themselves (renderer/plan.py: passes of several plans, sized to a deadline)."""
+    that run the passes themselves (renderer/passes.py: passes of several plans, sized to a deadline)."""
     return _finish(totals, settings, spp, passes, gradient_spp)
 
 

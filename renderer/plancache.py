@@ -1,9 +1,9 @@
 """The plan cache (`gradsep render --gradients auto --plan-cache DIR`): a checkpoint's choice, kept for the next
 frames of the same shot.
 
-Why: `--gradients auto` judges its plan at a checkpoint on every frame (renderer/plan.py: run_checkpoint), and the
-judgement costs 8-14 % of a 20 s frame's samples (its tile reconstructions, the reconstruction library's start-up,
-primal's cost passes) whatever it decides; on held-out rooms it kept `direct-alternate` on most frames. A farm
+Why: `--gradients auto` judges its plan at a checkpoint on every frame (renderer/checkpoint.py), and the judgement
+costs part of the frame's samples (its tile reconstructions, the reconstruction library's start-up, primal's cost
+passes) whatever it decides; on held-out rooms it kept `direct-alternate` on most frames. A farm
 renders a shot one frame per process. With a folder the shot's frames share, its first frame judges and writes
 the decision; the others render the plan it chose as a fixed plan, at that plan's own cost, and carry its
 judgement in their headers.
@@ -69,12 +69,27 @@ def cpu_identity() -> str:
     return f"{cpu_model()} x{os.cpu_count() or 0}"
 
 
-def entry_key(scene: str, *, width: int, height: int, layers: tuple[str, ...], max_depth: int, shift: str,
-              seconds: float | None, spp: int | None, cpu: str | None = None) -> dict[str, Any]:
-    """What must agree for two frames to share a decision (see the module docstring)."""
-    budget = f"seconds={seconds:g}" if seconds is not None else f"spp={spp}"
-    return {"scene": scene, "size": [width, height], "layers": list(layers), "max_depth": max_depth,
-            "shift": shift, "budget": budget, "cpu": cpu if cpu is not None else cpu_identity()}
+@dataclasses.dataclass(frozen=True)
+class FrameKey:
+    """The frame's part of an entry's key: its size, layers, depth and shift, and its budget (``seconds`` T or
+    ``spp`` N)."""
+
+    width: int
+    height: int
+    layers: tuple[str, ...]
+    max_depth: int
+    shift: str
+    seconds: float | None
+    spp: int | None
+
+
+def entry_key(scene: str, frame: FrameKey, cpu: str | None = None) -> dict[str, Any]:
+    """What must agree for two frames to share a decision (see the module docstring): the scene's identity, the
+    frame's key and the CPU (default: this machine's)."""
+    budget = f"seconds={frame.seconds:g}" if frame.seconds is not None else f"spp={frame.spp}"
+    return {"scene": scene, "size": [frame.width, frame.height], "layers": list(frame.layers),
+            "max_depth": frame.max_depth, "shift": frame.shift, "budget": budget,
+            "cpu": cpu if cpu is not None else cpu_identity()}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -85,9 +100,9 @@ class CacheFolder:
     folder: Path
     scene: str
 
-    def entry(self, **key: Any) -> PlanCache:
-        """The entry of this scene and the frame's other key fields (:func:`entry_key`'s keywords)."""
-        return PlanCache(self.folder, entry_key(self.scene, **key))
+    def entry(self, frame: FrameKey) -> PlanCache:
+        """The entry of this scene and frame."""
+        return PlanCache(self.folder, entry_key(self.scene, frame))
 
 
 class PlanCache:
@@ -98,10 +113,11 @@ class PlanCache:
         name = hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:20]
         self.path = folder / f"plan-{name}.json"
 
-    def load(self):  # -> tuple[renderer.plan.Plan | None, str | None]
+    def load(self):  # -> tuple[renderer.checkpoint.Judgement | None, str | None]
         """(the cached plan, None), (None, None) where there is no entry, or (None, why) where the entry cannot be
         used: the frame judges afresh and replaces it."""
-        from gradsep.renderer.plan import Assessment, Plan, applicable
+        from gradsep.renderer.checkpoint import Assessment, Judgement
+        from gradsep.renderer.plans import judged_plans
 
         try:
             text = self.path.read_text()
@@ -115,7 +131,7 @@ class PlanCache:
                 raise ValueError(f"not a version {CACHE_VERSION} entry")
             if data.get("key") != self.key:
                 raise ValueError("its key differs from this frame's (a hash collision or an edited file)")
-            judged = {c.name: c for c in applicable(tuple(self.key["layers"]))}
+            judged = {c.name: c for c in judged_plans(tuple(self.key["layers"]))}
             chosen = judged.get(data.get("chosen"))
             if chosen is None:
                 raise ValueError(f"plan {data.get('chosen')!r} is not one this frame can render")
@@ -142,17 +158,17 @@ class PlanCache:
         except (ValueError, TypeError, KeyError, AttributeError) as exc:
             return None, f"plan cache entry {self.path.name} not used ({exc}): judged afresh"
         note = f"judged by an earlier frame (plan cache {self.path.name})"
-        return Plan(chosen, assessments, 0.0, note, {**trace, "cached": self.path.name}), None
+        return Judgement(chosen, assessments, 0.0, note, {**trace, "cached": self.path.name}), None
 
-    def store(self, plan: Any, seed: int, estimate: tuple[float, int] | None = None) -> str | None:
-        """Write ``plan`` (renderer.plan.Plan, a checkpoint's: with assessments) as the entry, with the frame's own
-        error estimate (RelMSE, at its spp) where it made one; returns a note where it could not be written (the
-        frame is kept either way)."""
+    def store(self, judgement: Any, seed: int, estimate: tuple[float, int] | None = None) -> str | None:
+        """Write ``judgement`` (renderer.checkpoint.Judgement, a checkpoint's: with assessments) as the entry, with
+        the frame's own error estimate (RelMSE, at its spp) where it made one; returns a note where it could not be
+        written (the frame is kept either way)."""
         from gradsep.model.exr_write import write_bytes_atomic
 
         entry: dict[str, Any] = {
-            "version": CACHE_VERSION, "key": self.key, "chosen": plan.chosen.name,
-            "assessments": [dataclasses.asdict(a) for a in plan.assessments], "trace": plan.trace,
+            "version": CACHE_VERSION, "key": self.key, "chosen": judgement.chosen.name,
+            "assessments": [dataclasses.asdict(a) for a in judgement.assessments], "trace": judgement.trace,
             "judged": {"seed": seed, "host": platform.node(),
                        "at": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")}}
         if estimate is not None and math.isfinite(estimate[0]):

@@ -14,11 +14,6 @@ from typing import TYPE_CHECKING, Any
 from gradsep.model.errors import CommandError
 from gradsep.model.policy import ILLUMINATION_LAYERS
 
-#: What a trained network may refine: the truncated L1 Poisson prior every shipped network model refines (a model
-#: without ``gradsep.prior`` metadata refines it too). Spelled out so the command line parses without importing the
-#: solver stack; tests/model/test_prior_kinds.py checks it against model.preprocess and the shipped models.
-PRIOR_CHOICES = ("l1",)
-
 if TYPE_CHECKING:
     from gradsep.training.train import TrainConfig
 
@@ -38,7 +33,7 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
         extra["alpha"] = args.data_weight
     return TrainConfig(data=args.data, layer=args.layer, output=args.output, network=network,
                        epochs=args.epochs, minutes=args.minutes, seed=args.seed,
-                       prior=getattr(args, "prior", None) or "l1", init=getattr(args, "init", None), **extra)
+                       init=getattr(args, "init", None), **extra)
 
 
 def train_command(args: argparse.Namespace) -> int:
@@ -81,9 +76,6 @@ def _add_train_arguments(p: argparse.ArgumentParser) -> None:
                    help="random crops per training frame per epoch (defines an epoch)")
     p.add_argument("--data-weight", type=float, default=None,
                    help="weight of the data term against the gradient term in the loss (default 1, the paper's)")
-    p.add_argument("--prior", choices=PRIOR_CHOICES, default=None,
-                   help="what the network refines: l1 = truncated L1 Poisson solve (the network method's, default). "
-                        "Recorded in the exported model and used when it is served")
     p.add_argument("--init", default=None, metavar="MODEL",
                    help="start from these weights instead of at random: an exported .onnx (models/direct.onnx) or "
                         "a run's checkpoint (.pt); its layer, network and prior must match this run's")

@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 from gradsep.evaluation.report import PlannedFrame, planned_frames, planner_choice, time_misses
-from gradsep.renderer.plan import FALLBACK
+from gradsep.renderer.plans import FALLBACK
 
 SCENE = "procedural:90001"
 
@@ -142,7 +142,7 @@ def test_the_planned_row_is_keyed_by_the_planner_sources():
     from gradsep.evaluation.methods import METHOD_SOURCES, PLANNER_SOURCES
 
     assert all((REPO_ROOT / f).is_file() for f in PLANNER_SOURCES)
-    assert "renderer/plan.py" in PLANNER_SOURCES and not set(PLANNER_SOURCES) & set(METHOD_SOURCES)
+    assert "renderer/planner.py" in PLANNER_SOURCES and not set(PLANNER_SOURCES) & set(METHOD_SOURCES)
     # every row's timing depends on the process evaluation/run.py sets up (which scenes stay loaded)
     assert "evaluation/run.py" in METHOD_SOURCES and all((REPO_ROOT / f).is_file() for f in METHOD_SOURCES)
 
@@ -187,9 +187,9 @@ def test_a_budget_below_the_planners_start_up_renders_the_fallback_and_says_so(t
 
 @pytest.mark.render
 def test_a_checkpoint_that_does_not_fit_fills_the_budget_with_the_fallback_and_no_prediction(tiny, monkeypatch):
-    from gradsep.renderer import plan
+    from gradsep.renderer import frame_budget
 
-    monkeypatch.setattr(plan, "PILOT_SHARE", 0.0)  # no checkpoint fits: the fallback after its first pass
+    monkeypatch.setattr(frame_budget, "PILOT_SHARE", 0.0)  # no checkpoint fits: the fallback after its first pass
     out = _run(tiny, 1.0)
     extra = out.extra
     assert extra["plan"] == FALLBACK and extra["predicted_relmse"] is None
@@ -203,12 +203,14 @@ def test_a_checkpoint_that_does_not_fit_fills_the_budget_with_the_fallback_and_n
 def test_the_deadline_keeps_its_tail_free_for_the_reconstruction(tiny):
     """Deadline.tail replaces the command's reserve (write + exit): the passes stop so that the tail is left."""
     from gradsep.renderer.budget import Deadline
-    from gradsep.renderer.plan import candidate, render_planned
+    from gradsep.renderer.frame_budget import FrameBudget
+    from gradsep.renderer.planner import FixedChoice, render_planned
+    from gradsep.renderer.plans import plan_named
 
     frame, renderer = tiny
     deadline = Deadline(3.0, tail=2.0)
-    planned = render_planned(renderer.loaded, tuple(frame.layers), seed=3, shift=None, fixed=candidate("primal"),
-                             deadline=deadline)
+    planned = render_planned(renderer.loaded, tuple(frame.layers), FixedChoice(plan_named("primal")),
+                             FrameBudget(deadline), seed=3)
     assert planned.spp >= 1
     # the tail is left, up to a pass slower than predicted (without it the passes would fill all but ~0.5 s)
     assert deadline.left() >= 0.8 * 2.0
@@ -218,17 +220,19 @@ def test_the_deadline_keeps_its_tail_free_for_the_reconstruction(tiny):
 def test_an_in_process_deadline_measures_no_write(tiny, monkeypatch):
     """The caller of a Deadline with a tail writes nothing, so the planner spends none of the budget timing a write
     (at the evaluation's sub-second budgets that timing took a third of the time after the first pass)."""
-    from gradsep.renderer import plan
+    from gradsep.renderer import frame_budget
     from gradsep.renderer.budget import Deadline
+    from gradsep.renderer.planner import CheckpointChoice, FixedChoice, render_planned
+    from gradsep.renderer.plans import plan_named
 
     def no_write(*args, **kwargs):
         raise AssertionError("the write was measured")
 
-    monkeypatch.setattr(plan, "write_seconds", no_write)
+    monkeypatch.setattr(frame_budget, "write_seconds", no_write)
     frame, renderer = tiny
-    for fixed in (plan.candidate("direct-alternate"), None):
-        planned = plan.render_planned(renderer.loaded, tuple(frame.layers), seed=4, shift=None, fixed=fixed,
-                                      deadline=Deadline(1.0, tail=0.2))
+    for choice in (FixedChoice(plan_named("direct-alternate")), CheckpointChoice()):
+        planned = render_planned(renderer.loaded, tuple(frame.layers), choice,
+                                 frame_budget.FrameBudget(Deadline(1.0, tail=0.2)), seed=4)
         assert planned.spp >= 1
 
 
@@ -237,29 +241,31 @@ def test_a_warm_planner_sizes_its_first_pass_from_the_costs_measured_beforehand(
     """The row's priors (measured untimed, like the searched rows' cost models): each candidate's cost line of two
     warm sizes and the reconstruction's rate. With them no 1-spp probe is spent: the first pass is sized from the
     line, whether the plan is fixed or the checkpoint is known not to fit before any pass."""
-    from gradsep.renderer import plan
+    from gradsep.renderer import frame_budget, passes
     from gradsep.renderer.budget import Deadline
+    from gradsep.renderer.planner import CheckpointChoice, FixedChoice, PlannerOptions, render_planned
+    from gradsep.renderer.plans import judged_plans, plan_named
 
     frame, renderer = tiny
     layers = tuple(frame.layers)
     priors = renderer.planner_priors(layers)
     assert renderer.planner_priors(layers) is priors  # measured once per scene
-    assert set(priors.costs) == {c.name for c in plan.applicable(layers)}
+    assert set(priors.costs) == {c.name for c in judged_plans(layers)}
     assert all(priors.warm(name) and c.per_sample > 0 for name, c in priors.costs.items())
     assert 0 < priors.reconstruct_rate < 1e-3 and set(priors.reconstruct_seconds) == set(priors.costs)
     runs: list[tuple[str, int]] = []
-    original = plan.Passes.run
-    monkeypatch.setattr(plan.Passes, "run", lambda self, c, spp: runs.append((c.name, spp)) or original(self, c, spp))
-    monkeypatch.setattr(plan, "PILOT_SHARE", 0.0)  # the checkpoint does not fit, and that is known beforehand
-    for fixed in (plan.candidate(FALLBACK), None):
+    original = passes.Passes.run
+    monkeypatch.setattr(passes.Passes, "run", lambda self, c, spp: runs.append((c.name, spp)) or original(self, c, spp))
+    monkeypatch.setattr(frame_budget, "PILOT_SHARE", 0.0)  # the checkpoint does not fit, and that is known beforehand
+    for choice in (FixedChoice(plan_named(FALLBACK)), CheckpointChoice()):
         runs.clear()
         deadline = Deadline(0.5, tail=0.1)
-        planned = plan.render_planned(renderer.loaded, layers, seed=4, shift=None, fixed=fixed, deadline=deadline,
-                                      priors=priors)
+        planned = render_planned(renderer.loaded, layers, choice, frame_budget.FrameBudget(deadline), seed=4,
+                                 options=PlannerOptions(priors=priors))
         assert runs[0][0] == FALLBACK and runs[0][1] > 1 and planned.spp == sum(n for _, n in runs)
-        assert planned.plan is None or planned.plan.note == "the budget is too small for a checkpoint"
+        assert planned.judgement is None or planned.judgement.note == "the budget is too small for a checkpoint"
         # the tail kept free is the chosen plan's own reconstruction time once the plan is known
-        assert deadline.tail == priors.reconstruct_seconds[planned.candidate.name] > 0
+        assert deadline.tail == priors.reconstruct_seconds[planned.plan.name] > 0
     # the caller's priors are left as they were (the frame refines a copy)
     assert all(len(c.warm) == 2 for c in priors.costs.values())
 
@@ -273,10 +279,10 @@ def test_a_quick_evaluation_reports_the_plan_and_its_predicted_against_measured_
     report's section shows its predicted and measured RelMSE."""
     from gradsep.evaluation.config import EvalConfig
     from gradsep.evaluation.run import run_evaluation
-    from gradsep.renderer import plan
-    from gradsep.renderer.plan import applicable
+    from gradsep.renderer import frame_budget
+    from gradsep.renderer.plans import judged_plans as applicable
 
-    monkeypatch.setattr(plan, "PILOT_SHARE", 0.5)
+    monkeypatch.setattr(frame_budget, "PILOT_SHARE", 0.5)
 
     config = EvalConfig(scenes=(SCENE,), spp=(4096,), width=32, height=32, ref_spp=16, output=tmp_path / "report",
                         cache_dir=tmp_path / "cache", models_dir=tmp_path / "models",

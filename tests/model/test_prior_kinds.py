@@ -66,17 +66,18 @@ def _frame(h: int = 24, w: int = 40, seed: int = 5) -> tuple[Layer, Features]:
     return Layer(base, dx, dy), Features(np.full((h, w, 3), 0.5, np.float32), normal, (1 + yy / h).astype(np.float32))
 
 
-def test_the_command_lines_choices_are_the_shipped_models_priors() -> None:
-    """``gradsep train --prior`` offers what the shipped network models refine, the one kind inference computes."""
+def test_the_shipped_models_refine_the_prior_training_and_inference_compute() -> None:
+    """Every shipped network model refines a prior inference computes, the one `gradsep train` trains (it has no
+    choice to offer: TrainConfig's default)."""
     import onnx
 
-    from gradsep.training.commands import PRIOR_CHOICES
+    from gradsep.training.train import TrainConfig
 
     shipped = {dict((p.key, p.value) for p in onnx.load(str(path), load_external_data=False).metadata_props).get(
         "gradsep.prior", preprocess.DEFAULT_PRIOR) for path in (REPO / "models").rglob("*.onnx")
         if "fused" not in path.parts}
-    assert shipped and shipped <= set(PRIOR_CHOICES), shipped
-    assert preprocess.DEFAULT_PRIOR == "l1" and set(PRIOR_CHOICES) == set(preprocess.PRIOR_KINDS) == {"l1"}
+    assert shipped and shipped <= set(preprocess.PRIOR_KINDS), shipped
+    assert TrainConfig.prior in preprocess.PRIOR_KINDS and TrainConfig.prior == preprocess.DEFAULT_PRIOR
 
 
 def test_exported_metadata_names_no_prior_and_describes_the_l1_solve() -> None:

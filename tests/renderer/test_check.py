@@ -12,7 +12,6 @@ import pytest
 from gradsep.model.metrics import RELMSE_EPSILON
 from gradsep.renderer.check import CHECK_MARGIN, GROUPS, Split, check_frame, check_seconds
 from gradsep.renderer.estimate import at_budget
-from tests.renderer.scenes import resolve
 
 
 def fake_pass(rng: np.random.Generator, spp: int, gradients: bool) -> dict[str, np.ndarray]:
@@ -24,7 +23,7 @@ def fake_pass(rng: np.random.Generator, spp: int, gradients: bool) -> dict[str, 
 
 
 def deal(split: Split, plan: str, sums: dict[str, np.ndarray], spp: int) -> None:
-    """One pass's sums to ``split``, its gradient sums apart (as renderer.plan.Passes.run deals them)."""
+    """One pass's sums to ``split``, its gradient sums apart (as renderer.passes.Passes.run deals them)."""
     split.add(plan, {k: v for k, v in sums.items() if ".grad" not in k},
               {k: v for k, v in sums.items() if ".grad" in k}, spp)
 
@@ -154,120 +153,3 @@ def test_the_check_time_is_two_reconstructions_with_a_margin():
     assert check_seconds(1e-6, 1000) == pytest.approx(2 * CHECK_MARGIN * 1e-3)
     assert check_seconds(1e-6, 1000, 1e-6) == pytest.approx(2 * 2 * CHECK_MARGIN * 1e-3)
     assert check_seconds(-1.0, 1000) == 0.0
-
-
-def halves_of_the_frame(passes, chosen) -> list:  # noqa: ANN001
-    """``passes``' halves, checked to make its frame: their samples add up to its samples, and their bases,
-    weighted by samples, are its bases."""
-    halves = passes.halves(chosen)
-    assert halves is not None and sum(n for _, n, _ in halves) == passes.spp
-    frame = passes.frame_result(chosen)
-    for layer in ("direct", "indirect"):
-        mixed = sum(n * h.layers[layer].base.astype(np.float64) for h, n, _ in halves) / passes.spp
-        np.testing.assert_allclose(mixed, frame.layers[layer]["base"], rtol=1e-4, atol=1e-6)
-    return halves
-
-
-@pytest.mark.render
-def test_rendered_halves_are_the_frame_split_in_two():
-    """A split render's two halves: their samples make the frame's, and their bases, weighted by samples, are the
-    frame's bases; each half's gradients average only that half's gradient passes."""
-    from gradsep.renderer.plan import Passes, candidate
-    from gradsep.renderer.scene import load_scene
-
-    scene = load_scene(str(resolve("cbox")), width=16, height=12)
-    passes = Passes(scene, ("direct", "indirect"), seed=5)
-    passes.start_split()  # from the first pass: no lump
-    for c, n in (("direct-alternate", 1), ("primal", 1), ("direct-alternate", 4), ("direct-alternate", 4),
-                 ("primal", 3), ("direct-alternate", 2), ("direct-alternate", 2), ("primal", 1),
-                 ("direct-alternate", 3), ("direct-alternate", 1)):
-        passes.run(candidate(c), n)
-    chosen = candidate("direct-alternate")
-    halves = halves_of_the_frame(passes, chosen)
-    assert passes.spp == 22
-    assert all(h.layers["direct"].has_gradients and not h.layers["indirect"].has_gradients for h, _, _ in halves)
-    assert Passes(scene, ("direct", "indirect"), seed=5).halves(chosen) is None  # not split: no halves
-    # a split started after some passes (a pilot's): those passes are one lump in half A
-    late = Passes(scene, ("direct", "indirect"), seed=6)
-    for c, n in (("primal", 1), ("direct-alternate", 1), ("direct-alternate", 4), ("direct", 4)):
-        late.run(candidate(c), n)
-    late.start_split()
-    assert late.split is not None and late.split.spp[0] == 10 and late.split.passes[0] == 4
-    for n in (4, 4, 3, 3, 2, 2, 2, 1):
-        late.run(chosen, n)
-    halves_of_the_frame(late, chosen)
-    assert late.spp == 31
-
-
-@pytest.mark.render
-@pytest.mark.slow
-@pytest.mark.parametrize(("gradients", "operator_setting"),
-                         [("none", None), ("none", "prefiltered-high"), ("auto", None)])
-def test_a_budgeted_plain_frame_compares_the_oidn_settings_on_its_halves(monkeypatch, gradients, operator_setting):
-    """A plain --seconds frame whose budget affords prefiltered-high has its halves reconstructed with both it and
-    the default; the header's setting is the one the comparison chose, and the prediction is that setting's. An
-    operator's $GRADSEP_OIDN_SETTING (which wins over the header when serving) leaves nothing to compare, and a
-    frame with gradients keeps the rule's setting."""
-    from gradsep.model.header_keys import OIDN_SETTING_KEY, PREDICTED_RELMSE_KEY
-    from gradsep.model.oidn import METHOD_SETTING, SETTING_ENV
-    from gradsep.renderer import plan
-    from gradsep.renderer.budget import Deadline
-    from gradsep.renderer.render import render_planned_frame
-    from gradsep.renderer.scene import load_scene
-
-    monkeypatch.setattr(plan, "reconstruct_startup", lambda: 0.0)  # as if paid: the check fits 8 s
-    if operator_setting:
-        monkeypatch.setenv(SETTING_ENV, operator_setting)
-    else:
-        monkeypatch.delenv(SETTING_ENV, raising=False)
-    scene = load_scene(str(resolve("cbox")), width=16, height=12, max_depth=5)
-    frame, summary = render_planned_frame(scene, deadline=Deadline(8.0), spp=None, seed=4, gradients=gradients)
-    meta = frame.metadata
-    assert meta["gradsep.predicted_from"] == "frame" and "the frame's halves" in summary
-    check = json.loads(meta["gradsep.frame_check"])
-    if operator_setting or meta["gradsep.plan"] != "primal":
-        assert "options" not in check
-        return
-    assert set(check["options"]) == {METHOD_SETTING, "prefiltered-high"} and check["chosen"] in check["options"]
-    assert (meta.get(OIDN_SETTING_KEY) or METHOD_SETTING) == check["chosen"]
-    assert all(len(h) == 2 for h in check["options"].values()) and len(check["differences"]) == 1
-    assert float(meta[PREDICTED_RELMSE_KEY]) >= 0 and meta["gradsep.plan_method"] == "oidn"
-
-
-def test_the_reconstruction_rate_is_timed_on_the_centre_tile_after_a_warm_up():
-    from gradsep.model.frame import Frame, Layer
-    from gradsep.renderer.plan import reconstruct_rate
-
-    frame = Frame(layers={"direct": Layer(np.ones((100, 130, 3), np.float32))})
-    seen = []
-
-    def fake(tile: Frame) -> tuple[np.ndarray, str]:
-        seen.append(tile.layers["direct"].base.shape)
-        return tile.layers["direct"].base, "oidn"
-
-    rate = reconstruct_rate(frame, fake, side=64)
-    assert seen == [(64, 64, 3), (64, 64, 3)] and 0 < rate < 1
-    small = Frame(layers={"direct": Layer(np.ones((5, 7, 3), np.float32))})
-    seen.clear()
-    reconstruct_rate(small, fake, side=64)
-    assert seen == [(5, 7, 3), (5, 7, 3)]  # a frame under the tile: the whole frame
-
-
-def test_without_halves_the_pilots_prediction_is_carried_to_the_samples_the_frame_got():
-    """A pilot slowed by a load spike predicts that the budget buys 49 spp and carries its estimate there; the
-    frame then renders 543. Its header states the error at 543 spp (error ~ spp^-exponent), not at 49."""
-    from gradsep.model.header_keys import PREDICTED_RELMSE_KEY
-    from gradsep.renderer.plan import Assessment, Plan, Planned, candidate
-    from gradsep.renderer.render import frame_check
-
-    chosen = Assessment("direct-alternate", 1, 0.08, 0.3, "oidn-l1", exponent=0.5, budget_spp=49.0,
-                        predicted_relmse=0.012)
-    other = Assessment("primal", 1, 0.07, 0.1, "oidn", exponent=0.5, budget_spp=131.0, predicted_relmse=0.007)
-    plan = Plan(candidate("direct-alternate"), [chosen, other], pilot_seconds=3.0)
-    meta = plan.metadata(("direct", "indirect"))
-    planned = Planned(frame=None, candidate=candidate("direct-alternate"), plan=plan,  # type: ignore[arg-type]
-                      spp=543, gradient_spp=538, passes=19)
-    summary = frame_check(planned, meta)
-    assert meta["gradsep.predicted_from"] == "pilot" and "the pilot's" in summary
-    assert float(meta[PREDICTED_RELMSE_KEY]) == pytest.approx(at_budget(0.012, 49, 543, 0.5), rel=1e-5)
-    assert float(meta[PREDICTED_RELMSE_KEY]) < 0.004

@@ -1,5 +1,5 @@
-"""The planner's checkpoint (renderer/plan.py run_checkpoint) with fakes: no Mitsuba, no render, no reconstruction
-library.
+"""The ``auto`` checkpoint (renderer/checkpoint.py) with fakes: no Mitsuba, no render, no reconstruction library;
+and once on a real render.
 
 A fake Passes renders a known image plus Gaussian noise, deals its passes into a real renderer.check.Split and
 charges a fake clock; a fake reconstruction returns the truth off by a known relative error per candidate (a frame
@@ -14,10 +14,21 @@ import numpy as np
 import pytest
 
 from gradsep.model.frame import Frame, Layer
-from gradsep.renderer import plan
+from gradsep.model.header_keys import PREDICTED_RELMSE_KEY
+from gradsep.renderer import plans, reconstruction_cost
 from gradsep.renderer.budget import PassCosts
 from gradsep.renderer.check import CHECK_MARGIN, Split
-from gradsep.renderer.plan import CHECKPOINT_LAST_PASSES, CHECKPOINT_SHARE, FALLBACK, block_means, run_checkpoint
+from gradsep.renderer.checkpoint import (
+    CHECKPOINT_LAST_PASSES,
+    CHECKPOINT_SHARE,
+    TOO_SMALL,
+    block_means,
+    run_checkpoint,
+    tiles,
+)
+from gradsep.renderer.passes import Priors
+from gradsep.renderer.plans import FALLBACK
+from tests.renderer.scenes import resolve
 
 SIDE = 48
 TRUTH = 0.5 + np.random.default_rng(0).random((SIDE, SIDE, 3))
@@ -38,7 +49,7 @@ class FakePasses:
         self.kinds: dict[str, SimpleNamespace] = {}
         self.runs: list[tuple[str, int]] = []
         self.slow: dict[int, float] = {}  # pass index -> how much slower than its cost it runs (a busy moment)
-        self.priors = None  # renderer.plan.Priors: none, like a fresh process
+        self.priors = None  # renderer.passes.Priors: none, like a fresh process
         self.split: Split | None = None
         self.bases: dict[str, np.ndarray] = {}
         self.gradients: dict[str, tuple[dict[str, np.ndarray], int]] = {}
@@ -91,9 +102,27 @@ def fake_reconstruction(errors: dict[str, float]):
     return reconstruct
 
 
-def budget(seconds: float):
-    """What the rest of a ``seconds`` budget buys a candidate at its measured cost (render_planned's rule)."""
-    return lambda a: seconds / a.per_sample
+class FakeBudget:
+    """The frame's budget as the checkpoint sees it (renderer.frame_budget.FrameBudget's interface): ``seconds``
+    or ``spp``, the allowance for the checkpoint's own cost, and the samples the rest buys a plan (here, the whole
+    ``seconds`` at its measured per-sample cost)."""
+
+    def __init__(self, seconds: float | None = None, spp: int | None = None, allowance: float = math.inf) -> None:
+        self.seconds, self.spp, self.allowance = seconds, spp, allowance
+        self.first: list[str] = []
+
+    def checkpoint_allowance(self) -> float:
+        return self.allowance
+
+    def after_first_pass(self, plan) -> None:
+        self.first.append(plan.name)
+
+    def buys(self, a) -> float:
+        return float(self.spp) if self.seconds is None else self.seconds / a.per_sample
+
+
+def budget(seconds: float, allowance: float = math.inf) -> FakeBudget:
+    return FakeBudget(seconds, allowance=allowance)
 
 
 @pytest.mark.parametrize(("errors", "chosen"), [
@@ -104,7 +133,7 @@ def budget(seconds: float):
 ])
 def test_the_checkpoint_chooses_by_the_error_each_plan_reaches_at_the_budget(errors, chosen):
     passes = FakePasses()
-    result = run_checkpoint(passes, budget(10.0), seconds=10.0, reconstruct=fake_reconstruction(errors))
+    result = run_checkpoint(passes, budget(10.0), reconstruct=fake_reconstruction(errors))
     assert result.chosen.name == chosen
     by_name = {a.name: a for a in result.assessments}
     assert set(by_name) == {FALLBACK, "primal"}
@@ -122,8 +151,7 @@ def test_the_checkpoint_chooses_by_the_error_each_plan_reaches_at_the_budget(err
 def test_the_checkpoint_keeps_to_its_share_and_every_pass_stays_in_the_frame():
     passes = FakePasses()
     passes.max_spp = 4096
-    result = run_checkpoint(passes, budget(20.0), seconds=20.0, reconstruct=fake_reconstruction(
-        {FALLBACK: 0.1, "primal": 0.1}))
+    result = run_checkpoint(passes, budget(20.0), reconstruct=fake_reconstruction({FALLBACK: 0.1, "primal": 0.1}))
     assert passes.now <= CHECKPOINT_SHARE * 20.0
     assert passes.spp == sum(n for _, n in passes.runs) and result.pilot_seconds == pytest.approx(passes.now)
     assert [name for name, _ in passes.runs[:7]] == [FALLBACK, "primal", FALLBACK, "primal", FALLBACK, "primal",
@@ -139,7 +167,7 @@ def test_the_checkpoint_keeps_to_its_share_and_every_pass_stays_in_the_frame():
     assert passes.now >= 0.95 * CHECKPOINT_SHARE * 20.0
     # where a pass's lanes cannot hold them (max_spp), more passes, in pairs
     passes = FakePasses()
-    run_checkpoint(passes, budget(20.0), seconds=20.0, reconstruct=fake_reconstruction({FALLBACK: 0.1, "primal": 0.1}))
+    run_checkpoint(passes, budget(20.0), reconstruct=fake_reconstruction({FALLBACK: 0.1, "primal": 0.1}))
     last = passes.runs[7:]
     assert len(last) > CHECKPOINT_LAST_PASSES and len(last) % 2 == 0 and max(k for _, k in last) <= passes.max_spp
 
@@ -150,28 +178,27 @@ def test_a_busy_moment_during_the_small_passes_does_not_stretch_the_checkpoint()
     passes = FakePasses()
     passes.max_spp = 4096
     passes.slow = {i: 3.0 for i in range(2, 6)}  # the warm 1-spp pass, n and 2n of primal, n of the fallback
-    run_checkpoint(passes, budget(20.0), seconds=20.0, reconstruct=fake_reconstruction({FALLBACK: 0.1, "primal": 0.1}))
+    run_checkpoint(passes, budget(20.0), reconstruct=fake_reconstruction({FALLBACK: 0.1, "primal": 0.1}))
     assert passes.now <= 1.05 * CHECKPOINT_SHARE * 20.0
 
 
 def test_with_spp_the_checkpoint_takes_its_share_of_the_samples():
     passes = FakePasses()
-    run_checkpoint(passes, lambda a: 1000.0, spp=1000, reconstruct=fake_reconstruction(
-        {FALLBACK: 0.1, "primal": 0.2}))
+    run_checkpoint(passes, FakeBudget(spp=1000), reconstruct=fake_reconstruction({FALLBACK: 0.1, "primal": 0.2}))
     assert passes.spp <= CHECKPOINT_SHARE * 1000
 
 
 def test_a_budget_too_small_for_the_checkpoint_renders_one_pass_and_judges_nothing():
     passes = FakePasses()
-    result = run_checkpoint(passes, budget(0.05), seconds=0.05, give_up_after=0.005,
-                            reconstruct=fake_reconstruction({FALLBACK: 0.1, "primal": 0.1}))
+    small = budget(0.05, allowance=0.005)
+    result = run_checkpoint(passes, small, reconstruct=fake_reconstruction({FALLBACK: 0.1, "primal": 0.1}))
     assert result.chosen.name == FALLBACK and result.assessments == []
     assert passes.runs == [(FALLBACK, 1)] and passes.split is None
-    assert result.note == "the budget is too small for a checkpoint"
+    assert result.note == TOO_SMALL and small.first == [FALLBACK]  # the start-up check ran after its one pass
 
 
 def known_costs(name: str) -> PassCosts:
-    """A warm cost line of ``name``'s passes, as an earlier render in the process measured it (plan.Priors)."""
+    """A warm cost line of ``name``'s passes, as an earlier render in the process measured it (Priors)."""
     costs = PassCosts(first_pass=(1, 0.5))
     for spp in (8, 16):
         costs.record(spp, PER_PASS + PER_SAMPLE[name] * spp)
@@ -181,24 +208,24 @@ def known_costs(name: str) -> PassCosts:
 def test_with_both_plans_known_warm_a_budget_too_small_spends_no_probing_pass(monkeypatch):
     """Priors (both kernels warm, the reconstruction's rate measured): whether the checkpoint fits is known before
     any pass, so the deadline's first pass is sized from the cost line instead of being a 1-spp probe."""
-    monkeypatch.setattr(plan, "reconstruct_startup", lambda: 0.0)  # paid already, as in a warm process
+    monkeypatch.setattr(reconstruction_cost, "reconstruct_startup", lambda: 0.0)  # paid already: a warm process
     passes = FakePasses()
-    passes.priors = plan.Priors({name: known_costs(name) for name in PER_SAMPLE}, reconstruct_rate=1e-6)
+    passes.priors = Priors({name: known_costs(name) for name in PER_SAMPLE}, reconstruct_rate=1e-6)
     pixels = SIDE * SIDE
     work = 4 * pixels * 1e-6 * CHECK_MARGIN  # four reconstructions at the measured rate, with the margin
-    result = run_checkpoint(passes, budget(1.0), seconds=1.0, give_up_after=0.9 * work,
+    result = run_checkpoint(passes, budget(1.0, allowance=0.9 * work),
                             reconstruct=fake_reconstruction({FALLBACK: 0.1, "primal": 0.1}))
-    assert result.note == "the budget is too small for a checkpoint" and passes.runs == []
+    assert result.note == TOO_SMALL and passes.runs == []
     # where that work fits, the measured rate (not the prior CHECK_PRIOR_RATE) and no primal compile are charged
-    assert 4 * pixels * plan.CHECK_PRIOR_RATE > 1.2 * work
+    assert 4 * pixels * reconstruction_cost.CHECK_PRIOR_RATE > 1.2 * work
     passes = FakePasses()
-    passes.priors = plan.Priors({name: known_costs(name) for name in PER_SAMPLE}, reconstruct_rate=1e-6)
-    result = run_checkpoint(passes, budget(20.0), seconds=20.0, give_up_after=1.1 * work + PER_PASS + 2e-3,
+    passes.priors = Priors({name: known_costs(name) for name in PER_SAMPLE}, reconstruct_rate=1e-6)
+    result = run_checkpoint(passes, budget(20.0, allowance=1.1 * work + PER_PASS + 2e-3),
                             reconstruct=fake_reconstruction({FALLBACK: 0.1, "primal": 0.1}))
     assert result.assessments and passes.runs[0] == (FALLBACK, 1)
     # without priors the same share gives up: the prior rate is dearer
     passes = FakePasses()
-    result = run_checkpoint(passes, budget(20.0), seconds=20.0, give_up_after=1.1 * work + PER_PASS + 2e-3,
+    result = run_checkpoint(passes, budget(20.0, allowance=1.1 * work + PER_PASS + 2e-3),
                             reconstruct=fake_reconstruction({FALLBACK: 0.1, "primal": 0.1}))
     assert not result.assessments and passes.runs == [(FALLBACK, 1)]
 
@@ -211,7 +238,7 @@ def test_an_unseparated_frame_checks_all_against_primal():
         def reconstruct(frame: Frame):
             e = 0.1 if frame.layers["direct"].has_gradients else 0.3
             return TRUTH * (1 + e), "fake"
-        result = run_checkpoint(passes, budget(10.0), seconds=10.0, reconstruct=reconstruct)
+        result = run_checkpoint(passes, budget(10.0), reconstruct=reconstruct)
     finally:
         del PER_SAMPLE["all"]
     assert result.chosen.name == "all" and {a.name for a in result.assessments} == {"all", "primal"}
@@ -227,9 +254,55 @@ def test_block_means_average_squares_and_keep_small_arrays_whole():
 
 def test_metadata_of_a_checkpoint_plan_names_the_candidates_and_the_prediction():
     passes = FakePasses()
-    result = run_checkpoint(passes, budget(10.0), seconds=10.0,
-                            reconstruct=fake_reconstruction({FALLBACK: 0.1, "primal": 0.3}))
+    result = run_checkpoint(passes, budget(10.0), reconstruct=fake_reconstruction({FALLBACK: 0.1, "primal": 0.3}))
     meta = result.metadata(("direct", "indirect"))
-    assert meta[plan.PLAN_KEY] == FALLBACK and meta[plan.PLAN_LAYERS_KEY] == "direct=alternate,indirect=none"
-    assert set(dict(p.split("=") for p in meta[plan.CANDIDATES_KEY].split(","))) == {FALLBACK, "primal"}
-    assert float(meta[plan.PREDICTED_RELMSE_KEY]) == pytest.approx(result.assessment().predicted_relmse, rel=1e-5)
+    assert meta[plans.PLAN_KEY] == FALLBACK and meta[plans.PLAN_LAYERS_KEY] == "direct=alternate,indirect=none"
+    assert set(dict(p.split("=") for p in meta[plans.CANDIDATES_KEY].split(","))) == {FALLBACK, "primal"}
+    assert float(meta[PREDICTED_RELMSE_KEY]) == pytest.approx(result.assessment().predicted_relmse, rel=1e-5)
+
+
+def test_tiles_cover_small_frames_whole_and_spread_over_large_ones():
+    assert tiles(64, 48) == [(slice(0, 48), slice(0, 64))]
+    windows = tiles(1280, 720)
+    assert len(windows) == 4
+    for ys, xs in windows:
+        assert ys.stop - ys.start == 128 and xs.stop - xs.start == 128
+        assert 0 <= ys.start and ys.stop <= 720 and 0 <= xs.start and xs.stop <= 1280
+    assert len({(w[0].start, w[1].start) for w in windows}) == 4
+
+
+@pytest.mark.render
+def test_the_checkpoint_judges_the_plans_on_the_frames_own_halves():
+    """A stand-in reconstruction: a frame with gradients comes back as the truth (a 512-spp render), a plain one
+    20 % too dark. At equal samples (--spp) the checkpoint must keep the plan with gradients, and the difference of
+    its two reference-free estimates must be the true difference: the halves' groups are common to both
+    reconstructions, so their noise cancels (each estimate alone carries it, see its standard error)."""
+    pytest.importorskip("mitsuba")
+    from gradsep.model.metrics import relmse
+    from gradsep.renderer.frame_budget import FrameBudget
+    from gradsep.renderer.passes import Passes
+    from gradsep.renderer.render import render_frame
+    from gradsep.renderer.scene import load_scene
+
+    scene = load_scene(str(resolve("cbox")), width=48, height=36, max_depth=5)
+    truth = render_frame(scene, spp=512, seed=99, gradients="none").combined().base
+
+    def fake(frame: Frame) -> tuple[np.ndarray, str]:
+        return (truth if frame.layers["direct"].has_gradients else 0.8 * truth), "fake"
+
+    passes = Passes(scene, ("direct", "indirect"), seed=3)
+    frame_budget = FrameBudget(spp=1024)
+    frame_budget.bind(passes)
+    judgement = run_checkpoint(passes, frame_budget, reconstruct=fake)
+    assert judgement.chosen.name == FALLBACK
+    by_name = {a.name: a for a in judgement.assessments}
+    assert set(by_name) == {"primal", FALLBACK} and by_name[FALLBACK].budget_spp == 1024
+    mean = 0.9  # the estimate's weights come from the two reconstructions' mean image
+    true_difference = relmse(0.8 * truth / mean, truth / mean)
+    difference = by_name["primal"].measured_relmse - by_name[FALLBACK].measured_relmse
+    assert difference == pytest.approx(true_difference, rel=0.3)  # the groups' noise cancels in the difference
+    assert all(math.isfinite(a.predicted_relmse) and a.predicted_relmse >= 0 for a in judgement.assessments)
+    assert passes.spp <= CHECKPOINT_SHARE * 1024 and passes.split is not None
+    meta = judgement.metadata(("direct", "indirect"))
+    assert meta[plans.PLAN_KEY] == FALLBACK and float(meta[PREDICTED_RELMSE_KEY]) == pytest.approx(
+        by_name[FALLBACK].predicted_relmse, rel=1e-5)

@@ -7,6 +7,7 @@ import json
 import os
 import shutil
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -37,7 +38,8 @@ def counting_renderer(monkeypatch: pytest.MonkeyPatch) -> list[int]:
 
     calls: list[int] = []
 
-    def fake(spec: str, *, spp: int, seed: int, width: int, height: int, max_depth: int | None) -> Frame:
+    def fake(spec: str, *, spp: int, seed: int, options: Any) -> Frame:
+        width, height, max_depth = options.width, options.height, options.max_depth
         scene_seed = int(spec.rsplit(":", 1)[1])  # procedural:SEED or procedural:FAMILY:SEED
         calls.append(scene_seed)
         rng = np.random.default_rng(scene_seed)
@@ -447,26 +449,26 @@ def planned_renderer(monkeypatch: pytest.MonkeyPatch) -> list[tuple[int, float, 
     """Replace the planned render (and the scene load) with a cheap frame whose spp follows the scene seed; record
     (scene seed, the deadline's budget, the plan asked for) per call."""
     from gradsep.model.frame import Features, Frame, Layer
-    from gradsep.renderer import render, scene
+    from gradsep.renderer import planned_frame, scene
 
     calls: list[tuple[int, float, str]] = []
     monkeypatch.setattr(scene, "load_scene", lambda spec, **kw: (spec, kw))
 
-    def fake(loaded: tuple[str, dict[str, int]], *, deadline: object, spp: int | None, seed: int,
-             gradients: str) -> tuple[Frame, str]:
+    def fake(loaded: tuple[str, dict[str, int]], budget: Any, request: Any) -> tuple[Frame, str]:
         spec, size = loaded
         scene_seed = int(spec.rsplit(":", 1)[1])
-        calls.append((scene_seed, deadline.seconds, gradients))  # type: ignore[attr-defined]
-        assert spp is None and deadline.left() > 0  # type: ignore[attr-defined]
+        deadline = budget.deadline
+        calls.append((scene_seed, deadline.seconds, request.gradients))
+        assert budget.spp is None and deadline.left() > 0
         h, w = size["height"], size["width"]
         ones = np.ones((h, w, 3), np.float32)
         feats = Features(ones / 2, np.dstack([ones[..., :2] * 0, ones[..., :1]]), ones[..., 0])
         frame = Frame({"direct": Layer(ones, ones * 0, ones * 0)}, feats,
                       {"gradsep.render_seconds": "0.5", "gradsep.spp": str(scene_seed % 7 + 3),
-                       "gradsep.budget_seconds": f"{deadline.seconds:g}"})  # type: ignore[attr-defined]
+                       "gradsep.budget_seconds": f"{deadline.seconds:g}"})
         return frame, "plan all"
 
-    monkeypatch.setattr(render, "render_planned_frame", fake)
+    monkeypatch.setattr(planned_frame, "render_planned_frame", fake)
     return calls
 
 
@@ -527,11 +529,11 @@ def test_a_budget_below_the_first_frames_start_up_leaves_nothing(tmp_path: Path,
 @pytest.mark.slow
 def test_a_real_frame_rendered_to_its_budget(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     from gradsep.model.exr_read import read_frame
-    from gradsep.renderer import plan
+    from gradsep.renderer import reconstruction_cost
 
     # the reconstruction's start-up as if paid (as after another test): the frame's check then fits 8 s
-    monkeypatch.setattr(plan, "reconstruct_startup", lambda: 0.0)
-    # 8 s: the kernel's compile and a second pass fit on a loaded 2-core machine (test_plan.py's budgeted frame)
+    monkeypatch.setattr(reconstruction_cost, "reconstruct_startup", lambda: 0.0)
+    # 8 s: the kernel's compile and a second pass fit on a loaded 2-core machine (test_commands.py's budgeted frame)
     timed = make_job(JobOptions(1, None, "16x12", "0/1", 1000, None, seconds="8"))
     manifest = run_dataset(tmp_path / "d", timed, progress=False)
     (record,) = manifest.frames

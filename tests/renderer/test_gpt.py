@@ -22,7 +22,7 @@ from gradsep.model.errors import CommandError  # noqa: E402
 from gradsep.model.exr_read import read_frame  # noqa: E402
 from gradsep.model.exr_write import write_frame  # noqa: E402
 from gradsep.renderer.gpt import MAX_LANES_PER_PASS, GptSettings, pass_plan, render_gpt  # noqa: E402
-from gradsep.renderer.render import parse_layers, plan_layers, render_frame  # noqa: E402
+from gradsep.renderer.render import FrameOptions, parse_layers, plan_layers, render_frame  # noqa: E402
 from gradsep.renderer.scene import load_scene, select_variant  # noqa: E402
 from gradsep.renderer.shift import (  # noqa: E402
     HybridShift,
@@ -391,7 +391,7 @@ def test_gradients_mode_is_validated():
     assert GptSettings(gradients="direct").gradient_layer_names() == ("direct",)
     assert GptSettings().gradient_layer_names() == ("direct", "indirect")
     with pytest.raises(CommandError, match="--gradients must be one of"):
-        render_frame(CBOX, spp=1, width=4, height=4, gradients="sometimes")
+        render_frame(CBOX, spp=1, gradients="sometimes", options=FrameOptions(width=4, height=4))
 
 
 def test_alternate_offsets_trace_two_offsets_and_keep_the_primal():
@@ -778,15 +778,15 @@ def test_direct_only_render_equals_full_direct_layer(cbox_small):
 
 
 def test_max_depth_2_has_no_indirect_layer(cbox_small):
-    frame = render_frame(cbox_small, spp=2, max_depth=2)
+    frame = render_frame(cbox_small, spp=2, options=FrameOptions(max_depth=2))
     assert list(frame.layers) == ["direct"]
     assert any("indirect" in w for w in frame.warnings)
     with pytest.raises(CommandError):
-        render_frame(cbox_small, spp=2, max_depth=2, layers="indirect")
+        render_frame(cbox_small, spp=2, layers="indirect", options=FrameOptions(max_depth=2))
 
 
 def test_max_depth_1_is_emitters_seen_directly(cbox_small):
-    frame = render_frame(cbox_small, spp=2, max_depth=1)
+    frame = render_frame(cbox_small, spp=2, options=FrameOptions(max_depth=1))
     base = frame.layers["direct"].base
     lit = base.max(axis=-1) > 0
     assert 0 < lit.mean() < 0.2  # only the light
@@ -856,7 +856,7 @@ def test_procedural_frames_record_the_generator_version():
     pytest.importorskip("gradsep.renderer.procedural")
     from gradsep.renderer.procedural import GENERATOR_VERSION
 
-    frame = render_frame("procedural:5", spp=1, width=8, height=6, layers="direct")
+    frame = render_frame("procedural:5", spp=1, layers="direct", options=FrameOptions(width=8, height=6))
     assert frame.metadata["gradsep.procedural_version"] == str(GENERATOR_VERSION)
     assert frame.metadata["gradsep.scene"] == "procedural:5"
 
@@ -914,7 +914,7 @@ def test_render_command_offsets(tmp_path):
 
     assert OFFSET_CHOICES == OFFSET_MODES
     with pytest.raises(CommandError, match="--offsets must be one of"):
-        render_frame(CBOX, spp=1, width=4, height=4, offsets="three")
+        render_frame(CBOX, spp=1, options=FrameOptions(offsets="three", width=4, height=4))
     out = tmp_path / "a.exr"
     rc = main(["render", CBOX, "--spp", "2", "--width", "10", "--height", "8", "--seed", "4", "--max-depth", "4",
                "--offsets", "alternate", "-o", str(out)])

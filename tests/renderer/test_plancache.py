@@ -9,22 +9,26 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import pytest
 
 from gradsep.cli import main
 from gradsep.model.errors import CommandError
 from gradsep.model.exr_read import read_frame
-from gradsep.renderer.plan import PLAN_CACHE_KEY, PLAN_KEY, PREDICTED_RELMSE_KEY, Assessment, Plan, candidate
+from gradsep.model.header_keys import PREDICTED_RELMSE_KEY
+from gradsep.renderer.checkpoint import Assessment, Judgement
 from gradsep.renderer.plancache import (
     CACHE_ENV,
     FRAME_ESTIMATE,
     CacheFolder,
+    FrameKey,
     PlanCache,
     check_folder,
     entry_key,
     scene_identity,
 )
+from gradsep.renderer.plans import PLAN_CACHE_KEY, PLAN_KEY, plan_named
 from tests.renderer.scenes import resolve
 
 CBOX = str(resolve("cbox"))
@@ -34,18 +38,19 @@ LAYERS = ("direct", "indirect")
 
 def key(**changes: object) -> dict[str, object]:
     fields: dict[str, object] = {"width": 16, "height": 12, "layers": LAYERS, "max_depth": 5, "shift": "hybrid",
-                                 "seconds": 20.0, "spp": None, "cpu": "a CPU x2"}
+                                 "seconds": 20.0, "spp": None}
+    cpu = str(changes.pop("cpu", "a CPU x2"))
     fields.update(changes)
-    return entry_key("procedural:7", **fields)  # type: ignore[arg-type]
+    return entry_key("procedural:7", FrameKey(**fields), cpu)  # type: ignore[arg-type]
 
 
-def judged(chosen: str = "primal") -> Plan:
+def judged(chosen: str = "primal") -> Judgement:
     """A checkpoint's plan as run_checkpoint makes one."""
     assessments = [Assessment(name, 40, relmse, per_sample, method, 1e-4, 0.5, spp, relmse / 4, 1e-5, 0.02, 1e-6)
                    for name, relmse, per_sample, method, spp in (("direct-alternate", 2e-3, 0.02, "oidn-l1", 900),
                                                                   ("primal", 1e-3, 0.013, "oidn", 1400))]
     trace = {"spp": 80, "difference": [-1e-4, 2e-5], "chosen": chosen}
-    return Plan(candidate(chosen), assessments, 3.0, "checkpoint at 80 spp", trace)
+    return Judgement(plan_named(chosen), assessments, 3.0, "checkpoint at 80 spp", trace)
 
 
 # -- entries ------------------------------------------------------------------------------------------------
@@ -56,7 +61,7 @@ def test_an_entry_round_trips_with_the_judging_frames_estimate(tmp_path):
     assert entry.store(judged("primal"), seed=3, estimate=(4e-4, 1200)) is None
     plan, note = PlanCache(tmp_path, key()).load()
     assert note is None and plan is not None
-    assert plan.chosen == candidate("primal") and plan.pilot_seconds == 0.0
+    assert plan.chosen == plan_named("primal") and plan.pilot_seconds == 0.0
     assert [a.name for a in plan.assessments] == ["direct-alternate", "primal"]
     assert plan.assessment().predicted_relmse == pytest.approx(1e-3 / 4)  # type: ignore[union-attr]
     assert plan.trace["cached"] == entry.path.name and plan.trace["difference"] == [-1e-4, 2e-5]
@@ -65,6 +70,14 @@ def test_an_entry_round_trips_with_the_judging_frames_estimate(tmp_path):
     data = json.loads(entry.path.read_text())
     assert data["judged"]["seed"] == 3 and data["key"] == key()
     assert [p.name for p in tmp_path.iterdir()] == [entry.path.name]  # written atomically: no temporary left
+
+
+def test_an_entrys_name_and_key_keep_their_format():
+    """Entries written by an earlier version stay readable: the key's fields and the file's name from them."""
+    assert key() == {"scene": "procedural:7", "size": [16, 12], "layers": ["direct", "indirect"], "max_depth": 5,
+                     "shift": "hybrid", "budget": "seconds=20", "cpu": "a CPU x2"}
+    assert key(seconds=None, spp=64)["budget"] == "spp=64"
+    assert PlanCache(Path("."), key()).path.name == "plan-65ad0d4a3c70466be73e.json"
 
 
 @pytest.mark.parametrize("change", [{"seconds": 10.0}, {"seconds": None, "spp": 64}, {"width": 32},
@@ -164,13 +177,13 @@ def small():
 
 @pytest.mark.render
 def test_a_frame_that_reads_an_entry_renders_its_plan_with_no_checkpoint(tmp_path, small):
-    from gradsep.renderer.render import render_planned_frame
+    from gradsep.renderer.frame_budget import FrameBudget
+    from gradsep.renderer.planned_frame import PlanRequest, render_planned_frame
 
     folder = CacheFolder(tmp_path, "key:shot-12")
-    entry = folder.entry(width=16, height=12, layers=LAYERS, max_depth=small.max_depth, shift="hybrid",
-                         seconds=None, spp=64)
+    entry = folder.entry(FrameKey(16, 12, LAYERS, small.max_depth, "hybrid", None, 64))
     entry.store(judged("primal"), seed=1, estimate=(2e-3, 32))
-    frame, summary = render_planned_frame(small, deadline=None, spp=64, seed=2, gradients="auto", plan_cache=folder)
+    frame, summary = render_planned_frame(small, FrameBudget(spp=64), PlanRequest(seed=2), plan_cache=folder)
     meta = frame.metadata
     assert meta[PLAN_KEY] == "primal" and meta["gradsep.gradients"] == "none" and not frame.gradient_layers
     assert meta[PLAN_CACHE_KEY] == f"read {entry.path.name}" and meta["gradsep.pilot_seconds"] == "0.000"

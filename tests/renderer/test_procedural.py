@@ -236,9 +236,9 @@ def test_describe_names_the_seed_and_its_contents() -> None:
 @pytest.mark.render
 def test_a_studio_frame_has_an_empty_background() -> None:
     """Missed camera rays: depth 0 and no light (no sky), beside lit objects."""
-    from gradsep.renderer.render import render_frame
+    from gradsep.renderer.render import FrameOptions, render_frame
 
-    frame = render_frame("procedural:studio:3", spp=4, seed=1, width=40, height=30)
+    frame = render_frame("procedural:studio:3", spp=4, seed=1, options=FrameOptions(width=40, height=30))
     miss = frame.features.depth == 0
     assert miss.any() and (~miss).any()
     total = sum(layer.base for layer in frame.layers.values())

@@ -1,4 +1,4 @@
-"""Split samples (``render_frame(..., gradient_spp=K)``, `gradsep render --gradient-spp K`): K of the ``spp``
+"""Split samples (``FrameOptions(gradient_spp=K)``, `gradsep render --gradient-spp K`): K of the ``spp``
 samples trace offsets (G-PT), the other ``spp - K`` are primal-only; the bases and features average all ``spp``
 samples, the gradients come from the K G-PT samples.
 
@@ -21,7 +21,7 @@ from gradsep.cli import main  # noqa: E402
 from gradsep.model.errors import CommandError  # noqa: E402
 from gradsep.model.exr_read import read_frame  # noqa: E402
 from gradsep.renderer.gpt import GptSettings, mean_variance, pass_seed, render_gpt, render_pass  # noqa: E402
-from gradsep.renderer.render import render_frame  # noqa: E402
+from gradsep.renderer.render import FrameOptions, render_frame  # noqa: E402
 from gradsep.renderer.scene import load_scene  # noqa: E402
 from gradsep.renderer.shift import make_shift  # noqa: E402
 from tests.renderer.scenes import resolve  # noqa: E402
@@ -49,11 +49,11 @@ def small():
 def test_gradient_spp_argument_errors(small):
     for bad in (0, -1, 5):
         with pytest.raises(CommandError, match="--gradient-spp must be between 1 and --spp"):
-            render_frame(small, spp=4, gradient_spp=bad, gradients="direct")
+            render_frame(small, spp=4, gradients="direct", options=FrameOptions(gradient_spp=bad))
     with pytest.raises(CommandError, match="--gradient-spp must be an integer"):
-        render_frame(small, spp=4, gradient_spp=2.5)
+        render_frame(small, spp=4, options=FrameOptions(gradient_spp=2.5))
     with pytest.raises(CommandError, match="--gradient-spp has no effect without gradients"):
-        render_frame(small, spp=4, gradient_spp=2, gradients=False)
+        render_frame(small, spp=4, gradients=False, options=FrameOptions(gradient_spp=2))
     settings = GptSettings(max_depth=5)
     with pytest.raises(ValueError, match="gradient_spp must be in"):
         render_gpt(small.scene, make_shift("hybrid"), settings, 12, 10, 4, gradient_spp=0)
@@ -63,8 +63,9 @@ def test_gradient_spp_argument_errors(small):
 
 @pytest.mark.parametrize("gradients,offsets", [("all", "all"), ("direct", "alternate")])
 def test_gradient_spp_equal_to_spp_is_the_plain_render(small, gradients, offsets):
-    plain = render_frame(small, spp=5, seed=3, gradients=gradients, offsets=offsets)
-    same = render_frame(small, spp=5, seed=3, gradients=gradients, offsets=offsets, gradient_spp=5)
+    plain = render_frame(small, spp=5, seed=3, gradients=gradients, options=FrameOptions(offsets=offsets))
+    same = render_frame(small, spp=5, seed=3, gradients=gradients,
+                        options=FrameOptions(offsets=offsets, gradient_spp=5))
     for name, layer in plain.layers.items():
         for key in ("base", "dx", "dy"):
             np.testing.assert_array_equal(getattr(same.layers[name], key), getattr(layer, key), err_msg=key)
@@ -114,7 +115,8 @@ def test_split_frame_is_the_spp_weighted_mean(small):
 
 
 def test_split_metadata_and_command(small, tmp_path, capsys):
-    frame = render_frame(small, spp=6, seed=2, gradients="direct", offsets="alternate", gradient_spp=2)
+    frame = render_frame(small, spp=6, seed=2, gradients="direct",
+                         options=FrameOptions(offsets="alternate", gradient_spp=2))
     assert frame.metadata["gradsep.spp"] == "6" and frame.metadata["gradsep.gradient_spp"] == "2"
     assert frame.metadata["gradsep.gradients"] == "direct" and frame.metadata["gradsep.integrator"] == "gpt"
     assert frame.metadata["gradsep.passes"] == "2"
