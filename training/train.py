@@ -728,8 +728,3 @@ def train(cfg: TrainConfig, quiet: bool = False) -> Progress:
     finally:
         teardown_distributed(ctx)
 
-
-if __name__ == "__main__":  # `torchrun -m gradsep.training.train ...` works as well as `torchrun -m gradsep train ...`
-    from gradsep.training.commands import train_main
-
-    sys.exit(train_main(sys.argv[1:]))

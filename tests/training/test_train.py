@@ -273,10 +273,10 @@ def test_train_command_reports_bad_data_in_one_line(tmp_path: Path, capsys: pyte
     assert len(err) == 1 and "no manifest.json" in err[0]
 
 
-def test_python_dash_m_training_train_is_gradsep_train(tmp_path: Path) -> None:
-    """`torchrun -m training.train ARGS` (each worker runs the module) takes `gradsep train`'s flags and reports
-    bad input the same way, without the command-line package."""
-    cmd = [sys.executable, "-m", "gradsep.training.train", "--data", str(tmp_path / "nope"), "--layer", "direct",
+def test_python_dash_m_training_is_gradsep_train(tmp_path: Path) -> None:
+    """`torchrun -m gradsep.training ARGS` (each worker runs the package's __main__) takes `gradsep train`'s flags
+    and reports bad input the same way, without the command-line package."""
+    cmd = [sys.executable, "-m", "gradsep.training", "--data", str(tmp_path / "nope"), "--layer", "direct",
            "-o", str(tmp_path / "run")]
     proc = subprocess.run(cmd, env={**os.environ, "PYTHONPATH": str(REPO)}, cwd=REPO, capture_output=True,
                           text=True, timeout=120, check=False)
