@@ -41,8 +41,8 @@ Every method produces (image, per-layer images where it has them, render seconds
 ==========================  ===============================================================================
 
 Equal time: the budget of a G-PT spp is the G-PT render time plus the reconstruction time of the product's default
-method for a G-PT frame (the first of the methods table's default preference that was evaluated, ``oidn-l1``;
-``ours``, then ``l1``, when none was: evaluation.run._budget_method; the report names it). Each equal-time
+method for a G-PT frame (the first of the methods table's default preference that was evaluated, ``oidn-l1``:
+evaluation.run._budget_method; the report names it). Each equal-time
 renderer's cost on the scene is measured first as ``seconds = overhead + per_spp · spp``, a line fitted to warm
 renders (after an untimed 1-spp render that pays the JIT compilation, which a user rendering a sequence pays once:
 1, 4, 16, ... spp, each the faster of two, until one takes a quarter second; every later render adds a point). A
@@ -129,7 +129,7 @@ FEATURE_SPP = 4
 #: Source files whose changes alter a method's images or scores (part of every result's cache key): every module
 #: of model/, so that a helper a method reaches (the exposure rule, the back-off) cannot be left out of the key,
 #: and evaluation/run.py, which sets the process every row is timed in (what stays loaded: a change there once
-#: made every pass 6x dearer, and cached rows would have kept the old timings).
+#: made every pass several times dearer, and cached rows would have kept the old timings).
 METHOD_SOURCES: tuple[str, ...] = ("evaluation/methods.py", "evaluation/run.py",
                                    *sorted(f"model/{p.name}" for p in (REPO_ROOT / "model").glob("*.py")))
 #: The render planner's source files: part of the ``gpt-auto`` row's cache key (with the renderer's), so a planner
@@ -165,28 +165,22 @@ class MethodSpec:
         return table.get(self.method).model_sets if self.kind == "recon" and self.method else ()
 
     def model_names(self, layers: tuple[str, ...]) -> tuple[str, ...]:
-        """The model files (``NAME.onnx``) this method needs for a frame with ``layers``."""
-        if "fused" in self.model_sets:  # the layers model.fused serves with one candidate alone need no file
-            from gradsep.model.fused import FIXED_LAYERS
-
-            return tuple(name for name in layers if name not in FIXED_LAYERS)
-        if "network" in self.model_sets:
-            return tuple(layers)
+        """The model files (``NAME.onnx``) this method needs for a frame with ``layers``: a ``recon`` row's, what
+        its own model set (the first model folder of the table's method) declares (model.methods.ModelSet)."""
+        if self.model_sets:
+            return table.MODEL_SETS[self.model_sets[0]].model_files(layers)
         if self.kind != "network":
             return ()
         return tuple(layers) if self.separated else ("color",)
 
     def optional_model_files(self, layers: tuple[str, ...]) -> tuple[str, ...]:
         """Model files (relative to the models folder) this method reads when they are there and does without
-        otherwise: ``fused``'s clean-layer average reads the ``network`` method's direct model (model/fused.py
-        CLEAN_AVERAGE_MODEL). Their checksums join the result's cache key; their absence skips nothing."""
-        if "fused" not in self.model_sets:
+        otherwise, as its model set declares them (``fused``'s clean-layer average reads the ``network`` method's
+        direct model). Their checksums join the result's cache key; their absence skips nothing."""
+        if not self.model_sets:
             return ()
-        from gradsep.model.fused import CLEAN_AVERAGE_MODEL, FIXED_LAYERS
-
-        if "direct" not in layers or "direct" not in FIXED_LAYERS:
-            return ()
-        return (os.path.normpath(Path(self.models or "") / CLEAN_AVERAGE_MODEL),)
+        files = table.MODEL_SETS[self.model_sets[0]].optional_model_files(layers)
+        return tuple(os.path.normpath(Path(self.models or "") / f) for f in files)
 
 
 ABLATION_VARIANTS: tuple[tuple[str, bool, bool], ...] = (
@@ -220,10 +214,8 @@ def _table_row(method: table.Method) -> MethodSpec:
     """The row of one method of the table: ``reconstruct(frame, method)`` on the G-PT frame its gradients need."""
     label, short = _LABELS.get(method.name, (f"{method.name}: {method.description}", method.name))
     folder = next((table.MODEL_SETS[n].folder for n in method.model_sets), None)
-    network = "network" in method.models
     return MethodSpec(evaluation_name(method.name), label, "recon", method=method.name,
                       models=None if folder is None else "" if folder == "." else folder, short=short,
-                      separated=True if network else None, attention=True if network else None,
                       gradients="direct" if method.gradients == "direct" else "all")
 
 
@@ -400,7 +392,8 @@ class CostModel:
         if not math.isfinite(seconds):
             return 1
         overhead, per_spp = self.fit()
-        spp = math.floor((seconds - overhead) / per_spp + 1e-9)  # 1.5 s at 0.01 s/spp is 100, not 99.999…
+        # a quotient a rounding error short of a whole spp counts as that spp
+        spp = math.floor((seconds - overhead) / per_spp + 1e-9)
         return int(min(self.max_spp, max(1, spp)))
 
 

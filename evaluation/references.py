@@ -79,8 +79,8 @@ SEED_STREAMS = {"pass": 1, "pilot": 2, "region": 3}
 REGION_SOURCES = ("evaluation/region.py",)
 
 # Raise the references to this much more than the floor's 1/spp fall predicts: the floor is itself an estimate
-# (heavy-tailed pixels make it noisy) and falls a little slower than 1/spp where paths are rare (measured slopes
-# -0.9 to -1.0 on cbox, teapot, procedural:90001; docs/evaluation.md, "Reference sampler").
+# (heavy-tailed pixels make it noisy) and falls a little slower than 1/spp where paths are rare (the measured
+# slopes: docs/evaluation.md, "Reference sampler").
 RAISE_MARGIN = 1.25
 
 

@@ -420,12 +420,12 @@ def _mitsuba_id() -> str:
 
 def _budget_method(rows: dict[str, dict[str, Any]]) -> str | None:
     """The method whose total time is the equal-time budget: the product's default for a G-PT frame (the first
-    of the methods table's default preference that ran; its ``network`` is the evaluation's ``ours``), else ours,
-    else L1 (None: the G-PT render alone)."""
+    of the methods table's default preference that ran; its ``network`` is the evaluation's ``ours``; None: the
+    G-PT render alone)."""
     from gradsep.evaluation.methods import evaluation_name
     from gradsep.model import methods as table
 
-    for method in (*table.default_preference(), "network", "l1"):
+    for method in table.default_preference():
         name = evaluation_name(method)
         if name in rows:
             return name
@@ -450,7 +450,7 @@ def run_evaluation(config: EvalConfig, *, progress: bool | None = None,
     # every scene is loaded (and so validated) before anything renders, since a typo in the last scene should not
     # surface after an hour of work on the first ones; then released, and each loaded again for its own work only: a
     # loaded scene's objects stay registered with Dr.Jit, and every render traces its virtual calls over all of them
-    # (a 1-spp G-PT pass of the teapot at 320x240 took 0.17 s with three more scenes loaded, 0.03 s alone)
+    # (a small G-PT pass is several times slower with other scenes loaded than alone)
     for e in entries:
         load_scene(e.spec, width=config.width, height=config.height, max_depth=config.max_depth)
     gc.collect()
