@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from gradsep.evaluation.baselines import PathRenderer
 from gradsep.evaluation.cache import EvalCache, file_sha256, key_hash, sources_sha256
 from gradsep.evaluation.config import FLOOR_FRACTION, EvalConfig, SceneEntry, crop_methods, resolve_scenes
 from gradsep.evaluation.methods import (
@@ -38,14 +39,9 @@ from gradsep.evaluation.methods import (
     PLAN_ROW_KEYS,
     PLANNER_SOURCES,
     BracketOutput,
-    MethodContext,
     MethodOutput,
     MethodSpec,
-    NetworkPool,
-    PathRenderer,
-    interpolate_at,
     method_by_name,
-    run_method,
     unavailable,
 )
 from gradsep.evaluation.references import (
@@ -57,6 +53,8 @@ from gradsep.evaluation.references import (
 )
 from gradsep.evaluation.region import Region
 from gradsep.evaluation.results import Evaluation, SceneRun, machine_summary, row_seconds
+from gradsep.evaluation.runners import MethodContext, NetworkPool, run_method
+from gradsep.evaluation.timesearch import interpolate_at
 from gradsep.model.errors import CommandError
 from gradsep.model.methods import get as table_method
 from gradsep.model.policy import SEPARATED_LAYERS

@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 
 from gradsep.cli import main
+from gradsep.evaluation.baselines import split_features
 from gradsep.evaluation.commands import config_from_args, evaluate_command
 from gradsep.evaluation.config import (
     QUICK,
@@ -28,10 +29,11 @@ from gradsep.evaluation.config import (
     resolve_scenes,
     table_spp_for,
 )
-from gradsep.evaluation.methods import CostModel, method_by_name, split_features
+from gradsep.evaluation.methods import method_by_name
 from gradsep.evaluation.plots import select_crop
 from gradsep.evaluation.report import CSV_COLUMNS, losses_of_ours, time_misses
 from gradsep.evaluation.run import run_evaluation
+from gradsep.evaluation.timesearch import CostModel
 from gradsep.model.errors import CommandError
 
 SCENE = "procedural:90001"
@@ -621,7 +623,7 @@ class _ClockedRenderer:
     to model a busy machine; the default cost is a line, others are not (the fitted line then mispredicts)."""
 
     def __init__(self, cost=lambda spp: 0.05 + 0.002 * spp) -> None:
-        from gradsep.evaluation.methods import PathRenderer
+        from gradsep.evaluation.baselines import PathRenderer
 
         self.renderer = PathRenderer.__new__(PathRenderer)  # no Mitsuba: only the budgeting is under test
         self.renderer.max_spp = 100_000

@@ -119,7 +119,10 @@ def test_the_planned_rows_time_note_names_what_missed():
     pilot or a pass running past the deadline, the reconstruction against its reserve."""
     from types import SimpleNamespace
 
-    from gradsep.evaluation.methods import _planned_time_note as note
+    from gradsep.evaluation.runners import PlannedTimes, _planned_time_note
+
+    def note(target, render, post, tail, refused, chosen, plan, pilot):
+        return _planned_time_note(PlannedTimes(target, render, post, tail, refused, chosen, plan, pilot))
 
     assert note(2.0, 1.7, 0.25, 0.25, "", None, "all", 0.5) == ""
     assert note(0.1, 0.5, 0.01, 0.01, "below start-up", None, "all", 0.0) == (
@@ -150,7 +153,7 @@ def test_the_planned_row_is_keyed_by_the_planner_sources():
 @pytest.fixture(scope="module")
 def tiny():
     """A 32×32 scene, its 1-spp G-PT frame and the per-scene renderer (the planner's kernels compiled)."""
-    from gradsep.evaluation.methods import PathRenderer
+    from gradsep.evaluation.baselines import PathRenderer
     from gradsep.renderer.render import render_frame
     from gradsep.renderer.scene import load_scene
 
@@ -162,7 +165,8 @@ def tiny():
 
 
 def _run(tiny, budget: float):
-    from gradsep.evaluation.methods import MethodContext, NetworkPool, method_by_name, run_method
+    from gradsep.evaluation.methods import method_by_name
+    from gradsep.evaluation.runners import MethodContext, NetworkPool, run_method
 
     frame, renderer = tiny
     ctx = MethodContext(frame=frame, render_seconds=0.1, spp=1, seed=12345, alpha=0.2, models_dir=Path("none"),

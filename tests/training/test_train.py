@@ -24,7 +24,8 @@ from gradsep.training.dataset import (  # noqa: E402
     select_layer,
     split_frames,
 )
-from gradsep.training.train import Trainer, TrainingError, read_log, train  # noqa: E402
+from gradsep.training.runlog import read_log  # noqa: E402
+from gradsep.training.train import Trainer, TrainingError, train  # noqa: E402
 from tests.training.conftest import tiny_config  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
