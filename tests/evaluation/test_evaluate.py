@@ -31,7 +31,8 @@ from gradsep.evaluation.config import (
 )
 from gradsep.evaluation.methods import method_by_name
 from gradsep.evaluation.plots import select_crop
-from gradsep.evaluation.report import CSV_COLUMNS, losses_of_ours, time_misses
+from gradsep.evaluation.report import CSV_COLUMNS, losses_of_ours
+from gradsep.evaluation.report_time import time_misses
 from gradsep.evaluation.run import run_evaluation
 from gradsep.evaluation.timesearch import CostModel
 from gradsep.model.errors import CommandError
@@ -161,7 +162,7 @@ def test_frame_seeds_from_the_flag_or_the_environment_with_their_range(monkeypat
 def test_seed_mean_averages_the_metrics_and_keeps_each_seed():
     """The multi-seed row: metrics are means over the seeds, the time their mean (an interpolated seed counts at
     its budget), the spp their median, the standard error of the mean RelMSE from the seeds' spread."""
-    from gradsep.evaluation.report import _spp_cell, _stderr
+    from gradsep.evaluation.report_cells import spp_cell, stderr_cell
     from gradsep.evaluation.results import row_seconds
     from gradsep.evaluation.run import seed_mean
 
@@ -182,8 +183,8 @@ def test_seed_mean_averages_the_metrics_and_keeps_each_seed():
     assert row_seconds(out) == pytest.approx((2.02 + 1.97 + 2.0) / 3)
     assert out["relmse_stderr"] == pytest.approx(0.001 / math.sqrt(3))
     assert out["time_interpolated"].startswith("seed 2: 40 spp") and "time_bracket" not in out
-    assert _spp_cell(out) == "50*" and _stderr(out) == " ±0.00058"
-    assert _stderr(rows[0]) == "" and seed_mean(rows[:1])["relmse_stderr"] == 0.0
+    assert spp_cell(out) == "50*" and stderr_cell(out) == " ±0.00058"
+    assert stderr_cell(rows[0]) == "" and seed_mean(rows[:1])["relmse_stderr"] == 0.0
 
 
 def test_environment_is_loaded_once_typed_and_named_in_errors(monkeypatch):

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from gradsep.evaluation.report import PlannedFrame, planned_frames, planner_choice, time_misses
+from gradsep.evaluation.report_time import PlannedFrame, planned_frames, planner_choice, time_misses
 from gradsep.renderer.plan import FALLBACK
 
 SCENE = "procedural:90001"
@@ -83,7 +83,8 @@ def test_a_planned_row_outside_the_tolerance_is_listed_with_its_reason():
 
 def test_a_planned_row_over_its_budget_does_not_count_as_the_best_g_pt_at_equal_time():
     """More time than the rows it is compared with: its RelMSE is shown but wins nothing; an early one counts."""
-    from gradsep.evaluation.report import _fused_and_equal_time_targets, over_budget
+    from gradsep.evaluation.report import _fused_and_equal_time_targets
+    from gradsep.evaluation.report_time import over_budget
 
     late = _auto(16, 0.001, 0.001, total_seconds=2.2)  # budget 2 s: +10 %
     assert over_budget(late) and not over_budget({**late, "total_seconds": 2.09})
