@@ -16,7 +16,7 @@ From the pilot, each :data:`TILE` × :data:`TILE` tile's share of the floor is e
 passes over the squared pilot mean, as model.metrics.reference_floor normalises it). The rectangle is the one
 that reaches a :data:`DESIGN_REDUCTION`-fold smaller floor with the fewest extra samples (area × extra spp); where
 the floor is spread evenly that is the whole frame, and region passes are then just more passes. The amount of
-region passes is decided later, against the floor the evaluation needs (evaluation/run.py).
+region passes is decided later, against the floor the evaluation needs (evaluation/convergence.py).
 
 A region pass renders the rectangle alone (Mitsuba's film crop) with the reference sampler and ``path`` at the
 scene's depth and at depth 2, exactly like a full pass (renderer.reference.render_loaded), so with the box pixel

@@ -197,7 +197,7 @@ class PlannedFrame:
 
 
 def planned_frames(row: Mapping[str, Any]) -> list[PlannedFrame]:
-    """The frames of a ``gpt-auto`` row: each seed's of a multi-seed row (evaluation.run.seed_mean keeps them),
+    """The frames of a ``gpt-auto`` row: each seed's of a multi-seed row (evaluation.scores.seed_mean keeps them),
     else the row's own."""
     if int(row.get("seeds") or 1) > 1 and isinstance(row.get("seed_plan"), list):
         n = len(row["seed_plan"])

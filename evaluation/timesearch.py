@@ -17,7 +17,7 @@ bracket's midpoint when it points at a tried spp), short or surprising tries tim
 it is still outside ±5 %, why (1 spp already over budget, the spp cap, integer granularity, timing noise); the
 report lists every such row with that reason. Such a row with tries on both sides of the budget keeps both
 (:attr:`Attempt.bracket`, :attr:`MethodOutput.bracket`) and its metrics are interpolated to the budget in log time
-(evaluation.run.interpolated_scores; the report marks it). The time in the results is the time the kept try actually
+(evaluation.scores.interpolated_scores; the report marks it). The time in the results is the time the kept try actually
 took (the median of its timings), not the prediction.
 """
 

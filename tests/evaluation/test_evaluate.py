@@ -164,7 +164,7 @@ def test_seed_mean_averages_the_metrics_and_keeps_each_seed():
     its budget), the spp their median, the standard error of the mean RelMSE from the seeds' spread."""
     from gradsep.evaluation.report_cells import spp_cell, stderr_cell
     from gradsep.evaluation.results import row_seconds
-    from gradsep.evaluation.run import seed_mean
+    from gradsep.evaluation.scores import seed_mean
 
     def row(relmse, spp, seconds, **more):
         return {"method": "path", "spp": 16, "method_spp": spp, "relmse": relmse, "ssim": 0.9, "psnr": 30.0,
@@ -702,7 +702,7 @@ def test_time_misses_flags_rows_outside_5_percent():
 def test_oidn_environment_choices_are_part_of_the_result_key(monkeypatch) -> None:
     """$GRADSEP_OIDN_SETTING / $GRADSEP_OIDN_RUNTIME change the OIDN methods' images without a code change: a
     run under them must not reuse outputs cached under the defaults (whose keys stay as they were)."""
-    from gradsep.evaluation.run import oidn_key
+    from gradsep.evaluation.cache import oidn_key
     from gradsep.model import oidn
 
     monkeypatch.delenv(oidn.SETTING_ENV, raising=False)

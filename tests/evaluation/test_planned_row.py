@@ -97,7 +97,7 @@ def test_a_planned_row_over_its_budget_does_not_count_as_the_best_g_pt_at_equal_
 
 
 def test_a_multi_seed_planned_row_keeps_each_seeds_plan_and_prediction():
-    from gradsep.evaluation.run import seed_mean
+    from gradsep.evaluation.scores import seed_mean
 
     seeds = [_auto(16, 0.01, 0.012), {**_auto(16, 0.02, None), "predicted_note": "too small"},
              {**_auto(16, 0.03, 0.02), "plan": "primal"}]
