@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING, Any
 from gradsep.evaluation.cache import slug
 from gradsep.evaluation.config import EvalSettings, crop_methods
 from gradsep.evaluation.methods import ABLATION_VARIANTS, evaluated_methods
-from gradsep.evaluation.plots import plot_crops, plot_error_vs_time
+from gradsep.evaluation.plots import CropPanels, plot_crops, plot_error_vs_time
 from gradsep.evaluation.references import REFERENCE_SAMPLER
 from gradsep.evaluation.report_cells import bold_best, by_method, fmt, stderr_cell
 from gradsep.evaluation.report_time import GPT_EQUAL_TIME, equal_time, over_budget, planner_choice
@@ -98,8 +98,9 @@ def write_outputs(evaluation: Evaluation) -> dict[str, Path]:
                                                        scene.floor.get("total"))
         table = by_method(scene_rows, evaluation.config.crop_spp)
         metrics = {m: float(r["relmse"]) for m, r in table.items()}
-        paths[f"crop:{name}"] = plot_crops(name, scene.reference, scene.crop_images, crop_methods(), _crop_labels(),
-                                           metrics, evaluation.config.crop_spp, out / "crops" / f"{slug(name)}.png")
+        crops = CropPanels(crop_methods(), _crop_labels(), metrics)
+        paths[f"crop:{name}"] = plot_crops(name, scene.reference, scene.crop_images, crops, evaluation.config.crop_spp,
+                                           out / "crops" / f"{slug(name)}.png")
     paths["json"] = out / "results.json"
     write_bytes_atomic(paths["json"], json.dumps(_summary(evaluation), indent=1, default=str).encode())
     paths["report"] = out / "report.md"
