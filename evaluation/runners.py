@@ -67,22 +67,13 @@ class NetworkPool:
             sets[name] = self._loaded[key]
         return table.LoadedModels(**sets)
 
-    def get(self, folder: Path, fused: bool = False) -> Any:
-        """The folder's network models, or with ``fused`` its fused blend models (model.fused)."""
+    def get(self, folder: Path) -> Any:
+        """The folder's network models (the paper's baselines and ablations: ``network`` rows)."""
         folder = folder.resolve()
         if folder not in self._loaded:
-            if fused:
-                from gradsep.model.fused import BlendModelError, FusedReconstructor
-                from gradsep.model.infer import ModelError
+            from gradsep.model.infer import NetworkReconstructor
 
-                try:
-                    self._loaded[folder] = FusedReconstructor.load(folder)
-                except BlendModelError as exc:
-                    raise ModelError(str(exc)) from exc
-            else:
-                from gradsep.model.infer import NetworkReconstructor
-
-                self._loaded[folder] = NetworkReconstructor.load(folder)
+            self._loaded[folder] = NetworkReconstructor.load(folder)
         return self._loaded[folder]
 
     def warm_up(self, folder: Path, run: Callable[[], object], key: str, shape: tuple[int, int]) -> None:
