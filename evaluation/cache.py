@@ -38,7 +38,8 @@ import numpy as np
 
 from gradsep.model.exr_write import write_bytes_atomic
 
-__all__ = ["EvalCache", "code_sha256", "default_cache_dir", "file_sha256", "key_hash", "slug", "sources_sha256"]
+__all__ = ["EvalCache", "code_sha256", "default_cache_dir", "file_sha256", "key_hash", "mitsuba_id", "oidn_key", "slug",
+           "sources_sha256"]
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
@@ -167,3 +168,28 @@ def _json_default(value: Any) -> Any:
     if isinstance(value, Path):
         return str(value)
     raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+
+_MITSUBA: str | None = None
+
+
+def mitsuba_id() -> str:
+    """Mitsuba version + variant: a different build may sample differently, so it is part of render keys."""
+    global _MITSUBA
+    if _MITSUBA is None:
+        import mitsuba as mi
+
+        from gradsep.renderer.scene import select_variant
+
+        _MITSUBA = f"{mi.__version__}/{select_variant()}"
+    return _MITSUBA
+
+
+def oidn_key() -> dict[str, str]:
+    """The OIDN choice the environment makes (``$GRADSEP_OIDN_SETTING``), in every method's cache key: it changes
+    the OIDN methods' images (and so every equal-time budget) without a code change. Empty at the default, so
+    results cached before this key existed stay valid."""
+    from gradsep.model.oidn import METHOD_SETTING, method_setting
+
+    setting = method_setting()
+    return {"oidn_setting": setting} if setting != METHOD_SETTING else {}

@@ -53,9 +53,9 @@ class Preset:
     ref_seconds: float  # ... while both references of a scene together take at most this long to render
 
 
-#: Reference spp: cbox at 320x240 leaves a floor of 0.012 at 128 spp (0.0015 at 1024), teapot 0.0003 at 128
-#: (measured); the spp cap and the time budget keep the full report's references within 4 minutes per scene on
-#: 2 cores, so the whole report stays well under 40 minutes (docs/evaluation.md).
+#: Reference spp, doubled up to the cap until the references' floor is under the scenes' ranked RelMSEs
+#: (docs/evaluation.md has the floors measured); the cap and the time budget bound each scene's references, and so
+#: the full report's time on the CPU target (docs/evaluation.md).
 FULL = Preset(320, 240, (1, 2, 4, 8, 16, 32, 64), 512, 4096, 240.0)
 QUICK = Preset(96, 72, (1, 4, 16), 128, 1024, 20.0)
 #: The reference floor must stay under this fraction of the scene's smallest ranked RelMSE.

@@ -16,6 +16,7 @@ from __future__ import annotations
 import io
 import math
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -25,7 +26,7 @@ from gradsep.evaluation.results import row_seconds
 from gradsep.model.exr_write import write_bytes_atomic
 from gradsep.model.metrics import tonemap
 
-__all__ = ["METHOD_STYLES", "exposure_for", "plot_crops", "plot_error_vs_time", "select_crop", "style_of"]
+__all__ = ["METHOD_STYLES", "CropPanels", "exposure_for", "plot_crops", "plot_error_vs_time", "select_crop", "style_of"]
 
 _LUMINANCE = np.array([0.2126, 0.7152, 0.0722], dtype=np.float64)
 
@@ -151,10 +152,20 @@ def select_crop(reference: np.ndarray, size: int | None = None) -> tuple[int, in
     return int(y0), int(x0), side
 
 
-def plot_crops(scene: str, reference: np.ndarray, images: Mapping[str, np.ndarray], panels: Sequence[str],
-               labels: Mapping[str, str], metrics: Mapping[str, float], spp: int, path: Path) -> Path:
+@dataclass(frozen=True)
+class CropPanels:
+    """What the crop comparison shows: the methods in their order, their labels and their RelMSE (over the frame)."""
+
+    names: Sequence[str]
+    labels: Mapping[str, str]
+    metrics: Mapping[str, float]
+
+
+def plot_crops(scene: str, reference: np.ndarray, images: Mapping[str, np.ndarray], crops: CropPanels, spp: int,
+               path: Path) -> Path:
     """The Fig. 6 layout: the full frame (ours, else the reference) with the crop marked, then one crop per
-    method of ``panels`` (a grey "not evaluated" panel for a missing one) and the reference's crop last."""
+    method of ``crops.names`` (a grey "not evaluated" panel for a missing one) and the reference's crop last."""
+    panels, labels, metrics = crops.names, crops.labels, crops.metrics
     y0, x0, side = select_crop(reference)
     scale = exposure_for(reference)
 

@@ -79,8 +79,8 @@ SEED_STREAMS = {"pass": 1, "pilot": 2, "region": 3}
 REGION_SOURCES = ("evaluation/region.py",)
 
 # Raise the references to this much more than the floor's 1/spp fall predicts: the floor is itself an estimate
-# (heavy-tailed pixels make it noisy) and falls a little slower than 1/spp where paths are rare (measured slopes
-# -0.9 to -1.0 on cbox, teapot, procedural:90001; docs/evaluation.md, "Reference sampler").
+# (heavy-tailed pixels make it noisy) and falls a little slower than 1/spp where paths are rare (the measured
+# slopes: docs/evaluation.md, "Reference sampler").
 RAISE_MARGIN = 1.25
 
 
@@ -255,3 +255,30 @@ class ReferenceSource:
                              "gradsep.region_spp": str(region_passes * self.base_spp)})
         return ReferencePair(spp, first, second, key_hash(tag_key), seconds, metadata, region,
                              region_passes * self.base_spp)
+
+
+def within_time(spp: int, wanted: int, seconds: float, budget: float, step: int | None = None,
+                 to_render: Callable[[int], int] | None = None) -> int | None:
+    """The largest spp up to ``wanted`` whose new rendering (both references) is predicted to fit ``budget``
+    seconds: a power-of-two multiple of ``spp`` (``step`` None) or a multiple of ``step`` (the pass spp); None
+    when nothing above ``spp`` fits. Render time is predicted linearly in spp from the ``seconds`` the current
+    ``spp`` took. With ``to_render`` (spp -> passes of that level not in the cache yet, ``step`` given), only
+    those count: passes already cached (a farm's shards, an earlier run) cost this run nothing, whatever time
+    they were recorded with; without it every pass above the current ``spp`` is new."""
+    if not (seconds > 0 and math.isfinite(seconds)):
+        return wanted  # no timing recorded: the spp cap alone decides
+    if step is not None:
+        per_pass = seconds / (2 * spp / step)  # both references: two passes per step
+        level = wanted // step * step
+        while level > spp:
+            new = to_render(level) if to_render is not None else 2 * (level - spp) // step
+            if new * per_pass <= budget:
+                return level
+            level -= step
+        return None
+    best = None
+    level = spp * 2
+    while level <= wanted and seconds * (level - spp) / spp <= budget:
+        best = level
+        level *= 2
+    return best

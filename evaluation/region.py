@@ -2,7 +2,7 @@
 
 A reference's floor is rarely spread evenly over the frame: caustics, small bright emitters seen through glossy
 bounces and other rare paths put most of it into part of the image (on a held-out scene of the evaluation, a
-quarter of the pixels held 83 % of it). Raising the whole frame's spp pays for every pixel to shrink that part;
+quarter of the pixels held most of it). Raising the whole frame's spp pays for every pixel to shrink that part;
 rendering extra passes over one rectangle around it buys the same floor for a fraction of the samples.
 
 The region is one rectangle, chosen from a *pilot*: :data:`PILOT_PASSES` full-frame passes with seeds of their
@@ -16,7 +16,7 @@ From the pilot, each :data:`TILE` × :data:`TILE` tile's share of the floor is e
 passes over the squared pilot mean, as model.metrics.reference_floor normalises it). The rectangle is the one
 that reaches a :data:`DESIGN_REDUCTION`-fold smaller floor with the fewest extra samples (area × extra spp); where
 the floor is spread evenly that is the whole frame, and region passes are then just more passes. The amount of
-region passes is decided later, against the floor the evaluation needs (evaluation/run.py).
+region passes is decided later, against the floor the evaluation needs (evaluation/convergence.py).
 
 A region pass renders the rectangle alone (Mitsuba's film crop) with the reference sampler and ``path`` at the
 scene's depth and at depth 2, exactly like a full pass (renderer.reference.render_loaded), so with the box pixel
@@ -38,9 +38,9 @@ __all__ = ["DESIGN_REDUCTION", "PILOT_PASSES", "TILE", "Region", "choose_region"
 TILE = 16  # pixels per side of the tiles the rectangle is built from
 PILOT_PASSES = 8  # full-frame passes at the starting spp, seeds of their own; used only to place the region
 # The floor reduction the rectangle is chosen for, fixed so that the region (and its cache entries) does not
-# depend on the target. On the scene measured (docs/evaluation.md, "Region passes") a rectangle chosen for 3x
-# cost within 5 % of the cheapest for every needed reduction from 1.5x to 2.3x, and still reached 3x and 4x
-# cheaply; one chosen for 2x leaves too little of the floor inside to go much past 2x.
+# depend on the target. On the scene measured (docs/evaluation.md, "Region passes") a rectangle chosen for this
+# reduction cost close to the cheapest for every smaller reduction needed and still reached larger ones cheaply;
+# one chosen for a smaller reduction leaves too little of the floor inside to go much past it.
 DESIGN_REDUCTION = 3.0
 
 

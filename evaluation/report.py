@@ -19,16 +19,17 @@ import os
 import platform
 import shlex
 import sys
-from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from gradsep.evaluation.cache import slug
 from gradsep.evaluation.config import EvalSettings, crop_methods
 from gradsep.evaluation.methods import ABLATION_VARIANTS, evaluated_methods
-from gradsep.evaluation.plots import plot_crops, plot_error_vs_time
+from gradsep.evaluation.plots import CropPanels, plot_crops, plot_error_vs_time
 from gradsep.evaluation.references import REFERENCE_SAMPLER
+from gradsep.evaluation.report_cells import bold_best, by_method, fmt, stderr_cell
+from gradsep.evaluation.report_time import GPT_EQUAL_TIME, equal_time, over_budget, planner_choice
 from gradsep.evaluation.results import machine_summary, row_seconds
 from gradsep.model.exr_write import write_bytes_atomic
 from gradsep.model.policy import DEFAULT_ALPHA, MODELS_ENV
@@ -95,10 +96,11 @@ def write_outputs(evaluation: Evaluation) -> dict[str, Path]:
         if scene_rows:
             paths[f"plot:{name}"] = plot_error_vs_time(name, scene_rows, labels(), out / "plots" / f"{slug(name)}.png",
                                                        scene.floor.get("total"))
-        table = _by_method(scene_rows, evaluation.config.crop_spp)
+        table = by_method(scene_rows, evaluation.config.crop_spp)
         metrics = {m: float(r["relmse"]) for m, r in table.items()}
-        paths[f"crop:{name}"] = plot_crops(name, scene.reference, scene.crop_images, crop_methods(), _crop_labels(),
-                                           metrics, evaluation.config.crop_spp, out / "crops" / f"{slug(name)}.png")
+        crops = CropPanels(crop_methods(), _crop_labels(), metrics)
+        paths[f"crop:{name}"] = plot_crops(name, scene.reference, scene.crop_images, crops, evaluation.config.crop_spp,
+                                           out / "crops" / f"{slug(name)}.png")
     paths["json"] = out / "results.json"
     write_bytes_atomic(paths["json"], json.dumps(_summary(evaluation), indent=1, default=str).encode())
     paths["report"] = out / "report.md"
@@ -211,26 +213,13 @@ def software() -> dict[str, str]:
 # -------------------------------------------------------------------------------------------- analysis
 
 
-def _by_method(rows: Iterable[Mapping[str, Any]], spp: int) -> dict[str, Mapping[str, Any]]:
-    return {str(r["method"]): r for r in rows if int(r["spp"]) == spp}
-
-
-def _fmt(value: Any, digits: int = 4) -> str:
-    if value is None:
-        return "–"
-    value = float(value)
-    if math.isinf(value):
-        return "∞"
-    return f"{value:.{digits}g}"
-
-
 def losses_of_ours(rows: Sequence[Mapping[str, Any]]) -> list[str]:
     """Every (scene, spp) where some other method has a lower RelMSE than ours, as sentences."""
     out = []
     scenes = sorted({str(r["scene"]) for r in rows}, key=lambda s: [str(r["scene"]) for r in rows].index(s))
     for scene in scenes:
         for spp in sorted({int(r["spp"]) for r in rows if r["scene"] == scene}):
-            table = _by_method((r for r in rows if r["scene"] == scene), spp)
+            table = by_method((r for r in rows if r["scene"] == scene), spp)
             if "ours" not in table:
                 continue
             ours = float(table["ours"]["relmse"])
@@ -240,12 +229,6 @@ def losses_of_ours(rows: Sequence[Mapping[str, Any]]) -> list[str]:
                 who = ", ".join(f"{m} {v:.4g}" for v, m in better)
                 out.append(f"{scene}, {spp} spp: ours {ours:.4g}; lower: {who}")
     return out
-
-
-def _bold_best(values: dict[str, float | None], higher: bool) -> dict[str, str]:
-    present = {k: v for k, v in values.items() if v is not None and not math.isnan(v)}
-    best = (max if higher else min)(present.values()) if present else None
-    return {k: ("–" if v is None else (f"**{_fmt(v)}**" if v == best else _fmt(v))) for k, v in values.items()}
 
 
 # --------------------------------------------------------------------------------------------- report
@@ -261,7 +244,7 @@ def render_report(evaluation: Evaluation) -> str:
     lines += _floors(evaluation)
     lines += _table1(evaluation, spp)
     lines += _ablation(evaluation, spp)
-    lines += _equal_time(evaluation)
+    lines += equal_time(evaluation)
     lines += planner_choice(evaluation.rows)
     lines += ["## Error against time", "",
               "RelMSE against total wall time per frame (render + reconstruction), log–log, one curve per method; "
@@ -340,11 +323,11 @@ def _table1(evaluation: Evaluation, spp: int) -> list[str]:
              "| Scene | Method | " + " | ".join(h for _, h, _ in TABLE1_METRICS) + " |",
              "|---|---|" + "---:|" * len(TABLE1_METRICS)]
     for scene in evaluation.scenes:
-        table = _by_method((r for r in evaluation.rows if r["scene"] == scene.entry.name), spp)
+        table = by_method((r for r in evaluation.rows if r["scene"] == scene.entry.name), spp)
         cells = {}
         for metric, _, higher in TABLE1_METRICS:
             values = {m: (float(table[m][metric]) if m in table else None) for m, _ in table1()}
-            cells[metric] = _bold_best(values, higher)
+            cells[metric] = bold_best(values, higher)
         for i, (method, label) in enumerate(table1()):
             name = scene.entry.name if i == 0 else ""
             shown = label if method in table else f"{label} (skipped)"
@@ -362,9 +345,9 @@ def _ablation(evaluation: Evaluation, spp: int) -> list[str]:
     per_variant: dict[str, list[float]] = {n: [] for n in names}
     complete_scenes = 0
     for scene in evaluation.scenes:
-        table = _by_method((r for r in evaluation.rows if r["scene"] == scene.entry.name), spp)
+        table = by_method((r for r in evaluation.rows if r["scene"] == scene.entry.name), spp)
         values = {n: (float(table[n]["relmse"]) if n in table else None) for n in names}
-        cells = _bold_best(values, higher=False)
+        cells = bold_best(values, higher=False)
         lines.append(f"| {scene.entry.name} | " + " | ".join(cells[n] for n in names) + " |")
         if all(v is not None for v in values.values()):
             complete_scenes += 1
@@ -372,9 +355,9 @@ def _ablation(evaluation: Evaluation, spp: int) -> list[str]:
                 per_variant[n].append(float(values[n]))  # type: ignore[arg-type]
     if complete_scenes:
         means = {n: sum(v) / len(v) for n, v in per_variant.items()}
-        cells = _bold_best(means, higher=False)  # type: ignore[arg-type]
+        cells = bold_best(means, higher=False)  # type: ignore[arg-type]
         lines.append(f"| mean ({complete_scenes} scenes) | " + " | ".join(cells[n] for n in names) + " |")
-    lines.append("| paper (its scenes) | " + " | ".join(_fmt(PAPER_FIG7[v]) for v, _, _ in ABLATION_VARIANTS) + " |")
+    lines.append("| paper (its scenes) | " + " | ".join(fmt(PAPER_FIG7[v]) for v, _, _ in ABLATION_VARIANTS) + " |")
     lines.append("")
     lines += _ablation_verdicts(evaluation, spp)
     return [*lines, ""]
@@ -388,7 +371,7 @@ def _ablation_verdicts(evaluation: Evaluation, spp: int) -> list[str]:
     for factor, comparisons in pairs.items():
         wins = total = 0
         for scene in evaluation.scenes:
-            table = _by_method((r for r in evaluation.rows if r["scene"] == scene.entry.name), spp)
+            table = by_method((r for r in evaluation.rows if r["scene"] == scene.entry.name), spp)
             for without, with_ in comparisons:
                 a, b = table.get(f"ablation/{without}"), table.get(f"ablation/{with_}")
                 if a is not None and b is not None:
@@ -403,64 +386,6 @@ def _ablation_verdicts(evaluation: Evaluation, spp: int) -> list[str]:
     return lines
 
 
-EQUAL_TIME: tuple[tuple[str, str], ...] = (("gpt-oidn-l1", "G-PT+oidn-l1"), ("gpt-auto", "G-PT auto"), ("path", "path"),
-                                           ("path-oidn", "path+OIDN"), ("path-sep-oidn", "sep. path+OIDN/layer"))
-#: The equal-time rows that are G-PT methods themselves (counted in *best G-PT*), not baselines.
-GPT_EQUAL_TIME: frozenset[str] = frozenset({"gpt-oidn-l1", "gpt-auto"})
-#: An equal-time row is flagged when its measured total misses its budget by more than this.
-TIME_TOLERANCE = 0.05
-
-
-def over_budget(row: Mapping[str, Any]) -> bool:
-    """An equal-time row that took more than TIME_TOLERANCE over its budget (:func:`row_seconds`: an interpolated
-    row stands for its budget): it does not count as a G-PT result at equal time (*best G-PT*, the equal-time
-    targets), as it had more time than the rows it would be compared with. The planned row, not searched, is the
-    one this happens to (a checkpoint or a pass running past its deadline)."""
-    target = row.get("target_seconds")
-    return bool(target) and float(target) > 0 and row_seconds(row) > float(target) * (1 + TIME_TOLERANCE)
-
-
-def time_misses(rows: Sequence[Mapping[str, Any]]) -> list[str]:
-    """Every equal-time row whose measured total is outside ±5 % of its budget and whose metrics were not
-    interpolated to the budget (:func:`time_interpolations`), as sentences."""
-    out = []
-    for r in rows:
-        target = r.get("target_seconds")
-        if target in (None, "") or not float(target) > 0 or r.get("time_interpolated"):
-            continue
-        miss = float(r["total_seconds"]) / float(target) - 1.0
-        if abs(miss) > TIME_TOLERANCE:
-            reason = r.get("time_note") or "no reason recorded"
-            tries = r.get("attempts", "?")
-            out.append(f"{r['scene']}, {r['spp']} spp, {r['method']}: {float(r['total_seconds']):.3g} s for a "
-                       f"{float(target):.3g} s budget ({miss:+.0%}; {tries} {'try' if tries == 1 else 'tries'}, "
-                       f"kept {r['method_spp']} spp): {reason}")
-    return out
-
-
-def time_interpolations(rows: Sequence[Mapping[str, Any]]) -> list[str]:
-    """Every equal-time row whose metrics are interpolated to its budget between two tries, as sentences."""
-    return [f"{r['scene']}, {r['spp']} spp, {r['method']}: budget {float(r['target_seconds']):.3g} s, between "
-            f"{r['time_interpolated']} ({r.get('time_note') or 'no reason recorded'})"
-            for r in rows if r.get("target_seconds") and r.get("time_interpolated")]
-
-
-def _spp_cell(row: Mapping[str, Any]) -> str:
-    if int(row.get("seeds") or 1) > 1:  # the seeds' median spp; * when a seed was interpolated to the budget
-        return f"{row['method_spp']}{'*' if row.get('time_interpolated') else ''}"
-    bracket = row.get("time_bracket")
-    if row.get("time_interpolated") and isinstance(bracket, list) and len(bracket) == 2:
-        return f"{bracket[0]['spp']}–{bracket[1]['spp']}*"
-    return str(row["method_spp"])
-
-
-def _stderr(row: Mapping[str, Any]) -> str:
-    """`` ±SE`` after a multi-seed row's mean RelMSE (``--time-seeds``, ``--frame-seeds``), else nothing."""
-    if int(row.get("seeds") or 1) > 1 and row.get("relmse_stderr") is not None:
-        return f" ±{_fmt(row['relmse_stderr'], 2)}"
-    return ""
-
-
 def _frame_seeds_sentence(frame_seeds: int) -> str:
     """What the fixed-spp cells are over: one G-PT frame, or ``--frame-seeds`` N."""
     if frame_seeds <= 1:
@@ -468,138 +393,6 @@ def _frame_seeds_sentence(frame_seeds: int) -> str:
     return (f"Each fixed-spp cell is the mean over {frame_seeds} G-PT frames, each rendered with its own seed "
             "(`--frame-seeds`); results.json keeps each frame's `seed_relmse` and the RelMSE's standard error "
             "(`relmse_stderr`); crops show the first frame, and the equal-time budgets are the first frame's.")
-
-
-def _seeds_sentence(rows: Sequence[Mapping[str, Any]]) -> str:
-    """What the equal-time cells are over: one seed, or ``--time-seeds`` N."""
-    seeds = sorted({int(r.get("seeds") or 1) for r in rows if r.get("target_seconds")})
-    if seeds in ([], [1]):
-        return ("Each equal-time cell is one seed: rerunning the same code can move a row's RelMSE by tens of "
-                "percent (`--time-seeds N` averages N). ")
-    return (f"Each equal-time cell is the mean over {'/'.join(map(str, seeds))} seeds (`--time-seeds`), every seed "
-            "with its own time search and render at the budget; its spp is the seeds' median (* when a seed was "
-            "interpolated to the budget), its time their mean, and ±SE the standard error of the mean RelMSE "
-            "(results.json keeps each seed's `seed_relmse`, `seed_spp`, `seed_seconds`); the budget row is the "
-            "G-PT frame's one seed. ")
-
-
-def _search_method(rows: Sequence[Mapping[str, Any]]) -> str:
-    """How the rows' equal-time spp were found (each row records it; cached rows may predate the search)."""
-    methods = sorted({str(r.get("time_search") or "bisected") for r in rows
-                      if r.get("target_seconds") and "plan" not in r})  # the planned row is not searched
-    return " / ".join(methods) or "interpolated on the measured time curve"
-
-
-def _equal_time(evaluation: Evaluation) -> list[str]:
-    lines = ["## Equal time: G-PT + reconstruction against Mitsuba path, path + OIDN and separated path + OIDN", "",
-             f"Each equal-time method's spp is {_search_method(evaluation.rows)} until its measured total time "
-             "(render, feature pass and denoising) is within ±5 % of the time of the G-PT render + the "
-             "reconstruction by the product's default method for a G-PT frame (the first of "
-             "the methods table's default preference that ran; ours, then L1, when none did; column *budget*): a line "
-             "time = overhead + per-spp cost is fitted to the renders already measured and solved for the budget "
-             "(a secant step; bisection of the closest bracket when the line points at a tried spp), tries under "
-             "2 s or off the line's prediction by over 15 % are timed three times and their median used, at most "
-             "8 tries per row. The times shown are the measured ones. "
-             "The G-PT render of a method that integrates only the direct layer's gradients (`oidn-l1`; "
-             "results.csv `gradients` = direct) is `gradsep render --gradients direct` with the same seed: its "
-             "direct layer and indirect base equal those of the full render, its offsets stop after the direct "
-             "layer's vertices, and its render time is that mode's. "
-             "path + OIDN gets its albedo and normal from a separate feature pass (Mitsuba `aov`, spp in results.csv "
-             "`feature_spp`) whose time is counted; separated path + OIDN is the renderer's primal-only mode "
-             "(direct and indirect apart, first-hit features, no gradients) with OIDN on each layer. "
-             "Cells: spp / seconds / RelMSE; lowest RelMSE per row in bold (budget method and equal-time "
-             "methods). *best G-PT* is the lowest RelMSE of any reconstruction of the same G-PT frame, whatever "
-             "its time, and of the G-PT rows at equal time not over their budget by more than 5 %: G-PT+oidn-l1, "
-             "our renderer in `--gradients direct` mode (offsets `alternate`: one offset per axis, both MIS "
-             "techniques per pixel pair on half the samples) at the spp the budget buys, reconstructed with "
-             "`oidn-l1`, found like the baselines' spp; and G-PT auto, `gradsep render --seconds T --gradients "
-             "auto` in process, one render to a deadline of the budget with the measured reconstruction time kept "
-             "free (its checkpoint, which chooses the plan, charged), starting from each plan's pass costs and "
-             "the reconstruction's rate measured beforehand, untimed, like the searched rows' cost lines, then the "
-             "default method the frame names: not searched, so its time is what the planner's deadline gave (see "
-             "The planner's choice). "
-             + _seeds_sentence(evaluation.rows), "",
-             "| Scene | G-PT spp | budget | budget s | budget RelMSE | best G-PT | "
-             + " | ".join(label for _, label in EQUAL_TIME) + " |",
-             "|---|---:|---|---:|---:|---|" + "---:|" * len(EQUAL_TIME)]
-    any_row = False
-    for scene in evaluation.scenes:
-        scene_rows = [r for r in evaluation.rows if r["scene"] == scene.entry.name]
-        for spp in sorted({int(r["spp"]) for r in scene_rows}):
-            table = _by_method(scene_rows, spp)
-            present = [table[m] for m, _ in EQUAL_TIME if m in table]
-            if not present:
-                continue
-            any_row = True
-            anchor = present[0]
-            budget = anchor.get("budget_method") or ""
-            values = {m: (float(table[m]["relmse"]) if m in table else None) for m in (budget, *dict(EQUAL_TIME))}
-            cells = _bold_best(values, higher=False)
-            parts = [f"{_spp_cell(table[m])} / {_fmt(row_seconds(table[m]), 3)} s / {cells[m]}{_stderr(table[m])}"
-                     if m in table else "–" for m, _ in EQUAL_TIME]
-            baselines = set(dict(EQUAL_TIME)) - GPT_EQUAL_TIME
-            gpt = {m: float(r["relmse"]) for m, r in table.items()
-                   if m not in baselines and m not in ("gpt-primal", "path") and r.get("relmse") is not None
-                   and not over_budget(r)}
-            best = min(gpt, key=gpt.__getitem__) if gpt else None
-            best_cell = f"{_fmt(gpt[best], 4)} ({best})" if best else "–"
-            lines.append(f"| {scene.entry.name} | {spp} | {budget or '–'} | {_fmt(anchor.get('target_seconds'), 3)} | "
-                         f"{cells.get(budget, '–')} | {best_cell} | " + " | ".join(parts) + " |")
-    if not any_row:
-        lines.append("| (equal-time methods not evaluated) |" + " |" * (4 + len(EQUAL_TIME)))
-    misses = time_misses(evaluation.rows)
-    lines += ["", "Equal-time rows outside ±5 % of their budget: " + ("none." if not misses else ""), ""]
-    lines += [f"- {m}" for m in misses]
-    interpolated = time_interpolations(evaluation.rows)
-    if interpolated:
-        lines += ["", "Rows marked * (spp `a–b*`): no spp landed within ±5 % of the budget (one sample costs more "
-                  "than 5 % of it, or the timings were too noisy), so every metric of the row is interpolated to the "
-                  "budget between the slowest too-fast and the fastest too-slow try, in log time (RelMSE and FLIP "
-                  "in log value: an error falling as a power of time is a line there; SSIM and PSNR linearly); "
-                  "the time shown is the budget. The issue allows this for rows the spp cannot resolve. Crops show "
-                  "the try closer to the budget.", ""]
-        lines += [f"- {m}" for m in interpolated]
-    return [*lines, ""]
-
-
-#: The planned row's prediction counts as right within this factor of the measured RelMSE (issue 39's target).
-PREDICTION_FACTOR = 1.5
-#: The fixed pipelines the planned row is compared with at equal time (the budget method's row, at the budget's
-#: own time, joins them): G-PT direct/alternate + oidn-l1, path + OIDN on the sum, separated path + OIDN per layer.
-FIXED_EQUAL_TIME: tuple[str, ...] = ("gpt-oidn-l1", "path-oidn", "path-sep-oidn")
-
-
-@dataclass(frozen=True)
-class PlannedFrame:
-    """One frame of a ``gpt-auto`` row (one per seed with ``--time-seeds``): what the planner chose and predicted."""
-
-    label: str  # "" for a single-seed row, else "seed k"
-    plan: str | None
-    predicted: float | None  # the chosen plan's predicted RelMSE; None: no checkpoint ran (``note`` says why)
-    note: str | None
-    measured: float
-    spp: int
-    seconds: float
-
-    @property
-    def ratio(self) -> float | None:
-        """predicted / measured, or None where either is missing or the measured RelMSE is not positive."""
-        if self.predicted is None or not self.measured > 0:
-            return None
-        return float(self.predicted) / self.measured
-
-
-def planned_frames(row: Mapping[str, Any]) -> list[PlannedFrame]:
-    """The frames of a ``gpt-auto`` row: each seed's of a multi-seed row (evaluation.run.seed_mean keeps them),
-    else the row's own."""
-    if int(row.get("seeds") or 1) > 1 and isinstance(row.get("seed_plan"), list):
-        n = len(row["seed_plan"])
-        notes = row.get("seed_predicted_note") or [None] * n
-        return [PlannedFrame(f"seed {k}", row["seed_plan"][k], row["seed_predicted_relmse"][k], notes[k],
-                             float(row["seed_relmse"][k]), int(row["seed_spp"][k]), float(row["seed_seconds"][k]))
-                for k in range(n)]
-    return [PlannedFrame("", row.get("plan"), row.get("predicted_relmse"), row.get("predicted_note"),
-                         float(row["relmse"]), int(row["method_spp"]), row_seconds(row))]
 
 
 def display_spec(spec: str) -> str:
@@ -615,81 +408,6 @@ def display_spec(spec: str) -> str:
             if path.is_relative_to(root):
                 return prefix + path.relative_to(root).as_posix()
     return spec
-
-
-def planner_choice(rows: Sequence[Mapping[str, Any]]) -> list[str]:
-    """The section "The planner's choice": per scene and G-PT spp (budget), the plan the ``gpt-auto`` row chose,
-    each judged plan's and the chosen plan's predicted RelMSE against the measured one (within PREDICTION_FACTOR
-    or not), and the row against the best fixed pipeline at equal time; a summary of both, and why a row has no
-    prediction."""
-    planned = [r for r in rows if r["method"] == "gpt-auto"]
-    lines = ["## The planner's choice", ""]
-    if not planned:
-        return [*lines, "The planned row (`gpt-auto`) was not evaluated (see skipped methods).", ""]
-    lines += ["`gpt-auto` is `gradsep render --seconds T --gradients auto` at equal time (T the budget of the "
-              "Equal time section, its checkpoint charged), reconstructed with the default method the frame names. "
-              "The frame starts as `direct-alternate`; at a checkpoint its halves predict, from the frame alone, "
-              "each plan's RelMSE after reconstruction at the samples the rest of the budget buys it, and the rest "
-              "is `primal` only where that is clearly lower. *predicted* is the frame's own "
-              "estimate from its two halves (renderer/check.py) where it fits the budget, else the checkpoint's "
-              "prediction for the chosen plan. *predicted / measured* compares it with the RelMSE measured "
-              "against the references (within "
-              f"{PREDICTION_FACTOR:g}× counts as right); *best fixed* is the lowest RelMSE of the fixed pipelines at "
-              "equal time (the budget method's row on the G-PT frame, "
-              + ", ".join(f"`{m}`" for m in FIXED_EQUAL_TIME) + ") and *auto / best* the planned row against it "
-              "(a multi-seed row by its mean). A frame without a prediction had no checkpoint: it is "
-              "`direct-alternate` throughout (listed below with why). The plans' predictions and plan layers are "
-              "those of the row's first seed.", "",
-              "| Scene | G-PT spp | budget s | auto s | plan | plan layers | spp | checkpoint s | plans' predicted "
-              "RelMSE | predicted | measured | predicted / measured | within | best fixed | auto / best |",
-              "|---|---:|---:|---:|---|---|---:|---:|---|---:|---:|---:|---|---|---:|"]
-    frames: list[PlannedFrame] = []
-    missing, ratios = [], []
-    for r in planned:
-        table = {str(o["method"]): o for o in rows if o["scene"] == r["scene"] and int(o["spp"]) == int(r["spp"])}
-        fixed = {m: float(table[m]["relmse"]) for m in (r.get("budget_method"), *FIXED_EQUAL_TIME)
-                 if m in table and table[m].get("relmse") is not None}
-        best = min(fixed, key=fixed.__getitem__) if fixed else None
-        best_cells = "– | –"
-        if best is not None and fixed[best] > 0:
-            ratios.append(float(r["relmse"]) / fixed[best])
-            best_cells = f"{_fmt(fixed[best])} ({best}) | {ratios[-1]:.3f}×"
-        candidates = ", ".join(f"{name} {_fmt(v)}" for name, v in (r.get("plan_candidates") or {}).items()) or "–"
-        for f in planned_frames(r):
-            frames.append(f)
-            scene = f"{r['scene']}{f' ({f.label})' if f.label else ''}"
-            ratio = f.ratio
-            if f.predicted is None:
-                verdict = "no prediction"
-                missing.append(f"{scene}, {r['spp']} spp: {f.note or 'no reason recorded'}")
-            elif ratio is None:
-                verdict = "**no** (measured ≤ 0)"
-            else:
-                verdict = "yes" if _within(ratio) else "**no**"
-            lines.append(f"| {scene} | {r['spp']} | {_fmt(r.get('target_seconds'), 3)} | {_fmt(f.seconds, 3)} | "
-                         f"{f.plan or '–'} | {r.get('plan_layers') or '–'} | {f.spp} | "
-                         f"{_fmt(r.get('pilot_seconds'), 3)} | {candidates} | {_fmt(f.predicted)} | "
-                         f"{_fmt(f.measured)} | {'–' if ratio is None else f'{ratio:.2f}'} | {verdict} | "
-                         f"{best_cells} |")
-    predicted = [f for f in frames if f.predicted is not None]
-    within = sum(f.ratio is not None and _within(f.ratio) for f in predicted)
-    lines += ["", f"The chosen plan's predicted RelMSE is within {PREDICTION_FACTOR:g}× of the measured one on "
-              f"{within} of {len(predicted)} frames with a prediction"
-              + (f" ({within / len(predicted):.0%})" if predicted else "")
-              + f"; {len(frames) - len(predicted)} of {len(frames)} frames have none."]
-    positive = [x for x in ratios if x > 0]  # a measured RelMSE can be <= 0 (below the references' resolution)
-    if positive:
-        geo = math.exp(sum(math.log(x) for x in positive) / len(positive))
-        lines.append(f"Against the best fixed pipeline at equal time: at most 1.05× on "
-                     f"{sum(x <= 1.05 for x in ratios)} of {len(ratios)} rows; geometric mean of auto / best "
-                     f"{_fmt(geo, 3)}× (over the {len(positive)} rows with a positive RelMSE).")
-    if missing:
-        lines += ["", "Frames without a prediction:", "", *(f"- {m}" for m in missing)]
-    return [*lines, ""]
-
-
-def _within(ratio: float) -> bool:
-    return 1 / PREDICTION_FACTOR <= ratio <= PREDICTION_FACTOR
 
 
 def _floors(evaluation: Evaluation) -> list[str]:
@@ -725,9 +443,9 @@ def _floors(evaluation: Evaluation) -> list[str]:
             x, y, w, h = scene.reference_region
             share = w * h / (scene.width * scene.height)
             spp += f" + {scene.region_spp} in {w}×{h} at ({x}, {y}) ({share:.0%} of the pixels)"
-        lines.append(f"| {scene.entry.name} | {spp} | {_fmt(floor, 3)} | "
-                     f"{_fmt(scene.floor.get('direct'), 3)} | {_fmt(scene.floor.get('indirect'), 3)} | "
-                     f"{_fmt(scene.smallest, 3)} | {ratio:.1%}{flag} | {scene.reference_seconds:.0f} |")
+        lines.append(f"| {scene.entry.name} | {spp} | {fmt(floor, 3)} | "
+                     f"{fmt(scene.floor.get('direct'), 3)} | {fmt(scene.floor.get('indirect'), 3)} | "
+                     f"{fmt(scene.smallest, 3)} | {ratio:.1%}{flag} | {scene.reference_seconds:.0f} |")
         if scene.capped:
             warnings.append(f"**Warning: {scene.entry.name}: the references stopped at {scene.reference_spp} spp "
                             f"each ({scene.cap_reason}) with the floor at {ratio:.0%} of the smallest ranked "
@@ -742,7 +460,7 @@ def _table1_losses(evaluation: Evaluation, spp: int) -> list[str]:
     """Per scene, the Table 1 metrics on which ours is not the best of the Table 1 methods."""
     lines = []
     for scene in evaluation.scenes:
-        table = _by_method((r for r in evaluation.rows if r["scene"] == scene.entry.name), spp)
+        table = by_method((r for r in evaluation.rows if r["scene"] == scene.entry.name), spp)
         if "ours" not in table:
             continue
         for metric, header, higher in TABLE1_METRICS:
@@ -750,8 +468,8 @@ def _table1_losses(evaluation: Evaluation, spp: int) -> list[str]:
             better = [(label, float(table[m][metric])) for m, label in table1() if m != "ours" and m in table
                       and (float(table[m][metric]) > ours if higher else float(table[m][metric]) < ours)]
             if better:
-                who = ", ".join(f"{label} {_fmt(v)}" for label, v in better)
-                lines.append(f"- Table 1, {scene.entry.name}: {header.split()[0]} of ours {_fmt(ours)}; better: {who}")
+                who = ", ".join(f"{label} {fmt(v)}" for label, v in better)
+                lines.append(f"- Table 1, {scene.entry.name}: {header.split()[0]} of ours {fmt(ours)}; better: {who}")
     if lines:
         lines = [f"Table 1 metrics ({spp} spp) on which ours is not the best of the Table 1 rows:", "",
                  *lines, ""]
@@ -764,7 +482,7 @@ def _targets(rows: Sequence[Mapping[str, Any]]) -> list[str]:
     found = False
     for scene in dict.fromkeys(str(r["scene"]) for r in rows):
         for spp in (16, 64):
-            table = _by_method((r for r in rows if r["scene"] == scene), spp)
+            table = by_method((r for r in rows if r["scene"] == scene), spp)
             if all(m in table for m in ("ours", "l1", "gpt-primal")):
                 found = True
                 o, l1, p = (float(table[m]["relmse"]) for m in ("ours", "l1", "gpt-primal"))
@@ -781,7 +499,7 @@ FUSED_RIVALS: tuple[str, ...] = ("oidn", "l1", "ours")
 
 def _ratio_cell(value: float, rival: float) -> str:
     ratio = value / rival if rival > 0 else math.inf
-    return f"{_fmt(value)} / {_fmt(rival)} = {ratio:.3f}×"
+    return f"{fmt(value)} / {fmt(rival)} = {ratio:.3f}×"
 
 
 def _fused_and_equal_time_targets(rows: Sequence[Mapping[str, Any]]) -> list[str]:
@@ -794,7 +512,7 @@ def _fused_and_equal_time_targets(rows: Sequence[Mapping[str, Any]]) -> list[str
     found = False
     for scene in dict.fromkeys(str(r["scene"]) for r in rows):
         for spp in (16, 64):
-            table = _by_method((r for r in rows if r["scene"] == scene), spp)
+            table = by_method((r for r in rows if r["scene"] == scene), spp)
             if "fused" in table and all(m in table for m in FUSED_RIVALS):
                 found = True
                 best = min(FUSED_RIVALS, key=lambda m: float(table[m]["relmse"]))
@@ -838,7 +556,7 @@ def _relmse_tables(evaluation: Evaluation) -> list[str]:
             for s in spps:
                 r = next((r for r in scene_rows if r["method"] == method and int(r["spp"]) == s), None)
                 star = "*" if r is not None and r.get("time_interpolated") else ""
-                cell = f"{_fmt(r['relmse'])}{_stderr(r)} / {_fmt(row_seconds(r), 3)} s{star}" if r else "–"
+                cell = f"{fmt(r['relmse'])}{stderr_cell(r)} / {fmt(row_seconds(r), 3)} s{star}" if r else "–"
                 cells.append(cell)
             lines.append(f"| {labels().get(method, method)} | " + " | ".join(cells) + " |")
         lines.append("")

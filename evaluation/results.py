@@ -58,7 +58,7 @@ class Evaluation:
 
 def row_seconds(row: Mapping[str, Any]) -> float:
     """The time a row stands for: its equal-time budget when its metrics were interpolated to it
-    (evaluation.run.interpolated_scores), else its measured total; a multi-seed row (evaluation.run.seed_mean):
+    (evaluation.scores.interpolated_scores), else its measured total; a multi-seed row (evaluation.scores.seed_mean):
     the mean over its seeds of this."""
     if int(row.get("seeds") or 1) > 1:
         return float(row["total_seconds"])

@@ -30,33 +30,30 @@ from typing import Any
 
 import numpy as np
 
-from gradsep.evaluation.cache import EvalCache, file_sha256, key_hash, sources_sha256
-from gradsep.evaluation.config import FLOOR_FRACTION, EvalConfig, SceneEntry, crop_methods, resolve_scenes
+from gradsep.evaluation.baselines import PathRenderer
+from gradsep.evaluation.cache import EvalCache, file_sha256, key_hash, mitsuba_id, oidn_key, sources_sha256
+from gradsep.evaluation.config import EvalConfig, SceneEntry, crop_methods, resolve_scenes
+from gradsep.evaluation.convergence import converge_references
 from gradsep.evaluation.methods import (
     EQUAL_TIME_KINDS,
     METHOD_SOURCES,
     PLAN_ROW_KEYS,
     PLANNER_SOURCES,
     BracketOutput,
-    MethodContext,
     MethodOutput,
     MethodSpec,
-    NetworkPool,
-    PathRenderer,
-    interpolate_at,
     method_by_name,
-    run_method,
     unavailable,
 )
 from gradsep.evaluation.references import (
-    RAISE_MARGIN,
     REFERENCE_SAMPLER,
     ReferencePair,
     ReferenceSource,
-    next_reference_spp,
 )
 from gradsep.evaluation.region import Region
-from gradsep.evaluation.results import Evaluation, SceneRun, machine_summary, row_seconds
+from gradsep.evaluation.results import Evaluation, SceneRun, machine_summary
+from gradsep.evaluation.runners import MethodContext, NetworkPool, run_method
+from gradsep.evaluation.scores import Output, image_scores, interpolated_scores, seed_mean
 from gradsep.model.errors import CommandError
 from gradsep.model.methods import get as table_method
 from gradsep.model.policy import SEPARATED_LAYERS
@@ -73,7 +70,7 @@ RENDERER_SOURCES = ("renderer/gpt.py", "renderer/gpt_loop.py", "renderer/gpt_set
                     "renderer/render.py", "renderer/scene.py", "renderer/variant.py", "model/policy.py")
 REFERENCE_SOURCES = ("renderer/reference.py", "renderer/scene.py", "renderer/variant.py")
 RESULT_FORMAT = 3  # bump when the cached output/score JSON changes shape
-SCORE_SOURCES = ("model/metrics.py", "evaluation/run.py")
+SCORE_SOURCES = ("model/metrics.py", "evaluation/scores.py", "evaluation/run.py")
 
 
 # ---------------------------------------------------------------------------------------------- the run
@@ -82,35 +79,6 @@ SCORE_SOURCES = ("model/metrics.py", "evaluation/run.py")
 def _derived_seed(*parts: int) -> int:
     """A 32-bit seed from integers (distinct runs, spp and purposes never share sampler streams)."""
     return int(np.random.SeedSequence([int(p) for p in parts]).generate_state(1, dtype=np.uint32)[0])
-
-
-@dataclass
-class _Output:
-    """One method's output on one (scene, spp): the row without scores, its images, its cache key hash."""
-
-    spec: MethodSpec
-    spp: int
-    row: dict[str, Any]
-    image: np.ndarray
-    layers: dict[str, np.ndarray]
-    tag: str
-    bracket: list[BracketOutput] = field(default_factory=list)  # see MethodOutput.bracket
-    #: The same equal-time row rendered with the other ``--time-seeds`` seeds (each its own time search), or the
-    #: same fixed-spp method on the other ``--frame-seeds`` frames; the row's metrics are the mean over this
-    #: output and these (:func:`seed_mean`).
-    replicas: list[_Output] = field(default_factory=list)
-
-    def interpolation(self) -> tuple[float, BracketOutput, BracketOutput] | None:
-        """(budget, too-fast try, too-slow try) when this row's metrics are interpolated to its budget, else None."""
-        target = self.row.get("target_seconds")
-        if len(self.bracket) != 2 or not target:
-            return None
-        return float(target), self.bracket[0], self.bracket[1]
-
-
-#: Metrics interpolated in log value (errors: a power of time is a line in log-log); the others (SSIM, PSNR,
-#: already a logarithm) linearly in value. Both in log time.
-LOG_INTERPOLATED = ("relmse", "flip", *(f"relmse_{layer}" for layer in SEPARATED_LAYERS))
 
 
 class _Runner:
@@ -189,7 +157,7 @@ class _Runner:
         # The sampler is in the key by name (not only through the reference code's hash), so a cache rendered
         # with another sampler is never mixed into these references.
         key = {"scene": entry.identity, "size": [loaded.width, loaded.height], "max_depth": loaded.max_depth,
-               "seed": c.seed, "code": self.reference_code, "mitsuba": _mitsuba_id(), "sampler": REFERENCE_SAMPLER}
+               "seed": c.seed, "code": self.reference_code, "mitsuba": mitsuba_id(), "sampler": REFERENCE_SAMPLER}
 
         def render_pass(spp: int, seed: int) -> Any:
             self.computed["references"] += 1
@@ -219,7 +187,7 @@ class _Runner:
         seed = _derived_seed(self.config.seed, 2, spp, *((replica,) if replica else ()))
         key = {"kind": "gpt-frame", "scene": entry.identity, "size": [loaded.width, loaded.height],
                "max_depth": loaded.max_depth, "spp": spp, "seed": seed, "shift": DEFAULT_SHIFT,
-               "gradients": gradients, "code": self.renderer_code, "mitsuba": _mitsuba_id()}
+               "gradients": gradients, "code": self.renderer_code, "mitsuba": mitsuba_id()}
         mode = "" if gradients == "all" else f"-{gradients}"
         stem = (f"{loaded.width}x{loaded.height}-d{loaded.max_depth}-spp{spp}-seed{self.config.seed}{mode}"
                 + (f"-r{replica}" if replica else ""))
@@ -248,7 +216,7 @@ class _Runner:
     # ----------------------------------------------------------------------------------------- outputs
 
     def output(self, spec: MethodSpec, scene: SceneRun, spp: int, ctx: MethodContext,
-               key: dict[str, Any], replica: int = 0) -> _Output:
+               key: dict[str, Any], replica: int = 0) -> Output:
         """One method's output on one (scene, spp), from the cache when possible (it does not depend on the
         references, so raising them re-scores without re-running anything). ``replica`` k > 0: the k-th extra
         seed of an equal-time row (``--time-seeds``) or the method on the k-th extra frame (``--frame-seeds``):
@@ -269,7 +237,7 @@ class _Runner:
                 bracket = [BracketOutput(int(b["spp"]), float(b["render_seconds"]), float(b["reconstruct_seconds"]),
                                          arrays[f"bracket{i}"], {n: arrays[f"bracket{i}.{n}"] for n in b["layers"]})
                            for i, b in enumerate(brackets)]
-                return _Output(spec, spp, {**cached["row"], "scene": scene.entry.name}, arrays["image"], layers, tag,
+                return Output(spec, spp, {**cached["row"], "scene": scene.entry.name}, arrays["image"], layers, tag,
                                bracket)
         out: MethodOutput = run_method(spec, ctx)
         for warning in out.warnings:
@@ -300,16 +268,16 @@ class _Runner:
         self.cache.save_json(path, {"format": RESULT_FORMAT, "key": key, "row": row, "layers": list(layers),
                                     "bracket": brackets})
         self.computed["results"] += 1
-        return _Output(spec, spp, row, out.image, layers, tag, list(out.bracket))
+        return Output(spec, spp, row, out.image, layers, tag, list(out.bracket))
 
-    def row(self, output: _Output, scene: SceneRun, pair: ReferencePair) -> dict[str, Any]:
+    def row(self, output: Output, scene: SceneRun, pair: ReferencePair) -> dict[str, Any]:
         """The output's report row: its own row and scores, or with replicas (``--time-seeds``,
         ``--frame-seeds``) the mean over the seeds (:func:`seed_mean`)."""
         if not output.replicas:
             return {**output.row, **self.score(output, scene, pair)}
         return seed_mean([{**o.row, **self.score(o, scene, pair)} for o in (output, *output.replicas)])
 
-    def score(self, output: _Output, scene: SceneRun, pair: ReferencePair) -> dict[str, Any]:
+    def score(self, output: Output, scene: SceneRun, pair: ReferencePair) -> dict[str, Any]:
         """The output's metrics against the pair (:func:`image_scores`; an equal-time row with a bracket:
         :func:`interpolated_scores`). Cached per (output, pair)."""
         key = {"format": RESULT_FORMAT, "output": output.tag, "references": pair.tag, "code": self.score_code}
@@ -327,109 +295,14 @@ class _Runner:
         return scores
 
 
-def image_scores(image: np.ndarray, layers: dict[str, np.ndarray], pair: ReferencePair) -> dict[str, Any]:
-    """RelMSE (total and per layer) by the product estimator; SSIM, PSNR and FLIP against the pair's mean."""
-    from gradsep.model.metrics import flip, psnr, relmse_unbiased, ssim
-
-    mean = pair.mean()
-    scores: dict[str, Any] = {"relmse": relmse_unbiased(image, pair.first["total"], pair.second["total"]),
-                              "ssim": ssim(image, mean), "psnr": psnr(image, mean), "flip": flip(image, mean)}
-    for layer in SEPARATED_LAYERS:
-        have = layer in layers and layer in pair.first
-        scores[f"relmse_{layer}"] = (relmse_unbiased(layers[layer], pair.first[layer], pair.second[layer])
-                                     if have else None)
-    return scores
-
-
-def interpolated_scores(target: float, bracket: list[BracketOutput], pair: ReferencePair) -> dict[str, Any]:
-    """An equal-time row that no spp could bring within the tolerance (one sample costs more than 5 % of the
-    budget, or the timings were too noisy): every metric of its two bracketing tries, interpolated to the budget
-    ``target`` in log time (errors in log value, :data:`LOG_INTERPOLATED`). ``time_interpolated`` says between
-    what it was interpolated."""
-    low, high = bracket
-    sides = [image_scores(b.image, b.layers, pair) for b in bracket]
-    scores: dict[str, Any] = {}
-    for name, v0 in sides[0].items():
-        v1 = sides[1][name]
-        if v0 is None or v1 is None or not (math.isfinite(v0) and math.isfinite(v1)):
-            scores[name] = v0 if abs(target - low.total_seconds) <= abs(target - high.total_seconds) else v1
-            continue
-        scores[name] = interpolate_at(target, (low.total_seconds, float(v0)), (high.total_seconds, float(v1)),
-                                      log_value=name in LOG_INTERPOLATED)
-    scores["time_interpolated"] = (f"{low.spp} spp ({low.total_seconds:.3g} s, RelMSE {sides[0]['relmse']:.4g}) and "
-                                   f"{high.spp} spp ({high.total_seconds:.3g} s, RelMSE {sides[1]['relmse']:.4g})")
-    return scores
-
-
-#: Metrics a multi-seed row averages (the others are the first seed's, with the per-seed values beside them).
-SEED_MEAN_METRICS = ("relmse", "ssim", "psnr", "flip", *(f"relmse_{layer}" for layer in SEPARATED_LAYERS))
-
-
-def seed_mean(rows: list[dict[str, Any]]) -> dict[str, Any]:
-    """One row from the same row rendered with several seeds (an equal-time row's ``--time-seeds``, each its own
-    time search; a fixed-spp row's ``--frame-seeds``, each its own G-PT frame; every row already scored): every
-    metric of :data:`SEED_MEAN_METRICS` is the mean over the seeds (None when
-    a seed has none), the time the mean of the seeds' times (:func:`row_seconds`: the budget for a seed
-    interpolated to it), ``method_spp`` the seeds' median. ``seeds``, ``seed_relmse``, ``seed_spp`` and
-    ``seed_seconds`` keep the seeds' own values, ``relmse_stderr`` the standard error of the mean RelMSE (sample
-    standard deviation / √seeds). A seed interpolated to the budget is named in ``time_interpolated``. The planned
-    row (``gpt-auto``) also keeps each seed's ``seed_plan``, ``seed_predicted_relmse`` and ``seed_predicted_note``;
-    its ``plan`` is the seeds' plans (``primal/all`` where they differ), its ``predicted_relmse`` their mean (None
-    when a seed has none), like its RelMSE."""
-    import statistics
-
-    first = rows[0]
-    out = dict(first)
-    for name in SEED_MEAN_METRICS:
-        values = [r.get(name) for r in rows]
-        out[name] = (float(np.mean([float(v) for v in values]))
-                     if all(v is not None and math.isfinite(float(v)) for v in values) else None)
-    seconds = [row_seconds(r) for r in rows]
-    relmse = [float(r["relmse"]) for r in rows]
-    out.update({"seeds": len(rows), "seed_relmse": relmse, "seed_spp": [int(r["method_spp"]) for r in rows],
-                "seed_seconds": seconds, "total_seconds": float(np.mean(seconds)),
-                "render_seconds": float(np.mean([float(r["render_seconds"]) for r in rows])),
-                "reconstruct_seconds": float(np.mean([float(r["reconstruct_seconds"]) for r in rows])),
-                "method_spp": int(statistics.median_low([int(r["method_spp"]) for r in rows])),
-                "relmse_stderr": statistics.stdev(relmse) / math.sqrt(len(rows)) if len(rows) > 1 else 0.0})
-    if any("plan" in r for r in rows):  # the planned row: each seed's own plan and prediction
-        predicted = [r.get("predicted_relmse") for r in rows]
-        out.update({"seed_plan": [r.get("plan") for r in rows], "seed_predicted_relmse": predicted,
-                    "seed_predicted_note": [r.get("predicted_note") for r in rows],
-                    "plan": "/".join(dict.fromkeys(str(r.get("plan")) for r in rows)),
-                    "predicted_relmse": (float(np.mean(predicted)) if all(p is not None for p in predicted)
-                                         else None)})
-    interpolated = [f"seed {k}: {r['time_interpolated']}" for k, r in enumerate(rows) if r.get("time_interpolated")]
-    out.pop("time_interpolated", None)
-    out.pop("time_bracket", None)
-    if interpolated:
-        out["time_interpolated"] = "; ".join(interpolated)
-    return out
-
-
-_MITSUBA: str | None = None
-
-
-def _mitsuba_id() -> str:
-    """Mitsuba version + variant: a different build may sample differently, so it is part of render keys."""
-    global _MITSUBA
-    if _MITSUBA is None:
-        import mitsuba as mi
-
-        from gradsep.renderer.scene import select_variant
-
-        _MITSUBA = f"{mi.__version__}/{select_variant()}"
-    return _MITSUBA
-
-
 def _budget_method(rows: dict[str, dict[str, Any]]) -> str | None:
     """The method whose total time is the equal-time budget: the product's default for a G-PT frame (the first
-    of the methods table's default preference that ran; its ``network`` is the evaluation's ``ours``), else ours,
-    else L1 (None: the G-PT render alone)."""
+    of the methods table's default preference that ran; its ``network`` is the evaluation's ``ours``; None: the
+    G-PT render alone)."""
     from gradsep.evaluation.methods import evaluation_name
     from gradsep.model import methods as table
 
-    for method in (*table.default_preference(), "network", "l1"):
+    for method in table.default_preference():
         name = evaluation_name(method)
         if name in rows:
             return name
@@ -454,7 +327,7 @@ def run_evaluation(config: EvalConfig, *, progress: bool | None = None,
     # every scene is loaded (and so validated) before anything renders, since a typo in the last scene should not
     # surface after an hour of work on the first ones; then released, and each loaded again for its own work only: a
     # loaded scene's objects stay registered with Dr.Jit, and every render traces its virtual calls over all of them
-    # (a 1-spp G-PT pass of the teapot at 320x240 took 0.17 s with three more scenes loaded, 0.03 s alone)
+    # (a small G-PT pass is several times slower with other scenes loaded than alone)
     for e in entries:
         load_scene(e.spec, width=config.width, height=config.height, max_depth=config.max_depth)
     gc.collect()
@@ -495,30 +368,28 @@ def _run_scene(runner: _Runner, entry: SceneEntry, loaded: Any, methods: list[Me
             cell.append(PathRenderer(loaded))
         return cell[0]
 
-    outputs: list[_Output] = []
+    outputs: list[Output] = []
     for spp in config.spp:
         bar.describe(f"{entry.name}: G-PT {spp} spp")
         frames = {"all": runner.frame(entry, loaded, spp)}
         bar.update()
-        done: dict[str, dict[str, Any]] = {}
-        keys: dict[str, str] = {}
+        state = _SppState(get_path)
         for spec in methods:
             bar.describe(f"{entry.name} {spp} spp: {spec.name}")
             if spec.gradients not in frames and unavailable(spec) is None:
                 frames[spec.gradients] = runner.frame(entry, loaded, spp, spec.gradients)
-            frame, seconds, frame_tag = frames.get(spec.gradients, frames["all"])
-            out = _evaluate_one(runner, spec, scene, spp, frame, seconds, frame_tag, get_path, done, keys)
+            out = _evaluate_one(runner, spec, scene, spp, frames.get(spec.gradients, frames["all"]), state)
             if out is not None:
                 if spec.kind not in EQUAL_TIME_KINDS:  # --frame-seeds: the method on the other frames too
                     for k in range(1, config.frame_seeds):
                         extra = runner.frame(entry, loaded, spp, spec.gradients, replica=k)
-                        more = _evaluate_one(runner, spec, scene, spp, *extra, get_path, done, keys, replica=k)
+                        more = _evaluate_one(runner, spec, scene, spp, extra, state, replica=k)
                         if more is not None:
                             out.replicas.append(more)
                 outputs.append(out)
             bar.update()
     bar.describe(f"{entry.name}: references")
-    pair = _converge_references(runner, scene, runner.references(entry, loaded), outputs)
+    pair = converge_references(runner, scene, runner.references(entry, loaded), outputs)
     bar.update()
     bar.describe(f"{entry.name}: scoring")
     rows = []
@@ -530,172 +401,25 @@ def _run_scene(runner: _Runner, entry: SceneEntry, loaded: Any, methods: list[Me
     return scene, rows
 
 
-def _smallest_ranked(outputs: list[_Output], pair: ReferencePair) -> float:
-    """The smallest RelMSE (product estimator) over every row of the scene: each one is ranked by the report."""
-    from gradsep.model.metrics import relmse_unbiased
+@dataclass
+class _SppState:
+    """What the methods of one (scene, spp) share: the scene's equal-time renderer (built on first use), the rows
+    done so far (the equal-time budget is read from them) and their cache key hashes."""
 
-    def relmse(image: np.ndarray) -> float:
-        return relmse_unbiased(image, pair.first["total"], pair.second["total"])
-
-    def ranked(o: _Output) -> float:  # the figure the report shows: a multi-seed row's mean over its seeds
-        return float(np.mean([one(r) for r in (o, *o.replicas)]))
-
-    def one(o: _Output) -> float:  # interpolated as interpolated_scores does
-        interpolation = o.interpolation()
-        if interpolation is None:
-            return relmse(o.image)
-        target, low, high = interpolation
-        return interpolate_at(target, (low.total_seconds, relmse(low.image)), (high.total_seconds, relmse(high.image)),
-                              log_value="relmse" in LOG_INTERPOLATED)
-
-    values = [ranked(o) for o in outputs]
-    return min(values) if values else math.inf
+    path: Callable[[], PathRenderer]
+    done: dict[str, dict[str, Any]] = field(default_factory=dict)
+    keys: dict[str, str] = field(default_factory=dict)
 
 
-def _converge_references(runner: _Runner, scene: SceneRun, source: ReferenceSource,
-                         outputs: list[_Output]) -> ReferencePair:
-    """Raise both references (cached passes re-used) until the total floor is under FLOOR_FRACTION of the
-    smallest ranked RelMSE: full passes up to the spp cap and the time budget, then region passes
-    (:func:`_add_region_passes`); record the outcome on ``scene``."""
-    config = runner.config
-    spp = config.ref_spp
-    while True:
-        pair = source.pair(spp)
-        floor = pair.floor()
-        smallest = _smallest_ranked(outputs, pair)
-        following = next_reference_spp(spp, floor, smallest, FLOOR_FRACTION, config.reference_cap,
-                                       step=config.ref_spp)
-        if following is not None and config.ref_seconds is not None:
-            following = _within_time(spp, following, pair.seconds, config.ref_seconds, step=config.ref_spp,
-                                     to_render=source.passes_to_render)
-        if following is None:
-            break
-        runner.log(f"{scene.entry.name}: reference floor {floor:.3g} at {spp} spp is over "
-                   f"{FLOOR_FRACTION:.0%} of the smallest ranked RelMSE {smallest:.3g}; raising to {following} spp")
-        spp = following
-    full_seconds = pair.seconds
-    region_stop = ""
-    raising = config.reference_cap > config.ref_spp  # a fixed reference spp (cap = start) is never raised
-    if raising and not (smallest > 0 and pair.floor() <= FLOOR_FRACTION * smallest):
-        pair, smallest, region_stop = _add_region_passes(runner, scene, source, pair, smallest, outputs)
-    scene.reference = pair.mean()
-    scene.reference_spp = spp
-    scene.reference_region = pair.region.as_list() if pair.region is not None else None
-    scene.region_spp = pair.region_spp
-    scene.floor = {layer: pair.floor(layer) for layer in pair.first}
-    scene.smallest = smallest
-    scene.capped = not (smallest > 0 and scene.floor["total"] <= FLOOR_FRACTION * smallest)
-    if scene.capped:
-        full_stop = _full_stop_reason(config, spp, full_seconds)
-        scene.cap_reason = full_stop + (f"; {region_stop}" if region_stop else "")
-    scene.reference_seconds = pair.seconds
-    return pair
-
-
-def _full_stop_reason(config: EvalConfig, spp: int, seconds: float) -> str:
-    """Why the full passes stopped at ``spp`` (only read when the floor criterion is not met)."""
-    if spp >= config.reference_cap or config.ref_seconds is None:
-        return f"the spp cap ({config.reference_cap} spp each)"
-    return (f"the time budget ({config.ref_seconds:g} s of new reference rendering per scene; "
-            f"{2 * spp} spp were recorded at {seconds:.0f} s)")
-
-
-def _add_region_passes(runner: _Runner, scene: SceneRun, source: ReferenceSource, pair: ReferencePair,
-                       smallest: float, outputs: list[_Output]) -> tuple[ReferencePair, float, str]:
-    """Where the full passes stopped with the floor over FLOOR_FRACTION of the smallest ranked RelMSE: region
-    passes over the rectangle the pilot places (evaluation/region.py), as many as the floor inside it is
-    predicted to need (it falls as 1 / the spp there; :data:`RAISE_MARGIN` more), at most the spp cap more per
-    reference, and within what is left of the time budget (pilot included; cached passes cost nothing).
-    ``smallest`` is the smallest ranked RelMSE against ``pair``. Returns the pair, the smallest ranked RelMSE
-    against it, and why the passes stopped short (or "")."""
-    config = runner.config
-    base, spp = config.ref_spp, pair.spp
-    per_pass = pair.seconds / (2 * spp / base) if pair.seconds > 0 else math.nan  # one full pass, recorded
-    budget = config.ref_seconds
-    pilots = source.pilot_passes_to_render()
-    if budget is not None and pilots:
-        pilot_cost = pilots * per_pass
-        if not pilot_cost <= budget - source.rendered_seconds:  # NaN (no timing recorded) does not fit either
-            return pair, smallest, "no region passes: their pilot does not fit the time budget"
-    region = source.region()
-    fraction = region.fraction(scene.width, scene.height)
-    cap = config.reference_cap // base
-    count = 0
-    while True:
-        target = FLOOR_FRACTION * smallest
-        floor = pair.floor()
-        if smallest > 0 and floor <= target:
-            return pair, smallest, ""
-        outside, inside = pair.floor_split(region)
-        goal = target / RAISE_MARGIN - outside
-        if smallest > 0 and goal > 0 and inside > 0:
-            wanted = math.ceil(((spp + count * base) * inside / goal - spp) / base)
-        else:
-            wanted = cap  # the rectangle alone cannot reach the target: as far as the cap allows
-        wanted = min(cap, max(wanted, count + 1))
-        if wanted <= count:
-            return pair, smallest, f"region passes at their cap ({cap * base} spp more each in {region.describe()})"
-        if budget is not None:
-            per_region = per_pass * fraction if math.isfinite(per_pass) else math.nan
-            left = budget - source.rendered_seconds
-            missing = np.cumsum([not cached for cached in source.region_cached(wanted)])  # per pass, both refs
-            while wanted > count and not (missing[2 * wanted - 1] == 0 or missing[2 * wanted - 1] * per_region <= left):
-                wanted -= 1
-            if wanted <= count:
-                return pair, smallest, (f"region passes stopped by the time budget at {count * base} spp more "
-                                        f"each in {region.describe()}")
-        runner.log(f"{scene.entry.name}: reference floor {floor:.3g} ({inside:.3g} inside {region.describe()}) is "
-                   f"over {FLOOR_FRACTION:.0%} of the smallest ranked RelMSE {smallest:.3g}; "
-                   f"{wanted * base} spp more each there")
-        count = wanted
-        pair = source.pair(spp, count)
-        smallest = _smallest_ranked(outputs, pair)
-
-
-def _within_time(spp: int, wanted: int, seconds: float, budget: float, step: int | None = None,
-                 to_render: Callable[[int], int] | None = None) -> int | None:
-    """The largest spp up to ``wanted`` whose new rendering (both references) is predicted to fit ``budget``
-    seconds: a power-of-two multiple of ``spp`` (``step`` None) or a multiple of ``step`` (the pass spp); None
-    when nothing above ``spp`` fits. Render time is predicted linearly in spp from the ``seconds`` the current
-    ``spp`` took. With ``to_render`` (spp -> passes of that level not in the cache yet, ``step`` given), only
-    those count: passes already cached (a farm's shards, an earlier run) cost this run nothing, whatever time
-    they were recorded with; without it every pass above the current ``spp`` is new."""
-    if not (seconds > 0 and math.isfinite(seconds)):
-        return wanted  # no timing recorded: the spp cap alone decides
-    if step is not None:
-        per_pass = seconds / (2 * spp / step)  # both references: two passes per step
-        level = wanted // step * step
-        while level > spp:
-            new = to_render(level) if to_render is not None else 2 * (level - spp) // step
-            if new * per_pass <= budget:
-                return level
-            level -= step
-        return None
-    best = None
-    level = spp * 2
-    while level <= wanted and seconds * (level - spp) / spp <= budget:
-        best = level
-        level *= 2
-    return best
-
-
-def oidn_key() -> dict[str, str]:
-    """The OIDN choice the environment makes (``$GRADSEP_OIDN_SETTING``), in every method's cache key: it changes
-    the OIDN methods' images (and so every equal-time budget) without a code change. Empty at the default, so
-    results cached before this key existed stay valid."""
-    from gradsep.model.oidn import METHOD_SETTING, method_setting
-
-    setting = method_setting()
-    return {"oidn_setting": setting} if setting != METHOD_SETTING else {}
-
-
-def _evaluate_one(runner: _Runner, spec: MethodSpec, scene: SceneRun, spp: int, frame: Any, seconds: float,
-                  frame_tag: str, get_path: Callable[[], PathRenderer], done: dict[str, dict[str, Any]],
-                  keys: dict[str, str], replica: int = 0) -> _Output | None:
-    """One method on one frame: skip it (with the reason) when it cannot run, else the cached or new output.
-    ``replica`` k > 0: a fixed-spp method on the k-th extra frame (``--frame-seeds``); it leaves ``done`` and
-    ``keys`` (the equal-time budgets come from the first frame) as they are."""
+def _evaluate_one(runner: _Runner, spec: MethodSpec, scene: SceneRun, spp: int, rendered: tuple[Any, float, str],
+                  state: _SppState, replica: int = 0) -> Output | None:
+    """One method on one frame (``rendered``: the frame, its render seconds, its cache tag): skip it (with the
+    reason) when it cannot run, else the cached or new output. ``replica`` k > 0: a fixed-spp method on the k-th
+    extra frame (``--frame-seeds``); it leaves ``state``'s rows and keys (the equal-time budgets come from the
+    first frame) as they are."""
     c = runner.config
+    frame, seconds, frame_tag = rendered
+    get_path, done, keys = state.path, state.done, state.keys
     reason = unavailable(spec)
     if reason is not None:
         runner.skip(spec.name, [reason])

@@ -4,25 +4,19 @@ A frame is reconstructed in short-lived worker threads (model/reconstruct.py run
 and every solve allocates frame-sized numpy temporaries. glibc gives threads their own malloc *arenas*; a new
 worker thread per frame lands in an arena whose freed memory was handed back to the kernel. Its temporaries are
 then fresh pages every frame.
-- Measured on a 1280x720 frame: about 30,000 page faults and 0.3-0.6 s of kernel time in the
-  direct layer's refinement alone (refinement thread CPU 0.8 s → 1.3-1.4 s).
-- This happens once ONNX Runtime / OpenVINO sessions are loaded (the service always loads them), as the
-  process's other threads already hold arenas.
-- One arena keeps that memory in the process and reuses it.
-- Same process, same frame, in-process service pipeline (`python benchmarks/bench_floor.py`): `oidn-l1` 2.15-2.49
-  → 1.83-1.94 s, `network` 1.84-1.87 → 1.33-1.59 s, `fused` 2.97-3.33 → 2.66-3.07 s, and peak RSS 4.4 → 2.0 GiB.
-  MALLOC_ARENA_MAX=2 was about the same, 4 was in between; raising the trim/mmap thresholds alone did not help.
-- The service's allocations are few and large (numpy arrays; Python objects use their own allocator), so one
-  arena costs no measurable lock contention. The other commands were checked too (same session, alternating):
-  - `gradsep render procedural:1 --spp 16` at 640x480 (Dr.Jit's thread pool): 6.9 s against 7.2-7.7 s.
-  - `gradsep train`, one core: 1.08 s per step against 1.14 s.
-- Through the service one arena still left 20-28k page faults per request: glibc returns the top of its heap to
-  the kernel once 2x its (adaptive) mmap threshold is free, and maps blocks over that threshold anew every time.
-  So the threshold is fixed at its 64-bit maximum (MMAP_THRESHOLD, 32 MiB: a 2560x1440 RGB float32 image) and the
-  trim threshold raised to TRIM_THRESHOLD: then 0-50 faults per request after the first (oidn-l1 p50 2.005 →
-  2.025 s, network 1.517 → 1.394, l1 1.266 → 1.171 s in one run; `python benchmarks/bench_service.py`). The cost is
-  that the process keeps its high-water mark (RSS 1.9 GiB after a 720p run instead of falling back to 1.5 GiB),
-  still half of the 4.4 GiB peak before.
+- That costs tens of thousands of page faults and a visible share of kernel time per frame, once ONNX Runtime /
+  OpenVINO sessions are loaded (the service always loads them), as the process's other threads already hold
+  arenas.
+- One arena keeps that memory in the process and reuses it: every method's latency and the peak memory fall
+  (docs/decisions.md, "One malloc arena", has the figures and commands: benchmarks/bench_floor.py,
+  benchmarks/bench_service.py). The service's allocations are few and large (numpy arrays; Python objects use
+  their own allocator), so one arena costs no measurable lock contention; rendering and training were checked
+  too and are no slower.
+- One arena alone still leaves page faults per request: glibc returns the top of its heap to the kernel once
+  twice its (adaptive) mmap threshold is free, and maps blocks over that threshold anew every time. So the
+  threshold is fixed at its 64-bit maximum (MMAP_THRESHOLD, 32 MiB: a 2560x1440 RGB float32 image) and the trim
+  threshold raised to TRIM_THRESHOLD. The cost is that the process keeps its high-water mark, still well below
+  the peak of the many-arena default.
 
 ``$GRADSEP_MALLOC_ARENAS`` sets the arena limit (default 1; 0 leaves glibc's malloc entirely as it is, 8 arenas
 per core and adaptive thresholds). An operator's own glibc variables (``MALLOC_ARENA_MAX``,

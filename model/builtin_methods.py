@@ -1,5 +1,6 @@
 """The layer functions of the shipped methods (model/methods.py names them): one illumination layer in, its
-reconstruction out, with the frame's shared context (model.reconstruct.LayerContext).
+reconstruction out, with the frame's shared context (model.reconstruct.LayerContext); and the model files their
+model sets read (model.methods.ModelSet.files / optional_files).
 
 Each is a thin call into the module that does the work; what a frame must carry was checked by
 model.reconstruct before any of them runs.
@@ -52,3 +53,19 @@ def network_layer(name: str, layer: Layer, ctx: LayerContext, denoised: np.ndarr
 def fused_layer(name: str, layer: Layer, ctx: LayerContext, denoised: np.ndarray | None = None) -> np.ndarray:
     """The blend's candidates start from the layer's OIDN image, denoised here or by the caller."""
     return ctx.models.get("fused").reconstruct_layer(name, layer, ctx.features, ctx.aux, denoised=denoised)
+
+
+def fused_files(layers: tuple[str, ...]) -> tuple[str, ...]:
+    """The blend models a frame with ``layers`` needs: none for the layers model.fused serves with one candidate
+    alone (FIXED_LAYERS)."""
+    from gradsep.model.fused import FIXED_LAYERS
+
+    return tuple(name for name in layers if name not in FIXED_LAYERS)
+
+
+def fused_optional_files(layers: tuple[str, ...]) -> tuple[str, ...]:
+    """The ``network`` set's direct model, which fused's clean-layer average reads when it is there
+    (model.fused.CLEAN_AVERAGE_MODEL, relative to the fused folder)."""
+    from gradsep.model.fused import CLEAN_AVERAGE_MODEL, FIXED_LAYERS
+
+    return (str(CLEAN_AVERAGE_MODEL),) if "direct" in layers and "direct" in FIXED_LAYERS else ()

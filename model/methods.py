@@ -51,6 +51,22 @@ class ModelSet:
     loader: str
     description: str
     folder: str | None = None  # where its files live, relative to the models folder (for messages)
+    #: ``module:function`` naming the model files (``NAME.onnx`` stems, in ``folder``) a frame with these layers
+    #: needs: ``fn(layers) -> tuple[str, ...]``; None: one per layer (``direct.onnx``, ``indirect.onnx``...)
+    files: str | None = None
+    #: ``module:function`` naming files (relative to ``folder``) the set reads when present and does without
+    #: otherwise: ``fn(layers) -> tuple[str, ...]``; None: none
+    optional_files: str | None = None
+
+    def model_files(self, layers: Iterable[str]) -> tuple[str, ...]:
+        """The ``NAME.onnx`` stems this set needs for a frame with ``layers`` (none for a runtime)."""
+        if self.folder is None:
+            return ()
+        return tuple(resolve(self.files)(tuple(layers))) if self.files else tuple(layers)
+
+    def optional_model_files(self, layers: Iterable[str]) -> tuple[str, ...]:
+        """Files (relative to ``folder``) this set reads for a frame with ``layers`` when they are there."""
+        return tuple(resolve(self.optional_files)(tuple(layers))) if self.optional_files else ()
 
 
 #: The model sets the shipped methods need, by name.
@@ -58,7 +74,9 @@ MODEL_SETS: dict[str, ModelSet] = {
     "network": ModelSet("network", "gradsep.model.reconstruct:load_network",
                         "the per-layer networks, models/{direct,indirect,color}.onnx", folder="."),
     "fused": ModelSet("fused", "gradsep.model.reconstruct:load_fused",
-                      "the per-layer blend networks, models/fused/*.onnx (needs pyoidn)", folder="fused"),
+                      "the per-layer blend networks, models/fused/*.onnx (needs pyoidn)", folder="fused",
+                      files="gradsep.model.builtin_methods:fused_files",
+                      optional_files="gradsep.model.builtin_methods:fused_optional_files"),
     "oidn": ModelSet("oidn", "gradsep.model.reconstruct:load_oidn",
                      "Intel Open Image Denoise (pip install pyoidn)"),
 }

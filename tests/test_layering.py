@@ -93,11 +93,13 @@ def test_the_checker_sees_lazy_and_from_imports():
 
 
 def module_imports() -> dict[str, set[str]]:
-    """Library + CLI module name -> every module it imports (lazy ones included, script entry blocks not)."""
+    """Library + CLI module name -> every module it imports: lazy ones and those of a script entry block
+    (``if __name__ == "__main__":``) included -- ``python -m`` / ``torchrun -m`` runs that block, and a cycle
+    through it is a cycle all the same."""
     out = {}
     for package in (*LIBRARY, "gradsep"):
         for path in package_files(package):
-            out[module_name(path)] = {n for n, _, _ in imports(path.read_text(), main_block=False)}
+            out[module_name(path)] = {n for n, _, _ in imports(path.read_text())}
     return out
 
 
@@ -166,6 +168,22 @@ def test_the_layering_check_fails_on_a_three_module_cycle(tmp_path: Path):
     graph = {f"gradsep.toy.{a}": {n for n, _, _ in imports(f"from gradsep.toy.{b} import thing\n")}
              for a, b in ring.items()}
     assert import_cycles(graph) == [["gradsep.toy.x", "gradsep.toy.y", "gradsep.toy.z"]]
+
+
+def test_the_layering_check_sees_a_cycle_through_a_script_entry_block(tmp_path: Path):
+    """A module whose ``if __name__ == "__main__":`` block imports the command module that lazily imports it back
+    (the shape of a ``torchrun -m`` entry) is a cycle: the graph of the repository's files keeps that block."""
+    package = tmp_path / "toy"
+    package.mkdir()
+    (package / "train.py").write_text("def train():\n    return 0\n\n\nif __name__ == \"__main__\":\n"
+                                      "    from gradsep.toy.commands import main\n    main()\n")
+    (package / "commands.py").write_text("def main():\n    from gradsep.toy.train import train\n"
+                                         "    return train()\n")
+    graph = {f"gradsep.toy.{p.stem}": {n for n, _, _ in imports(p.read_text())} for p in package.glob("*.py")}
+    assert import_cycles(graph) == [["gradsep.toy.commands", "gradsep.toy.train"]]
+    without_entry = {f"gradsep.toy.{p.stem}": {n for n, _, _ in imports(p.read_text(), main_block=False)}
+                     for p in package.glob("*.py")}
+    assert import_cycles(without_entry) == []  # what the check missed while it left entry blocks out
 
 
 def test_no_import_cycles():

@@ -95,9 +95,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def train_main(argv: Sequence[str] | None = None) -> int:
-    """``torchrun -m gradsep.training.train ARGS``: `gradsep train ARGS` without the command-line package (each torchrun
-    worker runs this module); bad input is one line on stderr and exit status 2, as under ``gradsep``."""
-    parser = argparse.ArgumentParser(prog="gradsep.training.train", description="same as `gradsep train`")
+    """``torchrun -m gradsep.training ARGS`` (training/__main__.py): `gradsep train ARGS` without the command-line
+    package (each torchrun worker runs it); bad input is one line on stderr and exit status 2, as under ``gradsep``."""
+    parser = argparse.ArgumentParser(prog="gradsep.training", description="same as `gradsep train`")
     _add_train_arguments(parser)
     args = parser.parse_args(argv)
     try:

@@ -1,7 +1,7 @@
 """Training data: the renderer's dataset folder → cached per-frame planes → random patches.
 
 ``gradsep dataset`` writes ``DIR/manifest.json`` and ``DIR/frames/*.exr`` (frame contract). Decoding a
-1280×720 EXR with every channel takes a noticeable fraction of a training step and holds ~125 MB, so each
+1280×720 EXR with every channel takes a noticeable fraction of a training step and holds every plane, so each
 frame is decoded once into a small float32 cache file holding exactly what training needs for the chosen
 layer — 12 linear layer planes + 7 normalised feature planes, preprocessed by model.preprocess (the same code
 inference uses), + 9 target planes when the dataset has pairs — and patches are read from it through a

@@ -24,7 +24,8 @@ import torch
 
 from gradsep.model.network import DATA_INPUTS, GRADIENT_INPUTS, OUTPUTS, DualBranchNet, NetworkConfig
 from gradsep.model.preprocess import describe_preprocessing
-from gradsep.training.train import CHECKPOINT, TrainConfig, code_version
+from gradsep.training.runlog import code_version
+from gradsep.training.train import CHECKPOINT, TrainConfig
 
 OPSET = 18
 INPUT_NAMES = ("data", "gradient")

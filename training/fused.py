@@ -205,13 +205,8 @@ def validate(net: torch.nn.Module, maps: list[np.ndarray], kinds: tuple[str, ...
     return {k: v / len(maps) for k, v in sums.items()}
 
 
-def train(args: argparse.Namespace) -> None:
-    run = Path(args.output)
-    cfg_path, ckpt = run / "config.json", run / "checkpoint.pt"
-    kinds = tuple(k.strip() for k in args.candidates.split(","))
-    if any(k not in CANDIDATES for k in kinds) or kinds[0] != "oidn":
-        raise SystemExit(f"--candidates must start with oidn and be some of {CANDIDATES}, got {kinds}")
-    cache = Path(args.cache)
+def _checked_cache(cache: Path, kinds: tuple[str, ...]) -> tuple[dict[str, Any], tuple[str, ...]]:
+    """The candidate cache's metadata and candidates, refused where it cannot serve a run on ``kinds``."""
     meta = json.loads((cache / "cache.json").read_text())
     cached = tuple(meta["candidates"])
     if meta.get("blend_format") != BLEND_FORMAT or any(k not in cached for k in kinds):
@@ -220,12 +215,53 @@ def train(args: argparse.Namespace) -> None:
     if "target" in meta or "normalise" in meta:
         raise SystemExit(f"{cache} was made with another target or loss normalisation than this code trains on: "
                          "rebuild the cache")
-    cfg = {"layer": args.layer, "candidates": list(kinds), "patch": args.patch, "batch": args.batch, "lr": args.lr,
-           "lr_schedule": "cosine",
-           "seed": args.seed,
-           "network": {"width": args.width, "depth": 3, "residual_blocks": args.blocks, "use_attention": True},
-           "oidn_setting": OIDN_SETTING, "format": BLEND_FORMAT, "loss": f"n2n relmse eps {REL_EPS}",
-           "dataset": meta["dataset"]}
+    return meta, cached
+
+
+def _run_config(args: argparse.Namespace, kinds: tuple[str, ...], meta: dict[str, Any]) -> dict[str, Any]:
+    return {"layer": args.layer, "candidates": list(kinds), "patch": args.patch, "batch": args.batch, "lr": args.lr,
+            "lr_schedule": "cosine",
+            "seed": args.seed,
+            "network": {"width": args.width, "depth": 3, "residual_blocks": args.blocks, "use_attention": True},
+            "oidn_setting": OIDN_SETTING, "format": BLEND_FORMAT, "loss": f"n2n relmse eps {REL_EPS}",
+            "dataset": meta["dataset"]}
+
+
+def _resume(ckpt: Path, net: torch.nn.Module, opt: torch.optim.Optimizer) -> tuple[int, float]:
+    """(step, seconds trained) of the run's checkpoint, loaded into ``net`` and ``opt``; (0, 0.0) for a new run."""
+    if not ckpt.is_file():
+        return 0, 0.0
+    state = torch.load(ckpt, weights_only=True)
+    net.load_state_dict(state["model"])
+    opt.load_state_dict(state["opt"])
+    return state["step"], state["elapsed"]
+
+
+def _step(net: torch.nn.Module, opt: torch.optim.Optimizer, planes: torch.Tensor, kinds: tuple[str, ...],
+          cached: tuple[str, ...]) -> float:
+    """One optimiser step on a batch of cached planes; its loss."""
+    data, gradient, cands, target = tensors(planes, kinds, cached)
+    loss = n2n_loss(net(data, gradient), cands, target, cands[:, 0])
+    opt.zero_grad(set_to_none=True)
+    loss.backward()
+    opt.step()
+    return float(loss.detach())
+
+
+def _append_log(run: Path, record: dict[str, Any]) -> None:
+    with open(run / "log.jsonl", "a") as fh:
+        fh.write(json.dumps(record) + "\n")
+
+
+def train(args: argparse.Namespace) -> None:
+    run = Path(args.output)
+    cfg_path, ckpt = run / "config.json", run / "checkpoint.pt"
+    kinds = tuple(k.strip() for k in args.candidates.split(","))
+    if any(k not in CANDIDATES for k in kinds) or kinds[0] != "oidn":
+        raise SystemExit(f"--candidates must start with oidn and be some of {CANDIDATES}, got {kinds}")
+    cache = Path(args.cache)
+    meta, cached = _checked_cache(cache, kinds)
+    cfg = _run_config(args, kinds, meta)
     if cfg_path.is_file() and json.loads(cfg_path.read_text()) != cfg:
         raise SystemExit(f"{run} holds a different run; use another folder")
     run.mkdir(parents=True, exist_ok=True)  # only now: a refused start leaves no folder behind
@@ -233,16 +269,9 @@ def train(args: argparse.Namespace) -> None:
     torch.manual_seed(args.seed)
     net = _net(cfg)
     opt = torch.optim.Adam(net.parameters(), lr=args.lr)
-    step, elapsed = 0, 0.0
-    if ckpt.is_file():
-        state = torch.load(ckpt, weights_only=True)
-        net.load_state_dict(state["model"])
-        opt.load_state_dict(state["opt"])
-        step, elapsed = state["step"], state["elapsed"]
-    files = sorted((cache / args.layer).glob("*.npy"))
-    train_files, val_files = split(files, args.seed)
+    step, elapsed = _resume(ckpt, net, opt)
+    train_files, val_files = split(sorted((cache / args.layer).glob("*.npy")), args.seed)
     maps = [np.load(f, mmap_mode="r") for f in train_files]
-    val_maps = [np.load(f, mmap_mode="r") for f in val_files]
     budget = args.minutes * 60.0
     start, last_save = time.monotonic(), time.monotonic()
     print(f"{run}: {len(train_files)} train / {len(val_files)} val frames, candidates {kinds}, step {step}, "
@@ -260,29 +289,21 @@ def train(args: argparse.Namespace) -> None:
         done = min(1.0, (elapsed + time.monotonic() - start) / budget)
         for group in opt.param_groups:
             group["lr"] = args.lr * 0.5 * (1.0 + math.cos(math.pi * done))
-        rng = np.random.default_rng([args.seed, step])
-        planes = sample(maps, args.batch, args.patch, rng)
-        data, gradient, cands, target = tensors(planes, kinds, cached)
-        loss = n2n_loss(net(data, gradient), cands, target, cands[:, 0])
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
+        planes = sample(maps, args.batch, args.patch, np.random.default_rng([args.seed, step]))
+        running.append(_step(net, opt, planes, kinds, cached))
         step += 1
-        running.append(float(loss.detach()))
         if step % 50 == 0:
-            with open(run / "log.jsonl", "a") as fh:
-                fh.write(json.dumps({"kind": "step", "step": step, "loss": float(np.mean(running)),
-                                     "elapsed": round(elapsed + time.monotonic() - start, 1)}) + "\n")
+            _append_log(run, {"kind": "step", "step": step, "loss": float(np.mean(running)),
+                              "elapsed": round(elapsed + time.monotonic() - start, 1)})
             running = []
         if time.monotonic() - last_save > 120:
             save()
             last_save = time.monotonic()
     save()
-    val = validate(net, val_maps, kinds, cached)
+    val = validate(net, [np.load(f, mmap_mode="r") for f in val_files], kinds, cached)
     record = {"kind": "validation", "step": step, "elapsed": round(elapsed + time.monotonic() - start, 1),
               "n2n_relmse": val}
-    with open(run / "log.jsonl", "a") as fh:
-        fh.write(json.dumps(record) + "\n")
+    _append_log(run, record)
     print(json.dumps(record), flush=True)
 
 
@@ -296,7 +317,7 @@ def export(run_dir: Path, output: Path) -> dict[str, Any]:
     import onnxruntime as ort
 
     from gradsep.training.export import OPSET, PARITY_TOLERANCE, save_onnx
-    from gradsep.training.train import code_version
+    from gradsep.training.runlog import code_version
 
     state = torch.load(run_dir / "checkpoint.pt", weights_only=True)
     cfg = state["config"]

@@ -7,7 +7,7 @@ No ground truth exists, so every term compares the prediction with the renderer'
   1/(sg(ŷ)² + ε·level²) does not depend on the target, so the minimiser is the target's *mean*). This is where we
   depart from GradNet, which uses L1 in the log domain: an L1 against a noisy target is minimised by its
   per-pixel *median*, and 16-spp Monte-Carlo radiance is strongly right-skewed (rare bright samples carry
-  much of the energy), so that estimator is biased dark — our first models came out 4–5× too dark. Pooling
+  much of the energy), so that estimator is biased dark — our first models came out several times too dark. Pooling
   keeps the term unbiased while cutting the variance a single firefly adds to it (16 pixels × spp samples);
   the per-pixel detail comes from the gradient term, as in a screened Poisson reconstruction.
 * ``gradient_loss``: the forward differences of the predicted *linear* image, compressed with sign·C, against
@@ -41,9 +41,9 @@ DATA_POOL = 4
 REL_EPS = 1e-2
 #: Radiance below which a block counts as black: an absolute floor of the weight, BLACK_LEVEL². Without it a
 #: patch with no light at all (common in the direct layer: a shadowed corner) has level 0, and a prediction of
-#: 1e-4 there scores a relative error of ~1 with a gradient ~1/ŷ that dominated whole batches (measured:
-#: four black validation crops out of 24 made the direct model's validation data term 10× its prior's).
-#: Dark frames are still anchored by the relative floor down to levels ~10× this.
+#: 1e-4 there scores a relative error of ~1 with a gradient ~1/ŷ that dominated whole batches (a few black
+#: validation crops made the direct model's validation data term many times its prior's).
+#: Dark frames are still anchored by the relative floor down to levels an order of magnitude above this.
 BLACK_LEVEL = 1e-3
 
 

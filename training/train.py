@@ -21,11 +21,9 @@ DistributedSampler; rank 0 writes the run folder and decides when to stop, and t
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import json
 import os
-import subprocess
 import sys
 import time
 from collections.abc import Iterator
@@ -34,7 +32,6 @@ from pathlib import Path
 from typing import Any
 
 import torch
-import torch.distributed as dist
 from torch import nn
 from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader, DistributedSampler, Sampler
@@ -57,7 +54,9 @@ from gradsep.training.dataset import (
     split_frames,
     usable,
 )
+from gradsep.training.distributed import DistContext, SkipSampler, setup_distributed, teardown_distributed
 from gradsep.training.losses import BetaSchedule, gbranch_loss, loss_terms
+from gradsep.training.runlog import append_log, atomic_torch_save, atomic_write_text, code_version, plot_curves
 
 #: Paper §4.5: 151 epochs. Used when neither --epochs nor --minutes is given.
 DEFAULT_EPOCHS = 151
@@ -139,114 +138,8 @@ class TrainConfig:
 
 
 # ---------------------------------------------------------------------------------------------------------------
-# Distribution (torch.distributed; nothing home-made)
+# Run folder: config
 # ---------------------------------------------------------------------------------------------------------------
-
-
-@dataclass
-class DistContext:
-    rank: int = 0
-    world: int = 1
-    local_rank: int = 0
-    device: torch.device = field(default_factory=lambda: torch.device("cpu"))
-
-    @property
-    def main(self) -> bool:
-        return self.rank == 0
-
-    @property
-    def distributed(self) -> bool:
-        return self.world > 1
-
-    def barrier(self) -> None:
-        if self.distributed:
-            dist.barrier()
-
-    def sum(self, values: list[float]) -> list[float]:
-        """Element-wise sum over ranks (identity when not distributed)."""
-        if not self.distributed:
-            return values
-        t = torch.tensor(values, dtype=torch.float64, device=self.device)
-        dist.all_reduce(t, op=dist.ReduceOp.SUM)
-        return t.tolist()
-
-    def agree(self, flags: list[bool]) -> list[bool]:
-        """Rank 0's decisions, shared with every rank (so all stop or checkpoint at the same batch)."""
-        if not self.distributed:
-            return flags
-        t = torch.tensor([float(f) for f in flags], device=self.device)
-        dist.broadcast(t, src=0)
-        return [bool(v) for v in t.tolist()]
-
-
-def setup_distributed() -> DistContext:
-    """Join the torchrun process group when WORLD_SIZE > 1; pick the device."""
-    world = int(os.environ.get("WORLD_SIZE", "1"))
-    rank = int(os.environ.get("RANK", "0"))
-    local_rank = int(os.environ.get("LOCAL_RANK", "0"))
-    cuda = torch.cuda.is_available()
-    device = torch.device(f"cuda:{local_rank}") if cuda else torch.device("cpu")
-    if cuda:
-        torch.cuda.set_device(device)
-    if world > 1 and not dist.is_initialized():
-        dist.init_process_group(backend="nccl" if cuda else "gloo")
-    return DistContext(rank, world, local_rank, device)
-
-
-def teardown_distributed(ctx: DistContext) -> None:
-    """Leave the process group together: a rank that destroys its gloo group while a peer is still writing the
-    last checkpoint or plot can abort at exit ("terminate called without an active exception", seen in CI)."""
-    if ctx.distributed and dist.is_initialized():
-        try:
-            if sys.exc_info()[0] is None:  # on failure no barrier: the peer may be inside another collective
-                dist.barrier()
-        finally:
-            dist.destroy_process_group()
-
-
-class SkipSampler(Sampler[int]):
-    """The wrapped sampler's order minus its first ``skip`` items: resuming in the middle of an epoch."""
-
-    def __init__(self, inner: Sampler[int], skip: int) -> None:
-        self.inner = inner
-        self.skip = skip
-
-    def __iter__(self) -> Iterator[int]:
-        for i, index in enumerate(self.inner):
-            if i >= self.skip:
-                yield index
-
-    def __len__(self) -> int:
-        return max(0, len(self.inner) - self.skip)  # type: ignore[arg-type]
-
-
-# ---------------------------------------------------------------------------------------------------------------
-# Run folder: config, checkpoints, log, curves
-# ---------------------------------------------------------------------------------------------------------------
-
-
-def code_version() -> str:
-    """gradsep version plus the git commit of this checkout when there is one (for metadata)."""
-    from gradsep.model import __version__
-
-    try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                cwd=Path(__file__).resolve().parent, timeout=5, check=False).stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        commit = ""
-    return f"{__version__}+{commit}" if commit else __version__
-
-
-def _atomic_torch_save(obj: Any, path: Path) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
-
-
-def _atomic_write_text(path: Path, text: str) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
 
 
 def prepare_run_dir(cfg: TrainConfig, manifest_sha256: str) -> dict[str, Any]:
@@ -274,60 +167,8 @@ def prepare_run_dir(cfg: TrainConfig, manifest_sha256: str) -> dict[str, Any]:
                                        {"epochs": cfg.epochs, "minutes": cfg.minutes}]
     else:
         fresh["history_of_budgets"] = [{"epochs": cfg.epochs, "minutes": cfg.minutes}]
-    _atomic_write_text(path, json.dumps(fresh, indent=2))
+    atomic_write_text(path, json.dumps(fresh, indent=2))
     return fresh
-
-
-def append_log(run: Path, record: dict[str, Any]) -> None:
-    with open(run / "log.jsonl", "a", encoding="utf-8") as fh:
-        fh.write(json.dumps(record) + "\n")
-
-
-def read_log(run: Path) -> list[dict[str, Any]]:
-    path = run / "log.jsonl"
-    if not path.is_file():
-        return []
-    out = []
-    for line in path.read_text().splitlines():
-        with contextlib.suppress(json.JSONDecodeError):  # a kill may cut the last line
-            out.append(json.loads(line))
-    return out
-
-
-def plot_curves(run: Path) -> Path | None:
-    """RUN_DIR/losses.png: each loss term against the step, per-step training values and per-epoch means."""
-    from matplotlib.figure import Figure  # no pyplot: no global backend state, safe in any process
-
-    records = read_log(run)
-    steps = {r["step"]: r for r in records if r.get("kind") == "step"}  # last write wins after a resume
-    epochs = {r["epoch"]: r for r in records if r.get("kind") == "epoch"}
-    if not steps and not epochs:
-        return None
-    fig = Figure(figsize=(10, 7), layout="constrained")
-    axes = fig.subplots(2, 2)
-    for ax, key, title in zip(axes.flat, ("data", "grad", "first", "gbranch"),
-                              ("L_data", "L_grad", "L_1st", "G-branch L_1st"), strict=True):
-        if key != "gbranch" and steps:
-            xs = sorted(steps)
-            ax.plot(xs, [steps[s][key] for s in xs], color="0.75", lw=0.8, label="train (step)")
-        ep = [epochs[e] for e in sorted(epochs)]
-        if key == "gbranch":
-            ax.plot([r["step"] for r in ep], [r["gbranch"] for r in ep], "o-", label="train (epoch)")
-        else:
-            ax.plot([r["step"] for r in ep], [r["train"][key] for r in ep], "o-", label="train (epoch)")
-            val = [(r["step"], r["val"][key]) for r in ep if r.get("val")]
-            if val:
-                ax.plot(*zip(*val, strict=True), "s--", label="validation")
-        ax.set_title(title)
-        ax.set_xlabel("step")
-        ax.set_yscale("log")
-        ax.legend(fontsize=8)
-    fig.suptitle(f"{run.name}: losses")
-    out = run / "losses.png"
-    tmp = run / "losses.tmp.png"
-    fig.savefig(tmp, dpi=90)
-    os.replace(tmp, out)
-    return out
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -433,7 +274,7 @@ class Trainer:
 
     def save(self) -> None:
         if self.ctx.main:
-            _atomic_torch_save(self.state(), self.run / "checkpoints" / CHECKPOINT)
+            atomic_torch_save(self.state(), self.run / "checkpoints" / CHECKPOINT)
         self.last_save = time.monotonic()
 
     def try_resume(self) -> bool:
@@ -466,7 +307,7 @@ class Trainer:
         if not self.ctx.main:
             return
         folder = self.run / "checkpoints"
-        _atomic_torch_save({"config": self.cfg.to_dict(), "model": _unwrap(self.model).state_dict(),
+        atomic_torch_save({"config": self.cfg.to_dict(), "model": _unwrap(self.model).state_dict(),
                             "epoch": self.progress.epoch, "step": self.progress.step},
                            folder / f"epoch_{self.progress.epoch + 1:04d}.pt")
         snapshots = sorted(folder.glob("epoch_*.pt"))
@@ -728,8 +569,3 @@ def train(cfg: TrainConfig, quiet: bool = False) -> Progress:
     finally:
         teardown_distributed(ctx)
 
-
-if __name__ == "__main__":  # `torchrun -m gradsep.training.train ...` works as well as `torchrun -m gradsep train ...`
-    from gradsep.training.commands import train_main
-
-    sys.exit(train_main(sys.argv[1:]))

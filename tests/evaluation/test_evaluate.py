@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 
 from gradsep.cli import main
+from gradsep.evaluation.baselines import split_features
 from gradsep.evaluation.commands import config_from_args, evaluate_command
 from gradsep.evaluation.config import (
     QUICK,
@@ -28,10 +29,12 @@ from gradsep.evaluation.config import (
     resolve_scenes,
     table_spp_for,
 )
-from gradsep.evaluation.methods import CostModel, method_by_name, split_features
+from gradsep.evaluation.methods import method_by_name
 from gradsep.evaluation.plots import select_crop
-from gradsep.evaluation.report import CSV_COLUMNS, losses_of_ours, time_misses
+from gradsep.evaluation.report import CSV_COLUMNS, losses_of_ours
+from gradsep.evaluation.report_time import time_misses
 from gradsep.evaluation.run import run_evaluation
+from gradsep.evaluation.timesearch import CostModel
 from gradsep.model.errors import CommandError
 
 SCENE = "procedural:90001"
@@ -159,9 +162,9 @@ def test_frame_seeds_from_the_flag_or_the_environment_with_their_range(monkeypat
 def test_seed_mean_averages_the_metrics_and_keeps_each_seed():
     """The multi-seed row: metrics are means over the seeds, the time their mean (an interpolated seed counts at
     its budget), the spp their median, the standard error of the mean RelMSE from the seeds' spread."""
-    from gradsep.evaluation.report import _spp_cell, _stderr
+    from gradsep.evaluation.report_cells import spp_cell, stderr_cell
     from gradsep.evaluation.results import row_seconds
-    from gradsep.evaluation.run import seed_mean
+    from gradsep.evaluation.scores import seed_mean
 
     def row(relmse, spp, seconds, **more):
         return {"method": "path", "spp": 16, "method_spp": spp, "relmse": relmse, "ssim": 0.9, "psnr": 30.0,
@@ -180,8 +183,8 @@ def test_seed_mean_averages_the_metrics_and_keeps_each_seed():
     assert row_seconds(out) == pytest.approx((2.02 + 1.97 + 2.0) / 3)
     assert out["relmse_stderr"] == pytest.approx(0.001 / math.sqrt(3))
     assert out["time_interpolated"].startswith("seed 2: 40 spp") and "time_bracket" not in out
-    assert _spp_cell(out) == "50*" and _stderr(out) == " ±0.00058"
-    assert _stderr(rows[0]) == "" and seed_mean(rows[:1])["relmse_stderr"] == 0.0
+    assert spp_cell(out) == "50*" and stderr_cell(out) == " ±0.00058"
+    assert stderr_cell(rows[0]) == "" and seed_mean(rows[:1])["relmse_stderr"] == 0.0
 
 
 def test_environment_is_loaded_once_typed_and_named_in_errors(monkeypatch):
@@ -621,7 +624,7 @@ class _ClockedRenderer:
     to model a busy machine; the default cost is a line, others are not (the fitted line then mispredicts)."""
 
     def __init__(self, cost=lambda spp: 0.05 + 0.002 * spp) -> None:
-        from gradsep.evaluation.methods import PathRenderer
+        from gradsep.evaluation.baselines import PathRenderer
 
         self.renderer = PathRenderer.__new__(PathRenderer)  # no Mitsuba: only the budgeting is under test
         self.renderer.max_spp = 100_000
@@ -699,7 +702,7 @@ def test_time_misses_flags_rows_outside_5_percent():
 def test_oidn_environment_choices_are_part_of_the_result_key(monkeypatch) -> None:
     """$GRADSEP_OIDN_SETTING changes the OIDN methods' images without a code change: a run under it must not reuse
     outputs cached under the default (whose keys stay as they were)."""
-    from gradsep.evaluation.run import oidn_key
+    from gradsep.evaluation.cache import oidn_key
     from gradsep.model import oidn
 
     monkeypatch.delenv(oidn.SETTING_ENV, raising=False)

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from gradsep.evaluation.report import PlannedFrame, planned_frames, planner_choice, time_misses
+from gradsep.evaluation.report_time import PlannedFrame, planned_frames, planner_choice, time_misses
 from gradsep.renderer.plans import FALLBACK
 
 SCENE = "procedural:90001"
@@ -83,7 +83,8 @@ def test_a_planned_row_outside_the_tolerance_is_listed_with_its_reason():
 
 def test_a_planned_row_over_its_budget_does_not_count_as_the_best_g_pt_at_equal_time():
     """More time than the rows it is compared with: its RelMSE is shown but wins nothing; an early one counts."""
-    from gradsep.evaluation.report import _fused_and_equal_time_targets, over_budget
+    from gradsep.evaluation.report import _fused_and_equal_time_targets
+    from gradsep.evaluation.report_time import over_budget
 
     late = _auto(16, 0.001, 0.001, total_seconds=2.2)  # budget 2 s: +10 %
     assert over_budget(late) and not over_budget({**late, "total_seconds": 2.09})
@@ -96,7 +97,7 @@ def test_a_planned_row_over_its_budget_does_not_count_as_the_best_g_pt_at_equal_
 
 
 def test_a_multi_seed_planned_row_keeps_each_seeds_plan_and_prediction():
-    from gradsep.evaluation.run import seed_mean
+    from gradsep.evaluation.scores import seed_mean
 
     seeds = [_auto(16, 0.01, 0.012), {**_auto(16, 0.02, None), "predicted_note": "too small"},
              {**_auto(16, 0.03, 0.02), "plan": "primal"}]
@@ -119,7 +120,10 @@ def test_the_planned_rows_time_note_names_what_missed():
     pilot or a pass running past the deadline, the reconstruction against its reserve."""
     from types import SimpleNamespace
 
-    from gradsep.evaluation.methods import _planned_time_note as note
+    from gradsep.evaluation.runners import PlannedTimes, _planned_time_note
+
+    def note(target, render, post, tail, refused, chosen, plan, pilot):
+        return _planned_time_note(PlannedTimes(target, render, post, tail, refused, chosen, plan, pilot))
 
     assert note(2.0, 1.7, 0.25, 0.25, "", None, "all", 0.5) == ""
     assert note(0.1, 0.5, 0.01, 0.01, "below start-up", None, "all", 0.0) == (
@@ -150,7 +154,7 @@ def test_the_planned_row_is_keyed_by_the_planner_sources():
 @pytest.fixture(scope="module")
 def tiny():
     """A 32×32 scene, its 1-spp G-PT frame and the per-scene renderer (the planner's kernels compiled)."""
-    from gradsep.evaluation.methods import PathRenderer
+    from gradsep.evaluation.baselines import PathRenderer
     from gradsep.renderer.render import render_frame
     from gradsep.renderer.scene import load_scene
 
@@ -162,7 +166,8 @@ def tiny():
 
 
 def _run(tiny, budget: float):
-    from gradsep.evaluation.methods import MethodContext, NetworkPool, method_by_name, run_method
+    from gradsep.evaluation.methods import method_by_name
+    from gradsep.evaluation.runners import MethodContext, NetworkPool, run_method
 
     frame, renderer = tiny
     ctx = MethodContext(frame=frame, render_seconds=0.1, spp=1, seed=12345, alpha=0.2, models_dir=Path("none"),

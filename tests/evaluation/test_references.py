@@ -98,27 +98,27 @@ def test_reference_spp_schedule_in_whole_passes():
 
 
 def test_reference_time_budget_limits_the_raise():
-    from gradsep.evaluation.run import _within_time
+    from gradsep.evaluation.references import within_time
 
     # 512 spp took 20 s for both references: 4096 would add 140 s of new rendering
-    assert _within_time(512, 4096, seconds=20.0, budget=240.0) == 4096
-    assert _within_time(512, 4096, seconds=20.0, budget=100.0) == 2048  # 60 s more fits, 140 s does not
-    assert _within_time(512, 4096, seconds=200.0, budget=100.0) is None  # not even a doubling fits
-    assert _within_time(512, 1024, seconds=float("nan"), budget=1.0) == 1024  # no timing: the cap decides
+    assert within_time(512, 4096, seconds=20.0, budget=240.0) == 4096
+    assert within_time(512, 4096, seconds=20.0, budget=100.0) == 2048  # 60 s more fits, 140 s does not
+    assert within_time(512, 4096, seconds=200.0, budget=100.0) is None  # not even a doubling fits
+    assert within_time(512, 1024, seconds=float("nan"), budget=1.0) == 1024  # no timing: the cap decides
     # in whole passes (10 s each, two per step): 100 s buy 10 new passes, so 3072 spp
-    assert _within_time(512, 4096, seconds=20.0, budget=100.0, step=512) == 3072
-    assert _within_time(512, 4096, seconds=20.0, budget=15.0, step=512) is None  # 1024 would add 20 s
+    assert within_time(512, 4096, seconds=20.0, budget=100.0, step=512) == 3072
+    assert within_time(512, 4096, seconds=20.0, budget=15.0, step=512) is None  # 1024 would add 20 s
 
 
 def test_reference_time_budget_counts_only_passes_not_yet_cached():
-    from gradsep.evaluation.run import _within_time
+    from gradsep.evaluation.references import within_time
 
     cached = 6  # passes 0..5 are in the cache (a farm's shards or an earlier run): 1536 spp each is free
     to_render = lambda spp: max(0, 2 * spp // 512 - cached)  # noqa: E731
-    assert _within_time(512, 4096, seconds=20.0, budget=0.5, step=512, to_render=to_render) == 1536
-    assert _within_time(512, 4096, seconds=20.0, budget=20.0, step=512, to_render=to_render) == 2048
-    assert _within_time(512, 1024, seconds=20.0, budget=0.5, step=512, to_render=lambda spp: 0) == 1024
-    assert _within_time(512, 4096, seconds=20.0, budget=0.5, step=512, to_render=lambda spp: 2) is None
+    assert within_time(512, 4096, seconds=20.0, budget=0.5, step=512, to_render=to_render) == 1536
+    assert within_time(512, 4096, seconds=20.0, budget=20.0, step=512, to_render=to_render) == 2048
+    assert within_time(512, 1024, seconds=20.0, budget=0.5, step=512, to_render=lambda spp: 0) == 1024
+    assert within_time(512, 4096, seconds=20.0, budget=0.5, step=512, to_render=lambda spp: 2) is None
 
 
 

@@ -207,18 +207,18 @@ def test_render_region_matches_the_full_frame_in_expectation():
 
 
 # ----------------------------------------------------------------------------------------------------------
-# The evaluation's use: region passes after the full passes stop (evaluation/run.py)
+# The evaluation's use: region passes after the full passes stop (evaluation/convergence.py)
 # ----------------------------------------------------------------------------------------------------------
 
 def _converge(tmp_path, monkeypatch, smallest, cap=64, ref_seconds=None):
-    """evaluation.run._converge_references on the toy source, the smallest ranked RelMSE fixed."""
+    """evaluation.convergence.converge_references on the toy source, the smallest ranked RelMSE fixed."""
     from types import SimpleNamespace
 
-    import gradsep.evaluation.run as run
+    import gradsep.evaluation.convergence as convergence
     from gradsep.evaluation.config import EvalConfig, resolve_scenes
     from gradsep.evaluation.results import SceneRun
 
-    monkeypatch.setattr(run, "_smallest_ranked", lambda outputs, pair: smallest)
+    monkeypatch.setattr(convergence, "_smallest_ranked", lambda outputs, pair: smallest)
     config = EvalConfig(scenes=("procedural:1",), spp=(1,), width=W, height=H, ref_spp=4, output=tmp_path / "r",
                         cache_dir=tmp_path, models_dir=tmp_path / "m", methods=("gpt-primal",), seed=0,
                         max_depth=None, alpha=0.2, table_spp=None, quick=False, ref_spp_cap=cap,
@@ -227,7 +227,7 @@ def _converge(tmp_path, monkeypatch, smallest, cap=64, ref_seconds=None):
     source, calls = _toy_source(tmp_path / "cache", np.full((H, W, 3), 0.5), noise_in_hot=0.5, log=messages.append)
     scene = SceneRun(resolve_scenes(["procedural:1"])[0][0], W, H, 8, ("direct", "indirect"),
                      np.zeros((H, W, 3), np.float32))
-    pair = run._converge_references(SimpleNamespace(config=config, log=messages.append), scene, source, [])
+    pair = convergence.converge_references(SimpleNamespace(config=config, log=messages.append), scene, source, [])
     return scene, pair, calls, messages
 
 

@@ -11,11 +11,14 @@ import numpy as np
 import pytest
 
 from gradsep.evaluation.config import EvalConfig, SceneEntry
-from gradsep.evaluation.methods import BracketOutput, MethodOutput, TimeSearch, evaluated_methods, interpolate_at
+from gradsep.evaluation.convergence import _smallest_ranked
+from gradsep.evaluation.methods import BracketOutput, MethodOutput, evaluated_methods
 from gradsep.evaluation.references import ReferencePair
-from gradsep.evaluation.report import row_seconds, time_interpolations, time_misses
-from gradsep.evaluation.results import SceneRun
-from gradsep.evaluation.run import _Runner, _smallest_ranked, image_scores, interpolated_scores
+from gradsep.evaluation.report_time import time_interpolations, time_misses
+from gradsep.evaluation.results import SceneRun, row_seconds
+from gradsep.evaluation.run import _Runner
+from gradsep.evaluation.scores import image_scores, interpolated_scores
+from gradsep.evaluation.timesearch import TimeSearch, interpolate_at
 
 
 def _granular(spp: int) -> tuple[int, float, float]:

@@ -183,7 +183,7 @@ def test_a_fixed_layer_is_its_candidate_and_old_formats_are_refused(blend_models
         aux = shared_denoiser(OIDN_SETTING).prefilter(frame.features)
         _, (image,), scale = layer_candidates(frame.layers[name], aux, (kind,))
         np.testing.assert_allclose(result.layers[name], image / scale, rtol=1e-6, atol=1e-7)
-    assert FIXED_LAYERS == {"direct": "refine-direct"}  # oidn-l1's refinement solved less far: close to it
+    # the direct layer, served by oidn-l1's refinement solved less far, is close to the oidn-l1 method's
     oidn_l1 = reconstruct(frame, "oidn-l1").layers["direct"]
     assert np.abs(result.layers["direct"] - oidn_l1).mean() < 0.05 * oidn_l1.mean()
     proto = onnx.load(folder / "indirect.onnx")

@@ -1,4 +1,4 @@
-"""evaluation.methods.TimeSearch, the equal-time spp search, against fake timers: a fixed per-render overhead
+"""evaluation.timesearch.TimeSearch, the equal-time spp search, against fake timers: a fixed per-render overhead
 the calibration slope does not know about, multiplicative noise and load spikes; and the cases where no spp can
 meet the budget, which must be reported with the reason instead of passing as met."""
 
@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gradsep.evaluation.methods import TimeSearch
+from gradsep.evaluation.timesearch import SearchRules, TimeSearch
 
 
 class FakeTimer:
@@ -84,10 +84,10 @@ def test_one_spike_does_not_wall_off_the_right_spp() -> None:
 
 def test_long_tries_are_timed_once_unless_they_surprise() -> None:
     timer = FakeTimer(0.0, 0.01)
-    got = TimeSearch(5.0, 0.01, 10_000, repeat_below=2.0).run(timer.measure, first_spp=500)
+    got = TimeSearch(5.0, 0.01, 10_000, rules=SearchRules(repeat_below=2.0)).run(timer.measure, first_spp=500)
     assert timer.calls == [500] and got.attempts == 1 and got.miss == pytest.approx(0.0)
     slow = FakeTimer(2.0, 0.01)  # 2 s of overhead the calibration did not predict: re-timed before it is trusted
-    got = TimeSearch(5.0, 0.01, 10_000, repeat_below=2.0).run(slow.measure, first_spp=500)
+    got = TimeSearch(5.0, 0.01, 10_000, rules=SearchRules(repeat_below=2.0)).run(slow.measure, first_spp=500)
     assert slow.calls[:3] == [500] * 3 and got.miss <= 0.05
 
 
