@@ -9,8 +9,8 @@ import anyio
 from fastapi import FastAPI
 
 from gradsep.model import __version__
+from gradsep.service.engine import Engine
 from gradsep.service.errors import install_error_handlers
-from gradsep.service.inference import Engine
 from gradsep.service.metrics import ServiceMetrics
 from gradsep.service.middleware import install_middleware
 from gradsep.service.openapi import install_docs, install_openapi

@@ -26,10 +26,11 @@ from gradsep.model.channels import DEFAULT_LAYOUT, LAYOUT_CHOICES, LAYOUT_PATTER
 from gradsep.model.frame import HeaderInfo, NotExrError, Source, read_header
 from gradsep.model.poisson import MIN_ALPHA
 from gradsep.service.dependencies import get_engine, get_metrics
+from gradsep.service.engine import Engine
 from gradsep.service.errors import ErrorResponse, ServiceError
-from gradsep.service.inference import Engine, ReconstructParams, run_pipeline, server_timing
 from gradsep.service.metrics import ServiceMetrics
 from gradsep.service.middleware import request_id_of
+from gradsep.service.pipeline import ReconstructParams, run_pipeline, server_timing
 
 RAW_TYPES = ("image/x-exr", "application/octet-stream")
 EXR_MEDIA_TYPE = "image/x-exr"

@@ -12,7 +12,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-import gradsep.service.inference
+import gradsep.service.pipeline
 from gradsep.model import methods as table
 from gradsep.model.reconstruct import choose_method
 from gradsep.service.main import create_app
@@ -20,7 +20,7 @@ from tests.service.conftest import settings, wait_ready
 from tests.service.frames import decode, expected_sum, frame_bytes, rgb
 from tests.service.test_contract import assert_error, post
 
-REAL_RECONSTRUCT = gradsep.service.inference.reconstruct
+REAL_RECONSTRUCT = gradsep.service.pipeline.reconstruct
 
 
 class BlockingReconstruction:
@@ -41,7 +41,7 @@ class BlockingReconstruction:
 @pytest.fixture
 def blocker(monkeypatch) -> BlockingReconstruction:
     fake = BlockingReconstruction()
-    monkeypatch.setattr(gradsep.service.inference, "reconstruct", fake)
+    monkeypatch.setattr(gradsep.service.pipeline, "reconstruct", fake)
     yield fake
     fake.release.set()  # never leave a worker thread hanging, whatever the test did
 
@@ -179,7 +179,7 @@ def test_loaded_network_becomes_the_default_method_without_oidn(serve, monkeypat
         return SimpleNamespace(image=image, layers={k: v.base for k, v in frame.layers.items()},
                                timings=dict.fromkeys(frame.layers, 0.001), method="network")
 
-    monkeypatch.setattr(gradsep.service.inference, "reconstruct", reconstruct)
+    monkeypatch.setattr(gradsep.service.pipeline, "reconstruct", reconstruct)
     with serve(create_app(settings())) as client:
         assert network.warmed == 1
         ready = client.get("/readyz").json()
@@ -211,7 +211,7 @@ def test_fused_models_are_served_and_the_policy_order_picks_the_default(serve, m
         return SimpleNamespace(image=image, layers={k: v.base for k, v in frame.layers.items()},
                                timings=dict.fromkeys(frame.layers, 0.001), method="fused")
 
-    monkeypatch.setattr(gradsep.service.inference, "reconstruct", reconstruct)
+    monkeypatch.setattr(gradsep.service.pipeline, "reconstruct", reconstruct)
     with serve(create_app(settings(warm_up=False))) as client:
         ready = client.get("/readyz").json()
         assert ready["methods"] == ["l1", "l2", "oidn", "oidn-l1", "fused"]
@@ -234,7 +234,7 @@ def test_an_unexpected_failure_is_a_json_500_with_the_request_id(serve, monkeypa
     def crash(frame, method, alpha, models=None):
         raise RuntimeError("solver exploded")
 
-    monkeypatch.setattr(gradsep.service.inference, "reconstruct", crash)
+    monkeypatch.setattr(gradsep.service.pipeline, "reconstruct", crash)
     with serve(create_app(settings(warm_up=False))) as client:
         response = post(client, frame_bytes(), headers={"X-Request-ID": "req-500"})
         error = assert_error(response, 500, "internal")

@@ -175,7 +175,7 @@ def test_multipart_without_frame_field_is_400(poisson_api, transport):
 @TRANSPORT
 def test_huge_declared_image_is_413_from_the_header_without_decoding(poisson_api, transport, monkeypatch):
     decoded = []
-    monkeypatch.setattr("gradsep.service.inference.read_frame", lambda *a, **k: decoded.append(a) or 1 / 0)
+    monkeypatch.setattr("gradsep.service.pipeline.read_frame", lambda *a, **k: decoded.append(a) or 1 / 0)
     data = huge_header(frame_bytes(("color",), height=4, width=4))
     assert len(data) < 10_000  # a tiny body: the size can only come from the header
     error = assert_error(post(poisson_api[transport], data), 413, "too_large")
