@@ -14,6 +14,7 @@ from anyio.abc import TaskGroup
 from gradsep.model import methods as table
 from gradsep.model.frame import Layer, ReadLimits, configure_exr_threads, forward_differences
 from gradsep.service import pipeline
+from gradsep.service.bodies import BytePool
 from gradsep.service.gate import InferenceGate
 from gradsep.service.settings import Settings
 
@@ -35,6 +36,7 @@ class Engine:
         self.state: Literal["loading", "ready", "failed"] = "loading"
         self.failure: str | None = None
         self.gate: InferenceGate | None = None
+        self.body_pool = BytePool(settings.body_memory_bytes)  # request bodies in memory, across all uploads
 
     @property
     def network(self) -> Any:
@@ -70,6 +72,10 @@ class Engine:
         """The table of methods as /v1/models shows it: each method's needs and whether this replica serves it."""
         served = set(self.methods)
         return [{**m.summary(), "served": m.name in served} for m in table.methods()]
+
+    def retry_after(self) -> int:
+        """Seconds a refused client should wait: the gate's estimate once it exists."""
+        return self.gate.retry_after() if self.gate is not None else 1
 
     def start(self, task_group: TaskGroup) -> None:
         """Create the gate and load + warm up in the background, so /healthz answers during a long load."""

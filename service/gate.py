@@ -11,8 +11,8 @@ waits for running jobs, so in-flight work finishes.
 
 from __future__ import annotations
 
-import math
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Generic, TypeVar
@@ -36,6 +36,47 @@ class _Job(Generic[T]):
     started_at: float | None = None
 
 
+class DrainMeter:
+    """The gate's measured drain rate: jobs finished per second of busy time (time with a job running), over the
+    last ``window`` jobs. Busy time, not wall time, so the idle gaps between bursts do not read as a slow queue.
+    Only touched on the event loop."""
+
+    def __init__(self, window: int = 16, clock: Callable[[], float] = time.perf_counter) -> None:
+        self._clock = clock
+        self._busy_before = 0.0  # busy seconds up to the start of the current busy period
+        self._busy_since: float | None = None  # start of the current busy period; None while idle
+        self._marks: deque[float] = deque([0.0], maxlen=window + 1)  # the busy clock at each finish
+
+    def busy(self) -> float:
+        """Seconds the gate has had at least one job running."""
+        current = self._clock() - self._busy_since if self._busy_since is not None else 0.0
+        return self._busy_before + current
+
+    def started(self, running_before: int) -> None:
+        if running_before == 0:
+            self._busy_since = self._clock()
+
+    def finished(self, running_after: int) -> None:
+        mark = self.busy()
+        self._marks.append(mark)
+        if running_after == 0:
+            self._busy_before, self._busy_since = mark, None
+
+    def rate(self) -> float | None:
+        """Jobs per busy second over the window; None until a job has finished."""
+        span = self._marks[-1] - self._marks[0]
+        return (len(self._marks) - 1) / span if len(self._marks) > 1 and span > 0 else None
+
+    def seconds_to_drain(self, backlog: int, concurrency: int) -> float:
+        """Seconds until ``backlog`` admitted jobs are done at the measured rate. Before any job has finished, the
+        running jobs' age stands in for a job's duration: a lower bound, so an early client retries soon and
+        meets a measured estimate."""
+        rate = self.rate()
+        if rate is None:
+            return backlog * self.busy() / concurrency
+        return backlog / rate
+
+
 class InferenceGate:
     """At most ``concurrency`` jobs run (each in a worker thread); at most ``queue_size`` more wait.
 
@@ -50,16 +91,17 @@ class InferenceGate:
         self._tg = task_group
         self.waiting = 0
         self.running = 0
-        self._mean_seconds = 1.0  # exponentially weighted mean job duration, for Retry-After
+        self.drain = DrainMeter()
 
     @property
     def full(self) -> bool:
         return self.waiting + self.running >= self.concurrency + self.queue_size
 
     def retry_after(self) -> int:
-        """Seconds a rejected client should wait: the estimated time to drain what is admitted now."""
-        backlog = (self.waiting + self.running) / self.concurrency
-        return int(min(60, max(1, math.ceil(backlog * self._mean_seconds))))
+        """Seconds a rejected client should wait: the time to drain what is admitted now, at the measured drain
+        rate; whole seconds (HTTP's delta-seconds), rounded, 1 to 60."""
+        seconds = self.drain.seconds_to_drain(self.waiting + self.running, self.concurrency)
+        return int(min(60, max(1, round(seconds))))
 
     def queue_full_error(self) -> ServiceError:
         retry = self.retry_after()
@@ -101,6 +143,7 @@ class InferenceGate:
                 if job.abandoned:
                     return
                 job.started_at = time.perf_counter()
+                self.drain.started(self.running)
                 self.running += 1
                 try:
                     job.result = await anyio.to_thread.run_sync(job.fn, limiter=self._threads)
@@ -108,8 +151,7 @@ class InferenceGate:
                     job.error = exc
                 finally:
                     self.running -= 1
-                    elapsed = time.perf_counter() - job.started_at
-                    self._mean_seconds = 0.8 * self._mean_seconds + 0.2 * elapsed
+                    self.drain.finished(self.running)
         finally:
             if queued:
                 self.waiting -= 1

@@ -39,8 +39,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.include_router(router)
     if docs:
         install_docs(app)  # before the middleware reads the routes: /docs is then a known path for metrics
-    install_middleware(app, token=settings.token_value, max_body_bytes=settings.max_body_bytes,
-                       metrics=app.state.metrics, body_timeout=settings.body_timeout,
-                       open_docs=settings.docs == "open")
+    install_middleware(app, settings, app.state.metrics, retry_after=app.state.engine.retry_after)
     install_openapi(app, secured=settings.token is not None)
     return app

@@ -26,6 +26,18 @@ class Settings(BaseSettings):
 
     max_body_bytes: int = Field(
         256 * MiB, ge=1024, description="largest request body accepted; bigger bodies get 413 while streaming")
+    body_memory_bytes: int = Field(
+        128 * MiB, ge=0,
+        description="bytes of request bodies held in memory, across all open uploads; a body this pool cannot "
+                    "hold goes on in a temporary file in spool_dir, so no upload buffers past it (0: every body "
+                    "on disk)")
+    max_uploads: int = Field(
+        16, ge=1, le=4096,
+        description="request bodies being received at once; beyond that 503 + Retry-After (each open upload "
+                    "also holds up to two of uvicorn's per-connection read buffers)")
+    spool_dir: Path | None = Field(
+        None, description="folder for the request bodies spooled to disk (default: the system temporary folder); "
+                          "on a disk, not tmpfs, or the spooled bytes are memory again")
     max_pixels: int = Field(
         8192 * 8192, ge=1, description="largest width*height decoded; decided from the EXR header (413)")
     max_values: int = Field(
