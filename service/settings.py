@@ -78,7 +78,7 @@ class Settings(BaseSettings):
         DEFAULT_ARENAS, ge=0, le=1024,
         description="glibc malloc arenas of the process, with fixed mmap/trim thresholds (model/allocator.py): 1 "
                     "keeps the frame-sized temporaries of the worker threads in one arena that keeps its memory "
-                    "(no fresh pages per request; half the peak RSS); 0 leaves glibc's malloc as it is; the "
+                    "(no fresh pages per request); 0 leaves glibc's malloc as it is; the "
                     "operator's own MALLOC_* variables win")
     oidn_runtime: Literal["library", "onnx"] = Field(
         "library", description="what runs OIDN's colour filter: its own library, or its weights on ONNX Runtime "
