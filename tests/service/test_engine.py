@@ -7,13 +7,14 @@ import dataclasses
 import threading
 from types import SimpleNamespace
 
+import numpy as np
+
 import gradsep.service.pipeline
 from gradsep.model import methods as table
 from gradsep.model.reconstruct import choose_method
 from gradsep.service.main import create_app
-from tests.service.conftest import settings, wait_ready
+from tests.service.conftest import assert_error, post, settings, wait_ready
 from tests.service.frames import frame_bytes
-from tests.service.test_contract import assert_error, post
 from tests.service.test_gate import REAL_RECONSTRUCT, metric, wait_for
 
 
@@ -131,3 +132,26 @@ def test_fused_models_are_served_and_the_policy_order_picks_the_default(serve, m
         assert plain.status_code == 200 and plain.headers["x-reconstruction-method"] == "oidn"
         refused = post(client, frame_bytes(seed=9, features=True, gradients=False), {"method": "l1"})
         assert refused.status_code == 422 and "gradients" in refused.json()["error"]["message"]
+
+
+def test_exr_thread_pool_changes_no_pixel() -> None:
+    """GRADSEP_EXR_THREADS: OpenEXR's pool (de)compresses line blocks in parallel; bytes and pixels are the same."""
+    import OpenEXR
+
+    from gradsep.model.frame import configure_exr_threads, encode_exr, read_frame
+
+    data = frame_bytes(("direct", "indirect"), height=70, width=90)
+    image = {"R": np.random.default_rng(0).random((70, 90), dtype=np.float32)}
+    before = OpenEXR.global_thread_count()
+    try:
+        configure_exr_threads(0)
+        serial, encoded = read_frame(data), encode_exr(image)
+        assert configure_exr_threads(-1) >= 1 and OpenEXR.global_thread_count() >= 1
+        threaded = read_frame(data)
+        assert encode_exr(image) == encoded
+        for name, layer in serial.layers.items():
+            for part in ("base", "dx", "dy"):
+                np.testing.assert_array_equal(getattr(layer, part), getattr(threaded.layers[name], part))
+    finally:
+        OpenEXR.set_global_thread_count(before)
+

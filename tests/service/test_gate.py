@@ -15,9 +15,8 @@ import pytest
 import gradsep.service.pipeline
 from gradsep.service.gate import DrainMeter
 from gradsep.service.main import create_app
-from tests.service.conftest import settings, uvicorn_server, wait_ready
+from tests.service.conftest import assert_error, post, settings, uvicorn_server, wait_ready
 from tests.service.frames import decode, expected_sum, frame_bytes, rgb
-from tests.service.test_contract import assert_error, post
 
 REAL_RECONSTRUCT = gradsep.service.pipeline.reconstruct
 

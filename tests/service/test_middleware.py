@@ -10,9 +10,8 @@ import httpx
 
 import gradsep.service.pipeline
 from gradsep.service.main import create_app
-from tests.service.conftest import settings, uvicorn_server, wait_ready
+from tests.service.conftest import TRANSPORT, assert_error, post, settings, uvicorn_server, wait_ready
 from tests.service.frames import frame_bytes
-from tests.service.test_contract import assert_error, post
 from tests.service.uploads import chunked_upload
 
 
@@ -62,3 +61,36 @@ def _open_uploads(app) -> int:
     while not hasattr(layer, "uploads"):
         layer = layer.app
     return layer.uploads.open
+
+
+def test_bearer_token_guards_everything_but_health_readiness_and_the_docs(serve):
+    with serve(create_app(settings(token="s3cret-token"))) as client:
+        assert client.get("/healthz").status_code == 200
+        assert client.get("/readyz").status_code == 200
+        for path in ("/docs", "/docs/static/swagger-ui.css", "/openapi.json"):  # no secret in them (docs=open)
+            assert client.get(path).status_code == 200, path
+        for path in ("/v1/models", "/metrics", "/nothing", "/docsx", "/openapi.json/x"):
+            response = client.get(path)
+            assert_error(response, 401, "unauthorized")
+            assert response.headers["www-authenticate"].startswith("Bearer")
+        assert_error(post(client, b"garbage"), 401, "unauthorized")  # auth before the body is looked at
+        assert_error(client.get("/v1/models", headers={"Authorization": "Bearer wrong"}), 401, "unauthorized")
+        assert_error(client.get("/v1/models", headers={"Authorization": "Basic czNjcmV0LXRva2Vu"}),
+                     401, "unauthorized")
+        good = {"Authorization": "Bearer s3cret-token"}
+        assert client.get("/v1/models", headers=good).status_code == 200
+        assert post(client, frame_bytes(), headers=good).status_code == 200
+        schema = client.get("/openapi.json", headers=good).json()
+        assert schema["components"]["securitySchemes"]["bearer"]["scheme"] == "bearer"
+        assert schema["paths"]["/healthz"]["get"]["security"] == []
+        assert 'reason="unauthorized"' in client.get("/metrics", headers=good).text
+
+
+
+@TRANSPORT
+def test_unknown_route_and_wrong_verb_are_json(poisson_api, transport):
+    assert_error(poisson_api[transport].get("/v2/nothing"), 404, "not_found")
+    response = poisson_api[transport].get("/v1/reconstruct")
+    assert_error(response, 405, "method_not_allowed")
+    assert response.headers["allow"] == "POST"
+
