@@ -36,6 +36,9 @@ from gradsep.service.middleware import request_id_of
 from gradsep.service.pipeline import Outcome, ReconstructParams, run_pipeline, server_timing
 
 RAW_TYPES = ("image/x-exr", "application/octet-stream")
+#: Largest non-file field of a multipart body held in memory (the frame itself is a file part, which Starlette
+#: spools to disk past its small in-memory head); a bigger field is a 400.
+MULTIPART_FIELD_BYTES = 64 << 10
 EXR_MEDIA_TYPE = "image/x-exr"
 _BINARY = {"type": "string", "format": "binary"}
 
@@ -244,7 +247,7 @@ async def _read_body(request: Request, media: str, engine: Engine) -> Upload:
         body = await read_body(request.stream(), engine.body_pool, engine.settings.spool_dir,
                                int(declared) if declared is not None else None)
         return Upload(body.file, body.size, body.close)
-    form = await request.form(max_files=1, max_fields=16)
+    form = await request.form(max_files=1, max_fields=16, max_part_size=MULTIPART_FIELD_BYTES)
     upload = form.get("frame")
     if not isinstance(upload, UploadFile):
         fields = list(form.keys())
