@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from gradsep.service.main import create_app
+from gradsep.service.routers.reconstruct import MULTIPART_FIELD_BYTES
 from tests.service.conftest import TRANSPORT, assert_error, post, settings
 from tests.service.frames import (
     channels_bytes,
@@ -120,6 +121,18 @@ def test_multipart_without_frame_field_is_400(poisson_api, transport):
     response = poisson_api[transport].post("/v1/reconstruct", files={"image": ("f.exr", frame_bytes())})
     error = assert_error(response, 400, "missing_frame")
     assert error["details"] == {"fields": ["image"]}
+
+
+@TRANSPORT
+def test_a_multipart_field_over_64_kib_is_400_and_one_under_is_ignored(poisson_api, transport):
+    """Non-file fields are held in memory while the body is parsed: each is capped (docs/service.md, memory)."""
+    frame = {"frame": ("f.exr", frame_bytes(seed=2), "image/x-exr")}
+    big = poisson_api[transport].post("/v1/reconstruct", params={"method": "l2"}, files=frame,
+                                      data={"note": "x" * (MULTIPART_FIELD_BYTES + 1)})
+    assert_error(big, 400, "bad_request")
+    small = poisson_api[transport].post("/v1/reconstruct", params={"method": "l2"}, files=frame,
+                                        data={"note": "x" * MULTIPART_FIELD_BYTES})
+    assert small.status_code == 200, small.text
 
 
 # --------------------------------------------------------------------------------------------------------------
