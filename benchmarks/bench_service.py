@@ -28,7 +28,7 @@ untimed requests first. Timings on a shared machine are noisy: the load average 
 ``--uploads N``: a service with the default settings, N concurrent chunked (no Content-Length) uploads of
 ``--upload-mib`` MiB of zeros each, every one over the body limit; the answers (413, 503) and the growth of the
 service's resident memory: its VmHWM, reset (Linux ``clear_refs``) once the service is ready, minus its RSS then
-(docs/service.md, "Request bodies and memory"). The uploader is tests/service/uploads.py.
+(docs/service.md, "Request bodies and memory").
 """
 
 from __future__ import annotations
@@ -193,10 +193,26 @@ def io_costs(height: int, width: int, repeats: int, compressions: list[str], thr
                   f"{np.median(encodes):12.3f} {len(answer) / 1e6:9.1f}", flush=True)
 
 
+def chunked_upload(url: str, mib: int) -> str:
+    """POST ``mib`` MiB of zeros as a chunked body (a generator: no Content-Length); the answer's status and code.
+    httpx reads the answer of a server that answers mid-upload and closes."""
+    def zeros() -> Iterator[bytes]:
+        chunk = bytes(1 << 20)
+        for _ in range(mib):
+            yield chunk
+
+    try:
+        r = httpx.post(f"{url}/v1/reconstruct", content=zeros(), headers={"Content-Type": "image/x-exr"}, timeout=600)
+    except httpx.HTTPError as exc:
+        return f"no answer ({type(exc).__name__})"
+    try:
+        return f"{r.status_code} {r.json()['error']['code']}"
+    except (ValueError, KeyError, TypeError):
+        return str(r.status_code)
+
+
 def upload_memory(uploads: int, mib: int, concurrency: int) -> None:
     """``--uploads``: the service's RSS growth under ``uploads`` concurrent chunked uploads of ``mib`` MiB."""
-    from tests.service.uploads import chunked_upload
-
     pids: list[int] = []
     with local_service(concurrency, pids) as url, httpx.Client(base_url=url, timeout=60) as client:
         wait_ready(client)
@@ -204,14 +220,13 @@ def upload_memory(uploads: int, mib: int, concurrency: int) -> None:
         baseline = peak_rss_mib(pids[0])
         started = time.monotonic()
         with ThreadPoolExecutor(uploads) as pool:
-            results = list(pool.map(lambda _: chunked_upload(int(url.rsplit(":", 1)[1]), mib << 20, timeout=600),
-                                    range(uploads)))
+            results = list(pool.map(lambda _: chunked_upload(url, mib), range(uploads)))
         seconds = time.monotonic() - started
         peak = peak_rss_mib(pids[0])
         alive = client.get("/healthz").status_code
-    answers = defaultdict(int)
+    answers: dict[str, int] = defaultdict(int)
     for r in results:
-        answers[f"{r.status} {r.code}"] += 1
+        answers[r] += 1
     assert baseline is not None and peak is not None
     print(f"{uploads} concurrent chunked uploads of {mib} MiB, service concurrency {concurrency}: answers "
           f"{dict(answers)} in {seconds:.1f} s; /healthz {alive}; service RSS baseline {baseline:.0f} MiB, peak "
