@@ -12,6 +12,7 @@ own status codes in a fixed order, cheapest first:
 
 # No ``from __future__ import annotations``: build_router's endpoint is annotated with a type made when the app is
 # created (the methods enum), which FastAPI must see as an object, not as a string naming a local.
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -177,27 +178,25 @@ async def _reconstruct(request: Request, engine: Engine, metrics: ServiceMetrics
 
 
 async def _run(upload: Upload, engine: Engine, query: ReconstructQuery, request_id: str) -> tuple[Outcome, float]:
-    """Header check, then the pipeline through the gate. The body is closed when the work is done: by the job
-    itself in its thread (so a job that outlives its request's timeout frees its body when it ends), or here
-    when no job runs it."""
-    job_running = False
+    """Header check, then the pipeline through the gate. The body is closed when the work is done: by the job in
+    its thread once it has started (so a job that outlives its request, timed out or disconnected, reads its body
+    to the end and frees it when it ends), or here when no job started."""
+    started = threading.Event()
     try:
         header = await anyio.to_thread.run_sync(_check_header, upload, engine)
         alpha = query.alpha if query.alpha is not None else engine.settings.default_alpha
         params = ReconstructParams(query.method, alpha, query.output_format == "half", query.layers, request_id,
                                    header.compression, query.channels)
-        try:
-            return await engine.gate.run(partial(_job, upload, params, engine), engine.settings.inference_timeout)
-        except ServiceError as exc:
-            job_running = exc.code == "timeout" and bool((exc.details or {}).get("started"))
-            raise
+        job = partial(_job, upload, params, engine, started)
+        return await engine.gate.run(job, engine.settings.inference_timeout)  # type: ignore[union-attr]
     finally:
-        if not job_running:
+        if not started.is_set():
             upload.close()
 
 
-def _job(upload: Upload, params: ReconstructParams, engine: Engine) -> Outcome:
+def _job(upload: Upload, params: ReconstructParams, engine: Engine, started: threading.Event) -> Outcome:
     """One request's pipeline in a worker thread; its body closed when it ends."""
+    started.set()
     try:
         return run_pipeline(upload.file, params, engine.limits, engine.settings.nonfinite, engine.models)
     finally:

@@ -151,7 +151,8 @@ class SleepingReconstruction:
 @pytest.mark.parametrize("job_seconds", [0.12, 0.5])
 def test_retry_after_is_within_twice_the_real_wait_of_a_burst(monkeypatch, job_seconds):
     """Warm the meter with three jobs, then a burst of eight at a 1-slot, 4-deep gate: five are admitted, three get
-    503. Their Retry-After is compared with the real wait: from the 503 until the admitted burst has drained."""
+    503. Their Retry-After is compared with the real wait: from the 503 until the admitted burst has drained (the
+    old estimate, a mean job time that starts at 1 s, gave 3 s for the 0.6 s burst)."""
     monkeypatch.setattr(gradsep.service.pipeline, "reconstruct", SleepingReconstruction(job_seconds))
     app = create_app(settings(concurrency=1, queue_size=4, warm_up=False))
     with uvicorn_server(app) as url, httpx.Client(base_url=url, timeout=60) as client:
@@ -169,7 +170,8 @@ def test_retry_after_is_within_twice_the_real_wait_of_a_burst(monkeypatch, job_s
             list(pool.map(one, range(8)))
     refused = [(t, r) for t, r in answered if r.status_code == 503]
     served = [t for t, r in answered if r.status_code == 200]
-    assert len(served) == 5 and len(refused) == 3, [r.status_code for _, r in answered]
+    # five are admitted at once; on a loaded machine a straggler of the burst may find a freed place
+    assert len(served) + len(refused) == 8 and len(served) >= 5 and refused, [r.status_code for _, r in answered]
     drained = max(served)
     print(f"jobs of {job_seconds} s: Retry-After / real wait (s): "
           + ", ".join(f"{r.headers['retry-after']} / {drained - t:.2f}" for t, r in refused))
