@@ -151,8 +151,7 @@ class SleepingReconstruction:
 @pytest.mark.parametrize("job_seconds", [0.12, 0.5])
 def test_retry_after_is_within_twice_the_real_wait_of_a_burst(monkeypatch, job_seconds):
     """Warm the meter with three jobs, then a burst of eight at a 1-slot, 4-deep gate: five are admitted, three get
-    503. Their Retry-After is compared with the real wait: from the 503 until the admitted burst has drained (the
-    old estimate, a mean job time that starts at 1 s, gave 3 s for the 0.6 s burst)."""
+    503. Their Retry-After is compared with the real wait: from the 503 until the admitted burst has drained."""
     monkeypatch.setattr(gradsep.service.pipeline, "reconstruct", SleepingReconstruction(job_seconds))
     app = create_app(settings(concurrency=1, queue_size=4, warm_up=False))
     with uvicorn_server(app) as url, httpx.Client(base_url=url, timeout=60) as client:
