@@ -22,6 +22,11 @@ from typing import BinaryIO
 
 import anyio
 
+from gradsep.service.errors import ServiceError
+
+#: Retry-After of a body that could not be spooled (a full or missing spool folder clears on an operator's time).
+SPOOL_RETRY_SECONDS = 30
+
 
 class BytePool:
     """A count of bytes that never passes ``capacity``: :meth:`take` grants all of a request or nothing."""
@@ -77,9 +82,14 @@ class SpooledBody:
         if not self._to_disk and self._grant(len(chunk)):
             self.file.write(chunk)
         else:
-            if not self._on_disk:
-                await self._spill()
-            await anyio.to_thread.run_sync(self.file.write, chunk)
+            try:
+                if not self._on_disk:
+                    await self._spill()
+                await anyio.to_thread.run_sync(self.file.write, chunk)
+            except OSError as exc:  # the spool folder is full or gone: the server's trouble, not the client's
+                raise ServiceError(503, "spool_failed", f"the request body could not be spooled to disk "
+                                   f"({exc.strerror or exc}); retry later", None,
+                                   {"Retry-After": str(SPOOL_RETRY_SECONDS)}) from None
         self.size += len(chunk)
 
     def _grant(self, n: int) -> bool:
@@ -96,8 +106,12 @@ class SpooledBody:
         """Move the body to a temporary file and give its memory back to the pool."""
         memory = self.file
         target = await anyio.to_thread.run_sync(self._temporary_file)
-        with memory.getbuffer() as view:  # type: ignore[attr-defined]
-            await anyio.to_thread.run_sync(target.write, view)
+        try:
+            with memory.getbuffer() as view:  # type: ignore[attr-defined]
+                await anyio.to_thread.run_sync(target.write, view)
+        except BaseException:
+            target.close()
+            raise
         self.file, self._on_disk, self._to_disk = target, True, True
         memory.close()
         self._release()
@@ -106,7 +120,7 @@ class SpooledBody:
         folder = str(self.spool_dir) if self.spool_dir is not None else None
         return tempfile.TemporaryFile(prefix="gradsep-body-", dir=folder)  # unnamed: gone when closed
 
-    async def finish(self) -> None:
+    def finish(self) -> None:
         """The body is complete: unused reservation back to the pool, the stream at its start."""
         with self._lock:
             if self._reserved:
@@ -137,7 +151,7 @@ async def read_body(stream: AsyncIterable[bytes], pool: BytePool, spool_dir: Pat
     try:
         async for chunk in stream:
             await body.write(chunk)
-        await body.finish()
+        body.finish()
     except BaseException:
         body.close()
         raise

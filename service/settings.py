@@ -94,6 +94,13 @@ class Settings(BaseSettings):
             return None
         return value
 
+    @field_validator("spool_dir")
+    @classmethod
+    def _spool_dir_exists(cls, value: Path | None) -> Path | None:
+        if value is not None and not value.is_dir():
+            raise ValueError(f"{value} is not a folder")
+        return value
+
     @field_validator("log_level", mode="before")
     @classmethod
     def _lower_level(cls, value: object) -> object:

@@ -138,3 +138,25 @@ def reset_peak(pid: int) -> int:
     """Reset the process's VmHWM to its current RSS (Linux ``clear_refs`` 5); return that RSS."""
     Path(f"/proc/{pid}/clear_refs").write_text("5")
     return rss_bytes(pid, "VmHWM")
+
+
+def test_a_body_that_cannot_be_spooled_is_503_with_retry_after(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A full or vanished spool folder is the server's trouble: 503 spool_failed, never a 500."""
+    def full(*args: object, **kwargs: object) -> None:
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr("gradsep.service.bodies.tempfile.TemporaryFile", full)
+    app = create_app(settings(body_memory_bytes=0, warm_up=False))
+    with uvicorn_server(app) as url, httpx.Client(base_url=url, timeout=60) as client:
+        wait_ready(client)
+        r = client.post("/v1/reconstruct", params={"method": "l2"}, content=frame_bytes(seed=1),
+                        headers={"Content-Type": "image/x-exr"})
+        assert r.status_code == 503 and r.json()["error"]["code"] == "spool_failed", r.text
+        assert r.headers["retry-after"] == "30" and "No space left" in r.json()["error"]["message"]
+    assert app.state.engine.body_pool.held == 0
+
+
+def test_a_spool_folder_that_is_not_a_folder_stops_the_settings(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="is not a folder"):
+        settings(spool_dir=tmp_path / "missing")
+    assert settings(spool_dir=tmp_path).spool_dir == tmp_path
