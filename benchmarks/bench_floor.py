@@ -4,7 +4,7 @@
     python benchmarks/bench_floor.py --frame render.exr       # your own frame (any size, any layers)
     python benchmarks/bench_floor.py --methods oidn-l1,network --repeats 5 --json
 
-Each method runs ``service.inference.run_pipeline`` in this process: decode, reconstruct, encode, what one request
+Each method runs ``service.pipeline.run_pipeline`` in this process: decode, reconstruct, encode, what one request
 does in a service worker, without HTTP (add the upload's read, 0.07-0.12 s for a 66 MB frame on localhost, for
 bench_service.py's p50). Per method, medians of ``--repeats`` after a warm-up: the wall time and the **process CPU
 time** (every thread: OIDN's, OpenVINO's, OpenEXR's pool, the compiled kernels). The CPU time is the work a frame
@@ -52,7 +52,7 @@ def measure(source: bytes, method: str, repeats: int, models: Any) -> dict[str, 
     """Median wall and process-CPU seconds of run_pipeline(method) over ``repeats`` runs after one warm-up."""
     from gradsep.model.exr_read import ReadLimits, read_header
     from gradsep.model.policy import DEFAULT_ALPHA
-    from gradsep.service.inference import ReconstructParams, run_pipeline
+    from gradsep.service.pipeline import ReconstructParams, run_pipeline
 
     compression = read_header(source).compression
     params = ReconstructParams(method=method, alpha=DEFAULT_ALPHA, half=False, layers="sum", compression=compression)
@@ -87,7 +87,7 @@ def main() -> None:
     from gradsep.model.exr_write import configure_exr_threads
     from gradsep.model.reconstruct import available_methods
     from gradsep.model.synthetic import synthetic_frame
-    from gradsep.service.inference import load_models
+    from gradsep.service.engine import load_models
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--frame", type=Path, help="an EXR frame (default: gradsep.model.synthetic's frame)")

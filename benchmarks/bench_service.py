@@ -7,6 +7,7 @@ then throughput with ``--clients`` (2) concurrent clients in frames per minute, 
     python benchmarks/bench_service.py --url http://host:8000 --token T   # an already running service (no RSS)
     python benchmarks/bench_service.py --io                  # EXR decode/encode cost per compression, no service
     python benchmarks/bench_service.py --io --io-compressions ZIP_COMPRESSION --io-threads 0,1,2  # OpenEXR pool
+    python benchmarks/bench_service.py --uploads 8           # 8 concurrent chunked 300 MiB uploads: RSS growth
 
 What is timed is what a render-farm task sees: upload of the EXR, queueing, decode, reconstruction of each layer,
 encode and download (client-side wall clock, one request at a time, connection kept alive). The service's own
@@ -23,6 +24,11 @@ The frame is synthetic and seeded: direct and indirect layers (smooth shading wi
 multiplicative noise and rare fireflies in the bases, lighter noise in the gradients, each layer's variance as the
 renderer writes it) plus albedo/normal/depth features, written as float32 ZIP EXR. Each method runs ``--warmup``
 untimed requests first. Timings on a shared machine are noisy: the load average is printed with them.
+
+``--uploads N``: a service with the default settings, N concurrent chunked (no Content-Length) uploads of
+``--upload-mib`` MiB of zeros each, every one over the body limit; the answers (413, 503) and the growth of the
+service's resident memory: its VmHWM, reset (Linux ``clear_refs``) once the service is ready, minus its RSS then
+(docs/service.md, "Request bodies and memory").
 """
 
 from __future__ import annotations
@@ -189,6 +195,47 @@ def io_costs(height: int, width: int, repeats: int, compressions: list[str], thr
                   f"{np.median(encodes):12.3f} {len(answer) / 1e6:9.1f}", flush=True)
 
 
+def chunked_upload(url: str, mib: int) -> str:
+    """POST ``mib`` MiB of zeros as a chunked body (a generator: no Content-Length); the answer's status and code.
+    httpx reads the answer of a server that answers mid-upload and closes."""
+    def zeros() -> Iterator[bytes]:
+        chunk = bytes(1 << 20)
+        for _ in range(mib):
+            yield chunk
+
+    try:
+        r = httpx.post(f"{url}/v1/reconstruct", content=zeros(), headers={"Content-Type": "image/x-exr"}, timeout=600)
+    except httpx.HTTPError as exc:
+        return f"no answer ({type(exc).__name__})"
+    try:
+        return f"{r.status_code} {r.json()['error']['code']}"
+    except (ValueError, KeyError, TypeError):
+        return str(r.status_code)
+
+
+def upload_memory(uploads: int, mib: int, concurrency: int) -> None:
+    """``--uploads``: the service's RSS growth under ``uploads`` concurrent chunked uploads of ``mib`` MiB."""
+    pids: list[int] = []
+    with local_service(concurrency, pids) as url, httpx.Client(base_url=url, timeout=60) as client:
+        wait_ready(client)
+        Path(f"/proc/{pids[0]}/clear_refs").write_text("5")  # VmHWM := VmRSS
+        baseline = peak_rss_mib(pids[0])
+        started = time.monotonic()
+        with ThreadPoolExecutor(uploads) as pool:
+            results = list(pool.map(lambda _: chunked_upload(url, mib), range(uploads)))
+        seconds = time.monotonic() - started
+        peak = peak_rss_mib(pids[0])
+        alive = client.get("/healthz").status_code
+    answers: dict[str, int] = defaultdict(int)
+    for r in results:
+        answers[r] += 1
+    assert baseline is not None and peak is not None
+    print(f"{uploads} concurrent chunked uploads of {mib} MiB, service concurrency {concurrency}: answers "
+          f"{dict(answers)} in {seconds:.1f} s; /healthz {alive}; service RSS baseline {baseline:.0f} MiB, peak "
+          f"{peak:.0f} MiB, growth {peak - baseline:.0f} MiB; {os.cpu_count()} CPUs, load average "
+          + " ".join(f"{x:.2f}" for x in os.getloadavg()))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--url", default=None, help="measure a running service instead of starting one")
@@ -208,8 +255,13 @@ def main() -> None:
                         help="--io: comma-separated compressions")
     parser.add_argument("--io-threads", default="0,-1", help="--io: OpenEXR thread-pool sizes (-1: one per core)")
     parser.add_argument("--json", action="store_true")
+    parser.add_argument("--uploads", type=int, default=0, help="only measure RSS under N chunked uploads")
+    parser.add_argument("--upload-mib", type=int, default=300, help="--uploads: MiB per upload")
     args = parser.parse_args()
     width, height = (int(v) for v in args.size.lower().split("x"))
+    if args.uploads:
+        upload_memory(args.uploads, args.upload_mib, args.concurrency)
+        return
     if args.io:
         io_costs(height, width, max(1, min(args.repeats, 5)), args.io_compressions.split(","),
                  [int(t) for t in args.io_threads.split(",")])

@@ -28,7 +28,7 @@ import sys
 import time
 import uuid
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -112,9 +112,9 @@ def error_summary(response: httpx.Response) -> str:
 
 
 #: The request body is handed to httpx in slices of this size: given one ``bytes`` object, httpcore sends it with
-#: ``buffer = buffer[n:]`` after each partial ``send``, copying the unsent rest every time (quadratic: ~0.15 s of
-#: client CPU for a 66 MB frame on loopback, measured). Slices of a memoryview
-#: are copied once each. Same bytes on the wire, with the same Content-Length framing.
+#: ``buffer = buffer[n:]`` after each partial ``send``, copying the unsent rest every time (quadratic in the
+#: frame's size; docs/decisions.md has the measurement). Slices of a memoryview are copied once each. Same bytes
+#: on the wire, with the same Content-Length framing.
 UPLOAD_CHUNK = 1 << 20
 
 
@@ -131,10 +131,20 @@ def upload_body(data: bytes, chunk: int = UPLOAD_CHUNK) -> dict[str, Any]:
     return {"content": slices(), "headers": {"Content-Length": str(len(view))}}
 
 
-def post_frame(client: httpx.Client, url: str, data: bytes, params: dict[str, Any], request_id: str,
-               policy: RetryPolicy, sleep: Callable[[float], None] = time.sleep,
-               rng: random.Random | None = None) -> httpx.Response:
+@dataclass(frozen=True)
+class FrameRequest:
+    """One frame's request: the service, the query parameters, the request id and how hard to retry."""
+
+    url: str
+    params: dict[str, Any]
+    request_id: str
+    policy: RetryPolicy = RetryPolicy()
+
+
+def post_frame(client: httpx.Client, request: FrameRequest, data: bytes,
+               sleep: Callable[[float], None] = time.sleep, rng: random.Random | None = None) -> httpx.Response:
     """POST the frame, retrying 503 and connection failures; return the 200 response or raise."""
+    url, params, request_id, policy = request.url, request.params, request.request_id, request.policy
     endpoint = f"{url.rstrip('/')}/v1/reconstruct"
     headers = {"Content-Type": "image/x-exr", "X-Request-ID": request_id}
     attempts = policy.retries + 1
@@ -206,19 +216,30 @@ def _setup_logging() -> None:
         log.propagate = False
 
 
-def send_frame(frame: Path, output: Path, *, url: str | None = None, token: str | None = None,
-               params: dict[str, Any] | None = None, retries: int = 5, timeout: float = 300.0,
+@dataclass(frozen=True)
+class ClientOptions:
+    """What `gradsep client` was told: the service (None: from the environment), the request's query parameters
+    (method, alpha, format, layers, channels; None values are dropped), retries and the per-request timeout."""
+
+    url: str | None = None
+    token: str | None = None
+    params: dict[str, Any] = field(default_factory=dict)
+    retries: int = 5
+    timeout: float = 300.0
+
+
+def send_frame(frame: Path, output: Path, options: ClientOptions = ClientOptions(),
                sleep: Callable[[float], None] = time.sleep) -> int:
     """Post ``frame`` to the service and write the answer to ``output`` atomically; returns the exit status.
 
-    ``params`` are the request's query parameters (method, alpha, format, layers; None values are dropped).
     Bad input and 4xx answers raise CommandError (exit 2); an unavailable or failing service returns
     EXIT_UNAVAILABLE / EXIT_SERVER_ERROR after printing one line.
     """
     from gradsep.model.exr_write import write_bytes_atomic
 
     _setup_logging()
-    url, token = resolve_target(url, token)
+    url, token = resolve_target(options.url, options.token)
+    retries, timeout = options.retries, options.timeout
     if retries < 0:
         raise CommandError(f"--retries must be 0 or more, got {retries}")
     if not timeout > 0:
@@ -230,14 +251,15 @@ def send_frame(frame: Path, output: Path, *, url: str | None = None, token: str 
         raise CommandError(f"cannot read {frame}: {exc.strerror or exc}") from None
     if not output.parent.is_dir():
         raise CommandError(f"output folder {output.parent} does not exist")
-    params = {k: v for k, v in (params or {}).items() if v is not None}
+    params = {k: v for k, v in options.params.items() if v is not None}
     request_id = uuid.uuid4().hex
     auth = {"Authorization": f"Bearer {token}"} if token else {}
     http_timeout = httpx.Timeout(timeout, connect=min(timeout, 10.0))
     started = time.perf_counter()
     try:
         with httpx.Client(timeout=http_timeout, headers=auth) as client:
-            response = post_frame(client, url, data, params, request_id, RetryPolicy(retries=retries), sleep)
+            response = post_frame(client, FrameRequest(url, params, request_id, RetryPolicy(retries=retries)), data,
+                                  sleep)
         if not response.content.startswith(EXR_MAGIC):
             raise ServerFailure(f"service answered 200 with a non-EXR body "
                                 f"({response.headers.get('content-type', 'no content type')})")

@@ -23,12 +23,12 @@ def serve_command(args: argparse.Namespace) -> int:
 def client_command(args: argparse.Namespace, *, sleep: Callable[[float], None] = time.sleep) -> int:
     """`gradsep client FRAME -o OUT`: post the frame, write the answer atomically; the exit status of
     service.client.send_frame (0 written, 2 bad input or 4xx, 75 unavailable, 1 service failure)."""
-    from gradsep.service.client import send_frame
+    from gradsep.service.client import ClientOptions, send_frame
 
     params = {"method": args.method, "alpha": args.alpha, "format": args.format, "layers": args.layers,
               "channels": getattr(args, "channels", None)}
-    return send_frame(Path(args.frame), Path(args.output), url=args.url, token=args.token, params=params,
-                      retries=args.retries, timeout=args.timeout, sleep=sleep)
+    options = ClientOptions(args.url, args.token, params, args.retries, args.timeout)
+    return send_frame(Path(args.frame), Path(args.output), options, sleep)
 
 
 def register(sub: argparse._SubParsersAction) -> None:

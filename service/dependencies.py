@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from fastapi import Request
 
-from gradsep.service.inference import Engine
+from gradsep.service.engine import Engine
 from gradsep.service.metrics import ServiceMetrics
 
 

@@ -40,12 +40,16 @@ class ServiceMetrics:
                                        "inference threads running (timed-out ones included until they end)",
                                        registry=r)
         self.ready = Gauge("gradsep_ready", "1 once models are loaded and warmed up", registry=r)
+        self.body_memory = Gauge("gradsep_request_body_memory_bytes",
+                                 "request-body bytes held in memory, across all open uploads (at most "
+                                 "GRADSEP_BODY_MEMORY_BYTES)", registry=r)
 
     def bind_engine(self, engine: Any) -> None:
         """Read queue and readiness gauges from the engine at scrape time instead of mirroring every change."""
         self.queue_waiting.set_function(lambda: engine.gate.waiting if engine.gate is not None else 0)
         self.inference_running.set_function(lambda: engine.gate.running if engine.gate is not None else 0)
         self.ready.set_function(lambda: 1.0 if engine.state == "ready" else 0.0)
+        self.body_memory.set_function(lambda: engine.body_pool.held)
 
     def render(self) -> bytes:
         return generate_latest(self.registry)

@@ -14,7 +14,8 @@ import math
 import re
 import time
 import uuid
-from collections.abc import Collection
+from collections.abc import Callable, Collection
+from dataclasses import dataclass
 from typing import Any
 
 import anyio
@@ -24,6 +25,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from gradsep.service.errors import ServiceError, body_too_large, error_json
 from gradsep.service.metrics import ServiceMetrics
+from gradsep.service.settings import Settings
 
 log = logging.getLogger("gradsep.service")
 
@@ -134,56 +136,109 @@ class BearerAuthMiddleware:
 
 class BodyLimitMiddleware:
     """413 for bodies over ``limit`` bytes: at once from Content-Length, else while counting the stream; 408 for
-    a body that stalls, no bytes arriving for ``timeout`` seconds.
+    a body that stalls, no bytes arriving for ``timeout`` seconds; 503 + Retry-After for a body beyond the
+    ``max_uploads`` being received at once.
 
     The count matters for chunked uploads (no Content-Length): the application never buffers more than the
     limit, because ``receive`` raises as soon as the running total passes it. The timeout is per wait, not for
     the whole body (a large upload on a slow link keeps going while bytes move) and only while the body is
-    incomplete (after it, ``receive`` waits for a disconnect, which may rightly take forever).
+    incomplete (after it, ``receive`` waits for a disconnect, which may rightly take forever). The upload cap
+    bounds what the server holds per connection (uvicorn's read buffer) across all open uploads; an upload
+    stops counting when its body is complete or its request ends.
     """
 
-    def __init__(self, app: ASGIApp, limit: int, metrics: ServiceMetrics, timeout: float = math.inf) -> None:
+    def __init__(self, app: ASGIApp, limit: int, metrics: ServiceMetrics, timeout: float = math.inf,
+                 uploads: UploadCap | None = None) -> None:
         self.app, self.limit, self.metrics, self.timeout = app, limit, metrics, timeout
+        self.uploads = uploads or UploadCap(math.inf)
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        declared = Headers(scope=scope).get("content-length")
-        if declared is not None:
-            size = _int_or_none(declared)
-            if size is None or size < 0:
-                response = error_json(400, "bad_request", f"invalid Content-Length header {declared[:40]!r}",
-                                      None, metrics=self.metrics)
-                await response(scope, receive, send)
+        headers = Headers(scope=scope)
+        declared = headers.get("content-length")
+        refusal = self._refusal(declared)
+        if refusal is None and (declared not in (None, "0") or "transfer-encoding" in headers):
+            refusal = self.uploads.refusal()
+            if refusal is None:
+                counted = _CountedReceive(receive, self.limit, self.timeout, self.uploads)
+                try:
+                    await self.app(scope, counted, send)
+                finally:
+                    counted.end()
                 return
-            if size > self.limit:
-                err = body_too_large(self.limit, size)
-                await error_json(err.status, err.code, err.message, err.details,
-                                 {"Connection": "close"}, metrics=self.metrics)(scope, receive, send)
-                return
-        received, complete = 0, False
+        if refusal is not None:
+            await error_json(refusal.status, refusal.code, refusal.message, refusal.details, refusal.headers,
+                             metrics=self.metrics)(scope, receive, send)
+            return
+        await self.app(scope, receive, send)
 
-        async def counted_receive() -> Message:
-            nonlocal received, complete
-            if complete:
-                return await receive()
-            try:
-                with anyio.fail_after(self.timeout if math.isfinite(self.timeout) else None):
-                    message = await receive()
-            except TimeoutError:
-                raise ServiceError(
-                    408, "body_timeout", f"the request body stalled: no bytes for {self.timeout:g} s after "
-                    f"{received} bytes", {"body_timeout_seconds": self.timeout, "received_bytes": received},
-                    {"Connection": "close"}) from None
-            if message["type"] == "http.request":
-                received += len(message.get("body", b""))
-                complete = not message.get("more_body", False)
-                if received > self.limit:
-                    raise body_too_large(self.limit)
-            return message
+    def _refusal(self, declared: str | None) -> ServiceError | None:
+        """The answer to a Content-Length header that is invalid (400) or over the limit (413); None if fine."""
+        if declared is None:
+            return None
+        size = _int_or_none(declared)
+        if size is None or size < 0:
+            return ServiceError(400, "bad_request", f"invalid Content-Length header {declared[:40]!r}", None)
+        if size > self.limit:
+            err = body_too_large(self.limit, size)
+            return ServiceError(err.status, err.code, err.message, err.details, {"Connection": "close"})
+        return None
 
-        await self.app(scope, counted_receive, send)
+
+@dataclass
+class UploadCap:
+    """How many request bodies may be received at once, and the Retry-After for one beyond them (only touched on
+    the event loop)."""
+
+    limit: float
+    retry_after: Callable[[], int] = lambda: 1
+    open: int = 0
+
+    def refusal(self) -> ServiceError | None:
+        if self.open < self.limit:
+            return None
+        retry = self.retry_after()
+        return ServiceError(503, "uploads_full", f"{self.open} request bodies are being received, the most this "
+                            f"service takes at once; retry in {retry} s", {"max_uploads": self.limit},
+                            {"Retry-After": str(retry), "Connection": "close"})
+
+
+class _CountedReceive:
+    """``receive`` that counts body bytes (413 past the limit), times each wait (408) and holds one of the upload
+    cap's places until the body is complete or :meth:`end` is called."""
+
+    def __init__(self, receive: Receive, limit: int, timeout: float, uploads: UploadCap) -> None:
+        self.receive, self.limit, self.timeout, self.uploads = receive, limit, timeout, uploads
+        self.received, self.complete = 0, False
+        uploads.open += 1
+
+    def end(self) -> None:
+        if not self.complete:
+            self.complete = True
+            self.uploads.open -= 1
+
+    async def __call__(self) -> Message:
+        if self.complete:
+            return await self.receive()
+        try:
+            with anyio.fail_after(self.timeout if math.isfinite(self.timeout) else None):
+                message = await self.receive()
+        except TimeoutError:
+            raise ServiceError(
+                408, "body_timeout", f"the request body stalled: no bytes for {self.timeout:g} s after "
+                f"{self.received} bytes", {"body_timeout_seconds": self.timeout, "received_bytes": self.received},
+                {"Connection": "close"}) from None
+        if message["type"] == "http.request":
+            self.received += len(message.get("body", b""))
+            if not message.get("more_body", False):
+                self.end()
+            if self.received > self.limit:
+                raise body_too_large(self.limit)
+        elif message["type"] == "http.disconnect":
+            self.end()
+        return message
 
 
 def _int_or_none(text: str) -> int | None:
@@ -193,10 +248,13 @@ def _int_or_none(text: str) -> int | None:
         return None
 
 
-def install_middleware(app: Any, *, token: str | None, max_body_bytes: int, metrics: ServiceMetrics,
-                       body_timeout: float = math.inf, open_docs: bool = True) -> None:
-    """Add the stack; Starlette wraps the last added outermost, so add innermost first."""
+def install_middleware(app: Any, settings: Settings, metrics: ServiceMetrics,
+                       retry_after: Callable[[], int] = lambda: 1) -> None:
+    """Add the stack; Starlette wraps the last added outermost, so add innermost first. ``retry_after`` answers
+    an upload beyond the cap."""
     known = [getattr(r, "path", "") for r in app.routes]
-    app.add_middleware(BodyLimitMiddleware, limit=max_body_bytes, metrics=metrics, timeout=body_timeout)
+    app.add_middleware(BodyLimitMiddleware, limit=settings.max_body_bytes, metrics=metrics,
+                       timeout=settings.body_timeout, uploads=UploadCap(settings.max_uploads, retry_after))
+    token, open_docs = settings.token_value, settings.docs == "open"
     app.add_middleware(BearerAuthMiddleware, token=token, metrics=metrics, open_docs=open_docs)
     app.add_middleware(RequestContextMiddleware, metrics=metrics, known_paths=known)

@@ -9,10 +9,9 @@ uvicorn does (after a parse error the byte stream cannot be trusted). ``gradsep 
 uvicorn's ``http`` option (see :func:`http_protocol`).
 
 The httptools protocol also buffers more of a request body before pausing the socket (:data:`BODY_HIGH_WATER`
-instead of uvicorn's 64 KiB): uvicorn pauses reading as soon as 64 KiB wait for the app, so a 66 MB frame
-arrived in ~260 pause/resume round trips, each letting the TCP window close. Measured on loopback, a bare
-uvicorn app reading a 66 MB body from a raw socket: 0.17 s at 64 KiB, 0.11 s at 4 MiB. The bound stays: at most
-this many bytes per connection wait beyond what the app consumed.
+instead of uvicorn's 64 KiB): uvicorn pauses reading as soon as 64 KiB wait for the app, so a large frame arrives
+in many pause/resume round trips, each letting the TCP window close (docs/decisions.md has the measurement). The
+bound stays: at most this many bytes per connection wait beyond what the app consumed.
 """
 
 from __future__ import annotations

@@ -26,6 +26,18 @@ class Settings(BaseSettings):
 
     max_body_bytes: int = Field(
         256 * MiB, ge=1024, description="largest request body accepted; bigger bodies get 413 while streaming")
+    body_memory_bytes: int = Field(
+        128 * MiB, ge=0,
+        description="bytes of request bodies held in memory, across all open uploads; a body this pool cannot "
+                    "hold goes on in a temporary file in spool_dir, so no upload buffers past it (0: every body "
+                    "on disk)")
+    max_uploads: int = Field(
+        16, ge=1, le=4096,
+        description="request bodies being received at once; beyond that 503 + Retry-After (each open upload "
+                    "also holds up to two of uvicorn's per-connection read buffers)")
+    spool_dir: Path | None = Field(
+        None, description="folder for the request bodies spooled to disk (default: the system temporary folder); "
+                          "on a disk, not tmpfs, or the spooled bytes are memory again")
     max_pixels: int = Field(
         8192 * 8192, ge=1, description="largest width*height decoded; decided from the EXR header (413)")
     max_values: int = Field(
@@ -66,7 +78,7 @@ class Settings(BaseSettings):
         DEFAULT_ARENAS, ge=0, le=1024,
         description="glibc malloc arenas of the process, with fixed mmap/trim thresholds (model/allocator.py): 1 "
                     "keeps the frame-sized temporaries of the worker threads in one arena that keeps its memory "
-                    "(no fresh pages per request; half the peak RSS); 0 leaves glibc's malloc as it is; the "
+                    "(no fresh pages per request); 0 leaves glibc's malloc as it is; the "
                     "operator's own MALLOC_* variables win")
     warm_up: bool = Field(True, description="run one small inference per method before reporting ready")
     log_level: Literal["critical", "error", "warning", "info", "debug"] = Field("info")
@@ -77,6 +89,13 @@ class Settings(BaseSettings):
         """``GRADSEP_TOKEN=`` (set but empty) must not enable auth with an empty, guessable token."""
         if value is None or (isinstance(value, str) and not value.strip()):
             return None
+        return value
+
+    @field_validator("spool_dir")
+    @classmethod
+    def _spool_dir_exists(cls, value: Path | None) -> Path | None:
+        if value is not None and not value.is_dir():
+            raise ValueError(f"{value} is not a folder")
         return value
 
     @field_validator("log_level", mode="before")

@@ -8,8 +8,8 @@ from fastapi import APIRouter, Depends
 from pydantic import BaseModel, Field
 
 from gradsep.service.dependencies import get_engine
+from gradsep.service.engine import Engine
 from gradsep.service.errors import ErrorResponse
-from gradsep.service.inference import Engine
 
 router = APIRouter(tags=["models"])
 

@@ -12,9 +12,12 @@ own status codes in a fixed order, cheapest first:
 
 # No ``from __future__ import annotations``: build_router's endpoint is annotated with a type made when the app is
 # created (the methods enum), which FastAPI must see as an object, not as a string naming a local.
+import threading
 import time
+from collections.abc import Callable
+from dataclasses import dataclass
 from functools import partial
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, BinaryIO, Literal
 
 import anyio
 from fastapi import APIRouter, Depends, Query, Request
@@ -24,15 +27,20 @@ from starlette.responses import Response
 from gradsep.model import methods as table
 from gradsep.model.channels import DEFAULT_LAYOUT, choices_text, layout_pattern
 from gradsep.model.errors import NotExrError
-from gradsep.model.exr_read import HeaderInfo, Source, read_header
+from gradsep.model.exr_read import HeaderInfo, read_header
 from gradsep.model.poisson import MIN_ALPHA
+from gradsep.service.bodies import read_body
 from gradsep.service.dependencies import get_engine, get_metrics
+from gradsep.service.engine import Engine
 from gradsep.service.errors import ErrorResponse, ServiceError
-from gradsep.service.inference import Engine, ReconstructParams, run_pipeline, server_timing
 from gradsep.service.metrics import ServiceMetrics
 from gradsep.service.middleware import request_id_of
+from gradsep.service.pipeline import Outcome, ReconstructParams, run_pipeline, server_timing
 
 RAW_TYPES = ("image/x-exr", "application/octet-stream")
+#: Largest non-file field of a multipart body held in memory (the frame itself is a file part, which Starlette
+#: spools to disk past its small in-memory head); a bigger field is a 400.
+MULTIPART_FIELD_BYTES = 64 << 10
 EXR_MEDIA_TYPE = "image/x-exr"
 _BINARY = {"type": "string", "format": "binary"}
 
@@ -80,20 +88,33 @@ RESPONSES: dict[int | str, dict[str, Any]] = {
 }
 
 
-def build_router() -> APIRouter:
-    """The router of ``POST /v1/reconstruct``, built when an app is created: its ``method`` parameter's enum (in the
-    OpenAPI schema and its validation) is the table of methods as it stands then (model/methods.py)."""
-    router = APIRouter(tags=["reconstruction"])
+@dataclass(frozen=True)
+class ReconstructQuery:
+    """The query parameters of ``POST /v1/reconstruct``, read by the endpoint's one query dependency."""
+
+    method: str | None  # None: model.reconstruct picks the best method that serves the frame (model.policy)
+    alpha: float | None
+    output_format: Literal["half", "float"]
+    layers: Literal["sum", "all"]
+    channels: str
+
+
+@dataclass
+class Upload:
+    """A request's frame as a seekable stream, its size, and how to let it go (idempotent, any thread)."""
+
+    file: BinaryIO
+    size: int
+    close: Callable[[], None]
+
+
+def query_dependency() -> Callable[..., ReconstructQuery]:
+    """The dependency that reads the query parameters; its ``method`` enum (in the OpenAPI schema and its
+    validation) is the table of methods as it stands when the router is built (model/methods.py)."""
     method_names = Literal[table.names()]  # type: ignore[valid-type]
     alpha_methods = "/".join(m.name for m in table.methods() if m.alpha)
 
-    @router.post("/v1/reconstruct", response_class=Response, responses=RESPONSES,
-                 openapi_extra={"requestBody": REQUEST_BODY},
-                 summary="Reconstruct a frame's illumination layers and return their sum")
-    async def reconstruct_frame(
-        request: Request,
-        engine: Annotated[Engine, Depends(get_engine)],
-        metrics: Annotated[ServiceMetrics, Depends(get_metrics)],
+    def read_query(
         method: Annotated[method_names | None, Query(  # type: ignore[valid-type]
             description="reconstruction method; default: the first of " + " > ".join(table.default_preference())
                         + " that this replica serves for the frame (a plain frame without gradients gets the "
@@ -109,52 +130,85 @@ def build_router() -> APIRouter:
         channels: Annotated[str, Query(
             pattern=layout_pattern(), description=f"channel layout of the frame: {choices_text()} (auto: the one "
             "layout the file matches; ambiguous files get 422 naming the candidates)")] = DEFAULT_LAYOUT,
+    ) -> ReconstructQuery:
+        return ReconstructQuery(method, alpha, output_format, layers, channels)
+
+    return read_query
+
+
+def build_router() -> APIRouter:
+    """The router of ``POST /v1/reconstruct``, built when an app is created (its query dependency with it)."""
+    router = APIRouter(tags=["reconstruction"])
+    read_query = query_dependency()
+
+    @router.post("/v1/reconstruct", response_class=Response, responses=RESPONSES,
+                 openapi_extra={"requestBody": REQUEST_BODY},
+                 summary="Reconstruct a frame's illumination layers and return their sum")
+    async def reconstruct_frame(
+        request: Request,
+        engine: Annotated[Engine, Depends(get_engine)],
+        metrics: Annotated[ServiceMetrics, Depends(get_metrics)],
+        query: Annotated[ReconstructQuery, Depends(read_query)],
     ) -> Response:
-        return await _reconstruct(request, engine, metrics, method, alpha, output_format, layers, channels)
+        return await _reconstruct(request, engine, metrics, query)
 
     return router
 
 
-async def _reconstruct(request: Request, engine: Engine, metrics: ServiceMetrics, method: str | None,
-                       alpha: float | None, output_format: str, layers: Any, channels: str) -> Response:
+async def _reconstruct(request: Request, engine: Engine, metrics: ServiceMetrics,
+                       query: ReconstructQuery) -> Response:
     t_start = time.perf_counter()
     gate = _ready_gate(engine)
-    if method is not None and method not in engine.methods:
-        needs = ", ".join(table.MODEL_SETS[n].description for n in engine.models.missing(table.get(method)))
-        raise ServiceError(422, "method_unavailable", f"method {method!r} is not available on this replica (it "
-                           f"needs {needs or 'models this replica has not loaded'}); available: "
-                           f"{', '.join(engine.methods)}", {"available": list(engine.methods)})
+    _check_method(engine, query.method)
     media = _media_type(request)
     if gate.full:  # shed load before buffering anything; drain so the client reads our answer cleanly
         async for _ in request.stream():
             pass
         raise gate.queue_full_error()
-
-    source, close = await _read_body(request, media)
-    timings = {"read": time.perf_counter() - t_start}
-    timed_out = False
-    try:
-        header = await anyio.to_thread.run_sync(_check_header, source, engine)
-        # no method named: model.reconstruct picks the best method that serves the frame (model.policy)
-        params = ReconstructParams(method, alpha if alpha is not None else engine.settings.default_alpha,
-                                   output_format == "half", layers, request_id_of(request.scope),
-                                   header.compression, channels)
-        job = partial(run_pipeline, source, params, engine.limits, engine.settings.nonfinite, engine.models)
-        try:
-            outcome, queued = await gate.run(job, engine.settings.inference_timeout)
-        except ServiceError as exc:
-            timed_out = exc.code == "timeout"
-            raise
-    finally:
-        if close is not None and not timed_out:  # a timed-out job may still read it; GC closes it later
-            await close()
+    upload = await _read_body(request, media, engine)
+    read_seconds = time.perf_counter() - t_start
+    outcome, queued = await _run(upload, engine, query, request_id_of(request.scope))
     metrics.inference.labels(method=outcome.method).observe(sum(outcome.timings.values()))
-    timings = {**timings, "queue": queued, **outcome.timings, "total": time.perf_counter() - t_start}
+    timings = {"read": read_seconds, "queue": queued, **outcome.timings, "total": time.perf_counter() - t_start}
     headers = {"Server-Timing": server_timing(timings), "X-Reconstruction-Method": outcome.method,
                "Content-Disposition": 'attachment; filename="reconstruction.exr"'}
     if outcome.warnings:
         headers["X-Gradsep-Warnings"] = _header_safe("; ".join(outcome.warnings))
     return Response(outcome.body, media_type=EXR_MEDIA_TYPE, headers=headers)
+
+
+async def _run(upload: Upload, engine: Engine, query: ReconstructQuery, request_id: str) -> tuple[Outcome, float]:
+    """Header check, then the pipeline through the gate. The body is closed when the work is done: by the job in
+    its thread once it has started (so a job that outlives its request, timed out or disconnected, reads its body
+    to the end and frees it when it ends), or here when no job started."""
+    started = threading.Event()
+    try:
+        header = await anyio.to_thread.run_sync(_check_header, upload, engine)
+        alpha = query.alpha if query.alpha is not None else engine.settings.default_alpha
+        params = ReconstructParams(query.method, alpha, query.output_format == "half", query.layers, request_id,
+                                   header.compression, query.channels)
+        job = partial(_job, upload, params, engine, started)
+        return await engine.gate.run(job, engine.settings.inference_timeout)  # type: ignore[union-attr]
+    finally:
+        if not started.is_set():
+            upload.close()
+
+
+def _job(upload: Upload, params: ReconstructParams, engine: Engine, started: threading.Event) -> Outcome:
+    """One request's pipeline in a worker thread; its body closed when it ends."""
+    started.set()
+    try:
+        return run_pipeline(upload.file, params, engine.limits, engine.settings.nonfinite, engine.models)
+    finally:
+        upload.close()
+
+
+def _check_method(engine: Engine, method: str | None) -> None:
+    if method is not None and method not in engine.methods:
+        needs = ", ".join(table.MODEL_SETS[n].description for n in engine.models.missing(table.get(method)))
+        raise ServiceError(422, "method_unavailable", f"method {method!r} is not available on this replica (it "
+                           f"needs {needs or 'models this replica has not loaded'}); available: "
+                           f"{', '.join(engine.methods)}", {"available": list(engine.methods)})
 
 
 def _header_safe(text: str, limit: int = 1000) -> str:
@@ -184,24 +238,27 @@ def _media_type(request: Request) -> str:
     return media
 
 
-async def _read_body(request: Request, media: str) -> tuple[Source, Any]:
-    """The EXR as bytes (raw body) or a spooled temporary file (multipart), plus its async closer."""
+async def _read_body(request: Request, media: str, engine: Engine) -> Upload:
+    """The EXR: a raw body spooled within the service's body memory pool (service/bodies.py), or the file field
+    of a multipart body (Starlette spools it to disk past its small in-memory part)."""
     if media != "multipart/form-data":
-        return await request.body(), None
-    form = await request.form(max_files=1, max_fields=16)
+        declared = request.headers.get("content-length")
+        body = await read_body(request.stream(), engine.body_pool, engine.settings.spool_dir,
+                               int(declared) if declared is not None else None)
+        return Upload(body.file, body.size, body.close)
+    form = await request.form(max_files=1, max_fields=16, max_part_size=MULTIPART_FIELD_BYTES)
     upload = form.get("frame")
     if not isinstance(upload, UploadFile):
         fields = list(form.keys())
         await form.close()
         raise ServiceError(400, "missing_frame", "multipart body has no file field 'frame' (curl -F frame=@f.exr)",
                            {"fields": fields[:16]})
-    return upload.file, form.close
+    return Upload(upload.file, upload.size or 0, upload.file.close)
 
 
-def _check_header(source: Source, engine: Engine) -> HeaderInfo:
+def _check_header(upload: Upload, engine: Engine) -> HeaderInfo:
     """Header only: 400 for non-EXR, 413 for a declared size over the budget, before any pixel is decoded."""
-    if isinstance(source, bytes) and not source:
+    if upload.size == 0:
         raise NotExrError("empty request body; expected an OpenEXR file")
-    if hasattr(source, "seek"):
-        source.seek(0)
-    return read_header(source, engine.limits)
+    upload.file.seek(0)
+    return read_header(upload.file, engine.limits)

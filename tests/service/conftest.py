@@ -26,6 +26,9 @@ with warnings.catch_warnings():  # Starlette 1.x nags about httpx in its TestCli
 
 READY_TIMEOUT = 60.0
 
+#: The same contract test through TestClient and through a real uvicorn (the ``poisson_api`` fixture's clients).
+TRANSPORT = pytest.mark.parametrize("transport", ["testclient", "uvicorn"])
+
 
 def settings(tmp_path: Path | None = None, **overrides: object) -> Settings:
     """Settings for a test app: no models (Poisson only) unless a test says otherwise, no env influence."""
@@ -161,3 +164,22 @@ def rss_bytes(pid: int, field: str = "VmRSS") -> int:
         if line.startswith(f"{field}:"):
             return int(line.split()[1]) * 1024
     raise AssertionError(f"{field} not in /proc/{pid}/status")
+
+
+def post(client, data: bytes, params: dict | None = None, content_type: str | None = "image/x-exr",
+         headers: dict | None = None):
+    headers = dict(headers or {})
+    if content_type is not None:
+        headers["Content-Type"] = content_type
+    return client.post("/v1/reconstruct", params=params or {}, content=data, headers=headers)
+
+
+
+def assert_error(response, status: int, code: str) -> dict:
+    assert response.status_code == status, response.text
+    assert response.headers["content-type"].startswith("application/json")
+    error = response.json()["error"]
+    assert error["code"] == code, error
+    assert error["message"]
+    return error
+

@@ -11,18 +11,18 @@ import time
 
 from fastapi import FastAPI
 
-import gradsep.service.inference
+import gradsep.service.pipeline
 from gradsep.service.main import create_app
 from gradsep.service.settings import Settings
 
 
 def create() -> FastAPI:
-    real = gradsep.service.inference.reconstruct
+    real = gradsep.service.pipeline.reconstruct
     delay = float(os.environ.get("GRADSEP_TEST_SLOW_SECONDS", "2"))
 
     def slow(frame, method, alpha, models=None):  # noqa: ANN001, ANN202
         time.sleep(delay)
         return real(frame, method, alpha, models)
 
-    gradsep.service.inference.reconstruct = slow
+    gradsep.service.pipeline.reconstruct = slow
     return create_app(Settings(warm_up=False))

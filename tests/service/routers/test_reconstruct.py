@@ -1,4 +1,5 @@
-"""The HTTP contract of issue 6, status code by status code, through TestClient and a real uvicorn."""
+"""``POST /v1/reconstruct`` (service/routers/reconstruct.py): its HTTP contract, status code by status code, through
+TestClient and a real uvicorn."""
 
 from __future__ import annotations
 
@@ -9,7 +10,8 @@ import numpy as np
 import pytest
 
 from gradsep.service.main import create_app
-from tests.service.conftest import settings
+from gradsep.service.routers.reconstruct import MULTIPART_FIELD_BYTES
+from tests.service.conftest import TRANSPORT, assert_error, post, settings
 from tests.service.frames import (
     channels_bytes,
     decode,
@@ -20,26 +22,6 @@ from tests.service.frames import (
     rgb,
     subsampled,
 )
-
-TRANSPORT = pytest.mark.parametrize("transport", ["testclient", "uvicorn"])
-
-
-def post(client, data: bytes, params: dict | None = None, content_type: str | None = "image/x-exr",
-         headers: dict | None = None):
-    headers = dict(headers or {})
-    if content_type is not None:
-        headers["Content-Type"] = content_type
-    return client.post("/v1/reconstruct", params=params or {}, content=data, headers=headers)
-
-
-def assert_error(response, status: int, code: str) -> dict:
-    assert response.status_code == status, response.text
-    assert response.headers["content-type"].startswith("application/json")
-    error = response.json()["error"]
-    assert error["code"] == code, error
-    assert error["message"]
-    return error
-
 
 # --------------------------------------------------------------------------------------------------------------
 # 200
@@ -111,32 +93,6 @@ def test_request_id_and_server_timing(poisson_api, transport):
     assert re.fullmatch(r"[0-9a-f]{32}", hostile)  # not echoed: too long for logs
 
 
-@TRANSPORT
-def test_health_readiness_models_and_metrics(poisson_api, transport):
-    client = poisson_api[transport]
-    assert client.get("/healthz").json() == {"status": "ok"}
-    oidn = importlib.util.find_spec("pyoidn") is not None  # part of the serve extra; l1 is the fallback without
-    methods, default = (["l1", "l2", "oidn", "oidn-l1"], "oidn-l1") if oidn else (["l1", "l2"], "l1")
-    assert client.get("/readyz").json() == {"status": "ready", "methods": methods, "default_method": default,
-                                            "default_method_plain": "oidn" if oidn else None}
-    models = client.get("/v1/models").json()
-    assert models["models"] == [] and models["default_method"] == default and models["state"] == "ready"
-    assert models["limits"]["max_pixels"] == 8192 * 8192
-    if oidn:  # which code runs the OIDN methods' denoiser, and at which setting
-        assert models["oidn"] == {"setting": "raw-fast"}
-    else:
-        assert models["oidn"] is None
-    post(client, b"definitely not an exr")
-    metrics = client.get("/metrics")
-    assert metrics.status_code == 200 and metrics.headers["content-type"].startswith("text/plain")
-    text = metrics.text
-    assert re.search(r'gradsep_http_requests_total\{method="GET",route="/healthz",status="200"\} [1-9]', text)
-    assert re.search(r'gradsep_rejections_total\{reason="not_exr"\} [1-9]', text)
-    assert "gradsep_http_request_duration_seconds_bucket" in text
-    assert re.search(r"gradsep_http_requests_in_flight 1\.0", text)  # this very request
-    assert re.search(r"gradsep_ready 1\.0", text)
-
-
 # --------------------------------------------------------------------------------------------------------------
 # 400
 # --------------------------------------------------------------------------------------------------------------
@@ -167,6 +123,18 @@ def test_multipart_without_frame_field_is_400(poisson_api, transport):
     assert error["details"] == {"fields": ["image"]}
 
 
+@TRANSPORT
+def test_a_multipart_field_over_64_kib_is_400_and_one_under_is_ignored(poisson_api, transport):
+    """Non-file fields are held in memory while the body is parsed: each is capped (docs/service.md, memory)."""
+    frame = {"frame": ("f.exr", frame_bytes(seed=2), "image/x-exr")}
+    big = poisson_api[transport].post("/v1/reconstruct", params={"method": "l2"}, files=frame,
+                                      data={"note": "x" * (MULTIPART_FIELD_BYTES + 1)})
+    assert_error(big, 400, "bad_request")
+    small = poisson_api[transport].post("/v1/reconstruct", params={"method": "l2"}, files=frame,
+                                        data={"note": "x" * MULTIPART_FIELD_BYTES})
+    assert small.status_code == 200, small.text
+
+
 # --------------------------------------------------------------------------------------------------------------
 # 413
 # --------------------------------------------------------------------------------------------------------------
@@ -175,7 +143,7 @@ def test_multipart_without_frame_field_is_400(poisson_api, transport):
 @TRANSPORT
 def test_huge_declared_image_is_413_from_the_header_without_decoding(poisson_api, transport, monkeypatch):
     decoded = []
-    monkeypatch.setattr("gradsep.service.inference.read_frame", lambda *a, **k: decoded.append(a) or 1 / 0)
+    monkeypatch.setattr("gradsep.service.pipeline.read_frame", lambda *a, **k: decoded.append(a) or 1 / 0)
     data = huge_header(frame_bytes(("color",), height=4, width=4))
     assert len(data) < 10_000  # a tiny body: the size can only come from the header
     error = assert_error(post(poisson_api[transport], data), 413, "too_large")
@@ -219,14 +187,6 @@ def test_wrong_content_type_is_415(poisson_api, transport, content_type):
     error = assert_error(post(poisson_api[transport], frame_bytes(), content_type=content_type),
                          415, "unsupported_media_type")
     assert "image/x-exr" in error["details"]["accepted"]
-
-
-@TRANSPORT
-def test_unknown_route_and_wrong_verb_are_json(poisson_api, transport):
-    assert_error(poisson_api[transport].get("/v2/nothing"), 404, "not_found")
-    response = poisson_api[transport].get("/v1/reconstruct")
-    assert_error(response, 405, "method_not_allowed")
-    assert response.headers["allow"] == "POST"
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -339,29 +299,6 @@ def test_network_without_models_is_422_listing_available_methods(poisson_api, tr
 # --------------------------------------------------------------------------------------------------------------
 
 
-def test_bearer_token_guards_everything_but_health_readiness_and_the_docs(serve):
-    with serve(create_app(settings(token="s3cret-token"))) as client:
-        assert client.get("/healthz").status_code == 200
-        assert client.get("/readyz").status_code == 200
-        for path in ("/docs", "/docs/static/swagger-ui.css", "/openapi.json"):  # no secret in them (docs=open)
-            assert client.get(path).status_code == 200, path
-        for path in ("/v1/models", "/metrics", "/nothing", "/docsx", "/openapi.json/x"):
-            response = client.get(path)
-            assert_error(response, 401, "unauthorized")
-            assert response.headers["www-authenticate"].startswith("Bearer")
-        assert_error(post(client, b"garbage"), 401, "unauthorized")  # auth before the body is looked at
-        assert_error(client.get("/v1/models", headers={"Authorization": "Bearer wrong"}), 401, "unauthorized")
-        assert_error(client.get("/v1/models", headers={"Authorization": "Basic czNjcmV0LXRva2Vu"}),
-                     401, "unauthorized")
-        good = {"Authorization": "Bearer s3cret-token"}
-        assert client.get("/v1/models", headers=good).status_code == 200
-        assert post(client, frame_bytes(), headers=good).status_code == 200
-        schema = client.get("/openapi.json", headers=good).json()
-        assert schema["components"]["securitySchemes"]["bearer"]["scheme"] == "bearer"
-        assert schema["paths"]["/healthz"]["get"]["security"] == []
-        assert 'reason="unauthorized"' in client.get("/metrics", headers=good).text
-
-
 @TRANSPORT
 def test_hostile_foreign_channel_names_cannot_inject_headers(poisson_api, transport):
     channels = frame_channels(("color",))
@@ -376,93 +313,6 @@ def test_hostile_foreign_channel_names_cannot_inject_headers(poisson_api, transp
 # --------------------------------------------------------------------------------------------------------------
 # Malformed HTTP (uvicorn's parser) and the offline API docs
 # --------------------------------------------------------------------------------------------------------------
-
-
-def _raw_exchange(url: str, request: bytes) -> bytes:
-    """Send raw bytes to a real server and read the whole answer (the server closes the connection)."""
-    import socket
-    from urllib.parse import urlsplit
-
-    parts = urlsplit(url)
-    with socket.create_connection((parts.hostname, parts.port), timeout=10) as sock:
-        sock.sendall(request)
-        chunks = []
-        while chunk := sock.recv(65536):
-            chunks.append(chunk)
-    return b"".join(chunks)
-
-
-@pytest.mark.parametrize("parser", ["default", "h11"])
-@pytest.mark.parametrize("request_bytes", [
-    b"POST /v1/reconstruct HTTP/1.1\r\nHost: x\r\nContent-Type: image/x-exr\r\nContent-Length: abc\r\n\r\n",
-    b"POST /v1/reconstruct HTTP/1.1\r\nHost: x\r\nContent-Length: -5\r\n\r\n",
-    b"GARBAGE\x01 / HTTP/1.1\r\n\r\n"], ids=["content-length-abc", "content-length-negative", "request-line"])
-def test_requests_uvicorns_parser_rejects_get_the_json_400(parser, request_bytes):
-    """These never reach the app: uvicorn's parser answers them; service.protocol makes that answer ours."""
-    from gradsep.service.protocol import JsonErrorH11Protocol
-    from tests.service.conftest import uvicorn_server
-
-    http = JsonErrorH11Protocol if parser == "h11" else None
-    with uvicorn_server(create_app(settings()), http=http) as url:
-        answer = _raw_exchange(url, request_bytes)
-    head, _, body = answer.partition(b"\r\n\r\n")
-    assert head.startswith(b"HTTP/1.1 400"), answer[:200]
-    assert b"content-type: application/json" in head.lower()
-    error = __import__("json").loads(body)["error"]
-    assert error["code"] == "bad_request" and "malformed HTTP request" in error["message"]
-
-
-def test_large_body_streams_intact_through_the_buffered_protocol():
-    """service.protocol reads ahead up to BODY_HIGH_WATER per connection: a body several times that size (sent as
-    ``gradsep client`` sends it, memoryview slices with a Content-Length) arrives byte for byte, unchunked."""
-    import hashlib
-
-    import httpx
-
-    from gradsep.service.client import upload_body
-    from gradsep.service.protocol import BODY_HIGH_WATER
-    from tests.service.conftest import uvicorn_server
-
-    seen: dict[str, object] = {}
-
-    async def app(scope, receive, send):
-        if scope["type"] != "http":
-            return
-        digest, size, more = hashlib.sha256(), 0, True
-        while more:
-            message = await receive()
-            digest.update(message.get("body", b""))
-            size += len(message.get("body", b""))
-            more = message.get("more_body", False)
-        seen.update(size=size, headers=dict(scope["headers"]))
-        body = digest.hexdigest().encode()
-        await send({"type": "http.response.start", "status": 200,
-                    "headers": [(b"content-length", str(len(body)).encode())]})
-        await send({"type": "http.response.body", "body": body})
-
-    data = np.random.default_rng(5).bytes(3 * BODY_HIGH_WATER + 12345)
-    with uvicorn_server(app) as url, httpx.Client(base_url=url, timeout=60) as client:
-        body = upload_body(data, chunk=1 << 18)
-        answer = client.post("/", content=body["content"], headers=body["headers"])
-    assert answer.status_code == 200 and answer.text == hashlib.sha256(data).hexdigest()
-    assert seen["size"] == len(data)
-    assert seen["headers"][b"content-length"] == str(len(data)).encode()
-    assert b"transfer-encoding" not in seen["headers"]
-
-
-@TRANSPORT
-def test_docs_page_and_its_assets_are_served_locally(poisson_api, transport):
-    """/docs must work on an offline farm network: every script and stylesheet it loads comes from us."""
-    client = poisson_api[transport]
-    page = client.get("/docs")
-    assert page.status_code == 200 and "text/html" in page.headers["content-type"]
-    assets = re.findall(r'(?:src|href)="([^"]+)"', page.text)
-    assert assets and all(a.startswith("/docs/static/") for a in assets), assets
-    for asset in assets:
-        response = client.get(asset)
-        assert response.status_code == 200 and len(response.content) > 100, asset
-    assert "SwaggerUIBundle" in client.get("/docs/static/swagger-ui-bundle.js").text
-    assert client.get("/openapi.json").status_code == 200
 
 
 @TRANSPORT
@@ -492,24 +342,56 @@ def _lossy(compression: str) -> bytes:
     return buffer.getvalue()
 
 
-def test_exr_thread_pool_changes_no_pixel() -> None:
-    """GRADSEP_EXR_THREADS: OpenEXR's pool (de)compresses line blocks in parallel; bytes and pixels are the same."""
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Integer (UINT) channels: docs/service.md's error table
+# --------------------------------------------------------------------------------------------------------------
+
+
+def _with_uint(channels: dict[str, np.ndarray], uint: set[str]) -> bytes:
+    """These channels as EXR, the named ones stored as UINT (what an object-id or crypto-matte AOV is)."""
+    import io
+
     import OpenEXR
 
-    from gradsep.model.exr_read import read_frame
-    from gradsep.model.exr_write import configure_exr_threads, encode_exr
+    pixels = {name: np.ascontiguousarray(value, np.uint32 if name in uint else np.float32)
+              for name, value in channels.items()}
+    buffer = io.BytesIO()
+    OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}, pixels).write(buffer)
+    return buffer.getvalue()
 
-    data = frame_bytes(("direct", "indirect"), height=70, width=90)
-    image = {"R": np.random.default_rng(0).random((70, 90), dtype=np.float32)}
-    before = OpenEXR.global_thread_count()
-    try:
-        configure_exr_threads(0)
-        serial, encoded = read_frame(data), encode_exr(image)
-        assert configure_exr_threads(-1) >= 1 and OpenEXR.global_thread_count() >= 1
-        threaded = read_frame(data)
-        assert encode_exr(image) == encoded
-        for name, layer in serial.layers.items():
-            for part in ("base", "dx", "dy"):
-                np.testing.assert_array_equal(getattr(layer, part), getattr(threaded.layers[name], part))
-    finally:
-        OpenEXR.set_global_thread_count(before)
+
+@TRANSPORT
+@pytest.mark.parametrize("channels", ["auto", "gradsep"])
+def test_an_integer_channel_the_frame_does_not_read_is_ignored_with_a_warning(poisson_api, transport, channels):
+    frame = {**frame_channels(seed=7), "objectId": np.arange(24 * 32).reshape(24, 32)}
+    response = post(poisson_api[transport], _with_uint(frame, {"objectId"}), {"method": "l2", "channels": channels})
+    assert response.status_code == 200, response.text
+    assert "ignored channels outside the frame contract: objectId" in response.headers["x-gradsep-warnings"]
+    np.testing.assert_allclose(rgb(decode(response.content)[0]), expected_sum(seed=7), rtol=1e-4, atol=1e-4)
+
+
+@TRANSPORT
+@pytest.mark.parametrize("channel", ["direct.R", "indirect.dx.G", "albedo.R", "direct.var.Y", "A"])
+def test_an_integer_channel_the_frame_reads_is_400_naming_it(poisson_api, transport, channel):
+    frame = {**frame_channels(features=True), "direct.var.Y": np.ones((24, 32)), "A": np.ones((24, 32))}
+    error = assert_error(post(poisson_api[transport], _with_uint(frame, {channel}), {"method": "l2"}),
+                         400, "unsupported_exr")
+    assert error["details"] == [channel] and "integer pixels" in error["message"]
+
+
+def test_the_query_parameters_are_one_dependency_with_the_documented_names(poisson_api):
+    """The endpoint reads its query through ReconstructQuery; the schema keeps the five parameters, in order, with
+    ``format`` by its alias."""
+    schema = poisson_api["testclient"].get("/openapi.json").json()
+    parameters = schema["paths"]["/v1/reconstruct"]["post"]["parameters"]
+    assert [(p["name"], p["in"], p.get("required", False)) for p in parameters] == [
+        ("method", "query", False), ("alpha", "query", False), ("format", "query", False),
+        ("layers", "query", False), ("channels", "query", False)]
+    response = post(poisson_api["testclient"], frame_bytes(seed=8),
+                    {"method": "l2", "alpha": 0.5, "format": "half", "layers": "all", "channels": "gradsep"})
+    assert response.status_code == 200, response.text
+    channels, attributes = decode(response.content)
+    assert channels["R"].dtype == np.float16 and "direct.R" in channels
+    assert attributes["gradsep.alpha"] == "0.5" and attributes["gradsep.method"] == "l2"

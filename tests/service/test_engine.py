@@ -1,117 +1,21 @@
-"""Queueing, timeouts, readiness and crash handling, made deterministic with a reconstruction that blocks."""
+"""The engine (service/engine.py): readiness while models load or after they fail, the model sets it serves and
+the default method the table picks among them."""
 
 from __future__ import annotations
 
 import dataclasses
-import re
 import threading
-import time
-from concurrent.futures import ThreadPoolExecutor
 from types import SimpleNamespace
 
 import numpy as np
-import pytest
 
-import gradsep.service.inference
+import gradsep.service.pipeline
 from gradsep.model import methods as table
 from gradsep.model.reconstruct import choose_method
 from gradsep.service.main import create_app
-from tests.service.conftest import settings, wait_ready
-from tests.service.frames import decode, expected_sum, frame_bytes, rgb
-from tests.service.test_contract import assert_error, post
-
-REAL_RECONSTRUCT = gradsep.service.inference.reconstruct
-
-
-class BlockingReconstruction:
-    """Stands in for model.reconstruct: signals entry, waits for ``release``, then reconstructs for real."""
-
-    def __init__(self) -> None:
-        self.release = threading.Event()
-        self.entered = threading.Semaphore(0)
-        self.calls = 0
-
-    def __call__(self, frame, method, alpha, models=None):
-        self.calls += 1
-        self.entered.release()
-        assert self.release.wait(60), "test never released the reconstruction"
-        return REAL_RECONSTRUCT(frame, method, alpha, models)
-
-
-@pytest.fixture
-def blocker(monkeypatch) -> BlockingReconstruction:
-    fake = BlockingReconstruction()
-    monkeypatch.setattr(gradsep.service.inference, "reconstruct", fake)
-    yield fake
-    fake.release.set()  # never leave a worker thread hanging, whatever the test did
-
-
-def metric(client, name: str) -> float:
-    match = re.search(rf"^{name} ([0-9.e+-]+)$", client.get("/metrics").text, re.MULTILINE)
-    assert match, name
-    return float(match.group(1))
-
-
-def wait_for(predicate, timeout: float = 30.0) -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        assert time.monotonic() < deadline, "condition not reached"
-        time.sleep(0.01)
-
-
-def test_full_queue_is_503_with_retry_after_while_health_and_metrics_answer(serve, blocker):
-    app = create_app(settings(concurrency=1, queue_size=1, warm_up=False))
-    with serve(app) as client, ThreadPoolExecutor(2) as pool:
-        running = pool.submit(post, client, frame_bytes(seed=1), {"method": "l2"})
-        assert blocker.entered.acquire(timeout=30)
-        queued = pool.submit(post, client, frame_bytes(seed=2), {"method": "l2"})
-        wait_for(lambda: metric(client, "gradsep_inference_queue_waiting") == 1.0)
-        assert metric(client, "gradsep_inference_running") == 1.0
-        assert metric(client, "gradsep_http_requests_in_flight") == 3.0  # two posts + this scrape
-
-        rejected = post(client, frame_bytes(seed=3), {"method": "l2"})
-        error = assert_error(rejected, 503, "queue_full")
-        assert int(rejected.headers["retry-after"]) >= 1
-        assert error["details"] == {"running": 1, "waiting": 1, "queue_size": 1}
-        assert client.get("/healthz").status_code == 200
-        assert client.get("/readyz").status_code == 200
-
-        blocker.release.set()
-        for future, seed in ((running, 1), (queued, 2)):
-            response = future.result(timeout=60)
-            assert response.status_code == 200, response.text
-            np.testing.assert_allclose(rgb(decode(response.content)[0]), expected_sum(seed=seed), rtol=1e-4,
-                                       atol=1e-4)
-        assert 'gradsep_rejections_total{reason="queue_full"} 1.0' in client.get("/metrics").text
-
-
-def test_timeout_is_504_and_the_abandoned_thread_keeps_its_slot(serve, blocker):
-    # 2 s: the blocked request times out whatever the timeout (it waits for the release), and the last request's
-    # real reconstruction must fit in it on a loaded 2-core machine (0.5 s did not, under a parallel test run)
-    app = create_app(settings(concurrency=1, queue_size=0, inference_timeout=2.0, warm_up=False))
-    with serve(app) as client:
-        error = assert_error(post(client, frame_bytes(seed=4)), 504, "timeout")
-        assert error["details"] == {"timeout_seconds": 2.0, "started": True}
-        # The thread cannot be killed: it still holds the only slot, so the next request is shed, not run beside it.
-        assert metric(client, "gradsep_inference_running") == 1.0
-        assert_error(post(client, frame_bytes(seed=5)), 503, "queue_full")
-        blocker.release.set()
-        wait_for(lambda: metric(client, "gradsep_inference_running") == 0.0)
-        assert post(client, frame_bytes(seed=6)).status_code == 200
-        assert blocker.calls == 2
-
-
-def test_a_request_that_times_out_while_queued_never_runs(serve, blocker):
-    app = create_app(settings(concurrency=1, queue_size=1, inference_timeout=1.0, warm_up=False))
-    with serve(app) as client, ThreadPoolExecutor(1) as pool:
-        first = pool.submit(post, client, frame_bytes(seed=7))
-        assert blocker.entered.acquire(timeout=30)
-        error = assert_error(post(client, frame_bytes(seed=8)), 504, "timeout")
-        assert error["details"]["started"] is False
-        assert_error(first.result(timeout=30), 504, "timeout")
-        blocker.release.set()
-        wait_for(lambda: metric(client, "gradsep_inference_running") == 0.0)
-        assert blocker.calls == 1
+from tests.service.conftest import assert_error, post, settings, wait_ready
+from tests.service.frames import frame_bytes
+from tests.service.test_gate import REAL_RECONSTRUCT, metric, wait_for
 
 
 def test_not_ready_while_models_load_but_alive(serve, monkeypatch):
@@ -179,7 +83,7 @@ def test_loaded_network_becomes_the_default_method_without_oidn(serve, monkeypat
         return SimpleNamespace(image=image, layers={k: v.base for k, v in frame.layers.items()},
                                timings=dict.fromkeys(frame.layers, 0.001), method="network")
 
-    monkeypatch.setattr(gradsep.service.inference, "reconstruct", reconstruct)
+    monkeypatch.setattr(gradsep.service.pipeline, "reconstruct", reconstruct)
     with serve(create_app(settings())) as client:
         assert network.warmed == 1
         ready = client.get("/readyz").json()
@@ -211,7 +115,7 @@ def test_fused_models_are_served_and_the_policy_order_picks_the_default(serve, m
         return SimpleNamespace(image=image, layers={k: v.base for k, v in frame.layers.items()},
                                timings=dict.fromkeys(frame.layers, 0.001), method="fused")
 
-    monkeypatch.setattr(gradsep.service.inference, "reconstruct", reconstruct)
+    monkeypatch.setattr(gradsep.service.pipeline, "reconstruct", reconstruct)
     with serve(create_app(settings(warm_up=False))) as client:
         ready = client.get("/readyz").json()
         assert ready["methods"] == ["l1", "l2", "oidn", "oidn-l1", "fused"]
@@ -230,14 +134,25 @@ def test_fused_models_are_served_and_the_policy_order_picks_the_default(serve, m
         assert refused.status_code == 422 and "gradients" in refused.json()["error"]["message"]
 
 
-def test_an_unexpected_failure_is_a_json_500_with_the_request_id(serve, monkeypatch):
-    def crash(frame, method, alpha, models=None):
-        raise RuntimeError("solver exploded")
+def test_exr_thread_pool_changes_no_pixel() -> None:
+    """GRADSEP_EXR_THREADS: OpenEXR's pool (de)compresses line blocks in parallel; bytes and pixels are the same."""
+    import OpenEXR
 
-    monkeypatch.setattr(gradsep.service.inference, "reconstruct", crash)
-    with serve(create_app(settings(warm_up=False))) as client:
-        response = post(client, frame_bytes(), headers={"X-Request-ID": "req-500"})
-        error = assert_error(response, 500, "internal")
-        assert error["details"] == {"request_id": "req-500"}
-        assert "exploded" not in response.text  # internals stay in the server log
-        assert client.get("/healthz").status_code == 200
+    from gradsep.model.exr_read import read_frame
+    from gradsep.model.exr_write import configure_exr_threads, encode_exr
+
+    data = frame_bytes(("direct", "indirect"), height=70, width=90)
+    image = {"R": np.random.default_rng(0).random((70, 90), dtype=np.float32)}
+    before = OpenEXR.global_thread_count()
+    try:
+        configure_exr_threads(0)
+        serial, encoded = read_frame(data), encode_exr(image)
+        assert configure_exr_threads(-1) >= 1 and OpenEXR.global_thread_count() >= 1
+        threaded = read_frame(data)
+        assert encode_exr(image) == encoded
+        for name, layer in serial.layers.items():
+            for part in ("base", "dx", "dy"):
+                np.testing.assert_array_equal(getattr(layer, part), getattr(threaded.layers[name], part))
+    finally:
+        OpenEXR.set_global_thread_count(before)
+
