@@ -14,7 +14,7 @@ estimate is read at the frame's own samples instead:
 - each half is reconstructed with the method (and OIDN setting) that serves the frame, and its error estimated
   against the groups of the other half, which are independent of it (renderer.estimate.cross_relmse: no
   reference, bias included; with k groups the estimate's noise from the groups' own noise is k / (k - 1) of its
-  least, so 2x with two groups and 1.33x with four);
+  least: twice it with two groups, four thirds of it with four);
 - each half's estimate is carried from its samples to the frame's (a factor of about two) with the plan's
   error-vs-spp exponent (renderer.estimate.ERROR_EXPONENT), and the two are averaged;
 - given several reconstructions (OIDN settings), each is judged so, and their paired difference on the same

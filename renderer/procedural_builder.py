@@ -102,8 +102,8 @@ class _Builder:
             self.lights.append(kind)
 
     def _studio_camera(self, centre: Vec, radius: float) -> float:
-        """Framing, not a room's viewpoint: the cluster's bounding sphere fills 40-90 % of the view from a random
-        azimuth, level to 50 degrees above; returns the azimuth."""
+        """Framing, not a room's viewpoint: the cluster's bounding sphere fills a random share of the view (``fill``)
+        from a random azimuth, level to 50 degrees above; returns the azimuth."""
         rng = self.rng
         fov = float(rng.uniform(30.0, 70.0))
         fill = float(rng.uniform(0.4, 0.9))
