@@ -197,8 +197,11 @@ class SceneWindow:
         return self.loaded[frame]
 
     def forget_before(self, frame: int) -> None:
+        import gc
+
         for n in [n for n in self.loaded if n < frame]:
             del self.loaded[n]
+        gc.collect()  # the scene's Mitsuba objects go now, not at some later collection
 
 
 def motion_renderer() -> Callable[..., Any] | None:
@@ -252,6 +255,10 @@ def render_shot(args: argparse.Namespace, deadline: Any, gradients: str, cache_f
     for i, n in enumerate(todo):
         started = time.perf_counter()
         frame_deadline = deadline if i == 0 or deadline is None else Deadline(check_seconds(args.seconds))
+        # Without motion vectors only frame n's scene is alive while it renders: the scene's objects then take
+        # the JIT registry's slots the previous frame's had, and Dr.Jit reuses its kernels (a second live scene
+        # would shift those ids and compile another set).
+        window.forget_before(n if motion is None else n - 1)
         scene = window.get(n)
         seed = frame_seed(args.seed, n)
         frame, plan_text = render(args, scene, RenderCall(seed, frame_deadline, gradients, plan_cache))
@@ -260,11 +267,11 @@ def render_shot(args: argparse.Namespace, deadline: Any, gradients: str, cache_f
         frame.metadata.update(shot.header(n))
         path = shot.output.path(n)
         write_frame(path, frame)
-        window.forget_before(n)
         for note in frame.warnings:
             print(f"gradsep render: note: frame {n}: {note}", file=sys.stderr)
         print(f"{path}: frame {n}, seed {seed}, {frame.width}x{frame.height}, {frame.metadata['gradsep.spp']} spp, "
               f"{time.perf_counter() - started:.2f} s" + (f"; {plan_text}" if plan_text else ""), flush=True)
+        del scene, frame
     return 0
 
 
