@@ -40,7 +40,8 @@ _CYCLES_ALBEDO: tuple[str, ...] = ("Denoising Albedo",)
 _CYCLES_NORMAL: tuple[str, ...] = ("Denoising Normal", "Normal")
 _CYCLES_DEPTH: tuple[str, ...] = ("Denoising Depth", "Depth")
 #: Cycles' motion pass: X, Y = position in the previous frame minus this one, Z, W = this position minus the one
-#: in the next frame, in raster pixels with y up (Cycles' kernel/geom/primitive.h, primitive_motion_vector). So
+#: in the next frame, in raster pixels with y up (Cycles' kernel/geom/primitive.h, primitive_motion_vector; its
+#: camera puts raster y = 0 at the view plane's bottom). So
 #: backward = (X, Y) and forward = (-Z, -W) in the contract's (Nuke's) convention: contract name -> (channel, sign).
 _CYCLES_VECTOR = "Vector"
 _CYCLES_MOTION: dict[str, tuple[str, float]] = {

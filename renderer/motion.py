@@ -1,17 +1,19 @@
 """Motion vectors of a shot's frame: where each pixel's surface point is in the previous and the next frame.
 
 One ray through each pixel centre of the current frame (the lens centre for a thin-lens camera) finds the pixel's
-surface point. The point is named by its shape (``shape.id()``) and, on a mesh, its primitive and barycentric
-coordinates; on another shape (sphere, rectangle, disk...) by its coordinates in the shape's local frame (its
-``to_world``). The same shape in the neighbouring frame's scene (same id, and for a mesh the same faces) gives the
-point's position there; the neighbour's sensor projects it to pixel coordinates, as its film does; a ray from the
-neighbour's camera towards it checks that it is visible there (the first hit is the same shape, at the point's
-distance within VISIBILITY_TOLERANCE). Camera motion and object motion both come out of this.
+surface point. The point is named by its shape (``shape.id()``; a shape without an id by its place among those
+without one) and, on a mesh, its primitive and barycentric coordinates; on another shape (sphere, rectangle,
+disk...) by its coordinates in the shape's local frame (its ``to_world``). The same shape in the neighbouring
+frame's scene (same id, and for a mesh the same faces) gives the point's position there; the neighbour's sensor
+projects it to pixel coordinates, as its film does; a ray from the neighbour's camera towards it checks that it is
+visible there (the first hit is the same shape, at the point's distance within VISIBILITY_TOLERANCE). Camera
+motion and object motion both come out of this.
 
-A pixel has no correspondence (invalid, vector 0) when its ray misses, when its first hit is specular (a mirror,
+A pixel has no correspondence (invalid, vector 0) when its ray misses; when its first hit is specular (a mirror,
 glass, or a glossy lobe sharper than the features' NEAR_SPECULAR_PDF: the image there is another surface's, whose
-motion is not the mirror's), when the shape is missing in the other frame, its id is not unique or its topology
-differs, when the point is off the other frame's screen or behind its camera, and when it is hidden there.
+motion is not the mirror's); when the shape is missing in the other frame, its id is not unique, the frames have
+different numbers of shapes without an id, or its topology differs; when the point is off the other frame's
+screen or behind its camera; and when it is hidden there.
 
 Vectors follow the frame contract (model/frame.py :class:`~gradsep.model.frame.Motion`): u to the right and v
 upward, in pixels: ``x_prev = x + backward.u``, ``y_prev = y - backward.v`` with y the row.
@@ -107,6 +109,7 @@ def primary_hits(loaded: LoadedScene) -> Hits:
     specular = ~has_diffuse & (mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
                                | (mi.has_flag(bs.sampled_type, mi.BSDFFlags.Glossy) & (bs.pdf > NEAR_SPECULAR_PDF)))
     usable = valid & ~specular
+    dr.eval(usable, pi.shape, pi.prim_index, pi.prim_uv, si.p)  # one kernel for every output read below
     shape = _registry_index(loaded.scene, pi.shape)
     shape[~np.asarray(usable, dtype=bool)] = -1
     return Hits(shape=shape, prim=np.asarray(pi.prim_index, dtype=np.int64),
@@ -153,37 +156,46 @@ def _mover(shape: Any, other_shape: Any) -> Mover | None:
     return None
 
 
-def _unique_ids(scene: Any) -> dict[str, int]:
-    """Shape id -> index in scene.shapes(), for the ids that occur once."""
+def _shape_keys(scene: Any) -> dict[tuple[str, ...], int]:
+    """How shapes are matched across frames -> index in scene.shapes(): ``("id", ID)`` for an id that occurs once;
+    ``("unnamed", K, CLASS)`` for the K-th shape without an id (Mitsuba gives a shape declared without one the id
+    ""), matched by its place among them: per-frame files of one shot declare their shapes in the same order."""
     ids = [shape.id() for shape in scene.shapes()]
-    return {name: i for i, name in enumerate(ids) if name and ids.count(name) == 1}
+    keys: dict[tuple[str, ...], int] = {("id", name): i for i, name in enumerate(ids) if name and ids.count(name) == 1}
+    unnamed = [i for i, name in enumerate(ids) if not name]
+    keys.update({("unnamed", str(k), type(scene.shapes()[i]).__name__): i for k, i in enumerate(unnamed)})
+    return keys
 
 
 def _positions_in(current: LoadedScene, hits: Hits, other: LoadedScene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(positions in the other frame (N, 3), the other scene's shape index per pixel, whether there is one)."""
-    mine, theirs = _unique_ids(current.scene), _unique_ids(other.scene)
+    mine, theirs = _shape_keys(current.scene), _shape_keys(other.scene)
+    if sum(k[0] == "unnamed" for k in mine) != sum(k[0] == "unnamed" for k in theirs):
+        mine = {k: i for k, i in mine.items() if k[0] != "unnamed"}  # places among unnamed shapes do not match
     shapes, other_shapes = current.scene.shapes(), other.scene.shapes()
     positions = np.zeros_like(hits.point)
     target = np.full(hits.shape.shape, -1, dtype=np.int64)
-    for name, index in mine.items():
+    for key, index in mine.items():
         rows = np.flatnonzero(hits.shape == index)
-        if not rows.size or name not in theirs:
+        if not rows.size or key not in theirs:
             continue
-        mover = _mover(shapes[index], other_shapes[theirs[name]])
+        mover = _mover(shapes[index], other_shapes[theirs[key]])
         if mover is not None:
             positions[rows] = mover(hits, rows)
-            target[rows] = theirs[name]
+            target[rows] = theirs[key]
     return positions, target, target >= 0
 
 
 def _project(other: LoadedScene, positions: np.ndarray, active: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Pixel coordinates (x right, y down, pixel centres at +0.5) of ``positions`` on the other frame's film, and
     whether they are on screen in front of its camera."""
+    import drjit as dr
     import mitsuba as mi
 
     it = mi.Interaction3f()
     it.p = mi.Point3f(*(positions[:, k].astype(np.float32) for k in range(3)))
     ds, _ = other.sensor.sample_direction(it, mi.Point2f(0.5, 0.5), mi.Bool(active))
+    dr.eval(ds.uv, ds.pdf)
     uv = np.stack([np.asarray(ds.uv.x, dtype=np.float64), np.asarray(ds.uv.y, dtype=np.float64)], axis=-1)
     inside = ((np.asarray(ds.pdf) > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < other.width)
               & (uv[:, 1] >= 0) & (uv[:, 1] < other.height))
@@ -192,6 +204,7 @@ def _project(other: LoadedScene, positions: np.ndarray, active: np.ndarray) -> t
 
 def _visible(other: LoadedScene, positions: np.ndarray, target: np.ndarray, active: np.ndarray) -> np.ndarray:
     """Whether the first hit from the other frame's camera towards each position is that shape, at that distance."""
+    import drjit as dr
     import mitsuba as mi
 
     origin = _matrix(other.sensor.world_transform())[:3, 3]
@@ -200,7 +213,8 @@ def _visible(other: LoadedScene, positions: np.ndarray, target: np.ndarray, acti
     direction = offset / np.maximum(distance, 1e-30)[:, None]
     ray = mi.Ray3f(mi.Point3f(*(np.full(len(positions), c, np.float32) for c in origin)),
                    mi.Vector3f(*(direction[:, k].astype(np.float32) for k in range(3))))
-    pi = other.scene.ray_intersect_preliminary(ray, coherent=False, active=mi.Bool(active))
+    pi = other.scene.ray_intersect_preliminary(ray, coherent=True, active=mi.Bool(active))
+    dr.eval(pi.shape, pi.t)
     hit_shape = _registry_index(other.scene, pi.shape)
     t = np.asarray(pi.t, dtype=np.float64)
     return active & (hit_shape == target) & (np.abs(t - distance) <= VISIBILITY_TOLERANCE * distance)

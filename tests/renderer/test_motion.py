@@ -142,3 +142,20 @@ def test_warping_the_previous_frame_with_backward_vectors_removes_most_of_the_di
     error_unwarped = np.mean((before - now)[valid] ** 2)
     assert valid.mean() > 0.8
     assert error_warped <= 0.25 * error_unwarped, (error_warped, error_unwarped)
+
+
+def test_shapes_without_an_id_are_matched_by_their_place(tmp_path) -> None:
+    text = SHOT.read_text()
+    for name in (WALL, BALL, BOX):
+        text = text.replace(f' id="{name}"', "")
+    unnamed = tmp_path / "unnamed.xml"
+    unnamed.write_text(text)
+
+    def load(**values: float) -> LoadedScene:
+        return load_scene(str(unnamed), defines={k: str(v) for k, v in values.items()}, width=RES, height=RES)
+
+    assert {s.id() for s in load().scene.shapes()} == {""}
+    named = render_motion(frame(sx=0.4), frame(sx=0.1), None)
+    plain = render_motion(load(sx=0.4), load(sx=0.1), None)
+    np.testing.assert_array_equal(plain.backward_valid, named.backward_valid)
+    np.testing.assert_allclose(plain.backward, named.backward, atol=1e-5)
