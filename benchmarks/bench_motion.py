@@ -11,6 +11,7 @@ the G-PT render (``render_frame``, default plan: both layers, all gradients) and
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import time
 from pathlib import Path
@@ -51,6 +52,7 @@ def main() -> None:
     parser.add_argument("--spp", type=int, default=16)
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args()
+    print(f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores", flush=True)
     for spec in args.scenes:
         bench(spec, args.size, args.spp, args.repeats)
 
