@@ -33,8 +33,20 @@ def shape_map(loaded: LoadedScene) -> np.ndarray:
     return ids[primary_hits(loaded).shape].reshape(loaded.height, loaded.width)
 
 
-def test_a_camera_translating_sideways_gives_the_known_constant_shift_on_the_wall() -> None:
-    current, previous = frame(cx=0.0, cy=0.0), frame(cx=-0.1, cy=-0.2)
+THIN_LENS = ('<sensor type="thinlens"><float name="aperture_radius" value="0.2"/>'
+             '<float name="focus_distance" value="4"/>')
+
+
+@pytest.mark.parametrize("sensor", ["perspective", "thinlens"])
+def test_a_camera_translating_sideways_gives_the_known_constant_shift_on_the_wall(tmp_path, sensor: str) -> None:
+    """The thin lens is projected through its lens centre, as its pixel-centre rays leave it."""
+    shot = SHOT
+    if sensor == "thinlens":
+        shot = tmp_path / "thinlens.xml"
+        shot.write_text(SHOT.read_text().replace('<sensor type="perspective">', THIN_LENS))
+        assert type(load_scene(str(shot), width=RES, height=RES).sensor).__name__ != "PerspectiveCamera"
+    current, previous = (load_scene(str(shot), defines={"cx": str(x), "cy": str(y)}, width=RES, height=RES)
+                         for x, y in ((0.0, 0.0), (-0.1, -0.2)))
     motion = render_motion(current, previous, None)
     assert motion.forward is None and motion.forward_valid is None
     vectors, valid = motion.side("backward")
@@ -159,3 +171,17 @@ def test_shapes_without_an_id_are_matched_by_their_place(tmp_path) -> None:
     plain = render_motion(load(sx=0.4), load(sx=0.1), None)
     np.testing.assert_array_equal(plain.backward_valid, named.backward_valid)
     np.testing.assert_allclose(plain.backward, named.backward, atol=1e-5)
+
+
+def test_rendered_vectors_travel_through_a_frame_file(tmp_path) -> None:
+    from gradsep.model.exr_read import read_frame
+    from gradsep.model.exr_write import write_frame
+    from gradsep.model.frame import Frame, Layer
+
+    motion = render_motion(frame(sx=0.4), frame(sx=0.1, cx=-0.1), frame(sx=0.7, cy=0.1))
+    out = Frame({"color": Layer(np.ones((RES, RES, 3), np.float32))}, motion=motion)
+    write_frame(tmp_path / "f.exr", out, half=True)
+    back = read_frame(tmp_path / "f.exr").motion
+    for direction in ("backward", "forward"):
+        np.testing.assert_array_equal(back.side(direction)[0], motion.side(direction)[0])
+        np.testing.assert_array_equal(back.side(direction)[1], motion.side(direction)[1])
