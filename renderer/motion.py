@@ -11,9 +11,10 @@ motion and object motion both come out of this.
 
 A pixel has no correspondence (invalid, vector 0) when its ray misses; when its first hit is specular (a mirror,
 glass, or a glossy lobe sharper than the features' NEAR_SPECULAR_PDF: the image there is another surface's, whose
-motion is not the mirror's); when the shape is missing in the other frame, its id is not unique, the frames have
-different numbers of shapes without an id, or its topology differs; when the point is off the other frame's
-screen or behind its camera; and when it is hidden there.
+motion is not the mirror's); when the hit shape is not one of the scene's shapes (inside an instance); when the
+shape is missing in the other frame, its id is not unique, the frames have different numbers of shapes without an
+id, or its topology differs; when the point is off the other frame's screen or behind its camera; and when it is
+hidden there.
 
 Vectors follow the frame contract (model/frame.py :class:`~gradsep.model.frame.Motion`): u to the right and v
 upward, in pixels: ``x_prev = x + backward.u``, ``y_prev = y - backward.v`` with y the row.
