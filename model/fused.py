@@ -120,21 +120,22 @@ def refine(kind: str, oidn: np.ndarray, scaled: Layer) -> np.ndarray:
     """OIDN's image refined by the layer's gradients with the ``kind`` solve of REFINE_SOLVES: the oidn-l1
     refinement (model.refine.refine_layer: the L1 screened Poisson problem with OIDN's image as the data term,
     solved at robust level 1) with every setting of the solve pinned here. (H, W, 3) float32, finite."""
-    from gradsep.model.refine import refine_layer
+    from gradsep.model.refine import RefineSolve, refine_layer
 
     passes, cg_steps = REFINE_SOLVES[kind]
     # "direct": refine this layer whatever its name
-    return refine_layer("direct", oidn, scaled, REFINE_ALPHA, preconditioner=REFINE_PRECONDITIONER,
-                        cg_steps=cg_steps, passes=passes)
+    return refine_layer("direct", oidn, scaled, REFINE_ALPHA,
+                        solve=RefineSolve(REFINE_PRECONDITIONER, cg_steps=cg_steps, passes=passes))
 
 
 def refine_direct(oidn: np.ndarray, scaled: Layer, report: dict[str, float] | None = None) -> np.ndarray:
     """The ``refine-direct`` image: OIDN's image refined by the layer's gradients as the oidn-l1 method refines it,
     at fused's CG budget DIRECT_CG. ``report``: see model.refine.refine_layer (the trust rule's w_f)."""
-    from gradsep.model.refine import refine_layer
+    from gradsep.model.refine import RefineSolve, refine_layer
 
     tolerance, steps = DIRECT_CG
-    return refine_layer("direct", oidn, scaled, cg_steps=steps, cg_tolerance=tolerance, report=report)
+    return refine_layer("direct", oidn, scaled, solve=RefineSolve(cg_steps=steps, cg_tolerance=tolerance),
+                        report=report)
 
 
 def layer_candidates(layer: Layer, aux: Any, kinds: tuple[str, ...] = CANDIDATES,
