@@ -59,7 +59,7 @@ def locality(frame: Frame, method: str, models: LoadedModels, times: list[float]
         for k in times:
             result = reconstruct(with_outlier(frame, case, where, k), method, models=models)
             kept, reach = far_agreement(result.image, reference, where, radius)
-            warned = "w" if any("outlier" in w for w in result.warnings) else "-"
+            warned = "w" if any(w.startswith("layer ") for w in result.warnings) else "-"
             cells.append(f"{100 * (1 - kept):6.2f}% {reach:5.1f}px {warned}")
         lines.append(f"{method:8s} {case:6s} " + " | ".join(cells))
     return lines
@@ -79,7 +79,7 @@ def clean_cost(frame: Frame, reference: np.ndarray, method: str, models: LoadedM
         without = reconstruct(frame, method, models=models).image
     finally:
         outliers.split_frame = saved
-    found = sum(s.count for s in split[1].layers.values())
+    found = sum(s.handled for s in split[1].layers.values())
     return (f"{method:8s} relmse {relmse(shipped, reference):.6f} without handling {relmse(without, reference):.6f} "
             f"outliers found {found} detector {1000 * seconds:.1f} ms")
 

@@ -18,16 +18,17 @@ such value reaches every pixel of a method whose statistics, receptive field or 
    is far smoother than the base's differences, so its neighbours are the closer estimate). A firefly's own jump,
    carried by the gradients, is such a cluster once its base was replaced; so is a lone gradient spike. A gradient
    has no energy of its own (the base carries it): nothing of it is kept.
-3. **Where the energy goes.** Each base cluster's excess (its value above the replacement) is added back to the
-   method's output. The variance channel (``L.var.Y``) is the evidence: where the cluster's variance is at least
+3. **Where the energy goes.** Each base cluster's excess (its value above the replacement) comes back after the
+   method. The variance channel (``L.var.Y``) is the evidence: where the cluster's variance is at least
    NOISE_SHARE of its excess luminance squared (a single sample that large has a variance of about its square), it
    is noise, and its excess is spread over a Gaussian footprint around the cluster's centre
    (model.robust.spread: kept exactly, ending OUTLIER_SPREAD_RADIUS pixels away). Where many samples agree (a low
-   variance: a small light in view), or a cluster of several pixels comes without a variance, the excess goes
-   back in place and the cluster and its 1-pixel rim are *pinned* (model/backoff.py gives them back as rendered).
+   variance: a small light in view), or a cluster of several pixels comes without a variance, it is a light: its
+   pixels come back as rendered, and they and their 1-pixel rim are *pinned* (model/backoff.py gives the rim back
+   as rendered too and leaves it out of its windows).
 4. **Lights in view** (``sources``, the methods with ``split_sources``: ``oidn``, which smears them): on the
    replaced base, each pixel over SOURCE_LEVEL x the layer's lit level with a neighbour over it too is scaled down
-   to that luminance (colour kept), its excess put back in place, and it and its rim pinned.
+   to that luminance (colour kept) for the method, comes back as rendered, and is pinned with its rim.
 
 A layer where nothing is found is passed on as it came, the same object: a frame without outliers is reconstructed
 bit for bit as without the detector. Every pixel handled is counted in the reconstruction's warnings.
@@ -44,7 +45,6 @@ from scipy import ndimage
 
 from gradsep.model.robust import (
     add_excess,
-    add_in_place,
     channel_mean,
     lit_level_of_luminance,
     luminance,
@@ -129,23 +129,37 @@ class LayerSplit:
     """What the detector did to one layer: the layer the method sees, and what goes back after it."""
 
     layer: Layer
+    rendered: Layer  # the layer as it came
     spread: np.ndarray | None = None  # (H, W, C) excess spread over a footprint (noise)
-    in_place: np.ndarray | None = None  # (H, W, C) excess put back pixel by pixel (a light)
+    in_place: np.ndarray | None = None  # (H, W) bool: pixels given back as rendered (a light)
     pinned: np.ndarray | None = None  # (H, W) bool: given back as rendered by the back-off
-    outliers: int = 0  # base pixels of outlier clusters
+    outliers: int = 0  # base pixels of noise clusters (spread)
+    lights: int = 0  # base pixels of light clusters (put back in place)
     gradients: int = 0  # gradient values replaced
     sources: int = 0  # pixels of a light in view capped (``sources``)
 
+    @property
+    def handled(self) -> int:
+        """Every value the detector changed."""
+        return self.outliers + self.lights + self.gradients + self.sources
+
     def restore(self, image: np.ndarray) -> np.ndarray:
-        """The method's output for this layer with the excess added back."""
-        return add_in_place(add_excess(image, self.spread), self.in_place)
+        """The method's output for this layer with the excess added back: spread, or the pixels as rendered."""
+        out = add_excess(image, self.spread)
+        if self.in_place is not None:
+            out = np.array(out, np.float32)
+            out[self.in_place] = np.asarray(self.rendered.base, np.float32)[self.in_place]
+        return out
 
     def warnings(self, name: str, method: str) -> list[str]:
         out = []
         if self.outliers or self.gradients:
             out.append(f"layer {name}: {self.outliers} outlier pixel(s) and {self.gradients} outlier gradient "
-                       f"value(s) kept out of the {method} denoiser; their energy was put back around where it "
-                       "landed")
+                       f"value(s) kept out of the {method} denoiser; the pixels' energy was spread over a few pixels "
+                       "around each")
+        if self.lights:
+            out.append(f"layer {name}: {self.lights} pixel(s) of a small light in view (a bright cluster whose "
+                       f"samples agree) kept out of the {method} denoiser and put back in place")
         if self.sources:
             out.append(f"layer {name}: {self.sources} pixel(s) of a bright source (a light in view) capped for the "
                        f"{method} denoiser and put back in place")
@@ -248,26 +262,22 @@ def _sources(base: np.ndarray) -> np.ndarray | None:
     return source if source.any() else None
 
 
-def _cap_sources(base: np.ndarray, source: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(``base`` with the ``source`` pixels scaled down to SOURCE_LEVEL x the lit level, colour kept, their
-    excess, float64)."""
+def _cap_sources(base: np.ndarray, source: np.ndarray) -> np.ndarray:
+    """``base`` with the ``source`` pixels scaled down to SOURCE_LEVEL x the lit level, colour kept."""
     lum = luminance(base)
     cap = SOURCE_LEVEL * lit_level_of_luminance(lum)
     capped = base.copy()
     capped[source] = base[source] * (cap / lum[source])[:, None]
-    excess = np.zeros(base.shape, np.float64)
-    excess[source] = np.maximum(base[source].astype(np.float64) - capped[source], 0.0)
-    return capped, excess
+    return capped
 
 
-def light_in_view(base: np.ndarray) -> bool:
-    """Whether a layer's base holds a light in view as ``oidn`` sees it (after its outlier clusters are
-    replaced)."""
-    image = np.asarray(base, np.float32)
-    if image.ndim != 3 or image.size == 0:
-        return False
-    split = _split_base(image, None)
-    return _sources(image if split is None else split[0]) is not None
+def light_in_view(layer: Layer) -> bool:
+    """Whether ``layer`` holds a light in view as ``oidn`` sees it: a cluster whose energy goes back in place, or
+    a capped bright source."""
+    from gradsep.model.frame import Layer
+
+    split = split_layer(Layer(layer.base, var=layer.var), sources=True)
+    return split is not None and split.in_place is not None
 
 
 def split_layer(layer: Layer, sources: bool = False) -> LayerSplit | None:
@@ -278,16 +288,16 @@ def split_layer(layer: Layer, sources: bool = False) -> LayerSplit | None:
     if base.ndim != 3 or base.size == 0:
         return None
     found = _split_base(base, layer.var)
-    split = LayerSplit(layer)
+    split = LayerSplit(layer, layer)
     inlier, var, pinned = base, layer.var, np.zeros(base.shape[:2], bool)
     if found is not None:
         inlier, clusters, excess = found
         noise = _noise(clusters, excess, layer.var)
         split.spread = _centred(clusters, excess, noise) if noise.any() else None
         light = np.isin(clusters.labels, clusters.ids[~noise])
-        split.in_place = np.where(light[..., None], excess, 0.0) if light.any() else None
         pinned |= light
-        split.outliers = int(np.count_nonzero(clusters.mask))
+        split.lights = int(np.count_nonzero(light))
+        split.outliers = int(np.count_nonzero(clusters.mask)) - split.lights
         if var is not None:
             var = var.copy()
             var[clusters.mask] = clusters.spread_image(var, clusters.ring_median(var))[clusters.mask]
@@ -300,13 +310,13 @@ def split_layer(layer: Layer, sources: bool = False) -> LayerSplit | None:
         split.gradients = fixed_x + fixed_y
     source = _sources(inlier) if sources else None
     if source is not None:
-        inlier, capped = _cap_sources(inlier, source)
-        split.in_place = capped if split.in_place is None else split.in_place + capped
+        inlier = _cap_sources(inlier, source)
         pinned |= source
         split.sources = int(np.count_nonzero(source))
-    if not (split.outliers or split.gradients or split.sources):
+    if not split.handled:
         return None
-    split.pinned = ndimage.binary_dilation(pinned) if pinned.any() else None
+    if pinned.any():
+        split.in_place, split.pinned = pinned, ndimage.binary_dilation(pinned)
     split.layer = Layer(inlier, dx, dy, var)
     return split
 
