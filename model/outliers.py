@@ -37,19 +37,15 @@ bit for bit as without the detector. Every pixel handled is counted in the recon
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from scipy import ndimage
 
-from gradsep.model.robust import (
-    add_excess,
-    channel_mean,
-    lit_level_of_luminance,
-    luminance,
-    robust_level,
-)
+from gradsep.model.policy import LUMINANCE
+from gradsep.model.robust import WINSOR_QUANTILE, add_excess, lit_level_of_luminance, luminance
 
 if TYPE_CHECKING:
     from gradsep.model.frame import Frame, Layer
@@ -67,61 +63,131 @@ NOISE_SHARE = 0.1
 SOURCE_LEVEL = 256.0
 
 _EIGHT = np.ones((3, 3), bool)
+_F32_MAX = float(np.finfo(np.float32).max)
+
+
+_WINDOW = CLUSTER_SIZE + 2  # a cluster's box and its ring
 
 
 @dataclass
 class Clusters:
-    """Clusters found in one (H, W) magnitude image: ``labels`` (H, W) int (0: none), their ids, and ``ring``
-    (H, W) int: each cluster's ring pixels carry its id."""
+    """Clusters found in one (H, W) magnitude image, each in a WINDOW x WINDOW window around its box: ``rows``,
+    ``cols`` (n, WINDOW) the window's pixel indices (clipped to the frame), ``member`` and ``ring`` (n, WINDOW,
+    WINDOW) bool: the cluster's pixels and its ring's (inside the frame)."""
 
-    labels: np.ndarray
-    ids: np.ndarray
+    rows: np.ndarray
+    cols: np.ndarray
+    member: np.ndarray
     ring: np.ndarray
 
     @property
-    def mask(self) -> np.ndarray:
-        return self.labels > 0
+    def count(self) -> int:
+        return int(self.member.shape[0])
 
-    def ring_median(self, image: np.ndarray) -> np.ndarray:
-        """(n, C) (or (n,) for an (H, W) image): the median of ``image`` over each cluster's ring."""
-        if image.ndim == 2:
-            return np.asarray(ndimage.median(image, self.ring, self.ids), np.float64).reshape(-1)
-        return np.stack([self.ring_median(image[..., c]) for c in range(image.shape[-1])], axis=-1)
+    def pixels(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(cluster index, row, column) of every member pixel."""
+        k, i, j = np.nonzero(self.member)
+        return k, self.rows[k, i], self.cols[k, j]
 
-    def spread_image(self, image: np.ndarray, values: np.ndarray) -> np.ndarray:
-        """An image shaped like ``image`` holding each cluster's row of ``values`` on its pixels (0 elsewhere)."""
-        lookup = np.zeros((int(self.ids.max()) + 1, *values.shape[1:]), values.dtype)
-        lookup[self.ids] = values
-        out = lookup[self.labels]
-        out[~self.mask] = 0
+    def mask(self, shape: tuple[int, int], which: np.ndarray | None = None) -> np.ndarray:
+        """(H, W) bool: the member pixels (of the clusters ``which`` selects, default all)."""
+        k, ys, xs = self.pixels()
+        out = np.zeros(shape, bool)
+        chosen = np.ones(k.size, bool) if which is None else which[k]
+        out[ys[chosen], xs[chosen]] = True
         return out
 
+    def window(self, image: np.ndarray) -> np.ndarray:
+        """(n, WINDOW, WINDOW, ...) the windows of ``image``."""
+        return image[self.rows[:, :, None], self.cols[:, None, :]]
 
-def find_clusters(magnitude: np.ndarray, threshold: float) -> Clusters | None:
-    """The clusters of ``magnitude`` (H, W), finite and ≥ 0: its connected groups over ``threshold`` at most
-    CLUSTER_SIZE pixels a side whose peak exceeds OUTLIER_LOCAL x their ring's largest value; None when none."""
-    if not (math.isfinite(threshold) and threshold > 0.0):
-        return None
-    over = magnitude > threshold
+    def ring_median(self, image: np.ndarray) -> np.ndarray:
+        """(n, ...) float64: the median of ``image`` ((H, W) or (H, W, C)) over each cluster's ring."""
+        values = self.window(image).astype(np.float64)
+        ring = self.ring.reshape(self.ring.shape + (1,) * (values.ndim - 3))
+        values = np.where(ring, values, np.nan).reshape(self.count, -1, *values.shape[3:])
+        return np.nanmedian(values, axis=1)
+
+    def sums(self, image: np.ndarray) -> np.ndarray:
+        """(n, ...) float64: the sum of ``image`` over each cluster's pixels."""
+        values = self.window(image).astype(np.float64)
+        member = self.member.reshape(self.member.shape + (1,) * (values.ndim - 3))
+        return np.where(member, values, 0.0).sum(axis=(1, 2))
+
+    def centres(self) -> tuple[np.ndarray, np.ndarray]:
+        """(rows, columns): each cluster's box's middle pixel (rounded up and to the left)."""
+        in_rows, in_cols = self.member.any(axis=2), self.member.any(axis=1)
+        first = np.argmax(in_rows, axis=1), np.argmax(in_cols, axis=1)
+        last = _WINDOW - 1 - np.argmax(in_rows[:, ::-1], axis=1), _WINDOW - 1 - np.argmax(in_cols[:, ::-1], axis=1)
+        n = np.arange(self.count)
+        return self.rows[n, (first[0] + last[0]) // 2], self.cols[n, (first[1] + last[1]) // 2]
+
+
+def _window_indices(start: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """((n, WINDOW) indices from ``start``, clipped to [0, size), (n, WINDOW) bool: inside the frame)."""
+    index = start[:, None] + np.arange(_WINDOW)
+    return np.clip(index, 0, size - 1), (index >= 0) & (index < size)
+
+
+def _dilate(member: np.ndarray) -> np.ndarray:
+    """(n, WINDOW, WINDOW) bool: ``member`` grown by its 8 neighbours."""
+    padded = np.pad(member, ((0, 0), (1, 1), (1, 1)))
+    out = np.zeros_like(member)
+    for dy in range(3):
+        for dx in range(3):
+            out |= padded[:, dy:dy + _WINDOW, dx:dx + _WINDOW]
+    return out
+
+
+def find_clusters(over: np.ndarray, values: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> Clusters | None:
+    """The clusters among the pixels ``over`` (H, W) bool marks: its connected groups at most CLUSTER_SIZE pixels a
+    side whose peak exceeds OUTLIER_LOCAL x their ring's largest value; None when none. ``values(rows, cols)``
+    gives the magnitude (≥ 0) of the (n, WINDOW, WINDOW) pixels at ``rows[:, :, None], cols[:, None, :]``."""
     if not over.any():
         return None
-    labels, count = ndimage.label(over, structure=_EIGHT)
-    slices = ndimage.find_objects(labels)
-    small = [i + 1 for i, s in enumerate(slices)
-             if s is not None and s[0].stop - s[0].start <= CLUSTER_SIZE and s[1].stop - s[1].start <= CLUSTER_SIZE]
-    if not small:
+    labels, _ = ndimage.label(over, structure=_EIGHT)
+    boxes = np.array([(s[0].start, s[0].stop, s[1].start, s[1].stop) for s in ndimage.find_objects(labels)])
+    small = np.nonzero((boxes[:, 1] - boxes[:, 0] <= CLUSTER_SIZE) & (boxes[:, 3] - boxes[:, 2] <= CLUSTER_SIZE))[0]
+    if small.size == 0:
         return None
-    ids = np.array(small)
-    ring = np.where(over, 0, ndimage.grey_dilation(labels, footprint=_EIGHT, mode="constant", cval=0))
-    peak = np.asarray(ndimage.maximum(magnitude, labels, ids), np.float64).reshape(-1)
-    around = np.asarray(ndimage.maximum(magnitude, ring, ids), np.float64).reshape(-1)
-    has_ring = np.asarray(ndimage.sum(np.ones_like(ring), ring, ids)).reshape(-1) > 0
-    keep = ids[has_ring & (peak > OUTLIER_LOCAL * around)]
-    if keep.size == 0:
+    rows, row_in = _window_indices(boxes[small, 0] - 1, over.shape[0])
+    cols, col_in = _window_indices(boxes[small, 2] - 1, over.shape[1])
+    inside = row_in[:, :, None] & col_in[:, None, :]
+    window_labels = labels[rows[:, :, None], cols[:, None, :]]
+    member = (window_labels == (small + 1)[:, None, None]) & inside
+    ring = _dilate(member) & (window_labels == 0) & inside
+    magnitude = np.asarray(values(rows, cols), np.float64)
+    peak = np.where(member, magnitude, 0.0).max(axis=(1, 2))
+    around = np.where(ring, magnitude, 0.0).max(axis=(1, 2))
+    keep = ring.any(axis=(1, 2)) & (peak > OUTLIER_LOCAL * around)
+    if not keep.any():
         return None
-    chosen = np.zeros(count + 1, bool)
-    chosen[keep] = True
-    return Clusters(np.where(chosen[labels], labels, 0), keep, np.where(chosen[ring], ring, 0))
+    return Clusters(rows[keep], cols[keep], member[keep], ring[keep])
+
+
+#: The robust level of a layer larger than this many pixels is taken on a regular subsample of at most this many.
+LEVEL_SAMPLE = 1 << 18
+
+
+def _level(magnitude: np.ndarray) -> float:
+    """model.robust.robust_level of an (H, W) float32 magnitude (≥ 0), on a regular subsample of a large frame
+    (every s-th row and column): as robust, a few times cheaper."""
+    step = max(1, math.ceil(math.sqrt(magnitude.size / LEVEL_SAMPLE)))
+    flat = magnitude[::step, ::step].ravel()
+    k = int(WINSOR_QUANTILE * (flat.size - 1))
+    cap = np.partition(flat, k)[k]
+    level = float(np.minimum(flat, cap).mean(dtype=np.float64))
+    return level if level > 0.0 else float(magnitude.mean(dtype=np.float64))
+
+
+def _magnitude(image: np.ndarray) -> np.ndarray:
+    """(H, W) float32: the channel mean of |``image``|, non-finite values read as float32's largest."""
+    out = np.abs(image[..., 0])
+    for c in range(1, image.shape[-1]):
+        out += np.abs(image[..., c])
+    out /= image.shape[-1]
+    out[~np.isfinite(out)] = _F32_MAX
+    return out
 
 
 @dataclass
@@ -184,91 +250,118 @@ class FrameSplit:
         return [] if split is None else split.warnings(name, method)
 
 
-def _split_base(base: np.ndarray, var: np.ndarray | None) -> tuple[np.ndarray, Clusters, np.ndarray] | None:
-    """(the base with its clusters replaced by their rings' median, the clusters, their excess (H, W, C) float64),
-    or None when the base has none."""
-    lum = channel_mean(base)
-    lum[~np.isfinite(lum)] = 0.0
-    clusters = find_clusters(lum, OUTLIER_LEVEL * robust_level(lum))
+def _split_base(base: np.ndarray) -> tuple[float, tuple[np.ndarray, Clusters, np.ndarray] | None]:
+    """(the layer's robust level, and: the base with its clusters replaced by their rings' median, the clusters,
+    the (n, C) float64 excess of each cluster's pixels in ``Clusters.pixels`` order; or None when it has none)."""
+    lum = _magnitude(base)
+    level = _level(lum)
+    threshold = OUTLIER_LEVEL * level
+    if not (math.isfinite(threshold) and threshold > 0.0):
+        return level, None
+    clusters = find_clusters(lum > threshold, lambda rows, cols: lum[rows[:, :, None], cols[:, None, :]])
     if clusters is None:
-        return None
-    mask = clusters.mask
-    local = np.minimum(clusters.spread_image(base, clusters.ring_median(base).astype(np.float32))[mask], base[mask])
+        return level, None
+    k, ys, xs = clusters.pixels()
+    value = base[ys, xs]
+    local = np.minimum(clusters.ring_median(base)[k].astype(np.float32), value)
     inlier = base.copy()
-    inlier[mask] = local  # set, not subtracted: value − excess would cancel catastrophically at 1e30
-    excess = np.zeros(base.shape, np.float64)
-    excess[mask] = base[mask].astype(np.float64) - local
-    return inlier, clusters, excess
+    inlier[ys, xs] = local  # set, not subtracted: value − excess would cancel catastrophically at 1e30
+    return level, (inlier, clusters, value.astype(np.float64) - local)
 
 
 def _noise(clusters: Clusters, excess: np.ndarray, var: np.ndarray | None) -> np.ndarray:
     """(n,) bool per cluster: its excess is noise (spread), not a light (in place), by the variance's evidence."""
-    sizes = np.asarray(ndimage.sum(np.ones(clusters.labels.shape), clusters.labels, clusters.ids)).reshape(-1)
+    k = clusters.pixels()[0]
+    sizes = np.bincount(k, minlength=clusters.count)
     if var is None:
         return sizes <= 1  # no evidence: a lone pixel is noise, a group of them a light
-    y = np.asarray(ndimage.mean(luminance(excess), clusters.labels, clusters.ids), np.float64).reshape(-1)
-    v = np.asarray(ndimage.mean(np.nan_to_num(var, nan=np.inf), clusters.labels, clusters.ids)).reshape(-1)
+    y = np.bincount(k, weights=excess @ np.asarray(LUMINANCE, np.float64), minlength=clusters.count) / sizes
+    v = clusters.sums(var) / sizes  # NaN (no frame from model.frame has one) reads as noise below
+    v[~np.isfinite(v)] = np.inf
     return v >= NOISE_SHARE * y * y
 
 
-def _centred(clusters: Clusters, excess: np.ndarray, noise: np.ndarray) -> np.ndarray:
-    """The noise clusters' excess moved to each cluster's centre pixel (its box's middle), so that its footprint
-    ends OUTLIER_SPREAD_RADIUS pixels from there."""
-    ids = clusters.ids[noise]
-    totals = np.stack([np.asarray(ndimage.sum(excess[..., c], clusters.labels, ids)).reshape(-1)
-                       for c in range(excess.shape[-1])], axis=-1)
-    out = np.zeros_like(excess)
-    boxes = ndimage.find_objects(clusters.labels)
-    for cluster, total in zip(ids.tolist(), totals, strict=True):
-        box = boxes[cluster - 1]
-        out[(box[0].start + box[0].stop - 1) // 2, (box[1].start + box[1].stop - 1) // 2] += total
+def _centred(clusters: Clusters, excess: np.ndarray, noise: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    """(H, W, C) float64: the noise clusters' excess moved to each cluster's centre pixel (its box's middle), so
+    that its footprint ends OUTLIER_SPREAD_RADIUS pixels from there."""
+    k = clusters.pixels()[0]
+    totals = np.stack([np.bincount(k, weights=excess[:, c], minlength=clusters.count)
+                       for c in range(excess.shape[1])], axis=-1)
+    ys, xs = clusters.centres()
+    out = np.zeros(shape, np.float64)
+    np.add.at(out, (ys[noise], xs[noise]), totals[noise])
     return out
 
 
-def _differences(base: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The forward differences of ``base`` (the frame format's convention: last column / row 0), float64."""
-    values = base.astype(np.float64)
-    dx, dy = np.zeros_like(values), np.zeros_like(values)
-    dx[:, :-1] = values[:, 1:] - values[:, :-1]
-    dy[:-1] = values[1:] - values[:-1]
-    return dx, dy
+def _residual(gradient: np.ndarray, inlier: np.ndarray, axis: int, ys: np.ndarray, xs: np.ndarray) -> np.ndarray:
+    """The channel mean of |gradient − the forward difference of ``inlier``| at the pixels (``ys``, ``xs``) (any
+    shape, broadcast), float64; non-finite values read as float32's largest."""
+    ys, xs = np.broadcast_arrays(ys, xs)
+    height, width = inlier.shape[:2]
+    edge = (xs >= width - 1) if axis == 1 else (ys >= height - 1)
+    ahead = (ys, np.minimum(xs + 1, width - 1)) if axis == 1 else (np.minimum(ys + 1, height - 1), xs)
+    with np.errstate(over="ignore", invalid="ignore"):
+        difference = inlier[ahead].astype(np.float64) - inlier[ys, xs]
+        difference[edge] = 0.0
+        out = np.abs(gradient[ys, xs].astype(np.float64) - difference).mean(axis=-1)
+    out[~np.isfinite(out)] = _F32_MAX
+    return out
 
 
-def _clean_gradient(gradient: np.ndarray, difference: np.ndarray, floor: float) -> tuple[np.ndarray, int]:
-    """(``gradient`` with its residual clusters against ``difference`` replaced, the number of values replaced);
-    ``gradient`` itself when it has none."""
-    residual = gradient.astype(np.float64) - difference
-    magnitude = channel_mean(np.abs(residual))
-    magnitude[~np.isfinite(magnitude)] = 0.0
-    clusters = find_clusters(magnitude, OUTLIER_LEVEL * max(robust_level(magnitude), floor))
+def _clean_gradient(gradient: np.ndarray, inlier: np.ndarray, axis: int, threshold: float) -> tuple[np.ndarray, int]:
+    """(``gradient`` with its clusters replaced by their rings' median, the number of values replaced; ``gradient``
+    itself and 0 when it has none). A cluster's pixels are where
+    both the gradient and its residual against ``inlier``'s forward difference exceed ``threshold`` (a gradient
+    that is large only because the base is off is left alone)."""
+    ys, xs = np.nonzero(_magnitude(gradient) > threshold)
+    if ys.size == 0:
+        return gradient, 0
+    large = _residual(gradient, inlier, axis, ys, xs) > threshold
+    if not large.any():
+        return gradient, 0
+    over = np.zeros(inlier.shape[:2], bool)
+    over[ys[large], xs[large]] = True
+    clusters = find_clusters(over, lambda rows, cols: _residual(gradient, inlier, axis, rows[:, :, None],
+                                                                cols[:, None, :]))
     if clusters is None:
         return gradient, 0
-    mask = clusters.mask
-    out = gradient.copy()
-    out[mask] = clusters.spread_image(gradient, clusters.ring_median(gradient).astype(gradient.dtype))[mask]
-    return out, int(np.count_nonzero(mask))
+    k, ys, xs = clusters.pixels()
+    fixed = gradient.copy()
+    fixed[ys, xs] = clusters.ring_median(gradient)[k].astype(gradient.dtype)
+    return fixed, int(k.size)
 
 
-def _sources(base: np.ndarray) -> np.ndarray | None:
-    """(H, W) bool: the pixels of a light in view (SOURCE_LEVEL, in a group), or None when there are none."""
+def _clean_gradients(layer: Layer, inlier: np.ndarray, level: float) -> tuple[Any, Any, int]:
+    """(dx, dy with their clusters over OUTLIER_LEVEL x the layer's robust ``level`` replaced (:func:`_clean_gradient`),
+    the number of values replaced)."""
+    threshold = OUTLIER_LEVEL * level
+    if layer.dx is None or layer.dy is None or not (math.isfinite(threshold) and threshold > 0.0):
+        return layer.dx, layer.dy, 0
+    out, count = [], 0
+    for axis, gradient in ((1, layer.dx), (0, layer.dy)):
+        fixed, replaced = _clean_gradient(gradient, inlier, axis, threshold)
+        out.append(fixed)
+        count += replaced
+    return out[0], out[1], count
+
+
+def _sources(base: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """``base`` with the pixels of a light in view (over SOURCE_LEVEL x the lit level, in a group) scaled down to
+    that luminance, colour kept, and their (H, W) bool mask; None when there are none."""
     lum = luminance(base)
     level = lit_level_of_luminance(lum)
     if not (math.isfinite(level) and level > 0.0):
         return None
-    over = lum > SOURCE_LEVEL * level
+    cap = SOURCE_LEVEL * level
+    over = lum > cap
     if not over.any():
         return None
     source = over & (ndimage.convolve(over.astype(np.int8), _EIGHT.astype(np.int8), mode="constant") > 1)
-    return source if source.any() else None
-
-
-def _cap_sources(base: np.ndarray, source: np.ndarray) -> np.ndarray:
-    """``base`` with the ``source`` pixels scaled down to SOURCE_LEVEL x the lit level, colour kept."""
-    lum = luminance(base)
-    cap = SOURCE_LEVEL * lit_level_of_luminance(lum)
+    if not source.any():
+        return None
     capped = base.copy()
     capped[source] = base[source] * (cap / lum[source])[:, None]
-    return capped
+    return capped, source
 
 
 def light_in_view(layer: Layer) -> bool:
@@ -287,30 +380,25 @@ def split_layer(layer: Layer, sources: bool = False) -> LayerSplit | None:
     base = np.asarray(layer.base, np.float32)
     if base.ndim != 3 or base.size == 0:
         return None
-    found = _split_base(base, layer.var)
+    level, found = _split_base(base)
     split = LayerSplit(layer, layer)
     inlier, var, pinned = base, layer.var, np.zeros(base.shape[:2], bool)
     if found is not None:
         inlier, clusters, excess = found
         noise = _noise(clusters, excess, layer.var)
-        split.spread = _centred(clusters, excess, noise) if noise.any() else None
-        light = np.isin(clusters.labels, clusters.ids[~noise])
+        split.spread = _centred(clusters, excess, noise, base.shape) if noise.any() else None
+        light = clusters.mask(pinned.shape, ~noise)
         pinned |= light
         split.lights = int(np.count_nonzero(light))
-        split.outliers = int(np.count_nonzero(clusters.mask)) - split.lights
+        split.outliers = int(clusters.member.sum()) - split.lights
         if var is not None:
-            var = var.copy()
-            var[clusters.mask] = clusters.spread_image(var, clusters.ring_median(var))[clusters.mask]
-    dx, dy = layer.dx, layer.dy
-    if dx is not None and dy is not None:
-        diff_x, diff_y = _differences(inlier)
-        floor = robust_level(inlier)
-        dx, fixed_x = _clean_gradient(dx, diff_x, floor)
-        dy, fixed_y = _clean_gradient(dy, diff_y, floor)
-        split.gradients = fixed_x + fixed_y
-    source = _sources(inlier) if sources else None
-    if source is not None:
-        inlier = _cap_sources(inlier, source)
+            k, ys, xs = clusters.pixels()
+            var = np.array(var, copy=True)
+            var[ys, xs] = clusters.ring_median(var)[k]
+    dx, dy, split.gradients = _clean_gradients(layer, inlier, level)
+    capped = _sources(inlier) if sources else None
+    if capped is not None:
+        inlier, source = capped
         pinned |= source
         split.sources = int(np.count_nonzero(source))
     if not split.handled:

@@ -283,7 +283,13 @@ def test_ordinary_frames_and_lights_larger_or_softer_than_a_cluster_are_left_alo
     soft[4:7, 4:7] = 2e3  # a light whose rim the emitter covers in part
     soft[3, 4:7] = soft[7, 4:7] = soft[4:7, 3] = soft[4:7, 7] = 5e2
     assert split_layer(Layer(soft)) is None
-    assert find_clusters(np.zeros((4, 4)), 0.0) is None and find_clusters(np.ones((1, 1)), 0.5) is None
+    ones = np.ones((1, 1))
+
+    def window(rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        return ones[rows[:, :, None], cols[:, None, :]]
+
+    assert find_clusters(np.zeros((4, 4), bool), window) is None
+    assert find_clusters(ones > 0.5, window) is None  # a lone pixel with no ring is no cluster
 
 
 def test_a_light_in_view_is_capped_and_put_back_in_place_for_oidn_a_lone_firefly_is_not_one() -> None:
