@@ -61,7 +61,7 @@ from gradsep.model.preprocess import (
 CANDIDATES: tuple[str, ...] = ("oidn", "refine-fast")
 #: The refinement solve of the ``refine-fast`` candidate: (IRLS passes, CG steps per pass), multigrid-preconditioned
 #: (model.poisson.solve_l1), α = REFINE_ALPHA. Pinned here, not read from model/refine.py, because a model is
-#: trained on the numbers one solve gives (3 passes of 1 V-cycle, 0.21 s per 1280x720 layer).
+#: trained on the numbers one solve gives (3 passes of 1 V-cycle).
 REFINE_SOLVES: dict[str, tuple[int, int]] = {"refine-fast": (3, 1)}
 REFINE_PRECONDITIONER = "mg"
 REFINE_ALPHA = 1.0
@@ -295,8 +295,7 @@ def load_model(path: str | os.PathLike[str], name: str) -> BlendModel:
     """Open one blend model on the provider the ``network`` method's models use (model.onnx_session.choose_provider:
     OpenVINO in bf16 where the CPU has native bf16, else ORT's CPU provider in fp32; ``GRADSEP_ONNX_PROVIDER``
     overrides), falling back to the CPU provider should the accelerated one fail; BlendModelError when unusable.
-    The weights only choose among candidates (the blend itself is float64 numpy), so bf16 moves them by about
-    1e-3 at most (measured)."""
+    The weights only choose among candidates (the blend itself is float64 numpy), so bf16 moves them little."""
     from gradsep.model.onnx_session import SessionSettings, graph_session, open_session
 
     path = Path(path)

@@ -96,7 +96,7 @@ class LayerContext:
     features: Features | None  # the frame's feature groups that the method uses (None: none of them)
     aux: Any = None  # OIDN's auxiliary images (model.oidn.CleanAux), computed once per frame when the method runs OIDN
     denoiser: Any = None  # the model.oidn.Denoiser of a method that runs OIDN
-    #: per layer, the pixels of a light in view that were capped and their rim (model.robust.source_pixels): they
+    #: per layer, the pixels of a light in view the outlier detector kept out, and their rim (model/outliers.py): they
     #: come back as rendered, and the back-off (model/backoff.py) leaves them out of its windows
     pinned: dict[str, np.ndarray] = field(default_factory=dict)
 
