@@ -250,23 +250,22 @@ class FrameSplit:
         return [] if split is None else split.warnings(name, method)
 
 
-def _split_base(base: np.ndarray) -> tuple[float, tuple[np.ndarray, Clusters, np.ndarray] | None]:
-    """(the layer's robust level, and: the base with its clusters replaced by their rings' median, the clusters,
-    the (n, C) float64 excess of each cluster's pixels in ``Clusters.pixels`` order; or None when it has none)."""
-    lum = _magnitude(base)
-    level = _level(lum)
+def _split_base(base: np.ndarray, lum: np.ndarray, level: float) -> tuple[np.ndarray, Clusters, np.ndarray] | None:
+    """(the base with its clusters over OUTLIER_LEVEL x ``level`` replaced by their rings' median, the clusters, the
+    (n, C) float64 excess of each cluster's pixels in ``Clusters.pixels`` order), or None when it has none.
+    ``lum``: the base's :func:`_magnitude`."""
     threshold = OUTLIER_LEVEL * level
     if not (math.isfinite(threshold) and threshold > 0.0):
-        return level, None
+        return None
     clusters = find_clusters(lum > threshold, lambda rows, cols: lum[rows[:, :, None], cols[:, None, :]])
     if clusters is None:
-        return level, None
+        return None
     k, ys, xs = clusters.pixels()
     value = base[ys, xs]
     local = np.minimum(clusters.ring_median(base)[k].astype(np.float32), value)
     inlier = base.copy()
     inlier[ys, xs] = local  # set, not subtracted: value − excess would cancel catastrophically at 1e30
-    return level, (inlier, clusters, value.astype(np.float64) - local)
+    return inlier, clusters, value.astype(np.float64) - local
 
 
 def _noise(clusters: Clusters, excess: np.ndarray, var: np.ndarray | None) -> np.ndarray:
@@ -373,14 +372,29 @@ def light_in_view(layer: Layer) -> bool:
     return split is not None and split.in_place is not None
 
 
-def split_layer(layer: Layer, sources: bool = False) -> LayerSplit | None:
-    """What the detector does to ``layer`` (the module docstring), or None when it finds nothing."""
-    from gradsep.model.frame import Layer
-
+def _base_level(layer: Layer) -> tuple[np.ndarray, float] | None:
+    """(the layer's base as float32 with its :func:`_magnitude`, its robust level), or None for no usable base."""
     base = np.asarray(layer.base, np.float32)
     if base.ndim != 3 or base.size == 0:
         return None
-    level, found = _split_base(base)
+    lum = _magnitude(base)
+    return lum, _level(lum)
+
+
+def split_layer(layer: Layer, sources: bool = False, level: float | None = None,
+                measured: tuple[np.ndarray, float] | None = None) -> LayerSplit | None:
+    """What the detector does to ``layer`` (the module docstring), or None when it finds nothing. ``level``: the
+    frame's level the thresholds are taken from (:func:`split_frame`); None: the layer's own. ``measured``: the
+    layer's :func:`_base_level` when the caller has it."""
+    from gradsep.model.frame import Layer
+
+    measured = measured or _base_level(layer)
+    if measured is None:
+        return None
+    lum, own = measured
+    level = own if level is None else level
+    base = np.asarray(layer.base, np.float32)
+    found = _split_base(base, lum, level)
     split = LayerSplit(layer, layer)
     inlier, var, pinned = base, layer.var, np.zeros(base.shape[:2], bool)
     if found is not None:
@@ -411,9 +425,13 @@ def split_layer(layer: Layer, sources: bool = False) -> LayerSplit | None:
 
 def split_frame(frame: Frame, sources: bool = False) -> tuple[Frame, FrameSplit]:
     """(``frame`` with each layer as the method sees it, what the detector did); ``frame`` itself and an empty
-    split when it finds nothing in any layer."""
+    split when it finds nothing in any layer. Every layer's thresholds are taken from the frame's level (the sum of
+    its layers' robust levels): what counts is an outlier's size beside the image, so a nearly black layer's
+    ordinary Monte Carlo noise is left to the method."""
+    measured = {name: _base_level(layer) for name, layer in frame.layers.items()}
+    level = float(sum(m[1] for m in measured.values() if m is not None))
     split = FrameSplit({name: s for name, layer in frame.layers.items()
-                        if (s := split_layer(layer, sources)) is not None})
+                        if (s := split_layer(layer, sources, level, measured[name])) is not None})
     if not split.layers:
         return frame, split
     return replace(frame, layers={name: split.layers[name].layer if name in split.layers else layer
