@@ -45,7 +45,7 @@ import numpy as np
 from scipy import ndimage
 
 from gradsep.model.policy import LUMINANCE
-from gradsep.model.robust import WINSOR_QUANTILE, add_excess, lit_level_of_luminance, luminance
+from gradsep.model.robust import WINSOR_QUANTILE, add_points, lit_level_of_luminance, luminance
 
 if TYPE_CHECKING:
     from gradsep.model.frame import Frame, Layer
@@ -196,7 +196,8 @@ class LayerSplit:
 
     layer: Layer
     rendered: Layer  # the layer as it came
-    spread: np.ndarray | None = None  # (H, W, C) excess spread over a footprint (noise)
+    #: (rows, columns, (n, C) excess) of the noise clusters' centres, spread over a footprint around each
+    spread: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
     in_place: np.ndarray | None = None  # (H, W) bool: pixels given back as rendered (a light)
     pinned: np.ndarray | None = None  # (H, W) bool: given back as rendered by the back-off
     outliers: int = 0  # base pixels of noise clusters (spread)
@@ -211,7 +212,7 @@ class LayerSplit:
 
     def restore(self, image: np.ndarray) -> np.ndarray:
         """The method's output for this layer with the excess added back: spread, or the pixels as rendered."""
-        out = add_excess(image, self.spread)
+        out = image if self.spread is None else add_points(image, *self.spread)
         if self.in_place is not None:
             out = np.array(out, np.float32)
             out[self.in_place] = np.asarray(self.rendered.base, np.float32)[self.in_place]
@@ -280,16 +281,14 @@ def _noise(clusters: Clusters, excess: np.ndarray, var: np.ndarray | None) -> np
     return v >= NOISE_SHARE * y * y
 
 
-def _centred(clusters: Clusters, excess: np.ndarray, noise: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
-    """(H, W, C) float64: the noise clusters' excess moved to each cluster's centre pixel (its box's middle), so
-    that its footprint ends OUTLIER_SPREAD_RADIUS pixels from there."""
+def _centred(clusters: Clusters, excess: np.ndarray, noise: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(rows, columns, (n, C) excess): each noise cluster's excess at its centre pixel (its box's middle), so that
+    its footprint ends OUTLIER_SPREAD_RADIUS pixels from there."""
     k = clusters.pixels()[0]
     totals = np.stack([np.bincount(k, weights=excess[:, c], minlength=clusters.count)
                        for c in range(excess.shape[1])], axis=-1)
     ys, xs = clusters.centres()
-    out = np.zeros(shape, np.float64)
-    np.add.at(out, (ys[noise], xs[noise]), totals[noise])
-    return out
+    return ys[noise], xs[noise], totals[noise]
 
 
 def _residual(gradient: np.ndarray, inlier: np.ndarray, axis: int, ys: np.ndarray, xs: np.ndarray) -> np.ndarray:
@@ -400,7 +399,7 @@ def split_layer(layer: Layer, sources: bool = False, level: float | None = None,
     if found is not None:
         inlier, clusters, excess = found
         noise = _noise(clusters, excess, layer.var)
-        split.spread = _centred(clusters, excess, noise, base.shape) if noise.any() else None
+        split.spread = _centred(clusters, excess, noise) if noise.any() else None
         light = clusters.mask(pinned.shape, ~noise)
         pinned |= light
         split.lights = int(np.count_nonzero(light))

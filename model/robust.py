@@ -149,6 +149,16 @@ def _spread_kernel() -> np.ndarray:
     return k / k.sum()
 
 
+def _patch(y: int, x: int, height: int, width: int) -> tuple[slice, slice, np.ndarray]:
+    """The footprint of a point at (y, x): its rows, its columns and its (h, w) weights, renormalised to its part
+    inside the frame (they sum to 1)."""
+    k = _spread_kernel()
+    r = k.size // 2
+    y0, y1, x0, x1 = max(y - r, 0), min(y + r + 1, height), max(x - r, 0), min(x + r + 1, width)
+    ky, kx = k[y0 - y + r:y1 - y + r], k[x0 - x + r:x1 - x + r]
+    return slice(y0, y1), slice(x0, x1), np.outer(ky, kx) / (ky.sum() * kx.sum())
+
+
 def spread(excess: np.ndarray) -> np.ndarray:
     """``excess`` spread over each outlier's Gaussian footprint (OUTLIER_SPREAD_SIGMA, truncated at
     OUTLIER_SPREAD_RADIUS), each footprint renormalised to its part inside the frame so the sum of ``excess`` is
@@ -164,14 +174,27 @@ def spread(excess: np.ndarray) -> np.ndarray:
         inside = gaussian_filter(np.ones(excess.shape[:2]), **blur)  # each footprint's mass inside the frame
         source = np.asarray(excess, np.float64) / inside[..., None]
         return np.stack([gaussian_filter(source[..., c], **blur) for c in range(excess.shape[-1])], axis=-1)
-    k = _spread_kernel()
-    r = k.size // 2
     out = np.zeros(excess.shape, np.float64)
     for y, x in zip(ys.tolist(), xs.tolist(), strict=True):
-        y0, y1, x0, x1 = max(y - r, 0), min(y + r + 1, height), max(x - r, 0), min(x + r + 1, width)
-        ky, kx = k[y0 - y + r:y1 - y + r], k[x0 - x + r:x1 - x + r]
-        weights = np.outer(ky, kx) / (ky.sum() * kx.sum())  # renormalised to the footprint's part in the frame
-        out[y0:y1, x0:x1] += weights[..., None] * excess[y, x].astype(np.float64)
+        rows, cols, weights = _patch(y, x, height, width)
+        out[rows, cols] += weights[..., None] * excess[y, x].astype(np.float64)
+    return out
+
+
+def add_points(image: np.ndarray, ys: np.ndarray, xs: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """``image`` (H, W, C) with ``values`` (n, C) added over the footprints of the points (``ys``, ``xs``), as
+    :func:`add_excess` adds an excess image holding them, but patch by patch (float64 sums clipped to float32's
+    range): no frame-sized float64 image while the points are few. A new float32 array."""
+    if ys.size > SPREAD_PATCH_LIMIT:
+        dense = np.zeros(np.shape(image), np.float64)
+        np.add.at(dense, (ys, xs), values)
+        return add_excess(image, dense)
+    out = np.array(image, np.float32)
+    height, width = out.shape[:2]
+    for y, x, value in zip(ys.tolist(), xs.tolist(), np.asarray(values, np.float64), strict=True):
+        rows, cols, weights = _patch(y, x, height, width)
+        total = out[rows, cols].astype(np.float64) + weights[..., None] * value
+        out[rows, cols] = np.clip(total, 0.0, float(np.finfo(np.float32).max))
     return out
 
 

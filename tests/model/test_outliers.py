@@ -389,3 +389,21 @@ def test_spreading_by_patches_equals_filtering_the_whole_frame(shape, count, mon
     whole = robust.spread(excess)
     np.testing.assert_allclose(patches, whole, rtol=1e-12, atol=1e-9 * float(whole.max()))
     np.testing.assert_allclose(patches.sum(axis=(0, 1)), excess.astype(np.float64).sum(axis=(0, 1)), rtol=1e-12)
+
+
+@pytest.mark.parametrize("shape, count", [((1, 1, 3), 1), ((5, 7, 3), 4), ((40, 56, 3), 60)])
+def test_adding_points_patch_by_patch_equals_adding_their_excess_image(shape, count, monkeypatch) -> None:
+    """add_points (what the detector's spread outliers come back with) gives add_excess's image of the same points
+    to float32 rounding, whether it adds patches or, past SPREAD_PATCH_LIMIT, filters the frame."""
+    from gradsep.model import robust
+
+    rng = np.random.default_rng(count)
+    image = rng.random(shape).astype(np.float32)
+    ys, xs = rng.integers(0, shape[0], count), rng.integers(0, shape[1], count)
+    values = rng.uniform(1, 1e3, (count, 3))
+    dense = np.zeros(shape, np.float64)
+    np.add.at(dense, (ys, xs), values)
+    want = robust.add_excess(image, dense)
+    np.testing.assert_allclose(robust.add_points(image, ys, xs, values), want, rtol=1e-6)
+    monkeypatch.setattr(robust, "SPREAD_PATCH_LIMIT", -1)
+    np.testing.assert_allclose(robust.add_points(image, ys, xs, values), want, rtol=1e-6)
