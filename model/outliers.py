@@ -8,14 +8,17 @@ such value reaches every pixel of a method whose statistics, receptive field or 
 (OIDN's U-Net, the networks' attention, the CG steps of a solve). So, per layer:
 
 1. **Base.** A *cluster* is a connected (8-neighbour) group of pixels whose luminance (channel mean) exceeds
-   OUTLIER_LEVEL x the layer's robust level (model.robust.robust_level), at most CLUSTER_SIZE pixels a side, whose
+   OUTLIER_LEVEL x the frame's level (the sum of its layers' robust levels, model.robust.robust_level: what counts
+   is an outlier's size beside the image, so a nearly black layer's ordinary Monte Carlo noise is left to the
+   method), at most CLUSTER_SIZE pixels a side, whose
    brightest pixel exceeds OUTLIER_LOCAL x every pixel of the ring around it. A light in view larger than that, or
    one whose rim the emitter covers in part (as a rendered light's is), is no cluster: it is left as rendered.
    Each cluster's pixels are replaced by the median of its ring (per channel), and their variance by the ring's.
 2. **Gradients.** The residual of each gradient against the forward difference of that base, ``dx − Δx(base)``,
-   is where a gradient disagrees with the base; a cluster of it (the same test, at OUTLIER_LEVEL x the larger of the
-   residual's and the base's level) is replaced by the median of the gradient over its ring (a rendered gradient
-   is far smoother than the base's differences, so its neighbours are the closer estimate). A firefly's own jump,
+   is where a gradient disagrees with the base; a cluster of values where both the gradient and its residual
+   exceed the same threshold (and pass the same local test) is replaced by the median of the gradient over its
+   ring (a rendered gradient is far smoother than the base's differences, so its neighbours are the closer
+   estimate). A firefly's own jump,
    carried by the gradients, is such a cluster once its base was replaced; so is a lone gradient spike. A gradient
    has no energy of its own (the base carries it): nothing of it is kept.
 3. **Where the energy goes.** Each base cluster's excess (its value above the replacement) comes back after the

@@ -1,6 +1,6 @@
 """Outliers stay local: a firefly as renderers make them (one pixel with its gradients, a horizontal pair or a 3x3
 block, each with its gradients and a single sample's variance, in both layers) of 1e3, 1e6 or 1e12 times the
-frame's mean, and a firefly in a layer's base alone (1e2 to 1e30 times the layer's mean, at a corner, an edge or
+frame's mean, and a firefly in a layer's base alone (1e2 to 1e30 times the frame's mean, at a corner, an edge or
 the centre), change no more than 0.1 % of the pixels farther than 16 px from it by more than 1 % (relative, with
 an epsilon of 1e-3 of the frame's mean), for every denoising method, and every one is counted in the warnings;
 the detector (model/outliers.py) leaves ordinary frames and lights in view alone; and the robust statistics.
@@ -32,7 +32,7 @@ from gradsep.model.robust import (
     robust_level,
     winsorised_sum,
 )
-from tests.model.outlier_cases import CASES, with_outlier
+from tests.model.outlier_cases import CASES, frame_mean, with_outlier
 from tests.model.shipped import models_for
 
 REPO = Path(__file__).resolve().parents[2]
@@ -56,10 +56,10 @@ def _reconstruct(frame: Frame, method: str) -> Any:
 
 
 def _with_firefly(frame: Frame, layer: str, where: tuple[int, int], times: float) -> Frame:
-    """``frame`` with ``times`` × the layer's mean added to every channel of one pixel of its base."""
+    """``frame`` with ``times`` × the frame's mean added to every channel of one pixel of a layer's base."""
     old = frame.layers[layer]
     base = old.base.copy()
-    base[where] += np.float32(min(times * float(old.base.mean(dtype=np.float64)), 3e38))
+    base[where] += np.float32(min(times * frame_mean(frame), 3e38))
     return Frame({**frame.layers, layer: Layer(base, old.dx, old.dy)}, frame.features)
 
 
