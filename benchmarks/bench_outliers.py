@@ -6,7 +6,7 @@
     python benchmarks/bench_outliers.py --clean examples/cbox-16spp.exr:examples/cbox-reference.exr
 
 Locality: an outlier is put into *both* layers of the frame as a gradient-domain renderer writes one
-(tests/model/outlier_cases.py): its excess of K x the frame's mean in every channel of one pixel (``grad``), of a
+(model.synthetic.with_outlier): its excess of K x the frame's mean in every channel of one pixel (``grad``), of a
 horizontal pair (``pair``) or of a 3x3 block (``block``), the same jump in the layer's gradients, and the variance
 of a single sample that large in ``L.var.Y``. For each method the output is compared with its output without the
 outlier; printed per case: the share of the pixels farther than 16 px from it that moved by more than 1 %
@@ -20,23 +20,20 @@ handling as shipped and with it switched off, and the handling's own time on the
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
+from gradsep.model.exr_read import read_frame
+from gradsep.model.frame import Frame
+from gradsep.model.methods import LoadedModels
+from gradsep.model.metrics import relmse
+from gradsep.model.reconstruct import load_fused, load_network, reconstruct
+from gradsep.model.robust import far_agreement
+from gradsep.model.synthetic import CASES, with_outlier
+
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from gradsep.model.exr_read import read_frame  # noqa: E402
-from gradsep.model.frame import Frame  # noqa: E402
-from gradsep.model.methods import LoadedModels  # noqa: E402
-from gradsep.model.metrics import relmse  # noqa: E402
-from gradsep.model.reconstruct import load_fused, load_network, reconstruct  # noqa: E402
-from gradsep.model.robust import far_agreement  # noqa: E402
-from tests.model.outlier_cases import CASES, with_outlier  # noqa: E402
-
 METHODS = ("oidn-l1", "oidn", "fused", "network", "l1", "l2")
 
 

@@ -33,7 +33,7 @@ from gradsep.model.robust import (
     robust_level,
     winsorised_sum,
 )
-from tests.model.outlier_cases import CASES, frame_mean, with_outlier
+from gradsep.model.synthetic import CASES, frame_mean, with_outlier
 from tests.model.shipped import models_for
 
 REPO = Path(__file__).resolve().parents[2]
