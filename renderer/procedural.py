@@ -33,9 +33,6 @@ import numpy as np
 from gradsep.renderer.errors import SceneError
 from gradsep.renderer.procedural_builder import GENERATOR_VERSION, _Builder
 
-__all__ = ["DEFAULT_MAX_DEPTH", "FAMILIES", "GENERATOR_VERSION", "PROCEDURAL_PREFIX", "ProceduralScene",
-           "ProceduralSpec", "describe", "generate", "parse_procedural", "procedural_scene", "scene_summary"]
-
 PROCEDURAL_PREFIX = "procedural:"  # a scene spec naming a procedural scene: procedural:SEED
 #: The scene families: "mixed" (rooms and outdoor ground planes: ``procedural:SEED``, what datasets train on) and
 #: "studio" (objects and small lights in an empty background: ``procedural:studio:SEED``).
