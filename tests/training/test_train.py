@@ -50,7 +50,7 @@ def test_smoke_training_lowers_the_loss(make_config) -> None:
 
 @pytest.mark.train
 def test_paired_training_validates_against_the_prior(tmp_path: Path) -> None:
-    from gradsep.training.synthetic import make_synthetic_dataset
+    from tests.training.synthetic import make_synthetic_dataset
 
     from .conftest import tiny_config
 
