@@ -380,7 +380,7 @@ def main(argv: list[str] | None = None) -> int:
 
     import mitsuba as mi
 
-    from gradsep.renderer.scene import select_variant
+    from gradsep.renderer.variant import select_variant
 
     variant = select_variant()
     repeats = args.repeats or (2 if args.quick else 5)

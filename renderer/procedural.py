@@ -120,11 +120,6 @@ def describe(seed: int, family: str = "mixed") -> str:
     return generate(seed, family=family).describe()
 
 
-def scene_summary(seed: int, family: str = "mixed") -> dict[str, Any]:
-    """JSON-ready summary of a seed's scene (room, object kinds, materials, lights) for dataset manifests."""
-    return generate(seed, family=family).summary
-
-
 def generate(seed: int, width: int = 256, height: int = 256, max_depth: int | None = None,
              family: str = "mixed") -> ProceduralScene:
     """Build the plan of ``procedural:[FAMILY:]SEED``; validates the arguments with clear errors. The two

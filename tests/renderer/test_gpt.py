@@ -25,8 +25,9 @@ from gradsep.renderer.gpt import MAX_LANES_PER_PASS, pass_plan, render_gpt  # no
 from gradsep.renderer.gpt_settings import Film, GptSettings  # noqa: E402
 from gradsep.renderer.hybrid import HybridShift  # noqa: E402
 from gradsep.renderer.render import FrameOptions, parse_layers, plan_layers, render_frame  # noqa: E402
-from gradsep.renderer.scene import load_scene, select_variant  # noqa: E402
+from gradsep.renderer.scene import load_scene  # noqa: E402
 from gradsep.renderer.shift import ReplayShift, make_shift  # noqa: E402
+from gradsep.renderer.variant import select_variant  # noqa: E402
 from tests.renderer.scenes import CBOX_GEOMETRY, resolve  # noqa: E402
 
 pytestmark = pytest.mark.render

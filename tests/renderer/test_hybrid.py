@@ -17,9 +17,10 @@ dr = pytest.importorskip("drjit")
 from gradsep.renderer.gpt import render_gpt  # noqa: E402
 from gradsep.renderer.gpt_settings import Film, GptSettings  # noqa: E402
 from gradsep.renderer.hybrid import HybridShift  # noqa: E402
-from gradsep.renderer.scene import load_scene, select_variant  # noqa: E402
+from gradsep.renderer.scene import load_scene  # noqa: E402
 from gradsep.renderer.shift import make_shift  # noqa: E402
 from gradsep.renderer.shift_protocol import ConnectingShift  # noqa: E402
+from gradsep.renderer.variant import select_variant  # noqa: E402
 from tests.renderer.test_gpt import (  # noqa: E402
     CBOX,
     ROBUSTNESS_SCENES,

@@ -18,8 +18,8 @@ dr = pytest.importorskip("drjit")
 
 from gradsep.renderer.gpt import render_gpt  # noqa: E402
 from gradsep.renderer.gpt_settings import Film, GptSettings  # noqa: E402
-from gradsep.renderer.scene import select_variant  # noqa: E402
 from gradsep.renderer.shift import make_shift  # noqa: E402
+from gradsep.renderer.variant import select_variant  # noqa: E402
 
 pytestmark = pytest.mark.render
 
