@@ -31,7 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
-from gradsep.model.infer import NetworkReconstructor, SessionSettings, TileSettings
+from gradsep.model.infer import NetworkReconstructor, TileSettings
+from gradsep.model.onnx_session import SessionSettings
 from gradsep.model.preprocess import DATA_INPUTS, GRADIENT_INPUTS
 
 

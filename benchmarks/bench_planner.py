@@ -126,7 +126,7 @@ frame 1.20, 1.50; a further sample 0.83, 0.63 (a cheap scene: 0.05 s and 0.45 s 
 of two frames is noisy). `render --no-gradients`: frame 1.14-1.17. Dr.Jit's kernel history (JitFlag.KernelHistory)
 puts the primal kernel's execution at `path`'s (1280x720, 16 spp: 0.85-0.90 s against 0.89-0.94 s on the studio,
 7.6-7.8 s against 7.6 s on 93201): the per-frame excess is outside the kernel, reading the 15 channels of sums
-back as float64 and assembling the frame (renderer/gpt.py `_pixel_sums`, `_finish`), which `--no-gradients` pays
+back as float64 and assembling the frame (renderer/gpt.py `_pixel_sums`, `finish`), which `--no-gradients` pays
 alike. At 16 spp (4 rounds, load ~5) the whole frame was 1.08, 1.09, 1.22, 1.30 here and 1.14, 1.13, 1.24, 1.54
 at d6f0358, which assembled the frame once more after its first pass for a write estimate that a sample count does
 not need.

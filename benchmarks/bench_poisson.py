@@ -1,8 +1,7 @@
 """Time the screened Poisson solvers on a synthetic 1280×720 frame and print medians.
 
     python benchmarks/bench_poisson.py                 # L2 and L1 (defaults), 3 layers, 5 repeats
-    python benchmarks/bench_poisson.py --candidates    # + 20x4 (the old default), multigrid budgets, the prior
-    python benchmarks/bench_poisson.py --compare       # + those, the reference solver's unpreconditioned CG, Jacobi
+    python benchmarks/bench_poisson.py --candidates    # + multigrid budgets and the network's prior
     python benchmarks/bench_poisson.py --json          # one JSON document on stdout instead of the table
 
 The frame has three illumination layers' worth of channels (direct, indirect, color: base + dx + dy each, RGB)
@@ -78,18 +77,10 @@ def configurations(args: argparse.Namespace) -> dict[str, dict]:
         "l1": {"solver": "l1", "iterations": args.passes, "cg_iterations": args.cg_iterations,
                "preconditioner": "dct"},
     }
-    if args.candidates or args.compare:
-        # the budget l1 ran before issue 15 (the reference's 20 passes), and the multigrid preconditioner
-        configs["l1-dct-20x4"] = {"solver": "l1", "iterations": 20, "cg_iterations": 4, "preconditioner": "dct"}
-        # the budget of issue 15's rounds 1-2 (l1's default until 8 x 2)
-        configs["l1-dct-10x4"] = {"solver": "l1", "iterations": 10, "cg_iterations": 4, "preconditioner": "dct"}
+    if args.candidates:
         configs["l1-mg-20x1"] = {"solver": "l1", "iterations": 20, "cg_iterations": 1, "preconditioner": "mg"}
         configs["l1-mg-10x1"] = {"solver": "l1", "iterations": 10, "cg_iterations": 1, "preconditioner": "mg"}
         configs["prior-dct-5x2"] = {"solver": "l1", "iterations": 5, "cg_iterations": 2, "preconditioner": "dct"}
-    if args.compare:
-        configs["l1-jacobi-8"] = {"solver": "l1", "cg_iterations": 8, "preconditioner": "jacobi"}
-        # The reference solver's L1D preset: 20 passes of 50 unpreconditioned CG steps each.
-        configs["l1-reference-cg50"] = {"solver": "l1", "cg_iterations": 50, "preconditioner": "none"}
     return configs
 
 
@@ -110,7 +101,7 @@ def bench(args: argparse.Namespace) -> dict:
     layers = {name: synthetic_layer(height, width, LAYERS[name], seed=i) for i, name in enumerate(names)}
     results = {}
     for label, config in configurations(args).items():
-        repeats = 1 if "reference" in label else args.repeats
+        repeats = args.repeats
         run_once(config, layers[names[0]], args.alpha)  # warm-up: imports, FFT plans, caches
         totals, per_layer, cg, quality = [], {n: [] for n in names}, {}, {}
         for _ in range(repeats):
@@ -180,9 +171,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--cg-iterations", type=int, default=L1_CG_STEPS,
                    help=f"CG steps per IRLS pass for 'l1' (default {L1_CG_STEPS}, model.poisson.L1_CG_STEPS)")
     p.add_argument("--candidates", action="store_true",
-                   help="+ the pre-issue-15 budget (20x4), multigrid-preconditioned budgets and the network's prior")
-    p.add_argument("--compare", action="store_true",
-                   help="also run Jacobi-PCG and the reference's unpreconditioned 50-step CG (slow, 1 repeat)")
+                   help="+ multigrid-preconditioned budgets and the network's prior")
     p.add_argument("--json", action="store_true", help="print one JSON document instead of the table")
     return p.parse_args(argv)
 

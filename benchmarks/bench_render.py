@@ -102,7 +102,7 @@ def edge_classes(normal: np.ndarray, depth: np.ndarray, albedo: np.ndarray, axis
 
 
 def settings_for(loaded, offsets: str = "all", gradients: str = "all"):
-    from gradsep.renderer.gpt import GptSettings
+    from gradsep.renderer.gpt_settings import GptSettings
 
     depth = loaded.max_depth
     return GptSettings(max_depth=depth, rr_depth=loaded.rr_depth, indirect=depth < 0 or depth > 2, offsets=offsets,
@@ -115,7 +115,8 @@ def configuration(loaded, name: str):
     GptSettings.offsets) and/or ``direct`` (``hybrid+direct``:
     gradients of the direct layer alone, offsets traced to its vertices only; GptSettings.gradients, `gradsep
     render --gradients direct`)."""
-    from gradsep.renderer.gpt import GRADIENT_MODES, OFFSET_MODES
+    from gradsep.renderer.gpt_settings import GRADIENT_MODES
+    from gradsep.renderer.lanes import OFFSET_MODES
     from gradsep.renderer.shift import make_shift
 
     shift, *options = name.split("+")
@@ -137,6 +138,7 @@ def bench_cost(spec: str, size: int, spp: int, repeats: int, shifts: list[str]) 
     all of Dr.Jit's threads: on a loaded machine the wall time also measures how many cores the process got,
     the CPU time much less so)."""
     from gradsep.renderer.gpt import render_gpt
+    from gradsep.renderer.gpt_settings import Film
     from gradsep.renderer.scene import load_scene
 
     loaded = load_scene(spec, width=size, height=size)
@@ -144,7 +146,7 @@ def bench_cost(spec: str, size: int, spp: int, repeats: int, shifts: list[str]) 
 
     def gpt(name: str):
         shift, settings = (None, settings_for(loaded)) if name == "primal" else configuration(loaded, name)
-        return lambda: render_gpt(loaded.scene, shift, settings, size, size, spp, seed=1)
+        return lambda: render_gpt(loaded.scene, shift, settings, Film(size, size, spp, 1))
 
     for name in shifts:
         runs[name] = gpt(name)
@@ -200,6 +202,7 @@ def bench_gradients(spec: str, size: int, spp: int, ref_spp: int, seeds: int, sh
     ``spp_by_shift``: samples per pixel of each configuration (default ``spp``): equal render time when set
     from the measured costs."""
     from gradsep.renderer.gpt import render_gpt
+    from gradsep.renderer.gpt_settings import Film
     from gradsep.renderer.scene import load_scene
 
     loaded = load_scene(spec, width=size, height=size)
@@ -231,7 +234,7 @@ def bench_gradients(spec: str, size: int, spp: int, ref_spp: int, seeds: int, sh
             out["floor"][f"{axis}_indirect"] = float(np.mean(np.sqrt(2 / np.pi * var_i)))
     # Pixel classes from the features of one 64-spp render (features are the base path's, the same for every
     # shift; 64 spp so that the sampled albedo of glossy materials does not fake texture edges).
-    feat = render_gpt(loaded.scene, None, settings, size, size, 64, seed=99)
+    feat = render_gpt(loaded.scene, None, settings, Film(size, size, 64, 99))
     classes = {axis: edge_classes(feat.normal, feat.depth, feat.albedo, axis) for axis in ("dx", "dy")}
     out["pixel_share"] = {f"{axis}_{c}": float(m.mean()) for axis in classes for c, m in classes[axis].items()}
     for name in shifts:
@@ -239,8 +242,8 @@ def bench_gradients(spec: str, size: int, spp: int, ref_spp: int, seeds: int, sh
         stats: dict[str, list[float]] = {"spp": [spp_by_shift.get(name, spp)]}
         layer_stacks: dict[str, list[np.ndarray]] = {}
         for seed in range(seeds):
-            res = render_gpt(loaded.scene, shift, config_settings, size, size, spp_by_shift.get(name, spp),
-                             seed=100 + seed)
+            film = Film(size, size, spp_by_shift.get(name, spp), 100 + seed)
+            res = render_gpt(loaded.scene, shift, config_settings, film)
             primal = sum(layer["base"] for layer in res.layers.values()).astype(np.float64)
             every_layer = all("dx" in layer for layer in res.layers.values())  # not with gradients of direct alone
             for axis in ("dx", "dy") if every_layer else ():
@@ -377,7 +380,7 @@ def main(argv: list[str] | None = None) -> int:
 
     import mitsuba as mi
 
-    from gradsep.renderer.scene import select_variant
+    from gradsep.renderer.variant import select_variant
 
     variant = select_variant()
     repeats = args.repeats or (2 if args.quick else 5)

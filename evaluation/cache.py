@@ -179,7 +179,7 @@ def mitsuba_id() -> str:
     if _MITSUBA is None:
         import mitsuba as mi
 
-        from gradsep.renderer.scene import select_variant
+        from gradsep.renderer.variant import select_variant
 
         _MITSUBA = f"{mi.__version__}/{select_variant()}"
     return _MITSUBA

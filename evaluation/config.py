@@ -326,7 +326,7 @@ def scene_label(xml: Path) -> str:
 
 
 def _procedural_entry(spec: ProceduralSpec) -> SceneEntry:
-    from gradsep.renderer.procedural import GENERATOR_VERSION
+    from gradsep.renderer.procedural_builder import GENERATOR_VERSION
 
     identity: dict = {"procedural": spec.seed, "generator": GENERATOR_VERSION}
     if spec.family != "mixed":  # the mixed family's identity (and so its cache keys) is what it always was

@@ -80,8 +80,7 @@ FEATURE_SPP = 4
 #: Source files whose changes alter a method's images or scores (part of every result's cache key): every module
 #: of model/, so that a helper a method reaches (the exposure rule, the back-off) cannot be left out of the key,
 #: the modules that run the rows, and evaluation/run.py, which sets the process every row is timed in (what stays
-#: loaded: a change there once made every pass several times dearer, and cached rows would have kept the old
-#: timings).
+#: loaded changes the timings).
 METHOD_SOURCES: tuple[str, ...] = ("evaluation/methods.py", "evaluation/runners.py", "evaluation/timesearch.py",
                                    "evaluation/baselines.py", "evaluation/run.py",
                                    *sorted(f"model/{p.name}" for p in (REPO_ROOT / "model").glob("*.py")))

@@ -27,12 +27,10 @@ import numpy as np
 
 from gradsep.evaluation.cache import EvalCache, key_hash, sources_sha256
 from gradsep.evaluation.region import PILOT_PASSES, Region, choose_region, pilot_floor_map
-from gradsep.model.policy import SEPARATED_LAYERS
 from gradsep.renderer.reference import DEFAULT_SAMPLER
 
 __all__ = ["REFERENCE_SAMPLER", "ReferencePair", "ReferenceSource", "next_reference_spp"]
 
-LAYER_NAMES = ("total", *SEPARATED_LAYERS)
 # Mitsuba's sampler for every reference pass: the stratified one chosen by floor per CPU-second on held-out
 # scenes (docs/evaluation.md, "Reference sampler"); part of every pass's cache key.
 REFERENCE_SAMPLER = DEFAULT_SAMPLER

@@ -169,7 +169,7 @@ def _equal_time_misses(rows: Sequence[Mapping[str, Any]]) -> list[str]:
     return lines
 
 
-#: The planned row's prediction counts as right within this factor of the measured RelMSE (issue 39's target).
+#: The planned row's prediction counts as right within this factor of the measured RelMSE.
 PREDICTION_FACTOR = 1.5
 #: The fixed pipelines the planned row is compared with at equal time (the budget method's row, at the budget's
 #: own time, joins them): G-PT direct/alternate + oidn-l1, path + OIDN on the sum, separated path + OIDN per layer.

@@ -59,7 +59,7 @@ from gradsep.model.methods import get as table_method
 from gradsep.model.policy import SEPARATED_LAYERS
 from gradsep.model.progress import ProgressBar
 
-__all__ = ["Evaluation", "SceneRun", "machine_summary", "run_evaluation"]
+__all__ = ["run_evaluation"]
 
 #: The code that renders a frame / a reference pass (by code, evaluation.cache.code_sha256). Not
 #: renderer/procedural.py: a procedural scene is keyed by its seed, family and GENERATOR_VERSION (evaluation.config),

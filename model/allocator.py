@@ -10,8 +10,7 @@ then fresh pages every frame.
 - One arena keeps that memory in the process and reuses it: every method's latency and the peak memory fall
   (docs/decisions.md, "One malloc arena", has the figures and commands: benchmarks/bench_floor.py,
   benchmarks/bench_service.py). The service's allocations are few and large (numpy arrays; Python objects use
-  their own allocator), so one arena costs no measurable lock contention; rendering and training were checked
-  too and are no slower.
+  their own allocator), so one arena costs no measurable lock contention.
 - One arena alone still leaves page faults per request: glibc returns the top of its heap to the kernel once
   twice its (adaptive) mmap threshold is free, and maps blocks over that threshold anew every time. So the
   threshold is fixed at its 64-bit maximum (MMAP_THRESHOLD, 32 MiB: a 2560x1440 RGB float32 image) and the trim

@@ -30,8 +30,7 @@ from torch import nn
 # Channel names are data, defined with the transform that produces them (numpy-only, so inference shares them).
 from gradsep.model.preprocess import DATA_INPUTS, FEATURE_INPUTS, GRADIENT_INPUTS, OUTPUTS, PRIOR_CHANNELS
 
-__all__ = ["DATA_INPUTS", "FEATURE_INPUTS", "GRADIENT_INPUTS", "OUTPUTS", "DualBranchNet", "GBranch",
-           "NetworkConfig"]
+__all__ = ["DualBranchNet", "GBranch", "NetworkConfig"]
 
 
 @dataclass(frozen=True)
@@ -264,10 +263,6 @@ def init_weights(module: nn.Module) -> None:
             nn.init.kaiming_normal_(m.weight, a=0.01, nonlinearity="leaky_relu")
             if m.bias is not None:
                 nn.init.zeros_(m.bias)
-
-
-def parameter_count(module: nn.Module) -> int:
-    return sum(p.numel() for p in module.parameters())
 
 
 def macs_per_pixel(config: NetworkConfig) -> float:

@@ -360,9 +360,7 @@ class _WeightedSystem:
             diag_a += self._a2w0 * (self._map_sq - 1)  # in place: these arrays are rebuilt by the next pass
             self._a2w0 *= self._map_sq
             self._aw0 *= data_map
-        if self.preconditioner == "jacobi":
-            self._inv_diag = (1.0 / diag_a).astype(self.dtype)
-        elif self.preconditioner == "dct":
+        if self.preconditioner == "dct":
             self._scale = np.sqrt(self._diag_l / diag_a).astype(self.dtype)
         elif self.preconditioner == "mg":
             self._multigrid = Multigrid(self._a2w0, self.wx, self.wy, self._gx.shape[0], diag_a)
@@ -417,12 +415,9 @@ class _WeightedSystem:
         return out
 
     def precondition(self, r: np.ndarray) -> np.ndarray:
-        """z ≈ A⁻¹ r: Jacobi, or the exact unweighted DCT solve rescaled symmetrically by √(diag L / diag A),
-        so that it is exact when the weights are uniform and tracks their local magnitude when they are not."""
-        if self.preconditioner == "jacobi":
-            return r * self._inv_diag
-        if self.preconditioner == "none":
-            return r.copy()
+        """z ≈ A⁻¹ r: the multigrid V-cycle, or the exact unweighted DCT solve rescaled symmetrically by
+        √(diag L / diag A), so that it is exact when the weights are uniform and tracks their local magnitude when
+        they are not."""
         if self.preconditioner == "mg":
             return self._multigrid.vcycle(r)
         scaled = np.multiply(r, self._scale, out=self.buffer("scaled", r))  # kept: no fresh pages per step
@@ -474,7 +469,7 @@ def _pcg(
     return d, it, rel
 
 
-PRECONDITIONERS = ("dct", "mg", "jacobi", "none")
+PRECONDITIONERS = ("dct", "mg")
 #: IRLS passes of the ``l1`` method (pass 0, the exact L2 start, included) and DCT-PCG steps per pass. The
 #: reference solver's preset runs 20 passes of 50 plain CG steps; this budget reached the same mean RelMSE on
 #: held-out rendered layers at a fraction of the time. The truncated CG regularises: more steps or passes are not
@@ -495,8 +490,8 @@ class L1Options:
     exactly; passes k = 1 … iterations−1 reweight each residual term by ``1/(‖e‖_RGB + reg_k)``,
     ``reg_k = reg_init·reg_decay^(k−1)`` (radiance units, as in the reference), and take up to ``cg_iterations``
     preconditioned CG steps from the previous iterate, stopping early once the residual fell by ``cg_tolerance``.
-    ``preconditioner``: ``"dct"`` (diagonally rescaled DCT solve, the default), ``"mg"`` (multigrid V-cycle),
-    ``"jacobi"`` or ``"none"`` (the reference's plain CG). ``dtype``: the returned image's (float32 or float64).
+    ``preconditioner``: ``"dct"`` (diagonally rescaled DCT solve, the default) or ``"mg"`` (multigrid V-cycle).
+    ``dtype``: the returned image's (float32 or float64).
     Raises ValueError for non-positive counts, a bad regularisation schedule or an unknown preconditioner.
     """
 

@@ -6,7 +6,7 @@ the network sees exactly the same numbers in both. The math is written once agai
 inference needs only numpy and the training loss differentiates the very same expressions in torch. This
 module never imports torch.
 
-What the network sees (channel order in model.network.DATA_INPUTS / GRADIENT_INPUTS):
+What the network sees (channel order in DATA_INPUTS / GRADIENT_INPUTS below):
 
 * base radiance, clamped to [0, RADIANCE_MAX], through C(I) = log(1 + μI) / log(1 + μ) with μ = 16 (GradNet's
   transfer function: compresses HDR fireflies while keeping dark regions resolved);

@@ -568,7 +568,8 @@ class JobOptions:
 def make_job(options: JobOptions) -> Job:
     """Validate the command's options into a :class:`Job`: exactly one of ``spp`` and ``seconds``."""
     from gradsep.renderer.budget import check_seconds
-    from gradsep.renderer.procedural import FAMILIES, GENERATOR_VERSION
+    from gradsep.renderer.procedural import FAMILIES
+    from gradsep.renderer.procedural_builder import GENERATOR_VERSION
 
     o = options
     if (o.spp is None) == (o.seconds is None):

@@ -48,13 +48,9 @@ import numpy as np
 from gradsep.model.frame import VARIANCE_MAX
 from gradsep.model.policy import LUMINANCE
 from gradsep.renderer.gpt_loop import LoopState, drop_non_finite, run_loops, start_lanes
-from gradsep.renderer.gpt_settings import GRADIENT_MODES, GptResult, GptSettings, channel_layout
-from gradsep.renderer.lanes import OFFSET_GROUPS, OFFSET_MODES, SHIFT_OFFSETS
-from gradsep.renderer.shift_protocol import ConnectingShift, Shift
-
-# The names callers import from here (the entry point and the pass API renderer/passes.py drives).
-__all__ = ["GRADIENT_MODES", "MAX_LANES_PER_PASS", "OFFSET_MODES", "SQUARE_CAP", "ConnectingShift", "GptResult",
-           "GptSettings", "Shift", "finish", "mean_variance", "pass_plan", "pass_seed", "render_gpt", "render_pass"]
+from gradsep.renderer.gpt_settings import Film, GptResult, GptSettings, channel_layout
+from gradsep.renderer.lanes import OFFSET_GROUPS, SHIFT_OFFSETS
+from gradsep.renderer.shift_protocol import Shift
 
 # A sample's squared luminance is capped at the contract's VARIANCE_MAX (and so is the variance it feeds): a 1e20
 # firefly squared would overflow float32 to Inf; capped, its pixel still reads as "very noisy", which is what the
@@ -144,15 +140,14 @@ def pass_seed(seed: int, index: int) -> int:
     return (z ^ (z >> 31)) & 0xFFFFFFFF
 
 
-def render_gpt(scene: mi.Scene, shift: Shift | None, settings: GptSettings, width: int, height: int, spp: int,
-               seed: int = 0, progress: Callable[[int, int], None] | None = None,
-               max_lanes: int = MAX_LANES_PER_PASS, gradient_spp: int | None = None) -> GptResult:
-    """Render ``spp`` samples per pixel in passes and combine them into per-layer base/dx/dy images + features.
+def render_gpt(scene: mi.Scene, shift: Shift | None, settings: GptSettings, film: Film,
+               progress: Callable[[int, int], None] | None = None, max_lanes: int = MAX_LANES_PER_PASS) -> GptResult:
+    """Render ``film.spp`` samples per pixel in passes and combine them into per-layer base/dx/dy images + features.
 
     ``shift`` None is the primal-only mode: the same base paths, layers and features, no offsets and no
     gradients (each layer carries ``base`` alone).
 
-    ``gradient_spp`` K (default ``spp``; needs a shift): only K of the ``spp`` samples trace offsets; the other
+    ``film.gradient_spp`` K (default ``spp``; needs a shift): only K of the ``spp`` samples trace offsets; the other
     ``spp - K`` are primal-only samples. The primal-only mode's bases and features are the same estimator as
     G-PT's primal, so the layers' bases and the features are per-pixel sums over all ``spp`` samples (the
     spp-weighted mean of the two renders, features normalised by their combined hit counts exactly as one
@@ -160,11 +155,12 @@ def render_gpt(scene: mi.Scene, shift: Shift | None, settings: GptSettings, widt
     index after the G-PT passes, so every pass has its own seed stream (``pass_seed``). K == ``spp`` is the
     plain render, bit for bit."""
     settings.validate()
+    width, height, spp = film.width, film.height, film.spp
     if spp < 1:
         raise ValueError(f"spp must be >= 1, got {spp}")
-    k = spp if gradient_spp is None else int(gradient_spp)
+    k = spp if film.gradient_spp is None else int(film.gradient_spp)
     if not 1 <= k <= spp:
-        raise ValueError(f"gradient_spp must be in [1, spp={spp}], got {gradient_spp}")
+        raise ValueError(f"gradient_spp must be in [1, spp={spp}], got {film.gradient_spp}")
     if shift is None and k != spp:
         raise ValueError("gradient_spp needs gradients: the primal-only mode traces no offsets")
     if shift is not None and settings.gradients == "direct":
@@ -176,22 +172,14 @@ def render_gpt(scene: mi.Scene, shift: Shift | None, settings: GptSettings, widt
     totals: dict[str, np.ndarray] | None = None
     done = 0
     for i, (pass_shift, pass_settings, n) in enumerate(plan):
-        sums = render_pass(scene, pass_shift, pass_settings, width, height, n, pass_seed(seed, i))
+        sums = render_pass(scene, pass_shift, pass_settings, width, height, n, pass_seed(film.seed, i))
         # a primal-only pass has no gradient sums: those stay the G-PT passes' (keys of the first pass)
         totals = sums if totals is None else {key: v + sums[key] if key in sums else v for key, v in totals.items()}
         done += n
         if progress is not None:
             progress(done, spp)
     assert totals is not None
-    return _finish(totals, settings, spp, len(plan), k)
-
-
-def finish(totals: dict[str, np.ndarray], settings: GptSettings, spp: int, passes: int,
-           gradient_spp: int | None = None) -> GptResult:
-    """Added :func:`render_pass` sums -> a GptResult (what render_gpt returns): the bases and features are sums over
-    ``spp`` samples, the gradients (where ``totals`` has them) over ``gradient_spp`` (default ``spp``). For callers
-    that run the passes themselves (renderer/passes.py: passes of several plans, sized to a deadline)."""
-    return _finish(totals, settings, spp, passes, gradient_spp)
+    return finish(totals, settings, spp, len(plan), k)
 
 
 def mean_variance(sums: np.ndarray, squares: np.ndarray, spp: int) -> np.ndarray | None:
@@ -208,10 +196,11 @@ def mean_variance(sums: np.ndarray, squares: np.ndarray, spp: int) -> np.ndarray
     return var.astype(np.float32)
 
 
-def _finish(t: dict[str, np.ndarray], settings: GptSettings, spp: int, passes: int,
-            gradient_spp: int | None = None) -> GptResult:
-    """Per-pixel sums -> means; the two one-sided gradient estimates -> dx, dy per the frame contract. The
-    bases and features are sums over ``spp`` samples, the gradients over ``gradient_spp`` (default ``spp``)."""
+def finish(t: dict[str, np.ndarray], settings: GptSettings, spp: int, passes: int,
+           gradient_spp: int | None = None) -> GptResult:
+    """Added :func:`render_pass` sums -> a GptResult: per-pixel sums -> means; the two one-sided gradient estimates
+    -> dx, dy per the frame contract. The bases and features are sums over ``spp`` samples, the gradients (where
+    ``t`` has them) over ``gradient_spp`` (default ``spp``). renderer/passes.py runs passes itself and calls it."""
     layers: dict[str, dict[str, np.ndarray]] = {}
     for layer in settings.layer_names():
         variance = mean_variance(t[f"{layer}.base"], t[f"{layer}.sq"], spp)

@@ -71,6 +71,18 @@ class GptSettings:
 
 
 # Output channel groups of one pass (each 3 wide except depth / hit / invalid), per-pixel sums over samples.
+@dataclass(frozen=True)
+class Film:
+    """The frame a render fills: its size, samples per pixel and seed. ``gradient_spp`` K (default ``spp``): only K
+    of the ``spp`` samples trace offsets, the other ``spp - K`` are primal-only samples."""
+
+    width: int
+    height: int
+    spp: int
+    seed: int = 0
+    gradient_spp: int | None = None
+
+
 def channel_layout(settings: GptSettings, gradients: bool = True) -> dict[str, int]:
     """Name -> width of every accumulated per-pixel buffer, in scatter order."""
     layout: dict[str, int] = {}

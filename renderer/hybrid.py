@@ -411,7 +411,7 @@ class HybridShift:
         w_nee = dr.select(reused_nee, balance(at.ratio), w_nee)
         return nee, w_nee, has_vertex
 
-    # ---- connected offsets (renderer.gpt.ConnectingShift) ----------------------------------------------------
+    # ---- connected offsets (renderer.shift_protocol.ConnectingShift) -----------------------------------------
 
     def settled(self, offset: HybridState) -> mi.Bool:
         """Finished, connected, or reconnected in the last iteration (:meth:`summarize` evaluates the one BSDF

@@ -28,8 +28,8 @@ from gradsep.renderer.scene import LoadedScene
 class PassKind:
     """One plan's kernel settings on this frame and its passes' measured costs."""
 
-    settings: Any  # renderer.gpt.GptSettings
-    shift: Any  # renderer.gpt.Shift or None
+    settings: Any  # renderer.gpt_settings.GptSettings
+    shift: Any  # renderer.shift_protocol.Shift or None
     costs: PassCosts = field(default_factory=PassCosts)
 
 
@@ -84,7 +84,7 @@ class Passes:
         return self.kinds[plan.name]
 
     def _settings(self, plan: RenderPlan) -> Any:
-        from gradsep.renderer.gpt import GptSettings
+        from gradsep.renderer.gpt_settings import GptSettings
 
         color = self.layers == ("color",)
         return GptSettings(max_depth=self.loaded.max_depth, rr_depth=self.loaded.rr_depth,
@@ -148,7 +148,7 @@ class Passes:
         return total
 
     def frame_result(self, plan: RenderPlan, window: tuple[slice, slice] | None = None) -> Any:
-        """The frame so far as ``plan``'s frame (a renderer.gpt.GptResult): every pass's bases and features,
+        """The frame so far as ``plan``'s frame (a renderer.gpt_settings.GptResult): every pass's bases and features,
         ``plan``'s passes' gradients; only its ``window`` (rows, columns) when given (what
         renderer.frame_budget.write_seconds times)."""
         from gradsep.renderer.gpt import finish
@@ -192,7 +192,7 @@ class Passes:
 
 
 def as_frame(result: Any) -> Frame:
-    """A renderer.gpt.GptResult as a Frame (no metadata yet)."""
+    """A renderer.gpt_settings.GptResult as a Frame (no metadata yet)."""
     layers = {name: Layer(base=v["base"], dx=v.get("dx"), dy=v.get("dy"), var=v.get("var"))
               for name, v in result.layers.items()}
     features = Features(result.albedo, result.normal, result.depth)

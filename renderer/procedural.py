@@ -33,9 +33,6 @@ import numpy as np
 from gradsep.renderer.errors import SceneError
 from gradsep.renderer.procedural_builder import GENERATOR_VERSION, _Builder
 
-__all__ = ["DEFAULT_MAX_DEPTH", "FAMILIES", "GENERATOR_VERSION", "PROCEDURAL_PREFIX", "ProceduralScene",
-           "ProceduralSpec", "describe", "generate", "parse_procedural", "procedural_scene", "scene_summary"]
-
 PROCEDURAL_PREFIX = "procedural:"  # a scene spec naming a procedural scene: procedural:SEED
 #: The scene families: "mixed" (rooms and outdoor ground planes: ``procedural:SEED``, what datasets train on) and
 #: "studio" (objects and small lights in an empty background: ``procedural:studio:SEED``).
@@ -121,11 +118,6 @@ def procedural_scene(seed: int, width: int = 256, height: int = 256, max_depth: 
 def describe(seed: int, family: str = "mixed") -> str:
     """A one-line description of the scene a seed produces (the film size does not change the scene)."""
     return generate(seed, family=family).describe()
-
-
-def scene_summary(seed: int, family: str = "mixed") -> dict[str, Any]:
-    """JSON-ready summary of a seed's scene (room, object kinds, materials, lights) for dataset manifests."""
-    return generate(seed, family=family).summary
 
 
 def generate(seed: int, width: int = 256, height: int = 256, max_depth: int | None = None,

@@ -131,6 +131,7 @@ def render_frame(scene: LoadedScene | str, *, spp: int, seed: int = 0,
     progress: :class:`FrameOptions`.
     """
     from gradsep.renderer.gpt import render_gpt
+    from gradsep.renderer.gpt_settings import Film
     from gradsep.renderer.passes import as_frame
 
     options = options or FrameOptions()
@@ -144,8 +145,8 @@ def render_frame(scene: LoadedScene | str, *, spp: int, seed: int = 0,
     gradient_spp = check_gradient_spp(options.gradient_spp, spp, mode)
     wanted, notes, shift_impl, settings = _frame_settings(scene, layers, shift, mode, options.offsets)
     start = time.perf_counter()
-    result = render_gpt(scene.scene, shift_impl, settings, scene.width, scene.height, spp, seed, options.progress,
-                        gradient_spp=gradient_spp)
+    film = Film(scene.width, scene.height, spp, seed, gradient_spp=gradient_spp)
+    result = render_gpt(scene.scene, shift_impl, settings, film, options.progress)
     seconds = time.perf_counter() - start
 
     metadata = render_metadata(scene, RenderRecord(spp, seed, shift_impl.name if shift_impl else "none", wanted,
@@ -176,7 +177,7 @@ def _frame_settings(scene: LoadedScene, layers: str | Iterable[str], shift: str 
                     offsets: str) -> tuple[tuple[str, ...], list[str], Any, Any]:
     """The layers to trace (with notes on those dropped), the shift and the integrator's settings of a frame, or
     a user error for a combination that cannot be rendered."""
-    from gradsep.renderer.gpt import GptSettings
+    from gradsep.renderer.gpt_settings import GptSettings
     from gradsep.renderer.shift import make_shift  # imports Mitsuba
 
     wanted, notes = plan_layers(parse_layers(layers), scene.max_depth)

@@ -24,7 +24,8 @@ from pathlib import Path
 from typing import Any
 
 from gradsep.renderer.errors import SceneError
-from gradsep.renderer.procedural import GENERATOR_VERSION, ProceduralSpec, parse_procedural, procedural_scene
+from gradsep.renderer.procedural import ProceduralSpec, parse_procedural, procedural_scene
+from gradsep.renderer.procedural_builder import GENERATOR_VERSION
 from gradsep.renderer.variant import select_variant
 
 SUPPORTED_SENSORS: tuple[str, ...] = ("PerspectiveCamera", "ThinLensCamera")

@@ -35,8 +35,6 @@ from gradsep.renderer.hybrid import HybridShift
 from gradsep.renderer.shift_protocol import OffsetEvents, Shift
 from gradsep.renderer.vertex import PathState, Vertex, VertexSamples, trace_vertex
 
-__all__ = ["DEFAULT_SHIFT", "SHIFT_NAMES", "HybridShift", "ReplayShift", "make_shift"]
-
 SHIFT_NAMES: tuple[str, ...] = ("replay", "hybrid")
 
 

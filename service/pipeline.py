@@ -36,7 +36,6 @@ class Outcome:
     method: str
     timings: dict[str, float]  # Server-Timing names -> seconds, in order
     warnings: list[str]
-    source_layers: list[str]
 
 
 def reconstruct(frame: Any, method: str | None, alpha: float, models: table.LoadedModels | None = None) -> Any:
@@ -73,7 +72,7 @@ def run_pipeline(source: Source, params: ReconstructParams, limits: ReadLimits, 
     body = encode_answer(frame, channels, half=params.half, metadata=metadata, warnings=warnings,
                          compression=params.compression)
     timings["encode"] = time.perf_counter() - t1
-    return Outcome(body, str(result.method), timings, warnings, list(frame.layers))
+    return Outcome(body, str(result.method), timings, warnings)
 
 
 def _finite(image: np.ndarray, name: str, warnings: list[str]) -> np.ndarray:

@@ -22,8 +22,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from gradsep.model.network import DATA_INPUTS, GRADIENT_INPUTS, OUTPUTS, DualBranchNet, NetworkConfig
-from gradsep.model.preprocess import describe_preprocessing
+from gradsep.model.network import DualBranchNet, NetworkConfig
+from gradsep.model.preprocess import DATA_INPUTS, GRADIENT_INPUTS, OUTPUTS, describe_preprocessing
 from gradsep.training.runlog import code_version
 from gradsep.training.train import CHECKPOINT, TrainConfig
 

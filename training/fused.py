@@ -36,13 +36,13 @@ import torch
 
 from gradsep.model.fused import (
     BLEND_FORMAT,
-    BLEND_PRIOR,
     CANDIDATES,
     INPUT_NAMES,
     OIDN_SETTING,
     OUTPUT_NAME,
     data_channels,
 )
+from gradsep.model.infer import BLEND_PRIOR
 from gradsep.model.preprocess import TRANSFER
 
 CACHE_VERSION = 2

@@ -319,12 +319,15 @@ class Trainer:
     def elapsed(self) -> float:
         return self.elapsed_at_start + (time.monotonic() - self.session_start)
 
-    def _decide(self) -> tuple[bool, bool]:
-        """(stop, checkpoint) before the next batch, decided by rank 0 and shared."""
+    def _out_of_time(self) -> bool:
+        """Before the next batch, decided by rank 0 and shared: True when the budget is spent; otherwise a
+        checkpoint is saved first when one is due."""
         stop = self.cfg.minutes is not None and self.elapsed() >= self.cfg.minutes * 60
         save = time.monotonic() - self.last_save >= self.cfg.checkpoint_minutes * 60
         stop, save = self.ctx.agree([stop, save])
-        return stop, save
+        if save and not stop:
+            self.save()
+        return stop
 
     def _say(self, text: str) -> None:
         if not self.quiet:
@@ -338,7 +341,7 @@ class Trainer:
     def _bar(self, total: int, initial: int, desc: str) -> ProgressBar:
         return ProgressBar(total, enabled=not self.quiet, desc=desc, initial=initial, leave=False)
 
-    def _batches(self, phase: str) -> Iterator[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
+    def _batches(self) -> Iterator[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
         """The current epoch's batches of one phase (planes, features, targets), skipping those a previous
         session already did."""
         self.train_set.set_epoch(self.progress.epoch)
@@ -355,12 +358,9 @@ class Trainer:
         self.gbranch.eval()
         bar = self._bar(self.steps_per_epoch, p.batch, f"epoch {p.epoch + 1} network")
         try:
-            for planes, feats, targets in self._batches("main"):
-                stop, save = self._decide()
-                if stop:
+            for planes, feats, targets in self._batches():
+                if self._out_of_time():
                     return False
-                if save:
-                    self.save()
                 data, grad = network_inputs(planes, feats)
                 pred = self.model(data, grad)
                 with torch.no_grad():
@@ -397,12 +397,9 @@ class Trainer:
         self.gbranch.train()
         bar = self._bar(self.steps_per_epoch, p.batch, f"epoch {p.epoch + 1} G-branch")
         try:
-            for planes, feats, _ in self._batches("gbranch"):
-                stop, save = self._decide()
-                if stop:
+            for planes, feats, _ in self._batches():
+                if self._out_of_time():
                     return False
-                if save:
-                    self.save()
                 data, grad = network_inputs(planes, feats)
                 loss = gbranch_loss(self.gbranch(data, grad), planes, feats)
                 self.opt_g.zero_grad(set_to_none=True)

@@ -12,9 +12,6 @@ from torch import nn  # noqa: E402
 
 from gradsep.model.network import (  # noqa: E402
     CBAM,
-    DATA_INPUTS,
-    FEATURE_INPUTS,
-    GRADIENT_INPUTS,
     ChannelAttention,
     DualBranchNet,
     GBranch,
@@ -23,7 +20,14 @@ from gradsep.model.network import (  # noqa: E402
     Up,
     macs_per_pixel,
 )
-from gradsep.model.preprocess import PRIOR_CHANNELS, crop_to, pad_to_alignment  # noqa: E402
+from gradsep.model.preprocess import (  # noqa: E402
+    DATA_INPUTS,
+    FEATURE_INPUTS,
+    GRADIENT_INPUTS,
+    PRIOR_CHANNELS,
+    crop_to,
+    pad_to_alignment,
+)
 
 TINY = NetworkConfig(width=4, residual_blocks=1, gbranch_width=8)
 

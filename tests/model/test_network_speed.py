@@ -55,10 +55,6 @@ def network():
     return NetworkReconstructor.load(MODELS)
 
 
-def test_network_layers_are_reconstructed_concurrently() -> None:
-    assert table.get("network").schedule == "concurrent"
-
-
 @needs_models
 def test_concurrent_network_layers_equal_sequential_and_never_overlap_graphs(network, monkeypatch) -> None:
     frame = _frame()

@@ -140,7 +140,7 @@ def test_l1_energy_reported_matches_the_returned_image() -> None:
     assert stats.energies[-1] < energy_l1(solve_l2(base, dx, dy), base, dx, dy, 0.2)
 
 
-@pytest.mark.parametrize("preconditioner", ["dct", "mg", "jacobi", "none"])
+@pytest.mark.parametrize("preconditioner", ["dct", "mg"])
 def test_l1_preconditioners_converge_to_the_same_minimiser(preconditioner: str) -> None:
     """Run to convergence, every preconditioner must reach the same IRLS fixed point (they only change speed)."""
     image = _smooth_image(12, 14)
@@ -239,7 +239,7 @@ def test_solvers_never_modify_their_inputs(size: tuple[int, int]) -> None:
 # ---------------------------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("preconditioner", ["dct", "mg", "jacobi"])
+@pytest.mark.parametrize("preconditioner", ["dct", "mg"])
 def test_an_alpha_map_of_ones_is_the_solve_without_one(preconditioner: str) -> None:
     base, dx, dy = _random_problem(23, 31, 5)
     plain, _ = solve_l1(base, dx, dy, 0.5, L1Options(preconditioner=preconditioner))

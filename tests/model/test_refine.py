@@ -298,12 +298,12 @@ def _shadow_edge(h: int = 32, w: int = 40, noise: float = 0.002, seed: int = 31)
 
 
 def test_the_clean_layer_gets_a_per_pixel_alpha_with_zero_pixels_pinned() -> None:
+    from gradsep.model.oidn import input_scale
+    from gradsep.model.preprocess import scaled_image
     from gradsep.model.refine import (
         TRUST_ALPHA_BASE,
         TRUST_ALPHA_CLEAN,
         TRUST_ALPHA_ZERO,
-        input_scale,
-        scaled_image,
         trust_terms,
     )
 

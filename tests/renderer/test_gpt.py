@@ -21,14 +21,13 @@ from gradsep.cli import main  # noqa: E402
 from gradsep.model.errors import CommandError  # noqa: E402
 from gradsep.model.exr_read import read_frame  # noqa: E402
 from gradsep.model.exr_write import write_frame  # noqa: E402
-from gradsep.renderer.gpt import MAX_LANES_PER_PASS, GptSettings, pass_plan, render_gpt  # noqa: E402
+from gradsep.renderer.gpt import MAX_LANES_PER_PASS, pass_plan, render_gpt  # noqa: E402
+from gradsep.renderer.gpt_settings import Film, GptSettings  # noqa: E402
+from gradsep.renderer.hybrid import HybridShift  # noqa: E402
 from gradsep.renderer.render import FrameOptions, parse_layers, plan_layers, render_frame  # noqa: E402
-from gradsep.renderer.scene import load_scene, select_variant  # noqa: E402
-from gradsep.renderer.shift import (  # noqa: E402
-    HybridShift,
-    ReplayShift,
-    make_shift,
-)
+from gradsep.renderer.scene import load_scene  # noqa: E402
+from gradsep.renderer.shift import ReplayShift, make_shift  # noqa: E402
+from gradsep.renderer.variant import select_variant  # noqa: E402
 from tests.renderer.scenes import CBOX_GEOMETRY, resolve  # noqa: E402
 
 pytestmark = pytest.mark.render
@@ -107,7 +106,7 @@ def make_renders(name: str, shift: str, offsets: str = "all", gradients: str = "
         return _renders[key]
     scene, depth = load_test_scene(name), SCENE_DEPTHS[name]
     settings = GptSettings(max_depth=depth, offsets=offsets, gradients=gradients)
-    results = [render_gpt(scene, make_shift(shift), settings, SIZE, SIZE, SPP, seed) for seed in range(SEEDS)]
+    results = [render_gpt(scene, make_shift(shift), settings, Film(SIZE, SIZE, SPP, seed)) for seed in range(SEEDS)]
     layers = list(results[0].layers)
     stack = {k: {layer: np.stack([r.layers[layer][k] for r in results]).astype(np.float64) for layer in layers
                  if k in results[0].layers[layer]}  # a layer without gradients has "base" alone
@@ -294,7 +293,7 @@ def test_fewer_offsets_keep_the_primal_and_count_gradients_at_any_spp(offsets):
     scene = coarse_room(8, "mixed")
     ref = np.stack([path_render(scene, 4096, 30_000 + i, 4) for i in range(REF_CHUNKS)])
     for shift in SHIFTS:
-        results = [render_gpt(scene, make_shift(shift), GptSettings(max_depth=4, offsets=offsets), 8, 8, 67, seed)
+        results = [render_gpt(scene, make_shift(shift), GptSettings(max_depth=4, offsets=offsets), Film(8, 8, 67, seed))
                    for seed in range(SEEDS)]
         for key, fd in (("dx", fd_x), ("dy", fd_y)):
             est = np.stack([sum(r.layers[layer][key] for layer in r.layers) for r in results]).astype(np.float64)
@@ -312,10 +311,11 @@ def test_direct_gradients_mode_is_the_full_renders_direct_layer(scene_name, shif
     point lights at depth 4, is the case where the offsets stop after the first vertex.)"""
     scene, depth = load_test_scene(scene_name), SCENE_DEPTHS[scene_name]
     for seed in (0, 7):
-        full = render_gpt(scene, make_shift(shift), GptSettings(max_depth=depth, offsets=offsets), SIZE, SIZE, 5, seed)
+        film = Film(SIZE, SIZE, 5, seed)
+        full = render_gpt(scene, make_shift(shift), GptSettings(max_depth=depth, offsets=offsets), film)
         direct = render_gpt(scene, make_shift(shift), GptSettings(max_depth=depth, offsets=offsets,
-                                                                   gradients="direct"), SIZE, SIZE, 5, seed)
-        primal = render_gpt(scene, None, GptSettings(max_depth=depth), SIZE, SIZE, 5, seed)
+                                                                   gradients="direct"), film)
+        primal = render_gpt(scene, None, GptSettings(max_depth=depth), film)
         assert set(direct.layers["direct"]) == {"base", "var", "dx", "dy"}
         assert set(direct.layers["indirect"]) == {"base", "var"}
         assert np.abs(full.layers["direct"]["dx"]).max() > 0
@@ -349,7 +349,7 @@ def test_direct_gradients_mode_leaves_out_the_manifold_solve(monkeypatch, offset
         if not leave_out:  # the full shift: render_gpt hands the mode the shift itself
             monkeypatch.setattr(HybridShift, "for_direct_layer", lambda self: self)
         solves.clear()
-        result = render_gpt(scene, make_shift("hybrid"), settings, SIZE, SIZE, 5, 3)
+        result = render_gpt(scene, make_shift("hybrid"), settings, Film(SIZE, SIZE, 5, 3))
         return result, len(solves)
 
     (lean, lean_solves), (full, full_solves) = render(True), render(False)
@@ -398,8 +398,8 @@ def test_alternate_offsets_trace_two_offsets_and_keep_the_primal():
     """Each lane traces one offset per axis (both axes get gradients), and the primal is bit for bit the `all`
     render's: the offsets never touch the base path or its random numbers."""
     scene = load_scene(CBOX, width=12, height=10).scene
-    full = render_gpt(scene, make_shift("hybrid"), GptSettings(max_depth=4), 12, 10, 4, seed=5)
-    alt = render_gpt(scene, make_shift("hybrid"), GptSettings(max_depth=4, offsets="alternate"), 12, 10, 4, seed=5)
+    full = render_gpt(scene, make_shift("hybrid"), GptSettings(max_depth=4), Film(12, 10, 4, 5))
+    alt = render_gpt(scene, make_shift("hybrid"), GptSettings(max_depth=4, offsets="alternate"), Film(12, 10, 4, 5))
     for layer, images in alt.layers.items():
         np.testing.assert_array_equal(images["base"], full.layers[layer]["base"])
         for key in ("dx", "dy"):
@@ -430,7 +430,7 @@ def test_layer_gradients_converge_to_layer_references(axis, shift):
 def test_russian_roulette_keeps_everything_unbiased(cbox, shift):
     """Russian roulette from the second vertex on (decided on the base path, applied to the whole lane)."""
     scene = load_test_scene("cbox")
-    results = [render_gpt(scene, make_shift(shift), GptSettings(max_depth=6, rr_depth=1), SIZE, SIZE, SPP, seed)
+    results = [render_gpt(scene, make_shift(shift), GptSettings(max_depth=6, rr_depth=1), Film(SIZE, SIZE, SPP, seed))
                for seed in range(100, 100 + SEEDS)]
     indirect = cbox.ref[6] - cbox.ref[2]
     # The cbox's caustics (light reaching walls via the mirror and glass spheres, found by BSDF sampling alone)
@@ -461,8 +461,8 @@ def test_offsets_on_the_base_pixel_give_zero_gradients(monkeypatch, shift, scene
     for module in (gpt_loop, lanes):  # where the pixel shifts are read: every lane's, and a group's
         monkeypatch.setattr(module, "SHIFT_OFFSETS", ((0, 0),) * 4)
     scene = load_scene(CBOX, width=16, height=16).scene if scene_name == "cbox" else coarse_room(16, "specular")
-    res = render_gpt(scene, make_shift(shift), GptSettings(max_depth=-1, rr_depth=1, offsets=offsets), 16, 16, 4,
-                     seed=7)
+    settings = GptSettings(max_depth=-1, rr_depth=1, offsets=offsets)
+    res = render_gpt(scene, make_shift(shift), settings, Film(16, 16, 4, 7))
     tolerance = 0.0 if shift == "replay" else 2e-4
     for layer in ("direct", "indirect"):
         base = res.layers[layer]["base"]
@@ -560,7 +560,7 @@ def coarse_room(size: int, materials: str = "mixed"):
 def test_gradients_unbiased_at_coarse_resolution(materials, variant):
     scene = coarse_room(8, materials)
     ref = np.stack([path_render(scene, 4096, 30_000 + i, 4) for i in range(REF_CHUNKS)])
-    results = [render_gpt(scene, VARIANTS[variant](), GptSettings(max_depth=4), 8, 8, 64, seed)
+    results = [render_gpt(scene, VARIANTS[variant](), GptSettings(max_depth=4), Film(8, 8, 64, seed))
                for seed in range(SEEDS)]
     for key, fd in (("dx", fd_x), ("dy", fd_y)):
         est = np.stack([sum(r.layers[layer][key] for layer in r.layers) for r in results]).astype(np.float64)
@@ -574,7 +574,8 @@ def converged_gradients(materials: str, shift: str) -> dict[str, np.ndarray]:
     """dx, dy of the 4x4 coarse room at 16k spp over 8 seeds (cached per worker: replay serves several tests)."""
     if (materials, shift) not in _converged:
         scene = coarse_room(4, materials)
-        runs = [render_gpt(scene, VARIANTS[shift](), GptSettings(max_depth=3), 4, 4, 16384, seed) for seed in range(8)]
+        runs = [render_gpt(scene, VARIANTS[shift](), GptSettings(max_depth=3), Film(4, 4, 16384, seed))
+                for seed in range(8)]
         _converged[materials, shift] = {key: np.stack([sum(r.layers[layer][key] for layer in r.layers) for r in runs])
                                         .astype(np.float64) for key in ("dx", "dy")}
     return _converged[materials, shift]
@@ -676,7 +677,7 @@ def test_gradients_unbiased_on_grazing_and_tiny_geometry(name):
     scene = ROBUSTNESS_SCENES[name](8)
     ref = np.stack([path_render(scene, 4096, 40_000 + i, 4) for i in range(REF_CHUNKS)])
     for shift in ("replay", "hybrid"):
-        results = [render_gpt(scene, VARIANTS[shift](), GptSettings(max_depth=4), 8, 8, 64, seed)
+        results = [render_gpt(scene, VARIANTS[shift](), GptSettings(max_depth=4), Film(8, 8, 64, seed))
                    for seed in range(SEEDS)]
         assert all(r.invalid_samples == 0 for r in results)
         for key, fd in (("dx", fd_x), ("dy", fd_y)):
@@ -810,8 +811,8 @@ def test_passes_give_the_same_estimator(cbox_small):
     settings = GptSettings(indirect=False)
     one, many = [], []
     for seed in range(8):
-        a = render_gpt(cbox_small.scene, ReplayShift(), settings, 16, 12, 8, seed=seed)
-        b = render_gpt(cbox_small.scene, ReplayShift(), settings, 16, 12, 8, seed=seed, max_lanes=16 * 12 * 3)
+        a = render_gpt(cbox_small.scene, ReplayShift(), settings, Film(16, 12, 8, seed))
+        b = render_gpt(cbox_small.scene, ReplayShift(), settings, Film(16, 12, 8, seed), max_lanes=16 * 12 * 3)
         assert a.passes == 1 and b.passes == 3
         one.append(a.layers["direct"]["base"].mean(axis=(0, 1)))
         many.append(b.layers["direct"]["base"].mean(axis=(0, 1)))
@@ -854,7 +855,7 @@ def test_frame_round_trips_through_the_contract(cbox_small, tmp_path):
 @pytest.mark.slow
 def test_procedural_frames_record_the_generator_version():
     pytest.importorskip("gradsep.renderer.procedural")
-    from gradsep.renderer.procedural import GENERATOR_VERSION
+    from gradsep.renderer.procedural_builder import GENERATOR_VERSION
 
     frame = render_frame("procedural:5", spp=1, layers="direct", options=FrameOptions(width=8, height=6))
     assert frame.metadata["gradsep.procedural_version"] == str(GENERATOR_VERSION)
@@ -909,7 +910,7 @@ def test_render_command_gradients_direct(tmp_path, capsys):
 def test_render_command_offsets(tmp_path):
     """`--offsets alternate`: the same channels as a full render (both layers' gradients), the same primal, and
     the mode in the metadata (absent for the default `all`); the command's choices are the renderer's modes."""
-    from gradsep.renderer.gpt import OFFSET_MODES
+    from gradsep.renderer.lanes import OFFSET_MODES
     from gradsep.renderer.render import OFFSET_CHOICES
 
     assert OFFSET_CHOICES == OFFSET_MODES

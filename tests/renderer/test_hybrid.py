@@ -14,9 +14,13 @@ import pytest
 mi = pytest.importorskip("mitsuba")
 dr = pytest.importorskip("drjit")
 
-from gradsep.renderer.gpt import ConnectingShift, GptSettings, render_gpt  # noqa: E402
-from gradsep.renderer.scene import load_scene, select_variant  # noqa: E402
-from gradsep.renderer.shift import HybridShift, make_shift  # noqa: E402
+from gradsep.renderer.gpt import render_gpt  # noqa: E402
+from gradsep.renderer.gpt_settings import Film, GptSettings  # noqa: E402
+from gradsep.renderer.hybrid import HybridShift  # noqa: E402
+from gradsep.renderer.scene import load_scene  # noqa: E402
+from gradsep.renderer.shift import make_shift  # noqa: E402
+from gradsep.renderer.shift_protocol import ConnectingShift  # noqa: E402
+from gradsep.renderer.variant import select_variant  # noqa: E402
 from tests.renderer.test_gpt import (  # noqa: E402
     CBOX,
     ROBUSTNESS_SCENES,
@@ -40,12 +44,12 @@ class SinglePhaseHybrid(HybridShift):
 @pytest.mark.slow
 @pytest.mark.parametrize("scene_name", ["cbox", "glossy"])
 def test_connected_offsets_loop_is_exact(scene_name):
-    """Summarised connected offsets (renderer.gpt.ConnectingShift) give what the full step gives them."""
+    """Summarised connected offsets (renderer.shift_protocol.ConnectingShift) give what the full step gives them."""
     assert isinstance(HybridShift(), ConnectingShift) and not isinstance(SinglePhaseHybrid(), ConnectingShift)
     scene = load_scene(CBOX, width=16, height=16).scene if scene_name == "cbox" else coarse_room(16, "glossy")
     settings = GptSettings(max_depth=-1, rr_depth=2)
-    two = render_gpt(scene, HybridShift(), settings, 16, 16, 8, seed=5)
-    one = render_gpt(scene, SinglePhaseHybrid(), settings, 16, 16, 8, seed=5)
+    two = render_gpt(scene, HybridShift(), settings, Film(16, 16, 8, 5))
+    one = render_gpt(scene, SinglePhaseHybrid(), settings, Film(16, 16, 8, 5))
     for layer in ("direct", "indirect"):
         for key in ("base", "dx", "dy"):
             np.testing.assert_allclose(two.layers[layer][key], one.layers[layer][key], rtol=1e-5, atol=1e-6,
@@ -63,7 +67,7 @@ def test_hybrid_shift_onto_the_same_pixel_is_exact_on_grazing_and_tiny_geometry(
 
     monkeypatch.setattr(gpt_loop, "SHIFT_OFFSETS", ((0, 0),) * 4)
     scene = ROBUSTNESS_SCENES[name](16)
-    res = render_gpt(scene, HybridShift(), GptSettings(max_depth=5, rr_depth=2), 16, 16, 4, seed=11)
+    res = render_gpt(scene, HybridShift(), GptSettings(max_depth=5, rr_depth=2), Film(16, 16, 4, 11))
     assert res.invalid_samples == 0
     for layer in ("direct", "indirect"):
         base = res.layers[layer]["base"]
@@ -112,7 +116,7 @@ def test_following_specular_vertices_correlates_caustics():
     scene = load_scene(CBOX, width=size, height=size).scene
     variance = {}
     for name, shift in (("follow", HybridShift()), ("replay-at-specular", ReplayAtSpecular())):
-        dx = np.stack([render_gpt(scene, shift, GptSettings(max_depth=6), size, size, 16, seed).layers[
+        dx = np.stack([render_gpt(scene, shift, GptSettings(max_depth=6), Film(size, size, 16, seed)).layers[
             "indirect"]["dx"] for seed in range(12)]).astype(np.float64)
         variance[name] = dx.var(0).mean()
     gain = variance["replay-at-specular"] / variance["follow"]
@@ -128,7 +132,7 @@ def test_hybrid_shift_correlates_indirect_light_on_diffuse_walls():
     scene = mi.load_dict(diffuse_room_dict())
     variance = {}
     for shift in SHIFTS:
-        dx = np.stack([render_gpt(scene, make_shift(shift), GptSettings(max_depth=3), SIZE, SIZE, 4, seed).layers[
+        dx = np.stack([render_gpt(scene, make_shift(shift), GptSettings(max_depth=3), Film(SIZE, SIZE, 4, seed)).layers[
             "indirect"]["dx"] for seed in range(SEEDS)]).astype(np.float64)
         variance[shift] = dx.var(0).mean(-1)
     # the upper half of the back wall, away from the lamp's direct view and the ball

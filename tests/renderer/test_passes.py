@@ -38,13 +38,14 @@ def small():
 
 @pytest.mark.render
 def test_passes_of_one_plan_are_render_gpt_bit_for_bit(small):
-    from gradsep.renderer.gpt import GptSettings, render_gpt
+    from gradsep.renderer.gpt import render_gpt
+    from gradsep.renderer.gpt_settings import Film, GptSettings
     from gradsep.renderer.shift import make_shift
 
     passes = Passes(small, ("direct", "indirect"), seed=5)
     passes.run(plan_named("all"), 3)
     mine = passes.frame_result(plan_named("all"))
-    ref = render_gpt(small.scene, make_shift("hybrid"), GptSettings(max_depth=5), 16, 12, 3, seed=5)
+    ref = render_gpt(small.scene, make_shift("hybrid"), GptSettings(max_depth=5), Film(16, 12, 3, 5))
     for layer in ("direct", "indirect"):
         for key in ("base", "dx", "dy"):
             np.testing.assert_array_equal(mine.layers[layer][key], ref.layers[layer][key])

@@ -27,14 +27,15 @@ def small():
 
 @pytest.mark.render
 def test_a_fixed_plan_to_a_sample_count_is_render_gpt_bit_for_bit(small):
-    from gradsep.renderer.gpt import GptSettings, render_gpt
+    from gradsep.renderer.gpt import render_gpt
+    from gradsep.renderer.gpt_settings import Film, GptSettings
     from gradsep.renderer.planner import FixedChoice, render_planned
     from gradsep.renderer.shift import make_shift
 
     planned = render_planned(small, LAYERS, FixedChoice(plan_named("all")), FrameBudget(spp=3), seed=5)
     assert planned.judgement is None and planned.plan == plan_named("all")
     assert planned.spp == planned.gradient_spp == 3 and planned.passes == 1 and planned.halves is None
-    ref = render_gpt(small.scene, make_shift("hybrid"), GptSettings(max_depth=5), 16, 12, 3, seed=5)
+    ref = render_gpt(small.scene, make_shift("hybrid"), GptSettings(max_depth=5), Film(16, 12, 3, 5))
     for layer in LAYERS:
         for key in ("base", "dx", "dy"):
             np.testing.assert_array_equal(getattr(planned.frame.layers[layer], key), ref.layers[layer][key])

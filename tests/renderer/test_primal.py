@@ -17,7 +17,8 @@ from gradsep.cli import main  # noqa: E402
 from gradsep.model.errors import CommandError  # noqa: E402
 from gradsep.model.exr_read import read_frame  # noqa: E402
 from gradsep.model.exr_write import write_frame  # noqa: E402
-from gradsep.renderer.gpt import GptSettings, render_gpt  # noqa: E402
+from gradsep.renderer.gpt import render_gpt  # noqa: E402
+from gradsep.renderer.gpt_settings import Film, GptSettings  # noqa: E402
 from gradsep.renderer.render import parse_layers, render_frame  # noqa: E402
 from gradsep.renderer.scene import load_scene  # noqa: E402
 from gradsep.renderer.shift import ReplayShift  # noqa: E402
@@ -49,7 +50,7 @@ def path_render(scene, spp: int, seed: int, max_depth: int) -> np.ndarray:
 def primal_renders(name: str) -> dict[str, np.ndarray]:
     """layer -> (SEEDS, H, W, 3) primal-only renders."""
     scene = scene_of(name)
-    results = [render_gpt(scene, None, GptSettings(max_depth=SCENE_DEPTHS[name]), SIZE, SIZE, SPP, seed)
+    results = [render_gpt(scene, None, GptSettings(max_depth=SCENE_DEPTHS[name]), Film(SIZE, SIZE, SPP, seed))
                for seed in range(SEEDS)]
     for r in results:
         assert all(set(layer) == {"base", "var"} for layer in r.layers.values())
@@ -87,14 +88,14 @@ def test_variance_channel_is_the_variance_of_the_mean(gradients):
     scene = scene_of("cbox")
     settings = GptSettings(max_depth=SCENE_DEPTHS["cbox"])
     shift = ReplayShift() if gradients else None
-    runs = [render_gpt(scene, shift, settings, SIZE, SIZE, SPP, 500 + seed) for seed in range(SEEDS)]
+    runs = [render_gpt(scene, shift, settings, Film(SIZE, SIZE, SPP, 500 + seed)) for seed in range(SEEDS)]
     weights = np.array([0.2126, 0.7152, 0.0722])
     for layer in runs[0].layers:
         means = np.stack([r.layers[layer]["base"] for r in runs]).astype(np.float64) @ weights
         spread = means.var(axis=0, ddof=1).mean()  # across seeds
         claimed = np.stack([r.layers[layer]["var"] for r in runs]).astype(np.float64).mean()
         assert 0.75 < claimed / spread < 1.33, (layer, claimed, spread)
-    one = render_gpt(scene, shift, settings, SIZE, SIZE, 1, 7)
+    one = render_gpt(scene, shift, settings, Film(SIZE, SIZE, 1, 7))
     assert all(layer["var"] is None for layer in one.layers.values())
 
 
@@ -115,8 +116,8 @@ def test_primal_is_exactly_the_gpt_primal(name):
     scene = scene_of(name)
     settings = GptSettings(max_depth=SCENE_DEPTHS[name], rr_depth=2)
     for seed in (1, 2):
-        gpt = render_gpt(scene, ReplayShift(), settings, SIZE, SIZE, 4, seed)
-        primal = render_gpt(scene, None, settings, SIZE, SIZE, 4, seed)
+        gpt = render_gpt(scene, ReplayShift(), settings, Film(SIZE, SIZE, 4, seed))
+        primal = render_gpt(scene, None, settings, Film(SIZE, SIZE, 4, seed))
         assert list(primal.layers) == list(gpt.layers) == ["direct", "indirect"]
         for layer in gpt.layers:
             np.testing.assert_allclose(primal.layers[layer]["base"], gpt.layers[layer]["base"], rtol=1e-5,

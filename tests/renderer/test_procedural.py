@@ -12,14 +12,13 @@ import pytest
 
 from gradsep.renderer.errors import SceneError
 from gradsep.renderer.procedural import (
-    GENERATOR_VERSION,
     ProceduralSpec,
     describe,
     generate,
     parse_procedural,
     procedural_scene,
-    scene_summary,
 )
+from gradsep.renderer.procedural_builder import GENERATOR_VERSION
 
 DISTRIBUTION_SEEDS = range(300)  # plan generation only (no rendering): ~1 s
 
@@ -161,7 +160,7 @@ def test_studio_scenes_have_no_room_ground_or_sky_and_keep_their_seed() -> None:
         assert np.isfinite(plan["sensor"]["to_world"]).all()
         assert describe(seed, "studio").startswith(f"procedural:studio:{seed} ")
     a, b = generate(9, family="studio"), generate(9, family="studio")
-    assert canonical(a.plan) == canonical(b.plan) and scene_summary(9, "studio") == a.summary
+    assert canonical(a.plan) == canonical(b.plan) and generate(9, family="studio").summary == a.summary
     assert canonical(a.plan) != canonical(generate(9).plan)  # its own stream, not the mixed seed's
 
 
@@ -227,7 +226,7 @@ def test_describe_names_the_seed_and_its_contents() -> None:
     text = describe(11)
     assert text.startswith("procedural:11 ")
     assert "lights:" in text and "materials:" in text
-    summary = scene_summary(11)
+    summary = generate(11).summary
     assert all(light in text for light in summary["lights"])
 
 
@@ -250,7 +249,7 @@ def test_a_studio_frame_has_an_empty_background() -> None:
 def test_loads_and_renders_finite_nonzero_images(seed: int) -> None:
     import mitsuba as mi
 
-    from gradsep.renderer.scene import select_variant
+    from gradsep.renderer.variant import select_variant
 
     select_variant()
     scene = mi.load_dict(procedural_scene(seed, 24, 16))

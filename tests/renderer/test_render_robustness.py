@@ -16,9 +16,10 @@ import pytest
 mi = pytest.importorskip("mitsuba")
 dr = pytest.importorskip("drjit")
 
-from gradsep.renderer.gpt import GptSettings, render_gpt  # noqa: E402
-from gradsep.renderer.scene import select_variant  # noqa: E402
+from gradsep.renderer.gpt import render_gpt  # noqa: E402
+from gradsep.renderer.gpt_settings import Film, GptSettings  # noqa: E402
 from gradsep.renderer.shift import make_shift  # noqa: E402
+from gradsep.renderer.variant import select_variant  # noqa: E402
 
 pytestmark = pytest.mark.render
 
@@ -43,7 +44,7 @@ def scene_dict(width: int, height: int, sphere_reflectance: float) -> dict:
 def render(width: int, height: int, reflectance: float, shift: str = "replay", spp: int = 4, depth: int = 4):
     select_variant()
     scene = mi.load_dict(scene_dict(width, height, reflectance))
-    return render_gpt(scene, make_shift(shift), GptSettings(max_depth=depth), width, height, spp, seed=5)
+    return render_gpt(scene, make_shift(shift), GptSettings(max_depth=depth), Film(width, height, spp, 5))
 
 
 def _all_arrays(result) -> dict[str, np.ndarray]:

@@ -13,16 +13,16 @@ import pytest
 mi = pytest.importorskip("mitsuba")
 
 from gradsep.model.errors import CommandError  # noqa: E402
-from gradsep.renderer.procedural import scene_summary  # noqa: E402
+from gradsep.renderer.errors import SceneError  # noqa: E402
+from gradsep.renderer.procedural import generate  # noqa: E402
 from gradsep.renderer.scene import (  # noqa: E402
     _NON_MESH_SHAPES,
-    SceneError,
     force_film_dict,
     integrator_depths,
     load_scene,
     parse_defines,
-    select_variant,
 )
+from gradsep.renderer.variant import select_variant  # noqa: E402
 from tests.renderer import scenes  # noqa: E402
 from tests.renderer.scenes import resolve  # noqa: E402
 
@@ -279,7 +279,7 @@ print(hashlib.sha256(b"".join(frame.layers[name].base.tobytes() for name in sort
 def test_a_seeded_render_is_the_same_in_every_process():
     """Two processes rendering one procedural frame with one seed get the same pixels bit for bit (in one process
     every render agreed even before; the emitter order differed between processes)."""
-    lights = scene_summary(152)["lights"]
+    lights = generate(152).summary["lights"]
     assert sum(kind in ("ceiling", "wall_wash", "uplight") for kind in lights) >= 2, lights  # area lights on meshes
     repo = Path(__file__).resolve().parents[2]
     env = {**os.environ, "PYTHONPATH": str(repo)}

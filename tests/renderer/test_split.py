@@ -20,7 +20,8 @@ mi = pytest.importorskip("mitsuba")
 from gradsep.cli import main  # noqa: E402
 from gradsep.model.errors import CommandError  # noqa: E402
 from gradsep.model.exr_read import read_frame  # noqa: E402
-from gradsep.renderer.gpt import GptSettings, mean_variance, pass_seed, render_gpt, render_pass  # noqa: E402
+from gradsep.renderer.gpt import mean_variance, pass_seed, render_gpt, render_pass  # noqa: E402
+from gradsep.renderer.gpt_settings import Film, GptSettings  # noqa: E402
 from gradsep.renderer.render import FrameOptions, render_frame  # noqa: E402
 from gradsep.renderer.scene import load_scene  # noqa: E402
 from gradsep.renderer.shift import make_shift  # noqa: E402
@@ -56,9 +57,9 @@ def test_gradient_spp_argument_errors(small):
         render_frame(small, spp=4, gradients=False, options=FrameOptions(gradient_spp=2))
     settings = GptSettings(max_depth=5)
     with pytest.raises(ValueError, match="gradient_spp must be in"):
-        render_gpt(small.scene, make_shift("hybrid"), settings, 12, 10, 4, gradient_spp=0)
+        render_gpt(small.scene, make_shift("hybrid"), settings, Film(12, 10, 4, gradient_spp=0))
     with pytest.raises(ValueError, match="needs gradients"):
-        render_gpt(small.scene, None, settings, 12, 10, 4, gradient_spp=2)
+        render_gpt(small.scene, None, settings, Film(12, 10, 4, gradient_spp=2))
 
 
 @pytest.mark.parametrize("gradients,offsets", [("all", "all"), ("direct", "alternate")])
@@ -84,8 +85,8 @@ def test_split_frame_is_the_spp_weighted_mean(small):
     n, k, seed = 7, 3, 11
     settings = GptSettings(max_depth=5, gradients="direct", offsets="alternate")
     shift = make_shift("hybrid")
-    split = render_gpt(small.scene, shift, settings, 12, 10, n, seed, gradient_spp=k)
-    gpt_only = render_gpt(small.scene, shift, settings, 12, 10, k, seed)
+    split = render_gpt(small.scene, shift, settings, Film(12, 10, n, seed, gradient_spp=k))
+    gpt_only = render_gpt(small.scene, shift, settings, Film(12, 10, k, seed))
     g = render_pass(small.scene, shift, settings, 12, 10, k, pass_seed(seed, 0))
     primal_settings = dataclasses.replace(settings, gradients="all", offsets="all")
     p = render_pass(small.scene, None, primal_settings, 12, 10, n - k, pass_seed(seed, 1))
@@ -148,7 +149,7 @@ def test_split_render_is_unbiased():
     total, direct and indirect energies against `path` (test_direct_gradients_mode_is_unbiased's checks)."""
     scene, depth = scene_of("cbox"), SCENE_DEPTHS["cbox"]
     settings = GptSettings(max_depth=depth, gradients="direct", offsets="alternate")
-    runs = [render_gpt(scene, make_shift("hybrid"), settings, SIZE, SIZE, N, seed, gradient_spp=K)
+    runs = [render_gpt(scene, make_shift("hybrid"), settings, Film(SIZE, SIZE, N, seed, gradient_spp=K))
             for seed in range(SEEDS)]
     base = {layer: np.stack([r.layers[layer]["base"] for r in runs]).astype(np.float64) for layer in runs[0].layers}
     ref = {d: np.stack([path_render(scene, REF_SPP, 10_000 + i, d) for i in range(REF_CHUNKS)]) for d in (depth, 2)}

@@ -9,8 +9,8 @@ import pytest
 pytest.importorskip("torch")
 
 from gradsep.model.network import NetworkConfig  # noqa: E402
-from gradsep.training.synthetic import make_synthetic_dataset  # noqa: E402
 from gradsep.training.train import TrainConfig  # noqa: E402
+from tests.training.synthetic import make_synthetic_dataset  # noqa: E402
 
 #: Small enough that an epoch takes well under a second on one core.
 TINY_NETWORK = NetworkConfig(width=4, residual_blocks=1, gbranch_width=8)

@@ -60,7 +60,7 @@ def test_patches_are_deterministic_and_change_with_the_epoch(tiny_dataset: Path,
 def test_paired_frames_give_independent_targets(tmp_path: Path) -> None:
     from gradsep.model.exr_read import read_frame
     from gradsep.model.preprocess import measured_planes
-    from gradsep.training.synthetic import make_synthetic_dataset
+    from tests.training.synthetic import make_synthetic_dataset
 
     root = make_synthetic_dataset(tmp_path / "ds", frames=2, width=24, height=20, pairs=True)
     manifest = load_manifest(root)
@@ -81,7 +81,7 @@ def test_paired_frames_give_independent_targets(tmp_path: Path) -> None:
 
 
 def test_cache_is_reused_and_frames_without_the_layer_are_skipped(tmp_path: Path) -> None:
-    from gradsep.training.synthetic import make_synthetic_dataset
+    from tests.training.synthetic import make_synthetic_dataset
 
     root = make_synthetic_dataset(tmp_path / "ds", frames=2, width=16, height=16)
     one = np.ones((16, 16, 3), np.float32)

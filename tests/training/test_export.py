@@ -14,10 +14,18 @@ onnx = pytest.importorskip("onnx")
 ort = pytest.importorskip("onnxruntime")
 
 from gradsep.cli import main as cli_main  # noqa: E402
-from gradsep.model.network import DATA_INPUTS, GRADIENT_INPUTS, DualBranchNet, GBranch, parameter_count  # noqa: E402
-from gradsep.model.preprocess import PREPROCESS_VERSION  # noqa: E402
+from gradsep.model.network import DualBranchNet, GBranch  # noqa: E402
+from gradsep.model.preprocess import (  # noqa: E402
+    DATA_INPUTS,
+    GRADIENT_INPUTS,
+    PREPROCESS_VERSION,  # noqa: E402
+)
 from gradsep.training.export import PARITY_TOLERANCE, export_run, parity_error, to_onnx  # noqa: E402
 from gradsep.training.train import TrainConfig, train  # noqa: E402
+
+
+def parameter_count(module: torch.nn.Module) -> int:
+    return sum(p.numel() for p in module.parameters())
 
 
 @pytest.fixture(scope="module")

@@ -23,7 +23,7 @@ from gradsep.model.preprocess import FUSED_MEAN  # noqa: E402
 from gradsep.model.reconstruct import load_fused, load_network, reconstruct  # noqa: E402
 from gradsep.training import fused as fused_training  # noqa: E402
 from gradsep.training.dataset import load_manifest  # noqa: E402
-from gradsep.training.synthetic import make_synthetic_dataset  # noqa: E402
+from tests.training.synthetic import make_synthetic_dataset  # noqa: E402
 
 CACHED = fused_training.CANDIDATES  # the cache's candidates (oidn, refine-fast), in order
 KINDS = ("oidn", "refine-fast")  # the test models' candidates

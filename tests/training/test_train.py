@@ -50,7 +50,7 @@ def test_smoke_training_lowers_the_loss(make_config) -> None:
 
 @pytest.mark.train
 def test_paired_training_validates_against_the_prior(tmp_path: Path) -> None:
-    from gradsep.training.synthetic import make_synthetic_dataset
+    from tests.training.synthetic import make_synthetic_dataset
 
     from .conftest import tiny_config
 
@@ -102,16 +102,16 @@ def test_resume_in_the_middle_of_a_phase(make_config, monkeypatch: pytest.Monkey
     train(straight, quiet=True)
 
     calls = {"n": 0}
-    original = Trainer._decide
+    original = Trainer._out_of_time
 
-    def stop_once(self: Trainer) -> tuple[bool, bool]:
+    def stop_once(self: Trainer) -> bool:
         p = self.progress
         if p.epoch == 1 and p.phase == stop_phase and p.batch == 3 and calls["n"] == 0:
             calls["n"] += 1
-            return True, False
+            return True
         return original(self)
 
-    monkeypatch.setattr(Trainer, "_decide", stop_once)
+    monkeypatch.setattr(Trainer, "_out_of_time", stop_once)
     interrupted = make_config("interrupted")
     progress = train(interrupted, quiet=True)
     assert (progress.epoch, progress.phase, progress.batch) == (1, stop_phase, 3)

@@ -1,4 +1,4 @@
-"""A tiny synthetic dataset in the renderer's format, for tests and for trying training without Mitsuba.
+"""A tiny synthetic dataset in the renderer's format, for the training tests (no Mitsuba needed).
 
 Each frame is "albedo × smooth shading" split into a direct and an indirect part, with Monte-Carlo-like noise
 on the base images (heavy-tailed, so there are fireflies) and much weaker noise on the gradients, which are
