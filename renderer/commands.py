@@ -322,17 +322,25 @@ def _add_render_parser(sub: argparse._SubParsersAction) -> None:
                         "what the default oidn-l1 method uses); none (primal-only)")
     p.add_argument("--offsets", choices=OFFSET_CHOICES, default="all",
                    help="offset paths per sample: all four (the default); alternate (one per axis, neighbouring "
-                        "pixels paired: ~0.7x the cost, gradients from half the samples; cheaper samples for "
+                        "pixels paired: cheaper samples, gradients from half the samples; for "
                         "oidn-l1, see docs/renderer.md); pair, single")
     p.add_argument("--gradient-spp", type=int, default=None, metavar="K",
                    help="trace offsets on K of the --spp samples only (1 <= K <= --spp; default all): the other "
                         "samples are primal-only, the bases and features average all --spp samples, the gradients "
-                        "the K G-PT ones (see docs/renderer.md, \"Split samples\")")
+                        "the K G-PT ones (see docs/renderer.md, \"What carries gradients\")")
     p.add_argument("--no-gradients", action="store_true",
                    help="primal-only, the same as --gradients none: the same layers and features, no offset paths "
                         "and no gradients (about the cost of a plain path tracer)")
     p.add_argument("-D", "--define", action="append", default=[], metavar="NAME=VALUE",
                    help="override a <default> parameter of the XML scene (repeatable)")
+    _add_shot_arguments(p)
+    p.add_argument("-o", "--output", required=True,
+                   help="output frame (.exr); for a shot, a pattern such as out.%%04d.exr or out.####.exr")
+    p.set_defaults(func=render_command)
+
+
+def _add_shot_arguments(p: argparse.ArgumentParser) -> None:
+    """`gradsep render`'s flags for shots and for the plan a shot's frames share."""
     p.add_argument("--plan-cache", default=None, metavar="DIR",
                    help="with --gradients auto: a folder the frames of a shot share (default $GRADSEP_PLAN_CACHE); "
                         "the first frame's checkpoint writes its choice for this scene, size, layers, budget and "
@@ -351,9 +359,6 @@ def _add_render_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--shard", default=None, metavar="i/n",
                    help="with --frames: render only shard i of n (0 <= i < n): the i-th of n contiguous chunks "
                         "of the shot's frames")
-    p.add_argument("-o", "--output", required=True,
-                   help="output frame (.exr); for a shot, a pattern such as out.%%04d.exr or out.####.exr")
-    p.set_defaults(func=render_command)
 
 
 def _add_reference_parsers(sub: argparse._SubParsersAction) -> None:
