@@ -12,11 +12,14 @@ from __future__ import annotations
 
 import json
 import re
+import shlex
 import subprocess
 import sys
 import textwrap
 from pathlib import Path
 
+import numpy as np
+import OpenEXR
 import pytest
 from openjd.model import (
     DecodeValidationError,
@@ -27,6 +30,8 @@ from openjd.model import (
     document_string_to_object,
     preprocess_job_parameters,
 )
+
+from tests.renderer.scenes import resolve
 
 ROOT = Path(__file__).resolve().parents[1]
 TEMPLATE = ROOT / "examples" / "farm" / "shot.openjd.yaml"
@@ -190,40 +195,53 @@ def test_a_failing_render_task_fails_the_job_before_any_reconstruction(tmp_path)
     assert "gradsep reconstruct" not in result.stdout + result.stderr
 
 
-def _has_command(name: str) -> bool:
-    from gradsep.cli import build_parser
-
-    sub = next(a for a in build_parser()._actions if a.dest == "command")
-    return name in sub.choices
+def _pixels(path: Path) -> dict[str, np.ndarray]:
+    return {name: np.asarray(channel.pixels) for name, channel in
+            OpenEXR.File(str(path), separate_channels=True).channels().items()}
 
 
 @pytest.mark.render
 @pytest.mark.slow
-def test_openjd_run_renders_and_reconstructs_a_tiny_shot_with_gradsep(tmp_path):
-    """The real commands: three frames, 16x12, 2 spp, two render tasks, reconstruct chunks of two."""
-    from gradsep.model.exr_read import read_frame
-    from tests.renderer.scenes import resolve
-
-    if not _has_command("reconstruct") or "--frames" not in _render_help():
-        pytest.skip("needs gradsep render --frames and gradsep reconstruct (issue 53, items 1 and 2)")
-    exe = tmp_path / "gradsep"
-    exe.write_text(f"#!/bin/sh\nexec {sys.executable} -m gradsep \"$@\"\n")
+def test_openjd_run_renders_and_reconstructs_a_tiny_shot_alike_in_any_split(tmp_path):
+    """The real commands on three frames (16x12, 2 spp): the job split into the most tasks (a render task and a
+    reconstruct chunk per frame) writes the same pixels as the job with one task per step -- shards and chunks
+    see the whole shot (its seeds, its neighbours across task boundaries)."""
+    if not all("--frames" in _help(command) for command in ("render", "reconstruct")):
+        pytest.skip("needs gradsep render --frames and gradsep reconstruct --frames (issue 53, items 1 and 2)")
+    exe = tmp_path / "gradsep"  # this checkout's gradsep, whatever the venv has installed
+    exe.write_text(f"#!/bin/sh\nPYTHONPATH={shlex.quote(str(ROOT))}${{PYTHONPATH:+:$PYTHONPATH}} "
+                   f"exec {shlex.quote(sys.executable)} -m gradsep \"$@\"\n")
     exe.chmod(0o755)
-    out = tmp_path / "frames"
-    result = _run(*_params({"Gradsep": str(exe), "Scene": str(resolve("cbox")), "Frames": "1001-1003",
-                            "OutputDir": str(out), "RenderTasks": "2", "ReconstructChunk": "2",
-                            "BudgetPerFrame": "2", "RenderArgs": "--width 16 --height 12"}), timeout=600)
-    assert result.returncode == 0, result.stdout[-4000:] + result.stderr[-4000:]
-    assert sorted(p.name for p in out.iterdir()) == (
-        [f"final.{n}.exr" for n in range(1001, 1004)] + [f"render.{n}.exr" for n in range(1001, 1004)])
+    scene = resolve("cbox")
+    outputs = {}
+    for tasks in (3, 1):
+        out = outputs[tasks] = tmp_path / f"split{tasks}"
+        result = _run(*_params({"Gradsep": str(exe), "Scene": str(scene), "Frames": "1001-1003",
+                                "OutputDir": str(out), "RenderTasks": str(tasks), "ReconstructChunk": str(4 - tasks),
+                                "BudgetPerFrame": "2", "Seed": "5", "RenderArgs": "--width 16 --height 12"}),
+                      timeout=600)
+        assert result.returncode == 0, result.stdout[-4000:] + result.stderr[-4000:]
+        assert sorted(p.name for p in out.iterdir()) == (
+            [f"final.{n}.exr" for n in range(1001, 1004)] + [f"render.{n}.exr" for n in range(1001, 1004)])
     for n in range(1001, 1004):
-        frame = read_frame(out / f"render.{n}.exr")
-        assert (frame.width, frame.height) == (16, 12)
-        assert frame.metadata["gradsep.frame"] in (n, str(n))
-        assert frame.metadata["gradsep.shot"] == "1001-1003"
+        header = OpenEXR.File(str(outputs[3] / f"render.{n}.exr"), header_only=True).header()
+        assert (str(header["gradsep.frame"]), header["gradsep.shot"]) == (str(n), "1001-1003")
+        assert header["dataWindow"][1].tolist() == [15, 11]
+        for name in (f"render.{n}.exr", f"final.{n}.exr"):
+            split, whole = _pixels(outputs[3] / name), _pixels(outputs[1] / name)
+            assert split.keys() == whole.keys()
+            for channel, values in split.items():
+                assert np.isfinite(values).all(), (name, channel)
+                np.testing.assert_array_equal(values, whole[channel], err_msg=f"{name} {channel}")
 
 
-def _render_help() -> str:
-    return subprocess.run([sys.executable, "-m", "gradsep", "render", "--help"], capture_output=True, text=True,
+def _help(command: str) -> str:
+    return subprocess.run([sys.executable, "-m", "gradsep", command, "--help"], capture_output=True, text=True,
                           cwd=ROOT).stdout
 
+
+
+def test_docs_name_every_parameter_of_the_template():
+    section = (ROOT / "docs" / "cli.md").read_text().partition("## Farm jobs")[2].partition("\n## ")[0]
+    names = [p["name"] for p in _document()["parameterDefinitions"]]
+    assert [n for n in names if f"`{n}`" not in section] == []
