@@ -31,11 +31,10 @@ from openjd.model import (
     preprocess_job_parameters,
 )
 
-from tests.renderer.scenes import resolve
-
 ROOT = Path(__file__).resolve().parents[1]
 TEMPLATE = ROOT / "examples" / "farm" / "shot.openjd.yaml"
 OPENJD = Path(sys.executable).with_name("openjd")
+MOVING = ROOT / "tests" / "data" / "shot" / "moving.xml"  # a sphere at $pos
 
 
 def _document() -> dict:
@@ -203,29 +202,30 @@ def _pixels(path: Path) -> dict[str, np.ndarray]:
 @pytest.mark.render
 @pytest.mark.slow
 def test_openjd_run_renders_and_reconstructs_a_tiny_shot_alike_in_any_split(tmp_path):
-    """The real commands on three frames (16x12, 2 spp): the job split into the most tasks (a render task and a
-    reconstruct chunk per frame) writes the same pixels as the job with one task per step -- shards and chunks
-    see the whole shot (its seeds, its neighbours across task boundaries)."""
+    """The real commands on a three-frame animated shot (16x12, 2 spp): the job split into the most tasks (a
+    render task and a reconstruct chunk per frame) writes the same pixels as the job with one task per step --
+    shards and chunks see the whole shot (its animation, its seeds, its neighbours across task boundaries)."""
     if not all("--frames" in _help(command) for command in ("render", "reconstruct")):
         pytest.skip("needs gradsep render --frames and gradsep reconstruct --frames (issue 53, items 1 and 2)")
     exe = tmp_path / "gradsep"  # this checkout's gradsep, whatever the venv has installed
     exe.write_text(f"#!/bin/sh\nPYTHONPATH={shlex.quote(str(ROOT))}${{PYTHONPATH:+:$PYTHONPATH}} "
                    f"exec {shlex.quote(sys.executable)} -m gradsep \"$@\"\n")
     exe.chmod(0o755)
-    scene = resolve("cbox")
+    shot = range(1001, 1004)
     outputs = {}
     for tasks in (3, 1):
         out = outputs[tasks] = tmp_path / f"split{tasks}"
-        result = _run(*_params({"Gradsep": str(exe), "Scene": str(scene), "Frames": "1001-1003",
-                                "OutputDir": str(out), "RenderTasks": str(tasks), "ReconstructChunk": str(4 - tasks),
-                                "BudgetPerFrame": "2", "Seed": "5", "RenderArgs": "--width 16 --height 12"}),
-                      timeout=600)
+        result = _run(*_params({"Gradsep": str(exe), "Scene": str(MOVING), "Frames": "1001-1003",
+                                "Animate": "pos=0,0.5,0:0.3,0.5,0", "OutputDir": str(out),
+                                "RenderTasks": str(tasks), "ReconstructChunk": str(4 - tasks), "BudgetPerFrame": "2",
+                                "Seed": "5", "RenderArgs": "--width 16 --height 12"}), timeout=600)
         assert result.returncode == 0, result.stdout[-4000:] + result.stderr[-4000:]
         assert sorted(p.name for p in out.glob("*.exr")) == (
-            [f"final.{n}.exr" for n in range(1001, 1004)] + [f"render.{n}.exr" for n in range(1001, 1004)])
-    for n in range(1001, 1004):
-        header = OpenEXR.File(str(outputs[3] / f"render.{n}.exr"), header_only=True).header()
-        assert (str(header["gradsep.frame"]), header["gradsep.shot"]) == (str(n), "1001-1003")
+            [f"final.{n}.exr" for n in shot] + [f"render.{n}.exr" for n in shot])
+    for n in shot:
+        header = _header(outputs[3] / f"render.{n}.exr")
+        assert (header["gradsep.frame"], header["gradsep.shot"]) == (str(n), "1001-1003")
+        assert header["gradsep.animate.pos"] == f"{0.15 * (n - 1001):.9g}, 0.5, 0"
         assert header["dataWindow"][1].tolist() == [15, 11]
         for name in (f"render.{n}.exr", f"final.{n}.exr"):
             split, whole = _pixels(outputs[3] / name), _pixels(outputs[1] / name)
@@ -233,6 +233,13 @@ def test_openjd_run_renders_and_reconstructs_a_tiny_shot_alike_in_any_split(tmp_
             for channel, values in split.items():
                 assert np.isfinite(values).all(), (name, channel)
                 np.testing.assert_array_equal(values, whole[channel], err_msg=f"{name} {channel}")
+    # The middle frame's chunk held that frame alone: its window reached into the other chunks all the same.
+    used = _header(outputs[3] / "final.1002.exr")["gradsep.temporal.neighbours"]
+    assert used == _header(outputs[1] / "final.1002.exr")["gradsep.temporal.neighbours"] == "1001,1003"
+
+
+def _header(path: Path) -> dict:
+    return OpenEXR.File(str(path), header_only=True).header()
 
 
 def _help(command: str) -> str:
