@@ -205,8 +205,8 @@ def test_openjd_run_renders_and_reconstructs_a_tiny_shot_alike_in_any_split(tmp_
     """The real commands on a three-frame animated shot (16x12, 2 spp): the job split into the most tasks (a
     render task and a reconstruct chunk per frame) writes the same pixels as the job with one task per step --
     shards and chunks see the whole shot (its animation, its seeds, its neighbours across task boundaries)."""
-    if not all("--frames" in _help(command) for command in ("render", "reconstruct")):
-        pytest.skip("needs gradsep render --frames and gradsep reconstruct --frames (issue 53, items 1 and 2)")
+    if "--frames" not in _help("reconstruct"):  # until issue 53's temporal reconstruction is merged
+        pytest.skip("needs gradsep reconstruct --frames (issue 53, item 2)")
     exe = tmp_path / "gradsep"  # this checkout's gradsep, whatever the venv has installed
     exe.write_text(f"#!/bin/sh\nPYTHONPATH={shlex.quote(str(ROOT))}${{PYTHONPATH:+:$PYTHONPATH}} "
                    f"exec {shlex.quote(sys.executable)} -m gradsep \"$@\"\n")
