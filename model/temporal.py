@@ -1,33 +1,36 @@
 """Temporal reconstruction: frame t of a shot from a window of frames around it, through their motion vectors.
 
-The neighbours' *inputs* are brought onto frame t's pixels and accumulated into frame t before the per-frame
-method (model/reconstruct.py) runs once on the result:
+Two stages. The first brings the neighbours' *inputs* onto frame t's pixels and accumulates them into frame t
+before the per-frame method (model/reconstruct.py) runs once on the result:
 
-1. **Warp.** Each neighbour's bases, gradients and variance (``L.var.Y``) are sampled at the position the motion
-   vectors give for each pixel of frame t (bilinear; a neighbour two frames away through the chain of the frame
-   between). Where the vectors say there is no correspondence, or the position is off screen, the neighbour
-   contributes nothing.
-2. **Reject.** Per layer and pixel, the neighbour is rejected where it disagrees with frame t by more than the
-   noise allows: the difference of the two luminances, box-filtered over BOX × BOX pixels, against REJECT_K
-   standard errors of that difference (the box means' variances from the two variance channels). A light switched
-   off, a moving shadow or a highlight that moved differently from its surface changes the mean by more than the
-   noise, so the neighbour's samples of it are dropped; a difference within the noise is what noise looks like, so
-   the samples are kept. Where the features disagree (albedo or normal: another surface), it is rejected as
-   well.
-3. **Accumulate.** Accepted neighbours are averaged with frame t, each weighted by the inverse of its box-filtered
-   variance (the box keeps a pixel's own noisy variance estimate from pulling the mean toward its own low
-   samples), and the layer's variance channel becomes the variance of that weighted mean, so OIDN's back-off
+1. **Warp.** Each neighbour's bases, gradients and variance (``L.var.Y``) are sampled where the motion vectors put
+   each pixel of frame t (bilinear; a neighbour two frames away through the chain of the frame between). Where
+   the vectors say there is no correspondence, or the position is off screen, the neighbour contributes nothing.
+2. **Reject.** Per layer and pixel, a neighbour is rejected where it disagrees with frame t by more than the noise
+   allows: the difference of the two luminances, box-filtered, against REJECT_K standard errors of that
+   difference (the box means' variances from the two variance channels), at each box size in BOXES. A light
+   switched off, a moving shadow or a highlight that moves differently from its surface changes the mean by more
+   than the noise, so the neighbour's samples there are dropped; a difference within the noise is what noise
+   looks like, so they are kept. Where the features disagree (albedo or normal: another surface) the neighbour
+   is rejected as well.
+3. **Accumulate.** Accepted neighbours are averaged with frame t, each frame weighted by the inverse of its mean
+   variance (one weight per frame and layer: per-pixel inverse-variance weights favour the pixels whose few
+   samples missed a bright path), and the variance channel becomes that weighted mean's, so OIDN's back-off
    (model/backoff.py) sees the lower noise.
 4. **Reconstruct.** The per-frame method (the frame's default unless one is named) on the accumulated frame.
 
-Accumulating the inputs rather than the per-frame reconstructions keeps the rejection test honest (the inputs'
-noise is known from their variance; a denoised image's residual error is not) and hands the denoiser one frame
-whose noise level is lower everywhere it could be, rather than mixing its outputs. The decision and its
-measurements are in docs/decisions.md ("Temporal reconstruction").
+The second stage averages frame t's first-stage result with its neighbours' first-stage results, per layer, warped
+the same way, where the first stage accepted that neighbour. Consecutive outputs that denoised overlapping sample
+sets still differ by what the denoiser made of the samples they do not share; averaging them where the inputs
+agree removes that difference (the flicker) and more of the error. A window of N frames splits its radius
+(N − 1) / 2 between the stages (the first the larger half), so no sample from outside the window reaches frame t.
 
-Without motion vectors on frame t, or with one frame, this is exactly :func:`model.reconstruct.reconstruct`.
-A layer without a variance channel (another renderer's frame) uses a local spatial estimate of it, with a
-warning.
+Why accumulate inputs, and test them, rather than blend per-frame outputs alone: the inputs' noise is known from
+their variance, so the test rejects on change, not on noise, and the denoiser gets one frame whose noise is lower
+everywhere it can be. The decision and its measurements are in docs/decisions.md ("Temporal reconstruction").
+
+Without motion vectors on frame t, or with one frame, this is exactly :func:`model.reconstruct.reconstruct`. A
+layer without a variance channel (another renderer's frame) uses a local spatial estimate of it, with a warning.
 """
 
 from __future__ import annotations
