@@ -18,28 +18,61 @@ from gradsep.model.policy import SEPARATED_LAYERS
 
 
 def render_command(args: argparse.Namespace) -> int:
-    """`gradsep render`: render a frame and write it atomically to ``args.output``."""
+    """`gradsep render`: render a frame and write it atomically to ``args.output``; with ``--frames`` (or a frame
+    field in the output or scene), a shot (renderer/shot.py)."""
     from gradsep.model.exr_write import write_frame
-    from gradsep.renderer.render import FrameOptions, render_frame
     from gradsep.renderer.scene import load_scene, parse_defines
+    from gradsep.renderer.shot import RenderCall
 
     deadline = _deadline(args)  # first: the budget counts from the process's start
+    gradients = default_gradients(args)
+    _check_plan_flags(args, gradients, deadline is not None)
+    if deadline is None and args.spp < 1:
+        raise CommandError(f"--spp must be >= 1, got {args.spp}")
+    if _is_shot(args):
+        from gradsep.renderer.shot import render_shot
+
+        return render_shot(args, deadline, gradients, _plan_cache_folder(args, gradients), render_loaded)
     output = Path(args.output)
     if output.suffix.lower() != ".exr":
         raise CommandError(f"output {args.output} must end in .exr")
     if not output.parent.exists():
         raise CommandError(f"output folder {output.parent} does not exist")
-    gradients = default_gradients(args)
-    _check_plan_flags(args, gradients, deadline is not None)
     cache_folder = _plan_cache_folder(args, gradients)
-    if deadline is None and args.spp < 1:
-        raise CommandError(f"--spp must be >= 1, got {args.spp}")
+    plan_cache = None
+    if cache_folder is not None:
+        from gradsep.renderer.plancache import CacheFolder, scene_identity
+
+        plan_cache = CacheFolder(cache_folder, f"key:{args.plan_key}" if args.plan_key
+                                 else scene_identity(args.scene, parse_defines(args.define)))
     if deadline is not None and deadline.left() <= 0:
         from gradsep.renderer.frame_budget import startup_error
 
         raise startup_error(deadline.seconds, deadline.elapsed())
     scene = load_scene(args.scene, width=args.width, height=args.height, max_depth=args.max_depth,
                        defines=parse_defines(args.define))
+    frame, plan_text = render_loaded(args, scene, RenderCall(args.seed, deadline, gradients, plan_cache))
+    write_frame(output, frame)
+    for note in frame.warnings:
+        print(f"gradsep render: note: {note}", file=sys.stderr)
+    print(f"{output}: {frame_summary(frame, deadline)}" + (f"; {plan_text}" if plan_text else ""))
+    return 0
+
+
+def _is_shot(args: argparse.Namespace) -> bool:
+    """Whether the command renders a shot: ``--frames``, or a frame field in the output or the scene (without
+    ``--frames`` that is the shot's one-line error)."""
+    from gradsep.model.shot import FramePattern
+
+    return (args.frames is not None or FramePattern(args.output).has_field or FramePattern(args.scene).has_field
+            or bool(args.animate) or args.shard is not None)
+
+
+def render_loaded(args: argparse.Namespace, scene: Any, call: Any) -> tuple[Any, str]:
+    """Render the loaded ``scene`` with the command's settings and ``call``'s seed, budget and plan: the frame (not
+    yet written) and its plan's summary."""
+    from gradsep.renderer.render import FrameOptions, render_frame
+
     show = sys.stderr.isatty()
 
     def progress(done: int, total: int) -> None:
@@ -47,27 +80,27 @@ def render_command(args: argparse.Namespace) -> int:
             of = f"/{total}" if total else ""
             print(f"\rgradsep render: {done}{of} spp", end="", file=sys.stderr, flush=True)
 
-    if deadline is None and gradients != "auto":
-        frame = render_frame(scene, spp=args.spp, seed=args.seed, layers=args.layers, shift=args.shift,
-                             gradients=gradients, options=FrameOptions(offsets=args.offsets,
-                                                                       gradient_spp=args.gradient_spp,
-                                                                       progress=progress))
+    if call.deadline is None and call.gradients != "auto":
+        frame = render_frame(scene, spp=args.spp, seed=call.seed, layers=args.layers, shift=args.shift,
+                             gradients=call.gradients, options=FrameOptions(offsets=args.offsets,
+                                                                            gradient_spp=args.gradient_spp,
+                                                                            progress=progress))
         plan_text = ""
     else:
-        frame, plan_text = _render_planned(args, scene, deadline, gradients, cache_folder, progress)
+        frame, plan_text = _render_planned(args, scene, call, progress)
     if show:
         print(file=sys.stderr)
-    write_frame(output, frame)
-    for note in frame.warnings:
-        print(f"gradsep render: note: {note}", file=sys.stderr)
+    return frame, plan_text
+
+
+def frame_summary(frame: Any, deadline: Any) -> str:
+    """A written frame's size, samples, layers and time, for the command's line."""
     spp = frame.metadata["gradsep.spp"]
     split = frame.metadata.get("gradsep.gradient_spp")
     spp_text = f"{spp} spp ({split} with gradients)" if split else f"{spp} spp"
     took = (f"{deadline.elapsed():.2f} s of {deadline.seconds:g} s" if deadline
             else f"{frame.metadata['gradsep.render_seconds']} s")
-    print(f"{output}: {frame.width}x{frame.height}, {spp_text}, layers {', '.join(frame.layers)}, {took}"
-          + (f"; {plan_text}" if plan_text else ""))
-    return 0
+    return f"{frame.width}x{frame.height}, {spp_text}, layers {', '.join(frame.layers)}, {took}"
 
 
 def _check_plan_flags(args: argparse.Namespace, gradients: str, budgeted: bool) -> None:
@@ -97,23 +130,15 @@ def _check_plan_flags(args: argparse.Namespace, gradients: str, budgeted: bool) 
             check_gradient_spp(args.gradient_spp, args.spp, gradients)
 
 
-def _render_planned(args: argparse.Namespace, scene: Any, deadline: Any, gradients: str, cache_folder: Path | None,
-                    progress: Any) -> tuple[Any, str]:
+def _render_planned(args: argparse.Namespace, scene: Any, call: Any, progress: Any) -> tuple[Any, str]:
     """`gradsep render --seconds` or ``--gradients auto``: the planned frame and its plan's summary."""
     from gradsep.renderer.frame_budget import FrameBudget
     from gradsep.renderer.planned_frame import PlanRequest, render_planned_frame
-    from gradsep.renderer.scene import parse_defines
 
-    plan_cache = None
-    if cache_folder is not None:
-        from gradsep.renderer.plancache import CacheFolder, scene_identity
-
-        plan_cache = CacheFolder(cache_folder, f"key:{args.plan_key}" if args.plan_key
-                                 else scene_identity(args.scene, parse_defines(args.define)))
-    budget = FrameBudget(deadline) if deadline is not None else FrameBudget(spp=args.spp)
-    request = PlanRequest(seed=args.seed, layers=args.layers, shift=args.shift, gradients=gradients,
+    budget = FrameBudget(call.deadline) if call.deadline is not None else FrameBudget(spp=args.spp)
+    request = PlanRequest(seed=call.seed, layers=args.layers, shift=args.shift, gradients=call.gradients,
                           offsets=args.offsets)
-    return render_planned_frame(scene, budget, request, progress=progress, plan_cache=plan_cache)
+    return render_planned_frame(scene, budget, request, progress=progress, plan_cache=call.plan_cache)
 
 
 def _plan_cache_folder(args: argparse.Namespace, gradients: str) -> Path | None:
@@ -271,7 +296,8 @@ def _add_render_parser(sub: argparse._SubParsersAction) -> None:
     from gradsep.renderer.render import OFFSET_CHOICES  # no Mitsuba at import time
 
     p = sub.add_parser("render", help="render a G-PT frame (base + gradients + features per illumination layer)")
-    p.add_argument("scene", help="Mitsuba 3 XML scene path, procedural:SEED or procedural:studio:SEED")
+    p.add_argument("scene", help="Mitsuba 3 XML scene path, procedural:SEED or procedural:studio:SEED; for a shot "
+                                 "also a per-frame XML pattern (scene.%%04d.xml)")
     p.add_argument("--spp", type=int, default=None, help="samples per pixel (or --seconds)")
     p.add_argument("--seconds", default=None, metavar="T",
                    help="render the best frame this machine makes in T seconds of wall time for the whole command "
@@ -314,7 +340,19 @@ def _add_render_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--plan-key", default=None, metavar="KEY",
                    help="the shot's name in the plan cache (default: the scene file's content and -D defines, or "
                         "the procedural spec): frames of one shot whose scene files differ share a decision")
-    p.add_argument("-o", "--output", required=True, help="output frame (.exr)")
+    p.add_argument("--frames", default=None, metavar="A-B",
+                   help="render a shot: frames A to B, both included (farm numbering, e.g. 1001-1100), one file "
+                        "each; the output (and a per-frame scene) names each frame with %%04d, %%d or #### "
+                        "(docs/renderer.md, \"Shots\")")
+    p.add_argument("--animate", action="append", default=[], metavar="NAME=START:END",
+                   help="with --frames: a <default> parameter $NAME of the XML scene, linear from START on the "
+                        "first frame to END on the last; a number, or a comma-separated vector (x,y,z:x,y,z) "
+                        "interpolated component by component (repeatable)")
+    p.add_argument("--shard", default=None, metavar="i/n",
+                   help="with --frames: render only shard i of n (0 <= i < n): the i-th of n contiguous chunks "
+                        "of the shot's frames")
+    p.add_argument("-o", "--output", required=True,
+                   help="output frame (.exr); for a shot, a pattern such as out.%%04d.exr or out.####.exr")
     p.set_defaults(func=render_command)
 
 
