@@ -237,9 +237,11 @@ def _write_shot_frame(args: argparse.Namespace, n: int, result: Any, frame: Any,
 
     source, output, window, alpha = shot
     radius = window // 2
-    absent = [n + o for o in range(-radius, radius + 1) if o and not (n + o >= 0 and source.path(n + o).is_file())]
+    absent = [n + o for o in range(-radius, radius + 1) if o and n + o >= 0 and not source.path(n + o).is_file()]
     warnings = [*frame.warnings, *(w for w in result.warnings if not w.startswith("neighbour(s) "))]
-    if absent:
+    if window > 1 and getattr(frame, "motion", None) is None:
+        warnings.append("the frame has no motion vectors: reconstructed on its own (the per-frame method)")
+    elif absent:
         warnings.append("neighbour frame(s) " + ", ".join(map(str, absent)) + " missing: reconstructed from the "
                         "frames it has")
     metadata = _answer_metadata(result, source.path(n).name, alpha)

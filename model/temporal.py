@@ -321,11 +321,12 @@ def _signature(frame: Frame) -> tuple:
             frame.alpha is not None)
 
 
-def check_shot(frames: Sequence[Frame | None], names: Sequence[str]) -> None:
-    """Raise ValueError naming the first frame whose size or channels differ from the first present frame's."""
-    present = [(f, n) for f, n in zip(frames, names, strict=True) if f is not None]
-    for frame, name in present[1:]:
-        _check_against(frame, name, present[0][1], _signature(present[0][0]))
+def check_shot(frames: Sequence[Frame | None], names: Sequence[str], reference: int = 0) -> None:
+    """Raise ValueError naming the first frame whose size or channels differ from ``frames[reference]``'s."""
+    want, first = _signature(frames[reference]), names[reference]  # type: ignore[arg-type]
+    for frame, name in zip(frames, names, strict=True):
+        if frame is not None and frame is not frames[reference]:
+            _check_against(frame, name, first, want)
 
 
 def _radii(window: int) -> tuple[int, int]:
@@ -410,7 +411,7 @@ def reconstruct_window(frames: Sequence[Frame | None], centre: int, method: str 
     """
     if not 0 <= centre < len(frames) or frames[centre] is None:
         raise ValueError(f"centre {centre} is not a present frame of the window (0..{len(frames) - 1})")
-    check_shot(frames, [f"{i - centre:+d}" if i != centre else "t" for i in range(len(frames))])
+    check_shot(frames, [f"{i - centre:+d}" if i != centre else "t" for i in range(len(frames))], centre)
     radius = max(centre, len(frames) - 1 - centre)
     r1, r2 = _radii(2 * radius + 1)
     frame = frames[centre]
