@@ -40,7 +40,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from gradsep.model.frame import Features, Frame, Layer
+from gradsep.model.frame import Frame, Layer
 from gradsep.model.methods import LoadedModels
 from gradsep.model.policy import DEFAULT_ALPHA
 from gradsep.model.reconstruct import Reconstruction, reconstruct
@@ -103,11 +103,22 @@ class TemporalReconstruction(Reconstruction):
 # ------------------------------------------------------------------------------------------------ warping
 
 
+def _grid(h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each pixel's (row, column), float32 (H, W) each."""
+    rows = np.broadcast_to(np.arange(h, dtype=np.float32)[:, None], (h, w))
+    cols = np.broadcast_to(np.arange(w, dtype=np.float32)[None, :], (h, w))
+    return rows, cols
+
+
 class _Sampler:
     """Bilinear sampling of (H, W[, C]) images at fractional (rows, cols); ``valid`` says where it is defined."""
 
     def __init__(self, rows: np.ndarray, cols: np.ndarray, valid: np.ndarray) -> None:
         h, w = rows.shape
+        grid_r, grid_c = _grid(h, w)
+        if np.array_equal(rows, grid_r) and np.array_equal(cols, grid_c):  # no motion: nothing to resample
+            self.valid, self.identity, self.integral = np.asarray(valid, bool), True, True
+            return
         finite = np.isfinite(rows) & np.isfinite(cols)
         rows = np.where(finite, rows, -1.0)
         cols = np.where(finite, cols, -1.0)
@@ -120,8 +131,7 @@ class _Sampler:
         fr = (r - r0).astype(np.float32)
         fc = (c - c0).astype(np.float32)
         self.integral = not (fr.any() or fc.any())
-        grid_r, grid_c = np.mgrid[0:h, 0:w]
-        self.identity = self.integral and np.array_equal(r0, grid_r) and np.array_equal(c0, grid_c)
+        self.identity = False
         r1 = np.minimum(r0 + 1, h - 1)
         c1 = np.minimum(c0 + 1, w - 1)
         self.index = (r0, c0, r0, c1, r1, c0, r1, c1)
@@ -149,7 +159,8 @@ def _chain(frames: Sequence[Frame | None], centre: int, offset: int) -> _Sampler
     direction = "backward" if offset < 0 else "forward"
     step = -1 if offset < 0 else 1
     h, w = frames[centre].height, frames[centre].width  # type: ignore[union-attr]
-    rows, cols = (a.astype(np.float32) for a in np.mgrid[0:h, 0:w])
+    grid_r, grid_c = _grid(h, w)
+    rows, cols = grid_r, grid_c
     valid = np.ones((h, w), bool)
     index = centre
     for _ in range(abs(offset)):
@@ -159,9 +170,8 @@ def _chain(frames: Sequence[Frame | None], centre: int, offset: int) -> _Sampler
             return None
         src_rows, src_cols, src_valid = motion.warp_source(direction)
         sampler = _Sampler(rows, cols, valid)
-        grid_r, grid_c = np.mgrid[0:h, 0:w]
-        rows = rows + sampler(np.asarray(src_rows, np.float32) - grid_r.astype(np.float32))
-        cols = cols + sampler(np.asarray(src_cols, np.float32) - grid_c.astype(np.float32))
+        rows = rows + sampler(np.asarray(src_rows, np.float32) - grid_r)
+        cols = cols + sampler(np.asarray(src_cols, np.float32) - grid_c)
         valid = sampler.valid & (np.rint(sampler(np.asarray(src_valid, np.float32))) > 0.5)
         index += step
     return _Sampler(rows, cols, valid)
@@ -170,73 +180,117 @@ def _chain(frames: Sequence[Frame | None], centre: int, offset: int) -> _Sampler
 # ------------------------------------------------------------------------------------------------ rejection
 
 
-def _spatial_variance(base: np.ndarray) -> np.ndarray:
+def _spatial_variance(y: np.ndarray) -> np.ndarray:
     """A stand-in for a missing ``L.var.Y``: the luminance's variance over each pixel's 3 × 3 neighbourhood (an
     overestimate at edges, where the signal varies too)."""
-    y = luminance(base)
     return np.maximum(box_mean(y * y, 3) - box_mean(y, 3) ** 2, 0.0)
 
 
-def _variance(layer: Layer) -> np.ndarray:
-    if layer.var is not None:
-        return np.nan_to_num(np.asarray(layer.var, np.float64), nan=0.0, posinf=1e30)
-    return _spatial_variance(layer.base)
+@dataclass
+class _Stats:
+    """What the rejection test reads of one frame, computed once per frame (a shot's frame serves several
+    windows): per layer the variance, the frame weight and, per box size, the box means of the luminance and
+    of the variance; the FEATURE_BOX means of albedo and normal."""
+
+    var: dict[str, np.ndarray]
+    weight: dict[str, float]
+    boxes: dict[str, dict[int, tuple[np.ndarray, np.ndarray]]]
+    albedo: np.ndarray | None
+    normal: np.ndarray | None
+
+
+def _stats(frame: Frame) -> _Stats:
+    cached = getattr(frame, "_temporal_stats", None)  # kept on the frame: it is read by up to `window` windows
+    if cached is not None:
+        return cached
+    var, weight, boxes = {}, {}, {}
+    for name, layer in frame.layers.items():
+        y = luminance(layer.base).astype(np.float32)
+        v = (np.minimum(np.nan_to_num(layer.var, nan=0.0, posinf=1e30), 1e30).astype(np.float32)
+             if layer.var is not None else _spatial_variance(y))
+        var[name], weight[name] = v, _frame_weight(v)
+        boxes[name] = {size: (box_mean(y, size), box_mean(v, size)) for size in BOXES}
+    features = frame.features
+    stats = _Stats(var, weight, boxes,
+                   None if features is None or features.albedo is None else _box_features(features.albedo),
+                   None if features is None or features.normal is None else _box_features(features.normal))
+    frame._temporal_stats = stats  # type: ignore[attr-defined]
+    return stats
 
 
 def _box_features(image: np.ndarray) -> np.ndarray:
-    """FEATURE_BOX × FEATURE_BOX means of an (H, W) or (H, W, C) feature image (float32)."""
-    if image.ndim == 2:
-        return box_mean(np.asarray(image, np.float32), FEATURE_BOX)
+    """FEATURE_BOX × FEATURE_BOX means of an (H, W, C) feature image (float32)."""
     return np.stack([box_mean(np.asarray(image[..., c], np.float32), FEATURE_BOX) for c in range(image.shape[-1])],
                     axis=-1)
 
 
-def _features_agree(centre: Features | None, other: Features | None, sample: _Sampler) -> np.ndarray:
+def _features_agree(centre: _Stats, other: _Stats, sample: _Sampler) -> np.ndarray:
     """Where the warped neighbour's features say it sees the same surface as frame t (True where none to test).
 
-    Compared as FEATURE_BOX means: a pixel's features are averages over its samples, which at a silhouette mix two
-    surfaces in proportions that change from frame to frame; the box keeps that noise from reading as another
-    surface. Depth is not compared: a pixel's mean depth mixes hits and misses (0) and near and far surfaces in
-    proportions as noisy as that, and a disocclusion is what the motion vectors' validity marks."""
+    Compared as FEATURE_BOX means (the neighbour's warped with it): a pixel's features are averages over its
+    samples, which at a silhouette mix two surfaces in proportions that change from frame to frame; the box keeps
+    that noise from reading as another surface. Depth is not compared: a pixel's mean depth mixes hits and
+    misses (0) and near and far surfaces in proportions as noisy as that, and a disocclusion is what the motion
+    vectors' validity marks."""
     agree = np.ones(sample.valid.shape, bool)
-    if centre is None or other is None:
-        return agree
     if centre.albedo is not None and other.albedo is not None:
-        a, b = _box_features(centre.albedo), _box_features(sample(other.albedo))
-        agree &= np.max(np.abs(a - b), axis=-1) <= ALBEDO_TOLERANCE
+        albedo = sample(other.albedo)
+        for c in range(albedo.shape[-1]):  # channel by channel: a reduction over the last axis is slow
+            agree &= np.abs(albedo[..., c] - centre.albedo[..., c]) <= ALBEDO_TOLERANCE
     if centre.normal is not None and other.normal is not None:
-        a, b = _box_features(centre.normal), _box_features(sample(other.normal))
-        dot = np.sum(a * b, axis=-1)
-        norms = np.sqrt(np.sum(a * a, axis=-1) * np.sum(b * b, axis=-1))
-        agree &= (dot >= NORMAL_COSINE * norms) | (norms == 0)
+        a, b = centre.normal, sample(other.normal)
+        dot = a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
+        aa = a[..., 0] * a[..., 0] + a[..., 1] * a[..., 1] + a[..., 2] * a[..., 2]
+        bb = b[..., 0] * b[..., 0] + b[..., 1] * b[..., 1] + b[..., 2] * b[..., 2]
+        agree &= (dot >= NORMAL_COSINE * np.sqrt(aa * bb)) | (aa * bb == 0)
     return agree
 
 
 @dataclass
 class _LayerSums:
-    """The running inverse-variance-weighted sums of one layer over the accepted frames."""
+    """The running weighted sums of one layer over the accepted frames (float32; a frame's weight is one number,
+    zero where it was rejected)."""
 
     weight: np.ndarray
     base: np.ndarray
     dx: np.ndarray | None
     dy: np.ndarray | None
     var: np.ndarray  # Σ w² σ²
-    accepted: list[float] = field(default_factory=list)
 
-    def add(self, layer: Layer, var: np.ndarray, weight: np.ndarray) -> None:
-        self.weight += weight
-        self.base += layer.base * weight[..., None]
-        if self.dx is not None and layer.dx is not None and layer.dy is not None:
-            self.dx += layer.dx * weight[..., None]
-            self.dy += layer.dy * weight[..., None]  # type: ignore[operator]
-        self.var += weight * weight * var
+    @classmethod
+    def start(cls, layer: Layer, var: np.ndarray) -> _LayerSums:
+        """Frame t's layer, weight 1 (the neighbours' weights are relative to frame t's)."""
+        return cls(np.ones(var.shape, np.float32), layer.base.astype(np.float32, copy=True),
+                   None if layer.dx is None else layer.dx.astype(np.float32, copy=True),
+                   None if layer.dy is None else layer.dy.astype(np.float32, copy=True),
+                   var.astype(np.float32, copy=True))
+
+    def add(self, layer: Layer, var: np.ndarray, accept: np.ndarray, weight: float) -> None:
+        w = accept.astype(np.float32)
+        if weight != 1.0:
+            w *= np.float32(weight)
+        self.weight += w
+        w3 = w[..., None]
+        pairs = [(self.base, layer.base)]
+        if self.dx is not None and self.dy is not None and layer.dx is not None and layer.dy is not None:
+            pairs += [(self.dx, layer.dx), (self.dy, layer.dy)]
+        scratch = np.empty_like(self.base)
+        for total, image in pairs:
+            np.multiply(image, w3, out=scratch)
+            total += scratch
+        w *= w
+        w *= var
+        self.var += w
 
     def layer(self) -> Layer:
-        w = self.weight[..., None]
-        dx = None if self.dx is None else (self.dx / w).astype(np.float32)
-        dy = None if self.dy is None else (self.dy / w).astype(np.float32)
-        var = (self.var / (self.weight * self.weight)).astype(np.float32)
-        return Layer((self.base / w).astype(np.float32), dx, dy, var)
+        inverse = 1.0 / self.weight
+        i3 = inverse[..., None]
+        for image in (self.base, self.dx, self.dy):
+            if image is not None:
+                image *= i3
+        self.var *= inverse
+        self.var *= inverse
+        return Layer(self.base, self.dx, self.dy, self.var)
 
 
 def _frame_weight(var: np.ndarray) -> float:
@@ -249,13 +303,17 @@ def _frame_weight(var: np.ndarray) -> float:
     return 1.0 / mean if mean > 0 else 1.0
 
 
-def _agrees(y: np.ndarray, var: np.ndarray, other_y: np.ndarray, other_var: np.ndarray) -> np.ndarray:
-    """Where two estimates of one layer agree within REJECT_K standard errors at every box in BOXES."""
-    accept = np.ones(y.shape, bool)
+def _agrees(centre: dict[int, tuple[np.ndarray, np.ndarray]], other: dict[int, tuple[np.ndarray, np.ndarray]],
+            sample: _Sampler) -> np.ndarray:
+    """Where two estimates of one layer agree within REJECT_K standard errors at every box size in BOXES: the box
+    means of the neighbour's luminance and variance, warped, against frame t's (for a smooth motion, the box of
+    the warped image and the warp of the box agree; the box means are then computed once per frame)."""
+    accept = np.ones(sample.valid.shape, bool)
     for size in BOXES:
-        difference = box_mean(other_y - y, size)
-        bound = REJECT_K * REJECT_K * (box_mean(var, size) + box_mean(other_var, size)) / (size * size)
-        accept &= difference * difference <= bound
+        y, var = centre[size]
+        other_y, other_var = sample(other[size][0]), sample(other[size][1])
+        difference = other_y - y
+        accept &= difference * difference <= (REJECT_K * REJECT_K / (size * size)) * (var + other_var)
     return accept
 
 
@@ -279,30 +337,24 @@ def _accumulate(frames: Sequence[Frame | None], centre: int, offsets: Sequence[i
     frame = frames[centre]
     assert frame is not None
     chained = {o: _chain(frames, centre, o) for o in offsets}
-    samplers = {o: s for o, s in chained.items() if s is not None}
-    agree = {o: s.valid & _features_agree(frame.features, frames[centre + o].features, s)  # type: ignore[union-attr]
-             for o, s in samplers.items()}
-    agreement = _Agreement(samplers)
+    agreement = _Agreement({o: s for o, s in chained.items() if s is not None})
+    own = _stats(frame)
+    others = {o: _stats(frames[centre + o]) for o in agreement.samplers}  # type: ignore[arg-type]
+    agree = {o: s.valid & _features_agree(own, others[o], s) for o, s in agreement.samplers.items()}
     layers: dict[str, Layer] = {}
     for name, layer in frame.layers.items():
         if layer.var is None:
             warnings.append(f"layer {name} has no variance channel ({name}.var.Y): its noise is estimated from "
                             "each pixel's neighbourhood for the temporal rejection")
-        var = _variance(layer)
-        y = luminance(layer.base)
-        w0 = np.full(y.shape, _frame_weight(var))
-        sums = _LayerSums(w0.copy(), layer.base * w0[..., None],
-                          None if layer.dx is None else layer.dx * w0[..., None],
-                          None if layer.dy is None else layer.dy * w0[..., None], w0 * w0 * var)
+        sums = _LayerSums.start(layer, own.var[name])
         for offset, mask in agree.items():
-            sample = samplers[offset]
+            sample, stats = agreement.samplers[offset], others[offset]
             other = frames[centre + offset].layers[name]  # type: ignore[union-attr]
+            accept = mask & _agrees(own.boxes[name], stats.boxes[name], sample)
+            agreement.accept.setdefault(name, {})[offset] = accept
             warped = Layer(sample(other.base), None if other.dx is None else sample(other.dx),
                            None if other.dy is None else sample(other.dy))
-            other_var = sample(_variance(other), squared=True)
-            accept = mask & _agrees(y, var, luminance(warped.base), other_var)
-            agreement.accept.setdefault(name, {})[offset] = accept
-            sums.add(warped, other_var, np.where(accept, _frame_weight(_variance(other)), 0.0))
+            sums.add(warped, sample(stats.var[name], squared=True), accept, stats.weight[name] / own.weight[name])
         layers[name] = sums.layer()
     out = Frame(layers, frame.features, dict(frame.metadata), list(frame.warnings), frame.alpha,
                 dict(frame.image_attributes), frame.layout)
@@ -379,19 +431,20 @@ def second_stage(results: Sequence[TemporalReconstruction | None], centre: int) 
     layers: dict[str, np.ndarray] = {}
     reached = set(own.neighbours)
     for name, image in own.layers.items():
-        total = image.astype(np.float64)
-        count = np.ones(image.shape[:2])
+        total = image.copy()
+        count = np.ones(image.shape[:2], np.float32)
         for offset in offsets:
             mask = agreement.accept.get(name, {}).get(offset)
             other = results[centre + offset]
             if mask is None or other is None or not mask.any():
                 continue
-            total += np.where(mask[..., None], agreement.samplers[offset](other.layers[name]), 0.0)
+            total += agreement.samplers[offset](other.layers[name]) * mask[..., None]
             count += mask
             reached.update({offset, *(offset + o for o in other.neighbours)} - {0})
-        layers[name] = (total / count[..., None]).astype(np.float32)
-    image = np.zeros_like(own.image, dtype=np.float64)
-    for layer in layers.values():
+        total /= count[..., None]
+        layers[name] = total
+    image = np.zeros(own.image.shape, np.float64)
+    for layer in layers.values():  # summed in the frame's order, as model.reconstruct sums them
         image += layer
     out = TemporalReconstruction(**{**vars(own), "image": image.astype(np.float32), "layers": layers})
     out.neighbours = sorted(reached)
