@@ -19,12 +19,12 @@ The weight is computed twice and the smaller one is used: with ``m = 1`` (absolu
 brightest pixels weigh most) and with ``m² = Y(y)² + (RELATIVE_FLOOR · lit level of x)²`` (relative terms, as
 RelMSE weighs them). The absolute weight alone misses the halo around a small light in view: the light's edge
 pixels, half covered by an emitter, carry a variance far above their dark neighbours', and a box spreads it over the
-window. The relative weight alone gives back more noise on a few textured frames. A light in view that ``oidn``
-capped, with its rim, is pinned (``pinned``, model.robust.source_pixels): given back as rendered and left out of
-every window, so its coverage noise hides nothing around it. The rule and WINDOW were chosen
+window. The relative weight alone gives back more noise on a few textured frames. A light in view that the outlier
+detector kept out of the method (model/outliers.py), with its rim, is pinned (``pinned``): given back as rendered
+and left out of every window, so its coverage noise hides nothing around it. The rule and WINDOW were chosen
 on held-out procedural rooms and studios 93301-93303 and checked on 93304-93308; NOISE_MARGIN on all 16, per layer:
-at 2 a few samples that miss rare bright paths (their variance reads low) cost the indirect layer up to 10 %, at 4
-no layer of any frame lost more than 1 % (docs/decisions.md, "Backing OIDN off converged pixels").
+a lower margin lets a few samples that miss rare bright paths (their variance reads low) cost the indirect layer
+(docs/decisions.md, "Backing OIDN off converged pixels", has the figures).
 """
 
 from __future__ import annotations
@@ -49,7 +49,7 @@ def back_off(noisy: np.ndarray, denoised: np.ndarray, variance: np.ndarray,
     """``denoised`` (H, W, 3) blended toward ``noisy`` (H, W, 3) by the variance (H, W) of ``noisy``'s per-pixel
     mean luminance, as the module docstring says; float32, finite wherever both images are. Non-finite variances
     read as VARIANCE_MAX (very noisy: the denoiser's value is kept). ``pinned`` (H, W) bool: pixels that come back
-    as ``noisy`` and are left out of every window (a light in view and its rim, model.robust.source_pixels: its
+    as ``noisy`` and are left out of every window (a light in view and its rim, model/outliers.py: its
     edge pixels carry a variance far above their neighbours', which would read as noise over the whole window)."""
     x = np.asarray(noisy, np.float32)
     y = np.asarray(denoised, np.float32)

@@ -39,6 +39,13 @@ _CYCLES_COLOR: tuple[str, ...] = ("Noisy Image", "Combined")
 _CYCLES_ALBEDO: tuple[str, ...] = ("Denoising Albedo",)
 _CYCLES_NORMAL: tuple[str, ...] = ("Denoising Normal", "Normal")
 _CYCLES_DEPTH: tuple[str, ...] = ("Denoising Depth", "Depth")
+#: Cycles' motion pass: X, Y = position in the previous frame minus this one, Z, W = this position minus the one
+#: in the next frame, in raster pixels with y up (Cycles' kernel/geom/primitive.h, primitive_motion_vector; its
+#: camera puts raster y = 0 at the view plane's bottom). So
+#: backward = (X, Y) and forward = (-Z, -W) in the contract's (Nuke's) convention: contract name -> (channel, sign).
+_CYCLES_VECTOR = "Vector"
+_CYCLES_MOTION: dict[str, tuple[str, float]] = {
+    "backward.u": ("X", 1.0), "backward.v": ("Y", 1.0), "forward.u": ("Z", -1.0), "forward.v": ("W", -1.0)}
 
 
 class LayoutError(ValueError):
@@ -58,6 +65,7 @@ class ChannelMap:
     sources: dict[str, str]
     alpha: str | None = None  # the file channel carried through as the output's A
     ignored: tuple[str, ...] = field(default=())  # file channels this layout does not read (a warning names them)
+    signs: dict[str, float] = field(default_factory=dict)  # contract name -> factor applied on reading (default 1)
 
     @property
     def names(self) -> list[str]:
@@ -155,8 +163,8 @@ def _cycles(names: Sequence[str], view_layer: str | None = None) -> ChannelMap:
     """A Blender Cycles multilayer EXR: ``VIEWLAYER.PASS.CHANNEL``. Colour from ``Noisy Image`` when the file has it
     (Blender's denoiser was on, so ``Combined`` is already denoised), else ``Combined``; alpha from the same
     pass's ``A``; albedo ``Denoising Albedo.{R,G,B}``; normal ``Denoising Normal.{X,Y,Z}`` (else ``Normal``);
-    depth ``Denoising Depth.Z`` (else ``Depth.Z``). A file with several view layers names one as
-    ``cycles:VIEWLAYER``."""
+    depth ``Denoising Depth.Z`` (else ``Depth.Z``); motion vectors from ``Vector.{X,Y,Z,W}`` (converted to the
+    contract's convention: _CYCLES_MOTION). A file with several view layers names one as ``cycles:VIEWLAYER``."""
     if view_layer is None:
         view_layer = _the_view_layer(names)
     present = set(names)
@@ -170,8 +178,13 @@ def _cycles(names: Sequence[str], view_layer: str | None = None) -> ChannelMap:
     alpha = f"{color_pass}.A" if f"{color_pass}.A" in present else None
     sources.update(_features(present, [prefix + p for p in _CYCLES_ALBEDO], [prefix + p for p in _CYCLES_NORMAL],
                              [prefix + p for p in _CYCLES_DEPTH], ("Z",)))
+    vector = {name: (f"{prefix}{_CYCLES_VECTOR}.{c}", sign) for name, (c, sign) in _CYCLES_MOTION.items()}
+    signs: dict[str, float] = {}
+    if all(channel in present for channel, _ in vector.values()):
+        sources.update({name: channel for name, (channel, _) in vector.items()})
+        signs = {name: sign for name, (_, sign) in vector.items() if sign != 1.0}
     used = {*sources.values(), *([alpha] if alpha else [])}
-    return ChannelMap(f"cycles:{view_layer}", sources, alpha, tuple(n for n in names if n not in used))
+    return ChannelMap(f"cycles:{view_layer}", sources, alpha, tuple(n for n in names if n not in used), signs)
 
 
 def _the_view_layer(names: Sequence[str]) -> str:

@@ -38,13 +38,19 @@ from gradsep.model.errors import (
     UnsupportedExrError,
 )
 from gradsep.model.frame import (
+    MOTION_CHANNELS,
+    MOTION_DIRECTIONS,
+    MOTION_MAX_DIAGONALS,
     OWNED_PREFIXES,
     VARIANCE_MAX,
     Features,
     Frame,
     Layer,
+    Motion,
     frame_channels,
     layer_channels,
+    motion_channels,
+    sanitize_motion,
     variance_channel,
 )
 from gradsep.model.policy import FEATURE_GROUPS, ILLUMINATION_LAYERS, SEPARATED_LAYERS
@@ -292,7 +298,7 @@ def read_header(source: Source, limits: ReadLimits = ReadLimits()) -> HeaderInfo
 
 def _classify(names: Iterable[str]) -> tuple[list[str], list[str], list[str]]:
     """Split channel names into (layers present, unknown channels under our prefixes, foreign channels)."""
-    known = {*frame_channels(ILLUMINATION_LAYERS), *map(variance_channel, ILLUMINATION_LAYERS)}
+    known = {*frame_channels(ILLUMINATION_LAYERS), *map(variance_channel, ILLUMINATION_LAYERS), *MOTION_CHANNELS}
     present_layers = [layer for layer in ILLUMINATION_LAYERS if any(n.startswith(f"{layer}.") for n in names)]
     unknown, foreign = [], []
     for n in names:
@@ -336,6 +342,8 @@ def validate_channels(names: Iterable[str]) -> tuple[list[str], tuple[str, ...],
     groups = tuple(g for g, chans in FEATURE_GROUPS.items() if any(c in present for c in chans))
     # each group is all-or-nothing: albedo.R without albedo.G means the producer dropped a channel
     missing += [c for g in groups for c in FEATURE_GROUPS[g] if c not in present]
+    # a motion direction is its u and v (its validity optional: compositing tools write none)
+    missing += [c for d in motion_directions(present) for c in motion_channels(d)[:2] if c not in present]
     if missing:
         problems.append(f"missing channels {', '.join(missing)}")
         details["missing"] = missing
@@ -349,6 +357,30 @@ def validate_channels(names: Iterable[str]) -> tuple[list[str], tuple[str, ...],
         raise ChannelError("; ".join(problems), details)
     warnings = [f"ignored channels outside the frame contract: {', '.join(sorted(foreign))}"] if foreign else []
     return layers, groups, warnings
+
+
+def motion_directions(names: Iterable[str]) -> tuple[str, ...]:
+    """The motion directions these channels carry any channel of (``backward``, ``forward``)."""
+    present = set(names)
+    return tuple(d for d in MOTION_DIRECTIONS if any(c in present for c in motion_channels(d)))
+
+
+def _motion(decoded: Mapping[str, Any], cmap: ChannelMap, info: HeaderInfo, warnings: list[str]) -> Motion | None:
+    """The file's motion vectors (None without any): a layout's sign conventions applied, non-finite or absurd
+    vectors made invalid and counted in a warning, invalid pixels' vectors 0."""
+    sides: dict[str, np.ndarray | None] = {}
+    for direction in motion_directions(cmap.names):
+        u, v, ok = motion_channels(direction)
+        planes = [_decoded(decoded, cmap.sources[c], info) * np.float32(cmap.signs.get(c, 1.0)) for c in (u, v)]
+        valid = _decoded(decoded, cmap.sources[ok], info) if ok in cmap.sources else None
+        if valid is not None:
+            valid = np.isfinite(valid) & (valid > 0.5)
+        vectors, valid, bad = sanitize_motion(np.stack(planes, axis=-1), valid)
+        if bad:
+            warnings.append(f"{bad} non-finite or absurd {direction} motion vector(s) (over "
+                            f"{MOTION_MAX_DIAGONALS:g} frame diagonals) marked invalid")
+        sides[direction], sides[f"{direction}_valid"] = vectors, valid
+    return Motion(**sides) if sides else None
 
 
 def _sanitize(channels: dict[str, np.ndarray], names: Iterable[str], policy: NonFinitePolicy,
@@ -432,8 +464,9 @@ def read_frame(source: Source, *, limits: ReadLimits = ReadLimits(),
     if groups:
         features = Features(**{g: stack(FEATURE_GROUPS[g]) if len(FEATURE_GROUPS[g]) > 1
                                else channels[FEATURE_GROUPS[g][0]] for g in groups})
+    motion = _motion(decoded, cmap, info, warnings)
     return Frame(frame_layers, features, info.attributes, warnings, alpha=alpha,
-                 image_attributes=dict(info.image_attributes), layout=cmap.layout)
+                 image_attributes=dict(info.image_attributes), layout=cmap.layout, motion=motion)
 
 
 def _variance(values: np.ndarray, layer: str, warnings: list[str]) -> np.ndarray | None:

@@ -3,7 +3,8 @@
 :func:`encode_answer` is the one definition of what an answer carries (the reconstruction, the input's alpha and
 header attributes, the answer's own ``gradsep.*`` keys: model/header_keys.py); :func:`write_bytes_atomic` writes
 any file by a rename, so a killed run never leaves a half-written one. A half-float file saturates at ±65504
-instead of overflowing to Inf, and a layer's variance stays float32 (model/frame.py ``VARIANCE``).
+instead of overflowing to Inf; a layer's variance and the motion vectors stay float32 (model/frame.py
+``is_float32_channel``).
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ import OpenEXR
 
 from gradsep.model.channels import ALPHA
 from gradsep.model.exr_read import IMAGE_ATTRIBUTES
-from gradsep.model.frame import Frame, is_variance_channel
+from gradsep.model.frame import Frame, is_float32_channel
 from gradsep.model.header_keys import (
     ANSWER_KEYS,
     PLAN_METHOD_KEY,
@@ -61,7 +62,7 @@ def _exr_file(channels: Mapping[str, np.ndarray], half: bool, metadata: Mapping[
     pixels = {}
     for name, value in channels.items():
         arr = np.asarray(value)
-        if is_variance_channel(name):  # float32 even in a half file: VARIANCE's comment
+        if is_float32_channel(name):  # float32 even in a half file: variance and motion (model/frame.py)
             pixels[name] = np.ascontiguousarray(arr, dtype=np.float32)
             continue
         if half:  # float32 -> half overflows to Inf above 65504: saturate instead, outputs stay finite

@@ -12,7 +12,11 @@ A frame is a single-part scanline OpenEXR file (float32 or half, any compression
 * features, three optional groups, each all three (or one) of its channels or none: ``albedo.{R,G,B}`` in
   [0, 1], ``normal.{X,Y,Z}`` unit camera-space normals, ``depth.Z`` distance in scene units (0 where the camera ray
   missed). Which method uses or needs which group is declared in model/methods.py;
-* optionally ``A``, alpha, carried through to the output unchanged.
+* optionally ``A``, alpha, carried through to the output unchanged;
+* optionally motion vectors (:class:`Motion`), Nuke's ``backward`` and ``forward`` layers: ``D.u``, ``D.v`` in
+  pixels and ``D.valid`` (1 valid, 0 no correspondence), float32 even in a half file. ``x_prev = x +
+  backward.u``, ``y_prev = y - backward.v`` with ``y`` the row (growing downward): ``v`` grows upward, as in
+  Nuke; likewise ``x_next = x + forward.u``, ``y_next = y - forward.v``.
 
 Gradients follow ``dx(x, y) = I(x+1, y) - I(x, y)`` and ``dy(x, y) = I(x, y+1) - I(x, y)`` with ``y`` growing
 downward (row order); the last column of dx and the last row of dy are 0. A frame carries only the layers its
@@ -54,7 +58,24 @@ VARIANCE_MAX = 1e30
 FEATURE_CHANNELS: tuple[str, ...] = tuple(c for group in FEATURE_GROUPS.values() for c in group)
 # Prefixes this contract owns: a channel under one of them that is not a contract channel is a producer bug and
 # is rejected; channels outside them (a renderer's extra AOVs) are ignored with a warning; "A" is alpha.
-OWNED_PREFIXES: tuple[str, ...] = (*ILLUMINATION_LAYERS, *FEATURE_GROUPS)
+OWNED_PREFIXES: tuple[str, ...] = (*ILLUMINATION_LAYERS, *FEATURE_GROUPS, "backward", "forward")
+#: The motion-vector directions (Nuke's layer names): to the previous frame and to the next.
+MOTION_DIRECTIONS: tuple[str, ...] = ("backward", "forward")
+#: A direction's channels: displacement in pixels (u right, v up) and validity (1 valid, 0 none).
+MOTION_COMPONENTS: tuple[str, ...] = ("u", "v", "valid")
+#: A vector longer than this many frame diagonals is not a motion vector: it reads as invalid (with a warning).
+MOTION_MAX_DIAGONALS = 4.0
+
+
+def motion_channels(direction: str) -> tuple[str, ...]:
+    """``backward.u backward.v backward.valid`` (or forward's): one direction's channels, in file order."""
+    if direction not in MOTION_DIRECTIONS:
+        raise ValueError(f"unknown motion direction {direction!r}; expected one of {MOTION_DIRECTIONS}")
+    return tuple(f"{direction}.{c}" for c in MOTION_COMPONENTS)
+
+
+#: Every motion channel, in canonical order.
+MOTION_CHANNELS: tuple[str, ...] = tuple(c for d in MOTION_DIRECTIONS for c in motion_channels(d))
 
 
 def layer_channels(layer: str, gradients: bool = True) -> tuple[str, ...]:
@@ -75,6 +96,12 @@ def variance_channel(layer: str) -> str:
 def is_variance_channel(name: str) -> bool:
     """Whether ``name`` is a layer's variance channel (kept float32 in a half file: see :func:`encode_exr`)."""
     return name.split(".", 1)[-1] == VARIANCE and name.split(".", 1)[0] in ILLUMINATION_LAYERS
+
+
+def is_float32_channel(name: str) -> bool:
+    """Whether ``name`` stays float32 in a half file: a layer's variance, or a motion channel (half's step at a
+    few hundred pixels would move a warped sample by a fraction of a pixel)."""
+    return is_variance_channel(name) or name in MOTION_CHANNELS
 
 
 def frame_channels(layers: Iterable[str], features: bool = True, gradients: bool = True) -> tuple[str, ...]:
@@ -144,6 +171,76 @@ def feature_groups(features: Features | None) -> tuple[str, ...]:
 
 
 @dataclass
+class Motion:
+    """Motion vectors to the previous frame (``backward``) and to the next (``forward``): float32 (H, W, 2) arrays
+    of (u, v) in pixels, u to the right and v upward (Nuke's convention), each with its (H, W) validity (bool; a
+    pixel without a correspondence is invalid and its vector is 0). A side is None when the frame has no
+    neighbour there (a shot's first or last frame) or the file does not carry it."""
+
+    backward: np.ndarray | None = None
+    forward: np.ndarray | None = None
+    backward_valid: np.ndarray | None = None
+    forward_valid: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        for direction in MOTION_DIRECTIONS:
+            vectors, valid = getattr(self, direction), getattr(self, f"{direction}_valid")
+            if (vectors is None) != (valid is None):
+                raise ValueError(f"motion {direction}: vectors and validity come together or not at all")
+            if vectors is None:
+                continue
+            if vectors.ndim != 3 or vectors.shape[2] != 2 or valid.shape != vectors.shape[:2]:
+                raise ValueError(f"motion {direction}: expected (H, W, 2) vectors and (H, W) validity, got "
+                                 f"{vectors.shape} and {valid.shape}")
+            setattr(self, f"{direction}_valid", np.asarray(valid) > 0.5 if valid.dtype != bool else valid)
+
+    @property
+    def directions(self) -> tuple[str, ...]:
+        """The directions carried, in MOTION_DIRECTIONS order."""
+        return tuple(d for d in MOTION_DIRECTIONS if getattr(self, d) is not None)
+
+    def side(self, direction: str) -> tuple[np.ndarray, np.ndarray]:
+        """(vectors (H, W, 2), validity (H, W) bool) of one direction; ValueError when it is not carried."""
+        motion_channels(direction)  # checks the name
+        vectors = getattr(self, direction)
+        if vectors is None:
+            raise ValueError(f"this frame carries no {direction} motion vectors")
+        return vectors, getattr(self, f"{direction}_valid")
+
+    def warp_source(self, direction: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Where each pixel's surface point is in the neighbouring frame, as fractional (rows, cols) of pixel
+        indices (row 0 at the top; pixel (r, c) has its centre at (r, c)), and the validity. Sampling the
+        neighbour's image there (bilinearly) warps it onto this frame."""
+        vectors, valid = self.side(direction)
+        rows, cols = np.indices(valid.shape, dtype=np.float32)
+        return rows - vectors[..., 1], cols + vectors[..., 0], valid
+
+    def to_channels(self) -> dict[str, np.ndarray]:
+        """Channel name -> (H, W) float32 array, for the directions carried."""
+        out: dict[str, np.ndarray] = {}
+        for direction in self.directions:
+            vectors, valid = self.side(direction)
+            u, v, ok = motion_channels(direction)
+            out[u], out[v], out[ok] = vectors[..., 0], vectors[..., 1], valid.astype(np.float32)
+        return out
+
+
+def sanitize_motion(vectors: np.ndarray, valid: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, int]:
+    """(vectors, validity, count): non-finite vectors and vectors longer than MOTION_MAX_DIAGONALS frame diagonals
+    become invalid (count: how many valid ones did), and every invalid pixel's vector becomes 0. ``valid`` None:
+    every pixel is valid unless its vector is bad (a file from a tool that writes no validity)."""
+    vectors = np.array(vectors, dtype=np.float32)
+    ok = np.ones(vectors.shape[:2], dtype=bool) if valid is None else np.asarray(valid) > 0.5
+    limit = MOTION_MAX_DIAGONALS * float(np.hypot(*vectors.shape[:2]))
+    with np.errstate(invalid="ignore", over="ignore"):
+        bad = ~np.all(np.isfinite(vectors), axis=-1) | (np.hypot(vectors[..., 0], vectors[..., 1]) > limit)
+    count = int(np.count_nonzero(bad & ok))
+    ok &= ~bad
+    vectors[~ok] = 0.0
+    return vectors, ok, count
+
+
+@dataclass
 class Frame:
     """A decoded, validated frame. ``layers`` holds only the layers present, in ILLUMINATION_LAYERS order."""
 
@@ -154,6 +251,7 @@ class Frame:
     alpha: np.ndarray | None = None  # (H, W) float32 "A" of the input, carried through to the output
     image_attributes: dict[str, Any] = field(default_factory=dict)  # data/display window, aspect...: IMAGE_ATTRIBUTES
     layout: str = "gradsep"  # the channel layout it was read with (model/channels.py)
+    motion: Motion | None = None  # motion vectors to the neighbouring frames of a shot
 
     @property
     def height(self) -> int:
@@ -198,6 +296,8 @@ class Frame:
             out.update(zip(FEATURE_GROUPS[group], planes, strict=True))
         if self.alpha is not None:
             out[ALPHA] = self.alpha
+        if self.motion is not None:
+            out.update(self.motion.to_channels())
         return {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in out.items()}
 
 

@@ -61,7 +61,7 @@ from gradsep.model.preprocess import (
 CANDIDATES: tuple[str, ...] = ("oidn", "refine-fast")
 #: The refinement solve of the ``refine-fast`` candidate: (IRLS passes, CG steps per pass), multigrid-preconditioned
 #: (model.poisson.solve_l1), α = REFINE_ALPHA. Pinned here, not read from model/refine.py, because a model is
-#: trained on the numbers one solve gives (3 passes of 1 V-cycle, 0.21 s per 1280x720 layer).
+#: trained on the numbers one solve gives (3 passes of 1 V-cycle).
 REFINE_SOLVES: dict[str, tuple[int, int]] = {"refine-fast": (3, 1)}
 REFINE_PRECONDITIONER = "mg"
 REFINE_ALPHA = 1.0
@@ -120,21 +120,22 @@ def refine(kind: str, oidn: np.ndarray, scaled: Layer) -> np.ndarray:
     """OIDN's image refined by the layer's gradients with the ``kind`` solve of REFINE_SOLVES: the oidn-l1
     refinement (model.refine.refine_layer: the L1 screened Poisson problem with OIDN's image as the data term,
     solved at robust level 1) with every setting of the solve pinned here. (H, W, 3) float32, finite."""
-    from gradsep.model.refine import refine_layer
+    from gradsep.model.refine import RefineSolve, refine_layer
 
     passes, cg_steps = REFINE_SOLVES[kind]
     # "direct": refine this layer whatever its name
-    return refine_layer("direct", oidn, scaled, REFINE_ALPHA, preconditioner=REFINE_PRECONDITIONER,
-                        cg_steps=cg_steps, passes=passes)
+    return refine_layer("direct", oidn, scaled, REFINE_ALPHA,
+                        solve=RefineSolve(REFINE_PRECONDITIONER, cg_steps=cg_steps, passes=passes))
 
 
 def refine_direct(oidn: np.ndarray, scaled: Layer, report: dict[str, float] | None = None) -> np.ndarray:
     """The ``refine-direct`` image: OIDN's image refined by the layer's gradients as the oidn-l1 method refines it,
     at fused's CG budget DIRECT_CG. ``report``: see model.refine.refine_layer (the trust rule's w_f)."""
-    from gradsep.model.refine import refine_layer
+    from gradsep.model.refine import RefineSolve, refine_layer
 
     tolerance, steps = DIRECT_CG
-    return refine_layer("direct", oidn, scaled, cg_steps=steps, cg_tolerance=tolerance, report=report)
+    return refine_layer("direct", oidn, scaled, solve=RefineSolve(cg_steps=steps, cg_tolerance=tolerance),
+                        report=report)
 
 
 def layer_candidates(layer: Layer, aux: Any, kinds: tuple[str, ...] = CANDIDATES,
@@ -294,8 +295,7 @@ def load_model(path: str | os.PathLike[str], name: str) -> BlendModel:
     """Open one blend model on the provider the ``network`` method's models use (model.onnx_session.choose_provider:
     OpenVINO in bf16 where the CPU has native bf16, else ORT's CPU provider in fp32; ``GRADSEP_ONNX_PROVIDER``
     overrides), falling back to the CPU provider should the accelerated one fail; BlendModelError when unusable.
-    The weights only choose among candidates (the blend itself is float64 numpy), so bf16 moves them by about
-    1e-3 at most (measured)."""
+    The weights only choose among candidates (the blend itself is float64 numpy), so bf16 moves them little."""
     from gradsep.model.onnx_session import SessionSettings, graph_session, open_session
 
     path = Path(path)

@@ -11,9 +11,9 @@ version), and ``reconstruct_layer`` runs one layer of a frame:
 Frames above ``TileSettings.max_untiled_pixels`` are processed in overlapping windows: each window carries
 ``overlap`` pixels of context on its interior sides; the outer half of that context is discarded (it saw the
 window's border) and the inner half is blended with the neighbour by a linear ramp, so seams are feathered. Memory then
-depends on the window size, not the frame (a 4096×4096 layer peaks at well under 4 GB; see
-benchmarks/bench_network.py --memory). Channel attention pools over the window, so tiled output is close to,
-not bit-identical with, untiled output; windows are large (1 Mpx cores) to keep those statistics close.
+depends on the window size, not the frame (benchmarks/bench_network.py --memory measures it). Channel attention
+pools over the window, so tiled output is close to, not bit-identical with, untiled output; windows are large
+(1 Mpx cores) to keep those statistics close.
 """
 
 from __future__ import annotations

@@ -32,12 +32,12 @@ from typing import Any, Protocol
 import numpy as np
 
 from gradsep.model import methods as table
+from gradsep.model import outliers
 from gradsep.model.environment import env_int
 from gradsep.model.errors import ChannelError
 from gradsep.model.frame import Features, Frame, Layer, feature_groups
 from gradsep.model.methods import LoadedModels, Method
 from gradsep.model.policy import DEFAULT_ALPHA, FEATURE_GROUPS, models_dir_from
-from gradsep.model.robust import add_excess, add_in_place, outlier_count, source_pixels, split_frame, split_sources
 
 __all__ = [
     "LayerContext",
@@ -97,7 +97,7 @@ class LayerContext:
     features: Features | None  # the frame's feature groups that the method uses (None: none of them)
     aux: Any = None  # OIDN's auxiliary images (model.oidn.CleanAux), computed once per frame when the method runs OIDN
     denoiser: Any = None  # the model.oidn.Denoiser of a method that runs OIDN
-    #: per layer, the pixels of a light in view that were capped and their rim (model.robust.source_pixels): they
+    #: per layer, the pixels of a light in view the outlier detector kept out, and their rim (model/outliers.py): they
     #: come back as rendered, and the back-off (model/backoff.py) leaves them out of its windows
     pinned: dict[str, np.ndarray] = field(default_factory=dict)
 
@@ -317,14 +317,13 @@ def reconstruct(frame: Frame, method: str | None = None, alpha: float = DEFAULT_
     models = _as_models(models)
     spec = table.get(method or choose_method(frame, models))
     _check_method(frame, spec, alpha, models)
-    # a denoising method never sees a layer's extreme outliers: their excess is spread back near them below
-    frame, excess = split_frame(frame) if spec.split_outliers else (frame, {})
-    # ... nor a light in view: capped, its excess put back in place below
-    frame, sources = split_frame(frame, split_sources) if spec.split_sources else (frame, {})
+    # a denoising method never sees a layer's outliers (nor, for some, a light in view): their energy goes back
+    # around where it landed below (model/outliers.py)
+    frame, split = (outliers.split_frame(frame, spec.split_sources) if spec.split_outliers
+                    else (frame, outliers.FrameSplit()))
     features = frame.features.only(spec.uses) if frame.features is not None else None
     warnings: list[str] = []
-    ctx = LayerContext(spec, alpha, models, features,
-                       pinned={name: source_pixels(extra) for name, extra in sources.items()})
+    ctx = LayerContext(spec, alpha, models, features, pinned=split.pinned())
     shape = (frame.height, frame.width, 3)
     layers: dict[str, np.ndarray] = {}
     timings: dict[str, float] = {}
@@ -343,14 +342,8 @@ def reconstruct(frame: Frame, method: str | None = None, alpha: float = DEFAULT_
             timings["features"] = time.perf_counter() - start
     for name, (image, seconds) in _run_layers(frame, ctx).items():
         timings[name] = seconds
-        if name in excess:
-            image = add_excess(image, excess[name])
-            warnings.append(f"layer {name}: {outlier_count(excess[name])} outlier pixel(s) kept out of the {spec.name} "
-                            "denoiser; their energy was spread over a few pixels around each")
-        if name in sources:
-            image = add_in_place(image, sources[name])
-            warnings.append(f"layer {name}: {outlier_count(sources[name])} pixel(s) of a bright source (a light in "
-                            f"view) capped for the {spec.name} denoiser and put back in place")
+        image = split.restore(name, image)
+        warnings.extend(split.warnings(name, spec.name))
         layers[name] = _sanitise(name, image, shape, warnings)
     for name in frame.layers:  # summed in the frame's order whatever order the layers finished in
         total += layers[name]

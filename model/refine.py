@@ -33,6 +33,7 @@ were chosen on held-out procedural frames, never on the evaluation's scenes (doc
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -200,28 +201,40 @@ def _frame_weight(alpha: float) -> float:
     return min(max((REFINE_ALPHA - alpha) / span, 0.0), 1.0)
 
 
-def _cg_budget(cg_steps: int | None, cg_tolerance: float | None) -> dict:
-    """L1Options' CG fields for refine_layer's arguments."""
-    if cg_steps is not None:  # the pinned fixed budget; a tolerance only if one is asked for
-        return {"cg_iterations": cg_steps} | ({} if cg_tolerance is None else {"cg_tolerance": cg_tolerance})
-    return {"cg_iterations": REFINE_MAX_CG_STEPS,
-            "cg_tolerance": REFINE_CG_TOLERANCE if cg_tolerance is None else cg_tolerance}
+@dataclass(frozen=True)
+class RefineSolve:
+    """How :func:`refine_layer` solves: ``preconditioner`` (None: REFINE_PRECONDITIONER); ``cg_steps`` /
+    ``cg_tolerance`` (None and None: each pass to the relative residual REFINE_CG_TOLERANCE in at most
+    REFINE_MAX_CG_STEPS steps; ``cg_steps`` alone: that fixed budget at solve_l1's own tolerance); ``passes``
+    (None: REFINE_ITERATIONS). A model trained on refinements of another solve, such as the fused models, passes
+    the one it was trained with."""
+
+    preconditioner: str | None = None
+    cg_steps: int | None = None
+    cg_tolerance: float | None = None
+    passes: int | None = None
+
+    def solver_keywords(self) -> dict:
+        """solve_l1's CG and preconditioner keywords."""
+        if self.cg_steps is not None:  # the pinned fixed budget; a tolerance only if one is asked for
+            budget = {"cg_iterations": self.cg_steps} | (
+                {} if self.cg_tolerance is None else {"cg_tolerance": self.cg_tolerance})
+        else:
+            budget = {"cg_iterations": REFINE_MAX_CG_STEPS,
+                      "cg_tolerance": REFINE_CG_TOLERANCE if self.cg_tolerance is None else self.cg_tolerance}
+        return budget | {"preconditioner": self.preconditioner or REFINE_PRECONDITIONER}
 
 
 def refine_layer(name: str, prior: np.ndarray, layer: Layer, alpha: float | None = None, *,
-                 preconditioner: str | None = None, cg_steps: int | None = None,
-                 cg_tolerance: float | None = None, passes: int | None = None,
-                 report: dict[str, float] | None = None) -> np.ndarray:
+                 solve: RefineSolve | None = None, report: dict[str, float] | None = None) -> np.ndarray:
     """``prior`` (OIDN's denoise of ``layer.base``) refined by the layer's gradients when ``name`` is one of
     REFINED_LAYERS and the layer carries gradients; otherwise ``prior`` unchanged. float32 (H, W, 3), ≥ 0.
-    ``alpha`` None: the trust rule's data term and α; a number: OIDN's image at that α. ``preconditioner`` /
-    ``cg_steps`` / ``passes`` select the solve (None: REFINE_PRECONDITIONER, each pass to the relative residual
-    ``cg_tolerance`` (None: REFINE_CG_TOLERANCE) in at most REFINE_MAX_CG_STEPS steps, REFINE_ITERATIONS passes);
-    a model trained on refinements of another solve, such as the fused models, passes the one it was trained with
-    (``cg_steps`` without ``cg_tolerance``: that fixed budget at solve_l1's own tolerance).
+    ``alpha`` None: the trust rule's data term and α; a number: OIDN's image at that α. ``solve``: how the L1
+    problem is solved (:class:`RefineSolve`; None: the defaults).
     ``report``: when given, ``report["clean_weight"]`` is set to the layer's w_f as the trust rule computed it here
     (what :func:`clean_weight` would recompute, to float rounding; 0 wherever the rule did not run), so a caller
     that needs both does not pay for the frame statistic twice."""
+    solve = solve or RefineSolve()
     if report is not None:
         report["clean_weight"] = 0.0  # until the trust rule says otherwise
     if name not in REFINED_LAYERS or not layer.has_gradients:
@@ -239,8 +252,7 @@ def refine_layer(name: str, prior: np.ndarray, layer: Layer, alpha: float | None
     # a clean layer's L2 start at its non-black pixels' α (the map's smallest): solve_l1's pass 0, a DCT solve,
     # cannot take a per-pixel map, and the truncated CG passes after it move the image only part of the way
     start = alpha * float(np.min(alpha_map)) if alpha_map is not None else None
-    options = L1Options(passes or REFINE_ITERATIONS, preconditioner=preconditioner or REFINE_PRECONDITIONER,
-                        **_cg_budget(cg_steps, cg_tolerance))
+    options = L1Options(solve.passes or REFINE_ITERATIONS, **solve.solver_keywords())
     solved, _ = solve_l1(data, dx, dy, alpha, options, alpha_map=alpha_map, start_alpha=start)
     out = np.asarray(solved, np.float64) / scale
     return np.clip(out, 0.0, _F32_MAX).astype(np.float32)

@@ -1,4 +1,4 @@
-"""Frame statistics one pixel cannot move, and the split of a layer's extreme outliers.
+"""Frame statistics one pixel cannot move, and the footprint an outlier's energy is put back over.
 
 Every denoising method needs a few numbers about the whole layer (the exposure OIDN and the networks see, the
 level the solvers work at, the trust rule's frame weight). Taken as a plain mean, a sum or a maximum, one firefly
@@ -6,52 +6,28 @@ moves them, and with them every pixel of the output. The statistics here are *ro
 winsorised mean and :func:`winsorised_sum` a winsorised sum, so a single pixel, whatever its value, counts as the
 99.9th percentile at most: it moves the level by at most that percentile over the pixel count.
 
-Extreme outliers (a pixel far above both its 8 neighbours and the layer's level: a firefly of a hundred times the
-mean or more, an overflowed sample) are taken out of the base before a denoising method runs (:func:`split_frame`,
-called by model.reconstruct for every method but the screened Poisson ones): each is replaced by the median of its
-neighbours, and its excess is added back to the method's output over a small Gaussian footprint around it
-(:func:`add_excess`). The methods' non-local parts (OIDN's U-Net, the networks' attention pooling, the CG step sizes
-of the solves) never see it, its energy is kept exactly, and its effect ends at the footprint's edge
-(OUTLIER_SPREAD_RADIUS pixels along each axis).
-
-A light in view is not an outlier (its pixels light each other) but OIDN smears it just the same: for ``oidn``,
-:func:`split_sources` caps such clusters (SOURCE_LEVEL × the lit level) and their excess goes back in place.
+The outliers themselves are found and kept out of the methods by model/outliers.py; their excess comes back here:
+:func:`add_excess` spreads it over a small Gaussian footprint (its energy kept exactly, its effect ending
+OUTLIER_SPREAD_RADIUS pixels away along each axis).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from gradsep.model.policy import LUMINANCE
 
-if TYPE_CHECKING:
-    from gradsep.model.frame import Frame
-
 #: The quantile at which :func:`robust_level` winsorises the per-pixel values: the top 0.1 % of the pixels count
 #: as this quantile's value, so no single pixel can move the level by more than one order statistic's step.
 WINSOR_QUANTILE = 0.999
-#: A pixel is an outlier where its luminance (channel mean) exceeds OUTLIER_LOCAL × the largest of its 8
-#: neighbours' *and* OUTLIER_LEVEL × the layer's robust level: far above Monte Carlo noise at the sample counts the
-#: methods serve, so ordinary frames have none and are denoised exactly as without the split.
-OUTLIER_LOCAL = 8.0
-OUTLIER_LEVEL = 64.0
 #: An outlier's excess (its value above the median of its 8 neighbours, per channel) is spread over a Gaussian
 #: footprint of this σ in pixels, truncated at OUTLIER_SPREAD_RADIUS and renormalised at the frame's border, so its
 #: energy is kept exactly and its effect ends OUTLIER_SPREAD_RADIUS pixels from it along each axis (the footprint
 #: is a square: at most 11·√2 ≈ 15.6 px away).
 OUTLIER_SPREAD_SIGMA = 3.5
 OUTLIER_SPREAD_RADIUS = 11
-#: A bright source (a light in view: a cluster of pixels the outlier test passes over because they light each
-#: other) is a pixel whose luminance exceeds SOURCE_LEVEL × the layer's lit level with at least one of its 8
-#: neighbours over it too. For methods with ``split_sources`` (``oidn``) it is capped at that luminance before the
-#: method runs and its excess added back in place: OIDN alone smears such a light over its neighbours (RelMSE 0.6-10
-#: on held-out studios with a small light in view). 256: no held-out frame of 80 worse for it (docs/decisions.md,
-#: "Lights in view under oidn").
-SOURCE_LEVEL = 256.0
 
 
 def channel_mean(image: np.ndarray) -> np.ndarray:
@@ -159,117 +135,6 @@ def winsorised_sum(values: np.ndarray) -> float:
     return float(np.minimum(flat, cap).sum())
 
 
-#: The 8 neighbours of a pixel, as (row, column) offsets.
-_RING = np.array([(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if (dy, dx) != (0, 0)])
-
-
-def _neighbours(ys: np.ndarray, xs: np.ndarray, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
-    """(rows, columns), each (n, 8): the 8 neighbours of the pixels (ys, xs), mirrored at the frame's border (the
-    pixel itself never counts among an edge or corner pixel's neighbours, except on a 1-pixel-wide axis)."""
-    def mirror(v: np.ndarray, size: int) -> np.ndarray:
-        v = np.abs(v)
-        return np.clip(np.where(v >= size, 2 * (size - 1) - v, v), 0, size - 1)
-
-    return mirror(ys[:, None] + _RING[:, 0], height), mirror(xs[:, None] + _RING[:, 1], width)
-
-
-def split_outliers(base: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
-    """(the base with each outlier (OUTLIER_LOCAL / OUTLIER_LEVEL) replaced by the (upper) median of its 8 neighbours
-    per channel, the outliers' excess over that median: (H, W, C) float32 ≥ 0, zero elsewhere), or (``base``, None)
-    when the layer has no outlier. Finite (H, W, C) input (model.exr_read's policy makes it so)."""
-    image = np.asarray(base, np.float32)
-    if image.ndim != 3 or image.size == 0:
-        return base, None
-    lum = channel_mean(image)
-    ys, xs = np.nonzero(lum > OUTLIER_LEVEL * robust_level(image))
-    if ys.size == 0:
-        return base, None
-    rows, cols = _neighbours(ys, xs, *lum.shape)
-    keep = lum[ys, xs] > OUTLIER_LOCAL * lum[rows, cols].max(axis=1)
-    if not keep.any():
-        return base, None
-    ys, xs, rows, cols = ys[keep], xs[keep], rows[keep], cols[keep]
-    value = image[ys, xs]  # (n, C)
-    local = np.minimum(np.sort(image[rows, cols], axis=1)[:, _RING.shape[0] // 2], value)
-    inlier = image.copy()
-    inlier[ys, xs] = local  # set, not subtracted: value − excess would cancel catastrophically at 1e30
-    excess = np.zeros_like(image)
-    excess[ys, xs] = (value.astype(np.float64) - local).astype(np.float32)
-    return inlier, excess
-
-
-def split_sources(base: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
-    """(the base with each bright-source pixel (SOURCE_LEVEL, in a cluster) scaled down to that luminance, the
-    excess over it, (H, W, C) float32 ≥ 0, zero elsewhere), or (``base``, None) when the layer has none. The excess
-    goes back in place (:func:`add_in_place`): a light in view is not noise to spread. Finite (H, W, C) input whose
-    isolated outliers were split off first (:func:`split_outliers`), so that a lone firefly is never one."""
-    image = np.asarray(base, np.float32)
-    if image.ndim != 3 or image.size == 0:
-        return base, None
-    lum = luminance(image)
-    level = lit_level_of_luminance(lum)
-    if not (math.isfinite(level) and level > 0.0):
-        return base, None
-    cap = SOURCE_LEVEL * level
-    over = lum > cap
-    if not over.any():
-        return base, None
-    padded = np.pad(over, 1)
-    height, width = over.shape
-    lit_neighbours = sum(padded[1 + dy:1 + dy + height, 1 + dx:1 + dx + width] for dy, dx in _RING)
-    source = over & (lit_neighbours > 0)
-    if not source.any():
-        return base, None
-    inlier = image.copy()
-    inlier[source] = image[source] * (cap / lum[source])[:, None]  # scaled: the colour is kept
-    excess = np.zeros_like(image)
-    excess[source] = np.maximum(image[source].astype(np.float64) - inlier[source], 0.0)
-    return inlier, excess
-
-
-def source_pixels(excess: np.ndarray) -> np.ndarray:
-    """(H, W) bool: the pixels :func:`split_sources` capped (``excess`` > 0) and the 4-neighbours around them, the
-    light's rim, whose pixels the emitter covers in part: their value and variance are the coverage's, not the
-    surface's. The back-off (model/backoff.py) gives them back as rendered and leaves them out of its windows.
-    Measured on held-out frames with a light in view: the rim pinned too took `oidn` on studio 93301 at 64 spp from
-    RelMSE 0.20 to 5e-5; two pixels of rim made room 93301 worse at 16 spp (docs/decisions.md)."""
-    from scipy.ndimage import binary_dilation
-
-    return binary_dilation(np.any(np.asarray(excess) > 0.0, axis=-1), iterations=1)
-
-
-def add_in_place(image: np.ndarray, excess: np.ndarray | None) -> np.ndarray:
-    """``image`` with ``excess`` added pixel by pixel (float64 sum clipped to float32's range); ``image`` when None."""
-    if excess is None:
-        return image
-    total = np.asarray(image, np.float64) + excess
-    return np.clip(total, 0.0, float(np.finfo(np.float32).max)).astype(np.float32)
-
-
-def split_frame(frame: Frame, split: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray | None]] = split_outliers
-                ) -> tuple[Frame, dict[str, np.ndarray]]:
-    """(``frame`` with every layer's base split by ``split`` (:func:`split_outliers`, or :func:`split_sources`), each
-    such layer's excess by name); ``frame`` itself and {} when no layer has anything to split. Gradients, variances
-    and features are kept as they are."""
-    from dataclasses import replace
-
-    from gradsep.model.frame import Layer
-
-    layers, excess = dict(frame.layers), {}
-    for name, layer in frame.layers.items():
-        inlier, extra = split(layer.base)
-        if extra is not None:
-            layers[name], excess[name] = Layer(inlier, layer.dx, layer.dy, layer.var), extra
-    if not excess:
-        return frame, {}
-    return replace(frame, layers=layers), excess
-
-
-def outlier_count(excess: np.ndarray) -> int:
-    """The number of outlier pixels an excess image carries."""
-    return int(np.count_nonzero(np.any(excess > 0, axis=-1)))
-
-
 #: Above this many outliers in a layer, :func:`spread` filters the whole frame at once instead of adding a patch per
 #: outlier (both give the same image to rounding; the patches are cheaper while outliers are few, as they are).
 SPREAD_PATCH_LIMIT = 4096
@@ -282,6 +147,16 @@ def _spread_kernel() -> np.ndarray:
     x = np.arange(-radius, radius + 1, dtype=np.float64)
     k = np.exp(-0.5 * (x / OUTLIER_SPREAD_SIGMA) ** 2)
     return k / k.sum()
+
+
+def _patch(y: int, x: int, height: int, width: int) -> tuple[slice, slice, np.ndarray]:
+    """The footprint of a point at (y, x): its rows, its columns and its (h, w) weights, renormalised to its part
+    inside the frame (they sum to 1)."""
+    k = _spread_kernel()
+    r = k.size // 2
+    y0, y1, x0, x1 = max(y - r, 0), min(y + r + 1, height), max(x - r, 0), min(x + r + 1, width)
+    ky, kx = k[y0 - y + r:y1 - y + r], k[x0 - x + r:x1 - x + r]
+    return slice(y0, y1), slice(x0, x1), np.outer(ky, kx) / (ky.sum() * kx.sum())
 
 
 def spread(excess: np.ndarray) -> np.ndarray:
@@ -299,14 +174,27 @@ def spread(excess: np.ndarray) -> np.ndarray:
         inside = gaussian_filter(np.ones(excess.shape[:2]), **blur)  # each footprint's mass inside the frame
         source = np.asarray(excess, np.float64) / inside[..., None]
         return np.stack([gaussian_filter(source[..., c], **blur) for c in range(excess.shape[-1])], axis=-1)
-    k = _spread_kernel()
-    r = k.size // 2
     out = np.zeros(excess.shape, np.float64)
     for y, x in zip(ys.tolist(), xs.tolist(), strict=True):
-        y0, y1, x0, x1 = max(y - r, 0), min(y + r + 1, height), max(x - r, 0), min(x + r + 1, width)
-        ky, kx = k[y0 - y + r:y1 - y + r], k[x0 - x + r:x1 - x + r]
-        weights = np.outer(ky, kx) / (ky.sum() * kx.sum())  # renormalised to the footprint's part in the frame
-        out[y0:y1, x0:x1] += weights[..., None] * excess[y, x].astype(np.float64)
+        rows, cols, weights = _patch(y, x, height, width)
+        out[rows, cols] += weights[..., None] * excess[y, x].astype(np.float64)
+    return out
+
+
+def add_points(image: np.ndarray, ys: np.ndarray, xs: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """``image`` (H, W, C) with ``values`` (n, C) added over the footprints of the points (``ys``, ``xs``), as
+    :func:`add_excess` adds an excess image holding them, but patch by patch (float64 sums clipped to float32's
+    range): no frame-sized float64 image while the points are few. A new float32 array."""
+    if ys.size > SPREAD_PATCH_LIMIT:
+        dense = np.zeros(np.shape(image), np.float64)
+        np.add.at(dense, (ys, xs), values)
+        return add_excess(image, dense)
+    out = np.array(image, np.float32)
+    height, width = out.shape[:2]
+    for y, x, value in zip(ys.tolist(), xs.tolist(), np.asarray(values, np.float64), strict=True):
+        rows, cols, weights = _patch(y, x, height, width)
+        total = out[rows, cols].astype(np.float64) + weights[..., None] * value
+        out[rows, cols] = np.clip(total, 0.0, float(np.finfo(np.float32).max))
     return out
 
 

@@ -80,16 +80,12 @@ def reconstruction_setting(width: int, height: int, layers: Iterable[str], gradi
 
 
 def has_light_in_view(frame: Frame) -> bool:
-    """Whether the frame's direct layer holds a light in view (model.robust.split_sources, after the outlier
-    split, as ``oidn`` sees it). With one, FARM_OIDN_SETTING's large model smears the light: the frame keeps the
-    default setting."""
-    from gradsep.model.robust import split_outliers, split_sources
+    """Whether the frame's direct layer holds a light in view as ``oidn`` sees it (model.outliers.light_in_view).
+    With one, FARM_OIDN_SETTING's large model smears the light: the frame keeps the default setting."""
+    from gradsep.model.outliers import light_in_view
 
     direct = frame.layers.get("direct")
-    if direct is None:
-        return False
-    inlier, _ = split_outliers(direct.base)
-    return split_sources(inlier)[1] is not None
+    return direct is not None and light_in_view(direct)
 
 
 @dataclass(frozen=True)

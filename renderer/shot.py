@@ -204,18 +204,6 @@ class SceneWindow:
         gc.collect()  # the scene's Mitsuba objects go now, not at some later collection
 
 
-def motion_renderer() -> Callable[..., Any] | None:
-    """``gradsep.renderer.motion.render_motion`` where that module is installed, else None (the shot renders
-    without motion vectors)."""
-    import importlib
-    import importlib.util
-
-    if importlib.util.find_spec("gradsep.renderer.motion") is None:
-        return None
-    motion = importlib.import_module("gradsep.renderer.motion")
-    return getattr(motion, "render_motion", None)
-
-
 def plan_cache_of(shot: Shot, args: argparse.Namespace, folder: Path | None, gradients: str) -> Any:
     """The shot's plan-cache entry folder (``auto`` only): ``folder`` (``--plan-cache``/$GRADSEP_PLAN_CACHE),
     else a hidden folder beside the outputs; keyed by ``--plan-key`` or the shot (its first scene, fixed defines,
@@ -250,20 +238,20 @@ def render_shot(args: argparse.Namespace, deadline: Any, gradients: str, cache_f
     if not todo:
         return 0
     plan_cache = plan_cache_of(shot, args, cache_folder, gradients)
-    motion = motion_renderer()
+    from gradsep.renderer.motion import render_motion
+
     window = SceneWindow(shot, args)
     for i, n in enumerate(todo):
         started = time.perf_counter()
         frame_deadline = deadline if i == 0 or deadline is None else Deadline(check_seconds(args.seconds))
-        # Without motion vectors only frame n's scene is alive while it renders: the scene's objects then take
-        # the JIT registry's slots the previous frame's had, and Dr.Jit reuses its kernels (a second live scene
-        # would shift those ids and compile another set).
-        window.forget_before(n if motion is None else n - 1)
+        # Frames n-1, n and n+1 are alive while n renders (its motion vectors need them): the scenes' objects take
+        # the JIT registry's slots in a cycle of three, so Dr.Jit compiles the shot's kernels for its first three
+        # frames and reuses them after.
+        window.forget_before(n - 1)
         scene = window.get(n)
         seed = frame_seed(args.seed, n)
         frame, plan_text = render(args, scene, RenderCall(seed, frame_deadline, gradients, plan_cache))
-        if motion is not None:
-            frame.motion = motion(scene, window.get(n - 1), window.get(n + 1))
+        frame.motion = render_motion(scene, window.get(n - 1), window.get(n + 1))
         frame.metadata.update(shot.header(n))
         path = shot.output.path(n)
         write_frame(path, frame)

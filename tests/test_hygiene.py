@@ -256,7 +256,6 @@ def test_no_measured_figures_in_the_cleaned_files() -> None:
     assert not offenders, "\n".join(f"{f}:{line}" for f, lines in offenders.items() for line in lines)
 
 
-@pytest.mark.xfail(strict=False, reason="lead removes after merging")
 def test_no_measured_figures_in_product_comments_or_docstrings() -> None:
     offenders = figure_offenders(product_files())
     assert not offenders, "\n".join(f"{f}:{line}" for f, lines in offenders.items() for line in lines)

@@ -68,7 +68,7 @@ def found_in(models_dir: Path) -> dict[str, bool]:
     from gradsep.evaluation.config import parse_methods
     from gradsep.evaluation.methods import evaluated_methods
     from gradsep.evaluation.report import labels
-    from gradsep.service.inference import load_models
+    from gradsep.service.engine import load_models
 
     return {
         "cli reconstruct --method": "toy" in _method_choices("reconstruct"),

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from gradsep.model.frame import Layer, forward_differences
-from gradsep.model.refine import REFINE_ALPHA, REFINED_LAYERS, refine_layer
+from gradsep.model.refine import REFINE_ALPHA, REFINED_LAYERS, RefineSolve, refine_layer
 
 
 def _sharp(h: int, w: int, seed: int) -> np.ndarray:
@@ -118,7 +118,8 @@ def _old_refine(prior: np.ndarray, layer: Layer, preconditioner: str, cg_steps: 
 def test_a_pinned_budget_gives_the_fixed_solve_bit_for_bit(preconditioner: str, cg_steps: int) -> None:
     truth = _sharp(40, 56, 4)
     prior, layer = _blur(truth), _layer_of(truth, noise=0.05, seed=5)
-    out = refine_layer("direct", prior, layer, REFINE_ALPHA, preconditioner=preconditioner, cg_steps=cg_steps)
+    out = refine_layer("direct", prior, layer, REFINE_ALPHA,
+                       solve=RefineSolve(preconditioner, cg_steps=cg_steps))
     assert np.array_equal(out, _old_refine(prior, layer, preconditioner, cg_steps))
 
 
@@ -142,7 +143,8 @@ def test_the_default_solve_runs_each_pass_to_the_tolerance(monkeypatch: pytest.M
         assert residual <= refine.REFINE_CG_TOLERANCE or steps == refine.REFINE_MAX_CG_STEPS
     assert stats.total_cg_iterations > 2 * (stats.iterations - 1)  # not the old fixed budget
     explicit = refine_layer("direct", _blur(truth), _layer_of(truth, noise=0.05, seed=7), REFINE_ALPHA,
-                            cg_steps=refine.REFINE_MAX_CG_STEPS, cg_tolerance=refine.REFINE_CG_TOLERANCE)
+                            solve=RefineSolve(cg_steps=refine.REFINE_MAX_CG_STEPS,
+                                              cg_tolerance=refine.REFINE_CG_TOLERANCE))
     assert np.array_equal(out, explicit)
 
 

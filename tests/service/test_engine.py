@@ -54,7 +54,7 @@ def test_broken_models_keep_liveness_but_never_ready(serve, monkeypatch):
 
 
 class FakeNetwork:
-    """What service.inference expects of model.infer.NetworkReconstructor once loaded."""
+    """What service.engine expects of model.infer.NetworkReconstructor once loaded."""
 
     layers = frozenset({"direct", "indirect"})
 
