@@ -40,35 +40,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from gradsep.model.frame import Frame, Layer
+from gradsep.model.frame import Frame, Layer, Motion
 from gradsep.model.methods import LoadedModels
 from gradsep.model.policy import DEFAULT_ALPHA
 from gradsep.model.reconstruct import Reconstruction, reconstruct
 from gradsep.model.robust import box_mean, luminance
-
-try:  # S2's motion vectors (model/frame.py); the stand-in below has the same fields until they land
-    from gradsep.model.frame import Motion  # type: ignore[attr-defined]
-except ImportError:  # pragma: no cover - replaced by model.frame.Motion at integration
-
-    @dataclass
-    class Motion:  # type: ignore[no-redef]
-        """Per-pixel motion to the previous (``backward``) and next (``forward``) frame, float32 (H, W, 2) as
-        (u, v) pixels with ``x_other = x + u``, ``row_other = row + v``; validity (H, W), 0 where none."""
-
-        backward: np.ndarray | None = None
-        forward: np.ndarray | None = None
-        backward_valid: np.ndarray | None = None
-        forward_valid: np.ndarray | None = None
-
-        def warp_source(self, direction: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-            vectors = self.backward if direction == "backward" else self.forward
-            valid = self.backward_valid if direction == "backward" else self.forward_valid
-            if vectors is None:
-                raise ValueError(f"no {direction} motion vectors")
-            rows, cols = np.mgrid[0:vectors.shape[0], 0:vectors.shape[1]].astype(np.float32)
-            ok = np.ones(vectors.shape[:2], bool) if valid is None else np.asarray(valid) > 0.5
-            return rows + vectors[..., 1], cols + vectors[..., 0], ok
-
 
 __all__ = ["BOXES", "DEFAULT_WINDOW", "REJECT_K", "Motion", "ShotReconstructor", "TemporalReconstruction",
            "check_shot", "first_stage", "reconstruct_window", "second_stage"]
