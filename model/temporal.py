@@ -168,6 +168,7 @@ class _Stats:
     windows): per layer the variance, the frame weight and, per box size, the box means of the luminance and
     of the variance; the FEATURE_BOX means of albedo and normal."""
 
+    y: dict[str, np.ndarray]
     var: dict[str, np.ndarray]
     weight: dict[str, float]
     boxes: dict[str, dict[int, tuple[np.ndarray, np.ndarray]]]
@@ -179,15 +180,15 @@ def _stats(frame: Frame) -> _Stats:
     cached = getattr(frame, "_temporal_stats", None)  # kept on the frame: it is read by up to `window` windows
     if cached is not None:
         return cached
-    var, weight, boxes = {}, {}, {}
+    lum, var, weight, boxes = {}, {}, {}, {}
     for name, layer in frame.layers.items():
         y = luminance(layer.base).astype(np.float32)
         v = (np.minimum(np.nan_to_num(layer.var, nan=0.0, posinf=1e30), 1e30).astype(np.float32)
              if layer.var is not None else _spatial_variance(y))
-        var[name], weight[name] = v, _frame_weight(v)
+        lum[name], var[name], weight[name] = y, v, _frame_weight(v)
         boxes[name] = {size: (box_mean(y, size), box_mean(v, size)) for size in BOXES}
     features = frame.features
-    stats = _Stats(var, weight, boxes,
+    stats = _Stats(lum, var, weight, boxes,
                    None if features is None or features.albedo is None else _box_features(features.albedo),
                    None if features is None or features.normal is None else _box_features(features.normal))
     frame._temporal_stats = stats  # type: ignore[attr-defined]
@@ -279,17 +280,26 @@ def _frame_weight(var: np.ndarray) -> float:
     return 1.0 / mean if mean > 0 else 1.0
 
 
-def _agrees(centre: dict[int, tuple[np.ndarray, np.ndarray]], other: dict[int, tuple[np.ndarray, np.ndarray]],
-            sample: _Sampler) -> np.ndarray:
-    """Where two estimates of one layer agree within REJECT_K standard errors at every box size in BOXES: the box
-    means of the neighbour's luminance and variance, warped, against frame t's (for a smooth motion, the box of
-    the warped image and the warp of the box agree; the box means are then computed once per frame)."""
+def _agrees(own: _Stats, other: _Stats, name: str, sample: _Sampler) -> np.ndarray:
+    """Where two estimates of layer ``name`` agree within REJECT_K standard errors at every box size in BOXES.
+
+    Without motion the box means of each frame are compared as computed once per frame. With motion the
+    neighbour's luminance and variance are warped first and the box means taken of the difference, with frame
+    the neighbour's invalid pixels left out of both sums (a box across a silhouette or a disocclusion then
+    compares only what corresponds)."""
     accept = np.ones(sample.valid.shape, bool)
-    for size in BOXES:
-        y, var = centre[size]
-        other_y, other_var = sample(other[size][0]), sample(other[size][1])
-        difference = other_y - y
-        accept &= difference * difference <= (REJECT_K * REJECT_K / (size * size)) * (var + other_var)
+    if sample.identity:
+        for size in BOXES:
+            (y, var), (other_y, other_var) = own.boxes[name][size], other.boxes[name][size]
+            difference = other_y - y
+            accept &= difference * difference <= (REJECT_K * REJECT_K / (size * size)) * (var + other_var)
+        return accept
+    valid = sample.valid
+    difference = np.where(valid, sample(other.y[name]) - own.y[name], np.float32(0))
+    variance = np.where(valid, sample(other.var[name], squared=True) + own.var[name], np.float32(0))
+    for size in BOXES:  # over the n valid pixels of a box: (Σ d / n)² against K² Σ (σ² + σ'²) / n²
+        box = box_mean(difference, size)
+        accept &= box * box <= (REJECT_K * REJECT_K / (size * size)) * box_mean(variance, size)
     return accept
 
 
@@ -326,7 +336,7 @@ def _accumulate(frames: Sequence[Frame | None], centre: int, offsets: Sequence[i
         for offset, mask in agree.items():
             sample, stats = agreement.samplers[offset], others[offset]
             other = frames[centre + offset].layers[name]  # type: ignore[union-attr]
-            accept = mask & _agrees(own.boxes[name], stats.boxes[name], sample)
+            accept = mask & _agrees(own, stats, name, sample)
             agreement.accept.setdefault(name, {})[offset] = accept
             warped = Layer(sample(other.base), None if other.dx is None else sample(other.dx),
                            None if other.dy is None else sample(other.dy))
