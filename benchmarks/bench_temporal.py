@@ -16,6 +16,7 @@ frame's first stage runs once), interleaved with repeats, and each one's peak RS
 
     python benchmarks/bench_temporal.py quality --frames 8 --size 128 --spp 16 --ref-spp 1024
     python benchmarks/bench_temporal.py cost --repeats 3
+    python benchmarks/bench_temporal.py cost --repeats 3 --shift 0.5
 """
 
 from __future__ import annotations
@@ -51,10 +52,13 @@ def _render(scene: str, out: Path, spp: int, size: int, seed: int, extra: list[s
     return out
 
 
-def _zero_motion(frame):  # noqa: ANN001, ANN202 - a Frame in, the same Frame out
+def _zero_motion(frame, shift: float = 0.0):  # noqa: ANN001, ANN202 - a Frame in, the same Frame out
+    """Give ``frame`` motion vectors: every pixel moving ``shift`` pixels right per frame (0: still), all valid."""
     h, w = frame.height, frame.width
-    zero, ones = np.zeros((h, w, 2), np.float32), np.ones((h, w), np.float32)
-    frame.motion = Motion(zero, zero, ones, ones)
+    backward, forward = np.zeros((h, w, 2), np.float32), np.zeros((h, w, 2), np.float32)
+    backward[..., 0], forward[..., 0] = -shift, shift
+    ones = np.ones((h, w), np.float32)
+    frame.motion = Motion(backward, forward, ones, ones)
     return frame
 
 
@@ -135,10 +139,10 @@ def _synthetic_files(count: int, folder: Path) -> list[Path]:
     return paths
 
 
-def _child(mode: str, window: int, folder: Path) -> None:
+def _child(mode: str, window: int, folder: Path, shift: float) -> None:
     """One mode in this process on the frames in ``folder``: reconstruct the middle frames, print the peak RSS."""
     paths = sorted(folder.glob("synthetic.*.exr"))[:window + 2]
-    frames = [_zero_motion(read_frame(p)) for p in paths]
+    frames = [_zero_motion(read_frame(p), shift) for p in paths]
     shot = ShotReconstructor(lambda n: frames[n] if 0 <= n < len(frames) else None, window)
     for n in range(1, len(frames) - 1):
         reconstruct(frames[n]) if mode == "per-frame" else shot.reconstruct(n)
@@ -159,7 +163,8 @@ def _peak_rss_mib() -> float:
 
 def cost(args: argparse.Namespace) -> None:
     folder = Path(tempfile.mkdtemp(prefix="bench_temporal_"))
-    frames = [_zero_motion(read_frame(p)) for p in _synthetic_files(args.window + 2 * args.repeats + 2, folder)]
+    frames = [_zero_motion(read_frame(p), args.shift)
+              for p in _synthetic_files(args.window + 2 * args.repeats + 2, folder)]
     shot = ShotReconstructor(lambda n: frames[n] if 0 <= n < len(frames) else None, args.window)
     shot.reconstruct(0)  # warm-up: the first frame's window of first stages, OIDN's first call
     reconstruct(frames[0])
@@ -171,12 +176,14 @@ def cost(args: argparse.Namespace) -> None:
         start = time.perf_counter()
         shot.reconstruct(n)  # steady state: one new first stage (frame n + r1) and the second stage of n
         tem.append(time.perf_counter() - start)
-    print(f"1280x720, window {args.window}, load average {os.getloadavg()[0]:.2f}: per-frame default "
+    print(f"1280x720, window {args.window}, motion {args.shift:g} px/frame, load average "
+          f"{os.getloadavg()[0]:.2f}: per-frame default "
           f"{statistics.median(per):.3f} s, temporal {statistics.median(tem):.3f} s per frame "
           f"({statistics.median(tem) / statistics.median(per):.2f}x), medians of {len(per)}")
     for mode in ("per-frame", "temporal"):
         out = subprocess.run([sys.executable, __file__, "cost", "--child", mode, "--window", str(args.window),
-                              "--folder", str(folder)], check=True, capture_output=True, text=True)
+                              "--folder", str(folder), "--shift", str(args.shift)],
+                             check=True, capture_output=True, text=True)
         print(f"  peak RSS {mode}: {json.loads(out.stdout.strip().splitlines()[-1])['peak_rss_mib']:.0f} MiB "
               f"({args.window + 2} frames decoded)")
 
@@ -195,13 +202,15 @@ def main() -> None:
     c = sub.add_parser("cost", help="seconds per 720p frame and peak RSS, per-frame against temporal")
     c.add_argument("--repeats", type=int, default=3)
     c.add_argument("--window", type=int, default=5)
+    c.add_argument("--shift", type=float, default=0.0,
+                   help="motion in pixels per frame (0: a still shot; a fraction exercises the bilinear warp)")
     c.add_argument("--child", default=None, help=argparse.SUPPRESS)
     c.add_argument("--folder", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.command == "quality":
         quality(args)
     elif args.child:
-        _child(args.child, args.window, Path(args.folder))
+        _child(args.child, args.window, Path(args.folder), args.shift)
     else:
         cost(args)
 
