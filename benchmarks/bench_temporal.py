@@ -3,12 +3,15 @@
 ``quality`` renders small shots with ``gradsep render`` (a static camera and scene with a new seed per frame; the
 Cornell box with a lamp switched off half-way, tests/data/temporal/lightswitch.xml), plain frames and
 ``--gradients direct --offsets alternate`` frames, and two independent high-spp references per distinct image.
-Each shot is reconstructed per frame (the frame's default method) and temporally (``--window``), and the script
+Then two shots of tests/data/shot/moving.xml rendered with ``--frames`` and ``--animate`` (a moving camera, a
+moving object), which carry the renderer's motion vectors, and per-frame references. Each shot is reconstructed
+per frame (the frame's default method) and temporally (``--window``), and the script
 prints per pipeline: RelMSE against the truth (two references, their noise removed), as the geometric mean over
 the frames, and its ratio to the per-frame pipeline on the same frames; flicker (model.metrics.flicker) and its
 ratio to primal + OIDN per frame (the plain frames' per-frame pipeline); on the light switch, the error ratio on
-the frames after the switch; and seconds per frame. The shots carry no motion vectors (nothing moves), so the
-script gives each frame zero motion, all valid.
+the frames after the switch; on the moving shots, the error ratio in the pixels without a correspondence in a
+neighbour (disoccluded or about to be occluded) and flicker along the motion; and seconds per frame. The still
+shots carry no motion vectors (nothing moves), so the script gives each frame zero motion, all valid.
 
 ``cost`` times a 1280x720 frame of ``gradsep.model.synthetic`` (two layers with gradients, variance and
 features) reconstructed per frame against temporally from a window (a shot reconstructed in order, so each
@@ -99,34 +102,105 @@ def _references(scenes: list[str], defines: list[list[str]], args: argparse.Name
         [refs[(s, *d)][1] for s, d in zip(scenes, defines, strict=True)]
 
 
+def _report(plan: str, frames: list, refs: tuple[list, list], window: int, baseline: float | None) -> tuple:
+    """Print one plan's per-frame and temporal rows; returns (per-frame errors, temporal errors, outputs, the
+    per-frame flicker). Flicker is taken along the motion: frame t - 1 warped onto t by t's backward vectors."""
+    r1, r2 = refs
+    per, per_seconds = _run(frames, 1)
+    tem, tem_seconds = _run(frames, window)
+    e_per = [relmse_unbiased(x, a, b) for x, a, b in zip(per, r1, r2, strict=True)]
+    e_tem = [relmse_unbiased(x, a, b) for x, a, b in zip(tem, r1, r2, strict=True)]
+    f_per, f_tem = _flicker_along(per, frames, r1, r2), _flicker_along(tem, frames, r1, r2)
+    baseline = baseline or f_per
+    for name, errors, flick, seconds in (("per-frame", e_per, f_per, per_seconds),
+                                         ("temporal", e_tem, f_tem, tem_seconds)):
+        print(f"  {plan:17s} {name:9s} RelMSE {_geomean(errors):.5g} "
+              f"({_geomean(errors) / _geomean(e_per):.3f}x per-frame)  flicker {flick:.4g} "
+              f"({flick / baseline:.3f}x primal+OIDN)  {seconds:.3f} s/frame")
+    return e_per, e_tem, (per, tem), f_per
+
+
+def _warp_back(image: np.ndarray, frame) -> tuple[np.ndarray, np.ndarray]:  # noqa: ANN001 - a Frame
+    """``image`` (frame t - 1's) sampled where frame t's backward vectors point, and where that is valid."""
+    from scipy.ndimage import map_coordinates
+
+    rows, cols, valid = frame.motion.warp_source("backward")
+    inside = valid & (rows >= 0) & (rows <= image.shape[0] - 1) & (cols >= 0) & (cols <= image.shape[1] - 1)
+    out = np.stack([map_coordinates(image[..., c], [rows, cols], order=1, mode="nearest")
+                    for c in range(image.shape[-1])], axis=-1)
+    return out, inside
+
+
+def _flicker_along(images: list, frames: list, r1: list, r2: list) -> float:
+    values = []
+    for t in range(1, len(images)):
+        if frames[t].motion is None or frames[t].motion.backward is None:
+            continue
+        (x, mask), (a, _), (b, _) = (_warp_back(v[t - 1], frames[t]) for v in (images, r1, r2))
+        values.append(flicker([x, images[t]], [a, r1[t]], [b, r2[t]], masks=[None, mask]))
+    return float(np.mean(values))
+
+
 def quality(args: argparse.Namespace) -> None:
     folder = Path(args.cache or tempfile.mkdtemp(prefix="bench_temporal_"))
     folder.mkdir(parents=True, exist_ok=True)
     for shot, (scenes, defines) in _shots(args, folder).items():
-        r1, r2 = _references(scenes, defines, args, folder)
-        baseline_flicker = None
+        refs = _references(scenes, defines, args, folder)
+        baseline = None
         print(f"\n{shot}: {args.frames} frames, {args.size}x{args.size}, {args.spp} spp, window {args.window}")
         for plan, extra in PLANS.items():
             tag = "".join(c if c.isalnum() else "_" for c in shot + plan)
             frames = [_zero_motion(read_frame(_render(s, folder / f"{tag}.{n}.exr", args.spp, args.size,
                                                       1000 * (n + 1) + len(plan), [*extra, *d])))
                       for n, (s, d) in enumerate(zip(scenes, defines, strict=True))]
-            per, per_seconds = _run(frames, 1)
-            tem, tem_seconds = _run(frames, args.window)
-            e_per = [relmse_unbiased(x, a, b) for x, a, b in zip(per, r1, r2, strict=True)]
-            e_tem = [relmse_unbiased(x, a, b) for x, a, b in zip(tem, r1, r2, strict=True)]
-            f_per, f_tem = flicker(per, r1, r2), flicker(tem, r1, r2)
-            baseline_flicker = baseline_flicker or f_per  # plain frames first: primal + OIDN per frame
-            for name, errors, flick, seconds in (("per-frame", e_per, f_per, per_seconds),
-                                                 ("temporal", e_tem, f_tem, tem_seconds)):
-                print(f"  {plan:17s} {name:9s} RelMSE {_geomean(errors):.5g} "
-                      f"({_geomean(errors) / _geomean(e_per):.3f}x per-frame)  flicker {flick:.4g} "
-                      f"({flick / baseline_flicker:.3f}x primal+OIDN)  {seconds:.3f} s/frame")
+            e_per, e_tem, _, f_per = _report(plan, frames, refs, args.window, baseline)
+            baseline = baseline or f_per  # plain frames first: primal + OIDN per frame
             if "light" in shot:
                 after = [n for n in range(1, args.frames) if defines[n] != defines[n - 1]]
                 for n in after + [a + 1 for a in after if a + 1 < args.frames]:
                     print(f"  {plan:17s} frame {n} (after the switch): temporal/per-frame error "
                           f"{e_tem[n] / e_per[n]:.3f}")
+    for shot, animate in MOVING.items():
+        _moving(args, folder, shot, animate)
+
+
+#: Shots of tests/data/shot/moving.xml (a ball over a floor under an area light) with the renderer's motion vectors.
+MOVING = {"moving camera": "eye=-1,1.5,4:1,1.2,3.2", "moving object": "pos=-1,0.5,0:1,0.5,0"}
+MOVING_SCENE = Path(__file__).resolve().parent.parent / "tests" / "data" / "shot" / "moving.xml"
+
+
+def _render_shot(out: str, args: argparse.Namespace, animate: str, spp: int, seed: int, extra: list[str]) -> list:
+    frames = f"1-{args.frames}"
+    height = args.size * 3 // 4
+    subprocess.run([sys.executable, "-m", "gradsep", "render", str(MOVING_SCENE), "--frames", frames, "--animate",
+                    animate, "--spp", str(spp), "--width", str(args.size), "--height", str(height), "--seed",
+                    str(seed), *extra, "-o", out], check=True, capture_output=True)
+    return [read_frame(out.replace("%d", str(n))) for n in range(1, args.frames + 1)]
+
+
+def _moving(args: argparse.Namespace, folder: Path, shot: str, animate: str) -> None:
+    tag = "".join(c if c.isalnum() else "_" for c in shot)
+    refs = tuple([f.combined().base for f in _render_shot(str(folder / f"{tag}_ref{k}.%d.exr"), args, animate,
+                                                          args.ref_spp, 500 + k, ["--no-gradients"])]
+                 for k in (1, 2))
+    print(f"\n{shot} ({animate}): {args.frames} frames, {args.size}x{args.size * 3 // 4}, {args.spp} spp, window "
+          f"{args.window}, the renderer's motion vectors")
+    baseline = None
+    for k, (plan, extra) in enumerate(PLANS.items()):
+        frames = _render_shot(str(folder / f"{tag}_{k}.%d.exr"), args, animate, args.spp, 700 + k, extra)
+        e_per, e_tem, (per, tem), f_per = _report(plan, frames, refs, args.window, baseline)  # type: ignore[arg-type]
+        baseline = baseline or f_per
+        ratios = []
+        for t, frame in enumerate(frames):
+            motion = frame.motion
+            if motion is None or motion.backward is None or motion.forward is None:
+                continue
+            mask = ~(motion.backward_valid & motion.forward_valid) & (refs[0][t].sum(-1) > 0)
+            if mask.sum() >= 100:
+                a, b = refs[0][t][mask], refs[1][t][mask]
+                ratios.append(relmse_unbiased(tem[t][mask], a, b) / relmse_unbiased(per[t][mask], a, b))
+        print(f"  {plan:17s} disoccluded/occluded lit pixels, temporal/per-frame error per frame: "
+              + " ".join(f"{r:.2f}" for r in ratios))
 
 
 def _synthetic_files(count: int, folder: Path) -> list[Path]:
