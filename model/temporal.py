@@ -159,7 +159,7 @@ def _chain(frames: Sequence[Frame | None], centre: int, offset: int) -> _Sampler
 
 
 def _spatial_variance(y: np.ndarray) -> np.ndarray:
-    """A stand-in for a missing ``L.var.Y``: the luminance's variance over each pixel's 3 × 3 neighbourhood (an
+    """A stand-in for a missing ``L.var.Y``: the luminance's variance over the 3-pixel square around each pixel (an
     overestimate at edges, where the signal varies too)."""
     return np.maximum(box_mean(y * y, 3) - box_mean(y, 3) ** 2, 0.0)
 
