@@ -188,12 +188,16 @@ def test_a_missing_neighbour_is_a_warning_and_the_frame_uses_what_it_has() -> No
     assert -1 not in out.neighbours and -2 not in out.neighbours and 1 in out.neighbours
 
 
-def _write_shot(folder: Path, sizes: list[int]) -> None:
+def _write_shot(folder: Path, sizes: list[int], motion: bool = False) -> None:
     rng = np.random.default_rng(0)
     for i, size in enumerate(sizes, start=1):
         base = (0.5 + 0.1 * rng.standard_normal((size, size))).astype(np.float32)
         channels = {f"color.{c}": base for c in "RGB"}
         channels["color.var.Y"] = np.full((size, size), 0.01, np.float32)
+        if motion:  # still: zero vectors, all valid, as the renderer writes them for a still shot
+            for direction in ("backward", "forward"):
+                channels[f"{direction}.u"] = channels[f"{direction}.v"] = np.zeros((size, size), np.float32)
+                channels[f"{direction}.valid"] = np.ones((size, size), np.float32)
         (folder / f"shot.{i:04d}.exr").write_bytes(encode_exr(channels))
 
 
@@ -212,6 +216,16 @@ def test_command_writes_each_frame_with_its_neighbours_header(tmp_path: Path) ->
         assert read_frame(tmp_path / f"out.{n:04d}.exr", layout="auto").width == 16
     assert "no motion vectors" in out.stderr
     assert not (tmp_path / "out.0003.exr").exists()
+
+
+def test_command_with_motion_vectors_names_the_frames_used(tmp_path: Path) -> None:
+    _write_shot(tmp_path, [16, 16, 16, 16], motion=True)
+    out = _gradsep("reconstruct", str(tmp_path / "shot.%04d.exr"), "--frames", "2-3", "-o",
+                   str(tmp_path / "out.%04d.exr"))
+    assert out.returncode == 0, out.stderr
+    assert read_header(tmp_path / "out.0002.exr").attributes[temporal_key()] == "1,3,4"
+    assert read_header(tmp_path / "out.0003.exr").attributes[temporal_key()] == "1,2,4"
+    assert "neighbour frame(s) 5 missing" in out.stderr  # frame 3's window reaches 5, which does not exist
 
 
 def temporal_key() -> str:
