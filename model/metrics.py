@@ -12,6 +12,12 @@ broken reconstruction).
   references' own noise drops out (the normaliser r̄² uses both, so what is left is the small bias of a ratio).
   It can be slightly negative for an image close to the truth. :func:`reference_floor` is the RelMSE a perfect
   method (x = truth) would score against one of the references: mean((r1 − r2)² / (r̄² + ε)) / 2.
+* :func:`flicker` -- the error that changes from frame to frame: RelMSE's estimator applied to the change of
+  the error e_t = x_t − r_t between consecutive frames, mean((e_t − e_{t−1})² / (r_t² + ε)), averaged over the
+  shot's consecutive pairs. Frame t−1's image and reference are given already brought onto frame t's pixels (along
+  the motion; as they are for a static shot), with an optional mask of the pixels where that is defined. Noise
+  that stays put is not flicker; noise that changes is, and so is a frame that jumps. With a second set of
+  independent references the product estimator removes their noise, as :func:`relmse_unbiased` does.
 * :func:`psnr` -- 10 log10(peak² / MSE). By default on the display tonemap below, peak 1 (so an HDR firefly
   counts at most as a saturated pixel); ``tonemapped=False`` uses linear values with the given peak.
   Identical images give +inf.
@@ -28,6 +34,7 @@ Display tonemap: ``clip(x, 0, 1) ** (1/2.2)`` per channel.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from functools import lru_cache
 
 import numpy as np
@@ -35,8 +42,8 @@ from scipy.ndimage import gaussian_filter
 
 from gradsep.model.policy import LUMINANCE
 
-__all__ = ["RELMSE_EPSILON", "all_metrics", "flip", "psnr", "reference_floor", "relmse", "relmse_unbiased", "ssim",
-           "tonemap"]
+__all__ = ["RELMSE_EPSILON", "all_metrics", "flicker", "flip", "psnr", "reference_floor", "relmse",
+           "relmse_unbiased", "ssim", "tonemap"]
 
 RELMSE_EPSILON = 0.01
 GAMMA = 2.2
@@ -89,6 +96,43 @@ def reference_floor(reference1: np.ndarray, reference2: np.ndarray, epsilon: flo
     r1, r2 = _pair(reference1, reference2)
     mean = 0.5 * (r1 + r2)
     return float(np.mean((r1 - r2) ** 2 / (mean * mean + epsilon)) / 2.0)
+
+
+def flicker(images: Sequence[np.ndarray], references: Sequence[np.ndarray],
+            references2: Sequence[np.ndarray] | None = None, masks: Sequence[np.ndarray | None] | None = None,
+            epsilon: float = RELMSE_EPSILON) -> float:
+    """Flicker of a shot (see the module docstring): the mean over t ≥ 1 of the RelMSE estimator of
+    e_t − e_{t−1}, e_t = images[t] − references[t], normalised by references[t]. ``images[t - 1]`` and
+    ``references[t - 1]`` must already be aligned with frame t (warped along the motion); ``masks[t]`` (H, W) bool
+    keeps the pixels where that alignment holds (None: all). With ``references2`` (independent of ``references``)
+    the product of the two error changes is used and their noise drops out. Needs at least two frames."""
+    if len(images) != len(references) or (references2 is not None and len(references2) != len(images)):
+        raise ValueError("flicker needs one reference (and one second reference) per image")
+    if len(images) < 2:
+        raise ValueError(f"flicker needs at least two frames, got {len(images)}")
+    second = references if references2 is None else references2
+    values = []
+    for t in range(1, len(images)):
+        x, r1 = _pair(images[t], references[t])
+        _, r2 = _pair(images[t], second[t])
+        xp, p1 = _pair(images[t - 1], references[t - 1])
+        _, p2 = _pair(images[t - 1], second[t - 1])
+        if xp.shape != x.shape:
+            raise ValueError(f"frame {t - 1} has shape {xp.shape}, frame {t} {x.shape}")
+        mean = 0.5 * (r1 + r2)
+        terms = ((x - r1) - (xp - p1)) * ((x - r2) - (xp - p2)) / (mean * mean + epsilon)
+        mask = None if masks is None else masks[t]
+        if mask is not None:
+            keep = np.asarray(mask, bool)
+            if keep.shape != x.shape[:2]:
+                raise ValueError(f"mask {t} has shape {keep.shape}, expected {x.shape[:2]}")
+            if not keep.any():
+                continue
+            terms = terms[keep]
+        values.append(float(np.mean(terms)))
+    if not values:
+        raise ValueError("flicker: no frame pair has a pixel in its mask")
+    return float(np.mean(values))
 
 
 def psnr(image: np.ndarray, reference: np.ndarray, *, peak: float = 1.0, tonemapped: bool = True) -> float:

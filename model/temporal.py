@@ -1,0 +1,525 @@
+"""Temporal reconstruction: frame t of a shot from a window of frames around it, through their motion vectors.
+
+Two stages. The first brings the neighbours' *inputs* onto frame t's pixels and accumulates them into frame t
+before the per-frame method (model/reconstruct.py) runs once on the result:
+
+1. **Warp.** Each neighbour's bases, gradients and variance (``L.var.Y``) are sampled where the motion vectors put
+   each pixel of frame t (bilinear; a neighbour two frames away through the chain of the frame between). Where
+   the vectors say there is no correspondence, or the position is off screen, the neighbour contributes nothing.
+2. **Reject.** Per layer and pixel, a neighbour is rejected where it disagrees with frame t by more than the noise
+   allows: the difference of the two luminances, box-filtered, against REJECT_K standard errors of that
+   difference (the box means' variances from the two variance channels), at each box size in BOXES. A light
+   switched off, a moving shadow or a highlight that moves differently from its surface changes the mean by more
+   than the noise, so the neighbour's samples there are dropped; a difference within the noise is what noise
+   looks like, so they are kept. Where the features disagree (albedo or normal: another surface) the neighbour
+   is rejected as well.
+3. **Accumulate.** Accepted neighbours are averaged with frame t, each frame weighted by the inverse of its mean
+   variance (one weight per frame and layer: per-pixel inverse-variance weights favour the pixels whose few
+   samples missed a bright path), and the variance channel becomes that weighted mean's, so OIDN's back-off
+   (model/backoff.py) sees the lower noise.
+4. **Reconstruct.** The per-frame method (the frame's default unless one is named) on the accumulated frame.
+
+The second stage averages frame t's first-stage result with its neighbours' first-stage results, per layer, warped
+the same way, where the first stage accepted that neighbour. Consecutive outputs that denoised overlapping sample
+sets still differ by what the denoiser made of the samples they do not share; averaging them where the inputs
+agree removes that difference (the flicker) and more of the error. A window of N frames splits its radius
+(N − 1) / 2 between the stages (the first the larger half), so no sample from outside the window reaches frame t.
+
+Why accumulate inputs, and test them, rather than blend per-frame outputs alone: the inputs' noise is known from
+their variance, so the test rejects on change, not on noise, and the denoiser gets one frame whose noise is lower
+everywhere it can be. The decision and its measurements are in docs/decisions.md ("Temporal reconstruction").
+
+Without motion vectors on frame t, or with one frame, this is exactly :func:`model.reconstruct.reconstruct`. A
+layer without a variance channel (another renderer's frame) uses a local spatial estimate of it, with a warning.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from gradsep.model.frame import Frame, Layer, Motion
+from gradsep.model.methods import LoadedModels
+from gradsep.model.policy import DEFAULT_ALPHA
+from gradsep.model.reconstruct import Reconstruction, reconstruct
+from gradsep.model.robust import box_mean, luminance
+
+__all__ = ["BOXES", "DEFAULT_WINDOW", "REJECT_K", "Motion", "ShotReconstructor", "TemporalReconstruction",
+           "check_shot", "first_stage", "reconstruct_window", "second_stage"]
+
+#: The frames of a window by default: frame t and two on each side.
+DEFAULT_WINDOW = 5
+#: The boxes (pixels a side) over which a neighbour's luminance is compared with frame t's: a small one for local
+#: changes (a shadow's edge), larger ones for changes too faint to show against one small box's noise (a light
+#: switched off dims the whole room a little).
+BOXES: tuple[int, ...] = (5, 17)
+#: A neighbour is rejected where the box means differ by more than this many standard errors of their difference.
+REJECT_K = 3.0
+#: Feature agreement: the largest albedo difference and the smallest cosine between normals at which two pixels
+#: still see the same surface, compared as FEATURE_BOX × FEATURE_BOX means.
+ALBEDO_TOLERANCE = 0.1
+NORMAL_COSINE = 0.9
+FEATURE_BOX = 3
+
+
+@dataclass
+class TemporalReconstruction(Reconstruction):
+    """:class:`model.reconstruct.Reconstruction` plus which neighbours contributed."""
+
+    #: offsets from frame t (e.g. -2, -1, 1, 2) of the neighbours with at least one accepted pixel
+    neighbours: list[int] = field(default_factory=list)
+    #: per offset in the window, the fraction of frame t's pixels where the neighbour was accepted (mean over layers)
+    accepted: dict[int, float] = field(default_factory=dict)
+    #: the first stage's acceptance per layer and neighbour, which the second stage blends by (None: no first stage)
+    agreement: _Agreement | None = field(default=None, repr=False, compare=False)
+
+
+# ------------------------------------------------------------------------------------------------ warping
+
+
+def _grid(h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each pixel's (row, column), float32 (H, W) each."""
+    rows = np.broadcast_to(np.arange(h, dtype=np.float32)[:, None], (h, w))
+    cols = np.broadcast_to(np.arange(w, dtype=np.float32)[None, :], (h, w))
+    return rows, cols
+
+
+class _Sampler:
+    """Bilinear sampling of (H, W[, C]) images at fractional (rows, cols); ``valid`` says where it is defined."""
+
+    def __init__(self, rows: np.ndarray, cols: np.ndarray, valid: np.ndarray) -> None:
+        h, w = rows.shape
+        grid_r, grid_c = _grid(h, w)
+        if np.array_equal(rows, grid_r) and np.array_equal(cols, grid_c):  # no motion: nothing to resample
+            self.valid, self.identity, self.integral = np.asarray(valid, bool), True, True
+            return
+        finite = np.isfinite(rows) & np.isfinite(cols)
+        rows = np.where(finite, rows, -1.0)
+        cols = np.where(finite, cols, -1.0)
+        inside = (rows >= 0) & (rows <= h - 1) & (cols >= 0) & (cols <= w - 1)
+        self.valid = np.asarray(valid, bool) & finite & inside
+        r = np.clip(rows, 0, h - 1)
+        c = np.clip(cols, 0, w - 1)
+        r0 = np.floor(r).astype(np.intp)
+        c0 = np.floor(c).astype(np.intp)
+        fr = (r - r0).astype(np.float32)
+        fc = (c - c0).astype(np.float32)
+        self.integral = not (fr.any() or fc.any())
+        self.identity = False
+        r1 = np.minimum(r0 + 1, h - 1)
+        c1 = np.minimum(c0 + 1, w - 1)
+        # flat pixel indices of the four taps (a 1-D take is much faster than 2-D fancy indexing)
+        self.taps = tuple((rr * w + cc).ravel() for rr, cc in ((r0, c0), (r0, c1), (r1, c0), (r1, c1)))
+        self.weights = tuple(x.ravel()[:, None] for x in
+                             ((1 - fr) * (1 - fc), (1 - fr) * fc, fr * (1 - fc), fr * fc))
+
+    def __call__(self, image: np.ndarray, squared: bool = False) -> np.ndarray:
+        """``image`` at the positions; ``squared`` weights by the squared bilinear weights (a variance's warp)."""
+        if self.identity:
+            return image
+        shape = image.shape
+        flat = np.ascontiguousarray(image).reshape(shape[0] * shape[1], -1)
+        if self.integral:
+            return np.take(flat, self.taps[0], axis=0).reshape(shape)
+        out = np.zeros(flat.shape, np.float32)
+        for taps, weight in zip(self.taps, self.weights, strict=True):
+            tap = np.take(flat, taps, axis=0)
+            tap *= weight * weight if squared else weight
+            out += tap
+        return out.reshape(shape).astype(image.dtype, copy=False)
+
+
+def _chain(frames: Sequence[Frame | None], centre: int, offset: int) -> _Sampler | None:
+    """Where frame ``centre + offset``'s pixels lie under frame ``centre``'s, by the chain of motion vectors
+    between them; None when a frame of the chain is missing or has no vectors that way."""
+    direction = "backward" if offset < 0 else "forward"
+    step = -1 if offset < 0 else 1
+    h, w = frames[centre].height, frames[centre].width  # type: ignore[union-attr]
+    grid_r, grid_c = _grid(h, w)
+    rows, cols = grid_r, grid_c
+    valid = np.ones((h, w), bool)
+    index = centre
+    for _ in range(abs(offset)):
+        frame = frames[index]
+        motion = getattr(frame, "motion", None) if frame is not None else None
+        if motion is None or getattr(motion, direction) is None or frames[index + step] is None:
+            return None
+        src_rows, src_cols, src_valid = motion.warp_source(direction)
+        sampler = _Sampler(rows, cols, valid)
+        rows = rows + sampler(np.asarray(src_rows, np.float32) - grid_r)
+        cols = cols + sampler(np.asarray(src_cols, np.float32) - grid_c)
+        valid = sampler.valid & (np.rint(sampler(np.asarray(src_valid, np.float32))) > 0.5)
+        index += step
+    return _Sampler(rows, cols, valid)
+
+
+# ------------------------------------------------------------------------------------------------ rejection
+
+
+def _spatial_variance(y: np.ndarray) -> np.ndarray:
+    """A stand-in for a missing ``L.var.Y``: the luminance's variance over the 3-pixel square around each pixel (an
+    overestimate at edges, where the signal varies too)."""
+    return np.maximum(box_mean(y * y, 3) - box_mean(y, 3) ** 2, 0.0)
+
+
+@dataclass
+class _Stats:
+    """What the rejection test reads of one frame, computed once per frame (a shot's frame serves several
+    windows): per layer the variance, the frame weight and, per box size, the box means of the luminance and
+    of the variance; the FEATURE_BOX means of albedo and normal."""
+
+    y: dict[str, np.ndarray]
+    var: dict[str, np.ndarray]
+    weight: dict[str, float]
+    boxes: dict[str, dict[int, tuple[np.ndarray, np.ndarray]]]
+    albedo: np.ndarray | None
+    normal: np.ndarray | None
+
+
+def _stats(frame: Frame) -> _Stats:
+    cached = getattr(frame, "_temporal_stats", None)  # kept on the frame: it is read by up to `window` windows
+    if cached is not None:
+        return cached
+    lum, var, weight, boxes = {}, {}, {}, {}
+    for name, layer in frame.layers.items():
+        y = luminance(layer.base).astype(np.float32)
+        v = (np.minimum(np.nan_to_num(layer.var, nan=0.0, posinf=1e30), 1e30).astype(np.float32)
+             if layer.var is not None else _spatial_variance(y))
+        lum[name], var[name], weight[name] = y, v, _frame_weight(v)
+        boxes[name] = {size: (box_mean(y, size), box_mean(v, size)) for size in BOXES}
+    features = frame.features
+    stats = _Stats(lum, var, weight, boxes,
+                   None if features is None or features.albedo is None else _box_features(features.albedo),
+                   None if features is None or features.normal is None else _box_features(features.normal))
+    frame._temporal_stats = stats  # type: ignore[attr-defined]
+    return stats
+
+
+def _box_features(image: np.ndarray) -> np.ndarray:
+    """FEATURE_BOX × FEATURE_BOX means of an (H, W, C) feature image (float32)."""
+    return np.stack([box_mean(np.asarray(image[..., c], np.float32), FEATURE_BOX) for c in range(image.shape[-1])],
+                    axis=-1)
+
+
+def _features_agree(centre: _Stats, other: _Stats, sample: _Sampler) -> np.ndarray:
+    """Where the warped neighbour's features say it sees the same surface as frame t (True where none to test).
+
+    Compared as FEATURE_BOX means (the neighbour's warped with it): a pixel's features are averages over its
+    samples, which at a silhouette mix two surfaces in proportions that change from frame to frame; the box keeps
+    that noise from reading as another surface. Depth is not compared: a pixel's mean depth mixes hits and
+    misses (0) and near and far surfaces in proportions as noisy as that, and a disocclusion is what the motion
+    vectors' validity marks."""
+    agree = np.ones(sample.valid.shape, bool)
+    if centre.albedo is not None and other.albedo is not None:
+        albedo = sample(other.albedo)
+        for c in range(albedo.shape[-1]):  # channel by channel: a reduction over the last axis is slow
+            agree &= np.abs(albedo[..., c] - centre.albedo[..., c]) <= ALBEDO_TOLERANCE
+    if centre.normal is not None and other.normal is not None:
+        a, b = centre.normal, sample(other.normal)
+        dot = a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
+        aa = a[..., 0] * a[..., 0] + a[..., 1] * a[..., 1] + a[..., 2] * a[..., 2]
+        bb = b[..., 0] * b[..., 0] + b[..., 1] * b[..., 1] + b[..., 2] * b[..., 2]
+        agree &= (dot >= NORMAL_COSINE * np.sqrt(aa * bb)) | (aa * bb == 0)
+    return agree
+
+
+@dataclass
+class _LayerSums:
+    """The running weighted sums of one layer over the accepted frames (float32; a frame's weight is one number,
+    zero where it was rejected)."""
+
+    weight: np.ndarray
+    base: np.ndarray
+    dx: np.ndarray | None
+    dy: np.ndarray | None
+    var: np.ndarray  # Σ w² σ²
+
+    @classmethod
+    def start(cls, layer: Layer, var: np.ndarray) -> _LayerSums:
+        """Frame t's layer, weight 1 (the neighbours' weights are relative to frame t's)."""
+        return cls(np.ones(var.shape, np.float32), layer.base.astype(np.float32, copy=True),
+                   None if layer.dx is None else layer.dx.astype(np.float32, copy=True),
+                   None if layer.dy is None else layer.dy.astype(np.float32, copy=True),
+                   var.astype(np.float32, copy=True))
+
+    def add(self, layer: Layer, var: np.ndarray, accept: np.ndarray, weight: float) -> None:
+        w = accept.astype(np.float32)
+        if weight != 1.0:
+            w *= np.float32(weight)
+        self.weight += w
+        w3 = w[..., None]
+        pairs = [(self.base, layer.base)]
+        if self.dx is not None and self.dy is not None and layer.dx is not None and layer.dy is not None:
+            pairs += [(self.dx, layer.dx), (self.dy, layer.dy)]
+        scratch = np.empty_like(self.base)
+        for total, image in pairs:
+            np.multiply(image, w3, out=scratch)
+            total += scratch
+        w *= w
+        w *= var
+        self.var += w
+
+    def layer(self) -> Layer:
+        inverse = 1.0 / self.weight
+        i3 = inverse[..., None]
+        for image in (self.base, self.dx, self.dy):
+            if image is not None:
+                image *= i3
+        self.var *= inverse
+        self.var *= inverse
+        return Layer(self.base, self.dx, self.dy, self.var)
+
+
+def _frame_weight(var: np.ndarray) -> float:
+    """A frame's weight in the average: the inverse of its mean variance, one number per frame and layer.
+
+    Per pixel, inverse-variance weights are biased: a pixel whose few samples missed a bright path has both a low
+    value and a low variance estimate, and would weigh most. Frames of one shot usually have one sample count, so
+    the weights are then equal; a frame rendered with more samples weighs more."""
+    mean = float(np.mean(np.minimum(var, 1e30)))
+    return 1.0 / mean if mean > 0 else 1.0
+
+
+def _agrees(own: _Stats, other: _Stats, name: str, sample: _Sampler) -> np.ndarray:
+    """Where two estimates of layer ``name`` agree within REJECT_K standard errors at every box size in BOXES.
+
+    Without motion the box means of each frame are compared as computed once per frame. With motion the
+    neighbour's luminance and variance are warped first and the box means taken of the difference, with frame
+    the neighbour's invalid pixels left out of both sums (a box across a silhouette or a disocclusion then
+    compares only what corresponds)."""
+    accept = np.ones(sample.valid.shape, bool)
+    if sample.identity:
+        for size in BOXES:
+            (y, var), (other_y, other_var) = own.boxes[name][size], other.boxes[name][size]
+            difference = other_y - y
+            accept &= difference * difference <= (REJECT_K * REJECT_K / (size * size)) * (var + other_var)
+        return accept
+    valid = sample.valid
+    difference = np.where(valid, sample(other.y[name]) - own.y[name], np.float32(0))
+    variance = np.where(valid, sample(other.var[name], squared=True) + own.var[name], np.float32(0))
+    for size in BOXES:  # over the n valid pixels of a box: (Σ d / n)² against K² Σ (σ² + σ'²) / n²
+        box = box_mean(difference, size)
+        accept &= box * box <= (REJECT_K * REJECT_K / (size * size)) * box_mean(variance, size)
+    return accept
+
+
+@dataclass
+class _Agreement:
+    """Which neighbour agreed with frame t where: per layer and offset, the accepted pixels, and per offset where
+    the neighbour's pixels lie (the second stage blends the neighbours' reconstructions through the same)."""
+
+    samplers: dict[int, _Sampler] = field(default_factory=dict)
+    accept: dict[str, dict[int, np.ndarray]] = field(default_factory=dict)
+
+    def fractions(self) -> dict[int, float]:
+        """Per offset, the fraction of pixels accepted (mean over layers)."""
+        per = {o: [float(np.mean(m[o])) for m in self.accept.values() if o in m] for o in self.samplers}
+        return {o: float(np.mean(v)) if v else 0.0 for o, v in per.items()}
+
+
+def _accumulate(frames: Sequence[Frame | None], centre: int, offsets: Sequence[int],
+                warnings: list[str]) -> tuple[Frame, _Agreement]:
+    """Frame t with its accepted neighbours' samples accumulated into each layer (module docstring, steps 1-3)."""
+    frame = frames[centre]
+    assert frame is not None
+    chained = {o: _chain(frames, centre, o) for o in offsets}
+    agreement = _Agreement({o: s for o, s in chained.items() if s is not None})
+    own = _stats(frame)
+    others = {o: _stats(frames[centre + o]) for o in agreement.samplers}  # type: ignore[arg-type]
+    agree = {o: s.valid & _features_agree(own, others[o], s) for o, s in agreement.samplers.items()}
+    layers: dict[str, Layer] = {}
+    for name, layer in frame.layers.items():
+        if layer.var is None:
+            warnings.append(f"layer {name} has no variance channel ({name}.var.Y): its noise is estimated from "
+                            "each pixel's neighbourhood for the temporal rejection")
+        sums = _LayerSums.start(layer, own.var[name])
+        for offset, mask in agree.items():
+            sample, stats = agreement.samplers[offset], others[offset]
+            other = frames[centre + offset].layers[name]  # type: ignore[union-attr]
+            accept = mask & _agrees(own, stats, name, sample)
+            agreement.accept.setdefault(name, {})[offset] = accept
+            warped = Layer(sample(other.base), None if other.dx is None else sample(other.dx),
+                           None if other.dy is None else sample(other.dy))
+            sums.add(warped, sample(stats.var[name], squared=True), accept, stats.weight[name] / own.weight[name])
+        layers[name] = sums.layer()
+    out = Frame(layers, frame.features, dict(frame.metadata), list(frame.warnings), frame.alpha,
+                dict(frame.image_attributes), frame.layout)
+    return out, agreement
+
+
+# ------------------------------------------------------------------------------------------------ the window
+
+
+def _signature(frame: Frame) -> tuple:
+    """What frames of one shot share: size, layers, which carry gradients and variance, feature groups, alpha."""
+    from gradsep.model.frame import feature_groups
+
+    return (frame.height, frame.width, tuple(frame.layers), frame.gradient_layers,
+            tuple(n for n, layer in frame.layers.items() if layer.var is not None), feature_groups(frame.features),
+            frame.alpha is not None)
+
+
+def check_shot(frames: Sequence[Frame | None], names: Sequence[str], reference: int = 0) -> None:
+    """Raise ValueError naming the first frame whose size or channels differ from ``frames[reference]``'s."""
+    want, first = _signature(frames[reference]), names[reference]  # type: ignore[arg-type]
+    for frame, name in zip(frames, names, strict=True):
+        if frame is not None and frame is not frames[reference]:
+            _check_against(frame, name, first, want)
+
+
+def _radii(window: int) -> tuple[int, int]:
+    """A window of ``window`` frames (odd, >= 1) as the two stages' radii: the first accumulates frames up to
+    ``r1`` away, the second blends reconstructions up to ``r2`` away, r1 + r2 = (window - 1) / 2."""
+    if window < 1 or window % 2 == 0:
+        raise ValueError(f"the window must be an odd number of frames >= 1, got {window}")
+    radius = (window - 1) // 2
+    return (radius + 1) // 2, radius // 2
+
+
+def first_stage(frames: Sequence[Frame | None], centre: int, method: str | None = None,
+                alpha: float = DEFAULT_ALPHA, models: LoadedModels | None = None) -> TemporalReconstruction:
+    """Stage one (steps 1-4 of the module docstring) for ``frames[centre]``: every other frame given is a
+    neighbour. Without motion vectors on frame t, or without a neighbour that can be reached, this is
+    :func:`model.reconstruct.reconstruct` of frame t, bit for bit."""
+    frame = frames[centre]
+    if frame is None:
+        raise ValueError(f"frame {centre} of the window is missing")
+    offsets = [i - centre for i in range(len(frames)) if i != centre]
+    warnings: list[str] = []
+    missing = [o for o in offsets if frames[centre + o] is None]
+    if missing:
+        warnings.append("neighbour(s) " + ", ".join(f"{o:+d}" for o in missing) + " missing: the frame was "
+                        "reconstructed from the frames it has")
+    if getattr(frame, "motion", None) is None or all(_chain(frames, centre, o) is None for o in offsets):
+        result = reconstruct(frame, method, alpha, models)
+        return TemporalReconstruction(**{**vars(result), "warnings": [*warnings, *result.warnings]})
+    accumulated, agreement = _accumulate(frames, centre, offsets, warnings)
+    result = reconstruct(accumulated, method, alpha, models)
+    fractions = agreement.fractions()
+    out = TemporalReconstruction(**{**vars(result), "warnings": [*warnings, *result.warnings]},
+                                 neighbours=[o for o in offsets if fractions.get(o, 0.0) > 0.0], accepted=fractions)
+    out.agreement = agreement
+    return out
+
+
+def second_stage(results: Sequence[TemporalReconstruction | None], centre: int) -> TemporalReconstruction:
+    """Stage two: ``results[centre]`` (a first-stage result) averaged, per layer and pixel, with the first-stage
+    results of its neighbours in ``results`` where the first stage accepted that neighbour's samples. The
+    neighbours' reconstructions went through the same denoiser with overlapping samples; averaging them where
+    the inputs agree removes what changes from one output to the next (flicker) and more of the error."""
+    own = results[centre]
+    if own is None:
+        raise ValueError(f"the first-stage result of frame {centre} is missing")
+    agreement = own.agreement
+    offsets = [i - centre for i in range(len(results)) if i != centre and results[i] is not None]
+    if agreement is None or not offsets:
+        return own
+    layers: dict[str, np.ndarray] = {}
+    reached = set(own.neighbours)
+    for name, image in own.layers.items():
+        total = image.copy()
+        count = np.ones(image.shape[:2], np.float32)
+        for offset in offsets:
+            mask = agreement.accept.get(name, {}).get(offset)
+            other = results[centre + offset]
+            if mask is None or other is None or not mask.any():
+                continue
+            total += agreement.samplers[offset](other.layers[name]) * mask[..., None]
+            count += mask
+            reached.update({offset, *(offset + o for o in other.neighbours)} - {0})
+        total /= count[..., None]
+        layers[name] = total
+    image = np.zeros(own.image.shape, np.float64)
+    for layer in layers.values():  # summed in the frame's order, as model.reconstruct sums them
+        image += layer
+    out = TemporalReconstruction(**{**vars(own), "image": image.astype(np.float32), "layers": layers})
+    out.neighbours = sorted(reached)
+    return out
+
+
+def reconstruct_window(frames: Sequence[Frame | None], centre: int, method: str | None = None,
+                       alpha: float = DEFAULT_ALPHA, models: LoadedModels | None = None) -> TemporalReconstruction:
+    """Reconstruct ``frames[centre]`` from the window ``frames`` (consecutive frames of one shot; None for a
+    missing one, where the chain of motion vectors stops), statelessly: the first stage for frame t and for each
+    frame the second stage blends, then the second stage. A shot reconstructed frame after frame shares the first
+    stages between frames instead (:class:`ShotReconstructor`).
+
+    With one frame, or without motion vectors on frame t, this is :func:`model.reconstruct.reconstruct` of frame t,
+    bit for bit. Raises ValueError for an out-of-range ``centre``, a window of an even size, frames that differ in
+    size or channels (:func:`check_shot`), and whatever :func:`~model.reconstruct.reconstruct` raises.
+    """
+    if not 0 <= centre < len(frames) or frames[centre] is None:
+        raise ValueError(f"centre {centre} is not a present frame of the window (0..{len(frames) - 1})")
+    check_shot(frames, [f"{i - centre:+d}" if i != centre else "t" for i in range(len(frames))], centre)
+    radius = max(centre, len(frames) - 1 - centre)
+    r1, r2 = _radii(2 * radius + 1)
+    frame = frames[centre]
+    if radius == 0 or getattr(frame, "motion", None) is None:
+        return TemporalReconstruction(**vars(reconstruct(frame, method, alpha, models)))  # type: ignore[arg-type]
+
+    def stage_one(index: int) -> TemporalReconstruction | None:
+        if not 0 <= index < len(frames) or frames[index] is None:
+            return None
+        lo, hi = max(0, index - r1), min(len(frames), index + r1 + 1)
+        return first_stage(frames[lo:hi], index - lo, method, alpha, models)
+
+    firsts = [stage_one(centre + o) if abs(o) <= r2 else None for o in range(-centre, len(frames) - centre)]
+    lo = max(0, centre - r2)
+    return second_stage(firsts[lo:centre + r2 + 1], centre - lo)
+
+
+class ShotReconstructor:
+    """A shot's frames reconstructed in order, each frame's first stage computed once and shared by the second
+    stages of the frames around it (what :func:`reconstruct_window` recomputes per call). ``load(n)`` returns frame
+    ``n`` or None when it does not exist; frames and first stages are kept only while a later frame needs them."""
+
+    def __init__(self, load: Callable[[int], Frame | None], window: int = DEFAULT_WINDOW, method: str | None = None,
+                 alpha: float = DEFAULT_ALPHA, models: LoadedModels | None = None) -> None:
+        self.r1, self.r2 = _radii(window)
+        self._load, self._method, self._alpha, self._models = load, method, alpha, models
+        self._frames: dict[int, Frame | None] = {}
+        self._firsts: dict[int, TemporalReconstruction | None] = {}
+        self._signature: tuple[int, tuple] | None = None
+
+    def _frame(self, n: int) -> Frame | None:
+        if n not in self._frames:
+            frame = self._load(n)
+            if frame is not None:
+                if self._signature is None:
+                    self._signature = (n, _signature(frame))
+                else:
+                    first, want = self._signature
+                    _check_against(frame, n, first, want)
+            self._frames[n] = frame
+        return self._frames[n]
+
+    def _first(self, n: int) -> TemporalReconstruction | None:
+        if n not in self._firsts:
+            frames = [self._frame(k) for k in range(n - self.r1, n + self.r1 + 1)]
+            self._firsts[n] = None if frames[self.r1] is None else first_stage(
+                frames, self.r1, self._method, self._alpha, self._models)
+        return self._firsts[n]
+
+    def reconstruct(self, n: int) -> TemporalReconstruction:
+        """Frame ``n`` (which must exist) from its window; frames before ``n - window // 2`` are then forgotten."""
+        if self._frame(n) is None:
+            raise ValueError(f"frame {n} is missing")
+        firsts = [self._first(k) for k in range(n - self.r2, n + self.r2 + 1)]
+        result = second_stage(firsts, self.r2)
+        for cache, keep in ((self._frames, n - self.r1 - self.r2), (self._firsts, n - self.r2)):
+            for k in [k for k in cache if k < keep]:
+                del cache[k]
+        return result
+
+
+def _check_against(frame: Frame, n: int | str, first: int | str, want: tuple) -> None:
+    """Raise ValueError naming frame ``n`` when its size or channels differ from frame ``first``'s."""
+    got = _signature(frame)
+    if got[:2] != want[:2]:
+        raise ValueError(f"frame {n} is {got[1]}x{got[0]}, but frame {first} is {want[1]}x{want[0]}: the frames "
+                         "of one shot must have one size")
+    if got != want:
+        raise ValueError(f"frame {n} carries other channels than frame {first} (layers, gradients, variance, "
+                         "features or alpha differ): the frames of one shot must have one layout")

@@ -1,0 +1,250 @@
+"""Temporal reconstruction (model/temporal.py), the flicker metric (model/metrics.py) and ``gradsep reconstruct
+--frames`` (model/commands.py), on synthetic shots whose truth is known: a static shot, a light switched off, and
+a whole-frame shift (integer and subpixel) with the pixels that enter the frame disoccluded."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gradsep.model.exr_read import read_frame, read_header
+from gradsep.model.exr_write import encode_exr
+from gradsep.model.frame import Features, Frame, Layer
+from gradsep.model.metrics import flicker, relmse
+from gradsep.model.reconstruct import reconstruct
+from gradsep.model.temporal import Motion, ShotReconstructor, reconstruct_window
+
+pytest.importorskip("pyoidn", reason="the per-frame method of a plain frame is oidn")
+
+SIZE = 64
+NOISE = 0.25  # relative noise of one frame's base
+
+
+def _truth(shift: float = 0.0, lamp: float = 1.0) -> np.ndarray:
+    """A smooth (H, W, 3) scene with an edge and a bright patch (the lamp's pool, scaled by ``lamp``), moved right
+    by ``shift`` pixels."""
+    yy, xx = np.mgrid[0:SIZE, 0:SIZE].astype(np.float64)
+    xx = xx - shift
+    shade = 0.4 + 0.2 * np.sin(xx / 7.0) * np.cos(yy / 9.0) + 0.3 * (xx > SIZE / 2)
+    pool = np.exp(-((xx - 20) ** 2 + (yy - 20) ** 2) / 60.0)
+    grey = shade + 0.1 * lamp + 1.5 * lamp * pool
+    return np.repeat(grey[..., None], 3, axis=-1).astype(np.float32)
+
+
+def _frame(truth: np.ndarray, seed: int, motion: Motion | None = None) -> Frame:
+    """A noisy plain frame of ``truth``: the noise shared by the channels, so the luminance's variance is the
+    noise's; albedo and normal constant."""
+    rng = np.random.default_rng(seed)
+    sigma = NOISE * truth[..., 0]
+    base = np.maximum(truth + (sigma * rng.standard_normal(sigma.shape))[..., None], 0).astype(np.float32)
+    features = Features(albedo=np.full(truth.shape, 0.5, np.float32),
+                        normal=np.dstack([np.zeros((SIZE, SIZE, 2)), np.ones((SIZE, SIZE))]).astype(np.float32))
+    frame = Frame({"color": Layer(base, var=(sigma * sigma).astype(np.float32))}, features)
+    frame.motion = motion
+    return frame
+
+
+def _motion(shift: float) -> Motion:
+    """Every pixel moves right by ``shift`` per frame: backward.u = -shift, forward.u = +shift (v = 0); the
+    columns whose source is off screen are invalid."""
+    cols = np.arange(SIZE, dtype=np.float32)[None, :].repeat(SIZE, 0)
+    backward = np.zeros((SIZE, SIZE, 2), np.float32)
+    forward = np.zeros((SIZE, SIZE, 2), np.float32)
+    backward[..., 0], forward[..., 0] = -shift, shift
+    return Motion(backward, forward, ((cols - shift) >= 0).astype(np.float32),
+                  ((cols + shift) <= SIZE - 1).astype(np.float32))
+
+
+def _shot(truths: list[np.ndarray], motion: Motion | None, seed: int = 0) -> list[Frame]:
+    return [_frame(t, seed * 100 + i, motion) for i, t in enumerate(truths)]
+
+
+def _temporal(frames: list[Frame], window: int = 5) -> list[np.ndarray]:
+    shot = ShotReconstructor(lambda n: frames[n] if 0 <= n < len(frames) else None, window)
+    return [shot.reconstruct(n).image for n in range(len(frames))]
+
+
+def _per_frame(frames: list[Frame]) -> list[np.ndarray]:
+    return [reconstruct(f).image for f in frames]
+
+
+def _geomean(values: list[float]) -> float:
+    return math.exp(float(np.mean(np.log(values))))
+
+
+# ------------------------------------------------------------------------------------------------ the metric
+
+
+def test_flicker_is_zero_for_a_steady_error_and_measures_a_change() -> None:
+    ref = [np.ones((4, 4, 3))] * 3
+    steady = [np.full((4, 4, 3), 1.2)] * 3  # wrong, but the same error every frame: no flicker
+    assert flicker(steady, ref) == 0.0
+    jumping = [np.ones((4, 4, 3)), np.full((4, 4, 3), 1.1), np.ones((4, 4, 3))]
+    assert flicker(jumping, ref) == pytest.approx(0.01 / 1.01)
+    masks = [None, np.zeros((4, 4), bool), np.eye(4, dtype=bool)]
+    assert flicker(jumping, ref, masks=masks) == pytest.approx(0.01 / 1.01)  # only the last pair counts
+    with pytest.raises(ValueError, match="at least two"):
+        flicker(steady[:1], ref[:1])
+
+
+def test_flicker_with_two_references_removes_their_noise() -> None:
+    rng = np.random.default_rng(1)
+    truth = np.ones((64, 64, 3))
+    images = [truth + 0.1 * rng.standard_normal(truth.shape) for _ in range(6)]
+    r1 = [truth + 0.1 * rng.standard_normal(truth.shape) for _ in range(6)]
+    r2 = [truth + 0.1 * rng.standard_normal(truth.shape) for _ in range(6)]
+    expected = 2 * 0.01 / 1.01  # the images' own change: two independent errors of variance 0.01
+    assert flicker(images, r1, r2) == pytest.approx(expected, rel=0.1)
+    assert flicker(images, r1) > 1.5 * expected  # one noisy reference adds its own change
+
+
+# ------------------------------------------------------------------------------------------------ per-frame identity
+
+
+def test_one_frame_or_no_motion_is_the_per_frame_method_bit_for_bit() -> None:
+    frames = _shot([_truth()] * 5, None)
+    per = reconstruct(frames[2])
+    for window, centre in ((frames[2:3], 0), (frames, 2)):
+        out = reconstruct_window(window, centre)
+        assert out.method == per.method and out.neighbours == []
+        np.testing.assert_array_equal(out.image, per.image)
+    assert np.array_equal(_temporal(frames)[2], per.image)
+    moving = _shot([_truth()], _motion(0.0))
+    np.testing.assert_array_equal(reconstruct_window(moving, 0).image, reconstruct(moving[0]).image)
+
+
+def test_window_and_shot_reconstructor_agree() -> None:
+    frames = _shot([_truth()] * 5, _motion(0.0), seed=3)
+    out = reconstruct_window(frames, 2)
+    np.testing.assert_array_equal(out.image, _temporal(frames)[2])
+    assert out.neighbours == [-2, -1, 1, 2]
+
+
+# ------------------------------------------------------------------------------------------------ quality
+
+
+def test_static_shot_beats_per_frame_and_does_not_flicker() -> None:
+    truth = _truth()
+    frames = _shot([truth] * 8, _motion(0.0), seed=5)
+    per, tem = _per_frame(frames), _temporal(frames)
+    refs = [truth] * 8
+    ratio = _geomean([relmse(x, truth) for x in tem]) / _geomean([relmse(x, truth) for x in per])
+    assert ratio <= 0.67
+    assert flicker(tem, refs) <= 0.4 * flicker(per, refs)
+
+
+def test_light_switched_off_is_not_ghosted() -> None:
+    on, off = _truth(lamp=1.0), _truth(lamp=0.0)
+    truths = [on] * 4 + [off] * 4
+    frames = _shot(truths, _motion(0.0), seed=7)
+    per, tem = _per_frame(frames), _temporal(frames)
+    for t in (4, 5):  # the frames after the switch, whose windows hold lit frames
+        assert relmse(tem[t], off) <= 1.1 * relmse(per[t], off), t
+    pool = np.zeros((SIZE, SIZE), bool)
+    pool[12:29, 12:29] = True  # where the lamp's light was
+    assert relmse(tem[4][pool], off[pool]) <= 1.1 * relmse(per[4][pool], off[pool])
+
+
+@pytest.mark.parametrize("shift", [2.0, 1.5])
+def test_moving_shot_is_warped_and_disocclusions_are_not_ghosted(shift: float) -> None:
+    truths = [_truth(shift * i) for i in range(7)]
+    frames = _shot(truths, _motion(shift), seed=11)
+    per, tem = _per_frame(frames), _temporal(frames)
+    inner = slice(2, 5)
+    ratio = (_geomean([relmse(tem[t], truths[t]) for t in range(7)[inner]])
+             / _geomean([relmse(per[t], truths[t]) for t in range(7)[inner]]))
+    assert ratio <= 0.8
+    edge = slice(0, math.ceil(shift))  # the columns that entered the frame: frame t - 1 has no pixel there
+    for t in range(2, 5):
+        assert relmse(tem[t][:, edge], truths[t][:, edge]) <= 1.1 * relmse(per[t][:, edge], truths[t][:, edge])
+
+
+# ------------------------------------------------------------------------------------------------ bad input
+
+
+def test_frames_of_another_size_or_layout_are_named() -> None:
+    frames = _shot([_truth()] * 3, _motion(0.0))
+    small = Frame({"color": Layer(frames[0].layers["color"].base[:32, :32])})
+    with pytest.raises(ValueError, match=r"frame \+1 is 32x32"):
+        reconstruct_window([frames[0], frames[1], small], 1)
+    plain = Frame({"color": Layer(frames[0].layers["color"].base)}, frames[0].features)
+    with pytest.raises(ValueError, match=r"frame -1 carries other channels than frame t"):
+        reconstruct_window([plain, frames[1], frames[2]], 1)
+    with pytest.raises(ValueError, match="centre"):
+        reconstruct_window([None, frames[1]], 0)
+    with pytest.raises(ValueError, match="odd"):
+        ShotReconstructor(lambda n: None, 4)
+
+
+def test_a_missing_neighbour_is_a_warning_and_the_frame_uses_what_it_has() -> None:
+    frames = _shot([_truth()] * 5, _motion(0.0))
+    out = reconstruct_window([frames[0], None, frames[2], frames[3], frames[4]], 2)
+    assert any("missing" in w for w in out.warnings)
+    assert -1 not in out.neighbours and -2 not in out.neighbours and 1 in out.neighbours
+
+
+def _write_shot(folder: Path, sizes: list[int], motion: bool = False) -> None:
+    rng = np.random.default_rng(0)
+    for i, size in enumerate(sizes, start=1):
+        base = (0.5 + 0.1 * rng.standard_normal((size, size))).astype(np.float32)
+        channels = {f"color.{c}": base for c in "RGB"}
+        channels["color.var.Y"] = np.full((size, size), 0.01, np.float32)
+        if motion:  # still: zero vectors, all valid, as the renderer writes them for a still shot
+            for direction in ("backward", "forward"):
+                channels[f"{direction}.u"] = channels[f"{direction}.v"] = np.zeros((size, size), np.float32)
+                channels[f"{direction}.valid"] = np.ones((size, size), np.float32)
+        (folder / f"shot.{i:04d}.exr").write_bytes(encode_exr(channels))
+
+
+def _gradsep(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "gradsep", *args], capture_output=True, text=True, timeout=300)
+
+
+def test_command_writes_each_frame_with_its_neighbours_header(tmp_path: Path) -> None:
+    _write_shot(tmp_path, [16, 16, 16])
+    out = _gradsep("reconstruct", str(tmp_path / "shot.%04d.exr"), "--frames", "1-2", "-o",
+                   str(tmp_path / "out.####.exr"))
+    assert out.returncode == 0, out.stderr
+    for n in (1, 2):
+        header = read_header(tmp_path / f"out.{n:04d}.exr")
+        assert header.attributes[temporal_key()] == ""  # no motion vectors: no neighbour reached it
+        assert read_frame(tmp_path / f"out.{n:04d}.exr", layout="auto").width == 16
+    assert "no motion vectors" in out.stderr
+    assert not (tmp_path / "out.0003.exr").exists()
+
+
+def test_command_with_motion_vectors_names_the_frames_used(tmp_path: Path) -> None:
+    _write_shot(tmp_path, [16, 16, 16, 16], motion=True)
+    out = _gradsep("reconstruct", str(tmp_path / "shot.%04d.exr"), "--frames", "2-3", "-o",
+                   str(tmp_path / "out.%04d.exr"))
+    assert out.returncode == 0, out.stderr
+    assert read_header(tmp_path / "out.0002.exr").attributes[temporal_key()] == "1,3,4"
+    assert read_header(tmp_path / "out.0003.exr").attributes[temporal_key()] == "1,2,4"
+    assert "neighbour frame(s) 5 missing" in out.stderr  # frame 3's window reaches 5, which does not exist
+
+
+def temporal_key() -> str:
+    from gradsep.model.commands import NEIGHBOURS_KEY
+
+    return NEIGHBOURS_KEY
+
+
+@pytest.mark.parametrize(("sizes", "frames", "output", "message"), [
+    ([16, 16, 12], "1-3", "out.%04d.exr", "shot.0003.exr is 12x12"),
+    ([16, 16], "1-3", "out.%04d.exr", "shot.0003.exr of the shot is missing"),
+    ([16, 16], "2-1", "out.%04d.exr", "reversed"),
+    ([16, 16], "1-2", "out.exr", "no frame-number field"),
+])
+def test_command_bad_input_is_one_line_exit_2_and_no_file(tmp_path: Path, sizes: list[int], frames: str,
+                                                          output: str, message: str) -> None:
+    _write_shot(tmp_path, sizes)
+    out = _gradsep("reconstruct", str(tmp_path / "shot.%04d.exr"), "--frames", frames, "-o",
+                   str(tmp_path / output))
+    assert out.returncode == 2
+    assert message in out.stderr and len(out.stderr.strip().splitlines()) == 1
+    assert not list(tmp_path.glob("out*"))
