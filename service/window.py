@@ -79,7 +79,7 @@ def window_parts(lists: dict[str, list[Any]], is_file: Any) -> list[Part]:
     for name in SIDES:
         values = lists.get(name, [])
         if len(values) > MAX_NEIGHBOURS:
-            raise ServiceError(400, "window_too_large", f"{len(values)} '{name}' parts: a request carries at most "
+            raise ServiceError(400, "too_many_neighbours", f"{len(values)} '{name}' parts: a request carries at most "
                                f"{MAX_NEIGHBOURS} neighbours on each side", {"max_neighbours": MAX_NEIGHBOURS})
         for index, value in enumerate(values, start=1):
             upload = is_file(value)

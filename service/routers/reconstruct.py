@@ -21,7 +21,9 @@ from typing import Annotated, Any, Literal
 
 import anyio
 from fastapi import APIRouter, Depends, Query, Request
-from starlette.datastructures import UploadFile
+from starlette.datastructures import FormData, UploadFile
+from starlette.exceptions import HTTPException
+from starlette.formparsers import MultiPartException, MultiPartParser
 from starlette.responses import Response
 
 from gradsep.model import methods as table
@@ -42,6 +44,10 @@ RAW_TYPES = ("image/x-exr", "application/octet-stream")
 #: Largest non-file field of a multipart body held in memory (the frame itself is a file part, which Starlette
 #: spools to disk past its small in-memory head); a bigger field is a 400.
 MULTIPART_FIELD_BYTES = 64 << 10
+#: Bytes of a multipart file part held in memory before it moves to a temporary file: the first (the frame) as
+#: Starlette's default; each further one (a window's neighbours) less, so a window request holds little more
+#: memory than a single frame's.
+FRAME_HEAD_BYTES, NEIGHBOUR_HEAD_BYTES = MultiPartParser.spool_max_size, 64 << 10
 EXR_MEDIA_TYPE = "image/x-exr"
 _BINARY = {"type": "string", "format": "binary"}
 
@@ -249,8 +255,7 @@ async def _read_body(request: Request, media: str, engine: Engine) -> Window:
         body = await read_body(request.stream(), engine.body_pool, engine.settings.spool_dir,
                                int(declared) if declared is not None else None)
         return Window(Upload(body.file, body.size, body.close))
-    form = await request.form(max_files=1 + 2 * MAX_NEIGHBOURS, max_fields=16,
-                              max_part_size=MULTIPART_FIELD_BYTES)
+    form = await _parse_form(request)
     try:
         frames = form.getlist("frame")
         if len(frames) != 1 or not isinstance(frames[0], UploadFile):
@@ -262,6 +267,25 @@ async def _read_body(request: Request, media: str, engine: Engine) -> Window:
         await form.close()
         raise
     return Window(_file_upload(frames[0]), parts)  # type: ignore[arg-type]
+
+
+class _WindowParser(MultiPartParser):
+    """Starlette's multipart parser, its file parts after the first kept in memory up to NEIGHBOUR_HEAD_BYTES."""
+
+    @property  # type: ignore[override]
+    def spool_max_size(self) -> int:  # read as a file part begins, its count (_current_files) just raised
+        return FRAME_HEAD_BYTES if getattr(self, "_current_files", 0) <= 1 else NEIGHBOUR_HEAD_BYTES
+
+
+async def _parse_form(request: Request) -> FormData:
+    """The multipart body's fields (as ``request.form`` parses them, with the window's smaller heads); 400 for a
+    malformed body."""
+    parser = _WindowParser(request.headers, request.stream(), max_files=1 + 2 * MAX_NEIGHBOURS, max_fields=16,
+                           max_part_size=MULTIPART_FIELD_BYTES)
+    try:
+        return await parser.parse()
+    except MultiPartException as exc:
+        raise HTTPException(status_code=400, detail=exc.message) from None
 
 
 def _file_upload(value: Any) -> Upload | None:

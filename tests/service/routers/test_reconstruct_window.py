@@ -130,7 +130,7 @@ def test_malformed_window_parts_are_400(api):
     text = api.post("/v1/reconstruct?method=l2", files=window_files(SHOT[2]), data={"next": "frame.0003.exr"})
     assert "next" in assert_error(text, 400, "bad_request")["message"]
     many = post_window(api, SHOT[2], [SHOT[1]] * (MAX_NEIGHBOURS + 1))
-    assert assert_error(many, 400, "window_too_large")["details"]["max_neighbours"] == MAX_NEIGHBOURS
+    assert assert_error(many, 400, "too_many_neighbours")["details"]["max_neighbours"] == MAX_NEIGHBOURS
     two = api.post("/v1/reconstruct?method=l2", files=[*window_files(SHOT[2]), ("frame", ("x", SHOT[1]))])
     assert "more than one" in assert_error(two, 400, "missing_frame")["message"]
 
@@ -185,3 +185,33 @@ def test_the_first_part_is_found_across_chunk_boundaries():
             split.feed(body[i:i + step])
         assert split.size == whole.size
     assert whole.size == body.index(b"--" + boundary, 10) - body.index(b"--" + boundary)
+
+
+def test_neighbours_are_held_in_memory_only_up_to_their_small_head(monkeypatch):
+    """The frame part keeps Starlette's in-memory head; each neighbour part moves to disk past a smaller one, so a
+    window request holds about what a single frame's does (docs/service.md, request bodies and memory)."""
+    import asyncio
+
+    from starlette.requests import Request
+
+    from gradsep.service.routers import reconstruct as router
+
+    big = window_frame_bytes(1, height=64, width=64)
+    assert router.NEIGHBOUR_HEAD_BYTES < len(big) < router.FRAME_HEAD_BYTES
+    body, content_type = _multipart(window_files(big, [big], [big]))
+
+    async def form():
+        chunks = [body[i:i + 4096] for i in range(0, len(body), 4096)]
+
+        async def receive():
+            return {"type": "http.request", "body": chunks.pop(0) if chunks else b"", "more_body": bool(chunks)}
+
+        scope = {"type": "http", "method": "POST", "headers": [(b"content-type", content_type.encode())]}
+        return await router._parse_form(Request(scope, receive))
+
+    parsed = asyncio.run(form())
+    try:
+        rolled = {name: value.file._rolled for name, value in parsed.multi_items()}  # SpooledTemporaryFile
+        assert rolled == {"frame": False, "previous": True, "next": True}
+    finally:
+        asyncio.run(parsed.close())
