@@ -6,8 +6,9 @@ own status codes in a fixed order, cheapest first:
 
   auth (middleware) -> query parameters 422 -> not ready 503 -> unknown method 422 -> content type 415
   -> queue already full 503 (body drained, not buffered) -> body over the byte limit 413 (streaming count)
-  -> header: not an EXR 400, too large 413 (before any pixel is decoded) -> queue 503 / timeout 504
-  -> decode 400/422 -> reconstruction -> encode.
+  -> header: not an EXR 400, too large 413 (before any pixel is decoded); a window's neighbours' headers: the
+  same, and another size, layout or shot 422 -> queue 503 / timeout 504 -> decode 400/422 -> reconstruction
+  (of a window: model.temporal.reconstruct_window, service/window.py) -> encode.
 """
 
 # No ``from __future__ import annotations``: build_router's endpoint is annotated with a type made when the app is
@@ -83,16 +84,20 @@ RESPONSES: dict[int | str, dict[str, Any]] = {
                       "Server-Timing": {"schema": {"type": "string"},
                                         "description": "queue, decode, per-layer and encode durations (ms)"},
                       "X-Reconstruction-Method": {"schema": {"type": "string"}},
+                      "X-Gradsep-Neighbours": {"schema": {"type": "string"},
+                                               "description": "a window request's neighbours used, as offsets from "
+                                                              "frame t (-1,+1), or none"},
                       "X-Gradsep-Warnings": {"schema": {"type": "string"},
                                              "description": "what was replaced, clamped or saturated, with counts "
                                                             "(also in the EXR's gradsep.warnings)"}}},
     400: _err("not an OpenEXR file, corrupt or truncated; unsupported EXR kind; malformed multipart"),
     401: _err("bearer token missing or invalid (only when the service has a token)"),
-    413: _err("body over the byte limit, or image over the pixel/value limit (decided from the header)"),
+    413: _err("body over the byte limit (a multipart body: details.frames_fit), or image over the pixel/value "
+              "limit (decided from the header)"),
     408: _err("the request body stalled longer than the service's body timeout"),
     415: _err("content type is not multipart/form-data, image/x-exr or application/octet-stream"),
     422: _err("invalid parameter; missing or inconsistent channels; no illumination layer; ambiguous channel "
-              "layout (details.candidates); NaN/Inf values"),
+              "layout (details.candidates); NaN/Inf values; a neighbour of another size, layout or shot"),
     503: _err("not ready yet, or the inference queue is full; retry after Retry-After seconds",
               {"Retry-After": {"schema": {"type": "integer"}}}),
     504: _err("the inference did not finish within the service's timeout"),
