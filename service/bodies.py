@@ -16,7 +16,8 @@ from __future__ import annotations
 import io
 import tempfile
 import threading
-from collections.abc import AsyncIterable
+from collections.abc import AsyncIterable, Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO
 
@@ -26,6 +27,15 @@ from gradsep.service.errors import ServiceError
 
 #: Retry-After of a body that could not be spooled (a full or missing spool folder clears on an operator's time).
 SPOOL_RETRY_SECONDS = 30
+
+
+@dataclass
+class Upload:
+    """A request's frame as a seekable stream, its size, and how to let it go (idempotent, any thread)."""
+
+    file: BinaryIO
+    size: int
+    close: Callable[[], None]
 
 
 class BytePool:

@@ -139,6 +139,7 @@ class FrameRequest:
     params: dict[str, Any]
     request_id: str
     policy: RetryPolicy = RetryPolicy()
+    content_type: str = "image/x-exr"  # a window's multipart body names its boundary here
 
 
 def post_frame(client: httpx.Client, request: FrameRequest, data: bytes,
@@ -146,7 +147,7 @@ def post_frame(client: httpx.Client, request: FrameRequest, data: bytes,
     """POST the frame, retrying 503 and connection failures; return the 200 response or raise."""
     url, params, request_id, policy = request.url, request.params, request.request_id, request.policy
     endpoint = f"{url.rstrip('/')}/v1/reconstruct"
-    headers = {"Content-Type": "image/x-exr", "X-Request-ID": request_id}
+    headers = {"Content-Type": request.content_type, "X-Request-ID": request_id}
     attempts = policy.retries + 1
     reason = "no attempt made"
     for attempt in range(attempts):
@@ -228,6 +229,25 @@ class ClientOptions:
     timeout: float = 300.0
 
 
+def _checked(options: ClientOptions, output: Path) -> tuple[str, str | None]:
+    """The service and token, after checking the options and the output folder (CommandError: exit 2)."""
+    url, token = resolve_target(options.url, options.token)
+    if options.retries < 0:
+        raise CommandError(f"--retries must be 0 or more, got {options.retries}")
+    if not options.timeout > 0:
+        raise CommandError(f"--timeout must be positive, got {options.timeout}")
+    if not output.parent.is_dir():
+        raise CommandError(f"output folder {output.parent} does not exist")
+    return url, token
+
+
+def _read(path: Path) -> bytes:
+    try:
+        return path.read_bytes()
+    except OSError as exc:
+        raise CommandError(f"cannot read {path}: {exc.strerror or exc}") from None
+
+
 def send_frame(frame: Path, output: Path, options: ClientOptions = ClientOptions(),
                sleep: Callable[[float], None] = time.sleep) -> int:
     """Post ``frame`` to the service and write the answer to ``output`` atomically; returns the exit status.
@@ -235,31 +255,27 @@ def send_frame(frame: Path, output: Path, options: ClientOptions = ClientOptions
     Bad input and 4xx answers raise CommandError (exit 2); an unavailable or failing service returns
     EXIT_UNAVAILABLE / EXIT_SERVER_ERROR after printing one line.
     """
+    _setup_logging()
+    frame, output = Path(frame), Path(output)
+    url, token = _checked(options, output)
+    data = _read(frame)
+    return _exchange(data, "image/x-exr", output, (url, token, uuid.uuid4().hex), options, sleep)
+
+
+def _exchange(data: bytes, content_type: str, output: Path, target: tuple[str, str | None, str],
+              options: ClientOptions, sleep: Callable[[float], None]) -> int:
+    """One request with its retries, the answer verified and written atomically; the exit status."""
     from gradsep.model.exr_write import write_bytes_atomic
 
-    _setup_logging()
-    url, token = resolve_target(options.url, options.token)
-    retries, timeout = options.retries, options.timeout
-    if retries < 0:
-        raise CommandError(f"--retries must be 0 or more, got {retries}")
-    if not timeout > 0:
-        raise CommandError(f"--timeout must be positive, got {timeout}")
-    frame, output = Path(frame), Path(output)
-    try:
-        data = frame.read_bytes()
-    except OSError as exc:
-        raise CommandError(f"cannot read {frame}: {exc.strerror or exc}") from None
-    if not output.parent.is_dir():
-        raise CommandError(f"output folder {output.parent} does not exist")
+    url, token, request_id = target
     params = {k: v for k, v in options.params.items() if v is not None}
-    request_id = uuid.uuid4().hex
     auth = {"Authorization": f"Bearer {token}"} if token else {}
-    http_timeout = httpx.Timeout(timeout, connect=min(timeout, 10.0))
+    http_timeout = httpx.Timeout(options.timeout, connect=min(options.timeout, 10.0))
     started = time.perf_counter()
+    request = FrameRequest(url, params, request_id, RetryPolicy(retries=options.retries), content_type)
     try:
         with httpx.Client(timeout=http_timeout, headers=auth) as client:
-            response = post_frame(client, FrameRequest(url, params, request_id, RetryPolicy(retries=retries)), data,
-                                  sleep)
+            response = post_frame(client, request, data, sleep)
         if not response.content.startswith(EXR_MAGIC):
             raise ServerFailure(f"service answered 200 with a non-EXR body "
                                 f"({response.headers.get('content-type', 'no content type')})")
@@ -274,7 +290,61 @@ def send_frame(frame: Path, output: Path, options: ClientOptions = ClientOptions
         write_bytes_atomic(output, response.content)
     except OSError as exc:
         raise CommandError(f"cannot write {output}: {exc.strerror or exc}") from None
-    log.info("wrote %s (%d bytes, method %s, %.2f s; %s) request_id=%s", output, len(response.content),
-             response.headers.get("x-reconstruction-method", "?"), time.perf_counter() - started,
-             response.headers.get("server-timing", ""), request_id)
+    used = response.headers.get("x-gradsep-neighbours")
+    log.info("wrote %s (%d bytes, method %s%s, %.2f s; %s) request_id=%s", output, len(response.content),
+             response.headers.get("x-reconstruction-method", "?"), f", neighbours {used}" if used else "",
+             time.perf_counter() - started, response.headers.get("server-timing", ""), request_id)
+    for warning in filter(None, (response.headers.get("x-gradsep-warnings"),)):
+        log.warning("%s: %s request_id=%s", output.name, warning, request_id)
+    return EXIT_OK
+
+
+@dataclass(frozen=True)
+class Shot:
+    """`gradsep client PATTERN --frames A-B -o PATTERN [--window N]`: the input and output patterns
+    (model/shot.py's FramePattern), the frames and the window (odd, >= 1)."""
+
+    source: Any
+    output: Any
+    frames: range
+    window: int
+
+
+def window_body(shot: Shot, n: int) -> tuple[bytes, str]:
+    """Frame ``n``'s request: multipart ``frame`` plus its neighbours as ``previous`` / ``next`` parts, nearest
+    first, within the window; a neighbour whose file is absent is an empty part (the service reports it missing),
+    one before frame 0 is not sent. Returns the body and its Content-Type."""
+    files: list[tuple[str, tuple[str, bytes, str]]] = [("frame", (shot.source.path(n).name,
+                                                                   _read(shot.source.path(n)), "image/x-exr"))]
+    for side, sign in (("previous", -1), ("next", 1)):
+        for k in range(n + sign, n + sign * (shot.window // 2 + 1), sign):
+            if k < 0:
+                break
+            path = shot.source.path(k)
+            files.append((side, (path.name, _read(path) if path.is_file() else b"", "image/x-exr")))
+    request = httpx.Request("POST", DEFAULT_URL, files=files)
+    return request.read(), request.headers["content-type"]
+
+
+def send_shot(shot: Shot, options: ClientOptions = ClientOptions(),
+              sleep: Callable[[float], None] = time.sleep) -> int:
+    """Post each frame of the shot with its window and write each answer atomically, frame after frame, with
+    :func:`send_frame`'s retries; stops at the first frame that fails, returning its exit status (frames written
+    before it stay)."""
+    _setup_logging()
+    if shot.window < 1 or shot.window % 2 == 0:
+        raise CommandError(f"--window must be an odd number of frames >= 1, got {shot.window}")
+    missing = [str(shot.source.path(n)) for n in shot.frames if not shot.source.path(n).is_file()]
+    if missing:
+        raise CommandError(f"frame {missing[0]} of the shot is missing"
+                           + (f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""))
+    url, token = _checked(options, shot.output.path(shot.frames.start))
+    request_id = uuid.uuid4().hex
+    for n in shot.frames:
+        body, content_type = window_body(shot, n)
+        status = _exchange(body, content_type, shot.output.path(n), (url, token, request_id), options, sleep)
+        if status != EXIT_OK:
+            print(f"gradsep client: error: frame {n} failed; frames {shot.frames.start}-{n - 1} were written"
+                  if n > shot.frames.start else f"gradsep client: error: frame {n} failed", file=sys.stderr)
+            return status
     return EXIT_OK

@@ -26,6 +26,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from gradsep.service.errors import ServiceError, body_too_large, error_json
 from gradsep.service.metrics import ServiceMetrics
 from gradsep.service.settings import Settings
+from gradsep.service.window import FirstPart, multipart_boundary, window_too_large
 
 log = logging.getLogger("gradsep.service")
 
@@ -159,10 +160,14 @@ class BodyLimitMiddleware:
         headers = Headers(scope=scope)
         declared = headers.get("content-length")
         refusal = self._refusal(declared)
+        boundary = multipart_boundary(headers.get("content-type"))
+        if refusal is not None and refusal.status == 413 and boundary and self.uploads.refusal() is None:
+            refusal = await self._window_refusal(receive, boundary, _int_or_none(declared or ""))
         if refusal is None and (declared not in (None, "0") or "transfer-encoding" in headers):
             refusal = self.uploads.refusal()
             if refusal is None:
-                counted = _CountedReceive(receive, self.limit, self.timeout, self.uploads)
+                counted = _CountedReceive(receive, self.limit, self.timeout, self.uploads,
+                                          FirstPart(boundary) if boundary else None)
                 try:
                     await self.app(scope, counted, send)
                 finally:
@@ -173,6 +178,25 @@ class BodyLimitMiddleware:
                              metrics=self.metrics)(scope, receive, send)
             return
         await self.app(scope, receive, send)
+
+    async def _window_refusal(self, receive: Receive, boundary: bytes, declared: int | None) -> ServiceError:
+        """The 413 of a multipart body declared over the limit, saying how many frames fit: the body is read
+        (never past the limit, each wait within the body timeout) until its first part has been seen."""
+        first, received = FirstPart(boundary), 0
+        try:
+            while first.size is None and received <= self.limit:
+                with anyio.fail_after(self.timeout if math.isfinite(self.timeout) else None):
+                    message = await receive()
+                if message["type"] != "http.request":
+                    break
+                first.feed(message.get("body", b""))
+                received += len(message.get("body", b""))
+                if not message.get("more_body", False):
+                    break
+        except TimeoutError:
+            pass  # the answer is the 413 all the same, without the count when the first part did not arrive
+        err = window_too_large(self.limit, first, declared)
+        return ServiceError(err.status, err.code, err.message, err.details, {"Connection": "close"})
 
     def _refusal(self, declared: str | None) -> ServiceError | None:
         """The answer to a Content-Length header that is invalid (400) or over the limit (413); None if fine."""
@@ -209,8 +233,10 @@ class _CountedReceive:
     """``receive`` that counts body bytes (413 past the limit), times each wait (408) and holds one of the upload
     cap's places until the body is complete or :meth:`end` is called."""
 
-    def __init__(self, receive: Receive, limit: int, timeout: float, uploads: UploadCap) -> None:
+    def __init__(self, receive: Receive, limit: int, timeout: float, uploads: UploadCap,
+                 first: FirstPart | None = None) -> None:
         self.receive, self.limit, self.timeout, self.uploads = receive, limit, timeout, uploads
+        self.first = first  # a multipart body's first part, for the 413's count of the frames that fit
         self.received, self.complete = 0, False
         uploads.open += 1
 
@@ -232,10 +258,12 @@ class _CountedReceive:
                 {"Connection": "close"}) from None
         if message["type"] == "http.request":
             self.received += len(message.get("body", b""))
+            if self.first is not None:
+                self.first.feed(message.get("body", b""))
             if not message.get("more_body", False):
                 self.end()
             if self.received > self.limit:
-                raise body_too_large(self.limit)
+                raise body_too_large(self.limit) if self.first is None else window_too_large(self.limit, self.first)
         elif message["type"] == "http.disconnect":
             self.end()
         return message

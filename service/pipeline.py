@@ -11,10 +11,13 @@ from typing import Any, Literal
 import numpy as np
 
 from gradsep.model import methods as table
+from gradsep.model.errors import FrameError
 from gradsep.model.exr_read import ReadLimits, Source, read_frame
 from gradsep.model.exr_write import encode_answer
 from gradsep.model.frame import rgb_channels
 from gradsep.model.header_keys import OIDN_SETTING_KEY
+from gradsep.service.errors import ServiceError
+from gradsep.service.window import OFFSETS_KEY, Window, read_window
 
 log = logging.getLogger("gradsep.service")
 
@@ -36,6 +39,7 @@ class Outcome:
     method: str
     timings: dict[str, float]  # Server-Timing names -> seconds, in order
     warnings: list[str]
+    neighbours: list[int] | None = None  # a window request's neighbours that contributed (offsets from frame t)
 
 
 def reconstruct(frame: Any, method: str | None, alpha: float, models: table.LoadedModels | None = None) -> Any:
@@ -49,16 +53,72 @@ def run_pipeline(source: Source, params: ReconstructParams, limits: ReadLimits, 
                  models: table.LoadedModels | None = None) -> Outcome:
     """Decode, reconstruct and encode in the calling (worker) thread; frame problems raise FrameError."""
     timings: dict[str, float] = {}
+    frame = _decode(source, params, limits, nonfinite, timings)
+    result = reconstruct(frame, params.method, params.alpha, models)
+    return _answer(frame, result, params, timings, [*frame.warnings])
+
+
+def run_window_pipeline(window: Window, params: ReconstructParams, limits: ReadLimits, nonfinite: str,
+                        models: table.LoadedModels | None = None) -> Outcome:
+    """Frame t of a window request (service/window.py) reconstructed from its neighbours by
+    :func:`model.temporal.reconstruct_window`; the answer names the neighbours used, and warns of the missing and
+    the rejected ones. Errors of a neighbour name its part."""
+    from gradsep.model.temporal import reconstruct_window
+
+    timings: dict[str, float] = {}
+    frame = _decode(window.frame.file, params, limits, nonfinite, timings)
+    t0 = time.perf_counter()
+    frames, centre = read_window(window, frame, limits, nonfinite, params.channels)
+    timings["decode"] += time.perf_counter() - t0
+    try:
+        result = reconstruct_window(frames, centre, params.method, params.alpha, models)
+    except ValueError as exc:
+        if isinstance(exc, FrameError):
+            raise
+        raise ServiceError(422, "window_mismatch", f"the window's frames do not form one shot: {exc}") from None
+    warnings = [*frame.warnings, *window_warnings(window, frame, result)]
+    result.warnings = [w for w in result.warnings if not str(w).startswith("neighbour(s) ")]
+    outcome = _answer(frame, result, params, timings, warnings, {OFFSETS_KEY: _offsets(result.neighbours)})
+    outcome.neighbours = list(result.neighbours)
+    return outcome
+
+
+def window_warnings(window: Window, frame: Any, result: Any) -> list[str]:
+    """What the answer says about the neighbours: missing (an empty part), or sent but never accepted."""
+    warnings = []
+    if window.missing:
+        warnings.append(f"neighbour(s) {_offsets(window.missing)} missing: reconstructed from the frames it has")
+    if getattr(frame, "motion", None) is None:
+        warnings.append("the frame has no motion vectors: reconstructed on its own (the per-frame method)")
+        return warnings
+    rejected = [p.offset for p in window.parts if p.upload is not None and p.offset not in result.neighbours]
+    if rejected:
+        warnings.append(f"neighbour(s) {_offsets(rejected)} rejected: no pixel of theirs reached or agreed with "
+                        "the frame")
+    return warnings
+
+
+def _offsets(offsets: list[int]) -> str:
+    return ",".join(f"{o:+d}" for o in sorted(offsets))
+
+
+def _decode(source: Source, params: ReconstructParams, limits: ReadLimits, nonfinite: str,
+            timings: dict[str, float]) -> Any:
     t0 = time.perf_counter()
     if hasattr(source, "seek"):
         source.seek(0)  # the header check left the stream somewhere past the header
     frame = read_frame(source, limits=limits, nonfinite=nonfinite,  # type: ignore[arg-type]
                        layout=params.channels)
     timings["decode"] = time.perf_counter() - t0
-    result = reconstruct(frame, params.method, params.alpha, models)
+    return frame
+
+
+def _answer(frame: Any, result: Any, params: ReconstructParams, timings: dict[str, float], warnings: list[str],
+            extra: dict[str, str] | None = None) -> Outcome:
+    """Encode ``result`` (with the frame's header) as the answer; ``warnings`` gets the result's own."""
     for layer, seconds in dict(getattr(result, "timings", {}) or {}).items():
         timings[str(layer)] = float(seconds)
-    warnings = [*frame.warnings, *(str(w) for w in getattr(result, "warnings", None) or ())]
+    warnings.extend(str(w) for w in getattr(result, "warnings", None) or ())
     image = _finite(np.asarray(result.image, dtype=np.float32), "sum", warnings)
     channels = dict(rgb_channels("", image))
     if params.layers == "all":
@@ -66,7 +126,7 @@ def run_pipeline(source: Source, params: ReconstructParams, limits: ReadLimits, 
             channels.update(rgb_channels(name, _finite(np.asarray(layer_image, dtype=np.float32), name, warnings)))
     t1 = time.perf_counter()
     metadata = {"gradsep.method": str(result.method), "gradsep.alpha": f"{params.alpha:g}",
-                "gradsep.request_id": params.request_id, "gradsep.layers": ",".join(frame.layers)}
+                "gradsep.request_id": params.request_id, "gradsep.layers": ",".join(frame.layers), **(extra or {})}
     if getattr(result, "oidn_setting", None):
         metadata[OIDN_SETTING_KEY] = str(result.oidn_setting)
     body = encode_answer(frame, channels, half=params.half, metadata=metadata, warnings=warnings,

@@ -6,8 +6,9 @@ own status codes in a fixed order, cheapest first:
 
   auth (middleware) -> query parameters 422 -> not ready 503 -> unknown method 422 -> content type 415
   -> queue already full 503 (body drained, not buffered) -> body over the byte limit 413 (streaming count)
-  -> header: not an EXR 400, too large 413 (before any pixel is decoded) -> queue 503 / timeout 504
-  -> decode 400/422 -> reconstruction -> encode.
+  -> header: not an EXR 400, too large 413 (before any pixel is decoded); a window's neighbours' headers: the
+  same, and another size, layout or shot 422 -> queue 503 / timeout 504 -> decode 400/422 -> reconstruction
+  (of a window: model.temporal.reconstruct_window, service/window.py) -> encode.
 """
 
 # No ``from __future__ import annotations``: build_router's endpoint is annotated with a type made when the app is
@@ -17,11 +18,13 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
-from typing import Annotated, Any, BinaryIO, Literal
+from typing import Annotated, Any, Literal
 
 import anyio
 from fastapi import APIRouter, Depends, Query, Request
-from starlette.datastructures import UploadFile
+from starlette.datastructures import FormData, UploadFile
+from starlette.exceptions import HTTPException
+from starlette.formparsers import MultiPartException, MultiPartParser
 from starlette.responses import Response
 
 from gradsep.model import methods as table
@@ -29,27 +32,36 @@ from gradsep.model.channels import DEFAULT_LAYOUT, choices_text, layout_pattern
 from gradsep.model.errors import NotExrError
 from gradsep.model.exr_read import HeaderInfo, read_header
 from gradsep.model.poisson import MIN_ALPHA
-from gradsep.service.bodies import read_body
+from gradsep.service.bodies import Upload, read_body
 from gradsep.service.dependencies import get_engine, get_metrics
 from gradsep.service.engine import Engine
 from gradsep.service.errors import ErrorResponse, ServiceError
 from gradsep.service.metrics import ServiceMetrics
 from gradsep.service.middleware import request_id_of
-from gradsep.service.pipeline import Outcome, ReconstructParams, run_pipeline, server_timing
+from gradsep.service.pipeline import Outcome, ReconstructParams, run_pipeline, run_window_pipeline, server_timing
+from gradsep.service.window import MAX_NEIGHBOURS, SIDES, Window, check_neighbours, window_parts
 
 RAW_TYPES = ("image/x-exr", "application/octet-stream")
 #: Largest non-file field of a multipart body held in memory (the frame itself is a file part, which Starlette
 #: spools to disk past its small in-memory head); a bigger field is a 400.
 MULTIPART_FIELD_BYTES = 64 << 10
+#: Bytes of a multipart file part held in memory before it moves to a temporary file: the first (the frame) as
+#: Starlette's default; each further one (a window's neighbours) less, so a window request holds little more
+#: memory than a single frame's.
+FRAME_HEAD_BYTES, NEIGHBOUR_HEAD_BYTES = MultiPartParser.spool_max_size, 64 << 10
 EXR_MEDIA_TYPE = "image/x-exr"
 _BINARY = {"type": "string", "format": "binary"}
 
 REQUEST_BODY = {
     "required": True,
-    "description": "an OpenEXR frame per docs/frame-format.md: multipart field `frame`, or the raw file",
+    "description": "an OpenEXR frame per docs/frame-format.md: multipart field `frame`, or the raw file; a "
+                   "temporal window adds its neighbours as repeatable `previous` / `next` parts, nearest first",
     "content": {
-        "multipart/form-data": {"schema": {"type": "object", "required": ["frame"],
-                                           "properties": {"frame": {**_BINARY, "description": "the .exr"}}}},
+        "multipart/form-data": {"schema": {"type": "object", "required": ["frame"], "properties": {
+            "frame": {**_BINARY, "description": "the .exr (frame t)"},
+            **{side: {"type": "array", "maxItems": MAX_NEIGHBOURS, "items": _BINARY,
+                      "description": f"frames t{sign:+d}, t{2 * sign:+d}, ... (an empty part: that frame is "
+                                     "missing)"} for side, sign in SIDES.items()}}}},
         "image/x-exr": {"schema": _BINARY},
         "application/octet-stream": {"schema": _BINARY},
     },
@@ -72,16 +84,20 @@ RESPONSES: dict[int | str, dict[str, Any]] = {
                       "Server-Timing": {"schema": {"type": "string"},
                                         "description": "queue, decode, per-layer and encode durations (ms)"},
                       "X-Reconstruction-Method": {"schema": {"type": "string"}},
+                      "X-Gradsep-Neighbours": {"schema": {"type": "string"},
+                                               "description": "a window request's neighbours used, as offsets from "
+                                                              "frame t (-1,+1), or none"},
                       "X-Gradsep-Warnings": {"schema": {"type": "string"},
                                              "description": "what was replaced, clamped or saturated, with counts "
                                                             "(also in the EXR's gradsep.warnings)"}}},
     400: _err("not an OpenEXR file, corrupt or truncated; unsupported EXR kind; malformed multipart"),
     401: _err("bearer token missing or invalid (only when the service has a token)"),
-    413: _err("body over the byte limit, or image over the pixel/value limit (decided from the header)"),
+    413: _err("body over the byte limit (a multipart body: details.frames_fit), or image over the pixel/value "
+              "limit (decided from the header)"),
     408: _err("the request body stalled longer than the service's body timeout"),
     415: _err("content type is not multipart/form-data, image/x-exr or application/octet-stream"),
     422: _err("invalid parameter; missing or inconsistent channels; no illumination layer; ambiguous channel "
-              "layout (details.candidates); NaN/Inf values"),
+              "layout (details.candidates); NaN/Inf values; a neighbour of another size, layout or shot"),
     503: _err("not ready yet, or the inference queue is full; retry after Retry-After seconds",
               {"Retry-After": {"schema": {"type": "integer"}}}),
     504: _err("the inference did not finish within the service's timeout"),
@@ -97,15 +113,6 @@ class ReconstructQuery:
     output_format: Literal["half", "float"]
     layers: Literal["sum", "all"]
     channels: str
-
-
-@dataclass
-class Upload:
-    """A request's frame as a seekable stream, its size, and how to let it go (idempotent, any thread)."""
-
-    file: BinaryIO
-    size: int
-    close: Callable[[], None]
 
 
 def query_dependency() -> Callable[..., ReconstructQuery]:
@@ -172,18 +179,22 @@ async def _reconstruct(request: Request, engine: Engine, metrics: ServiceMetrics
     timings = {"read": read_seconds, "queue": queued, **outcome.timings, "total": time.perf_counter() - t_start}
     headers = {"Server-Timing": server_timing(timings), "X-Reconstruction-Method": outcome.method,
                "Content-Disposition": 'attachment; filename="reconstruction.exr"'}
+    if outcome.neighbours is not None:
+        headers["X-Gradsep-Neighbours"] = ",".join(f"{o:+d}" for o in outcome.neighbours) or "none"
     if outcome.warnings:
         headers["X-Gradsep-Warnings"] = _header_safe("; ".join(outcome.warnings))
     return Response(outcome.body, media_type=EXR_MEDIA_TYPE, headers=headers)
 
 
-async def _run(upload: Upload, engine: Engine, query: ReconstructQuery, request_id: str) -> tuple[Outcome, float]:
+async def _run(upload: Window, engine: Engine, query: ReconstructQuery, request_id: str) -> tuple[Outcome, float]:
     """Header check, then the pipeline through the gate. The body is closed when the work is done: by the job in
     its thread once it has started (so a job that outlives its request, timed out or disconnected, reads its body
     to the end and frees it when it ends), or here when no job started."""
     started = threading.Event()
     try:
-        header = await anyio.to_thread.run_sync(_check_header, upload, engine)
+        header = await anyio.to_thread.run_sync(_check_header, upload.frame, engine)
+        if upload.parts:
+            await anyio.to_thread.run_sync(check_neighbours, upload, header, engine.limits)
         alpha = query.alpha if query.alpha is not None else engine.settings.default_alpha
         params = ReconstructParams(query.method, alpha, query.output_format == "half", query.layers, request_id,
                                    header.compression, query.channels)
@@ -194,11 +205,13 @@ async def _run(upload: Upload, engine: Engine, query: ReconstructQuery, request_
             upload.close()
 
 
-def _job(upload: Upload, params: ReconstructParams, engine: Engine, started: threading.Event) -> Outcome:
+def _job(upload: Window, params: ReconstructParams, engine: Engine, started: threading.Event) -> Outcome:
     """One request's pipeline in a worker thread; its body closed when it ends."""
     started.set()
     try:
-        return run_pipeline(upload.file, params, engine.limits, engine.settings.nonfinite, engine.models)
+        if upload.parts:
+            return run_window_pipeline(upload, params, engine.limits, engine.settings.nonfinite, engine.models)
+        return run_pipeline(upload.frame.file, params, engine.limits, engine.settings.nonfinite, engine.models)
     finally:
         upload.close()
 
@@ -238,22 +251,53 @@ def _media_type(request: Request) -> str:
     return media
 
 
-async def _read_body(request: Request, media: str, engine: Engine) -> Upload:
+async def _read_body(request: Request, media: str, engine: Engine) -> Window:
     """The EXR: a raw body spooled within the service's body memory pool (service/bodies.py), or the file field
-    of a multipart body (Starlette spools it to disk past its small in-memory part)."""
+    of a multipart body (Starlette spools it to disk past its small in-memory part) with the neighbours of a
+    window request (service/window.py)."""
     if media != "multipart/form-data":
         declared = request.headers.get("content-length")
         body = await read_body(request.stream(), engine.body_pool, engine.settings.spool_dir,
                                int(declared) if declared is not None else None)
-        return Upload(body.file, body.size, body.close)
-    form = await request.form(max_files=1, max_fields=16, max_part_size=MULTIPART_FIELD_BYTES)
-    upload = form.get("frame")
-    if not isinstance(upload, UploadFile):
-        fields = list(form.keys())
+        return Window(Upload(body.file, body.size, body.close))
+    form = await _parse_form(request)
+    try:
+        frames = form.getlist("frame")
+        if len(frames) != 1 or not isinstance(frames[0], UploadFile):
+            raise ServiceError(400, "missing_frame", "multipart body has more than one field 'frame'" if frames[1:]
+                               else "multipart body has no file field 'frame' (curl -F frame=@f.exr)",
+                               {"fields": list(form.keys())[:16]})
+        parts = window_parts({side: form.getlist(side) for side in SIDES}, _file_upload)
+    except ServiceError:
         await form.close()
-        raise ServiceError(400, "missing_frame", "multipart body has no file field 'frame' (curl -F frame=@f.exr)",
-                           {"fields": fields[:16]})
-    return Upload(upload.file, upload.size or 0, upload.file.close)
+        raise
+    return Window(_file_upload(frames[0]), parts)  # type: ignore[arg-type]
+
+
+class _WindowParser(MultiPartParser):
+    """Starlette's multipart parser, its file parts after the first kept in memory up to NEIGHBOUR_HEAD_BYTES."""
+
+    @property  # type: ignore[override]
+    def spool_max_size(self) -> int:  # read as a file part begins, its count (_current_files) just raised
+        return FRAME_HEAD_BYTES if getattr(self, "_current_files", 0) <= 1 else NEIGHBOUR_HEAD_BYTES
+
+
+async def _parse_form(request: Request) -> FormData:
+    """The multipart body's fields (as ``request.form`` parses them, with the window's smaller heads); 400 for a
+    malformed body."""
+    parser = _WindowParser(request.headers, request.stream(), max_files=1 + 2 * MAX_NEIGHBOURS, max_fields=16,
+                           max_part_size=MULTIPART_FIELD_BYTES)
+    try:
+        return await parser.parse()
+    except MultiPartException as exc:
+        raise HTTPException(status_code=400, detail=exc.message) from None
+
+
+def _file_upload(value: Any) -> Upload | None:
+    """A multipart file part as an Upload; None for a text field."""
+    if not isinstance(value, UploadFile):
+        return None
+    return Upload(value.file, value.size or 0, value.file.close)
 
 
 def _check_header(upload: Upload, engine: Engine) -> HeaderInfo:

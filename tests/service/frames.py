@@ -97,3 +97,28 @@ def rgb(channels: dict[str, np.ndarray], prefix: str = "") -> np.ndarray:
     dot = f"{prefix}." if prefix else ""
     return np.stack([channels[f"{dot}{c}"].astype(np.float32) for c in "RGB"], axis=-1)
 
+
+
+def window_frame_bytes(noise_seed: int = 0, height: int = 16, width: int = 16, *, scale: float = 1.0,
+                       motion: bool = True, layers: Iterable[str] = ("direct",),
+                       metadata: dict[str, str] | None = None) -> bytes:
+    """A frame of a still shot for temporal windows: every frame the same smooth image (times ``scale``: a light
+    switched up) plus its own small noise (``noise_seed``), consistent gradients (so l1/l2 need no model), a
+    variance channel matching the noise, and zero motion vectors valid everywhere (as the renderer writes a
+    still shot's)."""
+    rng = np.random.default_rng(noise_seed)
+    channels: dict[str, np.ndarray] = {}
+    for layer in layers:
+        base = layer_image(height, width, 0, layer) * scale + 0.01 * rng.standard_normal((height, width, 1))
+        base = base.astype(np.float32)
+        dx, dy = forward_differences(base)
+        channels.update(rgb_channels(layer, base))
+        channels.update(rgb_channels(f"{layer}.dx", dx))
+        channels.update(rgb_channels(f"{layer}.dy", dy))
+        channels[f"{layer}.var.Y"] = np.full((height, width), 1e-4, np.float32)
+    if motion:
+        for direction in ("backward", "forward"):
+            channels[f"{direction}.u"] = channels[f"{direction}.v"] = np.zeros((height, width), np.float32)
+            channels[f"{direction}.valid"] = np.ones((height, width), np.float32)
+    channels = {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in channels.items()}
+    return encode_exr(channels, metadata=metadata)
