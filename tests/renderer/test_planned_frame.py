@@ -142,7 +142,8 @@ def test_auto_with_spp_renders_exactly_the_samples_and_records_the_plan(small):
 
 @pytest.mark.render
 @pytest.mark.slow
-@pytest.mark.parametrize(("gradients", "operator_setting"), [("none", None), ("none", "prefiltered-high"), ("auto", None)])
+@pytest.mark.parametrize(("gradients", "operator_setting"),
+                         [("none", None), ("none", "prefiltered-high"), ("auto", None)])
 def test_a_budgeted_plain_frame_compares_the_oidn_settings_on_its_halves(monkeypatch, gradients, operator_setting):
     """A plain --seconds frame whose budget affords prefiltered-high has its halves reconstructed with both it and
     the default; the header's setting is the one the comparison chose, and the prediction is that setting's. An
