@@ -8,6 +8,7 @@ then throughput with ``--clients`` (2) concurrent clients in frames per minute, 
     python benchmarks/bench_service.py --io                  # EXR decode/encode cost per compression, no service
     python benchmarks/bench_service.py --io --io-compressions ZIP_COMPRESSION --io-threads 0,1,2  # OpenEXR pool
     python benchmarks/bench_service.py --uploads 8           # 8 concurrent chunked 300 MiB uploads: RSS growth
+    python benchmarks/bench_service.py --methods oidn,oidn-l1 --without-variance   # the back-off's cost: A/B
 
 What is timed is what a render-farm task sees: upload of the EXR, queueing, decode, reconstruction of each layer,
 encode and download (client-side wall clock, one request at a time, connection kept alive). The service's own
@@ -236,6 +237,20 @@ def upload_memory(uploads: int, mib: int, concurrency: int) -> None:
           + " ".join(f"{x:.2f}" for x in os.getloadavg()))
 
 
+def without_variance(data: bytes, compression: str) -> bytes:
+    """The EXR ``data`` without its layers' variance channels (``L.var.Y``), everything else as it was."""
+    import io
+
+    import OpenEXR
+
+    with OpenEXR.File(io.BytesIO(data)) as exr:
+        channels = {name: c.pixels.copy() for name, c in exr.channels().items() if ".var." not in name}
+    out = io.BytesIO()
+    header = {"compression": getattr(OpenEXR, compression), "type": OpenEXR.scanlineimage}
+    OpenEXR.File(header, channels).write(out)
+    return out.getvalue()
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--url", default=None, help="measure a running service instead of starting one")
@@ -255,6 +270,8 @@ def main() -> None:
                         help="--io: comma-separated compressions")
     parser.add_argument("--io-threads", default="0,-1", help="--io: OpenEXR thread-pool sizes (-1: one per core)")
     parser.add_argument("--json", action="store_true")
+    parser.add_argument("--without-variance", action="store_true",
+                        help="post the frame without its L.var.Y channels (no variance back-off): its cost, by A/B")
     parser.add_argument("--uploads", type=int, default=0, help="only measure RSS under N chunked uploads")
     parser.add_argument("--upload-mib", type=int, default=300, help="--uploads: MiB per upload")
     args = parser.parse_args()
@@ -267,6 +284,8 @@ def main() -> None:
                  [int(t) for t in args.io_threads.split(",")])
         return
     data = synthetic_frame(height, width, compression=args.compression)
+    if args.without_variance:
+        data = without_variance(data, args.compression)
 
     pids: list[int] = []
     with (contextmanager(lambda: (yield args.url))() if args.url else local_service(args.concurrency, pids)) as url:
