@@ -29,13 +29,6 @@ def test_a_crop_and_a_plain_frame_keep_what_they_should():
 mi = pytest.importorskip("mitsuba")
 
 
-@pytest.fixture(scope="module")
-def small():
-    from gradsep.renderer.scene import load_scene
-
-    return load_scene(CBOX, width=16, height=12, max_depth=5)
-
-
 @pytest.mark.render
 def test_passes_of_one_plan_are_render_gpt_bit_for_bit(small):
     from gradsep.renderer.gpt import render_gpt

@@ -168,13 +168,6 @@ def test_a_farm_wide_folder_is_left_unused_by_a_fixed_plan(tmp_path, monkeypatch
     assert PLAN_CACHE_KEY not in read_frame(out).metadata
 
 
-@pytest.fixture(scope="module")
-def small():
-    from gradsep.renderer.scene import load_scene
-
-    return load_scene(CBOX, width=16, height=12, max_depth=5)
-
-
 @pytest.mark.render
 def test_a_frame_that_reads_an_entry_renders_its_plan_with_no_checkpoint(tmp_path, small):
     from gradsep.renderer.frame_budget import FrameBudget

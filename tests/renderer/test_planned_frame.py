@@ -91,13 +91,6 @@ def test_a_light_in_view_is_found_in_the_direct_layer_as_oidn_would_cap_it():
 mi = pytest.importorskip("mitsuba")
 
 
-@pytest.fixture(scope="module")
-def small():
-    from gradsep.renderer.scene import load_scene
-
-    return load_scene(CBOX, width=16, height=12, max_depth=5)
-
-
 @pytest.mark.render
 def test_no_indirect_light_plans_no_indirect_layer(small):
     from gradsep.renderer.frame_budget import FrameBudget

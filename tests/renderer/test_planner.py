@@ -18,13 +18,6 @@ CBOX = str(resolve("cbox"))
 LAYERS = ("direct", "indirect")
 
 
-@pytest.fixture(scope="module")
-def small():
-    from gradsep.renderer.scene import load_scene
-
-    return load_scene(CBOX, width=16, height=12, max_depth=5)
-
-
 @pytest.mark.render
 def test_a_fixed_plan_to_a_sample_count_is_render_gpt_bit_for_bit(small):
     from gradsep.renderer.gpt import render_gpt
