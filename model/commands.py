@@ -184,13 +184,12 @@ def _check_headers(paths: list[Path]) -> None:
     """Every frame of the shot has the first frame's size and channels (read from the headers, before any work).
     Motion vectors are left out of the comparison: a shot's first and last frames carry one side only."""
     from gradsep.model.exr_read import read_header
-    from gradsep.model.frame import MOTION_DIRECTIONS
+    from gradsep.model.frame import shot_layout
 
     first = None
     for path in paths:
         info = read_header(path)
-        layout = sorted(c for c in info.channels if c.split(".", 1)[0] not in MOTION_DIRECTIONS)
-        signature = (info.width, info.height, tuple(layout))
+        signature = (info.width, info.height, shot_layout(info.channels))
         if first is None:
             first = (path, signature)
         elif signature[:2] != first[1][:2]:

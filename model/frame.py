@@ -78,6 +78,12 @@ def motion_channels(direction: str) -> tuple[str, ...]:
 MOTION_CHANNELS: tuple[str, ...] = tuple(c for d in MOTION_DIRECTIONS for c in motion_channels(d))
 
 
+def shot_layout(channels: Iterable[str]) -> tuple[str, ...]:
+    """The channels every frame of one shot shares, sorted: all but the motion vectors, which a shot's first and
+    last frames carry on one side only."""
+    return tuple(sorted(c for c in channels if c.split(".", 1)[0] not in MOTION_DIRECTIONS))
+
+
 def layer_channels(layer: str, gradients: bool = True) -> tuple[str, ...]:
     """The channel names of an illumination layer: base RGB, then (with ``gradients``) dx RGB, then dy RGB."""
     if layer not in ILLUMINATION_LAYERS:

@@ -17,7 +17,7 @@ from typing import Any
 
 from gradsep.model.errors import FrameError
 from gradsep.model.exr_read import HeaderInfo, ReadLimits, read_frame, read_header
-from gradsep.model.frame import MOTION_DIRECTIONS
+from gradsep.model.frame import shot_layout
 from gradsep.service.bodies import Upload
 from gradsep.service.errors import ServiceError
 
@@ -90,10 +90,6 @@ def window_parts(lists: dict[str, list[Any]], is_file: Any) -> list[Part]:
     return parts
 
 
-def _layout(info: HeaderInfo) -> tuple[str, ...]:
-    return tuple(sorted(c for c in info.channels if c.split(".", 1)[0] not in MOTION_DIRECTIONS))
-
-
 def check_neighbours(window: Window, frame: HeaderInfo, limits: ReadLimits) -> None:
     """Each present neighbour's header against frame t's: 400 for one that is not an EXR, 413 for one over the
     limits, 422 for another size, layout or shot; every error names the part."""
@@ -109,8 +105,8 @@ def check_neighbours(window: Window, frame: HeaderInfo, limits: ReadLimits) -> N
             raise ServiceError(422, "window_mismatch", f"neighbour {part.name} is {info.width}x{info.height}, but "
                                f"the frame is {frame.width}x{frame.height}: a window's frames must have one size",
                                part.details(width=info.width, height=info.height))
-        if _layout(info) != _layout(frame):
-            differing = sorted(set(_layout(info)) ^ set(_layout(frame)))
+        if shot_layout(info.channels) != shot_layout(frame.channels):
+            differing = sorted(set(shot_layout(info.channels)) ^ set(shot_layout(frame.channels)))
             raise ServiceError(422, "window_mismatch", f"neighbour {part.name} carries other channels than the "
                                f"frame (differing: {', '.join(differing[:6])}): a window's frames must have one "
                                "layout", part.details(differing=differing[:16]))
