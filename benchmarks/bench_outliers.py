@@ -13,6 +13,14 @@ outlier; printed per case: the share of the pixels farther than 16 px from it th
 (relative, with an epsilon of 1e-3 of the frame's mean), the farthest such pixel, and whether a warning counted it.
 The denoising methods (oidn-l1, oidn, fused, network) are held to at most 0.1 % (tests/model/test_outliers.py).
 
+Attribution (``--attribute``, ``network`` only): per case, the share moved and how bright the moved far pixels are
+(their median in the output without the outlier, over the frame's mean), then the share again with the network's
+Poisson prior taken, farther than R px from the outlier, from the frame without it (R = 16, 24, 32, 48): where
+that share is 0 the network itself is local and the far change is its prior's (docs/decisions.md); and the share
+moved when, with no outlier, the block's own content is replaced by a copy of the 3x3 patch 3 px to its right or
+below (what any filling of an erased block changes). ``--prior-alpha A`` and ``--prior-budget PASSESxSTEPS`` solve
+the network's prior with another alpha or IRLS budget, in every mode (the shipped models were trained on neither).
+
 Clean-frame cost (``--clean FRAME:REFERENCE,...``): each method's RelMSE against the reference with the outlier
 handling as shipped and with it switched off, and the handling's own time on the frame.
 """
@@ -63,6 +71,75 @@ def locality(frame: Frame, method: str, models: LoadedModels, times: list[float]
     return lines
 
 
+def _network_image(frame: Frame, network: object, prior: object = None) -> np.ndarray:
+    """The ``network`` method's image of ``frame`` after the detector, layer by layer; ``prior(name)`` (optional)
+    gives the function the network's Poisson prior is computed with for that layer."""
+    from gradsep.model import infer, outliers
+
+    handled, split = outliers.split_frame(frame)
+    own = infer.poisson_prior
+    total = np.zeros((frame.height, frame.width, 3))
+    try:
+        for name, layer in handled.layers.items():
+            infer.poisson_prior = own if prior is None else prior(name, handled.layers[name])
+            total += split.restore(name, network.reconstruct_layer(name, layer, handled.features))
+    finally:
+        infer.poisson_prior = own
+    return total
+
+
+def attribute(frame: Frame, network: object, radii: tuple[int, ...] = (16, 24, 32, 48)) -> list[str]:
+    """Per case: the far share moved, the moved pixels' median brightness, and the share with the prior beyond
+    each radius taken from the frame without the outlier."""
+    from gradsep.model import infer
+    from gradsep.model.preprocess import poisson_prior, scaled_layer
+
+    reference = _network_image(frame, network)
+    where = (frame.height // 2, frame.width // 2)
+    yy, xx = np.mgrid[0:frame.height, 0:frame.width]
+    distance = np.hypot(yy - where[0], xx - where[1])
+    lines = [f"network  refill {_refilled(frame, network, reference, where, offset):.2f}% moved with the block's "
+             f"content copied from {offset} px away" for offset in ((0, 3), (3, 0))]
+    for case in CASES:
+        hit = with_outlier(frame, case, where, 1e3)
+        image = _network_image(hit, network)
+        moved = np.any(np.abs(image - reference) > 0.01 * (np.abs(reference) + 1e-3 * reference.mean()), axis=-1)
+        moved &= distance > 16
+        level = float(np.median(reference[moved].mean(axis=-1)) / reference.mean()) if moved.any() else 0.0
+        shares = []
+        for radius in radii:
+            far = (distance > radius)[..., None]
+
+            def prior(name: str, layer: object, far: np.ndarray = far) -> object:
+                clean = poisson_prior(scaled_layer(frame.layers[name], 1.0 / infer.exposure_scale(layer)))
+                return lambda lay, **kw: np.where(far, clean, poisson_prior(lay, **kw))
+
+            kept, _ = far_agreement(_network_image(hit, network, prior), reference, where, 16)
+            shares.append(f"{100 * (1 - kept):.2f}")
+        lines.append(f"network  {case:6s} {100 * moved.sum() / max((distance > 16).sum(), 1):.2f}% "
+                     f"moved, median {level:.4f}x the mean; clean prior beyond {'/'.join(map(str, radii))} px: "
+                     f"{'/'.join(shares)} %")
+    return lines
+
+
+def _refilled(frame: Frame, network: object, reference: np.ndarray, where: tuple[int, int],
+              offset: tuple[int, int]) -> float:
+    """The far share moved when the 3x3 block at ``where`` holds, in base and gradients, the patch ``offset`` away."""
+    from dataclasses import replace
+
+    from gradsep.model.frame import Layer
+
+    (y, x), (dy, dx) = where, offset
+    layers = {}
+    for name, layer in frame.layers.items():
+        planes = [np.array(a, copy=True) for a in (layer.base, layer.dx, layer.dy)]
+        for plane in planes:
+            plane[y:y + 3, x:x + 3] = plane[y + dy:y + dy + 3, x + dx:x + dx + 3]
+        layers[name] = Layer(*planes, layer.var)
+    kept, _ = far_agreement(_network_image(replace(frame, layers=layers), network), reference, where, 16)
+    return 100 * (1 - kept)
+
+
 def clean_cost(frame: Frame, reference: np.ndarray, method: str, models: LoadedModels) -> str:
     """RelMSE with the outlier handling and without it, and the handling's time on this frame."""
     from gradsep.model import outliers
@@ -89,8 +166,17 @@ def main() -> None:
     parser.add_argument("--times", default="1e3,1e6,1e12", help="outlier sizes, in units of the frame's mean")
     parser.add_argument("--models", default=str(ROOT / "models"))
     parser.add_argument("--radius", type=float, default=16.0)
+    parser.add_argument("--attribute", action="store_true", help="network: is the far change its prior's?")
     parser.add_argument("--clean", default="", help="comma-separated FRAME:REFERENCE pairs for the clean-frame cost")
+    parser.add_argument("--prior-alpha", type=float, default=None, help="solve the network's prior with this alpha")
+    parser.add_argument("--prior-budget", default=None, help="the network prior's IRLS budget, PASSESxSTEPS")
     args = parser.parse_args()
+    from gradsep.model import preprocess
+
+    if args.prior_alpha is not None:
+        preprocess.PRIOR_ALPHA = args.prior_alpha
+    if args.prior_budget:
+        preprocess.PRIOR_IRLS_PASSES, preprocess.PRIOR_CG_STEPS = (int(v) for v in args.prior_budget.split("x"))
 
     loaded = {"network": load_network(args.models), "fused": load_fused(args.models)}
     methods = args.methods.split(",")
@@ -105,6 +191,14 @@ def main() -> None:
             print(clean_cost(frame, ref_image, method, models) if models else f"{method:8s} skipped: no models",
                   flush=True)
     if args.clean:
+        return
+    if args.attribute and loaded["network"] is None:
+        raise SystemExit("--attribute needs the network models")
+    if args.attribute:
+        for path in args.frames.split(","):
+            print(f"{path}: network, far = > 16 px, K = 1e3")
+            for line in attribute(read_frame(path), loaded["network"]):
+                print(line, flush=True)
         return
     for path in args.frames.split(","):
         frame = read_frame(path)
