@@ -174,6 +174,7 @@ class PlanCache:
         if estimate is not None and math.isfinite(estimate[0]):
             entry[FRAME_ESTIMATE] = {"relmse": estimate[0], "spp": estimate[1]}
         try:
+            self.path.parent.mkdir(exist_ok=True)  # a hidden shot folder is made by its first entry, not up front
             write_bytes_atomic(self.path, (json.dumps(entry, indent=1) + "\n").encode())
         except OSError as exc:
             return f"plan cache entry {self.path.name} not written ({exc})"

@@ -206,15 +206,15 @@ class SceneWindow:
 
 def plan_cache_of(shot: Shot, args: argparse.Namespace, folder: Path | None, gradients: str) -> Any:
     """The shot's plan-cache entry folder (``auto`` only): ``folder`` (``--plan-cache``/$GRADSEP_PLAN_CACHE),
-    else a hidden folder beside the outputs; keyed by ``--plan-key`` or the shot (its first scene, fixed defines,
+    else a hidden folder beside the outputs, created when the first judgement is stored (a shot that fails before
+    that leaves nothing behind); keyed by ``--plan-key`` or the shot (its first scene, fixed defines,
     animation and frames), so every frame and every shard of the shot shares one judgement."""
     from gradsep.renderer.plancache import CacheFolder, scene_identity
 
     if gradients != "auto":
         return None
     if folder is None:
-        folder = shot.output.path(shot.frames.start).parent / HIDDEN_PLAN_CACHE
-        folder.mkdir(exist_ok=True)
+        folder = shot.output.path(shot.frames.start).parent / HIDDEN_PLAN_CACHE  # made by the first entry stored
     if args.plan_key:
         return CacheFolder(folder, f"key:{args.plan_key}")
     first = shot.scene_of(shot.frames.start)

@@ -125,9 +125,19 @@ def test_the_plan_cache_key_is_the_shots_not_each_frames(tmp_path):
                               frames="1-3", shard=None, animate=[], define=[], plan_key=None)
     shot, shard = checked_shot(args)
     cache = plan_cache_of(shot, args, None, "auto")
-    assert cache.folder == tmp_path / HIDDEN_PLAN_CACHE and cache.folder.is_dir()
+    assert cache.folder == tmp_path / HIDDEN_PLAN_CACHE
+    assert not cache.folder.exists()  # made by the first judgement stored: a shot that fails first leaves nothing
     assert "shot:1-3" in cache.scene
     assert plan_cache_of(shot, args, None, "all") is None
+
+
+def test_a_shot_that_fails_to_start_leaves_nothing_beside_its_outputs(tmp_path, capsys):
+    for n in (1, 2):  # valid XML that Mitsuba cannot instantiate: the failure comes after the shot's checks
+        (tmp_path / f"s.{n:04d}.xml").write_text('<scene version="3.0.0"><shape type="nosuchplugin"/></scene>')
+    code = main(["render", str(tmp_path / "s.%04d.xml"), "--frames", "1-2", "--spp", "4", "--width", "8",
+                 "--height", "8", "--gradients", "auto", "-o", str(tmp_path / "o.%04d.exr")])
+    assert code == 2 and "nosuchplugin" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s.0001.xml", "s.0002.xml"]
 
 
 @pytest.mark.slow
