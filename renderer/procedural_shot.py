@@ -101,37 +101,51 @@ def _camera_clear(builder: Any, origin: Vec, target: Vec) -> bool:
 
 
 def _moving(builder: Any, rng: np.random.Generator, t: float) -> dict[str, str]:
-    """A sphere crossing the view sideways, a small gap above the floor, in front of the target."""
+    """A sphere crossing the view sideways in front of the target, a small gap above the floor (raised towards the
+    view's axis where the floor there is out of view)."""
     origin, target, basis = _view(builder)
     radius, gap = float(rng.uniform(0.2, 0.4)), float(rng.uniform(0.05, 0.25))
     reach, side = float(rng.uniform(0.3, 0.55)), float(rng.choice([-1.0, 1.0]))
     reflectance, _ = _reflectance(rng, 0.5, 0.2, 0.8)  # diffuse: its motion vectors are valid (not specular)
     tan_half = math.tan(math.radians(0.5 * builder.camera["fov"]))
     left = _unit(np.array([basis[0, 0], 0.0, basis[2, 0]]))
-    best: tuple[int, Vec, Vec] | None = None
-    for fraction in (0.45, 0.6, 0.35, 0.75, 0.9, 0.3):
+    best: tuple[int, Vec, Vec, float] = (-1, origin, origin, radius)
+    for lift, fraction in [(k, f) for k in (0.0, 0.5, 1.0) for f in (0.45, 0.6, 0.35, 0.75, 0.9, 1.0, 0.3)]:
         ahead = origin + fraction * (target - origin)
-        centre = np.array([ahead[0], radius + gap, ahead[2]])
-        depth = float(np.dot(centre - origin, basis[:, 2]))
-        half = reach * max(depth, 0.0) * tan_half
-        start, end = centre - side * half * left, centre + side * half * left
-        path = [start + s * (end - start) for s in np.linspace(0.0, 1.0, 5)]
-        seen = all(_in_view(point, origin, basis, tan_half, radius) for point in path)
-        unblocked = not any(_segment_hits_footprint(origin, point, o) for point in path for o in builder.footprints) \
-            and not any(_segment_hits_rect(origin, point, m) for point in path for m in builder.blockers)
-        free = _path_clear(builder, start, end, radius) and _in_room(builder, start, 0.0) \
-            and _in_room(builder, end, 0.0)
-        score = 4 * int(seen) + 2 * int(unblocked) + int(free)
-        if best is None or score > best[0]:
-            best = (score, start, end)
+        # No more than about a sixth of the view across where the target is close: a smaller sphere.
+        size = min(radius, 0.3 * tan_half * max(float(np.dot(ahead - origin, basis[:, 2])), 0.0))
+        centre = np.array([ahead[0], size + gap + lift * max(ahead[1] - size - gap, 0.0), ahead[2]])
+        start, end = _across(centre, origin, basis, left, side * reach * tan_half)
+        score = _placement_score(builder, origin, basis, tan_half, size, start, end)
+        if score > best[0]:
+            best = (score, start, end, size)
         if score == 7:
             break
+    _, start, end, radius = best
     position = start + t * (end - start)
     builder.items[MOVER_ID] = {"type": "sphere", "center": [float(x) for x in position], "radius": radius,
                                "bsdf": {"type": "diffuse", "reflectance": reflectance}}
-    builder.shot = (f"a sphere (r {radius:.2f}) {gap:.2f} above the floor crossing "
+    builder.shot = (f"a sphere (r {radius:.2f}) {position[1] - radius:.2f} above the floor crossing "
                     f"{np.linalg.norm(end - start):.2f} m of the view")
     return {"object_position": number_text(position)}
+
+
+def _across(centre: Vec, origin: Vec, basis: np.ndarray, left: Vec, share: float) -> tuple[Vec, Vec]:
+    """A sideways path through ``centre`` spanning ``share`` of the view's half width at its depth."""
+    half = share * max(float(np.dot(centre - origin, basis[:, 2])), 0.0)
+    return centre - half * left, centre + half * left
+
+
+def _placement_score(builder: Any, origin: Vec, basis: np.ndarray, tan_half: float, radius: float, start: Vec,
+                     end: Vec) -> int:
+    """4: in view all the way (and not tiny); 2: nothing between it and the camera; 1: it runs through no object
+    and stays in the room."""
+    path = [start + s * (end - start) for s in np.linspace(0.0, 1.0, 5)]
+    seen = all(_in_view(point, origin, basis, tan_half, radius) for point in path) and radius >= 0.08
+    unblocked = not any(_segment_hits_footprint(origin, point, o) for point in path for o in builder.footprints) \
+        and not any(_segment_hits_rect(origin, point, m) for point in path for m in builder.blockers)
+    free = _path_clear(builder, start, end, radius) and _in_room(builder, start, 0.0) and _in_room(builder, end, 0.0)
+    return 4 * int(seen) + 2 * int(unblocked) + int(free)
 
 
 def _in_view(point: Vec, origin: Vec, basis: np.ndarray, tan_half: float, radius: float) -> bool:
