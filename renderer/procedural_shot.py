@@ -10,9 +10,9 @@ before ``t`` is looked at, so every frame of a shot has the same path and only i
   sideways in front of the camera's target, so its shadow moves over the floor.
 - ``dolly``: the camera pushes in along its view towards its target (back out where it stands too close to it).
 - ``orbit``: the camera turns about the vertical through its target, still looking at it.
-- ``lightoff``: a static camera; a sphere lamp (:data:`LAMP_ID`) above the target, as strong as the room's own
-  lights together or stronger, is on for t < :data:`SWITCH_AT` and off (radiance 0) from then on. The room's own
-  lights stay on, so no frame is black; the lamp stays in the scene, so shapes and ids are the same in every frame.
+- ``lightoff``: a static camera; a sphere lamp (:data:`LAMP_ID`) above the target, the key light there, is on for
+  t < :data:`SWITCH_AT` and off (radiance 0) from then on. The room's own lights stay on, so no frame is black; the
+  lamp stays in the scene, so shapes and ids are the same in every frame.
 
 Shapes keep their ids in every frame, so motion vectors (renderer/motion.py) follow the camera and the sphere.
 """
@@ -221,13 +221,17 @@ def _lightoff(builder: Any, rng: np.random.Generator, t: float) -> dict[str, str
     _, target, _ = _view(builder)
     wx, h, wz = builder.size
     radius = float(rng.uniform(0.06, 0.15))
-    power = float(rng.uniform(2.0, 4.0)) * _room_power(builder)
+    strength = float(rng.uniform(0.75, 1.5))
     tint = _light_tint(rng)
     if builder.kind == "room":
         y = min(h - radius - 0.2, max(float(target[1]) + 1.2, 1.6))
     else:
         y = float(rng.uniform(1.8, 3.0))
     centre = [float(target[0]), y, float(target[2])]
+    # The key light: at the target, ``strength`` times the irradiance that gives a diffuse albedo of 0.5 the
+    # scene's exposure (E = P / (4 pi d^2) = strength * pi * exposure / 0.5), as the studio family sets its lights.
+    distance = max(y - float(target[1]), 0.5)
+    power = strength * 8 * np.pi ** 2 * builder.exposure * distance ** 2
     scale = 1.0 if t < SWITCH_AT else 0.0
     radiance = scale * power / (4 * np.pi ** 2 * radius * radius) * tint
     builder.items[LAMP_ID] = {"type": "sphere", "center": centre, "radius": radius,
@@ -236,9 +240,3 @@ def _lightoff(builder: Any, rng: np.random.Generator, t: float) -> dict[str, str
     builder.shot = f"a sphere lamp (r {radius:.2f}) {y:.2f} above the floor over the target, off from t = {SWITCH_AT:g}"
     return {"lamp": number_text(scale)}
 
-
-def _room_power(builder: Any) -> float:
-    """The power budget the builder gives the room's own lights (procedural_builder._Builder._lights)."""
-    wx, h, wz = builder.size
-    area = 2 * (wx * wz + wx * h + wz * h) if builder.kind == "room" else 60.0
-    return float(builder.exposure * np.pi * area)
