@@ -86,16 +86,23 @@ class Shot:
 
     def header(self, frame: int) -> dict[str, str]:
         """The frame's shot keys: its number, the shot, each animated value and the settings hash."""
-        from gradsep.renderer.plancache import scene_identity
-
         meta = {FRAME_KEY: str(frame), SHOT_KEY: shot_name(self.frames)}
         meta.update({ANIMATE_PREFIX + a.name: a.value(frame, self.frames) for a in self.animations})
-        identity = scene_identity(self.scene_of(frame), self.defines_of(frame))
-        if self.pattern is None and self.scene.startswith("procedural:"):  # its identity is the spec alone
-            identity += " defines:" + ",".join(f"{k}={v}" for k, v in sorted(self.defines.items()))
+        identity = shot_scene_identity(self.scene_of(frame), self.defines_of(frame))
         text = json.dumps({"scene": identity, "shot": meta, "settings": self.settings}, sort_keys=True)
         meta[SETTINGS_KEY] = hashlib.sha256(text.encode()).hexdigest()[:32]
         return meta
+
+
+def shot_scene_identity(scene: str, defines: dict[str, str]) -> str:
+    """The plan cache's scene identity, with a procedural shot family's defines (``-D t``) added: the plan cache
+    names a procedural scene by its spec alone, and a still has no defines."""
+    from gradsep.renderer.plancache import scene_identity
+
+    identity = scene_identity(scene, defines)
+    if scene.startswith("procedural:") and defines:
+        identity += " defines:" + ",".join(f"{k}={v}" for k, v in sorted(defines.items()))
+    return identity
 
 
 def checked_shot(args: argparse.Namespace) -> tuple[Shot, range]:
@@ -235,7 +242,7 @@ def plan_cache_of(shot: Shot, args: argparse.Namespace, folder: Path | None, gra
     """The shot's plan-cache entry folder (``auto`` only): ``folder`` (``--plan-cache``/$GRADSEP_PLAN_CACHE),
     else a hidden folder beside the outputs; keyed by ``--plan-key`` or the shot (its first scene, fixed defines,
     animation and frames), so every frame and every shard of the shot shares one judgement."""
-    from gradsep.renderer.plancache import CacheFolder, scene_identity
+    from gradsep.renderer.plancache import CacheFolder
 
     if gradients != "auto":
         return None
@@ -246,7 +253,7 @@ def plan_cache_of(shot: Shot, args: argparse.Namespace, folder: Path | None, gra
         return CacheFolder(folder, f"key:{args.plan_key}")
     first = shot.scene_of(shot.frames.start)
     animated = ";".join(f"{a.name}={a.start}:{a.end}" for a in shot.animations)
-    return CacheFolder(folder, f"shot:{shot_name(shot.frames)} {scene_identity(first, shot.defines)}"
+    return CacheFolder(folder, f"shot:{shot_name(shot.frames)} {shot_scene_identity(first, shot.defines)}"
                                + (f" animate:{animated}" if animated else ""))
 
 

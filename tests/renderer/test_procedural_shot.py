@@ -82,6 +82,21 @@ def test_a_shot_is_its_seeds_room_with_the_familys_motion(family):
             assert [f.animation["lamp"] for f in frames] == ["1", "0", "0"]
 
 
+#: What each shot family makes of seed 7 at t = 0.5, at GENERATOR_VERSION 1 (see test_procedural.PINNED_PLANS: a
+#: change to a shot family's scenes must bump the version too).
+PINNED_SHOTS = {"moving": "380de2fc3dab4667", "dolly": "0ec8110737d418c2", "orbit": "72294f4c4bf887fc",
+                "lightoff": "278090f107223377"}
+
+
+def test_shot_families_are_pinned_to_the_generator_version():
+    from gradsep.renderer.procedural_builder import GENERATOR_VERSION
+    from tests.renderer.test_procedural import fingerprint
+
+    assert GENERATOR_VERSION == 1, "GENERATOR_VERSION changed: re-pin PINNED_SHOTS"
+    got = {family: fingerprint(generate(7, family=family, t=0.5).plan) for family in SHOT_FAMILIES}
+    assert got == PINNED_SHOTS, "a procedural shot family's scene changed without a GENERATOR_VERSION bump"
+
+
 def test_a_shot_frame_is_the_same_plan_every_time():
     assert repr(generate(9, family="orbit", t=0.25).plan) == repr(generate(9, family="orbit", t=0.25).plan)
     assert repr(generate(9, family="orbit", t=0.25).plan) != repr(generate(10, family="orbit", t=0.25).plan)
