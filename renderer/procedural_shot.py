@@ -4,7 +4,9 @@ Each is the room of ``procedural:SEED`` (the same builder on the same stream, so
 room nobody trained on, and the four families of one seed share their room) plus a motion drawn from a stream of
 its own, evaluated at the scene's one parameter ``t`` in [0, 1]: the frame's position in the shot (0 on the first
 frame, 1 on the last, as ``--animate`` interpolates; a still, and a one-frame shot, is t = 0). The motion is drawn
-before ``t`` is looked at, so every frame of a shot has the same path and only its point on it changes.
+before ``t`` is looked at, so every frame of a shot has the same path and only its point on it changes. A frame
+outside the shot has no t: nothing is drawn past the path's ends (t outside [0, 1] is refused), and the shot's
+first and last frames carry motion vectors on one side only, as an XML shot's do.
 
 - ``moving``: a static camera; a diffuse sphere (:data:`MOVER_ID`) floats just above the floor and crosses the view
   sideways in front of the camera's target, so its shadow moves over the floor.
