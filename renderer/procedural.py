@@ -10,6 +10,9 @@ spot light) and sometimes an environment light (constant, or a small procedurall
 is downloaded). `docs/training.md` documents the distribution. The builder (renderer/procedural_builder.py)
 draws a scene from its parts (renderer/procedural_geometry.py, renderer/procedural_materials.py).
 
+Animated shots, ``procedural:FAMILY:SEED`` with FAMILY one of SHOT_FAMILIES (moving, dolly, orbit, lightoff), are
+the room of ``procedural:SEED`` with a motion, at the scene's one parameter ``t`` (renderer/procedural_shot.py).
+
 A second family, ``procedural:studio:SEED``, is the product shot: the same objects, materials and lights, but no
 room, no ground and no sky, so the object cluster hangs in an empty (black) background lit by point, spot and
 small sphere lights. Almost all of its light is direct and its silhouettes are against nothing, the kind of frame
@@ -32,6 +35,7 @@ import numpy as np
 
 from gradsep.renderer.errors import SceneError
 from gradsep.renderer.procedural_builder import GENERATOR_VERSION, _Builder
+from gradsep.renderer.procedural_shot import SHOT_FAMILIES, animate
 
 PROCEDURAL_PREFIX = "procedural:"  # a scene spec naming a procedural scene: procedural:SEED
 #: The scene families: "mixed" (rooms and outdoor ground planes: ``procedural:SEED``, what datasets train on) and
@@ -48,6 +52,8 @@ class ProceduralScene:
     plan: dict[str, Any]
     summary: dict[str, Any] = field(default_factory=dict)
     family: str = "mixed"
+    #: A shot family's values at this t (``{"t": "0.5", "camera_origin": "x, y, z"}``, header text); else empty.
+    animation: dict[str, str] = field(default_factory=dict)
 
     def to_mitsuba(self) -> dict[str, Any]:
         """The dict for ``mi.load_dict`` (needs a Mitsuba variant to be set)."""
@@ -67,10 +73,11 @@ class ProceduralScene:
         objects = ", ".join(f"{n} {k}" for k, n in sorted(s["object_kinds"].items()))
         materials = ", ".join(f"{n} {k}" for k, n in sorted(s["materials"].items()))
         lights = ", ".join(s["lights"])
+        shot = f"; shot: {s['shot']}" if "shot" in s else ""
         return (f"{ProceduralSpec(self.seed, self.family)} (generator v{GENERATOR_VERSION}): {where}; "
                 f"objects: {objects or 'none'}; "
                 f"occluders: {', '.join(s['occluders']) or 'none'}; materials: {materials}; lights: {lights}; "
-                f"camera fov {s['camera']['fov']:.0f} deg")
+                f"camera fov {s['camera']['fov']:.0f} deg{shot}")
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -79,10 +86,16 @@ class ProceduralScene:
 
 @dataclass(frozen=True)
 class ProceduralSpec:
-    """A parsed ``procedural:[FAMILY:]SEED`` scene spec; ``str()`` gives its canonical spelling."""
+    """A parsed ``procedural:[FAMILY:]SEED`` scene spec (FAMILY a still family or a shot family); ``str()`` gives
+    its canonical spelling."""
 
     seed: int
     family: str = "mixed"
+
+    @property
+    def animated(self) -> bool:
+        """Whether the scene is a shot family's: it has the parameter ``t``."""
+        return self.family in SHOT_FAMILIES
 
     def __str__(self) -> str:
         middle = "" if self.family == "mixed" else f"{self.family}:"
@@ -90,15 +103,16 @@ class ProceduralSpec:
 
 
 def parse_procedural(spec: str) -> ProceduralSpec | None:
-    """The parsed ``procedural:SEED`` or ``procedural:studio:SEED`` scene spec, or None when ``spec`` names no
-    procedural scene (an XML path). The one parser of the spec: scene loading, the dataset and the evaluation all
-    use it. A malformed or negative seed or an unknown family is a SceneError naming the spec."""
+    """The parsed ``procedural:SEED``, ``procedural:studio:SEED`` or ``procedural:SHOT_FAMILY:SEED`` scene spec, or
+    None when ``spec`` names no procedural scene (an XML path). The one parser of the spec: scene loading, the
+    dataset and the evaluation all use it. A malformed or negative seed or an unknown family is a SceneError
+    naming the spec."""
     if not spec.startswith(PROCEDURAL_PREFIX):
         return None
     named, colon, text = spec[len(PROCEDURAL_PREFIX):].rpartition(":")
-    if colon and (named == "mixed" or named not in FAMILIES):  # the mixed family is spelled without a name
-        raise SceneError(f"bad scene {spec!r}: unknown procedural family {named!r} "
-                         f"(expected procedural:SEED or procedural:studio:SEED)")
+    if colon and (named == "mixed" or named not in FAMILIES + SHOT_FAMILIES):  # mixed is spelled without a name
+        raise SceneError(f"bad scene {spec!r}: unknown procedural family {named!r} (expected procedural:SEED, "
+                         f"procedural:studio:SEED or a shot, procedural:{'|'.join(SHOT_FAMILIES)}:SEED)")
     family = named or "mixed"
     try:
         seed = int(text)
@@ -110,33 +124,41 @@ def parse_procedural(spec: str) -> ProceduralSpec | None:
 
 
 def procedural_scene(seed: int, width: int = 256, height: int = 256, max_depth: int | None = None,
-                     family: str = "mixed") -> dict:
-    """The Mitsuba scene dict of ``procedural:[FAMILY:]SEED`` (for ``mi.load_dict``); deterministic per seed."""
-    return generate(seed, width, height, max_depth, family).to_mitsuba()
+                     family: str = "mixed", t: float = 0.0) -> dict:
+    """The Mitsuba scene dict of ``procedural:[FAMILY:]SEED`` (for ``mi.load_dict``) at ``t`` (shot families only);
+    deterministic per seed."""
+    return generate(seed, width, height, max_depth, family, t).to_mitsuba()
 
 
-def describe(seed: int, family: str = "mixed") -> str:
+def describe(seed: int, family: str = "mixed") -> str:  # a shot family: its first frame
     """A one-line description of the scene a seed produces (the film size does not change the scene)."""
     return generate(seed, family=family).describe()
 
 
 def generate(seed: int, width: int = 256, height: int = 256, max_depth: int | None = None,
-             family: str = "mixed") -> ProceduralScene:
-    """Build the plan of ``procedural:[FAMILY:]SEED``; validates the arguments with clear errors. The two
-    families draw from independent streams: a studio seed shares nothing with the mixed scene of that seed."""
+             family: str = "mixed", t: float = 0.0) -> ProceduralScene:
+    """Build the plan of ``procedural:[FAMILY:]SEED`` (a shot family's at ``t`` in [0, 1]); validates the
+    arguments with clear errors. The still families draw from independent streams: a studio seed shares nothing
+    with the mixed scene of that seed. A shot family is the mixed room of its seed plus a motion from a stream of
+    its own."""
     _check_args(seed, width, height, max_depth)
-    if family not in FAMILIES:
-        raise ValueError(f"procedural family must be one of {', '.join(FAMILIES)}, got {family!r}")
+    if family not in FAMILIES + SHOT_FAMILIES:
+        raise ValueError(f"procedural family must be one of {', '.join(FAMILIES + SHOT_FAMILIES)}, got {family!r}")
+    if not 0.0 <= t <= 1.0 or (t and family not in SHOT_FAMILIES):
+        raise ValueError(f"t must be in [0, 1], and only a shot family has it; got t={t!r} for {family!r}")
     # The mixed family keeps its original stream (its seeds name the same scenes as before the studio family).
-    entropy = seed if family == "mixed" else [seed, FAMILIES.index(family)]
-    rng = np.random.Generator(np.random.PCG64(entropy))
-    builder = _Builder(rng)
+    entropy = [seed, FAMILIES.index(family)] if family in FAMILIES and family != "mixed" else seed
+    builder = _Builder(np.random.Generator(np.random.PCG64(entropy)))
     if family == "studio":
         builder.build_studio()
     else:
         builder.build()
+    animation = {}
+    if family in SHOT_FAMILIES:
+        motion = np.random.Generator(np.random.PCG64([seed, len(FAMILIES) + SHOT_FAMILIES.index(family)]))
+        animation = animate(builder, family, motion, float(t))
     plan = builder.finish(width, height, DEFAULT_MAX_DEPTH if max_depth is None else max_depth)
-    return ProceduralScene(seed=seed, plan=plan, summary=builder.summary(), family=family)
+    return ProceduralScene(seed=seed, plan=plan, summary=builder.summary(), family=family, animation=animation)
 
 
 def _check_args(seed: int, width: int, height: int, max_depth: int | None) -> None:

@@ -56,6 +56,7 @@ class _Builder:
         self.focus = np.zeros(2)        # (x, z) the objects cluster around and the camera looks at
         self.spread = 1.0
         self.camera: dict[str, Any] = {}
+        self.shot = ""  # a shot family's motion in words (renderer/procedural_shot.py); "" for a still scene
 
     # -- orchestration ---------------------------------------------------------------------------------
     def build(self) -> None:
@@ -162,7 +163,7 @@ class _Builder:
         return plan
 
     def summary(self) -> dict[str, Any]:
-        return {
+        out = {
             "generator_version": GENERATOR_VERSION,
             "room": {"kind": self.kind, "size": [round(float(x), 3) for x in self.size], "open": list(self.open)},
             "object_kinds": dict(self.object_kinds),
@@ -172,6 +173,9 @@ class _Builder:
             "camera": {"fov": round(float(self.camera["fov"]), 2),
                        "origin": [round(float(x), 3) for x in self.camera["origin"]]},
         }
+        if self.shot:
+            out["shot"] = self.shot
+        return out
 
     def _count(self, table: dict[str, int], key: str) -> None:
         table[key] = table.get(key, 0) + 1
@@ -481,5 +485,6 @@ class _Builder:
             target = origin + np.array([0.0, 0.0, 1.0])
         direction = _unit(target - origin)
         up = np.array([1.0, 0, 0]) if abs(direction[1]) > 0.95 else np.array([0, 1.0, 0])
-        self.camera = {"fov": fov, "origin": origin, "to_world": _look_at(origin, target, up)}
+        # The target is kept (not in the plan): the shot families (renderer/procedural_shot.py) move around it.
+        self.camera = {"fov": fov, "origin": origin, "target": target, "to_world": _look_at(origin, target, up)}
 

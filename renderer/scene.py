@@ -24,8 +24,9 @@ from pathlib import Path
 from typing import Any
 
 from gradsep.renderer.errors import SceneError
-from gradsep.renderer.procedural import ProceduralSpec, parse_procedural, procedural_scene
+from gradsep.renderer.procedural import ProceduralSpec, generate, parse_procedural
 from gradsep.renderer.procedural_builder import GENERATOR_VERSION
+from gradsep.renderer.procedural_shot import TIME, parse_time
 from gradsep.renderer.variant import select_variant
 
 SUPPORTED_SENSORS: tuple[str, ...] = ("PerspectiveCamera", "ThinLensCamera")
@@ -35,6 +36,9 @@ DEFAULT_PROCEDURAL_SIZE = 256
 MITSUBA_DEFAULT_FILM = (768, 576)  # hdrfilm's size when a scene gives none
 MAX_FILM_PIXELS = 8192 * 8192  # the frame contract's reading budget: larger frames could not be read back
 _resolver_lock = threading.Lock()
+#: A frame's animated values in its header: ``gradsep.animate.NAME`` (a shot's ``--animate`` parameters, and a
+#: procedural shot family's ``t`` and what it moved).
+ANIMATE_PREFIX = "gradsep.animate."
 
 
 @dataclass
@@ -48,6 +52,7 @@ class LoadedScene:
     max_depth: int  # Mitsuba's convention: -1 unbounded, 1 emitters only, 2 direct light
     rr_depth: int
     defines: dict[str, str] = field(default_factory=dict)
+    animation: dict[str, str] = field(default_factory=dict)  # a procedural shot family's values at its t
 
     @property
     def sensor(self) -> Any:
@@ -60,6 +65,7 @@ class LoadedScene:
             meta["gradsep.defines"] = ",".join(f"{k}={v}" for k, v in sorted(self.defines.items()))
         if parse_procedural(self.spec) is not None:  # a seed names a scene only for one generator version
             meta["gradsep.procedural_version"] = str(GENERATOR_VERSION)
+        meta.update({ANIMATE_PREFIX + name: value for name, value in self.animation.items()})
         return meta
 
 
@@ -97,10 +103,9 @@ def load_scene(spec: str, *, width: int | None = None, height: int | None = None
         raise SceneError(f"--max-depth must be -1 (unbounded) or >= 1, got {max_depth}")
 
     procedural = parse_procedural(spec)
+    animation: dict[str, str] = {}
     if procedural is not None:
-        if defines:
-            raise SceneError("--define applies to XML scenes only; procedural scenes are named by their seed")
-        scene = _load_procedural(procedural, width, height, max_depth)
+        scene, animation = _load_procedural(procedural, width, height, max_depth, procedural_time(procedural, defines))
     else:
         scene = _load_xml(spec, width, height, defines)
     del mi
@@ -113,18 +118,35 @@ def load_scene(spec: str, *, width: int | None = None, height: int | None = None
     scene_depth, rr_depth = integrator_depths(scene)
     return LoadedScene(scene=scene, spec=spec, width=w, height=h,
                        max_depth=max_depth if max_depth is not None else scene_depth, rr_depth=rr_depth,
-                       defines=defines)
+                       defines=defines, animation=animation)
 
 
-def _load_procedural(spec: ProceduralSpec, width: int | None, height: int | None, max_depth: int | None) -> Any:
+def procedural_time(spec: ProceduralSpec, defines: Mapping[str, str]) -> float:
+    """The ``t`` of a procedural shot family's scene from its defines (0 when not given); a still procedural scene
+    takes no define, a shot family only ``t`` in [0, 1]: else a SceneError naming the problem."""
+    if not spec.animated:
+        if defines:
+            raise SceneError("--define applies to XML scenes only; procedural scenes are named by their seed")
+        return 0.0
+    other = sorted(set(defines) - {TIME})
+    if other:
+        raise SceneError(f"{spec} has no parameter named {', '.join(other)}: its one parameter is {TIME}, the "
+                         "frame's position in the shot (0 to 1)")
+    return parse_time(defines[TIME], str(spec)) if TIME in defines else 0.0
+
+
+def _load_procedural(spec: ProceduralSpec, width: int | None, height: int | None, max_depth: int | None,
+                     t: float) -> tuple[Any, dict[str, str]]:
+    """The Mitsuba scene of ``spec`` (at ``t``, a shot family's) and its animation values."""
     import mitsuba as mi
 
     w = width or (height or DEFAULT_PROCEDURAL_SIZE)
     h = height or (width or DEFAULT_PROCEDURAL_SIZE)
-    scene_dict = procedural_scene(spec.seed, w, h, max_depth, spec.family)
+    generated = generate(spec.seed, w, h, max_depth, spec.family, t)
+    scene_dict = generated.to_mitsuba()
     force_film_dict(scene_dict, w, h)
     try:
-        return _instantiate(lambda config: mi.parser.parse_dict(config, scene_dict))
+        return _instantiate(lambda config: mi.parser.parse_dict(config, scene_dict)), generated.animation
     except Exception as exc:
         raise SceneError(f"procedural scene {spec} failed to load: {_one_line(exc)}") from exc
 

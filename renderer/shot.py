@@ -39,10 +39,10 @@ from gradsep.model.shot import (
     shard_frames,
     shot_name,
 )
+from gradsep.renderer.scene import ANIMATE_PREFIX
 
 FRAME_KEY = "gradsep.frame"
 SHOT_KEY = "gradsep.shot"
-ANIMATE_PREFIX = "gradsep.animate."
 #: A hash of everything that decides a frame's pixels (scene, defines, animation, budget, plan flags, seed): a
 #: frame on disk with another hash is not this shot's frame.
 SETTINGS_KEY = "gradsep.shot_settings"
@@ -86,14 +86,23 @@ class Shot:
 
     def header(self, frame: int) -> dict[str, str]:
         """The frame's shot keys: its number, the shot, each animated value and the settings hash."""
-        from gradsep.renderer.plancache import scene_identity
-
         meta = {FRAME_KEY: str(frame), SHOT_KEY: shot_name(self.frames)}
         meta.update({ANIMATE_PREFIX + a.name: a.value(frame, self.frames) for a in self.animations})
-        identity = scene_identity(self.scene_of(frame), self.defines_of(frame))
+        identity = shot_scene_identity(self.scene_of(frame), self.defines_of(frame))
         text = json.dumps({"scene": identity, "shot": meta, "settings": self.settings}, sort_keys=True)
         meta[SETTINGS_KEY] = hashlib.sha256(text.encode()).hexdigest()[:32]
         return meta
+
+
+def shot_scene_identity(scene: str, defines: dict[str, str]) -> str:
+    """The plan cache's scene identity, with a procedural shot family's defines (``-D t``) added: the plan cache
+    names a procedural scene by its spec alone, and a still has no defines."""
+    from gradsep.renderer.plancache import scene_identity
+
+    identity = scene_identity(scene, defines)
+    if scene.startswith("procedural:") and defines:
+        identity += " defines:" + ",".join(f"{k}={v}" for k, v in sorted(defines.items()))
+    return identity
 
 
 def checked_shot(args: argparse.Namespace) -> tuple[Shot, range]:
@@ -116,6 +125,7 @@ def checked_shot(args: argparse.Namespace) -> tuple[Shot, range]:
     both = sorted({a.name for a in animations} & set(defines))
     if both:
         raise CommandError(f"--animate and -D both set {', '.join(both)}")
+    animations = procedural_animations(args.scene, animations, defines)
     settings = {name: getattr(args, name, None) for name in _SETTING_NAMES}
     shot = Shot(args.scene, scene_pattern if scene_pattern.has_field else None, frames, output, animations,
                 defines, settings)
@@ -126,12 +136,36 @@ def checked_shot(args: argparse.Namespace) -> tuple[Shot, range]:
     return shot, shard
 
 
+def procedural_animations(scene: str, animations: tuple[Animation, ...],
+                          defines: dict[str, str]) -> tuple[Animation, ...]:
+    """A procedural scene's animation: none for a still family (which takes no parameter); for a shot family
+    (renderer/procedural_shot.py) its one parameter ``t``, 0 on the first frame to 1 on the last unless
+    ``--animate t=A:B`` (a part of the motion) or ``-D t=V`` (one instant) says otherwise. XML scenes: as given."""
+    from gradsep.renderer.procedural import parse_procedural
+    from gradsep.renderer.procedural_shot import TIME, parse_time
+    from gradsep.renderer.scene import procedural_time
+
+    spec = parse_procedural(scene)
+    if spec is None:
+        return animations
+    if not spec.animated and animations:
+        raise CommandError(f"--animate applies to XML scenes only and to the procedural shot families; {spec} "
+                           "has no parameters")
+    procedural_time(spec, {**defines, **{a.name: "0" for a in animations}})  # the names, and -D t's value
+    if not spec.animated:
+        return animations
+    for a in animations:
+        if len(a.start) != 1:
+            raise CommandError(f"--animate {TIME}: {spec}'s {TIME} is a number, not a vector")
+        for value in (*a.start, *a.end):
+            parse_time(f"{value:g}", str(spec))
+    return animations if animations or TIME in defines else (Animation(TIME, (0.0,), (1.0,)),)
+
+
 def _check_scenes(shot: Shot, shard: range) -> None:
     """Every scene file this shard loads (its frames and their neighbours in the shot) exists, and has every
-    animated parameter."""
+    animated parameter (a procedural scene's are checked by :func:`procedural_animations`)."""
     if shot.scene.startswith("procedural:"):
-        if shot.animations:
-            raise CommandError("--animate applies to XML scenes only; a procedural scene has no parameters")
         return
     needed = sorted({m for n in shard for m in (n - 1, n, n + 1) if m in shot.frames}) if len(shard) else []
     paths = sorted({shot.scene_of(n) for n in needed}) if shot.pattern is not None else [shot.scene]
@@ -209,7 +243,7 @@ def plan_cache_of(shot: Shot, args: argparse.Namespace, folder: Path | None, gra
     else a hidden folder beside the outputs, created when the first judgement is stored (a shot that fails before
     that leaves nothing behind); keyed by ``--plan-key`` or the shot (its first scene, fixed defines,
     animation and frames), so every frame and every shard of the shot shares one judgement."""
-    from gradsep.renderer.plancache import CacheFolder, scene_identity
+    from gradsep.renderer.plancache import CacheFolder
 
     if gradients != "auto":
         return None
@@ -219,7 +253,7 @@ def plan_cache_of(shot: Shot, args: argparse.Namespace, folder: Path | None, gra
         return CacheFolder(folder, f"key:{args.plan_key}")
     first = shot.scene_of(shot.frames.start)
     animated = ";".join(f"{a.name}={a.start}:{a.end}" for a in shot.animations)
-    return CacheFolder(folder, f"shot:{shot_name(shot.frames)} {scene_identity(first, shot.defines)}"
+    return CacheFolder(folder, f"shot:{shot_name(shot.frames)} {shot_scene_identity(first, shot.defines)}"
                                + (f" animate:{animated}" if animated else ""))
 
 
