@@ -24,10 +24,12 @@ from gradsep.model.policy import LUMINANCE
 WINSOR_QUANTILE = 0.999
 #: An outlier's excess (its value above the median of its 8 neighbours, per channel) is spread over a Gaussian
 #: footprint of this σ in pixels, truncated at OUTLIER_SPREAD_RADIUS and renormalised at the frame's border, so its
-#: energy is kept exactly and its effect ends OUTLIER_SPREAD_RADIUS pixels from it along each axis (the footprint
-#: is a square: at most 11·√2 ≈ 15.6 px away).
+#: energy is kept exactly and its effect ends OUTLIER_SPREAD_RADIUS pixels from it along each axis. The footprint
+#: is a square centred on a cluster's centre, so the radius is chosen for the corner of the largest cluster's
+#: footprint, seen from the cluster's farthest pixel, to stay within the locality contract's 16 px:
+#: (10 + CLUSTER_SIZE - 1) · √2 < 16.
 OUTLIER_SPREAD_SIGMA = 3.5
-OUTLIER_SPREAD_RADIUS = 11
+OUTLIER_SPREAD_RADIUS = 10
 
 
 def channel_mean(image: np.ndarray) -> np.ndarray:
