@@ -147,12 +147,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("evaluate", help="error against run time for every method, with plots and tables")
     p.add_argument("--scenes", nargs="*", default=None, help="XML paths, procedural:SEED or procedural:studio:SEED")
     p.add_argument("--spp", default=None,
-                   help="comma-separated sample counts (default 1,2,4,8,16,32,64; 1,4,16 with --quick); with --shot one "
-                        "count per frame, instead of --seconds")
+                   help="comma-separated sample counts (default 1,2,4,8,16,32,64; 1,4,16 with --quick); with "
+                        "--shot one count per frame, instead of --seconds")
     p.add_argument("--quick", action="store_true", help="small CI-sized run (< 10 minutes)")
     p.add_argument("--models", default=None, help=f"folder of exported models (default: ${MODELS_ENV} or models/)")
     p.add_argument("--cache", default=None, help="cache folder (default: $GRADSEP_CACHE or ~/.cache/gradsep)")
-    p.add_argument("--size", default=None, metavar="WxH", help="frame size (default 320x240; 96x72 with --quick; with --shot the scene's film)")
+    p.add_argument("--size", default=None, metavar="WxH",
+                   help="frame size (default 320x240; 96x72 with --quick; with --shot the scene's film)")
     p.add_argument("--ref-spp", type=int, default=None,
                    help="starting samples per pixel of each of the two references; raised (cached, additive) "
                         "until the reference floor is under 10 %% of the scene's smallest ranked RelMSE or "

@@ -11,13 +11,14 @@ reconstructed frames, the frames themselves (for their motion vectors) and two i
   estimator is applied to the change of the error over that pair; the shot's flicker is the mean over pairs.
   A pair without a valid pixel counts as no pair.
 * **Disoccluded pixels** are the pixels of a frame with vectors on both sides where either side has no
-  correspondence (the surface is not in the previous or the next frame), and the references are not black. Their
+  correspondence (the surface is not in the previous or the next frame, or there is no surface to follow: a
+  light, a mirror, the background), and the references are not black. Their
   error is pooled over the shot's frames (one relmse_unbiased over all of them): a frame holds too few such
   pixels for an estimate of its own.
 * **After a change** (a light switched off, an object appearing): frame t is a change when the truth itself
-  changes along the motion by more than CHANGE_THRESHOLD, estimated with the product of the two references'
-  changes (their noise removed, as in relmse_unbiased); the frames after it are t and t + 1 (a window reaches
-  both).
+  changes along the motion by more than CHANGE_THRESHOLD: the two references' changes of smoothed luminance,
+  multiplied (their noise removed, as in relmse_unbiased), relative to the luminance's energy
+  (:func:`changed_frames`); the frames after it are t and t + 1 (a window reaches both).
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from gradsep.model.metrics import RELMSE_EPSILON, flicker, relmse_unbiased
+from gradsep.model.metrics import flicker, relmse_unbiased
 
 __all__ = ["CHANGE_THRESHOLD", "MIN_DISOCCLUDED", "PipelineScores", "ShotTruth", "changed_frames",
            "disoccluded_masks", "flicker_pairs", "geomean", "reconstruct_shot", "score_pipeline", "warp_back"]
@@ -41,6 +42,9 @@ __all__ = ["CHANGE_THRESHOLD", "MIN_DISOCCLUDED", "PipelineScores", "ShotTruth",
 #: camera or object that moves does not either (the motion compensates it; the pixels without a correspondence
 #: are left out).
 CHANGE_THRESHOLD = 0.02
+#: The Gaussian (pixels) that smooths the references before their change is measured: a light switched off
+#: changes whole regions, the references' noise changes single pixels.
+CHANGE_SIGMA = 2.0
 #: The fewest disoccluded pixels (over the whole shot) for which their error is reported.
 MIN_DISOCCLUDED = 64
 
@@ -122,9 +126,23 @@ def _pooled_error(images: Sequence[np.ndarray], truth: ShotTruth, masks: Sequenc
     return relmse_unbiased(x, a, b)
 
 
+def _smoothed(luminance: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``luminance`` averaged over a Gaussian (σ = CHANGE_SIGMA pixels) of the masked pixels only (normalised
+    convolution), and where that average has enough support (over half the kernel's weight)."""
+    from scipy.ndimage import gaussian_filter
+
+    weight = gaussian_filter(mask.astype(np.float64), CHANGE_SIGMA, mode="nearest")
+    total = gaussian_filter(np.where(mask, luminance, 0.0), CHANGE_SIGMA, mode="nearest")
+    return total / np.maximum(weight, 1e-9), weight > 0.5
+
+
 def changed_frames(truth: ShotTruth) -> list[int]:
-    """The frames t >= 1 where the truth changes along the motion by more than CHANGE_THRESHOLD (estimated from
-    the two references' changes, their noise removed). A frame without backward vectors is compared unwarped."""
+    """The frames t >= 1 where the truth changes along the motion by more than CHANGE_THRESHOLD: the product of
+    the two references' changes of smoothed luminance, summed over the pixels that frame t - 1 covers, over the sum
+    of the squared luminance there (a ratio of sums, so a few dark, noisy pixels do not decide it; the smoothing
+    and the product keep the references' noise out). A frame without backward vectors is compared unwarped."""
+    from gradsep.model.robust import luminance
+
     out = []
     for t in range(1, len(truth.frames)):
         frame = truth.frames[t]
@@ -133,12 +151,10 @@ def changed_frames(truth: ShotTruth) -> list[int]:
         else:
             p1, p2 = truth.first[t - 1], truth.second[t - 1]
             mask = np.ones(p1.shape[:2], bool)
-        if not mask.any():
-            continue
-        r1, r2 = truth.first[t].astype(np.float64), truth.second[t].astype(np.float64)
-        mean = 0.5 * (r1 + r2)
-        change = (r1 - p1) * (r2 - p2) / (mean * mean + RELMSE_EPSILON)
-        if float(np.mean(change[mask])) > CHANGE_THRESHOLD:
+        (a, keep), (b, _), (c, _), (d, _) = (_smoothed(luminance(np.asarray(v, np.float64)), mask)
+                                             for v in (truth.first[t], truth.second[t], p1, p2))
+        energy = float(np.sum((0.5 * (a + b))[keep] ** 2))
+        if energy > 0 and float(np.sum(((a - c) * (b - d))[keep])) > CHANGE_THRESHOLD * energy:
             out.append(t)
     return out
 

@@ -228,7 +228,8 @@ def write_shot_report(result: ShotResult, command: str | None = None) -> dict[st
                            out / "plots" / "error.png")
     paths["flicker"] = _plot(result, {r.name: r.flickers for r in result.rows},
                              "flicker (change of the error from the previous frame)",
-                             f"{result.config.scene}: flicker per frame along the motion", out / "plots" / "flicker.png")
+                             f"{result.config.scene}: flicker per frame along the motion",
+                             out / "plots" / "flicker.png")
     write_bytes_atomic(paths["crops"], animation_bytes(result))
     write_bytes_atomic(paths["report"], _markdown(result, rows, command).encode())
     return paths

@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from gradsep.evaluation.cache import EvalCache, key_hash, mitsuba_id, slug, sources_sha256
+from gradsep.evaluation.cache import EvalCache, mitsuba_id, sources_sha256
 from gradsep.evaluation.shot_metrics import PipelineScores, ShotTruth, reconstruct_shot, score_pipeline
 from gradsep.model.errors import CommandError
 
