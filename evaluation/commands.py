@@ -61,8 +61,7 @@ _SHOT_ONLY = (("frames", "--frames"), ("animate", "--animate"), ("define", "-D")
 _FRAME_ONLY = (("scenes", "--scenes"), ("methods", "--methods"), ("table_spp", "--table-spp"),
                ("time_seeds", "--time-seeds"), ("frame_seeds", "--frame-seeds"), ("references_only",
                                                                                   "--references-only"),
-               ("shard", "--shard"), ("alpha", "--alpha"), ("ref_spp_cap", "--ref-spp-cap"),
-               ("ref_seconds", "--ref-seconds"))
+               ("shard", "--shard"), ("alpha", "--alpha"), ("ref_seconds", "--ref-seconds"))
 
 
 def _given(args: argparse.Namespace, names: tuple[tuple[str, str], ...]) -> list[str]:
@@ -94,7 +93,8 @@ def shot_config_from_args(args: argparse.Namespace) -> object:
             spp = int(args.spp)
         except ValueError:
             raise CommandError(f"--spp with --shot is one sample count per frame, got {args.spp!r}") from None
-    settings = load_settings(size=args.size, ref_spp=args.ref_spp, seed=args.seed, max_depth=args.max_depth)
+    settings = load_settings(size=args.size, ref_spp=args.ref_spp, ref_spp_cap=args.ref_spp_cap, seed=args.seed,
+                             max_depth=args.max_depth)
     preset = QUICK if args.quick else FULL
     size = parse_size(settings.size) if settings.size else (preset.width, preset.height) if args.quick else None
     seconds = None
@@ -106,7 +106,8 @@ def shot_config_from_args(args: argparse.Namespace) -> object:
                       cache_dir=Path(args.cache) if args.cache else default_cache_dir(),
                       models_dir=models_dir_from(args.models), seconds=seconds, spp=spp,
                       animate=tuple(args.animate or ()), defines=tuple(args.define or ()), size=size,
-                      ref_spp=settings.ref_spp or preset.ref_spp, seed=settings.seed or 0,
+                      ref_spp=settings.ref_spp or preset.ref_spp, ref_spp_cap=settings.ref_spp_cap,
+                      seed=settings.seed or 0,
                       max_depth=settings.max_depth, window=5 if args.window is None else args.window)
 
 
@@ -162,7 +163,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="most samples per pixel of each reference in full passes (default 4096; 1024 with "
                         "--quick); where the floor is still too high there, region passes add up to as many again "
                         "over the rectangle holding most of it (docs/evaluation.md); equal to --ref-spp: a fixed "
-                        "reference spp, no region passes")
+                        "reference spp, no region passes); with --shot each frame's references are raised in passes of "
+                        "--ref-spp up to it (default: not raised)")
     p.add_argument("--ref-seconds", type=float, default=None,
                    help="budget of new reference rendering per scene (both references together): the reference "
                         "spp is not raised past what is predicted to fit; passes already in the cache cost "

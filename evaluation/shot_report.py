@@ -99,7 +99,7 @@ def _markdown(result: ShotResult, rows: Sequence[dict[str, Any]], command: str) 
     smallest = min(r.relmse for r in result.rows)
     lines = [f"# Shot evaluation: {c.scene}, frames {first}-{last}", "",
              f"{len(result.numbers)} frames, {_budget_text(result)}, temporal window {c.window}; two independent "
-             f"references of {c.ref_spp} spp per frame (Mitsuba's path tracer). RelMSE has the references' noise "
+             f"references of {result.ref_spp} spp per frame (Mitsuba's path tracer). RelMSE has the references' noise "
              "removed (product estimator) and is the geometric mean over the frames; flicker is the same estimator "
              "on the frame-to-frame change of the error along the motion, the mean over consecutive pairs. "
              "Disoccluded and after-a-change figures are ratios to the same frames reconstructed per frame; a "
@@ -107,7 +107,8 @@ def _markdown(result: ShotResult, rows: Sequence[dict[str, Any]], command: str) 
              *_table(result, rows), "",
              f"Best per-frame pipeline: {rows[0]['best_per_frame']}. Frames where the truth changes: {changes}. "
              f"Reference floor (median over frames, one reference): {floor:.3g}"
-             + (f" -- above 10 % of the smallest RelMSE ({smallest:.3g}): raise --ref-spp." if floor > 0.1 * smallest
+             + (f" -- above 10 % of the smallest RelMSE ({smallest:.3g}): raise --ref-spp or --ref-spp-cap."
+                if floor > 0.1 * smallest
                 else "."), "",
              "![RelMSE per frame](plots/error.png)", "", "![flicker per frame](plots/flicker.png)", "",
              "Crops, animated (reference first): ![crops](crops.png)", "",
@@ -136,7 +137,7 @@ def _csv(result: ShotResult) -> bytes:
 def _json(result: ShotResult, rows: Sequence[dict[str, Any]], command: str) -> bytes:
     c = result.config
     data = {"command": command, "machine": _machine(), "scene": c.scene, "frames": result.numbers,
-            "seconds": c.seconds, "spp": c.spp, "ref_spp": c.ref_spp, "window": c.window, "seed": c.seed,
+            "seconds": c.seconds, "spp": c.spp, "ref_spp": result.ref_spp, "window": c.window, "seed": c.seed,
             "size": c.size, "animate": list(c.animate), "defines": list(c.defines), "summary": rows,
             "changes": [result.numbers[t] for t in result.changes], "reference_floors": result.floors,
             "per_frame": {r.name: {"relmse": r.errors, "flicker": r.flickers, "seconds": r.seconds}

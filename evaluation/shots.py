@@ -71,7 +71,8 @@ class ShotConfig:
     animate: tuple[str, ...] = ()
     defines: tuple[str, ...] = ()
     size: tuple[int, int] | None = None  # None: the scene's film
-    ref_spp: int = 512
+    ref_spp: int = 512  # each reference's spp, and the pass size when raised
+    ref_spp_cap: int | None = None  # raise the references up to this while their floor is too high; None: never
     seed: int = 0
     max_depth: int | None = None
     window: int = 5
@@ -117,6 +118,8 @@ def check_shot_config(config: ShotConfig) -> Any:
         raise CommandError(f"--window must be an odd number of frames >= 1, got {config.window}")
     if config.ref_spp < 1:
         raise CommandError(f"--ref-spp must be >= 1, got {config.ref_spp}")
+    if config.ref_spp_cap is not None and config.ref_spp_cap < config.ref_spp:
+        raise CommandError(f"--ref-spp-cap {config.ref_spp_cap} is below --ref-spp {config.ref_spp}")
     _check_report_folder(config.output)
     # renderer.shot checks the shot; its output pattern here only has to name an existing folder.
     shot, _ = checked_shot(_render_namespace(config, os.path.join(tempfile.gettempdir(), "check.%04d.exr")))
@@ -175,40 +178,73 @@ def render_plan(config: ShotConfig, shot: Any, plan: Plan, cache: EvalCache, log
 # --------------------------------------------------------------------------------------------- references
 
 
-def render_truth(config: ShotConfig, shot: Any, frames: list, cache: EvalCache,
-                 log: Callable[[str], None]) -> tuple[ShotTruth, list[float]]:
-    """Two independent references per frame at ``ref_spp`` each (cached passes, evaluation/references.py), each
-    frame's scene loaded as the renderer loads it; the truth and each frame's reference floor."""
-    from gradsep.evaluation.references import REFERENCE_SAMPLER, ReferenceSource
-    from gradsep.renderer.plancache import scene_identity
-    from gradsep.renderer.reference import render_loaded
-    from gradsep.renderer.shot import SceneWindow
+class ShotReferences:
+    """Two independent references per frame (evaluation/references.py: cached passes of Mitsuba's path tracer at
+    ``ref_spp`` each, raised in whole passes), each frame's scene loaded as the renderer loads it
+    (renderer.shot.SceneWindow), only while its passes render."""
 
-    window = SceneWindow(shot, _render_namespace(config, os.path.join(tempfile.gettempdir(), "ref.%04d.exr")))
-    code = sources_sha256(REFERENCE_SOURCES)
-    first, second, floors = [], [], []
-    for i, n in enumerate(shot.frames):
-        loaded = window.get(n)
-        key = {"scene": scene_identity(shot.scene_of(n), shot.defines_of(n)), "frame": n,
-               "size": [loaded.width, loaded.height], "max_depth": loaded.max_depth,
-               "seed": int(np.random.SeedSequence([config.seed, 6, n]).generate_state(1, np.uint32)[0]),
-               "code": code, "mitsuba": mitsuba_id(), "sampler": REFERENCE_SAMPLER}
+    def __init__(self, config: ShotConfig, shot: Any, cache: EvalCache, log: Callable[[str], None]) -> None:
+        from gradsep.evaluation.references import REFERENCE_SAMPLER, ReferenceSource
+        from gradsep.renderer.plancache import scene_identity
 
-        def render_pass(spp: int, seed: int, loaded: Any = loaded) -> Any:
+        self.shot = shot
+        self.window = _OneScene(config)
+        code = sources_sha256(REFERENCE_SOURCES)
+        self.sources = []
+        for n in shot.frames:
+            key = {"scene": scene_identity(shot.scene_of(n), shot.defines_of(n)), "frame": n, "size": config.size,
+                   "max_depth": config.max_depth,
+                   "seed": int(np.random.SeedSequence([config.seed, 6, n]).generate_state(1, np.uint32)[0]),
+                   "code": code, "mitsuba": mitsuba_id(), "sampler": REFERENCE_SAMPLER}
+            self.sources.append(ReferenceSource(cache, f"shot-{config.scene}-frame{n}", key, config.ref_spp,
+                                                self._renderer(shot, n), log))
+
+    def _renderer(self, shot: Any, n: int) -> Callable[[int, int], Any]:
+        def render_pass(spp: int, seed: int) -> Any:
+            from gradsep.evaluation.references import REFERENCE_SAMPLER
+            from gradsep.renderer.reference import render_loaded
+
+            loaded = self.window.get(shot, n)
             return render_loaded(loaded, spp=spp, seed=seed, tile_spp=None, sampler=REFERENCE_SAMPLER,
                                  progress=False)
+        return render_pass
 
-        source = ReferenceSource(cache, f"shot-{config.scene}-frame{n}", key, config.ref_spp, render_pass, log)
-        pair = source.pair(config.ref_spp)
-        if pair.first["total"].shape != frames[i].combined().base.shape:
-            raise CommandError(f"frame {n}: the reference is {pair.first['total'].shape[:2]}, the rendered frame "
-                               f"{frames[i].combined().base.shape[:2]}")
-        first.append(pair.first["total"])
-        second.append(pair.second["total"])
-        floors.append(pair.floor())
-        window.forget_before(n + 1)
-    gc.collect()
-    return ShotTruth(first, second, frames), floors
+    def truth(self, spp: int, frames: list) -> tuple[ShotTruth, list[float]]:
+        """Both references of every frame at ``spp`` each (rendering the passes not cached), and each frame's
+        floor (model.metrics.reference_floor)."""
+        first, second, floors = [], [], []
+        for i, (n, source) in enumerate(zip(self.shot.frames, self.sources, strict=True)):
+            pair = source.pair(spp)
+            self.window.forget()
+            want = frames[i].combined().base.shape
+            if pair.first["total"].shape != want:
+                raise CommandError(f"frame {n}: the reference is {pair.first['total'].shape[:2]}, the rendered "
+                                   f"frame {want[:2]}")
+            first.append(pair.first["total"])
+            second.append(pair.second["total"])
+            floors.append(pair.floor())
+        return ShotTruth(first, second, frames), floors
+
+
+class _OneScene:
+    """One frame's loaded scene at a time, loaded by renderer.shot.SceneWindow (the renderer's own loading)."""
+
+    def __init__(self, config: ShotConfig) -> None:
+        self.args = _render_namespace(config, os.path.join(tempfile.gettempdir(), "ref.%04d.exr"))
+        self.window: Any = None
+
+    def get(self, shot: Any, n: int) -> Any:
+        from gradsep.renderer.shot import SceneWindow
+
+        if self.window is None:
+            self.window = SceneWindow(shot, self.args)
+        self.window.forget_before(n)
+        return self.window.get(n)
+
+    def forget(self) -> None:
+        if self.window is not None:
+            self.window.loaded.clear()
+        gc.collect()
 
 
 # -------------------------------------------------------------------------------------------------- the run
@@ -227,6 +263,7 @@ class ShotResult:
     changes: list[int]  # indices of frames after which the truth changed (a light switched)
     baseline: str  # the flicker baseline: the first plan's per-frame row
     per_frame_of: dict[str, str]  # row -> the per-frame row of the same frames
+    ref_spp: int = 0  # the spp of each reference the scores used
 
 
 def _models(models_dir: Path) -> Any:
@@ -236,32 +273,67 @@ def _models(models_dir: Path) -> Any:
     return table.LoadedModels.load(models_dir, tuple(table.MODEL_SETS))
 
 
+@dataclass
+class _Outputs:
+    """A pipeline's reconstructed frames before scoring."""
+
+    name: str
+    plan: str
+    images: list[np.ndarray]
+    seconds: list[float]
+    method: str
+
+
+def _reconstructed(config: ShotConfig, shot: Any, plans: Sequence[Plan], cache: EvalCache,
+                   log: Callable[[str], None]) -> tuple[list[_Outputs], list]:
+    """Every plan's frames rendered and reconstructed per frame and temporally; the first plan's frames (whose
+    motion vectors every score follows)."""
+    models = _models(config.models_dir)
+    outputs, first = [], None
+    for plan in plans:
+        frames = render_plan(config, shot, plan, cache, log)
+        first = first or frames
+        render_seconds = [float(f.metadata.get("gradsep.render_seconds", "nan")) for f in frames]
+        for window, suffix in ((1, ""), (config.window, "+temporal")):
+            images, seconds, method = reconstruct_shot(frames, window, models)
+            outputs.append(_Outputs(plan.name + suffix, plan.name, images,
+                                    [r + s for r, s in zip(render_seconds, seconds, strict=True)], method))
+        del frames
+    assert first is not None
+    return outputs, first
+
+
+def _scored(outputs: Sequence[_Outputs], truth: ShotTruth) -> list[PipelineScores]:
+    rows = []
+    for out in outputs:
+        scores = score_pipeline(out.name, out.images, truth)
+        scores.seconds, scores.method = out.seconds, out.method
+        rows.append(scores)
+    return rows
+
+
 def evaluate_shot(config: ShotConfig, plans: Sequence[Plan] = PLANS,
                   log: Callable[[str], None] = lambda m: print(m, file=sys.stderr)) -> ShotResult:
-    """Render, reconstruct and score the shot (see the module docstring); writes only to the cache."""
+    """Render, reconstruct and score the shot (see the module docstring); writes only to the cache. The references
+    are raised (in passes of ``ref_spp``, up to ``ref_spp_cap``) while their median floor is over FLOOR_FRACTION of
+    the smallest RelMSE, as the frame evaluation raises its references."""
+    from gradsep.evaluation.config import FLOOR_FRACTION
+    from gradsep.evaluation.references import next_reference_spp
     from gradsep.evaluation.shot_metrics import changed_frames
 
     shot = check_shot_config(config)
     cache = EvalCache(config.cache_dir / "evaluate")
-    models = _models(config.models_dir)
-    rows, images, per_frame_of = [], {}, {}
-    truth = floors = None
-    for plan in plans:
-        frames = render_plan(config, shot, plan, cache, log)
-        if truth is None:
-            truth, floors = render_truth(config, shot, frames, cache, log)
-        else:
-            truth = ShotTruth(truth.first, truth.second, truth.frames)  # the first plan's vectors for every row
-        render_seconds = [float(f.metadata.get("gradsep.render_seconds", "nan")) for f in frames]
-        for window, suffix in ((1, ""), (config.window, "+temporal")):
-            outs, seconds, method = reconstruct_shot(frames, window, models)
-            scores = score_pipeline(plan.name + suffix, outs, truth)
-            scores.seconds = [r + s for r, s in zip(render_seconds, seconds, strict=True)]
-            scores.method = method
-            rows.append(scores)
-            images[scores.name] = outs
-            per_frame_of[scores.name] = plan.name
-        del frames
-    assert truth is not None and floors is not None
-    return ShotResult(config, list(shot.frames), rows, images, truth, floors, changed_frames(truth), plans[0].name,
-                      per_frame_of)
+    outputs, frames = _reconstructed(config, shot, plans, cache, log)
+    references = ShotReferences(config, shot, cache, log)
+    spp = config.ref_spp
+    while True:
+        truth, floors = references.truth(spp, frames)
+        rows = _scored(outputs, truth)
+        raised = next_reference_spp(spp, float(np.median(floors)), min(r.relmse for r in rows), FLOOR_FRACTION,
+                                    max(spp, config.ref_spp_cap or spp), step=config.ref_spp)
+        if raised is None:
+            break
+        log(f"raising the references to {raised} spp each (median floor {np.median(floors):.3g})")
+        spp = raised
+    return ShotResult(config, list(shot.frames), rows, {o.name: o.images for o in outputs}, truth, floors,
+                      changed_frames(truth), plans[0].name, {o.name: o.plan for o in outputs}, spp)

@@ -165,6 +165,8 @@ def test_flicker_pairs_without_vectors_are_left_out():
     (["--shot", str(MOVING), "--frames", "1-1", "--spp", "2"], "at least two frames"),
     (["--shot", "missing.%04d.xml", "--frames", "1-3", "--spp", "2"], "scene file not found"),
     (["--shot", str(MOVING), "--frames", "1-3", "--seconds", "-1"], "--seconds"),
+    (["--shot", str(MOVING), "--frames", "1-3", "--spp", "2", "--ref-spp", "8", "--ref-spp-cap", "4"],
+     "--ref-spp-cap 4 is below"),
 ])
 def test_bad_shot_input_is_one_line_exit_2_and_writes_nothing(tmp_path, capsys, argv, message):
     out, cache = tmp_path / "report", tmp_path / "cache"
@@ -182,7 +184,7 @@ def test_bad_shot_input_is_one_line_exit_2_and_writes_nothing(tmp_path, capsys, 
 def test_a_tiny_shot_end_to_end(tmp_path, capsys):
     out, cache = tmp_path / "report", tmp_path / "cache"
     argv = ["evaluate", "--shot", str(MOVING), "--frames", "1-3", "--animate", "pos=-0.3,0.5,0:0.3,0.5,0",
-            "--size", "32x24", "--spp", "2", "--ref-spp", "8", "--window", "3", "--cache", str(cache), "-o", str(out)]
+            "--size", "32x24", "--spp", "2", "--ref-spp", "8", "--ref-spp-cap", "16", "--window", "3", "--cache", str(cache), "-o", str(out)]
     assert main(argv) == 0
     assert "4 pipelines" in capsys.readouterr().out
     for name in ("report.md", "shot.csv", "shot.json", "crops.png", "plots/error.png", "plots/flicker.png"):
@@ -197,6 +199,7 @@ def test_a_tiny_shot_end_to_end(tmp_path, capsys):
         assert row["relmse_vs_best_per_frame"] == pytest.approx(row["relmse"] / best)
         assert math.isfinite(row["seconds_per_frame"])
     assert summary["frames"] == [1, 2, 3]
+    assert summary["ref_spp"] in (8, 16)  # raised in passes of 8 while the floor is too high, up to the cap
     with open(out / "shot.csv", newline="") as fh:
         assert len(list(csv.DictReader(fh))) == 4 * 3
     from PIL import Image
