@@ -4,14 +4,14 @@
 give the same numbers: a static camera and scene (a procedural room, a new seed per frame); the Cornell box with a
 lamp switched off half-way (tests/data/temporal/lightswitch.xml, written here as a per-frame XML pattern); and two
 shots of tests/data/shot/moving.xml with ``--animate`` (a moving camera, a moving object). Every shot is rendered
-with ``gradsep render --frames`` (motion vectors included) as plain frames and as ``--gradients direct --offsets
-alternate`` frames, at ``--spp`` or at equal ``--seconds`` per frame, with two independent references per frame;
-each plan's frames are reconstructed per frame (the frame's default method) and temporally (``--window``). Per
-pipeline it prints (evaluation/shot_metrics.py defines each figure): RelMSE against the truth (the references'
-noise removed) as the geometric mean over the frames and its ratio to the best per-frame pipeline; flicker along
-the motion and its ratio to primal + OIDN per frame (the plain frames' per-frame pipeline); the error ratios, to
-the same frames per frame, in the disoccluded pixels and on the frames after the truth changes (the light
-switch); and seconds per frame. ``--report DIR`` also writes each shot's report folder.
+with ``gradsep render --frames`` (motion vectors included) with each of ``--plans``: primal frames, the default plan
+and ``--gradients direct --offsets alternate`` frames, at ``--spp`` or at equal ``--seconds`` per frame, with two
+independent references per frame; each plan's frames are reconstructed per frame (the frame's default method) and
+temporally (``--window``). Per pipeline it prints (evaluation/shot_metrics.py defines each figure): RelMSE against
+the truth (the references' noise removed) as the geometric mean over the frames and its ratio to the best per-frame
+pipeline; flicker along the motion and its ratio to primal + OIDN per frame (the primal frames' per-frame pipeline);
+the error ratios, to the same frames per frame, in the disoccluded pixels and on the frames after the truth changes
+(the light switch); and seconds per frame. ``--report DIR`` also writes each shot's report folder.
 
 ``cost`` times a 1280x720 frame of ``gradsep.model.synthetic`` (two layers with gradients, variance and
 features) reconstructed per frame against temporally from a window (a shot reconstructed in order, so each
@@ -43,7 +43,8 @@ from gradsep.model.reconstruct import reconstruct
 from gradsep.model.temporal import Motion, ShotReconstructor
 
 LIGHTSWITCH = Path(__file__).resolve().parent.parent / "tests" / "data" / "temporal" / "lightswitch.xml"
-PLANS = {"plain": ["--no-gradients"], "direct-alternate": ["--gradients", "direct", "--offsets", "alternate"]}
+#: Beside the evaluation's plans (primal, the default plan): G-PT with direct-light gradients, alternate offsets.
+EXTRA_PLANS = {"direct-alternate": ("--gradients", "direct", "--offsets", "alternate")}
 
 
 def _lightswitch_pattern(frames: int, folder: Path) -> str:
@@ -73,12 +74,17 @@ def _shots(args: argparse.Namespace, folder: Path) -> dict[str, dict]:
 def quality(args: argparse.Namespace) -> None:
     """Each shot through gradsep.evaluation.shots (what `gradsep evaluate --shot` runs), printed as its table."""
     from gradsep.evaluation.shot_report import summary_rows, write_shot_report
-    from gradsep.evaluation.shots import Plan, ShotConfig, evaluate_shot
+    from gradsep.evaluation.shots import PLANS, Plan, ShotConfig, evaluate_shot
     from gradsep.model.policy import models_dir_from
 
     folder = Path(args.cache or tempfile.mkdtemp(prefix="bench_temporal_"))
     folder.mkdir(parents=True, exist_ok=True)
-    plans = tuple(Plan(name, name, tuple(flags)) for name, flags in PLANS.items())
+    known = {**{p.name: p for p in PLANS}, **{n: Plan(n, n, f) for n, f in EXTRA_PLANS.items()}}
+    names = [n.strip() for n in args.plans.split(",") if n.strip()]
+    if not names or names[0] != PLANS[0].name or any(n not in known for n in names):
+        raise SystemExit(f"--plans: a comma-separated list of {', '.join(known)}, {PLANS[0].name} first (the "
+                         "flicker baseline)")
+    plans = tuple(known[n] for n in names)
     budget = {"seconds": args.seconds} if args.seconds else {"spp": args.spp}
     for shot, fields in _shots(args, folder).items():
         report = Path(args.report) / "".join(c if c.isalnum() else "_" for c in shot) if args.report else folder
@@ -187,6 +193,9 @@ def main() -> None:
     q.add_argument("--ref-spp", type=int, default=1024)
     q.add_argument("--scene", type=int, default=90012, help="the static shot's procedural seed")
     q.add_argument("--window", type=int, default=5)
+    q.add_argument("--plans", default="primal,plan,direct-alternate",
+                   help="the plans rendered: primal (first: the flicker baseline), plan (the default plan, as "
+                        "gradsep evaluate --shot), direct-alternate")
     q.add_argument("--seconds", type=float, default=None,
                    help="render seconds per frame instead of --spp (equal time: gradsep render --seconds)")
     q.add_argument("--cache", default=None, help="folder to keep the renders in (re-runs reuse them)")

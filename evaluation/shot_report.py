@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from gradsep.evaluation.plots import _figure, _save, exposure_for, select_crop, style_of
+from gradsep.evaluation.plots import _figure, _save, exposure_for, select_crop
 from gradsep.evaluation.shot_metrics import after_change_ratio, median_seconds, ratio
 from gradsep.evaluation.shots import ShotResult
 from gradsep.model.exr_write import write_bytes_atomic
@@ -36,6 +36,8 @@ __all__ = ["row_label", "summary_rows", "write_shot_report"]
 
 #: Each crop panel is drawn at least this many pixels wide (small frames are enlarged, nearest neighbour).
 PANEL_PIXELS = 160
+#: One colour per plan (its per-frame row dashed, its temporal row solid).
+PLAN_COLOURS = ("#9467bd", "#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#8c564b")
 #: Milliseconds each frame of the animation shows.
 FRAME_MS = 250
 
@@ -47,6 +49,12 @@ def row_label(result: ShotResult, name: str) -> str:
     label = {"primal": "primal", "plan": "default plan"}.get(plan, plan)
     text = f"{label} + {row.method}"
     return text + f", temporal ({result.config.window} frames)" if name.endswith("+temporal") else text + " per frame"
+
+
+def _scene_name(result: ShotResult) -> str:
+    """The shot's scene as titles show it: a procedural spec as it is, a file by its name."""
+    scene = result.config.scene
+    return scene if scene.startswith("procedural:") else Path(scene).name
 
 
 def _fmt(value: float | None, digits: int = 3) -> str:
@@ -164,12 +172,16 @@ def _plot(result: ShotResult, values: dict[str, Sequence[float | None]], ylabel:
         points = [(n, y) for n, y in zip(result.numbers, ys, strict=True) if y is not None and y > 0]
         if not points:
             continue
-        colour, _, marker = style_of(name)
-        style = "-" if name.endswith("+temporal") else "--"
-        ax.plot(*zip(*points, strict=True), linestyle=style, marker=marker, color=colour, linewidth=1.6,
-                markersize=4, label=row_label(result, name))
+        plans = list(dict.fromkeys(result.per_frame_of.values()))
+        colour = PLAN_COLOURS[plans.index(result.per_frame_of[name]) % len(PLAN_COLOURS)]
+        temporal = name.endswith("+temporal")
+        ax.plot(*zip(*points, strict=True), linestyle="-" if temporal else "--", marker="D" if temporal else "o",
+                color=colour, linewidth=1.6, markersize=4, label=row_label(result, name))
     for t in result.changes:
         ax.axvline(result.numbers[t], color="#999999", linestyle=":", linewidth=1.0)
+    from matplotlib.ticker import MaxNLocator
+
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_yscale("log")
     ax.set_xlabel("frame")
     ax.set_ylabel(ylabel)
@@ -201,13 +213,15 @@ def animation_bytes(result: ShotResult) -> bytes:
                    *(result.images[r.name][t] for r in result.rows)]
         panels = [_panel(s, box, scale, zoom) for s in sources]
         side = panels[0].shape[0]
-        canvas = Image.new("RGB", (len(panels) * (side + 4), side + 28), (255, 255, 255))
+        canvas = Image.new("RGB", (len(panels) * (side + 4), side + 40), (255, 255, 255))
         draw = ImageDraw.Draw(canvas)
         for k, (name, panel) in enumerate(zip(names, panels, strict=True)):
-            canvas.paste(Image.fromarray(panel), (k * (side + 4), 28))
-            text = name if name == "reference" else name.replace("+", " + ")
-            draw.text((k * (side + 4) + 2, 2), text, fill=(0, 0, 0))
-            draw.text((k * (side + 4) + 2, 14), f"frame {n}", fill=(90, 90, 90))
+            canvas.paste(Image.fromarray(panel), (k * (side + 4), 40))
+            lines = ["reference", "(two, averaged)"] if name == "reference" else \
+                row_label(result, name).replace(", temporal", "\ntemporal").replace(" per frame", "\nper frame") \
+                .splitlines()
+            for i, line in enumerate([*lines, f"frame {n}"]):
+                draw.text((k * (side + 4) + 2, 1 + 13 * i), line, fill=(0, 0, 0) if i < 2 else (90, 90, 90))
         images.append(canvas)
     buffer = io.BytesIO()
     images[0].save(buffer, format="PNG", save_all=True, append_images=images[1:], duration=FRAME_MS, loop=0)
@@ -225,11 +239,11 @@ def write_shot_report(result: ShotResult, command: str | None = None) -> dict[st
     write_bytes_atomic(paths["csv"], _csv(result))
     write_bytes_atomic(paths["json"], _json(result, rows, command))
     paths["error"] = _plot(result, {r.name: r.errors for r in result.rows}, "RelMSE (reference noise removed)",
-                           f"{result.config.scene}: error per frame, {_budget_text(result)}",
+                           f"{_scene_name(result)}: error per frame, {_budget_text(result)}",
                            out / "plots" / "error.png")
     paths["flicker"] = _plot(result, {r.name: r.flickers for r in result.rows},
                              "flicker (change of the error from the previous frame)",
-                             f"{result.config.scene}: flicker per frame along the motion",
+                             f"{_scene_name(result)}: flicker per frame along the motion",
                              out / "plots" / "flicker.png")
     write_bytes_atomic(paths["crops"], animation_bytes(result))
     write_bytes_atomic(paths["report"], _markdown(result, rows, command).encode())

@@ -184,7 +184,8 @@ def test_bad_shot_input_is_one_line_exit_2_and_writes_nothing(tmp_path, capsys, 
 def test_a_tiny_shot_end_to_end(tmp_path, capsys):
     out, cache = tmp_path / "report", tmp_path / "cache"
     argv = ["evaluate", "--shot", str(MOVING), "--frames", "1-3", "--animate", "pos=-0.3,0.5,0:0.3,0.5,0",
-            "--size", "32x24", "--spp", "2", "--ref-spp", "8", "--ref-spp-cap", "16", "--window", "3", "--cache", str(cache), "-o", str(out)]
+            "--size", "32x24", "--spp", "2", "--ref-spp", "8", "--ref-spp-cap", "16", "--window", "3", "--cache",
+            str(cache), "-o", str(out)]
     assert main(argv) == 0
     assert "4 pipelines" in capsys.readouterr().out
     for name in ("report.md", "shot.csv", "shot.json", "crops.png", "plots/error.png", "plots/flicker.png"):
