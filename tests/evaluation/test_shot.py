@@ -215,3 +215,44 @@ def test_a_tiny_shot_end_to_end(tmp_path, capsys):
     assert sorted(p.stat().st_mtime_ns for p in cache.rglob("*.exr")) == frames_before
     again = {r["pipeline"]: r for r in json.loads((out / "shot.json").read_text())["summary"]}
     assert again["plan"]["relmse"] == pytest.approx(rows["plan"]["relmse"])
+
+
+def test_the_report_of_a_constructed_shot(tmp_path):
+    """The report's ratios, files and animation from a shot built here (no rendering): the temporal row halves the
+    error change of its per-frame row, the other plan doubles the error."""
+    from PIL import Image
+
+    from gradsep.evaluation.shot_report import summary_rows, write_shot_report
+    from gradsep.evaluation.shots import ShotConfig, ShotResult
+
+    frames = 4
+    truth = _static_truth(frames)
+    d = 0.1
+    images = {"primal": [np.full((H, W, 3), 0.5 + (d if t % 2 else -d), np.float32) for t in range(frames)],
+              "primal+temporal": [np.full((H, W, 3), 0.5 + (d if t % 2 else -d) / 2, np.float32)
+                                  for t in range(frames)],
+              "plan": [np.full((H, W, 3), 0.5 + 2 * d, np.float32) for t in range(frames)]}
+    rows = []
+    for name, outs in images.items():
+        row = score_pipeline(name, outs, truth)
+        row.seconds, row.method = [1.0] * frames, "oidn"
+        rows.append(row)
+    config = ShotConfig(scene="procedural:1", frames="1-4", output=tmp_path / "r", cache_dir=tmp_path / "c",
+                        models_dir=tmp_path, spp=1, window=3)
+    result = ShotResult(config, [1001, 1002, 1003, 1004], rows, images, truth, [1e-4] * frames, [], "primal",
+                        {"primal": "primal", "primal+temporal": "primal", "plan": "plan"}, 8)
+    summary = {r["pipeline"]: r for r in summary_rows(result)}
+    assert summary["primal"]["best_per_frame"] == "primal"
+    assert summary["primal+temporal"]["relmse_vs_best_per_frame"] == pytest.approx(0.25)
+    assert summary["primal+temporal"]["flicker_vs_primal_oidn"] == pytest.approx(0.25)
+    assert summary["plan"]["relmse_vs_best_per_frame"] == pytest.approx(4.0)
+    assert summary["plan"]["flicker_vs_primal_oidn"] == pytest.approx(0.0, abs=1e-9)  # a steady error
+    assert summary["plan"]["after_change_vs_per_frame"] is None  # no change in this shot
+    paths = write_shot_report(result, "gradsep evaluate --shot procedural:1 ...")
+    assert all(p.is_file() for p in paths.values())
+    data = json.loads(paths["json"].read_text())
+    assert data["frames"] == [1001, 1002, 1003, 1004] and data["ref_spp"] == 8
+    assert data["per_frame"]["primal"]["flicker"][0] is None  # no pair ends at the first frame
+    with Image.open(paths["crops"]) as animation:
+        assert animation.n_frames == frames
+    assert "| primal + oidn, temporal (3 frames) | " in paths["report"].read_text()
