@@ -155,7 +155,17 @@ def _frame_key(config: ShotConfig, shot: Any, plan: Plan) -> dict[str, Any]:
             "scenes": [scene_identity(shot.scene_of(n), shot.defines_of(n)) for n in shot.frames],
             "animate": list(config.animate), "defines": list(config.defines), "seconds": config.seconds,
             "spp": config.spp, "size": config.size, "seed": config.seed, "max_depth": config.max_depth,
-            "code": sources_sha256(SHOT_SOURCES), "mitsuba": mitsuba_id()}
+            "code": sources_sha256(SHOT_SOURCES), "mitsuba": mitsuba_id(), **_generator(config.scene)}
+
+
+def _generator(scene: str) -> dict[str, Any]:
+    """A procedural scene's generator version (its scenes change with it, not with the renderer's code, as in the
+    frame evaluation's keys); nothing for a scene file (its bytes are in the key)."""
+    if not scene.startswith("procedural:"):
+        return {}
+    from gradsep.renderer.procedural_builder import GENERATOR_VERSION
+
+    return {"generator": GENERATOR_VERSION}
 
 
 def render_plan(config: ShotConfig, shot: Any, plan: Plan, cache: EvalCache, log: Callable[[str], None]) -> list:
@@ -195,7 +205,7 @@ class ShotReferences:
             key = {"scene": scene_identity(shot.scene_of(n), shot.defines_of(n)), "frame": n, "size": config.size,
                    "max_depth": config.max_depth,
                    "seed": int(np.random.SeedSequence([config.seed, 6, n]).generate_state(1, np.uint32)[0]),
-                   "code": code, "mitsuba": mitsuba_id(), "sampler": REFERENCE_SAMPLER}
+                   "code": code, "mitsuba": mitsuba_id(), "sampler": REFERENCE_SAMPLER, **_generator(config.scene)}
             self.sources.append(ReferenceSource(cache, f"shot-{config.scene}-frame{n}", key, config.ref_spp,
                                                 self._renderer(shot, n), log))
 
