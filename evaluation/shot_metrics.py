@@ -152,6 +152,7 @@ class PipelineScores:
     disoccluded: float | None  # pooled RelMSE in the disoccluded pixels; None: not enough of them
     seconds: list[float] = field(default_factory=list)  # per frame, render + reconstruction
     method: str = ""
+    spp: float = math.nan  # the rendered frames' median samples per pixel
 
     @property
     def relmse(self) -> float:

@@ -78,18 +78,18 @@ def summary_rows(result: ShotResult) -> list[dict[str, Any]]:
                     "disoccluded_vs_per_frame": ratio(row.disoccluded, own.disoccluded),
                     "after_change_vs_per_frame": after_change_ratio(row, own, result.changes)
                     if result.changes else None,
-                    "seconds_per_frame": median_seconds(row.seconds)})
+                    "seconds_per_frame": median_seconds(row.seconds), "spp": row.spp})
     return out
 
 
 def _table(result: ShotResult, rows: Sequence[dict[str, Any]]) -> list[str]:
     lines = ["| pipeline | RelMSE (geomean) | × best per-frame | flicker | × primal + OIDN | disoccluded × per-frame "
-             "| after a change × per-frame | s / frame |", "|---|---|---|---|---|---|---|---|"]
+             "| after a change × per-frame | s / frame | spp |", "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(f"| {r['label']} | {_fmt(r['relmse'], 4)} | {_fmt(r['relmse_vs_best_per_frame'])} | "
                      f"{_fmt(r['flicker'], 4)} | {_fmt(r['flicker_vs_primal_oidn'])} | "
                      f"{_fmt(r['disoccluded_vs_per_frame'])} | {_fmt(r['after_change_vs_per_frame'])} | "
-                     f"{_fmt(r['seconds_per_frame'])} |")
+                     f"{_fmt(r['seconds_per_frame'])} | {_fmt(r['spp'], 4)} |")
     return lines
 
 

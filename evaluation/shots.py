@@ -292,6 +292,7 @@ class _Outputs:
     images: list[np.ndarray]
     seconds: list[float]
     method: str
+    spp: float  # the frames' median samples per pixel
 
 
 def _reconstructed(config: ShotConfig, shot: Any, plans: Sequence[Plan], cache: EvalCache,
@@ -303,21 +304,29 @@ def _reconstructed(config: ShotConfig, shot: Any, plans: Sequence[Plan], cache: 
     for plan in plans:
         frames = render_plan(config, shot, plan, cache, log)
         first = first or frames
-        render_seconds = [float(f.metadata.get("gradsep.render_seconds", "nan")) for f in frames]
+        render_seconds = [_frame_seconds(f) for f in frames]
+        spp = float(np.median([float(f.metadata.get("gradsep.spp", "nan")) for f in frames]))
         for window, suffix in ((1, ""), (config.window, "+temporal")):
             images, seconds, method = reconstruct_shot(frames, window, models)
             outputs.append(_Outputs(plan.name + suffix, plan.name, images,
-                                    [r + s for r, s in zip(render_seconds, seconds, strict=True)], method))
+                                    [r + s for r, s in zip(render_seconds, seconds, strict=True)], method, spp))
         del frames
     assert first is not None
     return outputs, first
+
+
+def _frame_seconds(frame: Any) -> float:
+    """A rendered frame's seconds as its budget counts them (``--seconds``: the whole command's share, scene load
+    to write), else its render's."""
+    meta = frame.metadata
+    return float(meta.get("gradsep.elapsed_seconds", meta.get("gradsep.render_seconds", "nan")))
 
 
 def _scored(outputs: Sequence[_Outputs], truth: ShotTruth) -> list[PipelineScores]:
     rows = []
     for out in outputs:
         scores = score_pipeline(out.name, out.images, truth)
-        scores.seconds, scores.method = out.seconds, out.method
+        scores.seconds, scores.method, scores.spp = out.seconds, out.method, out.spp
         rows.append(scores)
     return rows
 
