@@ -111,9 +111,11 @@ def _markdown(result: ShotResult, rows: Sequence[dict[str, Any]], command: str) 
              "removed (product estimator) and is the geometric mean over the frames; flicker is the same estimator "
              "on the frame-to-frame change of the error along the motion, the mean over consecutive pairs. "
              "Disoccluded and after-a-change figures are ratios to the same frames reconstructed per frame; a "
-             "change is a frame where the truth itself changes (docs/evaluation.md, \"Shots\").", "",
+             "change is a frame where the light changes (docs/evaluation.md, \"Shots\"). Seconds per frame: the "
+             "render as its budget counts it plus the reconstruction (median over frames); spp: the frames' median.",
+             "",
              *_table(result, rows), "",
-             f"Best per-frame pipeline: {rows[0]['best_per_frame']}. Frames where the truth changes: {changes}. "
+             f"Best per-frame pipeline: {rows[0]['best_per_frame']}. Frames where the light changes: {changes}. "
              f"Reference floor (median over frames, one reference): {floor:.3g}"
              + (f" -- above 10 % of the smallest RelMSE ({smallest:.3g}): raise --ref-spp or --ref-spp-cap."
                 if floor > 0.1 * smallest
