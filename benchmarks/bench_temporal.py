@@ -94,7 +94,7 @@ def quality(args: argparse.Namespace) -> None:
         result = evaluate_shot(config, plans, log=lambda m: None)
         print(f"\n{shot}: {args.frames} frames, {config.size[0]}x{config.size[1]}, "
               + (f"{args.seconds:g} s" if args.seconds else f"{args.spp} spp") + f" per frame, window "
-              f"{args.window}; frames where the truth changes: "
+              f"{args.window}; frames where the light changes: "
               + (", ".join(str(result.numbers[t]) for t in result.changes) or "none"))
         for row in summary_rows(result):
             print(f"  {row['label']:42s} RelMSE {_g(row['relmse'], 5)} ({_g(row['relmse_vs_best_per_frame'])}x best "
