@@ -97,16 +97,21 @@ def quality(args: argparse.Namespace) -> None:
               f"{args.window}; frames where the light changes: "
               + (", ".join(str(result.numbers[t]) for t in result.changes) or "none"))
         for row in summary_rows(result):
-            print(f"  {row['label']:42s} RelMSE {_g(row['relmse'], 5)} ({_g(row['relmse_vs_best_per_frame'])}x best "
-                  f"per-frame)  flicker {_g(row['flicker'])} ({_g(row['flicker_vs_primal_oidn'])}x primal+OIDN)  "
-                  f"disoccluded {_g(row['disoccluded_vs_per_frame'])}x, after a change "
-                  f"{_g(row['after_change_vs_per_frame'])}x per-frame  {_g(row['seconds_per_frame'])} s/frame")
+            print(f"  {row['label']:42s} RelMSE {_g(row['relmse'], 5)} ({_x(row['relmse_vs_best_per_frame'])} best "
+                  f"per-frame)  flicker {_g(row['flicker'])} ({_x(row['flicker_vs_primal_oidn'])} primal+OIDN)  "
+                  f"disoccluded {_x(row['disoccluded_vs_per_frame'])}, after a change "
+                  f"{_x(row['after_change_vs_per_frame'])} per-frame  {_g(row['seconds_per_frame'])} s/frame, "
+                  f"{_g(row['spp'])} spp")
         if args.report:
             write_shot_report(result, " ".join(["python", *sys.argv]))
 
 
 def _g(value: float | None, digits: int = 3) -> str:
     return "n/a" if value is None else f"{value:.{digits}g}"
+
+
+def _x(value: float | None) -> str:
+    return "n/a" if value is None else f"{value:.3g}x"
 
 
 #: Shots of tests/data/shot/moving.xml (a ball over a floor under an area light) with the renderer's motion vectors.
