@@ -149,10 +149,10 @@ def _check_report_folder(output: Path) -> None:
 
 def _frame_key(config: ShotConfig, shot: Any, plan: Plan) -> dict[str, Any]:
     from gradsep.model.shot import shot_name
-    from gradsep.renderer.plancache import scene_identity
+    from gradsep.renderer.shot import shot_scene_identity
 
     return {"kind": "shot-frames", "frames": shot_name(shot.frames), "flags": list(plan.flags),
-            "scenes": [scene_identity(shot.scene_of(n), shot.defines_of(n)) for n in shot.frames],
+            "scenes": [shot_scene_identity(shot.scene_of(n), shot.defines_of(n)) for n in shot.frames],
             "animate": list(config.animate), "defines": list(config.defines), "seconds": config.seconds,
             "spp": config.spp, "size": config.size, "seed": config.seed, "max_depth": config.max_depth,
             "code": sources_sha256(SHOT_SOURCES), "mitsuba": mitsuba_id(), **_generator(config.scene)}
@@ -195,14 +195,16 @@ class ShotReferences:
 
     def __init__(self, config: ShotConfig, shot: Any, cache: EvalCache, log: Callable[[str], None]) -> None:
         from gradsep.evaluation.references import REFERENCE_SAMPLER, ReferenceSource
-        from gradsep.renderer.plancache import scene_identity
+        from gradsep.renderer.shot import shot_scene_identity
 
         self.shot = shot
         self.window = _OneScene(config)
         code = sources_sha256(REFERENCE_SOURCES)
         self.sources = []
         for n in shot.frames:
-            key = {"scene": scene_identity(shot.scene_of(n), shot.defines_of(n)), "frame": n, "size": config.size,
+            # the frame's scene with its animated values (a procedural family's t): a frame number alone names
+            # another instant in a shot of another length
+            key = {"scene": shot_scene_identity(shot.scene_of(n), shot.defines_of(n)), "frame": n, "size": config.size,
                    "max_depth": config.max_depth,
                    "seed": int(np.random.SeedSequence([config.seed, 6, n]).generate_state(1, np.uint32)[0]),
                    "code": code, "mitsuba": mitsuba_id(), "sampler": REFERENCE_SAMPLER, **_generator(config.scene)}

@@ -256,3 +256,17 @@ def test_the_report_of_a_constructed_shot(tmp_path):
     with Image.open(paths["crops"]) as animation:
         assert animation.n_frames == frames
     assert "| primal + oidn, temporal (3 frames) | " in paths["report"].read_text()
+
+
+def test_a_procedural_familys_references_are_keyed_by_the_frames_instant_not_its_number(tmp_path: Path) -> None:
+    """Frame 5 of an 8-frame and of a 16-frame dolly is another instant (t): its cached references must differ."""
+    from gradsep.evaluation.cache import EvalCache
+    from gradsep.evaluation.shots import ShotConfig, ShotReferences, check_shot_config
+
+    scenes = []
+    for frames in ("1-8", "1-16"):
+        config = ShotConfig(scene="procedural:dolly:3", frames=frames, output=tmp_path / frames,
+                            cache_dir=tmp_path / "c", models_dir=tmp_path, spp=1, window=3)
+        references = ShotReferences(config, check_shot_config(config), EvalCache(tmp_path / "c"), print)
+        scenes.append(references.sources[4].key["scene"])
+    assert scenes[0] != scenes[1] and all("t=" in s for s in scenes)
