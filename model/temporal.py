@@ -16,7 +16,8 @@ before the per-frame method (model/reconstruct.py) runs once on the result:
 3. **Accumulate.** Accepted neighbours are averaged with frame t, each frame weighted by the inverse of its mean
    variance (one weight per frame and layer: per-pixel inverse-variance weights favour the pixels whose few
    samples missed a bright path), and the variance channel becomes that weighted mean's, so OIDN's back-off
-   (model/backoff.py) sees the lower noise.
+   (model/backoff.py) sees the lower noise. A gradient joins two pixels, so a neighbour's counts where both were
+   accepted and lie next to each other in the neighbour too (not across a silhouette or a disocclusion's edge).
 4. **Reconstruct.** The per-frame method (the frame's default unless one is named) on the accumulated frame.
 
 The second stage averages frame t's first-stage result with its neighbours' first-stage results, per layer, warped
