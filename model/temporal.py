@@ -16,7 +16,8 @@ before the per-frame method (model/reconstruct.py) runs once on the result:
 3. **Accumulate.** Accepted neighbours are averaged with frame t, each frame weighted by the inverse of its mean
    variance (one weight per frame and layer: per-pixel inverse-variance weights favour the pixels whose few
    samples missed a bright path), and the variance channel becomes that weighted mean's, so OIDN's back-off
-   (model/backoff.py) sees the lower noise.
+   (model/backoff.py) sees the lower noise. A gradient joins two pixels, so a neighbour's counts where both were
+   accepted and lie next to each other in the neighbour too (not across a silhouette or a disocclusion's edge).
 4. **Reconstruct.** The per-frame method (the frame's default unless one is named) on the accumulated frame.
 
 The second stage averages frame t's first-stage result with its neighbours' first-stage results, per layer, warped
@@ -62,6 +63,9 @@ REJECT_K = 3.0
 ALBEDO_TOLERANCE = 0.1
 NORMAL_COSINE = 0.9
 FEATURE_BOX = 3
+#: A neighbour's gradient between two pixels is used where their positions in the neighbour are one pixel apart
+#: within this many pixels (they move together; not across a silhouette).
+STEADY_TOLERANCE = 0.25
 
 
 @dataclass
@@ -108,12 +112,31 @@ class _Sampler:
         fc = (c - c0).astype(np.float32)
         self.integral = not (fr.any() or fc.any())
         self.identity = False
+        self._positions: tuple[np.ndarray, np.ndarray] | None = (rows, cols)
+        self._steady: tuple[np.ndarray, np.ndarray] | None = None
         r1 = np.minimum(r0 + 1, h - 1)
         c1 = np.minimum(c0 + 1, w - 1)
         # flat pixel indices of the four taps (a 1-D take is much faster than 2-D fancy indexing)
         self.taps = tuple((rr * w + cc).ravel() for rr, cc in ((r0, c0), (r0, c1), (r1, c0), (r1, c1)))
         self.weights = tuple(x.ravel()[:, None] for x in
                              ((1 - fr) * (1 - fc), (1 - fr) * fc, fr * (1 - fc), fr * fc))
+
+    def steady(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Per axis (dx, dy), float32 (H, W): 1 where a pixel's position and the next pixel's along that axis are
+        within STEADY_TOLERANCE of one pixel apart (the two move together), else 0; None for no motion."""
+        if self.identity or self._positions is None:
+            return None
+        if self._steady is None:
+            rows, cols = self._positions
+            out = []
+            for along, across, axis in ((cols, rows, 1), (rows, cols, 0)):
+                step = np.diff(along, axis=axis) - 1.0
+                drift = np.diff(across, axis=axis)
+                ok = (np.abs(step) <= STEADY_TOLERANCE) & (np.abs(drift) <= STEADY_TOLERANCE)
+                pad = ((0, 0), (0, 1)) if axis == 1 else ((0, 1), (0, 0))
+                out.append(np.pad(ok, pad, constant_values=True).astype(np.float32))
+            self._steady = (out[0], out[1])
+        return self._steady
 
     def __call__(self, image: np.ndarray, squared: bool = False) -> np.ndarray:
         """``image`` at the positions; ``squared`` weights by the squared bilinear weights (a variance's warp)."""
@@ -228,48 +251,74 @@ def _features_agree(centre: _Stats, other: _Stats, sample: _Sampler) -> np.ndarr
 @dataclass
 class _LayerSums:
     """The running weighted sums of one layer over the accepted frames (float32; a frame's weight is one number,
-    zero where it was rejected)."""
+    zero where it was rejected). The gradients have weights of their own (:func:`_gradient_weights`)."""
 
     weight: np.ndarray
     base: np.ndarray
     dx: np.ndarray | None
     dy: np.ndarray | None
     var: np.ndarray  # Σ w² σ²
+    weight_dx: np.ndarray | None = None
+    weight_dy: np.ndarray | None = None
 
     @classmethod
     def start(cls, layer: Layer, var: np.ndarray) -> _LayerSums:
         """Frame t's layer, weight 1 (the neighbours' weights are relative to frame t's)."""
+        gradients = layer.dx is not None and layer.dy is not None
         return cls(np.ones(var.shape, np.float32), layer.base.astype(np.float32, copy=True),
                    None if layer.dx is None else layer.dx.astype(np.float32, copy=True),
                    None if layer.dy is None else layer.dy.astype(np.float32, copy=True),
-                   var.astype(np.float32, copy=True))
+                   var.astype(np.float32, copy=True),
+                   np.ones(var.shape, np.float32) if gradients else None,
+                   np.ones(var.shape, np.float32) if gradients else None)
 
-    def add(self, layer: Layer, var: np.ndarray, accept: np.ndarray, weight: float) -> None:
+    def add(self, layer: Layer, var: np.ndarray, accept: np.ndarray, weight: float,
+            steady: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+        """Add a warped neighbour where ``accept``; ``steady`` (per axis, where the neighbour's pixel and the next
+        one along that axis are next to each other there too) limits its gradients (:func:`_gradient_weights`)."""
         w = accept.astype(np.float32)
         if weight != 1.0:
             w *= np.float32(weight)
         self.weight += w
-        w3 = w[..., None]
-        pairs = [(self.base, layer.base)]
-        if self.dx is not None and self.dy is not None and layer.dx is not None and layer.dy is not None:
-            pairs += [(self.dx, layer.dx), (self.dy, layer.dy)]
         scratch = np.empty_like(self.base)
-        for total, image in pairs:
-            np.multiply(image, w3, out=scratch)
-            total += scratch
+        np.multiply(layer.base, w[..., None], out=scratch)
+        self.base += scratch
+        if self.dx is not None and self.dy is not None and layer.dx is not None and layer.dy is not None:
+            for axis, total, image, weights in ((1, self.dx, layer.dx, self.weight_dx),
+                                                (0, self.dy, layer.dy, self.weight_dy)):
+                wg = _gradient_weights(w, axis, None if steady is None else steady[axis == 0])
+                weights += wg  # type: ignore[operator]
+                np.multiply(image, wg[..., None], out=scratch)
+                total += scratch
         w *= w
         w *= var
         self.var += w
 
     def layer(self) -> Layer:
         inverse = 1.0 / self.weight
-        i3 = inverse[..., None]
-        for image in (self.base, self.dx, self.dy):
-            if image is not None:
-                image *= i3
+        self.base *= inverse[..., None]
+        for image, weights in ((self.dx, self.weight_dx), (self.dy, self.weight_dy)):
+            if image is not None and weights is not None:
+                image /= weights[..., None]
         self.var *= inverse
         self.var *= inverse
         return Layer(self.base, self.dx, self.dy, self.var)
+
+
+def _gradient_weights(w: np.ndarray, axis: int, steady: np.ndarray | None) -> np.ndarray:
+    """A neighbour's weight for its gradients along ``axis`` (1: dx, 0: dy): a gradient is the difference of a pixel
+    and the next one, so it counts only as much as the lesser of the two pixels' weights, and only where the two
+    are next to each other in the neighbour as well (``steady``; None: the warp is one shift). Else a silhouette's
+    or a disocclusion's edge would take the neighbour's difference across another pair of pixels, and the solver
+    would carry it into frame t's pixels that the neighbour does not see."""
+    out = w.copy()
+    if axis == 1:
+        np.minimum(out[:, :-1], w[:, 1:], out=out[:, :-1])
+    else:
+        np.minimum(out[:-1], w[1:], out=out[:-1])
+    if steady is not None:
+        out *= steady
+    return out
 
 
 def _frame_weight(var: np.ndarray) -> float:
@@ -342,7 +391,8 @@ def _accumulate(frames: Sequence[Frame | None], centre: int, offsets: Sequence[i
             agreement.accept.setdefault(name, {})[offset] = accept
             warped = Layer(sample(other.base), None if other.dx is None else sample(other.dx),
                            None if other.dy is None else sample(other.dy))
-            sums.add(warped, sample(stats.var[name], squared=True), accept, stats.weight[name] / own.weight[name])
+            sums.add(warped, sample(stats.var[name], squared=True), accept, stats.weight[name] / own.weight[name],
+                     sample.steady() if warped.dx is not None else None)
         layers[name] = sums.layer()
     out = Frame(layers, frame.features, dict(frame.metadata), list(frame.warnings), frame.alpha,
                 dict(frame.image_attributes), frame.layout)

@@ -164,6 +164,37 @@ def test_moving_shot_is_warped_and_disocclusions_are_not_ghosted(shift: float) -
         assert relmse(tem[t][:, edge], truths[t][:, edge]) <= 1.1 * relmse(per[t][:, edge], truths[t][:, edge])
 
 
+def test_a_neighbours_gradient_counts_only_where_both_its_pixels_correspond() -> None:
+    """A gradient joins a pixel and the next one: across a motion edge (the left half moved, the right half did not)
+    or beside a disoccluded pixel, the neighbour's difference is between other pixels, so frame t keeps its own."""
+    from gradsep.model import temporal
+
+    size = 16
+
+    def frame(gradient: float, motion: Motion | None) -> Frame:
+        base = np.ones((size, size, 3), np.float32)
+        dx = np.full((size, size, 3), gradient, np.float32)
+        dx[:, -1] = 0.0
+        layer = Layer(base, dx, np.zeros_like(base), np.full((size, size), 1e-4, np.float32))
+        out = Frame({"color": layer}, None)
+        out.motion = motion
+        return out
+
+    backward = np.zeros((size, size, 2), np.float32)
+    backward[:, :8, 0] = -2.0  # the left half moved 2 pixels right since frame t - 1; its first 2 columns are new
+    valid = np.ones((size, size), np.float32)
+    valid[:, :2] = 0.0
+    own = frame(0.0, Motion(backward, None, valid, None))
+    out, agreement = temporal._accumulate([frame(4.0, None), own], 1, [-1], [])
+    assert agreement.accept["color"][-1][:, 2:].all() and not agreement.accept["color"][-1][:, :2].any()
+    dx = out.layers["color"].dx[..., 0]
+    np.testing.assert_allclose(dx[:, 3:7], 2.0)  # both pixels seen in t - 1, next to each other there: averaged
+    np.testing.assert_allclose(dx[:, 8:15], 2.0)
+    np.testing.assert_array_equal(dx[:, 7], 0.0)  # pixel 7 is at column 5 of t - 1, pixel 8 at column 8
+    np.testing.assert_array_equal(dx[:, :2], 0.0)  # columns 0-1 are not in t - 1
+    np.testing.assert_allclose(out.layers["color"].base, 1.0)
+
+
 # ------------------------------------------------------------------------------------------------ bad input
 
 
