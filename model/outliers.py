@@ -184,13 +184,24 @@ def _level(magnitude: np.ndarray) -> float:
 
 
 def _magnitude(image: np.ndarray) -> np.ndarray:
-    """(H, W) float32: the channel mean of |``image``|, non-finite values read as float32's largest."""
+    """(H, W) float32: the channel mean of |``image``|, non-finite values read as float32's largest (one reused
+    temporary, and ``fmin``, which maps NaN and ∞ alike, in one pass: it runs on every layer of every request)."""
     out = np.abs(image[..., 0])
+    part = np.empty_like(out) if image.shape[-1] > 1 else out
     for c in range(1, image.shape[-1]):
-        out += np.abs(image[..., c])
+        out += np.abs(image[..., c], out=part)
     out /= image.shape[-1]
-    out[~np.isfinite(out)] = _F32_MAX
-    return out
+    return np.fmin(out, _F32_MAX, out=out)
+
+
+def _all_within(image: np.ndarray, bound: float) -> bool:
+    """Whether every value of ``image`` is finite and within ±``bound`` (two reductions, no temporary): then no
+    channel mean of its magnitudes can exceed twice ``bound``, float rounding included, and a threshold at least
+    that high needs no per-pixel pass."""
+    values = np.asarray(image)
+    if values.size == 0:
+        return True
+    return bool(values.max() <= bound) and bool(-values.min() <= bound)  # NaN compares False: not within
 
 
 @dataclass
@@ -314,6 +325,8 @@ def _clean_gradient(gradient: np.ndarray, inlier: np.ndarray, axis: int, thresho
     itself and 0 when it has none). A cluster's pixels are where
     both the gradient and its residual against ``inlier``'s forward difference exceed ``threshold`` (a gradient
     that is large only because the base is off is left alone)."""
+    if _all_within(gradient, threshold / 2):  # a clean gradient, the usual case: nothing near the threshold
+        return gradient, 0
     ys, xs = np.nonzero(_magnitude(gradient) > threshold)
     if ys.size == 0:
         return gradient, 0
@@ -355,14 +368,28 @@ def _sources(base: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
         return None
     cap = SOURCE_LEVEL * level
     over = lum > cap
-    if not over.any():
+    ys, xs = np.nonzero(over)
+    if ys.size == 0:
         return None
-    source = over & (ndimage.convolve(over.astype(np.int8), _EIGHT.astype(np.int8), mode="constant") > 1)
-    if not source.any():
+    grouped = _neighbour_counts(over, ys, xs) > 1  # itself and at least one of its 8 neighbours
+    if not grouped.any():
         return None
+    source = np.zeros_like(over)
+    source[ys[grouped], xs[grouped]] = True
     capped = base.copy()
     capped[source] = base[source] * (cap / lum[source])[:, None]
     return capped, source
+
+
+def _neighbour_counts(mask: np.ndarray, ys: np.ndarray, xs: np.ndarray) -> np.ndarray:
+    """How many pixels of ``mask`` (H, W) bool lie in the 3 x 3 block around each pixel (``ys``, ``xs``), itself
+    included: a full-frame 3 x 3 convolution, read at these pixels only (few: the bright ones)."""
+    padded = np.pad(mask, 1)
+    counts = np.zeros(ys.shape, np.int8)
+    for dy in range(3):
+        for dx in range(3):
+            counts += padded[ys + dy, xs + dx]
+    return counts
 
 
 def light_in_view(layer: Layer) -> bool:
