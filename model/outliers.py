@@ -252,6 +252,9 @@ class FrameSplit:
     """Every layer the detector changed, by name (a layer absent here went through untouched)."""
 
     layers: dict[str, LayerSplit] = field(default_factory=dict)
+    #: per layer, model.robust.lit_level of the base the method sees, where the detector measured it (``sources``)
+    #: and OIDN's input sanitising leaves that base as it is: the ``oidn`` method's exposure, without measuring again
+    lit_levels: dict[str, float] = field(default_factory=dict)
 
     def restore(self, name: str, image: np.ndarray) -> np.ndarray:
         split = self.layers.get(name)
@@ -359,26 +362,32 @@ def _clean_gradients(layer: Layer, inlier: np.ndarray, level: float) -> tuple[An
     return out[0], out[1], count
 
 
-def _sources(base: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """``base`` with the pixels of a light in view (over SOURCE_LEVEL x the lit level, in a group) scaled down to
-    that luminance, colour kept, and their (H, W) bool mask; None when there are none."""
+def _sources(base: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray] | None, float]:
+    """(``base`` with the pixels of a light in view (over SOURCE_LEVEL x the lit level, in a group) scaled down to
+    that luminance, colour kept, and their (H, W) bool mask, or None when there are none; ``base``'s lit level)."""
     lum = luminance(base)
     level = lit_level_of_luminance(lum)
     if not (math.isfinite(level) and level > 0.0):
-        return None
+        return None, level
     cap = SOURCE_LEVEL * level
     over = lum > cap
     ys, xs = np.nonzero(over)
     if ys.size == 0:
-        return None
+        return None, level
     grouped = _neighbour_counts(over, ys, xs) > 1  # itself and at least one of its 8 neighbours
     if not grouped.any():
-        return None
+        return None, level
     source = np.zeros_like(over)
     source[ys[grouped], xs[grouped]] = True
     capped = base.copy()
     capped[source] = base[source] * (cap / lum[source])[:, None]
-    return capped, source
+    return (capped, source), level
+
+
+def _denoised_as_is(base: np.ndarray) -> bool:
+    """Whether OIDN's input sanitising (model.oidn: NaN to 0, clamped to [0, float32 max]) leaves float32 ``base``
+    as it is: finite and ≥ 0."""
+    return base.size > 0 and bool(base.min() >= 0.0) and math.isfinite(float(base.max()))
 
 
 def _neighbour_counts(mask: np.ndarray, ys: np.ndarray, xs: np.ndarray) -> np.ndarray:
@@ -415,11 +424,17 @@ def split_layer(layer: Layer, sources: bool = False, level: float | None = None,
     """What the detector does to ``layer`` (the module docstring), or None when it finds nothing. ``level``: the
     frame's level the thresholds are taken from (:func:`split_frame`); None: the layer's own. ``measured``: the
     layer's :func:`_base_level` when the caller has it."""
+    return _split_layer(layer, sources, level, measured)[0]
+
+
+def _split_layer(layer: Layer, sources: bool, level: float | None,
+                 measured: tuple[np.ndarray, float] | None) -> tuple[LayerSplit | None, float | None]:
+    """(:func:`split_layer`, the lit level for FrameSplit.lit_levels or None)."""
     from gradsep.model.frame import Layer
 
     measured = measured or _base_level(layer)
     if measured is None:
-        return None
+        return None, None
     lum, own = measured
     level = own if level is None else level
     base = np.asarray(layer.base, np.float32)
@@ -439,17 +454,20 @@ def split_layer(layer: Layer, sources: bool = False, level: float | None = None,
             var = np.array(var, copy=True)
             var[ys, xs] = clusters.ring_median(var)[k]
     dx, dy, split.gradients = _clean_gradients(layer, inlier, level)
-    capped = _sources(inlier) if sources else None
+    capped, lit = _sources(inlier) if sources else (None, None)
     if capped is not None:
         inlier, source = capped
         pinned |= source
         split.sources = int(np.count_nonzero(source))
+        lit = None  # measured before the capping
+    elif lit is not None and not _denoised_as_is(inlier):
+        lit = None
     if not split.handled:
-        return None
+        return None, lit
     if pinned.any():
         split.in_place, split.pinned = pinned, ndimage.binary_dilation(pinned)
     split.layer = Layer(inlier, dx, dy, var)
-    return split
+    return split, lit
 
 
 def split_frame(frame: Frame, sources: bool = False) -> tuple[Frame, FrameSplit]:
@@ -459,8 +477,9 @@ def split_frame(frame: Frame, sources: bool = False) -> tuple[Frame, FrameSplit]
     ordinary Monte Carlo noise is left to the method."""
     measured = {name: _base_level(layer) for name, layer in frame.layers.items()}
     level = float(sum(m[1] for m in measured.values() if m is not None))
-    split = FrameSplit({name: s for name, layer in frame.layers.items()
-                        if (s := split_layer(layer, sources, level, measured[name])) is not None})
+    found = {name: _split_layer(layer, sources, level, measured[name]) for name, layer in frame.layers.items()}
+    split = FrameSplit({name: s for name, (s, _) in found.items() if s is not None},
+                       {name: lit for name, (_, lit) in found.items() if lit is not None})
     if not split.layers:
         return frame, split
     return replace(frame, layers={name: split.layers[name].layer if name in split.layers else layer
