@@ -38,7 +38,7 @@ def oidn_layer(name: str, layer: Layer, ctx: LayerContext, denoised: np.ndarray 
     if denoised is not None:
         image = denoised
     elif name in ctx.lit_levels:  # the outlier detector measured the layer's exposure already
-        image = ctx.denoiser.denoise(layer.base, ctx.aux, lit=ctx.lit_levels[name])
+        image = ctx.denoiser.denoise(layer.base, ctx.aux, ctx.lit_levels[name])
     else:
         image = ctx.denoiser.denoise(layer.base, ctx.aux)
     return image if layer.var is None else back_off(layer.base, image, layer.var, ctx.pinned.get(name))
