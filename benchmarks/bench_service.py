@@ -9,6 +9,8 @@ then throughput with ``--clients`` (2) concurrent clients in frames per minute, 
     python benchmarks/bench_service.py --io --io-compressions ZIP_COMPRESSION --io-threads 0,1,2  # OpenEXR pool
     python benchmarks/bench_service.py --uploads 8           # 8 concurrent chunked 300 MiB uploads: RSS growth
     python benchmarks/bench_service.py --methods oidn,oidn-l1 --without-variance   # the back-off's cost: A/B
+    python benchmarks/bench_service.py --baseline-checkout /work/wt/base641 --repeats 5 --warmup 1 \
+        --throughput-requests 2 --variance-too       # A/B against another checkout's service (641eeb8's worktree)
 
 What is timed is what a render-farm task sees: upload of the EXR, queueing, decode, reconstruction of each layer,
 encode and download (client-side wall clock, one request at a time, connection kept alive). The service's own
@@ -25,6 +27,17 @@ The frame is synthetic and seeded: direct and indirect layers (smooth shading wi
 multiplicative noise and rare fireflies in the bases, lighter noise in the gradients, each layer's variance as the
 renderer writes it) plus albedo/normal/depth features, written as float32 ZIP EXR. Each method runs ``--warmup``
 untimed requests first. Timings on a shared machine are noisy: the load average is printed with them.
+
+``--baseline-checkout DIR``: this checkout's service and DIR's (another commit's worktree, e.g. ``git worktree add
+/work/wt/base641 641eeb8``; served by DIR's own ``.venv/bin/python`` when it has one, else by this interpreter with
+DIR first on PYTHONPATH) are started side by side with the same settings and sent the same frame, without its
+variance channels (a checkout from before the variance back-off has none to use), interleaved: each round posts it
+once to each, the order reversed every other round, so the machine's load falls on both alike. Per method: the p50
+wall time and the median server CPU seconds per request (user + system of the service process, /proc: less moved by
+other processes than wall time), their ratios to DIR's and the median of the per-round wall ratios (``paired``),
+frames per minute in the throughput phase, and each service's peak RSS. ``--variance-too`` adds this checkout on
+the frame with its variance channels (the back-off's cost, beside); ``--stages`` prints each side's Server-Timing
+medians. Each round costs one request per side (two with ``--variance-too``): keep ``--repeats`` small on 2 cores.
 
 ``--uploads N``: a service with the default settings, N concurrent chunked (no Content-Length) uploads of
 ``--upload-mib`` MiB of zeros each, every one over the body limit; the answers (413, 503) and the growth of the
