@@ -35,9 +35,10 @@ variance channels (a checkout from before the variance back-off has none to use)
 once to each, the order reversed every other round, so the machine's load falls on both alike. Per method: the p50
 wall time and the median server CPU seconds per request (user + system of the service process, /proc: less moved by
 other processes than wall time), their ratios to DIR's and the median of the per-round wall ratios (``paired``),
-frames per minute in the throughput phase, and each service's peak RSS. ``--variance-too`` adds this checkout on
-the frame with its variance channels (the back-off's cost, beside); ``--stages`` prints each side's Server-Timing
-medians. Each round costs one request per side (two with ``--variance-too``): keep ``--repeats`` small on 2 cores.
+frames per minute in the throughput phase, and each service's peak RSS. ``--variance-too`` adds a third service of
+this checkout, sent the frame with its variance channels (the back-off's cost, beside; its own process, so the
+like-for-like RSS is not moved by it); ``--stages`` prints each side's Server-Timing medians. Each round costs one
+request per side: keep ``--repeats`` small on 2 cores.
 
 ``--uploads N``: a service with the default settings, N concurrent chunked (no Content-Length) uploads of
 ``--upload-mib`` MiB of zeros each, every one over the body limit; the answers (413, 503) and the growth of the
@@ -59,7 +60,7 @@ import time
 from collections import defaultdict
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -357,8 +358,9 @@ def ab_report(sides: list[Side], methods: list[str], peaks: list[float | None], 
         fpm = " ".join(f"{s.fpm[m]:.1f}" for s in sides if m in s.fpm)
         print(f"{m:8}{cells}{rel}   {fpm}")
     print("peak RSS (MiB): " + ", ".join(f"{s.name} {p:.0f}" if p is not None else f"{s.name} n/a"
-                                         for s, p in zip(sides, peaks, strict=False))
-          + (f"; {sides[1].name}/{base.name} {peaks[1] / peaks[0]:.3f}" if None not in peaks[:2] else ""))
+                                         for s, p in zip(sides, peaks, strict=True))
+          + "".join(f"; {s.name}/{base.name} {p / peaks[0]:.3f}" for s, p in zip(sides[1:], peaks[1:], strict=True)
+                    if p is not None and peaks[0]))
     if stages:
         print("server medians (s) per step:")
         for m in methods:
@@ -372,18 +374,21 @@ def _median(values: list[float]) -> float:
 
 def ab_compare(args: argparse.Namespace, data: bytes, baseline: Path) -> None:
     """``--baseline-checkout``: this checkout's service against ``baseline``'s, both started at once and sent the
-    same frame, interleaved; ``--variance-too`` adds this checkout on the frame with its variance channels."""
+    same frame, interleaved; ``--variance-too`` adds a third service, this checkout's, sent the frame with its
+    variance channels (its own process, so the like-for-like peak RSS is not moved by it)."""
     plain = without_variance(data, args.compression)
-    pids_a: list[int] = []
-    pids_b: list[int] = []
-    with (local_service(args.concurrency, pids_a, baseline) as url_a,
-          local_service(args.concurrency, pids_b) as url_b):
-        sides = [Side("base", url_a, pids_a[0], plain), Side("this", url_b, pids_b[0], plain)]
-        if args.variance_too:
-            sides.append(Side("this+var", url_b, pids_b[0], data))
+    columns = [("base", baseline, plain), ("this", REPO, plain)]
+    if args.variance_too:
+        columns.append(("this+var", REPO, data))
+    with ExitStack() as stack:
+        sides = []
+        for name, repo, frame in columns:
+            pids: list[int] = []
+            url = stack.enter_context(local_service(args.concurrency, pids, repo))
+            sides.append(Side(name, url, pids[0], frame))
         ready = []
-        for url in (url_a, url_b):
-            with httpx.Client(base_url=url, timeout=60) as client:
+        for side in sides:
+            with httpx.Client(base_url=side.url, timeout=60) as client:
                 ready.append(wait_ready(client, 300))
         methods = ab_methods(args, ready)
         print(f"A/B: {baseline} (base) against {REPO} (this), {len(plain) / 1e6:.1f} MB frame without variance "
@@ -391,7 +396,7 @@ def ab_compare(args: argparse.Namespace, data: bytes, baseline: Path) -> None:
               f"{args.concurrency}; {os.cpu_count()} CPUs, load average "
               + " ".join(f"{x:.2f}" for x in os.getloadavg()), flush=True)
         ab_run(args, sides, methods)
-        peaks = [peak_rss_mib(pids_a[0]), peak_rss_mib(pids_b[0])]
+        peaks = [peak_rss_mib(side.pid) for side in sides]
     ab_report(sides, methods, peaks, args.stages)
     print("load average at the end " + " ".join(f"{x:.2f}" for x in os.getloadavg()))
 
