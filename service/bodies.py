@@ -118,8 +118,8 @@ class SpooledBody:
         memory = self.file
         target = await anyio.to_thread.run_sync(self._temporary_file)
         try:
-            with memory.getbuffer() as view:  # type: ignore[attr-defined]
-                await anyio.to_thread.run_sync(target.write, view[:self.size])  # a presized buffer is longer
+            with memory.getbuffer() as view, view[:self.size] as written:  # type: ignore[attr-defined]
+                await anyio.to_thread.run_sync(target.write, written)  # a presized buffer may be longer
         except BaseException:
             target.close()
             raise
