@@ -9,6 +9,8 @@ then throughput with ``--clients`` (2) concurrent clients in frames per minute, 
     python benchmarks/bench_service.py --io --io-compressions ZIP_COMPRESSION --io-threads 0,1,2  # OpenEXR pool
     python benchmarks/bench_service.py --uploads 8           # 8 concurrent chunked 300 MiB uploads: RSS growth
     python benchmarks/bench_service.py --methods oidn,oidn-l1 --without-variance   # the back-off's cost: A/B
+    python benchmarks/bench_service.py --baseline-checkout /work/wt/base641 --repeats 5 --warmup 1 \
+        --throughput-requests 2 --variance-too       # A/B against another checkout's service (641eeb8's worktree)
 
 What is timed is what a render-farm task sees: upload of the EXR, queueing, decode, reconstruction of each layer,
 encode and download (client-side wall clock, one request at a time, connection kept alive). The service's own
@@ -25,6 +27,18 @@ The frame is synthetic and seeded: direct and indirect layers (smooth shading wi
 multiplicative noise and rare fireflies in the bases, lighter noise in the gradients, each layer's variance as the
 renderer writes it) plus albedo/normal/depth features, written as float32 ZIP EXR. Each method runs ``--warmup``
 untimed requests first. Timings on a shared machine are noisy: the load average is printed with them.
+
+``--baseline-checkout DIR``: this checkout's service and DIR's (another commit's worktree, e.g. ``git worktree add
+/work/wt/base641 641eeb8``; served by DIR's own ``.venv/bin/python`` when it has one, else by this interpreter with
+DIR first on PYTHONPATH) are started side by side with the same settings and sent the same frame, without its
+variance channels (a checkout from before the variance back-off has none to use), interleaved: each round posts it
+once to each, the order reversed every other round, so the machine's load falls on both alike. Per method: the p50
+wall time and the median server CPU seconds per request (user + system of the service process, /proc: less moved by
+other processes than wall time), their ratios to DIR's and the median of the per-round wall ratios (``paired``),
+frames per minute in the throughput phase, and each service's peak RSS. ``--variance-too`` adds a third service of
+this checkout, sent the frame with its variance channels (the back-off's cost, beside; its own process, so the
+like-for-like RSS is not moved by it); ``--stages`` prints each side's Server-Timing medians. Each round costs one
+request per side: keep ``--repeats`` small on 2 cores.
 
 ``--uploads N``: a service with the default settings, N concurrent chunked (no Content-Length) uploads of
 ``--upload-mib`` MiB of zeros each, every one over the body limit; the answers (413, 503) and the growth of the
@@ -46,7 +60,8 @@ import time
 from collections import defaultdict
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import httpx
@@ -71,15 +86,24 @@ def free_port() -> int:
         return int(sock.getsockname()[1])
 
 
+def checkout_python(repo: Path) -> str:
+    """The interpreter that serves ``repo``: its own ``.venv/bin/python`` when it has one (a worktree made by
+    the project's worktree script sees its checkout as ``gradsep``), else this one (``repo`` first on
+    PYTHONPATH)."""
+    own = repo / ".venv" / "bin" / "python"
+    return str(own) if repo != REPO and own.is_file() else sys.executable
+
+
 @contextmanager
-def local_service(concurrency: int, pids: list[int] | None = None) -> Iterator[str]:
-    """`gradsep serve` in a subprocess on a free port (Poisson methods unless GRADSEP_MODELS has models)."""
+def local_service(concurrency: int, pids: list[int] | None = None, repo: Path = REPO) -> Iterator[str]:
+    """`gradsep serve` of checkout ``repo`` in a subprocess on a free port (Poisson methods unless
+    GRADSEP_MODELS has models)."""
     port = free_port()
-    path = os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))
+    path = os.pathsep.join(filter(None, [str(repo), os.environ.get("PYTHONPATH")]))
     env = {**os.environ, "PYTHONPATH": path, "GRADSEP_CONCURRENCY": str(concurrency),
            "GRADSEP_LOG_LEVEL": "warning"}
-    proc = subprocess.Popen([sys.executable, "-m", "gradsep", "serve", "--host", "127.0.0.1", "--port", str(port)],
-                            cwd=REPO, env=env)
+    proc = subprocess.Popen([checkout_python(repo), "-m", "gradsep", "serve", "--host", "127.0.0.1", "--port",
+                             str(port)], cwd=repo, env=env)
     if pids is not None:
         pids.append(proc.pid)
     try:
@@ -251,6 +275,132 @@ def without_variance(data: bytes, compression: str) -> bytes:
     return out.getvalue()
 
 
+def cpu_seconds(pid: int) -> float | None:
+    """User + system CPU seconds of a process, all its threads (Linux /proc); None where it is not readable."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return None
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+@dataclass
+class Side:
+    """One column of an A/B: a started service, the frame it is sent, and what each request cost it."""
+
+    name: str
+    url: str
+    pid: int
+    data: bytes
+    wall: dict[str, list[float]] = field(default_factory=lambda: defaultdict(list))
+    cpu: dict[str, list[float]] = field(default_factory=lambda: defaultdict(list))
+    steps: dict[str, dict[str, list[float]]] = field(default_factory=lambda: defaultdict(lambda: defaultdict(list)))
+    fpm: dict[str, float] = field(default_factory=dict)
+
+    def request(self, client: httpx.Client, method: str, fmt: str, request_id: str, record: bool) -> None:
+        before = cpu_seconds(self.pid)
+        t0 = time.perf_counter()
+        r = post(client, self.data, method, fmt, request_id)
+        elapsed = time.perf_counter() - t0
+        after = cpu_seconds(self.pid)
+        if r.status_code != 200:
+            raise SystemExit(f"{self.name} {method}: HTTP {r.status_code}: {r.text[:300]}")
+        if record:
+            self.wall[method].append(elapsed)
+            if before is not None and after is not None:
+                self.cpu[method].append(after - before)
+            for name, seconds in server_timing(r.headers.get("server-timing", "")).items():
+                self.steps[method][name].append(seconds)
+
+
+def ab_methods(args: argparse.Namespace, ready: list[dict]) -> list[str]:
+    """``--methods``, else every method both services offer, in table order."""
+    offered = args.methods.split(",") if args.methods else [m for m in ready[0]["methods"]
+                                                            if all(m in r["methods"] for r in ready[1:])]
+    return sorted(offered, key=lambda m: METHOD_ORDER.index(m) if m in METHOD_ORDER else len(METHOD_ORDER))
+
+
+def ab_run(args: argparse.Namespace, sides: list[Side], methods: list[str]) -> None:
+    """Per method: warm-up, then ``--repeats`` rounds that post the frame once to every side, the order reversed
+    every other round (ABBA...), so drift and the machine's load fall on every side alike; then the throughput
+    phase, side after side in the same alternating order."""
+    clients = {s.name: httpx.Client(base_url=s.url, timeout=600) for s in sides}
+    try:
+        for k, method in enumerate(methods):
+            for side in sides:
+                for i in range(args.warmup):
+                    side.request(clients[side.name], method, args.format, f"ab-warm-{method}-{i}", False)
+            for i in range(args.repeats):
+                for side in (sides if (i + k) % 2 == 0 else sides[::-1]):
+                    side.request(clients[side.name], method, args.format, f"ab-{method}-{i}", True)
+            if args.throughput_requests:
+                for side in (sides if k % 2 == 0 else sides[::-1]):
+                    side.fpm[method] = throughput(side.url, {}, side.data, method, args.clients,
+                                                  args.throughput_requests, args.format)["frames_per_minute"]
+            print(f"  {method} done; load average {os.getloadavg()[0]:.2f}", file=sys.stderr, flush=True)
+    finally:
+        for client in clients.values():
+            client.close()
+
+
+def ab_report(sides: list[Side], methods: list[str], peaks: list[float | None], stages: bool) -> None:
+    """The A/B table: p50 wall and median server CPU per request of each side, each against the first side's
+    (ratios of medians, and the median of the per-round wall ratios), frames per minute, peak RSS."""
+    base = sides[0]
+    head = "".join(f" {s.name + ' p50':>14} {'cpu':>6}" for s in sides)
+    ratios = "".join(f" {s.name + '/' + base.name:>18} {'paired':>6} {'cpu':>5}" for s in sides[1:])
+    print(f"{'method':8}{head}{ratios}   frames/min ({', '.join(s.name for s in sides)})")
+    for m in methods:
+        cells = "".join(f" {np.median(s.wall[m]):14.3f} {_median(s.cpu[m]):6.2f}" for s in sides)
+        rel = "".join(f" {np.median(s.wall[m]) / np.median(base.wall[m]):18.3f} "
+                      f"{np.median(np.divide(s.wall[m], base.wall[m])):6.3f} "
+                      f"{_median(s.cpu[m]) / _median(base.cpu[m]):5.2f}" for s in sides[1:])
+        fpm = " ".join(f"{s.fpm[m]:.1f}" for s in sides if m in s.fpm)
+        print(f"{m:8}{cells}{rel}   {fpm}")
+    print("peak RSS (MiB): " + ", ".join(f"{s.name} {p:.0f}" if p is not None else f"{s.name} n/a"
+                                         for s, p in zip(sides, peaks, strict=True))
+          + "".join(f"; {s.name}/{base.name} {p / peaks[0]:.3f}" for s, p in zip(sides[1:], peaks[1:], strict=True)
+                    if p is not None and peaks[0]))
+    if stages:
+        print("server medians (s) per step:")
+        for m in methods:
+            for s in sides:
+                print(f"  {m:8} {s.name:10} " + " ".join(f"{k}={np.median(v):.3f}" for k, v in s.steps[m].items()))
+
+
+def _median(values: list[float]) -> float:
+    return float(np.median(values)) if values else float("nan")
+
+
+def ab_compare(args: argparse.Namespace, data: bytes, baseline: Path) -> None:
+    """``--baseline-checkout``: this checkout's service against ``baseline``'s, both started at once and sent the
+    same frame, interleaved; ``--variance-too`` adds a third service, this checkout's, sent the frame with its
+    variance channels (its own process, so the like-for-like peak RSS is not moved by it)."""
+    plain = without_variance(data, args.compression)
+    columns = [("base", baseline, plain), ("this", REPO, plain)]
+    if args.variance_too:
+        columns.append(("this+var", REPO, data))
+    with ExitStack() as stack:
+        sides = []
+        for name, repo, frame in columns:
+            pids: list[int] = []
+            url = stack.enter_context(local_service(args.concurrency, pids, repo))
+            sides.append(Side(name, url, pids[0], frame))
+        ready = []
+        for side in sides:
+            with httpx.Client(base_url=side.url, timeout=60) as client:
+                ready.append(wait_ready(client, 300))
+        methods = ab_methods(args, ready)
+        print(f"A/B: {baseline} (base) against {REPO} (this), {len(plain) / 1e6:.1f} MB frame without variance "
+              f"channels, {args.repeats} rounds per method (order alternating), service concurrency "
+              f"{args.concurrency}; {os.cpu_count()} CPUs, load average "
+              + " ".join(f"{x:.2f}" for x in os.getloadavg()), flush=True)
+        ab_run(args, sides, methods)
+        peaks = [peak_rss_mib(side.pid) for side in sides]
+    ab_report(sides, methods, peaks, args.stages)
+    print("load average at the end " + " ".join(f"{x:.2f}" for x in os.getloadavg()))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--url", default=None, help="measure a running service instead of starting one")
@@ -272,6 +422,11 @@ def main() -> None:
     parser.add_argument("--json", action="store_true")
     parser.add_argument("--without-variance", action="store_true",
                         help="post the frame without its L.var.Y channels (no variance back-off): its cost, by A/B")
+    parser.add_argument("--baseline-checkout", type=Path, default=None,
+                        help="A/B: this checkout's service against this other checkout's, interleaved")
+    parser.add_argument("--variance-too", action="store_true",
+                        help="--baseline-checkout: also this checkout on the frame with its variance channels")
+    parser.add_argument("--stages", action="store_true", help="--baseline-checkout: Server-Timing medians too")
     parser.add_argument("--uploads", type=int, default=0, help="only measure RSS under N chunked uploads")
     parser.add_argument("--upload-mib", type=int, default=300, help="--uploads: MiB per upload")
     args = parser.parse_args()
@@ -284,6 +439,9 @@ def main() -> None:
                  [int(t) for t in args.io_threads.split(",")])
         return
     data = synthetic_frame(height, width, compression=args.compression)
+    if args.baseline_checkout is not None:
+        ab_compare(args, data, args.baseline_checkout.resolve())
+        return
     if args.without_variance:
         data = without_variance(data, args.compression)
 

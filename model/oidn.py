@@ -134,12 +134,13 @@ def _finite(x: np.ndarray, lo: float, hi: float) -> np.ndarray:
     return np.clip(out, lo, hi, out=out)
 
 
-def exposure_scale(image: np.ndarray, exposure: str = DEFAULT_EXPOSURE) -> float:
+def exposure_scale(image: np.ndarray, exposure: str = DEFAULT_EXPOSURE, lit: float | None = None) -> float:
     """The colour filter's ``inputScale`` for ``image`` under ``exposure`` (:data:`EXPOSURES`): the key over the
-    layer's lit level (``lit``) or over its robust level (``level``, :func:`input_scale`); 1.0 if black."""
+    layer's lit level (``lit``) or over its robust level (``level``, :func:`input_scale`); 1.0 if black. ``lit``:
+    ``image``'s model.robust.lit_level when the caller measured it already."""
     if exposure == "level":
         return input_scale(image)
-    level = lit_level(image)
+    level = lit_level(image) if lit is None else lit
     if not (math.isfinite(level) and level > 0.0):
         return 1.0
     return EXPOSURES[exposure] / level
@@ -266,10 +267,11 @@ class Denoiser:
         np.clip(clean_normal, -1.0, 1.0, out=clean_normal)
         return CleanAux(clean_albedo, clean_normal)
 
-    def denoise(self, color: np.ndarray, aux: CleanAux | None = None) -> np.ndarray:
-        """(H, W, 3) float32 HDR radiance → denoised, finite, ≥ 0; ``aux`` from :meth:`prefilter` or None."""
+    def denoise(self, color: np.ndarray, aux: CleanAux | None = None, lit: float | None = None) -> np.ndarray:
+        """(H, W, 3) float32 HDR radiance → denoised, finite, ≥ 0; ``aux`` from :meth:`prefilter` or None;
+        ``lit``: model.robust.lit_level of ``color`` when the caller measured it (``color`` finite, ≥ 0)."""
         radiance = _finite(color, 0.0, _F32_MAX)
-        scale = exposure_scale(radiance, self.setting.exposure)
+        scale = exposure_scale(radiance, self.setting.exposure, lit)
         if scale == 1.0 and not radiance.any():
             return radiance  # no light: nothing to denoise (and OIDN is not asked to invent any)
         images = {"color": radiance}

@@ -184,13 +184,24 @@ def _level(magnitude: np.ndarray) -> float:
 
 
 def _magnitude(image: np.ndarray) -> np.ndarray:
-    """(H, W) float32: the channel mean of |``image``|, non-finite values read as float32's largest."""
+    """(H, W) float32: the channel mean of |``image``|, non-finite values read as float32's largest (one reused
+    temporary, and ``fmin``, which maps NaN and ∞ alike, in one pass: it runs on every layer of every request)."""
     out = np.abs(image[..., 0])
+    part = np.empty_like(out) if image.shape[-1] > 1 else out
     for c in range(1, image.shape[-1]):
-        out += np.abs(image[..., c])
+        out += np.abs(image[..., c], out=part)
     out /= image.shape[-1]
-    out[~np.isfinite(out)] = _F32_MAX
-    return out
+    return np.fmin(out, _F32_MAX, out=out)
+
+
+def _all_within(image: np.ndarray, bound: float) -> bool:
+    """Whether every value of ``image`` is finite and within ±``bound`` (two reductions, no temporary): then no
+    channel mean of its magnitudes can exceed twice ``bound``, float rounding included, and a threshold at least
+    that high needs no per-pixel pass."""
+    values = np.asarray(image)
+    if values.size == 0:
+        return True
+    return bool(values.max() <= bound) and bool(-values.min() <= bound)  # NaN compares False: not within
 
 
 @dataclass
@@ -241,6 +252,9 @@ class FrameSplit:
     """Every layer the detector changed, by name (a layer absent here went through untouched)."""
 
     layers: dict[str, LayerSplit] = field(default_factory=dict)
+    #: per layer, model.robust.lit_level of the base the method sees, where the detector measured it (``sources``)
+    #: and OIDN's input sanitising leaves that base as it is: the ``oidn`` method's exposure, without measuring again
+    lit_levels: dict[str, float] = field(default_factory=dict)
 
     def restore(self, name: str, image: np.ndarray) -> np.ndarray:
         split = self.layers.get(name)
@@ -314,6 +328,8 @@ def _clean_gradient(gradient: np.ndarray, inlier: np.ndarray, axis: int, thresho
     itself and 0 when it has none). A cluster's pixels are where
     both the gradient and its residual against ``inlier``'s forward difference exceed ``threshold`` (a gradient
     that is large only because the base is off is left alone)."""
+    if _all_within(gradient, threshold / 2):  # a clean gradient, the usual case: nothing near the threshold
+        return gradient, 0
     ys, xs = np.nonzero(_magnitude(gradient) > threshold)
     if ys.size == 0:
         return gradient, 0
@@ -346,23 +362,43 @@ def _clean_gradients(layer: Layer, inlier: np.ndarray, level: float) -> tuple[An
     return out[0], out[1], count
 
 
-def _sources(base: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """``base`` with the pixels of a light in view (over SOURCE_LEVEL x the lit level, in a group) scaled down to
-    that luminance, colour kept, and their (H, W) bool mask; None when there are none."""
+def _sources(base: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray] | None, float]:
+    """(``base`` with the pixels of a light in view (over SOURCE_LEVEL x the lit level, in a group) scaled down to
+    that luminance, colour kept, and their (H, W) bool mask, or None when there are none; ``base``'s lit level)."""
     lum = luminance(base)
     level = lit_level_of_luminance(lum)
     if not (math.isfinite(level) and level > 0.0):
-        return None
+        return None, level
     cap = SOURCE_LEVEL * level
     over = lum > cap
-    if not over.any():
-        return None
-    source = over & (ndimage.convolve(over.astype(np.int8), _EIGHT.astype(np.int8), mode="constant") > 1)
-    if not source.any():
-        return None
+    ys, xs = np.nonzero(over)
+    if ys.size == 0:
+        return None, level
+    grouped = _neighbour_counts(over, ys, xs) > 1  # itself and at least one of its 8 neighbours
+    if not grouped.any():
+        return None, level
+    source = np.zeros_like(over)
+    source[ys[grouped], xs[grouped]] = True
     capped = base.copy()
     capped[source] = base[source] * (cap / lum[source])[:, None]
-    return capped, source
+    return (capped, source), level
+
+
+def _denoised_as_is(base: np.ndarray) -> bool:
+    """Whether OIDN's input sanitising (model.oidn: NaN to 0, clamped to [0, float32 max]) leaves float32 ``base``
+    as it is: finite and ≥ 0."""
+    return base.size > 0 and bool(base.min() >= 0.0) and math.isfinite(float(base.max()))
+
+
+def _neighbour_counts(mask: np.ndarray, ys: np.ndarray, xs: np.ndarray) -> np.ndarray:
+    """How many pixels of ``mask`` (H, W) bool lie in the 3 x 3 block around each pixel (``ys``, ``xs``), itself
+    included: a full-frame 3 x 3 convolution, read at these pixels only (few: the bright ones)."""
+    padded = np.pad(mask, 1)
+    counts = np.zeros(ys.shape, np.int8)
+    for dy in range(3):
+        for dx in range(3):
+            counts += padded[ys + dy, xs + dx]
+    return counts
 
 
 def light_in_view(layer: Layer) -> bool:
@@ -388,11 +424,17 @@ def split_layer(layer: Layer, sources: bool = False, level: float | None = None,
     """What the detector does to ``layer`` (the module docstring), or None when it finds nothing. ``level``: the
     frame's level the thresholds are taken from (:func:`split_frame`); None: the layer's own. ``measured``: the
     layer's :func:`_base_level` when the caller has it."""
+    return _split_layer(layer, sources, level, measured)[0]
+
+
+def _split_layer(layer: Layer, sources: bool, level: float | None,
+                 measured: tuple[np.ndarray, float] | None) -> tuple[LayerSplit | None, float | None]:
+    """(:func:`split_layer`, the lit level for FrameSplit.lit_levels or None)."""
     from gradsep.model.frame import Layer
 
     measured = measured or _base_level(layer)
     if measured is None:
-        return None
+        return None, None
     lum, own = measured
     level = own if level is None else level
     base = np.asarray(layer.base, np.float32)
@@ -412,17 +454,20 @@ def split_layer(layer: Layer, sources: bool = False, level: float | None = None,
             var = np.array(var, copy=True)
             var[ys, xs] = clusters.ring_median(var)[k]
     dx, dy, split.gradients = _clean_gradients(layer, inlier, level)
-    capped = _sources(inlier) if sources else None
+    capped, lit = _sources(inlier) if sources else (None, None)
     if capped is not None:
         inlier, source = capped
         pinned |= source
         split.sources = int(np.count_nonzero(source))
+        lit = None  # measured before the capping
+    elif lit is not None and not _denoised_as_is(inlier):
+        lit = None
     if not split.handled:
-        return None
+        return None, lit
     if pinned.any():
         split.in_place, split.pinned = pinned, ndimage.binary_dilation(pinned)
     split.layer = Layer(inlier, dx, dy, var)
-    return split
+    return split, lit
 
 
 def split_frame(frame: Frame, sources: bool = False) -> tuple[Frame, FrameSplit]:
@@ -432,8 +477,9 @@ def split_frame(frame: Frame, sources: bool = False) -> tuple[Frame, FrameSplit]
     ordinary Monte Carlo noise is left to the method."""
     measured = {name: _base_level(layer) for name, layer in frame.layers.items()}
     level = float(sum(m[1] for m in measured.values() if m is not None))
-    split = FrameSplit({name: s for name, layer in frame.layers.items()
-                        if (s := split_layer(layer, sources, level, measured[name])) is not None})
+    found = {name: _split_layer(layer, sources, level, measured[name]) for name, layer in frame.layers.items()}
+    split = FrameSplit({name: s for name, (s, _) in found.items() if s is not None},
+                       {name: lit for name, (_, lit) in found.items() if lit is not None})
     if not split.layers:
         return frame, split
     return replace(frame, layers={name: split.layers[name].layer if name in split.layers else layer

@@ -100,6 +100,9 @@ class LayerContext:
     #: per layer, the pixels of a light in view the outlier detector kept out, and their rim (model/outliers.py): they
     #: come back as rendered, and the back-off (model/backoff.py) leaves them out of its windows
     pinned: dict[str, np.ndarray] = field(default_factory=dict)
+    #: per layer, the lit level of the base the method sees where the detector already measured it
+    #: (model.outliers.FrameSplit.lit_levels): OIDN's exposure for that layer, not measured again
+    lit_levels: dict[str, float] = field(default_factory=dict)
 
 
 #: A method's layer function (model/methods.py ``Method.function``): ``denoised`` is the layer's OIDN image when
@@ -323,7 +326,7 @@ def reconstruct(frame: Frame, method: str | None = None, alpha: float = DEFAULT_
                     else (frame, outliers.FrameSplit()))
     features = frame.features.only(spec.uses) if frame.features is not None else None
     warnings: list[str] = []
-    ctx = LayerContext(spec, alpha, models, features, pinned=split.pinned())
+    ctx = LayerContext(spec, alpha, models, features, pinned=split.pinned(), lit_levels=split.lit_levels)
     shape = (frame.height, frame.width, 3)
     layers: dict[str, np.ndarray] = {}
     timings: dict[str, float] = {}

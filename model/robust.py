@@ -53,6 +53,11 @@ def robust_level(image: np.ndarray) -> float:
     flat = channel_mean(image).ravel()
     flat[~np.isfinite(flat)] = 0.0
     np.maximum(flat, 0.0, out=flat)
+    return _winsorised_mean(flat)
+
+
+def _winsorised_mean(flat: np.ndarray) -> float:
+    """:func:`robust_level` of 1-D float64 values already finite and ≥ 0."""
     if flat.size == 0:
         return 0.0
     k = int(WINSOR_QUANTILE * (flat.size - 1))
@@ -87,11 +92,13 @@ def luminance(image: np.ndarray) -> np.ndarray:
     if values.ndim == 3 and values.shape[-1] == 3:
         weights = np.array(LUMINANCE, np.float64)  # float64 scalars: each product is computed in float64
         lum = values[..., 0] * weights[0]
-        lum += values[..., 1] * weights[1]
-        lum += values[..., 2] * weights[2]
+        part = np.empty_like(lum)  # one temporary for both products (this runs per layer of every request)
+        lum += np.multiply(values[..., 1], weights[1], out=part)
+        lum += np.multiply(values[..., 2], weights[2], out=part)
     else:
         lum = channel_mean(values)
-    lum[~np.isfinite(lum)] = 0.0
+    if not math.isfinite(float(lum.sum())):  # one reduction; only a non-finite (or overflowing) sum looks closer
+        lum[~np.isfinite(lum)] = 0.0
     return np.maximum(lum, 0.0, out=lum)
 
 
@@ -119,6 +126,8 @@ def lit_level_of_luminance(lum: np.ndarray) -> float:
     if not (math.isfinite(frame_level) and frame_level > 0.0):
         return 0.0
     lit_bins = bins > LIT_FRACTION * frame_level
+    if lit_bins.all() and lum.dtype == np.float64 and bool(lum.min() >= 0.0) and math.isfinite(float(lum.max())):
+        return frame_level  # every pixel lit: the same values as robust_level's, so the same winsorised mean
     lit = lum.ravel() if lit_bins.all() else lum[np.repeat(np.repeat(lit_bins, row_sizes, axis=0), col_sizes, axis=1)]
     k = int(WINSOR_QUANTILE * (lit.size - 1))
     cap = float(np.partition(lit, k)[k])

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import importlib.util
 import math
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -435,3 +436,117 @@ def test_adding_points_patch_by_patch_equals_adding_their_excess_image(shape, co
     np.testing.assert_allclose(robust.add_points(image, ys, xs, values), want, rtol=1e-6)
     monkeypatch.setattr(robust, "SPREAD_PATCH_LIMIT", -1)
     np.testing.assert_allclose(robust.add_points(image, ys, xs, values), want, rtol=1e-6)
+
+
+# ------------------------------------------------------------------------------------------------ the fast paths
+# The detector and the lit level run on every layer of every request; their cheaper forms must give the same
+# numbers as the plain ones they replace (issue 54, what the protection costs).
+
+
+def _odd_values(shape: tuple[int, ...], seed: int) -> np.ndarray:
+    """float32 values over many magnitudes, with negatives, zeros, NaN and ±∞ sprinkled in."""
+    rng = np.random.default_rng(seed)
+    values = (rng.standard_normal(shape) * 10.0 ** rng.integers(-30, 30, shape)).astype(np.float32)
+    flat = values.reshape(-1)
+    picks = rng.choice(flat.size, size=min(flat.size, 12), replace=False)
+    flat[picks] = np.array([np.nan, np.inf, -np.inf, 0.0, -0.0, 3.4e38] * 2, np.float32)[:picks.size]
+    return values
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_magnitude_is_the_channel_mean_of_absolute_values_non_finite_read_as_the_largest(seed: int) -> None:
+    image = _odd_values((23, 17, 3), seed)
+    with np.errstate(over="ignore", invalid="ignore"):
+        expected = (np.abs(image[..., 0]) + np.abs(image[..., 1]) + np.abs(image[..., 2])) / np.float32(3)
+    expected[~np.isfinite(expected)] = np.finfo(np.float32).max
+    assert np.array_equal(outliers._magnitude(image), expected)
+    assert np.array_equal(outliers._magnitude(image[..., :1]), np.fmin(np.abs(image[..., 0]), 3.4028235e38))
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_neighbour_counts_at_a_few_pixels_are_the_full_frame_convolution(seed: int) -> None:
+    from scipy import ndimage
+
+    rng = np.random.default_rng(seed)
+    mask = rng.random((19, 26)) < 0.2
+    mask[0, 0] = mask[-1, -1] = mask[0, -1] = True  # corners and edges included
+    ys, xs = np.nonzero(mask)
+    full = ndimage.convolve(mask.astype(np.int8), np.ones((3, 3), np.int8), mode="constant")
+    assert np.array_equal(outliers._neighbour_counts(mask, ys, xs), full[ys, xs])
+
+
+def test_a_gradient_far_below_the_threshold_is_passed_on_and_one_near_it_is_looked_at() -> None:
+    frame = _frame("procedural")
+    layer = frame.layers["direct"]
+    threshold = 2.0 * float(np.nanmax(np.abs(layer.dx))) + 1.0
+    assert outliers._clean_gradient(layer.dx, layer.base, 1, threshold) == (layer.dx, 0)
+    spiked = layer.dx.copy()
+    spiked[10, 10] = 4.0 * threshold  # a lone spike: the screen must not hide it
+    fixed, replaced = outliers._clean_gradient(spiked, layer.base, 1, threshold)
+    assert replaced == 1 and abs(float(fixed[10, 10, 0])) < threshold
+    nan = layer.dx.copy()
+    nan[3, 3] = np.nan  # not "within" anything: the per-pixel pass runs
+    assert not outliers._all_within(nan, threshold)
+
+
+def _lit_level_by_definition(lum: np.ndarray) -> float:
+    """model.robust.lit_level_of_luminance as its docstring defines it, with no shortcut."""
+    from gradsep.model.robust import LIT_BIN, LIT_FRACTION, WINSOR_QUANTILE
+
+    height, width = lum.shape
+    rows = np.array([i * height // -(-height // LIT_BIN) for i in range(-(-height // LIT_BIN))])
+    cols = np.array([j * width // -(-width // LIT_BIN) for j in range(-(-width // LIT_BIN))])
+    sums = np.add.reduceat(np.add.reduceat(lum, rows, axis=0), cols, axis=1)
+    row_sizes, col_sizes = np.diff(np.append(rows, height)), np.diff(np.append(cols, width))
+    frame_level = robust_level(lum)
+    if not (math.isfinite(frame_level) and frame_level > 0.0):
+        return 0.0
+    lit_bins = sums / np.outer(row_sizes, col_sizes) > LIT_FRACTION * frame_level
+    lit = lum[np.repeat(np.repeat(lit_bins, row_sizes, axis=0), col_sizes, axis=1)]
+    k = int(WINSOR_QUANTILE * (lit.size - 1))
+    cap = float(np.partition(lit, k)[k])
+    level = float(np.minimum(lit, cap).mean())
+    return level if level > 0.0 else float(lit.mean())
+
+
+@pytest.mark.parametrize("frame_name", list(FRAMES))
+def test_the_lit_level_and_the_luminance_are_their_definitions(frame_name: str) -> None:
+    from gradsep.model.policy import LUMINANCE
+    from gradsep.model.robust import lit_level_of_luminance
+
+    for layer in _frame(frame_name).layers.values():
+        base = layer.base.copy()
+        with np.errstate(invalid="ignore"):
+            expected = (base[..., 0] * np.float64(LUMINANCE[0]) + base[..., 1] * np.float64(LUMINANCE[1])
+                        + base[..., 2] * np.float64(LUMINANCE[2]))
+        assert np.array_equal(luminance(base), np.maximum(expected, 0.0))
+        lum = luminance(base)
+        assert lit_level_of_luminance(lum) == _lit_level_by_definition(lum)  # every bin lit
+        dark = lum.copy()
+        dark[: dark.shape[0] // 2] = 0.0
+        assert lit_level_of_luminance(dark) == _lit_level_by_definition(dark)  # half of the bins black
+        base[2, 3] = np.inf
+        base[4, 5, 1] = np.nan
+        assert luminance(base)[2, 3] == 0.0 and luminance(base)[4, 5] == 0.0
+
+
+def test_the_lit_level_the_detector_hands_on_is_the_one_oidn_would_measure() -> None:
+    from gradsep.model.oidn import _finite
+
+    frame = _frame("cbox")
+    seen, split = split_frame(frame, sources=True)
+    assert set(split.lit_levels) == set(frame.layers)
+    for name, level in split.lit_levels.items():
+        assert level == lit_level(_finite(seen.layers[name].base, 0.0, 3.4028235e38))
+    assert not split_frame(frame, sources=False)[1].lit_levels  # only the sources pass measures it
+    negative = frame.layers["direct"].base.copy()
+    negative[5, 5, 0] = -1.0  # OIDN clamps it: its level is not the detector's
+    moved = replace(frame, layers={**frame.layers, "direct": Layer(negative, frame.layers["direct"].dx,
+                                                                   frame.layers["direct"].dy)})
+    assert set(split_frame(moved, sources=True)[1].lit_levels) == set(frame.layers) - {"direct"}
+    light = frame.layers["direct"].base.copy()
+    light[20, 30:34] = 1e6 * float(light.mean())  # a light in view: capped for oidn, so measured before that
+    capped = replace(frame, layers={**frame.layers, "direct": Layer(light, frame.layers["direct"].dx,
+                                                                    frame.layers["direct"].dy)})
+    seen, split = split_frame(capped, sources=True)
+    assert split.layers["direct"].sources > 0 and "direct" not in split.lit_levels

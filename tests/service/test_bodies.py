@@ -45,6 +45,22 @@ def test_a_body_the_pool_holds_stays_in_memory_and_gives_its_bytes_back() -> Non
     assert pool.held == 0
 
 
+@pytest.mark.parametrize("declared, sent", [(7680, 7680), (9000, 7680), (5000, 7680)])
+def test_a_declared_body_comes_back_as_sent_whatever_its_declared_length(tmp_path: Path, declared: int,
+                                                                         sent: int) -> None:
+    """A granted Content-Length presizes the in-memory buffer: a body shorter than declared is cut to what came,
+    and one longer (so past its reservation) spills to disk with exactly the bytes sent."""
+    pool = BytePool(declared)
+    data = bytes(range(256)) * (sent // 256)
+    body = _read(data, pool, declared, tmp_path)
+    assert body.size == sent and body.on_disk == (sent > declared)
+    assert body.file.read() == data and body.file.read() == b""
+    body.file.seek(0, 2)
+    assert body.file.tell() == sent
+    body.close()
+    assert pool.held == 0
+
+
 @pytest.mark.parametrize("declared", [None, 7680])
 def test_a_body_the_pool_cannot_hold_goes_on_intact_on_disk(tmp_path: Path, declared: int | None) -> None:
     pool = BytePool(5000)
