@@ -9,7 +9,7 @@ then throughput with ``--clients`` (2) concurrent clients in frames per minute, 
     python benchmarks/bench_service.py --io --io-compressions ZIP_COMPRESSION --io-threads 0,1,2  # OpenEXR pool
     python benchmarks/bench_service.py --uploads 8           # 8 concurrent chunked 300 MiB uploads: RSS growth
     python benchmarks/bench_service.py --methods oidn,oidn-l1 --without-variance   # the back-off's cost: A/B
-    python benchmarks/bench_service.py --baseline-checkout /work/wt/base641 --repeats 5 --warmup 1 \
+    python benchmarks/bench_service.py --baseline-checkout ../base --repeats 5 --warmup 1 \
         --throughput-requests 2 --variance-too       # A/B against another checkout's service (641eeb8's worktree)
 
 What is timed is what a render-farm task sees: upload of the EXR, queueing, decode, reconstruction of each layer,
@@ -29,7 +29,7 @@ renderer writes it) plus albedo/normal/depth features, written as float32 ZIP EX
 untimed requests first. Timings on a shared machine are noisy: the load average is printed with them.
 
 ``--baseline-checkout DIR``: this checkout's service and DIR's (another commit's worktree, e.g. ``git worktree add
-/work/wt/base641 641eeb8``; served by DIR's own ``.venv/bin/python`` when it has one, else by this interpreter with
+../base 641eeb8``; served by DIR's own ``.venv/bin/python`` when it has one, else by this interpreter with
 DIR first on PYTHONPATH) are started side by side with the same settings and sent the same frame, without its
 variance channels (a checkout from before the variance back-off has none to use), interleaved: each round posts it
 once to each, the order reversed every other round, so the machine's load falls on both alike. Per method: the p50
