@@ -35,12 +35,8 @@ def oidn_layer(name: str, layer: Layer, ctx: LayerContext, denoised: np.ndarray 
     the base where the layer's variance channel says it was already converged (model/backoff.py)."""
     from gradsep.model.backoff import back_off
 
-    if denoised is not None:
-        image = denoised
-    elif name in ctx.lit_levels:  # the outlier detector measured the layer's exposure already
-        image = ctx.denoiser.denoise(layer.base, ctx.aux, ctx.lit_levels[name])
-    else:
-        image = ctx.denoiser.denoise(layer.base, ctx.aux)
+    # the lit level: the outlier detector's measurement of this base where it made one (None: OIDN measures it)
+    image = ctx.denoiser.denoise(layer.base, ctx.aux, ctx.lit_levels.get(name)) if denoised is None else denoised
     return image if layer.var is None else back_off(layer.base, image, layer.var, ctx.pinned.get(name))
 
 
