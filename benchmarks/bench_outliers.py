@@ -111,7 +111,8 @@ def attribute(frame: Frame, network: object, radii: tuple[int, ...] = (16, 24, 3
             far = (distance > radius)[..., None]
 
             def prior(name: str, layer: object, far: np.ndarray = far) -> object:
-                clean = poisson_prior(scaled_layer(frame.layers[name], 1.0 / infer.exposure_scale(layer)))
+                clean = poisson_prior(scaled_layer(frame.layers[name], 1.0 / infer.exposure_scale(layer)),
+                                      alpha=network.models[name].prior_alpha)
                 return lambda lay, **kw: np.where(far, clean, poisson_prior(lay, **kw))
 
             kept, _ = far_agreement(_network_image(hit, network, prior), reference, where, 16)
@@ -168,13 +169,14 @@ def main() -> None:
     parser.add_argument("--radius", type=float, default=16.0)
     parser.add_argument("--attribute", action="store_true", help="network: is the far change its prior's?")
     parser.add_argument("--clean", default="", help="comma-separated FRAME:REFERENCE pairs for the clean-frame cost")
-    parser.add_argument("--prior-alpha", type=float, default=None, help="solve the network's prior with this alpha")
+    parser.add_argument("--prior-alpha", type=float, default=None,
+                        help="solve the network's prior with this alpha, not the models' own")
     parser.add_argument("--prior-budget", default=None, help="the network prior's IRLS budget, PASSESxSTEPS")
     args = parser.parse_args()
-    from gradsep.model import preprocess
+    from gradsep.model import infer, preprocess
 
-    if args.prior_alpha is not None:
-        preprocess.PRIOR_ALPHA = args.prior_alpha
+    if args.prior_alpha is not None:  # LoadedModel.prior_alpha asks this function for every layer it solves
+        infer.prior_alpha_of = lambda meta: args.prior_alpha
     if args.prior_budget:
         preprocess.PRIOR_IRLS_PASSES, preprocess.PRIOR_CG_STEPS = (int(v) for v in args.prior_budget.split("x"))
 

@@ -21,6 +21,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import math
 import os
 import threading
 import time
@@ -41,6 +42,7 @@ from gradsep.model.preprocess import (
     MEASURED_PLANES,
     PREPROCESS_VERSION,
     PRIOR_KINDS,
+    UNRECORDED_PRIOR_ALPHA,
     DepthRange,
     Window,
     aligned_size,
@@ -156,6 +158,12 @@ class LoadedModel:
         solve, also for a model without the key."""
         return self.metadata.get("gradsep.prior", DEFAULT_PRIOR)
 
+    @property
+    def prior_alpha(self) -> float:
+        """The α of the prior the model was trained on (``gradsep.prior_alpha``, checked at load; a model without
+        the key was trained with model.preprocess.UNRECORDED_PRIOR_ALPHA)."""
+        return prior_alpha_of(self.metadata)
+
     def run(self, data: np.ndarray, gradient: np.ndarray) -> np.ndarray:
         """(C, h, w) aligned inputs → (3, h, w) log-domain output."""
         out = self.session.run([OUTPUT_NAME], {"data": data[None], "gradient": gradient[None]})[0]
@@ -171,6 +179,7 @@ class LoadedModel:
             "bytes": self.path.stat().st_size if self.path.exists() else None,
             "attention": self.metadata.get("gradsep.attention") == "true",
             "prior": self.prior,
+            "prior_alpha": self.prior_alpha,
             "alignment": self.alignment,
             **self.choice.describe(),
             "metadata": dict(self.metadata),
@@ -188,6 +197,20 @@ def _sha256(path: Path) -> str:
 #: ONNX metadata ``gradsep.prior`` of a ``fused`` blend model (model/fused.py). Such a model is served by the
 #: fused method (model.reconstruct.load_fused -> model.fused.FusedReconstructor), never as a network model.
 BLEND_PRIOR = "blend"
+
+
+def prior_alpha_of(meta: dict[str, str]) -> float:
+    """A model's prior α from its metadata (``gradsep.prior_alpha``); ValueError when it is not a finite α > 0."""
+    raw = meta.get("gradsep.prior_alpha")
+    if raw is None:
+        return UNRECORDED_PRIOR_ALPHA
+    try:
+        alpha = float(raw)
+    except ValueError:
+        alpha = math.nan
+    if not (math.isfinite(alpha) and alpha > 0):
+        raise ValueError(f"prior alpha {raw!r} is not a finite number > 0")
+    return alpha
 
 
 def _check_metadata(path: Path, name: str, meta: dict[str, str]) -> int:
@@ -209,6 +232,10 @@ def _check_metadata(path: Path, name: str, meta: dict[str, str]) -> int:
     if meta.get("gradsep.prior", DEFAULT_PRIOR) not in PRIOR_KINDS:
         problems.append(f"its prior {meta.get('gradsep.prior')!r} is unknown to this version (known: "
                         f"{', '.join(PRIOR_KINDS)}), so it cannot be computed as the model was trained")
+    try:
+        prior_alpha_of(meta)
+    except ValueError as exc:
+        problems.append(f"its {exc}")
     if preprocessing.get("version") != PREPROCESS_VERSION:
         problems.append(f"preprocessing version {preprocessing.get('version')} != {PREPROCESS_VERSION}")
     if alignment < 1:
@@ -299,11 +326,11 @@ class NetworkReconstructor:
             # sanitised, transposed copy of the layer); bit-for-bit what layer_planes(layer, prior=...) gives
             planes = np.empty((LAYER_PLANES, height, width), np.float32)
             measured_planes(layer, out=planes[:MEASURED_PLANES])
-            prior = poisson_prior(layer, planes=planes[:MEASURED_PLANES])
+            prior = poisson_prior(layer, planes=planes[:MEASURED_PLANES], alpha=model.prior_alpha)
             with_prior(planes, prior)
             result = self._run_planes(model, planes, self._features(features, depth_range))
         else:
-            prior = poisson_prior(layer)  # a global solve: once per layer, cropped per window
+            prior = poisson_prior(layer, alpha=model.prior_alpha)  # a global solve: once per layer, cropped per window
             total = np.zeros((height, width, 3), dtype=np.float32)
             weight = np.zeros((height, width, 1), dtype=np.float32)
             for plan in plans:

@@ -46,9 +46,12 @@ MU = 16.0
 RADIANCE_MAX = 65504.0
 #: Depth clamp before per-frame normalisation (GradNet's 1e5): a far-away sky hit must not squash the rest.
 DEPTH_MAX = 1.0e5
-#: The Poisson prior the network refines: α as the `l1`/`l2` methods, and a truncated IRLS, which scored no worse
-#: than the converged solve on held-out procedural frames (docs/decisions.md).
+#: The Poisson prior the network refines: a truncated IRLS, which scored no worse than the converged solve on held-out
+#: procedural frames (docs/decisions.md), screened by α. α is a property of each model (ONNX metadata
+#: ``gradsep.prior_alpha``, TrainConfig.prior_alpha): PRIOR_ALPHA is what `gradsep train` uses, UNRECORDED_PRIOR_ALPHA
+#: what a model without the key was trained with (the `l1`/`l2` methods' α).
 PRIOR_ALPHA = DEFAULT_ALPHA
+UNRECORDED_PRIOR_ALPHA = DEFAULT_ALPHA
 PRIOR_IRLS_PASSES = 5
 PRIOR_CG_STEPS = 2
 #: Inference uses exactly this budget for ``l1`` models, as they were trained (every cheaper budget served a worse
@@ -207,10 +210,10 @@ def _channels_first(dst: np.ndarray, src: np.ndarray, lo: float, hi: float) -> N
 
 
 def poisson_prior(layer: Layer, band_rows: int = PRIOR_BAND_ROWS, band_overlap: int = PRIOR_BAND_OVERLAP,
-                  planes: np.ndarray | None = None) -> np.ndarray:
+                  planes: np.ndarray | None = None, alpha: float = PRIOR_ALPHA) -> np.ndarray:
     """(h, w, 3) float32: a robust screened Poisson reconstruction of the whole layer (model.poisson.solve_l1,
-    α = PRIOR_ALPHA, PRIOR_IRLS_PASSES passes of PRIOR_CG_STEPS CG steps) from its sanitised planes, clipped
-    to [0, RADIANCE_MAX].
+    screened by ``alpha``, the model's; PRIOR_IRLS_PASSES passes of PRIOR_CG_STEPS CG steps) from its sanitised
+    planes, clipped to [0, RADIANCE_MAX].
 
     The network refines this instead of the raw base image: the solver integrates the gradients globally,
     which a CPU-trained U-Net with a small receptive field learns slowly, and its reweighting discards the
@@ -231,7 +234,7 @@ def poisson_prior(layer: Layer, band_rows: int = PRIOR_BAND_ROWS, band_overlap: 
         dx = _finite(layer.dx, -RADIANCE_MAX, RADIANCE_MAX)
         dy = _finite(layer.dy, -RADIANCE_MAX, RADIANCE_MAX)
     if height <= band_rows + 2 * band_overlap:
-        return _solve_prior(base, dx, dy)
+        return _solve_prior(base, dx, dy, alpha)
     out = np.zeros((height, width, 3), np.float32)
     weight = np.zeros((height, 1, 1), np.float32)
     for core in range(0, height, band_rows):
@@ -239,7 +242,7 @@ def poisson_prior(layer: Layer, band_rows: int = PRIOR_BAND_ROWS, band_overlap: 
         band_dy = dy[y0:y1].copy()
         band_dy[-1] = 0.0  # the band's last row has no neighbour below inside the band (as the contract's)
         w = _band_ramp(y0, y1, height, band_overlap)
-        out[y0:y1] += _solve_prior(base[y0:y1], dx[y0:y1], band_dy) * w
+        out[y0:y1] += _solve_prior(base[y0:y1], dx[y0:y1], band_dy, alpha) * w
         weight[y0:y1] += w
     return out / weight
 
@@ -262,8 +265,8 @@ def prior_options() -> L1Options:
                      reg_init=PRIOR_REG_INIT, reg_decay=PRIOR_REG_DECAY, preconditioner=PRIOR_PRECONDITIONER)
 
 
-def _solve_prior(base: np.ndarray, dx: np.ndarray, dy: np.ndarray) -> np.ndarray:
-    prior, _ = solve_l1(base, dx, dy, PRIOR_ALPHA, prior_options())
+def _solve_prior(base: np.ndarray, dx: np.ndarray, dy: np.ndarray, alpha: float) -> np.ndarray:
+    prior, _ = solve_l1(base, dx, dy, alpha, prior_options())
     return _sanitise_inplace(prior, 0.0, RADIANCE_MAX)
 
 
@@ -325,12 +328,13 @@ def _all_channels_zero(image: np.ndarray) -> np.ndarray:
     return out
 
 
-def layer_planes(layer: Layer, window: Window | None = None, prior: np.ndarray | None = None) -> np.ndarray:
+def layer_planes(layer: Layer, window: Window | None = None, prior: np.ndarray | None = None,
+                 alpha: float = PRIOR_ALPHA) -> np.ndarray:
     """(12, h, w) float32: base R G B, dx R G B, dy R G B, prior R G B, linear, finite, base and prior ≥ 0,
-    all within ±RADIANCE_MAX. ``prior`` is the whole layer's ``poisson_prior`` (computed here when
-    None)."""
+    all within ±RADIANCE_MAX. ``prior`` is the whole layer's ``poisson_prior`` (computed here, screened by
+    ``alpha``, when None)."""
     if prior is None:
-        prior = poisson_prior(layer)
+        prior = poisson_prior(layer, alpha=alpha)
     out = np.empty((LAYER_PLANES, *_crop(layer.base, window).shape[:2]), dtype=np.float32)
     _measured_into(out, layer, window)
     _channels_first(out[9:12], _crop(prior, window), 0.0, RADIANCE_MAX)
@@ -480,13 +484,13 @@ def crop_to(x: np.ndarray, height: int, width: int) -> np.ndarray:
     return x[..., :height, :width]
 
 
-def describe_prior() -> str:
+def describe_prior(alpha: float = PRIOR_ALPHA) -> str:
     """The ``prior`` entry of ``describe_preprocessing`` (the text in the shipped models' metadata)."""
     return (f"L1 screened Poisson (IRLS, {PRIOR_IRLS_PASSES} passes x {PRIOR_CG_STEPS} CG steps) of the whole "
-            f"layer, alpha={PRIOR_ALPHA}, clip [0, max_value], then C")
+            f"layer, alpha={alpha}, clip [0, max_value], then C")
 
 
-def describe_preprocessing(transfer: LogTransfer = TRANSFER) -> dict[str, Any]:
+def describe_preprocessing(transfer: LogTransfer = TRANSFER, prior_alpha: float = PRIOR_ALPHA) -> dict[str, Any]:
     """The constants that define the input transform, for ONNX metadata and config.json."""
     return {
         "version": PREPROCESS_VERSION,
@@ -496,7 +500,7 @@ def describe_preprocessing(transfer: LogTransfer = TRANSFER) -> dict[str, Any]:
         "albedo": "clip [0,1]",
         "normal": "clip [-1,1] * 0.5 + 0.5",
         "depth": "clip [0, depth_max], per-frame min-max to [0,1]",
-        "prior": describe_prior(),
+        "prior": describe_prior(prior_alpha),
         "nonfinite": "0",
         "padding": "reflect, bottom/right, to the network alignment",
     }

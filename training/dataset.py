@@ -39,6 +39,7 @@ from gradsep.model.preprocess import (
     LAYER_PLANES,
     MEASURED_PLANES,
     PREPROCESS_VERSION,
+    PRIOR_ALPHA,
     DepthRange,
     feature_planes,
     layer_planes,
@@ -146,9 +147,9 @@ def select_layer(frame_layers: dict[str, Layer], layer: str) -> Layer | None:
 # ---------------------------------------------------------------------------------------------------------------
 
 
-def _cache_key(entry: FrameEntry, layer: str) -> dict[str, Any]:
+def _cache_key(entry: FrameEntry, layer: str, prior_alpha: float) -> dict[str, Any]:
     st = entry.path.stat()
-    key = {"format": CACHE_FORMAT, "preprocess": PREPROCESS_VERSION, "layer": layer,
+    key = {"format": CACHE_FORMAT, "preprocess": PREPROCESS_VERSION, "layer": layer, "prior_alpha": prior_alpha,
            "source": str(entry.path), "size": st.st_size, "mtime_ns": st.st_mtime_ns}
     if entry.target is not None:
         tt = entry.target.stat()
@@ -157,8 +158,10 @@ def _cache_key(entry: FrameEntry, layer: str) -> dict[str, Any]:
 
 
 def build_cache(manifest: Manifest, layer: str, cache_dir: Path,
-                progress: Callable[[int, int], None] | None = None) -> tuple[list[Path | None], list[str]]:
-    """Decode every frame once into ``cache_dir/NNNNN.npy`` (19 or 28, H, W) float32; reuse valid files.
+                progress: Callable[[int, int], None] | None = None,
+                prior_alpha: float = PRIOR_ALPHA) -> tuple[list[Path | None], list[str]]:
+    """Decode every frame once into ``cache_dir/NNNNN.npy`` (19 or 28, H, W) float32, its prior screened by
+    ``prior_alpha``; reuse valid files.
 
     Returns one path per manifest frame (None when the frame cannot be used for ``layer``) and the warnings
     explaining each skipped frame.
@@ -169,11 +172,11 @@ def build_cache(manifest: Manifest, layer: str, cache_dir: Path,
     for entry in manifest.frames:
         target = cache_dir / f"{entry.index:05d}.npy"
         meta_path = target.with_suffix(".json")
-        key = _cache_key(entry, layer)
+        key = _cache_key(entry, layer, prior_alpha)
         if target.is_file() and meta_path.is_file() and json.loads(meta_path.read_text()) == key:
             paths.append(target)
         else:
-            reason = _write_cache_file(entry, layer, target, meta_path, key)
+            reason = _write_cache_file(entry, layer, target, meta_path, key, prior_alpha)
             paths.append(None if reason else target)
             if reason:
                 warnings.append(f"{entry.path.name}: skipped ({reason})")
@@ -182,7 +185,8 @@ def build_cache(manifest: Manifest, layer: str, cache_dir: Path,
     return paths, warnings
 
 
-def _write_cache_file(entry: FrameEntry, layer: str, target: Path, meta_path: Path, key: dict[str, Any]) -> str:
+def _write_cache_file(entry: FrameEntry, layer: str, target: Path, meta_path: Path, key: dict[str, Any],
+                      prior_alpha: float) -> str:
     """Write one cache file atomically; return why the frame is unusable, or "" on success."""
     try:
         frame = read_frame(entry.path, nonfinite="zero")
@@ -194,7 +198,8 @@ def _write_cache_file(entry: FrameEntry, layer: str, target: Path, meta_path: Pa
     missing = [g for g in FEATURE_GROUPS if g not in feature_groups(frame.features)]
     if missing:  # the network is trained (and later served) with every group
         return "no feature channels" if frame.features is None else f"no {', '.join(missing)} feature channels"
-    parts = [layer_planes(chosen), feature_planes(frame.features, DepthRange.of(frame.features.depth))]
+    parts = [layer_planes(chosen, alpha=prior_alpha),
+             feature_planes(frame.features, DepthRange.of(frame.features.depth))]
     if entry.target is not None:
         try:
             other = read_frame(entry.target, nonfinite="zero")

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from gradsep.model.network import DualBranchNet, NetworkConfig
-from gradsep.model.preprocess import DATA_INPUTS, GRADIENT_INPUTS, OUTPUTS, describe_preprocessing
+from gradsep.model.preprocess import DATA_INPUTS, GRADIENT_INPUTS, OUTPUTS, PRIOR_ALPHA, describe_preprocessing
 from gradsep.training.runlog import code_version
 from gradsep.training.train import CHECKPOINT, TrainConfig
 
@@ -39,15 +39,18 @@ class ExportError(RuntimeError):
     """The run folder cannot be exported; the message says why."""
 
 
-def model_metadata(network: NetworkConfig, layer: str, extra: dict[str, Any] | None = None) -> dict[str, str]:
+def model_metadata(network: NetworkConfig, layer: str, extra: dict[str, Any] | None = None,
+                   prior_alpha: float = PRIOR_ALPHA) -> dict[str, str]:
     """The ``gradsep.*`` metadata_props: string values (JSON where structured), as ONNX requires. No
-    ``gradsep.prior`` key: the model refines the ``l1`` prior, which a model without the key refines."""
+    ``gradsep.prior`` key: the model refines the ``l1`` prior, which a model without the key refines; its α is
+    ``gradsep.prior_alpha``."""
     meta = {
         "gradsep.format": FORMAT_VERSION,
         "gradsep.layer": layer,
         "gradsep.inputs": json.dumps({"data": list(DATA_INPUTS), "gradient": list(GRADIENT_INPUTS)}),
         "gradsep.outputs": json.dumps({OUTPUT_NAME: list(OUTPUTS), "domain": "log transfer (preprocessing)"}),
-        "gradsep.preprocessing": json.dumps(describe_preprocessing()),
+        "gradsep.preprocessing": json.dumps(describe_preprocessing(prior_alpha=prior_alpha)),
+        "gradsep.prior_alpha": repr(float(prior_alpha)),
         "gradsep.alignment": str(network.alignment),
         "gradsep.network": json.dumps(network.to_dict()),
         "gradsep.attention": "true" if network.use_attention else "false",
@@ -163,7 +166,7 @@ def export_run(run_dir: str | os.PathLike[str], output: str | os.PathLike[str]) 
         "trained_minutes": f"{progress.get('elapsed', 0.0) / 60:.2f}",
         "run_code_version": run_json.get("code_version", ""),
     }
-    proto = to_onnx(model, model_metadata(cfg.network, cfg.layer, extra))
+    proto = to_onnx(model, model_metadata(cfg.network, cfg.layer, extra, prior_alpha=cfg.prior_alpha))
     err = parity_error(model, proto)
     if not err < PARITY_TOLERANCE:
         raise ExportError(f"ONNX Runtime disagrees with PyTorch (relative error {err:.2e} >= "

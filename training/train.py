@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 import sys
 import time
@@ -39,8 +40,10 @@ from torch.utils.data import DataLoader, DistributedSampler, Sampler
 from gradsep.model.network import DualBranchNet, GBranch, NetworkConfig, describe
 from gradsep.model.preprocess import (
     PREPROCESS_VERSION,
+    PRIOR_ALPHA,
     PRIOR_CHANNELS,
     PRIOR_KINDS,
+    UNRECORDED_PRIOR_ALPHA,
     describe_preprocessing,
     network_inputs,
 )
@@ -94,6 +97,7 @@ class TrainConfig:
     log_every: int = 10
     keep_epoch_checkpoints: int = 3
     prior: str = "l1"                 # what the network refines: model.preprocess.PRIOR_KINDS (only l1)
+    prior_alpha: float = PRIOR_ALPHA  # the prior's screening α, recorded in the model (gradsep.prior_alpha)
     init: str | None = None           # start from these weights (an exported .onnx or a run's .pt), not at random
 
     # fields a resumed run may change: everything else must match the run folder's config.json
@@ -103,6 +107,8 @@ class TrainConfig:
     def __post_init__(self) -> None:
         if self.prior not in PRIOR_KINDS:
             raise ValueError(f"prior must be one of {PRIOR_KINDS}, got {self.prior!r}")
+        if not (math.isfinite(self.prior_alpha) and self.prior_alpha > 0):
+            raise ValueError(f"prior_alpha must be a finite number > 0, got {self.prior_alpha!r}")
         if self.layer not in TRAINABLE_LAYERS:
             raise ValueError(f"layer must be one of {TRAINABLE_LAYERS}, got {self.layer!r}")
         for name in ("patch", "batch", "patches_per_frame", "val_patches_per_frame", "lr_decay_every"):
@@ -133,6 +139,7 @@ class TrainConfig:
         d["network"] = NetworkConfig.from_dict(d.get("network", {}))
         d["beta"] = BetaSchedule(**d.get("beta", {}))
         d["adam_betas"] = tuple(d.get("adam_betas", (0.5, 0.999)))
+        d.setdefault("prior_alpha", UNRECORDED_PRIOR_ALPHA)  # recorded since the key exists; before, always this
         known = {f.name for f in dataclasses.fields(cls)}
         return cls(**{k: v for k, v in d.items() if k in known})
 
@@ -147,12 +154,12 @@ def prepare_run_dir(cfg: TrainConfig, manifest_sha256: str) -> dict[str, Any]:
     run = Path(cfg.output)
     (run / "checkpoints").mkdir(parents=True, exist_ok=True)
     path = run / "config.json"
-    fresh = {"train": cfg.to_dict(), "preprocessing": describe_preprocessing(),
+    fresh = {"train": cfg.to_dict(), "preprocessing": describe_preprocessing(prior_alpha=cfg.prior_alpha),
              "dataset_manifest_sha256": manifest_sha256, "code_version": code_version(),
              "torch": torch.__version__}
     if path.is_file():
         old = json.loads(path.read_text())
-        old_train = old.get("train", {})
+        old_train = {"prior_alpha": UNRECORDED_PRIOR_ALPHA, **old.get("train", {})}  # a run from before the key
         new_train = fresh["train"]
         changed = sorted(k for k in set(old_train) | set(new_train)
                          if k not in TrainConfig.RESUMABLE_CHANGES and old_train.get(k) != new_train.get(k))
@@ -223,11 +230,12 @@ class Trainer:
         if ctx.main:
             prepare_run_dir(cfg, manifest.sha256)
             self._say(f"dataset {cfg.data}: {len(manifest.frames)} frames; building the {cfg.layer} cache")
-            _, warnings = build_cache(manifest, cfg.layer, self.run / "cache")
+            _, warnings = build_cache(manifest, cfg.layer, self.run / "cache", prior_alpha=cfg.prior_alpha)
             for w in warnings:
                 self._say(f"warning: {w}")
         ctx.barrier()
-        files, warnings = build_cache(manifest, cfg.layer, self.run / "cache")  # all valid now: no decoding
+        files, warnings = build_cache(manifest, cfg.layer, self.run / "cache",  # all valid now: no decoding
+                                      prior_alpha=cfg.prior_alpha)
         train_idx, val_idx = split_frames(len(files), cfg.seed, cfg.val_fraction)
         train_files, notes = usable(files, train_idx, cfg.patch)
         val_files, val_notes = usable(files, val_idx, cfg.patch)

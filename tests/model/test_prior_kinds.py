@@ -33,9 +33,11 @@ def graph():  # noqa: ANN201 - an onnx.ModelProto
     return to_onnx(DualBranchNet(TINY).eval(), model_metadata(TINY, "direct"))
 
 
-def _export(graph, folder: Path, meta_prior: str | None = None) -> None:  # noqa: ANN001
+def _export(graph, folder: Path, meta_prior: str | None = None,  # noqa: ANN001
+            meta_alpha: str | None = "keep") -> None:
     """direct.onnx and indirect.onnx with the metadata training/export.py writes; ``meta_prior`` sets a
-    ``gradsep.prior`` (to forge a kind this code does not compute)."""
+    ``gradsep.prior`` (to forge a kind this code does not compute), ``meta_alpha`` a ``gradsep.prior_alpha`` (None:
+    no key, as on models exported before it existed)."""
     import onnx
 
     folder.mkdir(parents=True, exist_ok=True)
@@ -43,6 +45,10 @@ def _export(graph, folder: Path, meta_prior: str | None = None) -> None:  # noqa
         meta = model_metadata(TINY, layer)
         if meta_prior is not None:
             meta["gradsep.prior"] = meta_prior
+        if meta_alpha is None:
+            del meta["gradsep.prior_alpha"]
+        elif meta_alpha != "keep":
+            meta["gradsep.prior_alpha"] = meta_alpha
         proto = onnx.ModelProto()
         proto.CopyFrom(graph)
         del proto.metadata_props[:]
@@ -86,6 +92,8 @@ def test_exported_metadata_names_no_prior_and_describes_the_l1_solve() -> None:
     assert "gradsep.prior" not in meta
     assert json.loads(meta["gradsep.preprocessing"]) == preprocess.describe_preprocessing()
     assert "5 passes x 2 CG steps" in preprocess.describe_prior()
+    assert float(meta["gradsep.prior_alpha"]) == preprocess.PRIOR_ALPHA
+    assert f"alpha={preprocess.PRIOR_ALPHA}" in preprocess.describe_prior()
 
 
 def test_training_refuses_another_prior(tmp_path: Path) -> None:
@@ -126,4 +134,39 @@ def test_the_shipped_models_are_served_with_the_prior_their_metadata_names() -> 
     for name, model in rec.models.items():
         assert model.prior == "l1", name
         exported = json.loads(model.metadata["gradsep.preprocessing"])
-        assert exported["prior"] == preprocess.describe_prior(), name
+        assert exported["prior"] == preprocess.describe_prior(model.prior_alpha), name
+
+
+def _untrained_output_and_priors(rec: NetworkReconstructor, *alphas: float) -> tuple[np.ndarray, list[np.ndarray]]:
+    layer, features = _frame()
+    s = exposure_scale(layer)
+    priors = [s * preprocess.poisson_prior(preprocess.scaled_layer(layer, 1.0 / s), alpha=a) for a in alphas]
+    return rec.reconstruct_layer("direct", layer, features), priors
+
+
+def test_a_model_is_served_with_the_alpha_it_was_trained_on(graph, tmp_path: Path) -> None:  # noqa: ANN001
+    """The prior's α is the model's (gradsep.prior_alpha), not a constant of this code: a model trained on another
+    α is fed the prior it learned to refine."""
+    other = 4 * preprocess.PRIOR_ALPHA
+    _export(graph, tmp_path, meta_alpha=repr(other))
+    rec = NetworkReconstructor.load(tmp_path)
+    assert rec is not None and {m.prior_alpha for m in rec.models.values()} == {other}
+    assert {e["prior_alpha"] for e in rec.describe()} == {other}
+    out, (own, default) = _untrained_output_and_priors(rec, other, preprocess.PRIOR_ALPHA)
+    assert np.abs(own - default).max() > 100 * 1e-4 * float(own.max())  # the two α give different priors
+    assert np.abs(out - own).max() <= 1e-4 * float(own.max())
+
+
+def test_a_model_without_the_alpha_key_is_served_with_the_unrecorded_alpha(graph, tmp_path: Path) -> None:  # noqa: ANN001
+    _export(graph, tmp_path, meta_alpha=None)
+    rec = NetworkReconstructor.load(tmp_path)
+    assert rec is not None and {m.prior_alpha for m in rec.models.values()} == {preprocess.UNRECORDED_PRIOR_ALPHA}
+    out, (own,) = _untrained_output_and_priors(rec, preprocess.UNRECORDED_PRIOR_ALPHA)
+    assert np.abs(out - own).max() <= 1e-4 * float(own.max())
+
+
+@pytest.mark.parametrize("alpha", ["nan", "inf", "0", "-0.2", "abc", ""])
+def test_a_model_with_an_unusable_alpha_is_refused_at_load(graph, tmp_path: Path, alpha: str) -> None:  # noqa: ANN001
+    _export(graph, tmp_path, meta_alpha=alpha)
+    with pytest.raises(ModelError, match=f"prior alpha {alpha!r} is not a finite number > 0"):
+        NetworkReconstructor.load(tmp_path)

@@ -94,6 +94,12 @@ def test_cache_is_reused_and_frames_without_the_layer_are_skipped(tmp_path: Path
     stamp = files[0].stat().st_mtime_ns
     build_cache(load_manifest(root), "indirect", tmp_path / "cache")
     assert files[0].stat().st_mtime_ns == stamp
+    # another prior α is another cache: the prior planes are solved again
+    before = np.load(files[0])
+    again, _ = build_cache(load_manifest(root), "indirect", tmp_path / "cache", prior_alpha=50.0)
+    assert again[0] == files[0] and files[0].stat().st_mtime_ns != stamp
+    after = np.load(files[0])
+    assert np.array_equal(before[:9], after[:9]) and not np.array_equal(before[9:12], after[9:12])
 
 
 @pytest.mark.parametrize(("manifest", "message"), [

@@ -55,6 +55,8 @@ def test_file_metadata_and_dynamic_axes(exported: tuple[Path, Path, dict], tiny_
     assert meta["gradsep.alignment"] == "8"
     assert json.loads(meta["gradsep.network"])["width"] == 4
     assert json.loads(meta["gradsep.training"])["patch"] == 32
+    trained_alpha = json.loads(meta["gradsep.training"])["prior_alpha"]
+    assert float(meta["gradsep.prior_alpha"]) == trained_alpha and f"alpha={trained_alpha}" in pre["prior"]
     manifest_hash = hashlib.sha256((tiny_dataset / "manifest.json").read_bytes()).hexdigest()
     assert meta["gradsep.dataset_manifest_sha256"] == manifest_hash
     assert meta["gradsep.code_version"].startswith("0.") and meta["gradsep.trained_steps"] == "5"

@@ -152,6 +152,29 @@ def test_color_layer_and_training_config_validation(make_config) -> None:
         make_config(layer="specular")
 
 
+def test_the_prior_alpha_is_validated_recorded_and_part_of_the_run(make_config) -> None:
+    """TrainConfig.prior_alpha (the model's gradsep.prior_alpha) must be a finite α > 0; a run folder made with one
+    α refuses another; a run folder from before the key existed reads as UNRECORDED_PRIOR_ALPHA."""
+    from gradsep.model.preprocess import UNRECORDED_PRIOR_ALPHA
+    from gradsep.training.train import TrainConfig, prepare_run_dir
+
+    for bad in (float("nan"), float("inf"), 0.0, -0.2):
+        with pytest.raises(ValueError, match="prior_alpha must be a finite number > 0"):
+            make_config(prior_alpha=bad)
+    cfg = make_config()
+    run = prepare_run_dir(cfg, "sha")
+    assert run["train"]["prior_alpha"] == cfg.prior_alpha
+    assert f"alpha={cfg.prior_alpha}" in run["preprocessing"]["prior"]
+    with pytest.raises(TrainingError, match="prior_alpha"):
+        prepare_run_dir(make_config(prior_alpha=2 * cfg.prior_alpha), "sha")
+    config = Path(cfg.output) / "config.json"
+    old = json.loads(config.read_text())
+    del old["train"]["prior_alpha"]
+    config.write_text(json.dumps(old))
+    prepare_run_dir(make_config(prior_alpha=UNRECORDED_PRIOR_ALPHA), "sha")  # the same run: resumes
+    assert TrainConfig.from_dict(old["train"]).prior_alpha == UNRECORDED_PRIOR_ALPHA
+
+
 def test_train_command_reports_bad_data_in_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     rc = cli_main(["train", "--data", str(tmp_path / "nope"), "--layer", "direct", "-o", str(tmp_path / "run")])
     assert rc == 2
