@@ -31,6 +31,8 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
             extra[name] = value
     if getattr(args, "data_weight", None) is not None:
         extra["alpha"] = args.data_weight
+    if getattr(args, "prior_alpha", None) is not None:
+        extra["prior_alpha"] = args.prior_alpha
     return TrainConfig(data=args.data, layer=args.layer, output=args.output, network=network,
                        epochs=args.epochs, minutes=args.minutes, seed=args.seed,
                        init=getattr(args, "init", None), **extra)
@@ -76,9 +78,13 @@ def _add_train_arguments(p: argparse.ArgumentParser) -> None:
                    help="random crops per training frame per epoch (defines an epoch)")
     p.add_argument("--data-weight", type=float, default=None,
                    help="weight of the data term against the gradient term in the loss (default 1, the paper's)")
+    p.add_argument("--prior-alpha", type=float, default=None, metavar="A",
+                   help="screening alpha of the Poisson prior the network refines (default: the shipped models'); "
+                        "recorded in the model, which is served with it")
     p.add_argument("--init", default=None, metavar="MODEL",
                    help="start from these weights instead of at random: an exported .onnx (models/direct.onnx) or "
-                        "a run's checkpoint (.pt); its layer, network and prior must match this run's")
+                        "a run's checkpoint (.pt); its layer, network and prior kind must match this run's (its prior "
+                        "alpha may differ: a warm start onto another prior)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("-o", "--output", required=True, help="run folder (config, checkpoints, log, curves)")
 

@@ -175,6 +175,22 @@ def test_the_prior_alpha_is_validated_recorded_and_part_of_the_run(make_config) 
     assert TrainConfig.from_dict(old["train"]).prior_alpha == UNRECORDED_PRIOR_ALPHA
 
 
+def test_train_flags_set_the_config(tmp_path: Path) -> None:
+    """`gradsep train`'s optional flags reach TrainConfig (None keeps the config's default)."""
+    import argparse
+
+    from gradsep.training.commands import _add_train_arguments, config_from_args
+    from gradsep.training.train import TrainConfig
+
+    parser = argparse.ArgumentParser()
+    _add_train_arguments(parser)
+    base = ["--data", str(tmp_path), "--layer", "indirect", "-o", str(tmp_path / "run")]
+    default = config_from_args(parser.parse_args(base))
+    assert default.prior_alpha == TrainConfig.prior_alpha and default.alpha == TrainConfig.alpha
+    cfg = config_from_args(parser.parse_args([*base, "--prior-alpha", "0.45", "--data-weight", "2", "--lr", "3e-4"]))
+    assert (cfg.prior_alpha, cfg.alpha, cfg.lr, cfg.layer) == (0.45, 2.0, 3e-4, "indirect")
+
+
 def test_train_command_reports_bad_data_in_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     rc = cli_main(["train", "--data", str(tmp_path / "nope"), "--layer", "direct", "-o", str(tmp_path / "run")])
     assert rc == 2
