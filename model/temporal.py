@@ -201,30 +201,36 @@ def _spatial_variance(y: np.ndarray) -> np.ndarray:
 @dataclass
 class _Stats:
     """What the rejection test reads of one frame, computed once per frame (a shot's frame serves several
-    windows): per layer the variance, the frame weight and, per box size, the box means of the luminance and
-    of the variance; the FEATURE_BOX means of albedo and normal."""
+    windows): per layer the luminance, the variance and the frame weight; the FEATURE_BOX means of albedo and
+    normal; per layer and box size, once asked, the box means of the luminance and of the variance."""
 
     y: dict[str, np.ndarray]
     var: dict[str, np.ndarray]
     weight: dict[str, float]
-    boxes: dict[str, dict[int, tuple[np.ndarray, np.ndarray]]]
     albedo: np.ndarray | None
     normal: np.ndarray | None
+    boxes: dict[tuple[str, int], tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+
+    def box(self, name: str, size: int) -> tuple[np.ndarray, np.ndarray]:
+        """Layer ``name``'s box means at ``size``, computed on first use: only a neighbour without motion reads
+        them (a moving one's test takes box means of the warped difference)."""
+        if (name, size) not in self.boxes:
+            self.boxes[name, size] = (box_mean(self.y[name], size), box_mean(self.var[name], size))
+        return self.boxes[name, size]
 
 
 def _stats(frame: Frame) -> _Stats:
     cached = getattr(frame, "_temporal_stats", None)  # kept on the frame: it is read by up to `window` windows
     if cached is not None:
         return cached
-    lum, var, weight, boxes = {}, {}, {}, {}
+    lum, var, weight = {}, {}, {}
     for name, layer in frame.layers.items():
         y = luminance(layer.base).astype(np.float32)
         v = (np.minimum(np.nan_to_num(layer.var, nan=0.0, posinf=1e30), 1e30).astype(np.float32)
              if layer.var is not None else _spatial_variance(y))
         lum[name], var[name], weight[name] = y, v, _frame_weight(v)
-        boxes[name] = {size: (box_mean(y, size), box_mean(v, size)) for size in BOXES}
     features = frame.features
-    stats = _Stats(lum, var, weight, boxes,
+    stats = _Stats(lum, var, weight,
                    None if features is None or features.albedo is None else _box_features(features.albedo),
                    None if features is None or features.normal is None else _box_features(features.normal))
     frame._temporal_stats = stats  # type: ignore[attr-defined]
@@ -342,23 +348,23 @@ def _frame_weight(var: np.ndarray) -> float:
     return 1.0 / mean if mean > 0 else 1.0
 
 
-def _agrees(own: _Stats, other: _Stats, name: str, sample: _Sampler, other_var: np.ndarray) -> np.ndarray:
+def _agrees(own: _Stats, other: _Stats, name: str, sample: _Sampler, warped_var: np.ndarray) -> np.ndarray:
     """Where two estimates of layer ``name`` agree within REJECT_K standard errors at every box size in BOXES.
 
     Without motion the box means of each frame are compared as computed once per frame. With motion the
     neighbour's luminance and variance are warped first and the box means taken of the difference, with frame
     the neighbour's invalid pixels left out of both sums (a box across a silhouette or a disocclusion then
-    compares only what corresponds). ``other_var`` is the neighbour's variance warped (squared weights)."""
+    compares only what corresponds). ``warped_var`` is the neighbour's variance warped (squared weights)."""
     accept = np.ones(sample.valid.shape, bool)
     if sample.identity:
         for size in BOXES:
-            (y, var), (other_y, other_var) = own.boxes[name][size], other.boxes[name][size]
+            (y, var), (other_y, other_var) = own.box(name, size), other.box(name, size)
             difference = other_y - y
             accept &= difference * difference <= (REJECT_K * REJECT_K / (size * size)) * (var + other_var)
         return accept
     valid = sample.valid
     difference = np.where(valid, sample(other.y[name]) - own.y[name], np.float32(0))
-    variance = np.where(valid, other_var + own.var[name], np.float32(0))
+    variance = np.where(valid, warped_var + own.var[name], np.float32(0))
     for size in BOXES:  # over the n valid pixels of a box: (Σ d / n)² against K² Σ (σ² + σ'²) / n²
         box = box_mean(difference, size)
         accept &= box * box <= (REJECT_K * REJECT_K / (size * size)) * box_mean(variance, size)
@@ -489,7 +495,9 @@ def second_stage(results: Sequence[TemporalReconstruction | None], centre: int) 
             other = results[centre + offset]
             if mask is None or other is None or not mask.any():
                 continue
-            total += agreement.samplers[offset](other.layers[name]) * mask[..., None]
+            sample = agreement.samplers[offset]
+            warped = sample(other.layers[name])  # the neighbour's own array when it did not move
+            total += np.multiply(warped, mask[..., None], out=None if sample.identity else warped)
             count += mask
             reached.update({offset, *(offset + o for o in other.neighbours)} - {0})
         total /= count[..., None]
