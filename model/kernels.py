@@ -7,12 +7,13 @@ per-pixel RGB norms, one pass's weights with the system's diagonal, and the CG v
 new residual's inner products. The arithmetic is the same float32 (or float64) arithmetic in a different order,
 so results agree with the numpy path to rounding (tests/model/test_poisson.py compares both). Single-threaded
 (see _OPTS). The multigrid preconditioner's kernels are in model/multigrid.py. :func:`bilinear` does the
-temporal warp's float32 arithmetic in the numpy path's order, so the two agree bit for bit.
+temporal warp's float32 arithmetic in the numpy path's order, so the two agree bit for bit
+(tests/model/test_temporal.py compares them).
 
 ``AVAILABLE`` is False where numba cannot be imported (it is a core dependency, but a platform without its
-wheels still works): model.poisson then runs its numpy path. ``GRADSEP_NUMBA=0`` forces the numpy path too.
-Compiled code is cached on disk next to this file when that is writable (``cache=True``); otherwise each
-process compiles on first use (the service pays it during warm-up).
+wheels still works): model.poisson and model.temporal then run their numpy paths. ``GRADSEP_NUMBA=0`` forces the
+numpy path too. Compiled code is cached on disk next to this file when that is writable (``cache=True``);
+otherwise each process compiles on first use (the service pays it during warm-up; the warp on its first window).
 """
 
 from __future__ import annotations
