@@ -1,16 +1,19 @@
-"""Compiled (numba) kernels for the IRLS inner loop of model.poisson.solve_l1.
+"""Compiled (numba) kernels for the IRLS inner loop of model.poisson.solve_l1, and the bilinear warp of
+model.temporal.
 
 Each kernel fuses what the numpy formulation does in several full-array passes with temporaries: the weighted
 operator ``A p`` (one pass instead of many), the weighted right-hand side, the residuals together with their
 per-pixel RGB norms, one pass's weights with the system's diagonal, and the CG vector updates together with the
 new residual's inner products. The arithmetic is the same float32 (or float64) arithmetic in a different order,
 so results agree with the numpy path to rounding (tests/model/test_poisson.py compares both). Single-threaded
-(see _OPTS). The multigrid preconditioner's kernels are in model/multigrid.py.
+(see _OPTS). The multigrid preconditioner's kernels are in model/multigrid.py. :func:`bilinear` does the
+temporal warp's float32 arithmetic in the numpy path's order, so the two agree bit for bit
+(tests/model/test_temporal.py compares them).
 
 ``AVAILABLE`` is False where numba cannot be imported (it is a core dependency, but a platform without its
-wheels still works): model.poisson then runs its numpy path. ``GRADSEP_NUMBA=0`` forces the numpy path too.
-Compiled code is cached on disk next to this file when that is writable (``cache=True``); otherwise each
-process compiles on first use (the service pays it during warm-up).
+wheels still works): model.poisson and model.temporal then run their numpy paths. ``GRADSEP_NUMBA=0`` forces the
+numpy path too. Compiled code is cached on disk next to this file when that is writable (``cache=True``);
+otherwise each process compiles on first use (the service pays it during warm-up; the warp on its first window).
 """
 
 from __future__ import annotations
@@ -28,8 +31,8 @@ try:  # pragma: no branch - which side runs depends on the host
 except ImportError:  # numpy fallback in model.poisson
     AVAILABLE = False
 
-__all__ = ["AVAILABLE", "cg_update", "compiled", "irls_weights", "residuals_and_norms", "weighted_apply",
-           "weighted_rhs"]
+__all__ = ["AVAILABLE", "bilinear", "cg_update", "compiled", "irls_weights", "residuals_and_norms",
+           "weighted_apply", "weighted_rhs"]
 
 
 if AVAILABLE:
@@ -179,3 +182,28 @@ if AVAILABLE:
                 if y > 0:
                     d += wy[y - 1, x]
                 diag[y, x] = d
+
+    @compiled
+    def bilinear(flat, index, fr, fc, height, width, squared, out):  # pragma: no cover - compiled
+        """out[p] = the bilinear mix of the four pixels of ``flat`` (an (H·W, C) image) from ``index[p]`` (the
+        top-left one's flat index; the right or lower one repeats it on the last column or row) by the fractions
+        (``fr[p]``, ``fc[p]``), each weight squared when ``squared`` (a variance's warp). One pass instead of
+        model.temporal's numpy path's four gathers and products, with its float32 arithmetic in its order: the
+        weights (1 - fr)(1 - fc), (1 - fr) fc, fr (1 - fc), fr fc, and 0 plus each tap times its weight in turn."""
+        one, zero = np.float32(1.0), np.float32(0.0)
+        channels = flat.shape[1]
+        for p in range(index.shape[0]):
+            i00 = index[p]
+            row = i00 // width
+            i01 = i00 + 1 if i00 - row * width + 1 < width else i00
+            down = width if row + 1 < height else 0
+            a, b = fr[p], fc[p]
+            w00, w01, w10, w11 = (one - a) * (one - b), (one - a) * b, a * (one - b), a * b
+            if squared:
+                w00, w01, w10, w11 = w00 * w00, w01 * w01, w10 * w10, w11 * w11
+            for c in range(channels):
+                v = zero + flat[i00, c] * w00
+                v += flat[i01, c] * w01
+                v += flat[i00 + down, c] * w10
+                v += flat[i01 + down, c] * w11
+                out[p, c] = v

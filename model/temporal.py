@@ -41,6 +41,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from gradsep.model import kernels
 from gradsep.model.frame import Frame, Layer, Motion
 from gradsep.model.methods import LoadedModels
 from gradsep.model.policy import DEFAULT_ALPHA
@@ -91,7 +92,11 @@ def _grid(h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 class _Sampler:
-    """Bilinear sampling of (H, W[, C]) images at fractional (rows, cols); ``valid`` says where it is defined."""
+    """Bilinear sampling of (H, W[, C]) images at fractional (rows, cols); ``valid`` says where it is defined.
+
+    Kept compact, as the top-left tap's flat index and the fractions, since a shot keeps a sampler per neighbour
+    of every first stage still to be blended; the four taps and weights are derived per call, in one compiled
+    pass (model.kernels.bilinear) or, without numba, in numpy with the same arithmetic."""
 
     def __init__(self, rows: np.ndarray, cols: np.ndarray, valid: np.ndarray) -> None:
         h, w = rows.shape
@@ -104,29 +109,22 @@ class _Sampler:
         cols = np.where(finite, cols, -1.0)
         inside = (rows >= 0) & (rows <= h - 1) & (cols >= 0) & (cols <= w - 1)
         self.valid = np.asarray(valid, bool) & finite & inside
-        r = np.clip(rows, 0, h - 1)
-        c = np.clip(cols, 0, w - 1)
-        r0 = np.floor(r).astype(np.intp)
-        c0 = np.floor(c).astype(np.intp)
-        fr = (r - r0).astype(np.float32)
-        fc = (c - c0).astype(np.float32)
-        self.integral = not (fr.any() or fc.any())
+        r, c = np.clip(rows, 0, h - 1), np.clip(cols, 0, w - 1)
+        r0, c0 = np.floor(r), np.floor(c)
+        self.fr, self.fc = (r - r0).astype(np.float32).ravel(), (c - c0).astype(np.float32).ravel()
+        self.integral = not (self.fr.any() or self.fc.any())
         self.identity = False
-        self._positions: tuple[np.ndarray, np.ndarray] | None = (rows, cols)
+        self._positions: tuple[np.ndarray, np.ndarray] | None = (rows, cols)  # for steady(), then dropped
         self._steady: tuple[np.ndarray, np.ndarray] | None = None
-        r1 = np.minimum(r0 + 1, h - 1)
-        c1 = np.minimum(c0 + 1, w - 1)
-        # flat pixel indices of the four taps (a 1-D take is much faster than 2-D fancy indexing)
-        self.taps = tuple((rr * w + cc).ravel() for rr, cc in ((r0, c0), (r0, c1), (r1, c0), (r1, c1)))
-        self.weights = tuple(x.ravel()[:, None] for x in
-                             ((1 - fr) * (1 - fc), (1 - fr) * fc, fr * (1 - fc), fr * fc))
+        index = r0.astype(np.intp) * w + c0.astype(np.intp)
+        self.index = index.ravel().astype(np.int32 if h * w < 2**31 else np.intp)
 
     def steady(self) -> tuple[np.ndarray, np.ndarray] | None:
-        """Per axis (dx, dy), float32 (H, W): 1 where a pixel's position and the next pixel's along that axis are
-        within STEADY_TOLERANCE of one pixel apart (the two move together), else 0; None for no motion."""
-        if self.identity or self._positions is None:
+        """Per axis (dx, dy), bool (H, W): where a pixel's position and the next pixel's along that axis are
+        within STEADY_TOLERANCE of one pixel apart (the two move together); None for no motion."""
+        if self.identity:
             return None
-        if self._steady is None:
+        if self._steady is None and self._positions is not None:
             rows, cols = self._positions
             out = []
             for along, across, axis in ((cols, rows, 1), (rows, cols, 0)):
@@ -134,8 +132,8 @@ class _Sampler:
                 drift = np.diff(across, axis=axis)
                 ok = (np.abs(step) <= STEADY_TOLERANCE) & (np.abs(drift) <= STEADY_TOLERANCE)
                 pad = ((0, 0), (0, 1)) if axis == 1 else ((0, 1), (0, 0))
-                out.append(np.pad(ok, pad, constant_values=True).astype(np.float32))
-            self._steady = (out[0], out[1])
+                out.append(np.pad(ok, pad, constant_values=True))
+            self._steady, self._positions = (out[0], out[1]), None
         return self._steady
 
     def __call__(self, image: np.ndarray, squared: bool = False) -> np.ndarray:
@@ -145,13 +143,26 @@ class _Sampler:
         shape = image.shape
         flat = np.ascontiguousarray(image).reshape(shape[0] * shape[1], -1)
         if self.integral:
-            return np.take(flat, self.taps[0], axis=0).reshape(shape)
+            return np.take(flat, self.index, axis=0).reshape(shape)
+        if kernels.AVAILABLE and flat.dtype == np.float32:
+            out = np.empty(flat.shape, np.float32)
+            kernels.bilinear(flat, self.index, self.fr, self.fc, shape[0], shape[1], squared, out)
+            return out.reshape(shape)
         out = np.zeros(flat.shape, np.float32)
-        for taps, weight in zip(self.taps, self.weights, strict=True):
+        for taps, weight in self._taps(shape[0], shape[1]):
             tap = np.take(flat, taps, axis=0)
             tap *= weight * weight if squared else weight
             out += tap
         return out.reshape(shape).astype(image.dtype, copy=False)
+
+    def _taps(self, h: int, w: int) -> list[tuple[np.ndarray, np.ndarray]]:
+        """The four taps' flat indices and (N, 1) weights (the numpy path)."""
+        i00 = self.index.astype(np.intp)
+        i01 = np.where(i00 % w + 1 < w, i00 + 1, i00)
+        down = np.where(i00 // w + 1 < h, w, 0)
+        fr, fc = self.fr[:, None], self.fc[:, None]
+        return [(i00, (1 - fr) * (1 - fc)), (i01, (1 - fr) * fc), (i00 + down, fr * (1 - fc)),
+                (i01 + down, fr * fc)]
 
 
 def _chain(frames: Sequence[Frame | None], centre: int, offset: int) -> _Sampler | None:
@@ -190,30 +201,36 @@ def _spatial_variance(y: np.ndarray) -> np.ndarray:
 @dataclass
 class _Stats:
     """What the rejection test reads of one frame, computed once per frame (a shot's frame serves several
-    windows): per layer the variance, the frame weight and, per box size, the box means of the luminance and
-    of the variance; the FEATURE_BOX means of albedo and normal."""
+    windows): per layer the luminance, the variance and the frame weight; the FEATURE_BOX means of albedo and
+    normal; per layer and box size, once asked, the box means of the luminance and of the variance."""
 
     y: dict[str, np.ndarray]
     var: dict[str, np.ndarray]
     weight: dict[str, float]
-    boxes: dict[str, dict[int, tuple[np.ndarray, np.ndarray]]]
     albedo: np.ndarray | None
     normal: np.ndarray | None
+    boxes: dict[tuple[str, int], tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+
+    def box(self, name: str, size: int) -> tuple[np.ndarray, np.ndarray]:
+        """Layer ``name``'s box means at ``size``, computed on first use: only a neighbour without motion reads
+        them (a moving one's test takes box means of the warped difference)."""
+        if (name, size) not in self.boxes:
+            self.boxes[name, size] = (box_mean(self.y[name], size), box_mean(self.var[name], size))
+        return self.boxes[name, size]
 
 
 def _stats(frame: Frame) -> _Stats:
     cached = getattr(frame, "_temporal_stats", None)  # kept on the frame: it is read by up to `window` windows
     if cached is not None:
         return cached
-    lum, var, weight, boxes = {}, {}, {}, {}
+    lum, var, weight = {}, {}, {}
     for name, layer in frame.layers.items():
         y = luminance(layer.base).astype(np.float32)
         v = (np.minimum(np.nan_to_num(layer.var, nan=0.0, posinf=1e30), 1e30).astype(np.float32)
              if layer.var is not None else _spatial_variance(y))
         lum[name], var[name], weight[name] = y, v, _frame_weight(v)
-        boxes[name] = {size: (box_mean(y, size), box_mean(v, size)) for size in BOXES}
     features = frame.features
-    stats = _Stats(lum, var, weight, boxes,
+    stats = _Stats(lum, var, weight,
                    None if features is None or features.albedo is None else _box_features(features.albedo),
                    None if features is None or features.normal is None else _box_features(features.normal))
     frame._temporal_stats = stats  # type: ignore[attr-defined]
@@ -331,23 +348,23 @@ def _frame_weight(var: np.ndarray) -> float:
     return 1.0 / mean if mean > 0 else 1.0
 
 
-def _agrees(own: _Stats, other: _Stats, name: str, sample: _Sampler) -> np.ndarray:
+def _agrees(own: _Stats, other: _Stats, name: str, sample: _Sampler, warped_var: np.ndarray) -> np.ndarray:
     """Where two estimates of layer ``name`` agree within REJECT_K standard errors at every box size in BOXES.
 
     Without motion the box means of each frame are compared as computed once per frame. With motion the
     neighbour's luminance and variance are warped first and the box means taken of the difference, with frame
     the neighbour's invalid pixels left out of both sums (a box across a silhouette or a disocclusion then
-    compares only what corresponds)."""
+    compares only what corresponds). ``warped_var`` is the neighbour's variance warped (squared weights)."""
     accept = np.ones(sample.valid.shape, bool)
     if sample.identity:
         for size in BOXES:
-            (y, var), (other_y, other_var) = own.boxes[name][size], other.boxes[name][size]
+            (y, var), (other_y, other_var) = own.box(name, size), other.box(name, size)
             difference = other_y - y
             accept &= difference * difference <= (REJECT_K * REJECT_K / (size * size)) * (var + other_var)
         return accept
     valid = sample.valid
     difference = np.where(valid, sample(other.y[name]) - own.y[name], np.float32(0))
-    variance = np.where(valid, sample(other.var[name], squared=True) + own.var[name], np.float32(0))
+    variance = np.where(valid, warped_var + own.var[name], np.float32(0))
     for size in BOXES:  # over the n valid pixels of a box: (Σ d / n)² against K² Σ (σ² + σ'²) / n²
         box = box_mean(difference, size)
         accept &= box * box <= (REJECT_K * REJECT_K / (size * size)) * box_mean(variance, size)
@@ -368,12 +385,12 @@ class _Agreement:
         return {o: float(np.mean(v)) if v else 0.0 for o, v in per.items()}
 
 
-def _accumulate(frames: Sequence[Frame | None], centre: int, offsets: Sequence[int],
+def _accumulate(frames: Sequence[Frame | None], centre: int, chained: dict[int, _Sampler | None],
                 warnings: list[str]) -> tuple[Frame, _Agreement]:
-    """Frame t with its accepted neighbours' samples accumulated into each layer (module docstring, steps 1-3)."""
+    """Frame t with its accepted neighbours' samples accumulated into each layer (module docstring, steps 1-3);
+    ``chained``: per offset, where that neighbour's pixels lie (:func:`_chain`)."""
     frame = frames[centre]
     assert frame is not None
-    chained = {o: _chain(frames, centre, o) for o in offsets}
     agreement = _Agreement({o: s for o, s in chained.items() if s is not None})
     own = _stats(frame)
     others = {o: _stats(frames[centre + o]) for o in agreement.samplers}  # type: ignore[arg-type]
@@ -387,11 +404,12 @@ def _accumulate(frames: Sequence[Frame | None], centre: int, offsets: Sequence[i
         for offset, mask in agree.items():
             sample, stats = agreement.samplers[offset], others[offset]
             other = frames[centre + offset].layers[name]  # type: ignore[union-attr]
-            accept = mask & _agrees(own, stats, name, sample)
+            var = sample(stats.var[name], squared=True)  # warped once: read by the test and the sums
+            accept = mask & _agrees(own, stats, name, sample, var)
             agreement.accept.setdefault(name, {})[offset] = accept
             warped = Layer(sample(other.base), None if other.dx is None else sample(other.dx),
                            None if other.dy is None else sample(other.dy))
-            sums.add(warped, sample(stats.var[name], squared=True), accept, stats.weight[name] / own.weight[name],
+            sums.add(warped, var, accept, stats.weight[name] / own.weight[name],
                      sample.steady() if warped.dx is not None else None)
         layers[name] = sums.layer()
     out = Frame(layers, frame.features, dict(frame.metadata), list(frame.warnings), frame.alpha,
@@ -442,10 +460,11 @@ def first_stage(frames: Sequence[Frame | None], centre: int, method: str | None 
     if missing:
         warnings.append("neighbour(s) " + ", ".join(f"{o:+d}" for o in missing) + " missing: the frame was "
                         "reconstructed from the frames it has")
-    if getattr(frame, "motion", None) is None or all(_chain(frames, centre, o) is None for o in offsets):
+    chained = {o: _chain(frames, centre, o) for o in offsets} if getattr(frame, "motion", None) is not None else {}
+    if all(s is None for s in chained.values()):
         result = reconstruct(frame, method, alpha, models)
         return TemporalReconstruction(**{**vars(result), "warnings": [*warnings, *result.warnings]})
-    accumulated, agreement = _accumulate(frames, centre, offsets, warnings)
+    accumulated, agreement = _accumulate(frames, centre, chained, warnings)
     result = reconstruct(accumulated, method, alpha, models)
     fractions = agreement.fractions()
     out = TemporalReconstruction(**{**vars(result), "warnings": [*warnings, *result.warnings]},
@@ -476,7 +495,9 @@ def second_stage(results: Sequence[TemporalReconstruction | None], centre: int) 
             other = results[centre + offset]
             if mask is None or other is None or not mask.any():
                 continue
-            total += agreement.samplers[offset](other.layers[name]) * mask[..., None]
+            sample = agreement.samplers[offset]
+            warped = sample(other.layers[name])  # the neighbour's own array when it did not move
+            total += np.multiply(warped, mask[..., None], out=None if sample.identity else warped)
             count += mask
             reached.update({offset, *(offset + o for o in other.neighbours)} - {0})
         total /= count[..., None]
@@ -553,15 +574,15 @@ class ShotReconstructor:
         return self._firsts[n]
 
     def reconstruct(self, n: int) -> TemporalReconstruction:
-        """Frame ``n`` (which must exist) from its window; frames before ``n - window // 2`` are then forgotten."""
-        if self._frame(n) is None:
-            raise ValueError(f"frame {n} is missing")
-        firsts = [self._first(k) for k in range(n - self.r2, n + self.r2 + 1)]
-        result = second_stage(firsts, self.r2)
+        """Frame ``n`` (which must exist) from its window. Frames before ``n - window // 2`` and first stages
+        before ``n - r2`` are forgotten first, so their memory is free before the new first stage's."""
         for cache, keep in ((self._frames, n - self.r1 - self.r2), (self._firsts, n - self.r2)):
             for k in [k for k in cache if k < keep]:
                 del cache[k]
-        return result
+        if self._frame(n) is None:
+            raise ValueError(f"frame {n} is missing")
+        firsts = [self._first(k) for k in range(n - self.r2, n + self.r2 + 1)]
+        return second_stage(firsts, self.r2)
 
 
 def _check_against(frame: Frame, n: int | str, first: int | str, want: tuple) -> None:
