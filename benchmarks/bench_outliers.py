@@ -150,7 +150,7 @@ def clean_cost(frame: Frame, reference: np.ndarray, method: str, models: LoadedM
     split = outliers.split_frame(frame)
     seconds = time.perf_counter() - start
     saved = outliers.split_frame
-    outliers.split_frame = lambda frame, sources=False: (frame, outliers.FrameSplit())
+    outliers.split_frame = lambda frame, sources=False, threads=1: (frame, outliers.FrameSplit())
     try:
         without = reconstruct(frame, method, models=models).image
     finally:

@@ -40,7 +40,9 @@ bit for bit as without the detector. Every pixel handled is counted in the recon
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any
 
@@ -142,14 +144,89 @@ def _dilate(member: np.ndarray) -> np.ndarray:
     return out
 
 
+#: :func:`find_clusters` labels the pixels over a threshold from their coordinates while they are at most this share
+#: of the frame (fireflies: a few), and with scipy.ndimage.label, which reads the whole frame, above it.
+SPARSE_SHARE = 1 / 64
+
+
+def _nonzero(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.nonzero`` of (H, W) bool ``mask``, in its order, reading only the rows that hold a pixel: on a frame
+    whose few bright pixels lie in a few rows, a pass of ``any`` replaces np.nonzero's two full passes."""
+    rows = np.flatnonzero(mask.any(axis=1))
+    if 2 * rows.size > mask.shape[0]:
+        return np.nonzero(mask)  # type: ignore[return-value]
+    ys, xs = np.nonzero(mask[rows])
+    return rows[ys], xs
+
+
+def _label(over: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(the (H, W) int32 labels of ``over``'s connected (8-neighbour) groups, 0 elsewhere, (n, 4) their boxes
+    (first row, last row + 1, first column, last column + 1)): scipy.ndimage.label's and find_objects', numbered
+    as it numbers them (in the raster order of each group's first pixel), so either way gives the same clusters."""
+    if np.count_nonzero(over) <= SPARSE_SHARE * over.size:
+        ys, xs = _nonzero(over)
+        number = _groups(over, ys, xs)
+        if number is not None:
+            return _labels_of(over.shape, ys, xs, number)
+    labels, _ = ndimage.label(over, structure=_EIGHT)
+    return labels, np.array([(s[0].start, s[0].stop, s[1].start, s[1].stop) for s in ndimage.find_objects(labels)])
+
+
+#: :func:`_groups` hooks and compresses at most this many times (a group of a few pixels takes one or two rounds),
+#: then leaves a tangle of long chains to scipy.ndimage.label.
+GROUP_ROUNDS = 32
+
+
+def _groups(over: np.ndarray, ys: np.ndarray, xs: np.ndarray) -> np.ndarray | None:
+    """The 0-based group number of each pixel (``ys``, ``xs``: ``over``'s, in raster order), groups numbered in
+    the raster order of their first pixel; None where it did not settle in GROUP_ROUNDS rounds. Each pixel points
+    at the first pixel of its group as known so far; each round points every group's first pixel at the smallest
+    first pixel joined to it by a neighbour pair, then shortens every pointer to its end."""
+    height, width = over.shape
+    flat = ys * width + xs  # ascending
+    pairs = []
+    for dy, dx in ((0, 1), (1, -1), (1, 0), (1, 1)):  # each neighbour pair once, from its earlier pixel
+        y2, x2 = ys + dy, xs + dx
+        near = np.flatnonzero((y2 < height) & (x2 >= 0) & (x2 < width))
+        near = near[over[y2[near], x2[near]]]
+        pairs.append((near, np.searchsorted(flat, flat[near] + dy * width + dx)))
+    src, dst = (np.concatenate(p) for p in zip(*pairs, strict=True))
+    first = np.arange(ys.size)
+    for _ in range(GROUP_ROUNDS):
+        a, b = first[src], first[dst]
+        apart = a != b
+        if not apart.any():
+            return np.unique(first, return_inverse=True)[1]
+        np.minimum.at(first, np.maximum(a, b)[apart], np.minimum(a, b)[apart])
+        while True:
+            further = first[first]
+            if np.array_equal(further, first):
+                break
+            first = further
+    return None
+
+
+def _labels_of(shape: tuple[int, int], ys: np.ndarray, xs: np.ndarray,
+               number: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_label`'s (labels, boxes) of the pixels (``ys``, ``xs``) in groups ``number`` (0-based)."""
+    labels = np.zeros(shape, np.int32)
+    labels[ys, xs] = number + 1
+    count = int(number.max()) + 1
+    boxes = np.empty((count, 4), np.int64)
+    for column, (values, bound) in enumerate(((ys, np.minimum), (ys, np.maximum), (xs, np.minimum), (xs, np.maximum))):
+        box = np.full(count, values.max() if bound is np.minimum else values.min())
+        bound.at(box, number, values)
+        boxes[:, column] = box + (column % 2)  # the stops are one past the last row / column
+    return labels, boxes
+
+
 def find_clusters(over: np.ndarray, values: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> Clusters | None:
     """The clusters among the pixels ``over`` (H, W) bool marks: its connected groups at most CLUSTER_SIZE pixels a
     side whose peak exceeds OUTLIER_LOCAL x their ring's largest value; None when none. ``values(rows, cols)``
     gives the magnitude (≥ 0) of the (n, WINDOW, WINDOW) pixels at ``rows[:, :, None], cols[:, None, :]``."""
     if not over.any():
         return None
-    labels, _ = ndimage.label(over, structure=_EIGHT)
-    boxes = np.array([(s[0].start, s[0].stop, s[1].start, s[1].stop) for s in ndimage.find_objects(labels)])
+    labels, boxes = _label(over)
     small = np.nonzero((boxes[:, 1] - boxes[:, 0] <= CLUSTER_SIZE) & (boxes[:, 3] - boxes[:, 2] <= CLUSTER_SIZE))[0]
     if small.size == 0:
         return None
@@ -330,7 +407,7 @@ def _clean_gradient(gradient: np.ndarray, inlier: np.ndarray, axis: int, thresho
     that is large only because the base is off is left alone)."""
     if _all_within(gradient, threshold / 2):  # a clean gradient, the usual case: nothing near the threshold
         return gradient, 0
-    ys, xs = np.nonzero(_magnitude(gradient) > threshold)
+    ys, xs = _nonzero(_magnitude(gradient) > threshold)
     if ys.size == 0:
         return gradient, 0
     large = _residual(gradient, inlier, axis, ys, xs) > threshold
@@ -371,7 +448,7 @@ def _sources(base: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray] | None, fl
         return None, level
     cap = SOURCE_LEVEL * level
     over = lum > cap
-    ys, xs = np.nonzero(over)
+    ys, xs = _nonzero(over)
     if ys.size == 0:
         return None, level
     grouped = _neighbour_counts(over, ys, xs) > 1  # itself and at least one of its 8 neighbours
@@ -470,17 +547,33 @@ def _split_layer(layer: Layer, sources: bool, level: float | None,
     return split, lit
 
 
-def split_frame(frame: Frame, sources: bool = False) -> tuple[Frame, FrameSplit]:
+def split_frame(frame: Frame, sources: bool = False, threads: int = 1) -> tuple[Frame, FrameSplit]:
     """(``frame`` with each layer as the method sees it, what the detector did); ``frame`` itself and an empty
     split when it finds nothing in any layer. Every layer's thresholds are taken from the frame's level (the sum of
     its layers' robust levels): what counts is an outlier's size beside the image, so a nearly black layer's
-    ordinary Monte Carlo noise is left to the method."""
-    measured = {name: _base_level(layer) for name, layer in frame.layers.items()}
-    level = float(sum(m[1] for m in measured.values() if m is not None))
-    found = {name: _split_layer(layer, sources, level, measured[name]) for name, layer in frame.layers.items()}
+    ordinary Monte Carlo noise is left to the method. ``threads`` > 1: up to that many layers are measured, then
+    searched, at once (numpy's passes over a layer release the GIL); the same result, and the same error (the
+    first layer's in the frame's order), as one after the other."""
+    names = list(frame.layers)
+    with _layer_map(threads, len(names)) as each:
+        measured = dict(zip(names, each(lambda name: _base_level(frame.layers[name]), names), strict=True))
+        level = float(sum(m[1] for m in measured.values() if m is not None))
+        found = dict(zip(names, each(lambda name: _split_layer(frame.layers[name], sources, level, measured[name]),
+                                     names), strict=True))
     split = FrameSplit({name: s for name, (s, _) in found.items() if s is not None},
                        {name: lit for name, (_, lit) in found.items() if lit is not None})
     if not split.layers:
         return frame, split
     return replace(frame, layers={name: split.layers[name].layer if name in split.layers else layer
                                   for name, layer in frame.layers.items()}), split
+
+
+@contextmanager
+def _layer_map(threads: int, count: int) -> Iterator[Callable[[Callable[[str], Any], list[str]], list[Any]]]:
+    """A ``map`` over a frame's ``count`` layer names that returns a list in their order: in this thread, or in
+    up to ``threads`` worker threads (raising the first failure in that order, as the loop would)."""
+    if threads <= 1 or count <= 1:
+        yield lambda fn, names: [fn(name) for name in names]
+        return
+    with ThreadPoolExecutor(max_workers=min(threads, count), thread_name_prefix="gradsep-outliers") as pool:
+        yield lambda fn, names: list(pool.map(fn, names))

@@ -109,7 +109,8 @@ class LayerContext:
 #: the caller already computed it (a pipelined method), else None.
 LayerFunction = Callable[[str, Layer, LayerContext, "np.ndarray | None"], np.ndarray]
 
-#: ``$GRADSEP_LAYER_THREADS``: how many of a frame's layers are reconstructed at once (1: one after the other).
+#: ``$GRADSEP_LAYER_THREADS``: how many of a frame's layers are reconstructed, and searched for outliers
+#: (model.outliers.split_frame), at once (1: one after the other).
 LAYER_THREADS_ENV = "GRADSEP_LAYER_THREADS"
 #: The default: two layers at once, for the methods whose schedule is concurrent or pipelined (model/methods.py;
 #: the schedules were measured with benchmarks/bench_layers.py).
@@ -322,7 +323,7 @@ def reconstruct(frame: Frame, method: str | None = None, alpha: float = DEFAULT_
     _check_method(frame, spec, alpha, models)
     # a denoising method never sees a layer's outliers (nor, for some, a light in view): their energy goes back
     # around where it landed below (model/outliers.py)
-    frame, split = (outliers.split_frame(frame, spec.split_sources) if spec.split_outliers
+    frame, split = (outliers.split_frame(frame, spec.split_sources, layer_threads()) if spec.split_outliers
                     else (frame, outliers.FrameSplit()))
     features = frame.features.only(spec.uses) if frame.features is not None else None
     warnings: list[str] = []

@@ -122,11 +122,14 @@ def lit_level_of_luminance(lum: np.ndarray) -> float:
     sums = np.add.reduceat(np.add.reduceat(lum, rows, axis=0), cols, axis=1)
     row_sizes, col_sizes = np.diff(np.append(rows, height)), np.diff(np.append(cols, width))
     bins = sums / np.outer(row_sizes, col_sizes)
-    frame_level = robust_level(lum)  # one pixel cannot move the threshold (the brightest bin, a firefly's, could)
+    # as luminance gives it (float64, finite, ≥ 0), robust_level's sanitising copy would hold the same values
+    clean = lum.dtype == np.float64 and bool(lum.min() >= 0.0) and math.isfinite(float(lum.max()))
+    # one pixel cannot move the threshold (the brightest bin, a firefly's, could)
+    frame_level = _winsorised_mean(lum.ravel()) if clean else robust_level(lum)
     if not (math.isfinite(frame_level) and frame_level > 0.0):
         return 0.0
     lit_bins = bins > LIT_FRACTION * frame_level
-    if lit_bins.all() and lum.dtype == np.float64 and bool(lum.min() >= 0.0) and math.isfinite(float(lum.max())):
+    if lit_bins.all() and clean:
         return frame_level  # every pixel lit: the same values as robust_level's, so the same winsorised mean
     lit = lum.ravel() if lit_bins.all() else lum[np.repeat(np.repeat(lit_bins, row_sizes, axis=0), col_sizes, axis=1)]
     k = int(WINSOR_QUANTILE * (lit.size - 1))

@@ -400,7 +400,7 @@ def test_oidn_keeps_a_light_in_view_where_it_is_and_its_reach_does_not_grow_with
     if size <= outliers.CLUSTER_SIZE:  # kept out of OIDN whole: nothing changes beyond 25 px at any brightness
         assert reach[1e4] == reach[1e6] and reach[1e6][0] == 1.0
     assert table.get("oidn").split_sources and not table.get("oidn-l1").split_sources
-    monkeypatch.setattr(outliers, "split_frame", lambda frame, sources=False: (frame, outliers.FrameSplit()))
+    monkeypatch.setattr(outliers, "split_frame", lambda frame, sources=False, threads=1: (frame, outliers.FrameSplit()))
     assert far_agreement(with_light(1e6)[0].image, without.image, (10, 20), 25.0)[1] > 60
 
 
