@@ -184,19 +184,19 @@ if AVAILABLE:
                 diag[y, x] = d
 
     @compiled
-    def bilinear(flat, index, fr, fc, height, width, squared, out):  # pragma: no cover - compiled
-        """out[p] = the bilinear mix of the four pixels of ``flat`` (an (H·W, C) image) from ``index[p]`` (the
-        top-left one's flat index; the right or lower one repeats it on the last column or row) by the fractions
+    def bilinear(flat, index, fr, fc, width, squared, out):  # pragma: no cover - compiled
+        """out[p] = the bilinear mix of the four pixels of ``flat`` (an (H·W, C) image, ``width`` wide) from
+        ``index[p]`` (the top-left one's flat index; the right or lower one repeats it on the last column or row, the
+        last row being where one row further leaves ``flat``) by the fractions
         (``fr[p]``, ``fc[p]``), each weight squared when ``squared`` (a variance's warp). One pass instead of
         model.temporal's numpy path's four gathers and products, with its float32 arithmetic in its order: the
         weights (1 - fr)(1 - fc), (1 - fr) fc, fr (1 - fc), fr fc, and 0 plus each tap times its weight in turn."""
         one, zero = np.float32(1.0), np.float32(0.0)
-        channels = flat.shape[1]
+        size, channels = flat.shape
         for p in range(index.shape[0]):
             i00 = index[p]
-            row = i00 // width
-            i01 = i00 + 1 if i00 - row * width + 1 < width else i00
-            down = width if row + 1 < height else 0
+            i01 = i00 + 1 if i00 % width + 1 < width else i00
+            down = width if i00 + width < size else 0
             a, b = fr[p], fc[p]
             w00, w01, w10, w11 = (one - a) * (one - b), (one - a) * b, a * (one - b), a * b
             if squared:

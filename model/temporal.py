@@ -146,7 +146,7 @@ class _Sampler:
             return np.take(flat, self.index, axis=0).reshape(shape)
         if kernels.AVAILABLE and flat.dtype == np.float32:
             out = np.empty(flat.shape, np.float32)
-            kernels.bilinear(flat, self.index, self.fr, self.fc, shape[0], shape[1], squared, out)
+            kernels.bilinear(flat, self.index, self.fr, self.fc, shape[1], squared, out)
             return out.reshape(shape)
         out = np.zeros(flat.shape, np.float32)
         for taps, weight in self._taps(shape[0], shape[1]):
