@@ -13,7 +13,7 @@ temporal warp's float32 arithmetic in the numpy path's order, so the two agree b
 ``AVAILABLE`` is False where numba cannot be imported (it is a core dependency, but a platform without its
 wheels still works): model.poisson and model.temporal then run their numpy paths. ``GRADSEP_NUMBA=0`` forces the
 numpy path too. Compiled code is cached on disk next to this file when that is writable (``cache=True``);
-otherwise each process compiles on first use (the service pays it during warm-up; the warp on its first window).
+otherwise each process compiles on first use (the service pays it during warm-up, the warp included).
 """
 
 from __future__ import annotations

@@ -108,6 +108,12 @@ class Engine:
             pipeline.reconstruct(frame, method, self.settings.default_alpha, self.models)
         if "l1" in self.methods:  # below FLOAT32_MIN_ALPHA IRLS runs in float64: compile those kernels now too
             pipeline.reconstruct(frame, "l1", 1e-3, self.models)
+        # a window with subpixel motion: the temporal warp's kernel compiles now, not in the first window request
+        # (the warp does not depend on the method; the cheapest one runs after it)
+        from gradsep.model.temporal import reconstruct_window
+
+        reconstruct_window([warm_up_frame(moving=True) for _ in range(3)], 1, "l2", self.settings.default_alpha,
+                           self.models)
 
     def _provider_note(self) -> str:
         """`` inference on openvino/bf16`` (one entry per distinct provider/precision of the loaded models)."""
@@ -146,9 +152,10 @@ def load_models(models_dir: Path) -> table.LoadedModels:
     return models
 
 
-def warm_up_frame(size: int = 16) -> Any:
-    """A small smooth direct + indirect frame with exact gradients (and features, which the network reads)."""
-    from gradsep.model.frame import Features, Frame
+def warm_up_frame(size: int = 16, moving: bool = False) -> Any:
+    """A small smooth direct + indirect frame with exact gradients (and features, which the network reads);
+    ``moving``: with motion vectors half a pixel to the right per frame, all valid."""
+    from gradsep.model.frame import Features, Frame, Motion
 
     y, x = np.mgrid[0:size, 0:size].astype(np.float32) / size
     layers = {}
@@ -159,5 +166,11 @@ def warm_up_frame(size: int = 16) -> Any:
     normal = np.zeros((size, size, 3), np.float32)
     normal[..., 2] = 1.0
     features = Features(np.full((size, size, 3), 0.5, np.float32), normal, np.ones((size, size), np.float32))
-    return Frame(layers, features)
+    out = Frame(layers, features)
+    if moving:
+        step = np.zeros((size, size, 2), np.float32)
+        step[..., 0] = 0.5
+        valid = np.ones((size, size), np.float32)
+        out.motion = Motion(-step, step, valid, valid)
+    return out
 

@@ -8,6 +8,7 @@ import threading
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 
 import gradsep.service.pipeline
 from gradsep.model import methods as table
@@ -156,3 +157,23 @@ def test_exr_thread_pool_changes_no_pixel() -> None:
     finally:
         OpenEXR.set_global_thread_count(before)
 
+
+
+def test_warm_up_runs_the_temporal_warp_so_a_first_window_request_compiles_nothing(serve, monkeypatch):
+    """The warm-up reconstructs a window with subpixel motion: the compiled bilinear warp runs (and compiles, where
+    numba has no cache) before /readyz answers 200, not inside the first window request."""
+    from gradsep.model import kernels
+
+    if not kernels.AVAILABLE:
+        pytest.skip("numba unavailable: the warp runs in numpy, nothing to compile")
+    calls: list[tuple[int, ...]] = []
+    real = kernels.bilinear
+
+    def spy(flat, *rest):
+        calls.append(flat.shape)
+        return real(flat, *rest)
+
+    monkeypatch.setattr(kernels, "bilinear", spy)
+    with serve(create_app(settings(warm_up=True))) as client:
+        wait_ready(client)
+    assert calls, "the warm-up did not warp a neighbour"
