@@ -80,8 +80,10 @@ MOTION_CHANNELS: tuple[str, ...] = tuple(c for d in MOTION_DIRECTIONS for c in m
 
 def shot_layout(channels: Iterable[str]) -> tuple[str, ...]:
     """The channels every frame of one shot shares, sorted: all but the motion vectors, which a shot's first and
-    last frames carry on one side only."""
-    return tuple(sorted(c for c in channels if c.split(".", 1)[0] not in MOTION_DIRECTIONS))
+    last frames carry on one side only, and the variance channels (``L.var.Y``), which a frame rendered to a
+    deadline lacks where it got one sample (the temporal stages estimate a missing one per frame)."""
+    return tuple(sorted(c for c in channels
+                        if c.split(".", 1)[0] not in MOTION_DIRECTIONS and not is_variance_channel(c)))
 
 
 def layer_channels(layer: str, gradients: bool = True) -> tuple[str, ...]:

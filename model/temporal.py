@@ -397,9 +397,11 @@ def _accumulate(frames: Sequence[Frame | None], centre: int, chained: dict[int, 
     agree = {o: s.valid & _features_agree(own, others[o], s) for o, s in agreement.samplers.items()}
     layers: dict[str, Layer] = {}
     for name, layer in frame.layers.items():
-        if layer.var is None:
-            warnings.append(f"layer {name} has no variance channel ({name}.var.Y): its noise is estimated from "
-                            "each pixel's neighbourhood for the temporal rejection")
+        lacking = ["t"] * (layer.var is None) + [f"{o:+d}" for o in agree
+                                                  if frames[centre + o].layers[name].var is None]  # type: ignore
+        if lacking:  # another renderer's frames, or a frame that got one sample (no spread to measure)
+            warnings.append(f"layer {name} has no variance channel ({name}.var.Y) in frame(s) {', '.join(lacking)}: "
+                            "its noise is estimated from each pixel's neighbourhood for the temporal rejection")
         sums = _LayerSums.start(layer, own.var[name])
         for offset, mask in agree.items():
             sample, stats = agreement.samplers[offset], others[offset]
@@ -421,11 +423,11 @@ def _accumulate(frames: Sequence[Frame | None], centre: int, chained: dict[int, 
 
 
 def _signature(frame: Frame) -> tuple:
-    """What frames of one shot share: size, layers, which carry gradients and variance, feature groups, alpha."""
+    """What frames of one shot share: size, layers, which carry gradients, feature groups, alpha (not variance:
+    model.frame.shot_layout)."""
     from gradsep.model.frame import feature_groups
 
-    return (frame.height, frame.width, tuple(frame.layers), frame.gradient_layers,
-            tuple(n for n, layer in frame.layers.items() if layer.var is not None), feature_groups(frame.features),
+    return (frame.height, frame.width, tuple(frame.layers), frame.gradient_layers, feature_groups(frame.features),
             frame.alpha is not None)
 
 
@@ -592,5 +594,5 @@ def _check_against(frame: Frame, n: int | str, first: int | str, want: tuple) ->
         raise ValueError(f"frame {n} is {got[1]}x{got[0]}, but frame {first} is {want[1]}x{want[0]}: the frames "
                          "of one shot must have one size")
     if got != want:
-        raise ValueError(f"frame {n} carries other channels than frame {first} (layers, gradients, variance, "
+        raise ValueError(f"frame {n} carries other channels than frame {first} (layers, gradients, "
                          "features or alpha differ): the frames of one shot must have one layout")

@@ -254,14 +254,38 @@ def test_a_neighbours_gradient_counts_only_where_both_its_pixels_correspond() ->
 # ------------------------------------------------------------------------------------------------ bad input
 
 
+def test_a_neighbour_without_variance_is_of_the_same_shot_and_warned() -> None:
+    """A frame rendered to a deadline that got one sample has no L.var.Y: it is a frame of the same shot (the
+    window does not refuse it), its noise is estimated spatially, and the warning names it."""
+    frames = _shot([_truth()] * 3, _motion(0.5), seed=4)
+    bare = Frame({"color": Layer(frames[0].layers["color"].base)}, frames[0].features)
+    bare.motion = frames[0].motion
+    full = reconstruct_window(frames, 1)
+    out = reconstruct_window([bare, frames[1], frames[2]], 1)
+    assert out.neighbours == full.neighbours == [-1, 1]
+    assert any("no variance channel" in w and "frame(s) -1:" in w for w in out.warnings), out.warnings
+    assert not any("no variance channel" in w for w in full.warnings)
+    assert np.isfinite(out.image).all()
+    truth = _truth()
+    assert relmse(out.image, truth) < relmse(reconstruct(frames[1]).image, truth)
+
+
+def test_the_shot_layout_leaves_out_motion_and_variance() -> None:
+    from gradsep.model.frame import shot_layout
+
+    plain = ["direct.R", "direct.G", "direct.B", "albedo.R"]
+    assert shot_layout([*plain, "direct.var.Y", "backward.u", "forward.v"]) == shot_layout(plain)
+    assert shot_layout([*plain, "indirect.R"]) != shot_layout(plain)
+
+
 def test_frames_of_another_size_or_layout_are_named() -> None:
     frames = _shot([_truth()] * 3, _motion(0.0))
     small = Frame({"color": Layer(frames[0].layers["color"].base[:32, :32])})
     with pytest.raises(ValueError, match=r"frame \+1 is 32x32"):
         reconstruct_window([frames[0], frames[1], small], 1)
-    plain = Frame({"color": Layer(frames[0].layers["color"].base)}, frames[0].features)
+    featureless = Frame({"color": frames[0].layers["color"]})
     with pytest.raises(ValueError, match=r"frame -1 carries other channels than frame t"):
-        reconstruct_window([plain, frames[1], frames[2]], 1)
+        reconstruct_window([featureless, frames[1], frames[2]], 1)
     with pytest.raises(ValueError, match="centre"):
         reconstruct_window([None, frames[1]], 0)
     with pytest.raises(ValueError, match="odd"):
