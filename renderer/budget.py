@@ -94,7 +94,10 @@ class PassCosts:
     """Measured wall time of the warm render passes of one kind, as ``overhead + per_sample * spp``.
 
     A kind's first pass compiles its kernel (or loads it from Dr.Jit's cache), so it is recorded apart
-    (:meth:`first`) and predicts later passes only until a warm pass has been measured. ``overhead`` is the fixed
+    (:meth:`first`, with the seconds Dr.Jit's back end spent compiling in it) and predicts later passes, less that
+    compile, only until a warm pass has been measured (:func:`next_pass_spp` keeps the next pass small until then:
+    a G-PT kernel's compile can be most of a short budget, and charging it to every sample would end the frame
+    after one). ``overhead`` is the fixed
     cost of a pass (recording, launch, read-back); where it is not known (0) the whole pass time is charged per
     sample, which overestimates small passes: safe for a deadline. The per-sample cost is the largest of the
     recent rates, so a machine that slows down is followed at once.
@@ -103,9 +106,11 @@ class PassCosts:
     overhead: float = 0.0  # fitted from warm passes of two sizes or more (fitted_overhead)
     warm: list[tuple[int, float]] = field(default_factory=list)  # (spp, seconds) of the last warm passes
     first_pass: tuple[int, float] | None = None  # (spp, seconds) of the compiling pass
+    first_compile: float = 0.0  # seconds of that pass spent compiling kernels (Dr.Jit's back end; 0: not known)
 
-    def first(self, spp: int, seconds: float) -> None:
+    def first(self, spp: int, seconds: float, compile_seconds: float = 0.0) -> None:
         self.first_pass = (int(spp), float(seconds))
+        self.first_compile = min(max(float(compile_seconds), 0.0), float(seconds))
 
     def record(self, spp: int, seconds: float) -> None:
         self.warm = [*self.warm[-3:], (int(spp), float(seconds))]
@@ -116,7 +121,9 @@ class PassCosts:
         if self.warm:
             return max(max(seconds - self.overhead, 0.0) / spp for spp, seconds in self.warm)
         if self.first_pass is not None:
-            return self.first_pass[1] / self.first_pass[0]
+            spp, seconds = self.first_pass
+            warm = seconds - self.first_compile
+            return (warm if warm > 0 else seconds) / spp
         return math.inf
 
     def predict(self, spp: int) -> float:
@@ -164,6 +171,8 @@ def next_pass_spp(left: float, reserve: float, costs: PassCosts, max_spp: int) -
     spp = fits if last else share
     if costs.warm:
         spp = min(spp, PASS_GROWTH * max(n for n, _ in costs.warm))
+    elif costs.first_pass is not None and costs.first_compile > 0:  # a rate less the compile: not yet measured
+        spp = min(spp, PASS_GROWTH * costs.first_pass[0])
     return max(1, min(spp, max_spp))
 
 

@@ -11,6 +11,8 @@ gradients those of the rendered plan's passes (the ``--gradient-spp`` rule of re
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -22,6 +24,40 @@ from gradsep.renderer.budget import Clock, PassCosts
 from gradsep.renderer.check import Half, Split
 from gradsep.renderer.plans import RenderPlan
 from gradsep.renderer.scene import LoadedScene
+
+
+@dataclass
+class CompileTime:
+    """Seconds Dr.Jit's back end spent compiling kernels (cache misses) inside a :func:`compile_timer` block."""
+
+    seconds: float = 0.0
+
+
+@contextmanager
+def compile_timer(active: bool = True) -> Iterator[CompileTime]:
+    """Time the kernel compiles inside the block from Dr.Jit's kernel history (switched on for the block only;
+    ``active`` False, or a Dr.Jit without it, measures nothing: 0). Only the back end's time of the kernels that
+    missed the cache counts: the IR's generation recurs in every warm pass, so it is no compile."""
+    timed = CompileTime()
+    if not active:
+        yield timed
+        return
+    try:
+        import drjit as dr
+
+        flag = dr.JitFlag.KernelHistory
+        was = dr.flag(flag)
+        dr.kernel_history()  # drop entries from before the block
+        dr.set_flag(flag, True)
+    except (ImportError, AttributeError):  # pragma: no cover - a Dr.Jit without kernel history
+        yield timed
+        return
+    try:
+        yield timed
+    finally:
+        dr.set_flag(flag, was)
+        history = dr.kernel_history()
+        timed.seconds = sum(float(k.get("backend_time", 0.0)) for k in history if not k.get("cache_hit")) / 1e3
 
 
 @dataclass
@@ -79,7 +115,7 @@ class Passes:
             kind = PassKind(self._settings(plan), self._shift(plan))
             known = self.priors.costs.get(plan.name) if self.priors is not None else None
             if known is not None:  # a copy: this frame's passes refine it without touching the caller's
-                kind.costs = PassCosts(known.overhead, list(known.warm), known.first_pass)
+                kind.costs = PassCosts(known.overhead, list(known.warm), known.first_pass, known.first_compile)
             self.kinds[plan.name] = kind
         return self.kinds[plan.name]
 
@@ -115,8 +151,9 @@ class Passes:
         kind = self.kind(plan)
         first = kind.costs.first_pass is None and not kind.costs.warm  # a kernel known warm (Priors) compiles nothing
         start = self.clock()
-        sums = render_pass(self.loaded.scene, kind.shift, kind.settings, self.loaded.width, self.loaded.height,
-                           spp, pass_seed(self.seed, self.index))
+        with compile_timer(first) as compiled:
+            sums = render_pass(self.loaded.scene, kind.shift, kind.settings, self.loaded.width, self.loaded.height,
+                               spp, pass_seed(self.seed, self.index))
         bases = {k: v for k, v in sums.items() if ".grad" not in k}
         grads = {k: v for k, v in sums.items() if ".grad" in k}
         self.bases = self._added(self.bases, bases)
@@ -127,7 +164,10 @@ class Passes:
             self.split.add(plan.name, bases, grads, spp)
         # the pass's cost includes adding it to the frame: what the deadline must budget for each pass
         seconds = self.clock() - start
-        (kind.costs.first if first else kind.costs.record)(spp, seconds)
+        if first:
+            kind.costs.first(spp, seconds, compiled.seconds)
+        else:
+            kind.costs.record(spp, seconds)
         self.index += 1
         self.spp += spp
         return sums

@@ -89,6 +89,26 @@ def test_next_pass_spp_stops_when_nothing_fits() -> None:
     assert next_pass_spp(10.0, 0.0, PassCosts(), 100) == 0  # no measured cost: never start blind
 
 
+def test_a_compiling_pass_predicts_the_next_without_its_compile_and_keeps_it_small() -> None:
+    """A G-PT kernel's compile can be half of a short budget (procedural:moving at 256², 10 s: a 5.3 s first
+    pass): charged to its one sample it ended the frame at 1 spp with half the budget unused. Less the compile
+    Dr.Jit measured, the rate lets the frame go on; the next pass stays within PASS_GROWTH of the first until a
+    warm pass measures it."""
+    charged = PassCosts(first_pass=(1, 5.3))
+    assert next_pass_spp(4.7, 0.2, charged, 1000) == 0  # the whole compile charged to a sample: nothing fits
+    costs = PassCosts()
+    costs.first(1, 5.3, compile_seconds=5.0)
+    assert costs.per_sample == pytest.approx(0.3)
+    n = next_pass_spp(4.7, 0.2, costs, 1000)
+    assert 1 <= n <= PASS_GROWTH
+    costs.record(n, 0.3 * n)  # measured: growth from the warm pass, as before
+    assert next_pass_spp(4.4, 0.2, costs, 1000) > n
+    # a compile measured at or over the pass's own time (clock skew) leaves the whole pass as the rate
+    skewed = PassCosts()
+    skewed.first(1, 2.0, compile_seconds=3.0)
+    assert skewed.per_sample == pytest.approx(2.0)
+
+
 def test_next_pass_spp_shares_the_time_and_caps_growth_and_lanes() -> None:
     costs = PassCosts(warm=[(10, 1.0)])  # 0.1 s per sample
     n = next_pass_spp(100.0, 0.0, costs, 10_000)

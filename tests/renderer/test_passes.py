@@ -109,3 +109,44 @@ def test_rendered_halves_are_the_frame_split_in_two():
     assert late.spp == 31
 
 
+
+
+@pytest.mark.render
+def test_the_compile_timer_counts_a_kernel_that_misses_the_cache_and_nothing_warm():
+    """renderer.passes.compile_timer reads Dr.Jit's kernel history: a kernel seen for the first time (a literal no
+    kernel had before) costs back-end seconds; the same kernel again is a cache hit, 0; inactive measures 0; and the
+    history flag is left as it was."""
+    import random
+
+    import drjit as dr
+
+    from gradsep.renderer.passes import compile_timer
+
+    mi.set_variant("llvm_ad_rgb")
+    literal = random.random() + 2.0  # part of the kernel's IR: a new kernel for this process and the disk cache
+
+    def kernel() -> None:
+        x = dr.arange(mi.Float, 4096)
+        dr.eval(dr.sin(x * literal) + dr.cos(x / literal))
+
+    was = dr.flag(dr.JitFlag.KernelHistory)
+    with compile_timer() as cold:
+        kernel()
+    with compile_timer() as warm:
+        kernel()
+    with compile_timer(False) as off:
+        kernel()
+    assert cold.seconds > 0.0
+    assert warm.seconds == 0.0 and off.seconds == 0.0
+    assert dr.flag(dr.JitFlag.KernelHistory) == was
+
+
+@pytest.mark.render
+def test_a_first_pass_records_its_compile_apart(small):
+    passes = Passes(small, ("direct", "indirect"), seed=7)
+    plan = plan_named("all")
+    passes.run(plan, 1)
+    costs = passes.kind(plan).costs
+    assert costs.first_pass is not None and 0.0 <= costs.first_compile <= costs.first_pass[1]
+    passes.run(plan, 1)
+    assert costs.warm and costs.first_compile == passes.kind(plan).costs.first_compile
