@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from gradsep.evaluation.cache import EvalCache, mitsuba_id, sources_sha256
+from gradsep.evaluation.methods import PLANNER_SOURCES
 from gradsep.evaluation.shot_metrics import PipelineScores, ShotTruth, reconstruct_shot, score_pipeline
 from gradsep.model.errors import CommandError
 
@@ -34,12 +35,12 @@ __all__ = ["PLANS", "Plan", "ShotConfig", "ShotResult", "check_shot_config", "ev
 
 #: The code that renders a shot's frames: the frame renderer's, the shot loop's, the motion vectors' and the
 #: planner's (``--seconds`` chooses the plan). A change re-renders the cached frames.
-SHOT_SOURCES = ("renderer/gpt.py", "renderer/gpt_loop.py", "renderer/gpt_settings.py", "renderer/lanes.py",
-                "renderer/vertex.py", "renderer/shift_protocol.py", "renderer/shift.py", "renderer/hybrid.py",
-                "renderer/hybrid_state.py", "renderer/shift_geometry.py", "renderer/manifold.py",
-                "renderer/render.py", "renderer/scene.py", "renderer/variant.py", "renderer/shot.py",
-                "renderer/motion.py", "renderer/planner.py", "renderer/plans.py", "renderer/planned_frame.py",
-                "renderer/budget.py", "renderer/frame_budget.py", "renderer/commands.py", "model/policy.py")
+SHOT_SOURCES = tuple(dict.fromkeys((
+    "renderer/gpt.py", "renderer/gpt_loop.py", "renderer/gpt_settings.py", "renderer/lanes.py", "renderer/vertex.py",
+    "renderer/shift_protocol.py", "renderer/shift.py", "renderer/hybrid.py", "renderer/hybrid_state.py",
+    "renderer/shift_geometry.py", "renderer/manifold.py", "renderer/scene.py", "renderer/variant.py",
+    "renderer/shot.py", "renderer/motion.py", "renderer/plancache.py", "renderer/commands.py", "model/policy.py",
+    *PLANNER_SOURCES)))
 REFERENCE_SOURCES = ("renderer/reference.py", "renderer/scene.py", "renderer/variant.py", "renderer/shot.py")
 
 
