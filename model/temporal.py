@@ -5,7 +5,8 @@ before the per-frame method (model/reconstruct.py) runs once on the result:
 
 1. **Warp.** Each neighbour's bases, gradients and variance (``L.var.Y``) are sampled where the motion vectors put
    each pixel of frame t (bilinear; a neighbour two frames away through the chain of the frame between). Where
-   the vectors say there is no correspondence, or the position is off screen, the neighbour contributes nothing.
+   the vectors say there is no correspondence, the position is off screen, or it falls between the neighbour's
+   pixels (GRID_TOLERANCE: interpolated noise is correlated, and OIDN keeps it), the neighbour contributes nothing.
 2. **Reject.** Per layer and pixel, a neighbour is rejected where it disagrees with frame t by more than the noise
    allows: the difference of the two luminances, box-filtered, against REJECT_K standard errors of that
    difference (the box means' variances from the two variance channels), at each box size in BOXES. A light
@@ -67,6 +68,10 @@ FEATURE_BOX = 3
 #: A neighbour's gradient between two pixels is used where their positions in the neighbour are one pixel apart
 #: within this many pixels (they move together; not across a silhouette).
 STEADY_TOLERANCE = 0.25
+#: A neighbour counts only where its pixel lies on frame t's grid within this many pixels (both stages): warped
+#: between pixels, its inputs' noise is correlated across pixels, which OIDN keeps as detail, and its result blurs
+#: (a 256² dolly at 10 s: 8.8-10× the per-frame error; docs/decisions.md). Elsewhere frame t keeps its own.
+GRID_TOLERANCE = 0.02
 
 
 @dataclass
@@ -135,6 +140,13 @@ class _Sampler:
                 out.append(np.pad(ok, pad, constant_values=True))
             self._steady, self._positions = (out[0], out[1]), None
         return self._steady
+
+    def on_grid(self, tolerance: float) -> np.ndarray:
+        """(H, W) bool: valid, at a pixel of the neighbour within ``tolerance`` on both axes."""
+        if self.integral:
+            return self.valid
+        near = [(f <= tolerance) | (f >= 1 - tolerance) for f in (self.fr, self.fc)]
+        return self.valid & (near[0] & near[1]).reshape(self.valid.shape)
 
     def __call__(self, image: np.ndarray, squared: bool = False) -> np.ndarray:
         """``image`` at the positions; ``squared`` weights by the squared bilinear weights (a variance's warp)."""
@@ -394,7 +406,7 @@ def _accumulate(frames: Sequence[Frame | None], centre: int, chained: dict[int, 
     agreement = _Agreement({o: s for o, s in chained.items() if s is not None})
     own = _stats(frame)
     others = {o: _stats(frames[centre + o]) for o in agreement.samplers}  # type: ignore[arg-type]
-    agree = {o: s.valid & _features_agree(own, others[o], s) for o, s in agreement.samplers.items()}
+    agree = {o: s.on_grid(GRID_TOLERANCE) & _features_agree(own, others[o], s) for o, s in agreement.samplers.items()}
     layers: dict[str, Layer] = {}
     for name, layer in frame.layers.items():
         lacking = ["t"] * (layer.var is None) + [f"{o:+d}" for o in agree
