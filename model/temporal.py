@@ -70,7 +70,7 @@ FEATURE_BOX = 3
 STEADY_TOLERANCE = 0.25
 #: A neighbour counts only where its pixel lies on frame t's grid within this many pixels (both stages): warped
 #: between pixels, its inputs' noise is correlated across pixels, which OIDN keeps as detail, and its result blurs
-#: (a 256² dolly at 10 s: 8.8-10× the per-frame error; docs/decisions.md). Elsewhere frame t keeps its own.
+#: (a camera dolly, docs/decisions.md). Elsewhere frame t keeps its own.
 GRID_TOLERANCE = 0.02
 
 
