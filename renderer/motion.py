@@ -9,12 +9,19 @@ projects it to pixel coordinates, as its film does; a ray from the neighbour's c
 visible there (the first hit is the same shape, at the point's distance within VISIBILITY_TOLERANCE). Camera
 motion and object motion both come out of this.
 
-A pixel has no correspondence (invalid, vector 0) when its ray misses; when its first hit is specular (a mirror,
-glass, or a glossy lobe sharper than the features' NEAR_SPECULAR_PDF: the image there is another surface's, whose
-motion is not the mirror's); when the hit shape is not one of the scene's shapes (inside an instance); when the
-shape is missing in the other frame, its id is not unique, the frames have different numbers of shapes without an
-id, or its topology differs; when the point is off the other frame's screen or behind its camera; and when it is
-hidden there.
+A pixel whose first hit is specular (a mirror, glass, or a glossy lobe sharper than the features' NEAR_SPECULAR_PDF),
+or whose ray leaves the scene, shows another surface's image (or the environment), whose motion is not the first
+hit's. Such a pixel is *replayed*: its chain is followed to the first non-specular vertex (the features' rule, each
+lobe sampled at its centre) in both frames, from each frame's own camera. Where the other frame's chain meets the
+same shapes at the same points (within VISIBILITY_TOLERANCE of the path's length; the same primitive and surface
+(u, v) too, so a shape that slid along itself counts as moved) and ends the same way, the pixel's
+image has not moved: vector 0, valid. Anything else on that chain moving (the camera, the mirror, the reflected
+object, an occluder between them) makes the pixel invalid: such an image's motion is not traced.
+
+A pixel has no correspondence (invalid, vector 0) when its replayed chain differs in the other frame, or is longer
+than MAX_CHAIN; when the hit shape is not one of the scene's shapes (inside an instance); when the shape is missing
+in the other frame, its id is not unique, the frames have different numbers of shapes without an id, or its
+topology differs; when the point is off the other frame's screen or behind its camera; and when it is hidden there.
 
 Vectors follow the frame contract (model/frame.py :class:`~gradsep.model.frame.Motion`): u to the right and v
 upward, in pixels: ``x_prev = x + backward.u``, ``y_prev = y - backward.v`` with y the row.
@@ -35,6 +42,13 @@ from gradsep.renderer.scene import LoadedScene
 #: A point counts as visible in the other frame when the first hit from that camera is the same shape within this
 #: fraction of the distance to the point (float32 hit distances and barycentric positions agree far closer).
 VISIBILITY_TOLERANCE = 1e-3
+
+#: Vertices a replayed chain follows (specular ones, then the first non-specular one or the way out of the scene);
+#: a longer chain (mirrors facing each other) stays invalid.
+MAX_CHAIN = 8
+
+#: A replayed chain's vertex shape where its ray left the scene (its point holds the ray's direction).
+MISS = -2
 
 #: A function of the pixels' hits that gives their positions in the other frame (N, 3) (rows of hits on shapes
 #: that are not this one are ignored).
@@ -57,23 +71,27 @@ def render_motion(current: LoadedScene, previous: LoadedScene | None,
     if previous is None and following is None:
         return Motion()
     hits = primary_hits(current)
+    replay = np.flatnonzero(hits.shape < 0)  # specular first hits, misses (and unknown shapes, which stay invalid)
+    chains = specular_chains(current, replay)
     sides: dict[str, np.ndarray | None] = {}
     for direction, other in (("backward", previous), ("forward", following)):
         if other is None:
             continue
         vectors, valid = _side(current, hits, other)
+        still = replay[_replayed_still(current, replay, chains, other)]
+        vectors.reshape(-1, 2)[still], valid.reshape(-1)[still] = 0.0, True
         vectors, valid, _ = sanitize_motion(vectors, valid)
         sides[direction], sides[f"{direction}_valid"] = vectors, valid
     return Motion(**sides)
 
 
-def _centre_rays(loaded: LoadedScene) -> Any:
-    """One ray per pixel centre, row order, through the lens centre."""
+def _centre_rays(loaded: LoadedScene, pixels: np.ndarray | None = None) -> Any:
+    """One ray per pixel centre (``pixels``: these flat indices; None: all, row order), through the lens centre."""
     import drjit as dr
     import mitsuba as mi
 
     w, h = loaded.width, loaded.height
-    index = dr.arange(mi.UInt32, w * h)
+    index = dr.arange(mi.UInt32, w * h) if pixels is None else mi.UInt32(pixels.astype(np.uint32))
     col, row = mi.Float(index % w), mi.Float(index // w)
     position = mi.Point2f((col + 0.5) / w, (row + 0.5) / h)
     ray, _ = loaded.sensor.sample_ray(0.0, 0.5, position, mi.Point2f(0.5, 0.5))
@@ -93,22 +111,30 @@ def _registry_index(scene: Any, shape_ptrs: Any) -> np.ndarray:
     return lookup[ids]
 
 
-def primary_hits(loaded: LoadedScene) -> Hits:
-    """The first vertex of every pixel's centre ray, kept only where it is not specular (the features' rule with
-    the lobe sampled at its centre)."""
+def _specular_sample(loaded: LoadedScene, si: Any, ray: Any, valid: Any) -> tuple[Any, Any]:
+    """(whether the hit is specular by the features' rule with the lobe sampled at its centre, that sample)."""
     import drjit as dr
     import mitsuba as mi
 
-    ray = _centre_rays(loaded)
-    pi = loaded.scene.ray_intersect_preliminary(ray, coherent=True)
-    si = pi.compute_surface_interaction(ray)
-    valid = si.is_valid()
     bsdf = si.bsdf(ray)
     flags = dr.select(valid, bsdf.flags(), 0)
     has_diffuse = mi.has_flag(flags, mi.BSDFFlags.Diffuse)
     bs, _ = bsdf.sample(mi.BSDFContext(), si, 0.5, mi.Point2f(0.5, 0.5), valid & ~has_diffuse)
     specular = ~has_diffuse & (mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
                                | (mi.has_flag(bs.sampled_type, mi.BSDFFlags.Glossy) & (bs.pdf > NEAR_SPECULAR_PDF)))
+    return valid & specular, bs
+
+
+def primary_hits(loaded: LoadedScene) -> Hits:
+    """The first vertex of every pixel's centre ray, kept only where it is not specular (the features' rule with
+    the lobe sampled at its centre)."""
+    import drjit as dr
+
+    ray = _centre_rays(loaded)
+    pi = loaded.scene.ray_intersect_preliminary(ray, coherent=True)
+    si = pi.compute_surface_interaction(ray)
+    valid = si.is_valid()
+    specular, _ = _specular_sample(loaded, si, ray, valid)
     usable = valid & ~specular
     dr.eval(usable, pi.shape, pi.prim_index, pi.prim_uv, si.p)  # one kernel for every output read below
     shape = _registry_index(loaded.scene, pi.shape)
@@ -116,6 +142,56 @@ def primary_hits(loaded: LoadedScene) -> Hits:
     return Hits(shape=shape, prim=np.asarray(pi.prim_index, dtype=np.int64),
                 bary=np.stack([np.asarray(pi.prim_uv.x), np.asarray(pi.prim_uv.y)], axis=-1),
                 point=np.stack([np.asarray(si.p.x), np.asarray(si.p.y), np.asarray(si.p.z)], axis=-1))
+
+
+@dataclass
+class Chains:
+    """Pixel centres' paths through specular vertices to the first non-specular one (or out of the scene); K is
+    the longest chain among them, at most MAX_CHAIN."""
+
+    shape: np.ndarray  # (N, K) index into scene.shapes() per vertex; MISS: left the scene; -1: none/unknown
+    point: np.ndarray  # (N, K, 3) world position (a MISS: the ray's direction)
+    surface: np.ndarray  # (N, K, 3) the point on its shape: primitive index and surface (u, v)
+    reach: np.ndarray  # (N, K) path length from the camera to each vertex
+    length: np.ndarray  # (N,) vertices up to the chain's end; 0: no end within MAX_CHAIN
+
+
+def specular_chains(loaded: LoadedScene, pixels: np.ndarray) -> Chains:
+    """Follow the centre rays of ``pixels`` (flat indices) through specular vertices, each lobe sampled at its
+    centre."""
+    import drjit as dr
+    import mitsuba as mi
+
+    steps: list[tuple[np.ndarray, ...]] = []
+    length = np.zeros(len(pixels), dtype=np.int64)
+    if not len(pixels):
+        return Chains(np.zeros((0, 0), np.int64), np.zeros((0, 0, 3)), np.zeros((0, 0, 3)), np.zeros((0, 0)), length)
+    ray = _centre_rays(loaded, pixels)
+    active = dr.full(mi.Bool, True, len(pixels))
+    travelled = dr.zeros(mi.Float, len(pixels))
+    for k in range(MAX_CHAIN):
+        pi = loaded.scene.ray_intersect_preliminary(ray, coherent=False, active=active)
+        si = pi.compute_surface_interaction(ray, active=active)
+        valid = active & si.is_valid()
+        specular, bs = _specular_sample(loaded, si, ray, valid)
+        travelled = travelled + dr.select(valid, si.t, 0.0)
+        where = dr.select(valid, si.p, ray.d)
+        uv = dr.select(valid, si.uv, 0.0)
+        ray = si.spawn_ray(si.to_world(bs.wo))
+        # one kernel per step, the same at every step: the next step starts from evaluated rays
+        dr.eval(valid, specular, pi.shape, pi.prim_index, uv, where, travelled, active, ray)
+        on, hit, mirror = (np.asarray(x, dtype=bool) for x in (active, valid, specular))
+        shape = np.where(hit, _registry_index(loaded.scene, pi.shape), np.where(on, MISS, -1))
+        prim = np.where(hit, np.asarray(pi.prim_index, dtype=np.float64), 0.0)
+        steps.append((shape, np.stack([np.asarray(c, dtype=np.float64) for c in (where.x, where.y, where.z)], -1),
+                      np.stack([prim, np.asarray(uv.x, dtype=np.float64), np.asarray(uv.y, dtype=np.float64)], -1),
+                      np.asarray(travelled, dtype=np.float64)))
+        length[on & ~mirror] = k + 1
+        if not mirror.any():
+            break
+        active = specular
+    shape, point, surface, reach = (np.stack(parts, axis=1) for parts in zip(*steps))
+    return Chains(shape=shape, point=point, surface=surface, reach=reach, length=length)
 
 
 def _matrix(transform: Any) -> np.ndarray:
@@ -233,3 +309,30 @@ def _side(current: LoadedScene, hits: Hits, other: LoadedScene) -> tuple[np.ndar
     vectors = np.stack([u, v], axis=-1).astype(np.float32)
     vectors[~valid] = 0.0
     return vectors.reshape(h, w, 2), valid.reshape(h, w)
+
+
+def _replayed_still(current: LoadedScene, replay: np.ndarray, chains: Chains, other: LoadedScene) -> np.ndarray:
+    """Which of the pixels ``replay`` (flat indices; their ``chains`` in the current frame) trace the same chain in
+    ``other``: the same shapes, at the same points and places on them, ending the same way."""
+    there = specular_chains(other, replay)
+    steps = min(chains.shape.shape[1], there.shape.shape[1])
+    if not steps:
+        return np.zeros(len(replay), dtype=bool)
+    mine, theirs = _shape_keys(current.scene), _shape_keys(other.scene)
+    if sum(k[0] == "unnamed" for k in mine) != sum(k[0] == "unnamed" for k in theirs):
+        mine = {k: i for k, i in mine.items() if k[0] != "unnamed"}
+    to_other = np.full(len(current.scene.shapes()) + 1, -1, dtype=np.int64)  # the last entry maps -1 to -1
+    for key, index in mine.items():
+        to_other[index] = theirs.get(key, -1)
+    shape = chains.shape[:, :steps]
+    expected = np.where(shape == MISS, MISS, to_other[np.where(shape >= 0, shape, -1)])
+    same = (expected == there.shape[:, :steps]) & ((shape >= 0) | (shape == MISS))
+    tolerance = VISIBILITY_TOLERANCE * np.where(shape == MISS, 1.0, np.maximum(chains.reach[:, :steps], 1e-6))
+    same &= np.abs(chains.point[:, :steps] - there.point[:, :steps]).max(axis=-1) <= tolerance
+    # the same place on the shape too: a face sliding along its own plane leaves the world point where it was
+    mine_uv, their_uv = chains.surface[:, :steps], there.surface[:, :steps]
+    uv_tolerance = VISIBILITY_TOLERANCE * np.maximum(1.0, np.abs(mine_uv[..., 1:]).max(axis=-1))
+    same &= (mine_uv[..., 0] == their_uv[..., 0]) & (np.abs(mine_uv[..., 1:] - their_uv[..., 1:]).max(axis=-1)
+                                                    <= uv_tolerance)
+    taken = np.arange(steps)[None, :] < chains.length[:, None]
+    return (chains.length > 0) & (there.length == chains.length) & np.all(~taken | same, axis=1)

@@ -11,7 +11,7 @@ import pytest
 
 mi = pytest.importorskip("mitsuba")
 
-from gradsep.renderer.motion import primary_hits, render_motion  # noqa: E402
+from gradsep.renderer.motion import MISS, primary_hits, render_motion, specular_chains  # noqa: E402
 from gradsep.renderer.scene import LoadedScene, load_scene  # noqa: E402
 
 pytestmark = pytest.mark.render
@@ -89,11 +89,11 @@ def test_an_object_leaving_the_screen_is_invalid_on_that_side_only() -> None:
     assert motion.backward_valid[here == BALL].mean() > 0.9
 
 
-def _dict_frame(ball_bsdf: dict, box: dict | None) -> LoadedScene:
+def _dict_frame(ball_bsdf: dict, box: dict | None, eye: float = 0.0) -> LoadedScene:
     scene = {
         "type": "scene", "integrator": {"type": "path"}, "light": {"type": "constant"},
         "sensor": {"type": "perspective", "fov": FOV,
-                   "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, 5], target=[0, 0, 0], up=[0, 1, 0]),
+                   "to_world": mi.ScalarTransform4f().look_at(origin=[eye, 0, 5], target=[0, 0, 0], up=[0, 1, 0]),
                    "film": {"type": "hdrfilm", "width": 16, "height": 16, "rfilter": {"type": "box"}}},
         "wall": {"type": "rectangle", "to_world": mi.ScalarTransform4f().scale(4)},
         "ball": {"type": "sphere", "center": [0.5, 0, 1], "radius": 0.5, "bsdf": ball_bsdf},
@@ -103,7 +103,7 @@ def _dict_frame(ball_bsdf: dict, box: dict | None) -> LoadedScene:
     return LoadedScene(mi.load_dict(scene), "dict", 16, 16, 3, 5)
 
 
-def test_no_correspondence_for_mirrors_missing_shapes_and_other_topology() -> None:
+def test_no_correspondence_for_missing_shapes_and_other_topology() -> None:
     cube = {"type": "cube", "to_world": mi.ScalarTransform4f().translate([-0.8, 0, 1]).scale(0.4)}
     flat = {"type": "rectangle", "to_world": mi.ScalarTransform4f().translate([-0.8, 0, 1]).scale(0.4)}
     diffuse, mirror = {"type": "diffuse"}, {"type": "conductor"}
@@ -117,10 +117,53 @@ def test_no_correspondence_for_mirrors_missing_shapes_and_other_topology() -> No
     assert not other_topology.backward_valid[here == "box"].any()
     missing = render_motion(current, _dict_frame(diffuse, None), None)
     assert not missing.backward_valid[here == "box"].any() and missing.backward_valid[here == "ball"].all()
-    mirrored = _dict_frame(mirror, cube)
-    on_mirror = render_motion(mirrored, _dict_frame(mirror, cube), _dict_frame(mirror, cube))
-    assert np.count_nonzero(primary_hits(mirrored).shape == -1) > np.count_nonzero(here == "")  # mirror: no hit kept
-    assert not on_mirror.backward_valid[here == "ball"].any() and not on_mirror.forward_valid[here == "ball"].any()
+
+
+def _cube(y: float = 0.0) -> dict:
+    return {"type": "cube", "to_world": mi.ScalarTransform4f().translate([-0.8, y, 1]).scale(0.4)}
+
+
+def _chain_ends(loaded: LoadedScene) -> np.ndarray:
+    """Per pixel, the id of the shape where its specular chain ends ("sky" where it leaves the scene)."""
+    chains = specular_chains(loaded, np.arange(loaded.width * loaded.height))
+    ids = np.array([s.id() for s in loaded.scene.shapes()] + ["sky", ""])
+    last = chains.shape[np.arange(len(chains.length)), np.maximum(chains.length - 1, 0)]
+    last = np.where(chains.length > 0, np.where(last == MISS, len(ids) - 2, last), len(ids) - 1)
+    return ids[last].reshape(loaded.height, loaded.width)
+
+
+@pytest.mark.parametrize("material", [{"type": "conductor"}, {"type": "dielectric"}])
+def test_a_still_reflection_is_valid_with_vector_0(material: dict) -> None:
+    """A mirror or glass ball first hit has no motion of its own: its chain is replayed in the other frame, and
+    where nothing on it moved the pixel is valid with vector 0; the environment seen directly too."""
+    current = _dict_frame(material, _cube())
+    here = shape_map(current)
+    on_ball = (_chain_ends(current) != "") & (here == "")
+    assert np.count_nonzero(on_ball & (_chain_ends(current) != "sky")) > 4  # specular first hits (and misses) the old rule left invalid
+    motion = render_motion(current, _dict_frame(material, _cube()), _dict_frame(material, _cube()))
+    for side in ("backward", "forward"):
+        vectors, valid = motion.side(side)
+        assert valid.all()
+        assert np.all(vectors[on_ball] == 0)
+        np.testing.assert_allclose(vectors, 0.0, atol=1e-4)  # the projected diffuse hits: float32 rounding
+
+
+def test_a_reflection_moving_differently_from_its_mirror_is_invalid() -> None:
+    """Issue 53's ghosting case: the mirror stands still while the cube it reflects moves, so the pixels that see
+    the cube in the mirror are invalid and those that see the sky stay valid; a moving camera invalidates all the
+    mirror's pixels (their image's motion is not traced)."""
+    mirror = {"type": "conductor"}
+    current = _dict_frame(mirror, _cube())
+    ends = _chain_ends(current)
+    first = shape_map(current)
+    in_mirror = first == ""  # specular first hit or sky
+    sees_cube = in_mirror & (ends == "box") & ~(np.asarray(primary_hits(current).shape) >= 0).reshape(16, 16)
+    assert sees_cube.sum() >= 1, ends
+    vectors, valid = render_motion(current, _dict_frame(mirror, _cube(0.1)), None).side("backward")
+    assert not valid[sees_cube].any()
+    assert valid[in_mirror & (ends == "sky")].all() and np.all(vectors[in_mirror & (ends == "sky")] == 0)
+    _, valid = render_motion(current, _dict_frame(mirror, _cube(), eye=0.05), None).side("backward")
+    assert not valid[in_mirror].any()
 
 
 def albedo(loaded: LoadedScene) -> np.ndarray:
