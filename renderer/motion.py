@@ -190,7 +190,7 @@ def specular_chains(loaded: LoadedScene, pixels: np.ndarray) -> Chains:
         if not mirror.any():
             break
         active = specular
-    shape, point, surface, reach = (np.stack(parts, axis=1) for parts in zip(*steps))
+    shape, point, surface, reach = (np.stack(parts, axis=1) for parts in zip(*steps, strict=True))
     return Chains(shape=shape, point=point, surface=surface, reach=reach, length=length)
 
 

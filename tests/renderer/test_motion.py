@@ -104,9 +104,9 @@ def _dict_frame(ball_bsdf: dict, box: dict | None, eye: float = 0.0) -> LoadedSc
 
 
 def test_no_correspondence_for_missing_shapes_and_other_topology() -> None:
-    cube = {"type": "cube", "to_world": mi.ScalarTransform4f().translate([-0.8, 0, 1]).scale(0.4)}
+    cube = _cube()
     flat = {"type": "rectangle", "to_world": mi.ScalarTransform4f().translate([-0.8, 0, 1]).scale(0.4)}
-    diffuse, mirror = {"type": "diffuse"}, {"type": "conductor"}
+    diffuse = {"type": "diffuse"}
     current = _dict_frame(diffuse, cube)
     ids = np.array([s.id() for s in current.scene.shapes()] + [""])
     here = ids[primary_hits(current).shape].reshape(16, 16)
@@ -139,7 +139,8 @@ def test_a_still_reflection_is_valid_with_vector_0(material: dict) -> None:
     current = _dict_frame(material, _cube())
     here = shape_map(current)
     on_ball = (_chain_ends(current) != "") & (here == "")
-    assert np.count_nonzero(on_ball & (_chain_ends(current) != "sky")) > 4  # specular first hits (and misses) the old rule left invalid
+    # specular first hits that see a surface, which the old rule left invalid
+    assert np.count_nonzero(on_ball & (_chain_ends(current) != "sky")) > 4
     motion = render_motion(current, _dict_frame(material, _cube()), _dict_frame(material, _cube()))
     for side in ("backward", "forward"):
         vectors, valid = motion.side(side)
