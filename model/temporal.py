@@ -405,8 +405,11 @@ def _accumulate(frames: Sequence[Frame | None], centre: int, chained: dict[int, 
     assert frame is not None
     agreement = _Agreement({o: s for o, s in chained.items() if s is not None})
     own = _stats(frame)
-    others = {o: _stats(frames[centre + o]) for o in agreement.samplers}  # type: ignore[arg-type]
-    agree = {o: s.on_grid(GRID_TOLERANCE) & _features_agree(own, others[o], s) for o, s in agreement.samplers.items()}
+    agree = {o: s.on_grid(GRID_TOLERANCE) for o, s in agreement.samplers.items()}
+    # a neighbour with no pixel on the grid (a camera move) adds nothing: it is neither warped nor tested
+    others = {o: _stats(frames[centre + o]) for o in agree if agree[o].any()}  # type: ignore[arg-type]
+    for o, stats in others.items():
+        agree[o] &= _features_agree(own, stats, agreement.samplers[o])
     layers: dict[str, Layer] = {}
     for name, layer in frame.layers.items():
         lacking = ["t"] * (layer.var is None) + [f"{o:+d}" for o in agree
@@ -416,6 +419,9 @@ def _accumulate(frames: Sequence[Frame | None], centre: int, chained: dict[int, 
                             "its noise is estimated from each pixel's neighbourhood for the temporal rejection")
         sums = _LayerSums.start(layer, own.var[name])
         for offset, mask in agree.items():
+            if offset not in others:
+                agreement.accept.setdefault(name, {})[offset] = mask  # nowhere
+                continue
             sample, stats = agreement.samplers[offset], others[offset]
             other = frames[centre + offset].layers[name]  # type: ignore[union-attr]
             var = sample(stats.var[name], squared=True)  # warped once: read by the test and the sums

@@ -225,6 +225,25 @@ def test_moving_shot_is_warped_and_disocclusions_are_not_ghosted(shift: float) -
         assert relmse(tem[t][:, edge], truths[t][:, edge]) <= 1.1 * relmse(per[t][:, edge], truths[t][:, edge])
 
 
+def test_a_neighbour_wholly_off_the_grid_is_not_warped_or_tested(monkeypatch) -> None:
+    """A camera move between pixels: the neighbours contribute nothing, so their statistics and warps are skipped
+    (the result is the per-frame one, test_moving_shot_is_warped_and_disocclusions_are_not_ghosted[1.5])."""
+    from gradsep.model import temporal
+
+    truths = [_truth(0.5 * i) for i in range(3)]
+    frames = _shot(truths, _motion(0.5), seed=3)
+    counted = []
+    stats = temporal._stats
+    monkeypatch.setattr(temporal, "_stats", lambda frame: counted.append(frame) or stats(frame))
+    chained = {o: temporal._chain(frames, 1, o) for o in (-1, 1)}
+    out, agreement = temporal._accumulate(frames, 1, chained, [])
+    assert counted == [frames[1]]
+    assert all(not mask.any() for per in agreement.accept.values() for mask in per.values())
+    assert set(agreement.accept[next(iter(frames[1].layers))]) == {-1, 1}
+    for name, layer in frames[1].layers.items():
+        np.testing.assert_array_equal(out.layers[name].base, layer.base)
+
+
 def test_a_neighbours_gradient_counts_only_where_both_its_pixels_correspond() -> None:
     """A gradient joins a pixel and the next one: across a motion edge (the left half moved, the right half did not)
     or beside a disoccluded pixel, the neighbour's difference is between other pixels, so frame t keeps its own."""
