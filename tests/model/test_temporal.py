@@ -18,6 +18,7 @@ from gradsep.model.frame import Features, Frame, Layer
 from gradsep.model.metrics import flicker, relmse
 from gradsep.model.reconstruct import reconstruct
 from gradsep.model.temporal import Motion, ShotReconstructor, reconstruct_window
+from gradsep.model.warp import chain
 
 pytest.importorskip("pyoidn", reason="the per-frame method of a plain frame is oidn")
 
@@ -143,43 +144,6 @@ def test_a_shot_in_order_keeps_only_its_window_and_gives_each_window() -> None:
     assert all(not f._temporal_stats.boxes for f in frames)
 
 
-@pytest.mark.parametrize("channels", [None, 3])
-def test_the_compiled_warp_is_the_numpy_warp_bit_for_bit_and_bilinear(monkeypatch: pytest.MonkeyPatch,
-                                                                     channels: int | None) -> None:
-    """The sampler's compiled pass (model.kernels.bilinear) and its numpy path give the same bits, and both are
-    bilinear interpolation at the positions clamped to the frame (squared weights for a variance)."""
-    from scipy.ndimage import map_coordinates
-
-    from gradsep.model import kernels, temporal
-
-    rng = np.random.default_rng(5)
-    h, w = 23, 31
-    shape = (h, w) if channels is None else (h, w, channels)
-    image = rng.random(shape).astype(np.float32)
-    rows = (rng.random((h, w)) * (h + 4) - 2).astype(np.float32)  # some positions off screen
-    cols = (rng.random((h, w)) * (w + 4) - 2).astype(np.float32)
-    rows[-1], cols[:, -1] = h - 1, w - 1  # on the last row and column: the lower and right taps repeat them
-    rows[0, 0] = np.nan
-    sample = temporal._Sampler(rows, cols, np.ones((h, w), bool))
-    assert not sample.integral and not sample.valid[0, 0] and not sample.valid[rows < 0].any()
-    got = {squared: sample(image, squared) for squared in (False, True)}
-    monkeypatch.setattr(kernels, "AVAILABLE", False)
-    for squared in (False, True):
-        np.testing.assert_array_equal(sample(image, squared), got[squared])
-    cols[0, 0] = -1.0  # a position with a non-finite coordinate is read at (-1, -1), clamped (and invalid)
-    r = np.clip(np.nan_to_num(rows, nan=-1.0), 0, h - 1).astype(np.float64)
-    c = np.clip(cols, 0, w - 1).astype(np.float64)
-    planes = image.reshape(h, w, -1).astype(np.float64)
-    linear = np.stack([map_coordinates(planes[..., k], [r, c], order=1, mode="nearest")
-                       for k in range(planes.shape[-1])], -1)
-    np.testing.assert_allclose(got[False], linear.reshape(shape), rtol=1e-5, atol=1e-6)
-    r0, c0 = np.floor(r).astype(int), np.floor(c).astype(int)
-    r1, c1, fr, fc = np.minimum(r0 + 1, h - 1), np.minimum(c0 + 1, w - 1), r - r0, c - c0
-    squares = sum((weight**2)[..., None] * planes[rr, cc] for rr, cc, weight in
-                  ((r0, c0, (1 - fr) * (1 - fc)), (r0, c1, (1 - fr) * fc), (r1, c0, fr * (1 - fc)), (r1, c1, fr * fc)))
-    np.testing.assert_allclose(got[True], squares.reshape(shape), rtol=1e-5, atol=1e-6)
-
-
 # ------------------------------------------------------------------------------------------------ quality
 
 
@@ -235,7 +199,7 @@ def test_a_neighbour_wholly_off_the_grid_is_not_warped_or_tested(monkeypatch) ->
     counted = []
     stats = temporal._stats
     monkeypatch.setattr(temporal, "_stats", lambda frame: counted.append(frame) or stats(frame))
-    chained = {o: temporal._chain(frames, 1, o) for o in (-1, 1)}
+    chained = {o: chain(frames, 1, o) for o in (-1, 1)}
     out, agreement = temporal._accumulate(frames, 1, chained, [])
     assert counted == [frames[1]]
     assert all(not mask.any() for per in agreement.accept.values() for mask in per.values())
@@ -266,7 +230,7 @@ def test_a_neighbours_gradient_counts_only_where_both_its_pixels_correspond() ->
     valid[:, :2] = 0.0
     own = frame(0.0, Motion(backward, None, valid, None))
     frames = [frame(4.0, None), own]
-    out, agreement = temporal._accumulate(frames, 1, {-1: temporal._chain(frames, 1, -1)}, [])
+    out, agreement = temporal._accumulate(frames, 1, {-1: chain(frames, 1, -1)}, [])
     assert agreement.accept["color"][-1][:, 2:].all() and not agreement.accept["color"][-1][:, :2].any()
     dx = out.layers["color"].dx[..., 0]
     np.testing.assert_allclose(dx[:, 3:7], 2.0)  # both pixels seen in t - 1, next to each other there: averaged
