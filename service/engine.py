@@ -108,8 +108,8 @@ class Engine:
             pipeline.reconstruct(frame, method, self.settings.default_alpha, self.models)
         if "l1" in self.methods:  # below FLOAT32_MIN_ALPHA IRLS runs in float64: compile those kernels now too
             pipeline.reconstruct(frame, "l1", 1e-3, self.models)
-        # a window with subpixel motion: the temporal warp's kernel compiles now, not in the first window request
-        # (the warp does not depend on the method; the cheapest one runs after it)
+        # a window whose motion is on the pixel grid but not integral: the temporal warp's bilinear kernel compiles
+        # now, not in the first window request (the warp does not depend on the method; the cheapest one runs)
         from gradsep.model.temporal import reconstruct_window
 
         reconstruct_window([warm_up_frame(moving=True) for _ in range(3)], 1, "l2", self.settings.default_alpha,
@@ -154,7 +154,8 @@ def load_models(models_dir: Path) -> table.LoadedModels:
 
 def warm_up_frame(size: int = 16, moving: bool = False) -> Any:
     """A small smooth direct + indirect frame with exact gradients (and features, which the network reads);
-    ``moving``: with motion vectors half a pixel to the right per frame, all valid."""
+    ``moving``: with motion vectors all valid, a pixel to the right per frame plus half the temporal grid tolerance
+    (model.temporal.GRID_TOLERANCE): on the grid, so the neighbours are warped, but not integral, so bilinearly."""
     from gradsep.model.frame import Features, Frame, Motion
 
     y, x = np.mgrid[0:size, 0:size].astype(np.float32) / size
@@ -169,7 +170,9 @@ def warm_up_frame(size: int = 16, moving: bool = False) -> Any:
     out = Frame(layers, features)
     if moving:
         step = np.zeros((size, size, 2), np.float32)
-        step[..., 0] = 0.5
+        from gradsep.model.temporal import GRID_TOLERANCE
+
+        step[..., 0] = 1.0 + GRID_TOLERANCE / 2
         valid = np.ones((size, size), np.float32)
         out.motion = Motion(-step, step, valid, valid)
     return out

@@ -263,7 +263,10 @@ class _CountedReceive:
             if not message.get("more_body", False):
                 self.end()
             if self.received > self.limit:
-                raise body_too_large(self.limit) if self.first is None else window_too_large(self.limit, self.first)
+                # Connection: close, so uvicorn stops reading: a kept-alive connection would read the rest of
+                # the body (to discard it) for as long as the client keeps sending
+                err = body_too_large(self.limit) if self.first is None else window_too_large(self.limit, self.first)
+                raise ServiceError(err.status, err.code, err.message, err.details, {"Connection": "close"})
         elif message["type"] == "http.disconnect":
             self.end()
         return message
