@@ -24,8 +24,9 @@ before the per-frame method (model/reconstruct.py) runs once on the result:
 The second stage averages frame t's first-stage result with its neighbours' first-stage results, per layer, warped
 the same way, where the first stage accepted that neighbour. Consecutive outputs that denoised overlapping sample
 sets still differ by what the denoiser made of the samples they do not share; averaging them where the inputs
-agree removes that difference (the flicker) and more of the error. A window of N frames splits its radius
-(N − 1) / 2 between the stages (the first the larger half), so no sample from outside the window reaches frame t.
+agree removes that difference (the flicker) and more of the error. The first stage reaches FIRST_STAGE_RADIUS frames
+to each side (the whole of the default window of five); a wider window's frames beyond are the second stage's, so no
+sample from outside the window reaches frame t.
 
 Why accumulate inputs, and test them, rather than blend per-frame outputs alone: the inputs' noise is known from
 their variance, so the test rejects on change, not on noise, and the denoiser gets one frame whose noise is lower
@@ -49,11 +50,15 @@ from gradsep.model.reconstruct import Reconstruction, reconstruct
 from gradsep.model.robust import box_mean, luminance
 from gradsep.model.warp import Sampler, chain
 
-__all__ = ["BOXES", "DEFAULT_WINDOW", "REJECT_K", "Motion", "ShotReconstructor", "TemporalReconstruction",
-           "check_shot", "first_stage", "reconstruct_window", "second_stage"]
+__all__ = ["BOXES", "DEFAULT_WINDOW", "FIRST_STAGE_RADIUS", "REJECT_K", "Motion", "ShotReconstructor",
+           "TemporalReconstruction", "check_shot", "first_stage", "reconstruct_window", "second_stage"]
 
 #: The frames of a window by default: frame t and two on each side.
 DEFAULT_WINDOW = 5
+#: How many frames to each side the first stage accumulates (a wider window's further frames are blended by the
+#: second stage): the denoiser gains more from one input with the samples of five frames than from blending the
+#: outputs of three-frame inputs (docs/decisions.md).
+FIRST_STAGE_RADIUS = 2
 #: The boxes (pixels a side) over which a neighbour's luminance is compared with frame t's: a small one for local
 #: changes (a shadow's edge), larger ones for changes too faint to show against one small box's noise (a light
 #: switched off dims the whole room a little).
@@ -341,11 +346,13 @@ def check_shot(frames: Sequence[Frame | None], names: Sequence[str], reference: 
 
 def _radii(window: int) -> tuple[int, int]:
     """A window of ``window`` frames (odd, >= 1) as the two stages' radii: the first accumulates frames up to
-    ``r1`` away, the second blends reconstructions up to ``r2`` away, r1 + r2 = (window - 1) / 2."""
+    ``r1`` = min(radius, FIRST_STAGE_RADIUS) away, the second blends reconstructions up to ``r2`` away, r1 + r2 =
+    (window - 1) / 2."""
     if window < 1 or window % 2 == 0:
         raise ValueError(f"the window must be an odd number of frames >= 1, got {window}")
     radius = (window - 1) // 2
-    return (radius + 1) // 2, radius // 2
+    first = min(radius, FIRST_STAGE_RADIUS)
+    return first, radius - first
 
 
 def first_stage(frames: Sequence[Frame | None], centre: int, method: str | None = None,

@@ -129,19 +129,27 @@ def test_window_and_shot_reconstructor_agree() -> None:
 def test_a_shot_in_order_keeps_only_its_window_and_gives_each_window() -> None:
     """ShotReconstructor forgets a frame and a first stage before the next first stage runs, as soon as no later
     window needs them; each frame is what reconstruct_window gives it, also a frame asked for again, out of order.
-    A moving shot never computes the still neighbours' box means."""
-    truths = [_truth(0.5 * i) for i in range(7)]
+    A moving shot never computes the still neighbours' box means. Window 7: first stages over frames n - 2 .. n + 2,
+    the second stage over the first stages of n - 1 .. n + 1."""
+    truths = [_truth(0.5 * i) for i in range(9)]
     frames = _shot(truths, _motion(0.5), seed=13)
-    shot = ShotReconstructor(lambda n: frames[n] if 0 <= n < len(frames) else None, 5)
+    shot = ShotReconstructor(lambda n: frames[n] if 0 <= n < len(frames) else None, 7)
     images = []
     for n in range(len(frames)):
         images.append(shot.reconstruct(n).image)
-        assert sorted(shot._frames) == list(range(n - 2, n + 3))  # frames of the first stages n - 1 .. n + 1
+        assert sorted(shot._frames) == list(range(n - 3, n + 4))  # frames of the first stages n - 1 .. n + 1
         assert sorted(shot._firsts) == list(range(n - 1, n + 2))
-    for n in (2, 3, 4):
-        np.testing.assert_array_equal(images[n], reconstruct_window(frames[n - 2:n + 3], 2).image)
-    np.testing.assert_array_equal(shot.reconstruct(3).image, images[3])
+    for n in (3, 4, 5):
+        np.testing.assert_array_equal(images[n], reconstruct_window(frames[n - 3:n + 4], 3).image)
+    np.testing.assert_array_equal(shot.reconstruct(4).image, images[4])
     assert all(not f._temporal_stats.boxes for f in frames)
+
+
+@pytest.mark.parametrize(("window", "radii"), [(1, (0, 0)), (3, (1, 0)), (5, (2, 0)), (7, (2, 1)), (9, (2, 2))])
+def test_the_first_stage_reaches_two_frames_and_the_second_the_rest(window: int, radii: tuple[int, int]) -> None:
+    from gradsep.model import temporal
+
+    assert temporal._radii(window) == radii
 
 
 # ------------------------------------------------------------------------------------------------ quality
@@ -169,10 +177,10 @@ def test_light_switched_off_is_not_ghosted() -> None:
     assert relmse(tem[4][pool], off[pool]) <= 1.1 * relmse(per[4][pool], off[pool])
 
 
-@pytest.mark.parametrize("shift", [2.0, 1.5])
+@pytest.mark.parametrize("shift", [2.0, 1.25])
 def test_moving_shot_is_warped_and_disocclusions_are_not_ghosted(shift: float) -> None:
     """Whole-pixel motion gains; motion between pixels keeps frame t's own samples (GRID_TOLERANCE): the frames are
-    then exactly the per-frame method's."""
+    then exactly the per-frame method's (1.25 px a frame: 2.5 px two frames away, between pixels too)."""
     truths = [_truth(shift * i) for i in range(7)]
     frames = _shot(truths, _motion(shift), seed=11)
     per, tem = _per_frame(frames), _temporal(frames)
@@ -191,7 +199,7 @@ def test_moving_shot_is_warped_and_disocclusions_are_not_ghosted(shift: float) -
 
 def test_a_neighbour_wholly_off_the_grid_is_not_warped_or_tested(monkeypatch) -> None:
     """A camera move between pixels: the neighbours contribute nothing, so their statistics and warps are skipped
-    (the result is the per-frame one, test_moving_shot_is_warped_and_disocclusions_are_not_ghosted[1.5])."""
+    (the result is the per-frame one, test_moving_shot_is_warped_and_disocclusions_are_not_ghosted[1.25])."""
     from gradsep.model import temporal
 
     truths = [_truth(0.5 * i) for i in range(3)]
