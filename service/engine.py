@@ -157,6 +157,7 @@ def warm_up_frame(size: int = 16, moving: bool = False) -> Any:
     ``moving``: with motion vectors all valid, a pixel to the right per frame plus half the temporal grid tolerance
     (model.temporal.GRID_TOLERANCE): on the grid, so the neighbours are warped, but not integral, so bilinearly."""
     from gradsep.model.frame import Features, Frame, Motion
+    from gradsep.model.temporal import GRID_TOLERANCE
 
     y, x = np.mgrid[0:size, 0:size].astype(np.float32) / size
     layers = {}
@@ -170,8 +171,6 @@ def warm_up_frame(size: int = 16, moving: bool = False) -> Any:
     out = Frame(layers, features)
     if moving:
         step = np.zeros((size, size, 2), np.float32)
-        from gradsep.model.temporal import GRID_TOLERANCE
-
         step[..., 0] = 1.0 + GRID_TOLERANCE / 2
         valid = np.ones((size, size), np.float32)
         out.motion = Motion(-step, step, valid, valid)

@@ -43,10 +43,13 @@ class ServiceError(Exception):
 
 
 def body_too_large(limit: int, received: int | None = None) -> ServiceError:
-    details = {"max_body_bytes": limit}
+    """413 for a body over the limit, with ``Connection: close``: the rest of the body is never read, and a kept-alive
+    connection would have uvicorn read it (to discard it) for as long as the client sends."""
+    details: dict[str, Any] = {"max_body_bytes": limit}
     if received is not None:
         details["received_bytes"] = received
-    return ServiceError(413, "body_too_large", f"request body is over the limit of {limit} bytes", details)
+    return ServiceError(413, "body_too_large", f"request body is over the limit of {limit} bytes", details,
+                        {"Connection": "close"})
 
 
 # Codes for statuses Starlette/FastAPI raise themselves (routing, multipart parsing).

@@ -195,8 +195,7 @@ class BodyLimitMiddleware:
                     break
         except TimeoutError:
             pass  # the answer is the 413 all the same, without the count when the first part did not arrive
-        err = window_too_large(self.limit, first, declared)
-        return ServiceError(err.status, err.code, err.message, err.details, {"Connection": "close"})
+        return window_too_large(self.limit, first, declared)
 
     def _refusal(self, declared: str | None) -> ServiceError | None:
         """The answer to a Content-Length header that is invalid (400) or over the limit (413); None if fine."""
@@ -206,8 +205,7 @@ class BodyLimitMiddleware:
         if size is None or size < 0:
             return ServiceError(400, "bad_request", f"invalid Content-Length header {declared[:40]!r}", None)
         if size > self.limit:
-            err = body_too_large(self.limit, size)
-            return ServiceError(err.status, err.code, err.message, err.details, {"Connection": "close"})
+            return body_too_large(self.limit, size)
         return None
 
 
@@ -263,10 +261,7 @@ class _CountedReceive:
             if not message.get("more_body", False):
                 self.end()
             if self.received > self.limit:
-                # Connection: close, so uvicorn stops reading: a kept-alive connection would read the rest of
-                # the body (to discard it) for as long as the client keeps sending
-                err = body_too_large(self.limit) if self.first is None else window_too_large(self.limit, self.first)
-                raise ServiceError(err.status, err.code, err.message, err.details, {"Connection": "close"})
+                raise body_too_large(self.limit) if self.first is None else window_too_large(self.limit, self.first)
         elif message["type"] == "http.disconnect":
             self.end()
         return message

@@ -19,7 +19,7 @@ from gradsep.model.errors import FrameError
 from gradsep.model.exr_read import HeaderInfo, ReadLimits, read_frame, read_header
 from gradsep.model.frame import shot_layout
 from gradsep.service.bodies import Upload
-from gradsep.service.errors import ServiceError
+from gradsep.service.errors import ServiceError, body_too_large
 
 #: The multipart fields of the neighbours before and after frame t, and the offset sign of each.
 SIDES: dict[str, int] = {"previous": -1, "next": 1}
@@ -180,11 +180,10 @@ class FirstPart:
 
 
 def window_too_large(limit: int, first: FirstPart, received: int | None = None) -> ServiceError:
-    """413 for a multipart body over the limit, saying how many frames the size of its first part fit."""
-    details: dict[str, Any] = {"max_body_bytes": limit}
-    if received is not None:
-        details["received_bytes"] = received
-    size = first.size
+    """:func:`service.errors.body_too_large` for a multipart body, saying how many frames the size of its first
+    part fit."""
+    base = body_too_large(limit, received)
+    details, size = dict(base.details), first.size
     if size is None:
         fit = "its first part alone is over the limit: not one frame of that size fits"
         details["frames_fit"] = 0
@@ -192,4 +191,4 @@ def window_too_large(limit: int, first: FirstPart, received: int | None = None) 
         details.update(frame_bytes=size, frames_fit=limit // size)
         fit = (f"{limit // size} frame(s) of {size} bytes (the size of its first part) fit: send a smaller window "
                "or split the frames")
-    return ServiceError(413, "body_too_large", f"request body is over the limit of {limit} bytes; {fit}", details)
+    return ServiceError(base.status, base.code, f"{base.message}; {fit}", details, base.headers)
