@@ -107,7 +107,8 @@ def _markdown(result: ShotResult, rows: Sequence[dict[str, Any]], command: str) 
     smallest = min(r.relmse for r in result.rows)
     lines = [f"# Shot evaluation: {c.scene}, frames {first}-{last}", "",
              f"{len(result.numbers)} frames, {_budget_text(result)}, temporal window {c.window}; two independent "
-             f"references of {result.ref_spp} spp per frame (Mitsuba's path tracer). RelMSE has the references' noise "
+             f"references of {result.ref_spp} spp per frame (Mitsuba's path tracer){_pooled_text(result)}. "
+             "RelMSE has the references' noise "
              "removed (product estimator) and is the geometric mean over the frames; flicker is the same estimator "
              "on the frame-to-frame change of the error along the motion, the mean over consecutive pairs. "
              "Disoccluded and after-a-change figures are ratios to the same frames reconstructed per frame; a "
@@ -124,6 +125,15 @@ def _markdown(result: ShotResult, rows: Sequence[dict[str, Any]], command: str) 
              "Crops, animated (reference first): ![crops](crops.png)", "",
              f"Made with `{command}` on {_machine()}."]
     return "\n".join(lines) + "\n"
+
+
+def _pooled_text(result: ShotResult) -> str:
+    """The clause naming the frames whose references were pooled (one scene), or nothing."""
+    if not result.pooled:
+        return ""
+    groups = ", ".join(f"{g[0]}-{g[-1]}" if g == list(range(g[0], g[-1] + 1)) else " ".join(map(str, g))
+                       for g in result.pooled)
+    return f", pooled over the frames of one scene (every parameter equal: {groups})"
 
 
 def _machine() -> str:
@@ -150,6 +160,7 @@ def _json(result: ShotResult, rows: Sequence[dict[str, Any]], command: str) -> b
             "seconds": c.seconds, "spp": c.spp, "ref_spp": result.ref_spp, "window": c.window, "seed": c.seed,
             "size": c.size, "animate": list(c.animate), "defines": list(c.defines), "summary": rows,
             "changes": [result.numbers[t] for t in result.changes], "reference_floors": result.floors,
+            "pooled_references": result.pooled,
             "per_frame": {r.name: {"relmse": r.errors, "flicker": r.flickers, "seconds": r.seconds}
                           for r in result.rows}}
     return json.dumps(_finite(data), indent=1, default=str, allow_nan=False).encode()

@@ -20,7 +20,7 @@ import subprocess
 import sys
 import tempfile
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -200,6 +200,7 @@ class ShotReferences:
 
         self.shot = shot
         self.window = _OneScene(config)
+        self._groups: list[list[int]] | None = None
         code = sources_sha256(REFERENCE_SOURCES)
         self.sources = []
         for n in shot.frames:
@@ -223,9 +224,11 @@ class ShotReferences:
         return render_pass
 
     def truth(self, spp: int, frames: list) -> tuple[ShotTruth, list[float]]:
-        """Both references of every frame at ``spp`` each (rendering the passes not cached), and each frame's
-        floor (model.metrics.reference_floor)."""
-        first, second, floors = [], [], []
+        """Both references of every frame at ``spp`` each (rendering the passes not cached), pooled over the
+        frames of one scene (:meth:`same_scene`), and each frame's floor (model.metrics.reference_floor)."""
+        from gradsep.model.metrics import reference_floor
+
+        first, second = [], []
         for i, (n, source) in enumerate(zip(self.shot.frames, self.sources, strict=True)):
             pair = source.pair(spp)
             self.window.forget()
@@ -235,8 +238,48 @@ class ShotReferences:
                                    f"frame {want[:2]}")
             first.append(pair.first["total"])
             second.append(pair.second["total"])
-            floors.append(pair.floor())
-        return ShotTruth(first, second, frames), floors
+        for group in self.same_scene():
+            pooled = [np.mean([refs[k] for k in group], axis=0, dtype=np.float64).astype(np.float32)
+                      for refs in (first, second)]
+            for k in group:
+                first[k], second[k] = pooled
+        return ShotTruth(first, second, frames), [reference_floor(a, b) for a, b in zip(first, second, strict=True)]
+
+    def same_scene(self) -> list[list[int]]:
+        """The groups (frame indices, two or more) of frames whose scenes are equal in every parameter
+        (:func:`scene_content`): their truth is one image, so each gets the mean of the group's references, the
+        samples of all of them (a static stretch of a shot: the frames before a light is switched off). Without
+        this, a reference's noise far above the pipelines' error adds the same positive term to every pipeline's
+        RelMSE and pulls their ratios towards 1 (docs/evaluation.md)."""
+        if self._groups is None:
+            keys: dict[str, list[int]] = {}
+            for i, n in enumerate(self.shot.frames):
+                key = scene_content(self.window.get(self.shot, n))
+                self.window.forget()
+                if key is not None:
+                    keys.setdefault(key, []).append(i)
+            self._groups = [group for group in keys.values() if len(group) > 1]
+        return self._groups
+
+
+def scene_content(loaded: Any) -> str | None:
+    """A hash of every parameter of a loaded scene (``mitsuba.traverse``: shapes' vertices and transforms,
+    materials, textures, emitters, the sensor), by name: two frames with the same hash render the same image in
+    expectation. None where a parameter is of a kind this does not read (that frame is then pooled with none)."""
+    import hashlib
+
+    import mitsuba as mi
+
+    params = mi.traverse(loaded.scene)
+    digest = hashlib.sha256()
+    for key in sorted(params.keys()):
+        value = params[key]
+        array = np.asarray(value.matrix if hasattr(value, "matrix") else value)
+        if array.dtype.kind not in "biuf":
+            return None
+        digest.update(f"{key}:{array.dtype}:{array.shape}".encode())
+        digest.update(np.ascontiguousarray(array).tobytes())
+    return digest.hexdigest()
 
 
 class _OneScene:
@@ -277,6 +320,7 @@ class ShotResult:
     baseline: str  # the flicker baseline: the first plan's per-frame row
     per_frame_of: dict[str, str]  # row -> the per-frame row of the same frames
     ref_spp: int = 0  # the spp of each reference the scores used
+    pooled: list[list[int]] = field(default_factory=list)  # frame numbers whose references were pooled (one scene)
 
 
 def _models(models_dir: Path) -> Any:
@@ -358,4 +402,5 @@ def evaluate_shot(config: ShotConfig, plans: Sequence[Plan] = PLANS,
         log(f"raising the references to {raised} spp each (median floor {np.median(floors):.3g})")
         spp = raised
     return ShotResult(config, list(shot.frames), rows, {o.name: o.images for o in outputs}, truth, floors,
-                      changed_frames(truth), plans[0].name, {o.name: o.plan for o in outputs}, spp)
+                      changed_frames(truth), plans[0].name, {o.name: o.plan for o in outputs}, spp,
+                      [[shot.frames[k] for k in group] for group in references.same_scene()])

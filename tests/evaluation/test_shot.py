@@ -240,7 +240,8 @@ def test_the_report_of_a_constructed_shot(tmp_path):
     config = ShotConfig(scene="procedural:1", frames="1-4", output=tmp_path / "r", cache_dir=tmp_path / "c",
                         models_dir=tmp_path, spp=1, window=3)
     result = ShotResult(config, [1001, 1002, 1003, 1004], rows, images, truth, [1e-4] * frames, [], "primal",
-                        {"primal": "primal", "primal+temporal": "primal", "plan": "plan"}, 8)
+                        {"primal": "primal", "primal+temporal": "primal", "plan": "plan"}, 8,
+                        pooled=[[1001, 1002, 1003, 1004]])
     summary = {r["pipeline"]: r for r in summary_rows(result)}
     assert summary["primal"]["best_per_frame"] == "primal"
     assert summary["primal+temporal"]["relmse_vs_best_per_frame"] == pytest.approx(0.25)
@@ -255,7 +256,10 @@ def test_the_report_of_a_constructed_shot(tmp_path):
     assert data["per_frame"]["primal"]["flicker"][0] is None  # no pair ends at the first frame
     with Image.open(paths["crops"]) as animation:
         assert animation.n_frames == frames
-    assert "| primal + oidn, temporal (3 frames) | " in paths["report"].read_text()
+    report = paths["report"].read_text()
+    assert "| primal + oidn, temporal (3 frames) | " in report
+    assert "pooled over the frames of one scene (every parameter equal: 1001-1004)" in report
+    assert data["pooled_references"] == [[1001, 1002, 1003, 1004]]
 
 
 def test_a_procedural_familys_references_are_keyed_by_the_frames_instant_not_its_number(tmp_path: Path) -> None:
@@ -270,3 +274,47 @@ def test_a_procedural_familys_references_are_keyed_by_the_frames_instant_not_its
         references = ShotReferences(config, check_shot_config(config), EvalCache(tmp_path / "c"), print)
         scenes.append(references.sources[4].key["scene"])
     assert scenes[0] != scenes[1] and all("t=" in s for s in scenes)
+
+
+@pytest.mark.render
+def test_the_references_of_frames_of_one_scene_are_pooled(tmp_path: Path) -> None:
+    """A light-off shot of four frames: the lamp is on in frames 1-2 and off in 3-4, nothing else changes, so each
+    pair is one scene and shares the mean of its references (twice the samples: about half the floor); a moving
+    object's frames are all different scenes and keep their own."""
+    from gradsep.evaluation.cache import EvalCache
+    from gradsep.evaluation.shots import ShotConfig, ShotReferences, check_shot_config
+    from gradsep.model.metrics import reference_floor
+
+    def references(scene: str) -> ShotReferences:
+        config = ShotConfig(scene=scene, frames="1-4", output=tmp_path / "r", cache_dir=tmp_path / "c",
+                            models_dir=tmp_path, spp=1, size=(12, 8), ref_spp=4)
+        return ShotReferences(config, check_shot_config(config), EvalCache(tmp_path / "c"), lambda m: None)
+
+    assert references("procedural:moving:3").same_scene() == []
+    lightoff = references("procedural:lightoff:3")
+    assert lightoff.same_scene() == [[0, 1], [2, 3]]
+    frames = [_FakeFrame(8, 12)] * 4
+    truth, floors = lightoff.truth(4, frames)
+    own = [source.pair(4) for source in lightoff.sources]
+    for group in ([0, 1], [2, 3]):
+        for k in group:
+            np.testing.assert_allclose(truth.first[k], np.mean([own[j].first["total"] for j in group], axis=0),
+                                       rtol=1e-6)
+            np.testing.assert_allclose(truth.second[k], np.mean([own[j].second["total"] for j in group], axis=0),
+                                       rtol=1e-6)
+            assert floors[k] == pytest.approx(reference_floor(truth.first[k], truth.second[k]))
+    assert not np.array_equal(truth.first[1], truth.first[2])  # the lamp switched off between them
+
+
+class _FakeFrame:
+    """What ShotReferences.truth reads of a rendered frame: its size."""
+
+    def __init__(self, h: int, w: int) -> None:
+        self.shape = (h, w, 3)
+
+    def combined(self) -> _FakeFrame:
+        return self
+
+    @property
+    def base(self) -> np.ndarray:
+        return np.zeros(self.shape, np.float32)
