@@ -50,8 +50,9 @@ from gradsep.model.reconstruct import Reconstruction, reconstruct
 from gradsep.model.robust import box_mean, luminance
 from gradsep.model.warp import Sampler, chain
 
-__all__ = ["BOXES", "DEFAULT_WINDOW", "FIRST_STAGE_RADIUS", "REJECT_K", "Motion", "ShotReconstructor",
-           "TemporalReconstruction", "check_shot", "first_stage", "reconstruct_window", "second_stage"]
+__all__ = ["BOXES", "DEFAULT_WINDOW", "FIRST_STAGE_RADIUS", "MOVED_TOLERANCE", "REJECT_K", "Motion",
+           "ShotReconstructor", "TemporalReconstruction", "check_shot", "first_stage", "moved_stage",
+           "reconstruct_window", "second_stage"]
 
 #: The frames of a window by default: frame t and two on each side.
 DEFAULT_WINDOW = 5
@@ -74,6 +75,14 @@ FEATURE_BOX = 3
 #: between pixels, its inputs' noise is correlated across pixels, which OIDN keeps as detail, and its result blurs
 #: (a camera dolly, docs/decisions.md). Elsewhere frame t keeps its own.
 GRID_TOLERANCE = 0.02
+#: A moved neighbour (its pixel between frame t's: a camera move) joins through its result, demodulated, where its
+#: albedo is within this of frame t's (every channel) and its normal's cosine with frame t's at least 1 minus it,
+#: pixel by pixel: a tap that mixes two surfaces, or shading that turned with the surface, is left out.
+MOVED_TOLERANCE = 0.01
+#: Added to the albedo before a moved neighbour's result is divided by its own and multiplied by frame t's, so
+#: black albedo (a light, a miss) passes the radiance through.
+ALBEDO_FLOOR = 0.02
+_F32_MAX = np.float32(np.finfo(np.float32).max)
 
 
 @dataclass
@@ -277,11 +286,41 @@ class _Agreement:
 
     samplers: dict[int, Sampler] = field(default_factory=dict)
     accept: dict[str, dict[int, np.ndarray]] = field(default_factory=dict)
+    #: per layer and offset, the moved neighbours' pixels (off the grid) that agree (:func:`_moved_accept`)
+    moved: dict[str, dict[int, np.ndarray]] = field(default_factory=dict)
+    #: this frame's albedo (the moved blend demodulates by it); None without one
+    albedo: np.ndarray | None = None
+
+    def moved_offsets(self) -> list[int]:
+        """The offsets with at least one moved pixel accepted in some layer."""
+        return sorted({o for masks in self.moved.values() for o, m in masks.items() if m.any()})
 
     def fractions(self) -> dict[int, float]:
         """Per offset, the fraction of pixels accepted (mean over layers)."""
         per = {o: [float(np.mean(m[o])) for m in self.accept.values() if o in m] for o in self.samplers}
         return {o: float(np.mean(v)) if v else 0.0 for o, v in per.items()}
+
+
+def _moved_pixels(frame: Frame, other: Frame, sample: Sampler, on_grid: np.ndarray) -> np.ndarray | None:
+    """Where a neighbour's pixel lies between frame t's (valid, off the grid) and its own albedo and normal,
+    sampled there, match frame t's within MOVED_TOLERANCE; None without both features in both frames, or without
+    such a pixel. Pixel by pixel, not as FEATURE_BOX means: the moved neighbour's result is blended as it is, so a
+    tap across an edge of the texture or the geometry must not count."""
+    mine, theirs = frame.features, other.features
+    if mine is None or theirs is None or any(f is None for f in (mine.albedo, mine.normal, theirs.albedo,
+                                                                   theirs.normal)):
+        return None
+    pixels = sample.valid & ~on_grid
+    if not pixels.any():
+        return None
+    albedo = sample(np.asarray(theirs.albedo, np.float32))
+    for c in range(albedo.shape[-1]):
+        pixels &= np.abs(albedo[..., c] - mine.albedo[..., c]) <= MOVED_TOLERANCE  # type: ignore[index]
+    a, b = np.asarray(mine.normal, np.float32), sample(np.asarray(theirs.normal, np.float32))
+    dot = a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
+    norms = np.sqrt((a * a).sum(-1) * (b * b).sum(-1))
+    pixels &= dot >= (1.0 - MOVED_TOLERANCE) * norms
+    return pixels
 
 
 def _accumulate(frames: Sequence[Frame | None], centre: int, chained: dict[int, Sampler | None],
@@ -290,11 +329,22 @@ def _accumulate(frames: Sequence[Frame | None], centre: int, chained: dict[int, 
     ``chained``: per offset, where that neighbour's pixels lie (:func:`model.warp.chain`)."""
     frame = frames[centre]
     assert frame is not None
-    agreement = _Agreement({o: s for o, s in chained.items() if s is not None})
+    features = frame.features
+    agreement = _Agreement({o: s for o, s in chained.items() if s is not None},
+                           albedo=None if features is None else features.albedo)
     own = _stats(frame)
     agree = {o: s.on_grid(GRID_TOLERANCE) for o, s in agreement.samplers.items()}
-    # a neighbour with no pixel on the grid (a camera move) adds nothing: it is neither warped nor tested
-    others = {o: _stats(frames[centre + o]) for o in agree if agree[o].any()}  # type: ignore[arg-type]
+    moved = {o: _moved_pixels(frame, frames[centre + o], s, agree[o])  # type: ignore[arg-type]
+             for o, s in agreement.samplers.items()}
+    # a neighbour with no pixel on the grid and none moved that agrees adds nothing: it is neither warped nor tested
+    others = {o: _stats(frames[centre + o]) for o in agree  # type: ignore[arg-type]
+              if agree[o].any() or (moved[o] is not None and moved[o].any())}
+    for o, pixels in moved.items():
+        if pixels is not None and o in others:
+            for name in frame.layers:
+                sample = agreement.samplers[o]
+                var = sample(others[o].var[name], squared=True)
+                agreement.moved.setdefault(name, {})[o] = pixels & _agrees(own, others[o], name, sample, var)
     for o, stats in others.items():
         agree[o] &= _features_agree(own, stats, agreement.samplers[o])
     layers: dict[str, Layer] = {}
@@ -306,7 +356,7 @@ def _accumulate(frames: Sequence[Frame | None], centre: int, chained: dict[int, 
                             "its noise is estimated from each pixel's neighbourhood for the temporal rejection")
         sums = _LayerSums.start(layer, own.var[name])
         for offset, mask in agree.items():
-            if offset not in others:
+            if offset not in others or not mask.any():
                 agreement.accept.setdefault(name, {})[offset] = mask  # nowhere
                 continue
             sample, stats = agreement.samplers[offset], others[offset]
@@ -419,6 +469,51 @@ def second_stage(results: Sequence[TemporalReconstruction | None], centre: int) 
     return out
 
 
+def moved_stage(result: TemporalReconstruction, own: TemporalReconstruction,
+                neighbours: dict[int, TemporalReconstruction | None]) -> TemporalReconstruction:
+    """Stage three, for a camera move: ``result`` (frame t's second-stage result) averaged, per layer and pixel,
+    with the first-stage results of its moved neighbours (``own``'s agreement: pixels between frame t's, whose
+    albedo and normal match frame t's and whose inputs pass the rejection test), each demodulated: divided by its
+    own albedo, warped, multiplied by frame t's. A moving camera's neighbours cannot join the first stage: their
+    inputs, warped between pixels, carry noise correlated across pixels, which the denoiser keeps. Their results
+    are smooth, and what a warp between pixels blurs of them is mostly texture, which demodulation takes out
+    (docs/decisions.md, "A moving camera")."""
+    agreement = own.agreement
+    offsets = [] if agreement is None else [o for o in agreement.moved_offsets() if neighbours.get(o) is not None]
+    if agreement is None or not offsets:
+        return result
+    layers: dict[str, np.ndarray] = {}
+    reached = set(result.neighbours)
+    mine = None if agreement.albedo is None else np.asarray(agreement.albedo, np.float32) + np.float32(ALBEDO_FLOOR)
+    for name, image in result.layers.items():
+        total = image.astype(np.float64)  # float64: a sum of values near float32's largest stays finite
+        count = np.ones(image.shape[:2], np.float32)
+        for offset in offsets:
+            mask = agreement.moved.get(name, {}).get(offset)
+            other = neighbours[offset]
+            if mask is None or other is None or not mask.any() or name not in other.layers:
+                continue
+            source = other.layers[name]
+            theirs = None if other.agreement is None else other.agreement.albedo
+            demodulate = mine is not None and theirs is not None
+            if demodulate:
+                source = np.minimum(source / (np.asarray(theirs, np.float32) + np.float32(ALBEDO_FLOOR)), _F32_MAX)
+            warped = agreement.samplers[offset](np.asarray(source, np.float32)).astype(np.float64)
+            if demodulate:
+                warped *= mine
+            total += np.where(mask[..., None], warped, 0.0)
+            count += mask
+            reached.add(offset)
+        total /= count[..., None]
+        layers[name] = np.minimum(total, _F32_MAX).astype(np.float32)
+    image = np.zeros(result.image.shape, np.float64)
+    for layer in layers.values():  # summed in the frame's order, as model.reconstruct sums them
+        image += layer
+    out = TemporalReconstruction(**{**vars(result), "image": image.astype(np.float32), "layers": layers})
+    out.neighbours = sorted(reached)
+    return out
+
+
 def reconstruct_window(frames: Sequence[Frame | None], centre: int, method: str | None = None,
                        alpha: float = DEFAULT_ALPHA, models: LoadedModels | None = None) -> TemporalReconstruction:
     """Reconstruct ``frames[centre]`` from the window ``frames`` (consecutive frames of one shot; None for a
@@ -447,7 +542,11 @@ def reconstruct_window(frames: Sequence[Frame | None], centre: int, method: str 
 
     firsts = [stage_one(centre + o) if abs(o) <= r2 else None for o in range(-centre, len(frames) - centre)]
     lo = max(0, centre - r2)
-    return second_stage(firsts[lo:centre + r2 + 1], centre - lo)
+    result = second_stage(firsts[lo:centre + r2 + 1], centre - lo)
+    own = firsts[centre]
+    assert own is not None
+    moved = [] if own.agreement is None else own.agreement.moved_offsets()
+    return moved_stage(result, own, {o: firsts[centre + o] or stage_one(centre + o) for o in moved})
 
 
 class ShotReconstructor:
@@ -485,13 +584,17 @@ class ShotReconstructor:
     def reconstruct(self, n: int) -> TemporalReconstruction:
         """Frame ``n`` (which must exist) from its window. Frames before ``n - window // 2`` and first stages
         before ``n - r2`` are forgotten first, so their memory is free before the new first stage's."""
-        for cache, keep in ((self._frames, n - self.r1 - self.r2), (self._firsts, n - self.r2)):
+        reach = max(self.r1, self.r2)  # the second stage's neighbours, and the moved ones (the first stage's)
+        for cache, keep in ((self._frames, n - self.r1 - reach), (self._firsts, n - reach)):
             for k in [k for k in cache if k < keep]:
                 del cache[k]
         if self._frame(n) is None:
             raise ValueError(f"frame {n} is missing")
         firsts = [self._first(k) for k in range(n - self.r2, n + self.r2 + 1)]
-        return second_stage(firsts, self.r2)
+        own = firsts[self.r2]
+        assert own is not None
+        moved = [] if own.agreement is None else own.agreement.moved_offsets()
+        return moved_stage(second_stage(firsts, self.r2), own, {o: self._first(n + o) for o in moved})
 
 
 def _check_against(frame: Frame, n: int | str, first: int | str, want: tuple) -> None:

@@ -130,15 +130,16 @@ def test_a_shot_in_order_keeps_only_its_window_and_gives_each_window() -> None:
     """ShotReconstructor forgets a frame and a first stage before the next first stage runs, as soon as no later
     window needs them; each frame is what reconstruct_window gives it, also a frame asked for again, out of order.
     A moving shot never computes the still neighbours' box means. Window 7: first stages over frames n - 2 .. n + 2,
-    the second stage over the first stages of n - 1 .. n + 1."""
+    the second stage over the first stages of n - 1 .. n + 1, the moved stage over those of the neighbours between
+    pixels (at 0.5 px a frame, n - 1 and n + 1; frames two away are on the grid), and n - 2's is still kept."""
     truths = [_truth(0.5 * i) for i in range(9)]
     frames = _shot(truths, _motion(0.5), seed=13)
     shot = ShotReconstructor(lambda n: frames[n] if 0 <= n < len(frames) else None, 7)
     images = []
     for n in range(len(frames)):
         images.append(shot.reconstruct(n).image)
-        assert sorted(shot._frames) == list(range(n - 3, n + 4))  # frames of the first stages n - 1 .. n + 1
-        assert sorted(shot._firsts) == list(range(n - 1, n + 2))
+        assert sorted(shot._firsts) == list(range(max(n - 2, -1), n + 2))
+        assert sorted(shot._frames) == list(range(max(n - 4, -3), n + 4))  # the frames of those first stages
     for n in (3, 4, 5):
         np.testing.assert_array_equal(images[n], reconstruct_window(frames[n - 3:n + 4], 3).image)
     np.testing.assert_array_equal(shot.reconstruct(4).image, images[4])
@@ -179,41 +180,103 @@ def test_light_switched_off_is_not_ghosted() -> None:
 
 @pytest.mark.parametrize("shift", [2.0, 1.25])
 def test_moving_shot_is_warped_and_disocclusions_are_not_ghosted(shift: float) -> None:
-    """Whole-pixel motion gains; motion between pixels keeps frame t's own samples (GRID_TOLERANCE): the frames are
-    then exactly the per-frame method's (1.25 px a frame: 2.5 px two frames away, between pixels too)."""
+    """Whole-pixel motion gains through the first stage; motion between pixels (1.25 px a frame: 2.5 px two frames
+    away, between pixels too) through the moved stage, the neighbours' results; the pixels that entered the frame
+    are not ghosted either way."""
     truths = [_truth(shift * i) for i in range(7)]
     frames = _shot(truths, _motion(shift), seed=11)
     per, tem = _per_frame(frames), _temporal(frames)
     inner = slice(2, 5)
     ratio = (_geomean([relmse(tem[t], truths[t]) for t in range(7)[inner]])
              / _geomean([relmse(per[t], truths[t]) for t in range(7)[inner]]))
-    if shift.is_integer():
-        assert ratio <= 0.8
-    else:
-        for t in range(7):
-            np.testing.assert_array_equal(tem[t], per[t])
+    assert ratio <= 0.8
     edge = slice(0, math.ceil(shift))  # the columns that entered the frame: frame t - 1 has no pixel there
     for t in range(2, 5):
         assert relmse(tem[t][:, edge], truths[t][:, edge]) <= 1.1 * relmse(per[t][:, edge], truths[t][:, edge])
 
 
-def test_a_neighbour_wholly_off_the_grid_is_not_warped_or_tested(monkeypatch) -> None:
-    """A camera move between pixels: the neighbours contribute nothing, so their statistics and warps are skipped
-    (the result is the per-frame one, test_moving_shot_is_warped_and_disocclusions_are_not_ghosted[1.25])."""
+def test_a_neighbour_wholly_off_the_grid_joins_only_the_moved_stage(monkeypatch) -> None:
+    """A camera move between pixels: the first stage accumulates nothing (frame t's inputs as they were) and the
+    neighbours' agreeing pixels are marked for the moved stage; without features, which tell a tap across an edge,
+    the neighbours are neither warped nor tested."""
     from gradsep.model import temporal
 
     truths = [_truth(0.5 * i) for i in range(3)]
     frames = _shot(truths, _motion(0.5), seed=3)
+    bare = [Frame(f.layers, None) for f in frames]
+    for frame, source in zip(bare, frames, strict=True):
+        frame.motion = source.motion
     counted = []
     stats = temporal._stats
     monkeypatch.setattr(temporal, "_stats", lambda frame: counted.append(frame) or stats(frame))
-    chained = {o: chain(frames, 1, o) for o in (-1, 1)}
-    out, agreement = temporal._accumulate(frames, 1, chained, [])
-    assert counted == [frames[1]]
-    assert all(not mask.any() for per in agreement.accept.values() for mask in per.values())
-    assert set(agreement.accept[next(iter(frames[1].layers))]) == {-1, 1}
-    for name, layer in frames[1].layers.items():
-        np.testing.assert_array_equal(out.layers[name].base, layer.base)
+    for shot, tested in ((frames, 3), (bare, 1)):
+        counted.clear()
+        chained = {o: chain(shot, 1, o) for o in (-1, 1)}
+        out, agreement = temporal._accumulate(shot, 1, chained, [])
+        assert len(counted) == tested
+        assert all(not mask.any() for per in agreement.accept.values() for mask in per.values())
+        assert set(agreement.accept[next(iter(shot[1].layers))]) == {-1, 1}
+        assert agreement.moved_offsets() == ([-1, 1] if shot is frames else [])
+        for name, layer in shot[1].layers.items():
+            np.testing.assert_array_equal(out.layers[name].base, layer.base)
+
+
+def test_a_camera_move_between_pixels_keeps_texture_and_does_not_ghost_a_switched_light() -> None:
+    """The moved stage under a camera turning 1.25 px a frame: a sharp albedo edge (texture) is neither blurred nor
+    doubled (the taps across it fail the albedo test; elsewhere the results are demodulated), and a lamp switched
+    off mid-shot leaves no light in the frames after the switch (the neighbours' inputs fail the rejection test)."""
+    shift = 1.25
+    yy, xx = np.mgrid[0:SIZE, 0:SIZE].astype(np.float64)
+
+    def albedo(i: int) -> np.ndarray:
+        stripes = 0.2 + 0.6 * ((((xx - shift * i) // 3) % 2) == 0)  # 3-pixel stripes: an edge every 3 columns
+        return np.repeat(stripes[..., None], 3, axis=-1).astype(np.float32)
+
+    lamps = [1.0] * 4 + [0.0] * 4
+    truths = [_truth(shift * i, lamp) * albedo(i) for i, lamp in enumerate(lamps)]
+    frames = _shot(truths, _motion(shift), seed=17)
+    for i, frame in enumerate(frames):
+        frame.features = Features(albedo=albedo(i), normal=frame.features.normal)
+    per, tem = _per_frame(frames), _temporal(frames)
+    steady = [t for t in range(2, 6) if t not in (4, 5)]
+    assert _geomean([relmse(tem[t], truths[t]) for t in steady]) <= 0.9 * _geomean(
+        [relmse(per[t], truths[t]) for t in steady])
+    for t in (4, 5):  # after the switch
+        assert relmse(tem[t], truths[t]) <= 1.1 * relmse(per[t], truths[t]), t
+
+
+@pytest.mark.parametrize("level", [1e-8, 1.0, 1e6, 1e38])
+def test_the_moved_stage_blends_illumination_and_puts_frame_ts_texture_back(level: float) -> None:
+    """A neighbour half a pixel away whose result is smooth light times a 1-pixel stripe texture: blended
+    demodulated, the output is frame t's texture times the mean light (no stripe blurred into its neighbours), at any
+    radiance and finite at float32's largest; pixels the agreement leaves out keep frame t's own."""
+    from gradsep.model.temporal import TemporalReconstruction, _Agreement, moved_stage
+    from gradsep.model.warp import Sampler, grid
+
+    size = 16
+    rows, cols = grid(size, size)
+    stripes = np.repeat((0.2 + 0.6 * (np.arange(size) % 2))[None, :, None], size, 0).repeat(3, -1)
+    mine_albedo, their_albedo = stripes.astype(np.float32), stripes[:, ::-1].astype(np.float32)  # shifted a pixel
+    light = np.float32(level) * np.ones((size, size, 3), np.float32)
+    own_layer = light * (mine_albedo + 0.02)
+    their_layer = light * (their_albedo + 0.02)
+    sampler = Sampler(rows, cols + 0.5, np.ones((size, size), bool))
+    moved = np.ones((size, size), bool)
+    moved[:, :4] = False
+    agreement = _Agreement({1: sampler}, moved={"color": {1: moved}}, albedo=mine_albedo)
+
+    def result(layer: np.ndarray, agree: _Agreement) -> TemporalReconstruction:
+        out = TemporalReconstruction(layer, {"color": layer}, {}, "oidn")
+        out.agreement = agree
+        return out
+
+    own = result(own_layer, agreement)
+    other = result(their_layer, _Agreement(albedo=their_albedo))
+    out = moved_stage(own, own, {1: other})
+    assert out.neighbours == [1] and np.isfinite(out.image).all()
+    inside = np.s_[:, 4:-1]  # the last column's taps are clamped at the edge
+    np.testing.assert_allclose(out.image[inside], own_layer[inside], rtol=1e-5)
+    np.testing.assert_array_equal(out.image[:, :4], own_layer[:, :4])
 
 
 def test_a_neighbours_gradient_counts_only_where_both_its_pixels_correspond() -> None:
