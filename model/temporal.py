@@ -1,6 +1,6 @@
 """Temporal reconstruction: frame t of a shot from a window of frames around it, through their motion vectors.
 
-Two stages. The first brings the neighbours' *inputs* onto frame t's pixels and accumulates them into frame t
+Three stages. The first brings the neighbours' *inputs* onto frame t's pixels and accumulates them into frame t
 before the per-frame method (model/reconstruct.py) runs once on the result:
 
 1. **Warp.** Each neighbour's bases, gradients and variance (``L.var.Y``) are sampled where the motion vectors put
@@ -25,8 +25,16 @@ The second stage averages frame t's first-stage result with its neighbours' firs
 the same way, where the first stage accepted that neighbour. Consecutive outputs that denoised overlapping sample
 sets still differ by what the denoiser made of the samples they do not share; averaging them where the inputs
 agree removes that difference (the flicker) and more of the error. The first stage reaches FIRST_STAGE_RADIUS frames
-to each side (the whole of the default window of five); a wider window's frames beyond are the second stage's, so no
-sample from outside the window reaches frame t.
+to each side (the whole of the default window of five); a wider window's frames beyond are the second stage's, so
+through the first two stages no sample from outside the window reaches frame t (through the third, a moved
+neighbour's first stage brings its own neighbours').
+
+The third is for a camera move, whose neighbours' pixels land between frame t's, where the first stage leaves them
+out: each such neighbour's first-stage result, divided by its albedo (what a warp between pixels blurs of a result
+is mostly texture), is warped and multiplied by frame t's albedo, and averaged in per layer and pixel where its
+albedo and normal match frame t's within MOVED_TOLERANCE and its inputs pass the rejection test above. A shot in
+order (:class:`ShotReconstructor`) computes each frame's first stage once; a stateless window
+(:func:`reconstruct_window`) computes its moved neighbours' too.
 
 Why accumulate inputs, and test them, rather than blend per-frame outputs alone: the inputs' noise is known from
 their variance, so the test rejects on change, not on noise, and the denoiser gets one frame whose noise is lower
