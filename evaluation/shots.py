@@ -267,18 +267,25 @@ def scene_content(loaded: Any) -> str | None:
     materials, textures, emitters, the sensor), by name: two frames with the same hash render the same image in
     expectation. None where a parameter is of a kind this does not read (that frame is then pooled with none)."""
     import hashlib
+    import re
 
     import mitsuba as mi
 
     params = mi.traverse(loaded.scene)
-    digest = hashlib.sha256()
-    for key in sorted(params.keys()):
+    entries = []
+    for key in params.keys():
         value = params[key]
         array = np.asarray(value.matrix if hasattr(value, "matrix") else value)
         if array.dtype.kind not in "biuf":
             return None
-        digest.update(f"{key}:{array.dtype}:{array.shape}".encode())
-        digest.update(np.ascontiguousarray(array).tobytes())
+        # an unnamed object is named by its address, which differs from load to load: the name without it, and
+        # the entries sorted by name and value, so two such objects hash in one order
+        name = re.sub(r"\d{6,}", "#", key)
+        entries.append((f"{name}:{array.dtype}:{array.shape}".encode(), np.ascontiguousarray(array).tobytes()))
+    digest = hashlib.sha256()
+    for name, data in sorted(entries):
+        digest.update(name)
+        digest.update(data)
     return digest.hexdigest()
 
 

@@ -306,6 +306,20 @@ def test_the_references_of_frames_of_one_scene_are_pooled(tmp_path: Path) -> Non
     assert not np.array_equal(truth.first[1], truth.first[2])  # the lamp switched off between them
 
 
+@pytest.mark.render
+def test_a_scenes_content_hash_does_not_see_the_addresses_that_name_unnamed_objects() -> None:
+    """procedural:lightoff:71014's room has unnamed nested objects, which Mitsuba names by their address: two loads
+    of one frame, and two frames before the switch, hash alike; after the switch, not."""
+    from gradsep.evaluation.shots import scene_content
+    from gradsep.renderer.scene import load_scene
+
+    def content(t: str) -> str | None:
+        return scene_content(load_scene("procedural:lightoff:71014", width=12, height=8, defines={"t": t}))
+
+    first = content("0")
+    assert first is not None and first == content("0") == content("0.2") != content("0.6")
+
+
 class _FakeFrame:
     """What ShotReferences.truth reads of a rendered frame: its size."""
 
