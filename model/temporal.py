@@ -493,27 +493,31 @@ def moved_stage(result: TemporalReconstruction, own: TemporalReconstruction,
     layers: dict[str, np.ndarray] = {}
     reached = set(result.neighbours)
     mine = None if agreement.albedo is None else np.asarray(agreement.albedo, np.float32) + np.float32(ALBEDO_FLOOR)
+    floors = {o: None if mine is None or neighbours[o].agreement is None  # type: ignore[union-attr]
+              or neighbours[o].agreement.albedo is None  # type: ignore[union-attr]
+              else np.asarray(neighbours[o].agreement.albedo, np.float32) + np.float32(ALBEDO_FLOOR)  # type: ignore
+              for o in offsets}
     for name, image in result.layers.items():
-        total = image.astype(np.float64)  # float64: a sum of values near float32's largest stays finite
+        total = image.astype(np.float32, copy=True)
         count = np.ones(image.shape[:2], np.float32)
         for offset in offsets:
             mask = agreement.moved.get(name, {}).get(offset)
             other = neighbours[offset]
             if mask is None or other is None or not mask.any() or name not in other.layers:
                 continue
+            theirs = floors[offset]
             source = other.layers[name]
-            theirs = None if other.agreement is None else other.agreement.albedo
-            demodulate = mine is not None and theirs is not None
-            if demodulate:
-                source = np.minimum(source / (np.asarray(theirs, np.float32) + np.float32(ALBEDO_FLOOR)), _F32_MAX)
-            warped = agreement.samplers[offset](np.asarray(source, np.float32)).astype(np.float64)
-            if demodulate:
+            if theirs is not None:  # capped: radiance near float32's largest over a black albedo
+                with np.errstate(over="ignore"):
+                    source = np.minimum(np.divide(source, theirs), _F32_MAX)
+            warped = agreement.samplers[offset](np.asarray(source, np.float32))
+            if theirs is not None:
                 warped *= mine
-            total += np.where(mask[..., None], warped, 0.0)
+            total += np.where(mask[..., None], warped, np.float32(0))  # past float32's largest: inf, clipped below
             count += mask
             reached.add(offset)
         total /= count[..., None]
-        layers[name] = np.minimum(total, _F32_MAX).astype(np.float32)
+        layers[name] = np.minimum(total, _F32_MAX)
     image = np.zeros(result.image.shape, np.float64)
     for layer in layers.values():  # summed in the frame's order, as model.reconstruct sums them
         image += layer

@@ -277,6 +277,11 @@ def test_the_moved_stage_blends_illumination_and_puts_frame_ts_texture_back(leve
     inside = np.s_[:, 4:-1]  # the last column's taps are clamped at the edge
     np.testing.assert_allclose(out.image[inside], own_layer[inside], rtol=1e-5)
     np.testing.assert_array_equal(out.image[:, :4], own_layer[:, :4])
+    black = np.zeros((size, size, 3), np.float32)  # a light seen directly: radiance over a black albedo
+    hot = result(np.full((size, size, 3), 3e38, np.float32), _Agreement(albedo=black))
+    out = moved_stage(own, result(own_layer, _Agreement({1: sampler}, moved={"color": {1: moved}}, albedo=black)),
+                      {1: hot})
+    assert np.isfinite(out.image).all() and (out.image >= 0).all()
 
 
 def test_a_neighbours_gradient_counts_only_where_both_its_pixels_correspond() -> None:
