@@ -347,12 +347,21 @@ def _accumulate(frames: Sequence[Frame | None], centre: int, chained: dict[int, 
     # a neighbour with no pixel on the grid and none moved that agrees adds nothing: it is neither warped nor tested
     others = {o: _stats(frames[centre + o]) for o in agree  # type: ignore[arg-type]
               if agree[o].any() or (moved[o] is not None and moved[o].any())}
+    tested: dict[tuple[int, str], tuple[np.ndarray, np.ndarray]] = {}
+
+    def test(o: int, name: str) -> tuple[np.ndarray, np.ndarray]:
+        """Neighbour ``o``'s warped variance of layer ``name`` and where it passes the rejection test, once for
+        both the first stage and the moved stage."""
+        if (o, name) not in tested:
+            sample = agreement.samplers[o]
+            var = sample(others[o].var[name], squared=True)
+            tested[o, name] = var, _agrees(own, others[o], name, sample, var)
+        return tested[o, name]
+
     for o, pixels in moved.items():
         if pixels is not None and o in others:
             for name in frame.layers:
-                sample = agreement.samplers[o]
-                var = sample(others[o].var[name], squared=True)
-                agreement.moved.setdefault(name, {})[o] = pixels & _agrees(own, others[o], name, sample, var)
+                agreement.moved.setdefault(name, {})[o] = pixels & test(o, name)[1]
     for o, stats in others.items():
         agree[o] &= _features_agree(own, stats, agreement.samplers[o])
     layers: dict[str, Layer] = {}
@@ -369,8 +378,8 @@ def _accumulate(frames: Sequence[Frame | None], centre: int, chained: dict[int, 
                 continue
             sample, stats = agreement.samplers[offset], others[offset]
             other = frames[centre + offset].layers[name]  # type: ignore[union-attr]
-            var = sample(stats.var[name], squared=True)  # warped once: read by the test and the sums
-            accept = mask & _agrees(own, stats, name, sample, var)
+            var, agrees = test(offset, name)  # warped once: read by the test and the sums
+            accept = mask & agrees
             agreement.accept.setdefault(name, {})[offset] = accept
             warped = Layer(sample(other.base), None if other.dx is None else sample(other.dx),
                            None if other.dy is None else sample(other.dy))
