@@ -605,8 +605,10 @@ class ShotReconstructor:
     def reconstruct(self, n: int) -> TemporalReconstruction:
         """Frame ``n`` (which must exist) from its window. Frames before ``n - window // 2`` and first stages
         before ``n - r2`` are forgotten first, so their memory is free before the new first stage's."""
-        reach = max(self.r1, self.r2)  # the second stage's neighbours, and the moved ones (the first stage's)
-        for cache, keep in ((self._frames, n - self.r1 - reach), (self._firsts, n - reach)):
+        # first stages: the second stage's neighbours and the moved ones (as far as the first stage's); frames: those
+        # of the first stages still to compute (an earlier one is kept, so its frames are not needed again)
+        reach = max(self.r1, self.r2)
+        for cache, keep in ((self._frames, n - self.r1 - self.r2), (self._firsts, n - reach)):
             for k in [k for k in cache if k < keep]:
                 del cache[k]
         if self._frame(n) is None:
