@@ -478,12 +478,7 @@ def second_stage(results: Sequence[TemporalReconstruction | None], centre: int) 
             reached.update({offset, *(offset + o for o in other.neighbours)} - {0})
         total /= count[..., None]
         layers[name] = total
-    image = np.zeros(own.image.shape, np.float64)
-    for layer in layers.values():  # summed in the frame's order, as model.reconstruct sums them
-        image += layer
-    out = TemporalReconstruction(**{**vars(own), "image": image.astype(np.float32), "layers": layers})
-    out.neighbours = sorted(reached)
-    return out
+    return _blended(own, layers, reached)
 
 
 def moved_stage(result: TemporalReconstruction, own: TemporalReconstruction,
@@ -501,11 +496,8 @@ def moved_stage(result: TemporalReconstruction, own: TemporalReconstruction,
         return result
     layers: dict[str, np.ndarray] = {}
     reached = set(result.neighbours)
-    mine = None if agreement.albedo is None else np.asarray(agreement.albedo, np.float32) + np.float32(ALBEDO_FLOOR)
-    floors = {o: None if mine is None or neighbours[o].agreement is None  # type: ignore[union-attr]
-              or neighbours[o].agreement.albedo is None  # type: ignore[union-attr]
-              else np.asarray(neighbours[o].agreement.albedo, np.float32) + np.float32(ALBEDO_FLOOR)  # type: ignore
-              for o in offsets}
+    mine = _demodulator(own)
+    floors = {o: None if mine is None else _demodulator(neighbours[o]) for o in offsets}
     for name, image in result.layers.items():
         total = image.astype(np.float32, copy=True)
         count = np.ones(image.shape[:2], np.float32)
@@ -527,12 +519,24 @@ def moved_stage(result: TemporalReconstruction, own: TemporalReconstruction,
             reached.add(offset)
         total /= count[..., None]
         layers[name] = np.minimum(total, _F32_MAX)
-    image = np.zeros(result.image.shape, np.float64)
+    return _blended(result, layers, reached)
+
+
+def _blended(base: TemporalReconstruction, layers: dict[str, np.ndarray],
+             reached: set[int]) -> TemporalReconstruction:
+    """``base`` with its layers replaced by ``layers`` (blended), the image their sum, the neighbours ``reached``."""
+    image = np.zeros(base.image.shape, np.float64)
     for layer in layers.values():  # summed in the frame's order, as model.reconstruct sums them
         image += layer
-    out = TemporalReconstruction(**{**vars(result), "image": image.astype(np.float32), "layers": layers})
+    out = TemporalReconstruction(**{**vars(base), "image": image.astype(np.float32), "layers": layers})
     out.neighbours = sorted(reached)
     return out
+
+
+def _demodulator(result: TemporalReconstruction | None) -> np.ndarray | None:
+    """A result's frame's albedo plus ALBEDO_FLOOR (what the moved stage divides or multiplies by); None without."""
+    albedo = None if result is None or result.agreement is None else result.agreement.albedo
+    return None if albedo is None else np.asarray(albedo, np.float32) + np.float32(ALBEDO_FLOOR)
 
 
 def reconstruct_window(frames: Sequence[Frame | None], centre: int, method: str | None = None,
