@@ -12,17 +12,17 @@ import numpy as np
 
 from gradsep.evaluation.methods import EQUAL_TIME_OFFSETS
 from gradsep.evaluation.timesearch import Attempt, CostModel, SearchRules, TimeSearch
+from gradsep.model.policy import FLOAT32_MAX
 
 __all__ = ["MAX_WAVEFRONT", "PathRenderer", "denoise", "sanitise", "split_features"]
 
-_F32_MAX = float(np.finfo(np.float32).max)
 MAX_WAVEFRONT = (1 << 32) - 1  # Mitsuba's samples per launch
 
 
 def sanitise(image: np.ndarray) -> np.ndarray:
     """Finite and >= 0, as model.reconstruct does for its outputs (the combined-model path bypasses it)."""
     out = np.nan_to_num(np.asarray(image, dtype=np.float32), nan=0.0, posinf=0.0, neginf=0.0)
-    return np.clip(out, 0.0, _F32_MAX)
+    return np.clip(out, 0.0, FLOAT32_MAX)
 
 
 class PathRenderer:

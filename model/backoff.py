@@ -32,6 +32,7 @@ from __future__ import annotations
 import numpy as np
 
 from gradsep.model.frame import VARIANCE_MAX
+from gradsep.model.policy import FLOAT32_MAX
 from gradsep.model.robust import box_mean, lit_level_of_luminance, luminance
 
 #: The box window (pixels a side) over which the change and the variance are averaged.
@@ -41,7 +42,6 @@ NOISE_MARGIN = 4.0
 #: The relative weight's floor on the denoised luminance, as a fraction of the input's lit level (model/robust.py),
 #: so that black pixels do not divide by zero.
 RELATIVE_FLOOR = 0.01
-_F32_MAX = float(np.finfo(np.float32).max)
 
 
 def back_off(noisy: np.ndarray, denoised: np.ndarray, variance: np.ndarray,
@@ -78,7 +78,7 @@ def back_off(noisy: np.ndarray, denoised: np.ndarray, variance: np.ndarray,
         weight[np.asarray(pinned, bool)] = 0.0
     out = x.astype(np.float64)
     out += weight[..., None] * (y - out)
-    return np.clip(out, -_F32_MAX, _F32_MAX).astype(np.float32)
+    return np.clip(out, -FLOAT32_MAX, FLOAT32_MAX).astype(np.float32)
 
 
 def _weight(d2: np.ndarray, var: np.ndarray, keep: np.ndarray | None = None) -> np.ndarray:

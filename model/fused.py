@@ -46,6 +46,7 @@ import numpy as np
 from gradsep.model.frame import Features, Layer
 from gradsep.model.infer import BLEND_PRIOR
 from gradsep.model.onnx_session import ProviderChoice
+from gradsep.model.policy import FLOAT32_MAX
 from gradsep.model.preprocess import (
     RADIANCE_MAX,
     TRANSFER,
@@ -102,7 +103,6 @@ CLEAN_AVERAGE_MODEL = Path("..") / "direct.onnx"
 BLEND_FORMAT = "2"
 INPUT_NAMES = ("data", "gradient")
 OUTPUT_NAME = "weights"
-_F32_MAX = float(np.finfo(np.float32).max)
 
 log = logging.getLogger("gradsep.fused")
 
@@ -201,7 +201,7 @@ def blend(weights: np.ndarray, candidates: list[np.ndarray], scale: float) -> np
     for k, image in enumerate(candidates):
         total += np.where(bad, 1.0 if k == 0 else 0.0, w[k])[..., None] * image
     out = total / scale
-    return np.clip(np.nan_to_num(out, nan=0.0, posinf=_F32_MAX, neginf=0.0), 0.0, _F32_MAX).astype(np.float32)
+    return np.clip(np.nan_to_num(out, nan=0.0, posinf=FLOAT32_MAX, neginf=0.0), 0.0, FLOAT32_MAX).astype(np.float32)
 
 
 def disagreement(refined: np.ndarray, second: np.ndarray, scale: float) -> np.ndarray:
@@ -234,7 +234,7 @@ def clean_average(refined: np.ndarray, second: np.ndarray, clean: float, scale: 
         return refined
     w = np.float32(CLEAN_AVERAGE_WEIGHT * min(clean, 1.0)) * agreement_weights(refined, second, scale, CLEAN_AVERAGE)
     out = refined + w[..., None] * (np.asarray(second, np.float32) - refined)
-    return np.clip(np.nan_to_num(out, nan=0.0, posinf=_F32_MAX, neginf=0.0), 0.0, _F32_MAX).astype(np.float32)
+    return np.clip(np.nan_to_num(out, nan=0.0, posinf=FLOAT32_MAX, neginf=0.0), 0.0, FLOAT32_MAX).astype(np.float32)
 
 
 def _pad(x: np.ndarray, alignment: int) -> np.ndarray:

@@ -38,6 +38,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from gradsep.model.header_keys import OIDN_SETTING_KEY
+from gradsep.model.policy import FLOAT32_MAX
 from gradsep.model.robust import lit_level, robust_level
 
 if TYPE_CHECKING:
@@ -45,7 +46,6 @@ if TYPE_CHECKING:
 
 #: The albedo/normal prefilter's quality preset (it scored as ``high`` does: docs/decisions.md).
 AUX_QUALITY = "fast"
-_F32_MAX = float(np.finfo(np.float32).max)
 #: The exposure the colour filter sees (``Setting.exposure``): ``lit`` scales the layer so that the mean luminance of
 #: its lit part (model.robust.lit_level) is OIDN's autoexposure key, 0.18; ``level`` (kept for the ``fused`` blend
 #: models trained on it) scales it so that its robust level over the whole frame is 1 (docs/decisions.md, "OIDN's
@@ -270,7 +270,7 @@ class Denoiser:
     def denoise(self, color: np.ndarray, aux: CleanAux | None = None, lit: float | None = None) -> np.ndarray:
         """(H, W, 3) float32 HDR radiance → denoised, finite, ≥ 0; ``aux`` from :meth:`prefilter` or None;
         ``lit``: model.robust.lit_level of ``color`` when the caller measured it (``color`` finite, ≥ 0)."""
-        radiance = _finite(color, 0.0, _F32_MAX)
+        radiance = _finite(color, 0.0, FLOAT32_MAX)
         scale = exposure_scale(radiance, self.setting.exposure, lit)
         if scale == 1.0 and not radiance.any():
             return radiance  # no light: nothing to denoise (and OIDN is not asked to invent any)
@@ -282,8 +282,8 @@ class Denoiser:
         with self._lock:
             out = self._run("color", images, np.empty_like(radiance),
                             {"hdr": True, "cleanAux": aux is not None and aux.clean}, scale=scale)
-        np.nan_to_num(out, copy=False, nan=0.0, posinf=_F32_MAX, neginf=0.0)
-        np.clip(out, 0.0, _F32_MAX, out=out)
+        np.nan_to_num(out, copy=False, nan=0.0, posinf=FLOAT32_MAX, neginf=0.0)
+        np.clip(out, 0.0, FLOAT32_MAX, out=out)
         if min(radiance.shape[:2]) < MIN_SIDE:
             _match_channel_means(out, radiance)
         return out
@@ -306,7 +306,7 @@ def _match_channel_means(out: np.ndarray, source: np.ndarray) -> None:
         want = float(np.mean(source[..., c], dtype=np.float64))
         got = float(np.mean(out[..., c], dtype=np.float64))
         if got > 0.0 and math.isfinite(want / got):
-            out[..., c] = np.clip(out[..., c].astype(np.float64) * (want / got), 0.0, _F32_MAX)
+            out[..., c] = np.clip(out[..., c].astype(np.float64) * (want / got), 0.0, FLOAT32_MAX)
         else:
             out[..., c] = source[..., c]
 

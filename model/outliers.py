@@ -49,7 +49,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from scipy import ndimage
 
-from gradsep.model.policy import LUMINANCE
+from gradsep.model.policy import FLOAT32_MAX, LUMINANCE
 from gradsep.model.robust import WINSOR_QUANTILE, add_points, lit_level_of_luminance, luminance
 
 if TYPE_CHECKING:
@@ -68,7 +68,6 @@ NOISE_SHARE = 0.1
 SOURCE_LEVEL = 256.0
 
 _EIGHT = np.ones((3, 3), bool)
-_F32_MAX = float(np.finfo(np.float32).max)
 
 
 _WINDOW = CLUSTER_SIZE + 2  # a cluster's box and its ring
@@ -268,7 +267,7 @@ def _magnitude(image: np.ndarray) -> np.ndarray:
     for c in range(1, image.shape[-1]):
         out += np.abs(image[..., c], out=part)
     out /= image.shape[-1]
-    return np.fmin(out, _F32_MAX, out=out)
+    return np.fmin(out, FLOAT32_MAX, out=out)
 
 
 def _all_within(image: np.ndarray, bound: float) -> bool:
@@ -396,7 +395,7 @@ def _residual(gradient: np.ndarray, inlier: np.ndarray, axis: int, ys: np.ndarra
         difference = inlier[ahead].astype(np.float64) - inlier[ys, xs]
         difference[edge] = 0.0
         out = np.abs(gradient[ys, xs].astype(np.float64) - difference).mean(axis=-1)
-    out[~np.isfinite(out)] = _F32_MAX
+    out[~np.isfinite(out)] = FLOAT32_MAX
     return out
 
 

@@ -45,7 +45,7 @@ import scipy.fft
 
 from gradsep.model import kernels
 from gradsep.model.multigrid import Multigrid
-from gradsep.model.policy import DEFAULT_ALPHA
+from gradsep.model.policy import DEFAULT_ALPHA, FLOAT32_MAX
 
 __all__ = ["L1_CG_STEPS", "L1_PASSES", "MIN_ALPHA", "L1Options", "L1Stats", "energy_l1", "energy_l2", "solve_l1",
            "solve_l2"]
@@ -55,7 +55,6 @@ __all__ = ["L1_CG_STEPS", "L1_PASSES", "MIN_ALPHA", "L1Options", "L1Stats", "ene
 #: return the exact image from exact data (tested at MIN_ALPHA); 1e-8 keeps a margin of 1e4. Callers (CLI,
 #: service) reject smaller values up front with a message naming the range.
 MIN_ALPHA = 1e-8
-_F32_MAX = float(np.finfo(np.float32).max)
 
 
 @dataclass
@@ -120,7 +119,7 @@ def _prepare_with_image(image, base, dx, dy, alpha) -> tuple[np.ndarray, ...]:
 def _finish(image: np.ndarray, ndim: int, dtype: np.dtype) -> np.ndarray:
     """(C, H, W) float64 -> caller's layout and dtype; clipped so float32 output can never be ±Inf."""
     if np.dtype(dtype) == np.float32:
-        image = np.clip(image, -_F32_MAX, _F32_MAX)
+        image = np.clip(image, -FLOAT32_MAX, FLOAT32_MAX)
     image = image[0] if ndim == 2 else np.moveaxis(image, 0, -1)
     return np.ascontiguousarray(image, dtype=dtype)
 
@@ -588,7 +587,7 @@ def _irls(x: np.ndarray, data: tuple[np.ndarray, np.ndarray, np.ndarray], alpha:
 
 def _finish_l1(x: np.ndarray, scale: float, ndim: int, dtype: type) -> np.ndarray:
     """The scaled iterate back at the input's scale, in the caller's layout and dtype."""
-    if np.dtype(dtype) == np.float32 and x.dtype == np.float32 and float(np.abs(x).max()) * scale < _F32_MAX / 2:
+    if np.dtype(dtype) == np.float32 and x.dtype == np.float32 and float(np.abs(x).max()) * scale < FLOAT32_MAX / 2:
         x *= np.float32(scale)  # the common case: no float64 detour (a copy and two passes over the image)
         return _finish(x, ndim, dtype)
     return _finish(x.astype(np.float64) * scale, ndim, dtype)

@@ -33,7 +33,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from gradsep.model.poisson import L1Options, solve_l1
-from gradsep.model.policy import DEFAULT_ALPHA
+from gradsep.model.policy import DEFAULT_ALPHA, FLOAT32_MAX
 from gradsep.model.robust import robust_level
 
 if TYPE_CHECKING:  # only for hints; importing model.frame at run time is fine but not needed
@@ -285,13 +285,12 @@ def prior_exposure(prior: np.ndarray) -> float:
     return min(FUSED_MEAN / level, RADIANCE_MAX / FUSED_PEAK_MARGIN / peak)
 
 
-_F32_MAX = float(np.finfo(np.float32).max)
 
 
 def scaled_image(image: np.ndarray, scale: float) -> np.ndarray:
     """float32 ``image × scale``, the product taken in float64 and rounded once (exact for a power of two) and
     clipped to float32's range, so a scale near either end of it never overflows to ±Inf."""
-    return np.clip(np.asarray(image, np.float64) * scale, -_F32_MAX, _F32_MAX).astype(np.float32)
+    return np.clip(np.asarray(image, np.float64) * scale, -FLOAT32_MAX, FLOAT32_MAX).astype(np.float32)
 
 
 def scaled_layer(layer: Layer, scale: float) -> Layer:

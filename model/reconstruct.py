@@ -37,7 +37,7 @@ from gradsep.model.environment import env_int
 from gradsep.model.errors import ChannelError
 from gradsep.model.frame import Features, Frame, Layer, feature_groups
 from gradsep.model.methods import LoadedModels, Method
-from gradsep.model.policy import DEFAULT_ALPHA, FEATURE_GROUPS, models_dir_from
+from gradsep.model.policy import DEFAULT_ALPHA, FEATURE_GROUPS, FLOAT32_MAX, models_dir_from
 
 __all__ = [
     "LayerContext",
@@ -54,7 +54,6 @@ __all__ = [
     "unavailable_reason",
 ]
 
-_F32_MAX = float(np.finfo(np.float32).max)
 
 
 class NetworkLike(Protocol):
@@ -84,7 +83,7 @@ def _sanitise(name: str, image: np.ndarray, shape: tuple[int, int, int], warning
     if bad:
         warnings.append(f"reconstruction of {name} produced {bad} non-finite value(s), replaced with 0")
         out = np.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0)
-    return np.clip(out, 0.0, _F32_MAX)
+    return np.clip(out, 0.0, FLOAT32_MAX)
 
 
 @dataclass
@@ -351,7 +350,7 @@ def reconstruct(frame: Frame, method: str | None = None, alpha: float = DEFAULT_
         layers[name] = _sanitise(name, image, shape, warnings)
     for name in frame.layers:  # summed in the frame's order whatever order the layers finished in
         total += layers[name]
-    image = np.clip(total, 0.0, _F32_MAX).astype(np.float32)
+    image = np.clip(total, 0.0, FLOAT32_MAX).astype(np.float32)
     setting = ctx.denoiser.setting.name if ctx.denoiser is not None else None
     return Reconstruction(image, layers, timings, spec.name, warnings, setting)
 

@@ -40,6 +40,7 @@ import numpy as np
 from gradsep.model.frame import Layer
 from gradsep.model.oidn import input_scale
 from gradsep.model.poisson import L1Options, solve_l1
+from gradsep.model.policy import FLOAT32_MAX
 from gradsep.model.preprocess import scaled_image
 from gradsep.model.robust import box_mean, winsorised_sum
 
@@ -82,7 +83,6 @@ TRUST_ALPHA_CLEAN = 0.2
 TRUST_ALPHA_ZERO = 2.0
 TRUST_PIN_RADIUS = 1
 
-_F32_MAX = float(np.finfo(np.float32).max)
 
 
 def _forward_differences(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -255,4 +255,4 @@ def refine_layer(name: str, prior: np.ndarray, layer: Layer, alpha: float | None
     options = L1Options(solve.passes or REFINE_ITERATIONS, **solve.solver_keywords())
     solved, _ = solve_l1(data, dx, dy, alpha, options, alpha_map=alpha_map, start_alpha=start)
     out = np.asarray(solved, np.float64) / scale
-    return np.clip(out, 0.0, _F32_MAX).astype(np.float32)
+    return np.clip(out, 0.0, FLOAT32_MAX).astype(np.float32)

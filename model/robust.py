@@ -17,7 +17,7 @@ import math
 
 import numpy as np
 
-from gradsep.model.policy import LUMINANCE
+from gradsep.model.policy import FLOAT32_MAX, LUMINANCE
 
 #: The quantile at which :func:`robust_level` winsorises the per-pixel values: the top 0.1 % of the pixels count
 #: as this quantile's value, so no single pixel can move the level by more than one order statistic's step.
@@ -208,7 +208,7 @@ def add_points(image: np.ndarray, ys: np.ndarray, xs: np.ndarray, values: np.nda
     for y, x, value in zip(ys.tolist(), xs.tolist(), np.asarray(values, np.float64), strict=True):
         rows, cols, weights = _patch(y, x, height, width)
         total = out[rows, cols].astype(np.float64) + weights[..., None] * value
-        out[rows, cols] = np.clip(total, 0.0, float(np.finfo(np.float32).max))
+        out[rows, cols] = np.clip(total, 0.0, FLOAT32_MAX)
     return out
 
 
@@ -218,7 +218,7 @@ def add_excess(image: np.ndarray, excess: np.ndarray | None) -> np.ndarray:
     if excess is None:
         return image
     total = np.asarray(image, np.float64) + spread(excess)
-    return np.clip(total, 0.0, float(np.finfo(np.float32).max)).astype(np.float32)
+    return np.clip(total, 0.0, FLOAT32_MAX).astype(np.float32)
 
 
 def far_agreement(image: np.ndarray, reference: np.ndarray, where: tuple[int, int], radius: float,

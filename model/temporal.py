@@ -53,7 +53,7 @@ import numpy as np
 
 from gradsep.model.frame import Frame, Layer, Motion
 from gradsep.model.methods import LoadedModels
-from gradsep.model.policy import DEFAULT_ALPHA
+from gradsep.model.policy import DEFAULT_ALPHA, FLOAT32_MAX
 from gradsep.model.reconstruct import Reconstruction, reconstruct
 from gradsep.model.robust import box_mean, luminance
 from gradsep.model.warp import Sampler, chain
@@ -90,7 +90,6 @@ MOVED_TOLERANCE = 0.01
 #: Added to the albedo before a moved neighbour's result is divided by its own and multiplied by frame t's, so
 #: black albedo (a light, a miss) passes the radiance through.
 ALBEDO_FLOOR = 0.02
-_F32_MAX = np.float32(np.finfo(np.float32).max)
 
 
 @dataclass
@@ -510,7 +509,7 @@ def moved_stage(result: TemporalReconstruction, own: TemporalReconstruction,
             source = other.layers[name]
             if theirs is not None:  # capped: radiance near float32's largest over a black albedo
                 with np.errstate(over="ignore"):
-                    source = np.minimum(np.divide(source, theirs), _F32_MAX)
+                    source = np.minimum(np.divide(source, theirs), FLOAT32_MAX)
             warped = agreement.samplers[offset](np.asarray(source, np.float32))
             if theirs is not None:
                 warped *= mine
@@ -518,7 +517,7 @@ def moved_stage(result: TemporalReconstruction, own: TemporalReconstruction,
             count += mask
             reached.add(offset)
         total /= count[..., None]
-        layers[name] = np.minimum(total, _F32_MAX)
+        layers[name] = np.minimum(total, FLOAT32_MAX)
     return _blended(result, layers, reached)
 
 
