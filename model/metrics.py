@@ -13,11 +13,14 @@ broken reconstruction).
   It can be slightly negative for an image close to the truth. :func:`reference_floor` is the RelMSE a perfect
   method (x = truth) would score against one of the references: mean((r1 − r2)² / (r̄² + ε)) / 2.
 * :func:`flicker` -- the error that changes from frame to frame: RelMSE's estimator applied to the change of
-  the error e_t = x_t − r_t between consecutive frames, mean((e_t − e_{t−1})² / (r_t² + ε)), averaged over the
-  shot's consecutive pairs. Frame t−1's image and reference are given already brought onto frame t's pixels (along
-  the motion; as they are for a static shot), with an optional mask of the pixels where that is defined. Noise
-  that stays put is not flicker; noise that changes is, and so is a frame that jumps. With a second set of
-  independent references the product estimator removes their noise, as :func:`relmse_unbiased` does.
+  the error e_t = x_t − r_t between consecutive frames, mean((e_t − e_{t−1})² / (r̄² + ε)), r̄ the mean of the two
+  frames' references, averaged over the shot's consecutive pairs. Normalised by both frames, not by frame t's
+  alone, so that a shot played backwards flickers as much: across a light switched off, frame t−1's error divided
+  by frame t's darker reference would count many times what it counts across the same light switched on. Frame
+  t−1's image and reference are given already brought onto frame t's pixels (along the motion; as they are for a
+  static shot), with an optional mask of the pixels where that is defined. Noise that stays put is not flicker;
+  noise that changes is, and so is a frame that jumps. With a second set of independent references the product
+  estimator removes their noise, as :func:`relmse_unbiased` does.
 * :func:`psnr` -- 10 log10(peak² / MSE). By default on the display tonemap below, peak 1 (so an HDR firefly
   counts at most as a saturated pixel); ``tonemapped=False`` uses linear values with the given peak.
   Identical images give +inf.
@@ -102,10 +105,11 @@ def flicker(images: Sequence[np.ndarray], references: Sequence[np.ndarray],
             references2: Sequence[np.ndarray] | None = None, masks: Sequence[np.ndarray | None] | None = None,
             epsilon: float = RELMSE_EPSILON) -> float:
     """Flicker of a shot (see the module docstring): the mean over t ≥ 1 of the RelMSE estimator of
-    e_t − e_{t−1}, e_t = images[t] − references[t], normalised by references[t]. ``images[t - 1]`` and
-    ``references[t - 1]`` must already be aligned with frame t (warped along the motion); ``masks[t]`` (H, W) bool
-    keeps the pixels where that alignment holds (None: all). With ``references2`` (independent of ``references``)
-    the product of the two error changes is used and their noise drops out. Needs at least two frames."""
+    e_t − e_{t−1}, e_t = images[t] − references[t], normalised by the mean of both frames' references (symmetric in
+    time). ``images[t - 1]`` and ``references[t - 1]`` must already be aligned with frame t (warped along the
+    motion); ``masks[t]`` (H, W) bool keeps the pixels where that alignment holds (None: all). With
+    ``references2`` (independent of ``references``) the product of the two error changes is used and their noise
+    drops out. Needs at least two frames."""
     if len(images) != len(references) or (references2 is not None and len(references2) != len(images)):
         raise ValueError("flicker needs one reference (and one second reference) per image")
     if len(images) < 2:
@@ -119,7 +123,7 @@ def flicker(images: Sequence[np.ndarray], references: Sequence[np.ndarray],
         _, p2 = _pair(images[t - 1], second[t - 1])
         if xp.shape != x.shape:
             raise ValueError(f"frame {t - 1} has shape {xp.shape}, frame {t} {x.shape}")
-        mean = 0.5 * (r1 + r2)
+        mean = 0.25 * (r1 + r2 + p1 + p2)
         terms = ((x - r1) - (xp - p1)) * ((x - r2) - (xp - p2)) / (mean * mean + epsilon)
         mask = None if masks is None else masks[t]
         if mask is not None:

@@ -93,6 +93,18 @@ def test_flicker_is_zero_for_a_steady_error_and_measures_a_change() -> None:
         flicker(steady[:1], ref[:1])
 
 
+def test_flicker_of_a_light_switched_off_equals_that_of_it_switched_on() -> None:
+    """The same pair of frames played forwards and backwards changes by as much: normalised by frame t's reference
+    alone, the error of the lit frame divided by the dark one's reference counted 20x more one way."""
+    rng = np.random.default_rng(3)
+    lit, dark = np.full((16, 16, 3), 1.0), np.full((16, 16, 3), 0.05)
+    images = [lit + 0.05 * rng.standard_normal(lit.shape), dark + 0.005 * rng.standard_normal(lit.shape)]
+    off = flicker(images, [lit, dark])
+    on = flicker(images[::-1], [dark, lit])
+    assert off == pytest.approx(on)
+    assert off == pytest.approx(float(np.mean((images[0] - lit - images[1] + dark) ** 2 / (0.525 ** 2 + 1e-2))))
+
+
 def test_flicker_with_two_references_removes_their_noise() -> None:
     rng = np.random.default_rng(1)
     truth = np.ones((64, 64, 3))
