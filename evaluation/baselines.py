@@ -12,7 +12,7 @@ import numpy as np
 
 from gradsep.evaluation.methods import EQUAL_TIME_OFFSETS
 from gradsep.evaluation.timesearch import Attempt, CostModel, SearchRules, TimeSearch
-from gradsep.model.policy import FLOAT32_MAX
+from gradsep.model.frame import FLOAT32_MAX
 
 __all__ = ["MAX_WAVEFRONT", "PathRenderer", "denoise", "sanitise", "split_features"]
 

@@ -31,8 +31,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from gradsep.model.frame import VARIANCE_MAX
-from gradsep.model.policy import FLOAT32_MAX
+from gradsep.model.frame import FLOAT32_MAX, VARIANCE_MAX
 from gradsep.model.robust import box_mean, lit_level_of_luminance, luminance
 
 #: The box window (pixels a side) over which the change and the variance are averaged.

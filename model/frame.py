@@ -54,6 +54,9 @@ GRADIENTS: tuple[str, ...] = ("dx", "dy")
 VARIANCE = "var.Y"
 #: A variance above this reads as this (a capped firefly's); Inf in a file reads as this too.
 VARIANCE_MAX = 1e30
+#: The largest finite float32: a frame's channels are float32, so every output is clipped to it, and no value past it
+#: is ever written.
+FLOAT32_MAX = float(np.finfo(np.float32).max)
 # FEATURE_GROUPS (group -> its channels) is a contract constant too (model/policy.py, import-light).
 FEATURE_CHANNELS: tuple[str, ...] = tuple(c for group in FEATURE_GROUPS.values() for c in group)
 # Prefixes this contract owns: a channel under one of them that is not a contract channel is a producer bug and

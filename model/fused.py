@@ -43,10 +43,9 @@ from typing import Any
 
 import numpy as np
 
-from gradsep.model.frame import Features, Layer
+from gradsep.model.frame import FLOAT32_MAX, Features, Layer
 from gradsep.model.infer import BLEND_PRIOR
 from gradsep.model.onnx_session import ProviderChoice
-from gradsep.model.policy import FLOAT32_MAX
 from gradsep.model.preprocess import (
     RADIANCE_MAX,
     TRANSFER,

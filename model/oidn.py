@@ -37,8 +37,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from gradsep.model.frame import FLOAT32_MAX
 from gradsep.model.header_keys import OIDN_SETTING_KEY
-from gradsep.model.policy import FLOAT32_MAX
 from gradsep.model.robust import lit_level, robust_level
 
 if TYPE_CHECKING:

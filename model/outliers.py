@@ -49,7 +49,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from scipy import ndimage
 
-from gradsep.model.policy import FLOAT32_MAX, LUMINANCE
+from gradsep.model.frame import FLOAT32_MAX
+from gradsep.model.policy import LUMINANCE
 from gradsep.model.robust import WINSOR_QUANTILE, add_points, lit_level_of_luminance, luminance
 
 if TYPE_CHECKING:

@@ -44,8 +44,9 @@ import numpy as np
 import scipy.fft
 
 from gradsep.model import kernels
+from gradsep.model.frame import FLOAT32_MAX
 from gradsep.model.multigrid import Multigrid
-from gradsep.model.policy import DEFAULT_ALPHA, FLOAT32_MAX
+from gradsep.model.policy import DEFAULT_ALPHA
 
 __all__ = ["L1_CG_STEPS", "L1_PASSES", "MIN_ALPHA", "L1Options", "L1Stats", "energy_l1", "energy_l2", "solve_l1",
            "solve_l2"]

@@ -28,9 +28,6 @@ FEATURE_GROUPS: dict[str, tuple[str, ...]] = {
 #: Rec. 709 luminance weights of linear RGB: the contract's ``Y`` (a layer's variance channel ``L.var.Y`` is the
 #: variance of this weighted sum of ``L.R L.G L.B``), and the weights every metric and exposure rule uses.
 LUMINANCE: tuple[float, float, float] = (0.2126, 0.7152, 0.0722)
-#: The largest finite float32 (numpy.finfo(numpy.float32).max): a frame's channels are float32, so every output is
-#: clipped to it, and no value past it is ever written.
-FLOAT32_MAX: float = 3.4028234663852886e38
 
 #: The screened Poisson data weight (l1/l2, and the network's truncated L1 prior) when none is given.
 DEFAULT_ALPHA: float = 0.2

@@ -32,8 +32,9 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from gradsep.model.frame import FLOAT32_MAX
 from gradsep.model.poisson import L1Options, solve_l1
-from gradsep.model.policy import DEFAULT_ALPHA, FLOAT32_MAX
+from gradsep.model.policy import DEFAULT_ALPHA
 from gradsep.model.robust import robust_level
 
 if TYPE_CHECKING:  # only for hints; importing model.frame at run time is fine but not needed

@@ -35,9 +35,9 @@ from gradsep.model import methods as table
 from gradsep.model import outliers
 from gradsep.model.environment import env_int
 from gradsep.model.errors import ChannelError
-from gradsep.model.frame import Features, Frame, Layer, feature_groups
+from gradsep.model.frame import FLOAT32_MAX, Features, Frame, Layer, feature_groups
 from gradsep.model.methods import LoadedModels, Method
-from gradsep.model.policy import DEFAULT_ALPHA, FEATURE_GROUPS, FLOAT32_MAX, models_dir_from
+from gradsep.model.policy import DEFAULT_ALPHA, FEATURE_GROUPS, models_dir_from
 
 __all__ = [
     "LayerContext",

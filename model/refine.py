@@ -37,10 +37,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gradsep.model.frame import Layer
+from gradsep.model.frame import FLOAT32_MAX, Layer
 from gradsep.model.oidn import input_scale
 from gradsep.model.poisson import L1Options, solve_l1
-from gradsep.model.policy import FLOAT32_MAX
 from gradsep.model.preprocess import scaled_image
 from gradsep.model.robust import box_mean, winsorised_sum
 

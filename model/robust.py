@@ -17,7 +17,8 @@ import math
 
 import numpy as np
 
-from gradsep.model.policy import FLOAT32_MAX, LUMINANCE
+from gradsep.model.frame import FLOAT32_MAX
+from gradsep.model.policy import LUMINANCE
 
 #: The quantile at which :func:`robust_level` winsorises the per-pixel values: the top 0.1 % of the pixels count
 #: as this quantile's value, so no single pixel can move the level by more than one order statistic's step.

@@ -51,9 +51,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from gradsep.model.frame import Frame, Layer, Motion
+from gradsep.model.frame import FLOAT32_MAX, Frame, Layer, Motion
 from gradsep.model.methods import LoadedModels
-from gradsep.model.policy import DEFAULT_ALPHA, FLOAT32_MAX
+from gradsep.model.policy import DEFAULT_ALPHA
 from gradsep.model.reconstruct import Reconstruction, reconstruct
 from gradsep.model.robust import box_mean, luminance
 from gradsep.model.warp import Sampler, chain
