@@ -7,13 +7,8 @@ before the per-frame method (model/reconstruct.py) runs once on the result:
    each pixel of frame t (bilinear; a neighbour two frames away through the chain of the frame between). Where
    the vectors say there is no correspondence, the position is off screen, or it falls between the neighbour's
    pixels (GRID_TOLERANCE: interpolated noise is correlated, and OIDN keeps it), the neighbour contributes nothing.
-2. **Reject.** Per layer and pixel, a neighbour is rejected where it disagrees with frame t by more than the noise
-   allows: the difference of the two luminances, box-filtered, against REJECT_K standard errors of that
-   difference (the box means' variances from the two variance channels), at each box size in BOXES. A light
-   switched off, a moving shadow or a highlight that moves differently from its surface changes the mean by more
-   than the noise, so the neighbour's samples there are dropped; a difference within the noise is what noise
-   looks like, so they are kept. Where the features disagree (albedo or normal: another surface) the neighbour
-   is rejected as well.
+2. **Reject.** Per layer and pixel, a neighbour is rejected where its luminance or its features disagree with
+   frame t's by more than the noise allows (model/rejection.py).
 3. **Accumulate.** Accepted neighbours are averaged with frame t, each frame weighted by the inverse of its mean
    variance (one weight per frame and layer: per-pixel inverse-variance weights favour the pixels whose few
    samples missed a bright path), and the variance channel becomes that weighted mean's, so OIDN's back-off
@@ -55,7 +50,7 @@ from gradsep.model.frame import FLOAT32_MAX, Frame, Layer, Motion
 from gradsep.model.methods import LoadedModels
 from gradsep.model.policy import DEFAULT_ALPHA, LUMINANCE
 from gradsep.model.reconstruct import Reconstruction, reconstruct
-from gradsep.model.robust import box_mean, luminance
+from gradsep.model.rejection import BOXES, REJECT_K, agrees, features_agree, frame_stats
 from gradsep.model.warp import Sampler, chain
 
 __all__ = ["BOXES", "DEFAULT_WINDOW", "FIRST_STAGE_RADIUS", "MOVED_CURVATURE", "MOVED_TOLERANCE", "REJECT_K", "Motion",
@@ -68,17 +63,6 @@ DEFAULT_WINDOW = 5
 #: second stage): the denoiser gains more from one input with the samples of five frames than from blending the
 #: outputs of three-frame inputs (docs/decisions.md).
 FIRST_STAGE_RADIUS = 2
-#: The boxes (pixels a side) over which a neighbour's luminance is compared with frame t's: a small one for local
-#: changes (a shadow's edge), larger ones for changes too faint to show against one small box's noise (a light
-#: switched off dims the whole room a little).
-BOXES: tuple[int, ...] = (5, 17)
-#: A neighbour is rejected where the box means differ by more than this many standard errors of their difference.
-REJECT_K = 3.0
-#: Feature agreement: the largest albedo difference and the smallest cosine between normals at which two pixels
-#: still see the same surface, compared as FEATURE_BOX × FEATURE_BOX means.
-ALBEDO_TOLERANCE = 0.1
-NORMAL_COSINE = 0.9
-FEATURE_BOX = 3
 #: A neighbour counts only where its pixel lies on frame t's grid within this many pixels (both stages): warped
 #: between pixels, its inputs' noise is correlated across pixels, which OIDN keeps as detail, and its result blurs
 #: (a camera dolly, docs/decisions.md). Elsewhere frame t keeps its own.
@@ -109,80 +93,7 @@ class TemporalReconstruction(Reconstruction):
     agreement: _Agreement | None = field(default=None, repr=False, compare=False)
 
 
-# ------------------------------------------------------------------------------------------------ rejection
-
-
-def _spatial_variance(y: np.ndarray) -> np.ndarray:
-    """A stand-in for a missing ``L.var.Y``: the luminance's variance over the 3-pixel square around each pixel (an
-    overestimate at edges, where the signal varies too)."""
-    return np.maximum(box_mean(y * y, 3) - box_mean(y, 3) ** 2, 0.0)
-
-
-@dataclass
-class _Stats:
-    """What the rejection test reads of one frame, computed once per frame (a shot's frame serves several
-    windows): per layer the luminance, the variance and the frame weight; the FEATURE_BOX means of albedo and
-    normal; per layer and box size, once asked, the box means of the luminance and of the variance."""
-
-    y: dict[str, np.ndarray]
-    var: dict[str, np.ndarray]
-    weight: dict[str, float]
-    albedo: np.ndarray | None
-    normal: np.ndarray | None
-    boxes: dict[tuple[str, int], tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
-
-    def box(self, name: str, size: int) -> tuple[np.ndarray, np.ndarray]:
-        """Layer ``name``'s box means at ``size``, computed on first use: only a neighbour without motion reads
-        them (a moving one's test takes box means of the warped difference)."""
-        if (name, size) not in self.boxes:
-            self.boxes[name, size] = (box_mean(self.y[name], size), box_mean(self.var[name], size))
-        return self.boxes[name, size]
-
-
-def _stats(frame: Frame) -> _Stats:
-    cached = getattr(frame, "_temporal_stats", None)  # kept on the frame: it is read by up to `window` windows
-    if cached is not None:
-        return cached
-    lum, var, weight = {}, {}, {}
-    for name, layer in frame.layers.items():
-        y = luminance(layer.base).astype(np.float32)
-        v = (np.minimum(np.nan_to_num(layer.var, nan=0.0, posinf=1e30), 1e30).astype(np.float32)
-             if layer.var is not None else _spatial_variance(y))
-        lum[name], var[name], weight[name] = y, v, _frame_weight(v)
-    features = frame.features
-    stats = _Stats(lum, var, weight,
-                   None if features is None or features.albedo is None else _box_features(features.albedo),
-                   None if features is None or features.normal is None else _box_features(features.normal))
-    frame._temporal_stats = stats  # type: ignore[attr-defined]
-    return stats
-
-
-def _box_features(image: np.ndarray) -> np.ndarray:
-    """FEATURE_BOX × FEATURE_BOX means of an (H, W, C) feature image (float32)."""
-    return np.stack([box_mean(np.asarray(image[..., c], np.float32), FEATURE_BOX) for c in range(image.shape[-1])],
-                    axis=-1)
-
-
-def _features_agree(centre: _Stats, other: _Stats, sample: Sampler) -> np.ndarray:
-    """Where the warped neighbour's features say it sees the same surface as frame t (True where none to test).
-
-    Compared as FEATURE_BOX means (the neighbour's warped with it): a pixel's features are averages over its
-    samples, which at a silhouette mix two surfaces in proportions that change from frame to frame; the box keeps
-    that noise from reading as another surface. Depth is not compared: a pixel's mean depth mixes hits and
-    misses (0) and near and far surfaces in proportions as noisy as that, and a disocclusion is what the motion
-    vectors' validity marks."""
-    agree = np.ones(sample.valid.shape, bool)
-    if centre.albedo is not None and other.albedo is not None:
-        albedo = sample(other.albedo)
-        for c in range(albedo.shape[-1]):  # channel by channel: a reduction over the last axis is slow
-            agree &= np.abs(albedo[..., c] - centre.albedo[..., c]) <= ALBEDO_TOLERANCE
-    if centre.normal is not None and other.normal is not None:
-        a, b = centre.normal, sample(other.normal)
-        dot = a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
-        aa = a[..., 0] * a[..., 0] + a[..., 1] * a[..., 1] + a[..., 2] * a[..., 2]
-        bb = b[..., 0] * b[..., 0] + b[..., 1] * b[..., 1] + b[..., 2] * b[..., 2]
-        agree &= (dot >= NORMAL_COSINE * np.sqrt(aa * bb)) | (aa * bb == 0)
-    return agree
+# ------------------------------------------------------------------------------------------------ accumulation
 
 
 @dataclass
@@ -258,39 +169,6 @@ def _gradient_weights(w: np.ndarray, axis: int, steady: np.ndarray | None) -> np
     return out
 
 
-def _frame_weight(var: np.ndarray) -> float:
-    """A frame's weight in the average: the inverse of its mean variance, one number per frame and layer.
-
-    Per pixel, inverse-variance weights are biased: a pixel whose few samples missed a bright path has both a low
-    value and a low variance estimate, and would weigh most. Frames of one shot usually have one sample count, so
-    the weights are then equal; a frame rendered with more samples weighs more."""
-    mean = float(np.mean(np.minimum(var, 1e30)))
-    return 1.0 / mean if mean > 0 else 1.0
-
-
-def _agrees(own: _Stats, other: _Stats, name: str, sample: Sampler, warped_var: np.ndarray) -> np.ndarray:
-    """Where two estimates of layer ``name`` agree within REJECT_K standard errors at every box size in BOXES.
-
-    Without motion the box means of each frame are compared as computed once per frame. With motion the
-    neighbour's luminance and variance are warped first and the box means taken of the difference, with frame
-    the neighbour's invalid pixels left out of both sums (a box across a silhouette or a disocclusion then
-    compares only what corresponds). ``warped_var`` is the neighbour's variance warped (squared weights)."""
-    accept = np.ones(sample.valid.shape, bool)
-    if sample.identity:
-        for size in BOXES:
-            (y, var), (other_y, other_var) = own.box(name, size), other.box(name, size)
-            difference = other_y - y
-            accept &= difference * difference <= (REJECT_K * REJECT_K / (size * size)) * (var + other_var)
-        return accept
-    valid = sample.valid
-    difference = np.where(valid, sample(other.y[name]) - own.y[name], np.float32(0))
-    variance = np.where(valid, warped_var + own.var[name], np.float32(0))
-    for size in BOXES:  # over the n valid pixels of a box: (Σ d / n)² against K² Σ (σ² + σ'²) / n²
-        box = box_mean(difference, size)
-        accept &= box * box <= (REJECT_K * REJECT_K / (size * size)) * box_mean(variance, size)
-    return accept
-
-
 @dataclass
 class _Agreement:
     """Which neighbour agreed with frame t where: per layer and offset, the accepted pixels, and per offset where
@@ -316,8 +194,8 @@ class _Agreement:
 def _moved_pixels(frame: Frame, other: Frame, sample: Sampler, on_grid: np.ndarray) -> np.ndarray | None:
     """Where a neighbour's pixel lies between frame t's (valid, off the grid) and its own albedo and normal,
     sampled there, match frame t's within MOVED_TOLERANCE; None without both features in both frames, or without
-    such a pixel. Pixel by pixel, not as FEATURE_BOX means: the moved neighbour's result is blended as it is, so a
-    tap across an edge of the texture or the geometry must not count."""
+    such a pixel. Pixel by pixel, not as FEATURE_BOX means (model/rejection.py): the moved neighbour's result is
+    blended as it is, so a tap across an edge of the texture or the geometry must not count."""
     mine, theirs = frame.features, other.features
     if mine is None or theirs is None or any(f is None for f in (mine.albedo, mine.normal, theirs.albedo,
                                                                    theirs.normal)):
@@ -344,12 +222,12 @@ def _accumulate(frames: Sequence[Frame | None], centre: int, chained: dict[int, 
     features = frame.features
     agreement = _Agreement({o: s for o, s in chained.items() if s is not None},
                            albedo=None if features is None else features.albedo)
-    own = _stats(frame)
+    own = frame_stats(frame)
     agree = {o: s.on_grid(GRID_TOLERANCE) for o, s in agreement.samplers.items()}
     moved = {o: _moved_pixels(frame, frames[centre + o], s, agree[o])  # type: ignore[arg-type]
              for o, s in agreement.samplers.items()}
     # a neighbour with no pixel on the grid and none moved that agrees adds nothing: it is neither warped nor tested
-    others = {o: _stats(frames[centre + o]) for o in agree  # type: ignore[arg-type]
+    others = {o: frame_stats(frames[centre + o]) for o in agree  # type: ignore[arg-type]
               if agree[o].any() or (moved[o] is not None and moved[o].any())}
     tested: dict[tuple[int, str], tuple[np.ndarray, np.ndarray]] = {}
 
@@ -359,7 +237,7 @@ def _accumulate(frames: Sequence[Frame | None], centre: int, chained: dict[int, 
         if (o, name) not in tested:
             sample = agreement.samplers[o]
             var = sample(others[o].var[name], squared=True)
-            tested[o, name] = var, _agrees(own, others[o], name, sample, var)
+            tested[o, name] = var, agrees(own, others[o], name, sample, var)
         return tested[o, name]
 
     for o, pixels in moved.items():
@@ -367,7 +245,7 @@ def _accumulate(frames: Sequence[Frame | None], centre: int, chained: dict[int, 
             for name in frame.layers:
                 agreement.moved.setdefault(name, {})[o] = pixels & test(o, name)[1]
     for o, stats in others.items():
-        agree[o] &= _features_agree(own, stats, agreement.samplers[o])
+        agree[o] &= features_agree(own, stats, agreement.samplers[o])
     layers: dict[str, Layer] = {}
     for name, layer in frame.layers.items():
         lacking = ["t"] * (layer.var is None) + [f"{o:+d}" for o in agree
@@ -382,8 +260,8 @@ def _accumulate(frames: Sequence[Frame | None], centre: int, chained: dict[int, 
                 continue
             sample, stats = agreement.samplers[offset], others[offset]
             other = frames[centre + offset].layers[name]  # type: ignore[union-attr]
-            var, agrees = test(offset, name)  # warped once: read by the test and the sums
-            accept = mask & agrees
+            var, passes = test(offset, name)  # warped once: read by the test and the sums
+            accept = mask & passes
             agreement.accept.setdefault(name, {})[offset] = accept
             warped = Layer(sample(other.base), None if other.dx is None else sample(other.dx),
                            None if other.dy is None else sample(other.dy))
@@ -563,8 +441,9 @@ def _smooth_enough(sample: Sampler, bends: tuple[np.ndarray, np.ndarray], allowe
         return np.ones(allowed.shape, bool)
     shape = allowed.shape
     fr, fc = sample.fr.reshape(shape), sample.fc.reshape(shape)
-    miss = (0.5 * fr * (1 - fr)) * bends[0]
-    miss += (0.5 * fc * (1 - fc)) * bends[1]
+    with np.errstate(invalid="ignore"):  # a curvature past float32's largest (inf) times 0: NaN, left out
+        miss = (0.5 * fr * (1 - fr)) * bends[0]
+        miss += (0.5 * fc * (1 - fc)) * bends[1]
     return miss <= allowed
 
 

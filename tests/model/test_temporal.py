@@ -219,8 +219,8 @@ def test_a_neighbour_wholly_off_the_grid_joins_only_the_moved_stage(monkeypatch)
     for frame, source in zip(bare, frames, strict=True):
         frame.motion = source.motion
     counted = []
-    stats = temporal._stats
-    monkeypatch.setattr(temporal, "_stats", lambda frame: counted.append(frame) or stats(frame))
+    stats = temporal.frame_stats
+    monkeypatch.setattr(temporal, "frame_stats", lambda frame: counted.append(frame) or stats(frame))
     for shot, tested in ((frames, 3), (bare, 1)):
         counted.clear()
         chained = {o: chain(shot, 1, o) for o in (-1, 1)}
