@@ -419,15 +419,22 @@ def _luminance32(image: np.ndarray) -> np.ndarray:
 def _curvature(image: np.ndarray, demodulator: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
     """Per axis (rows, columns), the luminance of |second difference| of ``image`` divided by ``demodulator``
     (frame t's albedo + floor; None: as it is), modulated back: what bilinear taps at fraction f miss, times
-    f (1 − f) / 2, where the shading bends. Edges repeat the border pixel."""
+    f (1 − f) / 2, where the shading bends. At the border the edge pixel repeats."""
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
         shading = image if demodulator is None else image / demodulator
         out = []
         for axis in (0, 1):
-            padded = np.pad(shading, [(1, 1) if a == axis else (0, 0) for a in range(3)], mode="edge")
-            ahead = padded[2:] if axis == 0 else padded[:, 2:]
-            behind = padded[:-2] if axis == 0 else padded[:, :-2]
-            second = np.abs(ahead - 2 * shading + behind)
+            second = np.empty_like(shading)
+            v, o = (shading, second) if axis == 0 else (shading.swapaxes(0, 1), second.swapaxes(0, 1))
+            if v.shape[0] == 1:
+                o[...] = 0
+            else:
+                np.subtract(v[1], v[0], out=o[0])
+                np.subtract(v[-2], v[-1], out=o[-1])
+                np.subtract(v[2:], v[1:-1], out=o[1:-1])
+                o[1:-1] -= v[1:-1]
+                o[1:-1] += v[:-2]
+            np.abs(second, out=second)
             if demodulator is not None:
                 second *= demodulator
             out.append(np.nan_to_num(_luminance32(second), nan=np.inf))

@@ -327,6 +327,21 @@ def test_the_moved_stage_leaves_a_sharp_shading_edge_to_frame_t(monkeypatch) -> 
     assert np.abs(blurred.image[:, 7] - layer[:, 7]).max() > 0.1 * layer[0, 7, 0]
 
 
+@pytest.mark.parametrize("shape", [(1, 1), (1, 5), (2, 3), (7, 4)])
+def test_the_curvature_is_the_edge_padded_second_difference_at_any_size(shape: tuple[int, int]) -> None:
+    from gradsep.model.temporal import _curvature
+
+    rng = np.random.default_rng(5)
+    image = rng.random((*shape, 3)).astype(np.float32)
+    albedo = (rng.random((*shape, 3)) + 0.02).astype(np.float32)
+    shading = image.astype(np.float64) / albedo
+    for axis, got in zip((0, 1), _curvature(image, albedo), strict=True):
+        padded = np.pad(shading, [(1, 1) if a == axis else (0, 0) for a in range(3)], mode="edge")
+        ahead, behind = (padded[2:], padded[:-2]) if axis == 0 else (padded[:, 2:], padded[:, :-2])
+        want = (np.abs(ahead - 2 * shading + behind) * albedo) @ np.array([0.2126, 0.7152, 0.0722])
+        np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
+
+
 def test_a_neighbours_gradient_counts_only_where_both_its_pixels_correspond() -> None:
     """A gradient joins a pixel and the next one: across a motion edge (the left half moved, the right half did not)
     or beside a disoccluded pixel, the neighbour's difference is between other pixels, so frame t keeps its own."""
