@@ -109,7 +109,8 @@ class LayerContext:
 LayerFunction = Callable[[str, Layer, LayerContext, "np.ndarray | None"], np.ndarray]
 
 #: ``$GRADSEP_LAYER_THREADS``: how many of a frame's layers are reconstructed, and searched for outliers
-#: (model.outliers.split_frame), at once (1: one after the other).
+#: (model.outliers.split_frame), at once, and how many neighbours' rejection tests and layers' sums a temporal first
+#: stage computes at once (model/temporal.py) (1: one after the other).
 LAYER_THREADS_ENV = "GRADSEP_LAYER_THREADS"
 #: The default: two layers at once, for the methods whose schedule is concurrent or pipelined (model/methods.py;
 #: the schedules were measured with benchmarks/bench_layers.py).

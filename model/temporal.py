@@ -42,20 +42,25 @@ layer without a variance channel (another renderer's frame) uses a local spatial
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from typing import TypeVar
 
 import numpy as np
 
 from gradsep.model.frame import FLOAT32_MAX, Frame, Layer, Motion
 from gradsep.model.methods import LoadedModels
 from gradsep.model.policy import DEFAULT_ALPHA, LUMINANCE
-from gradsep.model.reconstruct import Reconstruction, reconstruct
+from gradsep.model.reconstruct import Reconstruction, layer_threads, reconstruct
 from gradsep.model.rejection import BOXES, REJECT_K, agrees, features_agree, frame_stats
 from gradsep.model.warp import Sampler, chain
 
 __all__ = ["BOXES", "DEFAULT_WINDOW", "FIRST_STAGE_RADIUS", "MOVED_CURVATURE", "MOVED_TOLERANCE", "REJECT_K", "Motion",
            "ShotReconstructor", "TemporalReconstruction", "check_shot", "first_stage", "moved_stage",
            "reconstruct_window", "second_stage"]
+
+_T = TypeVar("_T")
+_R = TypeVar("_R")
 
 #: The frames of a window by default: frame t and two on each side.
 DEFAULT_WINDOW = 5
@@ -229,48 +234,69 @@ def _accumulate(frames: Sequence[Frame | None], centre: int, chained: dict[int, 
     # a neighbour with no pixel on the grid and none moved that agrees adds nothing: it is neither warped nor tested
     others = {o: frame_stats(frames[centre + o]) for o in agree  # type: ignore[arg-type]
               if agree[o].any() or (moved[o] is not None and moved[o].any())}
-    tested: dict[tuple[int, str], tuple[np.ndarray, np.ndarray]] = {}
+    for o, stats in others.items():
+        agree[o] &= features_agree(own, stats, agreement.samplers[o])
 
-    def test(o: int, name: str) -> tuple[np.ndarray, np.ndarray]:
+    def test(pair: tuple[int, str]) -> tuple[np.ndarray, np.ndarray]:
         """Neighbour ``o``'s warped variance of layer ``name`` and where it passes the rejection test, once for
         both the first stage and the moved stage."""
-        if (o, name) not in tested:
-            sample = agreement.samplers[o]
-            var = sample(others[o].var[name], squared=True)
-            tested[o, name] = var, agrees(own, others[o], name, sample, var)
-        return tested[o, name]
+        o, name = pair
+        sample = agreement.samplers[o]
+        var = sample(others[o].var[name], squared=True)
+        return var, agrees(own, others[o], name, sample, var)
 
+    # every test either stage reads, run concurrently: the box filters release the GIL, and they are most of a
+    # neighbour's cost
+    pairs = [(o, name) for o in others for name in frame.layers if agree[o].any() or moved[o] is not None]
+    tested = dict(zip(pairs, _concurrently(test, pairs), strict=True))
     for o, pixels in moved.items():
         if pixels is not None and o in others:
             for name in frame.layers:
-                agreement.moved.setdefault(name, {})[o] = pixels & test(o, name)[1]
-    for o, stats in others.items():
-        agree[o] &= features_agree(own, stats, agreement.samplers[o])
-    layers: dict[str, Layer] = {}
+                agreement.moved.setdefault(name, {})[o] = pixels & tested[o, name][1]
+    for name in frame.layers:  # every layer's key, in the frame's order, before the layers run concurrently
+        agreement.accept[name] = {}
+    if any(layer.dx is not None for layer in frame.layers.values()):
+        for o in others:
+            agreement.samplers[o].steady()  # computed once here, not raced for by the layers' threads
+
+    def accumulate(name: str) -> Layer:
+        layer = frame.layers[name]
+        sums = _LayerSums.start(layer, own.var[name])
+        for offset, mask in agree.items():
+            if offset not in others or not mask.any():
+                agreement.accept[name][offset] = mask  # nowhere
+                continue
+            sample, stats = agreement.samplers[offset], others[offset]
+            other = frames[centre + offset].layers[name]  # type: ignore[union-attr]
+            var, passes = tested[offset, name]  # warped once: read by the test and the sums
+            accept = mask & passes
+            agreement.accept[name][offset] = accept
+            warped = Layer(sample(other.base), None if other.dx is None else sample(other.dx),
+                           None if other.dy is None else sample(other.dy))
+            sums.add(warped, var, accept, stats.weight[name] / own.weight[name],
+                     sample.steady() if warped.dx is not None else None)
+        return sums.layer()
+
     for name, layer in frame.layers.items():
         lacking = ["t"] * (layer.var is None) + [f"{o:+d}" for o in agree
                                                   if frames[centre + o].layers[name].var is None]  # type: ignore
         if lacking:  # another renderer's frames, or a frame that got one sample (no spread to measure)
             warnings.append(f"layer {name} has no variance channel ({name}.var.Y) in frame(s) {', '.join(lacking)}: "
                             "its noise is estimated from each pixel's neighbourhood for the temporal rejection")
-        sums = _LayerSums.start(layer, own.var[name])
-        for offset, mask in agree.items():
-            if offset not in others or not mask.any():
-                agreement.accept.setdefault(name, {})[offset] = mask  # nowhere
-                continue
-            sample, stats = agreement.samplers[offset], others[offset]
-            other = frames[centre + offset].layers[name]  # type: ignore[union-attr]
-            var, passes = test(offset, name)  # warped once: read by the test and the sums
-            accept = mask & passes
-            agreement.accept.setdefault(name, {})[offset] = accept
-            warped = Layer(sample(other.base), None if other.dx is None else sample(other.dx),
-                           None if other.dy is None else sample(other.dy))
-            sums.add(warped, var, accept, stats.weight[name] / own.weight[name],
-                     sample.steady() if warped.dx is not None else None)
-        layers[name] = sums.layer()
+    layers = dict(zip(frame.layers, _concurrently(accumulate, list(frame.layers)), strict=True))
     out = Frame(layers, frame.features, dict(frame.metadata), list(frame.warnings), frame.alpha,
                 dict(frame.image_attributes), frame.layout)
     return out, agreement
+
+
+def _concurrently(fn: Callable[[_T], _R], items: list[_T]) -> list[_R]:
+    """``[fn(item) for item in items]`` on up to model.reconstruct.layer_threads() threads (in this one for one
+    item or one thread)."""
+    threads = min(layer_threads(), len(items))
+    if threads <= 1:
+        return [fn(item) for item in items]
+    with ThreadPoolExecutor(max_workers=threads, thread_name_prefix="gradsep-temporal") as pool:
+        return list(pool.map(fn, items))
 
 
 # ------------------------------------------------------------------------------------------------ the window
