@@ -50,12 +50,12 @@ import numpy as np
 
 from gradsep.model.frame import FLOAT32_MAX, Frame, Layer, Motion
 from gradsep.model.methods import LoadedModels
-from gradsep.model.policy import DEFAULT_ALPHA, LUMINANCE
+from gradsep.model.policy import DEFAULT_ALPHA
 from gradsep.model.reconstruct import Reconstruction, layer_threads, reconstruct
 from gradsep.model.rejection import BOXES, REJECT_K, agrees, features_agree, frame_stats
 from gradsep.model.warp import Sampler, chain
 
-__all__ = ["BOXES", "DEFAULT_WINDOW", "FIRST_STAGE_RADIUS", "MOVED_CURVATURE", "MOVED_TOLERANCE", "REJECT_K", "Motion",
+__all__ = ["BOXES", "DEFAULT_WINDOW", "FIRST_STAGE_RADIUS", "MOVED_TOLERANCE", "REJECT_K", "Motion",
            "ShotReconstructor", "TemporalReconstruction", "check_shot", "first_stage", "moved_stage",
            "reconstruct_window", "second_stage"]
 
@@ -79,11 +79,6 @@ MOVED_TOLERANCE = 0.01
 #: Added to the albedo before a moved neighbour's result is divided by its own and multiplied by frame t's, so
 #: black albedo (a light, a miss) passes the radiance through.
 ALBEDO_FLOOR = 0.02
-#: A moved neighbour's pixel is left out where the bilinear warp's error, predicted from the curvature of frame t's
-#: demodulated result (per axis, f (1 − f) / 2 times the second difference, f the tap's fraction), exceeds this share
-#: of frame t's luminance there: a warp between pixels blurs what bends sharply (a shadow's edge, a highlight), and
-#: there frame t's own result is closer than the blurred neighbour.
-MOVED_CURVATURE = 0.03
 
 
 @dataclass
@@ -396,9 +391,8 @@ def moved_stage(result: TemporalReconstruction, own: TemporalReconstruction,
     albedo and normal match frame t's and whose inputs pass the rejection test), each demodulated: divided by its
     own albedo, warped, multiplied by frame t's. A moving camera's neighbours cannot join the first stage: their
     inputs, warped between pixels, carry noise correlated across pixels, which the denoiser keeps. Their results
-    are smooth, and what a warp between pixels blurs of them is mostly texture, which demodulation takes out;
-    where the shading itself bends sharply, the tap is left out (MOVED_CURVATURE; docs/decisions.md, "A camera
-    move joins through its results")."""
+    are smooth, and what a warp between pixels blurs of them is mostly texture, which demodulation takes out
+    (docs/decisions.md, "A camera move joins through its results")."""
     agreement = own.agreement
     offsets = [] if agreement is None else [o for o in agreement.moved_offsets() if neighbours.get(o) is not None]
     if agreement is None or not offsets:
@@ -407,19 +401,14 @@ def moved_stage(result: TemporalReconstruction, own: TemporalReconstruction,
     reached = set(result.neighbours)
     mine = _demodulator(own)
     floors = {o: None if mine is None else _demodulator(neighbours[o]) for o in offsets}
-    allowed = _luminance32(result.image)
-    allowed += np.float32(0.01 * float(np.mean(allowed, dtype=np.float64)))  # scale-free: a black pixel is no limit
-    allowed *= np.float32(MOVED_CURVATURE)
     for name, image in result.layers.items():
         total = image.astype(np.float32, copy=True)
         count = np.ones(image.shape[:2], np.float32)
-        bends = _curvature(total, mine)
         for offset in offsets:
             mask = agreement.moved.get(name, {}).get(offset)
             other = neighbours[offset]
             if mask is None or other is None or not mask.any() or name not in other.layers:
                 continue
-            mask = mask & _smooth_enough(agreement.samplers[offset], bends, allowed)
             theirs = floors[offset]
             source = other.layers[name]
             if theirs is not None:  # capped: radiance near float32's largest over a black albedo
@@ -434,50 +423,6 @@ def moved_stage(result: TemporalReconstruction, own: TemporalReconstruction,
         total /= count[..., None]
         layers[name] = np.minimum(total, FLOAT32_MAX)
     return _blended(result, layers, reached)
-
-
-def _luminance32(image: np.ndarray) -> np.ndarray:
-    """Rec. 709 luminance of an (H, W, 3) float32 image, in float32 (the moved stage's per-pixel limits)."""
-    weights = np.asarray(LUMINANCE, np.float32)
-    return image[..., 0] * weights[0] + image[..., 1] * weights[1] + image[..., 2] * weights[2]
-
-
-def _curvature(image: np.ndarray, demodulator: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-    """Per axis (rows, columns), the luminance of |second difference| of ``image`` divided by ``demodulator``
-    (frame t's albedo + floor; None: as it is), modulated back: what bilinear taps at fraction f miss, times
-    f (1 − f) / 2, where the shading bends. At the border the edge pixel repeats."""
-    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-        shading = image if demodulator is None else image / demodulator
-        out = []
-        for axis in (0, 1):
-            second = np.empty_like(shading)
-            v, o = (shading, second) if axis == 0 else (shading.swapaxes(0, 1), second.swapaxes(0, 1))
-            if v.shape[0] == 1:
-                o[...] = 0
-            else:
-                np.subtract(v[1], v[0], out=o[0])
-                np.subtract(v[-2], v[-1], out=o[-1])
-                np.subtract(v[2:], v[1:-1], out=o[1:-1])
-                o[1:-1] -= v[1:-1]
-                o[1:-1] += v[:-2]
-            np.abs(second, out=second)
-            if demodulator is not None:
-                second *= demodulator
-            out.append(np.nan_to_num(_luminance32(second), nan=np.inf))
-    return out[0], out[1]
-
-
-def _smooth_enough(sample: Sampler, bends: tuple[np.ndarray, np.ndarray], allowed: np.ndarray) -> np.ndarray:
-    """Where a neighbour's bilinear taps (``sample``) miss frame t's shading by no more than ``allowed``, as
-    predicted from its curvature ``bends`` (:func:`_curvature`); everywhere for taps on the pixels."""
-    if sample.integral:
-        return np.ones(allowed.shape, bool)
-    shape = allowed.shape
-    fr, fc = sample.fr.reshape(shape), sample.fc.reshape(shape)
-    with np.errstate(invalid="ignore"):  # a curvature past float32's largest (inf) times 0: NaN, left out
-        miss = (0.5 * fr * (1 - fr)) * bends[0]
-        miss += (0.5 * fc * (1 - fc)) * bends[1]
-    return miss <= allowed
 
 
 def _blended(base: TemporalReconstruction, layers: dict[str, np.ndarray],

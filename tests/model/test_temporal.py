@@ -296,52 +296,6 @@ def test_the_moved_stage_blends_illumination_and_puts_frame_ts_texture_back(leve
     assert np.isfinite(out.image).all() and (out.image >= 0).all()
 
 
-def test_the_moved_stage_leaves_a_sharp_shading_edge_to_frame_t(monkeypatch) -> None:
-    """A shadow's edge on one surface (albedo and normal agree on both sides) under taps half a pixel away: the
-    bilinear warp would blur it, so the two columns at it keep frame t's own result; on the smooth ramp either side
-    the neighbour is blended (there the taps are exact). Without the limit the edge blurs."""
-    from gradsep.model import temporal
-    from gradsep.model.temporal import TemporalReconstruction, _Agreement, moved_stage
-    from gradsep.model.warp import Sampler, grid
-
-    size = 16
-    rows, cols = grid(size, size)
-    albedo = np.full((size, size, 3), 0.5, np.float32)
-
-    def light(x: np.ndarray) -> np.ndarray:  # a ramp with a step between columns 7 and 8
-        return (0.2 + 0.02 * x + 0.8 * (x < 7.5))[..., None].repeat(3, -1).astype(np.float32)
-
-    layer, theirs = light(cols) * (albedo + 0.02), light(cols - 0.5) * (albedo + 0.02)  # theirs: half a pixel on
-    sampler = Sampler(rows, cols + 0.5, np.ones((size, size), bool))
-    agreement = _Agreement({1: sampler}, moved={"color": {1: np.ones((size, size), bool)}}, albedo=albedo)
-    own = TemporalReconstruction(layer, {"color": layer}, {}, "oidn")
-    own.agreement = agreement
-    other = TemporalReconstruction(theirs, {"color": theirs}, {}, "oidn")
-    other.agreement = _Agreement(albedo=albedo)
-    out = moved_stage(own, own, {1: other})
-    assert out.neighbours == [1]
-    np.testing.assert_array_equal(out.image[:, 7:9], layer[:, 7:9])  # the edge: frame t's own
-    np.testing.assert_allclose(out.image[:, :-1], layer[:, :-1], rtol=1e-6)  # the ramp: blended, exact
-    monkeypatch.setattr(temporal, "MOVED_CURVATURE", np.inf)  # no limit: the edge blurs
-    blurred = moved_stage(own, own, {1: other})
-    assert np.abs(blurred.image[:, 7] - layer[:, 7]).max() > 0.1 * layer[0, 7, 0]
-
-
-@pytest.mark.parametrize("shape", [(1, 1), (1, 5), (2, 3), (7, 4)])
-def test_the_curvature_is_the_edge_padded_second_difference_at_any_size(shape: tuple[int, int]) -> None:
-    from gradsep.model.temporal import _curvature
-
-    rng = np.random.default_rng(5)
-    image = rng.random((*shape, 3)).astype(np.float32)
-    albedo = (rng.random((*shape, 3)) + 0.02).astype(np.float32)
-    shading = image.astype(np.float64) / albedo
-    for axis, got in zip((0, 1), _curvature(image, albedo), strict=True):
-        padded = np.pad(shading, [(1, 1) if a == axis else (0, 0) for a in range(3)], mode="edge")
-        ahead, behind = (padded[2:], padded[:-2]) if axis == 0 else (padded[:, 2:], padded[:, :-2])
-        want = (np.abs(ahead - 2 * shading + behind) * albedo) @ np.array([0.2126, 0.7152, 0.0722])
-        np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
-
-
 def test_a_neighbours_gradient_counts_only_where_both_its_pixels_correspond() -> None:
     """A gradient joins a pixel and the next one: across a motion edge (the left half moved, the right half did not)
     or beside a disoccluded pixel, the neighbour's difference is between other pixels, so frame t keeps its own."""
