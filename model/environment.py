@@ -1,10 +1,17 @@
 """The process's environment: integer settings read from it by processes that have no pydantic Settings (the CLI,
-library callers: one parser, so every such variable is refused the same way), and the machine's CPU model."""
+library callers: one parser, so every such variable is refused the same way), the machine's CPU model, and a map
+over worker threads."""
 
 from __future__ import annotations
 
 import os
 import platform
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from typing import TypeVar
+
+_T = TypeVar("_T")
+_R = TypeVar("_R")
 
 
 def env_int(variable: str, default: int, minimum: int, hint: str = "") -> int:
@@ -33,3 +40,14 @@ def cpu_model() -> str:
     except OSError:
         pass
     return platform.processor() or platform.machine()
+
+
+def thread_map(fn: Callable[[_T], _R], items: Sequence[_T], threads: int, name: str = "gradsep") -> list[_R]:
+    """``[fn(item) for item in items]`` on up to ``threads`` worker threads (named ``name``), in this thread for one
+    item or one thread: the results in the items' order, and the first failure in that order raised, as the loop
+    would. For numpy and scipy passes over whole images, which release the GIL."""
+    workers = min(threads, len(items))
+    if workers <= 1:
+        return [fn(item) for item in items]
+    with ThreadPoolExecutor(max_workers=workers, thread_name_prefix=name) as pool:
+        return list(pool.map(fn, items))

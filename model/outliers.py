@@ -40,15 +40,14 @@ bit for bit as without the detector. Every pixel handled is counted in the recon
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterator
-from concurrent.futures import ThreadPoolExecutor
-from contextlib import contextmanager
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from scipy import ndimage
 
+from gradsep.model.environment import thread_map
 from gradsep.model.frame import FLOAT32_MAX
 from gradsep.model.policy import LUMINANCE
 from gradsep.model.robust import WINSOR_QUANTILE, add_points, lit_level_of_luminance, luminance
@@ -555,25 +554,14 @@ def split_frame(frame: Frame, sources: bool = False, threads: int = 1) -> tuple[
     searched, at once (numpy's passes over a layer release the GIL); the same result, and the same error (the
     first layer's in the frame's order), as one after the other."""
     names = list(frame.layers)
-    with _layer_map(threads, len(names)) as each:
-        measured = dict(zip(names, each(lambda name: _base_level(frame.layers[name]), names), strict=True))
-        level = float(sum(m[1] for m in measured.values() if m is not None))
-        found = dict(zip(names, each(lambda name: _split_layer(frame.layers[name], sources, level, measured[name]),
-                                     names), strict=True))
+    measured = dict(zip(names, thread_map(lambda name: _base_level(frame.layers[name]), names, threads,
+                                          "gradsep-outliers"), strict=True))
+    level = float(sum(m[1] for m in measured.values() if m is not None))
+    found = dict(zip(names, thread_map(lambda name: _split_layer(frame.layers[name], sources, level, measured[name]),
+                                       names, threads, "gradsep-outliers"), strict=True))
     split = FrameSplit({name: s for name, (s, _) in found.items() if s is not None},
                        {name: lit for name, (_, lit) in found.items() if lit is not None})
     if not split.layers:
         return frame, split
     return replace(frame, layers={name: split.layers[name].layer if name in split.layers else layer
                                   for name, layer in frame.layers.items()}), split
-
-
-@contextmanager
-def _layer_map(threads: int, count: int) -> Iterator[Callable[[Callable[[str], Any], list[str]], list[Any]]]:
-    """A ``map`` over a frame's ``count`` layer names that returns a list in their order: in this thread, or in
-    up to ``threads`` worker threads (raising the first failure in that order, as the loop would)."""
-    if threads <= 1 or count <= 1:
-        yield lambda fn, names: [fn(name) for name in names]
-        return
-    with ThreadPoolExecutor(max_workers=min(threads, count), thread_name_prefix="gradsep-outliers") as pool:
-        yield lambda fn, names: list(pool.map(fn, names))

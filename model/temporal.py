@@ -42,25 +42,21 @@ layer without a variance channel (another renderer's frame) uses a local spatial
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import TypeVar
 
 import numpy as np
 
+from gradsep.model.environment import thread_map
 from gradsep.model.frame import FLOAT32_MAX, Frame, Layer, Motion
 from gradsep.model.methods import LoadedModels
 from gradsep.model.policy import DEFAULT_ALPHA
 from gradsep.model.reconstruct import Reconstruction, layer_threads, reconstruct
-from gradsep.model.rejection import BOXES, REJECT_K, agrees, features_agree, frame_stats
+from gradsep.model.rejection import BOXES, REJECT_K, Stats, agrees, features_agree, frame_stats
 from gradsep.model.warp import Sampler, chain
 
 __all__ = ["BOXES", "DEFAULT_WINDOW", "FIRST_STAGE_RADIUS", "MOVED_TOLERANCE", "REJECT_K", "Motion",
            "ShotReconstructor", "TemporalReconstruction", "check_shot", "first_stage", "moved_stage",
            "reconstruct_window", "second_stage"]
-
-_T = TypeVar("_T")
-_R = TypeVar("_R")
 
 #: The frames of a window by default: frame t and two on each side.
 DEFAULT_WINDOW = 5
@@ -231,19 +227,8 @@ def _accumulate(frames: Sequence[Frame | None], centre: int, chained: dict[int, 
               if agree[o].any() or (moved[o] is not None and moved[o].any())}
     for o, stats in others.items():
         agree[o] &= features_agree(own, stats, agreement.samplers[o])
-
-    def test(pair: tuple[int, str]) -> tuple[np.ndarray, np.ndarray]:
-        """Neighbour ``o``'s warped variance of layer ``name`` and where it passes the rejection test, once for
-        both the first stage and the moved stage."""
-        o, name = pair
-        sample = agreement.samplers[o]
-        var = sample(others[o].var[name], squared=True)
-        return var, agrees(own, others[o], name, sample, var)
-
-    # every test either stage reads, run concurrently: the box filters release the GIL, and they are most of a
-    # neighbour's cost
-    pairs = [(o, name) for o in others for name in frame.layers if agree[o].any() or moved[o] is not None]
-    tested = dict(zip(pairs, _concurrently(test, pairs), strict=True))
+    tested = _tested(own, {o: others[o] for o in others if agree[o].any() or moved[o] is not None},
+                     agreement.samplers, list(frame.layers))
     for o, pixels in moved.items():
         if pixels is not None and o in others:
             for name in frame.layers:
@@ -272,26 +257,40 @@ def _accumulate(frames: Sequence[Frame | None], centre: int, chained: dict[int, 
                      sample.steady() if warped.dx is not None else None)
         return sums.layer()
 
-    for name, layer in frame.layers.items():
-        lacking = ["t"] * (layer.var is None) + [f"{o:+d}" for o in agree
-                                                  if frames[centre + o].layers[name].var is None]  # type: ignore
-        if lacking:  # another renderer's frames, or a frame that got one sample (no spread to measure)
-            warnings.append(f"layer {name} has no variance channel ({name}.var.Y) in frame(s) {', '.join(lacking)}: "
-                            "its noise is estimated from each pixel's neighbourhood for the temporal rejection")
-    layers = dict(zip(frame.layers, _concurrently(accumulate, list(frame.layers)), strict=True))
+    warnings += _variance_warnings(frames, centre, list(agree))
+    layers = dict(zip(frame.layers, thread_map(accumulate, list(frame.layers), layer_threads(), "gradsep-temporal"),
+                      strict=True))
     out = Frame(layers, frame.features, dict(frame.metadata), list(frame.warnings), frame.alpha,
                 dict(frame.image_attributes), frame.layout)
     return out, agreement
 
 
-def _concurrently(fn: Callable[[_T], _R], items: list[_T]) -> list[_R]:
-    """``[fn(item) for item in items]`` on up to model.reconstruct.layer_threads() threads (in this one for one
-    item or one thread)."""
-    threads = min(layer_threads(), len(items))
-    if threads <= 1:
-        return [fn(item) for item in items]
-    with ThreadPoolExecutor(max_workers=threads, thread_name_prefix="gradsep-temporal") as pool:
-        return list(pool.map(fn, items))
+def _tested(own: Stats, others: dict[int, Stats], samplers: dict[int, Sampler],
+            names: list[str]) -> dict[tuple[int, str], tuple[np.ndarray, np.ndarray]]:
+    """Per neighbour in ``others`` and layer, its warped variance and where it passes the rejection test: every test
+    either stage reads, computed once, concurrently (the box filters release the GIL, and they are most of a
+    neighbour's cost)."""
+    pairs = [(o, name) for o in others for name in names]
+
+    def test(pair: tuple[int, str]) -> tuple[np.ndarray, np.ndarray]:
+        o, name = pair
+        var = samplers[o](others[o].var[name], squared=True)
+        return var, agrees(own, others[o], name, samplers[o], var)
+
+    return dict(zip(pairs, thread_map(test, pairs, layer_threads(), "gradsep-temporal"), strict=True))
+
+
+def _variance_warnings(frames: Sequence[Frame | None], centre: int, offsets: list[int]) -> list[str]:
+    """A warning per layer without a variance channel in frame t or in a neighbour at ``offsets`` (another
+    renderer's frames, or a frame that got one sample: no spread to measure)."""
+    out = []
+    for name, layer in frames[centre].layers.items():  # type: ignore[union-attr]
+        lacking = ["t"] * (layer.var is None) + [f"{o:+d}" for o in offsets
+                                                  if frames[centre + o].layers[name].var is None]  # type: ignore
+        if lacking:
+            out.append(f"layer {name} has no variance channel ({name}.var.Y) in frame(s) {', '.join(lacking)}: "
+                       "its noise is estimated from each pixel's neighbourhood for the temporal rejection")
+    return out
 
 
 # ------------------------------------------------------------------------------------------------ the window
