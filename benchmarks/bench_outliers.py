@@ -13,6 +13,12 @@ outlier; printed per case: the share of the pixels farther than 16 px from it th
 (relative, with an epsilon of 1e-3 of the frame's mean), the farthest such pixel, and whether a warning counted it.
 The denoising methods (oidn-l1, oidn, fused, network) are held to at most 0.1 % (tests/model/test_outliers.py).
 
+Positions (``--positions grid``): the same at nine places (model.synthetic.places: a quarter, half and three
+quarters of each side) instead of the centre alone, one line per method and case: at how many of them it held, and
+the worst share. ``--hidden``: the same with the content the outlier hid given back (the detector's fills set to
+what the frame without the outlier holds there, model.synthetic.hidden_given_back): what is left is the handling's
+own reach.
+
 Attribution (``--attribute``, ``network`` only): per case, the share moved and how bright the moved far pixels are
 (their median in the output without the outlier, over the frame's mean), then the share again with the network's
 Poisson prior taken, farther than R px from the outlier, from the frame without it (R = 16, 24, 32, 48): where
@@ -39,10 +45,12 @@ from gradsep.model.methods import LoadedModels
 from gradsep.model.metrics import relmse
 from gradsep.model.reconstruct import load_fused, load_network, reconstruct
 from gradsep.model.robust import far_agreement
-from gradsep.model.synthetic import CASES, with_outlier
+from gradsep.model.synthetic import CASES, hidden_given_back, places, with_outlier
 
 ROOT = Path(__file__).resolve().parents[1]
 METHODS = ("oidn-l1", "oidn", "fused", "network", "l1", "l2")
+#: The contract (tests/model/test_outliers.py): at least this share of the far pixels within 1 %.
+KEPT = 0.999
 
 
 def _models(method: str, loaded: dict[str, object]) -> LoadedModels | None:
@@ -68,6 +76,38 @@ def locality(frame: Frame, method: str, models: LoadedModels, times: list[float]
             warned = "w" if any(w.startswith("layer ") for w in result.warnings) else "-"
             cells.append(f"{100 * (1 - kept):6.2f}% {reach:5.1f}px {warned}")
         lines.append(f"{method:8s} {case:6s} " + " | ".join(cells))
+    return lines
+
+
+def positions(frame: Frame, method: str, models: LoadedModels, times: list[float], radius: float,
+              hidden: bool) -> list[str]:
+    """One line per case: at how many of model.synthetic.places' nine places every K held the contract (KEPT),
+    and the worst share moved; ``hidden``: with the content the outlier hid given back
+    (model.synthetic.hidden_given_back)."""
+    from gradsep.model import outliers
+
+    reference = reconstruct(frame, method, models=models).image
+    own = outliers.split_frame
+
+    def given_back(hit: Frame, sources: bool = False, threads: int = 1) -> tuple[Frame, object]:
+        handled, split = own(hit, sources, threads)
+        return hidden_given_back(frame, hit, handled), split
+
+    if hidden:
+        outliers.split_frame = given_back
+    try:
+        lines = []
+        for case in CASES:
+            shares = []
+            for where in places(frame):
+                for k in times:
+                    image = reconstruct(with_outlier(frame, case, where, k), method, models=models).image
+                    shares.append(100 * (1 - far_agreement(image, reference, where, radius)[0]))
+            held = sum(all(s <= 100 * (1 - KEPT) for s in shares[i:i + len(times)])
+                       for i in range(0, len(shares), len(times)))
+            lines.append(f"{method:8s} {case:6s} held at {held}/{len(places(frame))} places, worst {max(shares):.2f}%")
+    finally:
+        outliers.split_frame = own
     return lines
 
 
@@ -168,6 +208,10 @@ def main() -> None:
     parser.add_argument("--models", default=str(ROOT / "models"))
     parser.add_argument("--radius", type=float, default=16.0)
     parser.add_argument("--attribute", action="store_true", help="network: is the far change its prior's?")
+    parser.add_argument("--positions", choices=("centre", "grid"), default="centre",
+                        help="where the outlier goes: the centre (each K on its own) or nine places (summarised)")
+    parser.add_argument("--hidden", action="store_true",
+                        help="with --positions grid: give back the content the outlier hid")
     parser.add_argument("--clean", default="", help="comma-separated FRAME:REFERENCE pairs for the clean-frame cost")
     parser.add_argument("--prior-alpha", type=float, default=None,
                         help="solve the network's prior with this alpha, not the models' own")
@@ -211,7 +255,9 @@ def main() -> None:
             if models is None:
                 print(f"{method:8s} skipped: no models")
                 continue
-            for line in locality(frame, method, models, times, args.radius):
+            lines = (positions(frame, method, models, times, args.radius, args.hidden)
+                     if args.positions == "grid" else locality(frame, method, models, times, args.radius))
+            for line in lines:
                 print(line, flush=True)
 
 

@@ -107,3 +107,29 @@ def with_outlier(frame: Frame, case: str, where: tuple[int, int], times: float,
     new = {name: outlier_layer(layer, mask, value) if name in chosen else layer
            for name, layer in frame.layers.items()}
     return replace(frame, layers=new)
+
+
+def places(frame: Frame) -> list[tuple[int, int]]:
+    """Nine places for an outlier: a quarter, half and three quarters down and across the frame."""
+    return [(frame.height * i // 4, frame.width * j // 4) for i in (1, 2, 3) for j in (1, 2, 3)]
+
+
+def hidden_given_back(clean: Frame, hit: Frame, handled: Frame) -> Frame:
+    """``handled`` (what the outlier detector made of ``hit``, ``clean`` with an outlier) with every value the
+    detector filled (base and gradients: where ``handled`` differs from ``hit``) set to what ``clean`` holds there.
+
+    An outlier hides what the pixels under it held, and no detector can know it; a method whose output far away
+    depends on that content (a large receptive field, a global solve) moves there however the outlier is handled.
+    Given back, what is left of a far change is the handling's own: its detection, its fills' reach, the energy's
+    footprint (tests/model/test_outliers.py, benchmarks/bench_outliers.py ``--hidden``)."""
+    layers = {}
+    for name, layer in handled.layers.items():
+        planes = []
+        for attribute in ("base", "dx", "dy"):
+            filled, own, original = (getattr(f.layers[name], attribute) for f in (handled, hit, clean))
+            if filled is None or filled is own:
+                planes.append(filled)
+            else:
+                planes.append(np.where(filled != own, original, filled).astype(np.float32))
+        layers[name] = Layer(planes[0], planes[1], planes[2], layer.var)
+    return replace(handled, layers=layers)
