@@ -226,7 +226,8 @@ def _accumulate(frames: Sequence[Frame | None], centre: int, chained: dict[int, 
     others = {o: frame_stats(frames[centre + o]) for o in agree  # type: ignore[arg-type]
               if agree[o].any() or (moved[o] is not None and moved[o].any())}
     for o, stats in others.items():
-        agree[o] &= features_agree(own, stats, agreement.samplers[o])
+        if agree[o].any():  # (a camera move puts none on the grid: nothing to test the features of)
+            agree[o] &= features_agree(own, stats, agreement.samplers[o])
     tested = _tested(own, {o: others[o] for o in others if agree[o].any() or moved[o] is not None},
                      agreement.samplers, list(frame.layers))
     for o, pixels in moved.items():
