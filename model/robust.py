@@ -222,6 +222,11 @@ def add_excess(image: np.ndarray, excess: np.ndarray | None) -> np.ndarray:
     return np.clip(total, 0.0, FLOAT32_MAX).astype(np.float32)
 
 
+#: The outlier locality contract (tests/model/test_outliers.py, benchmarks/bench_outliers.py): beyond FAR_RADIUS
+#: pixels from an outlier, at least FAR_KEPT of the pixels stay within far_agreement's bound.
+FAR_RADIUS, FAR_KEPT = 16.0, 0.999
+
+
 def far_agreement(image: np.ndarray, reference: np.ndarray, where: tuple[int, int], radius: float,
                   tolerance: float = 0.01, epsilon: float = 1e-3) -> tuple[float, float]:
     """How far a change at pixel ``where`` reached from ``reference`` to ``image`` ((H, W, C) each): (the fraction of

@@ -27,6 +27,8 @@ from gradsep.model.exr_read import read_frame
 from gradsep.model.frame import Frame, Layer
 from gradsep.model.outliers import SOURCE_LEVEL, find_clusters, split_frame, split_layer
 from gradsep.model.robust import (
+    FAR_KEPT,
+    FAR_RADIUS,
     OUTLIER_SPREAD_RADIUS,
     far_agreement,
     lit_level,
@@ -41,8 +43,8 @@ REPO = Path(__file__).resolve().parents[2]
 FRAMES = {"cbox": REPO / "examples" / "cbox-16spp.exr",
           "procedural": REPO / "tests" / "data" / "procedural-4242-16spp.exr"}
 DENOISERS = ("oidn-l1", "oidn", "fused", "network")
-#: The contract: beyond NEAR pixels, at least KEPT of the pixels within 1 % of the output without the outlier.
-NEAR, KEPT = 16.0, 0.999
+#: The contract (model.robust): beyond NEAR pixels, at least KEPT of the pixels within 1 % of the output without it.
+NEAR, KEPT = FAR_RADIUS, FAR_KEPT
 
 _cache: dict[str, Any] = {}
 
