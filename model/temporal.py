@@ -3,10 +3,15 @@
 Three stages. The first brings the neighbours' *inputs* onto frame t's pixels and accumulates them into frame t
 before the per-frame method (model/reconstruct.py) runs once on the result:
 
-1. **Warp.** Each neighbour's bases, gradients and variance (``L.var.Y``) are sampled where the motion vectors put
-   each pixel of frame t (bilinear; a neighbour two frames away through the chain of the frame between). Where
-   the vectors say there is no correspondence, the position is off screen, or it falls between the neighbour's
-   pixels (GRID_TOLERANCE: interpolated noise is correlated, and OIDN keeps it), the neighbour contributes nothing.
+1. **Warp.** Each neighbour's bases, gradients and variance (``L.var.Y``) are taken where the motion vectors put
+   each pixel of frame t (a neighbour two frames away through the chain of the frame between). On the grid (a
+   still camera) that is the neighbour's pixel there. Between the neighbour's pixels (a camera move) it is the
+   nearest one, taken whole and once (:meth:`model.warp.Sampler.nearest`): interpolated noise would be correlated
+   across pixels, which OIDN keeps as detail. A tap half a pixel off is only as good as the surface it lands on,
+   so it counts only where its normal matches frame t's within MOVED_TOLERANCE and its albedo is within
+   TEXTURE_RATIO of frame t's; it is demodulated (times frame t's albedo over its own), and its gradients count
+   only where the albedo matches within MOVED_TOLERANCE. Where the vectors say there is no correspondence, or the
+   position is off screen, the neighbour contributes nothing.
 2. **Reject.** Per layer and pixel, a neighbour is rejected where its luminance or its features disagree with
    frame t's by more than the noise allows (model/rejection.py).
 3. **Accumulate.** Accepted neighbours are averaged with frame t, each frame weighted by the inverse of its mean
@@ -24,10 +29,11 @@ to each side (the whole of the default window of five); a wider window's frames 
 through the first two stages no sample from outside the window reaches frame t (through the third, a moved
 neighbour's first stage brings its own neighbours').
 
-The third is for a camera move, whose neighbours' pixels land between frame t's, where the first stage leaves them
-out: each such neighbour's first-stage result, divided by its albedo (what a warp between pixels blurs of a result
-is mostly texture), is warped and multiplied by frame t's albedo, and averaged in per layer and pixel where its
-albedo and normal match frame t's within MOVED_TOLERANCE and its inputs pass the rejection test above. A shot in
+The third is for a camera move, whose neighbours' pixels land between frame t's: each such neighbour's first-stage
+result, divided by its albedo (what a warp between pixels blurs of a result is mostly texture), is warped
+(bilinear: a result's noise is gone) and multiplied by frame t's albedo, and averaged in per layer and pixel where
+its albedo and normal match frame t's within MOVED_TOLERANCE and its inputs pass the rejection test above (the
+first stage took their inputs by the nearest pixel; their results add what the denoiser made of them). A shot in
 order (:class:`ShotReconstructor`) computes each frame's first stage once; a stateless window
 (:func:`reconstruct_window`) computes its moved neighbours' too.
 
@@ -52,6 +58,7 @@ from gradsep.model.methods import LoadedModels
 from gradsep.model.policy import DEFAULT_ALPHA
 from gradsep.model.reconstruct import Reconstruction, layer_threads, reconstruct
 from gradsep.model.rejection import BOXES, REJECT_K, Stats, agrees, features_agree, frame_stats
+from gradsep.model.robust import luminance
 from gradsep.model.warp import Sampler, chain
 
 __all__ = ["BOXES", "DEFAULT_WINDOW", "FIRST_STAGE_RADIUS", "MOVED_TOLERANCE", "REJECT_K", "Motion",
@@ -64,17 +71,22 @@ DEFAULT_WINDOW = 5
 #: second stage): the denoiser gains more from one input with the samples of five frames than from blending the
 #: outputs of three-frame inputs (docs/decisions.md).
 FIRST_STAGE_RADIUS = 2
-#: A neighbour counts only where its pixel lies on frame t's grid within this many pixels (both stages): warped
-#: between pixels, its inputs' noise is correlated across pixels, which OIDN keeps as detail, and its result blurs
-#: (a camera dolly, docs/decisions.md). Elsewhere frame t keeps its own.
+#: A neighbour's pixel within this many pixels of frame t's grid is on the grid (a still camera): the first stage
+#: tests its features by FEATURE_BOX means and the second stage blends its result. Off the grid (a camera move)
+#: the first stage takes the nearest pixel where it matches pixel by pixel, and the moved stage blends the result.
 GRID_TOLERANCE = 0.02
 #: A moved neighbour (its pixel between frame t's: a camera move) joins through its result, demodulated, where its
 #: albedo is within this of frame t's (every channel) and its normal's cosine with frame t's at least 1 minus it,
-#: pixel by pixel: a tap that mixes two surfaces, or shading that turned with the surface, is left out.
+#: pixel by pixel: a tap that mixes two surfaces, or shading that turned with the surface, is left out. Its inputs
+#: join the first stage by the nearest pixel where the normal matches so (and the albedo within TEXTURE_RATIO).
 MOVED_TOLERANCE = 0.01
 #: Added to the albedo before a moved neighbour's result is divided by its own and multiplied by frame t's, so
 #: black albedo (a light, a miss) passes the radiance through.
 ALBEDO_FLOOR = 0.02
+#: The nearest pixel of a moving camera's neighbour, taken by the first stage, may differ from frame t's pixel in
+#: albedo by up to this factor on every channel (the texture between the two positions; more is another
+#: material). Its inputs are multiplied by frame t's albedo over its own (each + ALBEDO_FLOOR).
+TEXTURE_RATIO = 1.65
 
 
 @dataclass
@@ -117,9 +129,11 @@ class _LayerSums:
                    np.ones(var.shape, np.float32) if gradients else None)
 
     def add(self, layer: Layer, var: np.ndarray, accept: np.ndarray, weight: float,
-            steady: tuple[np.ndarray, np.ndarray] | None = None) -> None:
-        """Add a warped neighbour where ``accept``; ``steady`` (per axis, where the neighbour's pixel and the next
-        one along that axis are next to each other there too) limits its gradients (:func:`_gradient_weights`)."""
+            sample: Sampler | None = None, gradients: np.ndarray | None = None) -> None:
+        """Add a warped neighbour where ``accept``; its gradients only where ``gradients`` (float32 0 / 1; None:
+        everywhere) too, and where ``sample`` (the warp) puts a pixel and the next one along an axis next to each
+        other (:meth:`model.warp.Sampler.steady`, :func:`_gradient_weights`)."""
+        steady = None if sample is None or layer.dx is None else sample.steady()
         w = accept.astype(np.float32)
         if weight != 1.0:
             w *= np.float32(weight)
@@ -130,7 +144,8 @@ class _LayerSums:
         if self.dx is not None and self.dy is not None and layer.dx is not None and layer.dy is not None:
             for axis, total, image, weights in ((1, self.dx, layer.dx, self.weight_dx),
                                                 (0, self.dy, layer.dy, self.weight_dy)):
-                wg = _gradient_weights(w, axis, None if steady is None else steady[axis == 0])
+                wg = _gradient_weights(w if gradients is None else w * gradients, axis,
+                                       None if steady is None else steady[axis == 0])
                 weights += wg  # type: ignore[operator]
                 np.multiply(image, wg[..., None], out=scratch)
                 total += scratch
@@ -172,8 +187,10 @@ class _Agreement:
 
     samplers: dict[int, Sampler] = field(default_factory=dict)
     accept: dict[str, dict[int, np.ndarray]] = field(default_factory=dict)
-    #: per layer and offset, the moved neighbours' pixels (off the grid) that agree (:func:`_moved_accept`)
+    #: per layer and offset, the pixels off the grid whose neighbour's result the moved stage blends
     moved: dict[str, dict[int, np.ndarray]] = field(default_factory=dict)
+    #: per layer and offset, the pixels off the grid whose neighbour's inputs the first stage took by the nearest pixel
+    taken: dict[str, dict[int, np.ndarray]] = field(default_factory=dict)
     #: this frame's albedo (the moved blend demodulates by it); None without one
     albedo: np.ndarray | None = None
 
@@ -182,8 +199,9 @@ class _Agreement:
         return sorted({o for masks in self.moved.values() for o, m in masks.items() if m.any()})
 
     def fractions(self) -> dict[int, float]:
-        """Per offset, the fraction of pixels accepted (mean over layers)."""
-        per = {o: [float(np.mean(m[o])) for m in self.accept.values() if o in m] for o in self.samplers}
+        """Per offset, the fraction of pixels whose inputs the first stage accumulated (mean over layers)."""
+        per = {o: [float(np.mean(m[o] | self.taken.get(name, {}).get(o, False))) for name, m in self.accept.items()
+                   if o in m] for o in self.samplers}
         return {o: float(np.mean(v)) if v else 0.0 for o, v in per.items()}
 
 
@@ -209,6 +227,41 @@ def _moved_pixels(frame: Frame, other: Frame, sample: Sampler, on_grid: np.ndarr
     return pixels
 
 
+@dataclass
+class _Taken:
+    """A moving camera's neighbour as the first stage takes it, by its nearest pixels (:meth:`Sampler.nearest`)."""
+
+    sample: Sampler
+    pixels: np.ndarray  # off the grid, the same surface: normals within MOVED_TOLERANCE, albedo within TEXTURE_RATIO
+    gradients: np.ndarray  # of those, where the albedo itself matches within MOVED_TOLERANCE (float32 0 / 1)
+    ratio: np.ndarray  # (H, W, 3): frame t's albedo over the neighbour's, each + ALBEDO_FLOOR
+
+
+def _taken(frame: Frame, other: Frame, sample: Sampler, on_grid: np.ndarray) -> _Taken | None:
+    """Where the first stage takes a moving camera's neighbour (its positions ``sample``) by its nearest pixels:
+    valid, off the grid, with a normal that matches frame t's and an albedo within TEXTURE_RATIO of it; None without
+    both features in both frames. Pixel by pixel: the inputs are taken as they are, so a
+    tap across an edge of the geometry must not count. A pixel of the same surface with other texture is
+    demodulated; its gradients, differences across the texture, are left out unless the albedo matches too."""
+    mine, theirs = frame.features, other.features
+    if mine is None or theirs is None or any(f is None for f in (mine.albedo, mine.normal, theirs.albedo,
+                                                                   theirs.normal)):
+        return None
+    near = sample.nearest()
+    pixels = near.valid & ~on_grid
+    a, b = np.asarray(mine.normal, np.float32), near(np.asarray(theirs.normal, np.float32))
+    dot = a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
+    pixels &= dot >= (1.0 - MOVED_TOLERANCE) * np.sqrt((a * a).sum(-1) * (b * b).sum(-1))
+    albedo, own = near(np.asarray(theirs.albedo, np.float32)), np.asarray(mine.albedo, np.float32)
+    ratio = (own + np.float32(ALBEDO_FLOOR)) / (albedo + np.float32(ALBEDO_FLOOR))
+    gradients = pixels.copy()
+    for c in range(ratio.shape[-1]):
+        pixels &= (ratio[..., c] <= TEXTURE_RATIO) & (ratio[..., c] >= 1.0 / TEXTURE_RATIO)
+        gradients &= np.abs(albedo[..., c] - own[..., c]) <= MOVED_TOLERANCE
+    ratio[~pixels] = 1.0  # elsewhere a tap is not taken (weight 0), and must stay finite
+    return _Taken(near, pixels, gradients.astype(np.float32), ratio)
+
+
 def _accumulate(frames: Sequence[Frame | None], centre: int, chained: dict[int, Sampler | None],
                 warnings: list[str]) -> tuple[Frame, _Agreement]:
     """Frame t with its accepted neighbours' samples accumulated into each layer (module docstring, steps 1-3);
@@ -222,23 +275,31 @@ def _accumulate(frames: Sequence[Frame | None], centre: int, chained: dict[int, 
     agree = {o: s.on_grid(GRID_TOLERANCE) for o, s in agreement.samplers.items()}
     moved = {o: _moved_pixels(frame, frames[centre + o], s, agree[o])  # type: ignore[arg-type]
              for o, s in agreement.samplers.items()}
-    # a neighbour with no pixel on the grid and none moved that agrees adds nothing: it is neither warped nor tested
-    others = {o: frame_stats(frames[centre + o]) for o in agree  # type: ignore[arg-type]
-              if agree[o].any() or (moved[o] is not None and moved[o].any())}
+    # off the grid, the inputs are taken by the nearest pixels (_taken)
+    taken = {o: _taken(frame, frames[centre + o], agreement.samplers[o], agree[o])  # type: ignore[arg-type]
+             for o, pixels in moved.items() if pixels is not None}
+    nearest = {o: t.sample for o, t in taken.items() if t is not None}
+    off = {o for o in nearest if moved[o].any() or taken[o].pixels.any()}  # type: ignore[union-attr]
+    # a neighbour with no pixel on the grid and none off it that agrees adds nothing: it is neither warped nor tested
+    others = {o: frame_stats(frames[centre + o]) for o in agree if agree[o].any() or o in off}  # type: ignore[arg-type]
     for o, stats in others.items():
         if agree[o].any():  # (a camera move puts none on the grid: nothing to test the features of)
             agree[o] &= features_agree(own, stats, agreement.samplers[o])
-    tested = _tested(own, {o: others[o] for o in others if agree[o].any() or moved[o] is not None},
-                     agreement.samplers, list(frame.layers))
-    for o, pixels in moved.items():
-        if pixels is not None and o in others:
-            for name in frame.layers:
-                agreement.moved.setdefault(name, {})[o] = pixels & tested[o, name][1]
+    names = list(frame.layers)
+    tested = _tested(own, {o: others[o] for o in others if agree[o].any()}, agreement.samplers, names)
+    tested_off = _tested(own, {o: others[o] for o in off}, nearest, names)  # the pixels taken whole
+    for o in off:
+        for name in names:
+            passes = tested_off[o, name][1]
+            agreement.moved.setdefault(name, {})[o] = moved[o] & passes  # type: ignore[operator]
+            agreement.taken.setdefault(name, {})[o] = taken[o].pixels & passes  # type: ignore[union-attr]
     for name in frame.layers:  # every layer's key, in the frame's order, before the layers run concurrently
         agreement.accept[name] = {}
     if any(layer.dx is not None for layer in frame.layers.values()):
-        for o in others:
-            agreement.samplers[o].steady()  # computed once here, not raced for by the layers' threads
+        for o in others:  # computed once here, not raced for by the layers' threads
+            agreement.samplers[o].steady()
+            if o in off:
+                nearest[o].steady()
 
     def accumulate(name: str) -> Layer:
         layer = frame.layers[name]
@@ -247,15 +308,24 @@ def _accumulate(frames: Sequence[Frame | None], centre: int, chained: dict[int, 
             if offset not in others or not mask.any():
                 agreement.accept[name][offset] = mask  # nowhere
                 continue
-            sample, stats = agreement.samplers[offset], others[offset]
-            other = frames[centre + offset].layers[name]  # type: ignore[union-attr]
             var, passes = tested[offset, name]  # warped once: read by the test and the sums
             accept = mask & passes
             agreement.accept[name][offset] = accept
-            warped = Layer(sample(other.base), None if other.dx is None else sample(other.dx),
-                           None if other.dy is None else sample(other.dy))
-            sums.add(warped, var, accept, stats.weight[name] / own.weight[name],
-                     sample.steady() if warped.dx is not None else None)
+            sums.add(_warped(frames[centre + offset].layers[name], agreement.samplers[offset]),  # type: ignore
+                     var, accept, others[offset].weight[name] / own.weight[name], agreement.samplers[offset])
+        for offset in off:
+            accept, take = agreement.taken[name][offset], taken[offset]
+            if accept.any():  # demodulated: multiplied by frame t's albedo over the neighbour's
+                warped = _warped(frames[centre + offset].layers[name], take.sample)  # type: ignore[union-attr]
+                for image in (warped.base, warped.dx, warped.dy):
+                    if image is not None:  # (past float32's largest: clipped, as the moved stage clips)
+                        with np.errstate(over="ignore"):
+                            image *= take.ratio  # type: ignore[union-attr]
+                        np.clip(image, -FLOAT32_MAX, FLOAT32_MAX, out=image)
+                ratio = luminance(take.ratio).astype(np.float32)  # type: ignore[union-attr]
+                sums.add(warped, tested_off[offset, name][0] * ratio * ratio, accept,
+                         others[offset].weight[name] / own.weight[name], take.sample,
+                         take.gradients)  # type: ignore[union-attr]
         return sums.layer()
 
     warnings += _variance_warnings(frames, centre, list(agree))
@@ -264,6 +334,12 @@ def _accumulate(frames: Sequence[Frame | None], centre: int, chained: dict[int, 
     out = Frame(layers, frame.features, dict(frame.metadata), list(frame.warnings), frame.alpha,
                 dict(frame.image_attributes), frame.layout)
     return out, agreement
+
+
+def _warped(layer: Layer, sample: Sampler) -> Layer:
+    """A neighbour's layer (base and gradients) where ``sample`` puts frame t's pixels."""
+    return Layer(sample(layer.base), None if layer.dx is None else sample(layer.dx),
+                 None if layer.dy is None else sample(layer.dy))
 
 
 def _tested(own: Stats, others: dict[int, Stats], samplers: dict[int, Sampler],

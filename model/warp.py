@@ -74,6 +74,39 @@ class Sampler:
         near = [(f <= tolerance) | (f >= 1 - tolerance) for f in (self.fr, self.fc)]
         return self.valid & (near[0] & near[1]).reshape(self.valid.shape)
 
+    def nearest(self) -> Sampler:
+        """These positions rounded to the nearest pixel, each of the neighbour's pixels taken once: where several of
+        frame t's pixels round to one, the nearest of them keeps it and the others are invalid.
+
+        A neighbour's noisy inputs are taken whole this way: a bilinear tap mixes four pixels' noise, which is then
+        correlated between frame t's pixels (and a denoiser keeps correlated noise as detail); a pixel taken twice
+        would be correlated with itself. No motion, or motion by whole pixels: this sampler itself."""
+        if self.integral:
+            return self
+        h, w = self.valid.shape
+        index = self.index.astype(np.intp)
+        up, right = self.fr >= 0.5, self.fc >= 0.5
+        rows = np.minimum(index // w + up, h - 1)
+        cols = np.minimum(index % w + right, w - 1)
+        flat = rows * w + cols
+        distance = np.where(up, 1 - self.fr, self.fr) ** 2 + np.where(right, 1 - self.fc, self.fc) ** 2
+        valid = self.valid.ravel()
+        candidates = np.flatnonzero(valid)
+        nearest = np.full(h * w, np.inf, np.float32)
+        np.minimum.at(nearest, flat[candidates], distance[candidates])
+        candidates = candidates[distance[candidates] <= nearest[flat[candidates]]]
+        first = np.full(h * w, h * w, np.intp)  # a tie: the first of frame t's pixels in raster order keeps it
+        np.minimum.at(first, flat[candidates], candidates)
+        keep = np.zeros(h * w, bool)
+        keep[candidates[first[flat[candidates]] == candidates]] = True
+        out = object.__new__(Sampler)  # whole pixels, but never the identity: its valid pixels are still to be kept
+        out.valid, out.identity, out.integral = keep.reshape(h, w), False, True
+        out.index = flat.astype(self.index.dtype)
+        out.fr = out.fc = np.zeros(h * w, np.float32)
+        out._positions = (rows.reshape(h, w).astype(np.float32), cols.reshape(h, w).astype(np.float32))
+        out._steady = None
+        return out
+
     def __call__(self, image: np.ndarray, squared: bool = False) -> np.ndarray:
         """``image`` at the positions; ``squared`` weights by the squared bilinear weights (a variance's warp)."""
         if self.identity:

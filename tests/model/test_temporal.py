@@ -207,10 +207,12 @@ def test_moving_shot_is_warped_and_disocclusions_are_not_ghosted(shift: float) -
         assert relmse(tem[t][:, edge], truths[t][:, edge]) <= 1.1 * relmse(per[t][:, edge], truths[t][:, edge])
 
 
-def test_a_neighbour_wholly_off_the_grid_joins_only_the_moved_stage(monkeypatch) -> None:
-    """A camera move between pixels: the first stage accumulates nothing (frame t's inputs as they were) and the
-    neighbours' agreeing pixels are marked for the moved stage; without features, which tell a tap across an edge,
-    the neighbours are neither warped nor tested."""
+def test_a_neighbour_wholly_off_the_grid_is_taken_whole_by_its_nearest_pixels(monkeypatch) -> None:
+    """A camera move between pixels (0.5 px a frame): the first stage takes each neighbour's nearest pixel whole,
+    so the accumulated input's noise falls with the frames and stays uncorrelated between pixels (a bilinear tap
+    would mix neighbouring pixels' noise), and the agreeing pixels are marked for the moved stage too. Without
+    features, which tell a tap across an edge, the neighbours are neither warped nor tested: frame t's inputs as
+    they were."""
     from gradsep.model import temporal
 
     truths = [_truth(0.5 * i) for i in range(3)]
@@ -226,11 +228,61 @@ def test_a_neighbour_wholly_off_the_grid_joins_only_the_moved_stage(monkeypatch)
         chained = {o: chain(shot, 1, o) for o in (-1, 1)}
         out, agreement = temporal._accumulate(shot, 1, chained, [])
         assert len(counted) == tested
-        assert all(not mask.any() for per in agreement.accept.values() for mask in per.values())
+        assert all(not mask.any() for per in agreement.accept.values() for mask in per.values())  # none on the grid
         assert set(agreement.accept[next(iter(shot[1].layers))]) == {-1, 1}
         assert agreement.moved_offsets() == ([-1, 1] if shot is frames else [])
-        for name, layer in shot[1].layers.items():
-            np.testing.assert_array_equal(out.layers[name].base, layer.base)
+        if shot is bare:
+            for name, layer in shot[1].layers.items():
+                np.testing.assert_array_equal(out.layers[name].base, layer.base)
+            continue
+        both = agreement.taken["color"][-1] & agreement.taken["color"][1]
+        assert both.mean() > 0.8
+        inner = both[1:-1, 1:-2] & both[1:-1, 2:-1]  # horizontal pairs, both accumulated from three frames
+        noise = {k: (image.layers["color"].base - truths[1])[..., 0] / truths[1][..., 0]
+                 for k, image in (("in", shot[1]), ("out", out))}
+        assert np.var(noise["out"][1:-1, 1:-1][both[1:-1, 1:-1]]) <= 0.45 * np.var(noise["in"])
+        left, right = noise["out"][1:-1, 1:-2][inner], noise["out"][1:-1, 2:-1][inner]
+        assert abs(np.corrcoef(left, right)[0, 1]) < 0.1  # bilinear taps: 0.28
+
+
+@pytest.mark.parametrize("level", [1e-8, 1e6, 3e38])
+def test_taken_taps_are_demodulated_and_finite_at_any_level(level: float) -> None:
+    """A camera move over texture, at radiance from 1e-8 to near float32's largest: the nearest pixels taken over
+    another texel are multiplied by frame t's albedo over theirs, within TEXTURE_RATIO (a stripe of 0.3 next to 0.4:
+    taken; next to 0.9: another material, left out), and the accumulated input stays finite and on frame t's
+    texture (near float32's largest the rejection test keeps frame t's own)."""
+    from gradsep.model import temporal
+
+    shift = 0.5
+    yy, xx = np.mgrid[0:SIZE, 0:SIZE].astype(np.float64)
+
+    def albedo(i: int) -> np.ndarray:
+        column = np.floor(xx - shift * i) % 6
+        stripes = np.where(column < 2, 0.3, np.where(column < 4, 0.4, 0.9))
+        return np.repeat(stripes[..., None], 3, axis=-1).astype(np.float32)
+
+    truths = [np.full((SIZE, SIZE, 3), level, np.float32) * albedo(i) for i in range(3)]
+    with np.errstate(over="ignore"):
+        frames = _shot(truths, _motion(shift), seed=19)
+    for i, frame in enumerate(frames):
+        frame.features = Features(albedo=albedo(i), normal=frame.features.normal)
+        for image in (frame.layers["color"].base, frame.layers["color"].var):  # a renderer's float32 output
+            np.minimum(image, np.finfo(np.float32).max, out=image)
+    out, agreement = temporal._accumulate(frames, 1, {o: chain(frames, 1, o) for o in (-1, 1)}, [])
+    base = out.layers["color"].base
+    assert np.isfinite(base).all() and np.isfinite(out.layers["color"].var).all()
+    taken = agreement.taken["color"][-1] | agreement.taken["color"][1]
+    mine = albedo(1)[..., 0]
+    if level > 1e30:  # the rejection test's squares overflow there: it rejects, and frame t keeps its own
+        return
+    assert taken.mean() > 0.5
+    for o in (-1, 1):
+        theirs = chain(frames, 1, o).nearest()(albedo(1 + o))[..., 0]
+        mixed = (theirs == 0.9) != (mine == 0.9)
+        assert mixed.any() and not (agreement.taken["color"][o] & mixed).any()
+        assert (agreement.taken["color"][o] & (theirs != mine)).any()  # 0.3 next to 0.4: taken, demodulated
+    noise = np.abs(base[..., 0] / (level * mine) - 1.0)[taken]  # on frame t's texture, within the noise
+    assert np.median(noise) < 0.2
 
 
 def test_a_camera_move_between_pixels_keeps_texture_and_does_not_ghost_a_switched_light() -> None:

@@ -43,3 +43,26 @@ def test_the_compiled_warp_is_the_numpy_warp_bit_for_bit_and_bilinear(monkeypatc
     squares = sum((weight**2)[..., None] * planes[rr, cc] for rr, cc, weight in
                   ((r0, c0, (1 - fr) * (1 - fc)), (r0, c1, (1 - fr) * fc), (r1, c0, fr * (1 - fc)), (r1, c1, fr * fc)))
     np.testing.assert_allclose(got[True], squares.reshape(shape), rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("scale", [0.8, 1.0, 1.25])
+def test_nearest_takes_each_pixel_whole_and_once(scale: float) -> None:
+    """Rounded positions: every valid pixel reads one neighbour pixel whole (integral, no mixing), within half a
+    pixel of its position on each axis; where a zoom puts several of frame t's pixels on one (scale < 1) the nearest
+    keeps it and no neighbour pixel is read twice; a whole-pixel warp is its own nearest."""
+    h, w = 17, 19
+    rows, cols = warp.grid(h, w)
+    rows, cols = rows * scale + 0.3, cols * scale - 0.45
+    bilinear = warp.Sampler(rows, cols, np.ones((h, w), bool))
+    near = bilinear.nearest()
+    assert near.integral and near.valid.any()
+    assert not (near.valid & ~bilinear.valid).any()
+    image = np.arange(h * w, dtype=np.float32).reshape(h, w)
+    read = near(image)[near.valid].astype(int)
+    assert len(set(read.tolist())) == read.size  # each neighbour pixel once
+    r, c = np.divmod(read, w)
+    assert np.abs(r - rows[near.valid]).max() <= 0.5 and np.abs(c - cols[near.valid]).max() <= 0.5
+    kept = near.valid.sum() / bilinear.valid.sum()
+    assert kept == 1.0 if scale >= 1.0 else kept < 1.0
+    whole = warp.Sampler(*warp.grid(h, w), np.ones((h, w), bool))
+    assert whole.nearest() is whole
