@@ -8,6 +8,10 @@ highlight that moves differently from its surface changes the mean by more than 
 samples there are dropped; a difference within the noise is what noise looks like, so they are kept. Where the
 features disagree (albedo or normal: another surface) the neighbour is rejected as well.
 
+Off the grid (a camera move, whose neighbours' pixels land between frame t's) the features are compared pixel by
+pixel instead: for the moved stage's blend of results (:func:`moved_pixels`, bilinear taps) and for the first
+stage's nearest-pixel inputs (:func:`taken_pixels`, which also gives their demodulation).
+
 What the test reads of a frame (:class:`Stats`: luminance, variance, the FEATURE_BOX means of the features) is
 computed once per frame (:func:`frame_stats`), and so is the frame's weight in the average (:func:`frame_weight`).
 """
@@ -15,6 +19,7 @@ computed once per frame (:func:`frame_stats`), and so is the frame's weight in t
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -22,8 +27,9 @@ from gradsep.model.frame import Frame
 from gradsep.model.robust import box_mean, luminance
 from gradsep.model.warp import Sampler
 
-__all__ = ["ALBEDO_TOLERANCE", "BOXES", "FEATURE_BOX", "NORMAL_COSINE", "REJECT_K", "Stats", "agrees",
-           "features_agree", "frame_stats", "frame_weight"]
+__all__ = ["ALBEDO_FLOOR", "ALBEDO_TOLERANCE", "BOXES", "FEATURE_BOX", "MOVED_TOLERANCE", "NORMAL_COSINE",
+           "REJECT_K", "TEXTURE_RATIO", "Stats", "Taken", "agrees", "features_agree", "frame_stats", "frame_weight",
+           "moved_pixels", "taken_pixels"]
 
 #: The boxes (pixels a side) over which a neighbour's luminance is compared with frame t's: a small one for local
 #: changes (a shadow's edge), larger ones for changes too faint to show against one small box's noise (a light
@@ -36,6 +42,17 @@ REJECT_K = 3.0
 ALBEDO_TOLERANCE = 0.1
 NORMAL_COSINE = 0.9
 FEATURE_BOX = 3
+#: Off the grid (a camera move) features are compared pixel by pixel: a moved neighbour's pixel sees the same surface
+#: where its albedo is within this of frame t's (every channel) and its normal's cosine with frame t's is at least 1
+#: minus it: a tap that mixes two surfaces, or shading that turned with the surface, is left out.
+MOVED_TOLERANCE = 0.01
+#: Added to the albedo before a moved neighbour is divided by its own and multiplied by frame t's, so black albedo
+#: (a light, a miss) passes the radiance through.
+ALBEDO_FLOOR = 0.02
+#: The nearest pixel of a moving camera's neighbour, taken by the first stage, may differ from frame t's pixel in
+#: albedo by up to this factor on every channel (the texture between the two positions; more is another
+#: material). Its inputs are multiplied by frame t's albedo over its own (each + ALBEDO_FLOOR).
+TEXTURE_RATIO = 1.65
 
 
 def _spatial_variance(y: np.ndarray) -> np.ndarray:
@@ -143,3 +160,74 @@ def agrees(own: Stats, other: Stats, name: str, sample: Sampler, warped_var: np.
         box = box_mean(difference, size)
         accept &= box * box <= (REJECT_K * REJECT_K / (size * size)) * box_mean(variance, size)
     return accept
+
+
+# ------------------------------------------------------------------------------------- off the grid, pixel by pixel
+
+
+def _both_features(frame: Frame, other: Frame) -> tuple[Any, Any] | None:
+    """The two frames' features, where both have albedo and normal; else None (nothing to match pixel by pixel)."""
+    mine, theirs = frame.features, other.features
+    if mine is None or theirs is None or any(f is None for f in (mine.albedo, mine.normal, theirs.albedo,
+                                                                   theirs.normal)):
+        return None
+    return mine, theirs
+
+
+def _same_normal(mine: np.ndarray, theirs: np.ndarray) -> np.ndarray:
+    """Where two (H, W, 3) normals' cosine is at least 1 - MOVED_TOLERANCE."""
+    a, b = np.asarray(mine, np.float32), theirs
+    dot = a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
+    return dot >= (1.0 - MOVED_TOLERANCE) * np.sqrt((a * a).sum(-1) * (b * b).sum(-1))
+
+
+def moved_pixels(frame: Frame, other: Frame, sample: Sampler, on_grid: np.ndarray) -> np.ndarray | None:
+    """Where a neighbour's pixel lies between frame t's (valid, off the grid) and its own albedo and normal,
+    sampled there (bilinear), match frame t's within MOVED_TOLERANCE; None without both features in both frames, or
+    without such a pixel. Pixel by pixel, not as FEATURE_BOX means: the moved neighbour's result is blended as it
+    is, so a tap across an edge of the texture or the geometry must not count."""
+    features = _both_features(frame, other)
+    if features is None:
+        return None
+    mine, theirs = features
+    pixels = sample.valid & ~on_grid
+    if not pixels.any():
+        return None
+    albedo = sample(np.asarray(theirs.albedo, np.float32))
+    for c in range(albedo.shape[-1]):
+        pixels &= np.abs(albedo[..., c] - mine.albedo[..., c]) <= MOVED_TOLERANCE
+    return pixels & _same_normal(mine.normal, sample(np.asarray(theirs.normal, np.float32)))
+
+
+@dataclass
+class Taken:
+    """A moving camera's neighbour as the first stage takes it, by its nearest pixels (:meth:`Sampler.nearest`)."""
+
+    sample: Sampler
+    pixels: np.ndarray  # off the grid, the same surface: normals within MOVED_TOLERANCE, albedo within TEXTURE_RATIO
+    gradients: np.ndarray  # of those, where the albedo itself matches within MOVED_TOLERANCE (float32 0 / 1)
+    ratio: np.ndarray  # (H, W, 3): frame t's albedo over the neighbour's, each + ALBEDO_FLOOR (1 where not taken)
+    variance_scale: np.ndarray  # (H, W) float32: the square of the ratio's luminance
+
+
+def taken_pixels(frame: Frame, other: Frame, sample: Sampler, on_grid: np.ndarray) -> Taken | None:
+    """Where the first stage takes a moving camera's neighbour (its positions ``sample``) by its nearest pixels:
+    valid, off the grid, with a normal that matches frame t's and an albedo within TEXTURE_RATIO of it; None without
+    both features in both frames. Pixel by pixel: the inputs are taken as they are, so a tap across an edge of the
+    geometry must not count. A pixel of the same surface with other texture is demodulated; its gradients,
+    differences across the texture, are left out unless the albedo matches too."""
+    features = _both_features(frame, other)
+    if features is None:
+        return None
+    mine, theirs = features
+    near = sample.nearest()
+    pixels = near.valid & ~on_grid & _same_normal(mine.normal, near(np.asarray(theirs.normal, np.float32)))
+    albedo, own = near(np.asarray(theirs.albedo, np.float32)), np.asarray(mine.albedo, np.float32)
+    ratio = (own + np.float32(ALBEDO_FLOOR)) / (albedo + np.float32(ALBEDO_FLOOR))
+    gradients = pixels.copy()
+    for c in range(ratio.shape[-1]):
+        pixels &= (ratio[..., c] <= TEXTURE_RATIO) & (ratio[..., c] >= 1.0 / TEXTURE_RATIO)
+        gradients &= np.abs(albedo[..., c] - own[..., c]) <= MOVED_TOLERANCE
+    ratio[~pixels] = 1.0  # elsewhere a tap is not taken (weight 0), and must stay finite
+    scale = luminance(ratio).astype(np.float32)
+    return Taken(near, pixels, gradients.astype(np.float32), ratio, scale * scale)

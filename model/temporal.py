@@ -9,9 +9,9 @@ before the per-frame method (model/reconstruct.py) runs once on the result:
    nearest one, taken whole and once (:meth:`model.warp.Sampler.nearest`): interpolated noise would be correlated
    across pixels, which OIDN keeps as detail. A tap half a pixel off is only as good as the surface it lands on,
    so it counts only where its normal matches frame t's within MOVED_TOLERANCE and its albedo is within
-   TEXTURE_RATIO of frame t's; it is demodulated (times frame t's albedo over its own), and its gradients count
-   only where the albedo matches within MOVED_TOLERANCE. Where the vectors say there is no correspondence, or the
-   position is off screen, the neighbour contributes nothing.
+   TEXTURE_RATIO of frame t's, pixel by pixel (model/rejection.py); it is demodulated (times frame t's albedo over
+   its own), and its gradients count only where the albedo matches within MOVED_TOLERANCE. Where the vectors say
+   there is no correspondence, or the position is off screen, the neighbour contributes nothing.
 2. **Reject.** Per layer and pixel, a neighbour is rejected where its luminance or its features disagree with
    frame t's by more than the noise allows (model/rejection.py).
 3. **Accumulate.** Accepted neighbours are averaged with frame t, each frame weighted by the inverse of its mean
@@ -57,8 +57,19 @@ from gradsep.model.frame import FLOAT32_MAX, Frame, Layer, Motion
 from gradsep.model.methods import LoadedModels
 from gradsep.model.policy import DEFAULT_ALPHA
 from gradsep.model.reconstruct import Reconstruction, layer_threads, reconstruct
-from gradsep.model.rejection import BOXES, REJECT_K, Stats, agrees, features_agree, frame_stats
-from gradsep.model.robust import luminance
+from gradsep.model.rejection import (
+    ALBEDO_FLOOR,
+    BOXES,
+    MOVED_TOLERANCE,
+    REJECT_K,
+    Stats,
+    Taken,
+    agrees,
+    features_agree,
+    frame_stats,
+    moved_pixels,
+    taken_pixels,
+)
 from gradsep.model.warp import Sampler, chain
 
 __all__ = ["BOXES", "DEFAULT_WINDOW", "FIRST_STAGE_RADIUS", "MOVED_TOLERANCE", "REJECT_K", "Motion",
@@ -75,18 +86,6 @@ FIRST_STAGE_RADIUS = 2
 #: tests its features by FEATURE_BOX means and the second stage blends its result. Off the grid (a camera move)
 #: the first stage takes the nearest pixel where it matches pixel by pixel, and the moved stage blends the result.
 GRID_TOLERANCE = 0.02
-#: A moved neighbour (its pixel between frame t's: a camera move) joins through its result, demodulated, where its
-#: albedo is within this of frame t's (every channel) and its normal's cosine with frame t's at least 1 minus it,
-#: pixel by pixel: a tap that mixes two surfaces, or shading that turned with the surface, is left out. Its inputs
-#: join the first stage by the nearest pixel where the normal matches so (and the albedo within TEXTURE_RATIO).
-MOVED_TOLERANCE = 0.01
-#: Added to the albedo before a moved neighbour's result is divided by its own and multiplied by frame t's, so
-#: black albedo (a light, a miss) passes the radiance through.
-ALBEDO_FLOOR = 0.02
-#: The nearest pixel of a moving camera's neighbour, taken by the first stage, may differ from frame t's pixel in
-#: albedo by up to this factor on every channel (the texture between the two positions; more is another
-#: material). Its inputs are multiplied by frame t's albedo over its own (each + ALBEDO_FLOOR).
-TEXTURE_RATIO = 1.65
 
 
 @dataclass
@@ -153,6 +152,20 @@ class _LayerSums:
         w *= var
         self.var += w
 
+    def add_taken(self, layer: Layer, take: Taken, var: np.ndarray, accept: np.ndarray, weight: float) -> None:
+        """Add a moving camera's neighbour ``layer`` by its nearest pixels (``take``) where ``accept``, demodulated:
+        multiplied by frame t's albedo over the neighbour's (past float32's largest: clipped, as the moved stage
+        clips), its variance by the square of that ratio's luminance; gradients where ``take.gradients``."""
+        if not accept.any():
+            return
+        warped = _warped(layer, take.sample)
+        for image in (warped.base, warped.dx, warped.dy):
+            if image is not None:
+                with np.errstate(over="ignore"):
+                    image *= take.ratio
+                np.clip(image, -FLOAT32_MAX, FLOAT32_MAX, out=image)
+        self.add(warped, var * take.variance_scale, accept, weight, take.sample, take.gradients)
+
     def layer(self) -> Layer:
         inverse = 1.0 / self.weight
         self.base *= inverse[..., None]
@@ -205,63 +218,6 @@ class _Agreement:
         return {o: float(np.mean(v)) if v else 0.0 for o, v in per.items()}
 
 
-def _moved_pixels(frame: Frame, other: Frame, sample: Sampler, on_grid: np.ndarray) -> np.ndarray | None:
-    """Where a neighbour's pixel lies between frame t's (valid, off the grid) and its own albedo and normal,
-    sampled there, match frame t's within MOVED_TOLERANCE; None without both features in both frames, or without
-    such a pixel. Pixel by pixel, not as FEATURE_BOX means (model/rejection.py): the moved neighbour's result is
-    blended as it is, so a tap across an edge of the texture or the geometry must not count."""
-    mine, theirs = frame.features, other.features
-    if mine is None or theirs is None or any(f is None for f in (mine.albedo, mine.normal, theirs.albedo,
-                                                                   theirs.normal)):
-        return None
-    pixels = sample.valid & ~on_grid
-    if not pixels.any():
-        return None
-    albedo = sample(np.asarray(theirs.albedo, np.float32))
-    for c in range(albedo.shape[-1]):
-        pixels &= np.abs(albedo[..., c] - mine.albedo[..., c]) <= MOVED_TOLERANCE  # type: ignore[index]
-    a, b = np.asarray(mine.normal, np.float32), sample(np.asarray(theirs.normal, np.float32))
-    dot = a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
-    norms = np.sqrt((a * a).sum(-1) * (b * b).sum(-1))
-    pixels &= dot >= (1.0 - MOVED_TOLERANCE) * norms
-    return pixels
-
-
-@dataclass
-class _Taken:
-    """A moving camera's neighbour as the first stage takes it, by its nearest pixels (:meth:`Sampler.nearest`)."""
-
-    sample: Sampler
-    pixels: np.ndarray  # off the grid, the same surface: normals within MOVED_TOLERANCE, albedo within TEXTURE_RATIO
-    gradients: np.ndarray  # of those, where the albedo itself matches within MOVED_TOLERANCE (float32 0 / 1)
-    ratio: np.ndarray  # (H, W, 3): frame t's albedo over the neighbour's, each + ALBEDO_FLOOR
-
-
-def _taken(frame: Frame, other: Frame, sample: Sampler, on_grid: np.ndarray) -> _Taken | None:
-    """Where the first stage takes a moving camera's neighbour (its positions ``sample``) by its nearest pixels:
-    valid, off the grid, with a normal that matches frame t's and an albedo within TEXTURE_RATIO of it; None without
-    both features in both frames. Pixel by pixel: the inputs are taken as they are, so a
-    tap across an edge of the geometry must not count. A pixel of the same surface with other texture is
-    demodulated; its gradients, differences across the texture, are left out unless the albedo matches too."""
-    mine, theirs = frame.features, other.features
-    if mine is None or theirs is None or any(f is None for f in (mine.albedo, mine.normal, theirs.albedo,
-                                                                   theirs.normal)):
-        return None
-    near = sample.nearest()
-    pixels = near.valid & ~on_grid
-    a, b = np.asarray(mine.normal, np.float32), near(np.asarray(theirs.normal, np.float32))
-    dot = a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
-    pixels &= dot >= (1.0 - MOVED_TOLERANCE) * np.sqrt((a * a).sum(-1) * (b * b).sum(-1))
-    albedo, own = near(np.asarray(theirs.albedo, np.float32)), np.asarray(mine.albedo, np.float32)
-    ratio = (own + np.float32(ALBEDO_FLOOR)) / (albedo + np.float32(ALBEDO_FLOOR))
-    gradients = pixels.copy()
-    for c in range(ratio.shape[-1]):
-        pixels &= (ratio[..., c] <= TEXTURE_RATIO) & (ratio[..., c] >= 1.0 / TEXTURE_RATIO)
-        gradients &= np.abs(albedo[..., c] - own[..., c]) <= MOVED_TOLERANCE
-    ratio[~pixels] = 1.0  # elsewhere a tap is not taken (weight 0), and must stay finite
-    return _Taken(near, pixels, gradients.astype(np.float32), ratio)
-
-
 def _accumulate(frames: Sequence[Frame | None], centre: int, chained: dict[int, Sampler | None],
                 warnings: list[str]) -> tuple[Frame, _Agreement]:
     """Frame t with its accepted neighbours' samples accumulated into each layer (module docstring, steps 1-3);
@@ -273,13 +229,12 @@ def _accumulate(frames: Sequence[Frame | None], centre: int, chained: dict[int, 
                            albedo=None if features is None else features.albedo)
     own = frame_stats(frame)
     agree = {o: s.on_grid(GRID_TOLERANCE) for o, s in agreement.samplers.items()}
-    moved = {o: _moved_pixels(frame, frames[centre + o], s, agree[o])  # type: ignore[arg-type]
+    moved = {o: moved_pixels(frame, frames[centre + o], s, agree[o])  # type: ignore[arg-type]
              for o, s in agreement.samplers.items()}
-    # off the grid, the inputs are taken by the nearest pixels (_taken)
-    taken = {o: _taken(frame, frames[centre + o], agreement.samplers[o], agree[o])  # type: ignore[arg-type]
+    # off the grid the inputs are taken by the nearest pixels (features present: moved_pixels said so)
+    taken = {o: taken_pixels(frame, frames[centre + o], agreement.samplers[o], agree[o])  # type: ignore[arg-type]
              for o, pixels in moved.items() if pixels is not None}
-    nearest = {o: t.sample for o, t in taken.items() if t is not None}
-    off = {o for o in nearest if moved[o].any() or taken[o].pixels.any()}  # type: ignore[union-attr]
+    off: dict[int, Taken] = {o: t for o, t in taken.items() if t is not None and (moved[o].any() or t.pixels.any())}
     # a neighbour with no pixel on the grid and none off it that agrees adds nothing: it is neither warped nor tested
     others = {o: frame_stats(frames[centre + o]) for o in agree if agree[o].any() or o in off}  # type: ignore[arg-type]
     for o, stats in others.items():
@@ -287,19 +242,16 @@ def _accumulate(frames: Sequence[Frame | None], centre: int, chained: dict[int, 
             agree[o] &= features_agree(own, stats, agreement.samplers[o])
     names = list(frame.layers)
     tested = _tested(own, {o: others[o] for o in others if agree[o].any()}, agreement.samplers, names)
-    tested_off = _tested(own, {o: others[o] for o in off}, nearest, names)  # the pixels taken whole
-    for o in off:
-        for name in names:
+    tested_off = _tested(own, {o: others[o] for o in off}, {o: t.sample for o, t in off.items()}, names)
+    for name in names:  # every layer's key, in the frame's order, before the layers run concurrently
+        agreement.accept[name] = {}
+        for o, take in off.items():
             passes = tested_off[o, name][1]
             agreement.moved.setdefault(name, {})[o] = moved[o] & passes  # type: ignore[operator]
-            agreement.taken.setdefault(name, {})[o] = taken[o].pixels & passes  # type: ignore[union-attr]
-    for name in frame.layers:  # every layer's key, in the frame's order, before the layers run concurrently
-        agreement.accept[name] = {}
-    if any(layer.dx is not None for layer in frame.layers.values()):
-        for o in others:  # computed once here, not raced for by the layers' threads
-            agreement.samplers[o].steady()
-            if o in off:
-                nearest[o].steady()
+            agreement.taken.setdefault(name, {})[o] = take.pixels & passes
+    if any(layer.dx is not None for layer in frame.layers.values()):  # once here, not raced for by the layers' threads
+        for sample in [*(agreement.samplers[o] for o in others), *(take.sample for take in off.values())]:
+            sample.steady()
 
     def accumulate(name: str) -> Layer:
         layer = frame.layers[name]
@@ -313,19 +265,10 @@ def _accumulate(frames: Sequence[Frame | None], centre: int, chained: dict[int, 
             agreement.accept[name][offset] = accept
             sums.add(_warped(frames[centre + offset].layers[name], agreement.samplers[offset]),  # type: ignore
                      var, accept, others[offset].weight[name] / own.weight[name], agreement.samplers[offset])
-        for offset in off:
-            accept, take = agreement.taken[name][offset], taken[offset]
-            if accept.any():  # demodulated: multiplied by frame t's albedo over the neighbour's
-                warped = _warped(frames[centre + offset].layers[name], take.sample)  # type: ignore[union-attr]
-                for image in (warped.base, warped.dx, warped.dy):
-                    if image is not None:  # (past float32's largest: clipped, as the moved stage clips)
-                        with np.errstate(over="ignore"):
-                            image *= take.ratio  # type: ignore[union-attr]
-                        np.clip(image, -FLOAT32_MAX, FLOAT32_MAX, out=image)
-                ratio = luminance(take.ratio).astype(np.float32)  # type: ignore[union-attr]
-                sums.add(warped, tested_off[offset, name][0] * ratio * ratio, accept,
-                         others[offset].weight[name] / own.weight[name], take.sample,
-                         take.gradients)  # type: ignore[union-attr]
+        for offset, take in off.items():
+            sums.add_taken(frames[centre + offset].layers[name], take,  # type: ignore[union-attr]
+                           tested_off[offset, name][0], agreement.taken[name][offset],
+                           others[offset].weight[name] / own.weight[name])
         return sums.layer()
 
     warnings += _variance_warnings(frames, centre, list(agree))
