@@ -1,5 +1,5 @@
-"""Compiled (numba) kernels for the IRLS inner loop of model.poisson.solve_l1, and the bilinear warp of
-model.temporal.
+"""Compiled (numba) kernels for the IRLS inner loop of model.poisson.solve_l1, the bilinear and whole-pixel warps
+of model.temporal, and model.robust's box mean.
 
 Each kernel fuses what the numpy formulation does in several full-array passes with temporaries: the weighted
 operator ``A p`` (one pass instead of many), the weighted right-hand side, the residuals together with their
@@ -8,12 +8,15 @@ new residual's inner products. The arithmetic is the same float32 (or float64) a
 so results agree with the numpy path to rounding (tests/model/test_poisson.py compares both). Single-threaded
 (see _OPTS). The multigrid preconditioner's kernels are in model/multigrid.py. :func:`bilinear` does the
 temporal warp's float32 arithmetic in the numpy path's order, so the two agree bit for bit
-(tests/model/test_temporal.py compares them).
+(tests/model/test_temporal.py compares them). :func:`box_mean` sums in float64 where scipy's ``correlate1d`` sums
+in double too, so the two agree to the last bit or two of float32 (tests/model/test_kernels.py); it runs over whole
+rows, which the compiler vectorises, where ``correlate1d`` walks each line through a buffer.
 
 ``AVAILABLE`` is False where numba cannot be imported (it is a core dependency, but a platform without its
-wheels still works): model.poisson and model.temporal then run their numpy paths. ``GRADSEP_NUMBA=0`` forces the
-numpy path too. Compiled code is cached on disk next to this file when that is writable (``cache=True``);
-otherwise each process compiles on first use (the service pays it during warm-up, the warp included).
+wheels still works): model.poisson, model.temporal and model.robust then run their numpy and scipy paths.
+``GRADSEP_NUMBA=0`` forces those paths too. Compiled code is cached on disk next to this file when that is writable
+(``cache=True``); otherwise each process compiles on first use (the service pays it during warm-up, the warp
+included).
 """
 
 from __future__ import annotations
@@ -31,8 +34,8 @@ try:  # pragma: no branch - which side runs depends on the host
 except ImportError:  # numpy fallback in model.poisson
     AVAILABLE = False
 
-__all__ = ["AVAILABLE", "bilinear", "cg_update", "compiled", "irls_weights", "residuals_and_norms",
-           "weighted_apply", "weighted_rhs"]
+__all__ = ["AVAILABLE", "bilinear", "box_mean", "cg_update", "compiled", "gather", "irls_weights",
+           "residuals_and_norms", "weighted_apply", "weighted_rhs"]
 
 
 if AVAILABLE:
@@ -207,3 +210,47 @@ if AVAILABLE:
                 v += flat[i00 + down, c] * w10
                 v += flat[i01 + down, c] * w11
                 out[p, c] = v
+
+    @compiled
+    def gather(flat, index, out):  # pragma: no cover - compiled
+        """out[p] = flat[index[p]] for an (N, C) ``flat``: np.take along the first axis, without its generic path."""
+        for p in range(index.shape[0]):
+            i = index[p]
+            for c in range(flat.shape[1]):
+                out[p, c] = flat[i, c]
+        return out
+
+    @compiled
+    def box_mean(image, size, out):  # pragma: no cover - compiled
+        """out = the ``size`` × ``size`` mean (``size`` odd) of the (H, W) ``image``, edges repeated: a direct sum of
+        ``size`` rows, then of ``size`` columns, each in float64 (a value reaches only the windows that hold it,
+        as model.robust.box_mean requires), each divided by ``size``. Rows are summed whole, so both passes run
+        over contiguous memory."""
+        height, width = image.shape
+        radius = size // 2
+        inverse = 1.0 / size
+        column = np.empty((height, width), np.float64)
+        for y in range(height):
+            row = column[y]
+            row[:] = 0.0
+            for k in range(-radius, radius + 1):
+                source = image[min(max(y + k, 0), height - 1)]
+                for x in range(width):
+                    row[x] += source[x]
+            for x in range(width):
+                row[x] *= inverse
+        padded = np.empty(width + 2 * radius, np.float64)
+        total = np.empty(width, np.float64)
+        for y in range(height):
+            row = column[y]
+            for x in range(radius):
+                padded[x] = row[0]
+                padded[width + radius + x] = row[width - 1]
+            padded[radius:radius + width] = row
+            total[:] = 0.0
+            for k in range(size):
+                for x in range(width):
+                    total[x] += padded[k + x]
+            for x in range(width):
+                out[y, x] = total[x] * inverse
+        return out

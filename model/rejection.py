@@ -151,14 +151,16 @@ def agrees(own: Stats, other: Stats, name: str, sample: Sampler, warped_var: np.
         for size in BOXES:
             (y, var), (other_y, other_var) = own.box(name, size), other.box(name, size)
             difference = other_y - y
-            accept &= difference * difference <= (REJECT_K * REJECT_K / (size * size)) * (var + other_var)
+            with np.errstate(over="ignore"):  # a difference squared past float32's largest is inf: rejected
+                accept &= difference * difference <= (REJECT_K * REJECT_K / (size * size)) * (var + other_var)
         return accept
     valid = sample.valid
     difference = np.where(valid, sample(other.y[name]) - own.y[name], np.float32(0))
     variance = np.where(valid, warped_var + own.var[name], np.float32(0))
     for size in BOXES:  # over the n valid pixels of a box: (Σ d / n)² against K² Σ (σ² + σ'²) / n²
         box = box_mean(difference, size)
-        accept &= box * box <= (REJECT_K * REJECT_K / (size * size)) * box_mean(variance, size)
+        with np.errstate(over="ignore"):  # as above
+            accept &= box * box <= (REJECT_K * REJECT_K / (size * size)) * box_mean(variance, size)
     return accept
 
 
@@ -178,7 +180,9 @@ def _same_normal(mine: np.ndarray, theirs: np.ndarray) -> np.ndarray:
     """Where two (H, W, 3) normals' cosine is at least 1 - MOVED_TOLERANCE."""
     a, b = np.asarray(mine, np.float32), theirs
     dot = a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
-    return dot >= (1.0 - MOVED_TOLERANCE) * np.sqrt((a * a).sum(-1) * (b * b).sum(-1))
+    aa = a[..., 0] * a[..., 0] + a[..., 1] * a[..., 1] + a[..., 2] * a[..., 2]  # not .sum(-1): slow on the last axis
+    bb = b[..., 0] * b[..., 0] + b[..., 1] * b[..., 1] + b[..., 2] * b[..., 2]
+    return dot >= (1.0 - MOVED_TOLERANCE) * np.sqrt(aa * bb)
 
 
 def moved_pixels(frame: Frame, other: Frame, sample: Sampler, on_grid: np.ndarray) -> np.ndarray | None:

@@ -78,10 +78,16 @@ def box_mean(image: np.ndarray, size: int) -> np.ndarray:
     """The ``size`` × ``size`` mean of an (H, W) image (edges repeated), as two direct 1-D sums. Not a running sum
     (scipy's ``uniform_filter``): once a huge value (a firefly's variance, or its squared gradient) leaves a running
     sum, the small values behind it are lost to rounding, and the rest of its row or column reads as 0. With direct
-    sums a value reaches only the windows that hold it. The image's dtype is kept."""
+    sums a value reaches only the windows that hold it. The image's dtype is kept. A 2-D float image and an odd
+    size run compiled (model.kernels.box_mean, float64 sums), anything else through scipy's ``correlate1d``."""
     from scipy.ndimage import correlate1d
 
+    from gradsep.model import kernels
+
     values = np.asarray(image)
+    if kernels.AVAILABLE and values.ndim == 2 and values.dtype in (np.float32, np.float64) and size % 2 == 1 \
+            and values.size:
+        return kernels.box_mean(np.ascontiguousarray(values), size, np.empty(values.shape, values.dtype))
     weights = np.full(size, 1.0 / size, dtype=values.dtype if values.dtype.kind == "f" else np.float64)
     return correlate1d(correlate1d(values, weights, axis=0, mode="nearest"), weights, axis=1, mode="nearest")
 

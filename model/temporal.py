@@ -70,7 +70,7 @@ from gradsep.model.rejection import (
     moved_pixels,
     taken_pixels,
 )
-from gradsep.model.warp import Sampler, chain
+from gradsep.model.warp import Sampler, chains
 
 __all__ = ["BOXES", "DEFAULT_WINDOW", "FIRST_STAGE_RADIUS", "MOVED_TOLERANCE", "REJECT_K", "Motion",
            "ShotReconstructor", "TemporalReconstruction", "check_shot", "first_stage", "moved_stage",
@@ -221,7 +221,7 @@ class _Agreement:
 def _accumulate(frames: Sequence[Frame | None], centre: int, chained: dict[int, Sampler | None],
                 warnings: list[str]) -> tuple[Frame, _Agreement]:
     """Frame t with its accepted neighbours' samples accumulated into each layer (module docstring, steps 1-3);
-    ``chained``: per offset, where that neighbour's pixels lie (:func:`model.warp.chain`)."""
+    ``chained``: per offset, where that neighbour's pixels lie (:func:`model.warp.chains`)."""
     frame = frames[centre]
     assert frame is not None
     features = frame.features
@@ -358,7 +358,7 @@ def first_stage(frames: Sequence[Frame | None], centre: int, method: str | None 
     if missing:
         warnings.append("neighbour(s) " + ", ".join(f"{o:+d}" for o in missing) + " missing: the frame was "
                         "reconstructed from the frames it has")
-    chained = {o: chain(frames, centre, o) for o in offsets} if getattr(frame, "motion", None) is not None else {}
+    chained = chains(frames, centre, offsets) if getattr(frame, "motion", None) is not None else {}
     if all(s is None for s in chained.values()):
         result = reconstruct(frame, method, alpha, models)
         return TemporalReconstruction(**{**vars(result), "warnings": [*warnings, *result.warnings]})
@@ -416,31 +416,35 @@ def moved_stage(result: TemporalReconstruction, own: TemporalReconstruction,
     offsets = [] if agreement is None else [o for o in agreement.moved_offsets() if neighbours.get(o) is not None]
     if agreement is None or not offsets:
         return result
-    layers: dict[str, np.ndarray] = {}
     reached = set(result.neighbours)
     mine = _demodulator(own)
     floors = {o: None if mine is None else _demodulator(neighbours[o]) for o in offsets}
-    for name, image in result.layers.items():
-        total = image.astype(np.float32, copy=True)
-        count = np.ones(image.shape[:2], np.float32)
+
+    def blend(name: str) -> np.ndarray:
+        total = result.layers[name].astype(np.float32, copy=True)
+        count = np.ones(total.shape[:2], np.float32)
         for offset in offsets:
             mask = agreement.moved.get(name, {}).get(offset)
             other = neighbours[offset]
             if mask is None or other is None or not mask.any() or name not in other.layers:
                 continue
             theirs = floors[offset]
-            source = other.layers[name]
+            source = np.asarray(other.layers[name], np.float32)
             if theirs is not None:  # capped: radiance near float32's largest over a black albedo
                 with np.errstate(over="ignore"):
-                    source = np.minimum(np.divide(source, theirs), FLOAT32_MAX)
-            warped = agreement.samplers[offset](np.asarray(source, np.float32))
+                    source = np.divide(source, theirs)
+                np.minimum(source, FLOAT32_MAX, out=source)
+            warped = agreement.samplers[offset](source)
             if theirs is not None:
                 warped *= mine
-            total += np.where(mask[..., None], warped, np.float32(0))  # past float32's largest: inf, clipped below
+            np.add(total, warped, out=total, where=mask[..., None])  # past float32's largest: inf, clipped below
             count += mask
             reached.add(offset)
         total /= count[..., None]
-        layers[name] = np.minimum(total, FLOAT32_MAX)
+        return np.minimum(total, FLOAT32_MAX, out=total)
+
+    names = list(result.layers)
+    layers = dict(zip(names, thread_map(blend, names, layer_threads(), "gradsep-temporal"), strict=True))
     return _blended(result, layers, reached)
 
 

@@ -114,6 +114,9 @@ class Sampler:
         shape = image.shape
         flat = np.ascontiguousarray(image).reshape(shape[0] * shape[1], -1)
         if self.integral:
+            if kernels.AVAILABLE and flat.dtype == np.float32:
+                return kernels.gather(flat, self.index, np.empty((self.index.shape[0], flat.shape[1]),
+                                                                 np.float32)).reshape(shape)
             return np.take(flat, self.index, axis=0).reshape(shape)
         if kernels.AVAILABLE and flat.dtype == np.float32:
             out = np.empty(flat.shape, np.float32)
@@ -139,22 +142,31 @@ class Sampler:
 def chain(frames: Sequence[Frame | None], centre: int, offset: int) -> Sampler | None:
     """Where frame ``centre + offset``'s pixels lie under frame ``centre``'s, by the chain of motion vectors
     between them; None when a frame of the chain is missing or has no vectors that way."""
-    direction = "backward" if offset < 0 else "forward"
-    step = -1 if offset < 0 else 1
+    return chains(frames, centre, [offset])[offset]
+
+
+def chains(frames: Sequence[Frame | None], centre: int, offsets: Sequence[int]) -> dict[int, Sampler | None]:
+    """:func:`chain` for each of ``offsets``, each direction followed once: the chain to frame t ± 2 continues the
+    chain to t ± 1 rather than starting again."""
     h, w = frames[centre].height, frames[centre].width  # type: ignore[union-attr]
     grid_r, grid_c = grid(h, w)
-    rows, cols = grid_r, grid_c
-    valid = np.ones((h, w), bool)
-    index = centre
-    for _ in range(abs(offset)):
-        frame = frames[index]
-        motion = getattr(frame, "motion", None) if frame is not None else None
-        if motion is None or getattr(motion, direction) is None or frames[index + step] is None:
-            return None
-        src_rows, src_cols, src_valid = motion.warp_source(direction)
-        sampler = Sampler(rows, cols, valid)
-        rows = rows + sampler(np.asarray(src_rows, np.float32) - grid_r)
-        cols = cols + sampler(np.asarray(src_cols, np.float32) - grid_c)
-        valid = sampler.valid & (np.rint(sampler(np.asarray(src_valid, np.float32))) > 0.5)
-        index += step
-    return Sampler(rows, cols, valid)
+    out: dict[int, Sampler | None] = {o: None for o in offsets}
+    for step in (-1, 1):
+        want = {o for o in offsets if o * step > 0}
+        direction = "backward" if step < 0 else "forward"
+        rows, cols, valid = grid_r, grid_c, np.ones((h, w), bool)
+        index = centre
+        for distance in range(1, max((abs(o) for o in want), default=0) + 1):
+            frame = frames[index]
+            motion = getattr(frame, "motion", None) if frame is not None else None
+            if motion is None or getattr(motion, direction) is None or frames[index + step] is None:
+                break  # this offset and every further one: None
+            src_rows, src_cols, src_valid = motion.warp_source(direction)
+            sampler = Sampler(rows, cols, valid)
+            rows = rows + sampler(np.asarray(src_rows, np.float32) - grid_r)
+            cols = cols + sampler(np.asarray(src_cols, np.float32) - grid_c)
+            valid = sampler.valid & (np.rint(sampler(np.asarray(src_valid, np.float32))) > 0.5)
+            index += step
+            if distance * step in want:
+                out[distance * step] = Sampler(rows, cols, valid)
+    return out
