@@ -121,12 +121,19 @@ def features_agree(centre: Stats, other: Stats, sample: Sampler) -> np.ndarray:
         for c in range(albedo.shape[-1]):  # channel by channel: a reduction over the last axis is slow
             agree &= np.abs(albedo[..., c] - centre.albedo[..., c]) <= ALBEDO_TOLERANCE
     if centre.normal is not None and other.normal is not None:
-        a, b = centre.normal, sample(other.normal)
-        dot = a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
-        aa = a[..., 0] * a[..., 0] + a[..., 1] * a[..., 1] + a[..., 2] * a[..., 2]
-        bb = b[..., 0] * b[..., 0] + b[..., 1] * b[..., 1] + b[..., 2] * b[..., 2]
-        agree &= (dot >= NORMAL_COSINE * np.sqrt(aa * bb)) | (aa * bb == 0)
+        agree &= _cosine_at_least(centre.normal, sample(other.normal), NORMAL_COSINE, zero=True)
     return agree
+
+
+def _cosine_at_least(a: np.ndarray, b: np.ndarray, cosine: float, zero: bool = False) -> np.ndarray:
+    """Where two (H, W, 3) normals' cosine is at least ``cosine`` (and, with ``zero``, where either is 0: nothing
+    to compare). Channel by channel: a reduction over the last axis is slow."""
+    dot = a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
+    aa = a[..., 0] * a[..., 0] + a[..., 1] * a[..., 1] + a[..., 2] * a[..., 2]
+    bb = b[..., 0] * b[..., 0] + b[..., 1] * b[..., 1] + b[..., 2] * b[..., 2]
+    norms = aa * bb
+    out = dot >= cosine * np.sqrt(norms)
+    return out | (norms == 0) if zero else out
 
 
 def frame_weight(var: np.ndarray) -> float:
@@ -178,11 +185,7 @@ def _both_features(frame: Frame, other: Frame) -> tuple[Any, Any] | None:
 
 def _same_normal(mine: np.ndarray, theirs: np.ndarray) -> np.ndarray:
     """Where two (H, W, 3) normals' cosine is at least 1 - MOVED_TOLERANCE."""
-    a, b = np.asarray(mine, np.float32), theirs
-    dot = a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
-    aa = a[..., 0] * a[..., 0] + a[..., 1] * a[..., 1] + a[..., 2] * a[..., 2]  # not .sum(-1): slow on the last axis
-    bb = b[..., 0] * b[..., 0] + b[..., 1] * b[..., 1] + b[..., 2] * b[..., 2]
-    return dot >= (1.0 - MOVED_TOLERANCE) * np.sqrt(aa * bb)
+    return _cosine_at_least(np.asarray(mine, np.float32), theirs, 1.0 - MOVED_TOLERANCE)
 
 
 def moved_pixels(frame: Frame, other: Frame, sample: Sampler, on_grid: np.ndarray) -> np.ndarray | None:

@@ -17,6 +17,7 @@ import math
 
 import numpy as np
 
+from gradsep.model import kernels
 from gradsep.model.frame import FLOAT32_MAX
 from gradsep.model.policy import LUMINANCE
 
@@ -81,8 +82,6 @@ def box_mean(image: np.ndarray, size: int) -> np.ndarray:
     sums a value reaches only the windows that hold it. The image's dtype is kept. A 2-D float image and an odd
     size run compiled (model.kernels.box_mean, float64 sums), anything else through scipy's ``correlate1d``."""
     from scipy.ndimage import correlate1d
-
-    from gradsep.model import kernels
 
     values = np.asarray(image)
     if kernels.AVAILABLE and values.ndim == 2 and values.dtype in (np.float32, np.float64) and size % 2 == 1 \

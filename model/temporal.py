@@ -416,13 +416,13 @@ def moved_stage(result: TemporalReconstruction, own: TemporalReconstruction,
     offsets = [] if agreement is None else [o for o in agreement.moved_offsets() if neighbours.get(o) is not None]
     if agreement is None or not offsets:
         return result
-    reached = set(result.neighbours)
     mine = _demodulator(own)
     floors = {o: None if mine is None else _demodulator(neighbours[o]) for o in offsets}
 
-    def blend(name: str) -> np.ndarray:
+    def blend(name: str) -> tuple[np.ndarray, set[int]]:
         total = result.layers[name].astype(np.float32, copy=True)
         count = np.ones(total.shape[:2], np.float32)
+        used: set[int] = set()
         for offset in offsets:
             mask = agreement.moved.get(name, {}).get(offset)
             other = neighbours[offset]
@@ -439,13 +439,14 @@ def moved_stage(result: TemporalReconstruction, own: TemporalReconstruction,
                 warped *= mine
             np.add(total, warped, out=total, where=mask[..., None])  # past float32's largest: inf, clipped below
             count += mask
-            reached.add(offset)
+            used.add(offset)
         total /= count[..., None]
-        return np.minimum(total, FLOAT32_MAX, out=total)
+        return np.minimum(total, FLOAT32_MAX, out=total), used
 
     names = list(result.layers)
-    layers = dict(zip(names, thread_map(blend, names, layer_threads(), "gradsep-temporal"), strict=True))
-    return _blended(result, layers, reached)
+    blended = thread_map(blend, names, layer_threads(), "gradsep-temporal")
+    reached = set(result.neighbours).union(*(used for _, used in blended))
+    return _blended(result, {name: image for name, (image, _) in zip(names, blended, strict=True)}, reached)
 
 
 def _blended(base: TemporalReconstruction, layers: dict[str, np.ndarray],

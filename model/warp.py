@@ -154,7 +154,8 @@ def chains(frames: Sequence[Frame | None], centre: int, offsets: Sequence[int]) 
     for step in (-1, 1):
         want = {o for o in offsets if o * step > 0}
         direction = "backward" if step < 0 else "forward"
-        rows, cols, valid = grid_r, grid_c, np.ones((h, w), bool)
+        rows, cols = grid_r, grid_c
+        sampler = Sampler(rows, cols, np.ones((h, w), bool))  # where frame t's pixels lie in the frame reached
         index = centre
         for distance in range(1, max((abs(o) for o in want), default=0) + 1):
             frame = frames[index]
@@ -162,11 +163,10 @@ def chains(frames: Sequence[Frame | None], centre: int, offsets: Sequence[int]) 
             if motion is None or getattr(motion, direction) is None or frames[index + step] is None:
                 break  # this offset and every further one: None
             src_rows, src_cols, src_valid = motion.warp_source(direction)
-            sampler = Sampler(rows, cols, valid)
             rows = rows + sampler(np.asarray(src_rows, np.float32) - grid_r)
             cols = cols + sampler(np.asarray(src_cols, np.float32) - grid_c)
-            valid = sampler.valid & (np.rint(sampler(np.asarray(src_valid, np.float32))) > 0.5)
+            sampler = Sampler(rows, cols, sampler.valid & (np.rint(sampler(np.asarray(src_valid, np.float32))) > 0.5))
             index += step
             if distance * step in want:
-                out[distance * step] = Sampler(rows, cols, valid)
+                out[distance * step] = sampler
     return out
